@@ -1,0 +1,19 @@
+# The two commands a newcomer types: `make demo` (the main job) and `make test`.
+# Both run `make setup` first, which installs everything and is a no-op when nothing changed.
+SHELL := /bin/bash
+.PHONY: setup test demo bench clean
+
+setup:
+	@bash scripts/setup.sh
+
+test: setup
+	@scripts/with_env.sh python -m pytest test -q -p no:cacheprovider
+
+demo: setup
+	@scripts/with_env.sh python -m afm_bringup.cli demo --output demo_output
+
+bench: setup
+	@scripts/with_env.sh python bench/bench_recording.py
+
+clean:
+	rm -rf build install log .venv demo_output

@@ -1,0 +1,1 @@
+"""Image reconstruction: thermal-drift compensation, blind tip estimation, landmark extraction."""

@@ -1,0 +1,1 @@
+"""Tip localization: calibrated motion model and landmark Kalman filter."""

@@ -1,0 +1,1 @@
+"""Virtual nano-hand executor: push actions with feedback and cancel."""

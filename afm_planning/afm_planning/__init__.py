@@ -1,0 +1,1 @@
+"""Landmark path planning with probability regions and push sequencing."""
