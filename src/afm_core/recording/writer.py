@@ -1,0 +1,175 @@
+"""Write ROS 2 CDR messages to an MCAP file that rosbag2, Foxglove and mcap_ros2 open.
+
+Safety rules, because a recording is often the only copy of an experiment:
+- never overwrite: the final name must not exist; data goes to `<name>.part` (created
+  exclusively) and is linked to `<name>` only when the file is complete;
+- a recording is closed (summary, statistics, indexes written) before free space runs out:
+  below `min_free_bytes` the writer finishes the file and raises RecordingError;
+- an I/O failure mid-file leaves only the `.part` file, never a broken `<name>`;
+  `afm recover` turns a `.part` into a readable recording.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
+from mcap.writer import CompressionType, Writer
+
+from afm_core.recording.definitions import full_message_definition
+from afm_core.recording.errors import RecordingError
+from afm_core.recording.qos import QosDescription, dump_profiles
+
+PART_SUFFIX = ".part"
+LIBRARY = "afm_core recorder 0.1"
+COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+def part_path(path: Path) -> Path:
+    return path.with_name(path.name + PART_SUFFIX)
+
+
+def check_output_path(path: str | os.PathLike) -> Path:
+    """Validate a new recording's name; raise RecordingError naming the problem."""
+    path = Path(path)
+    if path.suffix != ".mcap":
+        raise RecordingError(f"output {str(path)!r}: the file name must end in .mcap")
+    if path.exists():
+        raise RecordingError(f"output {str(path)!r} already exists; recordings are never overwritten")
+    if part_path(path).exists():
+        raise RecordingError(
+            f"output {str(path)!r}: an unfinished recording {part_path(path).name!r} is in the way; "
+            f"run `afm recover {part_path(path)}` or remove it")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise RecordingError(f"output {str(path)!r}: directory {str(parent)!r} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise RecordingError(f"output {str(path)!r}: directory {str(parent)!r} is not writable")
+    return path
+
+
+class RecordingWriter:
+    """Chunked, compressed, fully indexed MCAP with ros2msg schemas and cdr messages.
+
+    Usage:
+        with RecordingWriter("session.mcap") as rec:
+            ch = rec.add_channel("/afm/scan", "afm_msgs/msg/RasterScan", [QosDescription()])
+            rec.write(ch, log_time_ns, cdr_bytes)
+    """
+
+    def __init__(self, path: str | os.PathLike, *, compression: str = "zstd",
+                 chunk_size: int = 4 * 1024 * 1024, min_free_bytes: int = 64 * 1024 * 1024,
+                 free_space_check_bytes: int = 8 * 1024 * 1024):
+        if compression not in COMPRESSIONS:
+            raise RecordingError(f"compression={compression!r}: expected one of {sorted(COMPRESSIONS)}")
+        if chunk_size < 1024:
+            raise RecordingError(f"chunk_size={chunk_size}: must be at least 1024 bytes")
+        self.path = check_output_path(path)
+        self.part = part_path(self.path)
+        self.min_free_bytes = int(min_free_bytes)
+        self._check_every = int(free_space_check_bytes)
+        self._bytes_since_check = 0
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.message_count = 0
+        self.closed = False
+        self._check_free_space()
+        try:
+            self._stream = open(self.part, "xb")
+        except OSError as exc:
+            raise RecordingError(f"output {str(self.part)!r}: cannot create: {exc.strerror}") from exc
+        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
+        self._guard(lambda: self._writer.start(profile=Profile.ROS2, library=LIBRARY))
+
+    # -- channels -------------------------------------------------------------------------
+    def add_channel(self, topic: str, type_name: str, offered_qos: list[QosDescription],
+                    definition: str | None = None) -> int:
+        """Register a topic; `definition` defaults to the full .msg text from the ament index."""
+        if topic in self._channels:
+            raise RecordingError(f"topic {topic!r} is already recorded")
+        if not topic.startswith("/"):
+            raise RecordingError(f"topic {topic!r}: must be absolute (start with '/')")
+        if type_name not in self._schemas:
+            text = definition if definition is not None else full_message_definition(type_name)
+            self._schemas[type_name] = self._guard(lambda: self._writer.register_schema(
+                name=type_name, encoding=SchemaEncoding.ROS2, data=text.encode()))
+        metadata = {"offered_qos_profiles": dump_profiles(offered_qos)}
+        channel_id = self._guard(lambda: self._writer.register_channel(
+            topic=topic, message_encoding=MessageEncoding.CDR,
+            schema_id=self._schemas[type_name], metadata=metadata))
+        self._channels[topic] = channel_id
+        return channel_id
+
+    @property
+    def topics(self) -> dict[str, int]:
+        return dict(self._channels)
+
+    # -- messages -------------------------------------------------------------------------
+    def write(self, channel_id: int, log_time_ns: int, data: bytes,
+              publish_time_ns: int | None = None, sequence: int = 0) -> None:
+        if self.closed:
+            raise RecordingError(f"{self.path}: recording is closed")
+        self._guard(lambda: self._writer.add_message(
+            channel_id=channel_id, log_time=int(log_time_ns), data=data,
+            publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
+            sequence=sequence))
+        self.message_count += 1
+        self._bytes_since_check += len(data)
+        if self._bytes_since_check >= self._check_every:
+            self._bytes_since_check = 0
+            self._check_free_space(closing_on_low=True)
+
+    # -- closing --------------------------------------------------------------------------
+    def close(self) -> Path:
+        """Write the summary and indexes, then give the file its final name."""
+        if self.closed:
+            return self.path
+        self.closed = True
+        self._guard(lambda: self._writer.add_metadata(
+            "rosbag2", {"serialized_metadata": "", "ROS_DISTRO": "jazzy"}), closing=True)
+        self._guard(self._writer.finish, closing=True)
+        self._guard(self._stream.flush, closing=True)
+        self._guard(lambda: os.fsync(self._stream.fileno()), closing=True)
+        self._stream.close()
+        try:
+            os.link(self.part, self.path)  # fails rather than overwrite a file that appeared
+        except FileExistsError as exc:
+            raise RecordingError(
+                f"{self.path} appeared while recording; the recording stays at {self.part}") from exc
+        os.unlink(self.part)
+        return self.path
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if not self.closed:
+            self.close()
+
+    # -- internals ------------------------------------------------------------------------
+    def _check_free_space(self, closing_on_low: bool = False) -> None:
+        parent = self.path.parent if str(self.path.parent) else Path(".")
+        free = shutil.disk_usage(parent).free
+        if free >= self.min_free_bytes:
+            return
+        message = (f"{self.path}: only {free / 2**20:.1f} MiB free on {parent}, below "
+                   f"min_free_bytes={self.min_free_bytes / 2**20:.1f} MiB")
+        if closing_on_low:
+            self.close()
+            raise RecordingError(message + f"; recording stopped and closed with "
+                                 f"{self.message_count} messages")
+        raise RecordingError(message + "; not starting")
+
+    def _guard(self, action, closing: bool = False):
+        try:
+            return action()
+        except OSError as exc:
+            self.closed = True
+            try:
+                self._stream.close()
+            except OSError:
+                pass
+            raise RecordingError(
+                f"{self.path}: write failed ({exc.strerror or exc}); the incomplete data is in "
+                f"{self.part}; `afm recover {self.part}` saves what reached the disk") from exc
