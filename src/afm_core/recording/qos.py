@@ -10,11 +10,12 @@ from dataclasses import asdict, dataclass
 
 import yaml
 
-# rmw enum values (rmw/types.h)
-HISTORY = {"system_default": 0, "keep_last": 1, "keep_all": 2}
-RELIABILITY = {"system_default": 0, "reliable": 1, "best_effort": 2}
-DURABILITY = {"system_default": 0, "transient_local": 1, "volatile": 2}
-LIVELINESS = {"system_default": 0, "automatic": 1, "manual_by_topic": 3}
+# rmw enum values (rmw/types.h). A publisher seen through DDS discovery reports history as
+# "unknown": history is local to the writer and not sent over the wire.
+HISTORY = {"system_default": 0, "keep_last": 1, "keep_all": 2, "unknown": 3}
+RELIABILITY = {"system_default": 0, "reliable": 1, "best_effort": 2, "unknown": 3, "best_available": 4}
+DURABILITY = {"system_default": 0, "transient_local": 1, "volatile": 2, "unknown": 3, "best_available": 4}
+LIVELINESS = {"system_default": 0, "automatic": 1, "manual_by_topic": 3, "unknown": 4, "best_available": 5}
 RMW_DURATION_INFINITE_NS = 2**63 - 1
 
 

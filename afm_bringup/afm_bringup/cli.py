@@ -1,0 +1,246 @@
+"""`afm`: the project's command line (ros2cli is not on PyPI, so we bring our own).
+
+Every subcommand has --help. Lengths accept units (500nm, 1.5um) or plain metres.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from afm_bringup.launcher import GRAPH, NODES, Graph, node_command
+from afm_bringup.units import nm, parse_length
+
+
+def _length(name):
+    def convert(text):
+        try:
+            return parse_length(text, name)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from exc
+    return convert
+
+
+def _param(text):
+    if ":=" not in text:
+        raise argparse.ArgumentTypeError(f"parameter {text!r}: expected NAME:=VALUE")
+    key, value = text.split(":=", 1)
+    return key, value
+
+
+def cmd_run(args):
+    command = node_command(args.node, args.params_file, dict(args.param or []))
+    os.execv(command[0], command)
+
+
+def cmd_launch(args):
+    nodes = args.nodes.split(",") if args.nodes else GRAPH
+    unknown = [n for n in nodes if n not in NODES]
+    if unknown:
+        sys.exit(f"afm launch: --nodes {unknown}: expected names from {sorted(NODES)}")
+    graph = Graph(args.log_dir)
+    overrides: dict[str, dict[str, str]] = {}
+    for key, value in args.param or []:
+        node, _, name = key.partition(".")
+        if node not in nodes or not name:
+            sys.exit(f"afm launch: -p {key}: expected NODE.PARAMETER with NODE in {nodes}")
+        overrides.setdefault(node, {})[name] = value
+    if args.record:
+        graph.start("recorder", {"output": args.record})
+    for node in nodes:
+        graph.start(node, overrides.get(node))
+    print(f"afm launch: running {', '.join(graph.processes)}; Ctrl-C stops them", file=sys.stderr)
+    codes = graph.wait()
+    failed = {n: c for n, c in codes.items() if c not in (0, -2)}
+    return 1 if failed else 0
+
+
+def cmd_record(args):
+    overrides = {"output": args.output, "compression": args.compression}
+    if args.all:
+        overrides["all_topics"] = "true"
+    if args.topics:
+        overrides["topics"] = "[" + ",".join(f"'{t}'" for t in args.topics) + "]"
+    command = node_command("recorder", None, overrides)
+    os.execv(command[0], command)
+
+
+def cmd_replay(args):
+    overrides = {"input": args.recording, "rate": repr(float(args.rate)), "loop": str(args.loop).lower(),
+                 "publish_clock": str(not args.no_clock).lower()}
+    if args.topics:
+        overrides["topics"] = "[" + ",".join(f"'{t}'" for t in args.topics) + "]"
+    command = node_command("replay", None, overrides)
+    os.execv(command[0], command)
+
+
+def cmd_info(args):
+    from afm_core.recording import RecordingError, RecordingReader
+    try:
+        with RecordingReader(args.recording) as reader:
+            topics = reader.topics()
+            size = Path(args.recording).stat().st_size
+            print(f"file:      {args.recording} ({size / 2**20:.2f} MiB)")
+            print(f"duration:  {reader.duration_s:.3f} s")
+            print(f"messages:  {reader.message_count}")
+            print(f"topics:    {len(topics)}")
+            width = max((len(t) for t in topics), default=5)
+            for topic, info in topics.items():
+                qos = info.offered_qos[0] if info.offered_qos else None
+                qos_text = f"{qos.reliability}, {qos.durability}" if qos else "no QoS recorded"
+                print(f"  {topic:<{width}}  {info.message_count:>7}  {info.type}  [{qos_text}]")
+    except RecordingError as exc:
+        sys.exit(f"afm info: {exc}")
+    return 0
+
+
+def cmd_recover(args):
+    from afm_core.recording import RecordingError, recover_recording
+    try:
+        path, count = recover_recording(args.recording, args.output)
+    except RecordingError as exc:
+        sys.exit(f"afm recover: {exc}")
+    print(f"recovered {count} messages into {path}")
+    return 0
+
+
+def cmd_scan(args):
+    import numpy as np
+    from afm_bringup.commander import AfmCommander, AfmError
+    from afm_bringup.conversions import image_msg_to_array
+    with AfmCommander() as afm:
+        try:
+            scan = afm.scan(origin=args.origin, size=args.size, pixels=args.pixels, angle_deg=args.angle,
+                            frame_up=not args.frame_down, line_rate=args.line_rate, mode=args.mode)
+        except AfmError as exc:
+            sys.exit(f"afm scan: {exc}")
+    height = image_msg_to_array(scan.height)
+    print(f"scan {scan.scan_id}: {height.shape[1]} x {height.shape[0]} px, "
+          f"{nm(scan.size_x)} x {nm(scan.size_y)}, heights {nm(float(height.min()))} .. {nm(float(height.max()))}")
+    if args.save:
+        np.save(args.save, height)
+        print(f"saved heights (metres) to {args.save}")
+    return 0
+
+
+def cmd_push(args):
+    from afm_bringup.commander import AfmCommander, AfmError
+
+    def show(feedback):
+        est = feedback.particle_estimate
+        print(f"step {feedback.step}/{feedback.steps_total} [{feedback.phase}] particle at "
+              f"({nm(est.x)}, {nm(est.y)}), peak lateral force {feedback.peak_lateral_force * 1e9:.2f} nN")
+
+    with AfmCommander() as afm:
+        try:
+            job = afm.push(goal=args.goal, particle_id=args.particle, particle_position=args.at,
+                           strategy=args.strategy, tolerance=args.tolerance, feedback=show, wait=False)
+            try:
+                result = job.result(args.timeout)
+            except KeyboardInterrupt:
+                print("cancelling the push ...", file=sys.stderr)
+                job.cancel()
+                result = job.result(30.0)
+        except AfmError as exc:
+            sys.exit(f"afm push: {exc}")
+    print(f"{'succeeded' if result.success else 'failed'}: {result.message}; particle at "
+          f"({nm(result.achieved.x)}, {nm(result.achieved.y)}), error {nm(result.error)}")
+    return 0 if result.success else 1
+
+
+def cmd_demo(args):
+    from afm_bringup.demo import run_demo
+    return run_demo(Path(args.output))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="afm", description="Run, drive, record and replay the AFM nano-manipulation graph.",
+        epilog="Lengths accept units (500nm, 1.5um) or plain metres. Run `afm COMMAND --help` for details.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("run", help="run one node in the foreground (like `ros2 run`)",
+                       description="Run one node with its default parameter file, plus overrides.")
+    p.add_argument("node", choices=sorted(NODES))
+    p.add_argument("--params-file", help="YAML parameter file (default: the node's config/*.yaml)")
+    p.add_argument("-p", "--param", action="append", type=_param, metavar="NAME:=VALUE", help="override a parameter")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("launch", help="start the whole graph as separate processes; Ctrl-C stops all",
+                       description="Start the graph's nodes as separate processes. Ctrl-C (or any node dying) "
+                                   "stops them all, the recorder last.")
+    p.add_argument("--nodes", help=f"comma-separated subset (default: {','.join(GRAPH)})")
+    p.add_argument("--record", metavar="FILE.mcap", help="also record the default topics to this new file")
+    p.add_argument("--log-dir", help="write each node's output to DIR/NODE.log instead of the terminal")
+    p.add_argument("-p", "--param", action="append", type=_param, metavar="NODE.NAME:=VALUE",
+                   help="override a node parameter, e.g. -p driver.seed:=3")
+    p.set_defaults(func=cmd_launch)
+
+    p = sub.add_parser("record", help="record topics to a new MCAP file (Ctrl-C to finish)",
+                       description="Record topics to MCAP (ros2msg schemas, cdr messages, zstd chunks, indexed) "
+                                   "that `ros2 bag play` and Foxglove open. Never overwrites a file.")
+    p.add_argument("-o", "--output", required=True, metavar="FILE.mcap")
+    p.add_argument("topics", nargs="*", help="topics (default: scans, lines, force traces, commands, poses, "
+                                             "landmarks, goals, truth)")
+    p.add_argument("--all", action="store_true", help="record every topic that appears")
+    p.add_argument("--compression", default="zstd", choices=["zstd", "lz4", "none"])
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("replay", help="republish a recording with its original timing",
+                       description="Republish a recording with its original timing and QoS; publishes /clock "
+                                   "so nodes with use_sim_time follow the recording's time.")
+    p.add_argument("recording")
+    p.add_argument("--rate", type=float, default=1.0, help="speed factor (default 1.0)")
+    p.add_argument("--topics", nargs="+", help="only these topics")
+    p.add_argument("--loop", action="store_true", help="start over at the end")
+    p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("info", help="topics, types, counts and duration of a recording (no ROS needed)")
+    p.add_argument("recording")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("recover", help="save the complete part of an unfinished (.part) or truncated recording")
+    p.add_argument("recording")
+    p.add_argument("-o", "--output", help="new file (default: NAME.recovered.mcap)")
+    p.set_defaults(func=cmd_recover)
+
+    p = sub.add_parser("scan", help="acquire one raster image through the driver",
+                       description="Acquire a raster image through the running driver (afm launch).")
+    p.add_argument("--origin", nargs=2, required=True, type=_length("origin"), metavar=("X", "Y"))
+    p.add_argument("--size", nargs=2, required=True, type=_length("size"), metavar=("W", "H"))
+    p.add_argument("--pixels", nargs=2, type=int, default=[256, 256], metavar=("NX", "NY"))
+    p.add_argument("--angle", type=float, default=0.0, choices=[0.0, 90.0], help="scan angle (deg)")
+    p.add_argument("--frame-down", action="store_true", help="slow axis downwards")
+    p.add_argument("--line-rate", type=float, default=1.0, help="lines per second (Hz)")
+    p.add_argument("--mode", default="tapping", choices=["tapping", "contact"])
+    p.add_argument("--save", metavar="FILE.npy", help="save the height image (metres)")
+    p.set_defaults(func=cmd_scan)
+
+    p = sub.add_parser("push", help="push a particle to a goal and print feedback (Ctrl-C cancels)",
+                       description="Send a PushParticle goal to the nano-hand executor and print each step.")
+    target = p.add_mutually_exclusive_group(required=True)
+    target.add_argument("--particle", type=int, default=-1, help="landmark id of the particle")
+    target.add_argument("--at", nargs=2, type=_length("at"), metavar=("X", "Y"), help="particle position")
+    p.add_argument("--goal", nargs=2, required=True, type=_length("goal"), metavar=("X", "Y"))
+    p.add_argument("--strategy", default="nano_hand", choices=["nano_hand", "center", "rod_hand", "arc_hand"])
+    p.add_argument("--tolerance", type=_length("tolerance"), default=20e-9)
+    p.add_argument("--timeout", type=float, default=None, help="s to wait for the result")
+    p.set_defaults(func=cmd_push)
+
+    p = sub.add_parser("demo", help="the main job: run the graph end to end and write a report",
+                       description="Start the graph on the simulated instrument, do what the graph can do, "
+                                   "record to MCAP, replay, evaluate offline and write an HTML report.")
+    p.add_argument("--output", default="demo_output", help="folder for runs (each run gets a new subfolder)")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args) or 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

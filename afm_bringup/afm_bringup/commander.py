@@ -1,0 +1,152 @@
+"""A small Python API over the graph's actions, for scripts and notebooks.
+
+    from afm_bringup.commander import AfmCommander
+    with AfmCommander() as afm:
+        scan = afm.scan(origin=(4e-6, 4e-6), size=(2e-6, 2e-6), pixels=(256, 256))
+        job = afm.push(particle_id=1, goal=(5.5e-6, 5.0e-6), feedback=print, wait=False)
+        job.cancel()            # or: result = job.result(timeout=600)
+
+Everything is SI (metres, seconds). The commander spins its own node in a background
+thread, so calls block only the caller.
+"""
+from __future__ import annotations
+
+import threading
+
+import rclpy
+from rclpy.action import ActionClient
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+
+from afm_bringup import topics
+from afm_msgs.action import Assemble, Indent, LocalScan, Localize, MoveTip, PushParticle, ScanImage
+
+
+class AfmError(RuntimeError):
+    """The graph did not do what was asked; the message says what and why."""
+
+
+class Job:
+    """A sent goal: wait for its result, read its latest feedback, or cancel it."""
+
+    def __init__(self, name: str, goal_handle, feedback_box: dict):
+        self.name = name
+        self._handle = goal_handle
+        self._feedback = feedback_box
+        self._result_future = goal_handle.get_result_async()
+
+    @property
+    def feedback(self):
+        return self._feedback.get("latest")
+
+    def done(self) -> bool:
+        return self._result_future.done()
+
+    def result(self, timeout: float | None = None):
+        """The action's result message; AfmError if it did not finish in `timeout` s."""
+        event = threading.Event()
+        self._result_future.add_done_callback(lambda _f: event.set())
+        if not event.wait(timeout):
+            raise AfmError(f"{self.name}: no result after {timeout} s")
+        return self._result_future.result().result
+
+    def cancel(self, timeout: float = 10.0) -> bool:
+        """Ask the server to stop; True when it accepted the cancel."""
+        future = self._handle.cancel_goal_async()
+        event = threading.Event()
+        future.add_done_callback(lambda _f: event.set())
+        if not event.wait(timeout):
+            raise AfmError(f"{self.name}: cancel not answered within {timeout} s")
+        return len(future.result().goals_canceling) > 0
+
+
+class AfmCommander:
+    ACTIONS = {
+        "scan_image": (ScanImage, topics.ACTION_SCAN_IMAGE),
+        "local_scan": (LocalScan, topics.ACTION_LOCAL_SCAN),
+        "move_tip": (MoveTip, topics.ACTION_MOVE_TIP),
+        "indent": (Indent, topics.ACTION_INDENT),
+        "localize": (Localize, topics.ACTION_LOCALIZE),
+        "push_particle": (PushParticle, topics.ACTION_PUSH_PARTICLE),
+        "assemble": (Assemble, topics.ACTION_ASSEMBLE),
+    }
+
+    def __init__(self, node_name: str = "afm_commander", server_timeout: float = 10.0):
+        self.server_timeout = server_timeout
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = Node(node_name, context=self.context)
+        self.clients = {name: ActionClient(self.node, action_type, action_name)
+                        for name, (action_type, action_name) in self.ACTIONS.items()}
+        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
+        self.executor.add_node(self.node)
+        self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
+        self._spinner.start()
+
+    # -- plumbing --------------------------------------------------------------------------
+    def send(self, action: str, goal, feedback=None, wait: bool = True, timeout: float | None = None):
+        """Send a goal; returns the result (wait=True) or a Job."""
+        client = self.clients[action]
+        if not client.wait_for_server(timeout_sec=self.server_timeout):
+            raise AfmError(f"no action server at {self.ACTIONS[action][1]} after {self.server_timeout} s; "
+                           "is the graph running (`afm launch`)?")
+        box: dict = {}
+
+        def on_feedback(message):
+            box["latest"] = message.feedback
+            if feedback is not None:
+                feedback(message.feedback)
+
+        future = client.send_goal_async(goal, feedback_callback=on_feedback)
+        event = threading.Event()
+        future.add_done_callback(lambda _f: event.set())
+        if not event.wait(self.server_timeout):
+            raise AfmError(f"{action}: goal not acknowledged within {self.server_timeout} s")
+        handle = future.result()
+        if not handle.accepted:
+            raise AfmError(f"{action}: goal rejected by the server")
+        job = Job(action, handle, box)
+        return job.result(timeout) if wait else job
+
+    # -- the instrument --------------------------------------------------------------------
+    def scan(self, origin, size, pixels=(256, 256), angle_deg=0.0, frame_up=True, line_rate=1.0,
+             mode="tapping", pair_id="", timeout=None):
+        goal = ScanImage.Goal(size_x=float(size[0]), size_y=float(size[1]), pixels_x=int(pixels[0]),
+                              pixels_y=int(pixels[1]), scan_angle_deg=float(angle_deg),
+                              slow_scan_up=bool(frame_up), line_rate=float(line_rate), mode=mode,
+                              pair_id=pair_id)
+        goal.origin.x, goal.origin.y = float(origin[0]), float(origin[1])
+        result = self.send("scan_image", goal, timeout=timeout)
+        if not result.success:
+            raise AfmError(result.message)
+        return result.scan
+
+    def localize(self, landmark_id: int = -1, position=None, both_axes=True, timeout=None):
+        goal = Localize.Goal(landmark_id=int(landmark_id), both_axes=both_axes)
+        if position is not None:
+            goal.position.x, goal.position.y = float(position[0]), float(position[1])
+        return self.send("localize", goal, timeout=timeout)
+
+    def push(self, goal, particle_id: int = -1, particle_position=None, strategy="nano_hand",
+             tolerance=0.0, feedback=None, wait=True, timeout=None):
+        request = PushParticle.Goal(particle_id=int(particle_id), strategy=strategy, tolerance=float(tolerance))
+        request.goal.x, request.goal.y = float(goal[0]), float(goal[1])
+        if particle_position is not None:
+            request.particle_position.x, request.particle_position.y = map(float, particle_position[:2])
+        return self.send("push_particle", request, feedback=feedback, wait=wait, timeout=timeout)
+
+    # -- lifetime --------------------------------------------------------------------------
+    def close(self):
+        self.executor.shutdown()
+        self._spinner.join(timeout=5.0)
+        for client in self.clients.values():
+            client.destroy()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

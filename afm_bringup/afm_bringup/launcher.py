@@ -1,0 +1,110 @@
+"""Start graph nodes as separate processes and stop them cleanly (our `ros2 launch`)."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    module: str
+    package: str
+    params_file: str
+
+
+NODES = {
+    "driver": NodeSpec("afm_driver.driver_node", "afm_driver", "driver.yaml"),
+    "imaging": NodeSpec("afm_imaging.imaging_node", "afm_imaging", "imaging.yaml"),
+    "localizer": NodeSpec("afm_localization.localizer_node", "afm_localization", "localizer.yaml"),
+    "planner": NodeSpec("afm_planning.planner_node", "afm_planning", "planner.yaml"),
+    "nano_hand": NodeSpec("afm_manipulation.nano_hand_node", "afm_manipulation", "nano_hand.yaml"),
+    "recorder": NodeSpec("afm_bringup.recorder_node", "afm_bringup", "recorder.yaml"),
+    "replay": NodeSpec("afm_bringup.replay_node", "afm_bringup", "replay.yaml"),
+}
+GRAPH = ["driver", "imaging", "localizer", "planner", "nano_hand"]
+
+
+def default_params_file(name: str) -> Path | None:
+    from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+    spec = NODES[name]
+    try:
+        path = Path(get_package_share_directory(spec.package)) / "config" / spec.params_file
+    except PackageNotFoundError:
+        return None
+    return path if path.is_file() else None
+
+
+def node_command(name: str, params_file: str | os.PathLike | None = None,
+                 overrides: dict[str, str] | None = None) -> list[str]:
+    """The command line that runs one node (what `ros2 run` would exec)."""
+    if name not in NODES:
+        raise ValueError(f"node {name!r}: expected one of {sorted(NODES)}")
+    command = [sys.executable, "-m", NODES[name].module, "--ros-args"]
+    params_file = params_file or default_params_file(name)
+    if params_file:
+        command += ["--params-file", str(params_file)]
+    for key, value in (overrides or {}).items():
+        command += ["-p", f"{key}:={value}"]
+    return command
+
+
+class Graph:
+    """Processes of a running graph. Stops in reverse start order, so a recorder started
+    first still hears everything the others say while they shut down."""
+
+    def __init__(self, log_dir: str | os.PathLike | None = None):
+        self.processes: dict[str, subprocess.Popen] = {}
+        self.log_dir = Path(log_dir) if log_dir else None
+        if self.log_dir:
+            self.log_dir.mkdir(parents=True, exist_ok=True)
+
+    def start(self, name: str, overrides: dict[str, str] | None = None, alias: str | None = None,
+              params_file=None) -> subprocess.Popen:
+        alias = alias or name
+        if alias in self.processes:
+            raise ValueError(f"{alias} is already running")
+        output = open(self.log_dir / f"{alias}.log", "wb") if self.log_dir else None
+        self.processes[alias] = subprocess.Popen(
+            node_command(name, params_file, overrides), stdout=output, stderr=subprocess.STDOUT if output else None,
+            start_new_session=True)   # Ctrl-C in the terminal reaches us, and we stop them in order
+        return self.processes[alias]
+
+    def dead(self) -> dict[str, int]:
+        """Nodes that exited, with their exit codes."""
+        return {name: p.returncode for name, p in self.processes.items() if p.poll() is not None}
+
+    def stop(self, name: str, timeout: float = 10.0) -> int:
+        process = self.processes.pop(name)
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            if process.poll() is not None:
+                break
+            process.send_signal(sig)
+            try:
+                process.wait(wait)
+            except subprocess.TimeoutExpired:
+                print(f"afm: {name} did not stop on {signal.Signals(sig).name}", file=sys.stderr)
+        return process.returncode
+
+    def stop_all(self, timeout: float = 10.0) -> dict[str, int]:
+        return {name: self.stop(name, timeout) for name in reversed(list(self.processes))}
+
+    def wait(self, poll: float = 0.2) -> dict[str, int]:
+        """Block until any node exits or we are interrupted; then stop the rest."""
+        interrupted = []
+        previous = {sig: signal.signal(sig, lambda s, _f: interrupted.append(s))
+                    for sig in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            while not interrupted and not self.dead():
+                time.sleep(poll)
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        died = self.dead()
+        for name, code in died.items():
+            print(f"afm: {name} exited with status {code}", file=sys.stderr)
+        return {**died, **self.stop_all()}

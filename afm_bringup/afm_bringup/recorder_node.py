@@ -1,0 +1,109 @@
+"""Recorder node: raw (serialized) subscriptions written to MCAP by afm_core's writer.
+
+Topics are subscribed as their publishers appear (checked every `discovery_period`), with a
+QoS that matches all of them; each channel stores the publishers' offered QoS. SIGINT and
+SIGTERM close the file properly (summary, indexes, final name).
+"""
+from __future__ import annotations
+
+import sys
+
+from rclpy.node import Node
+
+from afm_bringup import params, topics
+from afm_bringup.node_main import run
+from afm_bringup.ros_types import describe_qos, import_message_type, subscription_qos_for
+from afm_core.recording import DefinitionNotFound, RecordingError, RecordingWriter
+
+PARAMETERS = [
+    ("output", "", "Path of the new .mcap file (required; never overwritten)."),
+    ("topics", topics.RECORDED_BY_DEFAULT, "Topics to record; subscribed when a publisher appears."),
+    ("all_topics", False, "Record every topic that appears (except /rosout and /parameter_events)."),
+    ("discovery_period", 0.5, "s between checks of the ROS graph for new publishers."),
+    ("queue_depth", 100, "Subscription queue depth per topic (messages held while the writer is busy)."),
+    ("compression", "zstd", "Chunk compression: zstd, lz4 or none."),
+    ("chunk_size", 4 * 1024 * 1024, "Bytes of messages per MCAP chunk before it is compressed and written."),
+    ("min_free_bytes", 64 * 1024 * 1024, "Stop and close the recording when the disk has less free space."),
+]
+IGNORED_WITH_ALL = {"/rosout", "/parameter_events"}
+
+
+class RecorderNode(Node):
+    def __init__(self):
+        super().__init__("afm_recorder")
+        self.config = params.declare(self, PARAMETERS)
+        if not self.config["output"]:
+            raise RecordingError("parameter output: required (path of the new .mcap file)")
+        self.writer = RecordingWriter(
+            self.config["output"], compression=self.config["compression"],
+            chunk_size=self.config["chunk_size"], min_free_bytes=self.config["min_free_bytes"])
+        self.wanted = set(self.config["topics"])
+        self.recorded_topics = {}
+        self._skipped = set()
+        self.failure: str | None = None
+        self.create_timer(self.config["discovery_period"], self.discover)
+        self.discover()
+        self.get_logger().info(f"recording {sorted(self.wanted) if not self.config['all_topics'] else 'all topics'}"
+                               f" to {self.writer.part} (final name {self.writer.path})")
+
+    def discover(self):
+        if self.config["all_topics"]:
+            self.wanted |= {name for name, _ in self.get_topic_names_and_types()} - IGNORED_WITH_ALL
+        for topic in sorted(self.wanted - set(self.recorded_topics) - self._skipped):
+            publishers = self.get_publishers_info_by_topic(topic)
+            publishers = [p for p in publishers if p.node_name != self.get_name()]
+            if not publishers:
+                continue
+            type_names = {p.topic_type for p in publishers}
+            if len(type_names) > 1:
+                self._skip(topic, f"publishers disagree on its type: {sorted(type_names)}")
+                continue
+            type_name = type_names.pop()
+            try:
+                offers = [describe_qos(p.qos_profile) for p in publishers]
+                msg_type = import_message_type(type_name)
+                channel = self.writer.add_channel(topic, type_name, offers)
+            except (DefinitionNotFound, ValueError) as exc:
+                self._skip(topic, str(exc))
+                continue
+            qos = subscription_qos_for(offers, self.config["queue_depth"])
+            self.recorded_topics[topic] = self.create_subscription(
+                msg_type, topic, self._writer_callback(channel), qos, raw=True)
+            self.get_logger().info(f"recording {topic} ({type_name}, {qos.reliability.name.lower()}, "
+                                   f"{qos.durability.name.lower()})")
+
+    def _skip(self, topic, reason):
+        self._skipped.add(topic)
+        self.get_logger().error(f"not recording {topic}: {reason}")
+
+    def _writer_callback(self, channel):
+        def write(data: bytes):
+            if self.writer.closed:
+                return
+            try:
+                self.writer.write(channel, self.get_clock().now().nanoseconds, data)
+            except RecordingError as exc:
+                self.failure = str(exc)
+                self.get_logger().error(self.failure)
+                raise SystemExit(1) from exc
+        return write
+
+    def close(self):
+        path = self.writer.close()
+        # The ROS context may already be down (SIGINT), so not through the node's logger.
+        print(f"afm recorder: closed {path}: {self.writer.message_count} messages on "
+              f"{len(self.writer.topics)} topics", file=sys.stderr)
+
+
+def close_recording(node: RecorderNode):
+    if not node.writer.closed:
+        node.close()
+
+
+def main(args=None):
+    return run(RecorderNode, "afm recorder", args, config_errors=(RecordingError,),
+               on_shutdown=close_recording)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

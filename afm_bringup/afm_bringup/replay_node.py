@@ -1,0 +1,123 @@
+"""Replay node: republish a recording with its original timing.
+
+Publishers offer the QoS the recorded publishers offered (so latched scans stay latched);
+/clock carries the recording's time for nodes running with use_sim_time. The recording is
+streamed chunk by chunk, never loaded whole.
+"""
+from __future__ import annotations
+
+import sys
+import threading
+import time
+
+import rclpy
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+
+from afm_bringup import params
+from afm_bringup.node_main import run
+from afm_bringup.ros_types import import_message_type, publisher_qos_for
+from afm_core.recording import RecordingError, RecordingReader
+
+PARAMETERS = [
+    ("input", "", "Path of the .mcap recording to replay (required)."),
+    ("rate", 1.0, "Playback speed factor (2.0 = twice as fast); must be > 0."),
+    ("topics", [""], "Topics to replay; empty = every recorded topic."),
+    ("loop", False, "Start again from the beginning after the last message."),
+    ("publish_clock", True, "Publish the recording's time on /clock (for use_sim_time)."),
+    ("clock_frequency", 100.0, "Hz of /clock messages (recording time), when publish_clock."),
+    ("start_delay", 1.0, "s to wait before the first message so subscribers can connect."),
+]
+
+
+class ReplayNode(Node):
+    def __init__(self):
+        super().__init__("afm_replay")
+        self.config = params.declare(self, PARAMETERS)
+        if not self.config["input"]:
+            raise RecordingError("parameter input: required (path of the .mcap recording)")
+        if not self.config["rate"] > 0:
+            raise RecordingError(f"parameter rate={self.config['rate']}: must be > 0")
+        if not self.config["clock_frequency"] > 0:
+            raise RecordingError(f"parameter clock_frequency={self.config['clock_frequency']}: must be > 0")
+        self.reader = RecordingReader(self.config["input"])
+        recorded = self.reader.topics()
+        selected = [t for t in self.config["topics"] if t]
+        unknown = [t for t in selected if t not in recorded]
+        if unknown:
+            raise RecordingError(f"parameter topics: {unknown} not in {self.reader.path}; "
+                                 f"recorded: {sorted(recorded)}")
+        self.publishers_by_topic = {}
+        for topic, info in recorded.items():
+            if selected and topic not in selected:
+                continue
+            try:
+                msg_type = import_message_type(info.type)
+            except ValueError as exc:
+                self.get_logger().warning(f"skipping {topic}: {exc}")
+                continue
+            self.publishers_by_topic[topic] = self.create_publisher(
+                msg_type, topic, publisher_qos_for(info.offered_qos))
+        self.clock_publisher = self.create_publisher(Clock, "/clock", 10) if self.config["publish_clock"] else None
+        self.published = 0
+        threading.Thread(target=self.play_then_stop, daemon=True).start()
+
+    def play_then_stop(self):
+        try:
+            self.play()
+        except Exception:  # noqa: BLE001 - publishing races a SIGINT shutdown
+            if rclpy.ok():
+                raise
+            return
+        time.sleep(0.5)  # let reliable subscribers take the last messages before we vanish
+        rclpy.try_shutdown()
+
+    def play(self):
+        """Publish every selected message at its recorded time (scaled by rate)."""
+        time.sleep(self.config["start_delay"])
+        rate = self.config["rate"]
+        clock_step_ns = int(1e9 / self.config["clock_frequency"])
+        topics = list(self.publishers_by_topic)
+        while rclpy.ok():
+            start_wall = time.monotonic()
+            start_rec = self.reader.start_time_ns
+            next_clock = start_rec
+            for _schema, channel, message in self.reader.raw_messages(topics):
+                while True:  # /clock ticks until this message is due
+                    due_rec = message.log_time
+                    if self.clock_publisher and next_clock < due_rec:
+                        self._sleep_until(start_wall + (next_clock - start_rec) * 1e-9 / rate)
+                        self._publish_clock(next_clock)
+                        next_clock += clock_step_ns
+                        continue
+                    break
+                self._sleep_until(start_wall + (message.log_time - start_rec) * 1e-9 / rate)
+                if not rclpy.ok():
+                    return
+                if self.clock_publisher:
+                    self._publish_clock(message.log_time)
+                self.publishers_by_topic[channel.topic].publish(message.data)
+                self.published += 1
+            if not self.config["loop"]:
+                break
+        self.get_logger().info(f"replayed {self.published} messages from {self.reader.path}")
+
+    def _publish_clock(self, t_ns):
+        msg = Clock()
+        msg.clock.sec, msg.clock.nanosec = divmod(int(t_ns), 1_000_000_000)
+        self.clock_publisher.publish(msg)
+
+    @staticmethod
+    def _sleep_until(wall):
+        delay = wall - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+
+
+def main(args=None):
+    return run(ReplayNode, "afm replay", args, config_errors=(RecordingError,),
+               on_shutdown=lambda node: node.reader.close())
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The simulated AFM instrument: sample world, tip, imaging (more physics in later work)."""
