@@ -1,0 +1,187 @@
+"""Recorder and replay nodes across processes: record -> file -> replay, values compared."""
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+from mcap_ros2.reader import read_ros2_messages
+from rclpy.qos import qos_profile_sensor_data
+from rosgraph_msgs.msg import Clock
+
+from afm_bringup.qos_profiles import LATCHED
+from afm_core.recording import RecordingReader
+from afm_msgs.msg import ForceTrace, LandmarkArray, RasterScan
+from conftest import wait_for
+from sample_messages import force_trace, landmarks, raster_scan
+
+TOPICS = "['/afm/scan','/afm/force_trace','/afm/landmarks']"
+
+
+def publish_session(node, n_traces=20, period=0.02):
+    """Latched scan + landmarks published before the recorder subscribes, then a stream."""
+    scan_pub = node.create_publisher(RasterScan, "/afm/scan", LATCHED)
+    marks_pub = node.create_publisher(LandmarkArray, "/afm/landmarks", LATCHED)
+    trace_pub = node.create_publisher(ForceTrace, "/afm/force_trace", 10)
+    scan_pub.publish(raster_scan(7))
+    marks_pub.publish(landmarks(2))
+    return scan_pub, marks_pub, trace_pub
+
+
+def test_record_then_replay_round_trip(tmp_path, nodes, ros_node):
+    path = tmp_path / "session.mcap"
+    scan_pub, marks_pub, trace_pub = publish_session(ros_node)
+    recorder = nodes("recorder", output=path, topics=TOPICS, discovery_period=0.1)
+    wait_for(lambda: trace_pub.get_subscription_count() > 0 and scan_pub.get_subscription_count() > 0,
+             15, what="recorder subscriptions")
+    sent = [force_trace(i) for i in range(20)]
+    for msg in sent:
+        trace_pub.publish(msg)
+        time.sleep(0.02)
+    time.sleep(0.5)
+    code, output = recorder.stop(signal.SIGINT)
+    assert code == 0, output
+    assert path.exists() and not (tmp_path / "session.mcap.part").exists()
+
+    # the independent decoder sees exactly what was published, latched messages included
+    recorded = {"/afm/scan": [], "/afm/force_trace": [], "/afm/landmarks": []}
+    log_times = []
+    for item in read_ros2_messages(str(path)):
+        recorded[item.channel.topic].append(item.ros_msg)
+        if item.channel.topic == "/afm/force_trace":
+            log_times.append(item.log_time_ns)
+    assert [m.object_id for m in recorded["/afm/force_trace"]] == list(range(20))
+    np.testing.assert_array_equal(recorded["/afm/force_trace"][5].vertical_deflection, sent[5].vertical_deflection)
+    assert bytes(recorded["/afm/scan"][0].height.data) == bytes(raster_scan(7).height.data)
+    assert [lm.id for lm in recorded["/afm/landmarks"][0].landmarks] == [20, 21, 22]
+    gaps = np.diff(log_times) * 1e-9
+    assert 0.01 < np.median(gaps) < 0.2   # the publisher's 20 ms pacing is what was recorded
+
+    # replay into this process: same values, latched QoS kept, original pacing, /clock
+    for publisher in (scan_pub, marks_pub, trace_pub):
+        ros_node.destroy_publisher(publisher)
+    wait_for(lambda: not ros_node.get_publishers_info_by_topic("/afm/scan"), 5, what="test publishers gone")
+    received = {"scan": [], "trace": [], "clock": []}
+    lock = threading.Lock()
+
+    def keep(key):
+        def callback(msg):
+            with lock:
+                received[key].append((time.monotonic(), msg))
+        return callback
+
+    ros_node.create_subscription(RasterScan, "/afm/scan", keep("scan"), LATCHED)
+    ros_node.create_subscription(ForceTrace, "/afm/force_trace", keep("trace"), 50)
+    ros_node.create_subscription(Clock, "/clock", keep("clock"), 50)
+    replay = nodes("replay", input=path, rate=1.0, start_delay=1.5)
+    code, output = replay.wait(60)
+    assert code == 0, output
+    wait_for(lambda: len(received["trace"]) == 20, 5, what="20 replayed traces")
+    assert [m.object_id for _, m in received["trace"]] == list(range(20))
+    np.testing.assert_array_equal(received["trace"][13][1].lateral_torsion, sent[13].lateral_torsion)
+    assert len(received["scan"]) == 1 and received["scan"][0][1].pair_id == raster_scan(7).pair_id
+    replay_gaps = np.diff([t for t, _ in received["trace"]])
+    assert abs(np.sum(replay_gaps) - np.sum(gaps)) < 0.25 * np.sum(gaps) + 0.05
+    clock_ns = [m.clock.sec * 10**9 + m.clock.nanosec for _, m in received["clock"]]
+    with RecordingReader(path) as reader:
+        assert reader.start_time_ns <= min(clock_ns) and max(clock_ns) <= reader.end_time_ns
+    assert np.all(np.diff(clock_ns) >= 0)
+
+
+def test_replay_rate_and_topic_filter(tmp_path, nodes, ros_node):
+    from afm_core.recording import QosDescription, RecordingWriter
+    from sample_messages import cdr
+    path = tmp_path / "paced.mcap"
+    with RecordingWriter(path) as rec:
+        trace = rec.add_channel("/afm/force_trace", "afm_msgs/msg/ForceTrace", [QosDescription()])
+        scan = rec.add_channel("/afm/scan", "afm_msgs/msg/RasterScan", [QosDescription()])
+        for i in range(11):   # 2 s of recording
+            rec.write(trace, 10**9 + i * 2 * 10**8, cdr(force_trace(i)))
+        rec.write(scan, 10**9, cdr(raster_scan(0)))
+    arrivals, scans = [], []
+    ros_node.create_subscription(ForceTrace, "/afm/force_trace", lambda m: arrivals.append(time.monotonic()), 50)
+    ros_node.create_subscription(RasterScan, "/afm/scan", scans.append, 50)
+    code, output = nodes("replay", input=path, rate=4.0, topics="['/afm/force_trace']",
+                         start_delay=1.5).wait(60)
+    assert code == 0, output
+    wait_for(lambda: len(arrivals) == 11, 5, what="11 traces")
+    assert 0.35 < arrivals[-1] - arrivals[0] < 0.8     # 2 s at 4x = 0.5 s
+    assert scans == []
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signalled_recorder_leaves_a_readable_file(tmp_path, nodes, ros_node, sig):
+    path = tmp_path / "killed.mcap"
+    trace_pub = ros_node.create_publisher(ForceTrace, "/afm/force_trace", qos_profile_sensor_data)
+    recorder = nodes("recorder", output=path, topics="['/afm/force_trace']", discovery_period=0.1)
+    wait_for(lambda: trace_pub.get_subscription_count() > 0, 15, what="recorder subscription")
+    stop_publishing = threading.Event()
+
+    def stream():
+        i = 0
+        while not stop_publishing.is_set():
+            trace_pub.publish(force_trace(i % 50))
+            i += 1
+            time.sleep(0.005)
+    publisher = threading.Thread(target=stream)
+    publisher.start()
+    time.sleep(1.0)
+    code, output = recorder.stop(sig)   # mid-stream
+    stop_publishing.set()
+    publisher.join()
+    assert code == 0, output
+    with RecordingReader(path) as reader:
+        assert reader.topics()["/afm/force_trace"].message_count > 20
+        assert reader.topics()["/afm/force_trace"].offered_qos[0].reliability == "best_effort"
+
+
+def test_hard_killed_recorder_is_recoverable(tmp_path, nodes, ros_node):
+    from afm_core.recording import recover_recording
+    path = tmp_path / "crash.mcap"
+    trace_pub = ros_node.create_publisher(ForceTrace, "/afm/force_trace", 10)
+    recorder = nodes("recorder", output=path, topics="['/afm/force_trace']", discovery_period=0.1,
+                     chunk_size=16384)
+    wait_for(lambda: trace_pub.get_subscription_count() > 0, 15, what="recorder subscription")
+    for i in range(200):
+        trace_pub.publish(force_trace(i))
+        time.sleep(0.002)
+    time.sleep(0.5)
+    recorder.stop(signal.SIGKILL)
+    assert not path.exists()
+    recovered, count = recover_recording(tmp_path / "crash.mcap.part")
+    assert count > 100   # every chunk that reached the disk
+    with RecordingReader(recovered) as reader:
+        ids = reader.arrays("/afm/force_trace")["object_id"]
+    np.testing.assert_array_equal(ids, np.arange(count))
+
+
+@pytest.mark.parametrize("overrides, complaint", [
+    ({}, "parameter output: required"),
+    ({"output": "EXISTING"}, "already exists; recordings are never overwritten"),
+    ({"output": "x.bag"}, "must end in .mcap"),
+    ({"output": "/nonexistent_dir/x.mcap"}, "directory '/nonexistent_dir' does not exist"),
+    ({"output": "OK", "compression": "gzip"}, "compression='gzip'"),
+])
+def test_bad_recorder_arguments_are_rejected_clearly(tmp_path, nodes, overrides, complaint):
+    existing = tmp_path / "existing.mcap"
+    existing.write_bytes(b"keep me")
+    replace = {"EXISTING": str(existing), "OK": str(tmp_path / "ok.mcap")}
+    overrides = {k: replace.get(v, v) for k, v in overrides.items()}
+    code, output = nodes("recorder", **overrides).wait(30)
+    assert code == 2 and complaint in output, output
+    assert existing.read_bytes() == b"keep me"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["existing.mcap"]
+
+
+@pytest.mark.parametrize("overrides, complaint", [
+    ({"input": "/nonexistent.mcap"}, "does not exist"),
+    ({"input": "FILE", "rate": "0.0"}, "parameter rate=0.0: must be > 0"),
+    ({"input": "FILE", "topics": "['/afm/nothing']"}, "['/afm/nothing'] not in"),
+])
+def test_bad_replay_arguments_are_rejected_clearly(tmp_path, nodes, overrides, complaint):
+    path = tmp_path / "s.mcap"
+    from test_recording_files import write_session
+    write_session(path, n=1)
+    overrides = {k: (str(path) if v == "FILE" else v) for k, v in overrides.items()}
+    code, output = nodes("replay", **overrides).wait(30)
+    assert code == 2 and complaint in output, output
