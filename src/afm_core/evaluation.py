@@ -1,0 +1,68 @@
+"""Offline evaluation of recorded sessions (no ROS): what the images show against truth."""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+
+@dataclass
+class ParticleView:
+    """One particle as a raster image shows it."""
+    x: float                # m, centroid in the scanner frame
+    y: float
+    height: float           # m, peak height above the substrate level
+    apparent_radius: float  # m, radius of the disk with the area above half height
+
+
+def substrate_level(height: np.ndarray) -> float:
+    """The median is the substrate when particles cover less than half the image."""
+    return float(np.median(height))
+
+
+def find_particles(height: np.ndarray, pixel_size_x: float, pixel_size_y: float, origin_x: float,
+                   origin_y: float, min_height: float = 20e-9) -> list[ParticleView]:
+    """Particles as connected regions above half their own peak height."""
+    level = substrate_level(height)
+    relief = height - level
+    labels, count = ndimage.label(relief > min_height)
+    views = []
+    for index in range(1, count + 1):
+        region = labels == index
+        peak = float(relief[region].max())
+        half = region & (relief > peak / 2)
+        rows, cols = np.nonzero(half)
+        area = half.sum() * pixel_size_x * pixel_size_y
+        views.append(ParticleView(x=origin_x + (cols.mean() + 0.5) * pixel_size_x,
+                                  y=origin_y + (rows.mean() + 0.5) * pixel_size_y,
+                                  height=peak, apparent_radius=float(np.sqrt(area / np.pi))))
+    return views
+
+
+def match_to_truth(found: list[ParticleView], truth_xy: np.ndarray, max_distance: float) -> list[tuple]:
+    """Pair each true particle with the nearest found one within max_distance: (truth index, view, distance)."""
+    pairs = []
+    for i, (tx, ty) in enumerate(np.asarray(truth_xy).reshape(-1, 2)):
+        if not found:
+            break
+        distances = [np.hypot(v.x - tx, v.y - ty) for v in found]
+        best = int(np.argmin(distances))
+        if distances[best] <= max_distance:
+            pairs.append((i, found[best], distances[best]))
+    return pairs
+
+
+def compare_payloads(messages_a, messages_b) -> dict:
+    """Two streams of (topic, bytes): per topic, counts and whether the payloads are identical
+    in order. Keeps digests, not payloads, so recordings of any size stream through."""
+    def by_topic(stream):
+        out: dict[str, list[bytes]] = {}
+        for topic, data in stream:
+            out.setdefault(topic, []).append(hashlib.sha256(data).digest())
+        return out
+    a, b = by_topic(messages_a), by_topic(messages_b)
+    return {topic: {"count_a": len(a.get(topic, [])), "count_b": len(b.get(topic, [])),
+                    "identical": a.get(topic) == b.get(topic)}
+            for topic in sorted(set(a) | set(b))}
