@@ -2,6 +2,7 @@
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -39,14 +40,17 @@ def test_launch_records_and_stops_cleanly(tmp_path):
     record = tmp_path / "graph.mcap"
     launch = subprocess.Popen(AFM + ["launch", "--record", str(record), "--log-dir", str(tmp_path / "logs")],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    lines = []
+    threading.Thread(target=lambda: lines.extend(launch.stdout), daemon=True).start()
+    wait_for(lambda: any(b"afm launch: ready" in line for line in lines), 60, what="launch ready")
     with AfmCommander(server_timeout=20.0) as afm:
         afm.scan(origin=(4.5e-6, 4.5e-6), size=(1e-6, 1e-6), pixels=(32, 32))
     time.sleep(1.0)
     logs = sorted(p.name for p in (tmp_path / "logs").iterdir())
     assert logs == ["driver.log", "imaging.log", "localizer.log", "nano_hand.log", "planner.log", "recorder.log"]
     launch.send_signal(signal.SIGINT)
-    output, _ = launch.communicate(timeout=60)
-    assert launch.returncode == 0, output.decode()
+    launch.wait(timeout=60)
+    assert launch.returncode == 0, b"".join(lines).decode()
     with RecordingReader(record) as reader:
         topics = reader.topics()
     assert topics["/afm/scan"].message_count == 1

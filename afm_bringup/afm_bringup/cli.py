@@ -50,10 +50,28 @@ def cmd_launch(args):
         graph.start("recorder", {"output": args.record})
     for node in nodes:
         graph.start(node, overrides.get(node))
-    print(f"afm launch: running {', '.join(graph.processes)}; Ctrl-C stops them", file=sys.stderr)
+    if args.record:
+        wait_for_recorder(graph)
+    print(f"afm launch: ready: {', '.join(graph.processes)}; Ctrl-C stops them", file=sys.stderr)
     codes = graph.wait()
     failed = {n: c for n, c in codes.items() if c not in (0, -2)}
     return 1 if failed else 0
+
+
+def wait_for_recorder(graph):
+    """Tell the user 'ready' only once the recorder hears every topic that has a publisher."""
+    import time
+
+    from afm_bringup import topics
+    from afm_bringup.commander import AfmCommander, AfmError
+    with AfmCommander("afm_launch_probe") as probe:
+        time.sleep(1.0)   # let the nodes create their publishers
+        try:
+            probe.wait_until_recorded(topics.RECORDED_BY_DEFAULT, timeout=20.0)
+        except AfmError as exc:
+            print(f"afm launch: warning: {exc}", file=sys.stderr)
+        if graph.dead():
+            print(f"afm launch: nodes exited during start-up: {graph.dead()}", file=sys.stderr)
 
 
 def cmd_record(args):

@@ -109,6 +109,23 @@ class AfmCommander:
         job = Job(action, handle, box)
         return job.result(timeout) if wait else job
 
+    def wait_until_recorded(self, topics_to_check, recorder_node: str = "afm_recorder",
+                            timeout: float = 15.0) -> None:
+        """Block until the recorder subscribes to every listed topic that has a publisher,
+        so nothing this script triggers next goes unrecorded."""
+        import time
+        deadline = time.monotonic() + timeout
+        missing = list(topics_to_check)
+        while time.monotonic() < deadline:
+            missing = [t for t in topics_to_check
+                       if any(p.node_name != recorder_node for p in self.node.get_publishers_info_by_topic(t))
+                       and not any(s.node_name == recorder_node
+                                   for s in self.node.get_subscriptions_info_by_topic(t))]
+            if not missing:
+                return
+            time.sleep(0.1)
+        raise AfmError(f"recorder {recorder_node!r} did not subscribe to {missing} within {timeout} s")
+
     # -- the instrument --------------------------------------------------------------------
     def scan(self, origin, size, pixels=(256, 256), angle_deg=0.0, frame_up=True, line_rate=1.0,
              mode="tapping", pair_id="", timeout=None):

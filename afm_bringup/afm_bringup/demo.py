@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_bringup import topics
 from afm_bringup.commander import AfmCommander
 from afm_bringup.launcher import GRAPH, Graph
 from afm_bringup.units import nm
@@ -67,6 +68,8 @@ def acquire(run_dir: Path, log) -> tuple[dict, dict]:
     memory = {}
     try:
         with AfmCommander(server_timeout=60.0) as afm:
+            afm.clients["scan_image"].wait_for_server(timeout_sec=60.0)
+            afm.wait_until_recorded([topics.SCAN, topics.TIP_COMMAND, topics.GROUND_TRUTH])
             for angle, frame_up, pair in ((0.0, True, "pair-0-90"), (90.0, True, "pair-0-90"),
                                           (0.0, False, "pair-up-down")):
                 scan = afm.scan(SCAN_ORIGIN, SCAN_SIZE, SCAN_PIXELS, angle_deg=angle, frame_up=frame_up,
