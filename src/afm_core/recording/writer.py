@@ -138,6 +138,7 @@ class RecordingWriter:
             raise RecordingError(
                 f"{self.path} appeared while recording; the recording stays at {self.part}") from exc
         os.unlink(self.part)
+        self._fsync_directory()   # the new name, and the .part's removal, survive a power cut
         return self.path
 
     def __enter__(self):
@@ -148,6 +149,13 @@ class RecordingWriter:
             self.close()
 
     # -- internals ------------------------------------------------------------------------
+    def _fsync_directory(self) -> None:
+        fd = os.open(self.path.parent if str(self.path.parent) else ".", os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
     def _check_free_space(self, closing_on_low: bool = False) -> None:
         parent = self.path.parent if str(self.path.parent) else Path(".")
         free = shutil.disk_usage(parent).free
