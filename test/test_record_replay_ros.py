@@ -138,9 +138,11 @@ def test_signalled_recorder_leaves_a_readable_file(tmp_path, nodes, ros_node, si
 def test_hard_killed_recorder_is_recoverable(tmp_path, nodes, ros_node):
     from afm_core.recording import recover_recording
     path = tmp_path / "crash.mcap"
-    trace_pub = ros_node.create_publisher(ForceTrace, "/afm/force_trace", 10)
+    # deep reliable queues on both sides: DDS delivers all 200 in order even if the
+    # recorder stalls, so what reached the disk is exactly a prefix of what was sent
+    trace_pub = ros_node.create_publisher(ForceTrace, "/afm/force_trace", 1000)
     recorder = nodes("recorder", output=path, topics="['/afm/force_trace']", discovery_period=0.1,
-                     chunk_size=16384)
+                     chunk_size=16384, queue_depth=1000)
     wait_for(lambda: trace_pub.get_subscription_count() > 0, 15, what="recorder subscription")
     for i in range(200):
         trace_pub.publish(force_trace(i))
@@ -185,3 +187,20 @@ def test_bad_replay_arguments_are_rejected_clearly(tmp_path, nodes, overrides, c
     overrides = {k: (str(path) if v == "FILE" else v) for k, v in overrides.items()}
     code, output = nodes("replay", **overrides).wait(30)
     assert code == 2 and complaint in output, output
+
+
+def test_replay_loops_until_stopped(tmp_path, nodes, ros_node):
+    from afm_core.recording import QosDescription, RecordingWriter
+    from sample_messages import cdr
+    path = tmp_path / "three.mcap"
+    with RecordingWriter(path) as rec:
+        trace = rec.add_channel("/afm/force_trace", "afm_msgs/msg/ForceTrace", [QosDescription()])
+        for i in range(3):
+            rec.write(trace, 10**9 + i * 10**8, cdr(force_trace(i)))
+    ids = []
+    ros_node.create_subscription(ForceTrace, "/afm/force_trace", lambda m: ids.append(m.object_id), 50)
+    replay = nodes("replay", input=path, rate=2.0, loop="true", start_delay=1.5)
+    wait_for(lambda: len(ids) >= 9, 20, what="three passes of the recording")
+    code, output = replay.stop(signal.SIGINT)
+    assert code == 0, output
+    assert ids[:9] == [0, 1, 2] * 3
