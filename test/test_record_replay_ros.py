@@ -61,7 +61,7 @@ def test_record_then_replay_round_trip(tmp_path, nodes, ros_node):
     for publisher in (scan_pub, marks_pub, trace_pub):
         ros_node.destroy_publisher(publisher)
     wait_for(lambda: not ros_node.get_publishers_info_by_topic("/afm/scan"), 5, what="test publishers gone")
-    received = {"scan": [], "trace": [], "clock": []}
+    received = {"scan": [], "trace": [], "clock": [], "landmarks": []}
     lock = threading.Lock()
 
     def keep(key):
@@ -73,13 +73,15 @@ def test_record_then_replay_round_trip(tmp_path, nodes, ros_node):
     ros_node.create_subscription(RasterScan, "/afm/scan", keep("scan"), LATCHED)
     ros_node.create_subscription(ForceTrace, "/afm/force_trace", keep("trace"), 50)
     ros_node.create_subscription(Clock, "/clock", keep("clock"), 50)
-    replay = nodes("replay", input=path, rate=1.0, start_delay=1.5)
+    ros_node.create_subscription(LandmarkArray, "/afm/landmarks", keep("landmarks"), LATCHED)
+    replay = nodes("replay", input=path, rate=1.0, start_delay=0.2, wait_for_subscribers=1)
     code, output = replay.wait(60)
     assert code == 0, output
     wait_for(lambda: len(received["trace"]) == 20, 5, what="20 replayed traces")
     assert [m.object_id for _, m in received["trace"]] == list(range(20))
     np.testing.assert_array_equal(received["trace"][13][1].lateral_torsion, sent[13].lateral_torsion)
     assert len(received["scan"]) == 1 and received["scan"][0][1].pair_id == raster_scan(7).pair_id
+    assert received["landmarks"][0][1] == landmarks(2)
     replay_gaps = np.diff([t for t, _ in received["trace"]])
     assert abs(np.sum(replay_gaps) - np.sum(gaps)) < 0.25 * np.sum(gaps) + 0.05
     clock_ns = [m.clock.sec * 10**9 + m.clock.nanosec for _, m in received["clock"]]
@@ -102,7 +104,7 @@ def test_replay_rate_and_topic_filter(tmp_path, nodes, ros_node):
     ros_node.create_subscription(ForceTrace, "/afm/force_trace", lambda m: arrivals.append(time.monotonic()), 50)
     ros_node.create_subscription(RasterScan, "/afm/scan", scans.append, 50)
     code, output = nodes("replay", input=path, rate=4.0, topics="['/afm/force_trace']",
-                         start_delay=1.5).wait(60)
+                         start_delay=0.2, wait_for_subscribers=1).wait(60)
     assert code == 0, output
     wait_for(lambda: len(arrivals) == 11, 5, what="11 traces")
     assert 0.35 < arrivals[-1] - arrivals[0] < 0.8     # 2 s at 4x = 0.5 s
@@ -175,6 +177,15 @@ def test_bad_recorder_arguments_are_rejected_clearly(tmp_path, nodes, overrides,
     assert sorted(p.name for p in tmp_path.iterdir()) == ["existing.mcap"]
 
 
+def test_replay_gives_up_when_nobody_listens(tmp_path, nodes):
+    from test_recording_files import write_session
+    path = tmp_path / "s.mcap"
+    write_session(path, n=1)
+    code, output = nodes("replay", input=path, wait_for_subscribers=1, wait_timeout=1.0,
+                         topics="['/afm/landmarks']").wait(30)
+    assert code == 1 and "wait_for_subscribers=1" in output and "/afm/landmarks" in output, output
+
+
 @pytest.mark.parametrize("overrides, complaint", [
     ({"input": "/nonexistent.mcap"}, "does not exist"),
     ({"input": "FILE", "rate": "0.0"}, "parameter rate=0.0: must be > 0"),
@@ -199,7 +210,7 @@ def test_replay_loops_until_stopped(tmp_path, nodes, ros_node):
             rec.write(trace, 10**9 + i * 10**8, cdr(force_trace(i)))
     ids = []
     ros_node.create_subscription(ForceTrace, "/afm/force_trace", lambda m: ids.append(m.object_id), 50)
-    replay = nodes("replay", input=path, rate=2.0, loop="true", start_delay=1.5)
+    replay = nodes("replay", input=path, rate=2.0, loop="true", start_delay=0.2, wait_for_subscribers=1)
     wait_for(lambda: len(ids) >= 9, 20, what="three passes of the recording")
     code, output = replay.stop(signal.SIGINT)
     assert code == 0, output

@@ -90,9 +90,9 @@ def replay_into_new_recording(run_dir: Path, log) -> dict:
     graph = Graph(run_dir / "logs")
     graph.start("recorder", {"output": str(run_dir / "replayed.mcap"), "all_topics": "true",
                              "discovery_period": "0.1"}, alias="replay_recorder")
-    time.sleep(1.5)
     replay = graph.start("replay", {"input": str(run_dir / "session.mcap"), "rate": "4.0",
-                                    "start_delay": "2.0", "publish_clock": "false"})
+                                    "wait_for_subscribers": "1", "start_delay": "0.2",
+                                    "publish_clock": "false"})
     replay.wait(timeout=300)
     time.sleep(1.0)
     codes = graph.stop_all()

@@ -27,6 +27,9 @@ PARAMETERS = [
     ("publish_clock", True, "Publish the recording's time on /clock (for use_sim_time)."),
     ("clock_frequency", 100.0, "Hz of /clock messages (recording time), when publish_clock."),
     ("start_delay", 1.0, "s to wait before the first message so subscribers can connect."),
+    ("wait_for_subscribers", 0, "Before playing, wait until every replayed topic has at least this many "
+                                "subscribers (0: do not wait); an evaluation pipeline then misses nothing."),
+    ("wait_timeout", 30.0, "s to wait for those subscribers before giving up with an error."),
 ]
 
 
@@ -60,17 +63,36 @@ class ReplayNode(Node):
                 msg_type, topic, publisher_qos_for(info.offered_qos))
         self.clock_publisher = self.create_publisher(Clock, "/clock", 10) if self.config["publish_clock"] else None
         self.published = 0
+        self.failure: str | None = None
         threading.Thread(target=self.play_then_stop, daemon=True).start()
 
     def play_then_stop(self):
         try:
+            self.wait_for_subscribers()
             self.play()
+        except TimeoutError as exc:
+            self.failure = str(exc)
+            rclpy.try_shutdown()
+            return
         except Exception:  # noqa: BLE001 - publishing races a SIGINT shutdown
             if rclpy.ok():
                 raise
             return
         time.sleep(0.5)  # let reliable subscribers take the last messages before we vanish
         rclpy.try_shutdown()
+
+    def wait_for_subscribers(self):
+        wanted = self.config["wait_for_subscribers"]
+        deadline = time.monotonic() + self.config["wait_timeout"]
+        while wanted > 0 and rclpy.ok():
+            short = {t: p.get_subscription_count() for t, p in self.publishers_by_topic.items()
+                     if p.get_subscription_count() < wanted}
+            if not short:
+                return
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"parameter wait_for_subscribers={wanted}: after "
+                                   f"{self.config['wait_timeout']} s these topics have fewer: {short}")
+            time.sleep(0.05)
 
     def play(self):
         """Publish every selected message at its recorded time (scaled by rate)."""
@@ -114,9 +136,14 @@ class ReplayNode(Node):
             time.sleep(delay)
 
 
+def finish(node: ReplayNode):
+    node.reader.close()
+    if node.failure:
+        raise RuntimeError(node.failure)
+
+
 def main(args=None):
-    return run(ReplayNode, "afm replay", args, config_errors=(RecordingError,),
-               on_shutdown=lambda node: node.reader.close())
+    return run(ReplayNode, "afm replay", args, config_errors=(RecordingError,), on_shutdown=finish)
 
 
 if __name__ == "__main__":
