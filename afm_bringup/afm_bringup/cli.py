@@ -86,7 +86,8 @@ def cmd_record(args):
 
 def cmd_replay(args):
     overrides = {"input": args.recording, "rate": repr(float(args.rate)), "loop": str(args.loop).lower(),
-                 "publish_clock": str(not args.no_clock).lower()}
+                 "publish_clock": str(not args.no_clock).lower(),
+                 "wait_for_subscribers": str(args.wait_for_subscribers)}
     if args.topics:
         overrides["topics"] = "[" + ",".join(f"'{t}'" for t in args.topics) + "]"
     command = node_command("replay", None, overrides)
@@ -213,6 +214,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--topics", nargs="+", help="only these topics")
     p.add_argument("--loop", action="store_true", help="start over at the end")
     p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
+    p.add_argument("--wait-for-subscribers", type=int, default=0, metavar="N",
+                   help="start only when every replayed topic has N subscribers (default 0: do not wait)")
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("info", help="topics, types, counts and duration of a recording (no ROS needed)")
