@@ -14,6 +14,7 @@ demo: setup
 
 bench: setup
 	@scripts/with_env.sh python bench/bench_recording.py
+	@scripts/with_env.sh python bench/bench_simulator.py
 
 clean:
 	rm -rf build install log .venv demo_output

@@ -11,7 +11,8 @@ def test_demo_runs_end_to_end_and_reports(tmp_path):
     summary = json.loads((run / "summary.json").read_text())
     assert summary["topics"]["/afm/scan"] == 3
     assert all(v["identical"] and v["count_a"] == v["count_b"] for v in summary["replay"].values())
-    # every true particle is seen where the simulator put it (no drift modelled yet)
+    # every true particle is seen, near where the simulator put it but not exactly there:
+    # the simulated instrument misplaces the tip as a real one does
     for view in summary["scans"]:
         assert view["matched"] == len(summary["truth_xy"])
-        assert view["centre_error_rms"] < 5e-9
+        assert 2e-9 < view["centre_error_rms"] < 300e-9

@@ -20,6 +20,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 
 from afm_bringup import topics
+from afm_bringup.qos_profiles import FEEDBACK
 from afm_msgs.action import Assemble, Indent, LocalScan, Localize, MoveTip, PushParticle, ScanImage
 
 
@@ -77,7 +78,7 @@ class AfmCommander:
         self.context = Context()
         rclpy.init(context=self.context)
         self.node = Node(node_name, context=self.context)
-        self.clients = {name: ActionClient(self.node, action_type, action_name)
+        self.clients = {name: ActionClient(self.node, action_type, action_name, feedback_sub_qos_profile=FEEDBACK)
                         for name, (action_type, action_name) in self.ACTIONS.items()}
         self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
         self.executor.add_node(self.node)

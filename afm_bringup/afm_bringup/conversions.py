@@ -6,7 +6,7 @@ from builtin_interfaces.msg import Time
 from sensor_msgs.msg import Image
 
 from afm_core.recording.reader import image_to_array
-from afm_core.sim.instrument import RasterScanData
+from afm_core.instrument import ForceTraceData, RasterScanData, ScanLineData
 
 FRAME_SCANNER = "afm_scanner"
 FRAME_TASK = "afm_task"
@@ -29,6 +29,10 @@ def array_to_image(array: np.ndarray, header=None) -> Image:
 
 def image_msg_to_array(image: Image) -> np.ndarray:
     return image_to_array(image)
+
+
+def floats(values) -> list:
+    return [float(v) for v in values]
 
 
 def seconds_to_time(seconds: float) -> Time:
@@ -69,3 +73,54 @@ def msg_to_raster_scan(msg) -> RasterScanData:
                           origin_x=msg.origin.x, origin_y=msg.origin.y, scan_angle_deg=msg.scan_angle_deg,
                           slow_scan_up=msg.slow_scan_up, line_period=msg.line_period,
                           line_start_times=np.asarray(msg.line_start_times), start_time=stamp, mode=msg.mode)
+
+
+def scan_line_to_msg(line: ScanLineData, header, start, end, landmark_id: int = -1):
+    from afm_msgs.msg import ScanLine
+    msg = ScanLine(header=header, mode=line.mode, landmark_id=int(landmark_id))
+    msg.commanded_start.x, msg.commanded_start.y = float(start[0]), float(start[1])
+    msg.commanded_end.x, msg.commanded_end.y = float(end[0]), float(end[1])
+    msg.times, msg.x, msg.y = floats(line.times), floats(line.x), floats(line.y)
+    msg.height, msg.deflection, msg.amplitude = floats(line.height), floats(line.deflection), floats(line.amplitude)
+    return msg
+
+
+def force_trace_to_msg(trace: ForceTraceData, header):
+    from afm_msgs.msg import ForceTrace
+    msg = ForceTrace(header=header, task=trace.task, object_id=int(trace.object_id),
+                     normal_spring_constant=float(trace.normal_spring_constant),
+                     lateral_spring_constant=float(trace.lateral_spring_constant),
+                     sample_rate=float(trace.sample_rate))
+    msg.times = floats(trace.times)
+    msg.commanded_x, msg.commanded_y, msg.commanded_z = (floats(trace.commanded_x), floats(trace.commanded_y),
+                                                         floats(trace.commanded_z))
+    msg.vertical_deflection, msg.lateral_torsion = floats(trace.vertical_deflection), floats(trace.lateral_torsion)
+    return msg
+
+
+OBJECT_KINDS = {"sphere": 0, "tube": 1, "rod": 2, "pit": 3, "electrode": 4}
+
+
+def truth_to_msg(truth: dict, header):
+    """Simulator ground truth (afm_core.sim.instrument.SimulatedAfm.truth()) -> GroundTruth."""
+    from afm_msgs.msg import GroundTruth, ObjectState
+    msg = GroundTruth(header=header, tip_apex_radius=float(truth["tip_apex_radius"]))
+    msg.tip_position.x, msg.tip_position.y = map(float, truth["tip_position"])
+    msg.commanded_position.x, msg.commanded_position.y = map(float, truth["commanded_position"])
+    msg.drift_offset.x, msg.drift_offset.y = map(float, truth["drift_offset"])
+    msg.drift_velocity.x, msg.drift_velocity.y = map(float, truth["drift_velocity"])
+    for obj in truth["objects"]:
+        state = ObjectState(id=int(obj.id), kind=OBJECT_KINDS[obj.kind])
+        if obj.kind == "electrode":
+            state.position.x, state.position.y = 0.5 * (obj.x0 + obj.x1), 0.5 * (obj.y0 + obj.y1)
+            state.position.z = float(obj.thickness)
+            state.length = float(obj.x1 - obj.x0)
+            state.radius = float(0.5 * (obj.y1 - obj.y0))
+        else:
+            state.position.x, state.position.y = float(obj.x), float(obj.y)
+            state.radius = float(obj.radius)
+            state.position.z = float(-obj.depth if obj.kind == "pit" else obj.radius)
+            state.length = float(getattr(obj, "length", 0.0))
+            state.orientation = float(getattr(obj, "angle", 0.0))
+        msg.objects.append(state)
+    return msg

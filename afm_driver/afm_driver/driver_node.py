@@ -1,104 +1,311 @@
-"""Driver node: the instrument behind ROS actions. Backend `sim` (afm_core.sim).
+"""Driver node: the instrument behind ROS actions.
 
-Actions: /afm/scan_image (ScanImage). Publishes /afm/scan (latched), /afm/tip_command,
-/afm/ground_truth (latched, sim only).
+Backends: `sim` (afm_core.sim, publishes ground truth and /clock), `daq` (a scanner driven
+through an NI DAQ card, afm_core.daq), `replay` (answers the actions with a recorded
+session's data, afm_core.replay_instrument). One motion at a time: goals wait in a FIFO
+queue of at most `max_queued_goals`; cancel stops a running motion where the tip is, or
+removes a waiting goal.
 """
 from __future__ import annotations
 
 import sys
 import threading
+import time
 
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
 from afm_bringup import params, topics
+from afm_bringup.conversions import (FRAME_SCANNER, FRAME_TASK, force_trace_to_msg, raster_scan_to_msg,
+                                     scan_line_to_msg, seconds_to_time, truth_to_msg)
 from afm_bringup.node_main import run
-from afm_bringup.conversions import FRAME_SCANNER, FRAME_TASK, raster_scan_to_msg
-from afm_bringup.qos_profiles import EVENTS, LATCHED
-from afm_core.sim.instrument import ScanRequest, SimConfig, SimulatedAfm
-from afm_msgs.action import ScanImage
-from afm_msgs.msg import GroundTruth, ObjectState, RasterScan, TipCommand
+from afm_bringup.qos_profiles import EVENTS, FEEDBACK, LATCHED, STREAM
+from afm_core.instrument import LineRequest, ScanRequest
+from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
+from afm_msgs.msg import ForceTrace, GroundTruth, RasterScan, ScanLine, TipCommand
 
 PARAMETERS = [
-    ("backend", "sim", "Instrument backend: 'sim' (simulated AFM)."),
-    ("seed", 0, "Random seed of the simulated instrument (noise); same seed, same data."),
-    ("tip_apex_radius", 20e-9, "m, apex radius of the simulated tip."),
-    ("tip_half_angle_deg", 20.0, "deg, cone half-angle of the simulated tip."),
-    ("noise_sigma", 0.3e-9, "m, white height noise of the simulated sensor."),
+    ("backend", "sim", "Instrument: 'sim' (simulated AFM), 'daq' (NI DAQ card), 'replay' (a recorded session)."),
+    ("sim_config", "", "YAML file of simulator parameters (any subset; defaults: afm_core/sim/default_config.yaml)."),
+    ("seed", -1, "Simulator random seed; -1 keeps the config file's seed."),
+    ("real_time_factor", 0.0, "Simulated seconds per wall second (1.0 = real time); 0 = as fast as possible."),
+    ("publish_clock", True, "Publish the instrument's time on /clock (sim and replay) for use_sim_time nodes."),
+    ("clock_frequency", 20.0, "Hz (wall) of /clock messages while idle."),
+    ("max_queued_goals", 8, "Goals that may wait while one runs; more are rejected."),
+    ("daq_device", "Dev1", "NI-DAQmx device name (daq backend)."),
+    ("daq_calibration", "", "YAML file of the DAQ calibration (daq backend; defaults: afm_core.daq.DaqCalibration)."),
+    ("replay_input", "", "Recording (.mcap) whose scans, lines and force traces the replay backend serves."),
 ]
-SUPPORTED_BACKENDS = ("sim",)
+BACKENDS = ("sim", "daq", "replay")
+
+
+def make_instrument(config: dict):
+    backend = config["backend"]
+    if backend == "sim":
+        from afm_core.sim.config import load_config, merge
+        from afm_core.sim.instrument import SimulatedAfm
+        sim_config = load_config(config["sim_config"] or None)
+        if config["seed"] >= 0:
+            sim_config = merge(sim_config, {"seed": config["seed"]})
+        return SimulatedAfm(sim_config)
+    if backend == "daq":
+        from afm_core.daq import open_daq_instrument
+        return open_daq_instrument(config["daq_device"], config["daq_calibration"] or None)
+    if backend == "replay":
+        from afm_core.replay_instrument import ReplayInstrument
+        if not config["replay_input"]:
+            raise ValueError("parameter replay_input: required with backend 'replay' (a .mcap recording)")
+        return ReplayInstrument(config["replay_input"])
+    raise ValueError(f"parameter backend={backend!r}: expected one of {BACKENDS}")
+
+
+class FifoGate:
+    """One holder at a time, served in arrival order; a waiter may give up (cancel)."""
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self.condition = threading.Condition()
+        self.next_ticket = 0
+        self.serving = 0
+        self.abandoned: set[int] = set()
+
+    def full(self) -> bool:
+        with self.condition:
+            return self.next_ticket - self.serving - len(self.abandoned) > self.capacity
+
+    def take(self) -> int:
+        with self.condition:
+            ticket = self.next_ticket
+            self.next_ticket += 1
+            return ticket
+
+    def wait(self, ticket: int, give_up) -> bool:
+        with self.condition:
+            while self.serving != ticket:
+                if give_up():
+                    self.abandoned.add(ticket)
+                    self.condition.notify_all()
+                    return False
+                self.condition.wait(timeout=0.05)
+            return True
+
+    def release(self) -> None:
+        with self.condition:
+            self.serving += 1
+            while self.serving in self.abandoned:
+                self.abandoned.discard(self.serving)
+                self.serving += 1
+            self.condition.notify_all()
 
 
 class DriverNode(Node):
     def __init__(self):
         super().__init__("afm_driver")
         self.config = params.declare(self, PARAMETERS)
-        if self.config["backend"] not in SUPPORTED_BACKENDS:
-            raise ValueError(f"parameter backend={self.config['backend']!r}: supported {SUPPORTED_BACKENDS}")
-        self.instrument = SimulatedAfm(SimConfig(
-            tip_apex_radius=self.config["tip_apex_radius"], tip_half_angle_deg=self.config["tip_half_angle_deg"],
-            noise_sigma=self.config["noise_sigma"], seed=self.config["seed"]))
-        self.lock = threading.Lock()   # one acquisition at a time, as on a real scanner
-        self.scan_count = 0
+        for name in ("real_time_factor", "clock_frequency"):
+            if not self.config[name] >= 0 or (name == "clock_frequency" and self.config[name] == 0):
+                raise ValueError(f"parameter {name}={self.config[name]}: must be > 0"
+                                 + (" (or 0 for as fast as possible)" if name == "real_time_factor" else ""))
+        self.instrument = make_instrument(self.config)
+        self.is_sim = self.config["backend"] == "sim"
+        self.epoch = time.time()                    # instrument time 0 <-> wall time at start
+        self.gate = FifoGate(self.config["max_queued_goals"])
+        self.pacing_origin = (time.monotonic(), self.instrument.time)
         self.scan_pub = self.create_publisher(RasterScan, topics.SCAN, LATCHED)
+        self.line_pub = self.create_publisher(ScanLine, topics.SCAN_LINE, STREAM)
+        self.trace_pub = self.create_publisher(ForceTrace, topics.FORCE_TRACE, STREAM)
         self.command_pub = self.create_publisher(TipCommand, topics.TIP_COMMAND, EVENTS)
-        self.truth_pub = self.create_publisher(GroundTruth, topics.GROUND_TRUTH, LATCHED)
+        self.truth_pub = self.create_publisher(GroundTruth, topics.GROUND_TRUTH, LATCHED) if self.is_sim else None
+        self.clock_pub = (self.create_publisher(Clock, "/clock", 10)
+                          if self.config["publish_clock"] and self.config["backend"] != "daq" else None)
         group = ReentrantCallbackGroup()
-        self.scan_server = ActionServer(
-            self, ScanImage, topics.ACTION_SCAN_IMAGE, self.execute_scan, callback_group=group,
-            goal_callback=lambda _goal: GoalResponse.ACCEPT,
-            cancel_callback=lambda _goal: CancelResponse.ACCEPT)
+        for action_type, name, execute in ((ScanImage, topics.ACTION_SCAN_IMAGE, self.execute_scan),
+                                           (LocalScan, topics.ACTION_LOCAL_SCAN, self.execute_line),
+                                           (MoveTip, topics.ACTION_MOVE_TIP, self.execute_move),
+                                           (Indent, topics.ACTION_INDENT, self.execute_indent)):
+            ActionServer(self, action_type, name, self._queued(action_type, execute), callback_group=group,
+                         feedback_pub_qos_profile=FEEDBACK,
+                         goal_callback=self.accept_goal, cancel_callback=lambda _g: CancelResponse.ACCEPT)
+        if self.clock_pub is not None:
+            self.create_timer(1.0 / self.config["clock_frequency"], self.publish_clock)
         self.publish_truth()
 
-    def header(self, frame=FRAME_SCANNER) -> Header:
-        return Header(stamp=self.get_clock().now().to_msg(), frame_id=frame)
+    # -- plumbing ----------------------------------------------------------------------------
+    def accept_goal(self, _goal):
+        if self.gate.full():
+            self.get_logger().warning(f"goal rejected: {self.config['max_queued_goals']} goals already wait "
+                                      "(max_queued_goals)")
+            return GoalResponse.REJECT
+        return GoalResponse.ACCEPT
 
-    def execute_scan(self, goal_handle):
-        goal = goal_handle.request
-        request = ScanRequest(origin_x=goal.origin.x, origin_y=goal.origin.y, size_x=goal.size_x,
-                              size_y=goal.size_y, pixels_x=goal.pixels_x, pixels_y=goal.pixels_y,
-                              scan_angle_deg=goal.scan_angle_deg, slow_scan_up=goal.slow_scan_up,
-                              line_rate=goal.line_rate, mode=goal.mode or "tapping")
-        result = ScanImage.Result()
-        try:
-            request.validate()
-        except ValueError as exc:
-            goal_handle.abort()
-            result.message = f"scan refused: {exc}"
-            return result
-        with self.lock:
-            header = self.header()
-            scan = self.instrument.raster_scan(request)
-            self.scan_count += 1
-            msg = raster_scan_to_msg(scan, header, scan_id=self.scan_count, pair_id=goal.pair_id)
-        command = TipCommand(header=header, kind=TipCommand.RASTER)
-        command.start.x, command.start.y = request.origin_x, request.origin_y
-        command.end.x, command.end.y = request.origin_x + request.size_x, request.origin_y + request.size_y
-        command.duration = float(scan.line_period * len(scan.line_start_times))
-        command.start_voltage = command.end_voltage = [float("nan")] * 3
-        self.command_pub.publish(command)
-        lines = len(scan.line_start_times)
-        goal_handle.publish_feedback(ScanImage.Feedback(lines_done=lines, lines_total=lines))
-        self.scan_pub.publish(msg)
-        self.publish_truth()
-        goal_handle.succeed()
-        result.success, result.message, result.scan = True, "ok", msg
+    def _queued(self, action_type, execute):
+        def run_in_turn(goal_handle):
+            ticket = self.gate.take()
+            if not self.gate.wait(ticket, lambda: goal_handle.is_cancel_requested):
+                goal_handle.canceled()
+                return action_type.Result(success=False, message="cancelled while waiting for the instrument")
+            try:
+                return execute(goal_handle)
+            except ValueError as exc:        # the instrument refused (e.g. a replay mismatch)
+                return self.refuse(goal_handle, action_type.Result(), exc)
+            except Exception as exc:         # noqa: BLE001 - report it and keep serving
+                self.get_logger().error(f"{action_type.__name__} failed: {exc!r}")
+                goal_handle.abort()
+                return action_type.Result(success=False, message=f"driver error: {exc}")
+            finally:
+                self.gate.release()
+                self.publish_truth()
+                self.publish_clock()
+        return run_in_turn
+
+    def stamp(self, instrument_time: float):
+        return seconds_to_time(self.epoch + instrument_time)
+
+    def header(self, instrument_time: float, frame=FRAME_SCANNER) -> Header:
+        return Header(stamp=self.stamp(instrument_time), frame_id=frame)
+
+    def pace(self) -> None:
+        """Hold sim time to real_time_factor x wall time (0: no holding back)."""
+        factor = self.config["real_time_factor"]
+        if factor <= 0:
+            return
+        wall0, sim0 = self.pacing_origin
+        ahead = (self.instrument.time - sim0) / factor - (time.monotonic() - wall0)
+        if ahead > 0:
+            time.sleep(ahead)
+
+    def publish_clock(self) -> None:
+        if self.clock_pub is not None:
+            self.clock_pub.publish(Clock(clock=self.stamp(self.instrument.time)))
+
+    def publish_truth(self) -> None:
+        if self.truth_pub is not None:
+            self.truth_pub.publish(truth_to_msg(self.instrument.truth(), self.header(self.instrument.time, FRAME_TASK)))
+
+    def command(self, kind, start_time, start, end, duration, speed=0.0):
+        msg = TipCommand(header=self.header(start_time), kind=kind, speed=float(speed), duration=float(duration))
+        msg.start.x, msg.start.y = map(float, start)
+        msg.end.x, msg.end.y = map(float, end)
+        msg.start_voltage = msg.end_voltage = [float("nan")] * 3
+        self.command_pub.publish(msg)
+
+    def refuse(self, goal_handle, result, exc):
+        goal_handle.abort()
+        result.success, result.message = False, f"refused: {exc}"
         return result
 
-    def publish_truth(self):
-        truth = GroundTruth(header=self.header(FRAME_TASK))
-        truth.tip_apex_radius = float(self.instrument.config.tip_apex_radius)
-        for sphere in self.instrument.sample.spheres:
-            obj = ObjectState(id=sphere.id, kind=ObjectState.SPHERE, radius=float(sphere.radius))
-            obj.position.x, obj.position.y, obj.position.z = float(sphere.x), float(sphere.y), float(sphere.radius)
-            truth.objects.append(obj)
-        self.truth_pub.publish(truth)
+    def finish(self, goal_handle, result, completed: bool, what: str):
+        x, y = self.instrument.commanded_position()
+        if completed:
+            goal_handle.succeed()
+            result.success, result.message = True, "ok"
+        else:
+            goal_handle.canceled()
+            result.success = False
+            result.message = f"{what} cancelled; tip held at ({x * 1e9:.1f} nm, {y * 1e9:.1f} nm) in afm_scanner"
+        return result
+
+    # -- actions -----------------------------------------------------------------------------
+    def execute_scan(self, goal_handle) -> ScanImage.Result:
+        goal, result = goal_handle.request, ScanImage.Result()
+        request = ScanRequest(goal.origin.x, goal.origin.y, goal.size_x, goal.size_y, goal.pixels_x, goal.pixels_y,
+                              goal.scan_angle_deg, goal.slow_scan_up, goal.line_rate, goal.mode or "tapping")
+        try:
+            request.validate(self.instrument.limits)
+        except ValueError as exc:
+            return self.refuse(goal_handle, result, exc)
+
+        def on_line(done, total):
+            goal_handle.publish_feedback(ScanImage.Feedback(lines_done=done, lines_total=total))
+            self.pace()
+
+        start_time = self.instrument.time
+        scan = self.instrument.raster_scan(request, on_line=on_line,
+                                           should_stop=lambda: goal_handle.is_cancel_requested)
+        self.command(TipCommand.RASTER, start_time, (request.origin_x, request.origin_y),
+                     (request.origin_x + request.size_x, request.origin_y + request.size_y),
+                     self.instrument.time - start_time)
+        msg = raster_scan_to_msg(scan, self.header(scan.start_time), scan_id=self._next_scan_id(), pair_id=goal.pair_id)
+        if scan.complete:
+            self.scan_pub.publish(msg)
+        result.scan = msg
+        return self.finish(goal_handle, result, scan.complete, "scan")
+
+    def _next_scan_id(self) -> int:
+        self._scan_count = getattr(self, "_scan_count", 0) + 1
+        return self._scan_count
+
+    def execute_line(self, goal_handle) -> LocalScan.Result:
+        goal, result = goal_handle.request, LocalScan.Result()
+        speed = goal.speed if goal.speed > 0 else 1e-6
+        request = LineRequest(goal.start.x, goal.start.y, goal.end.x, goal.end.y, goal.samples, speed,
+                              goal.mode or "tapping")
+        try:
+            request.validate(self.instrument.limits)
+        except ValueError as exc:
+            return self.refuse(goal_handle, result, exc)
+        start_time = self.instrument.time
+        line = self.instrument.local_scan(request, should_stop=lambda: goal_handle.is_cancel_requested)
+        self.pace()
+        self.command(TipCommand.SCAN_LINE, start_time, (request.start_x, request.start_y),
+                     (request.end_x, request.end_y), self.instrument.time - start_time, speed)
+        msg = scan_line_to_msg(line, self.header(line.start_time), (request.start_x, request.start_y),
+                               (request.end_x, request.end_y), goal.landmark_id)
+        goal_handle.publish_feedback(LocalScan.Feedback(fraction_done=1.0 if line.complete else 0.0))
+        if line.complete:
+            self.line_pub.publish(msg)
+        result.line = msg
+        return self.finish(goal_handle, result, line.complete, "scan line")
+
+    def execute_move(self, goal_handle) -> MoveTip.Result:
+        goal, result = goal_handle.request, MoveTip.Result()
+        speed = goal.speed if goal.speed > 0 else self.instrument.limits.max_speed / 10
+        start_time, start = self.instrument.time, self.instrument.commanded_position()
+        try:
+            if goal.target.header.frame_id not in ("", FRAME_SCANNER, FRAME_TASK):
+                raise ValueError(f"target.header.frame_id={goal.target.header.frame_id!r}: expected "
+                                 f"{FRAME_SCANNER!r} or {FRAME_TASK!r}")
+            move = self.instrument.move_tip(goal.target.point.x, goal.target.point.y, speed, goal.contact,
+                                            should_stop=lambda: goal_handle.is_cancel_requested)
+        except ValueError as exc:
+            return self.refuse(goal_handle, result, exc)
+        self.pace()
+        self.command(TipCommand.PUSH if goal.contact else TipCommand.MOVE, start_time, start,
+                     (move.end_x, move.end_y), self.instrument.time - start_time, speed)
+        result.commanded_position.x, result.commanded_position.y = move.end_x, move.end_y
+        goal_handle.publish_feedback(MoveTip.Feedback(commanded_position=result.commanded_position))
+        if move.trace is not None:
+            result.trace = force_trace_to_msg(move.trace, self.header(move.trace.start_time))
+            self.trace_pub.publish(result.trace)
+        return self.finish(goal_handle, result, move.completed, "move")
+
+    def execute_indent(self, goal_handle) -> Indent.Result:
+        goal, result = goal_handle.request, Indent.Result()
+        start_time = self.instrument.time
+        try:
+            indent = self.instrument.indent(goal.position.x, goal.position.y, goal.force, goal.dwell,
+                                            should_stop=lambda: goal_handle.is_cancel_requested)
+        except ValueError as exc:
+            return self.refuse(goal_handle, result, exc)
+        self.pace()
+        self.command(TipCommand.INDENT, start_time, (indent.x, indent.y), (indent.x, indent.y),
+                     self.instrument.time - start_time)
+        goal_handle.publish_feedback(Indent.Feedback(phase="retract"))
+        result.trace = force_trace_to_msg(indent.trace, self.header(indent.trace.start_time))
+        if indent.completed:
+            self.trace_pub.publish(result.trace)
+        return self.finish(goal_handle, result, indent.completed, "indentation")
+
+    def destroy_node(self):
+        self.instrument.close()
+        super().destroy_node()
 
 
 def main(args=None):
-    return run(DriverNode, "afm driver", args, threads=4)
+    return run(DriverNode, "afm driver", args, config_errors=(ValueError, RuntimeError), threads=4)
 
 
 if __name__ == "__main__":

@@ -1,118 +1,321 @@
-"""A simulated AFM: raster scans of a sample with a finite tip, noise and real line timing."""
+"""The simulated AFM: the instrument our users do not have on their desk.
+
+Commands go through the scanner model (hysteresis, creep, cross-coupling, line deflection)
+to a true scanner position; thermal drift moves the sample against the scanner; the tip
+sees the sample where it truly is at the moment of each sample. Every call advances the
+instrument clock `time` by what the motion takes, so sim time runs as fast as the host
+can compute. Deterministic: the same config (seed included) gives the same data.
+"""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from typing import Callable, Optional
 
 import numpy as np
 
-from afm_core.sim.imaging import dilate
-from afm_core.sim.sample import Sample, Sphere
-from afm_core.sim.tip import paraboloid_cone_tip
+from afm_core.instrument import (ForceTraceData, IndentResult, LineRequest, MoveResult, RasterScanData,
+                                 ScanLineData, ScanRequest, StopCheck, validate_indent, validate_move)
+from afm_core.pzt import LateralScanner, PrandtlIshlinskii
+from afm_core.sim.config import SimConfig, load_config
+from afm_core.sim.drift import ThermalDrift
+from afm_core.sim.imaging import DilatedField, dilated_heights_at, pink_noise
+from afm_core.sim.pushing import push_along_path
+from afm_core.sim.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
+from afm_core.sim.tip import Tip
 
-SCANNER_RANGE_XY = 110e-6   # m, Veeco Dimension 3100 (book 7.1)
-MAX_PIXELS = 4096
-
-
-@dataclass
-class ScanRequest:
-    origin_x: float
-    origin_y: float
-    size_x: float
-    size_y: float
-    pixels_x: int
-    pixels_y: int
-    scan_angle_deg: float = 0.0
-    slow_scan_up: bool = True
-    line_rate: float = 1.0          # Hz
-    mode: str = "tapping"
-
-    def validate(self, scanner_range: float = SCANNER_RANGE_XY) -> None:
-        """Raise ValueError naming the first field out of its limits."""
-        values = {k: getattr(self, k) for k in ("origin_x", "origin_y", "size_x", "size_y", "line_rate")}
-        for name, value in values.items():
-            if not np.isfinite(value):
-                raise ValueError(f"{name}={value}: must be finite")
-        for name in ("size_x", "size_y", "line_rate"):
-            if not values[name] > 0:
-                raise ValueError(f"{name}={values[name]}: must be > 0")
-        for name in ("pixels_x", "pixels_y"):
-            value = getattr(self, name)
-            if not 2 <= value <= MAX_PIXELS:
-                raise ValueError(f"{name}={value}: must be within [2, {MAX_PIXELS}]")
-        if self.scan_angle_deg not in (0.0, 90.0):
-            raise ValueError(f"scan_angle_deg={self.scan_angle_deg}: must be 0 or 90")
-        if self.mode not in ("tapping", "contact"):
-            raise ValueError(f"mode={self.mode!r}: must be 'tapping' or 'contact'")
-        for axis in ("x", "y"):
-            lo = getattr(self, f"origin_{axis}")
-            hi = lo + getattr(self, f"size_{axis}")
-            if lo < 0 or hi > scanner_range:
-                raise ValueError(f"origin_{axis}/size_{axis}: area [{lo:.3e}, {hi:.3e}] m leaves the "
-                                 f"scanner range [0, {scanner_range:.3e}] m")
+LINES_PER_CHUNK = 16          # raster lines simulated at once (progress and cancel granularity)
+MOVE_STEP = 2e-9              # m, path sampling of moves (pushes resolve objects finer inside)
+IDLE_STEP = 0.05              # s, scanner sampling while holding still (creep keeps going)
+INDENT_SAMPLES = 200
 
 
-@dataclass
-class RasterScanData:
-    height: np.ndarray              # (pixels_y, pixels_x), m, scanner-frame orientation
-    pixel_size_x: float
-    pixel_size_y: float
-    origin_x: float
-    origin_y: float
-    scan_angle_deg: float
-    slow_scan_up: bool
-    line_period: float
-    line_start_times: np.ndarray    # s since start_time, per line index
-    start_time: float               # s, instrument clock
-    mode: str
-
-
-@dataclass
-class SimConfig:
-    tip_apex_radius: float = 20e-9
-    tip_half_angle_deg: float = 20.0
-    noise_sigma: float = 0.3e-9                 # m, white height noise
-    seed: int = 0
-    spheres: list[tuple[float, float, float]] = field(default_factory=lambda: [
-        (5.0e-6, 5.0e-6, 100e-9), (5.6e-6, 5.3e-6, 100e-9), (4.6e-6, 5.7e-6, 100e-9)])
+def build_sample(config: SimConfig, rng: np.random.Generator) -> Sample:
+    params = config.sample
+    sample = Sample(roughness=Roughness(params.roughness_sigma, params.roughness_correlation,
+                                        int(rng.integers(2**31))))
+    next_id = 0
+    for spec in params.spheres:
+        sample.spheres.append(Sphere(next_id, float(spec["x"]), float(spec["y"]), float(spec["radius"])))
+        next_id += 1
+    x0, y0, width, height = params.random_area
+    for _ in range(params.random_spheres):
+        radius = max(10e-9, rng.normal(params.radius_mean, params.radius_sigma))
+        sample.spheres.append(Sphere(next_id, x0 + rng.uniform() * width, y0 + rng.uniform() * height, radius))
+        next_id += 1
+    for spec in params.rods:
+        sample.rods.append(Rod(next_id, float(spec["x"]), float(spec["y"]), float(spec.get("angle", 0.0)),
+                               float(spec["length"]), float(spec["radius"]), spec.get("kind", "rod")))
+        next_id += 1
+    for spec in params.electrodes:
+        sample.electrodes.append(Electrode(next_id, float(spec["x0"]), float(spec["y0"]), float(spec["x1"]),
+                                           float(spec["y1"]), float(spec["thickness"])))
+        next_id += 1
+    return sample
 
 
 class SimulatedAfm:
-    """The instrument: keeps its own clock (s) advanced by every acquisition."""
-
     def __init__(self, config: SimConfig | None = None):
-        self.config = config or SimConfig()
-        self.rng = np.random.default_rng(self.config.seed)
-        self.sample = Sample([Sphere(i, x, y, r) for i, (x, y, r) in enumerate(self.config.spheres)])
+        self.config = config if config is not None else load_config()
+        self.limits = self.config.limits
+        streams = np.random.SeedSequence(self.config.seed).spawn(4)
+        self.noise_rng = np.random.default_rng(streams[0])
+        self.sample = build_sample(self.config, np.random.default_rng(streams[1]))
+        self.drift = ThermalDrift(self.config.drift, seed=int(np.random.default_rng(streams[2]).integers(2**31)))
+        self.tip = Tip(self.config.tip)
+        self.scanner = LateralScanner(self.config.scanner)
+        self.feed_forward = self._controller_feed_forward()
         self.time = 0.0
+        self._commanded = tuple(float(c) for c in self.scanner.centre)   # at rest at power-on
+        self.scanner.reset(*self._commanded)
+        self._true_scanner = self._commanded
 
-    def raster_scan(self, request: ScanRequest) -> RasterScanData:
-        request.validate()
-        px = request.size_x / request.pixels_x
-        py = request.size_y / request.pixels_y
-        xs = request.origin_x + (np.arange(request.pixels_x) + 0.5) * px
-        ys = request.origin_y + (np.arange(request.pixels_y) + 0.5) * py
-        pixel = min(px, py)
-        tip = paraboloid_cone_tip(self.config.tip_apex_radius, self.config.tip_half_angle_deg,
-                                  pixel, depth=max(4 * max((s.radius for s in self.sample.spheres), default=1e-7), 8 * pixel))
-        # Dilate on a grid of the finer pixel size so the tip is sampled isotropically.
-        fine_x = request.origin_x + (np.arange(int(np.ceil(request.size_x / pixel))) + 0.5) * pixel
-        fine_y = request.origin_y + (np.arange(int(np.ceil(request.size_y / pixel))) + 0.5) * pixel
-        surface = self.sample.height(*np.meshgrid(fine_x, fine_y))
-        image_fine = dilate(surface, tip)
-        iy = np.clip(np.round((ys - fine_y[0]) / pixel).astype(int), 0, len(fine_y) - 1)
-        ix = np.clip(np.round((xs - fine_x[0]) / pixel).astype(int), 0, len(fine_x) - 1)
-        image = image_fine[np.ix_(iy, ix)]
-        image = image + self.rng.normal(0.0, self.config.noise_sigma, image.shape)
+    def _controller_feed_forward(self):
+        """Per axis, the inverse of the controller's calibrated hysteresis model (the scanner's
+        own, with the loop width off by model_error); None when compensation is off."""
+        scanner, controller = self.config.scanner, self.config.controller
+        if not (controller.hysteresis_compensation and scanner.hysteresis_enabled and scanner.hysteresis_fraction > 0):
+            return None
+        fraction = scanner.hysteresis_fraction * (1.0 + controller.model_error)
+        models = [PrandtlIshlinskii.from_fraction(span, fraction, int(scanner.hysteresis_operators),
+                                                  scanner.hysteresis_asymmetry)
+                  for span in (scanner.range_x, scanner.range_y)]
+        for model in models:
+            model.reset(0.0)
+        return [model.inverse() for model in models]
 
-        lines = request.pixels_y if request.scan_angle_deg == 0 else request.pixels_x
+    # -- the machine underneath ------------------------------------------------------------
+    def commanded_position(self) -> tuple[float, float]:
+        return self._commanded
+
+    def _drive(self, cmd_x: np.ndarray, cmd_y: np.ndarray, dt: float):
+        """Send a uniformly sampled command path; returns (times, true scanner x, y).
+        Sample k is taken at time + (k + 1) * dt."""
+        drive_x, drive_y = np.asarray(cmd_x, float), np.asarray(cmd_y, float)
+        if self.feed_forward is not None:
+            centre = self.scanner.centre
+            drive_x = centre[0] + self.feed_forward[0].apply(drive_x - centre[0])
+            drive_y = centre[1] + self.feed_forward[1].apply(drive_y - centre[1])
+        true_x, true_y = self.scanner.apply(drive_x, drive_y, dt)
+        times = self.time + dt * np.arange(1, len(cmd_x) + 1)
+        self.time = float(times[-1]) if len(times) else self.time
+        self._commanded = (float(cmd_x[-1]), float(cmd_y[-1]))
+        self._true_scanner = (float(true_x[-1]), float(true_y[-1]))
+        return times, true_x, true_y
+
+    def sample_frame(self, true_x, true_y, times):
+        """Where the tip is on the sample (afm_task): the sample has drifted by offset(t)."""
+        offset = self.drift.offset(times)
+        return true_x - offset[..., 0], true_y - offset[..., 1]
+
+    def hold(self, duration: float) -> None:
+        """Time passes with the command held (creep and drift go on)."""
+        if duration <= 0:
+            return
+        n = max(1, int(math.ceil(duration / IDLE_STEP)))
+        self._drive(np.full(n, self._commanded[0]), np.full(n, self._commanded[1]), duration / n)
+
+    def _ramp(self, x: float, y: float, speed: float):
+        x0, y0 = self._commanded
+        distance = math.hypot(x - x0, y - y0)
+        n = max(2, int(math.ceil(distance / MOVE_STEP)))
+        s = np.linspace(0.0, 1.0, n + 1)[1:]
+        path_x, path_y = x0 + s * (x - x0), y0 + s * (y - y0)
+        path_x[-1], path_y[-1] = x, y          # end exactly where commanded
+        return path_x, path_y, (distance / speed) / n if distance else 1e-3
+
+    def _imaging_depth(self) -> float:
+        tallest = max([2 * s.radius for s in self.sample.spheres] + [2 * r.radius for r in self.sample.rods]
+                      + [e.thickness for e in self.sample.electrodes] + [20e-9])
+        return tallest + 10e-9
+
+    # -- raster images -----------------------------------------------------------------------
+    def raster_scan(self, request: ScanRequest, on_line: Optional[Callable[[int, int], None]] = None,
+                    should_stop: Optional[StopCheck] = None) -> RasterScanData:
+        request.validate(self.limits)
+        fast_is_x = request.scan_angle_deg == 0.0
+        n_fast, n_lines = request.pixels_per_line, request.lines
+        px, py = request.size_x / request.pixels_x, request.size_y / request.pixels_y
+        fast_pixel, slow_pixel = (px, py) if fast_is_x else (py, px)
+        fast_origin, slow_origin = ((request.origin_x, request.origin_y) if fast_is_x
+                                    else (request.origin_y, request.origin_x))
+        fast_coords = fast_origin + (np.arange(n_fast) + 0.5) * fast_pixel
+        line_order = np.arange(n_lines) if request.slow_scan_up else np.arange(n_lines)[::-1]
+        slow_coords = slow_origin + (line_order + 0.5) * slow_pixel
+
+        def to_xy(fast, slow):
+            return (fast, slow) if fast_is_x else (slow, fast)
+
+        first_x, first_y = to_xy(fast_coords[0], slow_coords[0])
+        self.move_tip(first_x, first_y, self.limits.max_speed / 10)
         line_period = 1.0 / request.line_rate
-        order = np.arange(lines) if request.slow_scan_up else np.arange(lines)[::-1]
-        line_start = np.empty(lines)
-        line_start[order] = np.arange(lines) * line_period   # trace + retrace fill one period
+        dt = 0.5 * line_period / n_fast          # trace in the first half, retrace in the second
+        field = self._field_for(request)
+        height = np.full((request.pixels_y, request.pixels_x), np.nan)
+        line_start = np.full(n_lines, np.nan)
         start = self.time
-        self.time += line_period * lines
-        return RasterScanData(height=image.astype(np.float32), pixel_size_x=px, pixel_size_y=py,
+        trace_back = np.concatenate([fast_coords, fast_coords[::-1]])
+        done = 0
+        complete = True
+        while done < n_lines:
+            if should_stop is not None and should_stop():
+                complete = False
+                break
+            chunk = line_order[done:done + LINES_PER_CHUNK]
+            slow = np.repeat(slow_coords[done:done + len(chunk)], 2 * n_fast)
+            fast = np.tile(trace_back, len(chunk))
+            cmd_x, cmd_y = to_xy(fast, slow)
+            times, tx, ty = self._drive(cmd_x, cmd_y, dt)
+            sx, sy = self.sample_frame(tx, ty, times)
+            values = field.at(sx, sy).reshape(len(chunk), 2 * n_fast)[:, :n_fast]
+            values = values + self.noise_rng.normal(0.0, self.config.noise.height_white_sigma, values.shape)
+            line_times = times.reshape(len(chunk), 2 * n_fast)[:, 0] - dt - start
+            for row_values, line_index, t_line in zip(values, chunk, line_times):
+                if fast_is_x:
+                    height[line_index, :] = row_values
+                else:
+                    height[:, line_index] = row_values
+                line_start[line_index] = t_line
+                done += 1
+                if on_line is not None:
+                    on_line(done, n_lines)
+        acquired = np.isfinite(line_start)
+        flicker = pink_noise(int(acquired.sum()) * n_fast, self.config.noise.height_flicker_sigma, self.noise_rng)
+        order = [i for i in line_order if acquired[i]]
+        for k, line_index in enumerate(order):
+            segment = flicker[k * n_fast:(k + 1) * n_fast]
+            if fast_is_x:
+                height[line_index, :] += segment
+            else:
+                height[:, line_index] += segment
+        return RasterScanData(height=height.astype(np.float32), pixel_size_x=px, pixel_size_y=py,
                               origin_x=request.origin_x, origin_y=request.origin_y,
                               scan_angle_deg=request.scan_angle_deg, slow_scan_up=request.slow_scan_up,
                               line_period=line_period, line_start_times=line_start, start_time=start,
-                              mode=request.mode)
+                              mode=request.mode, complete=complete)
+
+    def _field_for(self, request: ScanRequest) -> DilatedField:
+        """Dilated surface over the scan area plus a margin for where hysteresis, creep and
+        drift may have put the tip."""
+        pixel = min(request.size_x / request.pixels_x, request.size_y / request.pixels_y)
+        margin = 0.05 * max(request.size_x, request.size_y) + 20e-9 + float(
+            np.max(np.abs(self.drift.offset(self.time + 2 * request.lines / request.line_rate + 10.0))))
+        x0, y0 = request.origin_x - margin, request.origin_y - margin
+        nx = int(math.ceil((request.size_x + 2 * margin) / pixel)) + 1
+        ny = int(math.ceil((request.size_y + 2 * margin) / pixel)) + 1
+        tip = self.tip.grid(pixel, self._imaging_depth())
+        return DilatedField(self.sample.height, tip, x0, y0, nx, ny, pixel)
+
+    # -- local scan lines --------------------------------------------------------------------
+    def local_scan(self, request: LineRequest, should_stop: Optional[StopCheck] = None) -> ScanLineData:
+        request.validate(self.limits)
+        self.move_tip(request.start_x, request.start_y, self.limits.max_speed / 10)
+        s = np.linspace(0.0, 1.0, request.samples)
+        cmd_x = request.start_x + s * (request.end_x - request.start_x)
+        cmd_y = request.start_y + s * (request.end_y - request.start_y)
+        dt = request.length / request.speed / (request.samples - 1)
+        times, tx, ty = self._drive(cmd_x, cmd_y, dt)
+        times = times - dt          # the first sample is taken where the line starts, at once
+        start = float(times[0])
+        sx, sy = self.sample_frame(tx, ty, times)
+        spacing = request.length / (request.samples - 1)
+        tip = self.tip.grid(max(min(spacing, 5e-9), 0.5e-9), self._imaging_depth())
+        height = dilated_heights_at(self.sample, tip, max(min(spacing, 5e-9), 0.5e-9), sx, sy)
+        noise = self.config.noise
+        slope = np.gradient(height, times) if len(times) > 1 else np.zeros_like(height)
+        deflection = noise.feedback_time_constant * slope + self.noise_rng.normal(0, noise.deflection_sigma, len(s))
+        height = height + self.noise_rng.normal(0, noise.height_white_sigma, len(s))
+        height = height + pink_noise(len(s), noise.height_flicker_sigma, self.noise_rng)
+        amplitude = (np.full(len(s), 10e-9) - deflection) if request.mode == "tapping" else np.array([])
+        return ScanLineData(times=times - start, x=cmd_x, y=cmd_y, height=height, deflection=deflection,
+                            amplitude=amplitude, start_time=start, mode=request.mode)
+
+    # -- moves and pushes --------------------------------------------------------------------
+    def move_tip(self, x: float, y: float, speed: float, contact: bool = False,
+                 should_stop: Optional[StopCheck] = None) -> MoveResult:
+        validate_move(x, y, speed, self.limits)
+        cmd_x, cmd_y, dt = self._ramp(x, y, speed)
+        start = self.time
+        chunks = np.array_split(np.arange(len(cmd_x)), max(1, len(cmd_x) // 2000))
+        traces = []
+        completed = True
+        for index in chunks:
+            if should_stop is not None and should_stop():
+                completed = False
+                break
+            times, tx, ty = self._drive(cmd_x[index], cmd_y[index], dt)
+            if contact:
+                sx, sy = self.sample_frame(tx, ty, times)
+                result = push_along_path(self.sample, sx, sy, dt, self.config.contact)
+                self.tip.slide(float(np.sum(np.hypot(np.diff(sx), np.diff(sy)))))
+                traces.append((times, cmd_x[index], cmd_y[index], result))
+        trace = self._force_trace(traces, start, dt) if contact and traces else None
+        end_x, end_y = self._commanded
+        return MoveResult(end_x=end_x, end_y=end_y, completed=completed, trace=trace)
+
+    def _force_trace(self, pieces, start: float, dt: float) -> ForceTraceData:
+        contact = self.config.contact
+        times = np.concatenate([p[0] for p in pieces]) - start
+        cx = np.concatenate([p[1] for p in pieces])
+        cy = np.concatenate([p[2] for p in pieces])
+        deflection = np.concatenate([p[3].vertical_deflection for p in pieces])
+        torsion = np.concatenate([p[3].lateral_torsion for p in pieces])
+        deflection = deflection + self.noise_rng.normal(0, self.config.noise.deflection_sigma, len(deflection))
+        moved = sorted({i for p in pieces for i in p[3].moved_ids})
+        return ForceTraceData(times=times, commanded_x=cx, commanded_y=cy, commanded_z=np.zeros_like(cx),
+                              vertical_deflection=deflection, lateral_torsion=torsion,
+                              normal_spring_constant=contact.normal_spring_constant,
+                              lateral_spring_constant=contact.lateral_spring_constant,
+                              sample_rate=1.0 / dt, start_time=start, task="push",
+                              object_id=moved[0] if moved else -1)
+
+    # -- indentation -------------------------------------------------------------------------
+    def indent(self, x: float, y: float, force: float, dwell: float,
+               should_stop: Optional[StopCheck] = None) -> IndentResult:
+        validate_indent(x, y, force, dwell, self.limits)
+        move = self.move_tip(x, y, self.limits.max_speed / 10, should_stop=should_stop)
+        if not move.completed:
+            return IndentResult(x=move.end_x, y=move.end_y, completed=False, trace=self._indent_trace(0.0, 0.0, self.time))
+        params = self.config.indentation
+        start = self.time
+        sx, sy = self.sample_frame(np.array([self._true_scanner[0]]), np.array([self._true_scanner[1]]),
+                                   np.array([self.time]))
+        depth = force / params.sample_stiffness
+        radius = math.sqrt(2 * self.tip.apex_radius * depth) * 1.5
+        self.sample.pits.append(Pit(self.sample.next_id(), float(sx[0]), float(sy[0]), radius, depth))
+        self.hold(params.approach_time + dwell + params.retract_time)
+        trace = self._indent_trace(force, dwell, start)
+        return IndentResult(x=x, y=y, trace=trace)
+
+    def _indent_trace(self, force: float, dwell: float, start: float) -> ForceTraceData:
+        params, contact = self.config.indentation, self.config.contact
+        duration = params.approach_time + dwell + params.retract_time
+        times = np.linspace(0.0, duration, INDENT_SAMPLES)
+        up = np.clip(times / params.approach_time, 0, 1) if params.approach_time else np.ones_like(times)
+        down = np.clip((duration - times) / params.retract_time, 0, 1) if params.retract_time else np.ones_like(times)
+        profile = np.minimum(up, down) * force / contact.normal_spring_constant
+        deflection = profile + self.noise_rng.normal(0, self.config.noise.deflection_sigma, len(times))
+        z = np.minimum(up, down) * force / self.config.indentation.sample_stiffness
+        x, y = self._commanded
+        return ForceTraceData(times=times, commanded_x=np.full_like(times, x), commanded_y=np.full_like(times, y),
+                              commanded_z=z, vertical_deflection=deflection, lateral_torsion=np.zeros_like(times),
+                              normal_spring_constant=contact.normal_spring_constant,
+                              lateral_spring_constant=contact.lateral_spring_constant,
+                              sample_rate=(len(times) - 1) / duration if duration else 0.0, start_time=start,
+                              task="indent")
+
+    # -- truth -------------------------------------------------------------------------------
+    def truth(self) -> dict:
+        tx, ty = self._true_scanner
+        offset = self.drift.offset(self.time)
+        return {
+            "time": self.time,
+            "tip_position": (tx - offset[0], ty - offset[1]),
+            "commanded_position": self._commanded,
+            "drift_offset": (float(offset[0]), float(offset[1])),
+            "drift_velocity": tuple(float(v) for v in self.drift.velocity(self.time)),
+            "tip_apex_radius": self.tip.apex_radius,
+            "objects": self.sample.objects(),
+        }
+
+    def close(self) -> None:
+        pass

@@ -1,4 +1,9 @@
-"""The sample: a substrate and the nano-objects on it, as a height function."""
+"""The sample world: a rough substrate and the objects on it, as a height function.
+
+Objects live in the sample-fixed task frame (afm_task). Spheres and rods/tubes move when
+pushed (afm_core.sim.pushing mutates their poses); electrodes never move; pits are dents
+the tip punched. Heights in metres above the mean substrate plane.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -13,20 +18,162 @@ class Sphere:
     x: float
     y: float
     radius: float
+    kind: str = "sphere"
 
     def height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         d2 = (xs - self.x) ** 2 + (ys - self.y) ** 2
         inside = d2 < self.radius**2
-        return np.where(inside, self.radius + np.sqrt(np.where(inside, self.radius**2 - d2, 0.0)), 0.0)
+        return np.where(inside, self.radius + np.sqrt(np.where(inside, self.radius**2 - d2, 0.0)), -np.inf)
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        return self.x - self.radius, self.x + self.radius, self.y - self.radius, self.y + self.radius
+
+
+@dataclass
+class Rod:
+    """A rod or nanotube lying on the substrate: a capsule (cylinder with round ends) of
+    `radius` whose axis, at height `radius`, runs `length` long through (x, y) at `angle`."""
+    id: int
+    x: float
+    y: float
+    angle: float        # rad, axis direction from +x
+    length: float       # m, end to end of the axis segment
+    radius: float
+    kind: str = "rod"   # "rod" or "tube"
+
+    def endpoints(self) -> tuple[np.ndarray, np.ndarray]:
+        half = 0.5 * self.length * np.array([np.cos(self.angle), np.sin(self.angle)])
+        centre = np.array([self.x, self.y])
+        return centre - half, centre + half
+
+    def distance_to_axis(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        a, b = self.endpoints()
+        ab = b - a
+        t = np.clip(((xs - a[0]) * ab[0] + (ys - a[1]) * ab[1]) / max(float(ab @ ab), 1e-30), 0.0, 1.0)
+        return np.hypot(xs - (a[0] + t * ab[0]), ys - (a[1] + t * ab[1]))
+
+    def height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        d = self.distance_to_axis(xs, ys)
+        inside = d < self.radius
+        return np.where(inside, self.radius + np.sqrt(np.where(inside, self.radius**2 - d**2, 0.0)), -np.inf)
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        a, b = self.endpoints()
+        r = self.radius
+        return min(a[0], b[0]) - r, max(a[0], b[0]) + r, min(a[1], b[1]) - r, max(a[1], b[1]) + r
+
+
+@dataclass
+class Electrode:
+    """A fixed rectangular metal pad (axis-aligned) of uniform height."""
+    id: int
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+    thickness: float
+    kind: str = "electrode"
+
+    def height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        inside = (xs >= self.x0) & (xs <= self.x1) & (ys >= self.y0) & (ys <= self.y1)
+        return np.where(inside, self.thickness, -np.inf)
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        return self.x0, self.x1, self.y0, self.y1
+
+
+@dataclass
+class Pit:
+    """An indentation: a paraboloid dent of the tip's apex shape, `depth` deep, `radius` wide."""
+    id: int
+    x: float
+    y: float
+    radius: float
+    depth: float
+    kind: str = "pit"
+
+    def depression(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        r2 = ((xs - self.x) ** 2 + (ys - self.y) ** 2) / self.radius**2
+        return np.where(r2 < 1.0, -self.depth * (1.0 - r2), 0.0)
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        return self.x - self.radius, self.x + self.radius, self.y - self.radius, self.y + self.radius
+
+
+class Roughness:
+    """A stationary Gaussian random surface (rms `sigma`, correlation length `correlation`),
+    as a periodic tile made once from the seed and interpolated anywhere."""
+
+    def __init__(self, sigma: float, correlation: float, seed: int, tile_pixels: int = 512):
+        self.sigma = float(sigma)
+        self.pixel = correlation / 4.0 if correlation > 0 else 1e-9
+        self.tile = np.zeros((tile_pixels, tile_pixels))
+        if sigma > 0 and correlation > 0:
+            rng = np.random.default_rng(seed)
+            k = np.fft.fftfreq(tile_pixels, d=self.pixel) * 2 * np.pi
+            kx, ky = np.meshgrid(k, k)
+            spectrum = np.exp(-(kx**2 + ky**2) * correlation**2 / 8.0)   # Gaussian correlation
+            field_ = np.fft.ifft2(np.fft.fft2(rng.normal(size=self.tile.shape)) * np.sqrt(spectrum)).real
+            self.tile = field_ / field_.std() * sigma
+
+    def height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        if self.sigma == 0:
+            return np.zeros(np.broadcast(xs, ys).shape)
+        from scipy.ndimage import map_coordinates
+        coords = np.stack([np.asarray(ys) / self.pixel, np.asarray(xs) / self.pixel])
+        return map_coordinates(self.tile, coords.reshape(2, -1), order=1, mode="grid-wrap").reshape(coords.shape[1:])
 
 
 @dataclass
 class Sample:
     spheres: list[Sphere] = field(default_factory=list)
+    rods: list[Rod] = field(default_factory=list)
+    electrodes: list[Electrode] = field(default_factory=list)
+    pits: list[Pit] = field(default_factory=list)
+    roughness: Roughness | None = None
+
+    @property
+    def movable(self) -> list:
+        return [*self.spheres, *self.rods]
+
+    def objects(self) -> list:
+        return [*self.spheres, *self.rods, *self.electrodes, *self.pits]
+
+    def next_id(self) -> int:
+        return 1 + max((o.id for o in self.objects()), default=-1)
 
     def height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-        """Topography (m) at sample-frame coordinates; substrate at 0."""
-        z = np.zeros(np.broadcast(xs, ys).shape)
-        for sphere in self.spheres:
-            z = np.maximum(z, sphere.height(xs, ys))
+        """Topography (m) at sample-frame coordinates: the objects on the base."""
+        xs, ys = np.broadcast_arrays(np.asarray(xs, dtype=float), np.asarray(ys, dtype=float))
+        z = self.base_height(xs, ys)
+        if xs.size == 0:
+            return z
+        return np.maximum(z, self.object_height(xs, ys, self.objects_near(xs.min(), xs.max(), ys.min(), ys.max())))
+
+    def base_height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        """The substrate: roughness and pits, without the objects lying on it."""
+        z = self.roughness.height(xs, ys) if self.roughness is not None else np.zeros(np.broadcast(xs, ys).shape)
+        for pit in self.pits:
+            z = z + pit.depression(xs, ys)
+        return z
+
+    def base_span(self) -> float:
+        """An upper bound of max - min of base_height anywhere (m)."""
+        span = float(np.ptp(self.roughness.tile)) if self.roughness is not None else 0.0
+        return span + sum(pit.depth for pit in self.pits)
+
+    def objects_near(self, x_lo: float, x_hi: float, y_lo: float, y_hi: float) -> list:
+        out = []
+        for obj in [*self.electrodes, *self.rods, *self.spheres]:
+            b = obj.bounds()
+            if not (b[1] < x_lo or b[0] > x_hi or b[3] < y_lo or b[2] > y_hi):
+                out.append(obj)
+        return out
+
+    @staticmethod
+    def object_height(xs: np.ndarray, ys: np.ndarray, objects: list) -> np.ndarray:
+        """Top of the given objects (-inf where there are none)."""
+        z = np.full(np.broadcast(xs, ys).shape, -np.inf)
+        for obj in objects:
+            z = np.maximum(z, obj.height(xs, ys))
         return z

@@ -1,22 +1,83 @@
-"""Tip geometry as a height grid: apex at the centre pixel, height 0, everything else < 0."""
+"""Tip geometry as a height grid: apex at the centre pixel, height 0, everything else < 0.
+
+A paraboloid apex z = -r^2 / (2 R) blends tangentially into a cone. With asymmetry a, the
+cone's half-angle depends on the azimuth phi: theta(phi) = theta0 * (1 + a cos phi), so the
++x flank is blunter than the -x flank for a > 0 (real tips are rarely symmetric). Wear
+blunts the apex: the radius grows in proportion to the distance slid in contact.
+"""
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 
-def paraboloid_cone_tip(apex_radius: float, half_angle_deg: float, pixel_size: float,
-                        depth: float) -> np.ndarray:
-    """A paraboloid apex z = -r^2 / (2 R) blended tangentially into a cone of the given
-    half-angle, cut at `depth` below the apex. Returns an odd-sized square grid (metres)."""
+@dataclass
+class TipParams:
+    apex_radius: float = 20e-9          # m, new tip
+    half_angle_deg: float = 20.0        # deg, cone half-angle (theta0)
+    asymmetry: float = 0.0              # relative half-angle change between +x and -x flanks, |a| < 1
+    wear_enabled: bool = False
+    wear_rate: float = 1e-5             # m of apex radius gained per m slid in contact
+    max_apex_radius: float = 200e-9     # m, wear stops here (a flat, worn tip)
+
+    def validate(self) -> None:
+        if not self.apex_radius > 0:
+            raise ValueError(f"tip.apex_radius={self.apex_radius}: must be > 0 m")
+        if not 0 < self.half_angle_deg < 90:
+            raise ValueError(f"tip.half_angle_deg={self.half_angle_deg}: must be within (0, 90) deg")
+        if not abs(self.asymmetry) < 1:
+            raise ValueError(f"tip.asymmetry={self.asymmetry}: must be within (-1, 1)")
+        if self.half_angle_deg * (1 + abs(self.asymmetry)) >= 90:
+            raise ValueError(f"tip.asymmetry={self.asymmetry}: makes a flank's half-angle reach 90 deg")
+        if self.wear_rate < 0:
+            raise ValueError(f"tip.wear_rate={self.wear_rate}: must be >= 0")
+
+
+def paraboloid_cone_tip(apex_radius: float, half_angle_deg: float, pixel_size: float, depth: float,
+                        asymmetry: float = 0.0, max_half_width: int | None = None) -> np.ndarray:
+    """Odd-sized square height grid (m) of the tip down to `depth` below the apex."""
     if not (apex_radius > 0 and pixel_size > 0 and depth > 0 and 0 < half_angle_deg < 90):
         raise ValueError(f"tip: apex_radius={apex_radius}, half_angle_deg={half_angle_deg}, "
                          f"pixel_size={pixel_size}, depth={depth}: all must be > 0, angle < 90 deg")
-    slope = 1.0 / np.tan(np.radians(half_angle_deg))          # dz/dr of the cone wall
-    r_tangent = apex_radius * slope                            # where the paraboloid's slope = cone's
-    z_tangent = -r_tangent**2 / (2 * apex_radius)
-    r_max = r_tangent + (depth + z_tangent) / slope if depth > -z_tangent else np.sqrt(2 * apex_radius * depth)
+    flattest = 1.0 / np.tan(np.radians(half_angle_deg * (1 + abs(asymmetry))))   # widest flank's slope
+    r_t = apex_radius * flattest
+    z_t = r_t**2 / (2 * apex_radius)
+    r_max = np.sqrt(2 * apex_radius * depth) if depth <= z_t else r_t + (depth - z_t) / flattest
     half = int(np.ceil(r_max / pixel_size))
+    if max_half_width is not None:
+        half = min(half, max_half_width)
     offsets = np.arange(-half, half + 1) * pixel_size
-    r = np.hypot(*np.meshgrid(offsets, offsets))
+    ox, oy = np.meshgrid(offsets, offsets)
+    r = np.hypot(ox, oy)
+    cos_phi = np.divide(ox, r, out=np.zeros_like(r), where=r > 0)
+    slope = 1.0 / np.tan(np.radians(half_angle_deg) * (1 + asymmetry * cos_phi))   # cone wall dz/dr
+    r_tangent = apex_radius * slope                      # paraboloid slope r/R meets the cone's
+    z_tangent = -r_tangent**2 / (2 * apex_radius)
     z = np.where(r <= r_tangent, -r**2 / (2 * apex_radius), z_tangent - (r - r_tangent) * slope)
     return np.maximum(z, -depth)
+
+
+class Tip:
+    """The simulated tip: current apex radius (wears) and its grid, cached per pixel size."""
+
+    def __init__(self, params: TipParams):
+        params.validate()
+        self.params = params
+        self.apex_radius = params.apex_radius
+        self.contact_distance = 0.0
+        self._cache: dict = {}
+
+    def grid(self, pixel_size: float, depth: float, max_half_width: int | None = None) -> np.ndarray:
+        key = (round(pixel_size, 15), round(depth, 12), max_half_width, self.apex_radius)
+        if key not in self._cache:
+            self._cache = {key: paraboloid_cone_tip(self.apex_radius, self.params.half_angle_deg, pixel_size,
+                                                    depth, self.params.asymmetry, max_half_width)}
+        return self._cache[key]
+
+    def slide(self, distance: float) -> None:
+        """Account for `distance` (m) slid in contact: wear, if enabled."""
+        self.contact_distance += distance
+        if self.params.wear_enabled:
+            self.apex_radius = min(self.params.max_apex_radius,
+                                   self.params.apex_radius + self.params.wear_rate * self.contact_distance)

@@ -1,0 +1,158 @@
+"""One configuration for the whole simulated instrument, loadable from one YAML file.
+
+Every effect is switchable and parameterised here; defaults come from the book (see
+default_config.yaml, which documents each value). Unknown keys and wrong types are errors
+that name the key, so a typo never silently leaves an effect at its default.
+"""
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from afm_core.instrument import ScannerLimits
+from afm_core.pzt import ScannerParams
+from afm_core.sim.drift import DriftParams
+from afm_core.sim.pushing import ContactParams
+from afm_core.sim.tip import TipParams
+
+DEFAULT_CONFIG_FILE = Path(__file__).with_name("default_config.yaml")
+
+
+@dataclass
+class NoiseParams:
+    height_white_sigma: float = 0.3e-9        # m, white sensor noise per pixel
+    height_flicker_sigma: float = 0.2e-9      # m, 1/f noise over the acquisition sequence
+    deflection_sigma: float = 0.05e-9         # m, deflection signal noise
+    feedback_time_constant: float = 2e-4      # s, z-feedback lag: deflection error ~ lag * dh/dt
+
+
+@dataclass
+class SampleParams:
+    roughness_sigma: float = 0.3e-9           # m rms of the substrate
+    roughness_correlation: float = 20e-9      # m
+    # Near the scanner's centre (55 um, 55 um), where the tip rests at power-on.
+    spheres: list = field(default_factory=lambda: [
+        {"x": 55.0e-6, "y": 55.0e-6, "radius": 100e-9},
+        {"x": 55.6e-6, "y": 55.3e-6, "radius": 100e-9},
+        {"x": 54.6e-6, "y": 55.7e-6, "radius": 100e-9}])
+    random_spheres: int = 0                   # extra spheres scattered over random_area
+    random_area: list = field(default_factory=lambda: [52e-6, 52e-6, 6e-6, 6e-6])   # x0, y0, width, height (m)
+    radius_mean: float = 100e-9               # m, polystyrene spheres (book: ~100 nm)
+    radius_sigma: float = 5e-9                # m
+    rods: list = field(default_factory=list)  # {x, y, angle (rad), length, radius, kind: rod|tube}
+    electrodes: list = field(default_factory=list)   # {x0, y0, x1, y1, thickness}
+
+
+@dataclass
+class ControllerParams:
+    """The AFM controller's own hysteresis feed-forward: it inverts a PI model of the
+    scanner, as calibrated. The calibration is never exact, so a residual remains."""
+    hysteresis_compensation: bool = True
+    model_error: float = 0.1                  # relative error of the calibrated loop width (0: perfect)
+
+
+@dataclass
+class IndentParams:
+    sample_stiffness: float = 50.0            # N/m, pit depth = force / stiffness
+    approach_time: float = 0.05               # s
+    retract_time: float = 0.05                # s
+
+
+@dataclass
+class SimConfig:
+    seed: int = 0
+    limits: ScannerLimits = field(default_factory=ScannerLimits)
+    scanner: ScannerParams = field(default_factory=ScannerParams)
+    controller: ControllerParams = field(default_factory=ControllerParams)
+    drift: DriftParams = field(default_factory=DriftParams)
+    tip: TipParams = field(default_factory=TipParams)
+    contact: ContactParams = field(default_factory=ContactParams)
+    noise: NoiseParams = field(default_factory=NoiseParams)
+    sample: SampleParams = field(default_factory=SampleParams)
+    indentation: IndentParams = field(default_factory=IndentParams)
+
+
+def _build(cls, data, path: str):
+    if not isinstance(data, dict):
+        raise ValueError(f"{path or 'config'}: expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"{path or 'config'}: unknown key(s) {unknown}; known: {sorted(names)}")
+    values = {}
+    for key, value in data.items():
+        hint = hints[key]
+        where = f"{path}.{key}" if path else key
+        if dataclasses.is_dataclass(hint):
+            values[key] = _build(hint, value, where)
+        else:
+            values[key] = _coerce(hint, value, where)
+    return cls(**values)
+
+
+def _coerce(hint, value, where):
+    origin = typing.get_origin(hint) or hint
+    if origin is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"{where}={value!r}: expected true or false")
+        return value
+    if origin is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{where}={value!r}: expected an integer")
+        return value
+    if origin is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{where}={value!r}: expected a number (SI units)")
+        return float(value)
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(f"{where}={value!r}: expected a list")
+        return origin(value)
+    return value
+
+
+def config_from_dict(data: dict) -> SimConfig:
+    return _build(SimConfig, data or {}, "")
+
+
+def load_config(path: str | Path | None = None) -> SimConfig:
+    """Defaults from default_config.yaml, overridden by the user's file (any subset of keys)."""
+    config = config_from_dict(yaml.safe_load(DEFAULT_CONFIG_FILE.read_text()) or {})
+    if path is None:
+        return config
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"simulator config {str(path)!r} does not exist")
+    try:
+        user = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ValueError(f"simulator config {str(path)!r} is not valid YAML: {exc}") from exc
+    return merge(config, user)
+
+
+def merge(config: SimConfig, overrides: dict) -> SimConfig:
+    """A new config with `overrides` (nested dict, any subset of keys) applied."""
+    merged = _deep_update(dataclasses.asdict(config), overrides, "")
+    return config_from_dict(merged)
+
+
+def _deep_update(base: dict, overrides: dict, path: str) -> dict:
+    if not isinstance(overrides, dict):
+        raise ValueError(f"{path or 'config'}: expected a mapping")
+    out = dict(base)
+    for key, value in overrides.items():
+        where = f"{path}.{key}" if path else key
+        if key not in base:
+            raise ValueError(f"{path or 'config'}: unknown key {key!r}; known: {sorted(base)}")
+        out[key] = _deep_update(base[key], value, where) if isinstance(base[key], dict) and isinstance(value, dict) \
+            else value
+    return out
+
+
+def dump_config(config: SimConfig) -> str:
+    return yaml.safe_dump(dataclasses.asdict(config), sort_keys=False)

@@ -1,0 +1,82 @@
+"""Thermal drift: the sample moves against the scanner with a slowly wandering velocity.
+
+Each axis' velocity is an Ornstein-Uhlenbeck process: it wanders around a mean with a
+stationary spread and a correlation time, so over minutes it is nearly constant (what
+drift compensation assumes) and over hours it changes (the book's Fig. 7.9 statistics over
+hours: v_x ~ N(-0.004, 0.027) nm/s, v_y ~ N(0.099, 0.209) nm/s). Velocity knots are drawn
+in time order from the seed, so the same seed gives the same drift whatever is queried
+when; between knots the velocity is linear and the offset its exact integral.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class DriftParams:
+    enabled: bool = True
+    mean_velocity_x: float = -0.004e-9     # m/s (book Fig. 7.9)
+    mean_velocity_y: float = 0.099e-9      # m/s
+    sigma_velocity_x: float = 0.027e-9     # m/s, stationary spread
+    sigma_velocity_y: float = 0.209e-9     # m/s
+    correlation_time: float = 1800.0       # s, how long the velocity stays about the same
+    knot_interval: float = 1.0             # s between velocity knots
+
+    def validate(self) -> None:
+        if not self.correlation_time > 0:
+            raise ValueError(f"drift.correlation_time={self.correlation_time}: must be > 0 s")
+        if not self.knot_interval > 0:
+            raise ValueError(f"drift.knot_interval={self.knot_interval}: must be > 0 s")
+        if self.sigma_velocity_x < 0 or self.sigma_velocity_y < 0:
+            raise ValueError("drift.sigma_velocity_x/y: must be >= 0 m/s")
+
+
+class ThermalDrift:
+    def __init__(self, params: DriftParams, seed: int):
+        params.validate()
+        self.params = params
+        self.rng = np.random.default_rng(seed)
+        self.mean = np.array([params.mean_velocity_x, params.mean_velocity_y])
+        self.sigma = np.array([params.sigma_velocity_x, params.sigma_velocity_y])
+        first = self.mean + self.sigma * self.rng.normal(size=2)
+        self.velocity_knots = [first]          # at t = 0, dt, 2 dt, ...
+        self.offset_knots = [np.zeros(2)]
+
+    def _extend_to(self, t_max: float) -> None:
+        p = self.params
+        needed = int(np.ceil(t_max / p.knot_interval)) + 1
+        decay = np.exp(-p.knot_interval / p.correlation_time)
+        spread = self.sigma * np.sqrt(1.0 - decay**2)
+        while len(self.velocity_knots) < needed:
+            v_prev = self.velocity_knots[-1]
+            v_next = self.mean + (v_prev - self.mean) * decay + spread * self.rng.normal(size=2)
+            self.velocity_knots.append(v_next)
+            self.offset_knots.append(self.offset_knots[-1] + 0.5 * (v_prev + v_next) * p.knot_interval)
+
+    def _interval(self, t: np.ndarray):
+        if np.any(t < 0):
+            raise ValueError("drift is defined from t = 0 s on")
+        self._extend_to(float(np.max(t, initial=0.0)) + self.params.knot_interval)
+        k = np.minimum((t // self.params.knot_interval).astype(int), len(self.velocity_knots) - 2)
+        tau = t - k * self.params.knot_interval
+        v0 = np.asarray(self.velocity_knots)[k]
+        v1 = np.asarray(self.velocity_knots)[k + 1]
+        return k, tau[..., None], v0, v1
+
+    def offset(self, t) -> np.ndarray:
+        """Sample displacement (m) against the scanner at times t (s): shape t.shape + (2,)."""
+        t = np.asarray(t, dtype=float)
+        if not self.params.enabled:
+            return np.zeros(t.shape + (2,))
+        k, tau, v0, v1 = self._interval(t)
+        slope = (v1 - v0) / self.params.knot_interval
+        return np.asarray(self.offset_knots)[k] + v0 * tau + 0.5 * slope * tau**2
+
+    def velocity(self, t) -> np.ndarray:
+        t = np.asarray(t, dtype=float)
+        if not self.params.enabled:
+            return np.zeros(t.shape + (2,))
+        _k, tau, v0, v1 = self._interval(t)
+        return v0 + (v1 - v0) * tau / self.params.knot_interval
