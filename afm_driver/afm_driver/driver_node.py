@@ -83,6 +83,8 @@ class FifoGate:
             return ticket
 
     def wait(self, ticket: int, give_up) -> bool:
+        """True when it is this ticket's turn; False (turn passed on) if the waiter gave up,
+        even if the turn came in the same instant."""
         with self.condition:
             while self.serving != ticket:
                 if give_up():
@@ -90,7 +92,10 @@ class FifoGate:
                     self.condition.notify_all()
                     return False
                 self.condition.wait(timeout=0.05)
-            return True
+        if give_up():
+            self.release()
+            return False
+        return True
 
     def release(self) -> None:
         with self.condition:
