@@ -182,6 +182,15 @@ class DriverNode(Node):
         if ahead > 0:
             time.sleep(ahead)
 
+    def stop_check(self, goal_handle):
+        """Asked by the instrument between chunks of a motion: keeps real-time pacing inside
+        long motions, so a cancel lands where the tip is now."""
+        def should_stop() -> bool:
+            self.pace()
+            self.publish_clock()
+            return goal_handle.is_cancel_requested
+        return should_stop
+
     def publish_clock(self) -> None:
         if self.clock_pub is not None:
             self.clock_pub.publish(Clock(clock=self.stamp(self.instrument.time)))
@@ -229,7 +238,7 @@ class DriverNode(Node):
 
         start_time = self.instrument.time
         scan = self.instrument.raster_scan(request, on_line=on_line,
-                                           should_stop=lambda: goal_handle.is_cancel_requested)
+                                           should_stop=self.stop_check(goal_handle))
         self.command(TipCommand.RASTER, start_time, (request.origin_x, request.origin_y),
                      (request.origin_x + request.size_x, request.origin_y + request.size_y),
                      self.instrument.time - start_time)
@@ -253,7 +262,7 @@ class DriverNode(Node):
         except ValueError as exc:
             return self.refuse(goal_handle, result, exc)
         start_time = self.instrument.time
-        line = self.instrument.local_scan(request, should_stop=lambda: goal_handle.is_cancel_requested)
+        line = self.instrument.local_scan(request, should_stop=self.stop_check(goal_handle))
         self.pace()
         self.command(TipCommand.SCAN_LINE, start_time, (request.start_x, request.start_y),
                      (request.end_x, request.end_y), self.instrument.time - start_time, speed)
@@ -274,7 +283,7 @@ class DriverNode(Node):
                 raise ValueError(f"target.header.frame_id={goal.target.header.frame_id!r}: expected "
                                  f"{FRAME_SCANNER!r} or {FRAME_TASK!r}")
             move = self.instrument.move_tip(goal.target.point.x, goal.target.point.y, speed, goal.contact,
-                                            should_stop=lambda: goal_handle.is_cancel_requested)
+                                            should_stop=self.stop_check(goal_handle))
         except ValueError as exc:
             return self.refuse(goal_handle, result, exc)
         self.pace()
@@ -292,7 +301,7 @@ class DriverNode(Node):
         start_time = self.instrument.time
         try:
             indent = self.instrument.indent(goal.position.x, goal.position.y, goal.force, goal.dwell,
-                                            should_stop=lambda: goal_handle.is_cancel_requested)
+                                            should_stop=self.stop_check(goal_handle))
         except ValueError as exc:
             return self.refuse(goal_handle, result, exc)
         self.pace()
