@@ -158,8 +158,6 @@ class AfmCommander:
     def close(self):
         self.executor.shutdown()
         self._spinner.join(timeout=5.0)
-        for client in self.clients.values():
-            client.destroy()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
 

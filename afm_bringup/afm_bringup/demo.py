@@ -162,7 +162,10 @@ def write_report(run_dir: Path, result: dict, memory: dict, codes: dict, elapsed
               nm(v["centre_error_rms"]), nm(v["peak_height_mean"]), nm(v["apparent_radius_mean"])]
              for v in result["scans"]]) +
          f"<p>True radii: {', '.join(nm(r) for r in result['truth_radius'])}. The apparent radius at half "
-         "height exceeds the true one by the tip's broadening.</p>"),
+         "height exceeds the true one by the tip's broadening. Images are in commanded scanner coordinates: "
+         "the centre errors are the simulated instrument's positioning errors (hysteresis residue after the "
+         "controller's feed-forward, creep, x/y coupling, scan-line rotation, thermal drift), which drift "
+         "compensation and landmark localization are there to remove.</p>"),
         ("Recorded topics", table(["topic", "messages"], [[t, n] for t, n in result["topics"].items()])),
         ("Replay check (original vs replayed recording)", table(
             ["topic", "original", "replayed", "identical payloads"],
