@@ -27,6 +27,9 @@ def run(node_factory, program: str, args=None, *, config_errors=(ValueError,), t
         pass
     except SystemExit as exc:
         status = int(exc.code or 1)
+    except Exception:  # noqa: BLE001 - a signal may shut the context down mid-wait (RCLError)
+        if rclpy.ok():
+            raise
     finally:
         if on_shutdown is not None:
             try:
