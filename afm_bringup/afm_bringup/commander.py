@@ -123,6 +123,7 @@ class AfmCommander:
                        and not any(s.node_name == recorder_node
                                    for s in self.node.get_subscriptions_info_by_topic(t))]
             if not missing:
+                time.sleep(0.5)   # the graph shows a subscription a moment before DDS matches it
                 return
             time.sleep(0.1)
         raise AfmError(f"recorder {recorder_node!r} did not subscribe to {missing} within {timeout} s")

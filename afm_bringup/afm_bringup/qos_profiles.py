@@ -6,8 +6,10 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STREAM = qos_profile_sensor_data
-EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
-                    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+# Commands and goals: reliable, and the last 100 kept for late joiners, so a recorder that
+# matched a moment after the first command still records it.
+EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # Action feedback arrives in bursts (a scan's lines): a deep queue keeps most of it.
 FEEDBACK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
