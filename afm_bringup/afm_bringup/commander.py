@@ -12,6 +12,7 @@ thread, so calls block only the caller.
 from __future__ import annotations
 
 import threading
+import time
 
 import rclpy
 from rclpy.action import ActionClient
@@ -80,6 +81,7 @@ class AfmCommander:
         self.node = Node(node_name, context=self.context)
         self.clients = {name: ActionClient(self.node, action_type, action_name, feedback_sub_qos_profile=FEEDBACK)
                         for name, (action_type, action_name) in self.ACTIONS.items()}
+        self._ready: set[str] = set()
         self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
         self.executor.add_node(self.node)
         self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
@@ -89,9 +91,14 @@ class AfmCommander:
     def send(self, action: str, goal, feedback=None, wait: bool = True, timeout: float | None = None):
         """Send a goal; returns the result (wait=True) or a Job."""
         client = self.clients[action]
-        if not client.wait_for_server(timeout_sec=self.server_timeout):
-            raise AfmError(f"no action server at {self.ACTIONS[action][1]} after {self.server_timeout} s; "
-                           "is the graph running (`afm launch`)?")
+        if action not in self._ready:
+            if not client.wait_for_server(timeout_sec=self.server_timeout):
+                raise AfmError(f"no action server at {self.ACTIONS[action][1]} after {self.server_timeout} s; "
+                               "is the graph running (`afm launch`)?")
+            # The server is seen a moment before DDS has matched its replies to us; a goal
+            # sent at once may get no answer.
+            time.sleep(0.5)
+            self._ready.add(action)
         box: dict = {}
 
         def on_feedback(message):
@@ -114,7 +121,6 @@ class AfmCommander:
                             timeout: float = 15.0) -> None:
         """Block until the recorder subscribes to every listed topic that has a publisher,
         so nothing this script triggers next goes unrecorded."""
-        import time
         deadline = time.monotonic() + timeout
         missing = list(topics_to_check)
         while time.monotonic() < deadline:

@@ -1,0 +1,1 @@
+"""Image processing on AFM height maps: drift, tip, landmarks, user image files."""
