@@ -250,6 +250,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=None, help="s to wait for the result")
     p.set_defaults(func=cmd_push)
 
+    p = sub.add_parser("image", help="drift compensation, tip estimation, reconstruction, landmarks on files",
+                       description="Run the imaging algorithms on image files (.npz, .gwy, .npy); no ROS needed.")
+    from afm_core.imaging.cli import add_subcommands, run as run_image
+    add_subcommands(p, _length("length"))
+    p.set_defaults(func=run_image)
+
     p = sub.add_parser("demo", help="the main job: run the graph end to end and write a report",
                        description="Start the graph on the simulated instrument, do what the graph can do, "
                                    "record to MCAP, replay, evaluate offline and write an HTML report.")

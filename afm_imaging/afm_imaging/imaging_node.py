@@ -1,23 +1,175 @@
-"""Imaging node: drift compensation, blind tip estimation, reconstruction and landmark extraction.
+"""Imaging node: drift-corrected map, landmarks and tip shape from the driver's scans.
 
-Scaffold: the node runs in the graph with its name and lifecycle; its topics and actions
-arrive with issue 4, which builds the algorithms in afm_core.
+A 0 deg scan with an empty pair_id is used as it is; scans sharing a pair_id are corrected
+for thermal drift as a 0/90 deg pair once both are in. The tip is estimated on demand
+(service /afm/imaging/estimate_tip) or after every map (estimate_tip_on_scan). Bad scans
+are reported and skipped; the node keeps running.
 """
+from __future__ import annotations
+
 import sys
+import threading
+import time
 
+import numpy as np
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
+from rclpy.qos import QoSProfile
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
 
+from afm_bringup import params, topics
+from afm_bringup.conversions import FRAME_IMAGE, FRAME_TASK, array_to_image, msg_to_raster_scan, raster_scan_to_msg
 from afm_bringup.node_main import run
+from afm_bringup.qos_profiles import LATCHED
+from afm_core.imaging.landmarks import MapErrorModel, extract_landmarks
+from afm_msgs.msg import Landmark, LandmarkArray, RasterScan, TipShape
+
+PARAMETERS = [
+    ("min_landmark_height", 10e-9, "m; features lower than this above the substrate are not landmarks."),
+    ("map_sigma_x", 5.0e-9, "m, map error (1 sigma) along x added to every landmark's covariance (book Fig. 7.10)."),
+    ("map_sigma_y", 4.5e-9, "m, map error along y (book Fig. 7.10)."),
+    ("drift_order", 1, "Offset-vector order of the 0/90 drift compensation: 1 (book) or 2."),
+    ("tip_size", 21, "Pixels (odd) of the blind-estimated tip's window."),
+    ("tip_threshold", "auto", "Denoising threshold of the blind tip estimate: 'auto' or metres."),
+    ("estimate_tip_on_scan", False, "Re-estimate the tip after every new map (seconds of work each time)."),
+]
+KINDS = {"sphere": Landmark.SPHERE, "tube": Landmark.TUBE, "rod": Landmark.ROD}
 
 
 class ImagingNode(Node):
     def __init__(self):
         super().__init__("afm_imaging")
-        self.get_logger().info("running; drift compensation, blind tip estimation, reconstruction and landmark extraction arrive with issue 4")
+        self.config = params.declare(self, PARAMETERS)
+        if self.config["drift_order"] not in (1, 2):
+            raise ValueError(f"parameter drift_order={self.config['drift_order']}: must be 1 or 2")
+        if self.config["tip_size"] < 3 or self.config["tip_size"] % 2 == 0:
+            raise ValueError(f"parameter tip_size={self.config['tip_size']}: must be odd and >= 3")
+        if self.config["tip_threshold"] != "auto":
+            try:
+                float(self.config["tip_threshold"])
+            except ValueError:
+                raise ValueError(f"parameter tip_threshold={self.config['tip_threshold']!r}: 'auto' or metres") from None
+        self.error_model = MapErrorModel(self.config["map_sigma_x"], self.config["map_sigma_y"])
+        self.pending_0: dict[str, object] = {}
+        self.pending_90: dict[str, object] = {}
+        self.latest_map = None
+        self.lock = threading.Lock()
+        self.map_pub = self.create_publisher(RasterScan, topics.CORRECTED_MAP, LATCHED)
+        self.landmark_pub = self.create_publisher(LandmarkArray, topics.LANDMARKS, LATCHED)
+        self.tip_pub = self.create_publisher(TipShape, topics.TIP_SHAPE, LATCHED)
+        group = MutuallyExclusiveCallbackGroup()
+        # latched like the publisher, but a queue: a 0/90 pair may arrive back to back
+        scans_qos = QoSProfile(depth=10, reliability=LATCHED.reliability, durability=LATCHED.durability)
+        self.create_subscription(RasterScan, topics.SCAN, self.on_scan, scans_qos, callback_group=group)
+        self.create_service(Trigger, "/afm/imaging/estimate_tip", self.on_estimate_tip, callback_group=group)
+
+    # -- scans -------------------------------------------------------------------------------
+    def on_scan(self, msg: RasterScan) -> None:
+        try:
+            scan = msg_to_raster_scan(msg)
+            if not np.all(np.isfinite(scan.height)):
+                raise ValueError(f"{int(np.count_nonzero(~np.isfinite(scan.height)))} NaN/inf pixels")
+        except ValueError as exc:
+            self.get_logger().error(f"scan {msg.scan_id} skipped: {exc}")
+            return
+        if msg.scan_angle_deg == 0.0 and not msg.pair_id:
+            self.publish_map(scan, msg, corrected=None)
+            return
+        book, other = (self.pending_0, self.pending_90) if msg.scan_angle_deg == 0.0 else (self.pending_90, self.pending_0)
+        book[msg.pair_id] = (scan, msg)
+        if msg.pair_id not in other:
+            if msg.scan_angle_deg == 90.0:
+                self.get_logger().warning(f"90 deg scan {msg.scan_id} (pair_id {msg.pair_id!r}) has no 0 deg partner "
+                                          "yet; it waits for one")
+            return
+        (scan0, msg0), (scan90, _msg90) = self.pending_0.pop(msg.pair_id), self.pending_90.pop(msg.pair_id)
+        if scan0.scan_angle_deg != 0.0 or scan90.scan_angle_deg != 90.0:
+            self.get_logger().error(f"pair {msg.pair_id!r}: needs one 0 deg and one 90 deg scan")
+            return
+        from afm_core.imaging.drift import compensate_pair
+        try:
+            correction = compensate_pair(scan0, scan90, order=self.config["drift_order"])
+        except ValueError as exc:
+            self.get_logger().error(f"pair {msg.pair_id!r}: drift compensation refused: {exc}")
+            return
+        vx, vy = correction.velocity
+        self.get_logger().info(f"pair {msg.pair_id!r}: drift ({vx * 1e9:.3f}, {vy * 1e9:.3f}) nm/s corrected in "
+                               f"{correction.seconds:.2f} s")
+        self.publish_map(scan0, msg0, corrected=correction.corrected)
+
+    def publish_map(self, scan, msg: RasterScan, corrected) -> None:
+        started = time.perf_counter()
+        height = scan.height if corrected is None else corrected
+        header = Header(stamp=msg.header.stamp, frame_id=FRAME_TASK)
+        out = raster_scan_to_msg(scan, header, scan_id=msg.scan_id, pair_id=msg.pair_id)
+        out.height = array_to_image(np.asarray(height, dtype=np.float32), header)
+        self.map_pub.publish(out)
+        try:
+            marks = extract_landmarks(np.asarray(height, float), scan.pixel_size_x, scan.pixel_size_y, scan.origin_x,
+                                      scan.origin_y, min_height=self.config["min_landmark_height"],
+                                      error_model=self.error_model)
+        except ValueError as exc:
+            self.get_logger().error(f"landmarks of scan {msg.scan_id} skipped: {exc}")
+            return
+        array = LandmarkArray(header=header)
+        for mark in marks:
+            lm = Landmark(id=int(mark.id), kind=KINDS[mark.kind], radius=float(mark.radius), height=float(mark.height),
+                          length=float(mark.length), orientation=float(mark.orientation))
+            lm.position.x, lm.position.y, lm.position.z = float(mark.x), float(mark.y), float(mark.height)
+            lm.covariance = [float(v) for v in np.asarray(mark.covariance).ravel()]
+            array.landmarks.append(lm)
+        self.landmark_pub.publish(array)
+        with self.lock:
+            self.latest_map = (height, scan.pixel_size_x, header)
+        self.get_logger().info(f"map {msg.scan_id} ({'drift-corrected' if corrected is not None else 'as scanned'}): "
+                               f"{len(marks)} landmarks in {time.perf_counter() - started:.2f} s")
+        if self.config["estimate_tip_on_scan"]:
+            self.estimate_tip()
+
+    # -- the tip -----------------------------------------------------------------------------
+    def estimate_tip(self) -> str:
+        from afm_core.imaging.tip_estimation import estimate_tip
+        with self.lock:
+            latest = self.latest_map
+        if latest is None:
+            raise ValueError("no map yet: scan first")
+        height, pixel, header = latest
+        threshold = self.config["tip_threshold"]
+        estimate = estimate_tip(np.asarray(height, float), self.config["tip_size"],
+                                threshold="auto" if threshold == "auto" else float(threshold), pixel_size=pixel)
+        shape = TipShape(header=Header(stamp=header.stamp, frame_id=FRAME_IMAGE), pixel_size=float(pixel),
+                         apex_radius=float(apex_radius(estimate.tip, pixel)), source="blind_estimate")
+        shape.height = array_to_image(estimate.tip.astype(np.float32), shape.header)
+        self.tip_pub.publish(shape)
+        return (f"tip {self.config['tip_size']}x{self.config['tip_size']} estimated in {estimate.seconds:.2f} s, "
+                f"threshold {estimate.threshold * 1e9:.3f} nm, apex radius {shape.apex_radius * 1e9:.1f} nm")
+
+    def on_estimate_tip(self, _request, response):
+        try:
+            response.message = self.estimate_tip()
+            response.success = True
+        except ValueError as exc:
+            response.success, response.message = False, str(exc)
+        return response
+
+
+def apex_radius(tip: np.ndarray, pixel: float, depth_pixels: int = 3) -> float:
+    """Radius of the paraboloid z = -r^2 / (2R) that fits the tip's top (least squares)."""
+    c = tip.shape[0] // 2
+    k = min(depth_pixels, c)
+    window = tip[c - k:c + k + 1, c - k:c + k + 1]
+    offsets = np.arange(-k, k + 1) * pixel
+    r2 = np.add.outer(offsets**2, offsets**2)
+    mask = r2 > 0
+    z = -window[mask]
+    if not np.any(z > 0):
+        return float("inf")
+    return float(np.sum(r2[mask] ** 2) / (2.0 * np.sum(r2[mask] * z)))
 
 
 def main(args=None):
-    return run(ImagingNode, "afm_imaging", args)
+    return run(ImagingNode, "afm imaging", args, threads=2)
 
 
 if __name__ == "__main__":
