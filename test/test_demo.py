@@ -16,3 +16,6 @@ def test_demo_runs_end_to_end_and_reports(tmp_path):
     for view in summary["scans"]:
         assert view["matched"] == len(summary["truth_xy"])
         assert 2e-9 < view["centre_error_rms"] < 300e-9
+    # the imaging node turned the 0/90 pair into landmarks, one per particle
+    assert len(summary["landmarks"]) == len(summary["truth_xy"])
+    assert all(m["nearest_truth"] < 300e-9 and m["sigma_x"] >= 5e-9 for m in summary["landmarks"])

@@ -15,14 +15,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+from rclpy.qos import QoSProfile
 
 from afm_bringup import topics
 from afm_bringup.commander import AfmCommander
 from afm_bringup.launcher import GRAPH, Graph
+from afm_bringup.qos_profiles import LATCHED
 from afm_bringup.units import nm
 from afm_core.evaluation import compare_payloads, find_particles, match_to_truth
 from afm_core.recording import RecordingReader
 from afm_core.report import save_height_maps, table, write_html
+from afm_msgs.msg import RasterScan
 
 SCAN_ORIGIN = (54.3e-6, 54.3e-6)   # m: the simulated sample's particles lie around (55 um, 55 um)
 SCAN_SIZE = (1.8e-6, 1.8e-6)
@@ -73,12 +76,21 @@ def acquire(run_dir: Path, log) -> tuple[dict, dict]:
         with AfmCommander(server_timeout=60.0) as afm:
             afm.clients["scan_image"].wait_for_server(timeout_sec=60.0)
             afm.wait_until_recorded([topics.SCAN, topics.TIP_COMMAND, topics.GROUND_TRUTH])
+            maps_seen = []
+            afm.node.create_subscription(RasterScan, topics.CORRECTED_MAP, lambda m: maps_seen.append(m.pair_id),
+                                         QoSProfile(depth=10, reliability=LATCHED.reliability,
+                                                    durability=LATCHED.durability))
             for angle, frame_up, pair in ((0.0, True, "pair-0-90"), (90.0, True, "pair-0-90"),
                                           (0.0, False, "pair-up-down")):
                 scan = afm.scan(SCAN_ORIGIN, SCAN_SIZE, SCAN_PIXELS, angle_deg=angle, frame_up=frame_up,
                                 line_rate=2.0, pair_id=pair)
                 log(f"scan {scan.scan_id}: {angle:.0f} deg, frame-{'up' if frame_up else 'down'}, "
                     f"{SCAN_PIXELS[0]}x{SCAN_PIXELS[1]} px over {nm(SCAN_SIZE[0])}")
+            deadline = time.monotonic() + 120.0
+            while "pair-0-90" not in maps_seen and time.monotonic() < deadline:
+                time.sleep(0.2)       # the imaging node corrects the 0/90 pair
+            log("imaging node published the drift-corrected map" if "pair-0-90" in maps_seen
+                else "imaging node published no corrected map within 120 s")
         time.sleep(1.0)   # the recorder drains its queues
         dead = graph.dead()
         if dead:
@@ -129,7 +141,17 @@ def evaluate(run_dir: Path) -> dict:
         replay = compare_payloads(((c.topic, m.data) for _, c, m in a.raw_messages()),
                                   ((c.topic, m.data) for _, c, m in b.raw_messages(
                                       [t for t in b.topics() if t in topics])))
-    return {"topics": topics, "duration_s": duration, "scans": views, "replay": replay,
+    landmarks = []
+    if "/afm/landmarks" in topics:
+        with RecordingReader(run_dir / "session.mcap") as reader:
+            latest = reader.arrays("/afm/landmarks")["landmarks"][-1]
+        for mark in latest:
+            distance = float(np.min(np.hypot(truth_xy[:, 0] - mark["position.x"], truth_xy[:, 1] - mark["position.y"])))
+            landmarks.append({"id": int(mark["id"]), "x": float(mark["position.x"]), "y": float(mark["position.y"]),
+                              "sigma_x": float(np.sqrt(mark["covariance"][0])),
+                              "sigma_y": float(np.sqrt(mark["covariance"][3])),
+                              "height": float(mark["height"]), "nearest_truth": distance})
+    return {"topics": topics, "duration_s": duration, "scans": views, "replay": replay, "landmarks": landmarks,
             "truth_xy": truth_xy.tolist(), "truth_radius": truth_r.tolist(), "scan_arrays": scans}
 
 
@@ -166,6 +188,12 @@ def write_report(run_dir: Path, result: dict, memory: dict, codes: dict, elapsed
          "the centre errors are the simulated instrument's positioning errors (hysteresis residue after the "
          "controller's feed-forward, creep, x/y coupling, scan-line rotation, thermal drift), which drift "
          "compensation and landmark localization are there to remove.</p>"),
+        ("Landmarks of the imaging node's last map (drift-corrected 0/90 pair)", table(
+            ["id", "x", "y", "sigma x", "sigma y", "height", "distance to the nearest true centre"],
+            [[m["id"], nm(m["x"]), nm(m["y"]), nm(m["sigma_x"]), nm(m["sigma_y"]), nm(m["height"]),
+              nm(m["nearest_truth"])] for m in result["landmarks"]]) +
+         "<p>The distances include the scanner's positioning errors, which drift compensation does not remove "
+         "(calibration and localization do).</p>"),
         ("Recorded topics", table(["topic", "messages"], [[t, n] for t, n in result["topics"].items()])),
         ("Replay check (original vs replayed recording)", table(
             ["topic", "original", "replayed", "identical payloads"],
@@ -199,6 +227,9 @@ def run_demo(output_root: Path) -> int:
         failures.append(f"graph peak memory {sum(memory.values()) / 2**20:.0f} MiB exceeds 2 GiB")
     if any(v["matched"] == 0 for v in result["scans"]):
         failures.append("a scan shows none of the true particles")
+    if len(result["landmarks"]) != len(result["truth_xy"]):
+        failures.append(f"the imaging node found {len(result['landmarks'])} landmarks, the sample has "
+                        f"{len(result['truth_xy'])} particles")
     log(f"report: {report}")
     for failure in failures:
         print(f"demo FAILED: {failure}", file=sys.stderr)
