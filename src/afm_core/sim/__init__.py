@@ -1,1 +1,5 @@
-"""The simulated AFM instrument: sample world, tip, imaging (more physics in later work)."""
+"""The simulated AFM instrument: sample world, tip, scanner, drift, imaging, pushing.
+
+`SimulatedAfm` (instrument.py) is the entry point; `load_config` (config.py) reads the one
+documented parameter file, default_config.yaml.
+"""
