@@ -58,6 +58,8 @@ from pathlib import Path
 
 import numpy as np
 
+from machine import cpu_model
+
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 CHUNK_SIZE = 4 * 1024 * 1024
 WRITERS = ("ours", "plain")
@@ -351,14 +353,6 @@ def summarize(results: list[dict]) -> dict:
     return summary
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 def machine_info() -> dict:

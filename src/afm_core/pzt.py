@@ -177,7 +177,30 @@ def _polynomial_inverse(v: np.ndarray, coefficients) -> np.ndarray:
     return x
 
 
-class PrandtlIshlinskii:
+class _WeightedPlayBank:
+    """What a PI model and its inverse share: a play-operator bank and its weights."""
+    _bank: "PlayOperatorBank"
+    _w: np.ndarray
+
+    @property
+    def thresholds(self) -> np.ndarray:
+        return self._bank.thresholds
+
+    @property
+    def weights(self) -> np.ndarray:
+        return self._w.copy()
+
+    @property
+    def state(self) -> np.ndarray:
+        """Play-operator states (the forward model's are in p(x) units)."""
+        return self._bank.state
+
+    @state.setter
+    def state(self, value) -> None:
+        self._bank.state = value
+
+
+class PrandtlIshlinskii(_WeightedPlayBank):
     """Asymmetric PI hysteresis: y = H[p(x)], H[v] = sum_i w_i F_{r_i}[v] (play operators F).
 
     Asymmetry: p(x) = a1 x + a2 x^2 + a3 x^3 is a strictly increasing input function (the
@@ -247,25 +270,8 @@ class PrandtlIshlinskii:
         return cls(rho * half, weights, (1.0 - a * a, a / half, a * a / half ** 2))
 
     @property
-    def thresholds(self) -> np.ndarray:
-        return self._bank.thresholds
-
-    @property
-    def weights(self) -> np.ndarray:
-        return self._w.copy()
-
-    @property
     def polynomial(self) -> tuple[float, float, float]:
         return self._poly
-
-    @property
-    def state(self) -> np.ndarray:
-        """Play-operator states (in p(x) units)."""
-        return self._bank.state
-
-    @state.setter
-    def state(self, value) -> None:
-        self._bank.state = value
 
     def reset(self, x0: float = 0.0) -> None:
         """Demagnetised at x0; the output at rest there is sum(w) * p(x0)."""
@@ -280,7 +286,7 @@ class PrandtlIshlinskii:
         return InversePrandtlIshlinskii(self)
 
 
-class InversePrandtlIshlinskii:
+class InversePrandtlIshlinskii(_WeightedPlayBank):
     """x = p^-1(H^-1[y]) for a PrandtlIshlinskii y = H[p(x)] (book eq. 5.24-5.28, Kuhnen).
 
     H^-1 is again a PI: thresholds r'_i = sum_{j<=i} w_j (r_i - r_j) (the initial loading curve
@@ -300,22 +306,6 @@ class InversePrandtlIshlinskii:
         z = model.state
         tail = np.append(np.cumsum((w * z)[::-1])[::-1][1:], 0.0)
         self._bank.state = partial * z + tail
-
-    @property
-    def thresholds(self) -> np.ndarray:
-        return self._bank.thresholds
-
-    @property
-    def weights(self) -> np.ndarray:
-        return self._w.copy()
-
-    @property
-    def state(self) -> np.ndarray:
-        return self._bank.state
-
-    @state.setter
-    def state(self, value) -> None:
-        self._bank.state = value
 
     def reset(self, y0: float = 0.0) -> None:
         """Demagnetised at output y0: matches the forward model's reset(x0) when y0 = sum(w) p(x0)."""
