@@ -67,11 +67,12 @@ def random_spheres(rng, n: int, r_min=50e-9, r_max=100e-9, separation=420e-9, ed
 
 
 def simulator(drift: dict, seed: int, spheres: list) -> SimulatedAfm:
-    """Drift only: the scanner's hysteresis, creep, coupling and line deflection are off."""
+    """Drift only: the scanner's hysteresis, creep, coupling, line deflection and positioning noise are off."""
     config = merge(load_config(), {
         "seed": seed,
         "scanner": {"hysteresis_enabled": False, "creep_enabled": False, "coupling_enabled": False,
-                    "deflection_enabled": False},
+                    "deflection_enabled": False,
+                    "positioning_noise_enabled": False},
         "drift": drift,
         "sample": {"spheres": spheres}})
     return SimulatedAfm(config)

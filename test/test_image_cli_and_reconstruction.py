@@ -14,7 +14,8 @@ from afm_core.sim.tip import paraboloid_cone_tip
 
 AFM = [sys.executable, "-m", "afm_bringup.cli", "image"]
 IDEAL = {"scanner": {"hysteresis_enabled": False, "creep_enabled": False, "coupling_enabled": False,
-                     "deflection_enabled": False},
+                     "deflection_enabled": False,
+                    "positioning_noise_enabled": False},
          "drift": {"enabled": False}, "noise": {"height_white_sigma": 0.1e-9, "height_flicker_sigma": 0.0}}
 
 

@@ -19,7 +19,8 @@ def exact_config(spheres, rods=()):
     Sensor noise, substrate roughness and the tip (20 nm apex, 20 deg cone) stay on."""
     return merge(load_config(), {
         "scanner": {"hysteresis_enabled": False, "creep_enabled": False, "coupling_enabled": False,
-                    "deflection_enabled": False},
+                    "deflection_enabled": False,
+                    "positioning_noise_enabled": False},
         "drift": {"enabled": False},
         "sample": {"spheres": list(spheres), "rods": list(rods)}})
 

@@ -206,3 +206,23 @@ def test_pushing_moves_a_sphere_and_the_next_scan_shows_it():
 def test_documented_default_file_matches_the_code_defaults():
     from afm_core.sim.config import DEFAULT_CONFIG_FILE
     assert config_from_dict(__import__("yaml").safe_load(DEFAULT_CONFIG_FILE.read_text())) == SimConfig()
+
+
+def test_move_errors_accumulate_with_the_calibrated_variance_per_distance():
+    """Each move adds an independent error of variance slope x distance + offset per axis
+    (book Fig. 7.20b); the error persists, so it is the increments that are independent."""
+    slope, offset = 0.5e-9, 4e-18
+    sim = SimulatedAfm(ideal(scanner={"positioning_noise_enabled": True, "positioning_noise_slope": slope,
+                                      "positioning_noise_offset": offset}))
+    distance = 2e-6
+    x0, y0 = sim.commanded_position()
+    errors = []
+    for k in range(400):
+        sim.move_tip(x0 + (distance if k % 2 == 0 else 0.0), y0, 1e-4)
+        truth = sim.truth()
+        errors.append(np.subtract(truth["tip_position"], sim.commanded_position()))
+    increments = np.diff(np.array(errors), axis=0)
+    expected = slope * distance + offset
+    measured = increments.var(axis=0)
+    assert measured == pytest.approx([expected, expected], rel=0.2)
+    assert abs(np.corrcoef(increments[:-1, 0], increments[1:, 0])[0, 1]) < 0.2

@@ -453,6 +453,9 @@ class ScannerParams:
     coupling_y_to_x: float = 0.01             # x displacement per unit y displacement
     deflection_enabled: bool = True
     deflection_deg: float = 0.746             # scan-line rotation, counter-clockwise (book: mean 0.746, sd 0.393)
+    positioning_noise_enabled: bool = True    # random, persistent error of every tip move (book eq. 5.5 w)
+    positioning_noise_slope: float = 0.0701e-9    # m^2 per m moved, each axis (Fig. 7.20b: a = 0.0701 nm^2/nm)
+    positioning_noise_offset: float = 0.4345e-18  # m^2 per move, each axis (Fig. 7.20b: b = 0.4345 nm^2)
 
     def __post_init__(self):
         self.validate()
@@ -477,6 +480,10 @@ class ScannerParams:
             value = getattr(self, name)
             if not (math.isfinite(value) and abs(value) < 1.0):
                 raise ValueError(f"scanner.{name}={value}: must be finite with |value| < 1")
+        for name in ("positioning_noise_slope", "positioning_noise_offset"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"scanner.{name}={value}: must be finite and >= 0")
         if not math.isfinite(self.deflection_deg):
             raise ValueError(f"scanner.deflection_deg={self.deflection_deg}: must be finite")
 

@@ -57,12 +57,14 @@ class SimulatedAfm:
     def __init__(self, config: SimConfig | None = None):
         self.config = config if config is not None else load_config()
         self.limits = self.config.limits
-        streams = np.random.SeedSequence(self.config.seed).spawn(4)
+        streams = np.random.SeedSequence(self.config.seed).spawn(5)
         self.noise_rng = np.random.default_rng(streams[0])
         self.sample = build_sample(self.config, np.random.default_rng(streams[1]))
         self.drift = ThermalDrift(self.config.drift, seed=int(np.random.default_rng(streams[2]).integers(2**31)))
         self.tip = Tip(self.config.tip)
         self.scanner = LateralScanner(self.config.scanner)
+        self.positioning_rng = np.random.default_rng(streams[4])
+        self._position_error = np.zeros(2)      # m, accumulated random error of the moves so far
         self.feed_forward = self._controller_feed_forward()
         self.time = 0.0
         self._commanded = tuple(float(c) for c in self.scanner.centre)   # at rest at power-on
@@ -87,15 +89,21 @@ class SimulatedAfm:
     def commanded_position(self) -> tuple[float, float]:
         return self._commanded
 
-    def _drive(self, cmd_x: np.ndarray, cmd_y: np.ndarray, dt: float):
+    def _drive(self, cmd_x: np.ndarray, cmd_y: np.ndarray, dt: float, position_error: np.ndarray | None = None):
         """Send a uniformly sampled command path; returns (times, true scanner x, y).
-        Sample k is taken at time + (k + 1) * dt."""
+        Sample k is taken at time + (k + 1) * dt. position_error (2, n), m: the moves' random
+        error along this path (default: the error accumulated so far, held)."""
         drive_x, drive_y = np.asarray(cmd_x, float), np.asarray(cmd_y, float)
         if self.feed_forward is not None:
             centre = self.scanner.centre
             drive_x = centre[0] + self.feed_forward[0].apply(drive_x - centre[0])
             drive_y = centre[1] + self.feed_forward[1].apply(drive_y - centre[1])
         true_x, true_y = self.scanner.apply(drive_x, drive_y, dt)
+        if position_error is None:
+            true_x, true_y = true_x + self._position_error[0], true_y + self._position_error[1]
+        else:
+            true_x, true_y = true_x + position_error[0], true_y + position_error[1]
+            self._position_error = position_error[:, -1].copy()
         times = self.time + dt * np.arange(1, len(cmd_x) + 1)
         self.time = float(times[-1]) if len(times) else self.time
         self._commanded = (float(cmd_x[-1]), float(cmd_y[-1]))
@@ -233,6 +241,7 @@ class SimulatedAfm:
     def move_tip(self, x: float, y: float, speed: float, contact: bool = False,
                  should_stop: Optional[StopCheck] = None) -> MoveResult:
         validate_move(x, y, speed, self.limits)
+        error_path = self._positioning_error_path(x, y)
         cmd_x, cmd_y, dt = self._ramp(x, y, speed)
         start = self.time
         chunks = np.array_split(np.arange(len(cmd_x)), max(1, len(cmd_x) // 2000))
@@ -242,7 +251,8 @@ class SimulatedAfm:
             if should_stop is not None and should_stop():
                 completed = False
                 break
-            times, tx, ty = self._drive(cmd_x[index], cmd_y[index], dt)
+            times, tx, ty = self._drive(cmd_x[index], cmd_y[index], dt,
+                                        None if error_path is None else error_path[:, index])
             if contact:
                 sx, sy = self.sample_frame(tx, ty, times)
                 result = push_along_path(self.sample, sx, sy, dt, self.config.contact)
@@ -251,6 +261,20 @@ class SimulatedAfm:
         trace = self._force_trace(traces, start, dt) if contact and traces else None
         end_x, end_y = self._commanded
         return MoveResult(end_x=end_x, end_y=end_y, completed=completed, trace=trace)
+
+    def _positioning_error_path(self, x: float, y: float) -> np.ndarray | None:
+        """The random error a move to (x, y) adds (variance slope x distance + offset per axis),
+        growing along the move's ramp; None when the noise is off or nothing moves."""
+        params = self.config.scanner
+        x0, y0 = self._commanded
+        distance = math.hypot(x - x0, y - y0)
+        if not params.positioning_noise_enabled or distance == 0.0:
+            return None
+        variance = params.positioning_noise_slope * distance + params.positioning_noise_offset
+        step = self.positioning_rng.normal(0.0, math.sqrt(variance), 2)
+        n = len(self._ramp(x, y, 1.0)[0])
+        fraction = np.arange(1, n + 1) / n
+        return self._position_error[:, None] + step[:, None] * fraction[None, :]
 
     def _force_trace(self, pieces, start: float, dt: float) -> ForceTraceData:
         contact = self.config.contact
