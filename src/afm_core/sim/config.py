@@ -76,7 +76,9 @@ class SimConfig:
     indentation: IndentParams = field(default_factory=IndentParams)
 
 
-def _build(cls, data, path: str):
+def dataclass_from_dict(cls, data, path: str = ""):
+    """An instance of dataclass `cls` from a nested mapping; unknown keys and wrong types are
+    errors naming the key (path is the prefix used in those messages)."""
     if not isinstance(data, dict):
         raise ValueError(f"{path or 'config'}: expected a mapping, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
@@ -89,7 +91,7 @@ def _build(cls, data, path: str):
         hint = hints[key]
         where = f"{path}.{key}" if path else key
         if dataclasses.is_dataclass(hint):
-            values[key] = _build(hint, value, where)
+            values[key] = dataclass_from_dict(hint, value, where)
         else:
             values[key] = _coerce(hint, value, where)
     return cls(**values)
@@ -117,7 +119,7 @@ def _coerce(hint, value, where):
 
 
 def config_from_dict(data: dict) -> SimConfig:
-    return _build(SimConfig, data or {}, "")
+    return dataclass_from_dict(SimConfig, data or {}, "")
 
 
 def load_config(path: str | Path | None = None) -> SimConfig:
