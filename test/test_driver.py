@@ -144,3 +144,26 @@ def test_replay_backend_serves_a_recorded_session(tmp_path, nodes):
         assert not refused.success and "does not match the next recorded line" in refused.message
         replayed_line = afm.send("local_scan", line_goal)
         assert list(replayed_line.line.height) == list(recorded_line.line.height)
+
+
+def test_the_driver_as_a_core_instrument_through_its_actions(driver, ros_node):
+    """ActionInstrument: what the localizer and nano-hand call; results carry the executed
+    command, so the instrument clock and the commanded position follow the driver."""
+    from afm_bringup.ros_instrument import ActionInstrument
+    from afm_core.instrument import LineRequest, ScanRequest
+    instrument = ActionInstrument(ros_node, server_timeout=30)
+    move = instrument.move_tip(54.7e-6, 55.0e-6, 10e-6)
+    assert move.completed and instrument.commanded_position() == pytest.approx((54.7e-6, 55.0e-6))
+    after_move = instrument.time
+    assert after_move > 0 and instrument.last_command.kind == instrument.last_command.MOVE
+    line = instrument.local_scan(LineRequest(54.7e-6, 55e-6, 55.3e-6, 55e-6, 200, 1e-6))
+    assert line.complete and len(line.height) == 200 and line.height.max() == pytest.approx(200e-9, abs=3e-9)
+    assert line.start_time >= after_move and instrument.time == pytest.approx(line.start_time + line.times[-1],
+                                                                              abs=0.05)
+    assert instrument.commanded_position() == pytest.approx((55.3e-6, 55e-6))
+    scan = instrument.raster_scan(ScanRequest(54.8e-6, 54.8e-6, 0.4e-6, 0.4e-6, 32, 32, line_rate=4.0))
+    assert scan.complete and scan.height.shape == (32, 32) and np.nanmax(scan.height) > 150e-9
+    with pytest.raises(ValueError, match="x="):
+        instrument.move_tip(200e-6, 55e-6, 1e-6)          # refused before sending: beyond the range
+    with pytest.raises(ValueError, match="force"):
+        instrument.indent(55e-6, 55e-6, 5e-6, 0.1)

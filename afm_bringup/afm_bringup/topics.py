@@ -21,6 +21,8 @@ ACTION_LOCALIZE = "/afm/localize"
 ACTION_PUSH_PARTICLE = "/afm/push_particle"
 ACTION_ASSEMBLE = "/afm/assemble"
 SERVICE_PLAN_PATH = "/afm/plan_path"
+SERVICE_PLAN_OBSERVATION = "/afm/plan_observation"
+SERVICE_PLAN_SEQUENCE = "/afm/plan_sequence"
 
 RECORDED_BY_DEFAULT = [SCAN, SCAN_LINE, FORCE_TRACE, TIP_COMMAND, TIP_POSE, GROUND_TRUTH,
                        CORRECTED_MAP, LANDMARKS, TIP_SHAPE, PLANNED_PATH, PUSH_GOAL]

@@ -205,6 +205,7 @@ class DriverNode(Node):
         msg.end.x, msg.end.y = map(float, end)
         msg.start_voltage = msg.end_voltage = [float("nan")] * 3
         self.command_pub.publish(msg)
+        return msg
 
     def refuse(self, goal_handle, result, exc):
         goal_handle.abort()
@@ -236,12 +237,11 @@ class DriverNode(Node):
             goal_handle.publish_feedback(ScanImage.Feedback(lines_done=done, lines_total=total))
             self.pace()
 
-        start_time = self.instrument.time
+        start_time, start = self.instrument.time, self.instrument.commanded_position()
         scan = self.instrument.raster_scan(request, on_line=on_line,
                                            should_stop=self.stop_check(goal_handle))
-        self.command(TipCommand.RASTER, start_time, (request.origin_x, request.origin_y),
-                     (request.origin_x + request.size_x, request.origin_y + request.size_y),
-                     self.instrument.time - start_time)
+        result.command = self.command(TipCommand.RASTER, start_time, start, self.instrument.commanded_position(),
+                                      self.instrument.time - start_time)
         msg = raster_scan_to_msg(scan, self.header(scan.start_time), scan_id=self._next_scan_id(), pair_id=goal.pair_id)
         if scan.complete:
             self.scan_pub.publish(msg)
@@ -264,7 +264,7 @@ class DriverNode(Node):
         start_time = self.instrument.time
         line = self.instrument.local_scan(request, should_stop=self.stop_check(goal_handle))
         self.pace()
-        self.command(TipCommand.SCAN_LINE, start_time, (request.start_x, request.start_y),
+        result.command = self.command(TipCommand.SCAN_LINE, start_time, (request.start_x, request.start_y),
                      (request.end_x, request.end_y), self.instrument.time - start_time, speed)
         msg = scan_line_to_msg(line, self.header(line.start_time), (request.start_x, request.start_y),
                                (request.end_x, request.end_y), goal.landmark_id)
@@ -287,7 +287,7 @@ class DriverNode(Node):
         except ValueError as exc:
             return self.refuse(goal_handle, result, exc)
         self.pace()
-        self.command(TipCommand.PUSH if goal.contact else TipCommand.MOVE, start_time, start,
+        result.command = self.command(TipCommand.PUSH if goal.contact else TipCommand.MOVE, start_time, start,
                      (move.end_x, move.end_y), self.instrument.time - start_time, speed)
         result.commanded_position.x, result.commanded_position.y = move.end_x, move.end_y
         goal_handle.publish_feedback(MoveTip.Feedback(commanded_position=result.commanded_position))
@@ -305,7 +305,7 @@ class DriverNode(Node):
         except ValueError as exc:
             return self.refuse(goal_handle, result, exc)
         self.pace()
-        self.command(TipCommand.INDENT, start_time, (indent.x, indent.y), (indent.x, indent.y),
+        result.command = self.command(TipCommand.INDENT, start_time, (indent.x, indent.y), (indent.x, indent.y),
                      self.instrument.time - start_time)
         goal_handle.publish_feedback(Indent.Feedback(phase="retract"))
         result.trace = force_trace_to_msg(indent.trace, self.header(indent.trace.start_time))

@@ -1,0 +1,172 @@
+"""The driver node seen as an `afm_core.instrument.Instrument`, through its actions.
+
+The localizer and the nano-hand run the core library's procedures (observe a landmark,
+push along a path) unchanged in the graph: those procedures call `move_tip`,
+`local_scan`, `indent`, `raster_scan` and read `time`; here each call becomes a goal to
+the driver and blocks until its result. Call it from a thread that is not the one
+spinning the node (an action server's execute callback in a MultiThreadedExecutor with a
+reentrant callback group does this).
+
+`time` is the instrument clock in ROS-stamp seconds: the end of the last command the
+driver reported (its results carry the executed TipCommand).
+"""
+from __future__ import annotations
+
+import threading
+from typing import Callable, Optional
+
+import numpy as np
+from rclpy.action import ActionClient
+from rclpy.callback_groups import ReentrantCallbackGroup
+
+from afm_bringup import topics
+from afm_bringup.conversions import FRAME_SCANNER, msg_to_raster_scan
+from afm_bringup.qos_profiles import FEEDBACK
+from afm_core.instrument import (ForceTraceData, IndentResult, LineRequest, MoveResult, RasterScanData,
+                                 ScanLineData, ScanRequest, ScannerLimits, validate_indent, validate_move)
+from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
+
+
+class DriverUnavailable(RuntimeError):
+    """The driver did not answer (not running, or no result within the timeout)."""
+
+
+def stamp_seconds(stamp) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def msg_to_scan_line(msg) -> ScanLineData:
+    return ScanLineData(times=np.asarray(msg.times, float), x=np.asarray(msg.x, float), y=np.asarray(msg.y, float),
+                        height=np.asarray(msg.height, float), deflection=np.asarray(msg.deflection, float),
+                        amplitude=np.asarray(msg.amplitude, float), start_time=stamp_seconds(msg.header.stamp),
+                        mode=msg.mode)
+
+
+def msg_to_force_trace(msg) -> ForceTraceData:
+    return ForceTraceData(times=np.asarray(msg.times, float), commanded_x=np.asarray(msg.commanded_x, float),
+                          commanded_y=np.asarray(msg.commanded_y, float),
+                          commanded_z=np.asarray(msg.commanded_z, float),
+                          vertical_deflection=np.asarray(msg.vertical_deflection, float),
+                          lateral_torsion=np.asarray(msg.lateral_torsion, float),
+                          normal_spring_constant=msg.normal_spring_constant,
+                          lateral_spring_constant=msg.lateral_spring_constant, sample_rate=msg.sample_rate,
+                          start_time=stamp_seconds(msg.header.stamp), task=msg.task, object_id=msg.object_id)
+
+
+class ActionInstrument:
+    """Instrument protocol over the driver's actions. Refusals come back as ValueError with
+    the driver's message (which names the field and the limit); cancellation of the caller
+    is passed on through `should_stop`."""
+
+    def __init__(self, node, limits: ScannerLimits | None = None, server_timeout: float = 10.0,
+                 result_timeout: float = 600.0):
+        self.node = node
+        self.limits = limits or ScannerLimits()
+        self.server_timeout = server_timeout
+        self.result_timeout = result_timeout
+        group = ReentrantCallbackGroup()
+        self._clients = {
+            "scan": ActionClient(node, ScanImage, topics.ACTION_SCAN_IMAGE, callback_group=group,
+                                 feedback_sub_qos_profile=FEEDBACK),
+            "line": ActionClient(node, LocalScan, topics.ACTION_LOCAL_SCAN, callback_group=group,
+                                 feedback_sub_qos_profile=FEEDBACK),
+            "move": ActionClient(node, MoveTip, topics.ACTION_MOVE_TIP, callback_group=group,
+                                 feedback_sub_qos_profile=FEEDBACK),
+            "indent": ActionClient(node, Indent, topics.ACTION_INDENT, callback_group=group,
+                                   feedback_sub_qos_profile=FEEDBACK),
+        }
+        self._commanded: Optional[tuple[float, float]] = None
+        self.time = 0.0
+        self.last_command = None
+
+    # -- plumbing ----------------------------------------------------------------------------
+    def _call(self, name: str, goal, should_stop: Optional[Callable[[], bool]] = None):
+        client = self._clients[name]
+        if not client.wait_for_server(timeout_sec=self.server_timeout):
+            raise DriverUnavailable(f"driver action {client._action_name} not available after "
+                                    f"{self.server_timeout} s; is afm_driver running?")
+        done = threading.Event()
+        sent = client.send_goal_async(goal)
+        sent.add_done_callback(lambda _f: done.set())
+        if not done.wait(self.server_timeout):
+            raise DriverUnavailable(f"{client._action_name}: goal not acknowledged within {self.server_timeout} s")
+        handle = sent.result()
+        if not handle.accepted:
+            raise DriverUnavailable(f"{client._action_name}: goal rejected (driver queue full)")
+        finished = threading.Event()
+        result_future = handle.get_result_async()
+        result_future.add_done_callback(lambda _f: finished.set())
+        cancel_sent = False
+        waited = 0.0
+        while not finished.wait(0.05):
+            waited += 0.05
+            if should_stop is not None and not cancel_sent and should_stop():
+                handle.cancel_goal_async()
+                cancel_sent = True
+            if waited > self.result_timeout:
+                handle.cancel_goal_async()
+                raise DriverUnavailable(f"{client._action_name}: no result within {self.result_timeout} s")
+        result = result_future.result().result
+        command = getattr(result, "command", None)
+        if command is not None and command.header.stamp.sec:
+            self.last_command = command
+            self.time = stamp_seconds(command.header.stamp) + command.duration
+            self._commanded = (command.end.x, command.end.y)
+        if not result.success and result.message.startswith("refused"):
+            raise ValueError(result.message)
+        if not result.success and "cancelled" not in result.message:
+            raise DriverUnavailable(f"{client._action_name}: {result.message}")
+        return result
+
+    # -- the Instrument protocol -------------------------------------------------------------
+    def commanded_position(self) -> tuple[float, float]:
+        if self._commanded is None:
+            raise DriverUnavailable("commanded position unknown until the driver has executed a command")
+        return self._commanded
+
+    def move_tip(self, x: float, y: float, speed: float, contact: bool = False,
+                 should_stop: Optional[Callable[[], bool]] = None) -> MoveResult:
+        validate_move(x, y, speed, self.limits)
+        goal = MoveTip.Goal(speed=float(speed), contact=bool(contact))
+        goal.target.header.frame_id = FRAME_SCANNER
+        goal.target.point.x, goal.target.point.y = float(x), float(y)
+        result = self._call("move", goal, should_stop)
+        trace = msg_to_force_trace(result.trace) if contact and result.trace.times else None
+        return MoveResult(end_x=result.commanded_position.x, end_y=result.commanded_position.y,
+                          completed=result.success, trace=trace)
+
+    def local_scan(self, request: LineRequest, should_stop: Optional[Callable[[], bool]] = None,
+                   landmark_id: int = -1) -> ScanLineData:
+        request.validate(self.limits)
+        goal = LocalScan.Goal(samples=int(request.samples), speed=float(request.speed), mode=request.mode,
+                              landmark_id=int(landmark_id))
+        goal.start.x, goal.start.y = float(request.start_x), float(request.start_y)
+        goal.end.x, goal.end.y = float(request.end_x), float(request.end_y)
+        result = self._call("line", goal, should_stop)
+        line = msg_to_scan_line(result.line)
+        line.complete = result.success
+        return line
+
+    def indent(self, x: float, y: float, force: float, dwell: float,
+               should_stop: Optional[Callable[[], bool]] = None) -> IndentResult:
+        validate_indent(x, y, force, dwell, self.limits)
+        goal = Indent.Goal(force=float(force), dwell=float(dwell))
+        goal.position.x, goal.position.y = float(x), float(y)
+        result = self._call("indent", goal, should_stop)
+        return IndentResult(x=float(x), y=float(y), trace=msg_to_force_trace(result.trace), completed=result.success)
+
+    def raster_scan(self, request: ScanRequest, on_line=None,
+                    should_stop: Optional[Callable[[], bool]] = None) -> RasterScanData:
+        request.validate(self.limits)
+        goal = ScanImage.Goal(size_x=request.size_x, size_y=request.size_y, pixels_x=request.pixels_x,
+                              pixels_y=request.pixels_y, scan_angle_deg=request.scan_angle_deg,
+                              slow_scan_up=request.slow_scan_up, line_rate=request.line_rate, mode=request.mode)
+        goal.origin.x, goal.origin.y = float(request.origin_x), float(request.origin_y)
+        result = self._call("scan", goal, should_stop)
+        scan = msg_to_raster_scan(result.scan)
+        scan.complete = result.success
+        return scan
+
+    def close(self) -> None:
+        for client in self._clients.values():
+            client.destroy()
