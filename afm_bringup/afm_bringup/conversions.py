@@ -124,3 +124,59 @@ def truth_to_msg(truth: dict, header):
             state.orientation = float(getattr(obj, "angle", 0.0))
         msg.objects.append(state)
     return msg
+
+
+LANDMARK_KINDS = {"sphere": 0, "tube": 1, "rod": 2, "pit": 3}
+
+
+def landmarks_to_msg(marks, header):
+    """Core landmarks (afm_core.imaging.landmarks.Landmark) -> LandmarkArray."""
+    from afm_msgs.msg import Landmark, LandmarkArray
+    array = LandmarkArray(header=header)
+    for mark in marks:
+        lm = Landmark(id=int(mark.id), kind=LANDMARK_KINDS[mark.kind], radius=float(mark.radius),
+                      height=float(mark.height), length=float(mark.length), orientation=float(mark.orientation))
+        lm.position.x, lm.position.y, lm.position.z = float(mark.x), float(mark.y), float(mark.height)
+        lm.covariance = [float(v) for v in np.asarray(mark.covariance).ravel()]
+        array.landmarks.append(lm)
+    return array
+
+
+def msg_to_landmarks(array) -> list:
+    """LandmarkArray -> core landmarks; ValueError naming the landmark and field when not finite."""
+    from afm_core.imaging.landmarks import Landmark
+    kinds = {v: k for k, v in LANDMARK_KINDS.items()}
+    marks = []
+    for lm in array.landmarks:
+        values = [lm.position.x, lm.position.y, lm.radius, *lm.covariance]
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"landmark {lm.id}: position, radius and covariance must be finite")
+        if lm.kind not in kinds:
+            raise ValueError(f"landmark {lm.id}: kind={lm.kind} unknown (expected one of {sorted(kinds)})")
+        marks.append(Landmark(id=int(lm.id), kind=kinds[lm.kind], x=lm.position.x, y=lm.position.y,
+                              covariance=np.asarray(lm.covariance, float).reshape(2, 2), radius=lm.radius,
+                              height=lm.height, length=lm.length, orientation=lm.orientation))
+    return marks
+
+
+def pose_to_mean_cov(pose_msg) -> tuple[np.ndarray, np.ndarray]:
+    """PoseWithCovarianceStamped -> (x, y) mean and its 2x2 covariance (m, m^2)."""
+    p = pose_msg.pose.pose.position
+    c = pose_msg.pose.covariance
+    return np.array([p.x, p.y]), np.array([[c[0], c[1]], [c[6], c[7]]])
+
+
+def mean_cov_to_pose(mean, covariance, header, z_variance: float = 0.0):
+    """(x, y) and 2x2 covariance -> PoseWithCovarianceStamped; unknowns (z, rotations) get a
+    variance so large a consumer treats them as unestimated (robot_localization's habit)."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    msg = PoseWithCovarianceStamped(header=header)
+    msg.pose.pose.position.x, msg.pose.pose.position.y = float(mean[0]), float(mean[1])
+    msg.pose.pose.orientation.w = 1.0
+    cov = [0.0] * 36
+    c = np.asarray(covariance, float)
+    cov[0], cov[1], cov[6], cov[7] = float(c[0, 0]), float(c[0, 1]), float(c[1, 0]), float(c[1, 1])
+    cov[14] = float(z_variance) if z_variance > 0 else 1e6
+    cov[21] = cov[28] = cov[35] = 1e6
+    msg.pose.covariance = cov
+    return msg

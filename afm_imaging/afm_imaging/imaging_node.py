@@ -19,11 +19,12 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from afm_bringup import params, topics
-from afm_bringup.conversions import FRAME_IMAGE, FRAME_TASK, array_to_image, msg_to_raster_scan, raster_scan_to_msg
+from afm_bringup.conversions import (FRAME_IMAGE, FRAME_TASK, array_to_image, landmarks_to_msg, msg_to_raster_scan,
+                                     raster_scan_to_msg)
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import LATCHED
 from afm_core.imaging.landmarks import MapErrorModel, extract_landmarks
-from afm_msgs.msg import Landmark, LandmarkArray, RasterScan, TipShape
+from afm_msgs.msg import LandmarkArray, RasterScan, TipShape
 
 PARAMETERS = [
     ("min_landmark_height", 10e-9, "m; features lower than this above the substrate are not landmarks."),
@@ -34,7 +35,6 @@ PARAMETERS = [
     ("tip_threshold", "auto", "Denoising threshold of the blind tip estimate: 'auto' or metres."),
     ("estimate_tip_on_scan", False, "Re-estimate the tip after every new map (seconds of work each time)."),
 ]
-KINDS = {"sphere": Landmark.SPHERE, "tube": Landmark.TUBE, "rod": Landmark.ROD}
 
 
 class ImagingNode(Node):
@@ -112,13 +112,7 @@ class ImagingNode(Node):
         except ValueError as exc:
             self.get_logger().error(f"landmarks of scan {msg.scan_id} skipped: {exc}")
             return
-        array = LandmarkArray(header=header)
-        for mark in marks:
-            lm = Landmark(id=int(mark.id), kind=KINDS[mark.kind], radius=float(mark.radius), height=float(mark.height),
-                          length=float(mark.length), orientation=float(mark.orientation))
-            lm.position.x, lm.position.y, lm.position.z = float(mark.x), float(mark.y), float(mark.height)
-            lm.covariance = [float(v) for v in np.asarray(mark.covariance).ravel()]
-            array.landmarks.append(lm)
+        array = landmarks_to_msg(marks, header)
         self.landmark_pub.publish(array)
         with self.lock:
             self.latest_map = (height, scan.pixel_size_x, header)

@@ -1,23 +1,250 @@
-"""Planner node: observation planning, landmark paths and push sequencing.
+"""Planner node: landmark paths, observation lines and push sequences as services.
 
-Scaffold: the node runs in the graph with its name and lifecycle; its topics and actions
-arrive with issue 6, which builds the algorithms in afm_core.
+The algorithms are afm_core.planning (book chapter 6); this node keeps the latest landmarks
+(/afm/landmarks) and tip estimate (/afm/tip_pose), answers the three planning services,
+publishes every planned path on /afm/planned_path and its 3-sigma ellipses as markers on
+/afm/markers (Foxglove / RViz). An impossible request gets success=false and a message
+naming what is wrong; the node keeps running.
 """
+from __future__ import annotations
+
+import math
 import sys
+import threading
 
+import numpy as np
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.node import Node
+from std_msgs.msg import Header
+from visualization_msgs.msg import Marker, MarkerArray
 
+from afm_bringup import params, topics
+from afm_bringup.conversions import FRAME_TASK, msg_to_landmarks, pose_to_mean_cov
 from afm_bringup.node_main import run
+from afm_bringup.qos_profiles import EVENTS, LATCHED
+from afm_core.instrument import ScannerLimits, check_in_range
+from afm_core.localization.calibration import Calibration, load_calibration
+from afm_core.planning import (MODES, best_order, exact_order, heuristic_order, ant_colony_order,
+                               observation_distance_matrix, plan_landmark_chain, plan_landmark_route,
+                               plan_observation)
+from afm_msgs.msg import LandmarkArray, PlannedPath
+from afm_msgs.srv import PlanObservation, PlanPath, PlanSequence
+
+PARAMETERS = [
+    ("calibration_file", "", "Localization calibration YAML (afm calibrate); empty: the book's figures."),
+    ("tip_radius", 50e-9, "m, tip radius R_T kept clear of a particle while observing it (book 6.1)."),
+    ("range_x", 110e-6, "m, scanner x range: targets outside [0, range_x] are refused."),
+    ("range_y", 110e-6, "m, scanner y range."),
+    ("sequence_seed", 0, "Seed of the heuristic and ant-colony sequencers (results are reproducible)."),
+]
+SEQUENCERS = {"best": best_order, "exact": exact_order, "heuristic": heuristic_order, "aco": ant_colony_order}
 
 
 class PlannerNode(Node):
     def __init__(self):
         super().__init__("afm_planner")
-        self.get_logger().info("running; observation planning, landmark paths and push sequencing arrive with issue 6")
+        self.config = params.declare(self, PARAMETERS)
+        path = self.config["calibration_file"]
+        self.calibration = load_calibration(path) if path else Calibration()
+        self.noise = self.calibration.motion_noise()
+        if not (self.config["tip_radius"] >= 0 and math.isfinite(self.config["tip_radius"])):
+            raise ValueError(f"parameter tip_radius={self.config['tip_radius']}: must be finite and >= 0 (m)")
+        self.limits = ScannerLimits(range_x=self.config["range_x"], range_y=self.config["range_y"])
+        self.lock = threading.Lock()
+        self.landmarks: list = []
+        self.tip_pose: PoseWithCovarianceStamped | None = None
+        self.create_subscription(LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED)
+        self.create_subscription(PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10)
+        self.path_pub = self.create_publisher(PlannedPath, topics.PLANNED_PATH, EVENTS)
+        self.marker_pub = self.create_publisher(MarkerArray, topics.MARKERS, LATCHED)
+        self.create_service(PlanPath, topics.SERVICE_PLAN_PATH, self.on_plan_path)
+        self.create_service(PlanObservation, topics.SERVICE_PLAN_OBSERVATION, self.on_plan_observation)
+        self.create_service(PlanSequence, topics.SERVICE_PLAN_SEQUENCE, self.on_plan_sequence)
+        self.get_logger().info(f"planning with {self.calibration.source!r} calibration")
+
+    # -- inputs ------------------------------------------------------------------------------
+    def on_landmarks(self, msg: LandmarkArray) -> None:
+        try:
+            marks = msg_to_landmarks(msg)
+        except ValueError as exc:
+            self.get_logger().error(f"landmarks ignored: {exc}")
+            return
+        with self.lock:
+            self.landmarks = marks
+
+    def on_tip_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        with self.lock:
+            self.tip_pose = msg
+
+    def start_estimate(self, start: PoseWithCovarianceStamped):
+        """The request's start, or the localizer's latest estimate when the request leaves the
+        covariance at zero (an unset pose)."""
+        mean, cov = pose_to_mean_cov(start)
+        if not np.any(cov):
+            with self.lock:
+                latest = self.tip_pose
+            if latest is None:
+                raise ValueError("start: covariance is zero and no tip estimate has arrived on "
+                                 f"{topics.TIP_POSE}; give the start with its covariance")
+            mean, cov = pose_to_mean_cov(latest)
+        return mean, cov
+
+    def landmark(self, landmark_id: int):
+        with self.lock:
+            marks = list(self.landmarks)
+        for mark in marks:
+            if mark.id == landmark_id:
+                return mark
+        known = sorted(m.id for m in marks)
+        raise ValueError(f"landmark_id={landmark_id}: unknown (known ids: {known or 'none yet'})")
+
+    # -- services ----------------------------------------------------------------------------
+    def on_plan_path(self, request, response):
+        try:
+            mean, cov = self.start_estimate(request.start)
+            target = np.array([request.target.x, request.target.y])
+            check_in_range("target", target[0], target[1], self.limits)
+            if request.scan_mode and request.scan_mode not in MODES:
+                raise ValueError(f"scan_mode={request.scan_mode!r}: must be one of {sorted(MODES)} or empty")
+            with self.lock:
+                marks = list(self.landmarks)
+            if not marks:
+                raise ValueError(f"no landmark known yet (nothing on {topics.LANDMARKS})")
+            required = request.required_sigma if request.required_sigma > 0 else None
+            chain = plan_landmark_chain(mean, cov, marks, target, self.config["tip_radius"], self.noise,
+                                        required_sigma=required)
+            route = chain.route
+            if request.scan_mode and len(chain.landmark_ids) == 1:
+                route = plan_landmark_route(mean, cov, self.landmark(chain.landmark_ids[0]),
+                                            self.config["tip_radius"], self.noise, task_point=target,
+                                            mode=request.scan_mode)
+            response.plan = self.route_to_msg(route)
+            response.success = True
+            response.message = (f"via landmarks {list(chain.landmark_ids)}; final sigma "
+                                f"({route.final_sigma[0] * 1e9:.1f}, {route.final_sigma[1] * 1e9:.1f}) nm"
+                                + ("" if chain.meets_required else "; the required sigma is not reached"))
+            self.publish(response.plan)
+        except ValueError as exc:
+            response.success, response.message = False, str(exc)
+        return response
+
+    def on_plan_observation(self, request, response):
+        try:
+            mean, cov = self.start_estimate(request.start)
+            if request.landmark_id >= 0:
+                mark = self.landmark(request.landmark_id)
+                centre, radius = (mark.x, mark.y), mark.radius
+            else:
+                centre, radius = (request.position.x, request.position.y), request.radius
+            plan = plan_observation(mean, cov, centre, radius, self.config["tip_radius"], self.noise,
+                                    direction=request.direction or "h")
+            header = Header(stamp=self.get_clock().now().to_msg(), frame_id=FRAME_TASK)
+            out = PlannedPath()
+            out.path.header = header
+            for line in plan.lines:
+                for point, covariance, role in ((line.start, line.start_covariance, "scan_start"),
+                                                (line.end, line.end_covariance, "scan_end")):
+                    self.append_waypoint(out, header, point, covariance, role, request.landmark_id)
+            out.expected_cost = float(plan.expected_cost)
+            response.plan = out
+            response.line_probability = [float(line.probability) for line in plan.lines]
+            response.success_probability = float(plan.success_probability)
+            response.success = True
+            response.message = f"{len(plan.lines)} line(s), expected travel {plan.expected_cost * 1e9:.0f} nm"
+            self.publish(out)
+        except ValueError as exc:
+            response.success, response.message = False, str(exc)
+        return response
+
+    def on_plan_sequence(self, request, response):
+        try:
+            method = request.method or "best"
+            if method not in SEQUENCERS:
+                raise ValueError(f"method={method!r}: must be one of {sorted(SEQUENCERS)}")
+            if request.distance_matrix:
+                n = math.isqrt(len(request.distance_matrix))
+                if n * n != len(request.distance_matrix):
+                    raise ValueError(f"distance_matrix: {len(request.distance_matrix)} values is not n x n")
+                matrix = np.asarray(request.distance_matrix, float).reshape(n, n)
+            elif request.landmark_ids:
+                marks = [self.landmark(i) for i in request.landmark_ids]
+                matrix = observation_distance_matrix(marks, self.config["tip_radius"], self.noise, symmetric=True)
+            else:
+                points = np.array([[p.x, p.y] for p in request.positions], float)
+                if len(points) == 0:
+                    raise ValueError("landmark_ids, positions and distance_matrix are all empty: nothing to order")
+                if not np.all(np.isfinite(points)):
+                    raise ValueError("positions: must be finite (m)")
+                matrix = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
+            expected = len(request.landmark_ids) or len(request.positions) or len(matrix)
+            if len(matrix) != expected:
+                raise ValueError(f"distance_matrix is {len(matrix)} x {len(matrix)} but {expected} particles given")
+            result = SEQUENCERS[method](matrix, seed=self.config["sequence_seed"]) if method != "exact" \
+                else exact_order(matrix)
+            response.order = [int(i) for i in result.order]
+            response.cost = float(result.cost)
+            response.optimal = bool(result.optimal)
+            response.method_used = result.method
+            response.success = True
+            response.message = f"{len(result.order)} particles, cost {result.cost * 1e6:.3f} um ({result.method})"
+        except ValueError as exc:
+            response.success, response.message = False, str(exc)
+        return response
+
+    # -- outputs -----------------------------------------------------------------------------
+    def route_to_msg(self, route) -> PlannedPath:
+        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=FRAME_TASK)
+        out = PlannedPath()
+        out.path.header = header
+        for waypoint in route.waypoints:
+            self.append_waypoint(out, header, waypoint.position, waypoint.covariance, waypoint.role,
+                                 waypoint.landmark_id)
+        out.expected_cost = float(route.expected_cost)
+        return out
+
+    @staticmethod
+    def append_waypoint(out: PlannedPath, header, point, covariance, role: str, landmark_id: int) -> None:
+        pose = PoseStamped(header=header)
+        pose.pose.position.x, pose.pose.position.y = float(point[0]), float(point[1])
+        pose.pose.orientation.w = 1.0
+        out.path.poses.append(pose)
+        out.covariance_xx.append(float(covariance[0][0]))
+        out.covariance_xy.append(float(covariance[0][1]))
+        out.covariance_yy.append(float(covariance[1][1]))
+        out.waypoint_role.append(role)
+        out.landmark_id.append(int(landmark_id))
+
+    def publish(self, plan: PlannedPath) -> None:
+        self.path_pub.publish(plan)
+        self.marker_pub.publish(plan_markers(plan))
+
+
+def plan_markers(plan: PlannedPath) -> MarkerArray:
+    """The path as a line strip and each waypoint's 3-sigma ellipse as a flat cylinder."""
+    header = plan.path.header
+    markers = MarkerArray(markers=[Marker(header=header, ns="afm_plan", action=Marker.DELETEALL)])
+    strip = Marker(header=header, ns="afm_plan", id=0, type=Marker.LINE_STRIP, action=Marker.ADD)
+    strip.scale.x = 2e-9
+    strip.color.g, strip.color.a = 0.8, 1.0
+    strip.pose.orientation.w = 1.0
+    strip.points = [pose.pose.position for pose in plan.path.poses]
+    markers.markers.append(strip)
+    for k, pose in enumerate(plan.path.poses):
+        cov = np.array([[plan.covariance_xx[k], plan.covariance_xy[k]], [plan.covariance_xy[k], plan.covariance_yy[k]]])
+        values, vectors = np.linalg.eigh(cov)
+        angle = math.atan2(vectors[1, 1], vectors[0, 1])
+        ellipse = Marker(header=header, ns="afm_plan_sigma", id=k + 1, type=Marker.CYLINDER, action=Marker.ADD)
+        ellipse.pose.position = pose.pose.position
+        ellipse.pose.orientation.z, ellipse.pose.orientation.w = math.sin(angle / 2), math.cos(angle / 2)
+        ellipse.scale.y, ellipse.scale.x = (6 * math.sqrt(max(v, 0.0)) for v in values)
+        ellipse.scale.z = 1e-9
+        ellipse.color.r, ellipse.color.b, ellipse.color.a = 0.9, 0.2, 0.4
+        markers.markers.append(ellipse)
+    return markers
 
 
 def main(args=None):
-    return run(PlannerNode, "afm_planner", args)
+    return run(PlannerNode, "afm_planner", args, config_errors=(ValueError,))
 
 
 if __name__ == "__main__":
