@@ -53,6 +53,16 @@ def test_planner_services_answer_from_the_landmarks_and_refuse_the_impossible(no
     assert plan.expected_cost > 0
     wait_for(lambda: markers and len(markers[-1].markers) == len(plan.path.poses) + 2, 10, what="ellipse markers")
 
+    request.localization_spot = "up"
+    response = call(ros_node, PlanPath, "/afm/plan_path", request)
+    assert response.success and response.plan.landmark_id[-2] >= 1
+    end_of_localization = response.plan.path.poses[-2].pose.position
+    observed = [m for m in marks if m.id == response.plan.landmark_id[-2]][0]
+    assert end_of_localization.y > observed.y + observed.radius           # ended above the particle
+    request.localization_spot = "north"
+    response = call(ros_node, PlanPath, "/afm/plan_path", request)
+    assert not response.success and "localization_spot" in response.message
+    request.localization_spot = ""
     request.target.x = 200e-6
     response = call(ros_node, PlanPath, "/afm/plan_path", request)
     assert not response.success and "target" in response.message and "range" in response.message

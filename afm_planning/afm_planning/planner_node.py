@@ -24,7 +24,7 @@ from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import EVENTS, LATCHED
 from afm_core.instrument import ScannerLimits, check_in_range
 from afm_core.localization.calibration import Calibration, load_calibration
-from afm_core.planning import (MODES, best_order, exact_order, heuristic_order, ant_colony_order,
+from afm_core.planning import (SPOTS, best_order, exact_order, heuristic_order, ant_colony_order,
                                observation_distance_matrix, plan_landmark_chain, plan_landmark_route,
                                plan_observation)
 from afm_msgs.msg import LandmarkArray, PlannedPath
@@ -104,8 +104,9 @@ class PlannerNode(Node):
             mean, cov = self.start_estimate(request.start)
             target = np.array([request.target.x, request.target.y])
             check_in_range("target", target[0], target[1], self.limits)
-            if request.scan_mode and request.scan_mode not in MODES:
-                raise ValueError(f"scan_mode={request.scan_mode!r}: must be one of {sorted(MODES)} or empty")
+            spot = request.localization_spot
+            if spot and spot not in SPOTS:
+                raise ValueError(f"localization_spot={spot!r}: must be one of {sorted(SPOTS)} or empty")
             with self.lock:
                 marks = list(self.landmarks)
             if not marks:
@@ -114,10 +115,9 @@ class PlannerNode(Node):
             chain = plan_landmark_chain(mean, cov, marks, target, self.config["tip_radius"], self.noise,
                                         required_sigma=required)
             route = chain.route
-            if request.scan_mode and len(chain.landmark_ids) == 1:
-                route = plan_landmark_route(mean, cov, self.landmark(chain.landmark_ids[0]),
-                                            self.config["tip_radius"], self.noise, task_point=target,
-                                            mode=request.scan_mode)
+            if spot:
+                route = plan_landmark_route(mean, cov, self.landmark(chain.landmark_ids[-1]),
+                                            self.config["tip_radius"], self.noise, task_point=target, spot=spot)
             response.plan = self.route_to_msg(route)
             response.success = True
             response.message = (f"via landmarks {list(chain.landmark_ids)}; final sigma "
