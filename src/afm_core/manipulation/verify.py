@@ -1,0 +1,205 @@
+"""Verify a push: rescan, find the particle, compare with the goal using control points.
+
+Book 7.3.1 step (4): after the push the area is rescanned and the images before and after are
+overlaid using indentation pits as control points, so that drift between the two scans is not
+mistaken for a manipulation error (Fig. 7.24g: 530 nm along, 20 nm sideways).
+
+verify_push(instrument, request, goal, ...):
+
+1. rescan the area with `request` (raster_scan on the Instrument; use the request of the
+   before image, so the scanner's systematic errors are the same in both);
+2. control points: pits (found as peaks of the negated height map with extract_landmarks,
+   `pit_depth` deep at least) and, with `use_landmarks`, particles that did not move (the
+   landmarks of both images except the pushed one). Their reference positions come from
+   `before` (a RasterScanData of the same area before the push) or are given as
+   `reference_points` (pits, reference frame). Each reference point is matched to the nearest
+   feature of the same kind in the after image within `match_radius`, after removing a first
+   offset guess (`offset_guess`, default: the median of the nearest-neighbour displacements
+   of the pits);
+3. offset = the median of (after - before) over the matched control points, then the mean over
+   those within `inlier_radius` of it (a landmark that was pushed or bumped is left out);
+4. the particle: the after-image landmark nearest to (expected + offset) within
+   `particle_match_radius` (expected: where the plan predicted it, default the goal); its
+   position minus the offset is the achieved position in the reference frame;
+5. error = achieved - goal (reference frame: the before image's, which is the frame the plan
+   was made in when it was made from that image).
+
+Without control points the offset is 0 and `drift_corrected` is False.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+
+from afm_core.imaging.landmarks import Landmark, extract_landmarks
+from afm_core.instrument import Instrument, RasterScanData, ScanRequest
+
+
+@dataclass
+class ControlPoint:
+    kind: str                       # "pit" | "landmark"
+    before: np.ndarray              # (2,) reference frame
+    after: np.ndarray               # (2,) after-image frame
+    used: bool = True               # inlier of the offset estimate
+
+    @property
+    def displacement(self) -> np.ndarray:
+        return self.after - self.before
+
+
+@dataclass
+class VerificationResult:
+    achieved: np.ndarray            # (2,) particle centre, reference frame
+    goal: np.ndarray                # (2,)
+    error_vector: np.ndarray        # achieved - goal
+    error: float                    # |error_vector|, m
+    offset: np.ndarray              # (2,) after-image frame minus reference frame (drift etc.)
+    control_points: list[ControlPoint] = field(default_factory=list)
+    drift_corrected: bool = False
+    raw_position: Optional[np.ndarray] = None       # particle centre in the after image's frame
+    particle: Optional[Landmark] = None             # the after-image landmark
+    offset_spread: float = 0.0      # m, rms of the used control points' displacements about the offset
+    after: Optional[RasterScanData] = None
+
+    def along_lateral(self, start, axis) -> tuple[float, float]:
+        """Achieved displacement from `start` along `axis` and sideways (+ left)."""
+        u = np.asarray(axis, float) / np.hypot(*axis)
+        d = self.achieved - np.asarray(start, float)
+        return float(d @ u), float(d @ np.array([-u[1], u[0]]))
+
+
+def _image_args(scan: RasterScanData) -> dict:
+    return dict(pixel_size_x=scan.pixel_size_x, pixel_size_y=scan.pixel_size_y,
+                origin_x=scan.origin_x, origin_y=scan.origin_y)
+
+
+def find_pits(scan: RasterScanData, pit_depth: float = 3e-9) -> list[Landmark]:
+    """Pits (indentations) of an image: the features of the negated height map (heights above
+    the median clipped off) at least `pit_depth` deep (their `height` is the apparent depth)."""
+    height = np.asarray(scan.height, float)
+    if not np.all(np.isfinite(height)):
+        raise ValueError("scan.height: has NaN pixels (an incomplete scan); rescan before verifying")
+    # particles would be deep holes of the negated map and upset its substrate fit: clip them
+    # to just above the substrate first
+    clipped = np.minimum(height, float(np.median(height)) + 0.5 * pit_depth)
+    return extract_landmarks(-clipped, min_height=pit_depth, **_image_args(scan))
+
+
+def find_particles(scan: RasterScanData, min_height: float = 10e-9) -> list[Landmark]:
+    height = np.asarray(scan.height, float)
+    if not np.all(np.isfinite(height)):
+        raise ValueError("scan.height: has NaN pixels (an incomplete scan); rescan before verifying")
+    return extract_landmarks(height, min_height=min_height, **_image_args(scan))
+
+
+def _xy(lm) -> np.ndarray:
+    return np.array([lm.x, lm.y], float)
+
+
+def _nearest(points: np.ndarray, target: np.ndarray) -> tuple[int, float]:
+    if len(points) == 0:
+        return -1, math.inf
+    d = np.hypot(*(points - target).T)
+    k = int(np.argmin(d))
+    return k, float(d[k])
+
+
+def _point(name, value) -> np.ndarray:
+    p = np.asarray(value, float).reshape(-1)
+    if p.size != 2 or not np.all(np.isfinite(p)):
+        raise ValueError(f"{name}={value!r}: must be a finite point (x, y) in m")
+    return p
+
+
+def verify_push(instrument: Instrument, request: ScanRequest, goal, *, expected=None, start=None,
+                before: RasterScanData | None = None, reference_points: Sequence | None = None,
+                use_landmarks: bool = True, particle_radius: float = 100e-9, pit_depth: float = 3e-9,
+                min_height: float = 10e-9, match_radius: float = 60e-9, inlier_radius: float = 10e-9,
+                particle_match_radius: float | None = None, offset_guess=None,
+                after: RasterScanData | None = None) -> VerificationResult:
+    """Rescan and verify (module docstring). start: the particle's position before the push in
+    the reference frame (leaves the pushed particle out of the landmark control points; default:
+    none left out except the one matched as the particle). after: an already taken after-scan
+    (then nothing is scanned)."""
+    g = _point("goal", goal)
+    exp = g if expected is None else _point("expected", expected)
+    if not (math.isfinite(particle_radius) and particle_radius > 0):
+        raise ValueError(f"particle_radius={particle_radius}: must be finite and > 0 m")
+    for name, value in (("match_radius", match_radius), ("inlier_radius", inlier_radius), ("pit_depth", pit_depth)):
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{name}={value}: must be finite and > 0 m")
+    p_radius = 2 * particle_radius + 100e-9 if particle_match_radius is None else particle_match_radius
+    if after is None:
+        after = instrument.raster_scan(request)
+    if not after.complete:
+        raise ValueError("after scan: incomplete (cancelled); cannot verify")
+    pits_after = find_pits(after, pit_depth)
+    particles_after = find_particles(after, min_height)
+    pa = np.array([_xy(p) for p in pits_after]).reshape(-1, 2)
+    la = np.array([_xy(p) for p in particles_after]).reshape(-1, 2)
+
+    ref_pits: list[np.ndarray] = []
+    ref_landmarks: list[np.ndarray] = []
+    if reference_points is not None:
+        ref_pits = [_point(f"reference_points[{i}]", p) for i, p in enumerate(reference_points)]
+    elif before is not None:
+        ref_pits = [_xy(p) for p in find_pits(before, pit_depth)]
+        if use_landmarks:
+            st = None if start is None else _point("start", start)
+            for lm in find_particles(before, min_height):
+                xy = _xy(lm)
+                if st is not None and np.hypot(*(xy - st)) < p_radius:
+                    continue                         # the pushed particle
+                ref_landmarks.append(xy)
+
+    # first offset guess: median nearest-neighbour displacement of the pits
+    if offset_guess is not None:
+        guess = _point("offset_guess", offset_guess)
+    elif ref_pits and len(pa):
+        disp = [pa[_nearest(pa, r)[0]] - r for r in ref_pits]
+        guess = np.median(np.array(disp), axis=0)
+    else:
+        guess = np.zeros(2)
+    controls: list[ControlPoint] = []
+    taken_p: set[int] = set()
+    for r in ref_pits:
+        k, d = _nearest(pa, r + guess)
+        if d <= match_radius and k not in taken_p:
+            taken_p.add(k)
+            controls.append(ControlPoint("pit", r, pa[k].copy()))
+    particle_after_guess = exp + guess
+    k_particle, _ = _nearest(la, particle_after_guess)
+    taken_l: set[int] = {k_particle} if k_particle >= 0 else set()
+    for r in ref_landmarks:
+        k, d = _nearest(la, r + guess)
+        if d <= match_radius and k not in taken_l:
+            taken_l.add(k)
+            controls.append(ControlPoint("landmark", r, la[k].copy()))
+
+    if controls:
+        disp = np.array([c.displacement for c in controls])
+        med = np.median(disp, axis=0)
+        inl = np.hypot(*(disp - med).T) <= inlier_radius
+        if not inl.any():
+            inl = np.hypot(*(disp - med).T) <= np.min(np.hypot(*(disp - med).T))
+        for c, ok in zip(controls, inl):
+            c.used = bool(ok)
+        offset = disp[inl].mean(axis=0)
+        spread = float(np.sqrt(np.mean(np.sum((disp[inl] - offset) ** 2, axis=1))))
+    else:
+        offset, spread = np.zeros(2), 0.0
+
+    k, d = _nearest(la, exp + offset)
+    if k < 0 or d > p_radius:
+        raise ValueError(f"particle: no landmark within particle_match_radius={p_radius:.4e} m of the expected "
+                         f"position {tuple(exp)} (+ offset {tuple(offset)}) in the after scan")
+    raw = la[k].copy()
+    achieved = raw - offset
+    err = achieved - g
+    return VerificationResult(achieved=achieved, goal=g, error_vector=err, error=float(np.hypot(*err)),
+                              offset=offset, control_points=controls,
+                              drift_corrected=any(c.used for c in controls), raw_position=raw,
+                              particle=particles_after[k], offset_spread=spread, after=after)
