@@ -1,0 +1,276 @@
+"""The tip-position Kalman filter (book eq. 5.16-5.21) on filterpy's KalmanFilter.
+
+State: the tip's 2-D position in the task frame (m), covariance P (m^2). Prediction: the
+motion model's mean displacement as the control input (F = I, B = I, u = mean) and its added
+covariance as the process noise Q (there is no other process noise: Q is the calibrated
+motion noise of each move, see `afm_core.localization.motion`). Update: one scalar
+observation z = u . x (a local scan line measures the position along one direction u: a
+horizontal line x, a vertical line y), measurement variance R from the observation model.
+
+Gating (eq. 5.18): the squared Mahalanobis distance d^2 = nu^2 / S of the innovation nu
+(S = u P u^T + R) must not exceed `gate` (robot_localization's *_rejection_threshold is the
+same test on d). Default chi2.ppf(0.999, 1) = 10.83, i.e. |nu| at most 3.29 sigma: a
+consistent filter then rejects 0.1 % of good observations. The 99 % value (6.63, 2.58 sigma,
+GATE_CHI2_1DOF_99) rejected ~1 % of good lines in the Table 7.1/7.2 experiment, and a falsely
+rejected landmark leaves the tip at its broad prior (a 60 nm error at 2.7 sigma of 24 nm),
+far costlier than letting through an outlier between 2.6 and 3.3 sigma; a wrong landmark (a
+neighbouring particle, hundreds of nm away) is still rejected. A rejected observation leaves
+the state as it was.
+
+Time: every prediction ends at a timestamp (the instrument clock) and every observation
+carries the time it applies to (the crossing time t_kp). The filter keeps a history of
+states and steps (`history_seconds`, like robot_localization's smoothing lag): an
+observation older than the latest step is inserted at its time (a prediction step that spans
+it is split in proportion to time, exact for the drift terms and for a constant-speed ramp
+without creep, linear interpolation otherwise) and everything after it is re-applied,
+observations re-gated. An observation older than the history is rejected with that reason.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from bisect import bisect_right
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+from afm_core.localization.observation import check_covariance
+
+GATE_CHI2_1DOF_99 = 6.634896601021214      # scipy.stats.chi2.ppf(0.99, 1)
+GATE_CHI2_1DOF_999 = 10.827566170662733    # scipy.stats.chi2.ppf(0.999, 1): the default gate
+DEFAULT_HISTORY_SECONDS = 120.0
+AXES = {"x": (1.0, 0.0), "y": (0.0, 1.0), 0: (1.0, 0.0), 1: (0.0, 1.0)}
+
+Extrapolate = Callable[[float, float], tuple]   # (from_time, to_time) -> (mean increment (2,), added covariance)
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    accepted: bool
+    reason: str                 # "" when accepted; why not otherwise ("gated_out: ...", "too_old: ...")
+    time: float                 # s, when the observation applies
+    innovation: float           # m, z - u . x(t)^-
+    innovation_variance: float  # m^2, S = u P u^T + R
+    mahalanobis: float          # sqrt(nu^2 / S), dimensionless
+
+    @property
+    def gated_out(self) -> bool:
+        return self.reason.startswith("gated_out")
+
+    @property
+    def mahalanobis_squared(self) -> float:
+        return self.mahalanobis ** 2
+
+
+@dataclass
+class _Entry:
+    kind: str                   # "start" | "predict" | "update"
+    time: float                 # s, time of the state after this entry
+    mean: np.ndarray            # state after the entry
+    covariance: np.ndarray
+    increment: np.ndarray | None = None     # predict
+    process: np.ndarray | None = None
+    start_time: float = math.nan            # predict: when the step began
+    value: float = math.nan                 # update
+    variance: float = math.nan
+    direction: np.ndarray | None = None
+
+
+def _direction(axis) -> np.ndarray:
+    if isinstance(axis, (str, int)) and not isinstance(axis, bool) and axis in AXES:
+        u = np.array(AXES[axis])
+    else:
+        u = np.asarray(axis, dtype=float)
+        if u.shape != (2,) or not np.isfinite(u).all() or not np.hypot(*u) > 0:
+            raise ValueError(f"axis={axis!r}: need 'x', 'y', 0, 1 or a finite non-zero 2-vector")
+        u = u / np.hypot(*u)
+    return u
+
+
+class TipFilter:
+    """2-D tip position, timestamped predict / one-axis update with gating and a history."""
+
+    def __init__(self, mean, covariance, time: float = 0.0, gate: float = GATE_CHI2_1DOF_999,
+                 history_seconds: float = DEFAULT_HISTORY_SECONDS, extrapolate: Optional[Extrapolate] = None):
+        m = np.asarray(mean, dtype=float)
+        if m.shape != (2,) or not np.isfinite(m).all():
+            raise ValueError(f"initial_mean={mean}: need two finite values (m)")
+        p = check_covariance("initial_cov", covariance)
+        if not (math.isfinite(time)):
+            raise ValueError(f"time={time}: must be finite")
+        if not (math.isfinite(gate) and gate > 0):
+            raise ValueError(f"gate={gate}: must be a finite squared Mahalanobis distance > 0")
+        if not (math.isfinite(history_seconds) and history_seconds >= 0):
+            raise ValueError(f"history_seconds={history_seconds}: must be finite and >= 0")
+        self.gate = float(gate)
+        self.history_seconds = float(history_seconds)
+        self.extrapolate = extrapolate
+        self._kf = KalmanFilter(dim_x=2, dim_z=1)
+        self._kf.F = np.eye(2)
+        self._kf.B = np.eye(2)
+        self._set(m, p)
+        self._history = [_Entry("start", float(time), m.copy(), p.copy())]
+
+    # -- state -------------------------------------------------------------------------------
+    def _set(self, mean, covariance) -> None:
+        self._kf.x = np.asarray(mean, dtype=float).reshape(2, 1).copy()
+        self._kf.P = np.asarray(covariance, dtype=float).copy()
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self._kf.x[:, 0].copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self._kf.P.copy()
+
+    @property
+    def time(self) -> float:
+        return self._history[-1].time
+
+    @property
+    def oldest_time(self) -> float:
+        return self._history[0].time
+
+    # -- the two steps -------------------------------------------------------------------------
+    def _predict(self, increment, process) -> None:
+        self._kf.predict(u=np.asarray(increment, dtype=float).reshape(2, 1), Q=np.asarray(process, dtype=float))
+
+    def predict(self, time: float, increment, process) -> None:
+        """Motion from the latest time to `time`: mean += increment, P += process."""
+        increment = np.asarray(increment, dtype=float)
+        if increment.shape != (2,) or not np.isfinite(increment).all():
+            raise ValueError(f"increment={increment}: need two finite values (m)")
+        process = check_covariance("process", process)
+        if not math.isfinite(time) or time < self.time:
+            raise ValueError(f"time={time}: predictions must come in time order (latest {self.time})")
+        start = self.time
+        self._predict(increment, process)
+        self._history.append(_Entry("predict", float(time), self.mean, self.covariance, increment.copy(),
+                                    process.copy(), start_time=start))
+        self._prune()
+
+    def _try_update(self, time: float, value: float, variance: float, u: np.ndarray) -> UpdateResult:
+        """Gate and (if accepted) apply to the current state; filterpy does the algebra on a copy
+        that replaces the filter only when the observation passes the gate."""
+        trial = copy.deepcopy(self._kf)
+        trial.update(np.array([[value]]), R=np.array([[variance]]), H=u.reshape(1, 2))
+        innovation = float(trial.y[0, 0])
+        s = float(trial.S[0, 0])
+        distance = float(trial.mahalanobis)
+        if not distance ** 2 <= self.gate:
+            return UpdateResult(False, f"gated_out: squared Mahalanobis distance {distance ** 2:.3g} > gate {self.gate:.3g}",
+                                time, innovation, s, distance)
+        self._kf = trial
+        return UpdateResult(True, "", time, innovation, s, distance)
+
+    def update_axis(self, time: float, value: float, variance: float, axis="x") -> UpdateResult:
+        """One scalar observation z = u . x(time) + v, v ~ N(0, variance); axis "x", "y" or a
+        unit vector u. Returns whether it was accepted and its Mahalanobis distance."""
+        u = _direction(axis)
+        for name, v in (("time", time), ("value", value), ("variance", variance)):
+            if not math.isfinite(v):
+                raise ValueError(f"{name}={v}: must be finite")
+        if not variance > 0:
+            raise ValueError(f"variance={variance}: must be > 0 m^2")
+        time, value, variance = float(time), float(value), float(variance)
+        if time < self.oldest_time:
+            return UpdateResult(False, f"too_old: t={time:.6g} s is before the history's start "
+                                       f"{self.oldest_time:.6g} s (history {self.history_seconds:g} s)",
+                                time, math.nan, math.nan, math.nan)
+        if time >= self.time:
+            if time > self.time:
+                self._extend_to(time)
+            result = self._try_update(time, value, variance, u)
+            if result.accepted:
+                self._history.append(_Entry("update", time, self.mean, self.covariance, value=value,
+                                            variance=variance, direction=u))
+            return result
+        return self._insert_past(time, value, variance, u)
+
+    def _extend_to(self, time: float) -> None:
+        """An observation after the latest prediction: carry the state there first."""
+        if self.extrapolate is None:
+            self.predict(time, np.zeros(2), np.zeros((2, 2)))
+        else:
+            increment, process = self.extrapolate(self.time, time)
+            self.predict(time, increment, process)
+
+    def _insert_past(self, time: float, value: float, variance: float, u: np.ndarray) -> UpdateResult:
+        history = self._history
+        times = [e.time for e in history]
+        k = bisect_right(times, time)            # entries [0, k) end at or before `time`
+        later = history[k:]
+        if later and later[0].kind == "predict" and later[0].start_time < time:
+            step = later[0]                      # split the step that spans `time`
+            f = (time - step.start_time) / (step.time - step.start_time)
+            first = _Entry("predict", time, None, None, f * step.increment, f * step.process, start_time=step.start_time)
+            second = _Entry("predict", step.time, None, None, (1 - f) * step.increment, (1 - f) * step.process,
+                            start_time=time)
+            later = [first, second] + later[1:]
+            head = later[:1]
+            later = later[1:]
+        else:
+            head = []
+        base = history[:k]
+        saved_kf, saved_history = copy.deepcopy(self._kf), history
+        self._set(base[-1].mean, base[-1].covariance)
+        new_history = list(base)
+        for entry in head:
+            self._predict(entry.increment, entry.process)
+            new_history.append(_Entry("predict", entry.time, self.mean, self.covariance, entry.increment,
+                                      entry.process, start_time=entry.start_time))
+        result = self._try_update(time, value, variance, u)
+        if not result.accepted:                   # leave everything as it was
+            self._kf, self._history = saved_kf, saved_history
+            return result
+        new_history.append(_Entry("update", time, self.mean, self.covariance, value=value, variance=variance,
+                                  direction=u))
+        for entry in later:
+            if entry.kind == "predict":
+                self._predict(entry.increment, entry.process)
+                new_history.append(_Entry("predict", entry.time, self.mean, self.covariance, entry.increment,
+                                          entry.process, start_time=entry.start_time))
+            elif entry.kind == "update":
+                replay = self._try_update(entry.time, entry.value, entry.variance, entry.direction)
+                if replay.accepted:
+                    new_history.append(_Entry("update", entry.time, self.mean, self.covariance, value=entry.value,
+                                              variance=entry.variance, direction=entry.direction))
+        self._history = new_history
+        return result
+
+    def _prune(self) -> None:
+        """Keep the states of the last history_seconds (at least the latest one)."""
+        horizon = self.time - self.history_seconds
+        k = 0
+        while k < len(self._history) - 1 and self._history[k + 1].time <= horizon:
+            k += 1
+        if k:
+            oldest = self._history[k]
+            self._history = [_Entry("start", oldest.time, oldest.mean, oldest.covariance)] + self._history[k + 1:]
+
+    # -- queries ---------------------------------------------------------------------------------
+    def at(self, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """(mean, covariance) at `time`: inside the history, the state then (a prediction step
+        interpolated in proportion to time); after the latest step, extrapolated with
+        `extrapolate` (the motion model holding still: creep still to come and drift) or, without
+        one, the latest state."""
+        if not math.isfinite(time):
+            raise ValueError(f"time={time}: must be finite")
+        if time >= self.time:
+            if time == self.time or self.extrapolate is None:
+                return self.mean, self.covariance
+            increment, process = self.extrapolate(self.time, time)
+            return self.mean + np.asarray(increment), self.covariance + np.asarray(process)
+        if time < self.oldest_time:
+            raise ValueError(f"time={time}: before the history's start {self.oldest_time} s")
+        times = [e.time for e in self._history]
+        k = bisect_right(times, time)
+        entry = self._history[k]
+        before = self._history[k - 1]
+        if entry.kind != "predict" or entry.start_time >= time:
+            return before.mean.copy(), before.covariance.copy()
+        f = (time - entry.start_time) / (entry.time - entry.start_time)
+        return before.mean + f * entry.increment, before.covariance + f * entry.process

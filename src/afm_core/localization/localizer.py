@@ -1,0 +1,346 @@
+"""Tip localization on an instrument, ROS-free: what the localization node calls (book 5.2-5.4).
+
+`Localizer` keeps the motion model (`MotionModel`) and the Kalman filter (`TipFilter`) in step
+with an `Instrument`: every command it sends is predicted with the time the instrument says
+it took; `observe_landmark` plans local scan lines through a landmark's predicted position,
+runs them, and applies each line's observation at its crossing time x_kp, then carries the
+estimate to the line's end with the motion model (eq. 5.16-5.21).
+
+Frames: the estimate, targets and landmarks are in the task frame (sample-fixed, m); the
+instrument takes commanded scanner positions. The command for a task-frame target is the
+motion model inverted about the current estimate (`MotionModel.command_for`).
+
+Errors: bad inputs (non-finite values, covariances that are not positive semi-definite,
+targets whose command falls outside the scanner range) raise ValueError naming the field and
+the limit, before anything moves. A lost landmark, a gated-out observation or an instrument
+error during a line is reported in the result; the estimate then still carries every motion
+that happened (the localizer re-reads the instrument's command and clock).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from afm_core.instrument import Instrument, LineRequest, check_in_range
+from afm_core.localization.calibration import Calibration
+from afm_core.localization.filter import DEFAULT_HISTORY_SECONDS, GATE_CHI2_1DOF_999, TipFilter, UpdateResult
+from afm_core.localization.motion import MotionModel, MotionStep
+from afm_core.localization.observation import (DEFAULT_THRESHOLD_FRACTION, LineObservation, MapLandmark,
+                                               as_map_landmark, observe_line)
+
+DEFAULT_LINE_SPEED = 1e-6         # m/s along a local scan line
+DEFAULT_MOVE_SPEED = 2e-6         # m/s, free moves
+DEFAULT_SAMPLE_SPACING = 1e-9     # m between line samples
+DEFAULT_MARGIN = 50e-9            # m of substrate beyond the landmark's extent and 3 sigma at each line end
+DEFAULT_TIP_ALLOWANCE = 30e-9     # m, lateral tip broadening when the landmark's apparent half-width is unknown
+
+
+@dataclass
+class LineResult:
+    """One local scan line of a landmark observation."""
+    axis: str                            # "x" (horizontal line) or "y" (vertical line)
+    status: str                          # "accepted" | "gated_out" | "lost" | "too_old" | "instrument_error" | "not_run"
+    reason: str = ""
+    request: Optional[LineRequest] = None
+    observation: Optional[LineObservation] = None
+    update: Optional[UpdateResult] = None
+    innovation: float = math.nan         # m, map value - predicted tip position along u at x_kp
+    innovation_sigma: float = math.nan   # m, sqrt(S)
+    mahalanobis: float = math.nan
+    mean_at_crossing: Optional[np.ndarray] = None        # estimate at x_kp after the update (or prediction)
+    covariance_at_crossing: Optional[np.ndarray] = None
+
+    @property
+    def accepted(self) -> bool:
+        return self.status == "accepted"
+
+    @property
+    def gated_out(self) -> bool:
+        return self.status == "gated_out"
+
+    @property
+    def lost(self) -> bool:
+        return self.status == "lost"
+
+
+@dataclass
+class ObservationResult:
+    """A landmark observation: its lines, and the pose after the last line's end."""
+    landmark_id: int
+    lines: list = field(default_factory=list)
+    mean: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
+    covariance: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
+    time: float = math.nan
+    instrument_error: str = ""
+
+    @property
+    def accepted(self) -> bool:
+        """At least one line updated the estimate."""
+        return any(line.accepted for line in self.lines)
+
+    @property
+    def all_accepted(self) -> bool:
+        return bool(self.lines) and all(line.accepted for line in self.lines)
+
+    @property
+    def gated_out(self) -> bool:
+        return any(line.gated_out for line in self.lines)
+
+    @property
+    def lost(self) -> bool:
+        return any(line.lost for line in self.lines)
+
+
+@dataclass
+class MoveOutcome:
+    command: tuple                       # m, commanded end point
+    mean: np.ndarray                     # estimate after the move
+    covariance: np.ndarray
+    time: float
+    completed: bool
+
+
+def _vector(name: str, value) -> np.ndarray:
+    v = np.asarray(value, dtype=float)
+    if v.shape != (2,):
+        raise ValueError(f"{name}: need two values (x, y), got shape {v.shape}")
+    if not np.isfinite(v).all():
+        raise ValueError(f"{name}={v.tolist()}: must be finite")
+    return v
+
+
+class Localizer:
+    def __init__(self, instrument: Instrument, calibration: Calibration, initial_mean, initial_cov, *,
+                 gate: float = GATE_CHI2_1DOF_999, line_speed: float = DEFAULT_LINE_SPEED,
+                 move_speed: float = DEFAULT_MOVE_SPEED, sample_spacing: float = DEFAULT_SAMPLE_SPACING,
+                 threshold_fraction: float = DEFAULT_THRESHOLD_FRACTION, margin: float = DEFAULT_MARGIN,
+                 history_seconds: float = DEFAULT_HISTORY_SECONDS):
+        """initial_mean / initial_cov: the tip's position (task frame, m) and covariance (m^2)
+        now, with the instrument at rest at its current command (creep settled)."""
+        for name, value in (("line_speed", line_speed), ("move_speed", move_speed)):
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name}={value}: must be finite and > 0 m/s")
+            if value > instrument.limits.max_speed:
+                raise ValueError(f"{name}={value:.3e} m/s: above the slew limit {instrument.limits.max_speed:.3e} m/s")
+        if not (math.isfinite(sample_spacing) and sample_spacing > 0):
+            raise ValueError(f"sample_spacing={sample_spacing}: must be finite and > 0 m")
+        if not (math.isfinite(margin) and margin >= 0):
+            raise ValueError(f"margin={margin}: must be finite and >= 0 m")
+        if not (math.isfinite(threshold_fraction) and 0 < threshold_fraction < 1):
+            raise ValueError(f"threshold_fraction={threshold_fraction}: must be in (0, 1)")
+        self.instrument = instrument
+        self.calibration = calibration
+        self.line_speed, self.move_speed = float(line_speed), float(move_speed)
+        self.sample_spacing, self.margin = float(sample_spacing), float(margin)
+        self.threshold_fraction = float(threshold_fraction)
+        self.model = MotionModel(calibration, instrument.commanded_position(), instrument.time)
+        self.filter = TipFilter(initial_mean, initial_cov, instrument.time, gate=gate,
+                                history_seconds=history_seconds, extrapolate=self._extrapolate)
+        self.steps: list[MotionStep] = []        # every motion predicted (for inspection)
+
+    # -- estimate ----------------------------------------------------------------------------------
+    @property
+    def mean(self) -> np.ndarray:
+        return self.filter.mean
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.filter.covariance
+
+    @property
+    def time(self) -> float:
+        return self.filter.time
+
+    def at(self, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """Estimate (mean, covariance) at any time: history, or a hold predicted from now on."""
+        return self.filter.at(time)
+
+    def _extrapolate(self, from_time: float, to_time: float):
+        trial = self.model.copy()
+        if abs(trial.time - from_time) > 1e-9:
+            return np.zeros(2), np.zeros((2, 2))
+        step = trial.hold(to_time - from_time)
+        return step.mean, step.covariance
+
+    def _apply(self, step: MotionStep) -> None:
+        self.steps.append(step)
+        self.filter.predict(step.end_time, step.mean, step.covariance)
+
+    def sync(self) -> None:
+        """Predict whatever the instrument did since the last prediction: a hold if the
+        command is unchanged, otherwise a free move to the new command over the elapsed time."""
+        now = float(self.instrument.time)
+        command = self.instrument.commanded_position()
+        elapsed = max(0.0, now - self.model.time)
+        if command != self.model.command:
+            self._apply(self.model.move(command[0], command[1], elapsed, "move"))
+        elif elapsed > 0:
+            self._apply(self.model.hold(elapsed))
+
+    # -- moves -----------------------------------------------------------------------------------
+    def _speed(self, speed: Optional[float]) -> float:
+        speed = self.move_speed if speed is None else float(speed)
+        if not (math.isfinite(speed) and 0 < speed <= self.instrument.limits.max_speed):
+            raise ValueError(f"speed={speed}: must be > 0 and at most the slew limit "
+                             f"{self.instrument.limits.max_speed:.3e} m/s")
+        return speed
+
+    def command_for(self, x: float, y: float, speed: Optional[float] = None) -> tuple[float, float]:
+        """The command that brings the tip (as estimated now) to task-frame (x, y)."""
+        target = _vector("target", (x, y))
+        command = self.model.command_for(target - self.mean, self._speed(speed))
+        check_in_range("target command", command[0], command[1], self.instrument.limits)
+        return command
+
+    def move_command(self, x: float, y: float, speed: Optional[float] = None) -> MoveOutcome:
+        """Command the scanner to (x, y) (scanner frame) and predict the move."""
+        speed = self._speed(speed)
+        _vector("command", (x, y))
+        check_in_range("command", x, y, self.instrument.limits)
+        self.sync()
+        try:
+            result = self.instrument.move_tip(float(x), float(y), speed)
+            completed = result.completed
+        finally:
+            self.sync()
+        return MoveOutcome(self.model.command, self.mean, self.covariance, self.time, completed)
+
+    def move_to(self, x: float, y: float, speed: Optional[float] = None) -> MoveOutcome:
+        """Move the tip to task-frame (x, y): the command is the motion model inverted about the
+        current estimate (creep still to come and drift included)."""
+        self.sync()
+        command = self.command_for(x, y, speed)
+        return self.move_command(command[0], command[1], speed)
+
+    def indent_here(self, force: float, dwell: float):
+        """Punch a pit where the tip is commanded now; predicts the time it takes."""
+        self.sync()
+        x, y = self.model.command
+        try:
+            return self.instrument.indent(x, y, force, dwell)
+        finally:
+            self.sync()
+
+    # -- landmark observation -------------------------------------------------------------------
+    def _line_half_length(self, landmark: MapLandmark, u: np.ndarray) -> float:
+        sigma = math.sqrt(max(0.0, float(u @ (self.covariance + landmark.covariance) @ u)))
+        extent = landmark.half_width if landmark.half_width > 0 else landmark.radius + DEFAULT_TIP_ALLOWANCE
+        return 3.0 * sigma + extent + self.margin
+
+    def plan_line(self, landmark, axis: str, sign: float = 1.0, before: Optional[float] = None,
+                  after: Optional[float] = None) -> tuple[LineRequest, np.ndarray, float]:
+        """A line along task-frame axis `axis` ("x" or "y") through the landmark's map position,
+        in the direction `sign`, long enough to start and end clear of it with 3 sigma of the
+        tip's and the landmark's uncertainty: it starts `before` and ends `after` metres (task
+        frame) from the landmark (default both: 3 sigma + the landmark's apparent half-width
+        + margin). Returns (request, true direction, default half length)."""
+        landmark = as_map_landmark(landmark)
+        if axis not in ("x", "y"):
+            raise ValueError(f"axis={axis!r}: must be 'x' or 'y'")
+        d = np.array([1.0, 0.0]) if axis == "x" else np.array([0.0, 1.0])
+        d = d * (1.0 if sign >= 0 else -1.0)
+        half = self._line_half_length(landmark, d)
+        before = half if before is None else float(before)
+        after = half if after is None else float(after)
+        for name, value in (("before", before), ("after", after)):
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name}={value}: must be finite and > 0 m")
+        start_target = landmark.position - before * d
+        start = self.model.command_for(start_target - self.mean, self.move_speed)
+        # the end: where the model (creep still to come included) puts the tip (before + after) * d
+        # further along, trying the approach move on a copy first
+        trial = self.model.copy()
+        approach = trial.move(start[0], start[1], math.dist(start, trial.command) / self.move_speed, "move")
+        start_predicted = self.mean + approach.mean
+        end = trial.command_for(landmark.position + after * d - start_predicted, self.line_speed, "line")
+        step = np.subtract(end, start)
+        limits = self.instrument.limits
+        check_in_range(f"{axis} line start", start[0], start[1], limits)
+        check_in_range(f"{axis} line end", end[0], end[1], limits)
+        length = float(np.hypot(*step))
+        samples = int(min(limits.max_line_samples, max(16, math.ceil(length / self.sample_spacing) + 1)))
+        request = LineRequest(start[0], start[1], end[0], end[1], samples, self.line_speed)
+        request.validate(limits)
+        return request, self.model.line_direction(*step), half
+
+    def observe_line(self, landmark, axis: str, sign: float = 1.0, before: Optional[float] = None,
+                     after: Optional[float] = None) -> LineResult:
+        """One local scan line across the landmark (see plan_line) and its update at the
+        crossing point, carried to the line's end (eq. 5.9-5.21)."""
+        landmark = as_map_landmark(landmark)
+        self.sync()
+        request, direction, _ = self.plan_line(landmark, axis, sign, before, after)
+        try:
+            self.move_command(request.start_x, request.start_y, self.move_speed)
+            data = self.instrument.local_scan(request)
+        except ValueError as exc:
+            self.sync()
+            return LineResult(axis, "instrument_error", f"instrument: {exc}", request)
+        # up to the first sample the command stayed at the line start (the scan's own approach is
+        # a zero-length move now); do not sync(): the instrument is already at the line's end
+        start_time = float(data.start_time)
+        if self.model.time < start_time:
+            self._apply(self.model.hold(start_time - self.model.time))
+        times = np.asarray(data.times, dtype=float)
+        line_start = (float(data.x[0]), float(data.y[0]))
+        if line_start != self.model.command:         # the scan's own approach, not through move_tip
+            self._apply(self.model.move(line_start[0], line_start[1], 0.0, "move"))
+        expected = self._expected_index(landmark, request, direction)
+        obs = observe_line(data, landmark, self.calibration, direction, self.threshold_fraction, expected)
+        end = (float(data.x[-1]), float(data.y[-1]))
+        end_time = start_time + float(times[-1])
+        result = LineResult(axis, "lost", obs.reason, request, obs)
+        if obs.ok:
+            kp_time = obs.time
+            self._apply(self.model.move(obs.command[0], obs.command[1], kp_time - self.model.time, "line"))
+            update = self.filter.update_axis(kp_time, obs.value, obs.variance, obs.direction)
+            result.update = update
+            result.innovation, result.mahalanobis = update.innovation, update.mahalanobis
+            result.innovation_sigma = math.sqrt(update.innovation_variance) if update.innovation_variance >= 0 else math.nan
+            result.status = "accepted" if update.accepted else ("gated_out" if update.gated_out else "too_old")
+            result.reason = update.reason
+            result.mean_at_crossing, result.covariance_at_crossing = self.mean, self.covariance
+        # carry the estimate to the line's end (eq. 5.20-5.21), then whatever time is left
+        self._apply(self.model.move(end[0], end[1], max(0.0, end_time - self.model.time), "line"))
+        self.sync()
+        return result
+
+    def _expected_index(self, landmark: MapLandmark, request: LineRequest, direction: np.ndarray) -> float:
+        """Fractional sample index at which the tip is predicted to pass the landmark."""
+        start = self.mean       # estimate at the line start (we are there now)
+        along = float((landmark.position - start) @ direction)
+        true_length = float(np.hypot(*(self.model.matrix @ np.array([request.end_x - request.start_x,
+                                                                         request.end_y - request.start_y]))))
+        return (request.samples - 1) * along / true_length
+
+    def observe_landmark(self, landmark, both_axes: bool = True) -> ObservationResult:
+        """Horizontal, then vertical local scan line through the landmark (Fig. 5.11). A tube
+        or rod is observed by one line across it (the position along its axis is not
+        observable); both_axes=False: the horizontal line only (sphere)."""
+        landmark = as_map_landmark(landmark)
+        self.sync()
+        if landmark.elongated:
+            # the task axis closer to the tube's normal
+            normal = np.array([-math.sin(landmark.orientation), math.cos(landmark.orientation)])
+            axes = [("y", 1.0)] if abs(normal[1]) >= abs(normal[0]) else [("x", 1.0)]
+        else:
+            axes = [("x", 1.0), ("y", -1.0)] if both_axes else [("x", 1.0)]
+        # check every line before anything moves (re-planned from the estimate of the moment later)
+        for axis, sign in axes:
+            self.plan_line(landmark, axis, sign)
+        result = ObservationResult(landmark.id)
+        for axis, sign in axes:
+            try:
+                line = self.observe_line(landmark, axis, sign)
+            except ValueError as exc:          # the re-planned line left the scanner range
+                line = LineResult(axis, "not_run", f"line not run: {exc}")
+            result.lines.append(line)
+            if line.status == "instrument_error":
+                result.instrument_error = line.reason
+            if line.status in ("instrument_error", "not_run"):
+                break
+        result.mean, result.covariance, result.time = self.mean, self.covariance, self.time
+        return result

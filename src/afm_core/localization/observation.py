@@ -1,0 +1,246 @@
+"""Landmark observation from one local scan line (book 5.2.3-5.2.4, eq. 5.9-5.15, 7.1).
+
+The tip scans a straight line across a landmark. Where the height profile crosses a
+threshold going up (l_ka) and coming down (l_kb), the midpoint of the two crossings is where
+the line passes the landmark's centre (eq. 5.10): more robust than the highest sample, whose
+position is at the mercy of the noise on a flat top. At that moment t_kp the tip is at the
+foot of the perpendicular from the landmark centre m to its true path, so the component of
+the tip position along the line's true direction d equals that of m:
+
+    z = u . m  =  u . x(t_kp) + v,       H = u^T          (eq. 5.11-5.13, R_theta and S_x)
+
+u = d for a sphere (a horizontal line measures x, a vertical one y). A tube's cross-section
+along any line crossing it is symmetric about the point where the line meets the tube's axis,
+so a line across a tube measures the tip's position perpendicular to the axis: u = the axis
+normal (sign along d); the position along the axis is not observed.
+
+Threshold (default 0.5 of the landmark's map height above the line's own substrate level):
+- the substrate level is the median of the line's first and last 10 % of samples (the line
+  starts and ends clear of the particle), so slow z drift and tilt of the line cancel;
+- at half height the dilated profile is steepest (a sphere's or tube's equator, where the
+  tip's flank touches it): the crossing position is least sensitive to height noise, and the
+  tip apex (top) and the tip cone meeting the substrate (bottom corners) are both avoided;
+- a sphere of radius r sitting on the substrate is r + sqrt(r^2 - delta^2) high at a lateral
+  offset delta from its centre, i.e. above half height for every delta < r: a line anywhere
+  across the particle still finds a pair, and a line that misses it by more finds none (lost)
+  instead of a biased centre.
+
+Observation noise (eq. 5.15, 7.1): v = v_map + v_region + v_deflection:
+- v_map: the landmark's own map covariance projected on u (u^T Sigma_m u);
+- v_region: `calibration.scan_region_sigma` (centre found from different chords);
+- v_deflection: `line_deflection_sigma_deg` times the largest perpendicular offset of the
+  line from the centre, the landmark radius (book: "the maximum d_kp is the radius", ~2 nm).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from afm_core.instrument import ScanLineData
+from afm_core.localization.calibration import Calibration
+
+DEFAULT_THRESHOLD_FRACTION = 0.5
+EDGE_FRACTION = 0.1            # of the samples at each end: the line's substrate level
+MIN_EDGE_SAMPLES = 3
+KINDS = ("sphere", "tube", "rod")
+
+
+def check_covariance(name: str, covariance) -> np.ndarray:
+    """A finite, symmetric, positive semi-definite 2x2 matrix, or ValueError naming it."""
+    c = np.asarray(covariance, dtype=float)
+    if c.shape != (2, 2):
+        raise ValueError(f"{name}: need a 2x2 matrix, got shape {c.shape}")
+    if not np.isfinite(c).all():
+        raise ValueError(f"{name}={c.tolist()}: must be finite")
+    if not np.allclose(c, c.T, rtol=1e-9, atol=1e-30):
+        raise ValueError(f"{name}={c.tolist()}: must be symmetric")
+    smallest = float(np.linalg.eigvalsh(c).min())
+    if smallest < -1e-12 * max(float(np.abs(c).max()), 1e-300):
+        raise ValueError(f"{name}={c.tolist()}: not positive semi-definite (smallest eigenvalue {smallest:.3e})")
+    return 0.5 * (c + c.T)
+
+
+@dataclass
+class MapLandmark:
+    """A landmark in the task frame, as the localizer uses it (SI units).
+    `from_landmark` converts an `afm_core.imaging.landmarks.Landmark`."""
+    x: float                          # m, centre in the task frame
+    y: float
+    covariance: np.ndarray            # 2x2 m^2, map error of the centre
+    radius: float                     # m (sphere radius, tube/rod radius)
+    kind: str = "sphere"              # "sphere" | "tube" | "rod"
+    height: float = 0.0               # m, apparent height above the substrate; 0: 2 * radius
+    orientation: float = 0.0          # rad from +x, axis of a tube/rod
+    half_width: float = 0.0           # m, apparent half-width at half height; 0: unknown
+    id: int = -1
+
+    def __post_init__(self):
+        self.validate()
+
+    def validate(self) -> None:
+        for name in ("x", "y", "radius", "height", "orientation", "half_width"):
+            value = float(getattr(self, name))
+            if not math.isfinite(value):
+                raise ValueError(f"landmark.{name}={value}: must be finite")
+        if not self.radius > 0:
+            raise ValueError(f"landmark.radius={self.radius}: must be > 0 m")
+        if self.height < 0 or self.half_width < 0:
+            raise ValueError("landmark.height and landmark.half_width: must be >= 0 m")
+        if self.kind not in KINDS:
+            raise ValueError(f"landmark.kind={self.kind!r}: must be one of {KINDS}")
+        self.covariance = check_covariance("landmark.covariance", self.covariance)
+
+    @property
+    def position(self) -> np.ndarray:
+        return np.array([self.x, self.y])
+
+    @property
+    def apparent_height(self) -> float:
+        return self.height if self.height > 0 else 2.0 * self.radius
+
+    @property
+    def elongated(self) -> bool:
+        return self.kind in ("tube", "rod")
+
+    @property
+    def axis(self) -> np.ndarray:
+        return np.array([math.cos(self.orientation), math.sin(self.orientation)])
+
+    @classmethod
+    def from_landmark(cls, landmark) -> "MapLandmark":
+        """From afm_core.imaging.landmarks.Landmark (or anything with the same fields)."""
+        return cls(x=float(landmark.x), y=float(landmark.y), covariance=np.array(landmark.covariance, dtype=float),
+                   radius=float(landmark.radius), kind=str(landmark.kind), height=float(getattr(landmark, "height", 0.0)),
+                   orientation=float(getattr(landmark, "orientation", 0.0)),
+                   half_width=float(getattr(landmark, "half_width", 0.0)), id=int(getattr(landmark, "id", -1)))
+
+
+def as_map_landmark(landmark) -> MapLandmark:
+    return landmark if isinstance(landmark, MapLandmark) else MapLandmark.from_landmark(landmark)
+
+
+def observation_direction(landmark: MapLandmark, line_direction) -> np.ndarray:
+    """u: the unit vector along which a line of true direction `line_direction` measures."""
+    d = np.asarray(line_direction, dtype=float)
+    d = d / np.hypot(*d)
+    if not landmark.elongated:
+        return d
+    normal = np.array([-landmark.axis[1], landmark.axis[0]])
+    return normal if normal @ d >= 0 else -normal
+
+
+def observation_variance(landmark: MapLandmark, direction, calibration: Calibration) -> float:
+    """Eq. 5.15: map error along u + scan-region error + line-deflection error (m^2)."""
+    u = np.asarray(direction, dtype=float)
+    deflection = math.radians(calibration.line_deflection_sigma_deg) * landmark.radius
+    return float(u @ landmark.covariance @ u) + calibration.scan_region_sigma ** 2 + deflection ** 2
+
+
+@dataclass
+class LineObservation:
+    """What one local scan line saw. status "ok" or "lost" (reason says why)."""
+    status: str
+    reason: str = ""
+    threshold: float = math.nan             # m, absolute height threshold used
+    substrate: float = math.nan             # m, line's substrate level
+    crossings: tuple = (math.nan, math.nan)  # fractional sample indices of the rising / falling crossing
+    index: float = math.nan                 # fractional sample index of the midpoint (x_kp)
+    time: float = math.nan                  # s, instrument clock at x_kp
+    command: tuple = (math.nan, math.nan)   # m, commanded scanner position at x_kp
+    direction: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))  # u (task frame)
+    value: float = math.nan                 # m, z = u . m
+    variance: float = math.nan              # m^2, observation noise
+    width: float = math.nan                 # m, commanded distance between the crossings
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+def _crossing(h: np.ndarray, threshold: float, i: int) -> float:
+    """Fractional index between samples i and i + 1 where h crosses threshold (linear)."""
+    a, b = h[i] - threshold, h[i + 1] - threshold
+    return i + (a / (a - b) if a != b else 0.5)
+
+
+def find_crossings(height, threshold: float, expected_index: float | None = None):
+    """Pairs (rising, falling) of threshold crossings as fractional indices; the pair whose
+    midpoint is nearest `expected_index` (default: the line's middle) first. Returns
+    (pairs, reason) with reason non-empty when there is no complete pair."""
+    h = np.asarray(height, dtype=float)
+    above = h > threshold
+    if not above.any():
+        return [], "no sample above the threshold: the line missed the landmark"
+    if above.all():
+        return [], "every sample above the threshold: the line lies on the landmark"
+    changes = np.flatnonzero(np.diff(above.astype(np.int8)))
+    pairs = []
+    rising = None
+    for i in changes:
+        if not above[i] and above[i + 1]:
+            rising = _crossing(h, threshold, int(i))
+        elif rising is not None:
+            pairs.append((rising, _crossing(h, threshold, int(i))))
+            rising = None
+    if not pairs:                        # an edge run above the threshold is not a pair
+        where = "starts" if above[0] else "ends"
+        return [], f"the line {where} on the landmark: no rising/falling crossing pair"
+    centre = 0.5 * (h.size - 1) if expected_index is None else float(expected_index)
+    pairs.sort(key=lambda p: abs(0.5 * (p[0] + p[1]) - centre))
+    return pairs, ""
+
+
+def observe_line(line: ScanLineData, landmark, calibration: Calibration, line_direction,
+                 threshold_fraction: float = DEFAULT_THRESHOLD_FRACTION,
+                 expected_index: float | None = None, max_width: float | None = None) -> LineObservation:
+    """The landmark observation of one local scan line (eq. 5.9-5.15).
+
+    line_direction: the line's true direction in the task frame (the motion model's
+    `line_direction` of the commanded step). expected_index: fractional sample index where the
+    landmark is predicted (picks the pair when the line crosses more than one feature).
+    max_width: widest acceptable crossing pair (m, commanded distance); default
+    4 * (apparent height) + 200 nm, generous for tip dilation (a 20 nm tube images ~50 nm wide)."""
+    landmark = as_map_landmark(landmark)
+    if not (math.isfinite(threshold_fraction) and 0.0 < threshold_fraction < 1.0):
+        raise ValueError(f"threshold_fraction={threshold_fraction}: must be in (0, 1)")
+    d = np.asarray(line_direction, dtype=float)
+    if d.shape != (2,) or not np.isfinite(d).all() or not np.hypot(*d) > 0:
+        raise ValueError(f"line_direction={line_direction}: need a finite non-zero 2-vector")
+    u = observation_direction(landmark, d)
+    h = np.asarray(line.height, dtype=float)
+    n = h.size
+    if n < 2 * MIN_EDGE_SAMPLES + 2:
+        return LineObservation("lost", f"only {n} samples on the line", direction=u)
+    if not line.complete:
+        return LineObservation("lost", "the line was not completed (cancelled)", direction=u)
+    if not np.isfinite(h).all():
+        return LineObservation("lost", "the height profile has non-finite samples", direction=u)
+    if landmark.elongated and abs(float(u @ (d / np.hypot(*d)))) < math.cos(math.radians(60.0)):
+        return LineObservation("lost", "the line runs within 30 deg of the tube's axis: it cannot measure "
+                                       "the position across the tube", direction=u)
+    edge = max(MIN_EDGE_SAMPLES, int(EDGE_FRACTION * n))
+    substrate = float(np.median(np.concatenate([h[:edge], h[-edge:]])))
+    threshold = substrate + threshold_fraction * landmark.apparent_height
+    pairs, reason = find_crossings(h, threshold, expected_index)
+    base = dict(threshold=threshold, substrate=substrate, direction=u)
+    if not pairs:
+        return LineObservation("lost", reason, **base)
+    xs, ys = np.asarray(line.x, dtype=float), np.asarray(line.y, dtype=float)
+    samples = np.arange(n)
+    if max_width is None:
+        max_width = 4.0 * landmark.apparent_height + 200e-9
+    rising, falling = pairs[0]
+    width = float(np.hypot(np.interp(falling, samples, xs) - np.interp(rising, samples, xs),
+                           np.interp(falling, samples, ys) - np.interp(rising, samples, ys)))
+    if width > max_width:
+        return LineObservation("lost", f"crossing pair {width:.3e} m apart, wider than {max_width:.3e} m: "
+                                       "not this landmark", crossings=(rising, falling), width=width, **base)
+    index = 0.5 * (rising + falling)
+    time = float(line.start_time + np.interp(index, samples, np.asarray(line.times, dtype=float)))
+    command = (float(np.interp(index, samples, xs)), float(np.interp(index, samples, ys)))
+    return LineObservation("ok", "", threshold=threshold, substrate=substrate, crossings=(rising, falling),
+                           index=index, time=time, command=command, direction=u,
+                           value=float(u @ landmark.position),
+                           variance=observation_variance(landmark, u, calibration), width=width)
