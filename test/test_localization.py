@@ -381,3 +381,23 @@ def test_tables_7_1_7_2_fast_landmark_beats_direct_and_filter_is_consistent(benc
     for summary in results.values():
         assert lo <= summary["mean_nees"] <= hi, results
     assert via["line_statuses"].get("x:accepted", 0) + via["line_statuses"].get("y:accepted", 0) >= 2 * trials - 1
+
+
+def test_commands_another_client_sent_are_predicted_once(bench, sim_calibration):
+    """The localizer node hears every command the driver executes (TipCommand); predicting
+    them keeps the estimate on the tip, and the echo of one already predicted is skipped."""
+    sim, loc = start(bench, sim_calibration, 5, spheres=())
+    for target in ((55.6 * UM, 55.0 * UM), (55.6 * UM, 55.5 * UM), (55.1 * UM, 55.2 * UM)):
+        before, t0 = sim.commanded_position(), sim.time
+        sim.move_tip(*target, 2 * UM / 1.0)
+        assert loc.predict_command("move", before, target, t0, sim.time)
+        assert not loc.predict_command("move", before, target, t0, sim.time)        # the echo
+    error = loc.mean - truth(sim)
+    sigma = np.sqrt(np.diag(loc.covariance))
+    assert np.all(np.abs(error) < 3 * sigma), (error, sigma)
+    assert np.all(sigma > 5 * NM)                                 # three free moves: uncertain again
+    assert loc.model.command == pytest.approx(sim.commanded_position()) and loc.time == pytest.approx(sim.time)
+    loc.sync()                                                    # nothing left to predict
+    assert loc.time == pytest.approx(sim.time)
+    with pytest.raises(ValueError, match="kind"):
+        loc.predict_command("push", before, target, sim.time, sim.time + 1)

@@ -148,7 +148,7 @@ class AfmCommander:
         return result.scan
 
     def localize(self, landmark_id: int = -1, position=None, both_axes=True, timeout=None):
-        goal = Localize.Goal(landmark_id=int(landmark_id), both_axes=both_axes)
+        goal = Localize.Goal(landmark_id=int(landmark_id), one_line=not both_axes)
         if position is not None:
             goal.position.x, goal.position.y = float(position[0]), float(position[1])
         return self.send("localize", goal, timeout=timeout)

@@ -78,6 +78,7 @@ class ActionInstrument:
         self._commanded: Optional[tuple[float, float]] = None
         self.time = 0.0
         self.last_command = None
+        self._lock = threading.Lock()
 
     # -- plumbing ----------------------------------------------------------------------------
     def _call(self, name: str, goal, should_stop: Optional[Callable[[], bool]] = None):
@@ -109,14 +110,29 @@ class ActionInstrument:
         result = result_future.result().result
         command = getattr(result, "command", None)
         if command is not None and command.header.stamp.sec:
-            self.last_command = command
-            self.time = stamp_seconds(command.header.stamp) + command.duration
-            self._commanded = (command.end.x, command.end.y)
+            self.observe_command(command)
         if not result.success and result.message.startswith("refused"):
             raise ValueError(result.message)
         if not result.success and "cancelled" not in result.message:
             raise DriverUnavailable(f"{client._action_name}: {result.message}")
         return result
+
+    def observe_command(self, command) -> None:
+        """A TipCommand the driver executed (ours, from a result, or anyone's, from
+        /afm/tip_command): the instrument is now where and when it ended, unless a later
+        command is already known."""
+        end_time = stamp_seconds(command.header.stamp) + command.duration
+        with self._lock:
+            if end_time > self.time or self._commanded is None:
+                self.time = end_time
+                self._commanded = (command.end.x, command.end.y)
+                self.last_command = command
+
+    def rest_at(self, position, time: float) -> None:
+        """Declare where and when the instrument was before the first command we know of."""
+        with self._lock:
+            self._commanded = (float(position[0]), float(position[1]))
+            self.time = float(time)
 
     # -- the Instrument protocol -------------------------------------------------------------
     def commanded_position(self) -> tuple[float, float]:

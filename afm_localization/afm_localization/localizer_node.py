@@ -1,23 +1,217 @@
-"""Localizer node: the calibrated motion model and the landmark Kalman filter.
+"""Localizer node: where the tip is, with its covariance, from the calibrated motion model
+and landmark observations (book ch. 5, 7.2).
 
-Scaffold: the node runs in the graph with its name and lifecycle; its topics and actions
-arrive with issue 5, which builds the algorithms in afm_core.
+The algorithms are afm_core.localization (`Localizer`: motion model + filterpy Kalman filter);
+this node feeds it every command the driver executes (/afm/tip_command, from any client),
+publishes the estimate on /afm/tip_pose (afm_task) at a steady rate and after every update,
+and serves the Localize action, which runs the local scan lines through the driver's actions
+(afm_bringup.ros_instrument.ActionInstrument) and updates the estimate.
+
+The task frame is the scanner frame at the first command the node hears, to within
+`initial_sigma`; maps and landmarks are in the same frame.
 """
+from __future__ import annotations
+
+import collections
+import math
 import sys
+import threading
 
+import numpy as np
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Header
 
+from afm_bringup import params, topics
+from afm_bringup.conversions import FRAME_TASK, mean_cov_to_pose, msg_to_landmarks, seconds_to_time
 from afm_bringup.node_main import run
+from afm_bringup.qos_profiles import EVENTS, LATCHED
+from afm_bringup.ros_instrument import ActionInstrument, DriverUnavailable, stamp_seconds
+from afm_core.instrument import ScannerLimits
+from afm_core.localization import GATE_CHI2_1DOF_999, Localizer, MapLandmark
+from afm_core.localization.calibration import Calibration, load_calibration
+from afm_msgs.action import Localize
+from afm_msgs.msg import LandmarkArray, TipCommand
+
+PARAMETERS = [
+    ("calibration_file", "", "Calibration YAML written by `afm calibrate`; empty: the book's figures (uncalibrated)."),
+    ("initial_sigma", 50e-9, "m, 1-sigma of the tip position at the first command heard (the task frame's origin)."),
+    ("publish_rate", 10.0, "Hz, steady publication of the (predicted) estimate on /afm/tip_pose."),
+    ("gate", GATE_CHI2_1DOF_999, "Mahalanobis gate: squared distance above which an observation is rejected "
+                                 "(chi-square, 1 dof; 10.83 = 99.9 %, 6.63 = 99 %)."),
+    ("line_speed", 1e-6, "m/s along a local scan line."),
+    ("move_speed", 2e-6, "m/s of the free moves to a line's start."),
+    ("sample_spacing", 1e-9, "m between samples of a local scan line."),
+    ("threshold_fraction", 0.5, "Height threshold for the crossings, as a fraction of the landmark's height."),
+    ("margin", 50e-9, "m of substrate a line covers beyond 3 sigma and the landmark's extent, each side."),
+    ("match_radius", 300e-9, "m: a Localize goal by position observes the nearest landmark within this."),
+    ("history_seconds", 120.0, "s of filter history kept to re-apply an out-of-order observation."),
+]
+KINDS = {TipCommand.SCAN_LINE: "line"}        # everything else moves the tip as a free move would
 
 
 class LocalizerNode(Node):
     def __init__(self):
         super().__init__("afm_localizer")
-        self.get_logger().info("running; the calibrated motion model and the landmark Kalman filter arrive with issue 5")
+        self.config = params.declare(self, PARAMETERS)
+        for name in ("initial_sigma", "publish_rate", "gate", "line_speed", "move_speed", "sample_spacing",
+                     "match_radius", "history_seconds"):
+            value = self.config[name]
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"parameter {name}={value}: must be finite and > 0")
+        path = self.config["calibration_file"]
+        self.calibration = load_calibration(path) if path else Calibration()
+        self.instrument = ActionInstrument(self, ScannerLimits())
+        self.localizer: Localizer | None = None
+        self.lock = threading.Lock()                      # the Localizer is not thread-safe
+        self.pending: collections.deque = collections.deque()
+        self.landmarks: dict[int, object] = {}
+        self.latest_clock: float | None = None
+        inputs = MutuallyExclusiveCallbackGroup()
+        self.create_subscription(TipCommand, topics.TIP_COMMAND, self.on_command, EVENTS, callback_group=inputs)
+        self.create_subscription(LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED, callback_group=inputs)
+        self.create_subscription(Clock, "/clock", self.on_clock, 10, callback_group=inputs)
+        self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, topics.TIP_POSE, 10)
+        self.create_timer(1.0 / self.config["publish_rate"], self.tick, callback_group=inputs)
+        ActionServer(self, Localize, topics.ACTION_LOCALIZE, self.execute, callback_group=ReentrantCallbackGroup(),
+                     goal_callback=lambda _g: GoalResponse.ACCEPT, cancel_callback=lambda _g: CancelResponse.ACCEPT)
+        if not path:
+            self.get_logger().warning("no calibration_file: using the book's figures; run `afm calibrate` for "
+                                      "this instrument")
+
+    # -- inputs ------------------------------------------------------------------------------
+    def on_command(self, msg: TipCommand) -> None:
+        self.pending.append(msg)
+
+    def on_landmarks(self, msg: LandmarkArray) -> None:
+        try:
+            self.landmarks = {mark.id: mark for mark in msg_to_landmarks(msg)}
+        except ValueError as exc:
+            self.get_logger().error(f"landmarks ignored: {exc}")
+
+    def on_clock(self, msg: Clock) -> None:
+        self.latest_clock = stamp_seconds(msg.clock)
+
+    def process_pending(self) -> None:
+        """Predict every command heard and not yet accounted for (call with the lock held)."""
+        while self.pending:
+            msg = self.pending.popleft()
+            start_time = stamp_seconds(msg.header.stamp)
+            start, end = (msg.start.x, msg.start.y), (msg.end.x, msg.end.y)
+            if self.localizer is None:
+                self.instrument.rest_at(start, start_time)
+                sigma = self.config["initial_sigma"]
+                self.localizer = Localizer(
+                    self.instrument, self.calibration, np.array(start), np.diag([sigma ** 2, sigma ** 2]),
+                    gate=self.config["gate"], line_speed=self.config["line_speed"],
+                    move_speed=self.config["move_speed"], sample_spacing=self.config["sample_spacing"],
+                    threshold_fraction=self.config["threshold_fraction"], margin=self.config["margin"],
+                    history_seconds=self.config["history_seconds"])
+            self.instrument.observe_command(msg)
+            try:
+                self.localizer.predict_command(KINDS.get(msg.kind, "move"), start, end, start_time,
+                                               start_time + msg.duration)
+            except ValueError as exc:
+                self.get_logger().error(f"tip command ignored: {exc}")
+
+    def now(self) -> float:
+        """The instrument clock: /clock when the driver publishes one, else wall time."""
+        if self.latest_clock is not None:
+            return self.latest_clock
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    # -- outputs -----------------------------------------------------------------------------
+    def tick(self) -> None:
+        if not self.lock.acquire(blocking=False):
+            return                                        # an observation is running; it publishes
+        try:
+            self.process_pending()
+            if self.localizer is not None:
+                self.publish(max(self.now(), self.localizer.time))
+        finally:
+            self.lock.release()
+
+    def pose_msg(self, time: float) -> PoseWithCovarianceStamped:
+        mean, covariance = self.localizer.at(time)
+        return mean_cov_to_pose(mean, covariance, Header(stamp=seconds_to_time(time), frame_id=FRAME_TASK))
+
+    def publish(self, time: float) -> PoseWithCovarianceStamped:
+        msg = self.pose_msg(time)
+        self.pose_pub.publish(msg)
+        return msg
+
+    # -- the Localize action -----------------------------------------------------------------
+    def landmark_for(self, goal):
+        known = dict(self.landmarks)
+        if goal.landmark_id >= 0:
+            if goal.landmark_id not in known:
+                raise ValueError(f"landmark_id={goal.landmark_id}: unknown (known ids: {sorted(known) or 'none yet'})")
+            return known[goal.landmark_id]
+        point = np.array([goal.position.x, goal.position.y])
+        if not np.all(np.isfinite(point)):
+            raise ValueError("position: must be finite (m)")
+        if not known:
+            raise ValueError(f"no landmark known yet (nothing on {topics.LANDMARKS})")
+        nearest = min(known.values(), key=lambda m: math.hypot(m.x - point[0], m.y - point[1]))
+        distance = math.hypot(nearest.x - point[0], nearest.y - point[1])
+        if distance > self.config["match_radius"]:
+            raise ValueError(f"position: no landmark within match_radius={self.config['match_radius'] * 1e9:.0f} nm "
+                             f"(nearest, id {nearest.id}, is {distance * 1e9:.0f} nm away)")
+        return nearest
+
+    def execute(self, goal_handle) -> Localize.Result:
+        goal, result = goal_handle.request, Localize.Result()
+        with self.lock:
+            self.process_pending()
+            try:
+                if self.localizer is None:
+                    raise ValueError("no tip estimate yet: the driver has executed no command")
+                landmark = MapLandmark.from_landmark(self.landmark_for(goal))
+            except ValueError as exc:
+                goal_handle.abort()
+                result.success, result.message = False, f"refused: {exc}"
+                return result
+            if goal_handle.is_cancel_requested:
+                goal_handle.canceled()
+                result.success, result.message = False, "cancelled before any line"
+                return result
+            feedback = Localize.Feedback(phase="scanning", lines_done=0,
+                                         pose=self.pose_msg(self.localizer.time))
+            goal_handle.publish_feedback(feedback)
+            try:
+                observation = self.localizer.observe_landmark(landmark, both_axes=not goal.one_line)
+                failure = observation.instrument_error
+            except (ValueError, DriverUnavailable) as exc:
+                observation, failure = None, str(exc)
+            self.process_pending()
+            result.pose = self.publish(self.localizer.time)
+        lines = observation.lines if observation is not None else []
+        goal_handle.publish_feedback(Localize.Feedback(phase="updating", lines_done=len(lines), pose=result.pose))
+        result.lost = any(line.lost for line in lines)
+        result.gated_out = any(line.gated_out for line in lines)
+        result.innovation = [float(line.innovation) for line in lines if math.isfinite(line.innovation)]
+        summary = "; ".join(f"{line.axis} line {line.status}" + (f" ({line.reason})" if line.reason else "")
+                            for line in lines)
+        result.success = observation is not None and observation.all_accepted and not failure
+        if failure:
+            result.message = f"driver failure: {failure}" + (f"; {summary}" if summary else "")
+        else:
+            result.message = summary or "no line run"
+        if goal_handle.is_cancel_requested:
+            goal_handle.canceled()
+            result.message = "cancelled after the lines in progress: " + result.message
+        elif result.success:
+            goal_handle.succeed()
+        else:
+            goal_handle.abort()
+        return result
 
 
 def main(args=None):
-    return run(LocalizerNode, "afm_localizer", args)
+    return run(LocalizerNode, "afm_localizer", args, config_errors=(ValueError,), threads=3)
 
 
 if __name__ == "__main__":

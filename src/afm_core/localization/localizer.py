@@ -180,6 +180,26 @@ class Localizer:
         elif elapsed > 0:
             self._apply(self.model.hold(elapsed))
 
+    def predict_command(self, kind: str, start, end, start_time: float, end_time: float) -> bool:
+        """Predict a command someone else sent the instrument (a driver reports every one it
+        executes): hold until it starts, a free move to its start if the tip was commanded
+        elsewhere, then the command itself ("line" along a scan line, "move" otherwise) over its
+        duration. A command ending no later than the estimate's time is already accounted for
+        (our own, or reported twice): skipped, returns False."""
+        if kind not in ("move", "line"):
+            raise ValueError(f"kind={kind!r}: must be 'move' or 'line'")
+        start, end = _vector("start", start), _vector("end", end)
+        if not (math.isfinite(start_time) and math.isfinite(end_time) and end_time >= start_time):
+            raise ValueError(f"start_time={start_time}, end_time={end_time}: need finite times, end >= start (s)")
+        if end_time <= self.model.time:
+            return False
+        if start_time > self.model.time:
+            self._apply(self.model.hold(start_time - self.model.time))
+        if tuple(start) != tuple(self.model.command):
+            self._apply(self.model.move(start[0], start[1], 0.0, "move"))
+        self._apply(self.model.move(end[0], end[1], max(0.0, end_time - self.model.time), kind))
+        return True
+
     # -- moves -----------------------------------------------------------------------------------
     def _speed(self, speed: Optional[float]) -> float:
         speed = self.move_speed if speed is None else float(speed)

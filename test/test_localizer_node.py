@@ -1,0 +1,104 @@
+"""The localizer node in a graph with the simulated driver: it follows every command the
+driver executes, publishes the estimate, and localizes through the Localize action."""
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseWithCovarianceStamped, PointStamped
+from std_msgs.msg import Header
+
+from afm_bringup.commander import AfmCommander
+from afm_bringup.conversions import FRAME_TASK, landmarks_to_msg, pose_to_mean_cov
+from afm_bringup.qos_profiles import LATCHED
+from afm_core.imaging.landmarks import Landmark
+from afm_core.localization.calibration import save_calibration
+from afm_msgs.action import MoveTip
+from afm_msgs.msg import GroundTruth, LandmarkArray
+from conftest import wait_for
+
+BENCH = Path(__file__).resolve().parents[1] / "bench" / "bench_localization.py"
+SPHERE = (55.0e-6, 55.0e-6)                    # the default simulator's first sphere, r = 100 nm
+
+
+def oracle_calibration(path):
+    """What a perfect calibration of the default simulator finds (the node's plumbing is under
+    test here; the calibration experiments have their own tests)."""
+    spec = importlib.util.spec_from_file_location("bench_localization", BENCH)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    s, d = bench.load_config().scanner, bench.load_config().drift
+    from afm_core.localization.calibration import Calibration
+    save_calibration(Calibration(
+        source="test oracle", scanner_matrix=bench.measure_scanner_matrix().tolist(),
+        creep_time_constants=list(s.creep_time_constants), creep_fractions_x=list(s.creep_fractions),
+        creep_fractions_y=list(s.creep_fractions), motion_noise_slope_x=s.positioning_noise_slope,
+        motion_noise_slope_y=s.positioning_noise_slope, motion_noise_cross_slope=s.positioning_noise_slope,
+        motion_noise_offset=s.positioning_noise_offset, drift_mean_velocity=[d.mean_velocity_x, d.mean_velocity_y],
+        drift_sigma_velocity=[d.sigma_velocity_x, d.sigma_velocity_y], scan_region_sigma=0.3e-9), path)
+    return path
+
+
+def landmark(i, x, y, sigma=2e-9):
+    return Landmark(id=i, kind="sphere", x=x, y=y, covariance=np.diag([sigma ** 2, sigma ** 2]), radius=100e-9,
+                    height=200e-9, length=0.0, orientation=0.0)
+
+
+def move(afm, x, y):
+    target = PointStamped()
+    target.header.frame_id = "afm_scanner"
+    target.point.x, target.point.y = x, y
+    result = afm.send("move_tip", MoveTip.Goal(target=target, speed=2e-6))
+    assert result.success, result.message
+
+
+def test_localize_through_the_action_with_lost_gated_and_unknown_landmarks(tmp_path, nodes, ros_node):
+    calibration = oracle_calibration(tmp_path / "calibration.yaml")
+    nodes("driver", seed=3, real_time_factor=0.0)
+    nodes("localizer", calibration_file=str(calibration))
+    poses, truths = [], []
+    ros_node.create_subscription(PoseWithCovarianceStamped, "/afm/tip_pose", poses.append, 10)
+    ros_node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
+    marks = [landmark(0, *SPHERE),
+             landmark(7, 54.0e-6, 54.0e-6),                       # nothing there: lost
+             landmark(8, SPHERE[0] + 80e-9, SPHERE[1] - 80e-9, sigma=0.5e-9)]   # the sphere, mis-mapped: gated
+    ros_node.create_publisher(LandmarkArray, "/afm/landmarks", LATCHED).publish(
+        landmarks_to_msg(marks, Header(frame_id=FRAME_TASK)))
+    with AfmCommander(server_timeout=30) as afm:
+        refused = afm.localize(landmark_id=0)
+        assert not refused.success and "no tip estimate yet" in refused.message
+        move(afm, 54.7e-6, 54.75e-6)
+        wait_for(lambda: poses, 10, what="a pose once the driver has moved")
+        mean, cov = pose_to_mean_cov(poses[-1])
+        assert poses[-1].header.frame_id == FRAME_TASK and mean == pytest.approx((54.7e-6, 54.75e-6), abs=150e-9)
+        sigma_before = np.sqrt(np.diag(cov))
+        assert np.all(sigma_before > 10e-9)                         # 50 nm initial, plus a ~0.4 um move
+
+        result = afm.localize(landmark_id=0)
+        assert result.success, result.message
+        assert not result.lost and not result.gated_out and len(result.innovation) == 2
+        mean, cov = pose_to_mean_cov(result.pose)
+        sigma = np.sqrt(np.diag(cov))
+        assert np.all(sigma < 0.5 * sigma_before) and np.all(sigma < 10e-9)
+        wait_for(lambda: truths and truths[-1].header.stamp == result.pose.header.stamp or truths, 5)
+        true_tip = np.array([truths[-1].tip_position.x, truths[-1].tip_position.y])
+        assert np.all(np.abs(mean - true_tip) < 4 * sigma), (mean - true_tip, sigma)
+
+        # right after the update the tip is known to a few nm: a landmark 80 nm from its map
+        # position on both axes is rejected, line by line, and changes nothing
+        gated = afm.localize(landmark_id=8)
+        assert not gated.success and gated.gated_out and "gated" in gated.message
+        assert "accepted" not in gated.message, gated.message
+        lost = afm.localize(landmark_id=7)
+        assert not lost.success and lost.lost and "lost" in lost.message
+        unknown = afm.localize(landmark_id=42)
+        assert not unknown.success and "landmark_id=42" in unknown.message
+        far = afm.localize(position=(60e-6, 60e-6))
+        assert not far.success and "match_radius" in far.message
+        # the estimate stayed consistent through the failed observations
+        final = afm.localize(position=(SPHERE[0] + 30e-9, SPHERE[1]))
+        assert final.success, final.message
+        mean, cov = pose_to_mean_cov(final.pose)
+        wait_for(lambda: len(truths) > 1, 5)
+        true_tip = np.array([truths[-1].tip_position.x, truths[-1].tip_position.y])
+        assert np.all(np.abs(mean - true_tip) < 4 * np.sqrt(np.diag(cov)))
