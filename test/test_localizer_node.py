@@ -1,8 +1,5 @@
 """The localizer node in a graph with the simulated driver: it follows every command the
 driver executes, publishes the estimate, and localizes through the Localize action."""
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseWithCovarianceStamped, PointStamped
@@ -12,31 +9,12 @@ from afm_bringup.commander import AfmCommander
 from afm_bringup.conversions import FRAME_TASK, landmarks_to_msg, pose_to_mean_cov
 from afm_bringup.qos_profiles import LATCHED
 from afm_core.imaging.landmarks import Landmark
-from afm_core.localization.calibration import save_calibration
 from afm_msgs.action import MoveTip
 from afm_msgs.msg import GroundTruth, LandmarkArray
 from conftest import wait_for
+from sim_calibration import oracle_calibration
 
-BENCH = Path(__file__).resolve().parents[1] / "bench" / "bench_localization.py"
 SPHERE = (55.0e-6, 55.0e-6)                    # the default simulator's first sphere, r = 100 nm
-
-
-def oracle_calibration(path):
-    """What a perfect calibration of the default simulator finds (the node's plumbing is under
-    test here; the calibration experiments have their own tests)."""
-    spec = importlib.util.spec_from_file_location("bench_localization", BENCH)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    s, d = bench.load_config().scanner, bench.load_config().drift
-    from afm_core.localization.calibration import Calibration
-    save_calibration(Calibration(
-        source="test oracle", scanner_matrix=bench.measure_scanner_matrix().tolist(),
-        creep_time_constants=list(s.creep_time_constants), creep_fractions_x=list(s.creep_fractions),
-        creep_fractions_y=list(s.creep_fractions), motion_noise_slope_x=s.positioning_noise_slope,
-        motion_noise_slope_y=s.positioning_noise_slope, motion_noise_cross_slope=s.positioning_noise_slope,
-        motion_noise_offset=s.positioning_noise_offset, drift_mean_velocity=[d.mean_velocity_x, d.mean_velocity_y],
-        drift_sigma_velocity=[d.sigma_velocity_x, d.sigma_velocity_y], scan_region_sigma=0.3e-9), path)
-    return path
 
 
 def landmark(i, x, y, sigma=2e-9):

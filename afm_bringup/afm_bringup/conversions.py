@@ -142,6 +142,17 @@ def landmarks_to_msg(marks, header):
     return array
 
 
+def stamp_of(header) -> float:
+    return header.stamp.sec + header.stamp.nanosec * 1e-9
+
+
+def newer_landmarks(array, current_stamp: float | None) -> bool:
+    """Whether a LandmarkArray replaces what a node holds. Several nodes publish landmark maps
+    (imaging after a scan, the nano-hand after moving a particle), latched: a node joining late
+    may get them in any order, so the newest map by its header stamp wins."""
+    return current_stamp is None or stamp_of(array.header) >= current_stamp
+
+
 def msg_to_landmarks(array) -> list:
     """LandmarkArray -> core landmarks; ValueError naming the landmark and field when not finite."""
     from afm_core.imaging.landmarks import Landmark

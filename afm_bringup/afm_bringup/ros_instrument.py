@@ -28,7 +28,8 @@ from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 
 
 class DriverUnavailable(RuntimeError):
-    """The driver did not answer (not running, or no result within the timeout)."""
+    """An action server (the driver, the localizer) did not answer: not running, goal rejected,
+    or no result within the timeout."""
 
 
 def stamp_seconds(stamp) -> float:
@@ -53,14 +54,50 @@ def msg_to_force_trace(msg) -> ForceTraceData:
                           start_time=stamp_seconds(msg.header.stamp), task=msg.task, object_id=msg.object_id)
 
 
+def call_action(client, goal, server_timeout: float, result_timeout: float,
+                should_stop: Optional[Callable[[], bool]] = None):
+    """Send a goal and block until its result (from a thread that is not spinning the node).
+    should_stop() is polled while waiting; when it turns true the goal is cancelled and its
+    (cancelled) result still awaited. DriverUnavailable when the server is missing, rejects
+    the goal or gives no result within result_timeout s."""
+    name = client._action_name
+    if not client.wait_for_server(timeout_sec=server_timeout):
+        raise DriverUnavailable(f"action {name} not available after {server_timeout} s; is its node running?")
+    done = threading.Event()
+    sent = client.send_goal_async(goal)
+    sent.add_done_callback(lambda _f: done.set())
+    if not done.wait(server_timeout):
+        raise DriverUnavailable(f"{name}: goal not acknowledged within {server_timeout} s")
+    handle = sent.result()
+    if not handle.accepted:
+        raise DriverUnavailable(f"{name}: goal rejected (server busy)")
+    finished = threading.Event()
+    result_future = handle.get_result_async()
+    result_future.add_done_callback(lambda _f: finished.set())
+    cancel_sent = False
+    waited = 0.0
+    while not finished.wait(0.05):
+        waited += 0.05
+        if should_stop is not None and not cancel_sent and should_stop():
+            handle.cancel_goal_async()
+            cancel_sent = True
+        if waited > result_timeout:
+            handle.cancel_goal_async()
+            raise DriverUnavailable(f"{name}: no result within {result_timeout} s")
+    return result_future.result().result
+
+
 class ActionInstrument:
     """Instrument protocol over the driver's actions. Refusals come back as ValueError with
     the driver's message (which names the field and the limit); cancellation of the caller
     is passed on through `should_stop`."""
 
     def __init__(self, node, limits: ScannerLimits | None = None, server_timeout: float = 10.0,
-                 result_timeout: float = 600.0):
+                 result_timeout: float = 600.0, scan_pair_id: str = ""):
+        """scan_pair_id: the pair_id every raster scan is requested with (e.g. "local..." for
+        checks the imaging node should not turn into the map)."""
         self.node = node
+        self.scan_pair_id = scan_pair_id
         self.limits = limits or ScannerLimits()
         self.server_timeout = server_timeout
         self.result_timeout = result_timeout
@@ -82,39 +119,14 @@ class ActionInstrument:
 
     # -- plumbing ----------------------------------------------------------------------------
     def _call(self, name: str, goal, should_stop: Optional[Callable[[], bool]] = None):
-        client = self._clients[name]
-        if not client.wait_for_server(timeout_sec=self.server_timeout):
-            raise DriverUnavailable(f"driver action {client._action_name} not available after "
-                                    f"{self.server_timeout} s; is afm_driver running?")
-        done = threading.Event()
-        sent = client.send_goal_async(goal)
-        sent.add_done_callback(lambda _f: done.set())
-        if not done.wait(self.server_timeout):
-            raise DriverUnavailable(f"{client._action_name}: goal not acknowledged within {self.server_timeout} s")
-        handle = sent.result()
-        if not handle.accepted:
-            raise DriverUnavailable(f"{client._action_name}: goal rejected (driver queue full)")
-        finished = threading.Event()
-        result_future = handle.get_result_async()
-        result_future.add_done_callback(lambda _f: finished.set())
-        cancel_sent = False
-        waited = 0.0
-        while not finished.wait(0.05):
-            waited += 0.05
-            if should_stop is not None and not cancel_sent and should_stop():
-                handle.cancel_goal_async()
-                cancel_sent = True
-            if waited > self.result_timeout:
-                handle.cancel_goal_async()
-                raise DriverUnavailable(f"{client._action_name}: no result within {self.result_timeout} s")
-        result = result_future.result().result
+        result = call_action(self._clients[name], goal, self.server_timeout, self.result_timeout, should_stop)
         command = getattr(result, "command", None)
         if command is not None and command.header.stamp.sec:
             self.observe_command(command)
         if not result.success and result.message.startswith("refused"):
             raise ValueError(result.message)
         if not result.success and "cancelled" not in result.message:
-            raise DriverUnavailable(f"{client._action_name}: {result.message}")
+            raise DriverUnavailable(f"{self._clients[name]._action_name}: {result.message}")
         return result
 
     def observe_command(self, command) -> None:
@@ -176,7 +188,8 @@ class ActionInstrument:
         request.validate(self.limits)
         goal = ScanImage.Goal(size_x=request.size_x, size_y=request.size_y, pixels_x=request.pixels_x,
                               pixels_y=request.pixels_y, scan_angle_deg=request.scan_angle_deg,
-                              slow_scan_up=request.slow_scan_up, line_rate=request.line_rate, mode=request.mode)
+                              slow_scan_up=request.slow_scan_up, line_rate=request.line_rate, mode=request.mode,
+                              pair_id=self.scan_pair_id)
         goal.origin.x, goal.origin.y = float(request.origin_x), float(request.origin_y)
         result = self._call("scan", goal, should_stop)
         scan = msg_to_raster_scan(result.scan)

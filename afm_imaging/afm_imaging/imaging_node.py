@@ -1,7 +1,9 @@
 """Imaging node: drift-corrected map, landmarks and tip shape from the driver's scans.
 
 A 0 deg scan with an empty pair_id is used as it is; scans sharing a pair_id are corrected
-for thermal drift as a 0/90 deg pair once both are in. The tip is estimated on demand
+for thermal drift as a 0/90 deg pair once both are in; scans whose pair_id starts with
+"local" are a requester's check of a small area (the nano-hand's before/after rescans) and
+leave the map alone. The tip is estimated on demand
 (service /afm/imaging/estimate_tip) or after every map (estimate_tip_on_scan). Bad scans
 are reported and skipped; the node keeps running.
 """
@@ -25,6 +27,8 @@ from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import LATCHED
 from afm_core.imaging.landmarks import MapErrorModel, extract_landmarks
 from afm_msgs.msg import LandmarkArray, RasterScan, TipShape
+
+LOCAL_CHECK_PREFIX = "local"      # pair_id of scans that check an area (e.g. a push's verification)
 
 PARAMETERS = [
     ("min_landmark_height", 10e-9, "m; features lower than this above the substrate are not landmarks."),
@@ -73,6 +77,8 @@ class ImagingNode(Node):
         except ValueError as exc:
             self.get_logger().error(f"scan {msg.scan_id} skipped: {exc}")
             return
+        if msg.pair_id.startswith(LOCAL_CHECK_PREFIX):
+            return                    # a requester's own check of a small area, not a new map
         if msg.scan_angle_deg == 0.0 and not msg.pair_id:
             self.publish_map(scan, msg, corrected=None)
             return

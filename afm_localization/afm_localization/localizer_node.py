@@ -26,7 +26,8 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
 from afm_bringup import params, topics
-from afm_bringup.conversions import FRAME_TASK, mean_cov_to_pose, msg_to_landmarks, seconds_to_time
+from afm_bringup.conversions import (FRAME_TASK, mean_cov_to_pose, msg_to_landmarks, newer_landmarks, seconds_to_time,
+                                     stamp_of)
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import EVENTS, LATCHED
 from afm_bringup.ros_instrument import ActionInstrument, DriverUnavailable, stamp_seconds
@@ -69,6 +70,7 @@ class LocalizerNode(Node):
         self.lock = threading.Lock()                      # the Localizer is not thread-safe
         self.pending: collections.deque = collections.deque()
         self.landmarks: dict[int, object] = {}
+        self.landmarks_stamp: float | None = None
         self.latest_clock: float | None = None
         inputs = MutuallyExclusiveCallbackGroup()
         self.create_subscription(TipCommand, topics.TIP_COMMAND, self.on_command, EVENTS, callback_group=inputs)
@@ -87,8 +89,11 @@ class LocalizerNode(Node):
         self.pending.append(msg)
 
     def on_landmarks(self, msg: LandmarkArray) -> None:
+        if not newer_landmarks(msg, self.landmarks_stamp):
+            return
         try:
             self.landmarks = {mark.id: mark for mark in msg_to_landmarks(msg)}
+            self.landmarks_stamp = stamp_of(msg.header)
         except ValueError as exc:
             self.get_logger().error(f"landmarks ignored: {exc}")
 

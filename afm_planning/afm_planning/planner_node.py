@@ -19,7 +19,7 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from afm_bringup import params, topics
-from afm_bringup.conversions import FRAME_TASK, msg_to_landmarks, pose_to_mean_cov
+from afm_bringup.conversions import FRAME_TASK, msg_to_landmarks, newer_landmarks, pose_to_mean_cov, stamp_of
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import EVENTS, LATCHED
 from afm_core.instrument import ScannerLimits, check_in_range
@@ -52,6 +52,7 @@ class PlannerNode(Node):
         self.limits = ScannerLimits(range_x=self.config["range_x"], range_y=self.config["range_y"])
         self.lock = threading.Lock()
         self.landmarks: list = []
+        self.landmarks_stamp: float | None = None
         self.tip_pose: PoseWithCovarianceStamped | None = None
         self.create_subscription(LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED)
         self.create_subscription(PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10)
@@ -64,13 +65,15 @@ class PlannerNode(Node):
 
     # -- inputs ------------------------------------------------------------------------------
     def on_landmarks(self, msg: LandmarkArray) -> None:
+        if not newer_landmarks(msg, self.landmarks_stamp):
+            return
         try:
             marks = msg_to_landmarks(msg)
         except ValueError as exc:
             self.get_logger().error(f"landmarks ignored: {exc}")
             return
         with self.lock:
-            self.landmarks = marks
+            self.landmarks, self.landmarks_stamp = marks, stamp_of(msg.header)
 
     def on_tip_pose(self, msg: PoseWithCovarianceStamped) -> None:
         with self.lock:
