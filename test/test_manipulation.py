@@ -281,3 +281,17 @@ def test_arc_hand_gathers_six_particles_into_a_hexagon_in_the_model():
         assert np.hypot(*(final[i] - slot)) < 15 * nm
     sides = np.hypot(*(np.roll(slots, 1, axis=0) - slots).T)
     assert np.allclose(sides, 400 * nm)                          # a regular hexagon
+
+
+def test_path_blocker_finds_the_first_particle_in_the_swept_corridor():
+    from types import SimpleNamespace
+
+    from afm_core.manipulation import path_blocker
+    r = 100e-9
+    near = SimpleNamespace(id=1, x=300e-9, y=150e-9, radius=r)        # 150 nm off the axis < 2 r: in the way
+    far = SimpleNamespace(id=2, x=600e-9, y=0.0, radius=r)
+    beside = SimpleNamespace(id=3, x=300e-9, y=250e-9, radius=r)      # 250 nm > 2 r: clear
+    assert path_blocker((0, 0), (800e-9, 0), r, 50e-9, [far, near, beside]) is near
+    assert path_blocker((0, 0), (800e-9, 0), r, 50e-9, [beside]) is None
+    assert path_blocker((0, 0), (-800e-9, 0), r, 50e-9, [far, near]) is None        # behind the tip's approach
+    assert path_blocker((0, 0), (0, 0), r, 50e-9, [near]) is None

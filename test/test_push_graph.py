@@ -83,7 +83,8 @@ def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
         job = afm.push(np.array([result.achieved.x, result.achieved.y]) + np.array([-300e-9, 0.0]),
                        particle_id=particle.id, wait=False,
                        feedback=lambda f: pushing.set() if f.phase == "pushing" and f.step >= 1 else None)
-        assert pushing.wait(300), "no pushing feedback"
+        if not pushing.wait(300):
+            pytest.fail(f"no pushing feedback: {job.result(timeout=60).message}")
         assert job.cancel()
         cancelled = job.result(timeout=300)
         assert not cancelled.success and "cancelled" in cancelled.message and "lifted" in cancelled.message

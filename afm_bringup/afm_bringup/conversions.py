@@ -1,6 +1,8 @@
 """Message <-> core-type conversions shared by the nodes (SI units both sides)."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from builtin_interfaces.msg import Time
 from sensor_msgs.msg import Image
@@ -151,6 +153,15 @@ def newer_landmarks(array, current_stamp: float | None) -> bool:
     (imaging after a scan, the nano-hand after moving a particle), latched: a node joining late
     may get them in any order, so the newest map by its header stamp wins."""
     return current_stamp is None or stamp_of(array.header) >= current_stamp
+
+
+def wait_for_landmarks(current, timeout: float = 5.0) -> dict:
+    """The landmarks known now, or, when none are yet, those that arrive within `timeout` s (a
+    latched map reaches a node a moment after it is published, later under load)."""
+    deadline = time.monotonic() + timeout
+    while not current() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return dict(current())
 
 
 def msg_to_landmarks(array) -> list:

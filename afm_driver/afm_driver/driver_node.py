@@ -8,6 +8,7 @@ removes a waiting goal.
 """
 from __future__ import annotations
 
+import math
 import sys
 import threading
 import time
@@ -240,8 +241,11 @@ class DriverNode(Node):
         start_time, start = self.instrument.time, self.instrument.commanded_position()
         scan = self.instrument.raster_scan(request, on_line=on_line,
                                            should_stop=self.stop_check(goal_handle))
+        duration = self.instrument.time - start_time
+        fast_size = request.size_x if request.scan_angle_deg == 0.0 else request.size_y
+        path_length = 2 * fast_size * request.lines + math.dist(start, (request.origin_x, request.origin_y))
         result.command = self.command(TipCommand.RASTER, start_time, start, self.instrument.commanded_position(),
-                                      self.instrument.time - start_time)
+                                      duration, path_length / duration if duration > 0 else 0.0)
         msg = raster_scan_to_msg(scan, self.header(scan.start_time), scan_id=self._next_scan_id(), pair_id=goal.pair_id)
         if scan.complete:
             self.scan_pub.publish(msg)

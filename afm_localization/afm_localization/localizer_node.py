@@ -27,7 +27,7 @@ from std_msgs.msg import Header
 
 from afm_bringup import params, topics
 from afm_bringup.conversions import (FRAME_TASK, mean_cov_to_pose, msg_to_landmarks, newer_landmarks, seconds_to_time,
-                                     stamp_of)
+                                     stamp_of, wait_for_landmarks)
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import EVENTS, LATCHED
 from afm_bringup.ros_instrument import ActionInstrument, DriverUnavailable, stamp_seconds
@@ -49,6 +49,8 @@ PARAMETERS = [
     ("threshold_fraction", 0.5, "Height threshold for the crossings, as a fraction of the landmark's height."),
     ("margin", 50e-9, "m of substrate a line covers beyond 3 sigma and the landmark's extent, each side."),
     ("match_radius", 300e-9, "m: a Localize goal by position observes the nearest landmark within this."),
+    ("raster_sigma", 30e-9, "m, 1-sigma per axis added after a raster image: the motion model predicts a raster "
+                            "by its net displacement, not the hysteresis residue its back-and-forth path leaves."),
     ("history_seconds", 120.0, "s of filter history kept to re-apply an out-of-order observation."),
 ]
 KINDS = {TipCommand.SCAN_LINE: "line"}        # everything else moves the tip as a free move would
@@ -59,7 +61,7 @@ class LocalizerNode(Node):
         super().__init__("afm_localizer")
         self.config = params.declare(self, PARAMETERS)
         for name in ("initial_sigma", "publish_rate", "gate", "line_speed", "move_speed", "sample_spacing",
-                     "match_radius", "history_seconds"):
+                     "match_radius", "history_seconds", "raster_sigma"):
             value = self.config[name]
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"parameter {name}={value}: must be finite and > 0")
@@ -116,9 +118,11 @@ class LocalizerNode(Node):
                     threshold_fraction=self.config["threshold_fraction"], margin=self.config["margin"],
                     history_seconds=self.config["history_seconds"])
             self.instrument.observe_command(msg)
+            extra = self.config["raster_sigma"] ** 2 if msg.kind == TipCommand.RASTER else 0.0
             try:
-                self.localizer.predict_command(KINDS.get(msg.kind, "move"), start, end, start_time,
-                                               start_time + msg.duration)
+                if self.localizer.predict_command(KINDS.get(msg.kind, "move"), start, end, start_time,
+                                                  start_time + msg.duration, extra):
+                    self.publish(self.localizer.time)      # the estimate as each command ends
             except ValueError as exc:
                 self.get_logger().error(f"tip command ignored: {exc}")
 
@@ -150,7 +154,7 @@ class LocalizerNode(Node):
 
     # -- the Localize action -----------------------------------------------------------------
     def landmark_for(self, goal):
-        known = dict(self.landmarks)
+        known = wait_for_landmarks(lambda: self.landmarks)
         if goal.landmark_id >= 0:
             if goal.landmark_id not in known:
                 raise ValueError(f"landmark_id={goal.landmark_id}: unknown (known ids: {sorted(known) or 'none yet'})")

@@ -33,17 +33,17 @@ from std_msgs.msg import Header
 
 from afm_bringup import params, topics
 from afm_bringup.conversions import (FRAME_TASK, landmarks_to_msg, msg_to_landmarks, newer_landmarks,
-                                     pose_to_mean_cov, seconds_to_time, stamp_of)
+                                     pose_to_mean_cov, seconds_to_time, stamp_of, wait_for_landmarks)
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import EVENTS, FEEDBACK, LATCHED
 from afm_bringup.ros_instrument import ActionInstrument, DriverUnavailable, call_action
 from afm_core.instrument import ScannerLimits, ScanRequest, check_in_range
 from afm_core.localization.calibration import Calibration, load_calibration
 from afm_core.manipulation import (NanoHandParams, ParticleEstimate, centre_push_plan, choose_nano_hand_params,
-                                   execute_plan, nano_hand_plan, rod_hand_plan, verify_push)
+                                   execute_plan, nano_hand_plan, path_blocker, rod_hand_plan, verify_push)
 from afm_core.manipulation.execute import pushed_object_after
 from afm_msgs.action import Assemble, Localize, PushParticle
-from afm_msgs.msg import LandmarkArray, TipCommand
+from afm_msgs.msg import LandmarkArray, PlannedPath, TipCommand
 from afm_msgs.srv import PlanSequence
 
 PARAMETERS = [
@@ -93,6 +93,7 @@ class NanoHandNode(Node):
         self.create_subscription(TipCommand, topics.TIP_COMMAND, self.instrument.observe_command, EVENTS,
                                  callback_group=inputs)
         self.landmark_pub = self.create_publisher(LandmarkArray, topics.LANDMARKS, LATCHED)
+        self.path_pub = self.create_publisher(PlannedPath, topics.PLANNED_PATH, EVENTS)
         clients = ReentrantCallbackGroup()
         self.localize_client = ActionClient(self, Localize, topics.ACTION_LOCALIZE, callback_group=clients,
                                             feedback_sub_qos_profile=FEEDBACK)
@@ -129,8 +130,7 @@ class NanoHandNode(Node):
 
     # -- checks ------------------------------------------------------------------------------
     def particle_for(self, particle_id: int, position) -> object:
-        with self.state_lock:
-            known = dict(self.landmarks)
+        known = wait_for_landmarks(lambda: self.landmarks)
         if particle_id >= 0:
             if particle_id not in known:
                 raise ValueError(f"particle_id={particle_id}: unknown (known ids: {sorted(known) or 'none yet'})")
@@ -218,6 +218,7 @@ class NanoHandNode(Node):
             raise PushFailed("cancelled before pushing; nothing was pushed")
 
         plan = self.plan(particle, target, strategy, tip_cov, goal)
+        self.path_pub.publish(plan_to_msg(plan, tip_cov, particle.id, self.instrument.time))
         feedback(step=0, steps_total=len(plan.strokes), phase="pushing",
                  particle_estimate=point(start_xy), particle_covariance=list(particle.covariance.ravel()),
                  tip_pose=pose)
@@ -401,6 +402,27 @@ def point(xy):
     return Point(x=float(xy[0]), y=float(xy[1]))
 
 
+def plan_to_msg(plan, tip_cov, particle_id: int, time: float) -> PlannedPath:
+    """The strokes as a planned path: each stroke's start reached lifted ("lift"), its end in
+    contact ("push") or lifted; the tip's covariance at the start on every waypoint."""
+    from geometry_msgs.msg import PoseStamped
+    header = Header(stamp=seconds_to_time(time), frame_id=FRAME_TASK)
+    out = PlannedPath()
+    out.path.header = header
+    for stroke in plan.strokes:
+        for xy, role in ((stroke.start, "lift"), (stroke.end, "push" if stroke.contact else "lift")):
+            pose = PoseStamped(header=header)
+            pose.pose.position.x, pose.pose.position.y = float(xy[0]), float(xy[1])
+            pose.pose.orientation.w = 1.0
+            out.path.poses.append(pose)
+            out.covariance_xx.append(float(tip_cov[0, 0]))
+            out.covariance_xy.append(float(tip_cov[0, 1]))
+            out.covariance_yy.append(float(tip_cov[1, 1]))
+            out.waypoint_role.append(role)
+            out.landmark_id.append(int(particle_id))
+    return out
+
+
 def task_to_command(tip_mean, commanded, scanner_matrix):
     """Task-frame point -> scanner command, linearised about the localized tip: the command that
     moves the tip from where it is estimated by the wanted displacement."""
@@ -409,24 +431,6 @@ def task_to_command(tip_mean, commanded, scanner_matrix):
     def to_instrument(xy):
         return commanded + inverse @ (np.asarray(xy, float) - tip_mean)
     return to_instrument
-
-
-def path_blocker(start, goal, radius: float, tip_radius: float, others):
-    """The first other landmark the particle would run into on its way to the goal (swept
-    corridor of its radius plus the other's, and the tip's approach behind it), or None."""
-    axis = goal - start
-    length = float(np.hypot(*axis))
-    if length == 0:
-        return None
-    u = axis / length
-    hits = []
-    for other in others:
-        rel = np.array([other.x, other.y]) - start
-        along = float(rel @ u)
-        across = abs(float(rel[0] * u[1] - rel[1] * u[0]))
-        if -(radius + 2 * tip_radius) < along < length + radius + other.radius and across < radius + other.radius:
-            hits.append((along, other))
-    return min(hits, key=lambda h: h[0])[1] if hits else None
 
 
 def nearest_particle(scan, near) -> np.ndarray:

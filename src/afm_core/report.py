@@ -48,3 +48,56 @@ def write_html(path: Path, title: str, sections: list[tuple[str, str]]) -> Path:
     parts.append("</body></html>")
     path.write_text("\n".join(parts))
     return path
+
+
+def covariance_ellipse(mean, covariance, n_sigma: float = 3.0, points: int = 48) -> np.ndarray:
+    """(points, 2) outline of the n-sigma ellipse of a 2-D Gaussian."""
+    values, vectors = np.linalg.eigh(np.asarray(covariance, float))
+    angle = np.linspace(0, 2 * np.pi, points)
+    circle = np.stack([np.cos(angle), np.sin(angle)])
+    return (np.asarray(mean, float)[:, None] + vectors @ (n_sigma * np.sqrt(np.clip(values, 0, None)))[:, None]
+            * circle).T
+
+
+def save_push_figure(path: Path, before, after, tip_means, tip_covariances, true_tip, particle_track, goal,
+                     achieved, strokes=(), ellipses: int = 25) -> Path:
+    """Before/after height maps ((title, height m, extent m) each, or None) with the goal and the
+    verified position, and the session's tip path: the estimate with its 3-sigma ellipses, the
+    true tip, the true particle track and the planned strokes (all in m; shown in nm)."""
+    panels = [p for p in (before, after) if p is not None]
+    fig, axes = plt.subplots(1, len(panels) + 1, figsize=(4.6 * (len(panels) + 1), 4.4), squeeze=False)
+    for ax, (title, height, extent) in zip(axes[0], panels):
+        ax.imshow(height * 1e9, origin="lower", cmap="afmhot", extent=[e * 1e9 for e in extent])
+        ax.plot(goal[0] * 1e9, goal[1] * 1e9, "g*", ms=12, label="goal")
+        if achieved is not None:
+            ax.plot(achieved[0] * 1e9, achieved[1] * 1e9, "bx", ms=10, mew=2, label="verified")
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("x (nm)")
+        ax.set_ylabel("y (nm)")
+        ax.legend(fontsize=8, loc="upper right")
+    ax = axes[0][-1]
+    means = np.asarray(tip_means, float).reshape(-1, 2)
+    if len(means):
+        ax.plot(*(means.T * 1e9), "-", color="tab:blue", lw=0.8, label="tip estimate")
+        for k in np.unique(np.linspace(0, len(means) - 1, min(ellipses, len(means))).astype(int)):
+            outline = covariance_ellipse(means[k], tip_covariances[k]) * 1e9
+            ax.plot(outline[:, 0], outline[:, 1], color="tab:blue", lw=0.5, alpha=0.6)
+    true_tip = np.asarray(true_tip, float).reshape(-1, 2)
+    if len(true_tip):
+        ax.plot(*(true_tip.T * 1e9), ".", color="tab:orange", ms=2, label="true tip")
+    for k, (a, b, contact) in enumerate(strokes):
+        ax.plot([a[0] * 1e9, b[0] * 1e9], [a[1] * 1e9, b[1] * 1e9], "-" if contact else ":",
+                color="tab:red" if contact else "grey", lw=1.0, label="planned push" if k == 0 else None)
+    track = np.asarray(particle_track, float).reshape(-1, 2)
+    if len(track):
+        ax.plot(*(track.T * 1e9), "o-", color="tab:green", ms=3, label="true particle")
+    ax.plot(goal[0] * 1e9, goal[1] * 1e9, "g*", ms=12)
+    ax.set_title("tip path (3-sigma ellipses), strokes, particle", fontsize=10)
+    ax.set_xlabel("x (nm)")
+    ax.set_ylabel("y (nm)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

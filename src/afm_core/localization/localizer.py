@@ -180,12 +180,15 @@ class Localizer:
         elif elapsed > 0:
             self._apply(self.model.hold(elapsed))
 
-    def predict_command(self, kind: str, start, end, start_time: float, end_time: float) -> bool:
+    def predict_command(self, kind: str, start, end, start_time: float, end_time: float,
+                        extra_variance: float = 0.0) -> bool:
         """Predict a command someone else sent the instrument (a driver reports every one it
         executes): hold until it starts, a free move to its start if the tip was commanded
         elsewhere, then the command itself ("line" along a scan line, "move" otherwise) over its
-        duration. A command ending no later than the estimate's time is already accounted for
-        (our own, or reported twice): skipped, returns False."""
+        duration. extra_variance (m^2, each axis): what the motion model cannot predict about
+        this command, e.g. the path-dependent hysteresis residue of a raster image, which the
+        model sees only as its net displacement. A command ending no later than the estimate's time is
+        already accounted for (our own, or reported twice): skipped, returns False."""
         if kind not in ("move", "line"):
             raise ValueError(f"kind={kind!r}: must be 'move' or 'line'")
         start, end = _vector("start", start), _vector("end", end)
@@ -198,6 +201,10 @@ class Localizer:
         if tuple(start) != tuple(self.model.command):
             self._apply(self.model.move(start[0], start[1], 0.0, "move"))
         self._apply(self.model.move(end[0], end[1], max(0.0, end_time - self.model.time), kind))
+        if not (math.isfinite(extra_variance) and extra_variance >= 0):
+            raise ValueError(f"extra_variance={extra_variance}: must be finite and >= 0 (m^2)")
+        if extra_variance > 0:
+            self.filter.predict(self.model.time, np.zeros(2), np.eye(2) * extra_variance)
         return True
 
     # -- moves -----------------------------------------------------------------------------------

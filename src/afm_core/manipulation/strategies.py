@@ -773,3 +773,23 @@ def arc_hand_plan(particles: Sequence, centre, radius: float, *, slots: int | No
     if limits is not None:
         check_plan_limits(plan, limits)
     return plan
+
+
+def path_blocker(start, goal, radius: float, tip_radius: float, others):
+    """The first of `others` (objects with x, y, radius: landmarks) a particle of `radius` would
+    run into on its way from `start` to `goal` ((2,) m): the corridor it sweeps (its radius plus
+    the other's) and the tip's approach behind it. None when the way is clear."""
+    start, goal = np.asarray(start, float), np.asarray(goal, float)
+    axis = goal - start
+    length = float(np.hypot(*axis))
+    if length == 0:
+        return None
+    u = axis / length
+    hits = []
+    for other in others:
+        rel = np.array([other.x, other.y]) - start
+        along = float(rel @ u)
+        across = abs(float(rel[0] * u[1] - rel[1] * u[0]))
+        if -(radius + 2 * tip_radius) < along < length + radius + other.radius and across < radius + other.radius:
+            hits.append((along, other))
+    return min(hits, key=lambda h: h[0])[1] if hits else None

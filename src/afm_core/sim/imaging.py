@@ -38,12 +38,14 @@ class DilatedField:
 
 
 def dilated_heights_at(sample, tip_grid: np.ndarray, pixel: float, xs: np.ndarray, ys: np.ndarray,
-                       chunk: int = 256) -> np.ndarray:
+                       chunk_elements: int = 2_000_000) -> np.ndarray:
     """i(q) = max_u s(q+u) + t(u) at scattered points q (local scan lines), from the definition.
 
     The surface is the objects on a base (roughness and pits): i = max(base dilated,
     objects dilated). The base varies by at most base_span, so only tip offsets with
-    t(u) >= -base_span can win there; objects are tested only where they are near."""
+    t(u) >= -base_span can win there; objects are tested only where they are near. Points go
+    in chunks of at most chunk_elements (point, tip offset) pairs: a fine tip grid has tens of
+    thousands of offsets, and the temporaries must stay tens of MB."""
     half = tip_grid.shape[0] // 2
     offsets = np.arange(-half, half + 1) * pixel
     ox, oy = np.meshgrid(offsets, offsets)
@@ -54,6 +56,7 @@ def dilated_heights_at(sample, tip_grid: np.ndarray, pixel: float, xs: np.ndarra
     objects = sample.objects_near(xs.min() - reach, xs.max() + reach, ys.min() - reach, ys.max() + reach) \
         if xs.size else []
     out = np.empty(xs.shape)
+    chunk = max(1, chunk_elements // ox.size)
     for start in range(0, xs.size, chunk):
         qx, qy = xs[start:start + chunk, None], ys[start:start + chunk, None]
         base = sample.base_height(qx + ox[near_apex], qy + oy[near_apex]) + t[near_apex]
