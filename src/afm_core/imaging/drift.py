@@ -308,8 +308,8 @@ def _match_blobs(src: list, dst: list, shift: np.ndarray):
         i_back = np.argmin(d, axis=0)
         gate = 0.4 * spacing if np.isfinite(spacing) else np.inf
         pairs = [(i, int(j[i])) for i in range(len(ps)) if i_back[j[i]] == i and d[i, j[i]] < gate]
-        if len(pairs) >= 3:
-            src_pts = np.array([ps[i] for i, _ in pairs])
+        src_pts = np.array([ps[i] for i, _ in pairs]).reshape(-1, 2)
+        if len(pairs) >= 3 and _spans_a_plane(src_pts):
             dst_pts = np.array([pd[k] for _, k in pairs])
             design = np.hstack([src_pts, np.ones((len(pairs), 1))])
             sol, *_ = np.linalg.lstsq(design, dst_pts, rcond=None)
@@ -317,6 +317,13 @@ def _match_blobs(src: list, dst: list, shift: np.ndarray):
         elif pairs:
             b = np.mean([pd[k] - ps[i] for i, k in pairs], axis=0)
     return pairs, A, b
+
+
+def _spans_a_plane(points: np.ndarray) -> bool:
+    """Whether points fix an affine map: not (nearly) on one line, where the fit would be free
+    in the direction across it."""
+    singular = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    return bool(singular[0] > 0 and singular[-1] > 0.1 * singular[0])
 
 
 def _min_spacing(points: np.ndarray) -> float:
