@@ -15,12 +15,12 @@ import threading
 import time
 
 import rclpy
-from rclpy.action import ActionClient
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 
 from afm_bringup import topics
+from afm_bringup.action_client import SafeActionClient
 from afm_bringup.qos_profiles import FEEDBACK
 from afm_msgs.action import Assemble, Indent, LocalScan, Localize, MoveTip, PushParticle, ScanImage
 
@@ -79,7 +79,8 @@ class AfmCommander:
         self.context = Context()
         rclpy.init(context=self.context)
         self.node = Node(node_name, context=self.context)
-        self.clients = {name: ActionClient(self.node, action_type, action_name, feedback_sub_qos_profile=FEEDBACK)
+        self.clients = {name: SafeActionClient(self.node, action_type, action_name,
+                                               feedback_sub_qos_profile=FEEDBACK)
                         for name, (action_type, action_name) in self.ACTIONS.items()}
         self._ready: set[str] = set()
         self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)

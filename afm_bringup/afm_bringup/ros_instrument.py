@@ -17,10 +17,10 @@ import time
 from typing import Callable, Optional
 
 import numpy as np
-from rclpy.action import ActionClient
 from rclpy.callback_groups import ReentrantCallbackGroup
 
 from afm_bringup import topics
+from afm_bringup.action_client import SafeActionClient
 from afm_bringup.conversions import FRAME_SCANNER, msg_to_raster_scan
 from afm_bringup.qos_profiles import FEEDBACK
 from afm_core.instrument import (ForceTraceData, IndentResult, LineRequest, MoveResult, RasterScanData,
@@ -112,13 +112,13 @@ class ActionInstrument:
         self.result_timeout = result_timeout
         group = ReentrantCallbackGroup()
         self._clients = {
-            "scan": ActionClient(node, ScanImage, topics.ACTION_SCAN_IMAGE, callback_group=group,
+            "scan": SafeActionClient(node, ScanImage, topics.ACTION_SCAN_IMAGE, callback_group=group,
                                  feedback_sub_qos_profile=FEEDBACK),
-            "line": ActionClient(node, LocalScan, topics.ACTION_LOCAL_SCAN, callback_group=group,
+            "line": SafeActionClient(node, LocalScan, topics.ACTION_LOCAL_SCAN, callback_group=group,
                                  feedback_sub_qos_profile=FEEDBACK),
-            "move": ActionClient(node, MoveTip, topics.ACTION_MOVE_TIP, callback_group=group,
+            "move": SafeActionClient(node, MoveTip, topics.ACTION_MOVE_TIP, callback_group=group,
                                  feedback_sub_qos_profile=FEEDBACK),
-            "indent": ActionClient(node, Indent, topics.ACTION_INDENT, callback_group=group,
+            "indent": SafeActionClient(node, Indent, topics.ACTION_INDENT, callback_group=group,
                                    feedback_sub_qos_profile=FEEDBACK),
         }
         self._commanded: Optional[tuple[float, float]] = None

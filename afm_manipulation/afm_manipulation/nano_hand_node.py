@@ -26,12 +26,13 @@ from types import SimpleNamespace
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from std_msgs.msg import Header
 
 from afm_bringup import params, topics
+from afm_bringup.action_client import SafeActionClient
 from afm_bringup.conversions import (FRAME_TASK, landmarks_to_msg, msg_to_landmarks, newer_landmarks,
                                      pose_to_mean_cov, seconds_to_time, stamp_of, wait_for_landmarks)
 from afm_bringup.node_main import run
@@ -95,7 +96,7 @@ class NanoHandNode(Node):
         self.landmark_pub = self.create_publisher(LandmarkArray, topics.LANDMARKS, LATCHED)
         self.path_pub = self.create_publisher(PlannedPath, topics.PLANNED_PATH, EVENTS)
         clients = ReentrantCallbackGroup()
-        self.localize_client = ActionClient(self, Localize, topics.ACTION_LOCALIZE, callback_group=clients,
+        self.localize_client = SafeActionClient(self, Localize, topics.ACTION_LOCALIZE, callback_group=clients,
                                             feedback_sub_qos_profile=FEEDBACK)
         self.sequence_client = self.create_client(PlanSequence, topics.SERVICE_PLAN_SEQUENCE, callback_group=clients)
         servers = ReentrantCallbackGroup()
