@@ -155,12 +155,18 @@ def newer_landmarks(array, current_stamp: float | None) -> bool:
     return current_stamp is None or stamp_of(array.header) >= current_stamp
 
 
+def wait_until(condition, timeout: float) -> bool:
+    """Poll condition() until it is true or `timeout` s have passed; its last value."""
+    deadline = time.monotonic() + timeout
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return bool(condition())
+
+
 def wait_for_landmarks(current, timeout: float = 5.0) -> dict:
     """The landmarks known now, or, when none are yet, those that arrive within `timeout` s (a
     latched map reaches a node a moment after it is published, later under load)."""
-    deadline = time.monotonic() + timeout
-    while not current() and time.monotonic() < deadline:
-        time.sleep(0.05)
+    wait_until(current, timeout)
     return dict(current())
 
 

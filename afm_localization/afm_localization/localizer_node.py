@@ -27,7 +27,7 @@ from std_msgs.msg import Header
 
 from afm_bringup import params, topics
 from afm_bringup.conversions import (FRAME_TASK, mean_cov_to_pose, msg_to_landmarks, newer_landmarks, seconds_to_time,
-                                     stamp_of, wait_for_landmarks)
+                                     stamp_of, wait_for_landmarks, wait_until)
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import EVENTS, LATCHED
 from afm_bringup.ros_instrument import ActionInstrument, DriverUnavailable, stamp_seconds
@@ -173,6 +173,7 @@ class LocalizerNode(Node):
 
     def execute(self, goal_handle) -> Localize.Result:
         goal, result = goal_handle.request, Localize.Result()
+        wait_until(lambda: self.localizer is not None or self.pending, 5.0)   # commands reach us late under load
         with self.lock:
             self.process_pending()
             try:

@@ -4,10 +4,10 @@ The algorithms are afm_core.manipulation (plans, the pushing model, execution on
 Instrument, verification); this node strings them together through the graph:
 
 PushParticle: refuse what cannot work (unknown particle, goal off-range, another particle in
-the way) -> localize the tip on the particle (the localizer's Localize action) -> scan the
-area ("before") -> plan the strokes -> execute them through the driver's actions, feedback
-per stroke -> rescan ("after") and verify the particle's position against the goal with the
-before/after control points -> result. Cancel stops after the stroke in progress, lifts the
+the way) -> punch control pits and scan the area ("before") -> localize the tip on the
+particle (the localizer's Localize action) -> plan the strokes -> execute them through the
+driver's actions, feedback per stroke -> rescan ("after") and verify the particle's position
+against the goal with the pits (and other particles) as control points -> result. Cancel stops after the stroke in progress, lifts the
 tip clear of the particle and reports where the tip and the particle are.
 
 Assemble: many particles to many goals, in the planner's order (/afm/plan_sequence) unless
@@ -57,6 +57,9 @@ PARAMETERS = [
     ("rescan_pixel", 8e-9, "m, pixel size of the before/after rescans."),
     ("rescan_line_rate", 4.0, "Hz, line rate of the before/after rescans."),
     ("match_radius", 300e-9, "m: a particle given by position is the nearest landmark within this."),
+    ("control_pits", 2, "Indentation pits punched in the rescan's corners before a push: control points that "
+                        "tie the after image to the before image (book 7.3); 0: none."),
+    ("pit_force", 0.5e-6, "N, indentation force of the control pits (a ~10 nm deep pit on the default sample)."),
     ("localize_first", True, "Localize the tip on the particle before planning (book 7.3); false: trust the "
                              "current estimate."),
     ("action_timeout", 600.0, "s to wait for any one driver, localizer or planner answer."),
@@ -73,9 +76,11 @@ class NanoHandNode(Node):
         super().__init__("afm_nano_hand")
         self.config = params.declare(self, PARAMETERS)
         for name in ("tip_radius", "default_tolerance", "push_speed", "rescan_margin", "rescan_pixel",
-                     "rescan_line_rate", "match_radius", "action_timeout"):
+                     "rescan_line_rate", "match_radius", "action_timeout", "pit_force"):
             if not (math.isfinite(self.config[name]) and self.config[name] > 0):
                 raise ValueError(f"parameter {name}={self.config[name]}: must be finite and > 0")
+        if self.config["control_pits"] < 0:
+            raise ValueError(f"parameter control_pits={self.config['control_pits']}: must be >= 0")
         path = self.config["calibration_file"]
         self.calibration = load_calibration(path) if path else Calibration()
         self.limits = ScannerLimits()
@@ -209,14 +214,21 @@ class NanoHandNode(Node):
         """Localize, scan, plan, execute, rescan, verify one particle; returns achieved, error,
         steps and a message. PushFailed when cancelled or when a step cannot be done."""
         start_xy = np.array([particle.x, particle.y])
+        # control pits and the before image first: moving the tip there after localizing would
+        # spend the localization (a raster leaves the tip tens of nm from where the model says)
+        feedback(phase="scanning", particle_estimate=point(start_xy),
+                 particle_covariance=list(particle.covariance.ravel()))
+        # the map is an image, in commanded scanner coordinates: the rescan is requested in them
+        request = self.rescan_request(start_xy, target)
+        for pit in control_pit_sites(request, start_xy, target, self.config["control_pits"]):
+            self.instrument.indent(pit[0], pit[1], self.config["pit_force"], 0.1, should_stop=should_stop)
+        before = self.instrument.raster_scan(request, should_stop=should_stop)
+        if should_stop() or not before.complete:
+            raise PushFailed("cancelled before pushing; nothing was pushed")
         pose = self.localize(particle, feedback, should_stop)
         tip_mean, tip_cov = pose_to_mean_cov(pose)
         commanded = np.array(self.instrument.commanded_position())
         to_instrument = task_to_command(tip_mean, commanded, np.array(self.calibration.scanner_matrix))
-        request = self.rescan_request(to_instrument(start_xy), to_instrument(target))
-        before = self.instrument.raster_scan(request, should_stop=should_stop)
-        if should_stop() or not before.complete:
-            raise PushFailed("cancelled before pushing; nothing was pushed")
 
         plan = self.plan(particle, target, strategy, tip_cov, goal)
         self.path_pub.publish(plan_to_msg(plan, tip_cov, particle.id, self.instrument.time))
@@ -247,12 +259,19 @@ class NanoHandNode(Node):
                  particle_covariance=list(particle.covariance.ravel()), tip_pose=pose)
         # the rescan sees the particle in scan coordinates; its position before the push in the
         # same scan ties the scan to the map (task frame), control points remove drift between scans
-        before_particle = nearest_particle(before, to_instrument(start_xy))
+        before_particle = nearest_particle(before, start_xy)
         map_to_scan = before_particle - start_xy
+        # the particle may end far from the plan (a centre push slides it off): look for it
+        # anywhere it could have gone
+        reach = float(np.hypot(*(target - start_xy))) + 2 * particle.radius + 100e-9
         verification = verify_push(self.instrument, request, target + map_to_scan,
                                    expected=(plan.predicted if plan.predicted is not None else target) + map_to_scan,
-                                   start=before_particle, before=before, particle_radius=particle.radius)
-        achieved = np.asarray(verification.achieved) - map_to_scan
+                                   start=before_particle, before=before, particle_radius=particle.radius,
+                                   particle_match_radius=reach)
+        # images are in commanded scanner coordinates: the particle's displacement between the
+        # before and after images becomes a true one through the calibrated scanner matrix
+        image_displacement = np.asarray(verification.achieved) - before_particle
+        achieved = start_xy + np.array(self.calibration.scanner_matrix) @ image_displacement
         error = float(np.hypot(*(achieved - target)))
         self.publish_moved(particle, achieved)
         used = sum(1 for c in verification.control_points if c.used)
@@ -401,6 +420,22 @@ class AssembleDefaults:
 def point(xy):
     from geometry_msgs.msg import Point
     return Point(x=float(xy[0]), y=float(xy[1]))
+
+
+def control_pit_sites(request: ScanRequest, start, goal, count: int) -> list:
+    """Up to `count` indentation sites in the rescan's corners, inset by a quarter of the
+    margin, farthest from the push's way: control points the before and after images share
+    (book 7.3), away from what is pushed."""
+    lo = np.array([request.origin_x, request.origin_y])
+    inset = 0.15 * request.size_x
+    corners = [lo + np.array([dx, dy]) for dx in (inset, request.size_x - inset) for dy in (inset, request.size_y - inset)]
+    axis = goal - start
+    length = float(np.hypot(*axis)) or 1.0
+
+    def clearance(p):
+        t = np.clip((p - start) @ axis / length ** 2, 0.0, 1.0)
+        return float(np.hypot(*(p - (start + t * axis))))
+    return sorted(corners, key=clearance, reverse=True)[:max(0, int(count))]
 
 
 def plan_to_msg(plan, tip_cov, particle_id: int, time: float) -> PlannedPath:
