@@ -3,6 +3,7 @@ particles, the nano-hand localizes, plans, pushes with the virtual nano-hand thr
 driver, rescans and verifies (issue 7's end-to-end push, shortened for CI)."""
 import math
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -88,3 +89,38 @@ def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
         assert job.cancel()
         cancelled = job.result(timeout=300)
         assert not cancelled.success and "cancelled" in cancelled.message and "lifted" in cancelled.message
+
+
+def test_assemble_pushes_several_particles_in_the_planners_order(graph, ros_node):
+    from afm_msgs.action import Assemble
+    from geometry_msgs.msg import Point
+    maps, truths = [], []
+    ros_node.create_subscription(LandmarkArray, "/afm/landmarks", maps.append, LATCHED)
+    ros_node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
+    with AfmCommander(server_timeout=60) as afm:
+        for angle in (0.0, 90.0):
+            afm.scan(ORIGIN, SIZE, PIXELS, angle_deg=angle, line_rate=4.0, pair_id="pair-assemble")
+        wait_for(lambda: maps and len(maps[-1].landmarks) >= 3, 60, what="the drift-corrected landmark map")
+        marks = sorted(maps[-1].landmarks, key=lambda lm: lm.position.y)[:2]     # the two lowest spheres
+        mismatched = Assemble.Goal(particle_ids=[m.id for m in marks], goals=[Point()])
+        refused = afm.send("assemble", mismatched)
+        assert not refused.success and "one goal per particle" in refused.message
+        starts = {m.id: np.array([m.position.x, m.position.y]) for m in marks}
+        before = {m.id: true_sphere(truths, o.id) for m in marks for o in truths[-1].objects
+                  if o.kind == 0 and np.linalg.norm(true_sphere(truths, o.id) - starts[m.id]) < 100e-9}
+        request = Assemble.Goal(particle_ids=[m.id for m in marks], tolerance=40e-9)
+        for m in marks:
+            request.goals.append(Point(x=m.position.x, y=m.position.y - 200e-9))
+        result = afm.send("assemble", request, timeout=900)
+        assert sorted(result.order) == sorted(request.particle_ids), result.message
+        assert len(result.achieved) == len(result.errors) == 2
+        assert all(np.isfinite(result.errors)), result.message
+        time.sleep(0.5)
+        for m in marks:                                    # each moved about 200 nm down (truth)
+            moved = true_sphere_near(truths, before[m.id]) - before[m.id]
+            assert abs(moved[1] + 200e-9) < 60e-9 and abs(moved[0]) < 50e-9, (m.id, moved)
+
+
+def true_sphere_near(truths, point):
+    spheres = [np.array([o.position.x, o.position.y]) for o in truths[-1].objects if o.kind == 0]
+    return min(spheres, key=lambda p: np.linalg.norm(p - point))

@@ -14,12 +14,14 @@ import threading
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from afm_bringup import params, topics
-from afm_bringup.conversions import FRAME_TASK, msg_to_landmarks, newer_landmarks, pose_to_mean_cov, stamp_of
+from afm_bringup.conversions import (FRAME_TASK, msg_to_landmarks, newer_landmarks, pose_to_mean_cov, stamp_of,
+                                     wait_until)
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import EVENTS, LATCHED
 from afm_core.instrument import ScannerLimits, check_in_range
@@ -54,13 +56,17 @@ class PlannerNode(Node):
         self.landmarks: list = []
         self.landmarks_stamp: float | None = None
         self.tip_pose: PoseWithCovarianceStamped | None = None
-        self.create_subscription(LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED)
-        self.create_subscription(PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10)
+        inputs, services = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
+        self.create_subscription(LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED, callback_group=inputs)
+        self.create_subscription(PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10,
+                                 callback_group=inputs)
         self.path_pub = self.create_publisher(PlannedPath, topics.PLANNED_PATH, EVENTS)
         self.marker_pub = self.create_publisher(MarkerArray, topics.MARKERS, LATCHED)
-        self.create_service(PlanPath, topics.SERVICE_PLAN_PATH, self.on_plan_path)
-        self.create_service(PlanObservation, topics.SERVICE_PLAN_OBSERVATION, self.on_plan_observation)
-        self.create_service(PlanSequence, topics.SERVICE_PLAN_SEQUENCE, self.on_plan_sequence)
+        self.create_service(PlanPath, topics.SERVICE_PLAN_PATH, self.on_plan_path, callback_group=services)
+        self.create_service(PlanObservation, topics.SERVICE_PLAN_OBSERVATION, self.on_plan_observation,
+                            callback_group=services)
+        self.create_service(PlanSequence, topics.SERVICE_PLAN_SEQUENCE, self.on_plan_sequence,
+                            callback_group=services)
         self.get_logger().info(f"planning with {self.calibration.source!r} calibration")
 
     # -- inputs ------------------------------------------------------------------------------
@@ -92,9 +98,14 @@ class PlannerNode(Node):
             mean, cov = pose_to_mean_cov(latest)
         return mean, cov
 
-    def landmark(self, landmark_id: int):
+    def known_landmarks(self) -> list:
+        """The landmarks, waiting a moment for the first map (it reaches us late under load)."""
+        wait_until(lambda: self.landmarks, 5.0)
         with self.lock:
-            marks = list(self.landmarks)
+            return list(self.landmarks)
+
+    def landmark(self, landmark_id: int):
+        marks = self.known_landmarks()
         for mark in marks:
             if mark.id == landmark_id:
                 return mark
@@ -110,8 +121,7 @@ class PlannerNode(Node):
             spot = request.localization_spot
             if spot and spot not in SPOTS:
                 raise ValueError(f"localization_spot={spot!r}: must be one of {sorted(SPOTS)} or empty")
-            with self.lock:
-                marks = list(self.landmarks)
+            marks = self.known_landmarks()
             if not marks:
                 raise ValueError(f"no landmark known yet (nothing on {topics.LANDMARKS})")
             required = request.required_sigma if request.required_sigma > 0 else None
@@ -247,7 +257,7 @@ def plan_markers(plan: PlannedPath) -> MarkerArray:
 
 
 def main(args=None):
-    return run(PlannerNode, "afm_planner", args, config_errors=(ValueError,))
+    return run(PlannerNode, "afm_planner", args, config_errors=(ValueError,), threads=2)
 
 
 if __name__ == "__main__":
