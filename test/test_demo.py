@@ -1,21 +1,34 @@
-"""`make demo` end to end (the graph, recording, replay, offline evaluation, report)."""
+"""`make demo` end to end: the graph maps, localizes, plans and pushes a particle with the
+virtual nano-hand, records everything, replays it, evaluates the replayed copy, reports."""
 import json
 
-from afm_bringup.demo import run_demo
+from afm_bringup.demo import PUSH_DISTANCE, run_demo
 
 
 def test_demo_runs_end_to_end_and_reports(tmp_path):
     assert run_demo(tmp_path) == 0
     run = tmp_path / "latest"
-    assert (run / "report.html").read_text().count("<img") == 1 and (run / "scans.png").stat().st_size > 10_000
+    report = (run / "report.html").read_text()
+    assert report.count("<img") == 2 and (run / "scans.png").stat().st_size > 10_000
+    assert (run / "push.png").stat().st_size > 10_000
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["topics"]["/afm/scan"] == 3
+    # the 0/90 pair and the frame-down map, then the nano-hand's before and after rescans
+    map_scans = [v for v in summary["scans"] if not v["pair_id"].startswith("local")]
+    local_scans = [v for v in summary["scans"] if v["pair_id"].startswith("local")]
+    assert len(map_scans) == 3 and len(local_scans) == 2
     assert all(v["identical"] and v["count_a"] == v["count_b"] for v in summary["replay"].values())
     # every true particle is seen, near where the simulator put it but not exactly there:
     # the simulated instrument misplaces the tip as a real one does
-    for view in summary["scans"]:
+    for view in map_scans:
         assert view["matched"] == len(summary["truth_xy"])
         assert 2e-9 < view["centre_error_rms"] < 300e-9
-    # the imaging node turned the 0/90 pair into landmarks, one per particle
+    assert all(view["matched"] >= 1 for view in local_scans)
     assert len(summary["landmarks"]) == len(summary["truth_xy"])
-    assert all(m["nearest_truth"] < 300e-9 and m["sigma_x"] >= 5e-9 for m in summary["landmarks"])
+    # the push ran through the action and moved the particle (truth) about as planned
+    push, truth = summary["push"], summary["push_truth"]
+    assert push["ran"] and push["steps"] >= 3
+    assert abs(truth["along"] - PUSH_DISTANCE) < 60e-9 and abs(truth["sideways"]) < 40e-9
+    # the action's verdict agrees with the truth, and the localizer was consistent
+    verified = [a - s for a, s in zip(push["achieved"], push["start"])]
+    assert sum((v - t) ** 2 for v, t in zip(verified, truth["true_displacement"])) ** 0.5 < 20e-9
+    assert summary["tip"]["compared"] >= 5 and 0.2 < summary["tip"]["mean_nees"] < 10

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import signal
 
 
 @dataclass
@@ -41,29 +42,45 @@ class ThermalDrift:
         self.mean = np.array([params.mean_velocity_x, params.mean_velocity_y])
         self.sigma = np.array([params.sigma_velocity_x, params.sigma_velocity_y])
         first = self.mean + self.sigma * self.rng.normal(size=2)
-        self.velocity_knots = [first]          # at t = 0, dt, 2 dt, ...
-        self.offset_knots = [np.zeros(2)]
+        # knots at t = 0, dt, 2 dt, ...: arrays grown by doubling, so a long session's queries
+        # stay linear in the knots they add
+        self._velocity = np.empty((1024, 2))
+        self._offset = np.empty((1024, 2))
+        self._velocity[0], self._offset[0] = first, 0.0
+        self._count = 1
 
     def _extend_to(self, t_max: float) -> None:
         p = self.params
         needed = int(np.ceil(t_max / p.knot_interval)) + 1
+        if needed <= self._count:
+            return
+        if needed > len(self._velocity):
+            capacity = max(needed, 2 * len(self._velocity))
+            for name in ("_velocity", "_offset"):
+                grown = np.empty((capacity, 2))
+                grown[:self._count] = getattr(self, name)[:self._count]
+                setattr(self, name, grown)
         decay = np.exp(-p.knot_interval / p.correlation_time)
         spread = self.sigma * np.sqrt(1.0 - decay**2)
-        while len(self.velocity_knots) < needed:
-            v_prev = self.velocity_knots[-1]
-            v_next = self.mean + (v_prev - self.mean) * decay + spread * self.rng.normal(size=2)
-            self.velocity_knots.append(v_next)
-            self.offset_knots.append(self.offset_knots[-1] + 0.5 * (v_prev + v_next) * p.knot_interval)
+        new = needed - self._count
+        innovations = spread * self.rng.normal(size=(new, 2))
+        # the Ornstein-Uhlenbeck recursion v_k - mean = decay (v_{k-1} - mean) + spread e_k
+        previous = self._velocity[self._count - 1] - self.mean
+        deviation = signal.lfilter([1.0], [1.0, -decay], innovations, axis=0, zi=decay * previous[None, :])[0]
+        velocity = self.mean + deviation
+        before = np.vstack([self._velocity[self._count - 1], velocity[:-1]])
+        offsets = self._offset[self._count - 1] + np.cumsum(0.5 * (before + velocity) * p.knot_interval, axis=0)
+        self._velocity[self._count:needed] = velocity
+        self._offset[self._count:needed] = offsets
+        self._count = needed
 
     def _interval(self, t: np.ndarray):
         if np.any(t < 0):
             raise ValueError("drift is defined from t = 0 s on")
         self._extend_to(float(np.max(t, initial=0.0)) + self.params.knot_interval)
-        k = np.minimum((t // self.params.knot_interval).astype(int), len(self.velocity_knots) - 2)
+        k = np.minimum((t // self.params.knot_interval).astype(int), self._count - 2)
         tau = t - k * self.params.knot_interval
-        v0 = np.asarray(self.velocity_knots)[k]
-        v1 = np.asarray(self.velocity_knots)[k + 1]
-        return k, tau[..., None], v0, v1
+        return k, tau[..., None], self._velocity[k], self._velocity[k + 1]
 
     def offset(self, t) -> np.ndarray:
         """Sample displacement (m) against the scanner at times t (s): shape t.shape + (2,)."""
@@ -72,7 +89,7 @@ class ThermalDrift:
             return np.zeros(t.shape + (2,))
         k, tau, v0, v1 = self._interval(t)
         slope = (v1 - v0) / self.params.knot_interval
-        return np.asarray(self.offset_knots)[k] + v0 * tau + 0.5 * slope * tau**2
+        return self._offset[k] + v0 * tau + 0.5 * slope * tau**2
 
     def velocity(self, t) -> np.ndarray:
         t = np.asarray(t, dtype=float)

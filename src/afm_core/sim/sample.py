@@ -6,6 +6,8 @@ the tip punched. Heights in metres above the mean substrate plane.
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -153,14 +155,23 @@ class Sample:
     def base_height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         """The substrate: roughness and pits, without the objects lying on it."""
         z = self.roughness.height(xs, ys) if self.roughness is not None else np.zeros(np.broadcast(xs, ys).shape)
-        for pit in self.pits:
-            z = z + pit.depression(xs, ys)
+        if self.pits and np.size(xs):
+            x_lo, x_hi, y_lo, y_hi = np.min(xs), np.max(xs), np.min(ys), np.max(ys)
+            for pit in self.pits:           # calibration punches dozens: only those in reach count
+                b = pit.bounds()
+                if not (b[1] < x_lo or b[0] > x_hi or b[3] < y_lo or b[2] > y_hi):
+                    z = z + pit.depression(xs, ys)
         return z
 
     def base_span(self) -> float:
-        """An upper bound of max - min of base_height anywhere (m)."""
+        """An upper bound of max - min of base_height anywhere (m): the roughness's span plus
+        the deepest stack of overlapping pits."""
         span = float(np.ptp(self.roughness.tile)) if self.roughness is not None else 0.0
-        return span + sum(pit.depth for pit in self.pits)
+        deepest = 0.0
+        for pit in self.pits:
+            deepest = max(deepest, sum(other.depth for other in self.pits
+                                       if math.hypot(other.x - pit.x, other.y - pit.y) < other.radius + pit.radius))
+        return span + deepest
 
     def objects_near(self, x_lo: float, x_hi: float, y_lo: float, y_hi: float) -> list:
         out = []
