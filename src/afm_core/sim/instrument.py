@@ -66,14 +66,15 @@ class SimulatedAfm:
         self.positioning_rng = np.random.default_rng(streams[4])
         self._position_error = np.zeros(2)      # m, accumulated random error of the moves so far
         self.feed_forward = self._controller_feed_forward()
+        self._open_loop_models = None           # the controller's forward models while feed-forward is off
         self.time = 0.0
         self._commanded = tuple(float(c) for c in self.scanner.centre)   # at rest at power-on
         self.scanner.reset(*self._commanded)
         self._true_scanner = self._commanded
 
-    def _controller_feed_forward(self):
-        """Per axis, the inverse of the controller's calibrated hysteresis model (the scanner's
-        own, with the loop width off by model_error); None when compensation is off."""
+    def _controller_models(self):
+        """Per axis, the controller's calibrated hysteresis model (the scanner's own, with the
+        loop width off by model_error), demagnetised; None when compensation is off."""
         scanner, controller = self.config.scanner, self.config.controller
         if not (controller.hysteresis_compensation and scanner.hysteresis_enabled and scanner.hysteresis_fraction > 0):
             return None
@@ -83,7 +84,56 @@ class SimulatedAfm:
                   for span in (scanner.range_x, scanner.range_y)]
         for model in models:
             model.reset(0.0)
-        return [model.inverse() for model in models]
+        return models
+
+    def _controller_feed_forward(self):
+        """Per axis, the inverse of the controller's model (see _controller_models); None when
+        compensation is off."""
+        models = self._controller_models()
+        return None if models is None else [model.inverse() for model in models]
+
+    @property
+    def feed_forward_enabled(self) -> bool:
+        """Whether the controller's hysteresis feed-forward (inverse PI, book eq. 5.24-5.28) is
+        applied to every command.
+
+        Switched off, commands go to the piezo amplifiers as they are: the open-loop drive the
+        book's hysteresis calibration applies (7.2.2), in metres of nominal displacement (volts
+        times the nominal sensitivity), and `commanded_position()` reports that drive. Switching
+        never moves the tip and keeps the controller's memory consistent: off, the command
+        becomes the drive the piezos receive at that moment, and the controller's forward model
+        (its state recovered from the inverse's) follows the raw drive from then on; on again,
+        that model is inverted with its state (exact, PrandtlIshlinskii.inverse) and the command
+        becomes the position it predicts for the current drive. False, and cannot be switched
+        on, when the configuration has no compensation (controller.hysteresis_compensation)."""
+        return self.feed_forward is not None
+
+    @feed_forward_enabled.setter
+    def feed_forward_enabled(self, enabled: bool) -> None:
+        enabled = bool(enabled)
+        if enabled == self.feed_forward_enabled:
+            return
+        centre = self.scanner.centre
+        if not enabled:
+            drive, models = [], self._controller_models()
+            for axis, (inverse, model) in enumerate(zip(self.feed_forward, models)):
+                # re-applying the last command leaves a play operator where it is: the current drive
+                drive.append(float(centre[axis] + inverse.apply([self._commanded[axis] - centre[axis]])[-1]))
+                # inverse states z'_i = W_i z_i + sum_{j>i} w_j z_j (InversePrandtlIshlinskii): solve for z
+                w = model.weights
+                coupling = np.triu(np.tile(w, (w.size, 1)), 1) + np.diag(np.cumsum(w))
+                model.state = np.linalg.solve(coupling, inverse.state)
+            self._open_loop_models, self.feed_forward = models, None
+            self._commanded = tuple(drive)
+            return
+        if self._open_loop_models is None:
+            raise ValueError("feed_forward_enabled=True: this configuration has no hysteresis compensation "
+                             "(controller.hysteresis_compensation, scanner.hysteresis_enabled)")
+        commanded = [float(centre[axis] + model.apply([self._commanded[axis] - centre[axis]])[-1])
+                     for axis, model in enumerate(self._open_loop_models)]
+        self.feed_forward = [model.inverse() for model in self._open_loop_models]
+        self._open_loop_models = None
+        self._commanded = tuple(commanded)
 
     # -- the machine underneath ------------------------------------------------------------
     def commanded_position(self) -> tuple[float, float]:
@@ -98,6 +148,10 @@ class SimulatedAfm:
             centre = self.scanner.centre
             drive_x = centre[0] + self.feed_forward[0].apply(drive_x - centre[0])
             drive_y = centre[1] + self.feed_forward[1].apply(drive_y - centre[1])
+        elif self._open_loop_models is not None:      # feed-forward off: the controller's model follows the drive
+            centre = self.scanner.centre
+            self._open_loop_models[0].apply(drive_x - centre[0])
+            self._open_loop_models[1].apply(drive_y - centre[1])
         true_x, true_y = self.scanner.apply(drive_x, drive_y, dt)
         if position_error is None:
             true_x, true_y = true_x + self._position_error[0], true_y + self._position_error[1]
