@@ -83,6 +83,16 @@ def test_cli_rejects_bad_lengths_by_name():
     assert result.returncode == 2 and "goal='12furlong'" in result.stderr
 
 
+def test_calibrate_refuses_to_overwrite_and_names_a_missing_config(tmp_path):
+    existing = tmp_path / "calibration.yaml"
+    existing.write_text("keep me")
+    result = subprocess.run(AFM + ["calibrate", "-o", str(existing)], capture_output=True, text=True)
+    assert result.returncode != 0 and "exists" in result.stderr and existing.read_text() == "keep me"
+    result = subprocess.run(AFM + ["calibrate", "-o", str(tmp_path / "new.yaml"), "--sim-config",
+                                   str(tmp_path / "missing.yaml")], capture_output=True, text=True)
+    assert result.returncode != 0 and "missing.yaml" in result.stderr and not (tmp_path / "new.yaml").exists()
+
+
 @pytest.mark.parametrize("text, metres", [("500nm", 500e-9), ("1.5um", 1.5e-6), ("2e-6", 2e-6), (" 3 mm", 3e-3)])
 def test_lengths_with_units(text, metres):
     assert parse_length(text) == pytest.approx(metres)

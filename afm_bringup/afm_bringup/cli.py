@@ -168,6 +168,36 @@ def cmd_push(args):
     return 0 if result.success else 1
 
 
+def cmd_calibrate(args):
+    import json
+
+    from afm_core.backends import open_instrument
+    from afm_core.localization.calibrate import run_calibration
+    from afm_core.localization.calibration import save_calibration
+    output = Path(args.output)
+    if output.exists() and not args.overwrite:
+        sys.exit(f"afm calibrate: {output} exists (use --overwrite to replace it)")
+    try:
+        instrument = open_instrument(args.backend, args.sim_config, args.seed, args.daq_device, args.daq_calibration)
+        print(f"calibrating the {args.backend} instrument (book 7.2.2: drift pairs, creep, hysteresis, scanner "
+              f"matrix, motion noise, line deflection); this takes minutes", flush=True)
+        calibration, report = run_calibration(instrument, drift={"pairs": args.pairs},
+                                              source=f"afm calibrate --backend {args.backend}")
+    except (ValueError, RuntimeError) as exc:
+        sys.exit(f"afm calibrate: {exc}")
+    save_calibration(calibration, output)
+    if args.report:
+        summary = {name: experiment.parameters for name, experiment in report.items() if hasattr(experiment, "parameters")}
+        Path(args.report).write_text(json.dumps(summary, indent=2, default=lambda v: getattr(v, "tolist", str)()))
+    noise = calibration.motion_noise()
+    print(f"wrote {output}: hysteresis loop {calibration.hysteresis_x.loop_fraction:.3f} / "
+          f"{calibration.hysteresis_y.loop_fraction:.3f} of the range, creep time constants "
+          f"{', '.join(f'{t:.2f}' for t in calibration.creep_time_constants)} s, motion noise "
+          f"{noise.k_h1 * 1e9:.4f} nm^2/nm, drift {calibration.drift_mean_velocity[0] * 1e9:.3f}, "
+          f"{calibration.drift_mean_velocity[1] * 1e9:.3f} nm/s")
+    return 0
+
+
 def cmd_demo(args):
     from afm_bringup.demo import run_demo
     return run_demo(Path(args.output))
@@ -245,7 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
     target.add_argument("--particle", type=int, default=-1, help="landmark id of the particle")
     target.add_argument("--at", nargs=2, type=_length("at"), metavar=("X", "Y"), help="particle position")
     p.add_argument("--goal", nargs=2, required=True, type=_length("goal"), metavar=("X", "Y"))
-    p.add_argument("--strategy", default="nano_hand", choices=["nano_hand", "center", "rod_hand", "arc_hand"])
+    p.add_argument("--strategy", default="nano_hand", choices=["nano_hand", "center", "rod_hand"])
     p.add_argument("--tolerance", type=_length("tolerance"), default=20e-9)
     p.add_argument("--timeout", type=float, default=None, help="s to wait for the result")
     p.set_defaults(func=cmd_push)
@@ -255,6 +285,23 @@ def build_parser() -> argparse.ArgumentParser:
     from afm_core.imaging.cli import add_subcommands, run as run_image
     add_subcommands(p, _length("length"))
     p.set_defaults(func=run_image)
+
+    p = sub.add_parser("calibrate", help="run the calibration experiments on an instrument, write the file the "
+                                         "localizer, planner and nano-hand load",
+                       description="The book's calibration experiments (7.2.2) on the instrument itself (run it "
+                                   "while no driver node uses the instrument): drift statistics from frame-up/down "
+                                   "pairs, creep and hysteresis from indentation pits, scanner matrix, motion-noise "
+                                   "variance against distance, line deflection, map and scan-region errors.")
+    p.add_argument("--output", "-o", required=True, help="calibration YAML to write")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.add_argument("--backend", choices=["sim", "daq"], default="sim")
+    p.add_argument("--sim-config", default="", help="simulator configuration YAML (sim backend; default: defaults)")
+    p.add_argument("--seed", type=int, default=-1, help="simulator seed (sim backend; default: the config's)")
+    p.add_argument("--daq-device", default="Dev1", help="NI-DAQmx device name (daq backend)")
+    p.add_argument("--daq-calibration", default="", help="DAQ calibration YAML (daq backend)")
+    p.add_argument("--pairs", type=int, default=100, help="frame-up/down pairs for the drift statistics, one an hour")
+    p.add_argument("--report", default="", help="also write every experiment's fitted parameters as JSON here")
+    p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("demo", help="the main job: run the graph end to end and write a report",
                        description="Start the graph on the simulated instrument, do what the graph can do, "

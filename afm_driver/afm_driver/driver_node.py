@@ -24,6 +24,7 @@ from afm_bringup.conversions import (FRAME_SCANNER, FRAME_TASK, force_trace_to_m
                                      scan_line_to_msg, seconds_to_time, truth_to_msg)
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import EVENTS, FEEDBACK, LATCHED, STREAM
+from afm_core.backends import open_instrument
 from afm_core.instrument import LineRequest, ScanRequest
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_msgs.msg import ForceTrace, GroundTruth, RasterScan, ScanLine, TipCommand
@@ -40,27 +41,12 @@ PARAMETERS = [
     ("daq_calibration", "", "YAML file of the DAQ calibration (daq backend; defaults: afm_core.daq.DaqCalibration)."),
     ("replay_input", "", "Recording (.mcap) whose scans, lines and force traces the replay backend serves."),
 ]
-BACKENDS = ("sim", "daq", "replay")
-
-
 def make_instrument(config: dict):
-    backend = config["backend"]
-    if backend == "sim":
-        from afm_core.sim.config import load_config, merge
-        from afm_core.sim.instrument import SimulatedAfm
-        sim_config = load_config(config["sim_config"] or None)
-        if config["seed"] >= 0:
-            sim_config = merge(sim_config, {"seed": config["seed"]})
-        return SimulatedAfm(sim_config)
-    if backend == "daq":
-        from afm_core.daq import open_daq_instrument
-        return open_daq_instrument(config["daq_device"], config["daq_calibration"] or None)
-    if backend == "replay":
-        from afm_core.replay_instrument import ReplayInstrument
-        if not config["replay_input"]:
-            raise ValueError("parameter replay_input: required with backend 'replay' (a .mcap recording)")
-        return ReplayInstrument(config["replay_input"])
-    raise ValueError(f"parameter backend={backend!r}: expected one of {BACKENDS}")
+    try:
+        return open_instrument(config["backend"], config["sim_config"], config["seed"], config["daq_device"],
+                               config["daq_calibration"], config["replay_input"])
+    except ValueError as exc:
+        raise ValueError(f"parameter {exc}") from exc
 
 
 class FifoGate:
