@@ -40,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import cpu_model  # noqa: E402
 
 from afm_bringup.commander import AfmCommander  # noqa: E402
+from afm_bringup.demo import peak_rss_bytes  # noqa: E402
 from afm_bringup.launcher import Graph  # noqa: E402
 from afm_bringup.qos_profiles import LATCHED  # noqa: E402
 from afm_msgs.action import PushParticle  # noqa: E402
@@ -52,16 +53,6 @@ SCAN_ORIGIN, SCAN_SIZE, SCAN_PIXELS = (53.8e-6, 53.9e-6), 2.4e-6, 256
 PUSH = 500 * NM
 TOLERANCE = 20 * NM
 CALIBRATION = Path(__file__).resolve().parents[1] / "afm_localization" / "config" / "sim_calibration.yaml"
-
-
-def peak_rss(pid: int) -> int:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
 
 
 def run_seed(seed: int, workdir: Path, log) -> list[dict]:
@@ -118,7 +109,7 @@ def run_seed(seed: int, workdir: Path, log) -> list[dict]:
                 log(f"seed {seed} {name:9s}: along {rows[-1]['along'] / NM:6.1f} nm, sideways "
                     f"{rows[-1]['sideways'] / NM:6.1f} nm, true error {error / NM:5.1f} nm, verified "
                     f"{result.error / NM:5.1f} nm ({seconds:.1f} s)")
-        memory = sum(peak_rss(p.pid) for p in graph.processes.values())
+        memory = sum(peak_rss_bytes(p.pid) for p in graph.processes.values())
         for row in rows:
             row["graph_peak_bytes"] = memory
     finally:
