@@ -32,7 +32,7 @@ from afm_bringup.launcher import GRAPH, Graph
 from afm_bringup.qos_profiles import LATCHED
 from afm_bringup.units import nm
 from afm_bringup.conversions import FRAME_TASK, mean_cov_to_pose, msg_to_landmarks
-from afm_core.evaluation import compare_payloads, find_particles, match_to_truth
+from afm_core.evaluation import compare_payloads, find_particles, image_frame_matrix, match_to_truth
 from afm_core.manipulation import path_blocker
 from afm_core.recording import RecordingReader
 from afm_core.report import save_height_maps, save_push_figure, table, write_html
@@ -49,6 +49,9 @@ MATCH_DISTANCE = 300e-9
 PUSH_DISTANCE = 300e-9             # m, from the particle's mapped centre to the goal
 PUSH_TOLERANCE = 20e-9             # m
 CALIBRATED_NODES = ("localizer", "planner", "nano_hand")
+# true displacement per commanded (= map) displacement of the simulated instrument, for the
+# evaluation against truth only (afm_core.evaluation.image_frame_matrix)
+IMAGE_FRAME = image_frame_matrix()
 
 
 def calibration_file() -> str:
@@ -257,10 +260,14 @@ def evaluate(run_dir: Path) -> dict:
         cov = np.asarray(poses["pose.covariance"])[:, [0, 1, 6, 7]].reshape(-1, 2, 2)
         stamps = poses["header.stamp.sec"] + poses["header.stamp.nanosec"] * 1e-9
         truth_stamps = truth["header.stamp.sec"] + truth["header.stamp.nanosec"] * 1e-9
-        true_tip = np.stack([truth["tip_position.x"], truth["tip_position.y"]], axis=1)
+        # the estimate is in the maps' (commanded) frame, the truth metric: bring the truth into
+        # the maps' frame about where the session started (at rest, commanded = true)
+        metric = np.stack([truth["tip_position.x"], truth["tip_position.y"]], axis=1)
+        start_commanded = np.array([truth["commanded_position.x"][0], truth["commanded_position.y"][0]])
+        true_tip = start_commanded + (metric - metric[0]) @ np.linalg.inv(IMAGE_FRAME).T
         # the localizer publishes its estimate as each command ends, the driver its truth: compare
         # the pairs with the same stamp (error and NEES)
-        k = np.clip(np.searchsorted(stamps, truth_stamps - 1e-6), 0, len(stamps) - 1)
+        k = np.clip(np.searchsorted(stamps, truth_stamps + 1e-6) - 1, 0, len(stamps) - 1)   # last at that stamp
         ok = np.abs(stamps[k] - truth_stamps) < 1e-6
         errors = true_tip[ok] - means[k[ok]]
         nees = [float(e @ np.linalg.solve(c, e)) for e, c in zip(errors, cov[k[ok]])]
@@ -283,15 +290,15 @@ def evaluate(run_dir: Path) -> dict:
 
 def push_truth(result: dict, push: dict) -> dict:
     """The push against ground truth: the pushed object is the true particle nearest the
-    mapped start at the first truth; its true displacement against the planned one (the map's
-    frame and the simulator's differ by the instrument's positioning errors, displacements
-    do not)."""
+    mapped start at the first truth; its true displacement, brought into the maps' frame,
+    against the planned one (absolute positions differ by the instrument's positioning
+    errors; displacements do not)."""
     if not push.get("ran"):
         return {}
     first = np.asarray(result["truth_objects"][0])
     index = int(np.argmin(np.hypot(*(first - np.asarray(push["start"])).T)))
     track = np.array([objects[index] for objects in result["truth_objects"]])
-    moved = track[-1] - track[0]
+    moved = np.linalg.solve(IMAGE_FRAME, track[-1] - track[0])      # in the maps' frame
     wanted = np.asarray(push["goal"]) - np.asarray(push["start"])
     axis = wanted / np.linalg.norm(wanted)
     return {"track": track, "true_displacement": moved.tolist(),
