@@ -74,6 +74,7 @@ def run_seed(seed: int, workdir: Path, log) -> list[dict]:
             maps, truths = [], []
             afm.node.create_subscription(LandmarkArray, "/afm/landmarks", maps.append, LATCHED)
             afm.node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
+            afm.wait_until_subscribed(["/afm/scan"], "afm_imaging", timeout=60.0)
             for angle in (0.0, 90.0):
                 afm.scan(SCAN_ORIGIN, (SCAN_SIZE, SCAN_SIZE), (SCAN_PIXELS, SCAN_PIXELS), angle_deg=angle,
                          line_rate=4.0, pair_id=f"bench-{seed}")

@@ -125,7 +125,7 @@ def test_replay_backend_serves_a_recorded_session(tmp_path, nodes):
     live = nodes("driver", seed=5)
     with AfmCommander(server_timeout=30) as afm:
         afm.clients["scan_image"].wait_for_server(timeout_sec=30)
-        afm.wait_until_recorded(["/afm/scan", "/afm/scan_line", "/afm/force_trace"])
+        afm.wait_until_subscribed(["/afm/scan", "/afm/scan_line", "/afm/force_trace"])
         recorded_scan = afm.send("scan_image", scan_goal())
         line_goal = LocalScan.Goal(samples=100, speed=1e-6)
         line_goal.start.x, line_goal.start.y, line_goal.end.x, line_goal.end.y = 54.7e-6, 55e-6, 55.3e-6, 55e-6

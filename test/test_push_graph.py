@@ -37,6 +37,7 @@ def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
     ros_node.create_subscription(LandmarkArray, "/afm/landmarks", maps.append, LATCHED)
     ros_node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
     with AfmCommander(server_timeout=60) as afm:
+        afm.wait_until_subscribed(["/afm/scan"], "afm_imaging", timeout=60.0)
         for angle in (0.0, 90.0):
             afm.scan(ORIGIN, SIZE, PIXELS, angle_deg=angle, line_rate=4.0, pair_id="pair-e2e")
         wait_for(lambda: maps and len(maps[-1].landmarks) >= 3, 60, what="the drift-corrected landmark map")
@@ -98,6 +99,7 @@ def test_assemble_pushes_several_particles_in_the_planners_order(graph, ros_node
     ros_node.create_subscription(LandmarkArray, "/afm/landmarks", maps.append, LATCHED)
     ros_node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
     with AfmCommander(server_timeout=60) as afm:
+        afm.wait_until_subscribed(["/afm/scan"], "afm_imaging", timeout=60.0)
         for angle in (0.0, 90.0):
             afm.scan(ORIGIN, SIZE, PIXELS, angle_deg=angle, line_rate=4.0, pair_id="pair-assemble")
         wait_for(lambda: maps and len(maps[-1].landmarks) >= 3, 60, what="the drift-corrected landmark map")

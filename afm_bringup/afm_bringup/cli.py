@@ -67,7 +67,7 @@ def wait_for_recorder(graph):
     with AfmCommander("afm_launch_probe") as probe:
         time.sleep(1.0)   # let the nodes create their publishers
         try:
-            probe.wait_until_recorded(topics.RECORDED_BY_DEFAULT, timeout=20.0)
+            probe.wait_until_subscribed(topics.RECORDED_BY_DEFAULT, timeout=20.0)
         except AfmError as exc:
             print(f"afm launch: warning: {exc}", file=sys.stderr)
         if graph.dead():

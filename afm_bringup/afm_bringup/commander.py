@@ -118,10 +118,12 @@ class AfmCommander:
         job = Job(action, handle, box)
         return job.result(timeout) if wait else job
 
-    def wait_until_recorded(self, topics_to_check, recorder_node: str = "afm_recorder",
-                            timeout: float = 15.0) -> None:
-        """Block until the recorder subscribes to every listed topic that has a publisher,
-        so nothing this script triggers next goes unrecorded."""
+    def wait_until_subscribed(self, topics_to_check, node_name: str = "afm_recorder",
+                              timeout: float = 15.0) -> None:
+        """Block until node `node_name` subscribes to every listed topic that has a publisher
+        (the recorder before a recorded session, a processing node before its input is sent),
+        so nothing this script triggers next goes unheard."""
+        recorder_node = node_name
         deadline = time.monotonic() + timeout
         missing = list(topics_to_check)
         while time.monotonic() < deadline:
@@ -133,7 +135,7 @@ class AfmCommander:
                 time.sleep(0.5)   # the graph shows a subscription a moment before DDS matches it
                 return
             time.sleep(0.1)
-        raise AfmError(f"recorder {recorder_node!r} did not subscribe to {missing} within {timeout} s")
+        raise AfmError(f"node {node_name!r} did not subscribe to {missing} within {timeout} s")
 
     # -- the instrument --------------------------------------------------------------------
     def scan(self, origin, size, pixels=(256, 256), angle_deg=0.0, frame_up=True, line_rate=1.0,

@@ -166,7 +166,9 @@ def acquire(run_dir: Path, log) -> tuple[dict, dict, dict, dict]:
         with AfmCommander(server_timeout=60.0) as afm:
             started = time.monotonic()
             afm.clients["scan_image"].wait_for_server(timeout_sec=60.0)
-            afm.wait_until_recorded([topics.SCAN, topics.TIP_COMMAND, topics.GROUND_TRUTH])
+            afm.wait_until_subscribed([topics.SCAN, topics.TIP_COMMAND, topics.GROUND_TRUTH])   # the recorder
+            for node_name, inputs in (("afm_imaging", [topics.SCAN]), ("afm_localizer", [topics.TIP_COMMAND])):
+                afm.wait_until_subscribed(inputs, node_name, timeout=60.0)
             maps_seen = []
             afm.node.create_subscription(RasterScan, topics.CORRECTED_MAP, lambda m: maps_seen.append(m.pair_id),
                                          QoSProfile(depth=10, reliability=LATCHED.reliability,

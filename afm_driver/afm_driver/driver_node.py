@@ -23,7 +23,7 @@ from afm_bringup import params, topics
 from afm_bringup.conversions import (FRAME_SCANNER, FRAME_TASK, force_trace_to_msg, raster_scan_to_msg,
                                      scan_line_to_msg, seconds_to_time, truth_to_msg)
 from afm_bringup.node_main import run
-from afm_bringup.qos_profiles import EVENTS, FEEDBACK, LATCHED, STREAM
+from afm_bringup.qos_profiles import EVENTS, FEEDBACK, LATCHED, SCANS, STREAM
 from afm_core.backends import open_instrument
 from afm_core.instrument import LineRequest, ScanRequest
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
@@ -106,7 +106,7 @@ class DriverNode(Node):
         self.epoch = time.time()                    # instrument time 0 <-> wall time at start
         self.gate = FifoGate(self.config["max_queued_goals"])
         self.pacing_origin = (time.monotonic(), self.instrument.time)
-        self.scan_pub = self.create_publisher(RasterScan, topics.SCAN, LATCHED)
+        self.scan_pub = self.create_publisher(RasterScan, topics.SCAN, SCANS)
         self.line_pub = self.create_publisher(ScanLine, topics.SCAN_LINE, STREAM)
         self.trace_pub = self.create_publisher(ForceTrace, topics.FORCE_TRACE, STREAM)
         self.command_pub = self.create_publisher(TipCommand, topics.TIP_COMMAND, EVENTS)
