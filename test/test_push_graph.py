@@ -41,6 +41,7 @@ def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
         for angle in (0.0, 90.0):
             afm.scan(ORIGIN, SIZE, PIXELS, angle_deg=angle, line_rate=4.0, pair_id="pair-e2e")
         wait_for(lambda: maps and len(maps[-1].landmarks) >= 3, 60, what="the drift-corrected landmark map")
+        wait_for(lambda: truths, 30, what="the simulator's ground truth")
         marks = {lm.id: lm for lm in maps[-1].landmarks}
         # the map's particle nearest the simulator's first sphere (55, 55) um
         particle = min(marks.values(), key=lambda lm: math.hypot(lm.position.x - 55e-6, lm.position.y - 55e-6))
@@ -103,6 +104,7 @@ def test_assemble_pushes_several_particles_in_the_planners_order(graph, ros_node
         for angle in (0.0, 90.0):
             afm.scan(ORIGIN, SIZE, PIXELS, angle_deg=angle, line_rate=4.0, pair_id="pair-assemble")
         wait_for(lambda: maps and len(maps[-1].landmarks) >= 3, 60, what="the drift-corrected landmark map")
+        wait_for(lambda: truths, 30, what="the simulator's ground truth")
         marks = sorted(maps[-1].landmarks, key=lambda lm: lm.position.y)[:2]     # the two lowest spheres
         mismatched = Assemble.Goal(particle_ids=[m.id for m in marks], goals=[Point()])
         refused = afm.send("assemble", mismatched)
