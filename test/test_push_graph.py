@@ -18,6 +18,20 @@ from sim_calibration import oracle_calibration
 ORIGIN, SIZE, PIXELS = (54.3e-6, 54.3e-6), (1.8e-6, 1.8e-6), (128, 128)
 
 
+def map_the_sample(afm, ros_node, pair_id):
+    """Scan a 0/90 pair once the imaging node listens; the landmark maps and ground truths
+    heard, once the corrected map and a truth have arrived."""
+    maps, truths = [], []
+    ros_node.create_subscription(LandmarkArray, "/afm/landmarks", maps.append, LATCHED)
+    ros_node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
+    afm.wait_until_subscribed(["/afm/scan"], "afm_imaging", timeout=60.0)
+    for angle in (0.0, 90.0):
+        afm.scan(ORIGIN, SIZE, PIXELS, angle_deg=angle, line_rate=4.0, pair_id=pair_id)
+    wait_for(lambda: maps and len(maps[-1].landmarks) >= 3, 60, what="the drift-corrected landmark map")
+    wait_for(lambda: truths, 30, what="the simulator's ground truth")
+    return maps, truths
+
+
 def true_sphere(truths, object_id):
     return next(np.array([o.position.x, o.position.y]) for o in truths[-1].objects if o.id == object_id)
 
@@ -33,15 +47,8 @@ def graph(tmp_path, nodes):
 
 
 def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
-    maps, truths = [], []
-    ros_node.create_subscription(LandmarkArray, "/afm/landmarks", maps.append, LATCHED)
-    ros_node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
     with AfmCommander(server_timeout=60) as afm:
-        afm.wait_until_subscribed(["/afm/scan"], "afm_imaging", timeout=60.0)
-        for angle in (0.0, 90.0):
-            afm.scan(ORIGIN, SIZE, PIXELS, angle_deg=angle, line_rate=4.0, pair_id="pair-e2e")
-        wait_for(lambda: maps and len(maps[-1].landmarks) >= 3, 60, what="the drift-corrected landmark map")
-        wait_for(lambda: truths, 30, what="the simulator's ground truth")
+        maps, truths = map_the_sample(afm, ros_node, "pair-e2e")
         marks = {lm.id: lm for lm in maps[-1].landmarks}
         # the map's particle nearest the simulator's first sphere (55, 55) um
         particle = min(marks.values(), key=lambda lm: math.hypot(lm.position.x - 55e-6, lm.position.y - 55e-6))
@@ -96,22 +103,15 @@ def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
 def test_assemble_pushes_several_particles_in_the_planners_order(graph, ros_node):
     from afm_msgs.action import Assemble
     from geometry_msgs.msg import Point
-    maps, truths = [], []
-    ros_node.create_subscription(LandmarkArray, "/afm/landmarks", maps.append, LATCHED)
-    ros_node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
     with AfmCommander(server_timeout=60) as afm:
-        afm.wait_until_subscribed(["/afm/scan"], "afm_imaging", timeout=60.0)
-        for angle in (0.0, 90.0):
-            afm.scan(ORIGIN, SIZE, PIXELS, angle_deg=angle, line_rate=4.0, pair_id="pair-assemble")
-        wait_for(lambda: maps and len(maps[-1].landmarks) >= 3, 60, what="the drift-corrected landmark map")
-        wait_for(lambda: truths, 30, what="the simulator's ground truth")
+        maps, truths = map_the_sample(afm, ros_node, "pair-assemble")
         marks = sorted(maps[-1].landmarks, key=lambda lm: lm.position.y)[:2]     # the two lowest spheres
         mismatched = Assemble.Goal(particle_ids=[m.id for m in marks], goals=[Point()])
         refused = afm.send("assemble", mismatched)
         assert not refused.success and "one goal per particle" in refused.message
         starts = {m.id: np.array([m.position.x, m.position.y]) for m in marks}
-        before = {m.id: true_sphere(truths, o.id) for m in marks for o in truths[-1].objects
-                  if o.kind == 0 and np.linalg.norm(true_sphere(truths, o.id) - starts[m.id]) < 100e-9}
+        before = {i: true_sphere_near(truths, start) for i, start in starts.items()}
+        assert all(np.linalg.norm(before[i] - starts[i]) < 100e-9 for i in starts)     # mapped where they are
         request = Assemble.Goal(particle_ids=[m.id for m in marks], tolerance=40e-9)
         for m in marks:
             request.goals.append(Point(x=m.position.x, y=m.position.y - 200e-9))

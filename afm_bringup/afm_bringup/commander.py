@@ -123,13 +123,12 @@ class AfmCommander:
         """Block until node `node_name` subscribes to every listed topic that has a publisher
         (the recorder before a recorded session, a processing node before its input is sent),
         so nothing this script triggers next goes unheard."""
-        recorder_node = node_name
         deadline = time.monotonic() + timeout
         missing = list(topics_to_check)
         while time.monotonic() < deadline:
             missing = [t for t in topics_to_check
-                       if any(p.node_name != recorder_node for p in self.node.get_publishers_info_by_topic(t))
-                       and not any(s.node_name == recorder_node
+                       if any(p.node_name != node_name for p in self.node.get_publishers_info_by_topic(t))
+                       and not any(s.node_name == node_name
                                    for s in self.node.get_subscriptions_info_by_topic(t))]
             if not missing:
                 time.sleep(0.5)   # the graph shows a subscription a moment before DDS matches it
