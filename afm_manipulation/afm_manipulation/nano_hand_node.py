@@ -374,7 +374,8 @@ class NanoHandNode(Node):
                 try:
                     particle = self.particle_for(pid, None)       # where the last pushes left it
                     self.check_goal(particle, targets[pid], strategy, tolerance)
-                    outcome = self.push(particle, targets[pid], strategy, tolerance, AssembleDefaults(), feedback,
+                    # a default goal: no per-push overrides, the planner chooses the zigzag
+                    outcome = self.push(particle, targets[pid], strategy, tolerance, PushParticle.Goal(), feedback,
                                         lambda: goal_handle.is_cancel_requested)
                 except (PushFailed, ValueError, DriverUnavailable) as exc:
                     messages.append(f"particle {pid}: {exc}")
@@ -409,12 +410,6 @@ class NanoHandNode(Node):
         if not response.success:
             raise ValueError(f"planner: {response.message}")
         return [int(particle_ids[i]) for i in response.order]
-
-
-class AssembleDefaults:
-    """Assemble's pushes use the planner's nano-hand parameters (no per-push overrides)."""
-    push_length = back_length = lateral_offset = step_length = 0.0
-    max_steps = 0
 
 
 def point(xy):
