@@ -456,6 +456,10 @@ class ScannerParams:
     positioning_noise_enabled: bool = True    # random, persistent error of every tip move (book eq. 5.5 w)
     positioning_noise_slope: float = 0.0701e-9    # m^2 per m moved, each axis (Fig. 7.20b: a = 0.0701 nm^2/nm)
     positioning_noise_offset: float = 0.4345e-18  # m^2 per move, each axis (Fig. 7.20b: b = 0.4345 nm^2)
+    # Scanner bow, a z artefact (not lateral, so LateralScanner ignores it; the simulated
+    # instrument adds it to measured heights): the tube's free end swings on a sphere-like
+    # arc, so the tip rises by 0.5 * bow_curvature * r^2 at a distance r from the range centre.
+    bow_curvature: float = 0.0                # 1/m (0 = no bow; a 5 cm tube: ~20 1/m)
 
     def __post_init__(self):
         self.validate()
@@ -486,6 +490,13 @@ class ScannerParams:
                 raise ValueError(f"scanner.{name}={value}: must be finite and >= 0")
         if not math.isfinite(self.deflection_deg):
             raise ValueError(f"scanner.deflection_deg={self.deflection_deg}: must be finite")
+        if not math.isfinite(self.bow_curvature):
+            raise ValueError(f"scanner.bow_curvature={self.bow_curvature}: must be finite (1/m)")
+        # the bow at the range corners must fit well inside any z range (7 um on the book's AFM)
+        corner_bow = 0.5 * abs(self.bow_curvature) * 0.25 * (self.range_x ** 2 + self.range_y ** 2)
+        if corner_bow > 1e-6:
+            raise ValueError(f"scanner.bow_curvature={self.bow_curvature}: bows the range corners by "
+                             f"{corner_bow:.3g} m; at most 1e-6 m (|curvature| <= ~330 1/m on 110 um)")
 
 
 class ScannerAxis:

@@ -7,6 +7,7 @@ that name the key, so a typo never silently leaves an effect at its default.
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,10 +25,29 @@ DEFAULT_CONFIG_FILE = Path(__file__).with_name("default_config.yaml")
 
 @dataclass
 class NoiseParams:
+    """The sensors: noise, the z feedback's lag, the z sensor's calibration and latency."""
     height_white_sigma: float = 0.3e-9        # m, white sensor noise per pixel
     height_flicker_sigma: float = 0.2e-9      # m, 1/f noise over the acquisition sequence
     deflection_sigma: float = 0.05e-9         # m, deflection signal noise
     feedback_time_constant: float = 2e-4      # s, z-feedback lag: deflection error ~ lag * dh/dt
+    # A miscalibrated z sensor scales the z piezo signal it reports: every measured height
+    # (objects, roughness, bow; about the mean substrate plane, height 0) is gain x the true one.
+    height_gain: float = 1.0                  # dimensionless, 1 = calibrated
+    # Filters and the acquisition chain delay the measured signals (height, deflection,
+    # force-trace deflection and torsion) against the commanded positions: the value reported
+    # at time t is the one at t - latency, so an image shifts by scan speed x latency.
+    sensor_latency: float = 0.0               # s
+
+    def __post_init__(self):
+        for name in ("height_white_sigma", "height_flicker_sigma", "deflection_sigma", "feedback_time_constant",
+                     "sensor_latency"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"noise.{name}={value}: must be finite and >= 0")
+        if not (math.isfinite(self.height_gain) and 0 < self.height_gain <= 10):
+            raise ValueError(f"noise.height_gain={self.height_gain}: must be within (0, 10]")
+        if self.sensor_latency > 1.0:
+            raise ValueError(f"noise.sensor_latency={self.sensor_latency}: must be <= 1 s")
 
 
 @dataclass

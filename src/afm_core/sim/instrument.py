@@ -5,6 +5,12 @@ to a true scanner position; thermal drift moves the sample against the scanner; 
 sees the sample where it truly is at the moment of each sample. Every call advances the
 instrument clock `time` by what the motion takes, so sim time runs as fast as the host
 can compute. Deterministic: the same config (seed included) gives the same data.
+
+The measurement chain on top of the physics (each off by default, and then exactly absent):
+the scanner bow (the tube's end swings on an arc, adding 0.5 c r^2 to every measured height,
+r from the range centre), the z sensor's gain (measured height = gain x the feedback's
+height about the mean substrate plane) and its latency (every measured signal reports at t
+the value it took at t - latency, while positions are stamped with the commands at t).
 """
 from __future__ import annotations
 
@@ -19,7 +25,7 @@ from afm_core.pzt import LateralScanner, PrandtlIshlinskii
 from afm_core.sim.config import SimConfig, load_config
 from afm_core.sim.drift import ThermalDrift
 from afm_core.sim.imaging import DilatedField, dilated_heights_at, pink_noise
-from afm_core.sim.pushing import push_along_path
+from afm_core.sim.pushing import StickSlipState, push_along_path
 from afm_core.sim.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
 from afm_core.sim.tip import Tip
 
@@ -27,6 +33,33 @@ LINES_PER_CHUNK = 16          # raster lines simulated at once (progress and can
 MOVE_STEP = 2e-9              # m, path sampling of moves (pushes resolve objects finer inside)
 IDLE_STEP = 0.05              # s, scanner sampling while holding still (creep keeps going)
 INDENT_SAMPLES = 200
+
+
+class _DelayedPath:
+    """Where the tip truly was `latency` before each sample time, from the path driven so far
+    in one acquisition: the sensor reports at t the value it took at t - latency. Positions are
+    interpolated linearly between samples (the path between samples is a straight ramp);
+    before the acquisition's first sample the tip rests where it started."""
+
+    def __init__(self, latency: float, t0: float, x0: float, y0: float):
+        self.latency = latency
+        self.t, self.x, self.y = np.array([t0]), np.array([x0]), np.array([y0])
+
+    def __call__(self, times: np.ndarray, xs: np.ndarray, ys: np.ndarray):
+        t, x, y = (np.concatenate([self.t, times]), np.concatenate([self.x, xs]), np.concatenate([self.y, ys]))
+        query = np.maximum(times - self.latency, t[0])
+        delayed = query, np.interp(query, t, x), np.interp(query, t, y)
+        # later queries start after times[-1] - latency: keep the samples from just before that
+        keep = max(0, int(np.searchsorted(t, times[-1] - self.latency, side="right")) - 2)
+        self.t, self.x, self.y = t[keep:], x[keep:], y[keep:]
+        return delayed
+
+
+def delay_samples(signal: np.ndarray, delay: float) -> np.ndarray:
+    """The signal delayed by `delay` samples (fractional: linear interpolation), the first
+    sample held before the start."""
+    index = np.arange(signal.size, dtype=float)
+    return np.interp(index - delay, index, signal)
 
 
 def build_sample(config: SimConfig, rng: np.random.Generator) -> Sample:
@@ -169,6 +202,27 @@ class SimulatedAfm:
         offset = self.drift.offset(times)
         return true_x - offset[..., 0], true_y - offset[..., 1]
 
+    def _measured_height(self, height: np.ndarray, true_x: np.ndarray, true_y: np.ndarray) -> np.ndarray:
+        """What the z sensor reports for the feedback's height (m above the mean substrate
+        plane) with the scanner truly at (true_x, true_y): plus the scanner bow, times the
+        sensor's gain. Noise is added by the caller (it is in the reported signal, not scaled)."""
+        if self._has_bow():
+            height = height + self._bow(true_x, true_y)
+        return self._height_gain(height)
+
+    def _has_bow(self) -> bool:
+        return self.config.scanner.bow_curvature != 0.0
+
+    def _bow(self, true_x: np.ndarray, true_y: np.ndarray) -> np.ndarray:
+        """z of the scanner bow (m): the tube's free end swings on a sphere-like arc, rising by
+        0.5 c r^2 at a distance r from the range centre (where the tube is straight)."""
+        cx, cy = self.scanner.centre
+        return 0.5 * self.config.scanner.bow_curvature * ((true_x - cx) ** 2 + (true_y - cy) ** 2)
+
+    def _height_gain(self, height: np.ndarray) -> np.ndarray:
+        gain = self.config.noise.height_gain
+        return height if gain == 1.0 else gain * height
+
     def hold(self, duration: float) -> None:
         """Time passes with the command held (creep and drift go on)."""
         if duration <= 0:
@@ -212,6 +266,8 @@ class SimulatedAfm:
         line_period = 1.0 / request.line_rate
         dt = 0.5 * line_period / n_fast          # trace in the first half, retrace in the second
         field = self._field_for(request)
+        latency = self.config.noise.sensor_latency
+        delayed = _DelayedPath(latency, self.time, *self._true_scanner) if latency > 0 else None
         height = np.full((request.pixels_y, request.pixels_x), np.nan)
         line_start = np.full(n_lines, np.nan)
         start = self.time
@@ -227,8 +283,13 @@ class SimulatedAfm:
             fast = np.tile(trace_back, len(chunk))
             cmd_x, cmd_y = to_xy(fast, slow)
             times, tx, ty = self._drive(cmd_x, cmd_y, dt)
-            sx, sy = self.sample_frame(tx, ty, times)
+            # with sensor latency a pixel reports where the tip was `latency` before its time
+            at_t, at_x, at_y = (times, tx, ty) if delayed is None else delayed(times, tx, ty)
+            sx, sy = self.sample_frame(at_x, at_y, at_t)
             values = field.at(sx, sy).reshape(len(chunk), 2 * n_fast)[:, :n_fast]
+            if self._has_bow() or self.config.noise.height_gain != 1.0:
+                trace_x, trace_y = (a.reshape(len(chunk), 2 * n_fast)[:, :n_fast] for a in (at_x, at_y))
+                values = self._measured_height(values, trace_x, trace_y)
             values = values + self.noise_rng.normal(0.0, self.config.noise.height_white_sigma, values.shape)
             line_times = times.reshape(len(chunk), 2 * n_fast)[:, 0] - dt - start
             for row_values, line_index, t_line in zip(values, chunk, line_times):
@@ -278,13 +339,19 @@ class SimulatedAfm:
         times, tx, ty = self._drive(cmd_x, cmd_y, dt)
         times = times - dt          # the first sample is taken where the line starts, at once
         start = float(times[0])
-        sx, sy = self.sample_frame(tx, ty, times)
+        noise = self.config.noise
+        # with sensor latency each sample reports where the tip was `latency` before its time
+        at_t, at_x, at_y = (times, tx, ty) if noise.sensor_latency == 0 else \
+            _DelayedPath(noise.sensor_latency, float(times[0]), float(tx[0]), float(ty[0]))(times, tx, ty)
+        sx, sy = self.sample_frame(at_x, at_y, at_t)
         spacing = request.length / (request.samples - 1)
         tip = self.tip.grid(max(min(spacing, 5e-9), 0.5e-9), self._imaging_depth())
         height = dilated_heights_at(self.sample, tip, max(min(spacing, 5e-9), 0.5e-9), sx, sy)
-        noise = self.config.noise
+        if self._has_bow():         # the feedback follows the bow too: it is in the lag error
+            height = height + self._bow(at_x, at_y)
         slope = np.gradient(height, times) if len(times) > 1 else np.zeros_like(height)
         deflection = noise.feedback_time_constant * slope + self.noise_rng.normal(0, noise.deflection_sigma, len(s))
+        height = self._height_gain(height)
         height = height + self.noise_rng.normal(0, noise.height_white_sigma, len(s))
         height = height + pink_noise(len(s), noise.height_flicker_sigma, self.noise_rng)
         amplitude = (np.full(len(s), 10e-9) - deflection) if request.mode == "tapping" else np.array([])
@@ -301,6 +368,13 @@ class SimulatedAfm:
         chunks = np.array_split(np.arange(len(cmd_x)), max(1, len(cmd_x) // 2000))
         traces = []
         completed = True
+        stick_slip, last_x, last_y = None, 0.0, 0.0
+        if contact:
+            # the tip lands where it is: the slid distance (wear) and the stick-slip spring start here
+            here = self.sample_frame(np.array([self._true_scanner[0]]), np.array([self._true_scanner[1]]),
+                                     np.array([self.time]))
+            last_x, last_y = float(here[0][0]), float(here[1][0])
+            stick_slip = StickSlipState(0.0, last_x, last_y) if self.config.contact.stick_slip_enabled else None
         for index in chunks:
             if should_stop is not None and should_stop():
                 completed = False
@@ -309,8 +383,9 @@ class SimulatedAfm:
                                         None if error_path is None else error_path[:, index])
             if contact:
                 sx, sy = self.sample_frame(tx, ty, times)
-                result = push_along_path(self.sample, sx, sy, dt, self.config.contact)
-                self.tip.slide(float(np.sum(np.hypot(np.diff(sx), np.diff(sy)))))
+                result = push_along_path(self.sample, sx, sy, dt, self.config.contact, stick_slip)
+                self.tip.slide(float(np.sum(np.hypot(np.diff(sx, prepend=last_x), np.diff(sy, prepend=last_y)))))
+                last_x, last_y = float(sx[-1]), float(sy[-1])
                 traces.append((times, cmd_x[index], cmd_y[index], result))
         trace = self._force_trace(traces, start, dt) if contact and traces else None
         end_x, end_y = self._commanded
@@ -337,6 +412,9 @@ class SimulatedAfm:
         cy = np.concatenate([p[2] for p in pieces])
         deflection = np.concatenate([p[3].vertical_deflection for p in pieces])
         torsion = np.concatenate([p[3].lateral_torsion for p in pieces])
+        latency = self.config.noise.sensor_latency
+        if latency > 0:             # the signals lag the commands (sampled at 1/dt)
+            deflection, torsion = delay_samples(deflection, latency / dt), delay_samples(torsion, latency / dt)
         deflection = deflection + self.noise_rng.normal(0, self.config.noise.deflection_sigma, len(deflection))
         moved = sorted({i for p in pieces for i in p[3].moved_ids})
         return ForceTraceData(times=times, commanded_x=cx, commanded_y=cy, commanded_z=np.zeros_like(cx),
@@ -368,11 +446,18 @@ class SimulatedAfm:
         params, contact = self.config.indentation, self.config.contact
         duration = params.approach_time + dwell + params.retract_time
         times = np.linspace(0.0, duration, INDENT_SAMPLES)
-        up = np.clip(times / params.approach_time, 0, 1) if params.approach_time else np.ones_like(times)
-        down = np.clip((duration - times) / params.retract_time, 0, 1) if params.retract_time else np.ones_like(times)
-        profile = np.minimum(up, down) * force / contact.normal_spring_constant
+
+        def load(t):
+            """The load profile (0..1) at times t: approach ramp, dwell, retract ramp."""
+            up = np.clip(t / params.approach_time, 0, 1) if params.approach_time else np.ones_like(t)
+            down = np.clip((duration - t) / params.retract_time, 0, 1) if params.retract_time else np.ones_like(t)
+            return np.minimum(up, down)
+
+        latency = self.config.noise.sensor_latency
+        # the measured deflection lags the commanded z by the sensor latency
+        profile = (load(times) if latency == 0 else load(times - latency)) * force / contact.normal_spring_constant
         deflection = profile + self.noise_rng.normal(0, self.config.noise.deflection_sigma, len(times))
-        z = np.minimum(up, down) * force / self.config.indentation.sample_stiffness
+        z = load(times) * force / self.config.indentation.sample_stiffness
         x, y = self._commanded
         return ForceTraceData(times=times, commanded_x=np.full_like(times, x), commanded_y=np.full_like(times, y),
                               commanded_z=z, vertical_deflection=deflection, lateral_torsion=np.zeros_like(times),

@@ -78,6 +78,24 @@ lateral_spring_constant, positive when resisting the motion (the instrument know
 cantilever is oriented and may flip the sign with the scan direction). The vertical
 deflection is the contact-mode setpoint N / k_n.
 
+Spatially varying friction (``friction_regions``): axis-aligned rectangles of the sample
+(afm_task frame) inside which a sphere's Coulomb friction F_c (and a rod's per length) and
+the tip-substrate friction mu_ts are scaled (a point inside several takes the product of
+their scales). A sphere's friction is taken at its centre's mid-step position, a rod's at
+each point of its length, the tip's at the middle of its step. In this quasi-static model
+the motion law depends on friction ratios, not magnitudes, so a region changes the forces
+(the force trace, the work done), not where the objects go.
+
+Stick-slip (``stick_slip_enabled``): the tip-substrate term mu_ts N becomes a 1-D
+spring-slider along the path. The contact sticks while the lateral spring (stiffness
+``stick_slip_stiffness``) loads by k per unit of tip travel, slips when it reaches the
+static friction (``static_friction_ratio`` x mu_ts N) and drops back to the kinetic level
+mu_ts N, and sticks again: a saw-tooth of amplitude (ratio - 1) mu_ts N and period
+(ratio - 1) mu_ts N / (k v) in time (ratio 1: no saw-tooth, the spring loads to mu_ts N and
+the tip slides steadily). A contact move starts relaxed (force 0) and carries
+the spring over between the pieces it is fed in (``StickSlipState``); at rest the spring
+holds its force.
+
 Paths are re-sampled for the mechanics at steps of at most ``substep_fraction`` of the
 smallest of R_T and the radii of the objects near the path (dense samples are merged, sparse
 ones subdivided), so nothing tunnels; a sample's force is that of the step it falls in.
@@ -89,7 +107,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -113,6 +131,12 @@ class ContactParams:
     rod_viscous_per_length: float = 1e4       # N s/m^2, viscous friction of a rod per unit length (c per 100 nm)
     rod_contact_halfwidth: float = 5e-9       # m, half-length b of the tip's contact on a rod
     substep_fraction: float = 0.1             # mechanics step <= this x min(R_T, smallest object radius)
+    # {x0, y0, x1, y1 (m, afm_task frame), substrate_friction_scale, mu_tip_substrate_scale}:
+    # inside, F_c (spheres; rods per length) and mu_ts are scaled (see the module docstring)
+    friction_regions: list = field(default_factory=list)
+    stick_slip_enabled: bool = False          # tip-substrate friction as a stick-slip saw-tooth
+    static_friction_ratio: float = 1.5        # static / kinetic tip-substrate friction (>= 1; 1: no saw-tooth)
+    stick_slip_stiffness: float = 0.05        # N/m, lateral contact stiffness of the spring-slider
 
     def __post_init__(self):
         positive = ("tip_radius", "normal_spring_constant", "lateral_spring_constant", "tip_height")
@@ -126,6 +150,101 @@ class ContactParams:
                 raise ValueError(f"ContactParams.{name} = {getattr(self, name)} must be >= 0")
         if not 0 < self.substep_fraction <= 0.5:
             raise ValueError(f"ContactParams.substep_fraction = {self.substep_fraction} must be in (0, 0.5]")
+        if not (math.isfinite(self.static_friction_ratio) and self.static_friction_ratio >= 1):
+            raise ValueError(f"contact.static_friction_ratio={self.static_friction_ratio}: must be finite and >= 1 "
+                             "(static over kinetic friction)")
+        if not (math.isfinite(self.stick_slip_stiffness) and self.stick_slip_stiffness > 0):
+            raise ValueError(f"contact.stick_slip_stiffness={self.stick_slip_stiffness}: must be finite and > 0 (N/m)")
+        self.friction_regions = [_checked_region(region, i) for i, region in enumerate(self.friction_regions)]
+
+
+_REGION_BOUNDS = ("x0", "y0", "x1", "y1")
+_REGION_SCALES = ("substrate_friction_scale", "mu_tip_substrate_scale")
+
+
+def _checked_region(region, index: int) -> dict:
+    """A friction region as a dict of floats (scales default to 1); errors name the key."""
+    where = f"contact.friction_regions[{index}]"
+    if not isinstance(region, dict):
+        raise ValueError(f"{where}={region!r}: expected a mapping {{x0, y0, x1, y1, substrate_friction_scale, "
+                         "mu_tip_substrate_scale}")
+    unknown = sorted(set(region) - set(_REGION_BOUNDS + _REGION_SCALES))
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {unknown}; known: {list(_REGION_BOUNDS + _REGION_SCALES)}")
+    missing = [key for key in _REGION_BOUNDS if key not in region]
+    if missing:
+        raise ValueError(f"{where}: missing {missing} (m, afm_task frame)")
+    out = {}
+    for key in _REGION_BOUNDS + _REGION_SCALES:
+        value = region.get(key, 1.0)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ValueError(f"{where}.{key}={value!r}: expected a finite number")
+        if key in _REGION_SCALES and value < 0:
+            raise ValueError(f"{where}.{key}={value!r}: must be >= 0")
+        out[key] = float(value)
+    if not (out["x1"] > out["x0"] and out["y1"] > out["y0"]):
+        raise ValueError(f"{where}: need x1 > x0 and y1 > y0, got x {out['x0']}..{out['x1']}, "
+                         f"y {out['y0']}..{out['y1']}")
+    return out
+
+
+class FrictionMap:
+    """Friction scales of the substrate at points: the product of the scales of the regions
+    containing each point (1 outside every region)."""
+
+    def __init__(self, regions: list[dict]):
+        self.regions = [(r["x0"], r["x1"], r["y0"], r["y1"], r["substrate_friction_scale"],
+                         r["mu_tip_substrate_scale"]) for r in regions]
+
+    def scales(self, x, y, which: int) -> np.ndarray:
+        """Vectorised; which = 0: the objects' substrate friction, 1: the tip's."""
+        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        out = np.ones(np.broadcast(x, y).shape)
+        for region in self.regions:
+            x0, x1, y0, y1 = region[:4]
+            out = np.where((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1), out * region[4 + which], out)
+        return out
+
+    def scale(self, x: float, y: float, which: int) -> float:
+        """One point in pure Python (the mechanics steps)."""
+        out = 1.0
+        for region in self.regions:
+            if region[0] <= x <= region[1] and region[2] <= y <= region[3]:
+                out *= region[4 + which]
+        return out
+
+
+@dataclass
+class StickSlipState:
+    """The tip-substrate contact's spring, carried between the pieces a contact move is fed in."""
+    force: float = 0.0                  # N, spring force (0: the tip has just landed)
+    x: float | None = None              # m, last tip position (sample frame); None: no sample yet
+    y: float | None = None
+
+
+def stick_slip_force(x: np.ndarray, y: np.ndarray, kinetic: np.ndarray, ratio: float, stiffness: float,
+                     state: StickSlipState) -> np.ndarray:
+    """Lateral force (N) of a 1-D spring-slider at the tip positions (x, y): the spring loads
+    by stiffness x distance travelled; where it exceeds the static friction ratio x kinetic it
+    slips back to the kinetic level and loads again over the rest of the step (so the
+    saw-tooth's period is exact, not rounded to samples). kinetic: the kinetic friction (N) per
+    sample. Updates `state`."""
+    n = x.size
+    if n == 0:
+        return np.zeros(0)
+    first = 0.0 if state.x is None else math.hypot(float(x[0]) - state.x, float(y[0]) - state.y)
+    travel = np.concatenate([[first], np.hypot(np.diff(x), np.diff(y))]).tolist()
+    force = state.force
+    out = []
+    for ds, level in zip(travel, kinetic.tolist()):
+        force += stiffness * ds
+        static = ratio * level
+        if force > static:
+            drop = static - level
+            force = level + (math.fmod(force - static, drop) if drop > 0 else 0.0)
+        out.append(force)
+    state.force, state.x, state.y = force, float(x[-1]), float(y[-1])
+    return np.array(out)
 
 
 @dataclass
@@ -379,8 +498,9 @@ _DETAILED_STEPS_AFTER_CONTACT = 16
 
 
 class _World:
-    def __init__(self, sample: Sample, params: ContactParams):
+    def __init__(self, sample: Sample, params: ContactParams, friction: FrictionMap | None = None):
         self.p = params
+        self.friction = friction          # None: uniform friction (the default, exactly as before regions)
         self.objs = sample.movable
         self.is_rod = [isinstance(o, Rod) for o in self.objs]
         self.bl = [self._bounds_of(i) for i in range(len(self.objs))]     # (x0, x1, y0, y1)
@@ -725,7 +845,10 @@ class _World:
             o = self.objs[i]
             if not self.is_rod[i]:
                 dist = math.hypot(o.x - x, o.y - y)
-                energy += (p.substrate_friction_force + p.viscous_coefficient * dist / dt) * dist
+                coulomb = p.substrate_friction_force
+                if self.friction is not None:
+                    coulomb *= self.friction.scale(0.5 * (o.x + x), 0.5 * (o.y + y), 0)
+                energy += (coulomb + p.viscous_coefficient * dist / dt) * dist
                 continue
             c0, s0, c1, s1 = math.cos(ang), math.sin(ang), math.cos(o.angle), math.sin(o.angle)
             k = 8
@@ -734,7 +857,10 @@ class _World:
                 s = (j / k - 0.5) * o.length
                 w = 0.5 if j in (0, k) else 1.0
                 dd = math.hypot(o.x - x + s * (c1 - c0), o.y - y + s * (s1 - s0))
-                coulomb += w * dd
+                # this point's friction scale, midway along its step (x 1.0 is exact: no regions, no change)
+                scale = 1.0 if self.friction is None else self.friction.scale(
+                    0.5 * (o.x + x + s * (c0 + c1)), 0.5 * (o.y + y + s * (s0 + s1)), 0)
+                coulomb += w * scale * dd
                 viscous += w * dd * dd
             ds = o.length / k if o.length > 0 else 1.0
             energy += (p.rod_friction_per_length * coulomb + p.rod_viscous_per_length * viscous / dt) * ds
@@ -802,11 +928,22 @@ def _mechanics_vertices(x, y, h):
     return vx, vy, vt, sample_step
 
 
+def _tip_substrate_scales(friction: FrictionMap, x: np.ndarray, y: np.ndarray, x_before: float | None,
+                          y_before: float | None) -> np.ndarray:
+    """The tip friction scale for each sample, at the middle of the step into it (the first
+    sample's step starts at (x_before, y_before), or at the sample itself)."""
+    px = np.concatenate([[x[0] if x_before is None else x_before], x[:-1]])
+    py = np.concatenate([[y[0] if y_before is None else y_before], y[:-1]])
+    return friction.scales(0.5 * (px + x), 0.5 * (py + y), 1)
+
+
 def push_along_path(sample: Sample, path_x: np.ndarray, path_y: np.ndarray, dt: float,
-                    params: ContactParams) -> PushStepResult:
+                    params: ContactParams, stick_slip: StickSlipState | None = None) -> PushStepResult:
     """Move the tip through the true positions (path_x[k], path_y[k]) (sample frame, m), one
     every dt seconds, in contact with the substrate; push the sample's movable objects in
-    place. Returns the ids of the objects that moved and the force trace per sample."""
+    place. Returns the ids of the objects that moved and the force trace per sample.
+    stick_slip: the tip-substrate spring to continue from when params.stick_slip_enabled
+    (updated in place; default: a relaxed spring, the tip just landed)."""
     x = np.asarray(path_x, dtype=float).ravel()
     y = np.asarray(path_y, dtype=float).ravel()
     if x.shape != y.shape:
@@ -819,7 +956,19 @@ def push_along_path(sample: Sample, path_x: np.ndarray, path_y: np.ndarray, dt: 
     if n == 0:
         empty = np.zeros(0)
         return PushStepResult([], empty, deflection, empty.copy())
-    world = _World(sample, p)
+    friction = FrictionMap(p.friction_regions) if p.friction_regions else None
+    if p.stick_slip_enabled and stick_slip is None:
+        stick_slip = StickSlipState()
+    before = (stick_slip.x, stick_slip.y) if stick_slip is not None else (None, None)
+
+    def sliding_per_sample() -> np.ndarray:
+        """The stick-slip saw-tooth of the tip-substrate force per sample (stick-slip on)."""
+        kinetic = np.full(n, p.mu_tip_substrate * p.normal_force)
+        if friction is not None:
+            kinetic = kinetic * _tip_substrate_scales(friction, x, y, *before)
+        return stick_slip_force(x, y, kinetic, p.static_friction_ratio, p.stick_slip_stiffness, stick_slip)
+
+    world = _World(sample, p, friction)
     reach = p.tip_radius + 2 * max((hb[1] - hb[0]) + (hb[3] - hb[2]) for hb in world.bl) if world.bl else 0.0
     near = world.query_all(x.min() - reach, x.max() + reach, y.min() - reach, y.max() + reach)
     h = p.substep_fraction * min([p.tip_radius, *(world.objs[i].radius for i in near if world.objs[i].radius > 0)])
@@ -848,17 +997,30 @@ def push_along_path(sample: Sample, path_x: np.ndarray, path_y: np.ndarray, dt: 
             world.resolve(pushed, x0, y0)
     sliding = p.mu_tip_substrate * p.normal_force
     if n == 1 or not world.objs:
-        forces = np.zeros(n)
-        if n > 1:
-            moving = np.concatenate([[False], np.hypot(np.diff(x), np.diff(y)) > 0])
-            moving[0] = moving[1]
-            forces[moving] = sliding
+        if p.stick_slip_enabled:
+            forces = sliding_per_sample()
+        else:
+            forces = np.zeros(n)
+            if n > 1:
+                moving = np.concatenate([[False], np.hypot(np.diff(x), np.diff(y)) > 0])
+                moving[0] = moving[1]
+                if friction is None:
+                    forces[moving] = sliding
+                else:
+                    scales = _tip_substrate_scales(friction, x, y, None, None)
+                    scales[0] = scales[1]
+                    forces[moving] = sliding * scales[moving]
         return PushStepResult([], forces, deflection, forces * p.tip_height / p.lateral_spring_constant)
 
     X, Y, T, sample_step = _mechanics_vertices(x, y, h)
     m = X.size
     lengths = np.concatenate([[0.0], np.hypot(np.diff(X), np.diff(Y))])
-    step_force = np.where(lengths > 0, sliding, 0.0)
+    if friction is None:
+        tip_force = np.where(lengths > 0, sliding, 0.0)
+    else:                       # scaled at the middle of each step
+        mid_scale = friction.scales(0.5 * (X[:-1] + X[1:]), 0.5 * (Y[:-1] + Y[1:]), 1)
+        tip_force = np.where(lengths > 0, sliding * np.concatenate([[1.0], mid_scale]), 0.0)
+    object_force = np.zeros(m)          # N, the pushed objects' dissipation per unit tip travel
     Xl, Yl, Tl, Ll = X.tolist(), Y.tolist(), T.tolist(), lengths.tolist()
     j = 1
     detailed_until = 0
@@ -880,13 +1042,20 @@ def push_along_path(sample: Sample, path_x: np.ndarray, path_y: np.ndarray, dt: 
         world.prev_x, world.prev_y = Xl[j - 1], Yl[j - 1]
         energy, contact = world.step(Xl[j], Yl[j], length, (Tl[j] - Tl[j - 1]) * dt)
         if length > 0:
-            step_force[j] = sliding + energy / length
+            object_force[j] = energy / length
         if contact or world.snap:
             detailed_until = j + _DETAILED_STEPS_AFTER_CONTACT
         j += 1
 
-    forces = step_force[sample_step]
-    if n > 1:
-        forces[0] = forces[1]
+    if p.stick_slip_enabled:
+        forces = object_force[sample_step]
+        if n > 1:
+            forces[0] = forces[1]
+        forces = forces + sliding_per_sample()
+    else:
+        # (tip + objects, summed per step in this order: the same arithmetic as ever)
+        forces = (tip_force + object_force)[sample_step]
+        if n > 1:
+            forces[0] = forces[1]
     moved = [world.objs[i].id for i in world.touched_order if world._pose(i) != world.initial[i]]
     return PushStepResult(moved, forces, deflection, forces * p.tip_height / p.lateral_spring_constant)
