@@ -8,9 +8,14 @@ What is measured
      via landmark:  x0 -> x1 (-1.245, -0.645) -> horizontal line through the particle at
                     (0.801, -0.684) (r = 100 nm) -> vertical line through it (scanning down)
                     -> x7 (estimate's x, -1.471) -> x8
-     via landmark, line to x7: the same, but the vertical line is continued down to
+     via landmark, straight: the same two lines, then one straight free move x6 -> x8, as
+                    our graph does it (the Localize action's two lines, then the nano-hand's or
+                    the planner's move to the task point): the positioning noise of a free move
+                    grows with its length (sigma^2 = a d + b), so one diagonal move after the
+                    last update leaves less than the book's two axis-aligned ones
+     via landmark, line to x7: the book's lines, but the vertical line is continued down to
                     x7 = (particle x, x8 y), so x6 -> x7 is scan-line motion, not a free move
-   All free moves are axis-aligned, as in the book. Per trial: a fresh simulator (own seed:
+   The book's free moves are axis-aligned. Per trial: a fresh simulator (own seed:
    positioning noise, drift velocity, sensor noise), the tip moved to x0 and left 250 s to
    settle (creep), then the localizer starts there with the book's assumed initial
    distribution, sigma (13, 16) nm (Table 7.1 x0), its mean drawn from N(truth, P0).
@@ -205,12 +210,13 @@ def _start_at(sim: SimulatedAfm, point: np.ndarray, calibration: Calibration, p0
                      sample_spacing=LINE_SAMPLE_SPACING)
 
 
-MODES_71_72 = ("direct", "via_landmark", "via_landmark_line_to_x7")
+MODES_71_72 = ("direct", "via_landmark", "via_landmark_straight", "via_landmark_line_to_x7")
 
 
 def table_71_72_trial(seed: int, calibration: Calibration, mode: str) -> dict:
     """mode: "direct" (x0 -> xd_1 -> x8), "via_landmark" (book path: horizontal and vertical
     line through the particle, each ending clear of it, then free moves x6 -> x7 -> x8) or
+    "via_landmark_straight" (the same lines, then one straight move x6 -> x8) or
     "via_landmark_line_to_x7" (the vertical line is continued down to x7 = (particle x, x8 y),
     so x6 -> x7 is scan-line motion, not a free move; then x7 -> x8)."""
     rng = np.random.default_rng(10_000 + seed)
@@ -225,14 +231,14 @@ def table_71_72_trial(seed: int, calibration: Calibration, mode: str) -> dict:
         map_cov = np.diag(np.square(calibration.map_sigma))
         landmark = MapLandmark(*rng.multivariate_normal(particle, map_cov), map_cov, PARTICLE_RADIUS)
         loc.move_to(*(CENTRE + BOOK["x1"]))
-        if mode == "via_landmark":
-            result = loc.observe_landmark(landmark)
-            lines = [(line.axis, line.status, line.mahalanobis) for line in result.lines]
-            loc.move_to(loc.mean[0], target[1])
-        else:
+        if mode == "via_landmark_line_to_x7":
             result = [loc.observe_line(landmark, "x", 1.0),
                       loc.observe_line(landmark, "y", -1.0, after=landmark.y - target[1])]
-            lines = [(line.axis, line.status, line.mahalanobis) for line in result]
+        else:
+            result = loc.observe_landmark(landmark).lines
+        lines = [(line.axis, line.status, line.mahalanobis) for line in result]
+        if mode == "via_landmark":
+            loc.move_to(loc.mean[0], target[1])
     else:
         loc.move_to(*(CENTRE + BOOK["xd_1"]))
         loc.move_to(target[0], loc.mean[1])
