@@ -23,6 +23,7 @@ setup(
         "console_scripts": [
             'recorder = afm_bringup.recorder_node:main',
             'replay = afm_bringup.replay_node:main',
+            'sim2real = afm_bringup.sim2real_node:main',
             'afm = afm_bringup.cli:main',
         ],
     },

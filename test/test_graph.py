@@ -47,7 +47,8 @@ def test_launch_records_and_stops_cleanly(tmp_path):
         afm.scan(origin=(54.5e-6, 54.5e-6), size=(1e-6, 1e-6), pixels=(32, 32))
     time.sleep(1.0)
     logs = sorted(p.name for p in (tmp_path / "logs").iterdir())
-    assert logs == ["driver.log", "imaging.log", "localizer.log", "nano_hand.log", "planner.log", "recorder.log"]
+    assert logs == ["driver.log", "imaging.log", "localizer.log", "nano_hand.log", "planner.log", "recorder.log",
+                    "sim2real.log"]
     launch.send_signal(signal.SIGINT)
     launch.wait(timeout=60)
     assert launch.returncode == 0, b"".join(lines).decode()
@@ -62,7 +63,8 @@ def test_cli_help_and_info(tmp_path):
     from test_recording_files import write_session
     top = subprocess.run(AFM + ["--help"], capture_output=True, text=True)
     assert top.returncode == 0
-    for command in ("run", "launch", "record", "replay", "info", "recover", "scan", "push", "demo"):
+    for command in ("run", "launch", "record", "replay", "info", "recover", "scan", "push", "demo", "calibrate",
+                    "sim2real"):
         assert command in top.stdout
         sub = subprocess.run(AFM + [command, "--help"], capture_output=True, text=True)
         assert sub.returncode == 0 and "usage: afm " + command in sub.stdout

@@ -48,6 +48,8 @@ def cmd_launch(args):
         overrides.setdefault(node, {})[name] = value
     if args.record:
         graph.start("recorder", {"output": args.record})
+        if "sim2real" in nodes:
+            overrides.setdefault("sim2real", {}).setdefault("live_recording", args.record)
     for node in nodes:
         graph.start(node, overrides.get(node))
     if args.record:
@@ -198,6 +200,29 @@ def cmd_calibrate(args):
     return 0
 
 
+def cmd_sim2real(args):
+    from afm_core.sim2real.diagnose import run_sim2real
+    report = Path(args.report)
+    if report.exists() and any(report.iterdir()) and not args.overwrite:
+        sys.exit(f"afm sim2real: --report {report} is not empty (use --overwrite to write into it)")
+
+    def progress(phase):
+        if args.verbose:
+            print(f"  {phase}", file=sys.stderr, flush=True)
+
+    try:
+        diagnosis = run_sim2real(args.recording, args.model or None, report, progress=progress)
+    except (ValueError, OSError, RuntimeError) as exc:
+        sys.exit(f"afm sim2real: {exc}")
+    print(diagnosis.summary())
+    if diagnosis.chosen and diagnosis.heldout:
+        held = diagnosis.heldout
+        print(f"held-out operations: chi2 {held['chi2_before']:.1f} -> {held['chi2_after']:.1f} for {held['dof']} dof")
+    print(f"report: {report / 'report.md'}" + (f"; updated simulator configuration: {report / 'updated_config.yaml'}"
+                                               if (report / "updated_config.yaml").is_file() else ""))
+    return 0
+
+
 def cmd_demo(args):
     from afm_bringup.demo import run_demo
     return run_demo(Path(args.output))
@@ -302,6 +327,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pairs", type=int, default=100, help="frame-up/down pairs for the drift statistics, one an hour")
     p.add_argument("--report", default="", help="also write every experiment's fitted parameters as JSON here")
     p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("sim2real", help="where a recording and the simulator differ, which physics is missing, "
+                                        "the fitted term and its held-out improvement",
+                       description="Re-run a recording's commands in the simulator (--model), compare every "
+                                   "measurement against the noise model, rank candidate physics the model lacks "
+                                   "by held-out evidence, fit the chosen term and write report.md, plots and "
+                                   "updated_config.yaml into --report. Our recorder's files and rosbag2 MCAP both "
+                                   "work; no ROS needed.")
+    p.add_argument("recording", help="MCAP recording (needs /afm/tip_command and the measurements)")
+    p.add_argument("--model", default="", help="simulator configuration YAML (default: the simulator's defaults)")
+    p.add_argument("--report", required=True, help="folder for the report (created)")
+    p.add_argument("--overwrite", action="store_true", help="write into a non-empty report folder")
+    p.add_argument("--verbose", "-v", action="store_true", help="print each analysis step")
+    p.set_defaults(func=cmd_sim2real)
 
     p = sub.add_parser("demo", help="the main job: run the graph end to end and write a report",
                        description="Start the graph on the simulated instrument, do what the graph can do, "

@@ -22,7 +22,7 @@ from rclpy.node import Node
 from afm_bringup import topics
 from afm_bringup.action_client import SafeActionClient
 from afm_bringup.qos_profiles import FEEDBACK
-from afm_msgs.action import Assemble, Indent, LocalScan, Localize, MoveTip, PushParticle, ScanImage
+from afm_msgs.action import Assemble, Indent, LocalScan, Localize, MoveTip, PushParticle, ScanImage, Sim2Real
 
 
 class AfmError(RuntimeError):
@@ -72,6 +72,7 @@ class AfmCommander:
         "localize": (Localize, topics.ACTION_LOCALIZE),
         "push_particle": (PushParticle, topics.ACTION_PUSH_PARTICLE),
         "assemble": (Assemble, topics.ACTION_ASSEMBLE),
+        "sim2real": (Sim2Real, topics.ACTION_SIM2REAL),
     }
 
     def __init__(self, node_name: str = "afm_commander", server_timeout: float = 10.0):

@@ -25,8 +25,9 @@ NODES = {
     "nano_hand": NodeSpec("afm_manipulation.nano_hand_node", "afm_manipulation", "nano_hand.yaml"),
     "recorder": NodeSpec("afm_bringup.recorder_node", "afm_bringup", "recorder.yaml"),
     "replay": NodeSpec("afm_bringup.replay_node", "afm_bringup", "replay.yaml"),
+    "sim2real": NodeSpec("afm_bringup.sim2real_node", "afm_bringup", "sim2real.yaml"),
 }
-GRAPH = ["driver", "imaging", "localizer", "planner", "nano_hand"]
+GRAPH = ["driver", "imaging", "localizer", "planner", "nano_hand", "sim2real"]
 
 
 def default_params_file(name: str) -> Path | None:

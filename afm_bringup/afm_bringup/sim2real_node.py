@@ -1,0 +1,127 @@
+"""Sim-to-real node: the action /afm/sim2real runs afm_core.sim2real.run_sim2real on a
+recording, by default on what the graph's own recorder has written so far.
+
+A live recording is still `NAME.mcap.part` (the recorder renames it when it closes); the
+node copies its complete chunks into a snapshot (afm_core.recording.recover_recording) and
+diagnoses that, so the recorder is never disturbed. All the analysis is in the core
+library; this node only resolves paths, reports the phase as feedback and turns a cancel
+request into a clean stop between analysis steps.
+"""
+from __future__ import annotations
+
+import math
+import threading
+from datetime import datetime
+from pathlib import Path
+
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+
+from afm_bringup import topics
+from afm_bringup.node_main import run
+from afm_bringup.params import declare
+from afm_msgs.action import Sim2Real
+
+PARAMETERS = [
+    ("model", "", "simulator configuration YAML the recording is compared with ('' = the simulator's defaults)"),
+    ("live_recording", "", "the graph recorder's output file (its `output` parameter); a goal with an empty "
+                           "`recording` diagnoses a snapshot of it"),
+    ("report_root", "sim2real_reports", "folder under which a goal without `report_dir` gets a new report folder"),
+]
+
+
+class Cancelled(Exception):
+    """The client cancelled the goal; raised from the progress callback between steps."""
+
+
+class Sim2RealNode(Node):
+    def __init__(self):
+        super().__init__("sim2real")
+        self.config = declare(self, PARAMETERS)
+        self._busy = threading.Lock()      # one diagnosis at a time: each takes both cores for a while
+        ActionServer(self, Sim2Real, topics.ACTION_SIM2REAL, self.execute, callback_group=ReentrantCallbackGroup(),
+                     goal_callback=self.accept, cancel_callback=lambda _g: CancelResponse.ACCEPT)
+
+    def accept(self, _goal) -> GoalResponse:
+        return GoalResponse.REJECT if self._busy.locked() else GoalResponse.ACCEPT
+
+    def recording_for(self, goal) -> tuple[Path, str]:
+        """(file to diagnose, note); raises ValueError naming what is missing."""
+        from afm_core.recording import recover_recording
+        if goal.recording:
+            path = Path(goal.recording)
+            if not path.is_file():
+                raise ValueError(f"recording={goal.recording!r}: no such file")
+            return path, ""
+        live = self.config["live_recording"]
+        if not live:
+            raise ValueError("recording is empty and the node's live_recording parameter is not set: "
+                             "name a recording, or start the node with live_recording = the recorder's output")
+        live = Path(live)
+        part = live.with_name(live.name + ".part")
+        if live.is_file():
+            return live, ""
+        if not part.is_file():
+            raise ValueError(f"live_recording={str(live)!r}: neither it nor {part.name} exists (is the recorder running?)")
+        stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+        snapshot, count = recover_recording(part, part.with_name(f"{live.stem}.snapshot-{stamp}.mcap"))
+        return snapshot, f"snapshot of {part.name} ({count} messages)"
+
+    def execute(self, goal_handle) -> Sim2Real.Result:
+        from afm_core.sim2real.diagnose import run_sim2real
+        goal, result = goal_handle.request, Sim2Real.Result()
+        result.heldout_reduction = math.nan
+        if not self._busy.acquire(blocking=False):
+            goal_handle.abort()
+            result.message = "refused: another diagnosis is running"
+            return result
+        try:
+            try:
+                recording, note = self.recording_for(goal)
+            except ValueError as exc:
+                goal_handle.abort()
+                result.message = f"refused: {exc}"
+                return result
+            model = goal.model or self.config["model"] or None
+            report_dir = Path(goal.report_dir) if goal.report_dir else (
+                Path(self.config["report_root"]) / datetime.now().strftime("%Y%m%d-%H%M%S-%f"))
+
+            def progress(phase: str) -> None:
+                if goal_handle.is_cancel_requested:
+                    raise Cancelled()
+                goal_handle.publish_feedback(Sim2Real.Feedback(phase=str(phase)))
+
+            try:
+                diagnosis = run_sim2real(recording, model, report_dir, progress=progress)
+            except Cancelled:
+                goal_handle.canceled()
+                result.message = "cancelled; nothing written beyond what the report folder already had"
+                return result
+            except (ValueError, OSError, RuntimeError) as exc:
+                goal_handle.abort()
+                result.message = f"failed: {exc}"
+                return result
+            result.success = True
+            result.missing_physics = diagnosis.missing_physics
+            by_name = {c.name: c for c in diagnosis.candidates}
+            result.effects = [by_name[name].words for name in diagnosis.chosen if name in by_name]
+            result.summary = diagnosis.summary()
+            result.report = str(report_dir / "report.md")
+            updated = report_dir / "updated_config.yaml"
+            result.updated_config = str(updated) if updated.is_file() else ""
+            reduction = diagnosis.heldout.get("excess_reduction") if diagnosis.chosen else None
+            result.heldout_reduction = float(reduction) if reduction is not None else math.nan
+            result.message = "; ".join(part for part in (note, f"report in {report_dir}") if part)
+            goal_handle.succeed()
+            return result
+        finally:
+            self._busy.release()
+
+
+def main(args=None):
+    return run(Sim2RealNode, "sim2real", args, threads=2)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
