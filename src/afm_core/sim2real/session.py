@@ -339,7 +339,8 @@ class RecordingInstrument:
     _OWN = frozenset({"_instrument", "_writer", "_truth", "_commands"})
 
     def __init__(self, instrument, path: str | os.PathLike, truth: bool = True, *,
-                 epoch_ns: Optional[int] = None, compression: str = "zstd"):
+                 epoch_ns: Optional[int] = None, compression: str = "zstd",
+                 chunk_size: int = 4 * 1024 * 1024):
         first_truth = None
         if truth and callable(getattr(instrument, "truth", None)):
             try:                # the driver publishes the truth at start-up: so do we, first
@@ -350,7 +351,7 @@ class RecordingInstrument:
         object.__setattr__(self, "_commands", 0)
         object.__setattr__(self, "_truth", first_truth is not None)
         object.__setattr__(self, "_writer", SessionWriter(path, epoch_ns=epoch_ns, truth=self._truth,
-                                                          compression=compression))
+                                                          compression=compression, chunk_size=chunk_size))
         if first_truth is not None:
             self._writer.write_truth(first_truth)
 

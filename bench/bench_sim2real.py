@@ -1,0 +1,316 @@
+"""Sim-to-real diagnosis (issue 8) on a suite of recordings with concealed physics.
+
+The suite (`suite()`, code + seeds, no files committed): each case records the diagnostic
+protocol (`afm_core.sim2real.protocol.run_protocol`) through `RecordingInstrument` (MCAP, as
+the driver writes it) on a simulator whose configuration differs from the model in one
+effect, drawn per seed within a realistic range (sign and magnitude random), or in nothing
+(null cases: the model is the truth, only the random seed differs). Then the real entry
+point, `run_sim2real(recording, model.yaml, report_dir)`, diagnoses it.
+
+Categories (issue 8's list):
+- null: nothing missing (a third of the suite);
+- small: an effect below the noise of any single measurement but systematic (drift ramp,
+  z-sensor gain, latency, tip asymmetry, bow);
+- masked: under a larger modelled effect (creep change under the modelled drift and its
+  wander; hysteresis asymmetry under the symmetric loop width);
+- confounded: drift velocity vs creep (both grow with time, only creep with dwell after a
+  move): a drift-velocity case and a creep case, each must not be named as the other;
+- conditional: present only in some conditions (tip wear: only after contact sliding;
+  friction: only in contact);
+- one case per remaining candidate (coupling, rotation, tip radius, stick-slip).
+
+Metrics: top-1 identification accuracy on positive cases (the first chosen term is the
+injected one), false "missing physics" rate on null cases, parameter error of the named term
+(|fitted - true| / |true - model| over the term's parameters, vector norm), held-out residual
+reduction (the diagnosis' held-out excess chi^2 removed by the fit, on positive cases where
+the right term was chosen), run time per recording (run_sim2real wall time) and peak memory.
+Targets (issue 8): >= 90 %, <= 5 %, <= 20 %, >= 50 %, <= 2 min.
+
+Run: `scripts/with_env.sh python bench/bench_sim2real.py [--quick] [--workers 2] [--cases name,...]`.
+Results: bench/results/sim2real.json and .md (sim2real-quick.* with --quick). Two workers
+share the machine's two cores, so each recording's time is measured under that load.
+"""
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import resource  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from concurrent.futures import ProcessPoolExecutor  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from datetime import datetime, timezone  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import cpu_model  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+@dataclass
+class Case:
+    name: str
+    category: str
+    seed: int
+    overrides: dict = field(default_factory=dict)        # the truth's config on top of the model's
+    expected: str | None = None                          # candidate name, None = nothing missing
+    truth: dict = field(default_factory=dict)            # parameter key -> true value (model's: nominal)
+
+
+def _sign(rng) -> float:
+    return 1.0 if rng.random() < 0.5 else -1.0
+
+
+def suite(model) -> list[Case]:
+    """The cases; magnitudes and signs drawn from each case's own seed."""
+    cases = []
+    for k in range(10):
+        cases.append(Case(f"null-{k}", "null", 100 + k))
+
+    def add(name, category, seed, expected, draw):
+        rng = np.random.default_rng(seed)
+        overrides, truth = draw(rng)
+        cases.append(Case(name, category, seed, overrides, expected, truth))
+
+    scanner, drift, tip, noise, contact = model.scanner, model.drift, model.tip, model.noise, model.contact
+    for k in range(2):
+        def drift_ramp(rng):
+            a = [_sign(rng) * rng.uniform(1e-13, 4e-13), _sign(rng) * rng.uniform(0.0, 2e-13)]
+            return {"drift": {"acceleration_x": a[0], "acceleration_y": a[1]}}, \
+                {"drift.acceleration_x": a[0], "drift.acceleration_y": a[1]}
+        add(f"drift_ramp-{k}", "small", 200 + k, "drift_ramp", drift_ramp)
+
+        def gain(rng):
+            g = 1.0 + _sign(rng) * rng.uniform(0.02, 0.06)
+            return {"noise": {"height_gain": g}}, {"noise.height_gain": g}
+        add(f"height_gain-{k}", "small", 210 + k, "height_gain", gain)
+
+        def latency(rng):
+            lag = rng.uniform(2e-3, 6e-3)
+            return {"noise": {"sensor_latency": lag}}, {"noise.sensor_latency": lag}
+        add(f"latency-{k}", "small", 220 + k, "latency", latency)
+
+        def creep(rng):
+            factor = rng.choice([rng.uniform(1.6, 2.5), rng.uniform(0.2, 0.5)])
+            return {"scanner": {"creep_fractions": [f * factor for f in scanner.creep_fractions]}}, \
+                {"scanner.creep_fractions": factor}
+        add(f"creep_amplitude-{k}", "masked", 230 + k, "creep_amplitude", creep)
+
+        def drift_velocity(rng):
+            v = [drift.mean_velocity_x + _sign(rng) * rng.uniform(0.3e-9, 0.8e-9),
+                 drift.mean_velocity_y + _sign(rng) * rng.uniform(0.0, 0.4e-9)]
+            return {"drift": {"mean_velocity_x": v[0], "mean_velocity_y": v[1]}}, \
+                {"drift.mean_velocity_x": v[0], "drift.mean_velocity_y": v[1]}
+        add(f"drift_velocity-{k}", "confounded", 240 + k, "drift_velocity", drift_velocity)
+
+    def asymmetry(rng):
+        a = scanner.hysteresis_asymmetry + _sign(rng) * rng.uniform(0.05, 0.1)
+        return {"scanner": {"hysteresis_asymmetry": a}}, {"scanner.hysteresis_asymmetry": a}
+    add("hysteresis_asymmetry-0", "masked", 250, "hysteresis_asymmetry", asymmetry)
+
+    def wear(rng):
+        rate = rng.uniform(3e-3, 1e-2)
+        return {"tip": {"wear_enabled": True, "wear_rate": rate}}, {"tip.wear_rate": rate}
+    add("tip_wear-0", "conditional", 260, "tip_wear", wear)
+
+    def friction(rng):
+        mu = contact.mu_tip_substrate * rng.uniform(1.4, 2.0)
+        return {"contact": {"mu_tip_substrate": mu}}, {"contact.mu_tip_substrate": mu}
+    add("friction-0", "conditional", 261, "friction", friction)
+
+    def coupling(rng):
+        c = [scanner.coupling_x_to_y + _sign(rng) * rng.uniform(0.01, 0.02),
+             scanner.coupling_y_to_x + _sign(rng) * rng.uniform(0.0, 0.01)]
+        return {"scanner": {"coupling_x_to_y": c[0], "coupling_y_to_x": c[1]}}, \
+            {"scanner.coupling_x_to_y": c[0], "scanner.coupling_y_to_x": c[1]}
+    add("coupling-0", "other", 270, "coupling", coupling)
+
+    def rotation(rng):
+        d = scanner.deflection_deg + _sign(rng) * rng.uniform(0.5, 1.0)
+        return {"scanner": {"deflection_deg": d}}, {"scanner.deflection_deg": d}
+    add("rotation-0", "other", 271, "rotation", rotation)
+
+    def radius(rng):
+        r = tip.apex_radius * rng.uniform(1.2, 1.5)
+        return {"tip": {"apex_radius": r}}, {"tip.apex_radius": r}
+    add("tip_radius-0", "other", 272, "tip_radius", radius)
+
+    def tip_asymmetry(rng):
+        a = _sign(rng) * rng.uniform(0.15, 0.3)
+        return {"tip": {"asymmetry": a}}, {"tip.asymmetry": a}
+    add("tip_asymmetry-0", "small", 273, "tip_asymmetry", tip_asymmetry)
+
+    def bow(rng):
+        c = _sign(rng) * rng.uniform(5.0, 20.0)
+        return {"scanner": {"bow_curvature": c}}, {"scanner.bow_curvature": c}
+    add("bow-0", "small", 274, "bow", bow)
+
+    def stick_slip(rng):
+        ratio = rng.uniform(1.5, 2.5)
+        return {"contact": {"stick_slip_enabled": True, "static_friction_ratio": ratio}}, \
+            {"contact.static_friction_ratio": ratio}
+    add("stick_slip-0", "other", 275, "stick_slip", stick_slip)
+    return cases
+
+
+def _nominal_of(model, key: str):
+    node = model
+    for part in key.split("."):
+        node = getattr(node, part)
+    return node
+
+
+def run_case(case: Case, workdir: str) -> dict:
+    """Record the case, diagnose it through the MCAP file, score it."""
+    from afm_core.sim.config import dump_config, load_config, merge
+    from afm_core.sim.instrument import SimulatedAfm
+    from afm_core.sim2real import RecordingInstrument
+    from afm_core.sim2real.diagnose import run_sim2real
+    from afm_core.sim2real.protocol import run_protocol, session_config
+
+    folder = Path(workdir) / case.name
+    folder.mkdir(parents=True, exist_ok=True)
+    model = session_config(load_config())
+    (folder / "model.yaml").write_text(dump_config(model))
+    truth_config = merge(model, {"seed": case.seed, **case.overrides})
+    recording = RecordingInstrument(SimulatedAfm(truth_config), folder / "session.mcap")
+    run_protocol(recording, seed=case.seed)
+    recording.close()
+    started = time.perf_counter()
+    diagnosis = run_sim2real(folder / "session.mcap", folder / "model.yaml", folder / "report")
+    seconds = time.perf_counter() - started
+    chosen = list(diagnosis.chosen)
+    row = {"name": case.name, "category": case.category, "expected": case.expected, "chosen": chosen,
+           "seconds": seconds, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+           "summary": diagnosis.summary()}
+    if case.expected is None:
+        row["correct"] = not chosen
+        return row
+    row["correct"] = bool(chosen) and chosen[0] == case.expected
+    if row["correct"]:
+        true_vec, fit_vec, nominal_vec = [], [], []
+        for key, value in case.truth.items():
+            fitted = diagnosis.parameters.get(key, {}).get("value", math.nan)
+            nominal = 1.0 if key == "scanner.creep_fractions" else float(_nominal_of(model, key))
+            if key == "tip.wear_rate" and not model.tip.wear_enabled:
+                nominal = 0.0
+            if key == "contact.static_friction_ratio" and not model.contact.stick_slip_enabled:
+                nominal = 1.0
+            true_vec.append(value), fit_vec.append(fitted), nominal_vec.append(nominal)
+        true_vec, fit_vec, nominal_vec = map(np.asarray, (true_vec, fit_vec, nominal_vec))
+        row["parameter_error"] = float(np.linalg.norm(fit_vec - true_vec) / np.linalg.norm(true_vec - nominal_vec))
+        row["fitted"] = dict(zip(case.truth, fit_vec.tolist()))
+        row["true"] = case.truth
+        held = diagnosis.heldout or {}
+        row["heldout_reduction"] = float(held.get("excess_reduction", math.nan))
+        row["heldout_chi2"] = [held.get("chi2_before"), held.get("chi2_after"), held.get("dof")]
+    return row
+
+
+def summarize(rows: list[dict]) -> dict:
+    nulls = [r for r in rows if r["expected"] is None]
+    positives = [r for r in rows if r["expected"] is not None]
+    right = [r for r in positives if r["correct"]]
+    errors = [r["parameter_error"] for r in right if math.isfinite(r.get("parameter_error", math.nan))]
+    reductions = [r["heldout_reduction"] for r in right if math.isfinite(r.get("heldout_reduction", math.nan))]
+    seconds = [r["seconds"] for r in rows]
+    by_category = {}
+    for r in rows:
+        c = by_category.setdefault(r["category"], {"cases": 0, "correct": 0})
+        c["cases"] += 1
+        c["correct"] += int(r["correct"])
+    return {"recordings": len(rows), "positives": len(positives), "nulls": len(nulls),
+            "top1_accuracy": len(right) / len(positives) if positives else math.nan,
+            "false_positive_rate": sum(not r["correct"] for r in nulls) / len(nulls) if nulls else math.nan,
+            "parameter_error_median": float(np.median(errors)) if errors else math.nan,
+            "parameter_error_max": float(np.max(errors)) if errors else math.nan,
+            "parameter_error_within_20pct": sum(e <= 0.2 for e in errors) / len(errors) if errors else math.nan,
+            "heldout_reduction_median": float(np.median(reductions)) if reductions else math.nan,
+            "heldout_reduction_min": float(np.min(reductions)) if reductions else math.nan,
+            "seconds_median": float(np.median(seconds)), "seconds_max": float(np.max(seconds)),
+            "peak_rss_mib_max": float(max(r["peak_rss_mib"] for r in rows)),
+            "by_category": by_category}
+
+
+def markdown(report: dict) -> str:
+    s = report["summary"]
+    lines = [f"# Sim-to-real diagnosis on the concealed-effect suite", "",
+             f"Measured {report['measured']} on {report['machine']['cpus']} CPUs ({report['machine']['cpu']}), "
+             f"{report['workers']} workers, {report['wall_seconds']:.0f} s wall.", "",
+             "| metric | value | target |", "|---|---|---|",
+             f"| recordings (positive / null) | {s['recordings']} ({s['positives']} / {s['nulls']}) | >= 30 |",
+             f"| top-1 identification accuracy | {s['top1_accuracy']:.0%} | >= 90 % |",
+             f"| false 'missing physics' on nulls | {s['false_positive_rate']:.0%} | <= 5 % |",
+             f"| parameter error, median / max (cases within 20 %) | {s['parameter_error_median']:.0%} / "
+             f"{s['parameter_error_max']:.0%} ({s['parameter_error_within_20pct']:.0%}) | <= 20 % |",
+             f"| held-out excess residual removed, median / min | {s['heldout_reduction_median']:.0%} / "
+             f"{s['heldout_reduction_min']:.0%} | >= 50 % |",
+             f"| run time per recording, median / max | {s['seconds_median']:.0f} s / {s['seconds_max']:.0f} s | <= 120 s |",
+             f"| peak memory of a worker | {s['peak_rss_mib_max']:.0f} MiB | |", "",
+             "| case | category | injected | chosen | correct | parameter error | held-out reduction | s |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in report["cases"]:
+        error = f"{r['parameter_error']:.0%}" if "parameter_error" in r else "-"
+        reduction = f"{r['heldout_reduction']:.0%}" if "heldout_reduction" in r else "-"
+        chosen = ", ".join(r["chosen"]) or "none"
+        lines.append(f"| {r['name']} | {r['category']} | {r['expected'] or '-'} | {chosen} | "
+                     f"{'yes' if r['correct'] else '**no**'} | {error} | {reduction} | {r['seconds']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="a handful of cases")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--cases", default="", help="comma-separated case names (default: all)")
+    parser.add_argument("--keep", default="", help="keep recordings and reports in this folder")
+    args = parser.parse_args(argv)
+    from afm_core.sim.config import load_config
+    from afm_core.sim2real.protocol import session_config
+    cases = suite(session_config(load_config()))
+    if args.cases:
+        wanted = set(args.cases.split(","))
+        cases = [c for c in cases if c.name in wanted]
+    elif args.quick:
+        cases = [c for c in cases if c.name in ("null-0", "null-1", "drift_ramp-0", "creep_amplitude-0",
+                                                 "tip_radius-0", "drift_velocity-0")]
+    workdir = args.keep or tempfile.mkdtemp(prefix="sim2real-suite-")
+    started = time.perf_counter()
+    rows = []
+    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        futures = [(case, pool.submit(run_case, case, workdir)) for case in cases]
+        for case, future in futures:
+            try:
+                row = future.result()
+            except Exception as exc:  # noqa: BLE001 - a crash is a result of the bench, not its end
+                row = {"name": case.name, "category": case.category, "expected": case.expected, "chosen": [],
+                       "correct": False, "seconds": math.nan, "peak_rss_mib": math.nan, "error": repr(exc)}
+            rows.append(row)
+            print(f"{row['name']:24s} {row['category']:11s} expected {str(row['expected']):22s} chosen "
+                  f"{','.join(row['chosen']) or 'none':30s} {'ok' if row['correct'] else 'WRONG'} "
+                  f"{row.get('parameter_error', math.nan):6.2f} {row.get('heldout_reduction', math.nan):6.2f} "
+                  f"{row['seconds']:6.1f} s {row.get('error', '')}", flush=True)
+    report = {"measured": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+              "machine": {"cpus": os.cpu_count(), "cpu": cpu_model()}, "workers": args.workers,
+              "wall_seconds": time.perf_counter() - started, "summary": summarize(rows), "cases": rows,
+              "workdir": workdir if args.keep else ""}
+    name = "sim2real-quick" if args.quick or args.cases else "sim2real"
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"{name}.json").write_text(json.dumps(report, indent=2, default=str))
+    (RESULTS / f"{name}.md").write_text(markdown(report))
+    print(markdown(report))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,203 @@
+"""The library of candidate physics: simulator config keys with a microscopist's name.
+
+A candidate's parameters ARE config values (or a common factor on a list-valued key, such as
+all creep fractions), so its fitted value is written straight into the updated simulator
+configuration. Its design columns are the sensitivities of the features to those values,
+computed by re-simulating with each value stepped. A candidate whose keys the configuration
+does not have (an older simulator) is left out, and the report says so.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from afm_core.sim.config import SimConfig, merge
+
+
+@dataclass
+class Candidate:
+    name: str                      # short id
+    words: str                     # what a microscopist would call it
+    keys: list                     # dotted config keys, one per parameter
+    steps: list                    # finite-difference steps, in the parameters' units
+    units: list                    # for the report
+    scale: bool = False            # the parameter is a factor on a list-valued key (nominal 1)
+    enable: dict = field(default_factory=dict)   # dotted key -> value, set whenever the term is fitted
+    lower: list | None = None      # bounds of the parameters (None: unbounded)
+    upper: list | None = None
+    display: list | None = None    # per parameter: (factor, unit) for the report
+    # how the term acts, which decides how its design columns are computed:
+    # geometric: it moves where the scanner puts the tip (drift, scanner); the shapes of what is
+    #   measured (widths, heights) do not change at a given tip-particle geometry, and the
+    #   diagnosis compares shapes at the recorded geometry, so its columns there are zero;
+    # analytic: the columns follow in closed form from the reference ("drift_velocity",
+    #   "drift_ramp": positions move by J t, J t^2 / 2; "height_gain": heights scale; "bow":
+    #   the background curvature adds the curvature);
+    # imaging=False: only force traces change (a replay without imaging suffices).
+    geometric: bool = False
+    analytic: str = ""
+    imaging: bool = True
+    # the term cannot act unless these config values hold (dotted key -> value), e.g. an
+    # asymmetry of the hysteresis is inverted exactly by the controller's feed-forward
+    requires: dict = field(default_factory=dict)
+
+    @property
+    def size(self) -> int:
+        return len(self.keys)
+
+    def nominal(self, config: SimConfig) -> np.ndarray:
+        values = []
+        for key in self.keys:
+            if self.scale:
+                values.append(1.0)
+                continue
+            value = get_key(config, key)
+            enabled = all(get_key(config, k) == v for k, v in self.enable.items())
+            values.append(float(value) if enabled or not self.enable else self.off_value(key))
+        return np.array(values)
+
+    def off_value(self, key: str) -> float:
+        """The value meaning "absent" when the term's switch is off in the nominal config."""
+        if key.endswith("static_friction_ratio"):
+            return 1.0
+        return 0.0
+
+    def clip(self, theta) -> np.ndarray:
+        theta = np.asarray(theta, float).copy()
+        if self.lower is not None:
+            theta = np.maximum(theta, self.lower)
+        if self.upper is not None:
+            theta = np.minimum(theta, self.upper)
+        return theta
+
+    def overrides(self, config: SimConfig, theta) -> dict:
+        """Nested config overrides setting the parameters to theta."""
+        theta = self.clip(theta)
+        out: dict = {}
+        active = True
+        for key, value in zip(self.keys, theta):
+            if self.scale:
+                base = np.asarray(get_key(config, key), float)
+                set_key(out, key, [float(v) for v in base * value])
+            else:
+                set_key(out, key, float(value))
+                if key.endswith("static_friction_ratio") and value <= 1.0 + 1e-6:
+                    active = False
+                    set_key(out, key, 1.5)
+        for key, value in self.enable.items():
+            set_key(out, key, value if active else get_key(config, key))
+        return out
+
+    def apply(self, config: SimConfig, theta) -> SimConfig:
+        return merge(config, self.overrides(config, theta))
+
+
+def get_key(config, key: str):
+    node = config
+    for part in key.split("."):
+        node = node[part] if isinstance(node, dict) else getattr(node, part)
+    return node
+
+
+def has_key(config, key: str) -> bool:
+    try:
+        get_key(config, key)
+        return True
+    except (AttributeError, KeyError):
+        return False
+
+
+def set_key(tree: dict, key: str, value) -> None:
+    parts = key.split(".")
+    for part in parts[:-1]:
+        tree = tree.setdefault(part, {})
+    tree[parts[-1]] = value
+
+
+def merge_overrides(a: dict, b: dict) -> dict:
+    out = copy.deepcopy(a)
+    for key, value in b.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge_overrides(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+NM = (1e9, "nm")
+NM_S = (1e9, "nm/s")
+
+
+def library() -> list[Candidate]:
+    """Every candidate term the tool knows (filtered by `available`)."""
+    return [
+        Candidate("drift_velocity", "thermal drift: the constant drift velocity differs from the model",
+                  ["drift.mean_velocity_x", "drift.mean_velocity_y"], [5e-11, 5e-11], ["m/s", "m/s"],
+                  display=[NM_S, NM_S], geometric=True, analytic="drift_velocity"),
+        Candidate("drift_ramp", "drift ramp: the drift speeds up steadily (temperature still settling)",
+                  ["drift.acceleration_x", "drift.acceleration_y"], [1e-13, 1e-13], ["m/s^2", "m/s^2"],
+                  display=[(1e9, "nm/s^2"), (1e9, "nm/s^2")], geometric=True, analytic="drift_ramp"),
+        Candidate("creep_amplitude", "piezo creep: more (or less) creep after each move than modelled",
+                  ["scanner.creep_fractions"], [0.5], ["x nominal fractions"], scale=True, lower=[0.0],
+                  geometric=True, requires={"scanner.creep_enabled": True}),
+        Candidate("creep_time", "piezo creep: the creep time constants differ (faster/slower settling)",
+                  ["scanner.creep_time_constants"], [0.4], ["x nominal time constants"], scale=True,
+                  lower=[0.05], geometric=True, requires={"scanner.creep_enabled": True}),
+        Candidate("hysteresis_residual", "hysteresis: the controller's feed-forward leaves more (or less) of the "
+                  "loop than modelled (its calibrated loop width is off)", ["controller.model_error"], [0.05],
+                  ["relative loop-width error"], lower=[-0.9], upper=[2.0], geometric=True,
+                  requires={"controller.hysteresis_compensation": True, "scanner.hysteresis_enabled": True}),
+        Candidate("hysteresis_asymmetry", "hysteresis: ascending and descending branches differ (asymmetry)",
+                  ["scanner.hysteresis_asymmetry"], [0.05], [""], lower=[-0.8], upper=[0.8], geometric=True,
+                  # with the feed-forward on, the controller inverts the scanner's own input
+                  # function exactly: an asymmetry only shows open loop
+                  requires={"controller.hysteresis_compensation": False, "scanner.hysteresis_enabled": True}),
+        Candidate("hysteresis_width", "hysteresis: the loop is wider/narrower than calibrated",
+                  ["scanner.hysteresis_fraction"], [0.01], ["of range"], lower=[0.0], upper=[0.33], geometric=True,
+                  requires={"scanner.hysteresis_enabled": True}),
+        Candidate("coupling", "x/y cross-coupling of the scanner tube",
+                  ["scanner.coupling_x_to_y", "scanner.coupling_y_to_x"], [0.005, 0.005], ["", ""],
+                  enable={"scanner.coupling_enabled": True}, lower=[-0.5, -0.5], upper=[0.5, 0.5], geometric=True),
+        Candidate("rotation", "scan-line rotation (the scan axes are rotated)", ["scanner.deflection_deg"], [0.3],
+                  ["deg"], enable={"scanner.deflection_enabled": True}, geometric=True),
+        Candidate("bow", "scanner bow (the image background is curved)", ["scanner.bow_curvature"], [5.0],
+                  ["1/m"], lower=[-300.0], upper=[300.0], analytic="bow"),
+        Candidate("tip_radius", "tip radius: the tip is blunter/sharper than modelled", ["tip.apex_radius"], [4e-9],
+                  ["m"], lower=[1e-9], display=[NM]),
+        Candidate("tip_wear", "tip wear: the tip blunts while sliding in contact", ["tip.wear_rate"], [5e-4],
+                  ["m per m slid"], enable={"tip.wear_enabled": True}, lower=[0.0]),
+        Candidate("tip_asymmetry", "tip asymmetry: one flank of the tip is blunter", ["tip.asymmetry"], [0.15],
+                  [""], lower=[-0.9], upper=[0.9]),
+        Candidate("friction", "tip-substrate friction coefficient differs", ["contact.mu_tip_substrate"], [0.02],
+                  [""], lower=[0.0], imaging=False),
+        Candidate("stick_slip", "stick-slip: the tip sticks and slips while sliding",
+                  ["contact.static_friction_ratio"], [0.3], ["static/kinetic"],
+                  enable={"contact.stick_slip_enabled": True}, lower=[1.0], imaging=False),
+        Candidate("height_gain", "z-sensor gain: heights are scaled (z calibration off)", ["noise.height_gain"],
+                  [0.02], [""], lower=[0.1], upper=[10.0], analytic="height_gain"),
+        Candidate("latency", "sensor latency: signals lag the scan position", ["noise.sensor_latency"], [3e-3],
+                  ["s"], lower=[0.0], upper=[1.0], display=[(1e3, "ms")]),
+    ]
+
+
+def available(config: SimConfig, candidates=None) -> tuple[list[Candidate], list[str]]:
+    """(candidates whose keys this config has and that can act in it, notes on the others)."""
+    candidates = library() if candidates is None else candidates
+    ok, missing = [], []
+    for candidate in candidates:
+        keys = list(candidate.keys) + list(candidate.enable) + list(candidate.requires)
+        if not all(has_key(config, key) for key in keys):
+            missing.append(candidate.name)
+        elif not all(get_key(config, key) == value for key, value in candidate.requires.items()):
+            missing.append(f"{candidate.name} (cannot act unless "
+                           + ", ".join(f"{k} = {v}" for k, v in candidate.requires.items()) + ")")
+        else:
+            ok.append(candidate)
+    return ok, missing
+
+
+def config_dict(config: SimConfig) -> dict:
+    return dataclasses.asdict(config)

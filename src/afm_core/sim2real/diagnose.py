@@ -1,0 +1,1131 @@
+"""Sim-to-real diagnosis: where a recording deviates from the nominal simulation, which physics
+is missing, its fitted parameters, and the improvement on held-out operations.
+
+Method (all SI):
+
+1. **Features** of every operation (features.py), recorded and re-simulated, compared key by
+   key.
+2. **Reference at the recorded geometry.** Drift and the random walk of the tip position move
+   the particles by up to microns over a session; a re-simulation with the model's mean drift
+   would cross them elsewhere (other widths, heights), or miss them. So the recorded positions
+   are turned into the drift trajectory D(t) that puts the particles where the recording saw
+   them: a replay without imaging gives, per measurement, where the model's scanner truly was
+   (hysteresis, creep, coupling, rotation), so D = true scanner position - the particle's
+   configured position (stage A). The reference is the deterministic re-simulation (drift
+   wander, positioning noise and sensor noise off) with that drift, plus the mean
+   noise-induced bias of nonlinear features (from re-simulations with sensor noise). Shape
+   features (widths, heights) are then compared at the recorded geometry.
+   Position features are linear in the drift: replays with D shifted by 10 nm in x and in y
+   give each feature's sensitivity J (2-vector), and the position residual against the
+   model's own mean drift D0 is r = recorded - reference + J (D(t) - D0(t)): exactly what a
+   replay with the mean drift would give, without its lost lines.
+3. **Noise model** (generalised least squares): Cov(r) = white (per feature, from K sensor-noise
+   re-simulations at the same geometry, pooled per feature group, x (1 + 1/K) for the
+   reference's own noise) + J-projected thermal-drift wander (Ornstein-Uhlenbeck velocity,
+   spread s_v, correlation time tau: Cov(D(t), D(s)) = s_v^2 tau^2 [2 min(t,s)/tau - 1 + e^-t/tau
+   + e^-s/tau - e^-|t-s|/tau]) + the J-projected persistent random walk of free moves (each
+   adds a d + b per axis) + for background-curvature features the substrate roughness (the
+   walk moves large images by more than its correlation length). Nuisance: a constant offset
+   per axis (J-projected).
+4. **Candidates** (candidates.py) = config keys; design columns = d features / d value by
+   re-simulation at the same drift trajectory (closed form for drift, z gain and bow; zero on
+   shape features for terms that only move the tip). Evidence per candidate: GLS chi^2
+   improvement over the nuisance-only model, scaled by the residual variance factor when the
+   data are noisier than modelled, tested against chi^2(p) at the Bonferroni level
+   alpha / (number of candidates) (alpha = 0.05: the false "missing physics" rate on null
+   recordings, from theory), ranked by BIC (chi^2 improvement - p ln N), and accepted only if
+   the fit also improves chi^2 on held-out blocks (2-fold: each kind of operation split in time
+   order into n_blocks chunks, alternate chunks held out, nuisance refitted on the held-out
+   part). The leaders are compared re-simulated at their refined values. A second term only if
+   it passes the same tests on top of the first.
+5. The chosen term(s) are refined by re-simulation (chord / Gauss-Newton steps), the
+   uncertainty is the GLS covariance, and the updated configuration is merged and dumped.
+6. **Held-out demonstration**: fit on one fold only, re-simulate the whole session with that
+   fit, residuals on the other fold before and after.
+"""
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+from scipy import linalg, stats
+
+from afm_core.sim.config import SimConfig, load_config, merge
+from afm_core.sim2real.candidates import Candidate, available, merge_overrides
+from afm_core.sim2real.features import POSITION_GROUPS, Feature, extract_features
+from afm_core.sim2real.protocol import TrajectoryDrift, deterministic, replay
+
+ALPHA = 0.05                       # family-wise false "missing physics" rate on null recordings
+MIN_MATCHED_FRACTION = 0.7         # of the recorded features the reference simulation must reproduce
+SHIFT = 10e-9                      # m, drift shift of the sensitivity replays
+POSITION_PRECISION = 2e-9          # m, how well a measured position pins the drift trajectory
+SHAPE_GROUPS = ("line.width", "line.peak", "line.asym", "raster.height", "raster.half_width")
+HEIGHT_GROUPS = ("line.peak", "raster.height")
+BOW_GROUPS = ("raster.bow_xx", "raster.bow_yy", "raster.bow_xy")
+PUSH_GROUPS = ("push.torsion", "push.fluct")
+
+
+class ConfigMismatchError(ValueError):
+    """The configuration does not describe the recorded session (other sample, other area)."""
+
+
+class NoFeaturesError(ValueError):
+    """The recording has nothing the diagnosis can compare (no scan lines, rasters or pushes)."""
+
+
+# -- feature tables ---------------------------------------------------------------------------
+
+@dataclass
+class Table:
+    keys: list
+    groups: np.ndarray
+    time: np.ndarray
+    xy: np.ndarray               # (N, 2)
+    u: np.ndarray                # (N, 2)
+    conditions: list
+    op_index: np.ndarray
+
+
+def _by_key(features: list[Feature]) -> dict:
+    return {f.key: f for f in features}
+
+
+def _values(features: dict, keys) -> np.ndarray:
+    return np.array([features[k].value if k in features else np.nan for k in keys])
+
+
+def _table(keys, rec: dict) -> Table:
+    fs = [rec[k] for k in keys]
+    return Table(keys=list(keys), groups=np.array([f.group for f in fs]), time=np.array([f.time for f in fs]),
+                 xy=np.array([(f.x, f.y) for f in fs]), u=np.array([f.u for f in fs], float),
+                 conditions=[f.conditions for f in fs], op_index=np.array([k[0] for k in keys]))
+
+
+# -- noise model --------------------------------------------------------------------------------
+
+def drift_covariance(t: np.ndarray, sigma: float, tau: float) -> np.ndarray:
+    """Cov(D(t_i), D(t_j)) of the integral of a stationary OU velocity (spread sigma, time tau)."""
+    t = np.maximum(np.asarray(t, float), 0.0)
+    ti, tj = t[:, None], t[None, :]
+    bracket = (2 * np.minimum(ti, tj) / tau - 1 + np.exp(-ti / tau) + np.exp(-tj / tau)
+               - np.exp(-np.abs(ti - tj) / tau))
+    return sigma ** 2 * tau ** 2 * bracket
+
+
+def positioning_covariance(t: np.ndarray, moves: list, slope: float, offset: float) -> np.ndarray:
+    """Per-axis covariance of the persistent positioning random walk at times t."""
+    if not moves:
+        return np.zeros((t.size, t.size))
+    move_t = np.array([m[0] for m in moves])
+    var = slope * np.array([m[1] for m in moves]) + offset
+    order = np.argsort(move_t)
+    cum = np.concatenate([[0.0], np.cumsum(var[order])])
+    accumulated = cum[np.searchsorted(move_t[order], t, side="right")]
+    return np.minimum.outer(accumulated, accumulated)
+
+
+@dataclass
+class NoiseModel:
+    white: np.ndarray            # per-feature variance
+    cov: np.ndarray              # full covariance
+    group_sigma: dict            # group -> pooled white sigma
+
+
+def _pooled_white(values: np.ndarray, groups: np.ndarray, shrink: float, reference: np.ndarray | None = None):
+    """Per-feature variance from K replicas (K, N): per feature, shrunk towards its group's pool."""
+    count = np.isfinite(values).sum(axis=0)
+    k = values.shape[0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.nanmean(np.where(count >= 1, values, 0.0), axis=0)
+        spread = np.where(count >= 2, np.nansum((values - mean) ** 2, axis=0) / np.maximum(count - 1, 1), np.nan)
+    size = np.abs(reference) if reference is not None else np.abs(mean)
+    white = np.empty(values.shape[1])
+    pools = {}
+    for group in np.unique(groups):
+        sel = groups == group
+        # a feature the simulation reproduces without noise still has a finite precision: 0.1 % of
+        # its size (torsion), 0.01 nm for positions (whose size is the scanner coordinate)
+        floor = (1e-11 if group in POSITION_GROUPS or group == "line.dir"
+                 else 1e-3 * float(np.sqrt(np.nanmean(size[sel] ** 2))) + 1e-15) ** 2
+        good = sel & np.isfinite(spread)
+        pooled = max(float(np.sum(spread[good] * (count[good] - 1)) / max(np.sum(count[good] - 1), 1)), floor)
+        dof = np.maximum(count[sel] - 1, 0)
+        own = np.nan_to_num(spread[sel])
+        white[sel] = np.maximum((dof * own + shrink * pooled) / (dof + shrink), floor)
+        pools[group] = pooled
+    return white * (1.0 + 1.0 / max(k, 1)), pools
+
+
+def _bow_roughness_variance(table: Table, roughness: float) -> np.ndarray:
+    """Variance the substrate roughness adds to background-curvature features: pixels of a
+    large image are far apart compared with the roughness correlation, and the recording's
+    image sits where the walk put it, so each pixel's roughness differs from the reference's
+    by an independent difference (variance 2 sigma_r^2)."""
+    out = np.zeros(len(table.keys))
+    for i, (group, cond) in enumerate(zip(table.groups, table.conditions)):
+        if group not in BOW_GROUPS or "image" not in cond:
+            continue
+        ny, nx, px, py = cond["image"]
+        yy, xx = np.mgrid[0:ny, 0:nx]
+        x = ((xx - (nx - 1) / 2) * px).ravel() * 1e6
+        y = ((yy - (ny - 1) / 2) * py).ravel() * 1e6
+        A = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], 1)
+        inv = np.linalg.inv(A.T @ A)
+        column = {"raster.bow_xx": 3, "raster.bow_yy": 5, "raster.bow_xy": 4}[group]
+        factor = 2.0 if group != "raster.bow_xy" else 1.0
+        out[i] = 2 * roughness ** 2 * inv[column, column] * (factor * 1e12) ** 2
+    return out
+
+
+def build_noise_model(config: SimConfig, table: Table, sensor: np.ndarray, J: np.ndarray, moves: list,
+                      reference: np.ndarray | None = None, shrink: float = 4.0, J_shape: np.ndarray | None = None,
+                      mismatch=None, extra_white: np.ndarray | None = None) -> NoiseModel:
+    """sensor: (K, N) features of re-simulations with only the sensor noise on (at the recorded
+    geometry); J: (N, 2) sensitivity of every feature to a drift offset; moves: (time, distance)
+    of the free moves. White part from `sensor`; drift wander and positioning walk analytic,
+    projected through J; roughness on background-curvature features; for shape features
+    (J_shape: their sensitivity to the tip-particle geometry), how far the recorded geometry may
+    be from the reference's (mismatch: per feature and axis, the id of the position observation
+    the drift trajectory follows there and the variance of the walk and wander since)."""
+    white, pools = _pooled_white(sensor, table.groups, shrink, reference)
+    white = white + _bow_roughness_variance(table, config.sample.roughness_sigma)
+    if extra_white is not None:
+        white = white + extra_white
+    group_sigma = {g: math.sqrt(v) for g, v in pools.items()}
+    cov = np.diag(white)
+    if J_shape is not None and mismatch is not None:
+        ids, var = mismatch
+        for axis in (0, 1):
+            j = J_shape[:, axis]
+            use = np.flatnonzero((j != 0) & np.isfinite(var[:, axis]))
+            if not use.size:
+                continue
+            same = ids[use, axis][:, None] == ids[use, axis][None, :]
+            sd = np.sqrt(var[use, axis])
+            cov[np.ix_(use, use)] += np.outer(j[use], j[use]) * np.outer(sd, sd) * same
+    active = np.flatnonzero(np.abs(J).sum(axis=1) > 0)
+    if active.size:
+        t = table.time[active]
+        Ja = J[active]
+        d = config.drift
+        if d.enabled:
+            for axis, sigma in enumerate((d.sigma_velocity_x, d.sigma_velocity_y)):
+                if sigma > 0:
+                    cov[np.ix_(active, active)] += np.outer(Ja[:, axis], Ja[:, axis]) * drift_covariance(
+                        t, sigma, d.correlation_time)
+        s = config.scanner
+        if s.positioning_noise_enabled:
+            walk = positioning_covariance(t, moves, s.positioning_noise_slope, s.positioning_noise_offset)
+            cov[np.ix_(active, active)] += (Ja @ Ja.T) * walk
+    return NoiseModel(white=white, cov=cov, group_sigma=group_sigma)
+
+
+def nuisance_columns(table: Table, J: np.ndarray | None = None) -> np.ndarray:
+    """A constant offset per axis (what the drift, the walk and the start position add to every
+    position alike), through each feature's sensitivity J (default: its direction u)."""
+    cols = np.array(J if J is not None else table.u, float).copy()
+    if J is None:
+        cols[~np.isin(table.groups, POSITION_GROUPS)] = 0.0
+    return cols[:, np.abs(cols).sum(axis=0) > 0]
+
+
+# -- GLS ---------------------------------------------------------------------------------------
+
+class Whitener:
+    def __init__(self, cov: np.ndarray):
+        scale = np.sqrt(np.diag(cov))
+        self.scale = scale
+        corr = cov / np.outer(scale, scale)
+        self.chol = linalg.cholesky(corr + 1e-10 * np.eye(len(scale)), lower=True)
+
+    def __call__(self, a: np.ndarray) -> np.ndarray:
+        a = np.asarray(a, float)
+        a = a / self.scale[:, None] if a.ndim == 2 else a / self.scale
+        return linalg.solve_triangular(self.chol, a, lower=True)
+
+
+def gls(rw: np.ndarray, xw: np.ndarray):
+    """(coefficients, chi^2, covariance of the coefficients) of the whitened problem."""
+    if xw.shape[1] == 0:
+        return np.zeros(0), float(rw @ rw), np.zeros((0, 0))
+    q, rr = np.linalg.qr(xw)
+    keep = np.abs(np.diag(rr)) > 1e-12 * max(1.0, np.abs(np.diag(rr)).max())
+    coef = np.zeros(xw.shape[1])
+    cov = np.full((xw.shape[1], xw.shape[1]), np.nan)
+    if keep.any():
+        sub = xw[:, keep]
+        c, *_ = np.linalg.lstsq(sub, rw, rcond=None)
+        coef[keep] = c
+        cov[np.ix_(keep, keep)] = np.linalg.pinv(sub.T @ sub)
+    resid = rw - xw @ coef
+    return coef, float(resid @ resid), cov
+
+
+# -- result ------------------------------------------------------------------------------------
+
+@dataclass
+class CandidateResult:
+    name: str
+    words: str
+    keys: list
+    units: list
+    size: int
+    estimate: np.ndarray = None        # config values (linearised fit, all data)
+    sigma: np.ndarray = None
+    delta_chi2: float = 0.0            # over the nuisance-only model, scaled
+    statistic_threshold: float = 0.0
+    bic_gain: float = 0.0
+    heldout_gain: float = 0.0          # chi^2 improvement on held-out blocks
+    significant: bool = False
+    accepted: bool = False
+    note: str = ""
+
+
+@dataclass
+class Diagnosis:
+    n_features: int
+    groups: dict                      # group -> {n, chi2, dof, p}
+    overall: dict                     # chi2, dof, p, variance factor
+    where: list                       # deviations by condition, most significant first
+    change_points: list
+    candidates: list                  # CandidateResult, best first
+    chosen: list                      # names of the chosen terms ([] = no missing physics)
+    parameters: dict                  # key -> {value, sigma, nominal}
+    overrides: dict                   # nested config overrides of the fitted terms
+    updated_config: Optional[SimConfig]
+    heldout: dict                     # before/after on held-out operations
+    missing_candidates: list
+    timings: dict
+    residuals: dict = field(default_factory=dict)   # arrays for plots
+    message: str = ""
+    drift: dict = field(default_factory=dict)       # the recorded drift trajectory (times, offsets)
+
+    @property
+    def missing_physics(self) -> bool:
+        return bool(self.chosen)
+
+    def summary(self) -> str:
+        if not self.chosen:
+            return (f"no missing physics: residuals consistent with the noise model "
+                    f"(chi2 {self.overall['chi2']:.1f} for {self.overall['dof']} dof, p = {self.overall['p']:.3g})")
+        parts = []
+        for name in self.chosen:
+            c = next(c for c in self.candidates if c.name == name)
+            values = ", ".join(f"{k.split('.')[-1]} = {v['value']:.4g} +- {v['sigma']:.2g} (model {v['nominal']:.4g})"
+                               for k, v in self.parameters.items() if v.get("candidate") == name)
+            parts.append(f"{c.words}: {values}")
+        return "missing physics: " + "; ".join(parts)
+
+
+# -- the recorded drift trajectory ----------------------------------------------------------------
+
+def nominal_drift(config: SimConfig, t: np.ndarray) -> np.ndarray:
+    """(N, 2) drift offset of the model's deterministic drift (mean velocity and ramp) at t."""
+    t = np.asarray(t, float)
+    d = config.drift
+    if not d.enabled:
+        return np.zeros(t.shape + (2,))
+    v = np.array([d.mean_velocity_x, d.mean_velocity_y])
+    a = np.array([d.acceleration_x, d.acceleration_y])
+    return v * t[..., None] + 0.5 * a * (t ** 2)[..., None]
+
+
+class ScannerMap:
+    """The model's scanner along every recorded position measurement: a replay without imaging
+    gives, for each scan line and raster, where the scanner truly was at each commanded sample
+    (hysteresis, creep, coupling, rotation). A particle at sample position P with drift offset
+    D is measured where the true path passes P + D, so the map predicts every position
+    feature for any drift (`predict`), exactly also where a re-simulation would miss the
+    particle, and tells which configured particle each measurement saw and what drift offset
+    it implies (`observations`: stage A of the drift trajectory)."""
+
+    def __init__(self, ops, f_rec: dict, config: SimConfig, anchors: np.ndarray):
+        by_index = {op.index: op for op in ops}
+        drives: dict = {}
+        self.moves = replay(ops, deterministic(config), imaging=False, drives=drives).moves
+        self.anchors = anchors
+        self.items: dict = {}
+        self.obs = [[], []]
+        feats = sorted((f for f in f_rec.values() if f.group in POSITION_GROUPS), key=lambda f: f.time)
+        last = [None, None]
+        per_raster: dict = {}
+        for f in feats:
+            op = by_index.get(f.key[0])
+            if op is None:
+                continue
+            axis = 0 if abs(f.u[0]) >= abs(f.u[1]) else 1
+            if op.kind == "scan_line":
+                indices = (op.index, op.index + 1) if f.group == "line.pos" else (op.index,)
+                paths = [self._line_path(drives.get(i), f.u) for i in indices]
+                if any(p is None for p in paths):
+                    continue
+                item = {"kind": "line", "axis": axis, "paths": paths}
+            elif op.kind == "raster":
+                grid = self._raster_grid(drives.get(op.index), op.request)
+                if grid is None:
+                    continue
+                item = {"kind": "raster", "axis": axis, "grid": grid}
+            else:
+                continue
+            # where the model's scanner truly was when it measured the particle
+            true_point = self._true_at(item, np.array([f.x, f.y]))
+            if f.group.startswith("raster.") and f.conditions.get("particle", "") != "":
+                j = int(f.conditions["particle"])
+            else:
+                guess = true_point - np.array([self._current(config, last, 0, f.time),
+                                               self._current(config, last, 1, f.time)])
+                j = int(np.argmin(np.hypot(*(anchors - guess).T)))
+            item["anchor"] = j
+            self.items[f.key] = item
+            value = float(true_point[axis] - anchors[j, axis])
+            if op.kind == "raster":
+                # a raster's particles give one offset per axis (their mean): a drift trajectory is
+                # a function of time, and particles in the same lines differ by distortion, not drift
+                per_raster.setdefault((op.index, axis), []).append((f.time, value, f.key))
+                continue
+            self.obs[axis].append((f.time, value, [f.key]))
+            last[axis] = value
+        for (_, axis), values in per_raster.items():
+            self.obs[axis].append((float(np.mean([v[0] for v in values])), float(np.mean([v[1] for v in values])),
+                                   [v[2] for v in values]))
+
+    def refined(self, f_rec: dict, f_ref: dict) -> list:
+        """Stage B: the observations corrected by what the imaged reference at their drift
+        still differs from the recording (the imaging's own offsets: tip, creep during the
+        line), through each feature's sensitivity."""
+        out = [[], []]
+        for axis in (0, 1):
+            for t, value, keys in self.obs[axis]:
+                corrections = []
+                for key in keys:
+                    if key in f_ref and key in self.items:
+                        gain = self.sensitivity([key], [np.zeros(2)])[0, axis]
+                        if abs(gain) > 0.2:
+                            corrections.append((f_rec[key].value - f_ref[key].value) / gain)
+                out[axis].append((t, value + (float(np.mean(corrections)) if corrections else 0.0), keys))
+        return out
+
+    @staticmethod
+    def _current(config, last, axis, t):
+        if last[axis] is None:
+            return float(nominal_drift(config, np.array([t]))[0, axis])
+        return last[axis]
+
+    @staticmethod
+    def _line_path(drive_calls, u):
+        """(commanded coordinate along |u| sorted, true x, true y, |u|) of a line's own drive."""
+        if not drive_calls:
+            return None
+        _, cx, cy, tx, ty = drive_calls[-1]
+        if cx.size < 3:
+            return None
+        axis_u = np.abs(np.asarray(u, float))
+        c = cx * axis_u[0] + cy * axis_u[1]
+        order = np.argsort(c)
+        if np.ptp(c) == 0:
+            return None
+        return c[order], tx[order], ty[order], cx[order], cy[order], axis_u
+
+    @staticmethod
+    def _raster_grid(drive_calls, request):
+        """Commanded and true positions of a raster's trace samples, (lines, pixels) each."""
+        from afm_core.sim.instrument import LINES_PER_CHUNK
+        if not drive_calls or request is None:
+            return None
+        n_lines, n_fast = request.lines, request.pixels_per_line
+        calls = drive_calls[-int(math.ceil(n_lines / LINES_PER_CHUNK)):]
+        cx = np.concatenate([c[1] for c in calls])
+        if cx.size != n_lines * 2 * n_fast or n_lines < 3 or n_fast < 3:
+            return None
+        arrays = [np.concatenate([c[k] for c in calls]).reshape(n_lines, 2 * n_fast)[:, :n_fast] for k in (1, 2, 3, 4)]
+        return arrays
+
+    @staticmethod
+    def _true_at(item, point) -> np.ndarray:
+        """The true scanner position at a commanded point of the measurement."""
+        if item["kind"] == "line":
+            out = []
+            for c, tx, ty, cx, cy, axis_u in item["paths"]:
+                q = point @ axis_u
+                out.append([np.interp(q, c, tx - cx) + point[0], np.interp(q, c, ty - cy) + point[1]])
+            return np.mean(out, axis=0)
+        cx, cy, tx, ty = item["grid"]
+        k, j = np.unravel_index(int(np.argmin((cx - point[0]) ** 2 + (cy - point[1]) ** 2)), cx.shape)
+        return point + np.array([tx[k, j] - cx[k, j], ty[k, j] - cy[k, j]])
+
+    @staticmethod
+    def _line_predict(path, q):
+        """Commanded coordinate along |u| where the line's true path passes closest to q."""
+        c, tx, ty, _, _, _ = path
+        tangent = np.array([tx[-1] - tx[0], ty[-1] - ty[0]])
+        tangent /= max(float(np.hypot(*tangent)), 1e-30)
+        f = (tx - q[0]) * tangent[0] + (ty - q[1]) * tangent[1]        # increasing along c
+        slope = (f[-1] - f[0]) / (c[-1] - c[0])
+        if f[0] > 0:
+            return float(c[0] - f[0] / slope)
+        if f[-1] < 0:
+            return float(c[-1] - f[-1] / slope)
+        return float(np.interp(0.0, f, c))
+
+    @staticmethod
+    def _raster_predict(grid, q):
+        cx, cy, tx, ty = grid
+        n_lines, n_fast = cx.shape
+        k, j = np.unravel_index(int(np.argmin((tx - q[0]) ** 2 + (ty - q[1]) ** 2)), cx.shape)
+        j0, j1 = max(0, j - 1), min(n_fast - 1, j + 1)
+        k0, k1 = max(0, k - 1), min(n_lines - 1, k + 1)
+        C = np.array([[cx[k, j1] - cx[k, j0], cx[k1, j] - cx[k0, j]], [cy[k, j1] - cy[k, j0], cy[k1, j] - cy[k0, j]]])
+        T = np.array([[tx[k, j1] - tx[k, j0], tx[k1, j] - tx[k0, j]], [ty[k, j1] - ty[k, j0], ty[k1, j] - ty[k0, j]]])
+        G = T @ np.linalg.inv(C)
+        return np.array([cx[k, j], cy[k, j]]) + np.linalg.solve(G, q - np.array([tx[k, j], ty[k, j]]))
+
+    def predict(self, key, offset) -> float:
+        """The feature's predicted value (commanded coordinate, m) for a drift offset (2,)."""
+        item = self.items[key]
+        q = self.anchors[item["anchor"]] + np.asarray(offset, float)
+        if item["kind"] == "line":
+            return float(np.mean([self._line_predict(p, q) for p in item["paths"]]))
+        return float(self._raster_predict(item["grid"], q)[item["axis"]])
+
+    def predict_all(self, keys, offsets) -> np.ndarray:
+        return np.array([self.predict(k, d) if k in self.items else np.nan for k, d in zip(keys, offsets)])
+
+    def sensitivity(self, keys, offsets, eps: float = 1e-9) -> np.ndarray:
+        """(N, 2): d feature / d drift offset (NaN rows for features without a map)."""
+        base = self.predict_all(keys, offsets)
+        out = []
+        for axis in (0, 1):
+            step = np.zeros(2)
+            step[axis] = eps
+            out.append((self.predict_all(keys, np.asarray(offsets) + step) - base) / eps)
+        return np.stack(out, axis=1)
+
+
+def drift_trajectory(obs, config: SimConfig, t_end: float, moves=(), step: float = 0.5) -> TrajectoryDrift:
+    """D(t) per axis, on a grid of `step` s: a cubic in time fitted to the observations (the
+    smooth drift) plus the residual of the observation expected to be closest to D(t): the one
+    with the least positioning-walk variance (moves) between, plus the drift's wander over the
+    time between (0.1 nm/s); the model's drift where an axis has no observation."""
+    grid = np.arange(0.0, max(t_end, step) + step, step)
+    out = nominal_drift(config, grid)
+    s = config.scanner
+    if moves and s.positioning_noise_enabled:
+        move_t = np.array([m[0] for m in moves])
+        var = s.positioning_noise_slope * np.array([m[1] for m in moves]) + s.positioning_noise_offset
+        order = np.argsort(move_t)
+        move_t, cum = move_t[order], np.concatenate([[0.0], np.cumsum(var[order])])
+        walk = lambda t: cum[np.searchsorted(move_t, t, side="right")]        # noqa: E731
+    else:
+        walk = lambda t: np.zeros(np.shape(t))                                # noqa: E731
+    wander = (0.1e-9) ** 2
+    choice = np.full((grid.size, 2), -1)
+    mismatch = np.full((grid.size, 2), np.inf)
+    for axis in (0, 1):
+        if not obs[axis]:
+            continue
+        t = np.array([o[0] for o in obs[axis]])
+        d = np.array([o[1] for o in obs[axis]])
+        order = np.argsort(t)
+        t, d = t[order], d[order]
+        degree = int(min(3, max(0, np.unique(np.round(t)).size - 1)))
+        scale = max(float(np.ptp(t)), 1.0)
+        coef = np.polyfit((t - t[0]) / scale, d, degree) if degree > 0 else np.array([d.mean()])
+        smooth = lambda x: np.polyval(coef, (np.clip(x, t[0], t[-1]) - t[0]) / scale)   # noqa: E731
+        resid = d - smooth(t)
+        cost = np.abs(walk(grid)[:, None] - walk(t)[None, :]) + wander * (grid[:, None] - t[None, :]) ** 2
+        best = np.argmin(cost, axis=1)
+        out[:, axis] = smooth(grid) + resid[best]
+        choice[:, axis] = np.searchsorted(np.sort(t), t[best])    # an id of the observation used
+        mismatch[:, axis] = cost[np.arange(grid.size), best] + POSITION_PRECISION ** 2
+    trajectory = TrajectoryDrift(grid, out)
+    trajectory.choice, trajectory.mismatch = choice, mismatch
+    return trajectory
+
+
+def geometry_mismatch(trajectory: TrajectoryDrift, t: np.ndarray):
+    """Per time and axis: (id of the observation the trajectory follows there, variance of how
+    far the true offset may be from it)."""
+    k = np.clip(np.round(np.asarray(t, float) / (trajectory.times[1] - trajectory.times[0])).astype(int), 0,
+                trajectory.times.size - 1)
+    return trajectory.choice[k], trajectory.mismatch[k]
+
+
+# -- the analysis ---------------------------------------------------------------------------
+
+def _fold_blocks(table: Table, ops, n_blocks: int) -> np.ndarray:
+    """Block number per feature: per family of operations (scan lines, small rasters, large
+    rasters, pushes), the operations that gave features are split in time order into n_blocks
+    chunks, so every family has data in every fold."""
+    family = np.array(["push" if g.startswith("push") else "bow" if g in BOW_GROUPS else
+                       "raster" if g.startswith("raster") else "line" for g in table.groups])
+    op_time = {op.index: op.start_time for op in ops}
+    blocks = np.zeros(len(table.keys), int)
+    for fam in np.unique(family):
+        sel = family == fam
+        indices = sorted(set(table.op_index[sel].tolist()), key=lambda i: op_time[i])
+        chunk = {i: min(n_blocks - 1, k * n_blocks // len(indices)) for k, i in enumerate(indices)}
+        blocks[sel] = [chunk[i] for i in table.op_index[sel]]
+    return blocks
+
+
+class _Session:
+    """Everything the fits re-use: the recording, the reference, the drift trajectory, the
+    scanner map, and re-simulation of a parameter set."""
+
+    def __init__(self, ops, config, keys, f_rec, anchors, drift, J, bias, reference, table, scanner_map, mapped):
+        self.ops, self.config, self.keys = ops, config, keys
+        self.base = deterministic(config)
+        self.f_rec, self.anchors, self.drift, self.J = f_rec, anchors, drift, J
+        self.bias, self.reference, self.table = bias, reference, table
+        self.map, self.mapped = scanner_map, mapped
+        self.d_rec = drift.offset(table.time)
+        self.d_nom = nominal_drift(config, table.time)
+        self.geo_rec = np.where(mapped, scanner_map.predict_all(keys, self.d_rec), np.nan)
+        self.recorded = _values(f_rec, keys)
+        self.shape = np.isin(table.groups, SHAPE_GROUPS)
+        self.push = np.isin(table.groups, PUSH_GROUPS)
+        self.r = self.recorded - reference + self.shift()
+        self.replays = 0
+
+    def shift(self, extra: np.ndarray | None = None) -> np.ndarray:
+        """What moving the drift from the recorded trajectory to the model's (plus `extra`,
+        (N, 2)) changes: the scanner map where it has the feature, J (linear) elsewhere."""
+        target = self.d_nom if extra is None else self.d_nom + extra
+        linear = np.einsum("ij,ij->i", self.J, self.d_rec - target)
+        if not self.mapped.any():
+            return linear
+        exact = self.geo_rec - np.where(self.mapped, self.map.predict_all(
+            self.keys, np.where(self.mapped[:, None], target, 0.0)), np.nan)
+        return np.where(self.mapped, exact, linear)
+
+    def features(self, config, imaging=True) -> np.ndarray:
+        self.replays += 1
+        rep = replay(self.ops, config, drift=self.drift, imaging=imaging)
+        return _values(_by_key(extract_features(rep.operations, self.anchors)), self.keys)
+
+    def drift_extra(self, terms) -> np.ndarray | None:
+        """The drift offsets (N, 2) the drift terms at theta add to the model's."""
+        extra = np.zeros((len(self.keys), 2))
+        found = False
+        t = self.table.time
+        for (cand, theta0, _), part in terms:
+            if cand.analytic == "drift_velocity":
+                extra += (cand.clip(part) - theta0)[None, :] * t[:, None]
+                found = True
+            elif cand.analytic == "drift_ramp":
+                extra += 0.5 * (cand.clip(part) - theta0)[None, :] * (t ** 2)[:, None]
+                found = True
+        return extra if found else None
+
+    def residual(self, terms, theta) -> np.ndarray:
+        """Residual (recorded - model) with the terms at theta, re-simulated where needed."""
+        sizes = [t[0].size for t in terms]
+        parts = np.split(np.asarray(theta, float), np.cumsum(sizes)[:-1])
+        pairs = list(zip(terms, parts))
+        simulated = [(t, p) for t, p in pairs if not t[0].analytic]
+        drifts = [(t, p) for t, p in pairs if t[0].analytic in ("drift_velocity", "drift_ramp")]
+        linear = [(t, p) for t, p in pairs if t[0].analytic and t[0].analytic not in ("drift_velocity", "drift_ramp")]
+        extra = self.drift_extra(drifts)
+        r = self.r.copy()
+        if extra is not None:
+            # drift: exactly through the scanner map (positions are where the drift puts them)
+            r = self.recorded - self.reference + self.shift(extra)
+            r = np.where(np.isfinite(r), r, self.r - sum(cols @ (cand.clip(p) - t0) for (cand, t0, cols), p in drifts))
+        if simulated:
+            overrides = {}
+            for (cand, _, _), part in simulated:
+                overrides = merge_overrides(overrides, cand.overrides(self.config, part))
+            imaging = any(c.imaging for (c, _, _), _ in simulated)
+            sim = self.features(merge(self.base, overrides), imaging=imaging)
+            resim = r + (self.reference - (sim + self.bias))
+            keep = np.isfinite(resim)
+            if not imaging:
+                keep &= self.push
+            if all(c.geometric for (c, _, _), _ in simulated):
+                keep &= ~self.shape
+            # a feature the re-simulation loses (a line now missing its particle): its linear prediction
+            lin = r - sum(cols @ (p - theta0) for (_, theta0, cols), p in simulated)
+            r = np.where(keep, resim, lin)
+        for (cand, theta0, cols), part in linear:
+            r = r - cols @ (cand.clip(part) - theta0)
+        return r
+
+
+def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candidates: list | None = None,
+             n_blocks: int = 6, refine_iterations: int = 2, heldout_resimulation: bool = True,
+             progress: Callable[[str], None] | None = None, replicas: int | None = None) -> Diagnosis:
+    """The four answers for a recorded session (a list of Operations) against `config`.
+    (`replicas` is accepted for compatibility and ignored: the noise is modelled at the recorded
+    geometry from `sensor_replicas` re-simulations and the analytic drift and walk terms.)"""
+    say = progress or (lambda message: None)
+    t_start = _time.perf_counter()
+    timings = {}
+    ops = list(recorded_ops)
+    if not ops:
+        raise NoFeaturesError("the recording holds no operations")
+    anchors = np.array([(s["x"], s["y"]) for s in config.sample.spheres], float).reshape(-1, 2)
+    f_rec = _by_key(extract_features(ops, anchors))
+    if not f_rec:
+        raise NoFeaturesError("no scan line, raster or push in the recording gave a feature (no particle crossed?)")
+    base = deterministic(config)
+    t_end = max(op.start_time + (op.duration if np.isfinite(op.duration) else 0.0) for op in ops) + 1.0
+
+    say("drift trajectory of the recording")
+    scanner_map = ScannerMap(ops, f_rec, config, anchors)
+    drift = drift_trajectory(scanner_map.obs, config, t_end, scanner_map.moves)
+    say("reference re-simulation at the recorded geometry")
+    nominal = replay(ops, base, drift=drift)
+    f_nom = _by_key(extract_features(nominal.operations, anchors))
+    # stage B: the imaged reference's own offsets corrected, once
+    drift = drift_trajectory(scanner_map.refined(f_rec, f_nom), config, t_end, scanner_map.moves)
+    nominal = replay(ops, base, drift=drift)
+    f_nom = _by_key(extract_features(nominal.operations, anchors))
+    matched = [k for k in f_rec if k in f_nom]
+    if len(matched) < MIN_MATCHED_FRACTION * len(f_rec) or len(matched) < MIN_MATCHED_FRACTION * len(f_nom):
+        lost_rec = sorted({k[0] for k in f_rec if k not in f_nom})[:10]
+        lost_sim = sorted({k[0] for k in f_nom if k not in f_rec})[:10]
+        raise ConfigMismatchError(
+            f"the configuration does not match the recording: of {len(f_rec)} recorded features only "
+            f"{len(matched)} are reproduced by the simulation ({len(f_nom)} simulated). Operations where the "
+            f"recording saw a particle and the simulation did not: {lost_rec}; the reverse: {lost_sim}. "
+            "Check the sample (particle positions, seed) and the scanner area in the config.")
+    say("drift sensitivities")
+    shifted = []
+    for axis in (0, 1):
+        delta = np.zeros(2)
+        delta[axis] = SHIFT
+        shifted.append(_by_key(extract_features(replay(ops, base, drift=drift.shifted(delta)).operations, anchors)))
+    say(f"noise replicas ({sensor_replicas} sensor-only)")
+    sensor_cfg = deterministic(config, sensor_noise=True)
+    reps_s = [_by_key(extract_features(replay(ops, sensor_cfg, noise_seed=1000 + k, drift=drift).operations,
+                                       anchors)) for k in range(sensor_replicas)]
+    keys = [k for k in matched if all(k in r for r in reps_s) and all(k in s for s in shifted)]
+    timings["reference"] = _time.perf_counter() - t_start
+
+    table = _table(keys, f_rec)
+    nom = _values(f_nom, keys)
+    J = np.stack([(_values(s, keys) - nom) / SHIFT for s in shifted], axis=1)
+    J[np.abs(J) < 1e-3] = 0.0
+    # positions: the scanner map's sensitivity (a replay's 10 nm shift also sees the pixel grid)
+    d_rec = drift.offset(table.time)
+    mapped = np.array([k in scanner_map.items for k in keys]) & np.isin(table.groups, POSITION_GROUPS)
+    J_map = scanner_map.sensitivity(keys, d_rec)
+    # how far the imaged positions depart from the scanner map's straight response over the
+    # 10 nm shifts (the simulator renders coarse images on a fixed grid: a particle's centre
+    # moves in small jumps): a geometry a few nm off the recorded one scrambles that much, so
+    # it is noise, pooled per group
+    J_rep = J.copy()
+    expected = np.where(mapped[:, None], J_map, 0.0)
+    rounding = mapped | (table.groups == "line.dir")
+    nonlinear = np.zeros(len(keys))
+    if rounding.any():
+        dev2 = np.nansum(((J_rep - expected) * SHIFT) ** 2, axis=1) / 2
+        for group in np.unique(table.groups[rounding]):
+            sel = rounding & (table.groups == group)
+            nonlinear[sel] = float(np.nanmean(dev2[sel]))
+    J[mapped] = J_map[mapped]
+    # features measured at the recorded geometry: their sensitivity to it (how far the
+    # reference's geometry may be off enters their noise)
+    J_shape = np.where(np.isin(table.groups, SHAPE_GROUPS + ("line.dir",))[:, None], J_rep, 0.0)
+    # only positions move with the drift (a shape, a difference, a torsion: at the recorded
+    # geometry; their replay "sensitivity" is rounding of the sampled profiles)
+    J[~np.isin(table.groups, POSITION_GROUPS)] = 0.0
+    rep_s = np.array([_values(r, keys) for r in reps_s])
+    bias = np.nan_to_num(np.nanmean(rep_s - nom, axis=0))
+    sess = _Session(ops, config, keys, f_rec, anchors, drift, J, bias, nom + bias, table, scanner_map, mapped)
+    r = sess.r
+    noise = build_noise_model(config, table, rep_s, J, nominal.moves, reference=nom, J_shape=J_shape,
+                              mismatch=geometry_mismatch(drift, table.time), extra_white=nonlinear)
+    P = nuisance_columns(table, J)
+    n = len(keys)
+
+    # sensitivities
+    t0 = _time.perf_counter()
+    cands, missing = available(config, candidates)
+    design = {}
+    height = np.isin(table.groups, HEIGHT_GROUPS + BOW_GROUPS)
+    for cand in cands:
+        theta0 = cand.nominal(config)
+        if cand.analytic == "drift_velocity":
+            cols = J * table.time[:, None]
+        elif cand.analytic == "drift_ramp":
+            cols = J * 0.5 * (table.time ** 2)[:, None]
+        elif cand.analytic == "height_gain":
+            cols = np.where(height, (nom + bias) / max(theta0[0], 1e-12), 0.0)[:, None]
+        elif cand.analytic == "bow":
+            gain = config.noise.height_gain
+            cols = np.where(np.isin(table.groups, ("raster.bow_xx", "raster.bow_yy")), gain, 0.0)[:, None]
+        else:
+            say(f"sensitivity: {cand.name}")
+            cols = []
+            for j in range(cand.size):
+                theta = theta0.copy()
+                theta[j] += cand.steps[j]
+                try:
+                    sim = sess.features(cand.apply(base, theta), imaging=cand.imaging)
+                except ValueError as exc:          # the stepped value is invalid for this config
+                    cols = f"not evaluated: {exc}"
+                    break
+                col = np.nan_to_num((sim - nom) / cand.steps[j])
+                if not cand.imaging:
+                    col[~sess.push] = 0.0
+                if cand.geometric:
+                    col[sess.shape] = 0.0
+                cols.append(col)
+            if isinstance(cols, str):
+                missing.append(f"{cand.name} ({cols})")
+                continue
+            cols = np.array(cols).T
+        design[cand.name] = (cand, theta0, np.asarray(cols, float))
+    timings["sensitivities"] = _time.perf_counter() - t0
+
+    # overdispersion per feature group (quasi-likelihood): a group the noise model describes
+    # too optimistically (here: how the few-nm mismatch of the reference's geometry acts on
+    # direction differences, which the 10 nm sensitivities only partly tell) must not pass its
+    # excess to a candidate; the factors are taken after the best single candidate's fit, so a
+    # real effect is not mistaken for noise
+    group_factors = _group_overdispersion(r, P, [c[2] for c in design.values()], noise.cov, table.groups)
+    scale = np.sqrt(np.array([group_factors.get(g, 1.0) for g in table.groups]))
+    noise.cov = noise.cov * np.outer(scale, scale)
+    noise.white = noise.white * scale ** 2
+
+    # evidence
+    white = Whitener(noise.cov)
+    rw, pw = white(r), white(P) if P.size else np.zeros((n, 0))
+    _, chi2_0, _ = gls(rw, pw)
+    dof0 = n - pw.shape[1]
+    blocks = _fold_blocks(table, ops, n_blocks)
+    folds = [blocks % 2 == 0, blocks % 2 == 1]
+    fold_whiteners = [(Whitener(noise.cov[np.ix_(tr, tr)]), Whitener(noise.cov[np.ix_(~tr, ~tr)])) for tr in folds]
+
+    def fit(cols_list):
+        cols = np.hstack(cols_list) if cols_list else np.zeros((n, 0))
+        coef, chi2, cov = gls(rw, np.hstack([pw, white(cols)]) if cols.size else pw)
+        return coef[P.shape[1]:], chi2, cov[P.shape[1]:, P.shape[1]:]
+
+    m = max(1, len(design))
+    singles = {name: fit([cols]) for name, (cand, theta0, cols) in design.items()}
+    best_chi2 = min([c[1] for c in singles.values()] + [chi2_0])
+    best_p = max([design[nm][0].size for nm, c in singles.items() if c[1] == best_chi2] + [0])
+    variance_factor = max(1.0, best_chi2 / max(1, dof0 - best_p))
+    results = []
+    for name, (cand, theta0, cols) in design.items():
+        coef, chi2, cov = singles[name]
+        delta = (chi2_0 - chi2) / variance_factor
+        threshold = float(stats.chi2.isf(ALPHA / m, cand.size))
+        res = CandidateResult(name, cand.words, cand.keys, cand.units, cand.size,
+                              estimate=theta0 + coef, sigma=np.sqrt(np.abs(np.diag(cov)) * variance_factor),
+                              delta_chi2=delta, statistic_threshold=threshold,
+                              bic_gain=delta - cand.size * math.log(n))
+        res.significant = delta > threshold
+        if res.significant:
+            res.heldout_gain = _cv_gain_on(r, cols, P, folds, fold_whiteners)
+            res.accepted = res.heldout_gain > 0
+            if not res.accepted:
+                res.note = "fits the session but does not predict held-out blocks"
+        results.append(res)
+    results.sort(key=lambda c: (not c.accepted, -c.bic_gain))
+    accepted = [c for c in results if c.accepted]
+
+    def resim_chi2(residual):
+        return gls(white(residual), pw)[1]
+
+    # the leaders are compared by re-simulation at their refined values (the linearised
+    # comparison favours whichever term is more linear when they are confounded)
+    chosen, refined = [], {}
+    t0 = _time.perf_counter()
+    for res in accepted[:3]:
+        if accepted[0].bic_gain - res.bic_gain > 0.5 * max(accepted[0].bic_gain, 1.0) and res is not accepted[0]:
+            continue            # far behind the leader: not worth the re-simulations
+        say(f"re-simulating the fit of {res.name}")
+        theta, sigma, resid = _refine(sess, [design[res.name]], white, P, refine_iterations, variance_factor)
+        refined[res.name] = (theta, resid, resim_chi2(resid), sigma)
+        res.note = (res.note + f" re-simulated chi2 {refined[res.name][2]:.1f}").strip()
+    if refined:
+        scores = {name: (chi2_0 - v[2]) / variance_factor - design[name][0].size * math.log(n)
+                  for name, v in refined.items()}
+        chosen = [max(scores, key=scores.get)]
+    timings["compare"] = _time.perf_counter() - t0
+
+    # a second term on top of the first, tested on the re-simulated residual of the first
+    if chosen:
+        first_cand, first_theta0, first_cols = design[chosen[0]]
+        theta1, r1, chi2_1, _ = refined[chosen[0]]
+        r1w = white(r1)
+        _, chi2_1lin, _ = gls(r1w, np.hstack([pw, white(first_cols)]))
+        factor1 = max(1.0, chi2_1lin / max(1, dof0 - first_cand.size))
+        best_second = None
+        for res in results:
+            if res.name == chosen[0] or not res.significant:
+                continue
+            cand, theta0, cols = design[res.name]
+            _, chi2_2, _ = gls(r1w, np.hstack([pw, white(first_cols), white(cols)]))
+            delta = (chi2_1lin - chi2_2) / factor1
+            if delta > float(stats.chi2.isf(ALPHA / m, cand.size)):
+                gain = _cv_gain_on(r1, np.hstack([first_cols, cols]), P, folds, fold_whiteners) - \
+                    _cv_gain_on(r1, first_cols, P, folds, fold_whiteners)
+                score = delta - cand.size * math.log(n)
+                if gain > 0 and (best_second is None or score > best_second[1]):
+                    best_second = (res.name, score)
+        if best_second is not None:
+            chosen.append(best_second[0])
+
+    # where: residual after the nuisance fit, by condition
+    coef_p, _, _ = gls(rw, pw)
+    e = r - P @ coef_p
+    where, change_points, group_stats = _where(table, e, noise.cov, variance_factor=1.0)
+    p_overall = float(stats.chi2.sf(chi2_0, dof0))
+
+    # refine the chosen terms by re-simulation and write the config
+    t0 = _time.perf_counter()
+    parameters, overrides, updated = {}, {}, None
+    if chosen:
+        terms = [design[c] for c in chosen]
+        if len(chosen) == 1:
+            theta, _, _, sigma = refined[chosen[0]]
+        else:
+            say("refining " + ", ".join(chosen))
+            theta, sigma, _ = _refine(sess, terms, white, P, refine_iterations, variance_factor,
+                                      start=np.concatenate([refined[chosen[0]][0], design[chosen[1]][1]]))
+        offset = 0
+        for name in chosen:
+            cand, theta0, _ = design[name]
+            part = theta[offset:offset + cand.size]
+            overrides = merge_overrides(overrides, cand.overrides(config, part))
+            for j, key in enumerate(cand.keys):
+                parameters[key] = {"value": float(theta[offset + j]), "sigma": float(sigma[offset + j]),
+                                   "nominal": float(theta0[j]), "candidate": name}
+            offset += cand.size
+        updated = merge(config, overrides)
+    timings["fit"] = _time.perf_counter() - t0
+
+    # held-out: fit on one fold, re-simulate, compare on the other
+    t0 = _time.perf_counter()
+    heldout = {}
+    if chosen and heldout_resimulation:
+        say("held-out check")
+        start = np.array([parameters[key]["value"] for name in chosen for key in design[name][0].keys])
+        heldout = _heldout(sess, [design[c] for c in chosen], noise, P, folds[0], refine_iterations, start)
+    elif not chosen:
+        test = folds[1]
+        w_te = Whitener(noise.cov[np.ix_(test, test)])
+        _, chi2_te, _ = gls(w_te(r[test]), w_te(P[test]))
+        heldout = {"chi2_before": chi2_te, "chi2_after": chi2_te, "dof": int(test.sum() - P.shape[1]),
+                   "reduction": 0.0, "excess_reduction": 0.0}
+    timings["heldout"] = _time.perf_counter() - t0
+    timings["total"] = _time.perf_counter() - t_start
+    timings["replays"] = float(sess.replays + 5 + sensor_replicas)
+
+    return Diagnosis(
+        n_features=n, groups=group_stats,
+        overall={"chi2": chi2_0, "dof": dof0, "p": p_overall, "variance_factor": variance_factor,
+                 "group_factors": group_factors},
+        where=where, change_points=change_points, candidates=results, chosen=chosen, parameters=parameters,
+        overrides=overrides, updated_config=updated, heldout=heldout, missing_candidates=missing, timings=timings,
+        residuals={"table": table, "r": r, "e": e, "sigma": np.sqrt(np.diag(noise.cov)), "folds": folds,
+                   "after": heldout.get("r_after")},
+        drift={"times": drift.times, "offsets": drift.offsets,
+               "nominal": nominal_drift(config, drift.times)},
+    )
+
+
+def _group_overdispersion(r, P, columns, cov, groups, min_size: int = 5) -> dict:
+    """Per feature group: max(1, chi^2 / n) of its residual after the nuisance and the single
+    candidate that fits best (GLS on the whole, chi^2 of the group's part with its own
+    covariance block)."""
+    white = Whitener(cov)
+    rw, pw = white(r), white(P) if P.size else np.zeros((len(r), 0))
+    best = (gls(rw, pw)[1], np.zeros((len(r), 0)))
+    for cols in columns:
+        chi2 = gls(rw, np.hstack([pw, white(cols)]))[1]
+        if chi2 < best[0]:
+            best = (chi2, cols)
+    X = np.hstack([P, best[1]]) if P.size else best[1]
+    coef, _, _ = gls(rw, white(X)) if X.shape[1] else (np.zeros(0), 0.0, None)
+    e = r - (X @ coef if X.shape[1] else 0.0)
+    factors = {}
+    for group in np.unique(groups):
+        idx = np.flatnonzero(groups == group)
+        if idx.size < min_size:
+            continue
+        block = cov[np.ix_(idx, idx)]
+        try:
+            chi2 = float(e[idx] @ np.linalg.solve(block + 1e-12 * np.diag(np.diag(block)), e[idx]))
+        except np.linalg.LinAlgError:
+            continue
+        factors[str(group)] = max(1.0, chi2 / idx.size)
+    return factors
+
+
+def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: np.ndarray | None = None,
+            start: np.ndarray | None = None):
+    """Chord iterations: theta += (J^T W J)^-1 J^T W r(theta), r by re-simulation.
+    Returns (theta, sigma, residual at theta)."""
+    n = len(sess.keys)
+    mask = np.ones(n, bool) if mask is None else mask
+    cols = np.hstack([t[2] for t in terms])
+    theta0 = np.concatenate([t[1] for t in terms])
+    xw = np.hstack([white(P[mask]) if P.size else np.zeros((mask.sum(), 0)), white(cols[mask])])
+    coef, _, cov = gls(white(sess.r[mask]), xw)
+    sig = np.sqrt(np.maximum(np.nan_to_num(np.diag(cov)[P.shape[1]:]), 0))
+    theta = _clip_all(terms, theta0 + coef[P.shape[1]:] if start is None else start)
+    linear = all(t[0].analytic in ("height_gain", "bow") for t in terms)
+    residual = sess.residual(terms, theta)
+    for _ in range(0 if linear else iterations):
+        step, _, _ = gls(white(residual[mask]), xw)
+        theta_new = _clip_all(terms, theta + step[P.shape[1]:])
+        if np.all(np.abs(theta_new - theta) <= 0.05 * np.maximum(sig, 1e-30)):
+            break
+        theta = theta_new
+        residual = sess.residual(terms, theta)
+    return theta, sig * math.sqrt(variance_factor), residual
+
+
+def _cv_gain_on(r, cols, P, folds, fold_whiteners) -> float:
+    """chi^2 improvement on held-out blocks (2 folds) of fitting `cols` on the other blocks."""
+    gain = 0.0
+    for train, (w_tr, w_te) in zip(folds, fold_whiteners):
+        test = ~train
+        if train.sum() < 5 or test.sum() < 5:
+            continue
+        coef, _, _ = gls(w_tr(r[train]), np.hstack([w_tr(P[train]), w_tr(cols[train])]))
+        theta = coef[P.shape[1]:]
+        pte = w_te(P[test])
+        _, before, _ = gls(w_te(r[test]), pte)
+        _, after, _ = gls(w_te(r[test] - cols[test] @ theta), pte)
+        gain += before - after
+    return gain
+
+
+def _clip_all(terms, theta):
+    sizes = [t[0].size for t in terms]
+    return np.concatenate([cand.clip(part) for (cand, _, _), part in zip(terms, np.split(theta, np.cumsum(sizes)[:-1]))])
+
+
+def _heldout(sess: _Session, terms, noise, P, train, iterations, start):
+    test = ~train
+    w_tr = Whitener(noise.cov[np.ix_(train, train)])
+    # fit on the training blocks only (their own whitening), re-simulate the whole session
+    theta, _, r_after = _refine(sess, terms, w_tr, P, iterations, 1.0, mask=train, start=start)
+    w_te = Whitener(noise.cov[np.ix_(test, test)])
+    pte = w_te(P[test])
+    _, before, _ = gls(w_te(sess.r[test]), pte)
+    _, after, _ = gls(w_te(r_after[test]), pte)
+    dof = int(test.sum() - P.shape[1])
+    excess_before = before - dof
+    return {"chi2_before": before, "chi2_after": after, "dof": dof,
+            "reduction": 1 - after / before if before > 0 else 0.0,
+            "excess_reduction": (before - after) / excess_before if excess_before > 0 else float("nan"),
+            "train_theta": theta.tolist(), "r_after": r_after, "test": test}
+
+
+# -- where ----------------------------------------------------------------------------------------
+
+def _bins(table: Table):
+    """(label, mask) of condition bins per group."""
+    out = []
+    conds = table.conditions
+    for group in np.unique(table.groups):
+        g = table.groups == group
+        out.append((f"{group}", g))
+
+        def add(label, values, edges=None):
+            values = np.array(values, dtype=object)
+            if edges is not None:
+                numeric = np.array([float(v) if v is not None else np.nan for v in values])
+                for lo, hi in zip(edges[:-1], edges[1:]):
+                    sel = g & (numeric >= lo) & (numeric < hi)
+                    if sel.sum() >= 3:
+                        out.append((f"{group} | {label} in [{lo:g}, {hi:g})", sel))
+            else:
+                for v in sorted({str(x) for x in values[g]}):
+                    sel = g & (values.astype(str) == v)
+                    if 3 <= sel.sum() < g.sum():
+                        out.append((f"{group} | {label} = {v}", sel))
+        add("axis", [c.get("axis") for c in conds])
+        add("scan direction", [c.get("scan_sign") for c in conds])
+        add("dwell after move (s)", [c.get("dwell", np.nan) for c in conds], [0, 1, 5, 20, np.inf])
+        add("last move (um)", [c.get("move_distance", np.nan) * 1e6 for c in conds], [0, 1, 2, np.inf])
+        add("contact slid before (um)", [c.get("contact_slid", np.nan) * 1e6 for c in conds], [0, 0.5, 4, 8, np.inf])
+        add("raster angle", [c.get("angle") for c in conds])
+        add("frame up", [c.get("up") for c in conds])
+        add("particle", [c.get("particle") for c in conds])
+        add("time (s)", table.time, np.round(np.quantile(table.time[g], [0, 0.25, 0.5, 0.75, 1]) + [0, 0, 0, 0, 1e-6], 1)
+            if g.any() else None)
+        add("x (um)", table.xy[:, 0] * 1e6, np.round(np.quantile(table.xy[g, 0] * 1e6, [0, 0.33, 0.67, 1]) + [0, 0, 0, 1e-9], 3) if g.any() else None)
+        add("y (um)", table.xy[:, 1] * 1e6, np.round(np.quantile(table.xy[g, 1] * 1e6, [0, 0.33, 0.67, 1]) + [0, 0, 0, 1e-9], 3) if g.any() else None)
+    return out
+
+
+def _where(table: Table, e: np.ndarray, cov: np.ndarray, variance_factor: float = 1.0):
+    bins = _bins(table)
+    rows = []
+    group_stats = {}
+    for label, sel in bins:
+        idx = np.flatnonzero(sel)
+        c = cov[np.ix_(idx, idx)] * variance_factor
+        mean = float(e[idx].mean())
+        sd = float(math.sqrt(max(np.ones(idx.size) @ c @ np.ones(idx.size), 1e-300)) / idx.size)
+        try:
+            chi2 = float(e[idx] @ np.linalg.solve(c, e[idx]))
+        except np.linalg.LinAlgError:
+            chi2 = float("nan")
+        row = {"where": label, "n": int(idx.size), "mean": mean, "sd": sd, "z": mean / sd,
+               "chi2": chi2, "p_chi2": float(stats.chi2.sf(chi2, idx.size)),
+               "p_mean": float(2 * stats.norm.sf(abs(mean / sd)))}
+        rows.append(row)
+        if "|" not in label:
+            group_stats[label] = {"n": int(idx.size), "chi2": chi2, "dof": int(idx.size), "p": row["p_chi2"],
+                                  "rms_residual": float(np.sqrt(np.mean(e[idx] ** 2))),
+                                  "noise_sigma": float(np.sqrt(np.mean(np.diag(c))))}
+    m = max(1, len(rows))
+    for row in rows:
+        row["p_mean_bonferroni"] = min(1.0, row["p_mean"] * m)
+        row["p_chi2_bonferroni"] = min(1.0, row["p_chi2"] * m)
+    rows.sort(key=lambda row: min(row["p_mean"], row["p_chi2"]))
+    change = []
+    for group in np.unique(table.groups):
+        idx = np.flatnonzero(table.groups == group)
+        if idx.size < 8:
+            continue
+        idx = idx[np.argsort(table.time[idx])]
+        z = e[idx] / np.sqrt(np.diag(cov)[idx])
+        z = z - z.mean()
+        cusum = np.cumsum(z) / math.sqrt(idx.size)
+        k = int(np.argmax(np.abs(cusum[:-1])))
+        stat = float(abs(cusum[k]))
+        # Kolmogorov limit of the Brownian bridge maximum
+        p = float(min(1.0, 2 * sum((-1) ** (j - 1) * math.exp(-2 * j * j * stat * stat) for j in range(1, 50))))
+        change.append({"group": group, "time": float(table.time[idx[k]]), "statistic": stat, "p": p,
+                       "mean_before": float(e[idx[:k + 1]].mean()), "mean_after": float(e[idx[k + 1:]].mean())})
+    change.sort(key=lambda c: c["p"])
+    return rows, change, group_stats
+
+
+# -- entry point ------------------------------------------------------------------------------------
+
+def run_sim2real(recording_path, config_path, report_dir, progress=None, missing_data: str = "error",
+                 **kw) -> Diagnosis:
+    """Read a recording (MCAP), diagnose it against the simulator config, write the report and
+    the updated config into report_dir. Raises ValueError subclasses with clear messages.
+    missing_data="skip" leaves out commands whose measurement is not in the file (a snapshot
+    of a recording still being written ends mid-operation); "error" refuses them."""
+    from afm_core.sim2real.report import write_report
+    recording_path = Path(recording_path)
+    if not recording_path.is_file():
+        raise FileNotFoundError(f"recording {str(recording_path)!r} does not exist")
+    config = load_config(config_path) if config_path is not None else load_config()
+    try:
+        from afm_core.sim2real.session import read_operations
+    except ImportError as exc:            # pragma: no cover - the session reader is part of the package
+        raise RuntimeError(f"the recording reader (afm_core.sim2real.session) is not available: {exc}") from exc
+    ops = list(read_operations(recording_path, missing_data=missing_data))
+    if not ops:
+        raise NoFeaturesError(f"recording {str(recording_path)!r} holds no commands the simulator can re-run")
+    diagnosis = diagnose(ops, config, progress=progress, **kw)
+    write_report(diagnosis, Path(report_dir), config=config, recording=str(recording_path))
+    return diagnosis

@@ -1,0 +1,143 @@
+"""The sim-to-real report a lab can read: Markdown + PNG figures + the updated simulator config."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from afm_core.sim.config import dump_config
+
+GROUP_UNITS = {"line.mid": (1e9, "nm"), "raster.x": (1e9, "nm"), "raster.y": (1e9, "nm"),
+               "line.flank_diff": (1e9, "nm"), "raster.height": (1e9, "nm"), "raster.half_width": (1e9, "nm"),
+               "push.torsion_segment": (1e6, "urad"), "push.fluct": (1e6, "urad")}
+
+
+def _fmt(value, unit_scale=1.0):
+    return f"{value * unit_scale:.4g}"
+
+
+def _figures(diagnosis, out: Path) -> list[str]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    res = diagnosis.residuals
+    table, r, sigma = res["table"], res["r"], res["sigma"]
+    after = res.get("after")
+    test = diagnosis.heldout.get("test")
+    names = []
+    groups = [g for g in np.unique(table.groups) if g in GROUP_UNITS]
+    fig, axes = plt.subplots(len(groups), 1, figsize=(9, 2.3 * len(groups)), squeeze=False)
+    for ax, group in zip(axes[:, 0], groups):
+        scale, unit = GROUP_UNITS[group]
+        sel = table.groups == group
+        t = table.time[sel]
+        order = np.argsort(t)
+        band = 2 * sigma[sel][order] * scale
+        ax.fill_between(t[order], -band, band, color="0.9", label="+-2 sigma noise model (marginal)")
+        ax.plot(t, r[sel] * scale, "o", ms=3, label="recorded - nominal")
+        if after is not None:
+            ax.plot(t, after[sel] * scale, "x", ms=4, label="recorded - updated model")
+            if test is not None:
+                ax.plot(t[test[sel]], after[sel][test[sel]] * scale, "s", mfc="none", ms=6, color="k",
+                        label="held-out")
+        ax.set_ylabel(f"{group} ({unit})")
+        ax.axhline(0, color="0.5", lw=0.5)
+    axes[-1, 0].set_xlabel("time (s)")
+    axes[0, 0].legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    fig.savefig(out / "residuals_time.png", dpi=90)
+    plt.close(fig)
+    names.append("residuals_time.png")
+
+    cands = diagnosis.candidates
+    if cands:
+        fig, ax = plt.subplots(figsize=(8, 0.35 * len(cands) + 1))
+        y = np.arange(len(cands))
+        ax.barh(y, [max(c.delta_chi2, 1e-3) for c in cands], color=["C2" if c.accepted else "C7" for c in cands])
+        ax.plot([c.statistic_threshold for c in cands], y, "k|", ms=12, label="Bonferroni threshold")
+        ax.set_yticks(y, [c.name for c in cands])
+        ax.set_xscale("log")
+        ax.invert_yaxis()
+        ax.set_xlabel("chi^2 improvement over the nuisance-only model (scaled)")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "candidates.png", dpi=90)
+        plt.close(fig)
+        names.append("candidates.png")
+    return names
+
+
+def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path:
+    """Writes OUT/report.md, OUT/*.png, OUT/updated_config.yaml (when physics was added) and
+    OUT/overrides.yaml. Returns the report's path."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    figures = []
+    try:
+        figures = _figures(diagnosis, out)
+    except ImportError:           # pragma: no cover - matplotlib is a project dependency
+        pass
+    lines = ["# Simulation vs recording", ""]
+    if recording:
+        lines += [f"Recording: `{recording}`", ""]
+    lines += ["## Verdict", "", diagnosis.summary(), ""]
+    o = diagnosis.overall
+    lines += [f"{diagnosis.n_features} features; residual against the nominal model: chi2 = {o['chi2']:.1f} for "
+              f"{o['dof']} degrees of freedom (p = {o['p']:.3g}); noise variance factor {o['variance_factor']:.2f}.", ""]
+
+    lines += ["## 1. Where the recording deviates", "",
+              "Mean residual (recorded - nominal, after the per-axis offset) per signal and condition; z = mean / its "
+              "standard deviation under the noise model; p values Bonferroni-corrected over all rows.", "",
+              "| where | n | mean | z | p (mean) | chi2/n | p (chi2) |", "|---|---|---|---|---|---|---|"]
+    for row in diagnosis.where[:15]:
+        group = row["where"].split(" |")[0]
+        scale, unit = GROUP_UNITS.get(group, (1.0, ""))
+        lines.append(f"| {row['where']} | {row['n']} | {row['mean'] * scale:.3g} {unit} | {row['z']:.2f} | "
+                     f"{row['p_mean_bonferroni']:.2g} | {row['chi2'] / row['n']:.2f} | {row['p_chi2_bonferroni']:.2g} |")
+    lines += ["", "Change points (CUSUM of the standardised residual, in time):", "",
+              "| signal | time (s) | statistic | p | mean before | mean after |", "|---|---|---|---|---|---|"]
+    for c in diagnosis.change_points[:6]:
+        scale, unit = GROUP_UNITS.get(c["group"], (1.0, ""))
+        lines.append(f"| {c['group']} | {c['time']:.1f} | {c['statistic']:.2f} | {c['p']:.2g} | "
+                     f"{c['mean_before'] * scale:.3g} {unit} | {c['mean_after'] * scale:.3g} {unit} |")
+
+    lines += ["", "## 2. What physics is missing", "",
+              "Each candidate term is a simulator config key; its evidence is the GLS chi2 improvement "
+              "(threshold: chi2 quantile at 5 % / number of candidates), ranked by BIC, and it must also "
+              "improve chi2 on held-out time blocks.", "",
+              "| candidate | effect | estimate | delta chi2 | threshold | BIC gain | held-out gain | accepted |",
+              "|---|---|---|---|---|---|---|---|"]
+    for c in diagnosis.candidates:
+        est = ", ".join(f"{v:.4g} +- {s:.2g}" for v, s in zip(c.estimate, c.sigma))
+        lines.append(f"| {c.name} | {c.words} | {est} | {c.delta_chi2:.1f} | {c.statistic_threshold:.1f} | "
+                     f"{c.bic_gain:.1f} | {c.heldout_gain:.1f} | {'yes' if c.accepted else 'no'} {c.note} |")
+    if diagnosis.missing_candidates:
+        lines += ["", "Not available in this simulator configuration: " + ", ".join(diagnosis.missing_candidates)]
+    if "candidates.png" in figures:
+        lines += ["", "![candidates](candidates.png)"]
+
+    lines += ["", "## 3. The model update", ""]
+    if diagnosis.chosen:
+        lines += ["| config key | fitted | +- | model had |", "|---|---|---|---|"]
+        for key, p in diagnosis.parameters.items():
+            lines.append(f"| `{key}` | {p['value']:.5g} | {p['sigma']:.2g} | {p['nominal']:.5g} |")
+        lines += ["", "Updated configuration: `updated_config.yaml` (only the changed keys: `overrides.yaml`)."]
+        (out / "updated_config.yaml").write_text(dump_config(diagnosis.updated_config))
+    else:
+        lines += ["Nothing to add: the configuration is left as it is."]
+    (out / "overrides.yaml").write_text(yaml.safe_dump(diagnosis.overrides or {}, sort_keys=False))
+
+    h = diagnosis.heldout
+    lines += ["", "## 4. Before and after, on held-out operations", ""]
+    if h:
+        lines += [f"Fitted on the even time blocks only, re-simulated, compared on the odd blocks: chi2 "
+                  f"{h['chi2_before']:.1f} -> {h['chi2_after']:.1f} for {h['dof']} dof "
+                  f"(total reduction {100 * h['reduction']:.0f} %, reduction of the excess over the noise "
+                  f"{100 * h['excess_reduction']:.0f} %).", ""]
+    if "residuals_time.png" in figures:
+        lines += ["![residuals](residuals_time.png)", ""]
+    lines += ["## Run time", "", ", ".join(f"{k} {v:.1f} s" for k, v in diagnosis.timings.items()), ""]
+    path = out / "report.md"
+    path.write_text("\n".join(lines))
+    return path
