@@ -93,7 +93,9 @@ class Sim2RealNode(Node):
                 goal_handle.publish_feedback(Sim2Real.Feedback(phase=str(phase)))
 
             try:
-                diagnosis = run_sim2real(recording, model, report_dir, progress=progress)
+                # a snapshot ends wherever the recorder had got to: its last command may lack its data
+                diagnosis = run_sim2real(recording, model, report_dir, progress=progress,
+                                         missing_data="skip" if note else "error")
             except Cancelled:
                 goal_handle.canceled()
                 result.message = "cancelled; nothing written beyond what the report folder already had"
