@@ -101,6 +101,8 @@ def test_sim_clock_runs_ahead_of_wall_time(nodes, ros_node):
     clocks = []
     ros_node.create_subscription(Clock, "/clock", lambda m: clocks.append(m.clock.sec + m.clock.nanosec * 1e-9), 50)
     nodes("driver", seed=2, real_time_factor=0.0)
+    # the clock before the scan is the baseline: under load DDS may match us only later
+    wait_for(lambda: clocks, 30, what="/clock before the scan")
     with AfmCommander(server_timeout=30) as afm:
         wall = time.monotonic()
         afm.send("scan_image", scan_goal(pixels=(32, 200), line_rate=1.0))   # 200 s of instrument time
