@@ -401,3 +401,20 @@ def test_commands_another_client_sent_are_predicted_once(bench, sim_calibration)
     assert loc.time == pytest.approx(sim.time)
     with pytest.raises(ValueError, match="kind"):
         loc.predict_command("push", before, target, sim.time, sim.time + 1)
+
+
+def test_a_reported_indentation_includes_its_approach_move(bench, sim_calibration):
+    """A driver reports an indentation at its spot, its duration including the lifted approach
+    from where the tip was: predicted as that move over the duration, so the estimate at the
+    moment the indentation began is still where the tip was then (no jump in no time)."""
+    sim, loc = start(bench, sim_calibration, 6, spheres=())
+    here, t0 = np.array(sim.commanded_position()), sim.time
+    loc.sync()
+    before = loc.at(t0)[0]
+    spot = (here[0] + 0.8 * UM, here[1] - 0.5 * UM)
+    sim.indent(*spot, force=20e-9, dwell=0.1)
+    assert loc.predict_command("indent", spot, spot, t0, sim.time)
+    assert loc.at(t0)[0] == pytest.approx(before, abs=1e-12)
+    error, sigma = loc.mean - truth(sim), np.sqrt(np.diag(loc.covariance))
+    assert np.all(np.abs(error) < 3 * sigma), (error, sigma)
+    assert loc.time == pytest.approx(sim.time) and loc.model.command == pytest.approx(spot)

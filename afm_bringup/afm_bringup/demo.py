@@ -260,17 +260,22 @@ def evaluate(run_dir: Path) -> dict:
     if poses:
         means = np.stack([poses["pose.pose.position.x"], poses["pose.pose.position.y"]], axis=1)
         cov = np.asarray(poses["pose.covariance"])[:, [0, 1, 6, 7]].reshape(-1, 2, 2)
-        stamps = poses["header.stamp.sec"] + poses["header.stamp.nanosec"] * 1e-9
-        truth_stamps = truth["header.stamp.sec"] + truth["header.stamp.nanosec"] * 1e-9
         # the estimate is in the maps' (commanded) frame, the truth metric: bring the truth into
         # the maps' frame about where the session started (at rest, commanded = true)
         metric = np.stack([truth["tip_position.x"], truth["tip_position.y"]], axis=1)
         start_commanded = np.array([truth["commanded_position.x"][0], truth["commanded_position.y"][0]])
         true_tip = start_commanded + (metric - metric[0]) @ np.linalg.inv(IMAGE_FRAME).T
         # the localizer publishes its estimate as each command ends, the driver its truth: compare
-        # the pairs with the same stamp (error and NEES)
-        k = np.clip(np.searchsorted(stamps, truth_stamps + 1e-6) - 1, 0, len(stamps) - 1)   # last at that stamp
-        ok = np.abs(stamps[k] - truth_stamps) < 1e-6
+        # the pairs with the same stamp (error and NEES). A command DDS delivers late (a reliable
+        # sample repaired after a loss) is predicted after hold poses already went out with its end
+        # stamp, so stamps are not in order: take the last pose published with each stamp.
+        # (a stamp summed from a start and a duration in float seconds since 1970 is good to ~0.3 us)
+        origin = int(truth["header.stamp.sec"][0])
+        stamps = (poses["header.stamp.sec"] - origin) + poses["header.stamp.nanosec"] * 1e-9
+        truth_stamps = (truth["header.stamp.sec"] - origin) + truth["header.stamp.nanosec"] * 1e-9
+        same = np.abs(stamps[None, :] - truth_stamps[:, None]) < 5e-6
+        ok = same.any(axis=1)
+        k = len(stamps) - 1 - np.argmax(same[:, ::-1], axis=1)          # the last published with that stamp
         errors = true_tip[ok] - means[k[ok]]
         nees = [float(e @ np.linalg.solve(c, e)) for e, c in zip(errors, cov[k[ok]])]
         tip = {"means": means, "covariances": cov, "true_tip": true_tip,

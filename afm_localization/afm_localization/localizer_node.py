@@ -53,7 +53,7 @@ PARAMETERS = [
                             "by its net displacement, not the hysteresis residue its back-and-forth path leaves."),
     ("history_seconds", 120.0, "s of filter history kept to re-apply an out-of-order observation."),
 ]
-KINDS = {TipCommand.SCAN_LINE: "line"}        # everything else moves the tip as a free move would
+KINDS = {TipCommand.SCAN_LINE: "line", TipCommand.INDENT: "indent"}   # the rest moves as a free move would
 
 
 class LocalizerNode(Node):
@@ -126,6 +126,16 @@ class LocalizerNode(Node):
             except ValueError as exc:
                 self.get_logger().error(f"tip command ignored: {exc}")
 
+    def heard_every_command(self) -> bool:
+        """Whether every command up to the driver's /clock has reached us. The simulated driver's
+        clock stands still while it is idle, so a clock past the last command heard means one is
+        still on its way (DDS delivers a reliable sample it lost late, after its repair): lines
+        run before it arrives would fold it into one move and drop it as an echo."""
+        if self.latest_clock is None:
+            return True
+        heard = max([self.instrument.time] + [stamp_seconds(m.header.stamp) + m.duration for m in list(self.pending)])
+        return heard >= self.latest_clock - 1e-6
+
     def now(self) -> float:
         """The instrument clock: /clock when the driver publishes one, else wall time."""
         if self.latest_clock is not None:
@@ -174,6 +184,7 @@ class LocalizerNode(Node):
     def execute(self, goal_handle) -> Localize.Result:
         goal, result = goal_handle.request, Localize.Result()
         wait_until(lambda: self.localizer is not None or self.pending, 5.0)   # commands reach us late under load
+        wait_until(self.heard_every_command, 5.0)
         with self.lock:
             self.process_pending()
             try:

@@ -185,13 +185,17 @@ class Localizer:
         """Predict a command someone else sent the instrument (a driver reports every one it
         executes): hold until it starts, a free move to its start if the tip was commanded
         elsewhere, then the command itself ("line" along a scan line, "move" otherwise) over its
-        duration. extra_variance (m^2, each axis): what the motion model cannot predict about
+        duration. An "indent" is reported at its spot (start = end) with a duration that includes
+        the lifted approach from wherever the tip was commanded: it is predicted as a move there
+        over that duration, never as a jump in no time. extra_variance (m^2, each axis): what the motion model cannot predict about
         this command, e.g. the path-dependent hysteresis residue of a raster image, which the
         model sees only as its net displacement. A command ending no later than the estimate's time is
         already accounted for (our own, or reported twice): skipped, returns False."""
-        if kind not in ("move", "line"):
-            raise ValueError(f"kind={kind!r}: must be 'move' or 'line'")
+        if kind not in ("move", "line", "indent"):
+            raise ValueError(f"kind={kind!r}: must be 'move', 'line' or 'indent'")
         start, end = _vector("start", start), _vector("end", end)
+        if kind == "indent":
+            start, kind = np.asarray(self.model.command, dtype=float), "move"
         if not (math.isfinite(start_time) and math.isfinite(end_time) and end_time >= start_time):
             raise ValueError(f"start_time={start_time}, end_time={end_time}: need finite times, end >= start (s)")
         if end_time <= self.model.time:
