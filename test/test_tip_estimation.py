@@ -42,20 +42,29 @@ def brute_erode(image, tip):
 
 
 def brute_blind(image, tip_size, threshold):
-    """Villarrubia's refinement from its definition, loops everywhere (tiny cases only)."""
+    """Villarrubia's refinement from its definition, loops everywhere (tiny cases only), with
+    the image edges used as Gwyddion's use_edges does: a contact whose apex falls outside the
+    image is admissible (nothing there holds the apex down), and a tip pixel with an admissible
+    contact that puts it outside the image is not refined from that point."""
     h = tip_size // 2
     ny, nx = image.shape
     tip = np.zeros((tip_size, tip_size))
     offsets = [(a, b) for a in range(-h, h + 1) for b in range(-h, h + 1)]
+
+    def inside(y, x):
+        return 0 <= y < ny and 0 <= x < nx
+
     changed = True
     while changed:
         changed = False
-        for y in range(2 * h, ny - 2 * h):
-            for x in range(2 * h, nx - 2 * h):
+        for y in range(h, ny - h):
+            for x in range(h, nx - h):
                 i0 = image[y, x]
-                contacts = [(a, b) for a, b in offsets
-                            if i0 - image[y + a, x + b] <= tip[h + a, h + b] + 1e-9 * np.ptp(image)]
+                contacts = [(a, b) for a, b in offsets if not inside(y + a, x + b)
+                            or i0 - image[y + a, x + b] <= tip[h + a, h + b] + 1e-9 * np.ptp(image)]
                 for wa, wb in offsets:
+                    if not all(inside(y + a - wa, x + b - wb) for a, b in contacts):
+                        continue
                     bound = max(image[y + a - wa, x + b - wb] - i0 + tip[h + a, h + b] for a, b in contacts)
                     if bound + threshold < tip[h + wa, h + wb] - 1e-9 * np.ptp(image):
                         tip[h + wa, h + wb] = bound + threshold
