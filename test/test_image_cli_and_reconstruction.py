@@ -23,13 +23,17 @@ def width_above(profile, level, pixel):
     return np.count_nonzero(profile > level) * pixel
 
 
-def test_a_20_nm_nanotube_imaged_49_nm_wide_comes_back_as_narrow_as_the_book_s():
+@pytest.mark.parametrize("apex_shape, apex, widest", [("sphere", 25e-9, 25e-9), ("paraboloid", 20e-9, 29e-9)])
+def test_a_20_nm_nanotube_imaged_49_nm_wide_comes_back_as_narrow_as_the_book_s(apex_shape, apex, widest):
     """Book 4.4: a 20 nm high carbon nanotube imaged 49 nm wide, reconstructed ~29 nm.
-    Widths at half height. Erosion is the tightest surface the image allows; the tube's
-    flanks below its equator are hidden from a tip that images it 49 nm wide, so about
-    27 nm is the best any reconstruction can do here (the issue's 25 nm is not reachable)."""
-    pixel, apex, angle = 0.5e-9, 20e-9, 20.0      # a 20 nm apex images the tube ~49 nm wide
-    config = merge(load_config(), {**IDEAL, "tip": {"apex_radius": apex, "half_angle_deg": angle},
+    Widths at half height. Erosion is the tightest surface the image allows: the tube's
+    flanks below its equator are hidden from the tip, and how much of them depends on the
+    tip's shape below its apex. A spherical cap (the usual tip model) that images the tube
+    49 nm wide gives 23 nm back (closed form: the closing of the tube by a 25 nm ball is
+    23.2 nm wide at half height); a paraboloid apex that images it 48 nm wide, 27 nm."""
+    pixel, angle = 0.5e-9, 20.0
+    config = merge(load_config(), {**IDEAL, "tip": {"apex_radius": apex, "half_angle_deg": angle,
+                                                    "apex_shape": apex_shape},
                                    "sample": {"spheres": [], "roughness_sigma": 0.0,
                                               "rods": [{"x": 55e-6, "y": 55e-6, "angle": np.pi / 2, "length": 2e-6,
                                                         "radius": 10e-9, "kind": "tube"}]}})
@@ -38,10 +42,10 @@ def test_a_20_nm_nanotube_imaged_49_nm_wide_comes_back_as_narrow_as_the_book_s()
     scan = afm.raster_scan(ScanRequest(55e-6 - n * pixel / 2, 55e-6 - n * pixel / 2, n * pixel, n * pixel, n, n))
     imaged = np.median([width_above(row, 10e-9, pixel) for row in scan.height])
     assert 44e-9 < imaged < 54e-9                                        # the book's ~49 nm
-    tip = paraboloid_cone_tip(apex, angle, pixel, depth=25e-9)
+    tip = paraboloid_cone_tip(apex, angle, pixel, depth=25e-9, apex_shape=apex_shape)
     surface = erode(scan.height.astype(float), tip)
     restored = np.median([width_above(row, 10e-9, pixel) for row in surface])
-    assert 20e-9 <= restored <= 29e-9                                    # never narrower than the tube
+    assert 20e-9 <= restored <= widest                                   # never narrower than the tube
     assert surface.max() == pytest.approx(20e-9, abs=0.6e-9)             # the height is kept
 
 

@@ -136,6 +136,31 @@ def test_tip_asymmetry_and_wear():
     assert unworn.apex_radius == 10e-9
 
 
+def test_a_spherical_apex_is_a_sphere_blended_into_the_cone():
+    """The cap is the sphere of the apex radius (closed form), it meets the cone where their
+    slopes are equal (continuous and smooth), and below the apex it is sharper than the
+    paraboloid of the same radius."""
+    radius, angle, pixel = 20e-9, 20.0, 0.5e-9
+    tip = paraboloid_cone_tip(radius, angle, pixel, 60e-9, apex_shape="sphere")
+    parab = paraboloid_cone_tip(radius, angle, pixel, 60e-9)
+    c = tip.shape[0] // 2
+    r = np.arange(tip.shape[0] - c) * pixel
+    profile = tip[c, c:]
+    r_tangent = radius * np.cos(np.radians(angle))
+    on_cap = r < r_tangent
+    np.testing.assert_allclose(profile[on_cap], -(radius - np.sqrt(radius**2 - r[on_cap] ** 2)), atol=1e-15)
+    z_tangent = -radius * (1 - np.sin(np.radians(angle)))
+    cone = (r > r_tangent) & (profile > -60e-9)
+    np.testing.assert_allclose(profile[cone], z_tangent - (r[cone] - r_tangent) / np.tan(np.radians(angle)),
+                               atol=1e-15)
+    assert np.all(np.abs(np.diff(profile)) <= pixel / np.tan(np.radians(angle)) + 1e-15)   # no step at the seam
+    cp = parab.shape[0] // 2
+    parab = parab[cp - c:cp + c + 1, cp - c:cp + c + 1]               # the sphere's grid is smaller
+    assert np.all(tip <= parab) and tip[c, c + 20] < parab[c, c + 20]
+    with pytest.raises(ValueError, match="apex_shape"):
+        TipParams(apex_shape="cone").validate()
+
+
 def test_local_scan_line_finds_a_sphere_centre():
     config = ideal(sample={"spheres": [{"x": 5e-6, "y": 5e-6, "radius": 100e-9}]})
     afm = SimulatedAfm(config)

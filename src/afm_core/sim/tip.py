@@ -1,6 +1,8 @@
 """Tip geometry as a height grid: apex at the centre pixel, height 0, everything else < 0.
 
-A paraboloid apex z = -r^2 / (2 R) blends tangentially into a cone. With asymmetry a, the
+A paraboloid apex z = -r^2 / (2 R), or a spherical cap of radius R (the usual model of a
+microfabricated tip; below its apex it is sharper than the paraboloid of the same R), blends
+tangentially into a cone. With asymmetry a, the
 cone's half-angle depends on the azimuth phi: theta(phi) = theta0 * (1 + a cos phi), so the
 +x flank is blunter than the -x flank for a > 0 (real tips are rarely symmetric). Wear
 blunts the apex: the radius grows in proportion to the distance slid in contact.
@@ -12,11 +14,15 @@ from dataclasses import dataclass
 import numpy as np
 
 
+APEX_SHAPES = ("paraboloid", "sphere")
+
+
 @dataclass
 class TipParams:
     apex_radius: float = 20e-9          # m, new tip
     half_angle_deg: float = 20.0        # deg, cone half-angle (theta0)
     asymmetry: float = 0.0              # relative half-angle change between +x and -x flanks, |a| < 1
+    apex_shape: str = "paraboloid"      # "paraboloid" or "sphere" (spherical cap)
     wear_enabled: bool = False
     wear_rate: float = 1e-5             # m of apex radius gained per m slid in contact
     max_apex_radius: float = 200e-9     # m, wear stops here (a flat, worn tip)
@@ -30,20 +36,38 @@ class TipParams:
             raise ValueError(f"tip.asymmetry={self.asymmetry}: must be within (-1, 1)")
         if self.half_angle_deg * (1 + abs(self.asymmetry)) >= 90:
             raise ValueError(f"tip.asymmetry={self.asymmetry}: makes a flank's half-angle reach 90 deg")
+        if self.apex_shape not in APEX_SHAPES:
+            raise ValueError(f"tip.apex_shape={self.apex_shape!r}: must be one of {', '.join(APEX_SHAPES)}")
         if self.wear_rate < 0:
             raise ValueError(f"tip.wear_rate={self.wear_rate}: must be >= 0")
 
 
 def paraboloid_cone_tip(apex_radius: float, half_angle_deg: float, pixel_size: float, depth: float,
-                        asymmetry: float = 0.0, max_half_width: int | None = None) -> np.ndarray:
-    """Odd-sized square height grid (m) of the tip down to `depth` below the apex."""
+                        asymmetry: float = 0.0, max_half_width: int | None = None,
+                        apex_shape: str = "paraboloid") -> np.ndarray:
+    """Odd-sized square height grid (m) of the tip down to `depth` below the apex; the apex a
+    paraboloid or a spherical cap (`apex_shape`), blended into the cone where their slopes meet."""
     if not (apex_radius > 0 and pixel_size > 0 and depth > 0 and 0 < half_angle_deg < 90):
         raise ValueError(f"tip: apex_radius={apex_radius}, half_angle_deg={half_angle_deg}, "
                          f"pixel_size={pixel_size}, depth={depth}: all must be > 0, angle < 90 deg")
+    if apex_shape not in APEX_SHAPES:
+        raise ValueError(f"apex_shape={apex_shape!r}: must be one of {', '.join(APEX_SHAPES)}")
+    sphere = apex_shape == "sphere"
+
+    def tangent(slope):
+        """(r, z) where the apex's slope equals the cone's: r/R (paraboloid), r/sqrt(R^2-r^2) (sphere)."""
+        if sphere:
+            r = apex_radius * slope / np.sqrt(1 + slope**2)
+            return r, -(apex_radius - np.sqrt(apex_radius**2 - r**2))
+        r = apex_radius * slope
+        return r, -r**2 / (2 * apex_radius)
+
     flattest = 1.0 / np.tan(np.radians(half_angle_deg * (1 + abs(asymmetry))))   # widest flank's slope
-    r_t = apex_radius * flattest
-    z_t = r_t**2 / (2 * apex_radius)
-    r_max = np.sqrt(2 * apex_radius * depth) if depth <= z_t else r_t + (depth - z_t) / flattest
+    r_t, z_t = tangent(flattest)
+    if depth <= -z_t:
+        r_max = np.sqrt(depth * (2 * apex_radius - depth)) if sphere else np.sqrt(2 * apex_radius * depth)
+    else:
+        r_max = r_t + (depth + z_t) / flattest
     half = int(np.ceil(r_max / pixel_size))
     if max_half_width is not None:
         half = min(half, max_half_width)
@@ -52,9 +76,12 @@ def paraboloid_cone_tip(apex_radius: float, half_angle_deg: float, pixel_size: f
     r = np.hypot(ox, oy)
     cos_phi = np.divide(ox, r, out=np.zeros_like(r), where=r > 0)
     slope = 1.0 / np.tan(np.radians(half_angle_deg) * (1 + asymmetry * cos_phi))   # cone wall dz/dr
-    r_tangent = apex_radius * slope                      # paraboloid slope r/R meets the cone's
-    z_tangent = -r_tangent**2 / (2 * apex_radius)
-    z = np.where(r <= r_tangent, -r**2 / (2 * apex_radius), z_tangent - (r - r_tangent) * slope)
+    r_tangent, z_tangent = tangent(slope)
+    if sphere:
+        cap = -(apex_radius - np.sqrt(np.maximum(apex_radius**2 - r**2, 0.0)))
+    else:
+        cap = -r**2 / (2 * apex_radius)
+    z = np.where(r <= r_tangent, cap, z_tangent - (r - r_tangent) * slope)
     return np.maximum(z, -depth)
 
 
@@ -72,7 +99,8 @@ class Tip:
         key = (round(pixel_size, 15), round(depth, 12), max_half_width, self.apex_radius)
         if key not in self._cache:
             self._cache = {key: paraboloid_cone_tip(self.apex_radius, self.params.half_angle_deg, pixel_size,
-                                                    depth, self.params.asymmetry, max_half_width)}
+                                                    depth, self.params.asymmetry, max_half_width,
+                                                    self.params.apex_shape)}
         return self._cache[key]
 
     def slide(self, distance: float) -> None:
