@@ -186,6 +186,53 @@ def test_filter_one_axis_update_matches_the_closed_form():
     np.testing.assert_allclose(g.mean, np.diag([4.0, 9.0]) @ u * 2.0 / s)
 
 
+def test_lines_across_one_landmark_share_its_map_error():
+    """Two lines across the same landmark carry the same map error b: z_i = x + b + v_i. The
+    closed form is one line of the averaged value, noise m + r/2 (not two independent lines
+    of noise m + r each); the state keeps b, whose posterior is the closed form's too. A
+    line across another landmark starts from that landmark's own, independent error."""
+    p0, m, r = 9.0, 4.0, 1.0
+    f = TipFilter([0.0, 0.0], np.diag([p0, p0]), gate=100.0)
+    for k, z in enumerate((1.0, 2.0)):
+        assert f.update_axis(float(k), z, r, "y", landmark=7, map_covariance=np.diag([m, m])).accepted
+        if k == 0:
+            f.predict(1.0, [0.0, 0.0], np.zeros((2, 2)))
+    shared = m + r / 2
+    assert f.covariance[1, 1] == pytest.approx(1 / (1 / p0 + 1 / shared))
+    assert f.mean[1] == pytest.approx(p0 / (p0 + shared) * 1.5)
+    assert f.covariance[1, 1] > 1 / (1 / p0 + 2 / (m + r))         # what independent lines claimed
+    # another landmark: independent of the first, an ordinary update with R = m2 + r
+    before = f.covariance[0, 0]
+    assert f.update_axis(1.0, 0.5, r, "x", landmark=8, map_covariance=np.diag([2.0, 2.0])).accepted
+    assert f.covariance[0, 0] == pytest.approx(1 / (1 / before + 1 / (2.0 + r)))
+    # no landmark: b plays no part
+    g = TipFilter([0.0, 0.0], np.diag([p0, p0]))
+    g.update_axis(0.0, 1.0, r, "y")
+    assert g.covariance[1, 1] == pytest.approx(1 / (1 / p0 + 1 / r))
+    with pytest.raises(ValueError, match="map_covariance"):
+        g.update_axis(0.0, 1.0, r, "y", map_covariance=np.eye(2))
+
+
+def test_a_late_line_across_a_landmark_replays_like_in_order():
+    """An out-of-order line across a landmark, inserted into the history, gives the state that
+    processing the lines in time order gives, map error shared included."""
+    obs = [(1.0, 0.3, 0.5, "x", 3, np.diag([1.0, 1.0])), (2.0, -0.2, 0.5, "y", 3, np.diag([1.0, 1.0])),
+           (3.0, 0.1, 0.5, "x", 3, np.diag([1.0, 1.0]))]
+
+    def run(order):
+        f = TipFilter([0.0, 0.0], np.diag([4.0, 4.0]), gate=100.0)
+        for t in (1.0, 2.0, 3.0, 4.0):
+            f.predict(t, [0.1, 0.0], np.diag([0.2, 0.2]))
+        for i in order:
+            t, z, v, axis, key, cov = obs[i]
+            assert f.update_axis(t, z, v, axis, landmark=key, map_covariance=cov).accepted
+        return f
+
+    in_order, late = run([0, 1, 2]), run([0, 2, 1])
+    np.testing.assert_allclose(late.mean, in_order.mean, atol=1e-12)
+    np.testing.assert_allclose(late.covariance, in_order.covariance, atol=1e-12)
+
+
 def test_gate_rejects_an_outlier_and_leaves_the_state_unchanged():
     assert GATE_CHI2_1DOF_99 == pytest.approx(chi2.ppf(0.99, 1)) and GATE_CHI2_1DOF_999 == pytest.approx(chi2.ppf(0.999, 1))
     f = TipFilter([1.0, 2.0], np.diag([1.0, 1.0]), time=0.0)

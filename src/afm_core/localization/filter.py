@@ -1,11 +1,20 @@
 """The tip-position Kalman filter (book eq. 5.16-5.21) on filterpy's KalmanFilter.
 
-State: the tip's 2-D position in the task frame (m), covariance P (m^2). Prediction: the
-motion model's mean displacement as the control input (F = I, B = I, u = mean) and its added
-covariance as the process noise Q (there is no other process noise: Q is the calibrated
-motion noise of each move, see `afm_core.localization.motion`). Update: one scalar
-observation z = u . x (a local scan line measures the position along one direction u: a
-horizontal line x, a vertical line y), measurement variance R from the observation model.
+State: the tip's 2-D position x in the task frame (m), augmented with the map error b of the
+landmark observed last (m, 2-D): covariance P (4x4, m^2). Prediction: the motion model's mean
+displacement as the control input (F = I, B = [I; 0], u = mean) and its added covariance as
+the process noise Q on x (there is no other process noise: Q is the calibrated motion noise
+of each move, see `afm_core.localization.motion`; b is constant). Update: one scalar
+observation z = u . (x + b) (a local scan line measures the position along one direction u,
+a horizontal line x, a vertical line y, relative to the landmark, whose map position is off by
+b), measurement variance R from the observation model without the map error, which is b's.
+Carrying b makes a second line across the same landmark (the y line after the x line of a
+particle, a tube crossed twice, the nano-hand's repeated localizations on one particle) use
+the map error once, as it is: one error shared by every line across that landmark; treating
+it as fresh noise on each line made the filter overconfident (mean NEES 1.7 for a tube
+crossed twice). When a line crosses another landmark, b is replaced by that landmark's error
+(mean 0, covariance its map covariance, uncorrelated): correlation with a landmark observed
+before the last one is dropped. An update without a landmark leaves b out (z = u . x).
 
 Gating (eq. 5.18): the squared Mahalanobis distance d^2 = nu^2 / S of the innovation nu
 (S = u P u^T + R) must not exceed `gate` (robot_localization's *_rejection_threshold is the
@@ -68,14 +77,16 @@ class UpdateResult:
 class _Entry:
     kind: str                   # "start" | "predict" | "update"
     time: float                 # s, time of the state after this entry
-    mean: np.ndarray            # state after the entry
-    covariance: np.ndarray
+    mean: np.ndarray            # state after the entry: (4,) tip then landmark map error
+    covariance: np.ndarray      # (4, 4)
+    landmark: object = None     # key of the landmark whose map error the state carries after it
     increment: np.ndarray | None = None     # predict
     process: np.ndarray | None = None
     start_time: float = math.nan            # predict: when the step began
     value: float = math.nan                 # update
     variance: float = math.nan
     direction: np.ndarray | None = None
+    map_covariance: np.ndarray | None = None    # update: the landmark's (None: no landmark)
 
 
 def _direction(axis) -> np.ndarray:
@@ -107,24 +118,30 @@ class TipFilter:
         self.gate = float(gate)
         self.history_seconds = float(history_seconds)
         self.extrapolate = extrapolate
-        self._kf = KalmanFilter(dim_x=2, dim_z=1)
-        self._kf.F = np.eye(2)
-        self._kf.B = np.eye(2)
-        self._set(m, p)
-        self._history = [_Entry("start", float(time), m.copy(), p.copy())]
+        self._kf = KalmanFilter(dim_x=4, dim_z=1)
+        self._kf.F = np.eye(4)
+        self._kf.B = np.vstack([np.eye(2), np.zeros((2, 2))])
+        mean4, cov4 = np.zeros(4), np.zeros((4, 4))
+        mean4[:2], cov4[:2, :2] = m, p
+        self._set(mean4, cov4, None)
+        self._history = [_Entry("start", float(time), mean4, cov4)]
 
     # -- state -------------------------------------------------------------------------------
-    def _set(self, mean, covariance) -> None:
-        self._kf.x = np.asarray(mean, dtype=float).reshape(2, 1).copy()
-        self._kf.P = np.asarray(covariance, dtype=float).copy()
+    def _set(self, mean4, covariance4, landmark) -> None:
+        self._kf.x = np.asarray(mean4, dtype=float).reshape(4, 1).copy()
+        self._kf.P = np.asarray(covariance4, dtype=float).copy()
+        self._landmark = landmark
+
+    def _state(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._kf.x[:, 0].copy(), self._kf.P.copy()
 
     @property
     def mean(self) -> np.ndarray:
-        return self._kf.x[:, 0].copy()
+        return self._kf.x[:2, 0].copy()
 
     @property
     def covariance(self) -> np.ndarray:
-        return self._kf.P.copy()
+        return self._kf.P[:2, :2].copy()
 
     @property
     def time(self) -> float:
@@ -136,7 +153,14 @@ class TipFilter:
 
     # -- the two steps -------------------------------------------------------------------------
     def _predict(self, increment, process) -> None:
-        self._kf.predict(u=np.asarray(increment, dtype=float).reshape(2, 1), Q=np.asarray(process, dtype=float))
+        q = np.zeros((4, 4))
+        q[:2, :2] = process
+        self._kf.predict(u=np.asarray(increment, dtype=float).reshape(2, 1), Q=q)
+
+    def _predict_entry(self, time: float, increment, process, start_time: float) -> _Entry:
+        self._predict(increment, process)
+        return _Entry("predict", float(time), *self._state(), self._landmark, increment, process,
+                      start_time=start_time)
 
     def predict(self, time: float, increment, process) -> None:
         """Motion from the latest time to `time`: mean += increment, P += process."""
@@ -146,17 +170,22 @@ class TipFilter:
         process = check_covariance("process", process)
         if not math.isfinite(time) or time < self.time:
             raise ValueError(f"time={time}: predictions must come in time order (latest {self.time})")
-        start = self.time
-        self._predict(increment, process)
-        self._history.append(_Entry("predict", float(time), self.mean, self.covariance, increment.copy(),
-                                    process.copy(), start_time=start))
+        self._history.append(self._predict_entry(time, increment.copy(), process.copy(), self.time))
         self._prune()
 
-    def _try_update(self, time: float, value: float, variance: float, u: np.ndarray) -> UpdateResult:
+    def _try_update(self, time: float, value: float, variance: float, u: np.ndarray, landmark,
+                    map_covariance) -> UpdateResult:
         """Gate and (if accepted) apply to the current state; filterpy does the algebra on a copy
-        that replaces the filter only when the observation passes the gate."""
+        that replaces the filter only when the observation passes the gate. A landmark other
+        than the one the state carries first replaces b by the new landmark's map error."""
         trial = copy.deepcopy(self._kf)
-        trial.update(np.array([[value]]), R=np.array([[variance]]), H=u.reshape(1, 2))
+        if landmark is not None and landmark != self._landmark:
+            trial.x[2:] = 0.0
+            trial.P[2:, :] = 0.0
+            trial.P[:, 2:] = 0.0
+            trial.P[2:, 2:] = map_covariance
+        h = np.concatenate([u, u if landmark is not None else np.zeros(2)]).reshape(1, 4)
+        trial.update(np.array([[value]]), R=np.array([[variance]]), H=h)
         innovation = float(trial.y[0, 0])
         s = float(trial.S[0, 0])
         distance = float(trial.mahalanobis)
@@ -164,17 +193,33 @@ class TipFilter:
             return UpdateResult(False, f"gated_out: squared Mahalanobis distance {distance ** 2:.3g} > gate {self.gate:.3g}",
                                 time, innovation, s, distance)
         self._kf = trial
+        if landmark is not None:
+            self._landmark = landmark
         return UpdateResult(True, "", time, innovation, s, distance)
 
-    def update_axis(self, time: float, value: float, variance: float, axis="x") -> UpdateResult:
-        """One scalar observation z = u . x(time) + v, v ~ N(0, variance); axis "x", "y" or a
-        unit vector u. Returns whether it was accepted and its Mahalanobis distance."""
+    def _update_entry(self, time, value, variance, u, landmark, map_covariance) -> _Entry:
+        return _Entry("update", time, *self._state(), self._landmark, value=value, variance=variance, direction=u,
+                      map_covariance=map_covariance)
+
+    def update_axis(self, time: float, value: float, variance: float, axis="x", landmark=None,
+                    map_covariance=None) -> UpdateResult:
+        """One scalar observation z = u . (x(time) + b) + v, v ~ N(0, variance); axis "x", "y" or
+        a unit vector u. landmark: a hashable key of the landmark the line crossed and
+        map_covariance its 2x2 map covariance (m^2; b's, not counted in `variance`); without a
+        landmark, z = u . x(time) + v. Returns whether it was accepted and its Mahalanobis
+        distance."""
         u = _direction(axis)
         for name, v in (("time", time), ("value", value), ("variance", variance)):
             if not math.isfinite(v):
                 raise ValueError(f"{name}={v}: must be finite")
-        if not variance > 0:
-            raise ValueError(f"variance={variance}: must be > 0 m^2")
+        if landmark is not None:
+            map_covariance = check_covariance("map_covariance", map_covariance)
+        elif map_covariance is not None:
+            raise ValueError("map_covariance given without the landmark it belongs to")
+        # with a landmark, its map error may be all the noise there is (a perfect line)
+        if not (variance > 0 or (variance == 0 and landmark is not None and u @ map_covariance @ u > 0)):
+            raise ValueError(f"variance={variance}: must be > 0 m^2 (or 0 with a landmark whose map error "
+                             "along the line is > 0)")
         time, value, variance = float(time), float(value), float(variance)
         if time < self.oldest_time:
             return UpdateResult(False, f"too_old: t={time:.6g} s is before the history's start "
@@ -183,12 +228,11 @@ class TipFilter:
         if time >= self.time:
             if time > self.time:
                 self._extend_to(time)
-            result = self._try_update(time, value, variance, u)
+            result = self._try_update(time, value, variance, u, landmark, map_covariance)
             if result.accepted:
-                self._history.append(_Entry("update", time, self.mean, self.covariance, value=value,
-                                            variance=variance, direction=u))
+                self._history.append(self._update_entry(time, value, variance, u, landmark, map_covariance))
             return result
-        return self._insert_past(time, value, variance, u)
+        return self._insert_past(time, value, variance, u, landmark, map_covariance)
 
     def _extend_to(self, time: float) -> None:
         """An observation after the latest prediction: carry the state there first."""
@@ -198,7 +242,8 @@ class TipFilter:
             increment, process = self.extrapolate(self.time, time)
             self.predict(time, increment, process)
 
-    def _insert_past(self, time: float, value: float, variance: float, u: np.ndarray) -> UpdateResult:
+    def _insert_past(self, time: float, value: float, variance: float, u: np.ndarray, landmark,
+                     map_covariance) -> UpdateResult:
         history = self._history
         times = [e.time for e in history]
         k = bisect_right(times, time)            # entries [0, k) end at or before `time`
@@ -206,38 +251,33 @@ class TipFilter:
         if later and later[0].kind == "predict" and later[0].start_time < time:
             step = later[0]                      # split the step that spans `time`
             f = (time - step.start_time) / (step.time - step.start_time)
-            first = _Entry("predict", time, None, None, f * step.increment, f * step.process, start_time=step.start_time)
-            second = _Entry("predict", step.time, None, None, (1 - f) * step.increment, (1 - f) * step.process,
+            first = _Entry("predict", time, None, None, None, f * step.increment, f * step.process,
+                           start_time=step.start_time)
+            second = _Entry("predict", step.time, None, None, None, (1 - f) * step.increment, (1 - f) * step.process,
                             start_time=time)
-            later = [first, second] + later[1:]
-            head = later[:1]
-            later = later[1:]
+            head, later = [first], [second] + later[1:]
         else:
             head = []
         base = history[:k]
-        saved_kf, saved_history = copy.deepcopy(self._kf), history
-        self._set(base[-1].mean, base[-1].covariance)
+        saved_kf, saved_landmark, saved_history = copy.deepcopy(self._kf), self._landmark, history
+        self._set(base[-1].mean, base[-1].covariance, base[-1].landmark)
         new_history = list(base)
         for entry in head:
-            self._predict(entry.increment, entry.process)
-            new_history.append(_Entry("predict", entry.time, self.mean, self.covariance, entry.increment,
-                                      entry.process, start_time=entry.start_time))
-        result = self._try_update(time, value, variance, u)
+            new_history.append(self._predict_entry(entry.time, entry.increment, entry.process, entry.start_time))
+        result = self._try_update(time, value, variance, u, landmark, map_covariance)
         if not result.accepted:                   # leave everything as it was
-            self._kf, self._history = saved_kf, saved_history
+            self._kf, self._landmark, self._history = saved_kf, saved_landmark, saved_history
             return result
-        new_history.append(_Entry("update", time, self.mean, self.covariance, value=value, variance=variance,
-                                  direction=u))
+        new_history.append(self._update_entry(time, value, variance, u, landmark, map_covariance))
         for entry in later:
             if entry.kind == "predict":
-                self._predict(entry.increment, entry.process)
-                new_history.append(_Entry("predict", entry.time, self.mean, self.covariance, entry.increment,
-                                          entry.process, start_time=entry.start_time))
+                new_history.append(self._predict_entry(entry.time, entry.increment, entry.process, entry.start_time))
             elif entry.kind == "update":
-                replay = self._try_update(entry.time, entry.value, entry.variance, entry.direction)
+                replay = self._try_update(entry.time, entry.value, entry.variance, entry.direction, entry.landmark
+                                          if entry.map_covariance is not None else None, entry.map_covariance)
                 if replay.accepted:
-                    new_history.append(_Entry("update", entry.time, self.mean, self.covariance, value=entry.value,
-                                              variance=entry.variance, direction=entry.direction))
+                    new_history.append(self._update_entry(entry.time, entry.value, entry.variance, entry.direction,
+                                                          entry.landmark, entry.map_covariance))
         self._history = new_history
         return result
 
@@ -249,7 +289,8 @@ class TipFilter:
             k += 1
         if k:
             oldest = self._history[k]
-            self._history = [_Entry("start", oldest.time, oldest.mean, oldest.covariance)] + self._history[k + 1:]
+            self._history = [_Entry("start", oldest.time, oldest.mean, oldest.covariance, oldest.landmark)] \
+                + self._history[k + 1:]
 
     # -- queries ---------------------------------------------------------------------------------
     def at(self, time: float) -> tuple[np.ndarray, np.ndarray]:
@@ -271,6 +312,6 @@ class TipFilter:
         entry = self._history[k]
         before = self._history[k - 1]
         if entry.kind != "predict" or entry.start_time >= time:
-            return before.mean.copy(), before.covariance.copy()
+            return before.mean[:2].copy(), before.covariance[:2, :2].copy()
         f = (time - entry.start_time) / (entry.time - entry.start_time)
-        return before.mean + f * entry.increment, before.covariance + f * entry.process
+        return before.mean[:2] + f * entry.increment, before.covariance[:2, :2] + f * entry.process

@@ -327,7 +327,9 @@ class Localizer:
         if obs.ok:
             kp_time = obs.time
             self._apply(self.model.move(obs.command[0], obs.command[1], kp_time - self.model.time, "line"))
-            update = self.filter.update_axis(kp_time, obs.value, obs.variance, obs.direction)
+            key = landmark.id if landmark.id >= 0 else (landmark.x, landmark.y)
+            update = self.filter.update_axis(kp_time, obs.value, obs.line_variance, obs.direction,
+                                             landmark=key, map_covariance=landmark.covariance)
             result.update = update
             result.innovation, result.mahalanobis = update.innovation, update.mahalanobis
             result.innovation_sigma = math.sqrt(update.innovation_variance) if update.innovation_variance >= 0 else math.nan

@@ -131,11 +131,17 @@ def observation_direction(landmark: MapLandmark, line_direction) -> np.ndarray:
     return normal if normal @ d >= 0 else -normal
 
 
+def line_variance(landmark: MapLandmark, calibration: Calibration) -> float:
+    """The part of eq. 5.15 each line draws afresh: scan-region error + line-deflection error
+    (m^2). The map error is the landmark's, shared by every line across it."""
+    deflection = math.radians(calibration.line_deflection_sigma_deg) * landmark.radius
+    return calibration.scan_region_sigma ** 2 + deflection ** 2
+
+
 def observation_variance(landmark: MapLandmark, direction, calibration: Calibration) -> float:
     """Eq. 5.15: map error along u + scan-region error + line-deflection error (m^2)."""
     u = np.asarray(direction, dtype=float)
-    deflection = math.radians(calibration.line_deflection_sigma_deg) * landmark.radius
-    return float(u @ landmark.covariance @ u) + calibration.scan_region_sigma ** 2 + deflection ** 2
+    return float(u @ landmark.covariance @ u) + line_variance(landmark, calibration)
 
 
 @dataclass
@@ -151,7 +157,8 @@ class LineObservation:
     command: tuple = (math.nan, math.nan)   # m, commanded scanner position at x_kp
     direction: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))  # u (task frame)
     value: float = math.nan                 # m, z = u . m
-    variance: float = math.nan              # m^2, observation noise
+    variance: float = math.nan              # m^2, observation noise (eq. 5.15)
+    line_variance: float = math.nan         # m^2, its part without the landmark's map error
     width: float = math.nan                 # m, commanded distance between the crossings
 
     @property
@@ -243,4 +250,5 @@ def observe_line(line: ScanLineData, landmark, calibration: Calibration, line_di
     return LineObservation("ok", "", threshold=threshold, substrate=substrate, crossings=(rising, falling),
                            index=index, time=time, command=command, direction=u,
                            value=float(u @ landmark.position),
-                           variance=observation_variance(landmark, u, calibration), width=width)
+                           variance=observation_variance(landmark, u, calibration),
+                           line_variance=line_variance(landmark, calibration), width=width)
