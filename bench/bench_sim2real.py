@@ -113,6 +113,12 @@ def suite(model) -> list[Case]:
                 {"drift.mean_velocity_x": v[0], "drift.mean_velocity_y": v[1]}
         add(f"drift_velocity-{k}", "confounded", 240 + k, "drift_velocity", drift_velocity)
 
+    def creep_time(rng):
+        factor = rng.choice([rng.uniform(1.8, 3.0), rng.uniform(0.3, 0.55)])
+        return {"scanner": {"creep_time_constants": [t * factor for t in scanner.creep_time_constants]}}, \
+            {"scanner.creep_time_constants": factor}
+    add("creep_time-0", "confounded", 235, "creep_time", creep_time)
+
     def asymmetry(rng):
         a = scanner.hysteresis_asymmetry + _sign(rng) * rng.uniform(0.05, 0.1)
         return {"scanner": {"hysteresis_asymmetry": a}}, {"scanner.hysteresis_asymmetry": a}
@@ -201,7 +207,8 @@ def run_case(case: Case, workdir: str) -> dict:
         true_vec, fit_vec, nominal_vec = [], [], []
         for key, value in case.truth.items():
             fitted = diagnosis.parameters.get(key, {}).get("value", math.nan)
-            nominal = 1.0 if key == "scanner.creep_fractions" else float(_nominal_of(model, key))
+            scaled = key in ("scanner.creep_fractions", "scanner.creep_time_constants")     # fitted as factors
+            nominal = 1.0 if scaled else float(_nominal_of(model, key))
             if key == "tip.wear_rate" and not model.tip.wear_enabled:
                 nominal = 0.0
             if key == "contact.static_friction_ratio" and not model.contact.stick_slip_enabled:

@@ -2,6 +2,9 @@
 extra effect must name it first with its parameter within 20 %; a null session (nothing
 missing) must report no missing physics; the report, the updated config and the entry point
 work on a recorded MCAP; a config that does not describe the recording is a clear error."""
+import gc
+import weakref
+
 import numpy as np
 import pytest
 import yaml
@@ -10,6 +13,7 @@ from afm_core.sim.config import load_config, merge
 from afm_core.sim2real.candidates import available, library
 from afm_core.sim2real.diagnose import (ConfigMismatchError, build_noise_model, diagnose, drift_covariance,
                                         positioning_covariance)
+from afm_core.sim2real.features import _same_segment
 from afm_core.sim2real.protocol import make_session, session_config
 
 
@@ -45,9 +49,37 @@ def test_candidates_follow_the_config_keys():
 
 @pytest.fixture(scope="module")
 def null_diagnosis():
+    """Also records how many measurements handed to the diagnosis were still alive each time it
+    took the next operation (the session is handed over as a stream, the list emptied)."""
     seed = 11
     ops = make_session(_nominal(seed), protocol_seed=seed)
-    return diagnose(ops, _nominal(seed))
+    longest_run, run = 0, []
+    for op in ops:                        # the longest run of lines over one segment
+        run = run + [op] if op.kind == "scan_line" and run and _same_segment(run[0], op) else \
+            ([op] if op.kind == "scan_line" else [])
+        longest_run = max(longest_run, len(run))
+    handed, most_alive = [], [0]
+
+    def stream():
+        while ops:
+            op = ops.pop(0)
+            gc.collect()
+            most_alive[0] = max(most_alive[0], sum(ref() is not None for ref in handed))
+            if op.data is not None:
+                handed.append(weakref.ref(op.data))
+            yield op
+
+    diagnosis = diagnose(stream(), _nominal(seed))
+    diagnosis.test_streaming = {"most_alive": most_alive[0], "handed": len(handed), "longest_run": longest_run}
+    return diagnosis
+
+
+def test_the_diagnosis_streams_the_recording(null_diagnosis):
+    """Measurements are let go once their features are taken: never more alive than one run of
+    scan lines over a segment (which waits for its end), never the session."""
+    seen = null_diagnosis.test_streaming
+    assert seen["handed"] > 4 * seen["longest_run"] + 4
+    assert seen["most_alive"] <= seen["longest_run"] + 1, seen
 
 
 def test_null_session_reports_no_missing_physics(null_diagnosis, tmp_path):

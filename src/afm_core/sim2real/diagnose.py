@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 import time as _time
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -56,7 +57,7 @@ from scipy import linalg, stats
 
 from afm_core.sim.config import SimConfig, load_config, merge
 from afm_core.sim2real.candidates import Candidate, available, merge_overrides
-from afm_core.sim2real.features import POSITION_GROUPS, Feature, extract_features
+from afm_core.sim2real.features import POSITION_GROUPS, Feature, FeatureExtractor, extract_features
 from afm_core.sim2real.protocol import TrajectoryDrift, deterministic, replay
 
 ALPHA = 0.05                       # family-wise false "missing physics" rate on null recordings
@@ -664,11 +665,16 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     say = progress or (lambda message: None)
     t_start = _time.perf_counter()
     timings = {}
-    ops = list(recorded_ops)
+    anchors = np.array([(s["x"], s["y"]) for s in config.sample.spheres], float).reshape(-1, 2)
+    # one pass over the recording: its measurements become features and are let go (a
+    # recording is never held whole); re-simulations need the commands only
+    extractor, ops = FeatureExtractor(anchors), []
+    for op in recorded_ops:
+        extractor.add(op)
+        ops.append(dataclasses.replace(op, data=None))
     if not ops:
         raise NoFeaturesError("the recording holds no operations")
-    anchors = np.array([(s["x"], s["y"]) for s in config.sample.spheres], float).reshape(-1, 2)
-    f_rec = _by_key(extract_features(ops, anchors))
+    f_rec = _by_key(extractor.finish())
     if not f_rec:
         raise NoFeaturesError("no scan line, raster or push in the recording gave a feature (no particle crossed?)")
     base = deterministic(config)
@@ -1123,9 +1129,13 @@ def run_sim2real(recording_path, config_path, report_dir, progress=None, missing
         from afm_core.sim2real.session import read_operations
     except ImportError as exc:            # pragma: no cover - the session reader is part of the package
         raise RuntimeError(f"the recording reader (afm_core.sim2real.session) is not available: {exc}") from exc
-    ops = list(read_operations(recording_path, missing_data=missing_data))
-    if not ops:
-        raise NoFeaturesError(f"recording {str(recording_path)!r} holds no commands the simulator can re-run")
-    diagnosis = diagnose(ops, config, progress=progress, **kw)
+    with read_operations(recording_path, missing_data=missing_data) as operations:
+        try:
+            diagnosis = diagnose(operations, config, progress=progress, **kw)
+        except NoFeaturesError as exc:
+            if str(exc) == "the recording holds no operations":
+                raise NoFeaturesError(f"recording {str(recording_path)!r} holds no commands the simulator can "
+                                      "re-run") from exc
+            raise
     write_report(diagnosis, Path(report_dir), config=config, recording=str(recording_path))
     return diagnosis

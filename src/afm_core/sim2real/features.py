@@ -145,43 +145,60 @@ def _same_segment(a, b) -> bool:
     return bool(np.all(np.abs(pa - pb) <= SAME_POINT) or np.all(np.abs(pa - pb[[2, 3, 0, 1]]) <= SAME_POINT))
 
 
-def extract_features(operations, anchors=None) -> list[Feature]:
-    """Features of every operation (see the module docstring). anchors: (n, 2) sample-frame
-    particle positions (the configured spheres) to key raster particles by."""
-    feats: list[Feature] = []
-    ops = list(operations)
-    last_move_end_time = 0.0
-    last_move = (0.0, 0.0, 0.0)       # distance, direction x, y
-    slid = 0.0
-    i = 0
-    while i < len(ops):
-        op = ops[i]
+class FeatureExtractor:
+    """Features of operations fed one at a time in command order (`add`), so a recording's
+    measurements need not be held: only a run of scan lines over one segment waits until the
+    run ends. `finish()` returns every feature (see the module docstring). anchors: (n, 2)
+    sample-frame particle positions (the configured spheres) to key raster particles by."""
+
+    def __init__(self, anchors=None):
+        self.anchors = anchors
+        self.features: list[Feature] = []
+        self._last_move_end_time = 0.0
+        self._last_move = (0.0, 0.0, 0.0)       # distance, direction x, y
+        self._slid = 0.0
+        self._run: list = []
+        self._run_common: dict = {}
+
+    def add(self, op) -> None:
+        if op.kind == "scan_line" and self._run and _same_segment(self._run[0], op):
+            self._run.append(op)
+            return
+        self._flush()
         kind = op.kind
         start, end = np.asarray(op.start, float), np.asarray(op.end, float)
         if kind in ("move", "push", "indent"):
             d = float(np.hypot(*(end - start)))
             if d > 0:
-                last_move = (d, *((end - start) / d))
+                self._last_move = (d, *((end - start) / d))
             if kind == "push" and op.data is not None:
-                feats += _push_features(op, slid)
-                slid += float(np.hypot(*(end - start)))
-            last_move_end_time = op.start_time + (op.duration if np.isfinite(op.duration) else 0.0)
-            i += 1
-            continue
-        common = {"dwell": max(0.0, op.start_time - last_move_end_time), "move_distance": last_move[0],
-                  "move_dx": last_move[1], "move_dy": last_move[2], "contact_slid": slid}
+                self.features += _push_features(op, self._slid)
+                self._slid += float(np.hypot(*(end - start)))
+            self._last_move_end_time = op.start_time + (op.duration if np.isfinite(op.duration) else 0.0)
+            return
+        common = {"dwell": max(0.0, op.start_time - self._last_move_end_time), "move_distance": self._last_move[0],
+                  "move_dx": self._last_move[1], "move_dy": self._last_move[2], "contact_slid": self._slid}
         if kind == "scan_line":
-            run = [op]
-            while i + len(run) < len(ops) and ops[i + len(run)].kind == "scan_line" and \
-                    _same_segment(op, ops[i + len(run)]):
-                run.append(ops[i + len(run)])
-            feats += _run_features(run, common)
-            i += len(run)
-            continue
-        if kind == "raster" and op.data is not None:
-            feats += _raster_features(op, common, anchors)
-        i += 1
-    return feats
+            self._run, self._run_common = [op], common
+        elif kind == "raster" and op.data is not None:
+            self.features += _raster_features(op, common, self.anchors)
+
+    def _flush(self) -> None:
+        if self._run:
+            self.features += _run_features(self._run, self._run_common)
+            self._run = []
+
+    def finish(self) -> list[Feature]:
+        self._flush()
+        return self.features
+
+
+def extract_features(operations, anchors=None) -> list[Feature]:
+    """Features of every operation (see the module docstring and FeatureExtractor)."""
+    extractor = FeatureExtractor(anchors)
+    for op in operations:
+        extractor.add(op)
+    return extractor.finish()
 
 
 def _run_features(run, common) -> list[Feature]:
