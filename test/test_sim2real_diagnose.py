@@ -11,8 +11,8 @@ import yaml
 
 from afm_core.sim.config import load_config, merge
 from afm_core.sim2real.candidates import available, library
-from afm_core.sim2real.diagnose import (ConfigMismatchError, build_noise_model, diagnose, drift_covariance,
-                                        positioning_covariance)
+from afm_core.sim2real.diagnose import (ConfigMismatchError, NoiseModel, build_noise_model, diagnose,
+                                        drift_covariance, positioning_covariance)
 from afm_core.sim2real.features import _same_segment
 from afm_core.sim2real.protocol import make_session, session_config
 
@@ -35,6 +35,26 @@ def test_positioning_covariance_is_a_random_walk():
     expected = np.cumsum(var)
     assert np.allclose(np.diag(cov), expected)
     assert cov[0, 2] == pytest.approx(expected[0]) and cov[1, 2] == pytest.approx(expected[1])
+
+
+def test_overdispersion_scales_each_groups_own_noise_not_the_shared_drift():
+    """A group's overdispersion factor inflates its own noise; the drift wander and positioning
+    walk are one pattern over every group, of configured size, and stay as they are (scaling
+    them per group made a session's constant drift velocity, 2 sigma of the wander, pass for
+    missing physics at 16 sigma)."""
+    groups = np.array(["a", "a", "b", "b"])
+    shared = np.outer([1.0, 2.0, 3.0, 4.0], [1.0, 2.0, 3.0, 4.0])
+    own = np.diag([1.0, 1.0, 2.0, 2.0])
+    noise = NoiseModel(white=np.diag(own).copy(), cov=own + shared, group_sigma={}, common=shared)
+    noise.overdispersed({"b": 4.0}, groups)
+    np.testing.assert_allclose(noise.cov, np.diag([1.0, 1.0, 8.0, 8.0]) + shared)
+    np.testing.assert_allclose(noise.white, [1.0, 1.0, 8.0, 8.0])
+    # GLS coefficient of a column along the shared pattern: never surer than the pattern's own
+    # variance (1); with the shared part scaled per group it would be (0.78 here)
+    x = np.array([1.0, 2.0, 3.0, 4.0])
+    assert 1.0 / (x @ np.linalg.solve(noise.cov, x)) > 1.0
+    scale = np.sqrt([1.0, 1.0, 4.0, 4.0])
+    assert 1.0 / (x @ np.linalg.solve((own + shared) * np.outer(scale, scale), x)) < 1.0
 
 
 def test_candidates_follow_the_config_keys():

@@ -134,6 +134,17 @@ class NoiseModel:
     white: np.ndarray            # per-feature variance
     cov: np.ndarray              # full covariance
     group_sigma: dict            # group -> pooled white sigma
+    common: np.ndarray | None = None   # its part shared across groups: drift wander, positioning walk
+
+    def overdispersed(self, factors: dict, groups: np.ndarray) -> None:
+        """Scale each group's own part by its overdispersion factor (variance). The shared
+        part is physics with configured sizes (drift spread, walk slope) and one pattern over
+        all groups: scaling it group by group would bend that pattern and let a constant drift
+        velocity, which the wander makes, pass for missing physics."""
+        scale = np.sqrt(np.array([factors.get(g, 1.0) for g in groups]))
+        common = self.common if self.common is not None else np.zeros_like(self.cov)
+        self.cov = (self.cov - common) * np.outer(scale, scale) + common
+        self.white = self.white * scale ** 2
 
 
 def _pooled_white(values: np.ndarray, groups: np.ndarray, shrink: float, reference: np.ndarray | None = None):
@@ -208,6 +219,7 @@ def build_noise_model(config: SimConfig, table: Table, sensor: np.ndarray, J: np
             same = ids[use, axis][:, None] == ids[use, axis][None, :]
             sd = np.sqrt(var[use, axis])
             cov[np.ix_(use, use)] += np.outer(j[use], j[use]) * np.outer(sd, sd) * same
+    common = np.zeros_like(cov)
     active = np.flatnonzero(np.abs(J).sum(axis=1) > 0)
     if active.size:
         t = table.time[active]
@@ -216,13 +228,13 @@ def build_noise_model(config: SimConfig, table: Table, sensor: np.ndarray, J: np
         if d.enabled:
             for axis, sigma in enumerate((d.sigma_velocity_x, d.sigma_velocity_y)):
                 if sigma > 0:
-                    cov[np.ix_(active, active)] += np.outer(Ja[:, axis], Ja[:, axis]) * drift_covariance(
+                    common[np.ix_(active, active)] += np.outer(Ja[:, axis], Ja[:, axis]) * drift_covariance(
                         t, sigma, d.correlation_time)
         s = config.scanner
         if s.positioning_noise_enabled:
             walk = positioning_covariance(t, moves, s.positioning_noise_slope, s.positioning_noise_offset)
-            cov[np.ix_(active, active)] += (Ja @ Ja.T) * walk
-    return NoiseModel(white=white, cov=cov, group_sigma=group_sigma)
+            common[np.ix_(active, active)] += (Ja @ Ja.T) * walk
+    return NoiseModel(white=white, cov=cov + common, group_sigma=group_sigma, common=common)
 
 
 def nuisance_columns(table: Table, J: np.ndarray | None = None) -> np.ndarray:
@@ -795,9 +807,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     # excess to a candidate; the factors are taken after the best single candidate's fit, so a
     # real effect is not mistaken for noise
     group_factors = _group_overdispersion(r, P, [c[2] for c in design.values()], noise.cov, table.groups)
-    scale = np.sqrt(np.array([group_factors.get(g, 1.0) for g in table.groups]))
-    noise.cov = noise.cov * np.outer(scale, scale)
-    noise.white = noise.white * scale ** 2
+    noise.overdispersed(group_factors, table.groups)
 
     # evidence
     white = Whitener(noise.cov)
