@@ -131,16 +131,6 @@ def test_blunter_tip_is_named_with_its_radius(tmp_path):
     assert updated.tip.apex_radius == pytest.approx(fitted)
 
 
-def test_sensor_latency_is_named_with_its_value():
-    """Latency shifts what a trace sees along the trace: the drift trajectory must not take that
-    up from the rasters' fast axis (it did, and latency came out at a third of its value)."""
-    seed, latency = 9, 4e-3
-    truth = merge(_nominal(seed), {"noise": {"sensor_latency": latency}})
-    d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed))
-    assert d.chosen and d.chosen[0] == "latency", d.summary()
-    assert abs(d.parameters["noise.sensor_latency"]["value"] - latency) <= 0.2 * latency, d.summary()
-
-
 def test_config_for_another_sample_is_a_clear_error():
     seed = 3
     ops = make_session(_nominal(seed), protocol_seed=seed, blocks=1)

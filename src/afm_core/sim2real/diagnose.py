@@ -347,11 +347,6 @@ def nominal_drift(config: SimConfig, t: np.ndarray) -> np.ndarray:
     return v * t[..., None] + 0.5 * a * (t ** 2)[..., None]
 
 
-def _fast_axis(request) -> int:
-    """0 (x) or 1 (y): the axis a raster's trace lines run along (scan angle 0 or 90 deg)."""
-    return 0 if abs(math.cos(math.radians(float(request.scan_angle_deg)))) >= 0.5 else 1
-
-
 class ScannerMap:
     """The model's scanner along every recorded position measurement: a replay without imaging
     gives, for each scan line and raster, where the scanner truly was at each commanded sample
@@ -401,11 +396,6 @@ class ScannerMap:
             self.items[f.key] = item
             value = float(true_point[axis] - anchors[j, axis])
             if op.kind == "raster":
-                # along the fast axis an imaged particle also moves with whatever lags or leads the
-                # trace (sensor latency, feedback, tip asymmetry): physics the drift must not take
-                # up; lines measure both axes as forward/backward means, where that cancels
-                if axis == _fast_axis(op.request):
-                    continue
                 # a raster's particles give one offset per axis (their mean): a drift trajectory is
                 # a function of time, and particles in the same lines differ by distortion, not drift
                 per_raster.setdefault((op.index, axis), []).append((f.time, value, f.key))
