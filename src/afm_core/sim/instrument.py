@@ -30,6 +30,34 @@ from afm_core.sim.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
 from afm_core.sim.tip import Tip
 
 LINES_PER_CHUNK = 16          # raster lines simulated at once (progress and cancel granularity)
+
+
+class RasterPath:
+    """The commanded path of a raster image: each line traced along the fast axis and retraced,
+    the lines in slow-scan order (up or down), pixel centres."""
+
+    def __init__(self, request: ScanRequest):
+        self.fast_is_x = request.scan_angle_deg == 0.0
+        self.n_fast, self.n_lines = request.pixels_per_line, request.lines
+        self.pixel_x, self.pixel_y = request.size_x / request.pixels_x, request.size_y / request.pixels_y
+        fast_pixel, slow_pixel = ((self.pixel_x, self.pixel_y) if self.fast_is_x
+                                  else (self.pixel_y, self.pixel_x))
+        fast_origin, slow_origin = ((request.origin_x, request.origin_y) if self.fast_is_x
+                                    else (request.origin_y, request.origin_x))
+        fast_coords = fast_origin + (np.arange(self.n_fast) + 0.5) * fast_pixel
+        self.line_order = np.arange(self.n_lines) if request.slow_scan_up else np.arange(self.n_lines)[::-1]
+        self.slow_coords = slow_origin + (self.line_order + 0.5) * slow_pixel
+        self.trace_back = np.concatenate([fast_coords, fast_coords[::-1]])
+        self.first = self.to_xy(fast_coords[0], self.slow_coords[0])
+
+    def to_xy(self, fast, slow):
+        return (fast, slow) if self.fast_is_x else (slow, fast)
+
+    def chunk(self, done: int):
+        """(line indices, commanded x, y) of the next LINES_PER_CHUNK lines after `done`."""
+        lines = self.line_order[done:done + LINES_PER_CHUNK]
+        slow = np.repeat(self.slow_coords[done:done + len(lines)], 2 * self.n_fast)
+        return (lines, *self.to_xy(np.tile(self.trace_back, len(lines)), slow))
 MOVE_STEP = 2e-9              # m, path sampling of moves (pushes resolve objects finer inside)
 IDLE_STEP = 0.05              # s, scanner sampling while holding still (creep keeps going)
 INDENT_SAMPLES = 200
@@ -248,21 +276,10 @@ class SimulatedAfm:
     def raster_scan(self, request: ScanRequest, on_line: Optional[Callable[[int, int], None]] = None,
                     should_stop: Optional[StopCheck] = None) -> RasterScanData:
         request.validate(self.limits)
-        fast_is_x = request.scan_angle_deg == 0.0
-        n_fast, n_lines = request.pixels_per_line, request.lines
-        px, py = request.size_x / request.pixels_x, request.size_y / request.pixels_y
-        fast_pixel, slow_pixel = (px, py) if fast_is_x else (py, px)
-        fast_origin, slow_origin = ((request.origin_x, request.origin_y) if fast_is_x
-                                    else (request.origin_y, request.origin_x))
-        fast_coords = fast_origin + (np.arange(n_fast) + 0.5) * fast_pixel
-        line_order = np.arange(n_lines) if request.slow_scan_up else np.arange(n_lines)[::-1]
-        slow_coords = slow_origin + (line_order + 0.5) * slow_pixel
-
-        def to_xy(fast, slow):
-            return (fast, slow) if fast_is_x else (slow, fast)
-
-        first_x, first_y = to_xy(fast_coords[0], slow_coords[0])
-        self.move_tip(first_x, first_y, self.limits.max_speed / 10)
+        path = RasterPath(request)
+        fast_is_x, n_fast, n_lines, line_order = path.fast_is_x, path.n_fast, path.n_lines, path.line_order
+        px, py = path.pixel_x, path.pixel_y
+        self.move_tip(*path.first, self.limits.max_speed / 10)
         line_period = 1.0 / request.line_rate
         dt = 0.5 * line_period / n_fast          # trace in the first half, retrace in the second
         field = self._field_for(request)
@@ -271,17 +288,13 @@ class SimulatedAfm:
         height = np.full((request.pixels_y, request.pixels_x), np.nan)
         line_start = np.full(n_lines, np.nan)
         start = self.time
-        trace_back = np.concatenate([fast_coords, fast_coords[::-1]])
         done = 0
         complete = True
         while done < n_lines:
             if should_stop is not None and should_stop():
                 complete = False
                 break
-            chunk = line_order[done:done + LINES_PER_CHUNK]
-            slow = np.repeat(slow_coords[done:done + len(chunk)], 2 * n_fast)
-            fast = np.tile(trace_back, len(chunk))
-            cmd_x, cmd_y = to_xy(fast, slow)
+            chunk, cmd_x, cmd_y = path.chunk(done)
             times, tx, ty = self._drive(cmd_x, cmd_y, dt)
             # with sensor latency a pixel reports where the tip was `latency` before its time
             at_t, at_x, at_y = (times, tx, ty) if delayed is None else delayed(times, tx, ty)

@@ -425,26 +425,14 @@ def _drive_only(sim):
         return None
 
     def raster_scan(self, request, on_line=None, should_stop=None):
-        from afm_core.sim.instrument import LINES_PER_CHUNK
+        from afm_core.sim.instrument import LINES_PER_CHUNK, RasterPath
         request.validate(self.limits)
-        fast_is_x = request.scan_angle_deg == 0.0
-        n_fast, n_lines = request.pixels_per_line, request.lines
-        px, py = request.size_x / request.pixels_x, request.size_y / request.pixels_y
-        fast_pixel, slow_pixel = (px, py) if fast_is_x else (py, px)
-        fast_origin, slow_origin = ((request.origin_x, request.origin_y) if fast_is_x
-                                    else (request.origin_y, request.origin_x))
-        fast_coords = fast_origin + (np.arange(n_fast) + 0.5) * fast_pixel
-        line_order = np.arange(n_lines) if request.slow_scan_up else np.arange(n_lines)[::-1]
-        slow_coords = slow_origin + (line_order + 0.5) * slow_pixel
-        to_xy = (lambda f, s: (f, s)) if fast_is_x else (lambda f, s: (s, f))
-        first_x, first_y = to_xy(fast_coords[0], slow_coords[0])
-        self.move_tip(first_x, first_y, self.limits.max_speed / 10)
-        dt = 0.5 / request.line_rate / n_fast
-        trace_back = np.concatenate([fast_coords, fast_coords[::-1]])
-        for done in range(0, n_lines, LINES_PER_CHUNK):
-            chunk = line_order[done:done + LINES_PER_CHUNK]
-            slow = np.repeat(slow_coords[done:done + len(chunk)], 2 * n_fast)
-            self._drive(*to_xy(np.tile(trace_back, len(chunk)), slow), dt)
+        path = RasterPath(request)
+        self.move_tip(*path.first, self.limits.max_speed / 10)
+        dt = 0.5 / request.line_rate / path.n_fast
+        for done in range(0, path.n_lines, LINES_PER_CHUNK):
+            _, cmd_x, cmd_y = path.chunk(done)
+            self._drive(cmd_x, cmd_y, dt)
         return None
 
     sim.local_scan = types.MethodType(local_scan, sim)
