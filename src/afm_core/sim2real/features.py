@@ -117,9 +117,9 @@ def _quad_background(height: np.ndarray, px: float, py: float):
     return {"xx": 2 * coef[3], "yy": 2 * coef[5], "xy": coef[4]}
 
 
-def _line_profile(op):
-    """(u, s-array, profile features or None, crossing time, crossing position (x, y)) of a line."""
-    data = op.data
+def line_profile(data):
+    """(direction u, profile features or None, crossing time, crossing position (x, y)) of a
+    scan line's data; None when the line is too short, flat in position or not finite."""
     x, y, h = (np.asarray(a, float) for a in (data.x, data.y, data.height))
     if h.size < 10 or not np.isfinite(h).all():
         return None
@@ -202,7 +202,7 @@ def extract_features(operations, anchors=None) -> list[Feature]:
 
 
 def _run_features(run, common) -> list[Feature]:
-    profiles = [(op, _line_profile(op)) if op.data is not None else (op, None) for op in run]
+    profiles = [(op, line_profile(op.data)) if op.data is not None else (op, None) for op in run]
     first = run[0]
     if profiles[0][1] is None:
         return []

@@ -151,19 +151,9 @@ def _hold(instrument, seconds: float) -> None:
 def line_mid(data) -> Optional[float]:
     """Where a scan line crossed a particle (m along its commanded direction from its start:
     the midpoint of the half-height crossings), or None when it saw none."""
-    from afm_core.sim2real.features import _profile_features
-    if data is None:
-        return None
-    x, y, h = (np.asarray(a, float) for a in (data.x, data.y, data.height))
-    if h.size < 10 or not np.isfinite(h).all():
-        return None
-    d = np.array([x[-1] - x[0], y[-1] - y[0]])
-    length = float(np.hypot(*d))
-    if length == 0:
-        return None
-    u = d / length
-    f = _profile_features(h, (x - x[0]) * u[0] + (y - y[0]) * u[1])
-    return None if f is None else float(f["mid"])
+    from afm_core.sim2real.features import line_profile
+    profile = line_profile(data) if data is not None else None
+    return None if profile is None or profile[1] is None else float(profile[1]["mid"])
 
 
 class Tracker:
