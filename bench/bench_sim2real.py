@@ -71,101 +71,92 @@ def _sign(rng) -> float:
     return 1.0 if rng.random() < 0.5 else -1.0
 
 
+# keys the diagnosis fits as a factor on the model's list (the truth is that factor)
+SCALED_KEYS = ("scanner.creep_fractions", "scanner.creep_time_constants")
+
+
 def suite(model) -> list[Case]:
-    """The cases; magnitudes and signs drawn from each case's own seed."""
+    """The cases; magnitudes and signs drawn from each case's own seed. Each draw returns the
+    truth as {config key: value}; the truth's config is the model with those values (a scaled
+    key's list times the factor) plus `switches` (effects that are off in the model)."""
     cases = []
     for k in range(10):
         cases.append(Case(f"null-{k}", "null", 100 + k))
 
-    def add(name, category, seed, expected, draw):
-        rng = np.random.default_rng(seed)
-        overrides, truth = draw(rng)
+    def add(name, category, seed, expected, draw, switches=None):
+        truth = draw(np.random.default_rng(seed))
+        dotted = {key: [x * value for x in _nominal_of(model, key)] if key in SCALED_KEYS else value
+                  for key, value in truth.items()}
+        overrides: dict = {}
+        for key, value in {**(switches or {}), **dotted}.items():
+            section, name_ = key.split(".")
+            overrides.setdefault(section, {})[name_] = value
         cases.append(Case(name, category, seed, overrides, expected, truth))
 
-    scanner, drift, tip, noise, contact = model.scanner, model.drift, model.tip, model.noise, model.contact
+    scanner, drift, tip, contact = model.scanner, model.drift, model.tip, model.contact
     for k in range(2):
         def drift_ramp(rng):
-            a = [_sign(rng) * rng.uniform(1e-13, 4e-13), _sign(rng) * rng.uniform(0.0, 2e-13)]
-            return {"drift": {"acceleration_x": a[0], "acceleration_y": a[1]}}, \
-                {"drift.acceleration_x": a[0], "drift.acceleration_y": a[1]}
+            return {"drift.acceleration_x": _sign(rng) * rng.uniform(1e-13, 4e-13),
+                    "drift.acceleration_y": _sign(rng) * rng.uniform(0.0, 2e-13)}
         add(f"drift_ramp-{k}", "small", 200 + k, "drift_ramp", drift_ramp)
 
         def gain(rng):
-            g = 1.0 + _sign(rng) * rng.uniform(0.02, 0.06)
-            return {"noise": {"height_gain": g}}, {"noise.height_gain": g}
+            return {"noise.height_gain": 1.0 + _sign(rng) * rng.uniform(0.02, 0.06)}
         add(f"height_gain-{k}", "small", 210 + k, "height_gain", gain)
 
         def latency(rng):
-            lag = rng.uniform(2e-3, 6e-3)
-            return {"noise": {"sensor_latency": lag}}, {"noise.sensor_latency": lag}
+            return {"noise.sensor_latency": rng.uniform(2e-3, 6e-3)}
         add(f"latency-{k}", "small", 220 + k, "latency", latency)
 
         def creep(rng):
-            factor = rng.choice([rng.uniform(1.6, 2.5), rng.uniform(0.2, 0.5)])
-            return {"scanner": {"creep_fractions": [f * factor for f in scanner.creep_fractions]}}, \
-                {"scanner.creep_fractions": factor}
+            return {"scanner.creep_fractions": rng.choice([rng.uniform(1.6, 2.5), rng.uniform(0.2, 0.5)])}
         add(f"creep_amplitude-{k}", "masked", 230 + k, "creep_amplitude", creep)
 
         def drift_velocity(rng):
-            v = [drift.mean_velocity_x + _sign(rng) * rng.uniform(0.3e-9, 0.8e-9),
-                 drift.mean_velocity_y + _sign(rng) * rng.uniform(0.0, 0.4e-9)]
-            return {"drift": {"mean_velocity_x": v[0], "mean_velocity_y": v[1]}}, \
-                {"drift.mean_velocity_x": v[0], "drift.mean_velocity_y": v[1]}
+            return {"drift.mean_velocity_x": drift.mean_velocity_x + _sign(rng) * rng.uniform(0.3e-9, 0.8e-9),
+                    "drift.mean_velocity_y": drift.mean_velocity_y + _sign(rng) * rng.uniform(0.0, 0.4e-9)}
         add(f"drift_velocity-{k}", "confounded", 240 + k, "drift_velocity", drift_velocity)
 
     def creep_time(rng):
-        factor = rng.choice([rng.uniform(1.8, 3.0), rng.uniform(0.3, 0.55)])
-        return {"scanner": {"creep_time_constants": [t * factor for t in scanner.creep_time_constants]}}, \
-            {"scanner.creep_time_constants": factor}
+        return {"scanner.creep_time_constants": rng.choice([rng.uniform(1.8, 3.0), rng.uniform(0.3, 0.55)])}
     add("creep_time-0", "confounded", 235, "creep_time", creep_time)
 
     def asymmetry(rng):
-        a = scanner.hysteresis_asymmetry + _sign(rng) * rng.uniform(0.05, 0.1)
-        return {"scanner": {"hysteresis_asymmetry": a}}, {"scanner.hysteresis_asymmetry": a}
+        return {"scanner.hysteresis_asymmetry": scanner.hysteresis_asymmetry + _sign(rng) * rng.uniform(0.05, 0.1)}
     add("hysteresis_asymmetry-0", "masked", 250, "hysteresis_asymmetry", asymmetry)
 
     def wear(rng):
-        rate = rng.uniform(3e-3, 1e-2)
-        return {"tip": {"wear_enabled": True, "wear_rate": rate}}, {"tip.wear_rate": rate}
-    add("tip_wear-0", "conditional", 260, "tip_wear", wear)
+        return {"tip.wear_rate": rng.uniform(3e-3, 1e-2)}
+    add("tip_wear-0", "conditional", 260, "tip_wear", wear, switches={"tip.wear_enabled": True})
 
     def friction(rng):
-        mu = contact.mu_tip_substrate * rng.uniform(1.4, 2.0)
-        return {"contact": {"mu_tip_substrate": mu}}, {"contact.mu_tip_substrate": mu}
+        return {"contact.mu_tip_substrate": contact.mu_tip_substrate * rng.uniform(1.4, 2.0)}
     add("friction-0", "conditional", 261, "friction", friction)
 
     def coupling(rng):
-        c = [scanner.coupling_x_to_y + _sign(rng) * rng.uniform(0.01, 0.02),
-             scanner.coupling_y_to_x + _sign(rng) * rng.uniform(0.0, 0.01)]
-        return {"scanner": {"coupling_x_to_y": c[0], "coupling_y_to_x": c[1]}}, \
-            {"scanner.coupling_x_to_y": c[0], "scanner.coupling_y_to_x": c[1]}
+        return {"scanner.coupling_x_to_y": scanner.coupling_x_to_y + _sign(rng) * rng.uniform(0.01, 0.02),
+                "scanner.coupling_y_to_x": scanner.coupling_y_to_x + _sign(rng) * rng.uniform(0.0, 0.01)}
     add("coupling-0", "other", 270, "coupling", coupling)
 
     def rotation(rng):
-        d = scanner.deflection_deg + _sign(rng) * rng.uniform(0.5, 1.0)
-        return {"scanner": {"deflection_deg": d}}, {"scanner.deflection_deg": d}
+        return {"scanner.deflection_deg": scanner.deflection_deg + _sign(rng) * rng.uniform(0.5, 1.0)}
     add("rotation-0", "other", 271, "rotation", rotation)
 
     def radius(rng):
-        r = tip.apex_radius * rng.uniform(1.2, 1.5)
-        return {"tip": {"apex_radius": r}}, {"tip.apex_radius": r}
+        return {"tip.apex_radius": tip.apex_radius * rng.uniform(1.2, 1.5)}
     add("tip_radius-0", "other", 272, "tip_radius", radius)
 
     def tip_asymmetry(rng):
-        a = _sign(rng) * rng.uniform(0.15, 0.3)
-        return {"tip": {"asymmetry": a}}, {"tip.asymmetry": a}
+        return {"tip.asymmetry": _sign(rng) * rng.uniform(0.15, 0.3)}
     add("tip_asymmetry-0", "small", 273, "tip_asymmetry", tip_asymmetry)
 
     def bow(rng):
-        c = _sign(rng) * rng.uniform(5.0, 20.0)
-        return {"scanner": {"bow_curvature": c}}, {"scanner.bow_curvature": c}
+        return {"scanner.bow_curvature": _sign(rng) * rng.uniform(5.0, 20.0)}
     add("bow-0", "small", 274, "bow", bow)
 
     def stick_slip(rng):
-        ratio = rng.uniform(1.5, 2.5)
-        return {"contact": {"stick_slip_enabled": True, "static_friction_ratio": ratio}}, \
-            {"contact.static_friction_ratio": ratio}
-    add("stick_slip-0", "other", 275, "stick_slip", stick_slip)
+        return {"contact.static_friction_ratio": rng.uniform(1.5, 2.5)}
+    add("stick_slip-0", "other", 275, "stick_slip", stick_slip, switches={"contact.stick_slip_enabled": True})
     return cases
 
 
@@ -207,8 +198,7 @@ def run_case(case: Case, workdir: str) -> dict:
         true_vec, fit_vec, nominal_vec = [], [], []
         for key, value in case.truth.items():
             fitted = diagnosis.parameters.get(key, {}).get("value", math.nan)
-            scaled = key in ("scanner.creep_fractions", "scanner.creep_time_constants")     # fitted as factors
-            nominal = 1.0 if scaled else float(_nominal_of(model, key))
+            nominal = 1.0 if key in SCALED_KEYS else float(_nominal_of(model, key))
             if key == "tip.wear_rate" and not model.tip.wear_enabled:
                 nominal = 0.0
             if key == "contact.static_friction_ratio" and not model.contact.stick_slip_enabled:
