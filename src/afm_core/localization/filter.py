@@ -197,7 +197,7 @@ class TipFilter:
             self._landmark = landmark
         return UpdateResult(True, "", time, innovation, s, distance)
 
-    def _update_entry(self, time, value, variance, u, landmark, map_covariance) -> _Entry:
+    def _update_entry(self, time, value, variance, u, map_covariance) -> _Entry:
         return _Entry("update", time, *self._state(), self._landmark, value=value, variance=variance, direction=u,
                       map_covariance=map_covariance)
 
@@ -230,7 +230,7 @@ class TipFilter:
                 self._extend_to(time)
             result = self._try_update(time, value, variance, u, landmark, map_covariance)
             if result.accepted:
-                self._history.append(self._update_entry(time, value, variance, u, landmark, map_covariance))
+                self._history.append(self._update_entry(time, value, variance, u, map_covariance))
             return result
         return self._insert_past(time, value, variance, u, landmark, map_covariance)
 
@@ -268,7 +268,7 @@ class TipFilter:
         if not result.accepted:                   # leave everything as it was
             self._kf, self._landmark, self._history = saved_kf, saved_landmark, saved_history
             return result
-        new_history.append(self._update_entry(time, value, variance, u, landmark, map_covariance))
+        new_history.append(self._update_entry(time, value, variance, u, map_covariance))
         for entry in later:
             if entry.kind == "predict":
                 new_history.append(self._predict_entry(entry.time, entry.increment, entry.process, entry.start_time))
@@ -277,7 +277,7 @@ class TipFilter:
                                           if entry.map_covariance is not None else None, entry.map_covariance)
                 if replay.accepted:
                     new_history.append(self._update_entry(entry.time, entry.value, entry.variance, entry.direction,
-                                                          entry.landmark, entry.map_covariance))
+                                                          entry.map_covariance))
         self._history = new_history
         return result
 

@@ -685,7 +685,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         extractor.add(op)
         ops.append(dataclasses.replace(op, data=None))
     if not ops:
-        raise NoFeaturesError("the recording holds no operations")
+        raise NoFeaturesError("the session holds no commands the simulator can re-run")
     f_rec = _by_key(extractor.finish())
     if not f_rec:
         raise NoFeaturesError("no scan line, raster or push in the recording gave a feature (no particle crossed?)")
@@ -1143,9 +1143,6 @@ def run_sim2real(recording_path, config_path, report_dir, progress=None, missing
         try:
             diagnosis = diagnose(operations, config, progress=progress, **kw)
         except NoFeaturesError as exc:
-            if str(exc) == "the recording holds no operations":
-                raise NoFeaturesError(f"recording {str(recording_path)!r} holds no commands the simulator can "
-                                      "re-run") from exc
-            raise
+            raise NoFeaturesError(f"recording {str(recording_path)!r}: {exc}") from exc
     write_report(diagnosis, Path(report_dir), config=config, recording=str(recording_path))
     return diagnosis
