@@ -51,7 +51,22 @@ def test_hysteresis_loop_fraction_and_branches(calibrated, axis):
     _, _, rows, config = calibrated
     assert abs(rows[f"hysteresis_{axis}.loop_fraction"]["relative_error"]) < 0.10
     assert rows[f"hysteresis_{axis}.branch_error"]["recovered"] < 0.10
-    assert abs(rows[f"hysteresis_{axis}.asymmetry"]["recovered"] - config.scanner.hysteresis_asymmetry) < 0.02
+    assert abs(rows[f"hysteresis_{axis}.asymmetry"]["relative_error"]) < 0.10
+
+
+def test_hysteresis_asymmetry_exact_on_an_ideal_scanner():
+    """With drift, noise, creep, coupling and the controller's model error off, the rescan
+    shows the pits where they are, so the fit must return the configured asymmetry: a
+    rescan that asks the compensated scanner for positions past its loop tips (clamped
+    drive) misplaces the pits of the lower half and fails this (-4 %)."""
+    config = merge(load_config(), {
+        "drift": {"enabled": False}, "controller": {"model_error": 0.0},
+        "scanner": {"positioning_noise_enabled": False, "creep_enabled": False, "coupling_enabled": False,
+                    "deflection_enabled": False},
+        "noise": {"height_white_sigma": 0.0, "height_flicker_sigma": 0.0}})
+    experiment = calibrate.measure_hysteresis(SimulatedAfm(config), 1)
+    assert experiment.parameters["asymmetry"] == pytest.approx(config.scanner.hysteresis_asymmetry, rel=0.01)
+    assert experiment.parameters["loop_fraction"] == pytest.approx(config.scanner.hysteresis_fraction, rel=0.01)
 
 
 def test_hysteresis_fit_without_creep_model_is_biased(calibrated):
@@ -67,14 +82,52 @@ def test_hysteresis_fit_without_creep_model_is_biased(calibrated):
     assert abs(without["loop_fraction"] - truth) > abs(with_creep - truth)
 
 
+def test_walk_whitener_whitens_the_random_walk_covariance():
+    moves = np.array([1, 2, 3, 5, 6, 9])
+    covariance = np.minimum.outer(moves, moves) + calibrate.WALK_MEASUREMENT_RATIO * np.eye(moves.size)
+    whitener = calibrate.walk_whitener(moves)
+    assert np.allclose(whitener @ covariance @ whitener.T, np.eye(moves.size))
+
+
+def test_fit_creep_shares_fractions_per_group_through_a_random_walk():
+    """Synthetic runs from known creep, each pit after one more move (a random walk of 3 nm
+    steps), drift lines and 1 nm pit noise: the fit recovers the time constants and each
+    group's fractions."""
+    rng = np.random.default_rng(3)
+    taus, truth = np.array([0.5, 5.0, 50.0]), {"x": np.array([0.008, 0.006, 0.006]),
+                                               "y": np.array([0.004, 0.009, 0.005])}
+    step, ramp = 50e-6, 0.5
+    t = np.r_[np.linspace(0.55, 1.3, 8), np.geomspace(2.0, 300.0, 32)]
+    runs = []
+    for group in ("x", "x", "x", "y", "y", "y"):
+        walk = np.cumsum(rng.normal(0.0, 3e-9, t.size))
+        drift = rng.normal(0.0, 0.05e-9) * t
+        x = (12e-6 + drift + walk + rng.normal(0.0, 1e-9, t.size)
+             - step * calibrate.creep_deficit(t, taus, ramp) @ truth[group])
+        runs.append({"t": t, "x": x, "step": step, "ramp_time": ramp, "group": group, "moves": np.arange(1, t.size + 1)})
+    fit = calibrate.fit_creep(runs)
+    assert np.allclose(fit["time_constants"], taus, rtol=0.1)
+    for fitted, group in zip(fit["fractions"], ("x", "y")):
+        assert np.allclose(fitted, truth[group], rtol=0.1)
+    assert len(fit["settled"]) == len(runs)
+
+
+def test_match_monotone_skips_a_stray_pit_past_the_row_end():
+    expected = np.arange(40) * 150e-9
+    detected = np.r_[expected * 1.03 + 2e-6, expected[-1] * 1.03 + 2e-6 + 190e-9]   # one pit of the next row
+    index = calibrate.match_monotone(expected, detected)
+    assert np.array_equal(index, np.arange(40))
+
+
 @pytest.mark.parametrize("axis", ["x", "y"])
 def test_creep_step_response(calibrated, axis):
     _, _, rows, _ = calibrated
     assert rows[f"creep.step_response_{axis}"]["recovered"] < 0.10
     # The time constants are less well determined than the curve they make: over a finite
-    # window the slowest one trades off against the (wandering) drift, ~10-20 % here.
+    # window the slowest one trades off against the (wandering) drift; with five runs per axis
+    # and the random-walk weighting, 10 seeds of the experiment gave at most 12 % (mean 3-6 %).
     for i in range(3):
-        assert abs(rows[f"creep.time_constant[{i}]"]["relative_error"]) < 0.25
+        assert abs(rows[f"creep.time_constant[{i}]"]["relative_error"]) < 0.15
 
 
 def test_motion_noise_slope(calibrated):

@@ -56,7 +56,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 
 import numpy as np
-from scipy import optimize
+from scipy import linalg, optimize
 
 from afm_core.imaging.drift import velocity_from_up_down
 from afm_core.imaging.landmarks import extract_landmarks
@@ -260,7 +260,18 @@ def match_monotone(expected, detected, spacing: float | None = None, end_toleran
     typical = np.array([np.median(gaps[max(0, i - 3):i + 4]) for i in range(len(gaps))])
     # the expected values are about uniformly spaced (sweeps, lanes): a gap spans
     # round(gap / typical) of their steps
-    steps = np.maximum(1, np.round(gaps / typical)).astype(int)
+    ratio = gaps / typical
+    steps = np.maximum(1, np.round(ratio)).astype(int)
+    while steps.sum() > len(e_sorted) - 1 and len(kept) > 4:
+        # more steps than expected pits: the least convincing double gap was a wide single one;
+        # with none left, the end detection farther from its neighbour is not of this row
+        multiple = np.flatnonzero(steps > 1)
+        if multiple.size:
+            steps[multiple[np.argmin(ratio[multiple] - steps[multiple])]] -= 1
+        elif ratio[0] > ratio[-1]:
+            kept, ratio, steps = kept[1:], ratio[1:], steps[1:]
+        else:
+            kept, ratio, steps = kept[:-1], ratio[:-1], steps[:-1]
     index = np.concatenate([[0], np.cumsum(steps)])
     best, best_offset = np.inf, None
     for offset in range(0, len(e_sorted) - index[-1]):
@@ -296,89 +307,126 @@ def creep_deficit(t, time_constants, ramp_time: float) -> np.ndarray:
     return (tau / ramp_time) * -np.expm1(-ramp_time / tau) * np.exp(-(t - ramp_time) / tau)
 
 
+WALK_MEASUREMENT_RATIO = 0.1   # a pit's own position noise (~1 nm)^2 over one move's walk step (~3 nm)^2
+
+def walk_whitener(moves, pit_to_walk_ratio: float = WALK_MEASUREMENT_RATIO) -> np.ndarray:
+    """Lower-triangular L^-1 that whitens positions carrying a random walk: each move between
+    pits adds a persistent positioning error (book eq. 5.5's w, sigma^2 = a d + b per move), so
+    the pit after the k-th move carries the sum of k such errors, on top of its own
+    measurement noise; covariance (per walk variance) min(k_i, k_j) + ratio delta_ij, with
+    `moves` the k of each pit. Ordinary least squares on such data is unbiased but lets the
+    walk's slow wander pass for creep of the slow time constants; whitened, each residual
+    counts once (generalised least squares)."""
+    k = np.asarray(moves, float)
+    covariance = np.minimum.outer(k, k) + pit_to_walk_ratio * np.eye(k.size)
+    return linalg.solve_triangular(np.linalg.cholesky(covariance), np.eye(k.size), lower=True)
+
+
 def fit_creep(runs: list[dict], n_constants: int = 3, guess=(1.0, 10.0, 100.0), drift_curvature: bool = False) -> dict:
     """Nonlinear least squares (scipy.optimize.least_squares) over all runs at once: shared
-    time constants, per run the settled position x_inf, a drift velocity v and the fractions
-    c_i >= 0 (of the commanded step S):
+    time constants, per group of runs (an axis) the fractions c_i >= 0 (of the commanded step
+    S), per run the settled position x_inf and a drift velocity v:
         x(t) = x_inf + v (t - t_mid) [+ q (t - t_mid)^2] - S sum_i c_i deficit_i(t).
     The drift velocity wanders (it is not constant over minutes), which a straight line
-    leaves to the slowest creep term; drift_curvature adds the q term that takes it up.
+    leaves to the slowest creep term; drift_curvature adds the q term that takes it up;
+    repeated runs of one group average that wander out.
     A run: {"t": s after the step started, "x": m along the step, "step": S (m, signed),
-    "ramp_time": s}. Positions are fitted in nm (a well-scaled problem)."""
+    "ramp_time": s, optional "group" (default: each run its own), optional "moves": moves made
+    before each pit (then the residuals are whitened for the positioning random walk,
+    `walk_whitener`, starting from the ordinary fit, with a robust loss against a misread
+    pit)}. Positions are fitted in nm (a well-scaled problem). "fractions": per group, in
+    order of first appearance."""
     if len(guess) != n_constants:
         raise ValueError(f"guess={guess}: need {n_constants} time constants")
+    groups = list(dict.fromkeys(run.get("group", k) for k, run in enumerate(runs)))
     prepared = []
-    for run in runs:
+    for k, run in enumerate(runs):
         t, x = np.asarray(run["t"], float), np.asarray(run["x"], float) * 1e9
-        prepared.append((t, x, float(run["step"]) * 1e9, float(run["ramp_time"]), float(np.mean(t))))
+        whitener = np.eye(t.size) if run.get("moves") is None else walk_whitener(run["moves"])
+        prepared.append((t, x, float(run["step"]) * 1e9, float(run["ramp_time"]), float(np.mean(t)), whitener,
+                         groups.index(run.get("group", k))))
 
     extra = 3 if drift_curvature else 2
 
     def unpack(theta):
         taus = np.exp(theta[:n_constants])
-        per_run = theta[n_constants:].reshape(len(prepared), extra + n_constants)
-        return taus, per_run
+        fractions = theta[n_constants:n_constants * (1 + len(groups))].reshape(len(groups), n_constants)
+        per_run = theta[n_constants * (1 + len(groups)):].reshape(len(prepared), extra)
+        return taus, fractions, per_run
 
-    def drift(p, t, t_mid):
-        return p[0] + p[1] * (t - t_mid) + (p[2] * (t - t_mid) ** 2 if drift_curvature else 0.0)
-
-    def residuals(theta):
-        taus, per_run = unpack(theta)
+    def residuals(theta, whiten=True):
+        taus, fractions, per_run = unpack(theta)
         out = []
-        for (t, x, step, ramp, t_mid), p in zip(prepared, per_run):
-            model = drift(p, t, t_mid) - step * creep_deficit(t, taus, ramp) @ p[extra:]
-            out.append(model - x)
+        for (t, x, step, ramp, t_mid, whitener, group), p in zip(prepared, per_run):
+            model = (p[0] + p[1] * (t - t_mid) + (p[2] * (t - t_mid) ** 2 if drift_curvature else 0.0)
+                     - step * creep_deficit(t, taus, ramp) @ fractions[group])
+            out.append(whitener @ (model - x) if whiten else model - x)
         return np.concatenate(out)
 
-    theta0, lower, upper = list(np.log(guess)), [-np.inf] * n_constants, [np.inf] * n_constants
-    for t, x, step, ramp, t_mid in prepared:
-        theta0 += [x[-1]] + [0.0] * (extra - 1) + [0.005] * n_constants
-        lower += [-np.inf] * extra + [0.0] * n_constants
-        upper += [np.inf] * extra + [0.5] * n_constants
-    fit = optimize.least_squares(residuals, theta0, bounds=(lower, upper), x_scale="jac", method="trf")
-    taus, per_run = unpack(fit.x)
+    theta0 = list(np.log(guess)) + [0.005] * (n_constants * len(groups))
+    lower = [-np.inf] * n_constants + [0.0] * (n_constants * len(groups))
+    upper = [np.inf] * n_constants + [0.5] * (n_constants * len(groups))
+    for t, x, *_ in prepared:
+        theta0 += [x[-1]] + [0.0] * (extra - 1)
+        lower += [-np.inf] * extra
+        upper += [np.inf] * extra
+    fit = optimize.least_squares(residuals, theta0, bounds=(lower, upper), x_scale="jac", method="trf",
+                                 kwargs={"whiten": False})
+    if any(run.get("moves") is not None for run in runs):
+        # started from the ordinary fit: the whitened cost alone has shallow valleys far off
+        fit = optimize.least_squares(residuals, np.clip(fit.x, lower, upper), bounds=(lower, upper), x_scale="jac",
+                                     method="trf", loss="soft_l1", f_scale=10.0)
+    taus, fractions, per_run = unpack(fit.x)
     order = np.argsort(taus)
-    rms = float(np.sqrt(np.mean(fit.fun ** 2))) * 1e-9
+    rms = float(np.sqrt(np.mean(residuals(fit.x, whiten=False) ** 2))) * 1e-9
     return {"time_constants": taus[order].tolist(),
-            "fractions": [p[extra:][order].tolist() for p in per_run],
+            "fractions": [f[order].tolist() for f in fractions],
             "settled": [float(p[0]) * 1e-9 for p in per_run],
             "drift_velocity": [float(p[1]) * 1e-9 for p in per_run],
             "rms_residual": rms, "success": bool(fit.success)}
 
 
 def measure_creep(instrument, *, step: float = 50e-6, duration: float = 300.0, pits: int = 40, fast_pits: int = 8,
-                  pit_spacing: float = 150e-9, settle: float = 300.0, lane_offset: float = 15e-6,
+                  repeats: int = 5, pit_spacing: float = 150e-9, settle: float = 300.0, lane_offset: float = 15e-6,
                   pixel: float = 10e-9, force: float | None = None, guess=(1.0, 10.0, 100.0)) -> Experiment:
     """Creep of each axis in normal (compensated) operation (book 7.2.2, Fig. 7.7).
 
-    Per axis: rest at centre - step/2 for `settle` s (earlier creep dies out), step to centre +
-    step/2 at full speed, then punch `pits` pits one `pit_spacing` apart along the other axis
-    (at lane_offset from the centre): `fast_pits` back to back (the 0.5 s constant), the rest
-    at log-spaced times up to `duration` s (the book samples 25 s; the 50 s constant needs
-    several of its own lengths to be told from drift, which is fitted too). The moves along
-    the other axis do not move this one, so each pit's coordinate along the step is the
-    creep curve at its moment. Rescan with the slow axis along the step, approached from
-    50 um before so the pass is on a long monotone stretch of the loop (uniform image gain),
-    then `fit_creep`."""
+    Per axis, `repeats` runs: rest at centre - step/2 for `settle` s (earlier creep dies
+    out), step to centre + step/2 at full speed, then punch `pits` pits one `pit_spacing`
+    apart along the other axis at lane_offset from the centre (each further run shifted along
+    the step by what its rescan covers, so the rows stay apart): `fast_pits` back to back (the 0.5 s constant), the
+    rest at log-spaced times up to `duration` s (the book samples 25 s; the 50 s constant
+    needs several of its own lengths to be told from drift, which is fitted too). The moves
+    along the other axis do not move this one, so each pit's coordinate along the step is
+    the creep curve at its moment. Each run is rescanned with the slow axis along the step,
+    approached from 50 um before so the pass is on a long monotone stretch of the loop
+    (uniform image gain). `fit_creep` then fits all runs at once, the fractions shared by the
+    runs of an axis: one run's drift wanders by tens of nm over minutes, as much as the
+    slowest creep term changes, and independent runs average it out."""
     limits = instrument.limits
     step = _positive("step", step, min(limits.range_x, limits.range_y) * 0.9, "m")
     duration = _positive("duration", duration, 3600.0, "s")
     pits = _count("pits", pits, 8, 400)
     fast_pits = _count("fast_pits", fast_pits, 1, pits - 4)
+    repeats = _count("repeats", repeats, 1, 20)
     pit_spacing = _positive("pit_spacing", pit_spacing, 5e-6, "m")
     force = _force(instrument, force)
     centre = _centre(instrument)
+    run_spacing = 0.05 * step + 1.5e-6          # past the creep a rescan box reaches back (5 % of the step)
     plans = []
     for axis in (0, 1):
         other = 1 - axis
-        start, end = centre.copy(), centre.copy()
-        start[axis], end[axis] = centre[axis] - step / 2, centre[axis] + step / 2
-        start[other] = end[other] = centre[other] + lane_offset - pits * pit_spacing / 2
-        last = end.copy()
-        last[other] += (pits - 1) * pit_spacing
-        _check_box(f"creep lane ({'xy'[axis]})", instrument, np.minimum(start, last), np.maximum(end, last))
-        plans.append((axis, start, end))
-    runs, data = [], {}
+        for repeat in range(repeats):
+            start, end = centre.copy(), centre.copy()
+            start[axis] = centre[axis] - step / 2 + repeat * run_spacing
+            end[axis] = centre[axis] + step / 2 + repeat * run_spacing
+            start[other] = end[other] = centre[other] + lane_offset - pits * pit_spacing / 2
+            last = end.copy()
+            last[other] += (pits - 1) * pit_spacing
+            _check_box(f"creep lane ({'xy'[axis]}, run {repeat})", instrument, np.minimum(start, last),
+                       np.maximum(end, last))
+            plans.append((axis, start, end))
+    runs, data = [], {"x": [], "y": []}
     for axis, start, end in plans:
         other = 1 - axis
         instrument.move_tip(float(start[0]), float(start[1]), 0.5 * limits.max_speed)
@@ -407,21 +455,24 @@ def measure_creep(instrument, *, step: float = 50e-6, duration: float = 300.0, p
         found = np.array([[p.x, p.y][other] for p in detected])
         index = match_monotone(lane, found, pit_spacing) if len(found) else np.full(len(lane), -1)
         ok = index >= 0
+        name = "xy"[axis]
+        if ok.sum() < 8:
+            raise RuntimeError(f"creep ({name}, run {len(data[name])}): only {int(ok.sum())} of {pits} pits found "
+                               "in the rescan")
         positions = np.array([[detected[j].x, detected[j].y][axis] for j in index[ok]])
         times = np.asarray(moments)[ok]
-        runs.append({"t": times, "x": positions, "step": step, "ramp_time": ramp_time})
-        data["xy"[axis]] = {"t": times.tolist(), "position": positions.tolist(), "step": step,
-                           "ramp_time": ramp_time, "pits_punched": pits, "pits_found": int(ok.sum())}
-    for name, run in zip("xy", runs):
-        if len(run["t"]) < 8:
-            raise RuntimeError(f"creep ({name}): only {len(run['t'])} of {pits} pits found in the rescan")
+        # pit k comes after k moves along the lane (the step itself is common to all: x_inf)
+        runs.append({"t": times, "x": positions, "step": step, "ramp_time": ramp_time, "group": name,
+                     "moves": np.flatnonzero(ok) + 1})
+        data[name].append({"t": times.tolist(), "position": positions.tolist(), "step": step,
+                           "ramp_time": ramp_time, "pits_punched": pits, "pits_found": int(ok.sum())})
     fit = fit_creep(runs, guess=guess)
-    for name, run, settled, velocity, fractions in zip("xy", runs, fit["settled"], fit["drift_velocity"],
-                                                        fit["fractions"]):
+    for run, record, settled, velocity in zip(runs, data["x"] + data["y"], fit["settled"], fit["drift_velocity"]):
         t = np.asarray(run["t"])
+        fractions = fit["fractions"]["xy".index(run["group"])]
         model = settled + velocity * (t - t.mean()) - step * creep_deficit(t, fit["time_constants"],
                                                                           run["ramp_time"]) @ np.asarray(fractions)
-        data[name]["model"] = model.tolist()
+        record["model"] = model.tolist()
     parameters = {"time_constants": fit["time_constants"], "fractions_x": fit["fractions"][0],
                   "fractions_y": fit["fractions"][1], "drift_velocity": fit["drift_velocity"],
                   "rms_residual": fit["rms_residual"], "success": fit["success"]}
@@ -515,7 +566,7 @@ def fit_hysteresis(times, drive, centre: float, half: float, pit_times, position
             "rms_residual": float(np.sqrt(np.mean(result.fun ** 2))) * 1e-6}
 
 
-def measure_hysteresis(instrument, axis: int, *, creep: tuple | None = None, cycle_fraction: float = 0.95,
+def measure_hysteresis(instrument, axis: int, *, creep: tuple | None = None, cycle_fraction: float = 0.9,
                        steps_per_sweep: int = 128, pit_every: int = 4, operators: int = 12,
                        lane_offset: float = -8e-6, branch_gap: float = 3e-6, speed: float = 20e-6,
                        settle: float = 300.0, pixel: float = 30e-9, rescans=("up", "down"),
@@ -523,8 +574,7 @@ def measure_hysteresis(instrument, axis: int, *, creep: tuple | None = None, cyc
     """PI hysteresis of one axis (0 = x, 1 = y) driven open loop (book 7.2.2, Fig. 7.6a).
 
     Feed-forward off; from the range centre the drive rises to the upper bound of the cycle
-    (cycle_fraction of the half range; pits near the very ends of the range would fall
-    outside any image), falls to the lower bound, rises again, in steps of
+    (cycle_fraction of the half range), falls to the lower bound, rises again, in steps of
     2 * bound / steps_per_sweep, with a pit every `pit_every` steps on the last two sweeps
     (the descending sweep on one lane, the ascending one `branch_gap` (raw drive) beside it,
     so the two rows of pits never mix; `ignore`: image positions of pits already on the
@@ -542,8 +592,9 @@ def measure_hysteresis(instrument, axis: int, *, creep: tuple | None = None, cyc
     limits = instrument.limits
     if axis not in (0, 1):
         raise ValueError(f"axis={axis}: must be 0 (x) or 1 (y)")
-    if not (math.isfinite(cycle_fraction) and 0.2 <= cycle_fraction <= 0.98):
-        raise ValueError(f"cycle_fraction={cycle_fraction}: must be within [0.2, 0.98] of the half range")
+    if not (math.isfinite(cycle_fraction) and 0.2 <= cycle_fraction <= 0.9):
+        raise ValueError(f"cycle_fraction={cycle_fraction}: must be within [0.2, 0.9] of the half range (the rescan "
+                         "needs the outer 10 % clear, see below)")
     steps_per_sweep = _count("steps_per_sweep", steps_per_sweep, 8, 4096)
     pit_every = _count("pit_every", pit_every, 1, steps_per_sweep // 4)
     operators = _count("operators", operators, 2, 64)
@@ -595,7 +646,14 @@ def measure_hysteresis(instrument, axis: int, *, creep: tuple | None = None, cyc
                     pits.append((branch, drive, timeline.punch(force)))
     finally:
         _set_feed_forward(instrument, True)
-    margin = 1.5e-6
+    # The rescan covers where the pits can land: an asymmetric loop lifts or lowers the row's
+    # ends by up to ~asymmetry x half range. It must stay clear of the range ends: the loop's
+    # tips lie inside the range, so a compensated command there needs a drive past the range,
+    # which the amplifier clamps; the controller's inverse then runs ahead of the scanner and
+    # misplaces the pits over the following tens of um of the pass (with cycle_fraction 0.95
+    # and a fixed 1.5 um margin this biased the fitted asymmetry by -4 % on a noise-free
+    # scanner).
+    margin = 0.05 * half
     lo[other], hi[other] = lane - 2e-6, lane + branch_gap + 2e-6
     box_lo, box_hi = lo.copy(), hi.copy()
     box_lo[axis] -= margin
