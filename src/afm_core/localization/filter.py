@@ -1,10 +1,18 @@
 """The tip-position Kalman filter (book eq. 5.16-5.21) on filterpy's KalmanFilter.
 
 State: the tip's 2-D position x in the task frame (m), augmented with the map error b of the
-landmark observed last (m, 2-D): covariance P (4x4, m^2). Prediction: the motion model's mean
-displacement as the control input (F = I, B = [I; 0], u = mean) and its added covariance as
-the process noise Q on x (there is no other process noise: Q is the calibrated motion noise
-of each move, see `afm_core.localization.motion`; b is constant). Update: one scalar
+landmark observed last (m, 2-D) and the drift velocity w the motion model leaves unmodelled
+(m/s, 2-D: the deviation from the calibrated mean drift): covariance P (6x6). Prediction over
+dt: the motion model's mean displacement as the control input (B = [I; 0; 0], u = mean) and
+its added covariance (the calibrated positioning noise of each move, see
+`afm_core.localization.motion`) as process noise on x; x also moves by w integrated over dt,
+and w is an Ornstein-Uhlenbeck velocity (spread `drift_sigma`, the calibration's
+drift_sigma_velocity; correlation time `drift_correlation_time`), with the exact transition
+and process noise of the integrated OU process. A drift velocity stays about the same for
+minutes, so its position error grows as sigma_v t, not as the square root of the number of
+steps time is cut into (adding (sigma_v dt)^2 per step did that: 60 s in 30 steps counted a
+fifth of the drift's 12 nm in y); observations of a landmark at different times learn w. b is
+constant. Update: one scalar
 observation z = u . (x + b) (a local scan line measures the position along one direction u,
 a horizontal line x, a vertical line y, relative to the landmark, whose map position is off by
 b), measurement variance R from the observation model without the map error, which is b's.
@@ -47,6 +55,8 @@ from filterpy.kalman import KalmanFilter
 
 from afm_core.localization.observation import check_covariance
 
+DRIFT_CORRELATION_TIME = 1800.0   # s, how long a drift velocity stays about the same (the simulator's default)
+
 GATE_CHI2_1DOF_99 = 6.634896601021214      # scipy.stats.chi2.ppf(0.99, 1)
 GATE_CHI2_1DOF_999 = 10.827566170662733    # scipy.stats.chi2.ppf(0.999, 1): the default gate
 DEFAULT_HISTORY_SECONDS = 120.0
@@ -77,8 +87,8 @@ class UpdateResult:
 class _Entry:
     kind: str                   # "start" | "predict" | "update"
     time: float                 # s, time of the state after this entry
-    mean: np.ndarray            # state after the entry: (4,) tip then landmark map error
-    covariance: np.ndarray      # (4, 4)
+    mean: np.ndarray            # state after the entry: (6,) tip, landmark map error, drift velocity
+    covariance: np.ndarray      # (6, 6)
     landmark: object = None     # key of the landmark whose map error the state carries after it
     increment: np.ndarray | None = None     # predict
     process: np.ndarray | None = None
@@ -104,7 +114,8 @@ class TipFilter:
     """2-D tip position, timestamped predict / one-axis update with gating and a history."""
 
     def __init__(self, mean, covariance, time: float = 0.0, gate: float = GATE_CHI2_1DOF_999,
-                 history_seconds: float = DEFAULT_HISTORY_SECONDS, extrapolate: Optional[Extrapolate] = None):
+                 history_seconds: float = DEFAULT_HISTORY_SECONDS, extrapolate: Optional[Extrapolate] = None,
+                 drift_sigma=(0.0, 0.0), drift_correlation_time: float = DRIFT_CORRELATION_TIME):
         m = np.asarray(mean, dtype=float)
         if m.shape != (2,) or not np.isfinite(m).all():
             raise ValueError(f"initial_mean={mean}: need two finite values (m)")
@@ -115,21 +126,27 @@ class TipFilter:
             raise ValueError(f"gate={gate}: must be a finite squared Mahalanobis distance > 0")
         if not (math.isfinite(history_seconds) and history_seconds >= 0):
             raise ValueError(f"history_seconds={history_seconds}: must be finite and >= 0")
+        sigma_w = np.asarray(drift_sigma, dtype=float)
+        if sigma_w.shape != (2,) or not (np.isfinite(sigma_w).all() and (sigma_w >= 0).all()):
+            raise ValueError(f"drift_sigma={drift_sigma}: need two finite values >= 0 (m/s)")
+        if not (math.isfinite(drift_correlation_time) and drift_correlation_time > 0):
+            raise ValueError(f"drift_correlation_time={drift_correlation_time}: must be finite and > 0 s")
         self.gate = float(gate)
         self.history_seconds = float(history_seconds)
         self.extrapolate = extrapolate
-        self._kf = KalmanFilter(dim_x=4, dim_z=1)
-        self._kf.F = np.eye(4)
-        self._kf.B = np.vstack([np.eye(2), np.zeros((2, 2))])
-        mean4, cov4 = np.zeros(4), np.zeros((4, 4))
-        mean4[:2], cov4[:2, :2] = m, p
-        self._set(mean4, cov4, None)
-        self._history = [_Entry("start", float(time), mean4, cov4)]
+        self.drift_sigma, self.drift_correlation_time = sigma_w, float(drift_correlation_time)
+        self._kf = KalmanFilter(dim_x=6, dim_z=1)
+        self._kf.B = np.vstack([np.eye(2), np.zeros((4, 2))])
+        mean6, cov6 = np.zeros(6), np.zeros((6, 6))
+        mean6[:2], cov6[:2, :2] = m, p
+        cov6[4:, 4:] = np.diag(sigma_w ** 2)
+        self._set(mean6, cov6, None)
+        self._history = [_Entry("start", float(time), mean6, cov6)]
 
     # -- state -------------------------------------------------------------------------------
-    def _set(self, mean4, covariance4, landmark) -> None:
-        self._kf.x = np.asarray(mean4, dtype=float).reshape(4, 1).copy()
-        self._kf.P = np.asarray(covariance4, dtype=float).copy()
+    def _set(self, mean6, covariance6, landmark) -> None:
+        self._kf.x = np.asarray(mean6, dtype=float).reshape(6, 1).copy()
+        self._kf.P = np.asarray(covariance6, dtype=float).copy()
         self._landmark = landmark
 
     def _state(self) -> tuple[np.ndarray, np.ndarray]:
@@ -152,13 +169,26 @@ class TipFilter:
         return self._history[0].time
 
     # -- the two steps -------------------------------------------------------------------------
-    def _predict(self, increment, process) -> None:
-        q = np.zeros((4, 4))
-        q[:2, :2] = process
-        self._kf.predict(u=np.asarray(increment, dtype=float).reshape(2, 1), Q=q)
+    def _transition(self, dt: float, process) -> tuple[np.ndarray, np.ndarray]:
+        """(F, Q) over dt: x += w integrated over dt, w decays as an OU process (exact integrated
+        OU terms, per axis), the motion's process noise on x."""
+        tau = self.drift_correlation_time
+        phi = math.exp(-dt / tau)
+        var = self.drift_sigma ** 2
+        f, q = np.eye(6), np.zeros((6, 6))
+        f[0:2, 4:6] = tau * (1.0 - phi) * np.eye(2)
+        f[4:6, 4:6] = phi * np.eye(2)
+        q[0:2, 0:2] = np.asarray(process) + np.diag(var * tau * tau * max(0.0, 2 * dt / tau - 3 + 4 * phi - phi * phi))
+        q[0:2, 4:6] = q[4:6, 0:2] = np.diag(var * tau * (1.0 - phi) ** 2)
+        q[4:6, 4:6] = np.diag(var * (1.0 - phi * phi))
+        return f, q
+
+    def _predict(self, increment, process, dt: float) -> None:
+        f, q = self._transition(dt, process)
+        self._kf.predict(u=np.asarray(increment, dtype=float).reshape(2, 1), F=f, Q=q)
 
     def _predict_entry(self, time: float, increment, process, start_time: float) -> _Entry:
-        self._predict(increment, process)
+        self._predict(increment, process, time - start_time)
         return _Entry("predict", float(time), *self._state(), self._landmark, increment, process,
                       start_time=start_time)
 
@@ -180,11 +210,11 @@ class TipFilter:
         than the one the state carries first replaces b by the new landmark's map error."""
         trial = copy.deepcopy(self._kf)
         if landmark is not None and landmark != self._landmark:
-            trial.x[2:] = 0.0
-            trial.P[2:, :] = 0.0
-            trial.P[:, 2:] = 0.0
-            trial.P[2:, 2:] = map_covariance
-        h = np.concatenate([u, u if landmark is not None else np.zeros(2)]).reshape(1, 4)
+            trial.x[2:4] = 0.0
+            trial.P[2:4, :] = 0.0
+            trial.P[:, 2:4] = 0.0
+            trial.P[2:4, 2:4] = map_covariance
+        h = np.concatenate([u, u if landmark is not None else np.zeros(2), np.zeros(2)]).reshape(1, 6)
         trial.update(np.array([[value]]), R=np.array([[variance]]), H=h)
         innovation = float(trial.y[0, 0])
         s = float(trial.S[0, 0])
@@ -296,15 +326,16 @@ class TipFilter:
     def at(self, time: float) -> tuple[np.ndarray, np.ndarray]:
         """(mean, covariance) at `time`: inside the history, the state then (a prediction step
         interpolated in proportion to time); after the latest step, extrapolated with
-        `extrapolate` (the motion model holding still: creep still to come and drift) or, without
-        one, the latest state."""
+        `extrapolate` (the motion model holding still: creep still to come and the mean drift)
+        and the unmodelled drift velocity, which alone carries it without `extrapolate`."""
         if not math.isfinite(time):
             raise ValueError(f"time={time}: must be finite")
         if time >= self.time:
-            if time == self.time or self.extrapolate is None:
+            if time == self.time:
                 return self.mean, self.covariance
-            increment, process = self.extrapolate(self.time, time)
-            return self.mean + np.asarray(increment), self.covariance + np.asarray(process)
+            increment, process = (np.zeros(2), np.zeros((2, 2))) if self.extrapolate is None else \
+                self.extrapolate(self.time, time)
+            return self._carried(self._history[-1], increment, process, time - self.time)
         if time < self.oldest_time:
             raise ValueError(f"time={time}: before the history's start {self.oldest_time} s")
         times = [e.time for e in self._history]
@@ -314,4 +345,12 @@ class TipFilter:
         if entry.kind != "predict" or entry.start_time >= time:
             return before.mean[:2].copy(), before.covariance[:2, :2].copy()
         f = (time - entry.start_time) / (entry.time - entry.start_time)
-        return before.mean[:2] + f * entry.increment, before.covariance[:2, :2] + f * entry.process
+        return self._carried(before, f * entry.increment, f * entry.process, time - entry.start_time)
+
+    def _carried(self, entry: _Entry, increment, process, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(mean, covariance) of the tip: `entry`'s state predicted over dt (not stored)."""
+        f, q = self._transition(dt, process)
+        mean = f @ entry.mean
+        mean[:2] += np.asarray(increment, dtype=float)
+        covariance = f @ entry.covariance @ f.T + q
+        return mean[:2], covariance[:2, :2]

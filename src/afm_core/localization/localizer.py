@@ -138,7 +138,8 @@ class Localizer:
         self.threshold_fraction = float(threshold_fraction)
         self.model = MotionModel(calibration, instrument.commanded_position(), instrument.time)
         self.filter = TipFilter(initial_mean, initial_cov, instrument.time, gate=gate,
-                                history_seconds=history_seconds, extrapolate=self._extrapolate)
+                                history_seconds=history_seconds, extrapolate=self._extrapolate,
+                                drift_sigma=calibration.drift_sigma_velocity)
         self.steps: list[MotionStep] = []        # every motion predicted (for inspection)
 
     # -- estimate ----------------------------------------------------------------------------------

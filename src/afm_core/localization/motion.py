@@ -17,10 +17,11 @@
   so the tip's position in the sample-fixed task frame changes by DRIFT_SIGN * v_d dt with
   DRIFT_SIGN = -1.
 - R_k: a free move (`move_tip`, including the approach to a scan line's start) adds
-  `calibration.motion_noise().added_covariance(dx, dy, dt)` (sigma^2 = a d + b per axis, the
-  unmodelled drift (sigma_v dt)^2); a move along a local scan line adds no positioning noise
-  (the piezo is ramped, not repositioned) but the line-deflection uncertainty,
-  (sigma_theta L)^2 across the line, plus the drift term; a hold adds the drift term only.
+  `calibration.motion_noise().added_covariance(dx, dy)` (sigma^2 = a d + b per axis); a move
+  along a local scan line adds no positioning noise (the piezo is ramped, not repositioned)
+  but the line-deflection uncertainty, (sigma_theta L)^2 across the line; a hold adds nothing.
+  The drift the mean v_d leaves unmodelled is not noise of each step but a velocity that
+  persists for minutes: the Kalman filter carries it as state (`TipFilter` drift_sigma).
 
 State (`MotionState`): time, last command and the creep operators' states: all of it
 explicit, copyable and restorable, so a filter can re-run history and the localizer can try
@@ -28,6 +29,7 @@ a move on a copy (`command_for`) before making it.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -91,7 +93,7 @@ class MotionModel:
         if abs(np.linalg.det(self.matrix)) < 1e-6:
             raise ValueError(f"calibration scanner_matrix={calibration.scanner_matrix}: singular, cannot be inverted")
         self.inverse_matrix = np.linalg.inv(self.matrix)
-        self.noise = calibration.motion_noise()
+        self.noise = dataclasses.replace(calibration.motion_noise(), drift_sigma_x=0.0, drift_sigma_y=0.0)
         self.drift_velocity = DRIFT_SIGN * np.array(calibration.drift_mean_velocity, dtype=float)
         self.deflection_sigma = math.radians(calibration.line_deflection_sigma_deg)
         taus = np.array(calibration.creep_time_constants, dtype=float)

@@ -172,27 +172,48 @@ def _crossing(h: np.ndarray, threshold: float, i: int) -> float:
     return i + (a / (a - b) if a != b else 0.5)
 
 
-def find_crossings(height, threshold: float, expected_index: float | None = None):
+def line_noise(height) -> float:
+    """Robust sigma of a profile's noise from its sample-to-sample differences (MAD; the
+    flanks of a landmark, a minority of the differences, do not count)."""
+    steps = np.diff(np.asarray(height, dtype=float))
+    return float(np.median(np.abs(steps - np.median(steps))) / (0.6745 * math.sqrt(2))) if steps.size else 0.0
+
+
+def find_crossings(height, threshold: float, expected_index: float | None = None, margin: float | None = None):
     """Pairs (rising, falling) of threshold crossings as fractional indices; the pair whose
     midpoint is nearest `expected_index` (default: the line's middle) first. Returns
-    (pairs, reason) with reason non-empty when there is no complete pair."""
+    (pairs, reason) with reason non-empty when there is no complete pair.
+
+    margin: hysteresis (Schmitt trigger) against noise on a flank, where the profile crosses
+    the threshold several times and would make an extra, narrow pair that can lie nearer the
+    expected index than the landmark's own: a run above the threshold counts only if it
+    reaches threshold + margin, and dips that stay above threshold - margin do not split a
+    run (its crossings are the outermost ones). Default 3 x `line_noise`, at most half the
+    threshold's height above the profile's median."""
     h = np.asarray(height, dtype=float)
     above = h > threshold
     if not above.any():
         return [], "no sample above the threshold: the line missed the landmark"
     if above.all():
         return [], "every sample above the threshold: the line lies on the landmark"
-    changes = np.flatnonzero(np.diff(above.astype(np.int8)))
-    pairs = []
-    rising = None
-    for i in changes:
-        if not above[i] and above[i + 1]:
-            rising = _crossing(h, threshold, int(i))
-        elif rising is not None:
-            pairs.append((rising, _crossing(h, threshold, int(i))))
-            rising = None
-    if not pairs:                        # an edge run above the threshold is not a pair
-        where = "starts" if above[0] else "ends"
+    if margin is None:
+        margin = min(3.0 * line_noise(h), 0.5 * max(threshold - float(np.median(h)), 0.0))
+    edges = np.flatnonzero(np.diff(above.astype(np.int8))) + 1
+    bounds = np.concatenate([[0], edges, [h.size]])
+    runs = [[int(i), int(j)] for i, j in zip(bounds[:-1], bounds[1:]) if above[i]]     # [first, end) above
+    merged = [runs[0]]
+    for run in runs[1:]:
+        if h[merged[-1][1]:run[0]].min() >= threshold - margin:
+            merged[-1][1] = run[1]
+        else:
+            merged.append(run)
+    pairs = [(_crossing(h, threshold, i - 1), _crossing(h, threshold, j - 1)) for i, j in merged
+             if i > 0 and j < h.size and h[i:j].max() >= threshold + margin]
+    if not pairs:
+        if not any(h[i:j].max() >= threshold + margin for i, j in merged):
+            return [], (f"no run above the threshold reaches it + {margin:.3g} (3 x the line's noise): "
+                        "the line missed the landmark")
+        where = "starts" if above[0] else "ends"         # an edge run above the threshold is not a pair
         return [], f"the line {where} on the landmark: no rising/falling crossing pair"
     centre = 0.5 * (h.size - 1) if expected_index is None else float(expected_index)
     pairs.sort(key=lambda p: abs(0.5 * (p[0] + p[1]) - centre))
