@@ -185,6 +185,32 @@ def test_drift_statistics():
     assert np.sqrt(np.mean((measured - truth) ** 2, axis=0)).max() < 0.03e-9     # per pair
 
 
+@pytest.mark.parametrize("asymmetry_error", [0.0, 0.05])
+def test_feed_forward_inverts_the_controllers_calibrated_asymmetry(asymmetry_error):
+    """The controller inverts its own model, whose asymmetry is the scanner's minus
+    asymmetry_error: from rest at the centre a compensated move lands at
+    H_scanner(H_controller^-1(command)) (exactly the command when the models agree)."""
+    from afm_core.pzt import PrandtlIshlinskii
+    config = merge(load_config(), {
+        "drift": {"enabled": False}, "controller": {"model_error": 0.0, "asymmetry_error": asymmetry_error},
+        "scanner": {"positioning_noise_enabled": False, "creep_enabled": False, "coupling_enabled": False,
+                    "deflection_enabled": False}})
+    afm = SimulatedAfm(config)
+    scanner, centre = config.scanner, config.scanner.range_x / 2
+    afm.move_tip(centre + 20e-6, centre, 1e-4)
+    controller = PrandtlIshlinskii.from_fraction(scanner.range_x, scanner.hysteresis_fraction,
+                                                 scanner.hysteresis_operators,
+                                                 scanner.hysteresis_asymmetry - asymmetry_error)
+    controller.reset(0.0)
+    drive = controller.inverse().apply([0.0, 20e-6])[-1]
+    model = PrandtlIshlinskii.from_fraction(scanner.range_x, scanner.hysteresis_fraction,
+                                            scanner.hysteresis_operators, scanner.hysteresis_asymmetry)
+    model.reset(0.0)
+    expected = model.apply([0.0, drive])[-1]
+    assert afm.truth()["tip_position"][0] - centre == pytest.approx(expected, abs=1e-12)
+    assert (abs(expected - 20e-6) > 10e-9) == (asymmetry_error != 0.0)
+
+
 def test_feed_forward_switch_does_not_move_the_tip():
     afm = SimulatedAfm(load_config())
     afm.move_tip(70e-6, 40e-6, 1e-4)

@@ -62,6 +62,10 @@ def test_candidates_follow_the_config_keys():
     ok, missing = available(config)
     names = {c.name for c in ok}
     assert {"drift_velocity", "creep_amplitude", "tip_radius", "tip_asymmetry", "coupling", "rotation"} <= names
+    # closed loop the asymmetry acts through the controller's calibrated one, open loop directly
+    assert "hysteresis_asymmetry" in names and "hysteresis_asymmetry_open_loop" not in names
+    open_loop = {c.name for c in available(merge(config, {"controller": {"hysteresis_compensation": False}}))[0]}
+    assert "hysteresis_asymmetry_open_loop" in open_loop and "hysteresis_asymmetry" not in open_loop
     tip = next(c for c in library() if c.name == "tip_wear")
     assert tip.nominal(config)[0] == 0.0                      # wear is off in the defaults
     assert tip.apply(config, [2e-3]).tip.wear_enabled is True

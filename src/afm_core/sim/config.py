@@ -73,6 +73,7 @@ class ControllerParams:
     scanner, as calibrated. The calibration is never exact, so a residual remains."""
     hysteresis_compensation: bool = True
     model_error: float = 0.1                  # relative error of the calibrated loop width (0: perfect)
+    asymmetry_error: float = 0.0              # its calibrated asymmetry is the scanner's minus this (0: exact)
 
 
 @dataclass

@@ -135,13 +135,14 @@ class SimulatedAfm:
 
     def _controller_models(self):
         """Per axis, the controller's calibrated hysteresis model (the scanner's own, with the
-        loop width off by model_error), demagnetised; None when compensation is off."""
+        loop width off by model_error and the asymmetry by asymmetry_error), demagnetised; None
+        when compensation is off."""
         scanner, controller = self.config.scanner, self.config.controller
         if not (controller.hysteresis_compensation and scanner.hysteresis_enabled and scanner.hysteresis_fraction > 0):
             return None
         fraction = scanner.hysteresis_fraction * (1.0 + controller.model_error)
-        models = [PrandtlIshlinskii.from_fraction(span, fraction, int(scanner.hysteresis_operators),
-                                                  scanner.hysteresis_asymmetry)
+        asymmetry = scanner.hysteresis_asymmetry - controller.asymmetry_error
+        models = [PrandtlIshlinskii.from_fraction(span, fraction, int(scanner.hysteresis_operators), asymmetry)
                   for span in (scanner.range_x, scanner.range_y)]
         for model in models:
             model.reset(0.0)

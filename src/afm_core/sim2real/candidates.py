@@ -150,10 +150,13 @@ def library() -> list[Candidate]:
                   "loop than modelled (its calibrated loop width is off)", ["controller.model_error"], [0.05],
                   ["relative loop-width error"], lower=[-0.9], upper=[2.0], geometric=True,
                   requires={"controller.hysteresis_compensation": True, "scanner.hysteresis_enabled": True}),
-        Candidate("hysteresis_asymmetry", "hysteresis: ascending and descending branches differ (asymmetry)",
+        Candidate("hysteresis_asymmetry", "hysteresis: ascending and descending branches differ more (or less) "
+                  "than the controller's feed-forward assumes (its calibrated asymmetry is off)",
+                  ["controller.asymmetry_error"], [0.03], [""], lower=[-0.8], upper=[0.8], geometric=True,
+                  requires={"controller.hysteresis_compensation": True, "scanner.hysteresis_enabled": True}),
+        Candidate("hysteresis_asymmetry_open_loop", "hysteresis: ascending and descending branches differ "
+                  "(asymmetry, scanner driven open loop)",
                   ["scanner.hysteresis_asymmetry"], [0.05], [""], lower=[-0.8], upper=[0.8], geometric=True,
-                  # with the feed-forward on, the controller inverts the scanner's own input
-                  # function exactly: an asymmetry only shows open loop
                   requires={"controller.hysteresis_compensation": False, "scanner.hysteresis_enabled": True}),
         Candidate("hysteresis_width", "hysteresis: the loop is wider/narrower than calibrated",
                   ["scanner.hysteresis_fraction"], [0.01], ["of range"], lower=[0.0], upper=[0.33], geometric=True,
