@@ -64,7 +64,7 @@ def test_motion_model_scanner_matrix_and_free_move_noise():
     true_step = matrix @ np.array([2 * UM, -1 * UM])
     np.testing.assert_allclose(step.mean, true_step, rtol=0, atol=1e-15)
     np.testing.assert_allclose(step.covariance,
-                               calibration.motion_noise().added_covariance(true_step[0], true_step[1], 1.5),
+                               calibration.motion_noise().added_covariance(true_step[0], true_step[1]),
                                rtol=1e-12)
     assert model.time == pytest.approx(6.5) and model.command == pytest.approx((12 * UM, 19 * UM), abs=1e-18)
     # the inverse: the command that moves the tip by a given displacement

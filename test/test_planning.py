@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from afm_core.imaging.landmarks import Landmark
+from afm_core.localization.calibration import Calibration
 from afm_core.localization.motion_noise import MotionNoise
 from afm_core.planning import (cheapest_chain, covering_landmarks, landmark_domain, observation_distance,
                                observation_distance_matrix, plan_landmark_chain, plan_landmark_configuration,
@@ -179,8 +180,10 @@ def test_observation_rejects_bad_input(kwargs, message):
 
 
 def test_motion_noise_rejects_negative_sigma():
-    with pytest.raises(ValueError, match="drift_sigma_x"):
-        MotionNoise(1e-10, 0, 1e-10, 0, drift_sigma_x=-1.0)
+    with pytest.raises(ValueError, match="offset_x"):
+        MotionNoise(1e-10, 0, 1e-10, 0, offset_x=-1.0)
+    with pytest.raises(ValueError, match="drift_sigma_velocity"):
+        Calibration(drift_sigma_velocity=[-1.0, 0.0])
 
 
 # -- single landmark: Tables 6.1 / 6.2 -------------------------------------------------------------

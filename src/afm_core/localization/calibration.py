@@ -67,14 +67,15 @@ class Calibration:
             value = getattr(self, name)
             if len(value) != 2 or not all(math.isfinite(v) for v in value):
                 raise ValueError(f"calibration {name}={value}: need two finite values (x, y)")
+        if min(self.drift_sigma_velocity) < 0:
+            raise ValueError(f"calibration drift_sigma_velocity={self.drift_sigma_velocity}: need values >= 0 (m/s)")
         self.motion_noise()   # checks the noise fields
 
     def motion_noise(self) -> MotionNoise:
-        """The noise a free move adds (drift: the spread of the velocity about its mean)."""
+        """The noise a free move adds."""
         return MotionNoise(k_h1=self.motion_noise_slope_x, k_h2=self.motion_noise_cross_slope,
                            k_v1=self.motion_noise_slope_y, k_v2=self.motion_noise_cross_slope,
-                           offset_x=self.motion_noise_offset, offset_y=self.motion_noise_offset,
-                           drift_sigma_x=self.drift_sigma_velocity[0], drift_sigma_y=self.drift_sigma_velocity[1])
+                           offset_x=self.motion_noise_offset, offset_y=self.motion_noise_offset)
 
 
 def calibration_from_dict(data: dict) -> Calibration:

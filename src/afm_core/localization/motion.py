@@ -29,7 +29,6 @@ a move on a copy (`command_for`) before making it.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -93,7 +92,7 @@ class MotionModel:
         if abs(np.linalg.det(self.matrix)) < 1e-6:
             raise ValueError(f"calibration scanner_matrix={calibration.scanner_matrix}: singular, cannot be inverted")
         self.inverse_matrix = np.linalg.inv(self.matrix)
-        self.noise = dataclasses.replace(calibration.motion_noise(), drift_sigma_x=0.0, drift_sigma_y=0.0)
+        self.noise = calibration.motion_noise()
         self.drift_velocity = DRIFT_SIGN * np.array(calibration.drift_mean_velocity, dtype=float)
         self.deflection_sigma = math.radians(calibration.line_deflection_sigma_deg)
         taus = np.array(calibration.creep_time_constants, dtype=float)
@@ -195,9 +194,9 @@ class MotionModel:
         mean = self.matrix @ (after - before) + self.drift_velocity * duration
         true_step = self.matrix @ step
         if kind == "move":
-            covariance = self.noise.added_covariance(true_step[0], true_step[1], duration)
+            covariance = self.noise.added_covariance(true_step[0], true_step[1])
         else:
-            covariance = self.noise.added_covariance(0.0, 0.0, duration)
+            covariance = np.zeros((2, 2))
             if kind == "line" and distance > 0:
                 length = float(np.hypot(*true_step))
                 across = np.array([-true_step[1], true_step[0]]) / length
