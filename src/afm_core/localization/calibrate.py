@@ -309,6 +309,7 @@ def creep_deficit(t, time_constants, ramp_time: float) -> np.ndarray:
 
 WALK_MEASUREMENT_RATIO = 0.1   # a pit's own position noise (~1 nm)^2 over one move's walk step (~3 nm)^2
 
+
 def walk_whitener(moves, pit_to_walk_ratio: float = WALK_MEASUREMENT_RATIO) -> np.ndarray:
     """Lower-triangular L^-1 that whitens positions carrying a random walk: each move between
     pits adds a persistent positioning error (book eq. 5.5's w, sigma^2 = a d + b per move), so
@@ -335,7 +336,7 @@ def fit_creep(runs: list[dict], n_constants: int = 3, guess=(1.0, 10.0, 100.0), 
     before each pit (then the residuals are whitened for the positioning random walk,
     `walk_whitener`, starting from the ordinary fit, with a robust loss against a misread
     pit)}. Positions are fitted in nm (a well-scaled problem). "fractions": per group, in
-    order of first appearance."""
+    order of first appearance; "model": per run, the fitted curve at its pits (m)."""
     if len(guess) != n_constants:
         raise ValueError(f"guess={guess}: need {n_constants} time constants")
     groups = list(dict.fromkeys(run.get("group", k) for k, run in enumerate(runs)))
@@ -378,12 +379,15 @@ def fit_creep(runs: list[dict], n_constants: int = 3, guess=(1.0, 10.0, 100.0), 
                                      method="trf", loss="soft_l1", f_scale=10.0)
     taus, fractions, per_run = unpack(fit.x)
     order = np.argsort(taus)
-    rms = float(np.sqrt(np.mean(residuals(fit.x, whiten=False) ** 2))) * 1e-9
+    misfit = residuals(fit.x, whiten=False)
+    rms = float(np.sqrt(np.mean(misfit ** 2))) * 1e-9
+    ends = np.cumsum([len(t) for t, *_ in prepared])[:-1]
+    models = [(x + r) * 1e-9 for (_, x, *_), r in zip(prepared, np.split(misfit, ends))]
     return {"time_constants": taus[order].tolist(),
             "fractions": [f[order].tolist() for f in fractions],
             "settled": [float(p[0]) * 1e-9 for p in per_run],
             "drift_velocity": [float(p[1]) * 1e-9 for p in per_run],
-            "rms_residual": rms, "success": bool(fit.success)}
+            "model": [m.tolist() for m in models], "rms_residual": rms, "success": bool(fit.success)}
 
 
 def measure_creep(instrument, *, step: float = 50e-6, duration: float = 300.0, pits: int = 40, fast_pits: int = 8,
@@ -394,8 +398,8 @@ def measure_creep(instrument, *, step: float = 50e-6, duration: float = 300.0, p
     Per axis, `repeats` runs: rest at centre - step/2 for `settle` s (earlier creep dies
     out), step to centre + step/2 at full speed, then punch `pits` pits one `pit_spacing`
     apart along the other axis at lane_offset from the centre (each further run shifted along
-    the step by what its rescan covers, so the rows stay apart): `fast_pits` back to back (the 0.5 s constant), the
-    rest at log-spaced times up to `duration` s (the book samples 25 s; the 50 s constant
+    the step by what its rescan covers, so the rows stay apart): `fast_pits` back to back (the
+    0.5 s constant), the rest at log-spaced times up to `duration` s (the book samples 25 s; the 50 s constant
     needs several of its own lengths to be told from drift, which is fitted too). The moves
     along the other axis do not move this one, so each pit's coordinate along the step is
     the creep curve at its moment. Each run is rescanned with the slow axis along the step,
@@ -467,12 +471,8 @@ def measure_creep(instrument, *, step: float = 50e-6, duration: float = 300.0, p
         data[name].append({"t": times.tolist(), "position": positions.tolist(), "step": step,
                            "ramp_time": ramp_time, "pits_punched": pits, "pits_found": int(ok.sum())})
     fit = fit_creep(runs, guess=guess)
-    for run, record, settled, velocity in zip(runs, data["x"] + data["y"], fit["settled"], fit["drift_velocity"]):
-        t = np.asarray(run["t"])
-        fractions = fit["fractions"]["xy".index(run["group"])]
-        model = settled + velocity * (t - t.mean()) - step * creep_deficit(t, fit["time_constants"],
-                                                                          run["ramp_time"]) @ np.asarray(fractions)
-        record["model"] = model.tolist()
+    for record, model in zip(data["x"] + data["y"], fit["model"]):
+        record["model"] = model
     parameters = {"time_constants": fit["time_constants"], "fractions_x": fit["fractions"][0],
                   "fractions_y": fit["fractions"][1], "drift_velocity": fit["drift_velocity"],
                   "rms_residual": fit["rms_residual"], "success": fit["success"]}
