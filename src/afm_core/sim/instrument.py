@@ -30,6 +30,9 @@ from afm_core.sim.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
 from afm_core.sim.tip import Tip
 
 LINES_PER_CHUNK = 16          # raster lines simulated at once (progress and cancel granularity)
+MOVE_STEP = 2e-9              # m, path sampling of moves (pushes resolve objects finer inside)
+IDLE_STEP = 0.05              # s, scanner sampling while holding still (creep keeps going)
+INDENT_SAMPLES = 200
 
 
 class RasterPath:
@@ -58,9 +61,6 @@ class RasterPath:
         lines = self.line_order[done:done + LINES_PER_CHUNK]
         slow = np.repeat(self.slow_coords[done:done + len(lines)], 2 * self.n_fast)
         return (lines, *self.to_xy(np.tile(self.trace_back, len(lines)), slow))
-MOVE_STEP = 2e-9              # m, path sampling of moves (pushes resolve objects finer inside)
-IDLE_STEP = 0.05              # s, scanner sampling while holding still (creep keeps going)
-INDENT_SAMPLES = 200
 
 
 class _DelayedPath:
