@@ -209,6 +209,8 @@ def test_noise_on_a_flank_does_not_make_an_extra_narrow_pair():
     spike[40] = 4.05
     pairs, reason = find_crossings(spike, 4.0)
     assert pairs == [] and "missed" in reason
+    with pytest.raises(ValueError, match="margin"):
+        find_crossings(spike, 4.0, margin=float("nan"))
 
 
 def test_a_line_across_a_tube_measures_the_position_across_its_axis():

@@ -198,6 +198,8 @@ def find_crossings(height, threshold: float, expected_index: float | None = None
         return [], "every sample above the threshold: the line lies on the landmark"
     if margin is None:
         margin = min(3.0 * line_noise(h), 0.5 * max(threshold - float(np.median(h)), 0.0))
+    elif not (math.isfinite(margin) and margin >= 0):
+        raise ValueError(f"margin={margin}: must be finite and >= 0 (height units of the profile)")
     edges = np.flatnonzero(np.diff(above.astype(np.int8))) + 1
     bounds = np.concatenate([[0], edges, [h.size]])
     runs = [[int(i), int(j)] for i, j in zip(bounds[:-1], bounds[1:]) if above[i]]     # [first, end) above
@@ -207,12 +209,13 @@ def find_crossings(height, threshold: float, expected_index: float | None = None
             merged[-1][1] = run[1]
         else:
             merged.append(run)
-    pairs = [(_crossing(h, threshold, i - 1), _crossing(h, threshold, j - 1)) for i, j in merged
-             if i > 0 and j < h.size and h[i:j].max() >= threshold + margin]
+    reaching = [(i, j) for i, j in merged if h[i:j].max() >= threshold + margin]
+    if not reaching:
+        return [], (f"no run above the threshold reaches it + margin {margin:.3g}: the line missed the landmark "
+                    "(what rises above the threshold is noise)")
+    pairs = [(_crossing(h, threshold, i - 1), _crossing(h, threshold, j - 1)) for i, j in reaching
+             if i > 0 and j < h.size]
     if not pairs:
-        if not any(h[i:j].max() >= threshold + margin for i, j in merged):
-            return [], (f"no run above the threshold reaches it + {margin:.3g} (3 x the line's noise): "
-                        "the line missed the landmark")
         where = "starts" if above[0] else "ends"         # an edge run above the threshold is not a pair
         return [], f"the line {where} on the landmark: no rising/falling crossing pair"
     centre = 0.5 * (h.size - 1) if expected_index is None else float(expected_index)
