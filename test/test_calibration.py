@@ -211,6 +211,13 @@ def test_feed_forward_inverts_the_controllers_calibrated_asymmetry(asymmetry_err
     assert (abs(expected - 20e-6) > 10e-9) == (asymmetry_error != 0.0)
 
 
+@pytest.mark.parametrize("controller", [{"asymmetry_error": float("nan")}, {"asymmetry_error": 2.0},
+                                        {"model_error": -1.5}])
+def test_controller_model_errors_out_of_range_are_refused(controller):
+    with pytest.raises(ValueError, match=f"controller.{next(iter(controller))}"):
+        SimulatedAfm(merge(load_config(), {"controller": controller}))
+
+
 def test_feed_forward_switch_does_not_move_the_tip():
     afm = SimulatedAfm(load_config())
     afm.move_tip(70e-6, 40e-6, 1e-4)

@@ -115,16 +115,18 @@ def test_filter_unmodelled_drift_grows_as_a_persistent_velocity_however_time_is_
 
 def test_filter_learns_the_drift_velocity_from_two_observations():
     """Two exact position observations 10 s apart fix w = (z2 - z1) / 10 s: the prediction
-    10 s later follows it, and its variance is far below the prior drift's."""
+    10 s later follows it, and its variance is far below the prior drift's (a correlation time
+    so long that the velocity does not decay in between: the closed form is exact)."""
     sigma = np.array([2e-10, 2e-10])
-    f = TipFilter([0.0, 0.0], np.diag([1e-16, 1e-16]), time=0.0, gate=1e6, drift_sigma=sigma)
+    f = TipFilter([0.0, 0.0], np.diag([1e-16, 1e-16]), time=0.0, gate=1e6, drift_sigma=sigma,
+                  drift_correlation_time=1e12)
     for axis in "xy":
         f.update_axis(0.0, 0.0, 1e-22, axis)
     f.predict(10.0, np.zeros(2), np.zeros((2, 2)))
     for axis, value in (("x", 3e-9), ("y", -1e-9)):
         f.update_axis(10.0, value, 1e-22, axis)
     f.predict(20.0, np.zeros(2), np.zeros((2, 2)))
-    np.testing.assert_allclose(f.mean, [6e-9, -2e-9], rtol=5e-3)    # the OU velocity decays by ~0.5 % per 10 s
+    np.testing.assert_allclose(f.mean, [6e-9, -2e-9], rtol=1e-4)
     assert np.all(np.diag(f.covariance) < 0.01 * (sigma * 10.0) ** 2)
 
 

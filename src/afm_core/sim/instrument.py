@@ -140,8 +140,15 @@ class SimulatedAfm:
         scanner, controller = self.config.scanner, self.config.controller
         if not (controller.hysteresis_compensation and scanner.hysteresis_enabled and scanner.hysteresis_fraction > 0):
             return None
+        if not (math.isfinite(controller.model_error) and controller.model_error > -1.0):
+            raise ValueError(f"controller.model_error={controller.model_error}: must be finite and > -1 "
+                             "(relative error of the calibrated loop width)")
         fraction = scanner.hysteresis_fraction * (1.0 + controller.model_error)
         asymmetry = scanner.hysteresis_asymmetry - controller.asymmetry_error
+        if not (math.isfinite(asymmetry) and asymmetry * asymmetry < 2.0 / 3.0):
+            raise ValueError(f"controller.asymmetry_error={controller.asymmetry_error}: the controller's asymmetry "
+                             f"(scanner.hysteresis_asymmetry minus it) is {asymmetry}; need a finite value with "
+                             "square < 2/3")
         models = [PrandtlIshlinskii.from_fraction(span, fraction, int(scanner.hysteresis_operators), asymmetry)
                   for span in (scanner.range_x, scanner.range_y)]
         for model in models:
