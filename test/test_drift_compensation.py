@@ -22,6 +22,7 @@ from scipy import ndimage
 
 from afm_core.imaging.drift import (BSplineImage, DriftCorrection, band_offset_vectors, band_partition,
                                     compensate_pair, offset_displacement, pixel_times, recentre,
+                                    sampled_velocity, up_down_observations, up_down_velocity,
                                     velocity_from_up_down)
 from afm_core.instrument import RasterScanData, ScanRequest
 from afm_core.sim.config import load_config, merge
@@ -239,6 +240,24 @@ def test_frame_up_down_with_two_particles_is_the_books_formula():
     assert speed * (d_up - d_down) / (d_up + d_down) == pytest.approx(vy, rel=0.05)
     v = velocity_from_up_down(up, down)
     assert v[0] == pytest.approx(vx, rel=0.1) and v[1] == pytest.approx(vy, rel=0.05)
+
+
+def test_a_pair_measures_the_velocity_at_its_particles_moments():
+    """A drift that speeds up: the pair's velocity is the least squares over the moments the
+    particles were imaged (`sampled_velocity` of the known drift; for a constant drift the
+    velocity itself)."""
+    v = np.array([0.1e-9, -0.2e-9])
+    t_up, t_down = np.array([10.0, 50.0, 90.0]), np.array([400.0, 380.0, 300.0])
+    np.testing.assert_allclose(sampled_velocity(lambda t: np.asarray(t)[..., None] * v, t_up, t_down), v, rtol=1e-9)
+    spheres = random_spheres(np.random.default_rng(7), 12, r_min=30e-9)
+    afm = simulator(constant_drift(0.0, 0.0), 7, spheres)
+    afm.drift = AcceleratingDrift([0.05e-9, 0.1e-9], [2e-13, 4e-13])
+    up, down = scan(afm, up=True), scan(afm, up=False)
+    observations = up_down_observations(up, down)
+    measured = np.array(velocity_from_up_down(up, down))
+    assert tuple(measured) == up_down_velocity(observations)
+    truth = sampled_velocity(afm.drift.offset, observations.t_up, observations.t_down)
+    assert np.all(np.abs(measured - truth) <= 0.05 * np.abs(truth) + 0.005e-9)
 
 
 # -- the pieces --------------------------------------------------------------------------------

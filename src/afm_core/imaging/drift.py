@@ -797,7 +797,29 @@ def velocity_from_up_down(scan_up: RasterScanData, scan_down: RasterScanData) ->
     stretch V / (V - v) frame up and the compression V / (V + v) frame down:
     v = V (d_up - d_down) / (d_up + d_down). With more than two particles all pairs are used at
     once: X_up(k) - X_down(k) = c + v (t_up(k) - t_down(k)) by least squares (c absorbs a common
-    offset between the frames, e.g. the drift between the frames or a scanner offset)."""
+    offset between the frames, e.g. the drift between the frames or a scanner offset).
+
+    What it measures: the least-squares slope over the particles' moments, so in a drift that
+    wanders it is an average of the velocity over the stretches of the two frames where the
+    particles are imaged (`sampled_velocity` gives it for a known D(t)), in the units of the
+    images (their pixel size as commanded: a scanner whose small moves go farther than
+    commanded makes every image, and the velocity, smaller by the same factor)."""
+    return up_down_velocity(up_down_observations(scan_up, scan_down))
+
+
+@dataclass
+class UpDownObservations:
+    """The particles matched between a frame-up and a frame-down image: their positions
+    (n, 2) as (x, y) in m from the image origin, in image units (commanded pixel size), and
+    the instrument-clock moments (n,) their centres were imaged (`pixel_times`)."""
+    position_up: np.ndarray
+    position_down: np.ndarray
+    t_up: np.ndarray
+    t_down: np.ndarray
+
+
+def up_down_observations(scan_up: RasterScanData, scan_down: RasterScanData) -> UpDownObservations:
+    """The particles of a frame-up / frame-down pair, matched (see `velocity_from_up_down`)."""
     _check_scan("scan_up", scan_up)
     _check_scan("scan_down", scan_down)
     if scan_down.scan_angle_deg != scan_up.scan_angle_deg:
@@ -823,12 +845,32 @@ def velocity_from_up_down(scan_up: RasterScanData, scan_down: RasterScanData) ->
     pd = np.array([blobs_d[j].centroid for _, j in pairs])
     tu = pixel_times(scan_up, pu[:, 0], pu[:, 1])
     td = pixel_times(scan_down, pd[:, 0], pd[:, 1])
-    dt = tu - td
-    if np.ptp(dt) <= 0:
+    if np.ptp(tu - td) <= 0:
         raise ValueError("scan_up.height: the particles were imaged at the same moments; need particles on "
                          "different lines")
-    design = np.stack([np.ones_like(dt), dt], axis=1)
     scale = np.array([scan_up.pixel_size_x, scan_up.pixel_size_y])
-    diff = (pu[:, ::-1] - pd[:, ::-1]) * scale                      # (x, y) in m
+    return UpDownObservations(position_up=pu[:, ::-1] * scale, position_down=pd[:, ::-1] * scale, t_up=tu, t_down=td)
+
+
+def up_down_velocity(obs: UpDownObservations) -> tuple[float, float]:
+    """(vx, vy) in m/s: X_up(k) - X_down(k) = c + v (t_up(k) - t_down(k)) by least squares."""
+    dt = np.asarray(obs.t_up, float) - np.asarray(obs.t_down, float)
+    design = np.stack([np.ones_like(dt), dt], axis=1)
+    diff = np.asarray(obs.position_up, float) - np.asarray(obs.position_down, float)
     sol, *_ = np.linalg.lstsq(design, diff, rcond=None)
     return float(sol[1, 0]), float(sol[1, 1])
+
+
+def sampled_velocity(offset, t_up, t_down) -> np.ndarray:
+    """The velocity (vx, vy) a frame-up / frame-down pair returns for a drift offset D(t)
+    (`offset(t)` -> (..., 2), m) with its particles imaged at t_up, t_down (s): the least
+    squares of `up_down_velocity` applied to D(t_up) - D(t_down). For a constant velocity it is
+    that velocity; for a wandering one it is the average the pair samples (weighted towards the
+    stretches of the two frames where the particles are), which is the truth to compare a
+    measured pair velocity with (not the mean velocity over the pair's whole span)."""
+    t_up, t_down = np.asarray(t_up, float), np.asarray(t_down, float)
+    dt = t_up - t_down
+    design = np.stack([np.ones_like(dt), dt], axis=1)
+    diff = np.asarray(offset(t_up), float) - np.asarray(offset(t_down), float)
+    sol, *_ = np.linalg.lstsq(design, diff, rcond=None)
+    return sol[1]

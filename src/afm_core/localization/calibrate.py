@@ -23,12 +23,17 @@ measured in the frame of the instrument's own images, which is the frame the loc
 maps are in. What every image shares cannot be seen: the tube's x/y coupling and its
 rotation against the sample (so the scanner matrix comes out near the identity and the
 line deflection near 0 deg on the simulator, whatever is configured), and the small-move
-gain of the compensated scanner (with the simulator's 10 % feed-forward model error, a
-short move after a reversal goes ~6 % farther than commanded, and so does an image's
-pixel: small images are ~6 % off in scale, and drift velocities measured in them are ~6 %
-low against the true ones). The absolute scale and orientation need a reference of known
-size and direction (a calibration grating); the long full-range rescans of the hysteresis
-experiment are on the scanner's long branches, whose compensated gain is within ~1 % of 1.
+gain of the compensated scanner, which sets a small image's scale on each axis and with it
+the scale of the drift velocities measured in it. With the simulator's 10 % feed-forward
+model error a short move after a reversal goes ~6 % farther than commanded: a drift
+frame's slow axis (one monotone pass after a reversal) moves 1.059 x the commanded pixel,
+its fast axis 1.040 x (the same +6 %, less the ~2 % of creep that cannot follow a line
+oscillating at 0.75 Hz), so the drift velocities are ~6 % (y) and ~4 % (x) low against the
+true ones (with the model error 0: scales 1.000 and 0.981, creep alone, so y exact and x
+~2 % high). An image cannot see its own scale; the absolute scale and orientation need a
+reference of known size and direction (a calibration grating) imaged like the frames it is
+for (size, line rate, approach); the long full-range rescans of the hysteresis experiment
+are on the scanner's long branches, whose compensated gain is within ~1 % of 1.
 
 Experiments (`run_calibration` runs the drift pairs first, then the others in this order):
 - `measure_creep`: a large step, then pits along the other axis over `duration` s; creep
@@ -58,7 +63,7 @@ from datetime import datetime, timezone
 import numpy as np
 from scipy import linalg, optimize
 
-from afm_core.imaging.drift import velocity_from_up_down
+from afm_core.imaging.drift import up_down_observations, up_down_velocity
 from afm_core.imaging.landmarks import extract_landmarks
 from afm_core.instrument import LineRequest, RasterScanData, ScanRequest, check_in_range
 from afm_core.localization.calibration import Calibration, HysteresisFit
@@ -995,7 +1000,12 @@ def measure_drift(instrument, *, area=(54.1e-6, 53.85e-6, 2.0e-6, 3.0e-6), pairs
     every `interval` s (the drift velocity wanders slowly; samples closer than its
     correlation time are not independent, so the mean and sigma of a few close pairs say
     little). Each pair gives one velocity (afm_core.imaging.drift.velocity_from_up_down,
-    eq. 5.35-5.36), timed at the pair's middle.
+    eq. 5.35-5.36), timed at the pair's middle; it averages the velocity over the stretches of
+    the two frames where the particles are imaged (about a minute each, ~280 s before and
+    after the middle with the defaults), not over the whole pair, and the moments are kept per pair
+    (data["particle_times"]: [t_up, t_down] lists) so it can be compared with a known drift
+    (afm_core.imaging.drift.sampled_velocity). Its scale is the frames' image scale (module
+    doc: the compensated scanner's small-move gain).
 
     Before each pair a quick `search`-wide image finds the particles again (the sample
     drifts micrometres over hours), the frames are centred on them and the tip rests
@@ -1025,7 +1035,7 @@ def measure_drift(instrument, *, area=(54.1e-6, 53.85e-6, 2.0e-6, 3.0e-6), pairs
         raise ValueError(f"frame_time={frame_time} s: {pixels[1]} lines of {size[0]:.3g} m would exceed the slew "
                          f"limit {limits.max_speed} m/s or max_line_rate {limits.max_line_rate} Hz")
     centre = 0.5 * (lo + hi)
-    velocities, moments, frames = [], [], []
+    velocities, moments, frames, particle_times = [], [], [], []
     for k in range(pairs):
         start = float(instrument.time)
         centre = _find_particle_cluster(instrument, centre, search, size)
@@ -1047,7 +1057,9 @@ def measure_drift(instrument, *, area=(54.1e-6, 53.85e-6, 2.0e-6, 3.0e-6), pairs
                             0.1 * limits.max_speed)
         wait(instrument, settle)
         down = instrument.raster_scan(ScanRequest(slow_scan_up=False, **request))
-        velocities.append(velocity_from_up_down(up, down))
+        observations = up_down_observations(up, down)
+        velocities.append(up_down_velocity(observations))
+        particle_times.append([observations.t_up.tolist(), observations.t_down.tolist()])
         moments.append(0.5 * (up.start_time + float(instrument.time)))
         frames.extend([up, down])
         if k < pairs - 1:
@@ -1055,7 +1067,8 @@ def measure_drift(instrument, *, area=(54.1e-6, 53.85e-6, 2.0e-6, 3.0e-6), pairs
     v = np.array(velocities)
     parameters = {"mean_velocity": v.mean(axis=0).tolist(), "sigma_velocity": v.std(axis=0, ddof=1).tolist(),
                   "pairs": pairs}
-    return Experiment(parameters, {"time": moments, "velocity": v.tolist(), "frames": frames})
+    return Experiment(parameters, {"time": moments, "velocity": v.tolist(), "particle_times": particle_times,
+                                   "frames": frames})
 
 
 def _find_particle_cluster(instrument, centre, search: float, frame) -> np.ndarray:
