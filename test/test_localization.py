@@ -397,6 +397,46 @@ def test_after_observing_a_landmark_the_tip_is_within_3_sigma(bench, sim_calibra
         assert result.time == pytest.approx(sim.time) and loc.model.command == sim.commanded_position()
 
 
+def test_toward_continues_the_last_line_to_the_target_and_leaves_a_shorter_free_move(bench, sim_calibration):
+    landmark = MapLandmark(*PARTICLE, np.diag([1e-18, 1e-18]), 100 * NM)
+    below = PARTICLE + np.array([0.3 * UM, -0.8 * UM])       # the next task point, 800 nm below the particle
+    outcomes = {}
+    for toward in (None, below):
+        sim, loc = start(bench, sim_calibration, 21)
+        loc.move_to(*(CENTRE + np.array([0.0, -0.6 * UM])))
+        result = loc.observe_landmark(landmark, toward=toward)
+        assert result.all_accepted, [(line.axis, line.status, line.reason) for line in result.lines]
+        y_line = result.lines[-1].request
+        assert y_line.end_y < y_line.start_y                   # scanned down, toward the point
+        outcomes[toward is None] = (loc.mean.copy(), truth(sim))
+        loc.move_to(*below)
+        outcomes[toward is None] += (np.sqrt(np.diag(loc.covariance)), truth(sim))
+    mean, true_end, sigma, true_at_target = outcomes[False]
+    # the line ended where the model put the point's y (planned from the estimate before the update)
+    assert abs(mean[1] - below[1]) < 60 * NM and abs(true_end[1] - below[1]) < 60 * NM
+    assert np.all(np.abs(true_at_target - below) < 3 * sigma + 2 * NM)
+    # the free move after the lines is ~800 nm shorter along y: less positioning noise on it
+    assert sigma[1] < 0.9 * outcomes[True][2][1]
+
+
+def test_toward_above_the_landmark_turns_the_last_line_up_and_a_near_one_keeps_its_usual_end(bench, sim_calibration):
+    landmark = MapLandmark(*PARTICLE, np.diag([1e-18, 1e-18]), 100 * NM)
+    sim, loc = start(bench, sim_calibration, 22)
+    request, _, half = loc.plan_line(landmark, "y", 1.0)
+    result = loc.observe_landmark(landmark, toward=PARTICLE + np.array([0.0, 0.5 * half]))
+    y_line = result.lines[-1].request
+    assert y_line.end_y > y_line.start_y
+    # the point lies inside the usual line: the line is no longer than without it (within the
+    # re-planning from the updated estimate)
+    assert abs((y_line.end_y - y_line.start_y) - (request.end_y - request.start_y)) < 20 * NM
+    t0 = sim.time
+    with pytest.raises(ValueError, match=r"toward=.*finite"):
+        loc.observe_landmark(landmark, toward=(float("nan"), 55 * UM))
+    with pytest.raises(ValueError, match=r"y line end\.y=.*outside the scanner range"):
+        loc.observe_landmark(landmark, toward=(PARTICLE[0], 200 * UM))
+    assert sim.time == t0
+
+
 def test_missing_landmark_is_lost_and_the_motion_still_predicted(bench, sim_calibration):
     sim, loc = start(bench, sim_calibration, 11, spheres=())
     t0, p0 = sim.time, loc.covariance
@@ -475,10 +515,10 @@ def test_tables_7_1_7_2_fast_landmark_beats_direct_and_filter_is_consistent(benc
     loose band (99.8 %). The book-default calibration (identity matrix) gives a mean NEES ~60."""
     trials = 30
     results = {}
-    for mode in ("direct", "via_landmark_line_to_x7"):
+    for mode in ("direct", "via_landmark_toward_x8"):
         runs = [bench.table_71_72_trial(seed, sim_calibration, mode) for seed in range(trials)]
         results[mode] = bench.summarize_71_72(runs)
-    direct, via = results["direct"], results["via_landmark_line_to_x7"]
+    direct, via = results["direct"], results["via_landmark_toward_x8"]
     assert max(via["true_error_sigma_nm"]) < min(direct["true_error_sigma_nm"]), results
     assert math.sqrt(np.mean(np.square(via["true_error_sigma_nm"]))) < 10.0, results
     assert max(via["true_error_sigma_nm"]) < 12.0, results

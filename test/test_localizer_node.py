@@ -73,10 +73,18 @@ def test_localize_through_the_action_with_lost_gated_and_unknown_landmarks(tmp_p
         assert not unknown.success and "landmark_id=42" in unknown.message
         far = afm.localize(position=(60e-6, 60e-6))
         assert not far.success and "match_radius" in far.message
-        # the estimate stayed consistent through the failed observations
-        final = afm.localize(position=(SPHERE[0] + 30e-9, SPHERE[1]))
+        out_of_range = afm.localize(landmark_id=0, toward=(SPHERE[0], 200e-6))
+        assert not out_of_range.success and "refused" in out_of_range.message
+        assert "y line end.y" in out_of_range.message and "scanner range" in out_of_range.message
+        not_finite = afm.localize(landmark_id=0, toward=(float("nan"), SPHERE[1]))
+        assert not not_finite.success and "toward: must be finite" in not_finite.message
+        # the estimate stayed consistent through the failed observations; the last line goes
+        # on down to the next task point's height
+        below = (SPHERE[0] + 200e-9, SPHERE[1] - 600e-9)
+        final = afm.localize(position=(SPHERE[0] + 30e-9, SPHERE[1]), toward=below)
         assert final.success, final.message
         mean, cov = pose_to_mean_cov(final.pose)
+        assert abs(mean[1] - below[1]) < 60e-9
         wait_for(lambda: len(truths) > 1, 5)
         true_tip = np.array([truths[-1].tip_position.x, truths[-1].tip_position.y])
         assert np.all(np.abs(mean - true_tip) < 4 * np.sqrt(np.diag(cov)))

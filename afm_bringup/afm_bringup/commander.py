@@ -150,10 +150,12 @@ class AfmCommander:
             raise AfmError(result.message)
         return result.scan
 
-    def localize(self, landmark_id: int = -1, position=None, both_axes=True, timeout=None):
-        goal = Localize.Goal(landmark_id=int(landmark_id), one_line=not both_axes)
+    def localize(self, landmark_id: int = -1, position=None, both_axes=True, toward=None, timeout=None):
+        goal = Localize.Goal(landmark_id=int(landmark_id), one_line=not both_axes, continue_toward=toward is not None)
         if position is not None:
             goal.position.x, goal.position.y = float(position[0]), float(position[1])
+        if toward is not None:
+            goal.toward.x, goal.toward.y = float(toward[0]), float(toward[1])
         return self.send("localize", goal, timeout=timeout)
 
     def push(self, goal, particle_id: int = -1, particle_position=None, strategy="nano_hand",

@@ -191,6 +191,14 @@ class LocalizerNode(Node):
                 if self.localizer is None:
                     raise ValueError("no tip estimate yet: the driver has executed no command")
                 landmark = MapLandmark.from_landmark(self.landmark_for(goal))
+                toward = None
+                if goal.continue_toward:
+                    toward = np.array([goal.toward.x, goal.toward.y])
+                    if not np.all(np.isfinite(toward)):
+                        raise ValueError("toward: must be finite (m)")
+                # every line is planned before anything moves: a line out of range refuses the goal
+                for_lines = dict(both_axes=not goal.one_line, toward=toward)
+                self.localizer.plan_observation(landmark, **for_lines)
             except ValueError as exc:
                 goal_handle.abort()
                 result.success, result.message = False, f"refused: {exc}"
@@ -203,7 +211,7 @@ class LocalizerNode(Node):
                                          pose=self.pose_msg(self.localizer.time))
             goal_handle.publish_feedback(feedback)
             try:
-                observation = self.localizer.observe_landmark(landmark, both_axes=not goal.one_line)
+                observation = self.localizer.observe_landmark(landmark, **for_lines)
                 failure = observation.instrument_error
             except (ValueError, DriverUnavailable) as exc:
                 observation, failure = None, str(exc)

@@ -350,25 +350,50 @@ class Localizer:
                                                                          request.end_y - request.start_y]))))
         return (request.samples - 1) * along / true_length
 
-    def observe_landmark(self, landmark, both_axes: bool = True) -> ObservationResult:
-        """Horizontal, then vertical local scan line through the landmark (Fig. 5.11). A tube
-        or rod is observed by one line across it (the position along its axis is not
-        observable); both_axes=False: the horizontal line only (sphere)."""
+    def plan_observation(self, landmark, both_axes: bool = True, toward=None) -> list[tuple[str, float, Optional[float]]]:
+        """The lines observe_landmark runs, as (axis, sign, after) for observe_line, each checked
+        against the scanner range from the estimate of now (ValueError naming the line).
+
+        Horizontal, then vertical local scan line through the landmark (Fig. 5.11). A tube or
+        rod is observed by one line across it (the position along its axis is not
+        observable); both_axes=False: the horizontal line only (sphere).
+
+        toward: a task-frame point the tip goes to next. The last line then runs in its
+        direction and goes on past the landmark up to the point's coordinate along the line
+        (when that is beyond the line's usual end): scan-line motion after the update carries
+        the estimate with the line's small error, where a free move to the point would add
+        positioning noise growing with its length (sigma^2 = a d + b)."""
         landmark = as_map_landmark(landmark)
-        self.sync()
         if landmark.elongated:
             # the task axis closer to the tube's normal
             normal = np.array([-math.sin(landmark.orientation), math.cos(landmark.orientation)])
-            axes = [("y", 1.0)] if abs(normal[1]) >= abs(normal[0]) else [("x", 1.0)]
+            lines = [("y", 1.0, None)] if abs(normal[1]) >= abs(normal[0]) else [("x", 1.0, None)]
         else:
-            axes = [("x", 1.0), ("y", -1.0)] if both_axes else [("x", 1.0)]
-        # check every line before anything moves (re-planned from the estimate of the moment later)
-        for axis, sign in axes:
-            self.plan_line(landmark, axis, sign)
+            lines = [("x", 1.0, None), ("y", -1.0, None)] if both_axes else [("x", 1.0, None)]
+        if toward is not None:
+            toward = np.asarray(toward, dtype=float)
+            if toward.shape != (2,) or not np.all(np.isfinite(toward)):
+                raise ValueError(f"toward={toward.tolist()}: must be a finite task-frame point (x, y) in m")
+            axis, sign, _ = lines[-1]
+            k = 0 if axis == "x" else 1
+            along = float(toward[k] - landmark.position[k])
+            half = self._line_half_length(landmark, np.eye(2)[k])
+            lines[-1] = (axis, math.copysign(1.0, along) if along else sign,
+                         abs(along) if abs(along) > half else None)      # None: the usual end
+        for axis, sign, after in lines:
+            self.plan_line(landmark, axis, sign, after=after)
+        return lines
+
+    def observe_landmark(self, landmark, both_axes: bool = True, toward=None) -> ObservationResult:
+        """Run the lines of plan_observation (every one checked before anything moves; each
+        re-planned from the estimate of its moment) and update on each."""
+        landmark = as_map_landmark(landmark)
+        self.sync()
+        lines = self.plan_observation(landmark, both_axes, toward)
         result = ObservationResult(landmark.id)
-        for axis, sign in axes:
+        for axis, sign, after in lines:
             try:
-                line = self.observe_line(landmark, axis, sign)
+                line = self.observe_line(landmark, axis, sign, after=after)
             except ValueError as exc:          # the re-planned line left the scanner range
                 line = LineResult(axis, "not_run", f"line not run: {exc}")
             result.lines.append(line)
