@@ -13,8 +13,10 @@ What is measured
                     the planner's move to the task point): the positioning noise of a free move
                     grows with its length (sigma^2 = a d + b), so one diagonal move after the
                     last update leaves less than the book's two axis-aligned ones
-     via landmark, line to x7: the book's lines, but the vertical line is continued down to
-                    x7 = (particle x, x8 y), so x6 -> x7 is scan-line motion, not a free move
+     via landmark, toward x8: the Localize action with `toward` = x8 (Localizer.observe_landmark
+                    toward=x8): the book's lines, but the vertical line is continued down to
+                    x7 = (particle x, x8 y), so x6 -> x7 is scan-line motion, not a free move;
+                    then x7 -> x8
    The book's free moves are axis-aligned. Per trial: a fresh simulator (own seed:
    positioning noise, drift velocity, sensor noise), the tip moved to x0 and left 250 s to
    settle (creep), then the localizer starts there with the book's assumed initial
@@ -210,15 +212,16 @@ def _start_at(sim: SimulatedAfm, point: np.ndarray, calibration: Calibration, p0
                      sample_spacing=LINE_SAMPLE_SPACING)
 
 
-MODES_71_72 = ("direct", "via_landmark", "via_landmark_straight", "via_landmark_line_to_x7")
+MODES_71_72 = ("direct", "via_landmark", "via_landmark_straight", "via_landmark_toward_x8")
 
 
 def table_71_72_trial(seed: int, calibration: Calibration, mode: str) -> dict:
     """mode: "direct" (x0 -> xd_1 -> x8), "via_landmark" (book path: horizontal and vertical
     line through the particle, each ending clear of it, then free moves x6 -> x7 -> x8) or
     "via_landmark_straight" (the same lines, then one straight move x6 -> x8) or
-    "via_landmark_line_to_x7" (the vertical line is continued down to x7 = (particle x, x8 y),
-    so x6 -> x7 is scan-line motion, not a free move; then x7 -> x8)."""
+    "via_landmark_toward_x8" (observe_landmark toward x8, as the Localize action's `toward`:
+    the vertical line is continued down to x7 = (particle x, x8 y), so x6 -> x7 is scan-line
+    motion, not a free move; then x7 -> x8)."""
     rng = np.random.default_rng(10_000 + seed)
     particle = CENTRE + BOOK["landmark"]
     sim = SimulatedAfm(sim_config(seed, spheres=[(*particle, PARTICLE_RADIUS)]))
@@ -231,11 +234,7 @@ def table_71_72_trial(seed: int, calibration: Calibration, mode: str) -> dict:
         map_cov = np.diag(np.square(calibration.map_sigma))
         landmark = MapLandmark(*rng.multivariate_normal(particle, map_cov), map_cov, PARTICLE_RADIUS)
         loc.move_to(*(CENTRE + BOOK["x1"]))
-        if mode == "via_landmark_line_to_x7":
-            result = [loc.observe_line(landmark, "x", 1.0),
-                      loc.observe_line(landmark, "y", -1.0, after=landmark.y - target[1])]
-        else:
-            result = loc.observe_landmark(landmark).lines
+        result = loc.observe_landmark(landmark, toward=target if mode == "via_landmark_toward_x8" else None).lines
         lines = [(line.axis, line.status, line.mahalanobis) for line in result]
         if mode == "via_landmark":
             loc.move_to(loc.mean[0], target[1])
@@ -256,7 +255,17 @@ def nees_band(trials: int, dof: int = 2, confidence: float = 0.95) -> tuple[floa
     return float(chi2.ppf(a, dof * trials) / trials), float(chi2.ppf(1 - a, dof * trials) / trials)
 
 
-def summarize_71_72(runs: list[dict]) -> dict:
+BLOCK = 50        # the issue's trial count: longer runs are also summarised in disjoint blocks of it
+
+
+def blocks_of(runs: list[dict], summarize) -> list[dict]:
+    """Summaries of consecutive blocks of BLOCK trials (seeds 0-49, 50-99, ...) when there are
+    at least two: how a 50-trial result scatters (a 95 % band holds one block in 20 outside)."""
+    count = len(runs) // BLOCK
+    return [summarize(runs[k * BLOCK:(k + 1) * BLOCK], blocks=False) for k in range(count)] if count >= 2 else []
+
+
+def summarize_71_72(runs: list[dict], blocks: bool = True) -> dict:
     true_error = np.array([r["true_error_nm"] for r in runs])
     nees = np.array([r["nees"] for r in runs])
     band = nees_band(len(runs))
@@ -271,7 +280,8 @@ def summarize_71_72(runs: list[dict]) -> dict:
             "reported_sigma_mean_nm": np.mean([r["reported_sigma_nm"] for r in runs], axis=0).tolist(),
             "mean_nees": float(nees.mean()), "nees_band_95": list(band),
             "nees_consistent": bool(band[0] <= nees.mean() <= band[1]),
-            "line_statuses": statuses}
+            "line_statuses": statuses,
+            "blocks": blocks_of(runs, summarize_71_72) if blocks else []}
 
 
 def run_71_72(calibration: Calibration, trials: int, seed0: int = 0) -> dict:
@@ -319,16 +329,21 @@ def run_73(calibration: Calibration, trials: int, seed0: int = 0, scan_region_si
     out = {"scan_region_sigma_nm": hires.scan_region_sigma / NM}
     for variant in ("book", "line_ends_at_pit"):
         runs = [table_73_trial(seed0 + k, hires, variant == "line_ends_at_pit") for k in range(trials)]
-        d = np.array([r["distance_nm"] for r in runs])
-        nees = np.array([r["nees"] for r in runs])
-        band = nees_band(len(runs), dof=1)
-        out[variant] = {"summary": {"trials": len(runs), "target_nm": PIT_BELOW / NM, "distance_mean_nm": float(d.mean()),
-                                    "distance_sigma_nm": float(d.std(ddof=1)),
-                                    "reported_sigma_mean_nm": float(np.mean([r["reported_sigma_nm"] for r in runs])),
-                                    "mean_nees_1dof": float(nees.mean()), "nees_band_95": list(band),
-                                    "all_lines_accepted": all(s == "accepted" for r in runs for s in r["lines"])},
-                        "runs": runs}
+        out[variant] = {"summary": summarize_73(runs), "runs": runs}
     return out
+
+
+def summarize_73(runs: list[dict], blocks: bool = True) -> dict:
+    d = np.array([r["distance_nm"] for r in runs])
+    nees = np.array([r["nees"] for r in runs])
+    band = nees_band(len(runs), dof=1)
+    return {"trials": len(runs), "target_nm": PIT_BELOW / NM, "distance_mean_nm": float(d.mean()),
+            "distance_sigma_nm": float(d.std(ddof=1)),
+            "reported_sigma_mean_nm": float(np.mean([r["reported_sigma_nm"] for r in runs])),
+            "mean_nees_1dof": float(nees.mean()), "nees_band_95": list(band),
+            "nees_consistent": bool(band[0] <= nees.mean() <= band[1]),
+            "all_lines_accepted": all(s == "accepted" for r in runs for s in r["lines"]),
+            "blocks": blocks_of(runs, summarize_73) if blocks else []}
 
 
 # -- report ---------------------------------------------------------------------------------------
@@ -351,6 +366,10 @@ def print_71_72(title: str, block: dict) -> None:
         print(f"  {mode:24s} {s['trials']:6d}  {_fmt(s['true_error_sigma_nm']):23s}  {_fmt(s['true_error_mean_nm']):14s} "
               f"{_fmt(s['reported_sigma_mean_nm']):20s} {s['mean_nees']:.2f} [{lo:.2f}, {hi:.2f}]"
               f"{'' if s['nees_consistent'] else '  OUTSIDE'}  {s['line_statuses'] or ''}")
+        for k, b in enumerate(s["blocks"]):
+            print(f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: {_fmt(b['true_error_sigma_nm'])} nm, NEES "
+                  f"{b['mean_nees']:.2f} [{b['nees_band_95'][0]:.2f}, {b['nees_band_95'][1]:.2f}]"
+                  f"{'' if b['nees_consistent'] else '  OUTSIDE'}")
 
 
 def main(argv=None) -> int:
@@ -412,6 +431,10 @@ def run_table_73(report: dict, calibration: Calibration, trials: int, oracle: bo
               f"{s['distance_sigma_nm']:.2f} nm; filter sigma {s['reported_sigma_mean_nm']:.2f} nm; mean NEES(1 dof) "
               f"{s['mean_nees_1dof']:.2f} [{s['nees_band_95'][0]:.2f}, {s['nees_band_95'][1]:.2f}]; "
               f"all lines accepted: {s['all_lines_accepted']}")
+        for k, b in enumerate(s["blocks"]):
+            print(f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: sigma {b['distance_sigma_nm']:.2f} nm, NEES "
+                  f"{b['mean_nees_1dof']:.2f} [{b['nees_band_95'][0]:.2f}, {b['nees_band_95'][1]:.2f}]"
+                  f"{'' if b['nees_consistent'] else '  OUTSIDE'}")
 
 
 if __name__ == "__main__":
