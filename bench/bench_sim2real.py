@@ -16,7 +16,8 @@ Categories (issue 8's list):
 - confounded: drift velocity vs creep (both grow with time, only creep with dwell after a
   move): a drift-velocity case and a creep case, each must not be named as the other;
 - conditional: present only in some conditions (tip wear: only after contact sliding;
-  friction: only in contact);
+  friction: only in contact; friction changed in one patch of the sample, drawn per seed
+  where the slides partly cross it);
 - one case per remaining candidate (coupling, rotation, tip radius, stick-slip).
 
 Metrics: top-1 identification accuracy on positive cases (the first chosen term is the
@@ -73,6 +74,7 @@ def _sign(rng) -> float:
 
 # keys the diagnosis fits as a factor on the model's list (the truth is that factor)
 SCALED_KEYS = ("scanner.creep_fractions", "scanner.creep_time_constants")
+REGION_SCALE_KEY = "contact.friction_regions[-1].mu_tip_substrate_scale"     # the region candidate's factor
 
 
 def suite(model) -> list[Case]:
@@ -134,6 +136,19 @@ def suite(model) -> list[Case]:
     def friction(rng):
         return {"contact.mu_tip_substrate": contact.mu_tip_substrate * rng.uniform(1.4, 2.0)}
     add("friction-0", "conditional", 261, "friction", friction)
+
+    # friction changed in one patch of the sample (afm_task frame) that the slides partly cross;
+    # the truth is the patch's tip-substrate friction factor
+    for k in range(2):
+        rng = np.random.default_rng(262 + k)
+        centre = (rng.uniform(55.3e-6, 56.5e-6), rng.uniform(54.0e-6, 54.6e-6))
+        size = (rng.uniform(0.8e-6, 1.4e-6), rng.uniform(0.6e-6, 1.2e-6))
+        scale = rng.uniform(1.5, 2.2) if rng.random() < 0.5 else rng.uniform(0.4, 0.7)
+        region = {"x0": centre[0] - size[0] / 2, "x1": centre[0] + size[0] / 2, "y0": centre[1] - size[1] / 2,
+                  "y1": centre[1] + size[1] / 2, "mu_tip_substrate_scale": scale}
+        cases.append(Case(f"friction_region-{k}", "conditional", 262 + k,
+                          {"contact": {"friction_regions": [region]}}, "friction_region",
+                          {REGION_SCALE_KEY: scale}))
 
     def coupling(rng):
         return {"scanner.coupling_x_to_y": scanner.coupling_x_to_y + _sign(rng) * rng.uniform(0.01, 0.02),
@@ -200,7 +215,7 @@ def run_case(case: Case, workdir: str) -> dict:
         true_vec, fit_vec, nominal_vec = [], [], []
         for key, value in case.truth.items():
             fitted = diagnosis.parameters.get(key, {}).get("value", math.nan)
-            nominal = 1.0 if key in SCALED_KEYS else float(_nominal_of(model, key))
+            nominal = 1.0 if key in SCALED_KEYS + (REGION_SCALE_KEY,) else float(_nominal_of(model, key))
             if key == "tip.wear_rate" and not model.tip.wear_enabled:
                 nominal = 0.0
             if key == "contact.static_friction_ratio" and not model.contact.stick_slip_enabled:

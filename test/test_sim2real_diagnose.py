@@ -10,7 +10,8 @@ import pytest
 import yaml
 
 from afm_core.sim.config import load_config, merge
-from afm_core.sim2real.candidates import available, library
+from afm_core.sim2real import regions
+from afm_core.sim2real.candidates import FrictionRegion, available, library
 from afm_core.sim2real.diagnose import (ConfigMismatchError, NoiseModel, build_noise_model, diagnose,
                                         drift_covariance, positioning_covariance)
 from afm_core.sim2real.features import _same_segment
@@ -69,6 +70,65 @@ def test_candidates_follow_the_config_keys():
     tip = next(c for c in library() if c.name == "tip_wear")
     assert tip.nominal(config)[0] == 0.0                      # wear is off in the defaults
     assert tip.apply(config, [2e-3]).tip.wear_enabled is True
+
+
+def test_best_region_finds_the_patch_where_the_residual_follows_the_effect():
+    """Segments on a grid of slide rows and columns; inside a known rectangle the residual is
+    (s - 1) x effect plus white noise: the search returns a rectangle holding exactly the
+    segments inside, and its GLS gain; with no patch the best gain is chi-square-like small."""
+    rng = np.random.default_rng(4)
+    xs, ys = np.arange(55.0, 57.0, 0.25) * 1e-6, np.array([54.15, 54.25, 54.35, 54.45]) * 1e-6
+    rows = np.array([(x, y) for y in ys for x in xs])
+    columns = np.array([(x, y) for x in (55.4e-6, 56.0e-6) for y in np.arange(53.95, 54.7, 0.25) * 1e-6])
+    points = np.vstack([rows, columns])
+    effect = rng.uniform(0.5, 1.5, len(points)) * np.where(rng.random(len(points)) < 0.5, 1, -1)
+    sigma = 0.05
+    truth = (55.6e-6, 54.0e-6, 56.3e-6, 54.3e-6)
+    patch = regions.inside(points, truth)
+    residual = 0.4 * effect * patch + rng.normal(0, sigma, len(points))
+    bounds, gain, mask = regions.best_region(points, effect, residual, sigma ** 2 * np.eye(len(points)))
+    np.testing.assert_array_equal(mask, patch)
+    np.testing.assert_array_equal(regions.inside(points, bounds), patch)
+    # closed form: the GLS chi^2 improvement of that one column
+    column = effect * patch
+    assert gain == pytest.approx((column @ residual) ** 2 / (column @ column) / sigma ** 2)
+    noise_only = regions.best_region(points, effect, rng.normal(0, sigma, len(points)), sigma ** 2 * np.eye(len(points)))
+    assert noise_only[1] < 0.2 * gain
+    # too few segments with an effect: no region
+    assert regions.best_region(points[:5], effect[:5], residual[:5], np.eye(5)) is None
+
+
+def test_refined_region_puts_an_edge_inside_a_segment_where_the_partial_step_says():
+    """Slide rows of 250 nm segments; the patch's left edge cuts a segment at 40 % of it: that
+    segment carries 60 % of the step (closed form of overlap), and refine_region moves the
+    edge from between the centres to within a few nm of the true one (noise-free residual)."""
+    length = 250e-9
+    centres = np.arange(55.0e-6, 57.0e-6, length) + length / 2
+    points = np.array([(x, y) for y in (54.15e-6, 54.35e-6) for x in centres])
+    axes, lengths = ["x"] * len(points), np.full(len(points), length)
+    truth = (centres[3] - length / 2 + 0.4 * length, 54.0e-6, 56.6e-6, 54.5e-6)
+    fraction = regions.overlap(points, axes, lengths, truth)
+    assert fraction[3] == pytest.approx(0.6) and fraction[2] == 0.0 and fraction[4] == pytest.approx(1.0)
+    effect = np.full(len(points), 0.1)
+    residual = 0.8 * effect * fraction
+    cov = 1e-6 * np.eye(len(points))
+    bounds, _, _ = regions.best_region(points, effect, residual, cov)
+    refined, gain, change = regions.refine_region(points, axes, lengths, effect, residual, cov, bounds)
+    assert abs(refined[0] - truth[0]) < 5e-9 and abs(refined[2] - truth[2]) < 5e-9, (refined, truth)
+    column = effect * regions.overlap(points, axes, lengths, refined)
+    assert gain == pytest.approx((column @ residual) ** 2 / (column @ column) / 1e-6)
+    assert change == pytest.approx(0.8, rel=1e-3)          # the factor's change the residual was made with
+
+
+def test_friction_region_candidate_writes_its_patch_into_the_config():
+    config = load_config()
+    candidate = FrictionRegion.at((55.0e-6, 54.0e-6, 56.0e-6, 54.5e-6))
+    assert candidate.complexity == 5 and candidate.nominal(config).tolist() == [1.0]
+    updated = candidate.apply(config, [1.7])
+    region = updated.contact.friction_regions[-1]
+    assert region["mu_tip_substrate_scale"] == pytest.approx(1.7) and region["x0"] == pytest.approx(55.0e-6)
+    assert len(updated.contact.friction_regions) == len(config.contact.friction_regions) + 1
+    assert "x 55.00-56.00 um" in candidate.words
 
 
 @pytest.fixture(scope="module")
@@ -133,6 +193,23 @@ def test_blunter_tip_is_named_with_its_radius(tmp_path):
     assert "tip radius" in text and (tmp_path / "residuals_time.png").is_file()
     updated = load_config(tmp_path / "updated_config.yaml")
     assert updated.tip.apex_radius == pytest.approx(fitted)
+
+
+def test_friction_patch_is_named_with_its_place_and_factor():
+    """Tip-substrate friction 1.8 x inside a patch the slides partly cross (x from 55.9 um on,
+    the slide rows end at 56.9 um): named as a region, not as the global friction, with its
+    factor within 20 % of the change and its left edge between the slide segments next to
+    the true one (segments are 250 nm long)."""
+    seed = 5
+    region = {"x0": 55.9e-6, "y0": 53.5e-6, "x1": 57.5e-6, "y1": 54.9e-6, "mu_tip_substrate_scale": 1.8}
+    truth = merge(_nominal(seed), {"contact": {"friction_regions": [region]}})
+    d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed))
+    assert d.chosen and d.chosen[0] == "friction_region", d.summary()
+    fitted = d.parameters["contact.friction_regions[-1].mu_tip_substrate_scale"]["value"]
+    assert abs(fitted - 1.8) <= 0.2 * 0.8, fitted
+    patch = d.updated_config.contact.friction_regions[-1]
+    assert abs(patch["x0"] - region["x0"]) < 250e-9, patch
+    assert patch["mu_tip_substrate_scale"] == pytest.approx(fitted)
 
 
 def test_config_for_another_sample_is_a_clear_error():

@@ -43,10 +43,17 @@ class Candidate:
     # the term cannot act unless these config values hold (dotted key -> value), e.g. an
     # asymmetry of the hysteresis is inverted exactly by the controller's feed-forward
     requires: dict = field(default_factory=dict)
+    # parameters chosen from the data by a search rather than fitted (a region's four edges):
+    # they count in the evidence's complexity penalty like fitted ones
+    searched: int = 0
 
     @property
     def size(self) -> int:
         return len(self.keys)
+
+    @property
+    def complexity(self) -> int:
+        return self.size + self.searched
 
     def nominal(self, config: SimConfig) -> np.ndarray:
         values = []
@@ -93,6 +100,34 @@ class Candidate:
 
     def apply(self, config: SimConfig, theta) -> SimConfig:
         return merge(config, self.overrides(config, theta))
+
+
+@dataclass
+class FrictionRegion(Candidate):
+    """Tip-substrate friction scaled by one factor inside a rectangle of the sample (afm_task
+    frame) found from the data (sim2real.regions); the factor is the parameter. Only the
+    tip's friction is measured by the slides; the particles' substrate friction there is left
+    as modelled."""
+    bounds: tuple = (0.0, 0.0, 0.0, 0.0)
+
+    @classmethod
+    def at(cls, bounds, step: float = 0.3) -> "FrictionRegion":
+        x0, y0, x1, y1 = (float(b) for b in bounds)
+        words = (f"friction changes in one region of the sample: the tip-substrate friction differs inside "
+                 f"x {x0 * 1e6:.2f}-{x1 * 1e6:.2f} um, y {y0 * 1e6:.2f}-{y1 * 1e6:.2f} um (a patch of contamination "
+                 "or of another material)")
+        return cls("friction_region", words, ["contact.friction_regions[-1].mu_tip_substrate_scale"], [float(step)],
+                   ["factor"], imaging=False, lower=[0.0], searched=4, bounds=(x0, y0, x1, y1))
+
+    def nominal(self, config: SimConfig) -> np.ndarray:
+        return np.array([1.0])
+
+    def overrides(self, config: SimConfig, theta) -> dict:
+        x0, y0, x1, y1 = self.bounds
+        region = {"x0": x0, "y0": y0, "x1": x1, "y1": y1, "substrate_friction_scale": 1.0,
+                  "mu_tip_substrate_scale": float(self.clip(theta)[0])}
+        return {"contact": {"friction_regions": [dict(r) for r in get_key(config, "contact.friction_regions")]
+                            + [region]}}
 
 
 def get_key(config, key: str):

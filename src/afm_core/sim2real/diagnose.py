@@ -37,7 +37,10 @@ Method (all SI):
    the fit also improves chi^2 on held-out blocks (2-fold: each kind of operation split in time
    order into n_blocks chunks, alternate chunks held out, nuisance refitted on the held-out
    part). The leaders are compared re-simulated at their refined values. A second term only if
-   it passes the same tests on top of the first.
+   it passes the same tests on top of the first. One candidate's form comes from the data:
+   friction changed in one patch of the sample (regions.py finds the rectangle from the
+   slides' torsion); its four edges count as parameters (p = 5) and the held-out check
+   searches the patch again on the training blocks alone.
 5. The chosen term(s) are refined by re-simulation (chord / Gauss-Newton steps), the
    uncertainty is the GLS covariance, and the updated configuration is merged and dumped.
 6. **Held-out demonstration**: fit on one fold only, re-simulate the whole session with that
@@ -56,14 +59,16 @@ import numpy as np
 from scipy import linalg, stats
 
 from afm_core.sim.config import SimConfig, load_config, merge
-from afm_core.sim2real.candidates import Candidate, available, merge_overrides
-from afm_core.sim2real.features import POSITION_GROUPS, Feature, FeatureExtractor, extract_features
+from afm_core.sim2real import regions
+from afm_core.sim2real.candidates import Candidate, FrictionRegion, available, has_key, merge_overrides
+from afm_core.sim2real.features import POSITION_GROUPS, SEGMENT, Feature, FeatureExtractor, extract_features
 from afm_core.sim2real.protocol import TrajectoryDrift, deterministic, replay
 
 ALPHA = 0.05                       # family-wise false "missing physics" rate on null recordings
 MIN_MATCHED_FRACTION = 0.7         # of the recorded features the reference simulation must reproduce
 SHIFT = 10e-9                      # m, drift shift of the sensitivity replays
 POSITION_PRECISION = 2e-9          # m, how well a measured position pins the drift trajectory
+REGION_MIN_STEP = 0.05             # smallest change of a friction region's factor its design column is taken over
 SHAPE_GROUPS = ("line.width", "line.peak", "line.asym", "raster.height", "raster.half_width")
 HEIGHT_GROUPS = ("line.peak", "raster.height")
 BOW_GROUPS = ("raster.bow_xx", "raster.bow_yy", "raster.bow_xy")
@@ -779,26 +784,19 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             cols = np.where(np.isin(table.groups, ("raster.bow_xx", "raster.bow_yy")), gain, 0.0)[:, None]
         else:
             say(f"sensitivity: {cand.name}")
-            cols = []
-            for j in range(cand.size):
-                theta = theta0.copy()
-                theta[j] += cand.steps[j]
-                try:
-                    sim = sess.features(cand.apply(base, theta), imaging=cand.imaging)
-                except ValueError as exc:          # the stepped value is invalid for this config
-                    cols = f"not evaluated: {exc}"
-                    break
-                col = np.nan_to_num((sim - nom) / cand.steps[j])
-                if not cand.imaging:
-                    col[~sess.push] = 0.0
-                if cand.geometric:
-                    col[sess.shape] = 0.0
-                cols.append(col)
+            cols = _simulated_columns(sess, cand, theta0, base, nom)
             if isinstance(cols, str):
                 missing.append(f"{cand.name} ({cols})")
                 continue
-            cols = np.array(cols).T
         design[cand.name] = (cand, theta0, np.asarray(cols, float))
+    region, region_columns = _friction_region(design, config, table, sess.r, d_rec, noise)
+    if region is not None:
+        say(f"sensitivity: {region.name}")
+        cols = _simulated_columns(sess, region, region.nominal(config), base, nom)
+        if isinstance(cols, str):
+            missing.append(f"{region.name} ({cols})")
+        else:
+            design[region.name] = (region, region.nominal(config), cols)
     timings["sensitivities"] = _time.perf_counter() - t0
 
     # overdispersion per feature group (quasi-likelihood): a group the noise model describes
@@ -832,14 +830,15 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     for name, (cand, theta0, cols) in design.items():
         coef, chi2, cov = singles[name]
         delta = (chi2_0 - chi2) / variance_factor
-        threshold = float(stats.chi2.isf(ALPHA / m, cand.size))
+        threshold = float(stats.chi2.isf(ALPHA / m, cand.complexity))
         res = CandidateResult(name, cand.words, cand.keys, cand.units, cand.size,
                               estimate=theta0 + coef, sigma=np.sqrt(np.abs(np.diag(cov)) * variance_factor),
                               delta_chi2=delta, statistic_threshold=threshold,
-                              bic_gain=delta - cand.size * math.log(n))
+                              bic_gain=delta - cand.complexity * math.log(n))
         res.significant = delta > threshold
         if res.significant:
-            res.heldout_gain = _cv_gain_on(r, cols, P, folds, fold_whiteners)
+            # a searched region is searched again on the training blocks alone
+            res.heldout_gain = _cv_gain_on(r, region_columns if cand is region else cols, P, folds, fold_whiteners)
             res.accepted = res.heldout_gain > 0
             if not res.accepted:
                 res.note = "fits the session but does not predict held-out blocks"
@@ -862,7 +861,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         refined[res.name] = (theta, resid, resim_chi2(resid), sigma)
         res.note = (res.note + f" re-simulated chi2 {refined[res.name][2]:.1f}").strip()
     if refined:
-        scores = {name: (chi2_0 - v[2]) / variance_factor - design[name][0].size * math.log(n)
+        scores = {name: (chi2_0 - v[2]) / variance_factor - design[name][0].complexity * math.log(n)
                   for name, v in refined.items()}
         chosen = [max(scores, key=scores.get)]
     timings["compare"] = _time.perf_counter() - t0
@@ -881,10 +880,12 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             cand, theta0, cols = design[res.name]
             _, chi2_2, _ = gls(r1w, np.hstack([pw, white(first_cols), white(cols)]))
             delta = (chi2_1lin - chi2_2) / factor1
-            if delta > float(stats.chi2.isf(ALPHA / m, cand.size)):
-                gain = _cv_gain_on(r1, np.hstack([first_cols, cols]), P, folds, fold_whiteners) - \
+            if delta > float(stats.chi2.isf(ALPHA / m, cand.complexity)):
+                both = (lambda train, c=first_cols: _stack(c, region_columns(train))) if cand is region \
+                    else np.hstack([first_cols, cols])
+                gain = _cv_gain_on(r1, both, P, folds, fold_whiteners) - \
                     _cv_gain_on(r1, first_cols, P, folds, fold_whiteners)
-                score = delta - cand.size * math.log(n)
+                score = delta - cand.complexity * math.log(n)
                 if gain > 0 and (best_second is None or score > best_second[1]):
                     best_second = (res.name, score)
         if best_second is not None:
@@ -1001,20 +1002,88 @@ def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: 
     return theta, sig * math.sqrt(variance_factor), residual
 
 
+def _stack(first: np.ndarray, second: np.ndarray | None) -> np.ndarray | None:
+    return None if second is None else np.hstack([first, second])
+
+
 def _cv_gain_on(r, cols, P, folds, fold_whiteners) -> float:
-    """chi^2 improvement on held-out blocks (2 folds) of fitting `cols` on the other blocks."""
+    """chi^2 improvement on held-out blocks (2 folds) of fitting `cols` on the other blocks.
+    cols: an (N, p) array, or a function of the training mask giving one (a term whose form
+    is searched from the data is searched on the training blocks only; None: nothing found,
+    no gain on that fold)."""
     gain = 0.0
     for train, (w_tr, w_te) in zip(folds, fold_whiteners):
         test = ~train
         if train.sum() < 5 or test.sum() < 5:
             continue
-        coef, _, _ = gls(w_tr(r[train]), np.hstack([w_tr(P[train]), w_tr(cols[train])]))
+        fold_cols = cols(train) if callable(cols) else cols
+        if fold_cols is None:
+            continue
+        coef, _, _ = gls(w_tr(r[train]), np.hstack([w_tr(P[train]), w_tr(fold_cols[train])]))
         theta = coef[P.shape[1]:]
         pte = w_te(P[test])
         _, before, _ = gls(w_te(r[test]), pte)
-        _, after, _ = gls(w_te(r[test] - cols[test] @ theta), pte)
+        _, after, _ = gls(w_te(r[test] - fold_cols[test] @ theta), pte)
         gain += before - after
     return gain
+
+
+def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base: SimConfig, nom: np.ndarray):
+    """Design columns d features / d parameter by re-simulation at the recorded geometry
+    (one replay per parameter, stepped by the candidate's step), or a message saying why not."""
+    cols = []
+    for j in range(cand.size):
+        theta = theta0.copy()
+        theta[j] += cand.steps[j]
+        try:
+            sim = sess.features(cand.apply(base, theta), imaging=cand.imaging)
+        except ValueError as exc:          # the stepped value is invalid for this config
+            return f"not evaluated: {exc}"
+        col = np.nan_to_num((sim - nom) / cand.steps[j])
+        if not cand.imaging:
+            col[~sess.push] = 0.0
+        if cand.geometric:
+            col[sess.shape] = 0.0
+        cols.append(col)
+    return np.array(cols).T
+
+
+def _friction_region(design: dict, config: SimConfig, table: Table, r: np.ndarray, d_rec: np.ndarray,
+                     noise: NoiseModel):
+    """The friction-region candidate at the rectangle where the slides' torsion residual
+    follows the friction's effect best (sim2real.regions: searched between segment centres,
+    then its edges moved continuously), or None; and the function the held-out check uses to
+    search the region again on the training blocks alone (training mask -> column or None),
+    with the linear column effect x overlap (the torsion is linear in mu: the global
+    friction's sensitivity gives the effect)."""
+    if "friction" not in design or not has_key(config, "contact.friction_regions"):
+        return None, lambda train: None
+    _, mu, friction_cols = design["friction"]
+    torsion = table.groups == "push.torsion"
+    effect = np.where(torsion, mu[0] * friction_cols[:, 0], 0.0)       # d torsion / d (region's scale)
+    points = regions.sample_points(table.xy, d_rec)
+    axes = [c.get("axis", "x") for c in table.conditions]
+    lengths = np.array([c.get("segment_length", SEGMENT) for c in table.conditions])
+
+    def search(mask):
+        sel = np.flatnonzero(torsion & mask)
+        found = regions.best_region(points[sel], effect[sel], r[sel], noise.cov[np.ix_(sel, sel)])
+        if found is None:
+            return None
+        return regions.refine_region(points[sel], [axes[i] for i in sel], lengths[sel], effect[sel], r[sel],
+                                     noise.cov[np.ix_(sel, sel)], found[0])
+
+    def fold_column(train):
+        found = search(train)
+        return None if found is None else (effect * regions.overlap(points, axes, lengths, found[0]))[:, None]
+
+    found = search(np.ones(len(r), bool))
+    if found is None:
+        return None, fold_column
+    bounds, _, change = found
+    # the design column is the secant to the factor the torsion says (regions' doc)
+    step = change if abs(change) >= REGION_MIN_STEP else math.copysign(REGION_MIN_STEP, change)
+    return FrictionRegion.at(bounds, step=max(step, -0.95)), fold_column
 
 
 def _clip_all(terms, theta):

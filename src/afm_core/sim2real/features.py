@@ -426,5 +426,6 @@ def _push_features(op, slid_before) -> list[Feature]:
         out.append(Feature((op.index, f"push.torsion{q}"), "push.torsion", float(np.mean(tor[part])),
                            float(data.start_time + np.mean(tm[part])), float(np.mean(xm[part])),
                            float(np.mean(ym[part])), (0.0, 0.0),
-                           dict(cond, segment=q, contact_slid=slid_before + float(edges[q]))))
+                           dict(cond, segment=q, segment_length=float(edges[q + 1] - edges[q]),
+                                contact_slid=slid_before + float(edges[q]))))
     return out
