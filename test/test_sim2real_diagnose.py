@@ -96,6 +96,12 @@ def test_best_region_finds_the_patch_where_the_residual_follows_the_effect():
     assert noise_only[1] < 0.2 * gain
     # too few segments with an effect: no region
     assert regions.best_region(points[:5], effect[:5], residual[:5], np.eye(5)) is None
+    # a patch seen by one slide only is not a place on the sample: whatever is returned is
+    # crossed by two slides at least
+    one_slide = np.where(patch, -1, np.arange(len(points)))
+    found = regions.best_region(points, effect, residual, sigma ** 2 * np.eye(len(points)), slides=one_slide)
+    assert found is None or len(set(one_slide[found[2]])) >= 2
+    assert found is None or found[1] < gain
 
 
 def test_refined_region_puts_an_edge_inside_a_segment_where_the_partial_step_says():

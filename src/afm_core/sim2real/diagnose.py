@@ -881,7 +881,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             _, chi2_2, _ = gls(r1w, np.hstack([pw, white(first_cols), white(cols)]))
             delta = (chi2_1lin - chi2_2) / factor1
             if delta > float(stats.chi2.isf(ALPHA / m, cand.complexity)):
-                both = (lambda train, c=first_cols: _stack(c, region_columns(train))) if cand is region \
+                both = (lambda train, c=first_cols: _with_region(c, region_columns(train))) if cand is region \
                     else np.hstack([first_cols, cols])
                 gain = _cv_gain_on(r1, both, P, folds, fold_whiteners) - \
                     _cv_gain_on(r1, first_cols, P, folds, fold_whiteners)
@@ -1002,8 +1002,10 @@ def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: 
     return theta, sig * math.sqrt(variance_factor), residual
 
 
-def _stack(first: np.ndarray, second: np.ndarray | None) -> np.ndarray | None:
-    return None if second is None else np.hstack([first, second])
+def _with_region(first: np.ndarray, region: np.ndarray | None) -> np.ndarray:
+    """The first term's columns and the region's (none found on these training blocks: a
+    zero column, so the fold counts as predicting nothing more)."""
+    return np.hstack([first, np.zeros((len(first), 1)) if region is None else region])
 
 
 def _cv_gain_on(r, cols, P, folds, fold_whiteners) -> float:
@@ -1067,7 +1069,8 @@ def _friction_region(design: dict, config: SimConfig, table: Table, r: np.ndarra
 
     def search(mask):
         sel = np.flatnonzero(torsion & mask)
-        found = regions.best_region(points[sel], effect[sel], r[sel], noise.cov[np.ix_(sel, sel)])
+        found = regions.best_region(points[sel], effect[sel], r[sel], noise.cov[np.ix_(sel, sel)],
+                                    slides=table.op_index[sel])
         if found is None:
             return None
         return regions.refine_region(points[sel], [axes[i] for i in sel], lengths[sel], effect[sel], r[sel],

@@ -54,11 +54,13 @@ def _edges(values: np.ndarray) -> np.ndarray:
 
 
 def best_region(points: np.ndarray, effect: np.ndarray, residual: np.ndarray, cov: np.ndarray,
-                min_inside: int = 3, min_outside: int = 3):
+                slides=None, min_inside: int = 3, min_outside: int = 3, min_slides: int = 2):
     """The rectangle R maximising the GLS chi^2 improvement of the column effect * [point in R]
-    on `residual` with covariance `cov` (all restricted to the segments). Returns (bounds
-    (x0, y0, x1, y1), chi^2 improvement, inside mask) or None when fewer than
-    min_inside + min_outside segments carry an effect."""
+    on `residual` with covariance `cov` (all restricted to the segments). `slides`: which
+    slide (operation) each segment belongs to; a patch of the sample is crossed by at least
+    `min_slides` of them (a few segments of one slide, or of one push against a particle, are
+    not a place on the sample). Returns (bounds (x0, y0, x1, y1), chi^2 improvement, inside
+    mask) or None when no rectangle qualifies."""
     points = np.asarray(points, float)
     effect = np.asarray(effect, float)
     residual = np.asarray(residual, float)
@@ -67,6 +69,8 @@ def best_region(points: np.ndarray, effect: np.ndarray, residual: np.ndarray, co
         return None
     idx = np.flatnonzero(usable)
     p, a, e = points[idx], effect[idx], residual[idx]
+    slide_ids = np.unique(np.arange(len(points)) if slides is None else np.asarray(slides), return_inverse=True)[1]
+    member = np.eye(slide_ids.max() + 1)[slide_ids[idx]]       # segment x slide
     factor = linalg.cho_factor(np.asarray(cov, float)[np.ix_(idx, idx)], lower=True)
     g = a * linalg.cho_solve(factor, e)                     # c . g = a_c^T C^-1 e
     A = a[:, None] * linalg.cho_solve(factor, np.diag(a))   # c^T A c = a_c^T C^-1 a_c
@@ -81,7 +85,8 @@ def best_region(points: np.ndarray, effect: np.ndarray, residual: np.ndarray, co
             lo, hi = np.triu_indices(ey.size, 1)
             inside = in_x[None, :] & (p[None, :, 1] > ey[lo, None]) & (p[None, :, 1] < ey[hi, None])
             count = inside.sum(axis=1)
-            ok = (count >= min_inside) & (idx.size - count >= min_outside)
+            crossing = ((inside.astype(float) @ member) > 0).sum(axis=1)
+            ok = (count >= min_inside) & (idx.size - count >= min_outside) & (crossing >= min_slides)
             if not ok.any():
                 continue
             c = inside[ok].astype(float)
