@@ -869,8 +869,6 @@ def sampled_velocity(offset, t_up, t_down) -> np.ndarray:
     stretches of the two frames where the particles are), which is the truth to compare a
     measured pair velocity with (not the mean velocity over the pair's whole span)."""
     t_up, t_down = np.asarray(t_up, float), np.asarray(t_down, float)
-    dt = t_up - t_down
-    design = np.stack([np.ones_like(dt), dt], axis=1)
-    diff = np.asarray(offset(t_up), float) - np.asarray(offset(t_down), float)
-    sol, *_ = np.linalg.lstsq(design, diff, rcond=None)
-    return sol[1]
+    return np.array(up_down_velocity(UpDownObservations(position_up=np.asarray(offset(t_up), float),
+                                                        position_down=np.asarray(offset(t_down), float),
+                                                        t_up=t_up, t_down=t_down)))

@@ -26,7 +26,7 @@ training blocks only.
 from __future__ import annotations
 
 import numpy as np
-from scipy import linalg
+from scipy import linalg, optimize
 
 MERGE = 50e-9           # m: segment centres closer than this along an axis share an edge position
 
@@ -75,15 +75,16 @@ def best_region(points: np.ndarray, effect: np.ndarray, residual: np.ndarray, co
     g = a * linalg.cho_solve(factor, e)                     # c . g = a_c^T C^-1 e
     A = a[:, None] * linalg.cho_solve(factor, np.diag(a))   # c^T A c = a_c^T C^-1 a_c
     ex, ey = _edges(p[:, 0]), _edges(p[:, 1])
+    # every y interval at once: rows = intervals, columns = segments
+    lo, hi = np.triu_indices(ey.size, 1)
+    in_y = (p[None, :, 1] > ey[lo, None]) & (p[None, :, 1] < ey[hi, None])
     best = None
     for i in range(ex.size - 1):
         for j in range(i + 1, ex.size):
             in_x = (p[:, 0] > ex[i]) & (p[:, 0] < ex[j])
             if in_x.sum() < min_inside:
                 continue
-            # every y interval at once: rows = intervals, columns = segments
-            lo, hi = np.triu_indices(ey.size, 1)
-            inside = in_x[None, :] & (p[None, :, 1] > ey[lo, None]) & (p[None, :, 1] < ey[hi, None])
+            inside = in_x[None, :] & in_y
             count = inside.sum(axis=1)
             crossing = ((inside.astype(float) @ member) > 0).sum(axis=1)
             ok = (count >= min_inside) & (idx.size - count >= min_outside) & (crossing >= min_slides)
@@ -127,29 +128,28 @@ def refine_region(points: np.ndarray, axes, lengths: np.ndarray, effect: np.ndar
     centres) to where the GLS gain of the column effect x overlap is largest: an edge inside a
     segment makes that segment's torsion a partial step. Returns (bounds, gain, coefficient of
     the column: the factor's change s - 1 when `effect` is the torsion change per unit s)."""
-    from scipy import optimize
     a = np.asarray(effect, float)
     factor = linalg.cho_factor(np.asarray(cov, float), lower=True)
     g = linalg.cho_solve(factor, np.asarray(residual, float))
     scale = 1e-6                       # optimise in um: a well-scaled simplex
 
-    def gain(edges_um):
+    def fit(edges_um):
+        """(GLS gain, coefficient) of the column at these edges."""
         x0, y0, x1, y1 = np.asarray(edges_um) * scale
         if not (x1 > x0 and y1 > y0):
-            return 0.0
+            return 0.0, 0.0
         column = a * overlap(points, axes, lengths, (x0, y0, x1, y1))
         den = float(column @ linalg.cho_solve(factor, column))
-        return (float(column @ g)) ** 2 / den if den > 0 else 0.0
+        num = float(column @ g)
+        return (num ** 2 / den, num / den) if den > 0 else (0.0, 0.0)
 
     start = np.asarray(bounds, float) / scale
-    result = optimize.minimize(lambda e: -gain(e), start, method="Nelder-Mead",
+    result = optimize.minimize(lambda e: -fit(e)[0], start, method="Nelder-Mead",
                                options={"xatol": 1e-3, "fatol": 1e-6, "initial_simplex": start + np.vstack(
                                    [np.zeros(4), 0.1 * np.eye(4)])})
-    best = tuple(float(v) * scale for v in (result.x if -result.fun >= gain(start) else start))
-    column = a * overlap(points, axes, lengths, best)
-    den = float(column @ linalg.cho_solve(factor, column))
-    coefficient = float(column @ g) / den if den > 0 else 0.0
-    return best, gain(np.asarray(best) / scale), coefficient
+    best = result.x if -result.fun >= fit(start)[0] else start
+    gain, coefficient = fit(best)
+    return tuple(float(v) * scale for v in best), gain, coefficient
 
 
 def inside(points: np.ndarray, bounds) -> np.ndarray:
