@@ -69,10 +69,15 @@ def dilated_heights_at(sample, tip_grid: np.ndarray, pixel: float, xs: np.ndarra
 
 def pink_noise(n: int, sigma: float, rng: np.random.Generator) -> np.ndarray:
     """n samples of 1/f (flicker) noise with standard deviation sigma, by shaping white noise
-    in the frequency domain (power ~ 1/f, the DC term removed)."""
-    if n == 0 or sigma == 0:
+    in the frequency domain (power ~ 1/f, the DC term removed). The draws are taken even when
+    sigma is 0, so the generator's later draws do not depend on sigma (re-simulations with a
+    changed noise level share every other random number)."""
+    if n == 0:
         return np.zeros(n)
-    spectrum = np.fft.rfft(rng.normal(size=n))
+    white = rng.normal(size=n)
+    if sigma == 0:
+        return np.zeros(n)
+    spectrum = np.fft.rfft(white)
     f = np.fft.rfftfreq(n)
     f[0] = np.inf
     shaped = np.fft.irfft(spectrum / np.sqrt(f), n)
