@@ -10,7 +10,8 @@ point, `run_sim2real(recording, model.yaml, report_dir)`, diagnoses it.
 Categories (issue 8's list):
 - null: nothing missing (a third of the suite);
 - small: an effect below the noise of any single measurement but systematic (drift ramp,
-  z-sensor gain, latency, tip asymmetry, bow);
+  z-sensor gain, latency, tip asymmetry, bow, coloured z noise: a different noise level hides
+  in every single measurement's noise);
 - masked: under a larger modelled effect (creep change under the modelled drift and its
   wander; hysteresis asymmetry under the symmetric loop width);
 - confounded: drift velocity vs creep (both grow with time, only creep with dwell after a
@@ -174,6 +175,13 @@ def suite(model) -> list[Case]:
     def stick_slip(rng):
         return {"contact.static_friction_ratio": rng.uniform(1.5, 2.5)}
     add("stick_slip-0", "other", 275, "stick_slip", stick_slip, switches={"contact.stick_slip_enabled": True})
+
+    for k in range(2):
+        def coloured(rng):
+            # more 1/f z noise than modelled (a noisier amplifier, mechanical pick-up) or less
+            return {"noise.height_flicker_sigma": rng.uniform(0.4e-9, 0.8e-9) if rng.random() < 0.5
+                    else rng.uniform(0.0, 0.08e-9)}
+        add(f"coloured_noise-{k}", "small", 276 + k, "coloured_noise", coloured)
     return cases
 
 

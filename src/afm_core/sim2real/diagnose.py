@@ -25,8 +25,16 @@ Method (all SI):
    spread s_v, correlation time tau: Cov(D(t), D(s)) = s_v^2 tau^2 [2 min(t,s)/tau - 1 + e^-t/tau
    + e^-s/tau - e^-|t-s|/tau]) + the J-projected persistent random walk of free moves (each
    adds a d + b per axis) + for background-curvature features the substrate roughness (the
-   walk moves large images by more than its correlation length). Nuisance: a constant offset
-   per axis (J-projected).
+   walk moves large images by more than its correlation length) and the sensor noise from
+   the noise model itself (white in closed form, 1/f drawn as the simulator draws it: two
+   replicas cannot tell a curvature's variance). Nuisance: a constant offset per axis
+   (J-projected).
+3b. **Sensor noise first.** Only a noise term moves the noise statistics (line-offset noise of
+   images, `raster.streak`), and every other feature's noise model depends on it: the
+   coloured-noise candidate is tested on those statistics alone (same threshold and held-out
+   rule), fitted by re-simulation with the replicas' seeds (only the noise level differs), and
+   if named, the replicas are redrawn at the fitted level before the other candidates are
+   judged (a noisier instrument's images must not pass for a scanner bow).
 4. **Candidates** (candidates.py) = config keys; design columns = d features / d value by
    re-simulation at the same drift trajectory (closed form for drift, z gain and bow; zero on
    shape features for terms that only move the tip). Evidence per candidate: GLS chi^2
@@ -59,9 +67,11 @@ import numpy as np
 from scipy import linalg, stats
 
 from afm_core.sim.config import SimConfig, load_config, merge
+from afm_core.sim.imaging import pink_noise
 from afm_core.sim2real import regions
 from afm_core.sim2real.candidates import Candidate, FrictionRegion, available, has_key, merge_overrides
-from afm_core.sim2real.features import POSITION_GROUPS, SEGMENT, Feature, FeatureExtractor, extract_features
+from afm_core.sim2real.features import (POSITION_GROUPS, SEGMENT, STREAK_MIN_LINES, Feature, FeatureExtractor,
+                                        extract_features)
 from afm_core.sim2real.protocol import TrajectoryDrift, deterministic, replay
 
 ALPHA = 0.05                       # family-wise false "missing physics" rate on null recordings
@@ -73,6 +83,7 @@ SHAPE_GROUPS = ("line.width", "line.peak", "line.asym", "raster.height", "raster
 HEIGHT_GROUPS = ("line.peak", "raster.height")
 BOW_GROUPS = ("raster.bow_xx", "raster.bow_yy", "raster.bow_xy")
 PUSH_GROUPS = ("push.torsion", "push.fluct")
+NOISE_GROUPS = ("raster.streak",)  # noise statistics: their mean moves only with the sensor noise
 
 
 class ConfigMismatchError(ValueError):
@@ -177,6 +188,20 @@ def _pooled_white(values: np.ndarray, groups: np.ndarray, shrink: float, referen
     return white * (1.0 + 1.0 / max(k, 1)), pools
 
 
+def _bow_weights(group: str, image) -> np.ndarray:
+    """The pixel weights (1/m^2 per m of height, row-major) that make a background-curvature
+    feature of an image (ny, nx, px, py) out of its heights: the rows of the quadratic's least
+    squares (on every pixel: a bare-substrate image)."""
+    ny, nx, px, py = image
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    x = ((xx - (nx - 1) / 2) * px).ravel() * 1e6
+    y = ((yy - (ny - 1) / 2) * py).ravel() * 1e6
+    A = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], 1)
+    column = {"raster.bow_xx": 3, "raster.bow_yy": 5, "raster.bow_xy": 4}[group]
+    factor = 2.0 if group != "raster.bow_xy" else 1.0
+    return np.linalg.solve(A.T @ A, A.T)[column] * factor * 1e12
+
+
 def _bow_roughness_variance(table: Table, roughness: float) -> np.ndarray:
     """Variance the substrate roughness adds to background-curvature features: pixels of a
     large image are far apart compared with the roughness correlation, and the recording's
@@ -184,17 +209,32 @@ def _bow_roughness_variance(table: Table, roughness: float) -> np.ndarray:
     by an independent difference (variance 2 sigma_r^2)."""
     out = np.zeros(len(table.keys))
     for i, (group, cond) in enumerate(zip(table.groups, table.conditions)):
-        if group not in BOW_GROUPS or "image" not in cond:
-            continue
-        ny, nx, px, py = cond["image"]
-        yy, xx = np.mgrid[0:ny, 0:nx]
-        x = ((xx - (nx - 1) / 2) * px).ravel() * 1e6
-        y = ((yy - (ny - 1) / 2) * py).ravel() * 1e6
-        A = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], 1)
-        inv = np.linalg.inv(A.T @ A)
-        column = {"raster.bow_xx": 3, "raster.bow_yy": 5, "raster.bow_xy": 4}[group]
-        factor = 2.0 if group != "raster.bow_xy" else 1.0
-        out[i] = 2 * roughness ** 2 * inv[column, column] * (factor * 1e12) ** 2
+        if group in BOW_GROUPS and "image" in cond:
+            out[i] = 2 * roughness ** 2 * float(np.sum(_bow_weights(group, cond["image"]) ** 2))
+    return out
+
+
+def _bow_sensor_variance(table: Table, noise, draws: int = 400) -> np.ndarray:
+    """Variance the height sensor's noise gives background-curvature features, from the noise
+    model itself rather than from a few replicas (two replicas estimate a variance to within a
+    factor of several, and a curvature fitted to an image of few lines picks up much of the
+    coloured noise's slow wander): white noise per pixel in closed form, 1/f noise by drawing
+    it as the simulator does (one sequence over the lines in acquisition order)."""
+    out = np.full(len(table.keys), np.nan)
+    rng = np.random.default_rng(0)
+    images: dict = {}                   # one image's features share the draws
+    for i, (group, cond) in enumerate(zip(table.groups, table.conditions)):
+        if group in BOW_GROUPS and "image" in cond:
+            images.setdefault(int(table.op_index[i]), []).append(i)
+    for rows in images.values():
+        cond = table.conditions[rows[0]]
+        ny, nx, _, _ = cond["image"]
+        weights = np.array([_bow_weights(table.groups[i], cond["image"]).reshape(ny, nx) for i in rows])
+        if cond.get("angle", 0.0) != 0.0:           # lines are columns: the sequence runs down them
+            weights = weights.transpose(0, 2, 1)
+        weights = weights.reshape(len(rows), -1)
+        flicker = np.array([weights @ pink_noise(ny * nx, noise.height_flicker_sigma, rng) for _ in range(draws)])
+        out[rows] = noise.height_white_sigma ** 2 * np.sum(weights ** 2, axis=1) + np.mean(flicker ** 2, axis=0)
     return out
 
 
@@ -209,6 +249,8 @@ def build_noise_model(config: SimConfig, table: Table, sensor: np.ndarray, J: np
     be from the reference's (mismatch: per feature and axis, the id of the position observation
     the drift trajectory follows there and the variance of the walk and wander since)."""
     white, pools = _pooled_white(sensor, table.groups, shrink, reference)
+    analytic = _bow_sensor_variance(table, config.noise)
+    white = np.where(np.isfinite(analytic), analytic * (1.0 + 1.0 / max(sensor.shape[0], 1)), white)
     white = white + _bow_roughness_variance(table, config.sample.roughness_sigma)
     if extra_white is not None:
         white = white + extra_white
@@ -594,9 +636,13 @@ class _Session:
     """Everything the fits re-use: the recording, the reference, the drift trajectory, the
     scanner map, and re-simulation of a parameter set."""
 
-    def __init__(self, ops, config, keys, f_rec, anchors, drift, J, bias, reference, table, scanner_map, mapped):
+    def __init__(self, ops, config, keys, f_rec, anchors, drift, J, bias, reference, table, scanner_map, mapped,
+                 noise_seeds=()):
         self.ops, self.config, self.keys = ops, config, keys
         self.base = deterministic(config)
+        self.noise_seeds = list(noise_seeds)
+        self._noise_runs: dict = {}
+        self.noise_reference: dict = {}     # the sensor-noise overrides the reference was made with
         self.f_rec, self.anchors, self.drift, self.J = f_rec, anchors, drift, J
         self.bias, self.reference, self.table = bias, reference, table
         self.map, self.mapped = scanner_map, mapped
@@ -606,8 +652,15 @@ class _Session:
         self.recorded = _values(f_rec, keys)
         self.shape = np.isin(table.groups, SHAPE_GROUPS)
         self.push = np.isin(table.groups, PUSH_GROUPS)
+        self.noisy = np.isin(table.groups, NOISE_GROUPS)
         self.r = self.recorded - reference + self.shift()
+        self.r_before = self.r          # against the nominal model (a fitted noise level changes self.r)
         self.replays = 0
+
+    def set_reference(self, reference: np.ndarray, bias: np.ndarray, noise_overrides: dict) -> None:
+        """Judge the fits against another reference (replicas with a fitted noise level)."""
+        self.reference, self.bias, self.noise_reference = reference, bias, noise_overrides
+        self.r = self.recorded - reference + self.shift()
 
     def shift(self, extra: np.ndarray | None = None) -> np.ndarray:
         """What moving the drift from the recorded trajectory to the model's (plus `extra`,
@@ -624,6 +677,27 @@ class _Session:
         self.replays += 1
         rep = replay(self.ops, config, drift=self.drift, imaging=imaging)
         return _values(_by_key(extract_features(rep.operations, self.anchors)), self.keys)
+
+    def noise_replicas(self, overrides: dict, rasters_only: bool = False) -> np.ndarray:
+        """(K, N) features of the sensor-noise re-simulations with the noise replicas' seeds and
+        `overrides` (so only what the overrides change differs between two calls with the same
+        `rasters_only`; rasters_only: scan lines are not imaged, which is all the noise
+        statistics need, at a third of the cost)."""
+        memo = (repr(overrides), rasters_only)
+        if memo not in self._noise_runs:
+            config = merge(deterministic(self.config, sensor_noise=True), overrides)
+            runs = []
+            for seed in self.noise_seeds:
+                self.replays += 1
+                rep = replay(self.ops, config, noise_seed=seed, drift=self.drift,
+                             imaging="rasters" if rasters_only else True)
+                runs.append(_values(_by_key(extract_features(rep.operations, self.anchors)), self.keys))
+            self._noise_runs[memo] = np.array(runs)
+        return self._noise_runs[memo]
+
+    def noise_features(self, overrides: dict) -> np.ndarray:
+        """Mean noise statistics of the raster-only `noise_replicas`."""
+        return np.mean(self.noise_replicas(overrides, rasters_only=True), axis=0)     # (lines: NaN)
 
     def drift_extra(self, terms) -> np.ndarray | None:
         """The drift offsets (N, 2) the drift terms at theta add to the model's."""
@@ -646,7 +720,9 @@ class _Session:
         pairs = list(zip(terms, parts))
         simulated = [(t, p) for t, p in pairs if not t[0].analytic]
         drifts = [(t, p) for t, p in pairs if t[0].analytic in ("drift_velocity", "drift_ramp")]
-        linear = [(t, p) for t, p in pairs if t[0].analytic and t[0].analytic not in ("drift_velocity", "drift_ramp")]
+        noises = [(t, p) for t, p in pairs if t[0].analytic == "sensor_noise"]
+        linear = [(t, p) for t, p in pairs
+                  if t[0].analytic and t[0].analytic not in ("drift_velocity", "drift_ramp", "sensor_noise")]
         extra = self.drift_extra(drifts)
         r = self.r.copy()
         if extra is not None:
@@ -670,6 +746,12 @@ class _Session:
             r = np.where(keep, resim, lin)
         for (cand, theta0, cols), part in linear:
             r = r - cols @ (cand.clip(part) - theta0)
+        if noises:
+            overrides = {}
+            for (cand, _, _), part in noises:
+                overrides = merge_overrides(overrides, cand.overrides(self.config, part))
+            resim = r + self.noise_features(self.noise_reference) - self.noise_features(overrides)
+            r = np.where(self.noisy & np.isfinite(resim), resim, r)
         return r
 
 
@@ -708,12 +790,16 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     nominal = replay(ops, base, drift=drift)
     f_nom = _by_key(extract_features(nominal.operations, anchors))
     matched = [k for k in f_rec if k in f_nom]
-    if len(matched) < MIN_MATCHED_FRACTION * len(f_rec) or len(matched) < MIN_MATCHED_FRACTION * len(f_nom):
-        lost_rec = sorted({k[0] for k in f_rec if k not in f_nom})[:10]
-        lost_sim = sorted({k[0] for k in f_nom if k not in f_rec})[:10]
+    # whether the particles are where the config says (noise statistics are there on any sample)
+    on_sample = {k for k, f in f_rec.items() if f.group not in NOISE_GROUPS}
+    sim_on_sample = {k for k, f in f_nom.items() if f.group not in NOISE_GROUPS}
+    both = on_sample & sim_on_sample
+    if len(both) < MIN_MATCHED_FRACTION * len(on_sample) or len(both) < MIN_MATCHED_FRACTION * len(sim_on_sample):
+        lost_rec = sorted({k[0] for k in on_sample if k not in f_nom})[:10]
+        lost_sim = sorted({k[0] for k in sim_on_sample if k not in f_rec})[:10]
         raise ConfigMismatchError(
-            f"the configuration does not match the recording: of {len(f_rec)} recorded features only "
-            f"{len(matched)} are reproduced by the simulation ({len(f_nom)} simulated). Operations where the "
+            f"the configuration does not match the recording: of {len(on_sample)} recorded features of the sample "
+            f"only {len(both)} are reproduced by the simulation ({len(sim_on_sample)} simulated). Operations where the "
             f"recording saw a particle and the simulation did not: {lost_rec}; the reverse: {lost_sim}. "
             "Check the sample (particle positions, seed) and the scanner area in the config.")
     say("drift sensitivities")
@@ -759,16 +845,42 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     J[~np.isin(table.groups, POSITION_GROUPS)] = 0.0
     rep_s = np.array([_values(r, keys) for r in reps_s])
     bias = np.nan_to_num(np.nanmean(rep_s - nom, axis=0))
-    sess = _Session(ops, config, keys, f_rec, anchors, drift, J, bias, nom + bias, table, scanner_map, mapped)
+    sess = _Session(ops, config, keys, f_rec, anchors, drift, J, bias, nom + bias, table, scanner_map, mapped,
+                    noise_seeds=[1000 + k for k in range(sensor_replicas)])
+    n = len(keys)
+    blocks = _fold_blocks(table, ops, n_blocks)
+    folds = [blocks % 2 == 0, blocks % 2 == 1]
+    cands, missing = available(config, candidates)
+    m = max(1, len(cands) + 1)          # the library and the searched friction region
+
+    # the sensor noise first: only its terms move the noise statistics, and every other
+    # feature's noise model depends on it, so a noise level found here is put into the
+    # replicas the rest of the diagnosis is judged against
+    t0 = _time.perf_counter()
+    noise_design, noise_result, noise_config = None, None, config
+    for cand in [c for c in cands if c.analytic == "sensor_noise"]:
+        if not sess.noisy.any():
+            missing.append(f"{cand.name} (the recording has no image with {STREAK_MIN_LINES} lines or more)")
+            continue
+        say(f"sensitivity: {cand.name}")
+        noise_design, noise_result = _noise_term(sess, cand, rep_s, nom, folds, m, refine_iterations)
+        if noise_result.accepted:
+            say(f"noise replicas at the fitted {cand.name}")
+            fitted = cand.overrides(config, noise_result.estimate)
+            noise_config = merge(config, fitted)
+            rep_s = sess.noise_replicas(fitted)
+            bias = np.nan_to_num(np.nanmean(rep_s - nom, axis=0))
+            sess.set_reference(nom + bias, bias, fitted)
+        break
+    cands = [c for c in cands if c.analytic != "sensor_noise"]
+    timings["noise"] = _time.perf_counter() - t0
     r = sess.r
-    noise = build_noise_model(config, table, rep_s, J, nominal.moves, reference=nom, J_shape=J_shape,
+    noise = build_noise_model(noise_config, table, rep_s, J, nominal.moves, reference=nom, J_shape=J_shape,
                               mismatch=geometry_mismatch(drift, table.time), extra_white=nonlinear)
     P = nuisance_columns(table, J)
-    n = len(keys)
 
     # sensitivities
     t0 = _time.perf_counter()
-    cands, missing = available(config, candidates)
     design = {}
     height = np.isin(table.groups, HEIGHT_GROUPS + BOW_GROUPS)
     for cand in cands:
@@ -812,8 +924,6 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     rw, pw = white(r), white(P) if P.size else np.zeros((n, 0))
     _, chi2_0, _ = gls(rw, pw)
     dof0 = n - pw.shape[1]
-    blocks = _fold_blocks(table, ops, n_blocks)
-    folds = [blocks % 2 == 0, blocks % 2 == 1]
     fold_whiteners = [(Whitener(noise.cov[np.ix_(tr, tr)]), Whitener(noise.cov[np.ix_(~tr, ~tr)])) for tr in folds]
 
     def fit(cols_list):
@@ -821,7 +931,6 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         coef, chi2, cov = gls(rw, np.hstack([pw, white(cols)]) if cols.size else pw)
         return coef[P.shape[1]:], chi2, cov[P.shape[1]:, P.shape[1]:]
 
-    m = max(1, len(design))
     singles = {name: fit([cols]) for name, (cand, theta0, cols) in design.items()}
     best_chi2 = min([c[1] for c in singles.values()] + [chi2_0])
     best_p = max([design[nm][0].size for nm, c in singles.items() if c[1] == best_chi2] + [0])
@@ -845,6 +954,9 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         results.append(res)
     results.sort(key=lambda c: (not c.accepted, -c.bic_gain))
     accepted = [c for c in results if c.accepted]
+    if noise_result is not None:           # chosen before the others when accepted (see above)
+        results.append(noise_result)
+        results.sort(key=lambda c: (not c.accepted, not (c is noise_result and c.accepted), -c.bic_gain))
 
     def resim_chi2(residual):
         return gls(white(residual), pw)[1]
@@ -875,7 +987,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         factor1 = max(1.0, chi2_1lin / max(1, dof0 - first_cand.size))
         best_second = None
         for res in results:
-            if res.name == chosen[0] or not res.significant:
+            if res.name == chosen[0] or not res.significant or res.name not in design:
                 continue
             cand, theta0, cols = design[res.name]
             _, chi2_2, _ = gls(r1w, np.hstack([pw, white(first_cols), white(cols)]))
@@ -891,9 +1003,10 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         if best_second is not None:
             chosen.append(best_second[0])
 
-    # where: residual after the nuisance fit, by condition
-    coef_p, _, _ = gls(rw, pw)
-    e = r - P @ coef_p
+    # where: the nominal model's residual after the nuisance fit, by condition
+    r_seen = sess.r_before
+    coef_p, _, _ = gls(white(r_seen), pw)
+    e = r_seen - P @ coef_p
     where, change_points, group_stats = _where(table, e, noise.cov, variance_factor=1.0)
     p_overall = float(stats.chi2.sf(chi2_0, dof0))
 
@@ -917,6 +1030,15 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                 parameters[key] = {"value": float(theta[offset + j]), "sigma": float(sigma[offset + j]),
                                    "nominal": float(theta0[j]), "candidate": name}
             offset += cand.size
+    if noise_result is not None and noise_result.accepted:
+        cand, theta0, _ = noise_design
+        design[cand.name] = noise_design
+        chosen = [cand.name] + chosen
+        overrides = merge_overrides(cand.overrides(config, noise_result.estimate), overrides)
+        for j, key in enumerate(cand.keys):
+            parameters[key] = {"value": float(noise_result.estimate[j]), "sigma": float(noise_result.sigma[j]),
+                               "nominal": float(theta0[j]), "candidate": cand.name}
+    if chosen:
         updated = merge(config, overrides)
     timings["fit"] = _time.perf_counter() - t0
 
@@ -943,7 +1065,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                  "group_factors": group_factors},
         where=where, change_points=change_points, candidates=results, chosen=chosen, parameters=parameters,
         overrides=overrides, updated_config=updated, heldout=heldout, missing_candidates=missing, timings=timings,
-        residuals={"table": table, "r": r, "e": e, "sigma": np.sqrt(np.diag(noise.cov)), "folds": folds,
+        residuals={"table": table, "r": r_seen, "e": e, "sigma": np.sqrt(np.diag(noise.cov)), "folds": folds,
                    "after": heldout.get("r_after")},
         drift={"times": drift.times, "offsets": drift.offsets,
                "nominal": nominal_drift(config, drift.times)},
@@ -1050,6 +1172,55 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
     return np.array(cols).T
 
 
+def _noise_columns(sess: _Session, cand: Candidate, theta0: np.ndarray) -> np.ndarray:
+    """Design columns of a sensor-noise term at the model's noise: its noise statistics
+    re-simulated with the noise replicas' seeds at each stepped value and at the model's."""
+    cols = []
+    for j in range(cand.size):
+        theta = theta0.copy()
+        theta[j] += cand.steps[j]
+        sim = sess.noise_features(cand.overrides(sess.config, theta))
+        cols.append(np.where(sess.noisy, np.nan_to_num((sim - sess.noise_features({})) / cand.steps[j]), 0.0))
+    return np.array(cols).T
+
+
+def _noise_term(sess: _Session, cand: Candidate, replicas: np.ndarray, nom: np.ndarray, folds: list, m: int,
+                iterations: int):
+    """Evidence and fit of a sensor-noise term on the noise statistics alone (no other term
+    moves them): GLS with their replica variance, the Bonferroni threshold, held-out blocks,
+    and the value refined by re-simulation. Returns the (candidate, nominal, columns) design
+    triple and its CandidateResult (estimate and sigma: the refined fit)."""
+    noisy = sess.noisy
+    theta0 = cand.nominal(sess.config)
+    cols = _noise_columns(sess, cand, theta0)
+    variance, _ = _pooled_white(replicas[:, noisy], sess.table.groups[noisy], 4.0, nom[noisy])
+    white = Whitener(np.diag(variance))
+    none = np.zeros((int(noisy.sum()), 0))
+    r = sess.r[noisy]
+    _, chi2_0, _ = gls(white(r), none)
+    coef, chi2, cov = gls(white(r), white(cols[noisy]))
+    n = int(noisy.sum())
+    factor = max(1.0, chi2 / max(1, n - cand.size))      # statistics noisier than their replicas say
+    delta = (chi2_0 - chi2) / factor
+    res = CandidateResult(cand.name, cand.words, cand.keys, cand.units, cand.size, estimate=theta0 + coef,
+                          sigma=np.sqrt(np.abs(np.diag(cov)) * factor), delta_chi2=delta,
+                          statistic_threshold=float(stats.chi2.isf(ALPHA / m, cand.complexity)),
+                          bic_gain=delta - cand.complexity * math.log(max(n, 2)))
+    res.significant = delta > res.statistic_threshold
+    if res.significant:
+        sub_folds = [f[noisy] for f in folds]
+        whiteners = [(Whitener(np.diag(variance[f])), Whitener(np.diag(variance[~f]))) for f in sub_folds]
+        res.heldout_gain = _cv_gain_on(r, cols[noisy], none, sub_folds, whiteners)
+        res.accepted = res.heldout_gain > 0
+        if not res.accepted:
+            res.note = "fits the session but does not predict held-out blocks"
+    if res.accepted:
+        theta, sigma, _ = _refine(sess, [(cand, theta0, cols)], white, np.zeros((len(noisy), 0)), iterations,
+                                  factor, mask=noisy)
+        res.estimate, res.sigma = theta, sigma
+    return (cand, theta0, cols), res
+
+
 def _friction_region(design: dict, config: SimConfig, table: Table, r: np.ndarray, d_rec: np.ndarray,
                      noise: NoiseModel):
     """The friction-region candidate at the rectangle where the slides' torsion residual
@@ -1101,7 +1272,7 @@ def _heldout(sess: _Session, terms, noise, P, train, iterations, start):
     theta, _, r_after = _refine(sess, terms, w_tr, P, iterations, 1.0, mask=train, start=start)
     w_te = Whitener(noise.cov[np.ix_(test, test)])
     pte = w_te(P[test])
-    _, before, _ = gls(w_te(sess.r[test]), pte)
+    _, before, _ = gls(w_te(sess.r_before[test]), pte)
     _, after, _ = gls(w_te(r_after[test]), pte)
     dof = int(test.sum() - P.shape[1])
     excess_before = before - dof

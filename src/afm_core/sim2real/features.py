@@ -23,7 +23,9 @@ every session made of the same commands; a feature is absent where its measureme
   positions) every particle is keyed by the anchor it matches after the best common
   translation, so several particles of one image are compared one by one; without, only the
   particle nearest the image centre. Large images (>= 10 um) give the curvature of the
-  substrate background (`raster.bow_xx`, `bow_yy`: second derivative, 1/m; `bow_xy`).
+  substrate background (`raster.bow_xx`, `bow_yy`: second derivative, 1/m; `bow_xy`). Images
+  with >= 64 lines give the line-offset noise per block of 48 lines (`raster.streak`, m: the
+  streaks coloured z noise draws; white noise averages out over a whole line).
 - Contact slides / pushes (`push.*`): the mean lateral torsion over each 250 nm segment of the
   path (friction and where it changes; the segment's commanded centre is its place) and the
   rms of the detrended torsion per push (stick-slip).
@@ -52,6 +54,8 @@ SEGMENT = 250e-9                # m of path per torsion feature
 MATCH_RADIUS = 200e-9           # m, a landmark belongs to an anchor this close (after translation)
 SAME_POINT = 1e-12              # m
 CENTRE_LEVEL = 5e-9             # m above the substrate: a raster particle's centre weighs what rises above
+STREAK_MIN_LINES = 64           # images with fewer lines (or pixels per line) give no line-offset noise
+STREAK_BLOCK = 48               # lines per line-offset noise feature
 
 
 @dataclass
@@ -363,6 +367,7 @@ def _raster_features(op, common, anchors=None) -> list[Feature]:
             for name, value, u in names:
                 out.append(Feature((op.index, f"raster.{name}{tag}"), f"raster.{name}", float(value), tm, float(m.x),
                                    float(m.y), u, dict(cond, particle=tag)))
+    out += _streak_features(op, h, cond)
     if min(size_x, size_y) >= BOW_MIN_SIZE:
         quad = _quad_background(h, data.pixel_size_x, data.pixel_size_y)
         if quad is not None:
@@ -370,6 +375,42 @@ def _raster_features(op, common, anchors=None) -> list[Feature]:
                 out.append(Feature((op.index, f"raster.bow_{name}"), f"raster.bow_{name}", float(value), t, cx, cy,
                                    (0.0, 0.0), dict(cond, image=(h.shape[0], h.shape[1], data.pixel_size_x,
                                                                  data.pixel_size_y))))
+    return out
+
+
+def line_offset_noise(offsets: np.ndarray) -> float:
+    """Robust standard deviation (m) of the line-to-line changes of consecutive lines' offsets,
+    after a quadratic along the slow axis is taken out (sample tilt, bow and the slow wander
+    of the whole image are not streaks), divided by sqrt(2): the noise of one line's offset."""
+    offsets = np.asarray(offsets, float)
+    index = np.arange(offsets.size)
+    steps = np.diff(offsets - np.polyval(np.polyfit(index, offsets, 2), index))
+    return float(1.4826 * np.median(np.abs(steps - np.median(steps))) / math.sqrt(2))
+
+
+def _streak_features(op, h: np.ndarray, cond: dict) -> list[Feature]:
+    """`raster.streak` per block of STREAK_BLOCK consecutive lines of an image with at least
+    STREAK_MIN_LINES lines: how much each line's offset (its median height: particles and
+    roughness average out) jumps from line to line. White sensor noise adds little to a median
+    of a whole line; low-frequency (1/f, coloured) z noise shifts whole lines and makes the
+    streaks an image shows."""
+    data = op.data
+    lines = h if data.scan_angle_deg == 0.0 else h.T        # rows: one scan line each
+    if lines.shape[0] < STREAK_MIN_LINES or lines.shape[1] < STREAK_MIN_LINES:
+        return []
+    offsets = np.median(lines, axis=1)
+    starts = np.asarray(data.line_start_times, float)
+    out = []
+    for b, block in enumerate(np.array_split(np.arange(lines.shape[0]), lines.shape[0] // STREAK_BLOCK)):
+        mid = (block[0] + block[-1] + 1) / 2
+        slow = (data.origin_y + mid * data.pixel_size_y, data.origin_x + mid * data.pixel_size_x)
+        x, y = (data.origin_x + 0.5 * lines.shape[1] * data.pixel_size_x, slow[0]) if data.scan_angle_deg == 0.0 \
+            else (slow[1], data.origin_y + 0.5 * lines.shape[1] * data.pixel_size_y)
+        t = float(data.start_time + np.nanmean(starts[block]) + 0.5 * data.line_period) \
+            if np.isfinite(starts[block]).any() else float(data.start_time)
+        out.append(Feature((op.index, f"raster.streak{b}"), "raster.streak", line_offset_noise(offsets[block]), t,
+                           float(x), float(y), (0.0, 0.0),
+                           dict(cond, lines=int(block.size), line_period=float(data.line_period))))
     return out
 
 
