@@ -300,28 +300,6 @@ def test_background_curvature_noise_follows_the_sensor_noise_model():
     assert predicted[1] > 3 * predicted[0]
 
 
-def test_pair_noise_is_one_samples_noise_whatever_the_surface_and_the_shift():
-    """A line and its way back over a rough surface with a particle, each with white noise of
-    sd s: the pair gives s (1600 samples: within ~5 %); with the way back seeing the surface 3
-    samples further on (latency), the shift the pair measured is taken out by whole samples;
-    left in, the roughness leaks in as much as the closed form says."""
-    from afm_core.sim2real.features import pair_noise
-    rng = np.random.default_rng(9)
-    n, spacing, s = 1600, 5e-9, 0.3e-9
-    coord = np.arange(n + 3) * spacing
-    surface = np.cumsum(rng.normal(0.0, 0.3e-9, n + 3))          # rough: 0.3 nm per sample
-    surface += 80e-9 * np.exp(-((coord - coord[n // 2]) / 60e-9) ** 2)
-    a = surface[3:] + rng.normal(0.0, s, n)
-    b = surface[:n] + rng.normal(0.0, s, n)                        # b(c) = surface(c), a(c) = surface(c + 3 dx)
-    ca = coord[:n]
-    assert abs(pair_noise(ca, a, ca, b, shift=-3 * spacing) - s) < 0.1 * s
-    assert abs(pair_noise(ca, a, ca, b, shift=-3.3 * spacing) - s) < 0.1 * s
-    # left in: each step adds two of the surface's own steps (0.3 nm each) to the 4 s^2
-    leaked = np.sqrt(4 * s ** 2 + 2 * (0.3e-9) ** 2) / 2
-    assert abs(pair_noise(ca, a, ca, b) - leaked) < 0.1 * leaked
-    assert pair_noise(ca[:15], a[:15], ca[:15], b[:15]) is None          # 14 steps: too few
-
-
 def test_pink_noise_takes_its_draws_whatever_its_level():
     """Re-simulations that change only the 1/f level share every later random number."""
     from afm_core.sim.imaging import pink_noise
@@ -344,18 +322,3 @@ def test_coloured_noise_is_named_alone_with_its_level(tmp_path):
     from afm_core.sim2real.report import write_report
     write_report(d, tmp_path, config=_nominal(seed))
     assert load_config(tmp_path / "updated_config.yaml").noise.height_flicker_sigma == pytest.approx(fitted)
-
-
-def test_white_noise_is_named_alone_with_its_level():
-    """White height noise 0.5 nm against the model's 0.3 nm: named first, and not as coloured
-    noise too (which also raises a line pair's sample noise), within 20 % of the change. (This
-    seed's null session names a z gain of 0.9992 +- 0.0002 at the 5 % false-alarm level the
-    threshold allows; it comes back here as a second term, so only the noise terms are
-    checked.)"""
-    seed = 17
-    truth = merge(_nominal(seed), {"noise": {"height_white_sigma": 0.5e-9}})
-    d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed))
-    assert d.chosen[:1] == ["white_noise"] and "coloured_noise" not in d.chosen, d.summary()
-    fitted = d.parameters["noise.height_white_sigma"]["value"]
-    assert abs(fitted - 0.5e-9) <= 0.2 * 0.2e-9, fitted
-    assert d.heldout["chi2_after"] < d.heldout["chi2_before"]

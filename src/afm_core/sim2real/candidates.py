@@ -36,8 +36,7 @@ class Candidate:
     # analytic: the columns follow in closed form from the reference ("drift_velocity",
     #   "drift_ramp": positions move by J t, J t^2 / 2; "height_gain": heights scale; "bow":
     #   the background curvature adds the curvature);
-    # sensor_noise: it changes only the noise, so only noise statistics (line-offset noise of
-    #   images, sample noise of line pairs) move;
+    # sensor_noise: it changes only the noise, so only noise statistics (line-offset noise) move;
     #   its columns and fits come from re-simulations with sensor noise on, with the noise
     #   replicas' seeds (only the noise level differs between them);
     # imaging=False: only force traces change (a replay without imaging suffices).
@@ -224,9 +223,6 @@ def library() -> list[Candidate]:
                   "modelled (whole scan lines offset from their neighbours: streaks in images)",
                   ["noise.height_flicker_sigma"], [0.1e-9], ["m"], lower=[0.0], display=[NM],
                   analytic="sensor_noise"),
-        Candidate("white_noise", "z sensor noise: the height signal is noisier (or quieter) than modelled from one "
-                  "sample to the next (white noise)", ["noise.height_white_sigma"], [0.1e-9], ["m"], lower=[0.0],
-                  display=[NM], analytic="sensor_noise"),
         Candidate("latency", "sensor latency: signals lag the scan position", ["noise.sensor_latency"], [3e-3],
                   ["s"], lower=[0.0], upper=[1.0], display=[(1e3, "ms")]),
     ]

@@ -30,12 +30,11 @@ Method (all SI):
    replicas cannot tell a curvature's variance). Nuisance: a constant offset per axis
    (J-projected).
 3b. **Sensor noise first.** Only a noise term moves the noise statistics (line-offset noise of
-   images, `raster.streak`; one sample's noise from line pairs, `line.noise`), and every other
-   feature's noise model depends on them: the white and coloured noise candidates are tested
-   on those statistics alone (same threshold, BIC and held-out rules; a second on top of the
-   first), fitted by re-simulation with the replicas' seeds (only the noise level differs),
-   and if one is named, the replicas are redrawn at the fitted level before the other
-   candidates are judged (a noisier instrument's images must not pass for a scanner bow).
+   images, `raster.streak`), and every other feature's noise model depends on it: the
+   coloured-noise candidate is tested on those statistics alone (same threshold and held-out
+   rule), fitted by re-simulation with the replicas' seeds (only the noise level differs), and
+   if named, the replicas are redrawn at the fitted level before the other candidates are
+   judged (a noisier instrument's images must not pass for a scanner bow).
 4. **Candidates** (candidates.py) = config keys; design columns = d features / d value by
    re-simulation at the same drift trajectory (closed form for drift, z gain and bow; zero on
    shape features for terms that only move the tip). Evidence per candidate: GLS chi^2
@@ -84,7 +83,7 @@ SHAPE_GROUPS = ("line.width", "line.peak", "line.asym", "raster.height", "raster
 HEIGHT_GROUPS = ("line.peak", "raster.height")
 BOW_GROUPS = ("raster.bow_xx", "raster.bow_yy", "raster.bow_xy")
 PUSH_GROUPS = ("push.torsion", "push.fluct")
-NOISE_GROUPS = ("raster.streak", "line.noise")  # noise statistics: their mean moves only with the sensor noise
+NOISE_GROUPS = ("raster.streak",)  # noise statistics: their mean moves only with the sensor noise
 
 
 class ConfigMismatchError(ValueError):
@@ -679,27 +678,26 @@ class _Session:
         rep = replay(self.ops, config, drift=self.drift, imaging=imaging)
         return _values(_by_key(extract_features(rep.operations, self.anchors)), self.keys)
 
-    def noise_replicas(self, overrides: dict) -> np.ndarray:
+    def noise_replicas(self, overrides: dict, rasters_only: bool = False) -> np.ndarray:
         """(K, N) features of the sensor-noise re-simulations with the noise replicas' seeds and
-        `overrides` (so only what the overrides change differs between two calls)."""
-        memo = repr(overrides)
+        `overrides` (so only what the overrides change differs between two calls with the same
+        `rasters_only`; rasters_only: scan lines are not imaged, which is all the noise
+        statistics need, at a third of the cost)."""
+        memo = (repr(overrides), rasters_only)
         if memo not in self._noise_runs:
             config = merge(deterministic(self.config, sensor_noise=True), overrides)
             runs = []
             for seed in self.noise_seeds:
                 self.replays += 1
-                rep = replay(self.ops, config, noise_seed=seed, drift=self.drift)
+                rep = replay(self.ops, config, noise_seed=seed, drift=self.drift,
+                             imaging="rasters" if rasters_only else True)
                 runs.append(_values(_by_key(extract_features(rep.operations, self.anchors)), self.keys))
             self._noise_runs[memo] = np.array(runs)
         return self._noise_runs[memo]
 
-    def seed_noise_replicas(self, replicas: np.ndarray) -> None:
-        """The noise replicas at the model's noise (made with `noise_seeds`), kept for reuse."""
-        self._noise_runs[repr({})] = replicas
-
     def noise_features(self, overrides: dict) -> np.ndarray:
-        """Mean of `noise_replicas`."""
-        return np.nanmean(self.noise_replicas(overrides), axis=0)
+        """Mean noise statistics of the raster-only `noise_replicas`."""
+        return np.mean(self.noise_replicas(overrides, rasters_only=True), axis=0)     # (lines: NaN)
 
     def drift_extra(self, terms) -> np.ndarray | None:
         """The drift offsets (N, 2) the drift terms at theta add to the model's."""
@@ -859,27 +857,22 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     # feature's noise model depends on it, so a noise level found here is put into the
     # replicas the rest of the diagnosis is judged against
     t0 = _time.perf_counter()
-    noise_cands = [c for c in cands if c.analytic == "sensor_noise"]
-    cands = [c for c in cands if c.analytic != "sensor_noise"]
-    noise_designs, noise_results, noise_chosen, noise_config = {}, [], [], config
-    if noise_cands and not sess.noisy.any():
-        missing += [f"{c.name} (the recording has no scan-line pair and no image of {STREAK_MIN_LINES} lines)"
-                    for c in noise_cands]
-    elif noise_cands:
-        say("sensitivity: " + ", ".join(c.name for c in noise_cands))
-        sess.seed_noise_replicas(rep_s)
-        noise_designs, noise_results, noise_chosen = _noise_stage(sess, noise_cands, rep_s, nom, folds, m,
-                                                                  refine_iterations)
-        if noise_chosen:
-            say("noise replicas at the fitted " + ", ".join(noise_chosen))
-            fitted = {}
-            for res in noise_results:
-                if res.name in noise_chosen:
-                    fitted = merge_overrides(fitted, noise_designs[res.name][0].overrides(config, res.estimate))
+    noise_design, noise_result, noise_config = None, None, config
+    for cand in [c for c in cands if c.analytic == "sensor_noise"]:
+        if not sess.noisy.any():
+            missing.append(f"{cand.name} (the recording has no image with {STREAK_MIN_LINES} lines or more)")
+            continue
+        say(f"sensitivity: {cand.name}")
+        noise_design, noise_result = _noise_term(sess, cand, rep_s, nom, folds, m, refine_iterations)
+        if noise_result.accepted:
+            say(f"noise replicas at the fitted {cand.name}")
+            fitted = cand.overrides(config, noise_result.estimate)
             noise_config = merge(config, fitted)
             rep_s = sess.noise_replicas(fitted)
             bias = np.nan_to_num(np.nanmean(rep_s - nom, axis=0))
             sess.set_reference(nom + bias, bias, fitted)
+        break
+    cands = [c for c in cands if c.analytic != "sensor_noise"]
     timings["noise"] = _time.perf_counter() - t0
     r = sess.r
     noise = build_noise_model(noise_config, table, rep_s, J, nominal.moves, reference=nom, J_shape=J_shape,
@@ -961,9 +954,9 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         results.append(res)
     results.sort(key=lambda c: (not c.accepted, -c.bic_gain))
     accepted = [c for c in results if c.accepted]
-    if noise_results:                       # a named noise term comes before the others (see above)
-        results += noise_results
-        results.sort(key=lambda c: (not c.accepted, c.name not in noise_chosen, -c.bic_gain))
+    if noise_result is not None:           # chosen before the others when accepted (see above)
+        results.append(noise_result)
+        results.sort(key=lambda c: (not c.accepted, not (c is noise_result and c.accepted), -c.bic_gain))
 
     def resim_chi2(residual):
         return gls(white(residual), pw)[1]
@@ -1037,16 +1030,14 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                 parameters[key] = {"value": float(theta[offset + j]), "sigma": float(sigma[offset + j]),
                                    "nominal": float(theta0[j]), "candidate": name}
             offset += cand.size
-    for res in noise_results:
-        if res.name not in noise_chosen:
-            continue
-        cand, theta0, _ = noise_designs[res.name]
-        design[cand.name] = noise_designs[res.name]
-        overrides = merge_overrides(cand.overrides(config, res.estimate), overrides)
+    if noise_result is not None and noise_result.accepted:
+        cand, theta0, _ = noise_design
+        design[cand.name] = noise_design
+        chosen = [cand.name] + chosen
+        overrides = merge_overrides(cand.overrides(config, noise_result.estimate), overrides)
         for j, key in enumerate(cand.keys):
-            parameters[key] = {"value": float(res.estimate[j]), "sigma": float(res.sigma[j]),
+            parameters[key] = {"value": float(noise_result.estimate[j]), "sigma": float(noise_result.sigma[j]),
                                "nominal": float(theta0[j]), "candidate": cand.name}
-    chosen = noise_chosen + chosen
     if chosen:
         updated = merge(config, overrides)
     timings["fit"] = _time.perf_counter() - t0
@@ -1193,69 +1184,41 @@ def _noise_columns(sess: _Session, cand: Candidate, theta0: np.ndarray) -> np.nd
     return np.array(cols).T
 
 
-def _noise_stage(sess: _Session, cands: list, replicas: np.ndarray, nom: np.ndarray, folds: list, m: int,
-                 iterations: int):
-    """Evidence and fit of the sensor-noise terms on the noise statistics alone (no other term
-    moves them): each term alone by GLS with the statistics' replica variance, the Bonferroni
-    threshold and the held-out blocks; the best by BIC, and a second one only if it passes the
-    same tests on top of it; the chosen values refined by re-simulation. Returns the design
-    triples {name: (candidate, nominal, columns)}, their CandidateResults (the chosen ones with
-    the refined estimate and sigma) and the chosen names."""
+def _noise_term(sess: _Session, cand: Candidate, replicas: np.ndarray, nom: np.ndarray, folds: list, m: int,
+                iterations: int):
+    """Evidence and fit of a sensor-noise term on the noise statistics alone (no other term
+    moves them): GLS with their replica variance, the Bonferroni threshold, held-out blocks,
+    and the value refined by re-simulation. Returns the (candidate, nominal, columns) design
+    triple and its CandidateResult (estimate and sigma: the refined fit)."""
     noisy = sess.noisy
-    n = int(noisy.sum())
+    theta0 = cand.nominal(sess.config)
+    cols = _noise_columns(sess, cand, theta0)
     variance, _ = _pooled_white(replicas[:, noisy], sess.table.groups[noisy], 4.0, nom[noisy])
     white = Whitener(np.diag(variance))
-    none = np.zeros((n, 0))
+    none = np.zeros((int(noisy.sum()), 0))
     r = sess.r[noisy]
-    sub_folds = [f[noisy] for f in folds]
-    whiteners = [(Whitener(np.diag(variance[f])), Whitener(np.diag(variance[~f]))) for f in sub_folds]
-    designs = {}
-    for cand in cands:
-        theta0 = cand.nominal(sess.config)
-        designs[cand.name] = (cand, theta0, _noise_columns(sess, cand, theta0))
     _, chi2_0, _ = gls(white(r), none)
-    results = []
-    for cand, theta0, cols in designs.values():
-        coef, chi2, cov = gls(white(r), white(cols[noisy]))
-        factor = max(1.0, chi2 / max(1, n - cand.size))      # statistics noisier than their replicas say
-        delta = (chi2_0 - chi2) / factor
-        res = CandidateResult(cand.name, cand.words, cand.keys, cand.units, cand.size, estimate=theta0 + coef,
-                              sigma=np.sqrt(np.abs(np.diag(cov)) * factor), delta_chi2=delta,
-                              statistic_threshold=float(stats.chi2.isf(ALPHA / m, cand.complexity)),
-                              bic_gain=delta - cand.complexity * math.log(max(n, 2)))
-        res.significant = delta > res.statistic_threshold
-        if res.significant:
-            res.heldout_gain = _cv_gain_on(r, cols[noisy], none, sub_folds, whiteners)
-            res.accepted = res.heldout_gain > 0
-            if not res.accepted:
-                res.note = "fits the session but does not predict held-out blocks"
-        results.append(res)
-    accepted = sorted([res for res in results if res.accepted], key=lambda res: -res.bic_gain)
-    chosen = [res.name for res in accepted[:1]]
-    if accepted:
-        first = designs[chosen[0]][2][noisy]
-        _, chi2_1, _ = gls(white(r), white(first))
-        for res in accepted[1:]:
-            cand, _, cols = designs[res.name]
-            both = np.hstack([first, cols[noisy]])
-            _, chi2_2, _ = gls(white(r), white(both))
-            delta = (chi2_1 - chi2_2) / max(1.0, chi2_2 / max(1, n - both.shape[1]))
-            if delta > res.statistic_threshold and \
-                    _cv_gain_on(r, both, none, sub_folds, whiteners) > _cv_gain_on(r, first, none, sub_folds, whiteners):
-                chosen.append(res.name)
-                break
-    if chosen:
-        terms = [designs[name] for name in chosen]
-        cols = np.hstack([t[2] for t in terms])[noisy]
-        _, chi2, _ = gls(white(r), white(cols))
-        theta, sigma, _ = _refine(sess, terms, white, np.zeros((len(noisy), 0)), iterations,
-                                  max(1.0, chi2 / max(1, n - cols.shape[1])), mask=noisy)
-        offset = 0
-        for name in chosen:
-            res = next(res for res in results if res.name == name)
-            res.estimate, res.sigma = theta[offset:offset + res.size], sigma[offset:offset + res.size]
-            offset += res.size
-    return designs, results, chosen
+    coef, chi2, cov = gls(white(r), white(cols[noisy]))
+    n = int(noisy.sum())
+    factor = max(1.0, chi2 / max(1, n - cand.size))      # statistics noisier than their replicas say
+    delta = (chi2_0 - chi2) / factor
+    res = CandidateResult(cand.name, cand.words, cand.keys, cand.units, cand.size, estimate=theta0 + coef,
+                          sigma=np.sqrt(np.abs(np.diag(cov)) * factor), delta_chi2=delta,
+                          statistic_threshold=float(stats.chi2.isf(ALPHA / m, cand.complexity)),
+                          bic_gain=delta - cand.complexity * math.log(max(n, 2)))
+    res.significant = delta > res.statistic_threshold
+    if res.significant:
+        sub_folds = [f[noisy] for f in folds]
+        whiteners = [(Whitener(np.diag(variance[f])), Whitener(np.diag(variance[~f]))) for f in sub_folds]
+        res.heldout_gain = _cv_gain_on(r, cols[noisy], none, sub_folds, whiteners)
+        res.accepted = res.heldout_gain > 0
+        if not res.accepted:
+            res.note = "fits the session but does not predict held-out blocks"
+    if res.accepted:
+        theta, sigma, _ = _refine(sess, [(cand, theta0, cols)], white, np.zeros((len(noisy), 0)), iterations,
+                                  factor, mask=noisy)
+        res.estimate, res.sigma = theta, sigma
+    return (cand, theta0, cols), res
 
 
 def _friction_region(design: dict, config: SimConfig, table: Table, r: np.ndarray, d_rec: np.ndarray,

@@ -16,8 +16,6 @@ every session made of the same commands; a feature is absent where its measureme
     - `line.dir`: half the shift that best aligns the forward and the backward height profile
       (positive: the particle appears further along the scan direction, as with a sensor
       latency; the whole profile counts, and shape changes both lines share cancel);
-    - `line.noise`: the height noise of one sample from the pair (`pair_noise`: the
-      sample-to-sample change of the two lines' difference on the substrate);
     - per run: `line.width`, `line.peak` (means over its lines) and `line.asym` (mean of the
       +u-side flank width minus the -u-side one: a tip with one blunter flank).
 - Rasters (`raster.*`): per particle (extract_landmarks; pixels <= 60 nm) its centroid x and y
@@ -42,7 +40,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.ndimage import maximum_filter1d
 
 from afm_core.localization.observation import find_crossings
 
@@ -57,7 +54,6 @@ SEGMENT = 250e-9                # m of path per torsion feature
 MATCH_RADIUS = 200e-9           # m, a landmark belongs to an anchor this close (after translation)
 SAME_POINT = 1e-12              # m
 CENTRE_LEVEL = 5e-9             # m above the substrate: a raster particle's centre weighs what rises above
-PAIR_NOISE_MARGIN = 10          # samples kept clear of a particle by the pair noise
 STREAK_MIN_LINES = 64           # images with fewer lines (or pixels per line) give no line-offset noise
 STREAK_BLOCK = 48               # lines per line-offset noise feature
 
@@ -259,11 +255,6 @@ def _run_features(run, common) -> list[Feature]:
                 if shift is not None:
                     out.append(Feature((key_op, "line.dir"), "line.dir", 0.5 * shift, t, px, py, (0.0, 0.0),
                                        cond(0.0, {"pair": True})))
-                noise = pair_noise(plus["coord"], plus["height"], minus["coord"], minus["height"],
-                                   shift if shift is not None else 0.0)
-                if noise is not None:
-                    out.append(Feature((key_op, "line.noise"), "line.noise", noise, t, px, py, (0.0, 0.0),
-                                       cond(0.0, {"pair": True})))
             k += 2
         else:
             k += 1
@@ -308,34 +299,6 @@ def _profile_shift(plus: dict, minus: dict, reach: float = 30e-9, step: float = 
     curvature = a - 2 * b + c
     offset = 0.5 * (a - c) / curvature if curvature > 0 else 0.0
     return float(shifts[k] + offset * step)
-
-
-def pair_noise(coord_a, height_a, coord_b, height_b, shift: float = 0.0, min_samples: int = 20):
-    """The height noise (m) of one sample, from a line scanned along +u (a) and straight back
-    (b) over the same path: on the substrate, clear of the particle, the two profiles share the
-    surface, so the sample-to-sample change of their difference is noise alone (white: 4
-    sigma^2 per step; the slow part of 1/f noise and the roughness cancel). `shift`: how much
-    further along +u line a sees the surface (m); b is moved by the whole samples nearest to it
-    (a fraction would interpolate, which smooths the noise). Robust spread / 2; None with
-    fewer than `min_samples` such steps."""
-    a_order, b_order = np.argsort(coord_a), np.argsort(coord_b)
-    ca, ha = np.asarray(coord_a, float)[a_order], np.asarray(height_a, float)[a_order]
-    cb, hb = np.asarray(coord_b, float)[b_order], np.asarray(height_b, float)[b_order]
-    spacing = float(np.median(np.diff(ca))) if ca.size > 1 else 0.0
-    moved = ca - (round(shift / spacing) * spacing if spacing > 0 else 0.0)
-    inside = (moved >= cb[0] - 1e-12) & (moved <= cb[-1] + 1e-12)
-    hb_at = np.interp(moved, cb, hb)
-    edge = max(3, int(EDGE_FRACTION * ha.size))
-    level_a = float(np.median(np.concatenate([ha[:edge], ha[-edge:]])))
-    level_b = float(np.median(np.concatenate([hb[:edge], hb[-edge:]])))
-    raised = (ha >= level_a + 3e-9) | (hb_at >= level_b + 3e-9)
-    # clear of the particle by PAIR_NOISE_MARGIN: near its foot a small shift between the two
-    # lines (latency, drift) makes a steep difference
-    flat = inside & ~maximum_filter1d(raised, 2 * PAIR_NOISE_MARGIN + 1)
-    steps = np.diff(ha - hb_at)[flat[1:] & flat[:-1]]
-    if steps.size < min_samples:
-        return None
-    return float(1.4826 * np.median(np.abs(steps - np.median(steps))) / 2.0)
 
 
 def match_anchors(points: np.ndarray, anchors: np.ndarray, radius: float = MATCH_RADIUS) -> dict:

@@ -399,10 +399,11 @@ class Replay:
     moves: list = field(default_factory=list)   # (time at the end of the move, distance m) of every free move
 
 
-def _drive_only(sim):
-    """Make `sim` skip imaging: scan lines and rasters drive the scanner exactly as they would
-    (same command samples, same timing) and return no data. For replays whose features come from
-    force traces only (deterministic: the skipped sensor noise draws change nothing else)."""
+def _drive_only(sim, rasters: bool = True):
+    """Make `sim` skip imaging: scan lines and (if `rasters`) rasters drive the scanner exactly
+    as they would (same command samples, same timing) and return no data. For replays whose
+    features come from force traces (deterministic: the skipped sensor noise draws change
+    nothing else) or from rasters only."""
     import types
 
     def local_scan(self, request, should_stop=None):
@@ -426,17 +427,18 @@ def _drive_only(sim):
         return None
 
     sim.local_scan = types.MethodType(local_scan, sim)
-    sim.raster_scan = types.MethodType(raster_scan, sim)
+    if rasters:
+        sim.raster_scan = types.MethodType(raster_scan, sim)
 
 
 def replay(operations, config: SimConfig, noise_seed: Optional[int] = None, drift=None,
-           imaging: bool = True, drives: Optional[dict] = None) -> Replay:
+           imaging: bool | str = True, drives: Optional[dict] = None) -> Replay:
     """Re-run `operations` on SimulatedAfm(config) at their recorded start times (the clock is
     held up to each start). noise_seed: re-seed the random parts (sensor noise, drift wander,
     positioning noise) while keeping the sample (its seed is config.seed). drift: an object with
     offset(t) and velocity(t) (e.g. TrajectoryDrift) used instead of the configured drift.
     imaging=False: scan lines and rasters only drive the scanner (no data; deterministic
-    configs only). drives: a dict to fill with, per operation index, the list of the scanner's
+    configs only); imaging="rasters": only the scan lines do. drives: a dict to fill with, per operation index, the list of the scanner's
     drive calls during it: (times, commanded x, y, true scanner x, y) arrays."""
     from afm_core.sim.drift import ThermalDrift
     from afm_core.sim.instrument import SimulatedAfm
@@ -448,8 +450,8 @@ def replay(operations, config: SimConfig, noise_seed: Optional[int] = None, drif
         sim.positioning_rng = np.random.default_rng(streams[2])
     if drift is not None:
         sim.drift = drift
-    if not imaging:
-        _drive_only(sim)
+    if imaging is not True:
+        _drive_only(sim, rasters=imaging != "rasters")
     moves: list = []
     original_move = sim.move_tip
     current = [-1]
