@@ -40,6 +40,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import median_abs_deviation
 
 from afm_core.localization.observation import find_crossings
 
@@ -385,7 +386,7 @@ def line_offset_noise(offsets: np.ndarray) -> float:
     offsets = np.asarray(offsets, float)
     index = np.arange(offsets.size)
     steps = np.diff(offsets - np.polyval(np.polyfit(index, offsets, 2), index))
-    return float(1.4826 * np.median(np.abs(steps - np.median(steps))) / math.sqrt(2))
+    return float(median_abs_deviation(steps, scale="normal") / math.sqrt(2))
 
 
 def _streak_features(op, h: np.ndarray, cond: dict) -> list[Feature]:
@@ -402,10 +403,10 @@ def _streak_features(op, h: np.ndarray, cond: dict) -> list[Feature]:
     starts = np.asarray(data.line_start_times, float)
     out = []
     for b, block in enumerate(np.array_split(np.arange(lines.shape[0]), lines.shape[0] // STREAK_BLOCK)):
-        mid = (block[0] + block[-1] + 1) / 2
-        slow = (data.origin_y + mid * data.pixel_size_y, data.origin_x + mid * data.pixel_size_x)
-        x, y = (data.origin_x + 0.5 * lines.shape[1] * data.pixel_size_x, slow[0]) if data.scan_angle_deg == 0.0 \
-            else (slow[1], data.origin_y + 0.5 * lines.shape[1] * data.pixel_size_y)
+        # where: the block's middle across the lines, the lines' middle along them
+        across, along = (block[0] + block[-1] + 1) / 2, lines.shape[1] / 2
+        col, row = (along, across) if data.scan_angle_deg == 0.0 else (across, along)
+        x, y = data.origin_x + col * data.pixel_size_x, data.origin_y + row * data.pixel_size_y
         t = float(data.start_time + np.nanmean(starts[block]) + 0.5 * data.line_period) \
             if np.isfinite(starts[block]).any() else float(data.start_time)
         out.append(Feature((op.index, f"raster.streak{b}"), "raster.streak", line_offset_noise(offsets[block]), t,

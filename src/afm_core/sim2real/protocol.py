@@ -438,7 +438,8 @@ def replay(operations, config: SimConfig, noise_seed: Optional[int] = None, drif
     positioning noise) while keeping the sample (its seed is config.seed). drift: an object with
     offset(t) and velocity(t) (e.g. TrajectoryDrift) used instead of the configured drift.
     imaging=False: scan lines and rasters only drive the scanner (no data; deterministic
-    configs only); imaging="rasters": only the scan lines do. drives: a dict to fill with, per operation index, the list of the scanner's
+    configs only); imaging="rasters": only the scan lines do. drives: a dict to fill with,
+    per operation index, the list of the scanner's
     drive calls during it: (times, commanded x, y, true scanner x, y) arrays."""
     from afm_core.sim.drift import ThermalDrift
     from afm_core.sim.instrument import SimulatedAfm
