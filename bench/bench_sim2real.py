@@ -124,11 +124,12 @@ def suite(model) -> list[Case]:
         return {"scanner.creep_time_constants": rng.choice([rng.uniform(1.8, 3.0), rng.uniform(0.3, 0.55)])}
     add("creep_time-0", "confounded", 235, "creep_time", creep_time)
 
-    def asymmetry(rng):
-        # the scanner's branches moved away from what the controller's feed-forward was
-        # calibrated with (a feed-forward with the scanner's own asymmetry inverts it exactly)
-        return {"controller.asymmetry_error": _sign(rng) * rng.uniform(0.05, 0.1)}
-    add("hysteresis_asymmetry-0", "masked", 250, "hysteresis_asymmetry", asymmetry)
+    for k in range(2):
+        def asymmetry(rng):
+            # the scanner's branches moved away from what the controller's feed-forward was
+            # calibrated with (a feed-forward with the scanner's own asymmetry inverts it exactly)
+            return {"controller.asymmetry_error": _sign(rng) * rng.uniform(0.05, 0.1)}
+        add(f"hysteresis_asymmetry-{k}", "masked", 250 + k, "hysteresis_asymmetry", asymmetry)
 
     def wear(rng):
         return {"tip.wear_rate": rng.uniform(3e-3, 1e-2)}

@@ -49,6 +49,11 @@ class Candidate:
     # parameters chosen from the data by a search rather than fitted (a region's four edges):
     # they count in the evidence's complexity penalty like fitted ones
     searched: int = 0
+    # a one-parameter term whose features bend within the plausible range (a feed-forward's
+    # asymmetry error scales positions by (a_c^2 - a_s^2), quadratic in the error): its column is
+    # the secant to whichever of these steps fits the recording best (the choice counts as one
+    # searched parameter); None: the derivative at the nominal value, by `steps`
+    trial_steps: list | None = None
 
     @property
     def size(self) -> int:
@@ -56,7 +61,7 @@ class Candidate:
 
     @property
     def complexity(self) -> int:
-        return self.size + self.searched
+        return self.size + self.searched + (1 if self.trial_steps else 0)
 
     def nominal(self, config: SimConfig) -> np.ndarray:
         values = []
@@ -191,10 +196,12 @@ def library() -> list[Candidate]:
         Candidate("hysteresis_asymmetry", "hysteresis: ascending and descending branches differ more (or less) "
                   "than the controller's feed-forward assumes (its calibrated asymmetry is off)",
                   ["controller.asymmetry_error"], [0.03], [""], lower=[-0.8], upper=[0.8], geometric=True,
+                  trial_steps=[-0.3, -0.1, -0.03, 0.03, 0.1, 0.3],
                   requires={"controller.hysteresis_compensation": True, "scanner.hysteresis_enabled": True}),
         Candidate("hysteresis_asymmetry_open_loop", "hysteresis: ascending and descending branches differ "
                   "(asymmetry, scanner driven open loop)",
                   ["scanner.hysteresis_asymmetry"], [0.05], [""], lower=[-0.8], upper=[0.8], geometric=True,
+                  trial_steps=[-0.3, -0.1, -0.03, 0.03, 0.1, 0.3],
                   requires={"controller.hysteresis_compensation": False, "scanner.hysteresis_enabled": True}),
         Candidate("hysteresis_width", "hysteresis: the loop is wider/narrower than calibrated",
                   ["scanner.hysteresis_fraction"], [0.01], ["of range"], lower=[0.0], upper=[0.33], geometric=True,

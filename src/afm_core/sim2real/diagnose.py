@@ -370,8 +370,11 @@ class Diagnosis:
 
     def summary(self) -> str:
         if not self.chosen:
-            return (f"no missing physics: residuals consistent with the noise model "
-                    f"(chi2 {self.overall['chi2']:.1f} for {self.overall['dof']} dof, p = {self.overall['p']:.3g})")
+            fit = f"chi2 {self.overall['chi2']:.1f} for {self.overall['dof']} dof, p = {self.overall['p']:.3g}"
+            if self.overall["p"] < ALPHA:
+                return (f"no candidate in the library explains the residual, which exceeds the noise model ({fit}): "
+                        "physics the library lacks or a noise model too optimistic (see where it deviates)")
+            return f"no missing physics: residuals consistent with the noise model ({fit})"
         parts = []
         for name in self.chosen:
             c = next(c for c in self.candidates if c.name == name)
@@ -883,6 +886,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     t0 = _time.perf_counter()
     design = {}
     height = np.isin(table.groups, HEIGHT_GROUPS + BOW_GROUPS)
+    white_model = Whitener(noise.cov)          # for choosing trial steps (before overdispersion)
     for cand in cands:
         theta0 = cand.nominal(config)
         if cand.analytic == "drift_velocity":
@@ -896,7 +900,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             cols = np.where(np.isin(table.groups, ("raster.bow_xx", "raster.bow_yy")), gain, 0.0)[:, None]
         else:
             say(f"sensitivity: {cand.name}")
-            cols = _simulated_columns(sess, cand, theta0, base, nom)
+            cols = _simulated_columns(sess, cand, theta0, base, nom, white_model, P)
             if isinstance(cols, str):
                 missing.append(f"{cand.name} ({cols})")
                 continue
@@ -1114,13 +1118,25 @@ def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: 
     theta = _clip_all(terms, theta0 + coef[P.shape[1]:] if start is None else start)
     linear = all(t[0].analytic in ("height_gain", "bow") for t in terms)
     residual = sess.residual(terms, theta)
-    for _ in range(0 if linear else iterations):
-        step, _, _ = gls(white(residual[mask]), xw)
+    # a term whose features bend: its column is the secant through the two re-simulated points
+    # nearest the current estimate (the secant method), not the fixed one
+    bending = len(terms) == 1 and bool(terms[0][0].trial_steps)
+    points = [(theta0.copy(), sess.r), (theta.copy(), residual)]
+    for _ in range(0 if linear else (max(iterations, 4) if bending else iterations)):
+        if bending:
+            other = min(points[:-1], key=lambda p: float(np.abs(p[0] - theta).sum()))
+            if np.all(other[0] != theta):
+                secant = ((other[1] - residual) / float((theta - other[0])[0]))[:, None]
+                xw = np.hstack([xw[:, :P.shape[1]], white(np.nan_to_num(secant)[mask])])
+        step, _, step_cov = gls(white(residual[mask]), xw)
         theta_new = _clip_all(terms, theta + step[P.shape[1]:])
+        if bending:       # the local slope sets the uncertainty
+            sig = np.sqrt(np.maximum(np.nan_to_num(np.diag(step_cov)[P.shape[1]:]), 0))
         if np.all(np.abs(theta_new - theta) <= 0.05 * np.maximum(sig, 1e-30)):
             break
         theta = theta_new
         residual = sess.residual(terms, theta)
+        points.append((theta.copy(), residual))
     return theta, sig * math.sqrt(variance_factor), residual
 
 
@@ -1152,23 +1168,44 @@ def _cv_gain_on(r, cols, P, folds, fold_whiteners) -> float:
     return gain
 
 
-def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base: SimConfig, nom: np.ndarray):
+def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base: SimConfig, nom: np.ndarray,
+                       white: Whitener | None = None, P: np.ndarray | None = None):
     """Design columns d features / d parameter by re-simulation at the recorded geometry
-    (one replay per parameter, stepped by the candidate's step), or a message saying why not."""
+    (one replay per parameter, stepped by the candidate's step), or a message saying why not.
+    A candidate with trial steps gets the secant to the step whose re-simulation leaves the
+    least chi^2 (whitened by `white`, after the nuisance columns P)."""
+
+    def change(theta):
+        sim = sess.features(cand.apply(base, theta), imaging=cand.imaging)
+        col = np.nan_to_num(sim - nom)
+        if not cand.imaging:
+            col[~sess.push] = 0.0
+        if cand.geometric:
+            col[sess.shape] = 0.0
+        return col
+
+    if cand.trial_steps and white is not None:
+        pw = white(P) if P is not None and P.size else np.zeros((len(nom), 0))
+        best = None
+        for step in cand.trial_steps:
+            try:
+                delta = change(theta0 + step)
+            except ValueError:              # this step leaves the parameter's valid range here
+                continue
+            chi2 = gls(white(sess.r - delta), pw)[1]
+            if best is None or chi2 < best[0]:
+                best = (chi2, step, delta)
+        if best is None:
+            return "not evaluated: every trial step is invalid for this config"
+        return (best[2] / best[1])[:, None]
     cols = []
     for j in range(cand.size):
         theta = theta0.copy()
         theta[j] += cand.steps[j]
         try:
-            sim = sess.features(cand.apply(base, theta), imaging=cand.imaging)
+            cols.append(change(theta) / cand.steps[j])
         except ValueError as exc:          # the stepped value is invalid for this config
             return f"not evaluated: {exc}"
-        col = np.nan_to_num((sim - nom) / cand.steps[j])
-        if not cand.imaging:
-            col[~sess.push] = 0.0
-        if cand.geometric:
-            col[sess.shape] = 0.0
-        cols.append(col)
     return np.array(cols).T
 
 
