@@ -346,3 +346,15 @@ def test_a_residual_beyond_the_noise_that_no_candidate_explains_is_not_called_co
     assert "consistent" not in d.summary() and "no candidate in the library explains" in d.summary()
     d.overall["p"] = 2 * ALPHA
     assert d.summary().startswith("no missing physics: residuals consistent with the noise model")
+
+
+def test_a_fit_outside_the_physical_range_cannot_name_a_term():
+    """A negative wear rate (a tip sharpening while it slides) or a static/kinetic friction ratio
+    below 1 is held to its bound, which is the model without the term: such a fit names
+    nothing. An unbounded term with a tiny value (a drift ramp in m/s^2) still acts."""
+    from afm_core.sim2real.diagnose import _can_act
+    lib = {c.name: c for c in library()}
+    assert not _can_act(lib["tip_wear"], np.array([0.0]), np.array([-3e-4]))
+    assert _can_act(lib["tip_wear"], np.array([0.0]), np.array([3e-4]))
+    assert not _can_act(lib["stick_slip"], np.array([1.0]), np.array([0.8]))
+    assert _can_act(lib["drift_ramp"], np.zeros(2), np.array([2e-13, 0.0]))

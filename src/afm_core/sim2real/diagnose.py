@@ -659,6 +659,7 @@ class _Session:
         self.r = self.recorded - reference + self.shift()
         self.r_before = self.r          # against the nominal model (a fitted noise level changes self.r)
         self.replays = 0
+        self._map_nominal = None
 
     def set_reference(self, reference: np.ndarray, bias: np.ndarray, noise_overrides: dict) -> None:
         """Judge the fits against another reference (replicas with a fitted noise level)."""
@@ -675,6 +676,16 @@ class _Session:
         exact = self.geo_rec - np.where(self.mapped, self.map.predict_all(
             self.keys, np.where(self.mapped[:, None], target, 0.0)), np.nan)
         return np.where(self.mapped, exact, linear)
+
+    def mapped_change(self, config) -> np.ndarray:
+        """How `config`'s scanner moves the mapped position features from the model's (at the
+        model's drift; 0 elsewhere), from its scanner map: no imaging, no pixel rounding."""
+        offsets = np.where(self.mapped[:, None], self.d_nom, 0.0)
+        if self._map_nominal is None:
+            self._map_nominal = self.map.predict_all(self.keys, offsets)
+        self.replays += 1
+        moved = ScannerMap(self.ops, self.f_rec, config, self.anchors).predict_all(self.keys, offsets)
+        return np.where(self.mapped, np.nan_to_num(moved - self._map_nominal), 0.0)
 
     def features(self, config, imaging=True) -> np.ndarray:
         self.replays += 1
@@ -948,7 +959,9 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                               estimate=theta0 + coef, sigma=np.sqrt(np.abs(np.diag(cov)) * variance_factor),
                               delta_chi2=delta, statistic_threshold=threshold,
                               bic_gain=delta - cand.complexity * math.log(n))
-        res.significant = delta > threshold
+        res.significant = delta > threshold and _can_act(cand, theta0, theta0 + coef)
+        if delta > threshold and not res.significant:
+            res.note = "its fit lies outside the term's physical range (e.g. a negative wear rate)"
         if res.significant:
             # a searched region is searched again on the training blocks alone
             res.heldout_gain = _cv_gain_on(r, region_columns if cand is region else cols, P, folds, fold_whiteners)
@@ -994,9 +1007,10 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             if res.name == chosen[0] or not res.significant or res.name not in design:
                 continue
             cand, theta0, cols = design[res.name]
-            _, chi2_2, _ = gls(r1w, np.hstack([pw, white(first_cols), white(cols)]))
+            coef_2, chi2_2, _ = gls(r1w, np.hstack([pw, white(first_cols), white(cols)]))
             delta = (chi2_1lin - chi2_2) / factor1
-            if delta > float(stats.chi2.isf(ALPHA / m, cand.complexity)):
+            if delta > float(stats.chi2.isf(ALPHA / m, cand.complexity)) and \
+                    _can_act(cand, theta0, theta0 + coef_2[-cand.size:]):
                 both = (lambda train, c=first_cols: _with_region(c, region_columns(train))) if cand is region \
                     else np.hstack([first_cols, cols])
                 gain = _cv_gain_on(r1, both, P, folds, fold_whiteners) - \
@@ -1074,6 +1088,12 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         drift={"times": drift.times, "offsets": drift.offsets,
                "nominal": nominal_drift(config, drift.times)},
     )
+
+
+def _can_act(cand: Candidate, theta0: np.ndarray, estimate: np.ndarray) -> bool:
+    """Whether the estimate, held to the term's physical range, still changes the model (a
+    tip that sharpens while sliding clips to no wear at all)."""
+    return bool(np.any(cand.clip(estimate) != theta0))
 
 
 def _group_overdispersion(r, P, columns, cov, groups, min_size: int = 5) -> dict:
@@ -1185,19 +1205,22 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
         return col
 
     if cand.trial_steps and white is not None:
+        # a scanner term is tried on the positions the scanner map predicts (a replay without
+        # imaging, a fraction of the cost), the chosen step then re-simulated in full
+        trial = sess.mapped_change if cand.geometric and sess.mapped.any() else change
         pw = white(P) if P is not None and P.size else np.zeros((len(nom), 0))
         best = None
         for step in cand.trial_steps:
             try:
-                delta = change(theta0 + step)
+                delta = trial(cand.apply(base, theta0 + step)) if trial is sess.mapped_change else change(theta0 + step)
             except ValueError:              # this step leaves the parameter's valid range here
                 continue
             chi2 = gls(white(sess.r - delta), pw)[1]
             if best is None or chi2 < best[0]:
-                best = (chi2, step, delta)
+                best = (chi2, step)
         if best is None:
             return "not evaluated: every trial step is invalid for this config"
-        return (best[2] / best[1])[:, None]
+        return (change(theta0 + best[1]) / best[1])[:, None]
     cols = []
     for j in range(cand.size):
         theta = theta0.copy()
