@@ -339,12 +339,12 @@ def test_feed_forward_asymmetry_error_is_named_with_its_size():
 
 
 def test_a_residual_beyond_the_noise_that_no_candidate_explains_is_not_called_consistent():
-    from afm_core.sim2real.diagnose import ALPHA, Diagnosis
+    from afm_core.sim2real.diagnose import UNEXPLAINED_P, Diagnosis
     d = Diagnosis(n_features=10, groups={}, overall={"chi2": 60.0, "dof": 10, "p": 1e-9}, where=[],
                   change_points=[], candidates=[], chosen=[], parameters={}, overrides={}, updated_config=None,
                   heldout={}, missing_candidates=[], timings={})
     assert "consistent" not in d.summary() and "no candidate in the library explains" in d.summary()
-    d.overall["p"] = 2 * ALPHA
+    d.overall["p"] = 2 * UNEXPLAINED_P
     assert d.summary().startswith("no missing physics: residuals consistent with the noise model")
 
 

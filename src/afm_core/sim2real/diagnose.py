@@ -75,6 +75,7 @@ from afm_core.sim2real.features import (POSITION_GROUPS, SEGMENT, STREAK_MIN_LIN
 from afm_core.sim2real.protocol import TrajectoryDrift, deterministic, replay
 
 ALPHA = 0.05                       # family-wise false "missing physics" rate on null recordings
+UNEXPLAINED_P = 1e-3               # overall chi^2 p below which a residual no term explains is not called noise
 MIN_MATCHED_FRACTION = 0.7         # of the recorded features the reference simulation must reproduce
 SHIFT = 10e-9                      # m, drift shift of the sensitivity replays
 POSITION_PRECISION = 2e-9          # m, how well a measured position pins the drift trajectory
@@ -371,7 +372,7 @@ class Diagnosis:
     def summary(self) -> str:
         if not self.chosen:
             fit = f"chi2 {self.overall['chi2']:.1f} for {self.overall['dof']} dof, p = {self.overall['p']:.3g}"
-            if self.overall["p"] < ALPHA:
+            if self.overall["p"] < UNEXPLAINED_P:
                 return (f"no candidate in the library explains the residual, which exceeds the noise model ({fit}): "
                         "physics the library lacks or a noise model too optimistic (see where it deviates)")
             return f"no missing physics: residuals consistent with the noise model ({fit})"
