@@ -1208,12 +1208,12 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
     if cand.trial_steps and white is not None:
         # a scanner term is tried on the positions the scanner map predicts (a replay without
         # imaging, a fraction of the cost), the chosen step then re-simulated in full
-        trial = sess.mapped_change if cand.geometric and sess.mapped.any() else change
+        on_map = cand.geometric and sess.mapped.any()
         pw = white(P) if P is not None and P.size else np.zeros((len(nom), 0))
         best = None
         for step in cand.trial_steps:
             try:
-                delta = trial(cand.apply(base, theta0 + step)) if trial is sess.mapped_change else change(theta0 + step)
+                delta = sess.mapped_change(cand.apply(base, theta0 + step)) if on_map else change(theta0 + step)
             except ValueError:              # this step leaves the parameter's valid range here
                 continue
             chi2 = gls(white(sess.r - delta), pw)[1]
