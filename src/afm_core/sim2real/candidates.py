@@ -171,6 +171,7 @@ def merge_overrides(a: dict, b: dict) -> dict:
 
 
 NM = (1e9, "nm")
+ASYMMETRY_TRIAL_STEPS = [-0.3, -0.1, -0.03, 0.03, 0.1, 0.3]    # both signs, a decade of sizes
 NM_S = (1e9, "nm/s")
 
 
@@ -196,12 +197,12 @@ def library() -> list[Candidate]:
         Candidate("hysteresis_asymmetry", "hysteresis: ascending and descending branches differ more (or less) "
                   "than the controller's feed-forward assumes (its calibrated asymmetry is off)",
                   ["controller.asymmetry_error"], [0.03], [""], lower=[-0.8], upper=[0.8], geometric=True,
-                  trial_steps=[-0.3, -0.1, -0.03, 0.03, 0.1, 0.3],
+                  trial_steps=ASYMMETRY_TRIAL_STEPS,
                   requires={"controller.hysteresis_compensation": True, "scanner.hysteresis_enabled": True}),
         Candidate("hysteresis_asymmetry_open_loop", "hysteresis: ascending and descending branches differ "
                   "(asymmetry, scanner driven open loop)",
                   ["scanner.hysteresis_asymmetry"], [0.05], [""], lower=[-0.8], upper=[0.8], geometric=True,
-                  trial_steps=[-0.3, -0.1, -0.03, 0.03, 0.1, 0.3],
+                  trial_steps=ASYMMETRY_TRIAL_STEPS,
                   requires={"controller.hysteresis_compensation": False, "scanner.hysteresis_enabled": True}),
         Candidate("hysteresis_width", "hysteresis: the loop is wider/narrower than calibrated",
                   ["scanner.hysteresis_fraction"], [0.01], ["of range"], lower=[0.0], upper=[0.33], geometric=True,

@@ -653,6 +653,7 @@ class _Session:
         self.d_rec = drift.offset(table.time)
         self.d_nom = nominal_drift(config, table.time)
         self.geo_rec = np.where(mapped, scanner_map.predict_all(keys, self.d_rec), np.nan)
+        self.geo_model = scanner_map.predict_all(keys, np.where(mapped[:, None], self.d_nom, 0.0))
         self.recorded = _values(f_rec, keys)
         self.shape = np.isin(table.groups, SHAPE_GROUPS)
         self.push = np.isin(table.groups, PUSH_GROUPS)
@@ -660,7 +661,6 @@ class _Session:
         self.r = self.recorded - reference + self.shift()
         self.r_before = self.r          # against the nominal model (a fitted noise level changes self.r)
         self.replays = 0
-        self._map_nominal = None
 
     def set_reference(self, reference: np.ndarray, bias: np.ndarray, noise_overrides: dict) -> None:
         """Judge the fits against another reference (replicas with a fitted noise level)."""
@@ -674,19 +674,18 @@ class _Session:
         linear = np.einsum("ij,ij->i", self.J, self.d_rec - target)
         if not self.mapped.any():
             return linear
-        exact = self.geo_rec - np.where(self.mapped, self.map.predict_all(
-            self.keys, np.where(self.mapped[:, None], target, 0.0)), np.nan)
+        at_target = self.geo_model if extra is None else self.map.predict_all(
+            self.keys, np.where(self.mapped[:, None], target, 0.0))
+        exact = self.geo_rec - np.where(self.mapped, at_target, np.nan)
         return np.where(self.mapped, exact, linear)
 
     def mapped_change(self, config) -> np.ndarray:
         """How `config`'s scanner moves the mapped position features from the model's (at the
         model's drift; 0 elsewhere), from its scanner map: no imaging, no pixel rounding."""
         offsets = np.where(self.mapped[:, None], self.d_nom, 0.0)
-        if self._map_nominal is None:
-            self._map_nominal = self.map.predict_all(self.keys, offsets)
         self.replays += 1
         moved = ScannerMap(self.ops, self.f_rec, config, self.anchors).predict_all(self.keys, offsets)
-        return np.where(self.mapped, np.nan_to_num(moved - self._map_nominal), 0.0)
+        return np.where(self.mapped, np.nan_to_num(moved - self.geo_model), 0.0)
 
     def features(self, config, imaging=True) -> np.ndarray:
         self.replays += 1
