@@ -99,6 +99,18 @@ def test_cancel_stops_a_scan_and_a_queued_goal_waits_its_turn(nodes):
         assert done.success
 
 
+def test_a_clients_readiness_probe_leaves_running_goals_alone(nodes):
+    # the probe is a cancel request: it must name no goal that exists, never "all goals"
+    nodes("driver", seed=2, real_time_factor=5.0)
+    with AfmCommander(server_timeout=30) as afm, AfmCommander("second_commander", server_timeout=30) as other:
+        scan = afm.send("scan_image", scan_goal(pixels=(32, 64), line_rate=4.0), wait=False)
+        wait_for(lambda: scan.feedback is not None, 60, what="scan started")
+        assert other.clients["scan_image"].wait_until_answering(30)
+        result = scan.result(120)
+        assert result.success, result.message
+        assert image_msg_to_array(result.scan.height).shape == (64, 32)
+
+
 def test_sim_clock_runs_ahead_of_wall_time(nodes, ros_node):
     clocks = []
     ros_node.create_subscription(Clock, "/clock", lambda m: clocks.append(m.clock.sec + m.clock.nanosec * 1e-9), 50)

@@ -6,18 +6,49 @@ of a MultiThreadedExecutor takes the response in between: the client logs "Ignor
 unexpected goal response" and the goal's future never completes. Upstream fixed it
 (rclpy#1308, backported in #1519) by holding one lock while a request is sent and recorded
 and while responses are taken; this subclass does the same until the wheels carry the fix.
+
+It also knows when a server really answers (wait_until_answering): the ROS graph can list a
+server whose process has just died, or one whose replies DDS has not matched to us yet, and a
+goal sent to either is lost without a word.
 """
 from __future__ import annotations
 
 import threading
+import time
+import uuid
 
 from rclpy.action import ActionClient
+from rclpy.action.client import ClientGoalHandle
+from unique_identifier_msgs.msg import UUID
 
 
 class SafeActionClient(ActionClient):
     def __init__(self, *args, **kwargs):
         self._request_lock = threading.RLock()
         super().__init__(*args, **kwargs)
+
+    _answered = False
+
+    def wait_until_answering(self, timeout_sec: float, probe_interval: float = 1.0) -> bool:
+        """True once a live server has answered this client; False after timeout_sec.
+
+        The probe is a cancel request for a goal id nobody has (the server answers "unknown
+        goal" and does nothing), repeated until one reply arrives: unlike resending a goal, a
+        lost probe cannot start anything twice. Goals, cancels and results are services of the
+        same server, created together, so an answered probe means its replies reach us."""
+        if self._answered:
+            return True
+        deadline = time.monotonic() + timeout_sec
+        if not self.wait_for_server(timeout_sec=timeout_sec):
+            return False
+        while (remaining := deadline - time.monotonic()) > 0:
+            nobodys_goal = ClientGoalHandle(self, UUID(uuid=list(uuid.uuid4().bytes)), None)
+            answered = threading.Event()
+            self._cancel_goal_async(nobodys_goal).add_done_callback(lambda _f: answered.set())
+            if answered.wait(min(probe_interval, remaining)):
+                self._answered = True
+                return True
+        return False
 
     def send_goal_async(self, *args, **kwargs):
         with self._request_lock:

@@ -83,7 +83,6 @@ class AfmCommander:
         self.clients = {name: SafeActionClient(self.node, action_type, action_name,
                                                feedback_sub_qos_profile=FEEDBACK)
                         for name, (action_type, action_name) in self.ACTIONS.items()}
-        self._ready: set[str] = set()
         self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
         self.executor.add_node(self.node)
         self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
@@ -93,14 +92,9 @@ class AfmCommander:
     def send(self, action: str, goal, feedback=None, wait: bool = True, timeout: float | None = None):
         """Send a goal; returns the result (wait=True) or a Job."""
         client = self.clients[action]
-        if action not in self._ready:
-            if not client.wait_for_server(timeout_sec=self.server_timeout):
-                raise AfmError(f"no action server at {self.ACTIONS[action][1]} after {self.server_timeout} s; "
-                               "is the graph running (`afm launch`)?")
-            # The server is seen a moment before DDS has matched its replies to us; a goal
-            # sent at once may get no answer.
-            time.sleep(0.5)
-            self._ready.add(action)
+        if not client.wait_until_answering(self.server_timeout):
+            raise AfmError(f"no action server at {self.ACTIONS[action][1]} answered within {self.server_timeout} s; "
+                           "is the graph running (`afm launch`)?")
         box: dict = {}
 
         def on_feedback(message):

@@ -13,7 +13,6 @@ driver reported (its results carry the executed TipCommand).
 from __future__ import annotations
 
 import threading
-import time
 from typing import Callable, Optional
 
 import numpy as np
@@ -55,9 +54,6 @@ def msg_to_force_trace(msg) -> ForceTraceData:
                           start_time=stamp_seconds(msg.header.stamp), task=msg.task, object_id=msg.object_id)
 
 
-_MATCHED: set[int] = set()
-
-
 def call_action(client, goal, server_timeout: float, result_timeout: float,
                 should_stop: Optional[Callable[[], bool]] = None):
     """Send a goal and block until its result (from a thread that is not spinning the node).
@@ -65,13 +61,8 @@ def call_action(client, goal, server_timeout: float, result_timeout: float,
     (cancelled) result still awaited. DriverUnavailable when the server is missing, rejects
     the goal or gives no result within result_timeout s."""
     name = client._action_name
-    if not client.wait_for_server(timeout_sec=server_timeout):
-        raise DriverUnavailable(f"action {name} not available after {server_timeout} s; is its node running?")
-    if id(client) not in _MATCHED:
-        # the server is seen a moment before DDS has matched its replies to us: a goal sent at
-        # once may go unanswered (and resending could run it twice)
-        time.sleep(0.5)
-        _MATCHED.add(id(client))
+    if not client.wait_until_answering(server_timeout):
+        raise DriverUnavailable(f"action {name} did not answer within {server_timeout} s; is its node running?")
     done = threading.Event()
     sent = client.send_goal_async(goal)
     sent.add_done_callback(lambda _f: done.set())
