@@ -79,6 +79,7 @@ UNEXPLAINED_P = 1e-3               # overall chi^2 p below which a residual no t
 MIN_MATCHED_FRACTION = 0.7         # of the recorded features the reference simulation must reproduce
 SHIFT = 10e-9                      # m, drift shift of the sensitivity replays
 POSITION_PRECISION = 2e-9          # m, how well a measured position pins the drift trajectory
+LOST_FEATURE_RETRIES = 2           # quarterings of a sensitivity step that made the re-simulation lose features
 REGION_MIN_STEP = 0.05             # smallest change of a friction region's factor its design column is taken over
 SHAPE_GROUPS = ("line.width", "line.peak", "line.asym", "raster.height", "raster.half_width")
 HEIGHT_GROUPS = ("line.peak", "raster.height")
@@ -1198,11 +1199,27 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
     def change(theta):
         sim = sess.features(cand.apply(base, theta), imaging=cand.imaging)
         col = np.nan_to_num(sim - nom)
+        lost = np.isnan(sim) & np.isfinite(nom)
         if not cand.imaging:
             col[~sess.push] = 0.0
+            lost &= sess.push
         if cand.geometric:
             col[sess.shape] = 0.0
-        return col
+            lost &= ~sess.shape
+        return col, lost
+
+    def secant(j, step):
+        """The column of parameter j by a step small enough that the re-simulation keeps every
+        feature: a feature it loses (a particle shifted out of a raster) has no change to
+        measure, and a zero there would claim the effect leaves it alone."""
+        for _ in range(LOST_FEATURE_RETRIES + 1):
+            theta = theta0.copy()
+            theta[j] += step
+            col, lost = change(theta)
+            if not lost.any():
+                break
+            step /= 4.0
+        return col / step
 
     if cand.trial_steps and white is not None:
         # a scanner term is tried on the positions the scanner map predicts (a replay without
@@ -1212,7 +1229,7 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
         best = None
         for step in cand.trial_steps:
             try:
-                delta = sess.mapped_change(cand.apply(base, theta0 + step)) if on_map else change(theta0 + step)
+                delta = sess.mapped_change(cand.apply(base, theta0 + step)) if on_map else change(theta0 + step)[0]
             except ValueError:              # this step leaves the parameter's valid range here
                 continue
             chi2 = gls(white(sess.r - delta), pw)[1]
@@ -1220,13 +1237,11 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
                 best = (chi2, step)
         if best is None:
             return "not evaluated: every trial step is invalid for this config"
-        return (change(theta0 + best[1]) / best[1])[:, None]
+        return (change(theta0 + best[1])[0] / best[1])[:, None]
     cols = []
     for j in range(cand.size):
-        theta = theta0.copy()
-        theta[j] += cand.steps[j]
         try:
-            cols.append(change(theta) / cand.steps[j])
+            cols.append(secant(j, cand.steps[j]))
         except ValueError as exc:          # the stepped value is invalid for this config
             return f"not evaluated: {exc}"
     return np.array(cols).T
