@@ -13,7 +13,7 @@ from afm_core.sim.config import load_config, merge
 from afm_core.sim2real import regions
 from afm_core.sim2real.candidates import FrictionRegion, available, library
 from afm_core.sim2real.diagnose import (ConfigMismatchError, NoiseModel, build_noise_model, diagnose,
-                                        drift_covariance, positioning_covariance)
+                                        drift_covariance, gls, positioning_covariance)
 from afm_core.sim2real.features import _same_segment
 from afm_core.sim2real.protocol import make_session, session_config
 
@@ -27,6 +27,21 @@ def test_drift_covariance_closed_form_small_times():
     t = np.array([10.0, 20.0, 40.0])
     cov = drift_covariance(t, 2e-10, 1e6)
     assert np.allclose(cov, 4e-20 * np.outer(t, t), rtol=1e-3)
+
+
+def test_gls_fits_columns_whatever_their_units():
+    """A drift ramp's column (m/s^2: ~1e12 per unit) beside a creep factor's (~1e-8): both are
+    fitted, with the closed-form covariance of orthogonal columns, 1 / |x|^2; a column that
+    repeats another is left out (coefficient 0, variance unknown)."""
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(2, 50))
+    b -= (a @ b) / (a @ a) * a
+    x = np.column_stack([1e12 * a, 1e-8 * b])
+    coef, chi2, cov = gls(3.1 * a + 2.0 * b, x)
+    assert coef == pytest.approx([3.1e-12, 2e8], rel=1e-9) and chi2 == pytest.approx(0.0, abs=1e-20)
+    assert np.diag(cov) == pytest.approx(1.0 / np.sum(x ** 2, axis=0), rel=1e-9)
+    coef, _, cov = gls(x[:, 0], np.column_stack([x[:, 0], 2.0 * x[:, 0]]))
+    assert coef == pytest.approx([1.0, 0.0]) and np.isnan(cov[1, 1])
 
 
 def test_positioning_covariance_is_a_random_walk():

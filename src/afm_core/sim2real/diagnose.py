@@ -80,6 +80,7 @@ MIN_MATCHED_FRACTION = 0.7         # of the recorded features the reference simu
 SHIFT = 10e-9                      # m, drift shift of the sensitivity replays
 POSITION_PRECISION = 2e-9          # m, how well a measured position pins the drift trajectory
 LOST_FEATURE_RETRIES = 2           # quarterings of a sensitivity step that made the re-simulation lose features
+COLLINEAR = 1e-9                   # |R_jj| of a unit-norm column below which it repeats the others
 REGION_MIN_STEP = 0.05             # smallest change of a friction region's factor its design column is taken over
 SHAPE_GROUPS = ("line.width", "line.peak", "line.asym", "raster.height", "raster.half_width")
 HEIGHT_GROUPS = ("line.peak", "raster.height")
@@ -314,15 +315,21 @@ def gls(rw: np.ndarray, xw: np.ndarray):
     """(coefficients, chi^2, covariance of the coefficients) of the whitened problem."""
     if xw.shape[1] == 0:
         return np.zeros(0), float(rw @ rw), np.zeros((0, 0))
-    q, rr = np.linalg.qr(xw)
-    keep = np.abs(np.diag(rr)) > 1e-12 * max(1.0, np.abs(np.diag(rr)).max())
+    # columns in their parameters' units differ by twenty orders of magnitude (a drift ramp in
+    # m/s^2 beside a creep factor): judged at unit norm, only a column that repeats the
+    # others is left out, never one that is merely small
+    norms = np.linalg.norm(xw, axis=0)
+    scale = np.where(norms > 0, norms, 1.0)
+    unit = xw / scale
+    _, rr = np.linalg.qr(unit)
+    keep = (np.abs(np.diag(rr)) > COLLINEAR) & (norms > 0)
     coef = np.zeros(xw.shape[1])
     cov = np.full((xw.shape[1], xw.shape[1]), np.nan)
     if keep.any():
-        sub = xw[:, keep]
+        sub = unit[:, keep]
         c, *_ = np.linalg.lstsq(sub, rw, rcond=None)
-        coef[keep] = c
-        cov[np.ix_(keep, keep)] = np.linalg.pinv(sub.T @ sub)
+        coef[keep] = c / scale[keep]
+        cov[np.ix_(keep, keep)] = np.linalg.pinv(sub.T @ sub) / np.outer(scale[keep], scale[keep])
     resid = rw - xw @ coef
     return coef, float(resid @ resid), cov
 
