@@ -1219,14 +1219,13 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
         """The column of parameter j by a step small enough that the re-simulation keeps every
         feature: a feature it loses (a particle shifted out of a raster) has no change to
         measure, and a zero there would claim the effect leaves it alone."""
-        for _ in range(LOST_FEATURE_RETRIES + 1):
+        for attempt in range(LOST_FEATURE_RETRIES + 1):
             theta = theta0.copy()
             theta[j] += step
             col, lost = change(theta)
-            if not lost.any():
-                break
+            if not lost.any() or attempt == LOST_FEATURE_RETRIES:
+                return col / step
             step /= 4.0
-        return col / step
 
     if cand.trial_steps and white is not None:
         # a scanner term is tried on the positions the scanner map predicts (a replay without
