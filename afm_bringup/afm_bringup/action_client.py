@@ -25,9 +25,8 @@ from unique_identifier_msgs.msg import UUID
 class SafeActionClient(ActionClient):
     def __init__(self, *args, **kwargs):
         self._request_lock = threading.RLock()
+        self._answered = False
         super().__init__(*args, **kwargs)
-
-    _answered = False
 
     def wait_until_answering(self, timeout_sec: float, probe_interval: float = 1.0) -> bool:
         """True once a live server has answered this client; False after timeout_sec.

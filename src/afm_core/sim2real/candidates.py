@@ -171,8 +171,8 @@ def merge_overrides(a: dict, b: dict) -> dict:
 
 
 NM = (1e9, "nm")
-ASYMMETRY_TRIAL_STEPS = [-0.3, -0.1, -0.03, 0.03, 0.1, 0.3]    # both signs, a decade of sizes
 NM_S = (1e9, "nm/s")
+ASYMMETRY_TRIAL_STEPS = [-0.3, -0.1, -0.03, 0.03, 0.1, 0.3]    # both signs, a decade of sizes
 
 
 def library() -> list[Candidate]:
