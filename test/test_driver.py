@@ -11,6 +11,7 @@ from rosgraph_msgs.msg import Clock
 
 from afm_bringup.commander import AfmCommander, AfmError
 from afm_bringup.conversions import image_msg_to_array
+from afm_bringup.qos_profiles import LATCHED
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_msgs.msg import GroundTruth
 from conftest import wait_for
@@ -37,7 +38,8 @@ def driver(nodes):
 
 def test_scan_line_move_push_and_indent_through_actions(driver, ros_node):
     truths = []
-    ros_node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, 10)
+    # latched: the goals may all finish before DDS has matched this subscription
+    ros_node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
     with AfmCommander(server_timeout=30) as afm:
         feedback = []
         result = afm.send("scan_image", scan_goal(), feedback=lambda f: feedback.append(f.lines_done))
