@@ -368,6 +368,22 @@ def test_sensor_latency_is_fitted_from_the_scan_direction_shift_alone():
     assert d.parameters["noise.sensor_latency"]["value"] == pytest.approx(5e-3, rel=0.2)
 
 
+def test_slower_creep_is_named_without_a_second_term_its_joint_fit_leaves_at_the_model():
+    """Creep time constants 2.4 x the model's: the first term's refined fit leaves a residual the
+    linear test on top of it attributes to a tip radius, which fitted together with the creep
+    stays at the model's 20 nm (0.03 nm off, 1 sigma). A second term named must differ from the
+    model in its own joint fit: creep time is named alone, within 20 % of the change."""
+    seed = 235
+    nominal = _nominal(seed)
+    factor = 2.4
+    truth = merge(nominal, {"scanner": {"creep_time_constants":
+                                        [factor * t for t in nominal.scanner.creep_time_constants]}})
+    d = diagnose(make_session(truth, protocol_seed=seed), nominal)
+    assert d.chosen == ["creep_time"], d.summary()
+    fitted = d.parameters["scanner.creep_time_constants"]["value"]
+    assert abs(fitted - factor) <= 0.2 * (factor - 1), fitted
+
+
 def test_a_residual_beyond_the_noise_that_no_candidate_explains_is_not_called_consistent():
     from afm_core.sim2real.diagnose import UNEXPLAINED_P, Diagnosis
     d = Diagnosis(n_features=10, groups={}, overall={"chi2": 60.0, "dof": 10, "p": 1e-9}, where=[],

@@ -994,8 +994,8 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         if accepted[0].bic_gain - res.bic_gain > 0.5 * max(accepted[0].bic_gain, 1.0) and res is not accepted[0]:
             continue            # far behind the leader: not worth the re-simulations
         say(f"re-simulating the fit of {res.name}")
-        theta, sigma, resid = _refine(sess, [design[res.name]], white, P, refine_iterations, variance_factor)
-        refined[res.name] = (theta, resid, resim_chi2(resid), sigma)
+        theta, cov, resid = _refine(sess, [design[res.name]], white, P, refine_iterations, variance_factor)
+        refined[res.name] = (theta, resid, resim_chi2(resid), _sigma(cov))
         res.note = (res.note + f" re-simulated chi2 {refined[res.name][2]:.1f}").strip()
     if refined:
         scores = {name: (chi2_0 - v[2]) / variance_factor - design[name][0].complexity * math.log(n)
@@ -1028,6 +1028,23 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                     best_second = (res.name, score)
         if best_second is not None:
             chosen.append(best_second[0])
+            second = design[best_second[0]]
+            say("refining " + ", ".join(chosen))
+            joint_theta, joint_cov, _ = _refine(sess, [design[chosen[0]], second], white, P, refine_iterations,
+                                                variance_factor, start=np.concatenate([theta1, second[1]]))
+            # the test above is linear, on the first term's residual; a term whose joint
+            # re-simulated fit lies within its threshold of the model only soaked up what the
+            # first term's refinement had left (its reported value would not differ from the model)
+            part = slice(first_cand.size, None)
+            change = joint_theta[part] - second[1]
+            wald = float(change @ np.linalg.pinv(joint_cov[part, part]) @ change)
+            if wald > float(stats.chi2.isf(ALPHA / m, second[0].complexity)):
+                joint = (joint_theta, _sigma(joint_cov))
+            else:
+                chosen.pop()
+                next(c for c in results if c.name == best_second[0]).note += (
+                    f" second to {chosen[0]} in the linear test, but its joint re-simulated fit is within "
+                    f"its threshold of the model (Wald chi2 {wald:.1f})")
 
     # where: the nominal model's residual after the nuisance fit, by condition
     r_seen = sess.r_before
@@ -1040,13 +1057,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     t0 = _time.perf_counter()
     parameters, overrides, updated = {}, {}, None
     if chosen:
-        terms = [design[c] for c in chosen]
-        if len(chosen) == 1:
-            theta, _, _, sigma = refined[chosen[0]]
-        else:
-            say("refining " + ", ".join(chosen))
-            theta, sigma, _ = _refine(sess, terms, white, P, refine_iterations, variance_factor,
-                                      start=np.concatenate([refined[chosen[0]][0], design[chosen[1]][1]]))
+        theta, sigma = (refined[chosen[0]][0], refined[chosen[0]][3]) if len(chosen) == 1 else joint
         offset = 0
         for name in chosen:
             cand, theta0, _ = design[name]
@@ -1135,14 +1146,15 @@ def _group_overdispersion(r, P, columns, cov, groups, min_size: int = 5) -> dict
 def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: np.ndarray | None = None,
             start: np.ndarray | None = None):
     """Chord iterations: theta += (J^T W J)^-1 J^T W r(theta), r by re-simulation.
-    Returns (theta, sigma, residual at theta)."""
+    Returns (theta, its covariance scaled by variance_factor, residual at theta)."""
     n = len(sess.keys)
     mask = np.ones(n, bool) if mask is None else mask
     cols = np.hstack([t[2] for t in terms])
     theta0 = np.concatenate([t[1] for t in terms])
     xw = np.hstack([white(P[mask]) if P.size else np.zeros((mask.sum(), 0)), white(cols[mask])])
     coef, _, cov = gls(white(sess.r[mask]), xw)
-    sig = np.sqrt(np.maximum(np.nan_to_num(np.diag(cov)[P.shape[1]:]), 0))
+    cov_theta = np.nan_to_num(cov[P.shape[1]:, P.shape[1]:])
+    sig = np.sqrt(np.maximum(np.diag(cov_theta), 0))
     theta = _clip_all(terms, theta0 + coef[P.shape[1]:] if start is None else start)
     linear = all(t[0].analytic in ("height_gain", "bow") for t in terms)
     residual = sess.residual(terms, theta)
@@ -1159,13 +1171,18 @@ def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: 
         step, _, step_cov = gls(white(residual[mask]), xw)
         theta_new = _clip_all(terms, theta + step[P.shape[1]:])
         if bending:       # the local slope sets the uncertainty
-            sig = np.sqrt(np.maximum(np.nan_to_num(np.diag(step_cov)[P.shape[1]:]), 0))
+            cov_theta = np.nan_to_num(step_cov[P.shape[1]:, P.shape[1]:])
+            sig = np.sqrt(np.maximum(np.diag(cov_theta), 0))
         if np.all(np.abs(theta_new - theta) <= 0.05 * np.maximum(sig, 1e-30)):
             break
         theta = theta_new
         residual = sess.residual(terms, theta)
         points.append((theta.copy(), residual))
-    return theta, sig * math.sqrt(variance_factor), residual
+    return theta, cov_theta * variance_factor, residual
+
+
+def _sigma(cov: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))
 
 
 def _with_region(first: np.ndarray, region: np.ndarray | None) -> np.ndarray:
@@ -1296,9 +1313,9 @@ def _noise_term(sess: _Session, cand: Candidate, replicas: np.ndarray, nom: np.n
         if not res.accepted:
             res.note = "fits the session but does not predict held-out blocks"
     if res.accepted:
-        theta, sigma, _ = _refine(sess, [(cand, theta0, cols)], white, np.zeros((len(noisy), 0)), iterations,
-                                  factor, mask=noisy)
-        res.estimate, res.sigma = theta, sigma
+        theta, cov, _ = _refine(sess, [(cand, theta0, cols)], white, np.zeros((len(noisy), 0)), iterations,
+                                factor, mask=noisy)
+        res.estimate, res.sigma = theta, _sigma(cov)
     return (cand, theta0, cols), res
 
 
