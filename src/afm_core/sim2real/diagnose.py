@@ -387,10 +387,20 @@ class Diagnosis:
         parts = []
         for name in self.chosen:
             c = next(c for c in self.candidates if c.name == name)
-            values = ", ".join(f"{k.split('.')[-1]} = {v['value']:.4g} +- {v['sigma']:.2g} (model {v['nominal']:.4g})"
+            values = ", ".join(f"{k.split('.')[-1]} = {v['value']:.4g} +- {v['sigma']:.2g} (model {v['nominal']:.4g}"
+                               f"{'; ' + UNRESOLVED if unresolved(v) else ''})"
                                for k, v in self.parameters.items() if v.get("candidate") == name)
             parts.append(f"{c.words}: {values}")
         return "missing physics: " + "; ".join(parts)
+
+
+UNRESOLVED = "within 2 sigma of the model: this session cannot tell"
+
+
+def unresolved(parameter: dict) -> bool:
+    """Whether a fitted parameter of a named term is within 2 sigma of the model's value (one
+    component of a drift whose other one is clear, say: left for the lab to judge, not news)."""
+    return abs(parameter["value"] - parameter["nominal"]) < 2 * parameter["sigma"]
 
 
 # -- the recorded drift trajectory ----------------------------------------------------------------

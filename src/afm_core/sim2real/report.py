@@ -7,6 +7,7 @@ import numpy as np
 import yaml
 
 from afm_core.sim.config import dump_config
+from afm_core.sim2real.diagnose import UNRESOLVED, unresolved
 
 GROUP_UNITS = {"line.mid": (1e9, "nm"), "raster.x": (1e9, "nm"), "raster.y": (1e9, "nm"),
                "line.flank_diff": (1e9, "nm"), "raster.height": (1e9, "nm"), "raster.half_width": (1e9, "nm"),
@@ -22,6 +23,8 @@ def _figures(diagnosis, out: Path) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     res = diagnosis.residuals
+    if not res:                    # nothing was compared: nothing to plot
+        return []
     table, r, sigma = res["table"], res["r"], res["sigma"]
     after = res.get("after")
     test = diagnosis.heldout.get("test")
@@ -121,7 +124,8 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
     if diagnosis.chosen:
         lines += ["| config key | fitted | +- | model had |", "|---|---|---|---|"]
         for key, p in diagnosis.parameters.items():
-            lines.append(f"| `{key}` | {p['value']:.5g} | {p['sigma']:.2g} | {p['nominal']:.5g} |")
+            note = f" ({UNRESOLVED})" if unresolved(p) else ""
+            lines.append(f"| `{key}` | {p['value']:.5g} | {p['sigma']:.2g}{note} | {p['nominal']:.5g} |")
         lines += ["", "Updated configuration: `updated_config.yaml` (only the changed keys: `overrides.yaml`)."]
         (out / "updated_config.yaml").write_text(dump_config(diagnosis.updated_config))
     else:
