@@ -227,8 +227,9 @@ def run_case(case: Case, workdir: str) -> dict:
     if row["correct"]:
         true_vec, fit_vec, nominal_vec, sigma_vec = [], [], [], []
         for key, value in case.truth.items():
-            fitted = diagnosis.parameters.get(key, {}).get("value", math.nan)
-            sigma_vec.append(diagnosis.parameters.get(key, {}).get("sigma", math.nan))
+            named = diagnosis.parameters.get(key, {})
+            fitted = named.get("value", math.nan)
+            sigma_vec.append(named.get("sigma", math.nan))
             nominal = 1.0 if key in SCALED_KEYS + (REGION_SCALE_KEY,) else float(_nominal_of(model, key))
             if key == "tip.wear_rate" and not model.tip.wear_enabled:
                 nominal = 0.0

@@ -1011,6 +1011,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         scores = {name: (chi2_0 - v[2]) / variance_factor - design[name][0].complexity * math.log(n)
                   for name, v in refined.items()}
         chosen = [max(scores, key=scores.get)]
+        final_theta, final_sigma = refined[chosen[0]][0], refined[chosen[0]][3]
     timings["compare"] = _time.perf_counter() - t0
 
     # a second term on top of the first, tested on the re-simulated residual of the first
@@ -1027,7 +1028,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             cand, theta0, cols = design[res.name]
             coef_2, chi2_2, _ = gls(r1w, np.hstack([pw, white(first_cols), white(cols)]))
             delta = (chi2_1lin - chi2_2) / factor1
-            if delta > float(stats.chi2.isf(ALPHA / m, cand.complexity)) and \
+            if delta > res.statistic_threshold and \
                     _can_act(cand, theta0, theta0 + coef_2[-cand.size:]):
                 both = (lambda train, c=first_cols: _with_region(c, region_columns(train))) if cand is region \
                     else np.hstack([first_cols, cols])
@@ -1035,10 +1036,11 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                     _cv_gain_on(r1, first_cols, P, folds, fold_whiteners)
                 score = delta - cand.complexity * math.log(n)
                 if gain > 0 and (best_second is None or score > best_second[1]):
-                    best_second = (res.name, score)
+                    best_second = (res, score)
         if best_second is not None:
-            chosen.append(best_second[0])
-            second = design[best_second[0]]
+            second_res = best_second[0]
+            chosen.append(second_res.name)
+            second = design[second_res.name]
             say("refining " + ", ".join(chosen))
             joint_theta, joint_cov, _ = _refine(sess, [design[chosen[0]], second], white, P, refine_iterations,
                                                 variance_factor, start=np.concatenate([theta1, second[1]]))
@@ -1048,11 +1050,11 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             part = slice(first_cand.size, None)
             change = joint_theta[part] - second[1]
             wald = float(change @ np.linalg.pinv(joint_cov[part, part]) @ change)
-            if wald > float(stats.chi2.isf(ALPHA / m, second[0].complexity)):
-                joint = (joint_theta, _sigma(joint_cov))
+            if wald > second_res.statistic_threshold:
+                final_theta, final_sigma = joint_theta, _sigma(joint_cov)
             else:
                 chosen.pop()
-                next(c for c in results if c.name == best_second[0]).note += (
+                second_res.note += (
                     f" second to {chosen[0]} in the linear test, but its joint re-simulated fit is within "
                     f"its threshold of the model (Wald chi2 {wald:.1f})")
 
@@ -1067,7 +1069,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     t0 = _time.perf_counter()
     parameters, overrides, updated = {}, {}, None
     if chosen:
-        theta, sigma = (refined[chosen[0]][0], refined[chosen[0]][3]) if len(chosen) == 1 else joint
+        theta, sigma = final_theta, final_sigma
         offset = 0
         for name in chosen:
             cand, theta0, _ = design[name]
@@ -1155,8 +1157,8 @@ def _group_overdispersion(r, P, columns, cov, groups, min_size: int = 5) -> dict
 
 def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: np.ndarray | None = None,
             start: np.ndarray | None = None):
-    """Chord iterations: theta += (J^T W J)^-1 J^T W r(theta), r by re-simulation.
-    Returns (theta, its covariance scaled by variance_factor, residual at theta)."""
+    """Gauss-Newton iterations theta += (J^T W J)^-1 J^T W r(theta), r by re-simulation, J the
+    design columns (a one-parameter simulated term: the secant, below). Returns (theta, its covariance scaled by variance_factor, residual at theta)."""
     n = len(sess.keys)
     mask = np.ones(n, bool) if mask is None else mask
     cols = np.hstack([t[2] for t in terms])
@@ -1164,7 +1166,6 @@ def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: 
     xw = np.hstack([white(P[mask]) if P.size else np.zeros((mask.sum(), 0)), white(cols[mask])])
     coef, _, cov = gls(white(sess.r[mask]), xw)
     cov_theta = np.nan_to_num(cov[P.shape[1]:, P.shape[1]:])
-    sig = np.sqrt(np.maximum(np.diag(cov_theta), 0))
     theta = _clip_all(terms, theta0 + coef[P.shape[1]:] if start is None else start)
     linear = all(t[0].analytic in ("height_gain", "bow") for t in terms)
     residual = sess.residual(terms, theta)
@@ -1172,20 +1173,19 @@ def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: 
     # points nearest the current estimate (the secant method), not the one taken at the model's
     # value: where the features bend, the chord iterations with that fixed column creep towards
     # the fit (a tip asymmetry of 0.27 stopped at 0.29 after two) and its slope sets sigma
-    bending = len(terms) == 1 and terms[0][0].size == 1 and not terms[0][0].analytic
+    by_secant = len(terms) == 1 and terms[0][0].size == 1 and not terms[0][0].analytic
     points = [(theta0.copy(), sess.r), (theta.copy(), residual)]
-    for _ in range(0 if linear else (max(iterations, 4) if bending and terms[0][0].trial_steps else iterations)):
-        if bending:
+    for _ in range(0 if linear else (max(iterations, 4) if by_secant and terms[0][0].trial_steps else iterations)):
+        if by_secant:
             other = min(points[:-1], key=lambda p: float(np.abs(p[0] - theta).sum()))
             if np.all(other[0] != theta):
                 secant = ((other[1] - residual) / float((theta - other[0])[0]))[:, None]
                 xw = np.hstack([xw[:, :P.shape[1]], white(np.nan_to_num(secant)[mask])])
         step, _, step_cov = gls(white(residual[mask]), xw)
         theta_new = _clip_all(terms, theta + step[P.shape[1]:])
-        if bending:       # the local slope sets the uncertainty
+        if by_secant:     # the local slope sets the uncertainty
             cov_theta = np.nan_to_num(step_cov[P.shape[1]:, P.shape[1]:])
-            sig = np.sqrt(np.maximum(np.diag(cov_theta), 0))
-        if np.all(np.abs(theta_new - theta) <= 0.05 * np.maximum(sig, 1e-30)):
+        if np.all(np.abs(theta_new - theta) <= 0.05 * np.maximum(_sigma(cov_theta), 1e-30)):
             break
         theta = theta_new
         residual = sess.residual(terms, theta)
