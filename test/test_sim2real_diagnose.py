@@ -11,7 +11,7 @@ import yaml
 
 from afm_core.sim.config import load_config, merge
 from afm_core.sim2real import regions
-from afm_core.sim2real.candidates import FrictionRegion, available, library
+from afm_core.sim2real.candidates import FrictionRegion, available, library, select
 from afm_core.sim2real.diagnose import (ConfigMismatchError, NoiseModel, build_noise_model, diagnose,
                                         drift_covariance, gls, positioning_covariance)
 from afm_core.sim2real.features import _same_segment
@@ -199,10 +199,13 @@ def test_null_session_reports_no_missing_physics(null_diagnosis, tmp_path):
 
 
 def test_blunter_tip_is_named_with_its_radius(tmp_path):
+    """Against the terms that also change a particle's apparent width or height (the null
+    session is the one diagnosed against the whole library)."""
     seed = 7
     truth = merge(_nominal(seed), {"tip": {"apex_radius": 26e-9}})
     ops = make_session(truth, protocol_seed=seed)
-    d = diagnose(ops, _nominal(seed))
+    d = diagnose(ops, _nominal(seed), candidates=select(("tip_radius", "tip_wear", "tip_asymmetry", "height_gain",
+                                                         "bow", "latency")))
     assert d.chosen and d.chosen[0] == "tip_radius", d.summary()
     fitted = d.parameters["tip.apex_radius"]["value"]
     # parameter error: of the change the model was missing (6 nm) and of the value
@@ -220,11 +223,12 @@ def test_friction_patch_is_named_with_its_place_and_factor():
     """Tip-substrate friction 1.8 x inside a patch the slides partly cross (x from 55.9 um on,
     the slide rows end at 56.9 um): named as a region, not as the global friction, with its
     factor within 20 % of the change and its left edge between the slide segments next to
-    the true one (segments are 250 nm long)."""
+    the true one (segments are 250 nm long). Against the terms that change the lateral force."""
     seed = 5
     region = {"x0": 55.9e-6, "y0": 53.5e-6, "x1": 57.5e-6, "y1": 54.9e-6, "mu_tip_substrate_scale": 1.8}
     truth = merge(_nominal(seed), {"contact": {"friction_regions": [region]}})
-    d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed))
+    d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed),
+                 candidates=select(("friction", "stick_slip", "tip_wear", "tip_radius", "latency")))
     assert d.chosen and d.chosen[0] == "friction_region", d.summary()
     fitted = d.parameters["contact.friction_regions[-1].mu_tip_substrate_scale"]["value"]
     assert abs(fitted - 1.8) <= 0.2 * 0.8, fitted
@@ -326,10 +330,12 @@ def test_pink_noise_takes_its_draws_whatever_its_level():
 
 def test_coloured_noise_is_named_alone_with_its_level(tmp_path):
     """1/f height noise 2.5 x the model's: named first and alone (the noisier images must not
-    pass for a scanner bow), its level within 20 % of the change, the held-out blocks improve."""
+    pass for a scanner bow), its level within 20 % of the change, the held-out blocks improve.
+    Against the terms that change measured heights."""
     seed = 13
     truth = merge(_nominal(seed), {"noise": {"height_flicker_sigma": 0.5e-9}})
-    d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed))
+    d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed),
+                 candidates=select(("coloured_noise", "bow", "height_gain", "tip_radius", "rotation", "latency")))
     assert d.chosen == ["coloured_noise"], d.summary()
     fitted = d.parameters["noise.height_flicker_sigma"]["value"]
     assert abs(fitted - 0.5e-9) <= 0.2 * 0.3e-9, fitted
@@ -363,10 +369,9 @@ def test_sensor_latency_is_fitted_from_the_scan_direction_shift_alone():
     the lag leaves in place. Against its confounders (creep also lags a reversed scan) latency
     is named alone, within 20 %."""
     seed = 17
-    lib = {c.name: c for c in library()}
     truth = merge(_nominal(seed), {"noise": {"sensor_latency": 5e-3}})
     d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed),
-                 candidates=[lib["latency"], lib["creep_amplitude"], lib["creep_time"]])
+                 candidates=select(("latency", "creep_amplitude", "creep_time")))
     assert d.chosen == ["latency"], d.summary()
     assert d.parameters["noise.sensor_latency"]["value"] == pytest.approx(5e-3, rel=0.2)
 
@@ -382,10 +387,8 @@ def test_slower_creep_is_named_without_a_second_term_its_joint_fit_leaves_at_the
     factor = 2.4
     truth = merge(nominal, {"scanner": {"creep_time_constants":
                                         [factor * t for t in nominal.scanner.creep_time_constants]}})
-    lib = {c.name: c for c in library()}
     d = diagnose(make_session(truth, protocol_seed=seed), nominal,
-                 candidates=[lib[name] for name in ("creep_time", "creep_amplitude", "drift_velocity", "tip_radius",
-                                                    "height_gain")])
+                 candidates=select(("creep_time", "creep_amplitude", "drift_velocity", "tip_radius", "height_gain")))
     assert d.chosen == ["creep_time"], d.summary()
     fitted = d.parameters["scanner.creep_time_constants"]["value"]
     assert abs(fitted - factor) <= 0.2 * (factor - 1), fitted
@@ -399,9 +402,8 @@ def test_asymmetric_tip_is_fitted_to_within_its_reported_uncertainty():
     seed = 273
     nominal = _nominal(seed)
     truth = merge(nominal, {"tip": {"asymmetry": 0.27}})
-    lib = {c.name: c for c in library()}
     d = diagnose(make_session(truth, protocol_seed=seed), nominal,
-                 candidates=[lib[name] for name in ("tip_asymmetry", "tip_radius", "latency", "height_gain")])
+                 candidates=select(("tip_asymmetry", "tip_radius", "latency", "height_gain")))
     assert d.chosen and d.chosen[0] == "tip_asymmetry", d.summary()
     fitted = d.parameters["tip.asymmetry"]
     assert abs(fitted["value"] - 0.27) <= 0.2 * 0.27, fitted
@@ -451,3 +453,27 @@ def test_a_fit_outside_the_physical_range_cannot_name_a_term():
     assert _can_act(lib["tip_wear"], np.array([0.0]), np.array([3e-4]))
     assert not _can_act(lib["stick_slip"], np.array([1.0]), np.array([0.8]))
     assert _can_act(lib["drift_ramp"], np.zeros(2), np.array([2e-13, 0.0]))
+
+
+def test_effects_select_library_terms_by_name_and_refuse_unknown_ones():
+    names = [c.name for c in library()]
+    assert [c.name for c in select(None)] == names == [c.name for c in select([])]
+    assert [c.name for c in select(["tip_wear", "drift_velocity"])] == ["drift_velocity", "tip_wear"]
+    with pytest.raises(ValueError, match=r"effects: unknown 'tip_raduis'.*tip_radius"):
+        select(["tip_radius", "tip_raduis"])
+
+
+def test_a_diagnosis_against_some_terms_says_which_were_left_out(tmp_path):
+    """The summary and the report name the terms a request left out, so 'no candidate explains'
+    is not read as 'the library has nothing'."""
+    from afm_core.sim2real.report import write_report
+    seed = 3
+    ops = make_session(_nominal(seed), protocol_seed=seed, blocks=1)
+    d = diagnose(ops, _nominal(seed), candidates=select(["height_gain"]))
+    left_out = [c.name for c in library() if c.name != "height_gain"]
+    assert d.not_considered == left_out
+    assert [c.name for c in d.candidates if c.name in left_out] == []
+    d.overall["p"] = 0.0          # as if the residual exceeded the noise model
+    assert f"({len(left_out)} library terms left out)" in d.summary()
+    text = write_report(d, tmp_path).read_text()
+    assert "Not considered (left out by the request): " + ", ".join(left_out) in text

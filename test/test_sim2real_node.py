@@ -14,6 +14,8 @@ from afm_core.sim2real.protocol import run_protocol, session_config
 from afm_msgs.action import Sim2Real
 
 TRUE_APEX = 26e-9          # the model says 20 nm
+# the terms that change a particle's apparent size (the whole library is the diagnosis tests' job)
+SIZE_TERMS = ["tip_radius", "tip_wear", "tip_asymmetry", "height_gain"]
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +45,7 @@ def test_the_action_names_the_blunter_tip_and_refuses_what_it_cannot_do(session,
     with AfmCommander("sim2real_test", server_timeout=30.0) as afm:
         phases = []
         result = afm.send("sim2real", Sim2Real.Goal(recording=str(session / "session.mcap"),
-                                                    report_dir=str(session / "report")),
+                                                    report_dir=str(session / "report"), effects=SIZE_TERMS),
                           feedback=lambda f: phases.append(f.phase), timeout=240.0)
         assert result.success, result.message
         assert result.missing_physics and "tip radius" in result.effects[0]
@@ -55,11 +57,15 @@ def test_the_action_names_the_blunter_tip_and_refuses_what_it_cannot_do(session,
         assert phases, "no feedback"
 
         # no recording named: a snapshot of the live .part file
-        result = afm.send("sim2real", Sim2Real.Goal(), timeout=240.0)
+        result = afm.send("sim2real", Sim2Real.Goal(effects=SIZE_TERMS), timeout=240.0)
         assert result.success, result.message
         assert "snapshot of live.mcap.part" in result.message
         assert (session / "live.mcap.part").read_bytes() == data[: int(len(data) * 0.8)]   # left alone
 
+        result = afm.send("sim2real", Sim2Real.Goal(recording=str(session / "session.mcap"), effects=["tip_raduis"],
+                                                    report_dir=str(session / "misspelt")), timeout=30.0)
+        assert not result.success and "effects: unknown 'tip_raduis'" in result.message
+        assert not (session / "misspelt").exists()
         result = afm.send("sim2real", Sim2Real.Goal(recording=str(session / "nope.mcap")), timeout=30.0)
         assert not result.success and "recording=" in result.message and "no such file" in result.message
         shutil.copy(session / "model.yaml", session / "broken.yaml")
@@ -94,3 +100,5 @@ def test_cli_refuses_bad_input_with_the_reason(session, tmp_path):
     (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 3])
     code, err = run(tmp_path / "cut.mcap", "--model", session / "model.yaml", "--report", tmp_path / "r2")
     assert code != 0 and "cut.mcap" in err
+    code, err = run(session / "session.mcap", "--effects", "tip_radius,friktion", "--report", tmp_path / "r3")
+    assert code != 0 and "effects: unknown 'friktion'" in err and "friction" in err and not (tmp_path / "r3").exists()

@@ -211,7 +211,8 @@ def cmd_sim2real(args):
             print(f"  {phase}", file=sys.stderr, flush=True)
 
     try:
-        diagnosis = run_sim2real(args.recording, args.model or None, report, progress=progress)
+        diagnosis = run_sim2real(args.recording, args.model or None, report, progress=progress,
+                                 effects=[e for e in args.effects.split(",") if e.strip()])
     except (ValueError, OSError, RuntimeError) as exc:
         sys.exit(f"afm sim2real: {exc}")
     print(diagnosis.summary())
@@ -338,6 +339,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("recording", help="MCAP recording (needs /afm/tip_command and the measurements)")
     p.add_argument("--model", default="", help="simulator configuration YAML (default: the simulator's defaults)")
     p.add_argument("--report", required=True, help="folder for the report (created)")
+    p.add_argument("--effects", default="", metavar="NAME,NAME",
+                   help="consider only these library terms, e.g. tip_radius,tip_wear (default: all of them; "
+                        "fewer terms run faster)")
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty report folder")
     p.add_argument("--verbose", "-v", action="store_true", help="print each analysis step")
     p.set_defaults(func=cmd_sim2real)

@@ -95,7 +95,7 @@ class Sim2RealNode(Node):
             try:
                 # a snapshot ends wherever the recorder had got to: its last command may lack its data
                 diagnosis = run_sim2real(recording, model, report_dir, progress=progress,
-                                         missing_data="skip" if note else "error")
+                                         missing_data="skip" if note else "error", effects=list(goal.effects))
             except Cancelled:
                 goal_handle.canceled()
                 result.message = "cancelled; nothing written beyond what the report folder already had"

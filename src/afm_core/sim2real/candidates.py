@@ -236,6 +236,21 @@ def library() -> list[Candidate]:
     ]
 
 
+def select(effects=None) -> list[Candidate]:
+    """The library's candidates named in `effects` (names as in library(), e.g. "tip_radius"),
+    in library order; None or empty: the whole library. A lab that suspects its tip diagnoses
+    against the tip's terms only, in a fraction of the time (the others are not re-simulated)."""
+    lib = library()
+    if not effects:
+        return lib
+    names = [str(e).strip() for e in effects]
+    unknown = [n for n in names if n not in {c.name for c in lib}]
+    if unknown:
+        raise ValueError(f"effects: unknown {', '.join(repr(n) for n in unknown)}; the library has "
+                         + ", ".join(c.name for c in lib))
+    return [c for c in lib if c.name in names]
+
+
 def available(config: SimConfig, candidates=None) -> tuple[list[Candidate], list[str]]:
     """(candidates whose keys this config has and that can act in it, notes on the others)."""
     candidates = library() if candidates is None else candidates

@@ -69,7 +69,8 @@ from scipy import linalg, stats
 from afm_core.sim.config import SimConfig, load_config, merge
 from afm_core.sim.imaging import pink_noise
 from afm_core.sim2real import regions
-from afm_core.sim2real.candidates import Candidate, FrictionRegion, available, has_key, merge_overrides
+from afm_core.sim2real.candidates import (Candidate, FrictionRegion, available, has_key, library, merge_overrides,
+                                         select)
 from afm_core.sim2real.features import (POSITION_GROUPS, SEGMENT, STREAK_MIN_LINES, Feature, FeatureExtractor,
                                         extract_features)
 from afm_core.sim2real.protocol import TrajectoryDrift, deterministic, replay
@@ -372,6 +373,7 @@ class Diagnosis:
     residuals: dict = field(default_factory=dict)   # arrays for plots
     message: str = ""
     drift: dict = field(default_factory=dict)       # the recorded drift trajectory (times, offsets)
+    not_considered: list = field(default_factory=list)   # library terms left out by the caller
 
     @property
     def missing_physics(self) -> bool:
@@ -381,7 +383,9 @@ class Diagnosis:
         if not self.chosen:
             fit = f"chi2 {self.overall['chi2']:.1f} for {self.overall['dof']} dof, p = {self.overall['p']:.3g}"
             if self.overall["p"] < UNEXPLAINED_P:
-                return (f"no candidate in the library explains the residual, which exceeds the noise model ({fit}): "
+                among = (f"of those considered ({len(self.not_considered)} library terms left out)"
+                         if self.not_considered else "in the library")
+                return (f"no candidate {among} explains the residual, which exceeds the noise model ({fit}): "
                         "physics the library lacks or a noise model too optimistic (see where it deviates)")
             return f"no missing physics: residuals consistent with the noise model ({fit})"
         parts = []
@@ -1114,6 +1118,8 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                  "group_factors": group_factors},
         where=where, change_points=change_points, candidates=results, chosen=chosen, parameters=parameters,
         overrides=overrides, updated_config=updated, heldout=heldout, missing_candidates=missing, timings=timings,
+        not_considered=[] if candidates is None else
+        [c.name for c in library() if c.name not in {cand.name for cand in candidates}],
         residuals={"table": table, "r": r_seen, "e": e, "sigma": np.sqrt(np.diag(noise.cov)), "folds": folds,
                    "after": heldout.get("r_after")},
         drift={"times": drift.times, "offsets": drift.offsets,
@@ -1478,15 +1484,17 @@ def _where(table: Table, e: np.ndarray, cov: np.ndarray, variance_factor: float 
 # -- entry point ------------------------------------------------------------------------------------
 
 def run_sim2real(recording_path, config_path, report_dir, progress=None, missing_data: str = "error",
-                 **kw) -> Diagnosis:
+                 effects=None, **kw) -> Diagnosis:
     """Read a recording (MCAP), diagnose it against the simulator config, write the report and
     the updated config into report_dir. Raises ValueError subclasses with clear messages.
     missing_data="skip" leaves out commands whose measurement is not in the file (a snapshot
-    of a recording still being written ends mid-operation); "error" refuses them."""
+    of a recording still being written ends mid-operation); "error" refuses them. `effects`:
+    names of library terms to consider (candidates.select), None or empty: all of them."""
     from afm_core.sim2real.report import write_report
     recording_path = Path(recording_path)
     if not recording_path.is_file():
         raise FileNotFoundError(f"recording {str(recording_path)!r} does not exist")
+    candidates = select(effects)          # before the reading: a misspelt effect costs nothing
     config = load_config(config_path) if config_path is not None else load_config()
     try:
         from afm_core.sim2real.session import read_operations
@@ -1494,7 +1502,7 @@ def run_sim2real(recording_path, config_path, report_dir, progress=None, missing
         raise RuntimeError(f"the recording reader (afm_core.sim2real.session) is not available: {exc}") from exc
     with read_operations(recording_path, missing_data=missing_data) as operations:
         try:
-            diagnosis = diagnose(operations, config, progress=progress, **kw)
+            diagnosis = diagnose(operations, config, progress=progress, candidates=candidates, **kw)
         except NoFeaturesError as exc:
             raise NoFeaturesError(f"recording {str(recording_path)!r}: {exc}") from exc
     write_report(diagnosis, Path(report_dir), config=config, recording=str(recording_path))

@@ -117,6 +117,8 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
                      f"{c.bic_gain:.1f} | {c.heldout_gain:.1f} | {'yes' if c.accepted else 'no'} {c.note} |")
     if diagnosis.missing_candidates:
         lines += ["", "Not available in this simulator configuration: " + ", ".join(diagnosis.missing_candidates)]
+    if diagnosis.not_considered:
+        lines += ["", "Not considered (left out by the request): " + ", ".join(diagnosis.not_considered)]
     if "candidates.png" in figures:
         lines += ["", "![candidates](candidates.png)"]
 
