@@ -244,7 +244,8 @@ def select(effects=None) -> list[Candidate]:
     if not effects:
         return lib
     names = [str(e).strip() for e in effects]
-    unknown = [n for n in names if n not in {c.name for c in lib}]
+    known = {c.name for c in lib}
+    unknown = [n for n in names if n not in known]
     if unknown:
         raise ValueError(f"effects: unknown {', '.join(repr(n) for n in unknown)}; the library has "
                          + ", ".join(c.name for c in lib))

@@ -1019,7 +1019,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     timings["compare"] = _time.perf_counter() - t0
 
     # a second term on top of the first, tested on the re-simulated residual of the first
-    heldout_done = ((), None)          # (terms, their held-out check) when a second term needed it
+    checked = {}                       # chosen terms -> their held-out check, made for a second term
     if chosen:
         first_cand, first_theta0, first_cols = design[chosen[0]]
         theta1, r1, chi2_1, _ = refined[chosen[0]]
@@ -1055,8 +1055,8 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             part = slice(first_cand.size, None)
             change = joint_theta[part] - second[1]
             wald = float(change @ np.linalg.pinv(joint_cov[part, part]) @ change)
-            if wald <= second_res.statistic_threshold:
-                chosen.pop()
+            keep = wald > second_res.statistic_threshold
+            if not keep:
                 second_res.note += (
                     f" second to {chosen[0]} in the linear test, but its joint re-simulated fit is within "
                     f"its threshold of the model (Wald chi2 {wald:.1f})")
@@ -1067,20 +1067,19 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                 # hysteresis loop doubled the held-out residual). It must predict the held-out
                 # blocks better than the first term alone.
                 say("held-out check of " + ", ".join(chosen))
-                pair = _heldout(sess, [design[chosen[0]], second], noise, P, folds[0], refine_iterations,
-                                joint_theta)
-                alone = _heldout(sess, [design[chosen[0]]], noise, P, folds[0], refine_iterations, theta1)
-                if pair["chi2_after"] < alone["chi2_after"]:
-                    final_theta, final_sigma = joint_theta, _sigma(joint_cov)
-                    heldout_done = (tuple(chosen), pair)
-                else:
-                    chosen.pop()
-                    heldout_done = (tuple(chosen), alone)
+                pair = checked[tuple(chosen)] = _heldout(sess, [design[chosen[0]], second], noise, P, folds[0],
+                                                         refine_iterations, joint_theta)
+                alone = checked[tuple(chosen[:1])] = _heldout(sess, [design[chosen[0]]], noise, P, folds[0],
+                                                              refine_iterations, theta1)
+                keep = pair["chi2_after"] < alone["chi2_after"]
+                if not keep:
                     second_res.note += (
                         f" second to {chosen[0]}, but the held-out blocks fit worse with it (chi2 "
                         f"{pair['chi2_after']:.1f}, {alone['chi2_after']:.1f} with {chosen[0]} alone)")
-            else:
+            if keep:
                 final_theta, final_sigma = joint_theta, _sigma(joint_cov)
+            else:
+                chosen.pop()
 
     # where: the nominal model's residual after the nuisance fit, by condition
     r_seen = sess.r_before
@@ -1121,7 +1120,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     if chosen and heldout_resimulation:
         say("held-out check")
         start = np.array([parameters[key]["value"] for name in chosen for key in design[name][0].keys])
-        heldout = heldout_done[1] if heldout_done[0] == tuple(chosen) else \
+        heldout = checked.get(tuple(chosen)) or \
             _heldout(sess, [design[c] for c in chosen], noise, P, folds[0], refine_iterations, start)
     elif not chosen:
         test = folds[1]
@@ -1139,8 +1138,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                  "group_factors": group_factors},
         where=where, change_points=change_points, candidates=results, chosen=chosen, parameters=parameters,
         overrides=overrides, updated_config=updated, heldout=heldout, missing_candidates=missing, timings=timings,
-        not_considered=[] if candidates is None else
-        [c.name for c in library() if c.name not in {cand.name for cand in candidates}],
+        not_considered=_left_out(candidates),
         residuals={"table": table, "r": r_seen, "e": e, "sigma": np.sqrt(np.diag(noise.cov)), "folds": folds,
                    "after": heldout.get("r_after")},
         drift={"times": drift.times, "offsets": drift.offsets,
@@ -1152,6 +1150,12 @@ def _can_act(cand: Candidate, theta0: np.ndarray, estimate: np.ndarray) -> bool:
     """Whether the estimate, held to the term's physical range, still changes the model (a
     tip that sharpens while sliding clips to no wear at all)."""
     return bool(np.any(cand.clip(estimate) != theta0))
+
+
+def _left_out(candidates) -> list[str]:
+    """Names of the library terms a caller's candidate list leaves out (None: the library)."""
+    given = {c.name for c in (library() if candidates is None else candidates)}
+    return [c.name for c in library() if c.name not in given]
 
 
 def _group_overdispersion(r, P, columns, cov, groups, min_size: int = 5) -> dict:
@@ -1185,7 +1189,8 @@ def _group_overdispersion(r, P, columns, cov, groups, min_size: int = 5) -> dict
 def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: np.ndarray | None = None,
             start: np.ndarray | None = None):
     """Gauss-Newton iterations theta += (J^T W J)^-1 J^T W r(theta), r by re-simulation, J the
-    design columns (a one-parameter simulated term: the secant, below). Returns (theta, its covariance scaled by variance_factor, residual at theta)."""
+    design columns (a one-parameter simulated term: the secant, below). Returns (theta, its
+    covariance scaled by variance_factor, residual at theta)."""
     n = len(sess.keys)
     mask = np.ones(n, bool) if mask is None else mask
     cols = np.hstack([t[2] for t in terms])
