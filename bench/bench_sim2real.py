@@ -10,8 +10,8 @@ point, `run_sim2real(recording, model.yaml, report_dir)`, diagnoses it.
 Categories (issue 8's list):
 - null: nothing missing (a third of the suite);
 - small: an effect below the noise of any single measurement but systematic (drift ramp,
-  z-sensor gain, latency, tip asymmetry, bow, coloured z noise: a different noise level hides
-  in every single measurement's noise);
+  z-sensor gain, latency, tip asymmetry, bow, coloured and white z noise: a different noise
+  level hides in every single measurement's noise);
 - masked: under a larger modelled effect (creep change under the modelled drift and its
   wander; hysteresis asymmetry under the symmetric loop width);
 - confounded: drift velocity vs creep (both grow with time, only creep with dwell after a
@@ -187,6 +187,12 @@ def suite(model) -> list[Case]:
             return {"noise.height_flicker_sigma": rng.uniform(0.4e-9, 0.8e-9) if rng.random() < 0.5
                     else rng.uniform(0.0, 0.08e-9)}
         add(f"coloured_noise-{k}", "small", 276 + k, "coloured_noise", coloured)
+
+        def white(rng):
+            # more white z noise than modelled (a noisier detector, a faster scan's bandwidth) or less
+            return {"noise.height_white_sigma": rng.uniform(0.45e-9, 0.9e-9) if rng.random() < 0.5
+                    else rng.uniform(0.1e-9, 0.24e-9)}
+        add(f"white_noise-{k}", "small", 278 + k, "white_noise", white)
     return cases
 
 

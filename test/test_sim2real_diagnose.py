@@ -291,6 +291,26 @@ def test_streak_features_measure_whole_line_offsets_along_the_scan_lines():
     assert small == []
 
 
+def test_pixel_noise_is_the_white_noise_whatever_the_streaks_and_a_few_particles():
+    """Pixels with white noise of sd w under line offsets (streaks of sd 0.5 nm) and bumps 50 nm
+    high on 2 % of the image: per block of 48 lines the pixel-to-pixel noise is w (within the
+    MAD's sampling error); the offsets change nothing; at 90 deg along the columns."""
+    from afm_core.sim2real.features import STREAK_BLOCK, extract_features
+    rng = np.random.default_rng(6)
+    white, n_lines, n_pixels = 0.3e-9, 4 * STREAK_BLOCK, 192
+    image = rng.normal(0.0, white, (n_lines, n_pixels))
+    streaked = image + rng.normal(0.0, 0.5e-9, n_lines)[:, None]
+    streaked[rng.random(image.shape) < 0.02] += 50e-9
+    for angle, height in ((0.0, streaked), (90.0, streaked.T.copy())):
+        pixel = [f.value for f in extract_features([_raster_op(height, angle)]) if f.group == "raster.pixel_noise"]
+        assert len(pixel) == 4
+        assert abs(np.mean(pixel) - white) < 0.06 * white, pixel
+    plain = [f.value for f in extract_features([_raster_op(image)]) if f.group == "raster.pixel_noise"]
+    offsets_only = [f.value for f in extract_features([_raster_op(image + rng.normal(0.0, 0.5e-9, n_lines)[:, None])])
+                    if f.group == "raster.pixel_noise"]
+    assert offsets_only == pytest.approx(plain, rel=1e-9)
+
+
 def test_background_curvature_noise_follows_the_sensor_noise_model():
     """The variance of a bare image's fitted curvature that white and 1/f sensor noise give
     (diagnose._bow_sensor_variance) against the curvature of 400 noise images made as the
@@ -331,11 +351,12 @@ def test_pink_noise_takes_its_draws_whatever_its_level():
 def test_coloured_noise_is_named_alone_with_its_level(tmp_path):
     """1/f height noise 2.5 x the model's: named first and alone (the noisier images must not
     pass for a scanner bow), its level within 20 % of the change, the held-out blocks improve.
-    Against the terms that change measured heights."""
+    Against the white noise and the terms that change measured heights."""
     seed = 13
     truth = merge(_nominal(seed), {"noise": {"height_flicker_sigma": 0.5e-9}})
     d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed),
-                 candidates=select(("coloured_noise", "bow", "height_gain", "tip_radius", "rotation", "latency")))
+                 candidates=select(("coloured_noise", "white_noise", "bow", "height_gain", "tip_radius", "rotation",
+                                    "latency")))
     assert d.chosen == ["coloured_noise"], d.summary()
     fitted = d.parameters["noise.height_flicker_sigma"]["value"]
     assert abs(fitted - 0.5e-9) <= 0.2 * 0.3e-9, fitted
@@ -343,6 +364,26 @@ def test_coloured_noise_is_named_alone_with_its_level(tmp_path):
     from afm_core.sim2real.report import write_report
     write_report(d, tmp_path, config=_nominal(seed))
     assert load_config(tmp_path / "updated_config.yaml").noise.height_flicker_sigma == pytest.approx(fitted)
+
+
+def test_white_noise_is_named_alone_with_its_level_not_as_coloured_noise():
+    """White height noise 2 x the model's: it raises the line-offset noise a little too, so the
+    coloured noise alone would pass for it (as it did before the white term existed), and the
+    noisier line profiles would let a tip or scanner term take the rest. Named first and alone,
+    within 20 % of the change and within 3 sigma of the truth, held-out blocks improve."""
+    seed = 14
+    model = _nominal(seed)
+    true_sigma = 2 * model.noise.height_white_sigma
+    truth = merge(model, {"noise": {"height_white_sigma": true_sigma}})
+    d = diagnose(make_session(truth, protocol_seed=seed), model,
+                 candidates=select(("white_noise", "coloured_noise", "tip_radius", "hysteresis_width")))
+    assert d.chosen == ["white_noise"], d.summary()
+    fitted = d.parameters["noise.height_white_sigma"]
+    assert abs(fitted["value"] - true_sigma) <= 0.2 * (true_sigma - model.noise.height_white_sigma), fitted
+    assert abs(fitted["value"] - true_sigma) <= 3 * fitted["sigma"], fitted
+    coloured = next(c for c in d.candidates if c.name == "coloured_noise")
+    assert not coloured.accepted
+    assert d.heldout["chi2_after"] < d.heldout["chi2_before"]
 
 
 def test_feed_forward_asymmetry_error_is_named_with_its_size():
@@ -354,7 +395,7 @@ def test_feed_forward_asymmetry_error_is_named_with_its_size():
     shift every particle alike)."""
     seed = 11
     truth = merge(_nominal(seed), {"controller": {"asymmetry_error": -0.07}})
-    positional = [c for c in library() if not c.name.startswith(("tip_", "friction", "stick_slip", "coloured"))]
+    positional = [c for c in library() if not c.name.startswith(("tip_", "friction", "stick_slip", "coloured", "white"))]
     d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed), candidates=positional)
     assert d.chosen and d.chosen[0] == "hysteresis_asymmetry", d.summary()
     fitted = d.parameters["controller.asymmetry_error"]["value"]

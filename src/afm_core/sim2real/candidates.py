@@ -36,7 +36,7 @@ class Candidate:
     # analytic: the columns follow in closed form from the reference ("drift_velocity",
     #   "drift_ramp": positions move by J t, J t^2 / 2; "height_gain": heights scale; "bow":
     #   the background curvature adds the curvature);
-    # sensor_noise: it changes only the noise, so only noise statistics (line-offset noise) move;
+    # sensor_noise: it changes only the noise, so only noise statistics (line-offset and pixel noise) move;
     #   its columns and fits come from re-simulations with sensor noise on, with the noise
     #   replicas' seeds (only the noise level differs between them);
     # imaging=False: only force traces change (a replay without imaging suffices).
@@ -227,6 +227,9 @@ def library() -> list[Candidate]:
                   enable={"contact.stick_slip_enabled": True}, lower=[1.0], imaging=False),
         Candidate("height_gain", "z-sensor gain: heights are scaled (z calibration off)", ["noise.height_gain"],
                   [0.02], [""], lower=[0.1], upper=[10.0], analytic="height_gain"),
+        Candidate("white_noise", "white z noise: the height signal is noisier (or quieter) from pixel to pixel "
+                  "than modelled (grainy images; a sample rougher at the pixel scale than modelled looks alike)",
+                  ["noise.height_white_sigma"], [0.1e-9], ["m"], lower=[0.0], display=[NM], analytic="sensor_noise"),
         Candidate("coloured_noise", "coloured (1/f) z noise: the height signal wanders more (or less) than "
                   "modelled (whole scan lines offset from their neighbours: streaks in images)",
                   ["noise.height_flicker_sigma"], [0.1e-9], ["m"], lower=[0.0], display=[NM],

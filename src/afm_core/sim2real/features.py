@@ -24,8 +24,10 @@ every session made of the same commands; a feature is absent where its measureme
   translation, so several particles of one image are compared one by one; without, only the
   particle nearest the image centre. Large images (>= 10 um) give the curvature of the
   substrate background (`raster.bow_xx`, `bow_yy`: second derivative, 1/m; `bow_xy`). Images
-  with >= 64 lines give the line-offset noise per block of 48 lines (`raster.streak`, m: the
-  streaks coloured z noise draws; white noise averages out over a whole line).
+  with >= 64 lines give, per block of 48 lines, the line-offset noise (`raster.streak`, m: the
+  streaks coloured z noise draws; white noise averages out over a whole line) and the
+  pixel-to-pixel noise along the lines (`raster.pixel_noise`, m: white z noise, on top of the
+  substrate's roughness at the pixel scale, which the model's own sample gives it too).
 - Contact slides / pushes (`push.*`): the mean lateral torsion over each 250 nm segment of the
   path (friction and where it changes; the segment's commanded centre is its place) and the
   rms of the detrended torsion per push (stick-slip).
@@ -40,6 +42,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 from scipy.stats import median_abs_deviation
 
 from afm_core.localization.observation import find_crossings
@@ -57,6 +60,8 @@ SAME_POINT = 1e-12              # m
 CENTRE_LEVEL = 5e-9             # m above the substrate: a raster particle's centre weighs what rises above
 STREAK_MIN_LINES = 64           # images with fewer lines (or pixels per line) give no line-offset noise
 STREAK_BLOCK = 48               # lines per line-offset noise feature
+PARTICLE_LEVEL = 5e-9           # m above a line's median: a particle, not substrate (pixel noise leaves it out)
+PARTICLE_MARGIN = 3             # pixels either side of a particle also left out (the foot of its flanks)
 
 
 @dataclass
@@ -389,12 +394,28 @@ def line_offset_noise(offsets: np.ndarray) -> float:
     return float(median_abs_deviation(steps, scale="normal") / math.sqrt(2))
 
 
+def pixel_noise(lines: np.ndarray) -> float:
+    """Robust standard deviation (m) of the changes from pixel to pixel along the lines (rows)
+    on the bare substrate, divided by sqrt(2): the noise of one pixel if it is white. Pixels
+    raised PARTICLE_LEVEL above their line's median and PARTICLE_MARGIN pixels either side are
+    left out: a particle's flanks are few, but a blunter tip widens them, and even a per cent
+    more large steps moves the spread by more than its noise."""
+    steps = np.diff(lines, axis=1)
+    raised = lines - np.median(lines, axis=1, keepdims=True) > PARTICLE_LEVEL
+    raised = binary_dilation(raised, structure=np.ones((1, 2 * PARTICLE_MARGIN + 1), bool))
+    bare = ~raised[:, 1:] & ~raised[:, :-1]
+    if bare.sum() >= 0.5 * bare.size:
+        steps = steps[bare]
+    return float(median_abs_deviation(steps, axis=None, scale="normal") / math.sqrt(2))
+
+
 def _streak_features(op, h: np.ndarray, cond: dict) -> list[Feature]:
-    """`raster.streak` per block of STREAK_BLOCK consecutive lines of an image with at least
-    STREAK_MIN_LINES lines: how much each line's offset (its median height: particles and
-    roughness average out) jumps from line to line. White sensor noise adds little to a median
-    of a whole line; low-frequency (1/f, coloured) z noise shifts whole lines and makes the
-    streaks an image shows."""
+    """Noise statistics per block of STREAK_BLOCK consecutive lines of an image with at least
+    STREAK_MIN_LINES lines. `raster.streak`: how much each line's offset (its median height:
+    particles and roughness average out) jumps from line to line; white sensor noise adds little
+    to a median of a whole line, low-frequency (1/f, coloured) z noise shifts whole lines and
+    makes the streaks an image shows. `raster.pixel_noise`: how much the height jumps from
+    pixel to pixel along a line; white noise makes it, 1/f noise has little power that fast."""
     data = op.data
     lines = h if data.scan_angle_deg == 0.0 else h.T        # rows: one scan line each
     if lines.shape[0] < STREAK_MIN_LINES or lines.shape[1] < STREAK_MIN_LINES:
@@ -409,9 +430,10 @@ def _streak_features(op, h: np.ndarray, cond: dict) -> list[Feature]:
         x, y = data.origin_x + col * data.pixel_size_x, data.origin_y + row * data.pixel_size_y
         t = float(data.start_time + np.nanmean(starts[block]) + 0.5 * data.line_period) \
             if np.isfinite(starts[block]).any() else float(data.start_time)
-        out.append(Feature((op.index, f"raster.streak{b}"), "raster.streak", line_offset_noise(offsets[block]), t,
-                           float(x), float(y), (0.0, 0.0),
-                           dict(cond, lines=int(block.size), line_period=float(data.line_period))))
+        where = dict(cond, lines=int(block.size), line_period=float(data.line_period))
+        for group, value in (("raster.streak", line_offset_noise(offsets[block])),
+                             ("raster.pixel_noise", pixel_noise(lines[block]))):
+            out.append(Feature((op.index, f"{group}{b}"), group, value, t, float(x), float(y), (0.0, 0.0), where))
     return out
 
 

@@ -11,7 +11,8 @@ from afm_core.sim2real.diagnose import UNRESOLVED, unresolved
 
 GROUP_UNITS = {"line.mid": (1e9, "nm"), "raster.x": (1e9, "nm"), "raster.y": (1e9, "nm"),
                "line.flank_diff": (1e9, "nm"), "raster.height": (1e9, "nm"), "raster.half_width": (1e9, "nm"),
-               "push.torsion_segment": (1e6, "urad"), "push.fluct": (1e6, "urad"), "raster.streak": (1e9, "nm")}
+               "push.torsion_segment": (1e6, "urad"), "push.fluct": (1e6, "urad"), "raster.streak": (1e9, "nm"),
+               "raster.pixel_noise": (1e9, "nm")}
 
 
 def _fmt(value, unit_scale=1.0):
