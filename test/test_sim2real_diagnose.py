@@ -44,6 +44,29 @@ def test_gls_fits_columns_whatever_their_units():
     assert coef == pytest.approx([1.0, 0.0]) and np.isnan(cov[1, 1])
 
 
+def test_reported_sigma_widens_to_what_the_informative_features_scatter_by():
+    """A parameter informed by 40 of 400 features (unit noise model, an offset as nuisance):
+    where those 40 scatter 5 x the model, its sigma is ~5 x the model's (sandwich estimate);
+    where everything scatters as modelled, it stays within the estimate's sampling error; a
+    residual smaller than modelled never narrows it; a variance factor already applied counts."""
+    from afm_core.sim2real.diagnose import Whitener, _reported_sigma
+    rng = np.random.default_rng(9)
+    n = 400
+    x = np.zeros((n, 1))
+    x[:40] = 1.0
+    P = np.ones((n, 1))
+    white = Whitener(np.eye(n))
+    model = 1.0 / np.sqrt(40 * (1 - 40 / n))       # GLS sigma of x with the offset fitted
+    loud = rng.normal(0.0, 1.0, n)
+    loud[:40] *= 5.0
+    assert _reported_sigma(white, P, x, loud, [model])[0] == pytest.approx(5 * model, rel=0.25)
+    assert _reported_sigma(white, P, x, loud, [2 * model], variance_factor=4.0)[0] == \
+        pytest.approx(5 * model, rel=0.25)
+    quiet = rng.normal(0.0, 1.0, n)
+    assert model <= _reported_sigma(white, P, x, quiet, [model])[0] < 1.3 * model
+    assert _reported_sigma(white, P, x, 0.1 * quiet, [model])[0] == model
+
+
 def test_positioning_covariance_is_a_random_walk():
     moves = [(1.0, 1e-6), (5.0, 2e-6), (9.0, 1e-6)]
     cov = positioning_covariance(np.array([2.0, 6.0, 10.0]), moves, 7e-11, 4e-19)

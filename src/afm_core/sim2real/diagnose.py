@@ -1034,7 +1034,8 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         scores = {name: (chi2_0 - v[2]) / variance_factor - design[name][0].complexity * math.log(n)
                   for name, v in refined.items()}
         chosen = [max(scores, key=scores.get)]
-        final_theta, final_sigma = refined[chosen[0]][0], refined[chosen[0]][3]
+        final_theta, final_r, _, final_sigma = refined[chosen[0]]
+        final_sigma = _reported_sigma(white, P, design[chosen[0]][2], final_r, final_sigma, variance_factor)
     timings["compare"] = _time.perf_counter() - t0
 
     # a second term on top of the first, tested on the re-simulated residual of the first
@@ -1066,8 +1067,9 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             chosen.append(second_res.name)
             second = design[second_res.name]
             say("refining " + ", ".join(chosen))
-            joint_theta, joint_cov, _ = _refine(sess, [design[chosen[0]], second], white, P, refine_iterations,
-                                                variance_factor, start=np.concatenate([theta1, second[1]]))
+            joint_theta, joint_cov, joint_r = _refine(sess, [design[chosen[0]], second], white, P,
+                                                      refine_iterations, variance_factor,
+                                                      start=np.concatenate([theta1, second[1]]))
             # the test above is linear, on the first term's residual; a term whose joint
             # re-simulated fit lies within its threshold of the model only soaked up what the
             # first term's refinement had left (its reported value would not differ from the model)
@@ -1096,7 +1098,8 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                         f" second to {chosen[0]}, but the held-out blocks fit worse with it (chi2 "
                         f"{pair['chi2_after']:.1f}, {alone['chi2_after']:.1f} with {chosen[0]} alone)")
             if keep:
-                final_theta, final_sigma = joint_theta, _sigma(joint_cov)
+                final_theta, final_sigma = joint_theta, _reported_sigma(
+                    white, P, np.hstack([first_cols, second[2]]), joint_r, _sigma(joint_cov), variance_factor)
             else:
                 chosen.pop()
 
@@ -1254,6 +1257,28 @@ def _sigma(cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.diag(cov), 0.0))
 
 
+def _reported_sigma(white, P, cols, residual, sigma, variance_factor: float = 1.0) -> np.ndarray:
+    """The fitted parameters' sigma, widened where the residual left in the features that
+    inform them is larger than the noise model says (the sandwich, or Huber-White, estimate
+    on the whitened problem: what the features actually scatter by, weighted by how much each
+    tells the parameter). The noise model has a precision floor where the simulation has no
+    noise (torsion): a friction patch's edges a few nm off leave a residual there far beyond
+    that floor, and the model-based sigma was 20 times smaller than the factor's error. Never
+    narrower than the model's (`sigma`, which carries `variance_factor` already)."""
+    xw = white(np.nan_to_num(cols))
+    ew = white(np.nan_to_num(residual))
+    if P.size:
+        q, _ = np.linalg.qr(white(P))
+        xw = xw - q @ (q.T @ xw)
+        ew = ew - q @ (q.T @ ew)
+    bread = np.linalg.pinv(xw.T @ xw)
+    robust = bread @ (xw.T @ (xw * (ew ** 2)[:, None])) @ bread
+    with np.errstate(invalid="ignore", divide="ignore"):
+        widen = np.sqrt(np.where(np.diag(bread) > 0, np.diag(robust) / np.diag(bread), 1.0))
+    widen = np.nan_to_num(widen, nan=1.0) / math.sqrt(max(variance_factor, 1.0))
+    return np.asarray(sigma, float) * np.maximum(1.0, widen)
+
+
 def _with_region(first: np.ndarray, region: np.ndarray | None) -> np.ndarray:
     """The first term's columns and the region's (none found on these training blocks: a
     zero column, so the fold counts as predicting nothing more)."""
@@ -1393,9 +1418,10 @@ def _noise_term(sess: _Session, design: tuple, variance: np.ndarray, folds: list
         if not res.accepted:
             res.note = "fits the session but does not predict held-out blocks"
     if res.accepted:
-        theta, cov, _ = _refine(sess, [(cand, theta0, cols)], white, np.zeros((len(noisy), 0)), iterations,
-                                factor, mask=noisy)
-        res.estimate, res.sigma = theta, _sigma(cov)
+        theta, cov, fitted = _refine(sess, [(cand, theta0, cols)], white, np.zeros((len(noisy), 0)), iterations,
+                                     factor, mask=noisy)
+        res.estimate = theta
+        res.sigma = _reported_sigma(white, none, cols[noisy], fitted[noisy], _sigma(cov), factor)
     return design, res
 
 
