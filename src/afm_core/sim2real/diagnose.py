@@ -954,9 +954,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             if isinstance(cols, str):
                 missing.append(f"{cand.name} ({cols})")
                 continue
-        # noise statistics move with the sensor noise only: what a deterministic re-simulation
-        # says of them is how the pixel grid falls on the roughness, not physics
-        design[cand.name] = (cand, theta0, np.where(sess.noisy[:, None], 0.0, np.asarray(cols, float)))
+        design[cand.name] = (cand, theta0, np.asarray(cols, float))
     region, region_columns = _friction_region(design, config, table, sess.r, d_rec, noise)
     if region is not None:
         say(f"sensitivity: {region.name}")
@@ -1014,7 +1012,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     accepted = [c for c in results if c.accepted]
     if noise_terms:                        # a noise term is chosen before the others when accepted (see above)
         results += [res for _, res in noise_terms]
-        results.sort(key=lambda c: (not c.accepted, not (c is noise_result and c.accepted), -c.bic_gain))
+        results.sort(key=lambda c: (not c.accepted, c is not noise_result, -c.bic_gain))
 
     def resim_chi2(residual):
         return gls(white(residual), pw)[1]
@@ -1229,11 +1227,13 @@ def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: 
     # the fit (a tip asymmetry of 0.27 stopped at 0.29 after two) and its slope sets sigma. So
     # is a noise level: noise statistics add in quadrature, flat near zero (1/f noise of 0.019
     # nm fitted as 0.045 along the slope at the model's 0.2)
-    by_secant = len(terms) == 1 and terms[0][0].size == 1 and terms[0][0].analytic in ("", "sensor_noise")
-    bends = by_secant and (terms[0][0].trial_steps or terms[0][0].analytic == "sensor_noise")
+    term = terms[0][0]
+    noise_level = term.analytic == "sensor_noise"
+    by_secant = len(terms) == 1 and term.size == 1 and (not term.analytic or noise_level)
+    bends = by_secant and (bool(term.trial_steps) or noise_level)
     # (the session's residual is at the model's values, except a noise level's: the reference
-    # may already carry a fitted one)
-    at_model = sess.residual(terms, theta0) if terms[0][0].analytic == "sensor_noise" else sess.r
+    # may already carry a fitted one; a noise term always comes first)
+    at_model = sess.residual(terms, theta0) if noise_level else sess.r
     points = [(theta0.copy(), at_model), (theta.copy(), residual)]
     for _ in range(0 if linear else (max(iterations, 4) if bends else iterations)):
         if by_secant:
@@ -1316,8 +1316,10 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
 
     def change(theta):
         sim = sess.features(cand.apply(base, theta), imaging=cand.imaging)
-        col = np.nan_to_num(sim - nom)
-        lost = np.isnan(sim) & np.isfinite(nom)
+        # noise statistics move with the sensor noise only: what a re-simulation without it says
+        # of them is how the pixel grid falls on the roughness, not physics
+        col = np.where(sess.noisy, 0.0, np.nan_to_num(sim - nom))
+        lost = np.isnan(sim) & np.isfinite(nom) & ~sess.noisy
         if not cand.imaging:
             col[~sess.push] = 0.0
             lost &= sess.push

@@ -394,14 +394,15 @@ def line_offset_noise(offsets: np.ndarray) -> float:
     return float(median_abs_deviation(steps, scale="normal") / math.sqrt(2))
 
 
-def pixel_noise(lines: np.ndarray) -> float:
+def pixel_noise(lines: np.ndarray, offsets: np.ndarray) -> float:
     """Robust standard deviation (m) of the changes from pixel to pixel along the lines (rows)
     on the bare substrate, divided by sqrt(2): the noise of one pixel if it is white. Pixels
-    raised PARTICLE_LEVEL above their line's median and PARTICLE_MARGIN pixels either side are
-    left out: a particle's flanks are few, but a blunter tip widens them, and even a per cent
-    more large steps moves the spread by more than its noise."""
+    raised PARTICLE_LEVEL above their line's offset (`offsets`: each line's median height) and
+    PARTICLE_MARGIN pixels either side are left out: a particle's flanks are few, but a blunter
+    tip widens them, and even a per cent more large steps moves the spread by more than its
+    noise."""
     steps = np.diff(lines, axis=1)
-    raised = lines - np.median(lines, axis=1, keepdims=True) > PARTICLE_LEVEL
+    raised = lines - np.asarray(offsets)[:, None] > PARTICLE_LEVEL
     raised = binary_dilation(raised, structure=np.ones((1, 2 * PARTICLE_MARGIN + 1), bool))
     bare = ~raised[:, 1:] & ~raised[:, :-1]
     if bare.sum() >= 0.5 * bare.size:
@@ -432,7 +433,7 @@ def _streak_features(op, h: np.ndarray, cond: dict) -> list[Feature]:
             if np.isfinite(starts[block]).any() else float(data.start_time)
         where = dict(cond, lines=int(block.size), line_period=float(data.line_period))
         for group, value in (("raster.streak", line_offset_noise(offsets[block])),
-                             ("raster.pixel_noise", pixel_noise(lines[block]))):
+                             ("raster.pixel_noise", pixel_noise(lines[block], offsets[block]))):
             out.append(Feature((op.index, f"{group}{b}"), group, value, t, float(x), float(y), (0.0, 0.0), where))
     return out
 
