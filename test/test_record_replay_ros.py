@@ -114,6 +114,42 @@ def test_replay_rate_and_topic_filter(tmp_path, nodes, ros_node):
     assert scans == []
 
 
+def test_replay_delivers_bursts_to_reliable_subscribers(tmp_path, nodes, ros_node):
+    """Bursts larger than any publisher history, on topics recorded as our recorder records
+    them (history depth unknown to the graph API) and one recorded best-effort: a reliable
+    subscriber gets every message, in order. With one-message histories and the replay exiting
+    right after its last message, a 40-message burst arrived with a third missing."""
+    from afm_core.recording import QosDescription, RecordingWriter
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sample_messages import cdr
+    path = tmp_path / "bursts.mcap"
+    burst = 300
+    as_recorded = dict(history="unknown", depth=0)
+    with RecordingWriter(path) as rec:
+        traces = rec.add_channel("/afm/force_trace", "afm_msgs/msg/ForceTrace",
+                                 [QosDescription(reliability="best_effort", **as_recorded)])
+        marks = rec.add_channel("/afm/landmarks", "afm_msgs/msg/LandmarkArray",
+                                [QosDescription(durability="transient_local", **as_recorded)])
+        for i in range(burst):
+            rec.write(traces, 10**9 + i * 10**4, cdr(force_trace(i)))
+            rec.write(marks, 10**9 + i * 10**4, cdr(landmarks(i)))
+    received = {"traces": [], "marks": []}
+    reliable = QoSProfile(depth=10 * burst, reliability=ReliabilityPolicy.RELIABLE)
+    latched = QoSProfile(depth=10 * burst, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    ros_node.create_subscription(ForceTrace, "/afm/force_trace",
+                                 lambda m: received["traces"].append(m.object_id), reliable)
+    ros_node.create_subscription(LandmarkArray, "/afm/landmarks",
+                                 lambda m: received["marks"].append(m.landmarks[0].id), latched)
+    code, output = nodes("replay", input=path, start_delay=0.0, wait_for_subscribers=1,
+                         wait_timeout=10.0, publish_clock="false").wait(60)
+    assert code == 0, output
+    wait_for(lambda: len(received["traces"]) >= burst and len(received["marks"]) >= burst, 5,
+             what=f"{burst} messages on each topic")
+    assert received["traces"] == list(range(burst))
+    assert received["marks"] == [landmarks(i).landmarks[0].id for i in range(burst)]
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signalled_recorder_leaves_a_readable_file(tmp_path, nodes, ros_node, sig):
     path = tmp_path / "killed.mcap"

@@ -426,8 +426,10 @@ def run_demo(output_root: Path) -> int:
     failures = []
     if any(code != 0 for code in codes.values()):
         failures.append(f"processes exited with errors: {codes}")
-    if not all(v["identical"] for v in result["replay"].values()):
-        failures.append("the replayed recording differs from the original")
+    differing = {t: f"{v['count_a']} recorded, {v['count_b']} replayed" for t, v in result["replay"].items()
+                 if not v["identical"]}
+    if differing:
+        failures.append(f"the replayed recording differs from the original: {differing}")
     if sum(memory.values()) > MEMORY_LIMIT:
         failures.append(f"graph peak memory {sum(memory.values()) / 2**20:.0f} MiB exceeds 2 GiB")
     if any(v["matched"] == 0 for v in result["scans"]):

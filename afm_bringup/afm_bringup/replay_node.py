@@ -1,7 +1,8 @@
 """Replay node: republish a recording with its original timing.
 
-Publishers offer the QoS the recorded publishers offered (so latched scans stay latched);
-/clock carries the recording's time for nodes running with use_sim_time. The recording is
+Publishers offer the durability the recorded publishers offered (so latched scans stay
+latched), reliably and with a deep history, so that no subscriber that asks for reliability
+misses a message; /clock carries the recording's time for nodes running with use_sim_time. The recording is
 streamed chunk by chunk, never loaded whole.
 """
 from __future__ import annotations
@@ -11,6 +12,7 @@ import threading
 import time
 
 import rclpy
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
@@ -30,7 +32,11 @@ PARAMETERS = [
     ("wait_for_subscribers", 0, "Before playing, wait until every replayed topic has at least this many "
                                 "subscribers (0: do not wait); an evaluation pipeline then misses nothing."),
     ("wait_timeout", 30.0, "s to wait for those subscribers before giving up with an error."),
+    ("queue_depth", 100, "Messages each publisher keeps for subscribers that fall behind or match late "
+                         "(at least the recorded depth); latched topics hold this many for late joiners."),
 ]
+# A subscriber that has not acknowledged within this is stalled or gone; the replay goes on.
+ACKNOWLEDGE_TIMEOUT_S = 10.0
 
 
 class ReplayNode(Node):
@@ -41,6 +47,8 @@ class ReplayNode(Node):
             raise RecordingError("parameter input: required (path of the .mcap recording)")
         if not self.config["rate"] > 0:
             raise RecordingError(f"parameter rate={self.config['rate']}: must be > 0")
+        if not self.config["queue_depth"] >= 1:
+            raise RecordingError(f"parameter queue_depth={self.config['queue_depth']}: must be >= 1")
         if not self.config["clock_frequency"] > 0:
             raise RecordingError(f"parameter clock_frequency={self.config['clock_frequency']}: must be > 0")
         self.reader = RecordingReader(self.config["input"])
@@ -60,9 +68,10 @@ class ReplayNode(Node):
                 self.get_logger().warning(f"skipping {topic}: {exc}")
                 continue
             self.publishers_by_topic[topic] = self.create_publisher(
-                msg_type, topic, publisher_qos_for(info.offered_qos))
+                msg_type, topic, publisher_qos_for(info.offered_qos, self.config["queue_depth"]))
         self.clock_publisher = self.create_publisher(Clock, "/clock", 10) if self.config["publish_clock"] else None
         self.published = 0
+        self.slow_topics: set[str] = set()
         self.failure: str | None = None
         threading.Thread(target=self.play_then_stop, daemon=True).start()
 
@@ -78,7 +87,7 @@ class ReplayNode(Node):
             if rclpy.ok():
                 raise
             return
-        time.sleep(0.5)  # let reliable subscribers take the last messages before we vanish
+        self.wait_until_delivered(self.publishers_by_topic)
         rclpy.try_shutdown()
 
     def wait_for_subscribers(self):
@@ -94,12 +103,27 @@ class ReplayNode(Node):
                                    f"{self.config['wait_timeout']} s these topics have fewer: {short}")
             time.sleep(0.05)
 
+    def wait_until_delivered(self, topics, timeout_s: float = ACKNOWLEDGE_TIMEOUT_S):
+        """Wait until every reliable subscriber of these topics has acknowledged every message
+        so far. A message lost on its way (a burst overflowing a transport buffer) is resent
+        only from the publisher's history, so the replay waits before that history would
+        overflow, and before it exits."""
+        deadline = time.monotonic() + timeout_s
+        for topic in topics:
+            left = max(0.0, deadline - time.monotonic())
+            if not self.publishers_by_topic[topic].wait_for_all_acked(Duration(seconds=left)) \
+                    and topic not in self.slow_topics:
+                self.slow_topics.add(topic)
+                self.get_logger().warning(f"{topic}: a subscriber had not acknowledged every message "
+                                          f"after {timeout_s} s; it may miss some")
+
     def play(self):
         """Publish every selected message at its recorded time (scaled by rate)."""
         time.sleep(self.config["start_delay"])
         rate = self.config["rate"]
         clock_step_ns = int(1e9 / self.config["clock_frequency"])
         topics = list(self.publishers_by_topic)
+        unacknowledged = dict.fromkeys(topics, 0)
         while rclpy.ok():
             start_wall = time.monotonic()
             start_rec = self.reader.start_time_ns
@@ -118,7 +142,12 @@ class ReplayNode(Node):
                     return
                 if self.clock_publisher:
                     self._publish_clock(message.log_time)
-                self.publishers_by_topic[channel.topic].publish(message.data)
+                publisher = self.publishers_by_topic[channel.topic]
+                if unacknowledged[channel.topic] >= publisher.qos_profile.depth:
+                    self.wait_until_delivered([channel.topic])
+                    unacknowledged[channel.topic] = 0
+                publisher.publish(message.data)
+                unacknowledged[channel.topic] += 1
                 self.published += 1
             if not self.config["loop"]:
                 break

@@ -74,11 +74,19 @@ def subscription_qos_for(offers: list[QosDescription], depth: int) -> QoSProfile
         durability=DurabilityPolicy.TRANSIENT_LOCAL if all_latched else DurabilityPolicy.VOLATILE)
 
 
-def publisher_qos_for(offers: list[QosDescription]) -> QoSProfile:
-    """Offer what the recorded publishers offered (the first, when they agree)."""
-    if not offers:
-        return QoSProfile(depth=10)
-    first = offers[0]
-    if all((o.reliability, o.durability) == (first.reliability, first.durability) for o in offers):
-        return qos_from_description(first)
-    return QoSProfile(depth=10)
+def publisher_qos_for(offers: list[QosDescription], depth: int) -> QoSProfile:
+    """A replay publisher's QoS: the recorded durability (latched topics stay latched) and
+    liveliness/deadline/lifespan of the first offer when the offers agree, always reliable,
+    keeping the last `depth` messages (or the recorded depth, if deeper).
+
+    A replay publishes in bursts, and a subscriber that matches a moment late or falls behind
+    can be repaired only from the publisher's history: with the one-message history the
+    graph API reports for recorded publishers, a burst reached a subscriber with a third of
+    its messages missing. A reliable publisher still serves best-effort subscribers."""
+    agreed = bool(offers) and all((o.durability, o.liveliness) == (offers[0].durability, offers[0].liveliness)
+                                  for o in offers)
+    profile = qos_from_description(offers[0]) if agreed else QoSProfile(depth=1)
+    profile.history = HistoryPolicy.KEEP_LAST
+    profile.depth = max(depth, profile.depth)
+    profile.reliability = ReliabilityPolicy.RELIABLE
+    return profile
