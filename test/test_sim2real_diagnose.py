@@ -409,6 +409,34 @@ def test_white_noise_is_named_alone_with_its_level_not_as_coloured_noise():
     assert d.heldout["chi2_after"] < d.heldout["chi2_before"]
 
 
+def test_a_z_gain_is_named_alone_not_as_white_noise_first():
+    """A z gain of 1.2 scales the substrate's roughness too, and raised the pixel noise by 4 %:
+    white noise was named first for it and the gain second. The gain the particle heights show
+    is taken out of the noise statistics before a noise term is judged: the gain alone, within
+    20 % of the change and 3 sigma of the truth."""
+    seed = 15
+    model = _nominal(seed)
+    truth = merge(model, {"noise": {"height_gain": 1.2}})
+    d = diagnose(make_session(truth, protocol_seed=seed), model,
+                 candidates=select(("height_gain", "white_noise", "coloured_noise", "bow")))
+    assert d.chosen == ["height_gain"], d.summary()
+    fitted = d.parameters["noise.height_gain"]
+    assert abs(fitted["value"] - 1.2) <= 0.2 * 0.2 and abs(fitted["value"] - 1.2) <= 3 * fitted["sigma"], fitted
+
+
+def test_a_recording_on_its_own_substrate_is_not_called_noisier():
+    """Nothing missing, but the recording's sample is another realization of the substrate's
+    roughness than the model's (as on any real instrument: the config's seed is not the
+    sample's), and its own noise draws left the pixel noise 1.4 % above the reference's in every
+    block. The replicas' block-to-block spread alone made that white noise of 0.305 nm against
+    the model's 0.3; how far other realizations move the statistics' mean is noise too."""
+    seed = 411
+    model = session_config()
+    assert model.seed != seed
+    d = diagnose(make_session(merge(model, {"seed": seed}), protocol_seed=seed), model)
+    assert d.chosen == [], d.summary()
+
+
 def test_feed_forward_asymmetry_error_is_named_with_its_size():
     """The controller inverts a hysteresis asymmetry 0.07 off the scanner's: positions bend
     (a gain quadratic in the error, a curvature linear in it) by a few nm over the particle

@@ -88,6 +88,7 @@ SHAPE_GROUPS = ("line.width", "line.peak", "line.asym", "raster.height", "raster
 HEIGHT_GROUPS = ("line.peak", "raster.height")
 BOW_GROUPS = ("raster.bow_xx", "raster.bow_yy", "raster.bow_xy")
 PUSH_GROUPS = ("push.torsion", "push.fluct")
+ROUGHNESS_REALIZATIONS = 4   # other substrates the noise statistics' common part is taken from
 NOISE_GROUPS = ("raster.streak", "raster.pixel_noise")  # noise statistics: move only with the sensor noise
 
 
@@ -732,6 +733,20 @@ class _Session:
             self._noise_runs[memo] = np.array(runs)
         return self._noise_runs[memo]
 
+    def roughness_offsets(self, realizations: int) -> np.ndarray:
+        """(realizations, N): how the noise statistics move on other realizations of the
+        substrate's roughness (the sample's seed changed; the first noise replica's noise seed
+        and the reference's noise level). The recording's roughness is its own realization."""
+        config = merge(deterministic(self.config, sensor_noise=True), self.noise_reference)
+        own = self.noise_replicas(self.noise_reference, rasters_only=True)[0]
+        offsets = []
+        for k in range(realizations):
+            self.replays += 1
+            rep = replay(self.ops, merge(config, {"seed": int(config.seed) + 1 + k}), noise_seed=self.noise_seeds[0],
+                         drift=self.drift, imaging="rasters")
+            offsets.append(_values(_by_key(extract_features(rep.operations, self.anchors)), self.keys) - own)
+        return np.where(self.noisy, np.nan_to_num(np.array(offsets)), 0.0)
+
     def noise_features(self, overrides: dict) -> np.ndarray:
         """Mean noise statistics of the raster-only `noise_replicas`."""
         return np.mean(self.noise_replicas(overrides, rasters_only=True), axis=0)     # (lines: NaN)
@@ -897,6 +912,16 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     noise_design, noise_result, noise_config = None, None, config
     noise_terms = []                      # (design triple, result) of every sensor-noise term
     noise_cands = [c for c in cands if c.analytic == "sensor_noise"]
+    # a z gain scales the substrate's roughness, and with it the noise statistics (a gain of
+    # 1.2 raised the pixel noise by 4 %, and white noise was named for it): the gain the
+    # particle heights show is taken out of the noise statistics before a noise term is judged
+    gain_cand = next((c for c in cands if c.analytic == "height_gain"), None)
+    gain_on_noise = np.zeros(n)
+    if noise_cands and sess.noisy.any() and gain_cand is not None:
+        gain = _height_gain(sess, gain_cand, rep_s, nom, m)
+        if gain is not None:
+            gain_on_noise = _gain_on_noise_statistics(sess, gain_cand, gain)
+            sess.r = sess.r - gain_on_noise
     if noise_cands and not sess.noisy.any():
         missing += [f"{c.name} (the recording has no image with {STREAK_MIN_LINES} lines or more)"
                     for c in noise_cands]
@@ -906,8 +931,8 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             say(f"sensitivity: {cand.name}")
             theta0 = cand.nominal(config)
             noise_designs.append((cand, theta0, _noise_columns(sess, cand, theta0)))
-        variance = _noise_statistics_variance(sess, rep_s, nom, [d[2] for d in noise_designs])
-        noise_terms = [_noise_term(sess, d, variance, folds, m, refine_iterations) for d in noise_designs]
+        noise_cov = _noise_statistics_covariance(sess, rep_s, nom, [d[2] for d in noise_designs])
+        noise_terms = [_noise_term(sess, d, noise_cov, folds, m, refine_iterations) for d in noise_designs]
     # one noise level is fitted: the term the statistics favour (white noise raises the
     # line-offset noise a little too, so a grainier instrument can also pass the coloured
     # noise's test, with less evidence)
@@ -921,6 +946,8 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         rep_s = sess.noise_replicas(fitted)
         bias = np.nan_to_num(np.nanmean(rep_s - nom, axis=0))
         sess.set_reference(nom + bias, bias, fitted)
+    else:
+        sess.r = sess.r + gain_on_noise       # the gain's term explains it, with the heights
     for _, res in noise_terms:
         if res.accepted and res is not noise_result:
             res.accepted = False
@@ -944,7 +971,8 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         elif cand.analytic == "drift_ramp":
             cols = J * 0.5 * (table.time ** 2)[:, None]
         elif cand.analytic == "height_gain":
-            cols = np.where(height, (nom + bias) / max(theta0[0], 1e-12), 0.0)[:, None]
+            on_noise = _gain_on_noise_statistics(sess, cand, theta0 + cand.steps) / cand.steps[0]
+            cols = (np.where(height, (nom + bias) / max(theta0[0], 1e-12), 0.0) + on_noise)[:, None]
         elif cand.analytic == "bow":
             gain = config.noise.height_gain
             cols = np.where(np.isin(table.groups, ("raster.bow_xx", "raster.bow_yy")), gain, 0.0)[:, None]
@@ -1378,28 +1406,63 @@ def _noise_columns(sess: _Session, cand: Candidate, theta0: np.ndarray) -> np.nd
     return np.array(cols).T
 
 
-def _noise_statistics_variance(sess: _Session, replicas: np.ndarray, nom: np.ndarray, columns: list) -> np.ndarray:
-    """Variance of the noise statistics: their replicas' spread, times each group's
-    overdispersion after the best single noise term's fit. The replicas share the reference's
-    sample and geometry, so they cannot show how the substrate's roughness at the pixel scale
-    differs where the recording's images lie; left unscaled, that difference in the pixel
-    noise pulled a coloured-noise fit, which moves it a little, off by a fifth."""
+def _noise_statistics_covariance(sess: _Session, replicas: np.ndarray, nom: np.ndarray, columns: list,
+                                 realizations: int = ROUGHNESS_REALIZATIONS) -> np.ndarray:
+    """Covariance of the noise statistics: their replicas' spread, times each group's
+    overdispersion after the best single noise term's fit, plus a part common to each group's
+    blocks: how far another realization of the substrate's roughness moves the group's mean.
+
+    The replicas share the reference's sample, so they cannot show how the recording's own
+    roughness differs. Scattered over the blocks (left unscaled, it pulled a coloured-noise fit
+    off by a fifth) the overdispersion takes it; in common (the recording's whole substrate a
+    little rougher at the pixel scale than the reference's: +1.4 % in one session with a
+    three-fold friction) only the common part does, and without it white noise was named."""
     noisy = sess.noisy
     groups = sess.table.groups[noisy]
     variance, _ = _pooled_white(replicas[:, noisy], groups, 4.0, nom[noisy])
     factors = _group_overdispersion(sess.r[noisy], np.zeros((int(noisy.sum()), 0)), [c[noisy] for c in columns],
                                     np.diag(variance), groups)
-    return variance * np.array([factors.get(g, 1.0) for g in groups])
+    cov = np.diag(variance * np.array([factors.get(g, 1.0) for g in groups]))
+    offsets = sess.roughness_offsets(realizations)[:, noisy]
+    for group in np.unique(groups):
+        sel = groups == group
+        cov[np.ix_(sel, sel)] += float(np.mean(np.mean(offsets[:, sel], axis=1) ** 2))
+    return cov
 
 
-def _noise_term(sess: _Session, design: tuple, variance: np.ndarray, folds: list, m: int, iterations: int):
+def _height_gain(sess: _Session, cand: Candidate, replicas: np.ndarray, nom: np.ndarray, m: int):
+    """The z gain the particle heights alone show (GLS with their replicas' spread, scaled by
+    their overdispersion), or None when they show none beyond the Bonferroni threshold."""
+    rows = np.isin(sess.table.groups, HEIGHT_GROUPS) & np.isfinite(sess.r)
+    if rows.sum() < 2:
+        return None
+    theta0 = cand.nominal(sess.config)
+    variance, _ = _pooled_white(replicas[:, rows], sess.table.groups[rows], 4.0, nom[rows])
+    white = Whitener(np.diag(variance))
+    r = white(sess.r[rows])
+    _, chi2_0, _ = gls(r, np.zeros((int(rows.sum()), 0)))
+    coef, chi2, _ = gls(r, white((sess.reference[rows] / max(theta0[0], 1e-12))[:, None]))
+    factor = max(1.0, chi2 / max(1, int(rows.sum()) - cand.size))
+    if (chi2_0 - chi2) / factor <= stats.chi2.isf(ALPHA / m, cand.complexity):
+        return None
+    return cand.clip(theta0 + coef)
+
+
+def _gain_on_noise_statistics(sess: _Session, cand: Candidate, gain: np.ndarray) -> np.ndarray:
+    """How a z gain of `gain` changes the noise statistics (0 on other features), re-simulated
+    with the noise replicas' seeds at the reference's noise level."""
+    at_gain = sess.noise_features(merge_overrides(sess.noise_reference, cand.overrides(sess.config, gain)))
+    return np.where(sess.noisy, np.nan_to_num(at_gain - sess.noise_features(sess.noise_reference)), 0.0)
+
+
+def _noise_term(sess: _Session, design: tuple, statistics_cov: np.ndarray, folds: list, m: int, iterations: int):
     """Evidence and fit of a sensor-noise term (its (candidate, nominal, columns) design triple)
-    on the noise statistics alone (no other term moves them): GLS with their `variance`, the
+    on the noise statistics alone (no other term moves them): GLS with their covariance, the
     Bonferroni threshold, held-out blocks, and the value refined by re-simulation. Returns the
     design triple and its CandidateResult (estimate and sigma: the refined fit)."""
     noisy = sess.noisy
     cand, theta0, cols = design
-    white = Whitener(np.diag(variance))
+    white = Whitener(statistics_cov)
     none = np.zeros((int(noisy.sum()), 0))
     r = sess.r[noisy]
     _, chi2_0, _ = gls(white(r), none)
@@ -1414,7 +1477,8 @@ def _noise_term(sess: _Session, design: tuple, variance: np.ndarray, folds: list
     res.significant = delta > res.statistic_threshold
     if res.significant:
         sub_folds = [f[noisy] for f in folds]
-        whiteners = [(Whitener(np.diag(variance[f])), Whitener(np.diag(variance[~f]))) for f in sub_folds]
+        whiteners = [(Whitener(statistics_cov[np.ix_(f, f)]), Whitener(statistics_cov[np.ix_(~f, ~f)]))
+                     for f in sub_folds]
         res.heldout_gain = _cv_gain_on(r, cols[noisy], none, sub_folds, whiteners)
         res.accepted = res.heldout_gain > 0
         if not res.accepted:
