@@ -35,7 +35,10 @@ Method (all SI):
    those statistics alone (same threshold and held-out rule), fitted by re-simulation with the
    replicas' seeds (only the noise level differs); the one with the larger BIC gain is named,
    and the replicas are redrawn at its fitted level before the other candidates are judged (a
-   noisier instrument's images must not pass for a scanner bow or a blunter tip).
+   noisier instrument's images must not pass for a scanner bow or a blunter tip). The z gain
+   the particle heights show is taken out of the statistics first (a gain scales the
+   roughness too), and their covariance has a part common to each group's blocks from other
+   realizations of the substrate's roughness (the recording's sample is its own).
 4. **Candidates** (candidates.py) = config keys; design columns = d features / d value by
    re-simulation at the same drift trajectory (closed form for drift, z gain and bow; zero on
    shape features for terms that only move the tip). Evidence per candidate: GLS chi^2
@@ -62,7 +65,7 @@ import time as _time
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 
 import numpy as np
 from scipy import linalg, stats
@@ -724,14 +727,15 @@ class _Session:
         memo = (repr(overrides), rasters_only)
         if memo not in self._noise_runs:
             config = merge(deterministic(self.config, sensor_noise=True), overrides)
-            runs = []
-            for seed in self.noise_seeds:
-                self.replays += 1
-                rep = replay(self.ops, config, noise_seed=seed, drift=self.drift,
-                             imaging="rasters" if rasters_only else True)
-                runs.append(_values(_by_key(extract_features(rep.operations, self.anchors)), self.keys))
-            self._noise_runs[memo] = np.array(runs)
+            self._noise_runs[memo] = np.array([self._noisy_run(config, seed, rasters_only)
+                                               for seed in self.noise_seeds])
         return self._noise_runs[memo]
+
+    def _noisy_run(self, config, noise_seed: int, rasters_only: bool) -> np.ndarray:
+        self.replays += 1
+        rep = replay(self.ops, config, noise_seed=noise_seed, drift=self.drift,
+                     imaging="rasters" if rasters_only else True)
+        return _values(_by_key(extract_features(rep.operations, self.anchors)), self.keys)
 
     def roughness_offsets(self, realizations: int) -> np.ndarray:
         """(realizations, N): how the noise statistics move on other realizations of the
@@ -739,12 +743,8 @@ class _Session:
         and the reference's noise level). The recording's roughness is its own realization."""
         config = merge(deterministic(self.config, sensor_noise=True), self.noise_reference)
         own = self.noise_replicas(self.noise_reference, rasters_only=True)[0]
-        offsets = []
-        for k in range(realizations):
-            self.replays += 1
-            rep = replay(self.ops, merge(config, {"seed": int(config.seed) + 1 + k}), noise_seed=self.noise_seeds[0],
-                         drift=self.drift, imaging="rasters")
-            offsets.append(_values(_by_key(extract_features(rep.operations, self.anchors)), self.keys) - own)
+        offsets = [self._noisy_run(merge(config, {"seed": int(config.seed) + 1 + k}), self.noise_seeds[0], True) - own
+                   for k in range(realizations)]
         return np.where(self.noisy, np.nan_to_num(np.array(offsets)), 0.0)
 
     def noise_features(self, overrides: dict) -> np.ndarray:
@@ -917,15 +917,14 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     # particle heights show is taken out of the noise statistics before a noise term is judged
     gain_cand = next((c for c in cands if c.analytic == "height_gain"), None)
     gain_on_noise = np.zeros(n)
-    if noise_cands and sess.noisy.any() and gain_cand is not None:
-        gain = _height_gain(sess, gain_cand, rep_s, nom, m)
-        if gain is not None:
-            gain_on_noise = _gain_on_noise_statistics(sess, gain_cand, gain)
-            sess.r = sess.r - gain_on_noise
     if noise_cands and not sess.noisy.any():
         missing += [f"{c.name} (the recording has no image with {STREAK_MIN_LINES} lines or more)"
                     for c in noise_cands]
     elif noise_cands:
+        gain = _height_gain(sess, gain_cand, rep_s, nom, m) if gain_cand is not None else None
+        if gain is not None:
+            gain_on_noise = _gain_on_noise_statistics(sess, gain_cand, gain)
+            sess.r = sess.r - gain_on_noise
         noise_designs = []
         for cand in noise_cands:
             say(f"sensitivity: {cand.name}")
@@ -1430,6 +1429,24 @@ def _noise_statistics_covariance(sess: _Session, replicas: np.ndarray, nom: np.n
     return cov
 
 
+class _SingleTermTest(NamedTuple):
+    coef: np.ndarray
+    cov: np.ndarray
+    delta: float          # chi^2 gain over no term, divided by the overdispersion after the fit
+    factor: float         # that overdispersion (>= 1)
+    threshold: float      # the Bonferroni threshold over the library's m terms
+
+
+def _single_term_test(rw: np.ndarray, xw: np.ndarray, cand: Candidate, m: int) -> _SingleTermTest:
+    """One term's whitened columns fitted to a whitened residual with no nuisance columns (features
+    the rest of the diagnosis does not fit: noise statistics, heights): its evidence against none."""
+    _, chi2_0, _ = gls(rw, np.zeros((len(rw), 0)))
+    coef, chi2, cov = gls(rw, xw)
+    factor = max(1.0, chi2 / max(1, len(rw) - cand.size))     # features noisier than their replicas say
+    return _SingleTermTest(coef, cov, (chi2_0 - chi2) / factor, factor,
+                           float(stats.chi2.isf(ALPHA / m, cand.complexity)))
+
+
 def _height_gain(sess: _Session, cand: Candidate, replicas: np.ndarray, nom: np.ndarray, m: int):
     """The z gain the particle heights alone show (GLS with their replicas' spread, scaled by
     their overdispersion), or None when they show none beyond the Bonferroni threshold."""
@@ -1439,13 +1456,9 @@ def _height_gain(sess: _Session, cand: Candidate, replicas: np.ndarray, nom: np.
     theta0 = cand.nominal(sess.config)
     variance, _ = _pooled_white(replicas[:, rows], sess.table.groups[rows], 4.0, nom[rows])
     white = Whitener(np.diag(variance))
-    r = white(sess.r[rows])
-    _, chi2_0, _ = gls(r, np.zeros((int(rows.sum()), 0)))
-    coef, chi2, _ = gls(r, white((sess.reference[rows] / max(theta0[0], 1e-12))[:, None]))
-    factor = max(1.0, chi2 / max(1, int(rows.sum()) - cand.size))
-    if (chi2_0 - chi2) / factor <= stats.chi2.isf(ALPHA / m, cand.complexity):
-        return None
-    return cand.clip(theta0 + coef)
+    test = _single_term_test(white(sess.r[rows]), white((sess.reference[rows] / max(theta0[0], 1e-12))[:, None]),
+                             cand, m)
+    return cand.clip(theta0 + test.coef) if test.delta > test.threshold else None
 
 
 def _gain_on_noise_statistics(sess: _Session, cand: Candidate, gain: np.ndarray) -> np.ndarray:
@@ -1465,16 +1478,13 @@ def _noise_term(sess: _Session, design: tuple, statistics_cov: np.ndarray, folds
     white = Whitener(statistics_cov)
     none = np.zeros((int(noisy.sum()), 0))
     r = sess.r[noisy]
-    _, chi2_0, _ = gls(white(r), none)
-    coef, chi2, cov = gls(white(r), white(cols[noisy]))
-    n = int(noisy.sum())
-    factor = max(1.0, chi2 / max(1, n - cand.size))      # statistics noisier than their replicas say
-    delta = (chi2_0 - chi2) / factor
-    res = CandidateResult(cand.name, cand.words, cand.keys, cand.units, cand.size, estimate=theta0 + coef,
-                          sigma=np.sqrt(np.abs(np.diag(cov)) * factor), delta_chi2=delta,
-                          statistic_threshold=float(stats.chi2.isf(ALPHA / m, cand.complexity)),
-                          bic_gain=delta - cand.complexity * math.log(max(n, 2)))
-    res.significant = delta > res.statistic_threshold
+    test = _single_term_test(white(r), white(cols[noisy]), cand, m)
+    factor = test.factor
+    res = CandidateResult(cand.name, cand.words, cand.keys, cand.units, cand.size, estimate=theta0 + test.coef,
+                          sigma=np.sqrt(np.abs(np.diag(test.cov)) * factor), delta_chi2=test.delta,
+                          statistic_threshold=test.threshold,
+                          bic_gain=test.delta - cand.complexity * math.log(max(len(r), 2)))
+    res.significant = test.delta > res.statistic_threshold
     if res.significant:
         sub_folds = [f[noisy] for f in folds]
         whiteners = [(Whitener(statistics_cov[np.ix_(f, f)]), Whitener(statistics_cov[np.ix_(~f, ~f)]))
