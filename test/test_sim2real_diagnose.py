@@ -455,6 +455,20 @@ def test_feed_forward_asymmetry_error_is_named_with_its_size():
     assert d.heldout["chi2_after"] < d.heldout["chi2_before"]
 
 
+def test_a_large_asymmetry_error_is_fitted_with_its_sign_not_its_mirror():
+    """An asymmetry error d fits nearly as well as about 2 a_s - d (the gain it makes is
+    quadratic in the controller's asymmetry a_s - d): against 0.2, of the trial steps +-0.03,
+    0.1, 0.3, -0.1 fitted best, and the fit converged on the mirror basin (-0.127). The whole
+    search range is profiled: the error within 3 sigma and 20 % of the truth."""
+    seed = 11
+    truth = merge(_nominal(seed), {"controller": {"asymmetry_error": 0.2}})
+    d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed),
+                 candidates=select(("hysteresis_asymmetry",)))
+    assert d.chosen == ["hysteresis_asymmetry"], d.summary()
+    fitted = d.parameters["controller.asymmetry_error"]
+    assert abs(fitted["value"] - 0.2) <= min(0.2 * 0.2, 3 * fitted["sigma"]), fitted
+
+
 def test_sensor_latency_is_fitted_from_the_scan_direction_shift_alone():
     """A 5 ms sensor lag shifts every line pair's forward and backward profiles apart by
     2 v tau and the fast 4 Hz rasters by ~170 nm along their fast axis, enough to push a particle

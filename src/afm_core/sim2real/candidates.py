@@ -50,10 +50,12 @@ class Candidate:
     # they count in the evidence's complexity penalty like fitted ones
     searched: int = 0
     # a one-parameter term whose features bend within the plausible range (a feed-forward's
-    # asymmetry error scales positions by (a_c^2 - a_s^2), quadratic in the error): its column is
-    # the secant to whichever of these steps fits the recording best (the choice counts as one
-    # searched parameter); None: the derivative at the nominal value, by `steps`
-    trial_steps: list | None = None
+    # asymmetry error d scales positions by a_c^2 - a_s^2 with a_c = a_s - d, quadratic in d, plus
+    # a curvature linear in d: the fit has two basins, d and about 2 a_s - d): the steps from the
+    # nominal value searched whole, (lowest, highest); its column is the secant to the step that
+    # fits the recording best (the choice counts as one searched parameter); None: the
+    # derivative at the nominal value, by `steps`
+    search_range: tuple | None = None
 
     @property
     def size(self) -> int:
@@ -61,7 +63,7 @@ class Candidate:
 
     @property
     def complexity(self) -> int:
-        return self.size + self.searched + (1 if self.trial_steps else 0)
+        return self.size + self.searched + (1 if self.search_range else 0)
 
     def nominal(self, config: SimConfig) -> np.ndarray:
         values = []
@@ -172,7 +174,10 @@ def merge_overrides(a: dict, b: dict) -> dict:
 
 NM = (1e9, "nm")
 NM_S = (1e9, "nm/s")
-ASYMMETRY_TRIAL_STEPS = [-0.3, -0.1, -0.03, 0.03, 0.1, 0.3]    # both signs, a decade of sizes
+# an asymmetry of 0.45 makes the loop 3.6 times steeper at one end of the range than at the
+# other (slopes 1 -+ 2 a + 2 a^2): a feed-forward calibrated that far off is not concealed (the
+# fit may still go beyond, within the bounds)
+ASYMMETRY_SEARCH = (-0.45, 0.45)
 
 
 def library() -> list[Candidate]:
@@ -197,12 +202,12 @@ def library() -> list[Candidate]:
         Candidate("hysteresis_asymmetry", "hysteresis: ascending and descending branches differ more (or less) "
                   "than the controller's feed-forward assumes (its calibrated asymmetry is off)",
                   ["controller.asymmetry_error"], [0.03], [""], lower=[-0.8], upper=[0.8], geometric=True,
-                  trial_steps=ASYMMETRY_TRIAL_STEPS,
+                  search_range=ASYMMETRY_SEARCH,
                   requires={"controller.hysteresis_compensation": True, "scanner.hysteresis_enabled": True}),
         Candidate("hysteresis_asymmetry_open_loop", "hysteresis: ascending and descending branches differ "
                   "(asymmetry, scanner driven open loop)",
                   ["scanner.hysteresis_asymmetry"], [0.05], [""], lower=[-0.8], upper=[0.8], geometric=True,
-                  trial_steps=ASYMMETRY_TRIAL_STEPS,
+                  search_range=ASYMMETRY_SEARCH,
                   requires={"controller.hysteresis_compensation": False, "scanner.hysteresis_enabled": True}),
         Candidate("hysteresis_width", "hysteresis: the loop is wider/narrower than calibrated",
                   ["scanner.hysteresis_fraction"], [0.01], ["of range"], lower=[0.0], upper=[0.33], geometric=True,

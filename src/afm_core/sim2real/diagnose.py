@@ -68,6 +68,7 @@ from pathlib import Path
 from typing import Callable, NamedTuple, Optional
 
 import numpy as np
+from numpy.polynomial import chebyshev
 from scipy import linalg, stats
 
 from afm_core.sim.config import SimConfig, load_config, merge
@@ -1257,7 +1258,7 @@ def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: 
     term = terms[0][0]
     noise_level = term.analytic == "sensor_noise"
     by_secant = len(terms) == 1 and term.size == 1 and (not term.analytic or noise_level)
-    bends = by_secant and (bool(term.trial_steps) or noise_level)
+    bends = by_secant and (bool(term.search_range) or noise_level)
     # (the session's residual is at the model's values, except a noise level's: the reference
     # may already carry a fitted one; a noise term always comes first)
     at_model = sess.residual(terms, theta0) if noise_level else sess.r
@@ -1338,8 +1339,8 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
                        white: Whitener | None = None, P: np.ndarray | None = None):
     """Design columns d features / d parameter by re-simulation at the recorded geometry
     (one replay per parameter, stepped by the candidate's step), or a message saying why not.
-    A candidate with trial steps gets the secant to the step whose re-simulation leaves the
-    least chi^2 (whitened by `white`, after the nuisance columns P)."""
+    A candidate with a search range gets the secant to the step in it that leaves the least
+    chi^2 (whitened by `white`, after the nuisance columns P; `_profile_minimum`)."""
 
     def change(theta):
         sim = sess.features(cand.apply(base, theta), imaging=cand.imaging)
@@ -1367,23 +1368,18 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
                 return col / step
             step /= 4.0
 
-    if cand.trial_steps and white is not None:
-        # a scanner term is tried on the positions the scanner map predicts (a replay without
+    if cand.search_range and white is not None:
+        # a scanner term is searched on the positions the scanner map predicts (a replay without
         # imaging, a fraction of the cost), the chosen step then re-simulated in full
         on_map = cand.geometric and sess.mapped.any()
-        pw = white(P) if P is not None and P.size else np.zeros((len(nom), 0))
-        best = None
-        for step in cand.trial_steps:
-            try:
-                delta = sess.mapped_change(cand.apply(base, theta0 + step)) if on_map else change(theta0 + step)[0]
-            except ValueError:              # this step leaves the parameter's valid range here
-                continue
-            chi2 = gls(white(sess.r - delta), pw)[1]
-            if best is None or chi2 < best[0]:
-                best = (chi2, step)
-        if best is None:
-            return "not evaluated: every trial step is invalid for this config"
-        return (change(theta0 + best[1])[0] / best[1])[:, None]
+        step = _profile_minimum(
+            lambda s: sess.mapped_change(cand.apply(base, theta0 + s)) if on_map else change(theta0 + s)[0],
+            cand.search_range, sess.r, white, P)
+        if step is None:
+            return "not evaluated: the term's search range is invalid for this config"
+        # a step too small to measure the bend by (a best fit at the model's value)
+        step = math.copysign(max(abs(step), cand.steps[0]), step)
+        return (change(theta0 + step)[0] / step)[:, None]
     cols = []
     for j in range(cand.size):
         try:
@@ -1391,6 +1387,44 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
         except ValueError as exc:          # the stepped value is invalid for this config
             return f"not evaluated: {exc}"
     return np.array(cols).T
+
+
+PROFILE_NODES = 9          # Chebyshev nodes of a searched term's interpolant
+PROFILE_POINTS = 201       # where the interpolated chi^2 profile is evaluated
+
+
+def _profile_minimum(change_at, search_range, r, white, P) -> float | None:
+    """The step in [lowest, highest] = search_range at which the features' change
+    (`change_at(step)`, (N,)) best fits the residual r (least GLS chi^2 after the nuisance
+    columns P), or None when fewer than three nodes are valid.
+
+    The features bend with such a term, and its chi^2 has two basins (see
+    Candidate.search_range). A few trial steps picked the wrong one: against an asymmetry error
+    of 0.2, -0.1 fitted better than 0.3, and the secant from it converged on the mirror (-0.127).
+    So the whole range is searched, on a Chebyshev interpolant of the change through
+    PROFILE_NODES re-simulations: smooth, because a monotone feed-forward moves no reversal of
+    the commands (interpolated and re-simulated chi^2 agreed within 1 % across +-0.4)."""
+    lowest, highest = search_range
+    nodes = np.cos(np.pi * (np.arange(PROFILE_NODES) + 0.5) / PROFILE_NODES)       # in (-1, 1)
+    steps = lowest + (nodes + 1.0) * (highest - lowest) / 2.0
+    valid, changes = [], []
+    for node, step in zip(nodes, steps):
+        try:
+            changes.append(change_at(float(step)))
+        except ValueError:                 # this step leaves the parameter's valid range here
+            continue
+        valid.append(node)
+    if len(valid) < 3:
+        return None
+    coef = chebyshev.chebfit(np.array(valid), np.array(changes), len(valid) - 1)    # (degree + 1, N)
+    fine = np.linspace(min(valid), max(valid), PROFILE_POINTS)       # never extrapolated
+    # the whitening is linear: whiten the coefficients, then evaluate (N, PROFILE_POINTS)
+    residuals = white(r)[:, None] - white(coef.T) @ chebyshev.chebvander(fine, len(valid) - 1).T
+    if P is not None and P.size:
+        q, _ = np.linalg.qr(white(P))
+        residuals = residuals - q @ (q.T @ residuals)
+    best = int(np.argmin(np.sum(residuals ** 2, axis=0)))
+    return float(lowest + (fine[best] + 1.0) * (highest - lowest) / 2.0)
 
 
 def _noise_columns(sess: _Session, cand: Candidate, theta0: np.ndarray) -> np.ndarray:
