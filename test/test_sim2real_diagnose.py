@@ -14,7 +14,7 @@ from afm_core.sim2real import regions
 from afm_core.sim2real.candidates import FrictionRegion, available, library, select
 from afm_core.sim2real.diagnose import (ConfigMismatchError, NoiseModel, build_noise_model, diagnose,
                                         drift_covariance, gls, positioning_covariance)
-from afm_core.sim2real.features import _same_segment
+from afm_core.sim2real.features import _profile_shift, _same_segment
 from afm_core.sim2real.protocol import make_session, session_config
 
 
@@ -467,6 +467,34 @@ def test_a_large_asymmetry_error_is_fitted_with_its_sign_not_its_mirror():
     assert d.chosen == ["hysteresis_asymmetry"], d.summary()
     fitted = d.parameters["controller.asymmetry_error"]
     assert abs(fitted["value"] - 0.2) <= min(0.2 * 0.2, 3 * fitted["sigma"]), fitted
+
+
+@pytest.mark.parametrize("lag", [3e-9, 60e-9, -120e-9])
+def test_a_line_pairs_shift_is_measured_whatever_its_size(lag):
+    """A particle 40 nm wide seen lag/2 further along each line's scan direction (a sensor
+    latency of any size that keeps it in both lines): the profiles align at `lag`. A search
+    window of +-30 nm around zero found no shift beyond it and the pair gave no feature."""
+    coord = np.linspace(-400e-9, 400e-9, 801)
+
+    def line(centre):
+        return {"coord": coord, "height": 50e-9 * np.exp(-0.5 * ((coord - centre) / 17e-9) ** 2), "pos": centre}
+    shift = _profile_shift(line(0.5 * lag + 7e-9), line(-0.5 * lag + 7e-9))
+    assert shift == pytest.approx(lag, abs=0.05e-9)
+
+
+def test_a_large_latency_is_named_alone_not_as_coupling():
+    """A 25 ms lag shifts the line pairs' profiles 53 nm apart and the fast rasters by ~850 nm:
+    the pairs' shift was outside its search window, and the latency's column, one 3 ms step
+    from zero, predicted so little of the rest that x/y coupling was named. The shift is
+    searched around the pair's midpoints and the column re-based on the secant to the fit:
+    against the whole library, the latency alone, within 3 sigma and 20 %."""
+    seed = 409
+    model = session_config()
+    truth = merge(model, {"seed": seed, "noise": {"sensor_latency": 25e-3}})
+    d = diagnose(make_session(truth, protocol_seed=seed), model)
+    assert d.chosen == ["latency"], d.summary()
+    fitted = d.parameters["noise.sensor_latency"]
+    assert abs(fitted["value"] - 25e-3) <= min(0.2 * 25e-3, 3 * fitted["sigma"]), fitted
 
 
 def test_sensor_latency_is_fitted_from_the_scan_direction_shift_alone():

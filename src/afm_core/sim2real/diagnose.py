@@ -86,6 +86,7 @@ MIN_MATCHED_FRACTION = 0.7         # of the recorded features the reference simu
 SHIFT = 10e-9                      # m, drift shift of the sensitivity replays
 POSITION_PRECISION = 2e-9          # m, how well a measured position pins the drift trajectory
 LOST_FEATURE_RETRIES = 2           # quarterings of a sensitivity step that made the re-simulation lose features
+LINEAR_REACH = 2.0                 # steps: how far a term's derivative column is trusted to extrapolate
 COLLINEAR = 1e-9                   # |R_jj| of a unit-norm column below which it repeats the others
 REGION_MIN_STEP = 0.05             # smallest change of a friction region's factor its design column is taken over
 SHAPE_GROUPS = ("line.width", "line.peak", "line.asym", "raster.height", "raster.half_width")
@@ -983,6 +984,22 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                 missing.append(f"{cand.name} ({cols})")
                 continue
         design[cand.name] = (cand, theta0, np.asarray(cols, float))
+    # a term's derivative column is taken one step from the model's value; a fit many steps
+    # beyond extrapolates it (a 25 ms latency, fitted from a 3 ms step, moves particles out of the
+    # rasters: its linear evidence was half coupling's, and it was never re-simulated): there
+    # the column becomes the secant to the fit
+    pw_model = white_model(P) if P.size else np.zeros((n, 0))
+    rw_model = white_model(sess.r)
+    _, chi2_model, _ = gls(rw_model, pw_model)
+    for name, (cand, theta0, cols) in design.items():
+        if cand.analytic or cand.search_range:
+            continue
+        coef, chi2, _ = gls(rw_model, np.hstack([pw_model, white_model(cols)]))
+        estimate = cand.clip(theta0 + coef[P.shape[1]:])
+        beyond = np.abs(estimate - theta0) > LINEAR_REACH * np.asarray(cand.steps)
+        if beyond.any() and chi2_model - chi2 > float(stats.chi2.isf(ALPHA / m, cand.complexity)):
+            say(f"sensitivity: {cand.name} at its fit")
+            design[name] = (cand, theta0, _columns_at_estimate(sess, cand, theta0, base, nom, cols, estimate))
     region, region_columns = _friction_region(design, config, table, sess.r, d_rec, noise)
     if region is not None:
         say(f"sensitivity: {region.name}")
@@ -1335,6 +1352,44 @@ def _cv_gain_on(r, cols, P, folds, fold_whiteners) -> float:
     return gain
 
 
+def _feature_change(sess: _Session, cand: Candidate, base: SimConfig, nom: np.ndarray, theta):
+    """(how the features the term acts on move from `nom` with its parameters at theta, by
+    re-simulation; which of them the re-simulation loses)."""
+    sim = sess.features(cand.apply(base, theta), imaging=cand.imaging)
+    # noise statistics move with the sensor noise only: what a re-simulation without it says
+    # of them is how the pixel grid falls on the roughness, not physics
+    col = np.where(sess.noisy, 0.0, np.nan_to_num(sim - nom))
+    lost = np.isnan(sim) & np.isfinite(nom) & ~sess.noisy
+    if not cand.imaging:
+        col[~sess.push] = 0.0
+        lost &= sess.push
+    if cand.geometric:
+        col[sess.shape] = 0.0
+        lost &= ~sess.shape
+    return col, lost
+
+
+def _columns_at_estimate(sess: _Session, cand: Candidate, theta0: np.ndarray, base: SimConfig, nom: np.ndarray,
+                         cols: np.ndarray, estimate: np.ndarray) -> np.ndarray:
+    """The columns as secants from the model's values to `estimate`, parameter by parameter,
+    where the derivative columns `cols` would be extrapolated beyond LINEAR_REACH steps (a
+    feature the re-simulation there loses keeps its derivative: what `_Session.residual`
+    predicts for it too)."""
+    cols = cols.copy()
+    for j in range(cand.size):
+        delta = float(estimate[j] - theta0[j])
+        if abs(delta) <= LINEAR_REACH * cand.steps[j]:
+            continue
+        theta = theta0.copy()
+        theta[j] = estimate[j]
+        try:
+            change, lost = _feature_change(sess, cand, base, nom, theta)
+        except ValueError:                  # the estimate is invalid for this config
+            continue
+        cols[:, j] = np.where(lost, cols[:, j], change / delta)
+    return cols
+
+
 def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base: SimConfig, nom: np.ndarray,
                        white: Whitener | None = None, P: np.ndarray | None = None):
     """Design columns d features / d parameter by re-simulation at the recorded geometry
@@ -1343,18 +1398,7 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
     chi^2 (whitened by `white`, after the nuisance columns P; `_profile_minimum`)."""
 
     def change(theta):
-        sim = sess.features(cand.apply(base, theta), imaging=cand.imaging)
-        # noise statistics move with the sensor noise only: what a re-simulation without it says
-        # of them is how the pixel grid falls on the roughness, not physics
-        col = np.where(sess.noisy, 0.0, np.nan_to_num(sim - nom))
-        lost = np.isnan(sim) & np.isfinite(nom) & ~sess.noisy
-        if not cand.imaging:
-            col[~sess.push] = 0.0
-            lost &= sess.push
-        if cand.geometric:
-            col[sess.shape] = 0.0
-            lost &= ~sess.shape
-        return col, lost
+        return _feature_change(sess, cand, base, nom, theta)
 
     def secant(j, step):
         """The column of parameter j by a step small enough that the re-simulation keeps every
