@@ -842,7 +842,20 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     # stage B: the imaged reference's own offsets corrected, once
     drift = drift_trajectory(scanner_map.refined(f_rec, f_nom), config, t_end, scanner_map.moves)
     nominal = replay(ops, base, drift=drift)
-    f_nom = _by_key(extract_features(nominal.operations, anchors))
+    nominal_extractor = FeatureExtractor(anchors)
+    for op in nominal.operations:
+        nominal_extractor.add(op)
+    f_nom = _by_key(nominal_extractor.finish())
+    # a drift trajectory can put the config's particles under the recorded lines one at a time
+    # (one sphere fitted, by jumps of micrometres, to where six were seen), but not into the
+    # images of them all: the images must show as many particles as the recording's
+    seen_rec, seen_nom = (sum(e.particles_seen.get(k, 0) for k in extractor.particles_seen)
+                          for e in (extractor, nominal_extractor))
+    if min(seen_rec, seen_nom) < MIN_MATCHED_FRACTION * max(seen_rec, seen_nom):
+        raise ConfigMismatchError(
+            f"the configuration does not match the recording: the recording's {len(extractor.particles_seen)} images "
+            f"show {seen_rec} particles, the simulation of the same images with this config {seen_nom}. Check the "
+            "sample (particle positions, seed) and the scanner area in the config.")
     matched = [k for k in f_rec if k in f_nom]
     # whether the particles are where the config says (noise statistics are there on any sample)
     on_sample = {k for k, f in f_rec.items() if f.group not in NOISE_GROUPS}

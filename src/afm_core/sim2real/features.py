@@ -169,6 +169,7 @@ class FeatureExtractor:
         self._slid = 0.0
         self._run: list = []
         self._run_common: dict = {}
+        self.particles_seen: dict = {}          # raster's op index -> how many particles it shows
 
     def add(self, op) -> None:
         if op.kind == "scan_line" and self._run and _same_segment(self._run[0], op):
@@ -191,7 +192,7 @@ class FeatureExtractor:
         if kind == "scan_line":
             self._run, self._run_common = [op], common
         elif kind == "raster" and op.data is not None:
-            self.features += _raster_features(op, common, self.anchors)
+            self.features += _raster_features(op, common, self.anchors, self.particles_seen)
 
     def _flush(self) -> None:
         if self._run:
@@ -333,7 +334,7 @@ def match_anchors(points: np.ndarray, anchors: np.ndarray, radius: float = MATCH
     return best
 
 
-def _raster_features(op, common, anchors=None) -> list[Feature]:
+def _raster_features(op, common, anchors=None, particles_seen: dict | None = None) -> list[Feature]:
     from afm_core.imaging.landmarks import extract_landmarks
     data = op.data
     h = np.asarray(data.height, float)
@@ -351,6 +352,8 @@ def _raster_features(op, common, anchors=None) -> list[Feature]:
                                       min_height=20e-9)
         except ValueError:
             marks = []
+        if particles_seen is not None:
+            particles_seen[op.index] = len(marks)
         if anchors is not None and len(anchors) > 1 and len(marks) > 1:
             # (one particle alone matches any anchor under some translation: keyed as the central one)
             match = match_anchors(np.array([(m.x, m.y) for m in marks]), anchors)
