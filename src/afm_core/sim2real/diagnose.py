@@ -60,9 +60,10 @@ Method (all SI):
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 import time as _time
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, NamedTuple, Optional
@@ -842,15 +843,13 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     # stage B: the imaged reference's own offsets corrected, once
     drift = drift_trajectory(scanner_map.refined(f_rec, f_nom), config, t_end, scanner_map.moves)
     nominal = replay(ops, base, drift=drift)
-    nominal_extractor = FeatureExtractor(anchors)
-    for op in nominal.operations:
-        nominal_extractor.add(op)
-    f_nom = _by_key(nominal_extractor.finish())
+    nominal_seen: dict = {}
+    f_nom = _by_key(extract_features(nominal.operations, anchors, nominal_seen))
     # a drift trajectory can put the config's particles under the recorded lines one at a time
     # (one sphere fitted, by jumps of micrometres, to where six were seen), but not into the
     # images of them all: the images must show as many particles as the recording's
-    seen_rec, seen_nom = (sum(e.particles_seen.get(k, 0) for k in extractor.particles_seen)
-                          for e in (extractor, nominal_extractor))
+    seen_rec, seen_nom = (sum(seen.get(k, 0) for k in extractor.particles_seen)
+                          for seen in (extractor.particles_seen, nominal_seen))
     if min(seen_rec, seen_nom) < MIN_MATCHED_FRACTION * max(seen_rec, seen_nom):
         raise ConfigMismatchError(
             f"the configuration does not match the recording: the recording's {len(extractor.particles_seen)} images "
@@ -1012,7 +1011,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         beyond = np.abs(estimate - theta0) > LINEAR_REACH * np.asarray(cand.steps)
         if beyond.any() and chi2_model - chi2 > float(stats.chi2.isf(ALPHA / m, cand.complexity)):
             say(f"sensitivity: {cand.name} at its fit")
-            design[name] = (cand, theta0, _columns_at_estimate(sess, cand, theta0, base, nom, cols, estimate))
+            design[name] = (cand, theta0, _columns_at_estimate(sess, cand, theta0, base, nom, cols, estimate, beyond))
     region, region_columns = _friction_region(design, config, table, sess.r, d_rec, noise)
     if region is not None:
         say(f"sensitivity: {region.name}")
@@ -1383,16 +1382,14 @@ def _feature_change(sess: _Session, cand: Candidate, base: SimConfig, nom: np.nd
 
 
 def _columns_at_estimate(sess: _Session, cand: Candidate, theta0: np.ndarray, base: SimConfig, nom: np.ndarray,
-                         cols: np.ndarray, estimate: np.ndarray) -> np.ndarray:
-    """The columns as secants from the model's values to `estimate`, parameter by parameter,
-    where the derivative columns `cols` would be extrapolated beyond LINEAR_REACH steps (a
-    feature the re-simulation there loses keeps its derivative: what `_Session.residual`
-    predicts for it too)."""
+                         cols: np.ndarray, estimate: np.ndarray, beyond: np.ndarray) -> np.ndarray:
+    """The derivative columns `cols`, those of the parameters marked `beyond` (their estimate
+    lies beyond LINEAR_REACH steps) replaced by the secants from the model's values to
+    `estimate`, parameter by parameter (a feature the re-simulation there loses keeps its
+    derivative: what `_Session.residual` predicts for it too)."""
     cols = cols.copy()
-    for j in range(cand.size):
+    for j in np.flatnonzero(beyond):
         delta = float(estimate[j] - theta0[j])
-        if abs(delta) <= LINEAR_REACH * cand.steps[j]:
-            continue
         theta = theta0.copy()
         theta[j] = estimate[j]
         try:
@@ -1410,8 +1407,7 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
     A candidate with a search range gets the secant to the step in it that leaves the least
     chi^2 (whitened by `white`, after the nuisance columns P; `_profile_minimum`)."""
 
-    def change(theta):
-        return _feature_change(sess, cand, base, nom, theta)
+    change = functools.partial(_feature_change, sess, cand, base, nom)
 
     def secant(j, step):
         """The column of parameter j by a step small enough that the re-simulation keeps every
@@ -1462,12 +1458,15 @@ def _profile_minimum(change_at, search_range, r, white, P) -> float | None:
     PROFILE_NODES re-simulations: smooth, because a monotone feed-forward moves no reversal of
     the commands (interpolated and re-simulated chi^2 agreed within 1 % across +-0.4)."""
     lowest, highest = search_range
+
+    def step_at(node):                     # the Chebyshev variable in [-1, 1] -> the step
+        return lowest + (node + 1.0) * (highest - lowest) / 2.0
+
     nodes = np.cos(np.pi * (np.arange(PROFILE_NODES) + 0.5) / PROFILE_NODES)       # in (-1, 1)
-    steps = lowest + (nodes + 1.0) * (highest - lowest) / 2.0
     valid, changes = [], []
-    for node, step in zip(nodes, steps):
+    for node in nodes:
         try:
-            changes.append(change_at(float(step)))
+            changes.append(change_at(float(step_at(node))))
         except ValueError:                 # this step leaves the parameter's valid range here
             continue
         valid.append(node)
@@ -1481,7 +1480,7 @@ def _profile_minimum(change_at, search_range, r, white, P) -> float | None:
         q, _ = np.linalg.qr(white(P))
         residuals = residuals - q @ (q.T @ residuals)
     best = int(np.argmin(np.sum(residuals ** 2, axis=0)))
-    return float(lowest + (fine[best] + 1.0) * (highest - lowest) / 2.0)
+    return float(step_at(fine[best]))
 
 
 def _noise_columns(sess: _Session, cand: Candidate, theta0: np.ndarray) -> np.ndarray:

@@ -204,12 +204,16 @@ class FeatureExtractor:
         return self.features
 
 
-def extract_features(operations, anchors=None) -> list[Feature]:
-    """Features of every operation (see the module docstring and FeatureExtractor)."""
+def extract_features(operations, anchors=None, particles_seen: dict | None = None) -> list[Feature]:
+    """Features of every operation (see the module docstring and FeatureExtractor);
+    particles_seen, if given, gets FeatureExtractor.particles_seen."""
     extractor = FeatureExtractor(anchors)
     for op in operations:
         extractor.add(op)
-    return extractor.finish()
+    features = extractor.finish()
+    if particles_seen is not None:
+        particles_seen.update(extractor.particles_seen)
+    return features
 
 
 def _run_features(run, common) -> list[Feature]:
