@@ -853,8 +853,9 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     if min(seen_rec, seen_nom) < MIN_MATCHED_FRACTION * max(seen_rec, seen_nom):
         raise ConfigMismatchError(
             f"the configuration does not match the recording: the recording's {len(extractor.particles_seen)} images "
-            f"show {seen_rec} particles, the simulation of the same images with this config {seen_nom}. Check the "
-            "sample (particle positions, seed) and the scanner area in the config.")
+            f"show {seen_rec} particles, the simulation of the same images with this config {seen_nom} (each must be at "
+            f"least {MIN_MATCHED_FRACTION:.0%} of the other). Check the sample (particle positions, seed) and the "
+            "scanner area in the config.")
     matched = [k for k in f_rec if k in f_nom]
     # whether the particles are where the config says (noise statistics are there on any sample)
     on_sample = {k for k, f in f_rec.items() if f.group not in NOISE_GROUPS}
