@@ -6,8 +6,11 @@ SHELL := /bin/bash
 setup:
 	@bash scripts/setup.sh
 
+# The pure-core tests (the sim2real diagnoses are most of the time) on both cores; then the
+# ROS graph tests alone, as they wait on nodes and time out under load.
 test: setup
-	@scripts/with_env.sh python -m pytest test -q -p no:cacheprovider
+	@scripts/with_env.sh python -m pytest test -q -p no:cacheprovider -m 'not ros' -n 2 --dist loadgroup --durations=10
+	@scripts/with_env.sh python -m pytest test -q -p no:cacheprovider -m ros --durations=5
 
 demo: setup
 	@scripts/with_env.sh python -m afm_bringup.cli demo --output demo_output

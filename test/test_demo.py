@@ -2,7 +2,11 @@
 virtual nano-hand, records everything, replays it, evaluates the replayed copy, reports."""
 import json
 
+import pytest
+
 from afm_bringup.demo import PUSH_DISTANCE, run_demo
+
+pytestmark = pytest.mark.ros
 
 
 def test_demo_runs_end_to_end_and_reports(tmp_path):

@@ -16,6 +16,8 @@ from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_msgs.msg import GroundTruth
 from conftest import wait_for
 
+pytestmark = pytest.mark.ros
+
 
 def scan_goal(origin=(54.6e-6, 54.6e-6), size=(0.8e-6, 0.8e-6), pixels=(64, 64), angle=0.0, line_rate=2.0):
     goal = ScanImage.Goal(size_x=size[0], size_y=size[1], pixels_x=pixels[0], pixels_y=pixels[1],

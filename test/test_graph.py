@@ -14,6 +14,8 @@ from afm_bringup.units import parse_length
 from afm_core.recording import RecordingReader
 from conftest import wait_for
 
+pytestmark = pytest.mark.ros
+
 AFM = [sys.executable, "-m", "afm_bringup.cli"]
 
 

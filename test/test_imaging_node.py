@@ -1,5 +1,6 @@
 """The imaging node between the driver's scans and the landmark map."""
 import numpy as np
+import pytest
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
@@ -10,6 +11,8 @@ from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 from afm_msgs.msg import LandmarkArray, RasterScan, TipShape
 from conftest import wait_for
+
+pytestmark = pytest.mark.ros
 
 SPHERES = [{"x": 55.0e-6, "y": 55.0e-6, "radius": 60e-9}, {"x": 55.5e-6, "y": 55.4e-6, "radius": 60e-9},
            {"x": 54.6e-6, "y": 55.6e-6, "radius": 60e-9}, {"x": 55.3e-6, "y": 54.6e-6, "radius": 60e-9}]

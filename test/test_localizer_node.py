@@ -14,6 +14,8 @@ from afm_msgs.msg import GroundTruth, LandmarkArray
 from conftest import wait_for
 from sim_calibration import oracle_calibration
 
+pytestmark = pytest.mark.ros
+
 SPHERE = (55.0e-6, 55.0e-6)                    # the default simulator's first sphere, r = 100 nm
 
 

@@ -14,6 +14,8 @@ from afm_msgs.msg import LandmarkArray
 from afm_msgs.srv import PlanObservation, PlanPath, PlanSequence
 from conftest import wait_for
 
+pytestmark = pytest.mark.ros
+
 
 def sphere(i, x, y, radius=100e-9, sigma=5e-9):
     return Landmark(id=i, kind="sphere", x=x, y=y, covariance=np.diag([sigma ** 2, sigma ** 2]), radius=radius,

@@ -15,6 +15,8 @@ from afm_msgs.msg import GroundTruth, LandmarkArray
 from conftest import wait_for
 from sim_calibration import oracle_calibration
 
+pytestmark = pytest.mark.ros
+
 ORIGIN, SIZE, PIXELS = (54.3e-6, 54.3e-6), (1.8e-6, 1.8e-6), (128, 128)
 
 

@@ -15,6 +15,8 @@ from afm_msgs.msg import ForceTrace, LandmarkArray, RasterScan
 from conftest import wait_for
 from sample_messages import force_trace, landmarks, raster_scan
 
+pytestmark = pytest.mark.ros
+
 TOPICS = "['/afm/scan','/afm/force_trace','/afm/landmarks']"
 
 

@@ -202,6 +202,7 @@ def null_diagnosis():
     return diagnosis
 
 
+@pytest.mark.xdist_group("null_diagnosis")     # one worker diagnoses it once
 def test_the_diagnosis_streams_the_recording(null_diagnosis):
     """Measurements are let go once their features are taken: never more alive than one run of
     scan lines over a segment (which waits for its end), never the session."""
@@ -210,6 +211,7 @@ def test_the_diagnosis_streams_the_recording(null_diagnosis):
     assert seen["most_alive"] <= seen["longest_run"] + 1, seen
 
 
+@pytest.mark.xdist_group("null_diagnosis")     # one worker diagnoses it once
 def test_null_session_reports_no_missing_physics(null_diagnosis, tmp_path):
     d = null_diagnosis
     assert d.chosen == [], d.summary()

@@ -13,6 +13,8 @@ from afm_core.sim2real import RecordingInstrument
 from afm_core.sim2real.protocol import run_protocol, session_config
 from afm_msgs.action import Sim2Real
 
+pytestmark = pytest.mark.ros
+
 TRUE_APEX = 26e-9          # the model says 20 nm
 # the terms that change a particle's apparent size (the whole library is the diagnosis tests' job)
 SIZE_TERMS = ["tip_radius", "tip_wear", "tip_asymmetry", "height_gain"]

@@ -22,6 +22,8 @@ from afm_core.sim2real import (RecordingInstrument, SessionError, SessionWriter,
 from afm_core.sim2real.session import (FORCE_TRACE, GROUND_TRUTH, OFFERED_QOS, SCAN, SCAN_LINE, TIP_COMMAND,
                                        TYPES)
 
+pytestmark = pytest.mark.ros
+
 SEED = 3
 EPOCH_NS = 1_700_000_000_123_456_789      # a wall-clock epoch, as the driver's
 HOLD = 20.0                               # s, idle between the moves and the lines
