@@ -6,6 +6,7 @@ import time
 import numpy as np
 import pytest
 from mcap_ros2.reader import read_ros2_messages
+from rclpy.duration import Duration
 from rclpy.qos import qos_profile_sensor_data
 from rosgraph_msgs.msg import Clock
 
@@ -181,11 +182,12 @@ def test_signalled_recorder_leaves_a_readable_file(tmp_path, nodes, ros_node, si
 def test_hard_killed_recorder_is_recoverable(tmp_path, nodes, ros_node):
     from afm_core.recording import recover_recording
     path = tmp_path / "crash.mcap"
-    # deep reliable queues on both sides: DDS delivers all 200 in order even if the
-    # recorder stalls, so what reached the disk is exactly a prefix of what was sent
+    # a deep reliable publisher queue and the recorder's keep-all: DDS delivers all 200 in
+    # order even if the recorder stalls, so what reached the disk is exactly a prefix of what
+    # was sent
     trace_pub = ros_node.create_publisher(ForceTrace, "/afm/force_trace", 1000)
     recorder = nodes("recorder", output=path, topics="['/afm/force_trace']", discovery_period=0.1,
-                     chunk_size=16384, queue_depth=1000)
+                     chunk_size=16384)
     wait_for(lambda: trace_pub.get_subscription_count() > 0, 15, what="recorder subscription")
     for i in range(200):
         trace_pub.publish(force_trace(i))
@@ -198,6 +200,34 @@ def test_hard_killed_recorder_is_recoverable(tmp_path, nodes, ros_node):
     with RecordingReader(recovered) as reader:
         ids = reader.arrays("/afm/force_trace")["object_id"]
     np.testing.assert_array_equal(ids, np.arange(count))
+
+
+def test_a_burst_larger_than_any_queue_reaches_the_recording_whole(tmp_path, nodes, ros_node):
+    """6000 force traces published at once, reliably, to a recorder that compresses a chunk
+    every few messages: each one is recorded, in order. A keep-last-100 subscription lost 134
+    and 237 of them in two runs (the oldest, whenever the writer fell behind the burst)."""
+    path = tmp_path / "burst.mcap"
+    part = tmp_path / "burst.mcap.part"
+    burst = 6000
+    trace_pub = ros_node.create_publisher(ForceTrace, "/afm/force_trace", burst)
+    recorder = nodes("recorder", output=path, topics="['/afm/force_trace']", discovery_period=0.1,
+                     chunk_size=16384)
+    wait_for(lambda: trace_pub.get_subscription_count() > 0, 15, what="recorder subscription")
+    for i in range(burst):
+        trace_pub.publish(force_trace(i))
+    assert trace_pub.wait_for_all_acked(Duration(seconds=60)), "the recorder did not acknowledge the burst"
+    # acknowledged is in the recorder's queue, not yet written: wait until its file stops growing
+    sizes = [-1]
+
+    def settled():
+        sizes.append(part.stat().st_size)
+        return sizes[-1] == sizes[-2]
+    wait_for(settled, 60, interval=1.0, what="the recorder to write the burst")
+    code, output = recorder.stop(signal.SIGINT)
+    assert code == 0, output
+    with RecordingReader(path) as reader:
+        ids = reader.arrays("/afm/force_trace")["object_id"]
+    np.testing.assert_array_equal(ids, np.arange(burst))
 
 
 @pytest.mark.parametrize("overrides, complaint", [

@@ -20,7 +20,6 @@ PARAMETERS = [
     ("topics", topics.RECORDED_BY_DEFAULT, "Topics to record; subscribed when a publisher appears."),
     ("all_topics", False, "Record every topic that appears (except /rosout and /parameter_events)."),
     ("discovery_period", 0.5, "s between checks of the ROS graph for new publishers."),
-    ("queue_depth", 100, "Subscription queue depth per topic (messages held while the writer is busy)."),
     ("compression", "zstd", "Chunk compression: zstd, lz4 or none."),
     ("chunk_size", 4 * 1024 * 1024, "Bytes of messages per MCAP chunk before it is compressed and written."),
     ("min_free_bytes", 64 * 1024 * 1024, "Stop and close the recording when the disk has less free space."),
@@ -66,7 +65,7 @@ class RecorderNode(Node):
             except (DefinitionNotFound, ValueError) as exc:
                 self._skip(topic, str(exc))
                 continue
-            qos = subscription_qos_for(offers, self.config["queue_depth"])
+            qos = subscription_qos_for(offers)
             self.recorded_topics[topic] = self.create_subscription(
                 msg_type, topic, self._writer_callback(channel), qos, raw=True)
             self.get_logger().info(f"recording {topic} ({type_name}, {qos.reliability.name.lower()}, "

@@ -63,13 +63,16 @@ def qos_from_description(desc: QosDescription) -> QoSProfile:
     )
 
 
-def subscription_qos_for(offers: list[QosDescription], depth: int) -> QoSProfile:
+def subscription_qos_for(offers: list[QosDescription]) -> QoSProfile:
     """Request QoS that matches every publisher and still gets latched messages when all
-    publishers latch (rosbag2's rule)."""
+    publishers latch (rosbag2's rule), keeping every message until it is taken: a burst that
+    arrives while the writer compresses a chunk waits instead of overwriting the oldest. (The
+    publishers' own depth would do, as rosbag2 takes it, but the graph reports it as 0 for
+    another process's publishers, and rosbag2 keeps all then too.)"""
     all_reliable = bool(offers) and all(o.reliability == "reliable" for o in offers)
     all_latched = bool(offers) and all(o.durability == "transient_local" for o in offers)
     return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=depth,
+        history=HistoryPolicy.KEEP_ALL,
         reliability=ReliabilityPolicy.RELIABLE if all_reliable else ReliabilityPolicy.BEST_EFFORT,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if all_latched else DurabilityPolicy.VOLATILE)
 
