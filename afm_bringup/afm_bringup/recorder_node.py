@@ -25,6 +25,7 @@ PARAMETERS = [
     ("min_free_bytes", 64 * 1024 * 1024, "Stop and close the recording when the disk has less free space."),
 ]
 IGNORED_WITH_ALL = {"/rosout", "/parameter_events"}
+DRAIN_SECONDS = 5.0      # at most, after SIGINT/SIGTERM, writing what had already arrived
 
 
 class RecorderNode(Node):
@@ -100,8 +101,9 @@ def close_recording(node: RecorderNode):
 
 
 def main(args=None):
+    # what a reliable publisher already counts as delivered is written before the file closes
     return run(RecorderNode, "afm recorder", args, config_errors=(RecordingError,),
-               on_shutdown=close_recording)
+               on_shutdown=close_recording, drain_seconds=DRAIN_SECONDS)
 
 
 if __name__ == "__main__":
