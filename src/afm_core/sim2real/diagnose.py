@@ -1635,8 +1635,7 @@ def _noise_term(sess: _Session, design: tuple, statistics_cov: np.ndarray, folds
     # the evidence is the fit's, not the derivative's: noise levels add in quadrature, so a line
     # through the model's value misses a large change (1/f noise 7.5 x the model's fitted to
     # chi^2 85 along it, 6.5 at its value) and a white noise, straighter there, passed for it
-    curve = _NoiseCurve.fit(sess, cand, float(cand.clip(res.estimate)[0]), white)
-    level, sigma, chi2_level = curve.profile(sess, white)
+    curve, (level, sigma, chi2_level) = _NoiseCurve.fit(sess, cand, float(cand.clip(res.estimate)[0]), white)
     res.estimate, res.sigma = np.array([level]), np.array([sigma])
     res.delta_chi2 = (float(np.sum(white(r) ** 2)) - chi2_level) / max(1.0, chi2_level / max(1, len(r) - cand.size))
     res.bic_gain = res.delta_chi2 - cand.complexity * math.log(max(len(r), 2))
@@ -1671,17 +1670,17 @@ class _NoiseCurve(NamedTuple):
         return cls(low, high, a, b)
 
     @classmethod
-    def fit(cls, sess: _Session, cand: Candidate, around: float, white: Whitener) -> "_NoiseCurve":
+    def fit(cls, sess: _Session, cand: Candidate, around: float, white: Whitener):
         """Through 0 .. 1.5 x max(the model's level, `around`), widened while the chi^2 profile's
-        minimum (whitened by `white`) lies beyond."""
+        minimum (whitened by `white`) lies beyond. Returns the curve and that profile."""
         high = 1.5 * max(float(cand.nominal(sess.config)[0]), around, 1e-15)
         for _ in range(NOISE_WIDENINGS + 1):
             curve = cls.through(sess, cand, 0.0, high)
-            best = curve.profile(sess, white)[0]
-            if best <= high:
+            profile = curve.profile(sess, white)
+            if profile[0] <= high:
                 break
-            high = 1.5 * best
-        return curve
+            high = 1.5 * profile[0]
+        return curve, profile
 
     def zoom(self, sess: _Session, cand: Candidate, white: Whitener) -> "_NoiseCurve":
         """The curve again through NOISE_ZOOM sigmas either side of its profile's minimum."""
