@@ -554,6 +554,21 @@ def test_slower_creep_is_named_without_a_second_term_its_joint_fit_leaves_at_the
     assert abs(fitted - factor) <= 0.2 * (factor - 1), fitted
 
 
+def test_a_second_term_is_named_only_if_it_differs_from_the_model_by_its_reported_sigma():
+    """A feed-forward asymmetry error of -0.094: a z gain passed every test on top of it (its
+    joint fit judged with the refinement's covariance) and was named at 1.0012 +- 0.0007, within
+    2 reported sigma of the model's 1 (the reported sigma is widened to what the features
+    scatter by). A second term is judged with the sigma it would be reported with."""
+    seed = 251
+    model = _nominal(seed)
+    truth = merge(model, {"controller": {"asymmetry_error": -0.0944}})
+    d = diagnose(make_session(truth, protocol_seed=seed), model,
+                 candidates=select(("hysteresis_asymmetry", "height_gain")))
+    assert d.chosen == ["hysteresis_asymmetry"], d.summary()
+    assert abs(d.parameters["controller.asymmetry_error"]["value"] + 0.0944) <= 0.2 * 0.0944
+    assert "Wald" in next(c.note for c in d.candidates if c.name == "height_gain")
+
+
 def test_asymmetric_tip_is_fitted_to_within_its_reported_uncertainty():
     """One flank 27 % steeper: line profiles bend with the asymmetry, so a fit refined with the
     column taken at the model's symmetric tip stops short of it (0.292 +- 0.004 after two
