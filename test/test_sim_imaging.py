@@ -63,3 +63,25 @@ def test_dilated_field_and_pointwise_dilation_agree():
     xs = np.linspace(20e-9, 180e-9, 41)
     ys = np.full_like(xs, 100e-9)
     np.testing.assert_allclose(field.at(xs, ys), dilated_heights_at(sample, tip, 2e-9, xs, ys), atol=1e-12)
+
+
+def test_pointwise_dilation_tries_only_offsets_that_can_win_and_equals_the_definition():
+    """Particles, a rod and an electrode on a rough, pitted substrate, seen along lines by a
+    blunt asymmetric tip and a sharp one: the heights equal max over every tip offset of
+    s(q+u) + t(u), though only the offsets that can win are tried."""
+    from afm_core.sim.imaging import dilated_heights_at
+    from afm_core.sim.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
+    sample = Sample(spheres=[Sphere(0, 120e-9, 100e-9, 15e-9), Sphere(1, 160e-9, 110e-9, 5e-9)],
+                    rods=[Rod(2, 60e-9, 160e-9, 0.4, 120e-9, 8e-9)],
+                    electrodes=[Electrode(3, 150e-9, 150e-9, 260e-9, 220e-9, 25e-9)],
+                    pits=[Pit(4, 90e-9, 90e-9, 15e-9, 4e-9)], roughness=Roughness(1.5e-9, 10e-9, seed=3))
+    s = np.linspace(0.0, 1.0, 250)
+    for radius, asymmetry, pixel in ((30e-9, 0.3, 2e-9), (4e-9, -0.2, 1e-9)):
+        tip = paraboloid_cone_tip(radius, 20.0, pixel, 60e-9, asymmetry)
+        half = tip.shape[0] // 2
+        u = np.arange(-half, half + 1) * pixel
+        ux, uy = (a.ravel() for a in np.meshgrid(u, u))
+        for x0, y0, x1, y1 in ((20e-9, 100e-9, 280e-9, 110e-9), (60e-9, 20e-9, 220e-9, 240e-9)):
+            xs, ys = x0 + s * (x1 - x0), y0 + s * (y1 - y0)
+            definition = np.max(sample.height(xs[:, None] + ux, ys[:, None] + uy) + tip.ravel(), axis=1)
+            np.testing.assert_array_equal(dilated_heights_at(sample, tip, pixel, xs, ys), definition)

@@ -42,29 +42,49 @@ def dilated_heights_at(sample, tip_grid: np.ndarray, pixel: float, xs: np.ndarra
     """i(q) = max_u s(q+u) + t(u) at scattered points q (local scan lines), from the definition.
 
     The surface is the objects on a base (roughness and pits): i = max(base dilated,
-    objects dilated). The base varies by at most base_span, so only tip offsets with
-    t(u) >= -base_span can win there; objects are tested only where they are near. Points go
-    in chunks of at most chunk_elements (point, tip offset) pairs: a fine tip grid has tens of
-    thousands of offsets, and the temporaries must stay tens of MB."""
+    objects dilated). Only tip offsets that can win are tried, which leaves the maximum
+    exactly as over all of them: the tip's apex (t = 0) over q already gives the base's height
+    there, so on the base only offsets with t(u) >= -base_span can win, and on an object only
+    those with top + t(u) above the least base dilation of the points near it, and only at
+    points within those offsets' reach of the object (the suite's scan lines: 180 points, a
+    particle near 78 of them, 1849 tip offsets; trying them all made a session's re-simulation
+    1.8 s, 1.1 s without). Points go in chunks of at most chunk_elements (point, tip offset)
+    pairs, so the temporaries stay tens of MB."""
     half = tip_grid.shape[0] // 2
     offsets = np.arange(-half, half + 1) * pixel
     ox, oy = np.meshgrid(offsets, offsets)
     ox, oy, t = ox.ravel(), oy.ravel(), tip_grid.ravel()
-    near_apex = t >= -sample.base_span()
     xs, ys = np.ravel(xs), np.ravel(ys)
+    out = np.full(xs.shape, -np.inf)
+    if not xs.size:
+        return out
+    near_apex = t >= -sample.base_span()
+    _chunked_max(out, np.arange(xs.size), xs, ys, ox[near_apex], oy[near_apex], t[near_apex],
+                 sample.base_height, chunk_elements)
     reach = half * pixel
-    objects = sample.objects_near(xs.min() - reach, xs.max() + reach, ys.min() - reach, ys.max() + reach) \
-        if xs.size else []
-    out = np.empty(xs.shape)
-    chunk = max(1, chunk_elements // ox.size)
-    for start in range(0, xs.size, chunk):
-        qx, qy = xs[start:start + chunk, None], ys[start:start + chunk, None]
-        base = sample.base_height(qx + ox[near_apex], qy + oy[near_apex]) + t[near_apex]
-        out[start:start + chunk] = np.max(base, axis=1)
-        if objects:
-            tops = sample.object_height(qx + ox, qy + oy, objects) + t
-            out[start:start + chunk] = np.maximum(out[start:start + chunk], np.max(tops, axis=1))
+    for obj in sample.objects_near(xs.min() - reach, xs.max() + reach, ys.min() - reach, ys.max() + reach):
+        x_lo, x_hi, y_lo, y_hi = obj.bounds()
+        near = np.flatnonzero((xs >= x_lo - reach) & (xs <= x_hi + reach) & (ys >= y_lo - reach) & (ys <= y_hi + reach))
+        if not near.size:
+            continue
+        can_win = obj.top() + t >= out[near].min()
+        if not can_win.any():
+            continue
+        # the offsets that can win reach less far than the whole grid
+        u_reach = max(float(np.abs(ox[can_win]).max()), float(np.abs(oy[can_win]).max()))
+        q_x, q_y = xs[near], ys[near]
+        near = near[(q_x >= x_lo - u_reach) & (q_x <= x_hi + u_reach) & (q_y >= y_lo - u_reach) & (q_y <= y_hi + u_reach)]
+        _chunked_max(out, near, xs, ys, ox[can_win], oy[can_win], t[can_win],
+                     lambda x, y, obj=obj: obj.height(x, y), chunk_elements)
     return out
+
+
+def _chunked_max(out: np.ndarray, points: np.ndarray, xs, ys, ux, uy, ut, height, chunk_elements: int) -> None:
+    """out[p] = max(out[p], max_u height(q_p + u) + t(u)) for the points p (indices)."""
+    chunk = max(1, chunk_elements // max(ux.size, 1))
+    for start in range(0, points.size, chunk):
+        p = points[start:start + chunk]
+        out[p] = np.maximum(out[p], np.max(height(xs[p, None] + ux, ys[p, None] + uy) + ut, axis=1))
 
 
 def pink_noise(n: int, sigma: float, rng: np.random.Generator) -> np.ndarray:

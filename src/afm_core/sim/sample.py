@@ -30,6 +30,10 @@ class Sphere:
     def bounds(self) -> tuple[float, float, float, float]:
         return self.x - self.radius, self.x + self.radius, self.y - self.radius, self.y + self.radius
 
+    def top(self) -> float:
+        """Its highest point above the mean substrate plane (m)."""
+        return 2 * self.radius
+
 
 @dataclass
 class Rod:
@@ -64,6 +68,9 @@ class Rod:
         r = self.radius
         return min(a[0], b[0]) - r, max(a[0], b[0]) + r, min(a[1], b[1]) - r, max(a[1], b[1]) + r
 
+    def top(self) -> float:
+        return 2 * self.radius
+
 
 @dataclass
 class Electrode:
@@ -82,6 +89,9 @@ class Electrode:
 
     def bounds(self) -> tuple[float, float, float, float]:
         return self.x0, self.x1, self.y0, self.y1
+
+    def top(self) -> float:
+        return self.thickness
 
 
 @dataclass
