@@ -85,3 +85,19 @@ def test_pointwise_dilation_tries_only_offsets_that_can_win_and_equals_the_defin
             xs, ys = x0 + s * (x1 - x0), y0 + s * (y1 - y0)
             definition = np.max(sample.height(xs[:, None] + ux, ys[:, None] + uy) + tip.ravel(), axis=1)
             np.testing.assert_array_equal(dilated_heights_at(sample, tip, pixel, xs, ys), definition)
+
+
+@pytest.mark.parametrize("level_key", ["height_white_sigma", "height_flicker_sigma"])
+def test_raster_sensor_noise_is_linear_in_its_level(level_key):
+    """The sim2real noise curve re-simulates a noise term at two levels and takes every other
+    level as their linear combination: the rasters' noise must be its level times draws that
+    do not depend on it (the drift's wander, the positioning walk and the piezo unchanged)."""
+    from afm_core.sim.config import load_config, merge
+
+    def image(level):
+        afm = SimulatedAfm(merge(load_config(), {"seed": 4, "noise": {level_key: level}}))
+        return afm.raster_scan(ScanRequest(50e-6, 50e-6, 1e-6, 1e-6, 48, 24, line_rate=4.0)).height.astype(float)
+
+    zero, unit, far = image(0.0), image(0.3e-9), image(1.1e-9)
+    assert np.std(far - zero) > 0.5e-9            # the level moves the image
+    np.testing.assert_allclose(far, zero + 1.1 / 0.3 * (unit - zero), rtol=0, atol=2e-13)
