@@ -62,7 +62,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import itertools
 import math
 import time as _time
 from dataclasses import dataclass, field
@@ -1097,8 +1096,8 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     # overdispersion per feature group (quasi-likelihood): a group the noise model describes
     # too optimistically (here: how the few-nm mismatch of the reference's geometry acts on
     # direction differences, which the 10 nm sensitivities only partly tell) must not pass its
-    # excess to a candidate; the factors are taken after the best fit of one or two candidates,
-    # so a real effect (or two) is not mistaken for noise
+    # excess to a candidate; the factors are taken after the best single candidate's fit, so a
+    # real effect is not mistaken for noise
     group_factors = _group_overdispersion(r, P, [c[2] for c in design.values()], noise.cov, table.groups)
     noise.overdispersed(group_factors, table.groups)
 
@@ -1115,12 +1114,8 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         return coef[P.shape[1]:], chi2, cov[P.shape[1]:, P.shape[1]:]
 
     singles = {name: fit([cols]) for name, (cand, theta0, cols) in design.items()}
-    # the residual's overdispersion beyond the groups' is taken after the best fit of one or two
-    # terms, as the groups' (two real effects: after one, the other's residual is not noise)
-    fits = [(chi2_0, 0)] + [(c[1], design[nm][0].size) for nm, c in singles.items()] + [
-        (fit([design[a][2], design[b][2]])[1], design[a][0].size + design[b][0].size)
-        for a, b in itertools.combinations(design, 2)]
-    best_chi2, best_p = min(fits, key=lambda f: (f[0], -f[1]))
+    best_chi2 = min([c[1] for c in singles.values()] + [chi2_0])
+    best_p = max([design[nm][0].size for nm, c in singles.items() if c[1] == best_chi2] + [0])
     variance_factor = max(1.0, best_chi2 / max(1, dof0 - best_p))
     results = []
     for name, (cand, theta0, cols) in design.items():
@@ -1316,23 +1311,17 @@ def _left_out(candidates) -> list[str]:
     return [c.name for c in library() if c.name not in given]
 
 
-def _group_overdispersion(r, P, columns, cov, groups, min_size: int = 5, terms: int = 2) -> dict:
-    """Per feature group: max(1, chi^2 / n) of its residual after the nuisance and the (at most
-    `terms`) candidates that fit best together (GLS on the whole, chi^2 of the group's part
-    with its own covariance block). The diagnosis names up to two terms on top of a noise level:
-    after the best single one (a 1.7-fold friction) the other's signal (an x-to-y coupling 0.015
-    off) stayed in its groups and was called noise (the rasters' y positions 556 x noisier than
-    modelled)."""
+def _group_overdispersion(r, P, columns, cov, groups, min_size: int = 5) -> dict:
+    """Per feature group: max(1, chi^2 / n) of its residual after the nuisance and the single
+    candidate that fits best (GLS on the whole, chi^2 of the group's part with its own
+    covariance block)."""
     white = Whitener(cov)
     rw, pw = white(r), white(P) if P.size else np.zeros((len(r), 0))
-    whitened = [white(cols) for cols in columns]
-    best = (gls(rw, pw)[1], ())
-    for size in range(1, terms + 1):
-        for chosen in itertools.combinations(range(len(columns)), size):
-            chi2 = gls(rw, np.hstack([pw] + [whitened[k] for k in chosen]))[1]
-            if chi2 < best[0]:
-                best = (chi2, chosen)
-    best = (best[0], np.hstack([np.zeros((len(r), 0))] + [columns[k] for k in best[1]]))
+    best = (gls(rw, pw)[1], np.zeros((len(r), 0)))
+    for cols in columns:
+        chi2 = gls(rw, np.hstack([pw, white(cols)]))[1]
+        if chi2 < best[0]:
+            best = (chi2, cols)
     X = np.hstack([P, best[1]]) if P.size else best[1]
     coef, _, _ = gls(rw, white(X)) if X.shape[1] else (np.zeros(0), 0.0, None)
     e = r - (X @ coef if X.shape[1] else 0.0)
@@ -1605,7 +1594,7 @@ def _noise_statistics_covariance(sess: _Session, level: dict, nom: np.ndarray, c
     variance, _ = _pooled_white(replicas[:, noisy], groups, 4.0, nom[noisy])
     residual = sess.r if residual is None else residual
     factors = _group_overdispersion(residual[noisy], np.zeros((int(noisy.sum()), 0)), [c[noisy] for c in columns],
-                                    np.diag(variance), groups, terms=1)      # one noise level is fitted
+                                    np.diag(variance), groups)
     cov = np.diag(variance * np.array([factors.get(g, 1.0) for g in groups]))
     offsets = sess.realization_offsets(REALIZATIONS, level)[:, noisy]
     for group in np.unique(groups):
