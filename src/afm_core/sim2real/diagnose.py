@@ -78,7 +78,7 @@ from afm_core.sim2real import regions
 from afm_core.sim2real.candidates import (Candidate, FrictionRegion, available, has_key, library, merge_overrides,
                                          select)
 from afm_core.sim2real.features import (POSITION_GROUPS, SEGMENT, STREAK_MIN_LINES, Feature, FeatureExtractor,
-                                        extract_features)
+                                        extract_features, raster_noise_statistics)
 from afm_core.sim2real.protocol import TrajectoryDrift, deterministic, replay
 
 ALPHA = 0.05                       # family-wise false "missing physics" rate on null recordings
@@ -780,7 +780,8 @@ class _Session:
         return np.mean(self.noise_replicas(overrides, rasters_only=True), axis=0)     # (lines: NaN)
 
     def noise_features_along(self, cand: Candidate, levels) -> np.ndarray:
-        """(len(levels), N): `noise_features` with the sensor-noise term `cand` at each level.
+        """(len(levels), N): the noise statistics of `noise_features` (NaN on the other features)
+        with the sensor-noise term `cand` at each level.
         The simulator adds that noise to the rasters in proportion to its level, from draws that
         do not depend on it, so each seed's rasters at any level are those at 0 plus level / u
         times their change at u (within 5e-14 m of a re-simulation's, the float32 images'
@@ -794,7 +795,7 @@ class _Session:
         unit, runs = self._noise_runs[memo]
         out = np.empty((len(levels), len(self.keys)))
         for i, level in enumerate(levels):
-            out[i] = np.mean([self._raster_features(at_zero, at_unit, float(level) / unit)
+            out[i] = np.mean([self._noise_statistics_between(at_zero, at_unit, float(level) / unit)
                               for at_zero, at_unit in runs], axis=0)
         return out
 
@@ -804,14 +805,16 @@ class _Session:
         rep = replay(self.ops, config, noise_seed=noise_seed, drift=self.drift, imaging="rasters")
         return [op for op in rep.operations if op.kind == "raster" and op.data is not None]
 
-    def _raster_features(self, at_zero: list, at_unit: list, fraction: float) -> np.ndarray:
-        """Features of the rasters at_zero + fraction (at_unit - at_zero) (heights only move)."""
-        ops = []
+    def _noise_statistics_between(self, at_zero: list, at_unit: list, fraction: float) -> np.ndarray:
+        """(N,): the noise statistics of the rasters at_zero + fraction (at_unit - at_zero) (only
+        the heights move; NaN on every other feature)."""
+        features = []
         for zero, unit in zip(at_zero, at_unit):
             low, high = zero.data.height.astype(float), unit.data.height.astype(float)
             height = (low + fraction * (high - low)).astype(zero.data.height.dtype)
-            ops.append(dataclasses.replace(zero, data=dataclasses.replace(zero.data, height=height)))
-        return _values(_by_key(extract_features(ops, self.anchors)), self.keys)
+            features += raster_noise_statistics(dataclasses.replace(zero, data=dataclasses.replace(zero.data,
+                                                                                                    height=height)))
+        return _values(_by_key(features), self.keys)
 
     def drift_extra(self, terms) -> np.ndarray | None:
         """The drift offsets (N, 2) the drift terms at theta add to the model's."""

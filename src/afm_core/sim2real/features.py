@@ -419,6 +419,13 @@ def pixel_noise(lines: np.ndarray, offsets: np.ndarray) -> float:
     return float(median_abs_deviation(steps, axis=None, scale="normal") / math.sqrt(2))
 
 
+def raster_noise_statistics(op) -> list[Feature]:
+    """The noise statistics (`raster.streak`, `raster.pixel_noise`) of one raster, without the
+    particles and the background its other features need (conditions left empty)."""
+    h = np.asarray(op.data.height, float)
+    return _streak_features(op, h, {}) if np.isfinite(h).all() else []
+
+
 def _streak_features(op, h: np.ndarray, cond: dict) -> list[Feature]:
     """Noise statistics per block of STREAK_BLOCK consecutive lines of an image with at least
     STREAK_MIN_LINES lines. `raster.streak`: how much each line's offset (its median height:
