@@ -569,6 +569,21 @@ def test_a_second_term_is_named_only_if_it_differs_from_the_model_by_its_reporte
     assert "Wald" in next(c.note for c in d.candidates if c.name == "height_gain")
 
 
+def test_a_stick_slip_ratios_sigma_is_the_chi2_profiles_not_the_jumpy_local_slope():
+    """Slips come and go with the static friction ratio, so the re-simulated chi^2 jumps by
+    about 5 within the secant's sigma: 1.29954 +- 0.000007 (67 sigma from the truth 1.3) was
+    reported. The sigma read off the chi^2 over a wide bracket covers the truth."""
+    seed = 603
+    model = _nominal(seed)
+    truth = merge(model, {"contact": {"stick_slip_enabled": True, "static_friction_ratio": 1.3}})
+    d = diagnose(make_session(truth, protocol_seed=seed), model,
+                 candidates=select(("stick_slip", "friction", "tip_wear")))
+    assert d.chosen == ["stick_slip"], d.summary()
+    fitted = d.parameters["contact.static_friction_ratio"]
+    assert abs(fitted["value"] - 1.3) <= 0.2 * 0.3, fitted
+    assert abs(fitted["value"] - 1.3) <= 3 * fitted["sigma"], fitted
+
+
 def test_asymmetric_tip_is_fitted_to_within_its_reported_uncertainty():
     """One flank 27 % steeper: line profiles bend with the asymmetry, so a fit refined with the
     column taken at the model's symmetric tip stops short of it (0.292 +- 0.004 after two
