@@ -36,8 +36,9 @@ Targets (issue 8): >= 90 %, <= 5 %, <= 20 %, >= 50 %, <= 2 min.
 
 Run: `scripts/with_env.sh python bench/bench_sim2real.py [--quick] [--beyond] [--workers 2] [--cases name,...]`.
 Results: bench/results/sim2real.json and .md (sim2real-quick.* with --quick or --cases;
-sim2real-beyond.* with --beyond: larger magnitudes and noise levels the suite does not draw). Two workers
-share the machine's two cores, so each recording's time is measured under that load.
+sim2real-beyond.* with --beyond: larger magnitudes, the other direction and noise levels the
+suite does not draw). Two workers share the machine's two cores, so each recording's time is
+measured under that load.
 """
 from __future__ import annotations
 
@@ -206,7 +207,8 @@ def _case(model, name, category, seed, expected, truth: dict, switches=None) -> 
 
 def beyond(model) -> list[Case]:
     """Effects and magnitudes the suite does not draw (`--beyond`): one larger change per
-    term, and white and 1/f noise levels either side of the model's. The tool is judged on
+    term, one in the other direction or of a middle size, and white and 1/f noise levels
+    either side of the model's. The tool is judged on
     recordings it has not seen; these say where it stops generalising."""
     s, d, t, c, n = model.scanner, model.drift, model.tip, model.contact, model.noise
     large = [
@@ -237,6 +239,27 @@ def beyond(model) -> list[Case]:
                for factor, seed in ((1.5, 319), (0.5, 320))]
     cases += [_case(model, f"{name}-x{factor:g}-{seed}", "noise level", seed, name, {key: factor * nominal})
               for name, key, nominal, factor, seed in levels]
+    # the other direction and middle magnitudes: changes the suite draws one way only (a sharper
+    # tip, less friction, creep and latency between the suite's and the large ones, a coupling
+    # of y into x alone, a ramp along y alone, a z gain under 1, a mild stick-slip)
+    other = [
+        ("tip_radius", {"tip.apex_radius": 0.75 * t.apex_radius}, None),
+        ("friction", {"contact.mu_tip_substrate": 0.6 * c.mu_tip_substrate}, None),
+        ("stick_slip", {"contact.static_friction_ratio": 1.3}, {"contact.stick_slip_enabled": True}),
+        ("creep_time", {"scanner.creep_time_constants": 1.5}, None),
+        ("latency", {"noise.sensor_latency": 10e-3}, None),
+        ("rotation", {"scanner.deflection_deg": s.deflection_deg - 0.4}, None),
+        ("coupling", {"scanner.coupling_y_to_x": s.coupling_y_to_x + 0.012}, None),
+        ("tip_asymmetry", {"tip.asymmetry": -0.12}, None),
+        ("bow", {"scanner.bow_curvature": -8.0}, None),
+        ("tip_wear", {"tip.wear_rate": 1.5e-3}, {"tip.wear_enabled": True}),
+        ("drift_ramp", {"drift.acceleration_y": 6e-13}, None),
+        ("height_gain", {"noise.height_gain": 0.97}, None),
+        ("creep_amplitude", {"scanner.creep_fractions": 0.6}, None),
+        ("hysteresis_asymmetry", {"controller.asymmetry_error": 0.04}, None),
+    ]
+    cases += [_case(model, f"other-{name}", "other direction", 601 + k, name, truth, switches)
+              for k, (name, truth, switches) in enumerate(other)]
     # two effects in one session: both must be named (in either order)
     pairs = [
         (("friction", "coupling"), {"contact.mu_tip_substrate": 1.7 * c.mu_tip_substrate,
