@@ -1164,12 +1164,13 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
                   for name, v in refined.items()}
         chosen = [max(scores, key=scores.get)]
         final_theta, final_r, _, final_sigma = refined[chosen[0]]
-        final_sigma = _reported_sigma(white, P, design[chosen[0]][2], final_r, final_sigma, variance_factor)
-        if design[chosen[0]][0].size == 1 and not design[chosen[0]][0].analytic:
+        leader = design[chosen[0]]
+        final_sigma = _reported_sigma(white, P, leader[2], final_r, final_sigma, variance_factor)
+        if leader[0].size == 1 and not leader[0].analytic:
             say(f"chi2 profile of {chosen[0]}")
-            final_sigma = _profile_sigma(sess, design[chosen[0]], final_theta, final_sigma, resim_chi2(final_r),
-                                         resim_chi2, variance_factor)
-        if region is not None and chosen[0] == region.name:
+            final_sigma = _profile_sigma(sess, leader, final_theta, final_sigma, resim_chi2(final_r), resim_chi2,
+                                         variance_factor)
+        if leader[0] is region:
             final_sigma = np.maximum(final_sigma, _region_jackknife_sigma(region_columns, sess.r, P, noise.cov, blocks))
     timings["compare"] = _time.perf_counter() - t0
 
@@ -1439,11 +1440,10 @@ def _profile_sigma(sess: _Session, term, theta: np.ndarray, sigma: np.ndarray, c
         if half <= 0 or any(np.any(cand.clip(side) != side) for side in sides):
             break
         rise = 0.5 * sum(chi2_of(sess.residual([term], side)) for side in sides) - centre
-        if rise >= 0.5 * target:
-            best = np.maximum(best, half / math.sqrt(rise / max(variance_factor, 1.0)))
-            break
-        # too flat for its sigma: the bracket's curvature so far is only a lower bound
+        # (a bracket too flat for its sigma gives only a lower bound: widened, and tried again)
         best = np.maximum(best, half / math.sqrt(max(rise, 1.0) / max(variance_factor, 1.0)))
+        if rise >= 0.5 * target:
+            break
         half *= widen
     return best
 
@@ -1461,12 +1461,11 @@ def _region_jackknife_sigma(region_columns, r: np.ndarray, P: np.ndarray, cov: n
         if column is None:
             continue
         white = Whitener(cov[np.ix_(train, train)])
-        coef, _, _ = gls(white(r[train]), white(np.hstack([P[train], column[train]]) if P.size else column[train]))
+        coef, _, _ = gls(white(r[train]), white(np.hstack([P[train], column[train]])))
         estimates.append(float(coef[-1]))
     if len(estimates) < 3:
         return np.zeros(1)
-    k = len(estimates)
-    return np.array([math.sqrt((k - 1) / k * float(np.sum((np.array(estimates) - np.mean(estimates)) ** 2)))])
+    return np.array([math.sqrt(len(estimates) - 1) * float(np.std(estimates))])
 
 
 def _with_region(first: np.ndarray, region: np.ndarray | None) -> np.ndarray:
