@@ -264,7 +264,15 @@ class NanoHandNode(Node):
         # the particle may end far from the plan (a centre push slides it off): look for it
         # anywhere it could have gone
         reach = float(np.hypot(*(target - start_xy))) + 2 * particle.radius + 100e-9
-        verification = verify_push(self.instrument, request, target + map_to_scan,
+        # a cancel is honoured until the result is sent: the strokes can be done before a cancel
+        # sent on their first feedback arrives, and the rescan takes longer than all of them
+        after = self.instrument.raster_scan(request, should_stop=should_stop)
+        if should_stop() or not after.complete:
+            predicted = plan.predicted if plan.predicted is not None else target
+            raise PushFailed(f"cancelled while verifying, after all {len(plan.strokes)} strokes; tip lifted off the "
+                             f"particle for the rescan, which was stopped; particle {particle.id} predicted at "
+                             f"({predicted[0] * 1e9:.1f} nm, {predicted[1] * 1e9:.1f} nm) in afm_task (not verified)")
+        verification = verify_push(self.instrument, request, target + map_to_scan, after=after,
                                    expected=(plan.predicted if plan.predicted is not None else target) + map_to_scan,
                                    start=before_particle, before=before, particle_radius=particle.radius,
                                    particle_match_radius=reach)
