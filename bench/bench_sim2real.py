@@ -241,7 +241,8 @@ def beyond(model) -> list[Case]:
               for name, key, nominal, factor, seed in levels]
     # the other direction and middle magnitudes: changes the suite draws one way only (a sharper
     # tip, less friction, creep and latency between the suite's and the large ones, a coupling
-    # of y into x alone, a ramp along y alone, a z gain under 1, a mild stick-slip)
+    # of y into x alone, a ramp along y alone, a z gain under 1, a mild stick-slip; a term's
+    # unchanged component is in the truth at the model's value, so a fit that moves it is scored)
     other = [
         ("tip_radius", {"tip.apex_radius": 0.75 * t.apex_radius}, None),
         ("friction", {"contact.mu_tip_substrate": 0.6 * c.mu_tip_substrate}, None),
@@ -249,11 +250,12 @@ def beyond(model) -> list[Case]:
         ("creep_time", {"scanner.creep_time_constants": 1.5}, None),
         ("latency", {"noise.sensor_latency": 10e-3}, None),
         ("rotation", {"scanner.deflection_deg": s.deflection_deg - 0.4}, None),
-        ("coupling", {"scanner.coupling_y_to_x": s.coupling_y_to_x + 0.012}, None),
+        ("coupling", {"scanner.coupling_y_to_x": s.coupling_y_to_x + 0.012,
+                      "scanner.coupling_x_to_y": s.coupling_x_to_y}, None),
         ("tip_asymmetry", {"tip.asymmetry": -0.12}, None),
         ("bow", {"scanner.bow_curvature": -8.0}, None),
         ("tip_wear", {"tip.wear_rate": 1.5e-3}, {"tip.wear_enabled": True}),
-        ("drift_ramp", {"drift.acceleration_y": 6e-13}, None),
+        ("drift_ramp", {"drift.acceleration_y": 6e-13, "drift.acceleration_x": d.acceleration_x}, None),
         ("height_gain", {"noise.height_gain": 0.97}, None),
         ("creep_amplitude", {"scanner.creep_fractions": 0.6}, None),
         ("hysteresis_asymmetry", {"controller.asymmetry_error": 0.04}, None),
