@@ -559,6 +559,18 @@ def test_a_blunter_tip_under_twice_the_creep_is_named_second_once_the_creep_is_f
         assert abs(fitted["value"] - value) <= min(0.2 * abs(value - nominal), 3 * fitted["sigma"]), (key, fitted)
 
 
+def test_no_second_term_on_released_factors_when_the_first_already_fits_the_held_out_blocks():
+    """A 3.8 ms latency alone: fitted, it leaves the held-out blocks at chi^2 189 for 211 dof.
+    With the overdispersion taken again under it, a z gain of 0.9990 took 9 of that and was
+    named. Released factors are for a first term that leaves a misfit: the latency alone."""
+    seed = 221
+    model = session_config()
+    truth = merge(model, {"seed": seed, "noise": {"sensor_latency": 3.8198e-3}})
+    d = diagnose(make_session(truth, protocol_seed=seed), model)
+    assert d.chosen == ["latency"], d.summary()
+    assert "within their noise" in next(c.note for c in d.candidates if c.name == "height_gain")
+
+
 def test_slower_creep_is_named_without_a_second_term_its_joint_fit_leaves_at_the_model():
     """Creep time constants 2.4 x the model's: the first term's refined fit leaves a residual the
     linear test on top of it attributes to a tip radius, which fitted together with the creep
