@@ -254,8 +254,9 @@ class NanoHandNode(Node):
                              f"clear to ({lifted[0] * 1e9:.1f} nm, {lifted[1] * 1e9:.1f} nm) in afm_scanner; "
                              f"particle {particle.id} predicted at ({estimate[0] * 1e9:.1f} nm, "
                              f"{estimate[1] * 1e9:.1f} nm) in afm_task (not verified)")
+        predicted = plan.predicted if plan.predicted is not None else target
         feedback(step=len(plan.strokes), steps_total=len(plan.strokes), phase="verifying",
-                 particle_estimate=point(plan.predicted if plan.predicted is not None else target),
+                 particle_estimate=point(predicted),
                  particle_covariance=list(particle.covariance.ravel()), tip_pose=pose)
         # the rescan sees the particle in scan coordinates; its position before the push in the
         # same scan ties the scan to the map (task frame), control points remove drift between scans
@@ -268,12 +269,11 @@ class NanoHandNode(Node):
         # sent on their first feedback arrives, and the rescan takes longer than all of them
         after = self.instrument.raster_scan(request, should_stop=should_stop)
         if should_stop() or not after.complete:
-            predicted = plan.predicted if plan.predicted is not None else target
             raise PushFailed(f"cancelled while verifying, after all {len(plan.strokes)} strokes; tip lifted off the "
                              f"particle for the rescan, which was stopped; particle {particle.id} predicted at "
                              f"({predicted[0] * 1e9:.1f} nm, {predicted[1] * 1e9:.1f} nm) in afm_task (not verified)")
         verification = verify_push(self.instrument, request, target + map_to_scan, after=after,
-                                   expected=(plan.predicted if plan.predicted is not None else target) + map_to_scan,
+                                   expected=predicted + map_to_scan,
                                    start=before_particle, before=before, particle_radius=particle.radius,
                                    particle_match_radius=reach)
         # images are in commanded scanner coordinates: the particle's displacement between the

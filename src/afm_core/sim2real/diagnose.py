@@ -1106,11 +1106,11 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     noise.overdispersed(group_factors, table.groups)
 
     # evidence
-    white = Whitener(noise.cov)
+    weighting = _Weighting.of(noise, folds)
+    white, fold_whiteners = weighting.white, weighting.folds
     rw, pw = white(r), white(P) if P.size else np.zeros((n, 0))
     _, chi2_0, _ = gls(rw, pw)
     dof0 = n - pw.shape[1]
-    fold_whiteners = [(Whitener(noise.cov[np.ix_(tr, tr)]), Whitener(noise.cov[np.ix_(~tr, ~tr)])) for tr in folds]
 
     def fit(cols_list):
         cols = np.hstack(cols_list) if cols_list else np.zeros((n, 0))
@@ -1180,7 +1180,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     if chosen:
         first = design[chosen[0]]
         theta1, r1, _, _ = refined[chosen[0]]
-        second, alone = _second_term(sess, design, results, first, theta1, r1, noise, P, folds, region,
+        second, alone = _second_term(sess, design, results, first, theta1, r1, weighting, P, folds, region,
                                      region_columns, refine_iterations, heldout_resimulation, dof0, variance_factor, say)
         if alone is not None:
             checked[tuple(chosen)] = alone
@@ -1199,9 +1199,9 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             if any(f < group_factors.get(g, 1.0) for g, f in factors.items()):
                 released = dataclasses.replace(noise_model)
                 released.overdispersed(factors, table.groups)
-                second, _ = _second_term(sess, design, results, first, theta1, r1, released, P, folds, region,
-                                         region_columns, refine_iterations, heldout_resimulation, dof0, None, say,
-                                         released=True)
+                second, _ = _second_term(sess, design, results, first, theta1, r1, _Weighting.of(released, folds),
+                                         P, folds, region, region_columns, refine_iterations, heldout_resimulation,
+                                         dof0, None, say, released=True)
         if second is not None:
             chosen.append(second.name)
             final_theta, final_sigma = second.theta, second.sigma
@@ -1273,6 +1273,18 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     )
 
 
+class _Weighting(NamedTuple):
+    """A noise model with its whitening of the whole session and of each fold's (train, test) blocks."""
+    noise: NoiseModel
+    white: Whitener
+    folds: list
+
+    @classmethod
+    def of(cls, noise: NoiseModel, folds: list) -> "_Weighting":
+        return cls(noise, Whitener(noise.cov),
+                   [(Whitener(noise.cov[np.ix_(tr, tr)]), Whitener(noise.cov[np.ix_(~tr, ~tr)])) for tr in folds])
+
+
 class _SecondTerm(NamedTuple):
     name: str
     theta: np.ndarray                  # both terms' parameters
@@ -1284,10 +1296,10 @@ RELEASED_EXCESS_REDUCTION = 0.5        # of the first term's held-out excess, fo
 
 
 def _second_term(sess: _Session, design: dict, results: list, first: tuple, theta1: np.ndarray, r1: np.ndarray,
-                 noise: NoiseModel, P: np.ndarray, folds: list, region, region_columns, iterations: int,
+                 weighting: _Weighting, P: np.ndarray, folds: list, region, region_columns, iterations: int,
                  heldout_resimulation: bool, dof0: int, variance_factor: float | None, say: Callable[[str], None],
                  released: bool = False):
-    """The best second term on the first's re-simulated residual r1, judged with `noise`:
+    """The best second term on the first's re-simulated residual r1, judged with `weighting`:
     (_SecondTerm or None, the first term's held-out check alone or None). `released`: the noise's
     group factors were taken again under the first term; then any library term may be second
     (not only those significant on their own), the first alone must misfit the held-out blocks
@@ -1295,9 +1307,8 @@ def _second_term(sess: _Session, design: dict, results: list, first: tuple, thet
     excess."""
     n = len(r1)
     first_cand, _, first_cols = first
-    white = Whitener(noise.cov)
+    noise, white, fold_whiteners = weighting
     pw = white(P) if P.size else np.zeros((n, 0))
-    fold_whiteners = [(Whitener(noise.cov[np.ix_(tr, tr)]), Whitener(noise.cov[np.ix_(~tr, ~tr)])) for tr in folds]
     r1w = white(r1)
     _, chi2_1lin, _ = gls(r1w, np.hstack([pw, white(first_cols)]))
     factor1 = max(1.0, chi2_1lin / max(1, dof0 - first_cand.size))
