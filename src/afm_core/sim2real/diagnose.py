@@ -101,10 +101,6 @@ NOISE_WIDENINGS = 3          # times that curve's range may grow towards a level
 NOISE_PROFILE_POINTS = 2001  # levels its chi^2 profile is evaluated on
 NOISE_ZOOM = 4.0             # sigmas either side of the level the curve is fitted again through
 NOISE_GROUPS = ("raster.streak", "raster.pixel_noise")  # noise statistics: move only with the sensor noise
-# replicas at a fitted noise level, per sensor replica: every feature's white noise and the
-# reference's mean are then read off them, at a level the model's replicas did not show (with
-# two, white noise 2.8 x the model's left room for a tip wear of 2e-5 on top)
-FITTED_NOISE_REPLICAS = 2
 
 
 class ConfigMismatchError(ValueError):
@@ -736,18 +732,17 @@ class _Session:
         rep = replay(self.ops, config, drift=self.drift, imaging=imaging)
         return _values(_by_key(extract_features(rep.operations, self.anchors)), self.keys)
 
-    def noise_replicas(self, overrides: dict, rasters_only: bool = False, count: int | None = None) -> np.ndarray:
+    def noise_replicas(self, overrides: dict, rasters_only: bool = False) -> np.ndarray:
         """(K, N) features of the sensor-noise re-simulations with the noise replicas' seeds and
         `overrides` (so only what the overrides change differs between two calls with the same
         `rasters_only`; rasters_only: scan lines are not imaged, which is all the noise
-        statistics need, at a third of the cost, with the model's positioning noise). `count`:
-        that many replicas (the noise replicas' seeds first), not one per noise seed."""
-        seeds = self.noise_seeds if count is None else [self.noise_seeds[0] + k for k in range(count)]
-        memo = (repr(overrides), rasters_only, tuple(seeds))
+        statistics need, at a third of the cost, with the model's positioning noise)."""
+        memo = (repr(overrides), rasters_only)
         if memo not in self._noise_runs:
             config = merge(self._statistics_config() if rasters_only else deterministic(self.config, sensor_noise=True),
                            overrides)
-            self._noise_runs[memo] = np.array([self._noisy_run(config, seed, rasters_only) for seed in seeds])
+            self._noise_runs[memo] = np.array([self._noisy_run(config, seed, rasters_only)
+                                               for seed in self.noise_seeds])
         return self._noise_runs[memo]
 
     def _statistics_config(self) -> SimConfig:
@@ -1035,7 +1030,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         say(f"noise replicas at the fitted {cand.name}")
         fitted = cand.overrides(config, noise_result.estimate)
         noise_config = merge(config, fitted)
-        rep_s = sess.noise_replicas(fitted, count=FITTED_NOISE_REPLICAS * sensor_replicas)
+        rep_s = sess.noise_replicas(fitted)
         bias = np.nan_to_num(np.nanmean(rep_s - nom, axis=0))
         sess.set_reference(nom + bias, bias, fitted)
     else:
