@@ -349,11 +349,14 @@ def run_case(case: Case, workdir: str) -> dict:
 def _error(fitted, true, nominal, one_term: bool, only=None) -> float:
     """|fitted - true| / |true - nominal|: one term's parameters as a vector; two terms in their
     own units, the worse of their parameters' errors. `only` (mask): the error of those
-    parameters alone, still against the whole change of one term's (0 when none is left)."""
+    parameters alone, still against the whole change of one term's; NaN when none is left (a
+    report that states nothing is not scored, rather than scored as exact)."""
     only = np.ones(len(true), bool) if only is None else np.asarray(only, bool)
+    if not only.any():
+        return math.nan
     if one_term:
         return float(np.linalg.norm((fitted - true)[only]) / np.linalg.norm(true - nominal))
-    return float(np.max(np.abs(fitted - true)[only] / np.abs(true - nominal)[only], initial=0.0))
+    return float(np.max(np.abs(fitted - true)[only] / np.abs(true - nominal)[only]))
 
 
 def _expected_list(expected) -> list:
@@ -420,8 +423,11 @@ def markdown(report: dict) -> str:
              "|---|---|---|---|---|---|---|---|---|"]
     for r in report["cases"]:
         error = f"{r['parameter_error']:.0%}" if "parameter_error" in r else "-"
-        if r.get("parameter_error_stated", r.get("parameter_error")) != r.get("parameter_error"):
-            error += f" ({r['parameter_error_stated']:.0%} stated)"
+        stated = r.get("parameter_error_stated", r.get("parameter_error"))
+        if stated is not None and not math.isfinite(stated):
+            error += " (none stated)"
+        elif stated != r.get("parameter_error"):
+            error += f" ({stated:.0%} stated)"
         in_sigmas = f"{r['error_in_sigmas']:.1f}" if "error_in_sigmas" in r else "-"
         reduction = f"{r['heldout_reduction']:.0%}" if "heldout_reduction" in r else "-"
         chosen = ", ".join(r["chosen"]) or "none"
