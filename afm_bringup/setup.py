@@ -21,10 +21,10 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            'recorder = afm_bringup.recorder_node:main',
-            'replay = afm_bringup.replay_node:main',
-            'sim2real = afm_bringup.sim2real_node:main',
-            'afm = afm_bringup.cli:main',
+            "recorder = afm_bringup.recorder_node:main",
+            "replay = afm_bringup.replay_node:main",
+            "sim2real = afm_bringup.sim2real_node:main",
+            "afm = afm_bringup.cli:main",
         ],
     },
 )

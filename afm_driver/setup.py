@@ -21,7 +21,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            'driver = afm_driver.driver_node:main',
+            "driver = afm_driver.driver_node:main",
         ],
     },
 )

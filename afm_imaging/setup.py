@@ -21,7 +21,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            'imaging = afm_imaging.imaging_node:main',
+            "imaging = afm_imaging.imaging_node:main",
         ],
     },
 )

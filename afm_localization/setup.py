@@ -21,7 +21,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            'localizer = afm_localization.localizer_node:main',
+            "localizer = afm_localization.localizer_node:main",
         ],
     },
 )

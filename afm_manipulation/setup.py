@@ -21,7 +21,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            'nano_hand = afm_manipulation.nano_hand_node:main',
+            "nano_hand = afm_manipulation.nano_hand_node:main",
         ],
     },
 )

@@ -21,7 +21,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            'planner = afm_planning.planner_node:main',
+            "planner = afm_planning.planner_node:main",
         ],
     },
 )

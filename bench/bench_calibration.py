@@ -32,6 +32,7 @@ Writes bench/results/calibration.json, calibration.md and the calibration file
 bench/results/calibration_sim.yaml (calibration-quick.* with --quick). Wall time with
 perf_counter; peak memory is this process's VmHWM.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -43,7 +44,6 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
-
 from machine import cpu_model
 
 from afm_core.imaging.drift import sampled_velocity
@@ -53,7 +53,7 @@ from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 
 RESULTS = Path(__file__).resolve().parent / "results"
-SIM_OVERRIDES: dict = {}               # the default instrument, exactly what `make demo` drives
+SIM_OVERRIDES: dict = {}  # the default instrument, exactly what `make demo` drives
 
 
 def peak_rss_mib() -> float:
@@ -64,8 +64,13 @@ def peak_rss_mib() -> float:
 
 
 def machine_info() -> dict:
-    return {"cpu_count": os.cpu_count(), "cpus_usable": len(os.sched_getaffinity(0)), "cpu_model": cpu_model(),
-            "python": platform.python_version(), "platform": platform.platform()}
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpus_usable": len(os.sched_getaffinity(0)),
+        "cpu_model": cpu_model(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+    }
 
 
 def formatted(value) -> str:
@@ -78,8 +83,10 @@ def table(rows: list[dict]) -> list[str]:
     lines = ["| quantity | recovered | configured | rel. error | note |", "|---|---|---|---|---|"]
     for row in rows:
         error = "-" if row["relative_error"] is None else f"{100 * row['relative_error']:+.1f} %"
-        lines.append(f"| {row['name']} | {formatted(row['recovered'])} | {formatted(row['true'])} | {error} "
-                     f"| {row['note']} |")
+        lines.append(
+            f"| {row['name']} | {formatted(row['recovered'])} | {formatted(row['true'])} | {error} "
+            f"| {row['note']} |"
+        )
     return lines
 
 
@@ -97,8 +104,12 @@ def jsonable(value):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pairs", type=int, default=100, help="frame-up/down pairs for the drift statistics")
-    parser.add_argument("--quick", action="store_true", help="20 drift pairs, smaller hysteresis cycle")
+    parser.add_argument(
+        "--pairs", type=int, default=100, help="frame-up/down pairs for the drift statistics"
+    )
+    parser.add_argument(
+        "--quick", action="store_true", help="20 drift pairs, smaller hysteresis cycle"
+    )
     args = parser.parse_args()
     pairs = 20 if args.quick else args.pairs
     options = {"drift": {"pairs": pairs}}
@@ -117,39 +128,76 @@ def main() -> None:
     rows = calibrate.compare_with_simulator(calibration, report, config)
     drift_data = report["drift"]["data"]
     measured = np.asarray(drift_data["velocity"])
-    sampled = np.array([sampled_velocity(afm.drift.offset, t_up, t_down)
-                        for t_up, t_down in drift_data["particle_times"]])
+    sampled = np.array(
+        [
+            sampled_velocity(afm.drift.offset, t_up, t_down)
+            for t_up, t_down in drift_data["particle_times"]
+        ]
+    )
     against_truth = {}
     for axis, name in enumerate("xy"):
         slope, intercept = np.polyfit(sampled[:, axis], measured[:, axis], 1)
-        against_truth[name] = {"slope": float(slope), "intercept": float(intercept),
-                               "rms_error": float(np.sqrt(np.mean((measured[:, axis] - sampled[:, axis]) ** 2)))}
+        against_truth[name] = {
+            "slope": float(slope),
+            "intercept": float(intercept),
+            "rms_error": float(np.sqrt(np.mean((measured[:, axis] - sampled[:, axis]) ** 2))),
+        }
     # the drift this session really had, at the pairs' moments: what a finite calibration can
     # recover (the configured mean and sigma are population values, see the module doc)
     for axis, name in enumerate("xy"):
         for statistic, recovered, realised in (
-                ("mean_velocity", calibration.drift_mean_velocity[axis], sampled[:, axis].mean()),
-                ("sigma_velocity", calibration.drift_sigma_velocity[axis], sampled[:, axis].std(ddof=1))):
-            rows.append({"name": f"drift.{statistic}_{name} (realised)", "recovered": float(recovered),
-                         "true": float(realised), "relative_error": (recovered - realised) / abs(realised),
-                         "note": "m/s; against the simulator's drift sampled at the pairs' particle moments"})
-        rows.append({"name": f"drift.velocity_scale_{name}", "recovered": against_truth[name]["slope"], "true": 1.0,
-                     "relative_error": against_truth[name]["slope"] - 1.0,
-                     "note": "slope of measured on sampled per-pair velocity: the small frames' image scale"})
+            ("mean_velocity", calibration.drift_mean_velocity[axis], sampled[:, axis].mean()),
+            (
+                "sigma_velocity",
+                calibration.drift_sigma_velocity[axis],
+                sampled[:, axis].std(ddof=1),
+            ),
+        ):
+            rows.append(
+                {
+                    "name": f"drift.{statistic}_{name} (realised)",
+                    "recovered": float(recovered),
+                    "true": float(realised),
+                    "relative_error": (recovered - realised) / abs(realised),
+                    "note": "m/s; against the simulator's drift sampled at the pairs' particle moments",
+                }
+            )
+        rows.append(
+            {
+                "name": f"drift.velocity_scale_{name}",
+                "recovered": against_truth[name]["slope"],
+                "true": 1.0,
+                "relative_error": against_truth[name]["slope"] - 1.0,
+                "note": "slope of measured on sampled per-pair velocity: the small frames' image scale",
+            }
+        )
     RESULTS.mkdir(exist_ok=True)
     name = "calibration-quick" if args.quick else "calibration"
-    save_calibration(calibration, RESULTS / f"{name.replace('calibration', 'calibration_sim')}.yaml")
-    result = {"date": started.isoformat(timespec="seconds"), "machine": machine_info(), "options": options,
-              "simulator_overrides": SIM_OVERRIDES,
-              "wall_seconds": wall, "instrument_seconds": report["instrument_seconds"], "peak_rss_mib": peak_rss_mib(),
-              "rows": rows, "drift_against_truth": against_truth,
-              "experiments": {k: v for k, v in report.items() if isinstance(v, dict)}}
+    save_calibration(
+        calibration, RESULTS / f"{name.replace('calibration', 'calibration_sim')}.yaml"
+    )
+    result = {
+        "date": started.isoformat(timespec="seconds"),
+        "machine": machine_info(),
+        "options": options,
+        "simulator_overrides": SIM_OVERRIDES,
+        "wall_seconds": wall,
+        "instrument_seconds": report["instrument_seconds"],
+        "peak_rss_mib": peak_rss_mib(),
+        "rows": rows,
+        "drift_against_truth": against_truth,
+        "experiments": {k: v for k, v in report.items() if isinstance(v, dict)},
+    }
     (RESULTS / f"{name}.json").write_text(json.dumps(jsonable(result), indent=1))
-    lines = [f"# Calibration on the simulated AFM{' (quick)' if args.quick else ''}", "",
-             f"Measured {result['date']} on {result['machine']['cpus_usable']} CPUs "
-             f"({result['machine']['cpu_model']}), "
-             f"Python {result['machine']['python']}: {wall:.0f} s wall for {report['instrument_seconds'] / 3600:.1f} h "
-             f"of instrument time, peak resident memory {result['peak_rss_mib']:.0f} MiB; {pairs} drift pairs.", ""]
+    lines = [
+        f"# Calibration on the simulated AFM{' (quick)' if args.quick else ''}",
+        "",
+        f"Measured {result['date']} on {result['machine']['cpus_usable']} CPUs "
+        f"({result['machine']['cpu_model']}), "
+        f"Python {result['machine']['python']}: {wall:.0f} s wall for {report['instrument_seconds'] / 3600:.1f} h "
+        f"of instrument time, peak resident memory {result['peak_rss_mib']:.0f} MiB; {pairs} drift pairs.",
+        "",
+    ]
     lines += table(rows)
     (RESULTS / f"{name}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

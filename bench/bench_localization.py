@@ -59,6 +59,7 @@ Run: `scripts/with_env.sh python bench/bench_localization.py [--trials 50] [--ca
 (`--quick`: 10 trials; `--only 7.1|7.3`; `--tag T`). ~1 min on 2 cores for 50 trials.
 Results: bench/results/localization[-quick][-T].json.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -87,33 +88,52 @@ from machine import cpu_model  # noqa: E402
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 UM = 1e-6
 NM = 1e-9
-CENTRE = np.array([55e-6, 55e-6])           # scanner centre = image centre of the book's geometry
-BOOK = {k: np.array(v) * UM for k, v in {
-    "x0": (-1.245, 1.316), "xd_1": (-1.245, -1.381), "x1": (-1.245, -0.645), "x8": (1.101, -1.471),
-    "landmark": (0.801, -0.684)}.items()}
+CENTRE = np.array([55e-6, 55e-6])  # scanner centre = image centre of the book's geometry
+BOOK = {
+    k: np.array(v) * UM
+    for k, v in {
+        "x0": (-1.245, 1.316),
+        "xd_1": (-1.245, -1.381),
+        "x1": (-1.245, -0.645),
+        "x8": (1.101, -1.471),
+        "landmark": (0.801, -0.684),
+    }.items()
+}
 PARTICLE_RADIUS = 100e-9
-P0_TABLE_71 = np.diag([(13e-9) ** 2, (16e-9) ** 2])      # Table 7.1 x0 (experiment sigma 14 / 18 nm)
-SETTLE_TIME = 250.0                                        # s at x0 before the localizer starts
+P0_TABLE_71 = np.diag([(13e-9) ** 2, (16e-9) ** 2])  # Table 7.1 x0 (experiment sigma 14 / 18 nm)
+SETTLE_TIME = 250.0  # s at x0 before the localizer starts
 TUBE_RADIUS = 10e-9
 TUBE_LENGTH = 3e-6
 HIRES_MAP_SIGMA = 0.8e-9
 PIT_BELOW = 130e-9
-P0_TABLE_74 = np.diag([(10e-9) ** 2, (10e-9) ** 2])      # Table 7.4 x0 sigma 10 nm
-LINE_SAMPLE_SPACING = 2e-9                                 # m, spheres (the sim's dilation cost grows as 1/spacing^3)
+P0_TABLE_74 = np.diag([(10e-9) ** 2, (10e-9) ** 2])  # Table 7.4 x0 sigma 10 nm
+LINE_SAMPLE_SPACING = 2e-9  # m, spheres (the sim's dilation cost grows as 1/spacing^3)
 TUBE_SAMPLE_SPACING = 1e-9
 
 
 # -- configurations and calibrations ------------------------------------------------------------
 def sim_config(seed: int, spheres=(), rods=(), **overrides):
-    config = merge(load_config(), {"seed": int(seed), "sample": {
-        "spheres": [{"x": float(x), "y": float(y), "radius": float(r)} for x, y, r in spheres],
-        "rods": [dict(r) for r in rods], "random_spheres": 0}})
+    config = merge(
+        load_config(),
+        {
+            "seed": int(seed),
+            "sample": {
+                "spheres": [
+                    {"x": float(x), "y": float(y), "radius": float(r)} for x, y, r in spheres
+                ],
+                "rods": [dict(r) for r in rods],
+                "random_spheres": 0,
+            },
+        },
+    )
     return merge(config, overrides) if overrides else config
 
 
 def _quiet(config_overrides: dict) -> dict:
-    quiet = {"drift": {"enabled": False},
-             "scanner": {"creep_enabled": False, "positioning_noise_enabled": False}}
+    quiet = {
+        "drift": {"enabled": False},
+        "scanner": {"creep_enabled": False, "positioning_noise_enabled": False},
+    }
     for key, value in config_overrides.items():
         quiet.setdefault(key, {}).update(value)
     return quiet
@@ -132,23 +152,42 @@ def measure_scanner_matrix(step: float = 1e-6) -> np.ndarray:
     return np.array(columns).T
 
 
-def measure_scan_region_sigma(matrix: np.ndarray, kind: str, lines: int = 24, seed: int = 7) -> float:
+def measure_scan_region_sigma(
+    matrix: np.ndarray, kind: str, lines: int = 24, seed: int = 7
+) -> float:
     """Spread of the centre found by lines across a known sphere / tube at random offsets,
     on the noise-free-positioning simulator (sensor noise on): the true tip position at the
     crossing time is known exactly from the command (linear scanner, no creep, no drift)."""
     from afm_core.instrument import LineRequest
     from afm_core.localization.observation import observe_line
+
     rng = np.random.default_rng(seed)
     centre = CENTRE + np.array([0.3e-6, 0.2e-6])
     if kind == "sphere":
         landmark = MapLandmark(*centre, np.zeros((2, 2)), PARTICLE_RADIUS)
         config = sim_config(seed, spheres=[(*centre, PARTICLE_RADIUS)], **_quiet({}))
-        spacing, half, offset_range, vertical = LINE_SAMPLE_SPACING, 250e-9, 0.8 * PARTICLE_RADIUS, False
+        spacing, half, offset_range, vertical = (
+            LINE_SAMPLE_SPACING,
+            250e-9,
+            0.8 * PARTICLE_RADIUS,
+            False,
+        )
     else:
         landmark = MapLandmark(*centre, np.zeros((2, 2)), TUBE_RADIUS, kind="tube")
-        config = sim_config(seed, rods=[{"x": float(centre[0]), "y": float(centre[1]), "angle": 0.0,
-                                          "length": TUBE_LENGTH, "radius": TUBE_RADIUS, "kind": "tube"}],
-                            **_quiet({}))
+        config = sim_config(
+            seed,
+            rods=[
+                {
+                    "x": float(centre[0]),
+                    "y": float(centre[1]),
+                    "angle": 0.0,
+                    "length": TUBE_LENGTH,
+                    "radius": TUBE_RADIUS,
+                    "kind": "tube",
+                }
+            ],
+            **_quiet({}),
+        )
         spacing, half, offset_range, vertical = TUBE_SAMPLE_SPACING, 120e-9, 500e-9, True
     sim = SimulatedAfm(config)
     inverse = np.linalg.inv(matrix)
@@ -186,30 +225,47 @@ def sim_oracle_calibration() -> Calibration:
     fractions = list(scanner.creep_fractions) if scanner.creep_enabled else []
     return Calibration(
         source=f"sim-derived oracle (bench_localization.py, {datetime.now(timezone.utc).date()}): matrix measured "
-               "on a noise-free simulator, other parameters from the simulator's default config; not a calibration "
-               "experiment",
+        "on a noise-free simulator, other parameters from the simulator's default config; not a calibration "
+        "experiment",
         scanner_matrix=matrix.tolist(),
         creep_time_constants=list(scanner.creep_time_constants) if fractions else [],
-        creep_fractions_x=fractions, creep_fractions_y=list(fractions),
-        motion_noise_slope_x=scanner.positioning_noise_slope, motion_noise_slope_y=scanner.positioning_noise_slope,
-        motion_noise_cross_slope=scanner.positioning_noise_slope, motion_noise_offset=scanner.positioning_noise_offset,
+        creep_fractions_x=fractions,
+        creep_fractions_y=list(fractions),
+        motion_noise_slope_x=scanner.positioning_noise_slope,
+        motion_noise_slope_y=scanner.positioning_noise_slope,
+        motion_noise_cross_slope=scanner.positioning_noise_slope,
+        motion_noise_offset=scanner.positioning_noise_offset,
         drift_mean_velocity=[drift.mean_velocity_x, drift.mean_velocity_y],
         drift_sigma_velocity=[drift.sigma_velocity_x, drift.sigma_velocity_y],
-        map_sigma=[5.0e-9, 4.5e-9], scan_region_sigma=region,
-        line_deflection_mean_deg=scanner.deflection_deg, line_deflection_sigma_deg=0.0)
+        map_sigma=[5.0e-9, 4.5e-9],
+        scan_region_sigma=region,
+        line_deflection_mean_deg=scanner.deflection_deg,
+        line_deflection_sigma_deg=0.0,
+    )
 
 
 # -- experiment 1: Tables 7.1 / 7.2 --------------------------------------------------------------
-def _start_at(sim: SimulatedAfm, point: np.ndarray, calibration: Calibration, p0: np.ndarray,
-              rng: np.random.Generator) -> Localizer:
+def _start_at(
+    sim: SimulatedAfm,
+    point: np.ndarray,
+    calibration: Calibration,
+    p0: np.ndarray,
+    rng: np.random.Generator,
+) -> Localizer:
     """Tip moved to the command of `point` (open loop), settled; localizer started there."""
-    command = np.array(sim.commanded_position()) + np.linalg.solve(np.array(calibration.scanner_matrix),
-                                                                    point - np.array(sim.truth()["tip_position"]))
+    command = np.array(sim.commanded_position()) + np.linalg.solve(
+        np.array(calibration.scanner_matrix), point - np.array(sim.truth()["tip_position"])
+    )
     sim.move_tip(*command, 2e-6)
     sim.hold(SETTLE_TIME)
     truth = np.array(sim.truth()["tip_position"])
-    return Localizer(sim, calibration, rng.multivariate_normal(truth, p0), p0,
-                     sample_spacing=LINE_SAMPLE_SPACING)
+    return Localizer(
+        sim,
+        calibration,
+        rng.multivariate_normal(truth, p0),
+        p0,
+        sample_spacing=LINE_SAMPLE_SPACING,
+    )
 
 
 MODES_71_72 = ("direct", "via_landmark", "via_landmark_straight", "via_landmark_toward_x8")
@@ -232,9 +288,13 @@ def table_71_72_trial(seed: int, calibration: Calibration, mode: str) -> dict:
         raise ValueError(f"mode={mode!r}: must be one of {MODES_71_72}")
     if mode != "direct":
         map_cov = np.diag(np.square(calibration.map_sigma))
-        landmark = MapLandmark(*rng.multivariate_normal(particle, map_cov), map_cov, PARTICLE_RADIUS)
+        landmark = MapLandmark(
+            *rng.multivariate_normal(particle, map_cov), map_cov, PARTICLE_RADIUS
+        )
         loc.move_to(*(CENTRE + BOOK["x1"]))
-        result = loc.observe_landmark(landmark, toward=target if mode == "via_landmark_toward_x8" else None).lines
+        result = loc.observe_landmark(
+            landmark, toward=target if mode == "via_landmark_toward_x8" else None
+        ).lines
         lines = [(line.axis, line.status, line.mahalanobis) for line in result]
         if mode == "via_landmark":
             loc.move_to(loc.mean[0], target[1])
@@ -244,10 +304,15 @@ def table_71_72_trial(seed: int, calibration: Calibration, mode: str) -> dict:
     loc.move_to(*target)
     truth = np.array(sim.truth()["tip_position"])
     error = loc.mean - truth
-    return {"seed": seed, "true_error_nm": ((truth - target) / NM).tolist(), "estimate_error_nm": (error / NM).tolist(),
-            "reported_sigma_nm": (np.sqrt(np.diag(loc.covariance)) / NM).tolist(),
-            "nees": float(error @ np.linalg.solve(loc.covariance, error)), "lines": lines,
-            "sim_time_s": sim.time}
+    return {
+        "seed": seed,
+        "true_error_nm": ((truth - target) / NM).tolist(),
+        "estimate_error_nm": (error / NM).tolist(),
+        "reported_sigma_nm": (np.sqrt(np.diag(loc.covariance)) / NM).tolist(),
+        "nees": float(error @ np.linalg.solve(loc.covariance, error)),
+        "lines": lines,
+        "sim_time_s": sim.time,
+    }
 
 
 def nees_band(trials: int, dof: int = 2, confidence: float = 0.95) -> tuple[float, float]:
@@ -255,14 +320,18 @@ def nees_band(trials: int, dof: int = 2, confidence: float = 0.95) -> tuple[floa
     return float(chi2.ppf(a, dof * trials) / trials), float(chi2.ppf(1 - a, dof * trials) / trials)
 
 
-BLOCK = 50        # the issue's trial count: longer runs are also summarised in disjoint blocks of it
+BLOCK = 50  # the issue's trial count: longer runs are also summarised in disjoint blocks of it
 
 
 def blocks_of(runs: list[dict], summarize) -> list[dict]:
     """Summaries of consecutive blocks of BLOCK trials (seeds 0-49, 50-99, ...) when there are
     at least two: how a 50-trial result scatters (a 95 % band holds one block in 20 outside)."""
     count = len(runs) // BLOCK
-    return [summarize(runs[k * BLOCK:(k + 1) * BLOCK], blocks=False) for k in range(count)] if count >= 2 else []
+    return (
+        [summarize(runs[k * BLOCK : (k + 1) * BLOCK], blocks=False) for k in range(count)]
+        if count >= 2
+        else []
+    )
 
 
 def summarize_71_72(runs: list[dict], blocks: bool = True) -> dict:
@@ -273,15 +342,18 @@ def summarize_71_72(runs: list[dict], blocks: bool = True) -> dict:
     for r in runs:
         for axis, status, _ in r["lines"]:
             statuses[f"{axis}:{status}"] = statuses.get(f"{axis}:{status}", 0) + 1
-    return {"trials": len(runs),
-            "true_error_sigma_nm": true_error.std(axis=0, ddof=1).tolist(),
-            "true_error_mean_nm": true_error.mean(axis=0).tolist(),
-            "true_error_rms_radial_nm": float(np.sqrt(np.mean(np.sum(true_error ** 2, axis=1)))),
-            "reported_sigma_mean_nm": np.mean([r["reported_sigma_nm"] for r in runs], axis=0).tolist(),
-            "mean_nees": float(nees.mean()), "nees_band_95": list(band),
-            "nees_consistent": bool(band[0] <= nees.mean() <= band[1]),
-            "line_statuses": statuses,
-            "blocks": blocks_of(runs, summarize_71_72) if blocks else []}
+    return {
+        "trials": len(runs),
+        "true_error_sigma_nm": true_error.std(axis=0, ddof=1).tolist(),
+        "true_error_mean_nm": true_error.mean(axis=0).tolist(),
+        "true_error_rms_radial_nm": float(np.sqrt(np.mean(np.sum(true_error**2, axis=1)))),
+        "reported_sigma_mean_nm": np.mean([r["reported_sigma_nm"] for r in runs], axis=0).tolist(),
+        "mean_nees": float(nees.mean()),
+        "nees_band_95": list(band),
+        "nees_consistent": bool(band[0] <= nees.mean() <= band[1]),
+        "line_statuses": statuses,
+        "blocks": blocks_of(runs, summarize_71_72) if blocks else [],
+    }
 
 
 def run_71_72(calibration: Calibration, trials: int, seed0: int = 0) -> dict:
@@ -297,38 +369,54 @@ def table_73_trial(seed: int, calibration: Calibration, line_ends_at_pit: bool) 
     """`calibration` already holds the high-resolution map's sigma (see run_73)."""
     rng = np.random.default_rng(20_000 + seed)
     tube = CENTRE + np.array([0.0, 0.25e-6])
-    rod = {"x": float(tube[0]), "y": float(tube[1]), "angle": 0.0, "length": TUBE_LENGTH,
-           "radius": TUBE_RADIUS, "kind": "tube"}
+    rod = {
+        "x": float(tube[0]),
+        "y": float(tube[1]),
+        "angle": 0.0,
+        "length": TUBE_LENGTH,
+        "radius": TUBE_RADIUS,
+        "kind": "tube",
+    }
     sim = SimulatedAfm(sim_config(seed, rods=[rod]))
     loc = _start_at(sim, CENTRE.copy(), calibration, P0_TABLE_74, rng)
     loc.sample_spacing = TUBE_SAMPLE_SPACING
-    map_cov = np.diag([HIRES_MAP_SIGMA ** 2] * 2)
-    landmark = MapLandmark(*rng.multivariate_normal(tube, map_cov), map_cov, TUBE_RADIUS, kind="tube",
-                           orientation=0.0)
-    up = loc.observe_line(landmark, "y", +1.0)                       # x0 -> x1 across the tube
+    map_cov = np.diag([HIRES_MAP_SIGMA**2] * 2)
+    landmark = MapLandmark(
+        *rng.multivariate_normal(tube, map_cov), map_cov, TUBE_RADIUS, kind="tube", orientation=0.0
+    )
+    up = loc.observe_line(landmark, "y", +1.0)  # x0 -> x1 across the tube
     if line_ends_at_pit:
-        down = loc.observe_line(landmark, "y", -1.0, after=PIT_BELOW)   # x1 -> pit, across the tube
+        down = loc.observe_line(landmark, "y", -1.0, after=PIT_BELOW)  # x1 -> pit, across the tube
         # the line's end was planned before its update: correct by the (~1 nm) difference
         loc.move_to(loc.mean[0], landmark.y - PIT_BELOW)
     else:
-        down = loc.observe_line(landmark, "y", -1.0)                  # x1 -> x2 (clear of the tube)
-        loc.move_to(loc.mean[0], landmark.y - PIT_BELOW)             # x2 -> x3
+        down = loc.observe_line(landmark, "y", -1.0)  # x1 -> x2 (clear of the tube)
+        loc.move_to(loc.mean[0], landmark.y - PIT_BELOW)  # x2 -> x3
     sigma_y = math.sqrt(loc.covariance[1, 1])
     estimate_error = loc.mean[1] - sim.truth()["tip_position"][1]
     loc.indent_here(0.5e-6, 0.1)
     pit = sim.sample.pits[-1]
-    return {"seed": seed, "distance_nm": (tube[1] - pit.y) / NM, "lines": [up.status, down.status],
-            "reported_sigma_nm": sigma_y / NM, "nees": estimate_error ** 2 / sigma_y ** 2}
+    return {
+        "seed": seed,
+        "distance_nm": (tube[1] - pit.y) / NM,
+        "lines": [up.status, down.status],
+        "reported_sigma_nm": sigma_y / NM,
+        "nees": estimate_error**2 / sigma_y**2,
+    }
 
 
-def run_73(calibration: Calibration, trials: int, seed0: int = 0, scan_region_sigma: float | None = None) -> dict:
+def run_73(
+    calibration: Calibration, trials: int, seed0: int = 0, scan_region_sigma: float | None = None
+) -> dict:
     """scan_region_sigma: the tube's (default: the calibration's)."""
     hires = dataclasses.replace(calibration, map_sigma=[HIRES_MAP_SIGMA, HIRES_MAP_SIGMA])
     if scan_region_sigma is not None:
         hires = dataclasses.replace(hires, scan_region_sigma=scan_region_sigma)
     out = {"scan_region_sigma_nm": hires.scan_region_sigma / NM}
     for variant in ("book", "line_ends_at_pit"):
-        runs = [table_73_trial(seed0 + k, hires, variant == "line_ends_at_pit") for k in range(trials)]
+        runs = [
+            table_73_trial(seed0 + k, hires, variant == "line_ends_at_pit") for k in range(trials)
+        ]
         out[variant] = {"summary": summarize_73(runs), "runs": runs}
     return out
 
@@ -337,20 +425,30 @@ def summarize_73(runs: list[dict], blocks: bool = True) -> dict:
     d = np.array([r["distance_nm"] for r in runs])
     nees = np.array([r["nees"] for r in runs])
     band = nees_band(len(runs), dof=1)
-    return {"trials": len(runs), "target_nm": PIT_BELOW / NM, "distance_mean_nm": float(d.mean()),
-            "distance_sigma_nm": float(d.std(ddof=1)),
-            "reported_sigma_mean_nm": float(np.mean([r["reported_sigma_nm"] for r in runs])),
-            "mean_nees_1dof": float(nees.mean()), "nees_band_95": list(band),
-            "nees_consistent": bool(band[0] <= nees.mean() <= band[1]),
-            "all_lines_accepted": all(s == "accepted" for r in runs for s in r["lines"]),
-            "blocks": blocks_of(runs, summarize_73) if blocks else []}
+    return {
+        "trials": len(runs),
+        "target_nm": PIT_BELOW / NM,
+        "distance_mean_nm": float(d.mean()),
+        "distance_sigma_nm": float(d.std(ddof=1)),
+        "reported_sigma_mean_nm": float(np.mean([r["reported_sigma_nm"] for r in runs])),
+        "mean_nees_1dof": float(nees.mean()),
+        "nees_band_95": list(band),
+        "nees_consistent": bool(band[0] <= nees.mean() <= band[1]),
+        "all_lines_accepted": all(s == "accepted" for r in runs for s in r["lines"]),
+        "blocks": blocks_of(runs, summarize_73) if blocks else [],
+    }
 
 
 # -- report ---------------------------------------------------------------------------------------
 def machine_info() -> dict:
-    return {"cpu_count": os.cpu_count(), "cpus_usable": len(os.sched_getaffinity(0)), "cpu_model": cpu_model(),
-            "python": platform.python_version(), "platform": platform.platform(),
-            "load_average_at_start": os.getloadavg()}
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpus_usable": len(os.sched_getaffinity(0)),
+        "cpu_model": cpu_model(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "load_average_at_start": os.getloadavg(),
+    }
 
 
 def _fmt(v) -> str:
@@ -359,26 +457,42 @@ def _fmt(v) -> str:
 
 def print_71_72(title: str, block: dict) -> None:
     print(f"\n{title}")
-    print("  mode                     trials  true-error sigma x,y nm  mean x,y nm     filter sigma x,y nm  mean NEES (95% band)")
+    print(
+        "  mode                     trials  true-error sigma x,y nm  mean x,y nm     filter sigma x,y nm  mean NEES (95% band)"
+    )
     for mode, data in block.items():
         s = data["summary"]
         lo, hi = s["nees_band_95"]
-        print(f"  {mode:24s} {s['trials']:6d}  {_fmt(s['true_error_sigma_nm']):23s}  {_fmt(s['true_error_mean_nm']):14s} "
-              f"{_fmt(s['reported_sigma_mean_nm']):20s} {s['mean_nees']:.2f} [{lo:.2f}, {hi:.2f}]"
-              f"{'' if s['nees_consistent'] else '  OUTSIDE'}  {s['line_statuses'] or ''}")
+        print(
+            f"  {mode:24s} {s['trials']:6d}  {_fmt(s['true_error_sigma_nm']):23s}  {_fmt(s['true_error_mean_nm']):14s} "
+            f"{_fmt(s['reported_sigma_mean_nm']):20s} {s['mean_nees']:.2f} [{lo:.2f}, {hi:.2f}]"
+            f"{'' if s['nees_consistent'] else '  OUTSIDE'}  {s['line_statuses'] or ''}"
+        )
         for k, b in enumerate(s["blocks"]):
-            print(f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: {_fmt(b['true_error_sigma_nm'])} nm, NEES "
-                  f"{b['mean_nees']:.2f} [{b['nees_band_95'][0]:.2f}, {b['nees_band_95'][1]:.2f}]"
-                  f"{'' if b['nees_consistent'] else '  OUTSIDE'}")
+            print(
+                f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: {_fmt(b['true_error_sigma_nm'])} nm, NEES "
+                f"{b['mean_nees']:.2f} [{b['nees_band_95'][0]:.2f}, {b['nees_band_95'][1]:.2f}]"
+                f"{'' if b['nees_consistent'] else '  OUTSIDE'}"
+            )
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--trials", type=int, default=None, help="trials per case (default 50; --quick 10)")
-    parser.add_argument("--calibration", type=Path, default=None, help="calibration YAML (default: sim oracle)")
+    parser.add_argument(
+        "--trials", type=int, default=None, help="trials per case (default 50; --quick 10)"
+    )
+    parser.add_argument(
+        "--calibration", type=Path, default=None, help="calibration YAML (default: sim oracle)"
+    )
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--no-book-defaults", action="store_true", help="skip the uncalibrated (book defaults) block")
-    parser.add_argument("--only", choices=("all", "7.1", "7.3"), default="all", help="run one experiment only")
+    parser.add_argument(
+        "--no-book-defaults",
+        action="store_true",
+        help="skip the uncalibrated (book defaults) block",
+    )
+    parser.add_argument(
+        "--only", choices=("all", "7.1", "7.3"), default="all", help="run one experiment only"
+    )
     parser.add_argument("--tag", default="", help="results file localization[-quick][-TAG].json")
     args = parser.parse_args(argv)
     trials = args.trials or (10 if args.quick else 50)
@@ -390,29 +504,43 @@ def main(argv=None) -> int:
         calibration = sim_oracle_calibration()
         calibration_label = calibration.source
     print(f"calibration: {calibration_label}")
-    print(f"  scanner matrix {np.array(calibration.scanner_matrix).round(5).tolist()}, "
-          f"scan-region sigma {calibration.scan_region_sigma / NM:.2f} nm")
-    report = {"date": started.isoformat(timespec="seconds"), "machine": machine_info(),
-              "settings": {"trials": trials, "quick": args.quick}, "calibration": calibration_label,
-              "calibration_values": dataclasses.asdict(calibration)}
+    print(
+        f"  scanner matrix {np.array(calibration.scanner_matrix).round(5).tolist()}, "
+        f"scan-region sigma {calibration.scan_region_sigma / NM:.2f} nm"
+    )
+    report = {
+        "date": started.isoformat(timespec="seconds"),
+        "machine": machine_info(),
+        "settings": {"trials": trials, "quick": args.quick},
+        "calibration": calibration_label,
+        "calibration_values": dataclasses.asdict(calibration),
+    }
     if args.only in ("all", "7.1"):
         report["tables_7_1_7_2"] = run_71_72(calibration, trials)
-        print_71_72("Tables 7.1/7.2: x0 -> x8 (book: direct ~20 nm, via landmark ~10 nm sigma)",
-                    report["tables_7_1_7_2"])
+        print_71_72(
+            "Tables 7.1/7.2: x0 -> x8 (book: direct ~20 nm, via landmark ~10 nm sigma)",
+            report["tables_7_1_7_2"],
+        )
     if args.only in ("all", "7.3"):
         run_table_73(report, calibration, trials, args.calibration is None)
     if not args.no_book_defaults and args.only == "all":
         book_trials = min(trials, 10)
-        report["tables_7_1_7_2_book_default_calibration"] = run_71_72(Calibration(), book_trials, seed0=500)
-        print_71_72(f"Same with the book-default calibration (identity matrix, no creep; {book_trials} trials)",
-                    report["tables_7_1_7_2_book_default_calibration"])
+        report["tables_7_1_7_2_book_default_calibration"] = run_71_72(
+            Calibration(), book_trials, seed0=500
+        )
+        print_71_72(
+            f"Same with the book-default calibration (identity matrix, no creep; {book_trials} trials)",
+            report["tables_7_1_7_2_book_default_calibration"],
+        )
     report["peak_rss_kib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     report["wall_seconds"] = time.perf_counter() - t0
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     stem = "localization" + ("-quick" if args.quick else "") + (f"-{args.tag}" if args.tag else "")
     path = RESULTS_DIR / f"{stem}.json"
     path.write_text(json.dumps(report, indent=2, default=float) + "\n")
-    print(f"\npeak RSS {report['peak_rss_kib'] / 1024:.0f} MiB; wall {report['wall_seconds']:.0f} s; wrote {path}")
+    print(
+        f"\npeak RSS {report['peak_rss_kib'] / 1024:.0f} MiB; wall {report['wall_seconds']:.0f} s; wrote {path}"
+    )
     return 0
 
 
@@ -421,20 +549,26 @@ def run_table_73(report: dict, calibration: Calibration, trials: int, oracle: bo
     if oracle:
         tube_region = measure_scan_region_sigma(np.array(calibration.scanner_matrix), "tube")
     report["table_7_3"] = run_73(calibration, trials, scan_region_sigma=tube_region)
-    print(f"\nTable 7.3: pit 130 nm below a nanotube (book: 129.6 nm, sigma 1.5 nm); map sigma "
-          f"{HIRES_MAP_SIGMA / NM:.1f} nm, scan-region sigma {report['table_7_3']['scan_region_sigma_nm']:.2f} nm")
+    print(
+        f"\nTable 7.3: pit 130 nm below a nanotube (book: 129.6 nm, sigma 1.5 nm); map sigma "
+        f"{HIRES_MAP_SIGMA / NM:.1f} nm, scan-region sigma {report['table_7_3']['scan_region_sigma_nm']:.2f} nm"
+    )
     for variant, data in report["table_7_3"].items():
         if variant == "scan_region_sigma_nm":
             continue
         s = data["summary"]
-        print(f"  {variant:17s} trials {s['trials']}: distance {s['distance_mean_nm']:.2f} nm, sigma "
-              f"{s['distance_sigma_nm']:.2f} nm; filter sigma {s['reported_sigma_mean_nm']:.2f} nm; mean NEES(1 dof) "
-              f"{s['mean_nees_1dof']:.2f} [{s['nees_band_95'][0]:.2f}, {s['nees_band_95'][1]:.2f}]; "
-              f"all lines accepted: {s['all_lines_accepted']}")
+        print(
+            f"  {variant:17s} trials {s['trials']}: distance {s['distance_mean_nm']:.2f} nm, sigma "
+            f"{s['distance_sigma_nm']:.2f} nm; filter sigma {s['reported_sigma_mean_nm']:.2f} nm; mean NEES(1 dof) "
+            f"{s['mean_nees_1dof']:.2f} [{s['nees_band_95'][0]:.2f}, {s['nees_band_95'][1]:.2f}]; "
+            f"all lines accepted: {s['all_lines_accepted']}"
+        )
         for k, b in enumerate(s["blocks"]):
-            print(f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: sigma {b['distance_sigma_nm']:.2f} nm, NEES "
-                  f"{b['mean_nees_1dof']:.2f} [{b['nees_band_95'][0]:.2f}, {b['nees_band_95'][1]:.2f}]"
-                  f"{'' if b['nees_consistent'] else '  OUTSIDE'}")
+            print(
+                f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: sigma {b['distance_sigma_nm']:.2f} nm, NEES "
+                f"{b['mean_nees_1dof']:.2f} [{b['nees_band_95'][0]:.2f}, {b['nees_band_95'][1]:.2f}]"
+                f"{'' if b['nees_consistent'] else '  OUTSIDE'}"
+            )
 
 
 if __name__ == "__main__":

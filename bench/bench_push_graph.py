@@ -21,6 +21,7 @@ rescan) and the run time per push.
 Run: `scripts/with_env.sh python bench/bench_push_graph.py [--seeds 20]` (~10 min).
 Results: bench/results/push_graph.json.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,9 +43,9 @@ from machine import cpu_model  # noqa: E402
 
 from afm_bringup.commander import AfmCommander  # noqa: E402
 from afm_bringup.demo import peak_rss_bytes  # noqa: E402
-from afm_core.evaluation import image_frame_matrix  # noqa: E402
 from afm_bringup.launcher import Graph  # noqa: E402
 from afm_bringup.qos_profiles import LATCHED  # noqa: E402
+from afm_core.evaluation import image_frame_matrix  # noqa: E402
 from afm_msgs.action import PushParticle  # noqa: E402
 from afm_msgs.msg import GroundTruth, LandmarkArray  # noqa: E402
 
@@ -54,17 +55,26 @@ SPHERES = [(54.2e-6, 55.0e-6), (55.0e-6, 55.0e-6), (55.8e-6, 55.0e-6)]
 SCAN_ORIGIN, SCAN_SIZE, SCAN_PIXELS = (53.8e-6, 53.9e-6), 2.4e-6, 256
 PUSH = 500 * NM
 TOLERANCE = 20 * NM
-IMAGE_FRAME = image_frame_matrix()      # true per map displacement of the simulated scanner (evaluation only)
-CALIBRATION = Path(__file__).resolve().parents[1] / "afm_localization" / "config" / "sim_calibration.yaml"
+IMAGE_FRAME = (
+    image_frame_matrix()
+)  # true per map displacement of the simulated scanner (evaluation only)
+CALIBRATION = (
+    Path(__file__).resolve().parents[1] / "afm_localization" / "config" / "sim_calibration.yaml"
+)
 
 
 def run_seed(seed: int, workdir: Path, log) -> list[dict]:
     config = workdir / f"sim-{seed}.yaml"
-    config.write_text(yaml.safe_dump({"sample": {"spheres": [{"x": x, "y": y, "radius": 100e-9}
-                                                             for x, y in SPHERES]}}))
+    config.write_text(
+        yaml.safe_dump(
+            {"sample": {"spheres": [{"x": x, "y": y, "radius": 100e-9} for x, y in SPHERES]}}
+        )
+    )
     graph = Graph(workdir / f"logs-{seed}")
     calibrated = {"calibration_file": str(CALIBRATION)}
-    graph.start("driver", {"seed": str(seed), "real_time_factor": "0.0", "sim_config": str(config)})
+    graph.start(
+        "driver", {"seed": str(seed), "real_time_factor": "0.0", "sim_config": str(config)}
+    )
     graph.start("imaging")
     for name in ("localizer", "planner", "nano_hand"):
         graph.start(name, calibrated)
@@ -76,43 +86,81 @@ def run_seed(seed: int, workdir: Path, log) -> list[dict]:
             afm.node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
             afm.wait_until_subscribed(["/afm/scan"], "afm_imaging", timeout=60.0)
             for angle in (0.0, 90.0):
-                afm.scan(SCAN_ORIGIN, (SCAN_SIZE, SCAN_SIZE), (SCAN_PIXELS, SCAN_PIXELS), angle_deg=angle,
-                         line_rate=4.0, pair_id=f"bench-{seed}")
+                afm.scan(
+                    SCAN_ORIGIN,
+                    (SCAN_SIZE, SCAN_SIZE),
+                    (SCAN_PIXELS, SCAN_PIXELS),
+                    angle_deg=angle,
+                    line_rate=4.0,
+                    pair_id=f"bench-{seed}",
+                )
             deadline = time.monotonic() + 60
             while not (maps and len(maps[-1].landmarks) >= 3) and time.monotonic() < deadline:
                 time.sleep(0.1)
             if not (maps and len(maps[-1].landmarks) >= 3):
-                raise RuntimeError(f"seed {seed}: the imaging node mapped {len(maps[-1].landmarks) if maps else 0} "
-                                   f"of the 3 spheres (logs in {graph.log_dir})")
+                raise RuntimeError(
+                    f"seed {seed}: the imaging node mapped {len(maps[-1].landmarks) if maps else 0} "
+                    f"of the 3 spheres (logs in {graph.log_dir})"
+                )
             marks = sorted(maps[-1].landmarks, key=lambda lm: lm.position.x)
-            jobs = [("nano_hand", {}), ("center", {}),
-                    ("table_7_6", {"push_length": 156 * NM, "back_length": 120 * NM, "lateral_offset": 60 * NM,
-                                   "step_length": 36 * NM, "max_steps": 13})]
+            jobs = [
+                ("nano_hand", {}),
+                ("center", {}),
+                (
+                    "table_7_6",
+                    {
+                        "push_length": 156 * NM,
+                        "back_length": 120 * NM,
+                        "lateral_offset": 60 * NM,
+                        "step_length": 36 * NM,
+                        "max_steps": 13,
+                    },
+                ),
+            ]
             if seed % 2:
                 jobs[0], jobs[1] = jobs[1], jobs[0]
             for mark, (name, overrides) in zip(marks, jobs):
                 start = np.array([mark.position.x, mark.position.y])
-                distance = PUSH if name != "table_7_6" else 530 * NM       # the book's measured reach
+                distance = PUSH if name != "table_7_6" else 530 * NM  # the book's measured reach
                 goal = start + np.array([0.0, -distance])
                 truth_before = true_position(truths[-1], start)
-                request = PushParticle.Goal(particle_id=int(mark.id), strategy="nano_hand" if name == "table_7_6"
-                                            else name, tolerance=TOLERANCE, **overrides)
+                request = PushParticle.Goal(
+                    particle_id=int(mark.id),
+                    strategy="nano_hand" if name == "table_7_6" else name,
+                    tolerance=TOLERANCE,
+                    **overrides,
+                )
                 request.goal.x, request.goal.y = map(float, goal)
                 began = time.monotonic()
                 result = afm.send("push_particle", request, timeout=900)
                 seconds = time.monotonic() - began
-                time.sleep(0.3)                                  # the last ground truth arrives
-                moved = np.linalg.solve(IMAGE_FRAME, true_position(truths[-1], truth_before) - truth_before)
+                time.sleep(0.3)  # the last ground truth arrives
+                moved = np.linalg.solve(
+                    IMAGE_FRAME, true_position(truths[-1], truth_before) - truth_before
+                )
                 wanted = goal - start
                 error = float(np.linalg.norm(moved - wanted))
-                rows.append({"seed": seed, "strategy": name, "ran": result.steps > 0, "message": result.message,
-                             "along": float(-moved[1]), "sideways": float(moved[0]), "true_error": error,
-                             "success": bool(result.steps > 0 and error <= TOLERANCE),
-                             "verified_error": float(result.error), "verified_success": bool(result.success),
-                             "steps": int(result.steps), "seconds": seconds})
-                log(f"seed {seed} {name:9s}: along {rows[-1]['along'] / NM:6.1f} nm, sideways "
+                rows.append(
+                    {
+                        "seed": seed,
+                        "strategy": name,
+                        "ran": result.steps > 0,
+                        "message": result.message,
+                        "along": float(-moved[1]),
+                        "sideways": float(moved[0]),
+                        "true_error": error,
+                        "success": bool(result.steps > 0 and error <= TOLERANCE),
+                        "verified_error": float(result.error),
+                        "verified_success": bool(result.success),
+                        "steps": int(result.steps),
+                        "seconds": seconds,
+                    }
+                )
+                log(
+                    f"seed {seed} {name:9s}: along {rows[-1]['along'] / NM:6.1f} nm, sideways "
                     f"{rows[-1]['sideways'] / NM:6.1f} nm, true error {error / NM:5.1f} nm, verified "
-                    f"{result.error / NM:5.1f} nm ({seconds:.1f} s)")
+                    f"{result.error / NM:5.1f} nm ({seconds:.1f} s)"
+                )
         memory = sum(peak_rss_bytes(p.pid) for p in graph.processes.values())
         for row in rows:
             row["graph_peak_bytes"] = memory
@@ -133,7 +181,8 @@ def summarise(rows: list[dict]) -> dict:
         if not mine:
             continue
         out[name] = {
-            "runs": len([r for r in rows if r["strategy"] == name]), "ran": len(mine),
+            "runs": len([r for r in rows if r["strategy"] == name]),
+            "ran": len(mine),
             "success_rate": float(np.mean([r["success"] for r in mine])),
             "verified_success_rate": float(np.mean([r["verified_success"] for r in mine])),
             "true_error_median_nm": float(np.median([r["true_error"] for r in mine]) / NM),
@@ -162,19 +211,36 @@ def main() -> int:
     for seed in range(args.seeds):
         rows += run_seed(seed, workdir, log)
     summary = summarise(rows)
-    print("\nstrategy   runs  success(true) success(verified)  median error  along (mean+-sd)  |sideways| max  s/push")
+    print(
+        "\nstrategy   runs  success(true) success(verified)  median error  along (mean+-sd)  |sideways| max  s/push"
+    )
     for name, s in summary.items():
-        print(f"{name:10s} {s['ran']:4d}  {s['success_rate']:12.2f}  {s['verified_success_rate']:16.2f}  "
-              f"{s['true_error_median_nm']:9.1f} nm  {s['along_mean_nm']:6.1f} +- {s['along_sd_nm']:4.1f} nm  "
-              f"{s['sideways_abs_max_nm']:9.1f} nm  {s['seconds_median']:6.1f}")
+        print(
+            f"{name:10s} {s['ran']:4d}  {s['success_rate']:12.2f}  {s['verified_success_rate']:16.2f}  "
+            f"{s['true_error_median_nm']:9.1f} nm  {s['along_mean_nm']:6.1f} +- {s['along_sd_nm']:4.1f} nm  "
+            f"{s['sideways_abs_max_nm']:9.1f} nm  {s['seconds_median']:6.1f}"
+        )
     peak = max((r["graph_peak_bytes"] for r in rows), default=0)
-    print(f"graph peak memory (sum of node peaks, worst seed): {peak / 2**20:.0f} MiB; total {time.monotonic() - started:.0f} s")
+    print(
+        f"graph peak memory (sum of node peaks, worst seed): {peak / 2**20:.0f} MiB; total {time.monotonic() - started:.0f} s"
+    )
     RESULTS_DIR.mkdir(exist_ok=True)
-    result = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-              "machine": {"cpu_count": os.cpu_count(), "cpu_model": cpu_model(), "python": platform.python_version(),
-                          "load_average_at_start": os.getloadavg()},
-              "seeds": args.seeds, "push_nm": PUSH / NM, "tolerance_nm": TOLERANCE / NM, "summary": summary,
-              "graph_peak_bytes": peak, "runs": rows, "wall_seconds": time.monotonic() - started}
+    result = {
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "machine": {
+            "cpu_count": os.cpu_count(),
+            "cpu_model": cpu_model(),
+            "python": platform.python_version(),
+            "load_average_at_start": os.getloadavg(),
+        },
+        "seeds": args.seeds,
+        "push_nm": PUSH / NM,
+        "tolerance_nm": TOLERANCE / NM,
+        "summary": summary,
+        "graph_peak_bytes": peak,
+        "runs": rows,
+        "wall_seconds": time.monotonic() - started,
+    }
     (RESULTS_DIR / "push_graph.json").write_text(json.dumps(result, indent=2))
     return 0
 

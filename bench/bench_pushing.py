@@ -26,6 +26,7 @@ What is measured
 Run: `scripts/with_env.sh python bench/bench_pushing.py` (~1 min on one core).
 Results: bench/results/pushing.json.
 """
+
 from __future__ import annotations
 
 import json
@@ -44,8 +45,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import cpu_model  # noqa: E402
 
-from afm_core.manipulation import (centre_push_plan, execute_plan, monte_carlo_push,  # noqa: E402
-                                   nano_hand_plan)
+from afm_core.manipulation import centre_push_plan, execute_plan, monte_carlo_push, nano_hand_plan  # noqa: E402
 from afm_core.sim.config import load_config, merge  # noqa: E402
 from afm_core.sim.instrument import SimulatedAfm  # noqa: E402
 
@@ -55,34 +55,51 @@ TOL = 20 * NM
 
 
 def machine_info() -> dict:
-    return {"cpu_count": os.cpu_count(), "cpus_usable": len(os.sched_getaffinity(0)), "cpu_model": cpu_model(),
-            "python": platform.python_version(), "platform": platform.platform(),
-            "load_average_at_start": os.getloadavg(), "packages": {p: version(p) for p in ("numpy", "scipy")}}
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpus_usable": len(os.sched_getaffinity(0)),
+        "cpu_model": cpu_model(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "load_average_at_start": os.getloadavg(),
+        "packages": {p: version(p) for p in ("numpy", "scipy")},
+    }
 
 
 def monte_carlo_part() -> dict:
     c0 = np.array([5e-6, 5e-6])
     plain = nano_hand_plan(c0, c0 + [0.0, 300 * NM], steps=6, aim=False)
     goal = c0 + [0.0, plain.along(plain.predicted)]
-    plans = {"centre": centre_push_plan(c0, goal, steps=6),
-             "nano_hand": nano_hand_plan(c0, goal, steps=6, aim=False),
-             "nano_hand_aimed_300nm": nano_hand_plan(c0, c0 + [0.0, 300 * NM], steps=6)}
+    plans = {
+        "centre": centre_push_plan(c0, goal, steps=6),
+        "nano_hand": nano_hand_plan(c0, goal, steps=6, aim=False),
+        "nano_hand_aimed_300nm": nano_hand_plan(c0, c0 + [0.0, 300 * NM], steps=6),
+    }
     out = {}
     for name, plan in plans.items():
         t0 = time.perf_counter()
         r = monte_carlo_push(plan, samples=500, sigma=10 * NM, seed=1, tolerance=TOL)
-        out[name] = {**r.summary(), "wall_seconds": time.perf_counter() - t0,
-                     "goal_along_nm": float(plan.along(plan.goal) / NM)}
+        out[name] = {
+            **r.summary(),
+            "wall_seconds": time.perf_counter() - t0,
+            "goal_along_nm": float(plan.along(plan.goal) / NM),
+        }
     book = nano_hand_plan(c0, c0 + [0.0, 600 * NM], steps=13, aim=False)
     t0 = time.perf_counter()
     r = monte_carlo_push(book, samples=500, sigma=10 * NM, seed=1, tolerance=TOL)
     disp = r.final - c0
     out["table_7_6_13_steps"] = {
         "model_nominal_along_nm": float(book.along(book.predicted) / NM),
-        "model_nominal_sideways_nm": float(-book.lateral(book.predicted) / NM),   # + = right of the axis
-        "mc_along_mean_nm": float(np.mean(disp @ book.axis) / NM), "mc_sigma_along_nm": r.sigma_along / NM,
-        "mc_sigma_lateral_nm": r.sigma_lateral / NM, "between_paths": r.between_paths,
-        "seconds": r.seconds, "wall_seconds": time.perf_counter() - t0}
+        "model_nominal_sideways_nm": float(
+            -book.lateral(book.predicted) / NM
+        ),  # + = right of the axis
+        "mc_along_mean_nm": float(np.mean(disp @ book.axis) / NM),
+        "mc_sigma_along_nm": r.sigma_along / NM,
+        "mc_sigma_lateral_nm": r.sigma_lateral / NM,
+        "between_paths": r.between_paths,
+        "seconds": r.seconds,
+        "wall_seconds": time.perf_counter() - t0,
+    }
     return out
 
 
@@ -99,7 +116,7 @@ def sim_run(seed: int, strategy: str, estimate_sigma: float) -> dict:
         plan = centre_push_plan(est, goal, limits=sim.limits)
     elif strategy == "centre_single":
         plan = centre_push_plan(est, goal, single=True, limits=sim.limits)
-    elif strategy == "table_7_6":        # goal: where the model predicts the book's 13 steps end
+    elif strategy == "table_7_6":  # goal: where the model predicts the book's 13 steps end
         plan = nano_hand_plan(est, est + [0.0, 600 * NM], steps=13, aim=False, limits=sim.limits)
         goal = plan.predicted
     else:
@@ -109,26 +126,41 @@ def sim_run(seed: int, strategy: str, estimate_sigma: float) -> dict:
     wall = time.perf_counter() - t0
     final = np.array([sphere.x, sphere.y])
     d = final - truth0
-    return {"seed": seed, "strategy": strategy, "strokes": len(plan), "completed": result.completed,
-            "error_nm": float(np.hypot(*(final - goal)) / NM), "success": bool(np.hypot(*(final - goal)) <= TOL),
-            "along_nm": float(d @ plan.axis / NM), "sideways_nm": float(-(d @ plan.normal) / NM),
-            "estimate_error_nm": [float(v) for v in err / NM], "sim_seconds": result.duration,
-            "wall_seconds": wall}
+    return {
+        "seed": seed,
+        "strategy": strategy,
+        "strokes": len(plan),
+        "completed": result.completed,
+        "error_nm": float(np.hypot(*(final - goal)) / NM),
+        "success": bool(np.hypot(*(final - goal)) <= TOL),
+        "along_nm": float(d @ plan.axis / NM),
+        "sideways_nm": float(-(d @ plan.normal) / NM),
+        "estimate_error_nm": [float(v) for v in err / NM],
+        "sim_seconds": result.duration,
+        "wall_seconds": wall,
+    }
 
 
 def summarize_runs(runs: list[dict]) -> dict:
     errs = [r["error_nm"] for r in runs]
     along = [r["along_nm"] for r in runs]
     side = [r["sideways_nm"] for r in runs]
-    return {"runs": len(runs), "success_rate": sum(r["success"] for r in runs) / len(runs),
-            "success_rate_40nm": sum(r["error_nm"] <= 40 for r in runs) / len(runs),
-            "error_nm_median": statistics.median(errs), "error_nm_max": max(errs),
-            "along_nm_mean": statistics.fmean(along), "along_nm_sd": statistics.pstdev(along),
-            "along_nm_min": min(along), "along_nm_max": max(along),
-            "sideways_nm_mean": statistics.fmean(side), "sideways_nm_sd": statistics.pstdev(side),
-            "sideways_abs_nm_max": max(abs(s) for s in side),
-            "wall_seconds_per_run": statistics.fmean(r["wall_seconds"] for r in runs),
-            "sim_seconds_per_run": statistics.fmean(r["sim_seconds"] for r in runs)}
+    return {
+        "runs": len(runs),
+        "success_rate": sum(r["success"] for r in runs) / len(runs),
+        "success_rate_40nm": sum(r["error_nm"] <= 40 for r in runs) / len(runs),
+        "error_nm_median": statistics.median(errs),
+        "error_nm_max": max(errs),
+        "along_nm_mean": statistics.fmean(along),
+        "along_nm_sd": statistics.pstdev(along),
+        "along_nm_min": min(along),
+        "along_nm_max": max(along),
+        "sideways_nm_mean": statistics.fmean(side),
+        "sideways_nm_sd": statistics.pstdev(side),
+        "sideways_abs_nm_max": max(abs(s) for s in side),
+        "wall_seconds_per_run": statistics.fmean(r["wall_seconds"] for r in runs),
+        "sim_seconds_per_run": statistics.fmean(r["sim_seconds"] for r in runs),
+    }
 
 
 def main() -> int:
@@ -138,33 +170,62 @@ def main() -> int:
     for name, s in mc.items():
         if name == "table_7_6_13_steps":
             continue
-        print(f"  {name:22s} lateral sigma {s['sigma_lateral_nm']:6.1f} nm  along sigma {s['sigma_along_nm']:5.1f} nm  "
-              f"split {s['split_fraction']:.3f} (L {s['share_left']:.3f} / R {s['share_right']:.3f})  "
-              f"between paths {s['between_paths'] if s['between_paths'] is not None else '-'}  "
-              f"success(20 nm) {s['success_probability']:.3f}  {s['seconds']:.1f} s", flush=True)
+        print(
+            f"  {name:22s} lateral sigma {s['sigma_lateral_nm']:6.1f} nm  along sigma {s['sigma_along_nm']:5.1f} nm  "
+            f"split {s['split_fraction']:.3f} (L {s['share_left']:.3f} / R {s['share_right']:.3f})  "
+            f"between paths {s['between_paths'] if s['between_paths'] is not None else '-'}  "
+            f"success(20 nm) {s['success_probability']:.3f}  {s['seconds']:.1f} s",
+            flush=True,
+        )
     b = mc["table_7_6_13_steps"]
-    print(f"  Table 7.6, 13 steps in the model: along {b['model_nominal_along_nm']:.1f} nm, sideways "
-          f"{b['model_nominal_sideways_nm']:.1f} nm (MC sigma along {b['mc_sigma_along_nm']:.1f}, lateral "
-          f"{b['mc_sigma_lateral_nm']:.1f} nm, {b['seconds']:.1f} s for 500 x 13 strokes)", flush=True)
+    print(
+        f"  Table 7.6, 13 steps in the model: along {b['model_nominal_along_nm']:.1f} nm, sideways "
+        f"{b['model_nominal_sideways_nm']:.1f} nm (MC sigma along {b['mc_sigma_along_nm']:.1f}, lateral "
+        f"{b['mc_sigma_lateral_nm']:.1f} nm, {b['seconds']:.1f} s for 500 x 13 strokes)",
+        flush=True,
+    )
 
-    print("(b) SimulatedAfm, default physics, 20 seeds, estimate error N(0, 10 nm), goal 500 nm", flush=True)
+    print(
+        "(b) SimulatedAfm, default physics, 20 seeds, estimate error N(0, 10 nm), goal 500 nm",
+        flush=True,
+    )
     sims = {}
-    for strategy, sigma in (("nano_hand", 10 * NM), ("centre", 10 * NM), ("centre_single", 10 * NM),
-                            ("table_7_6", 0.0)):
+    for strategy, sigma in (
+        ("nano_hand", 10 * NM),
+        ("centre", 10 * NM),
+        ("centre_single", 10 * NM),
+        ("table_7_6", 0.0),
+    ):
         runs = [sim_run(seed, strategy, sigma) for seed in range(20)]
         sims[strategy] = {"summary": summarize_runs(runs), "runs": runs}
         s = sims[strategy]["summary"]
-        print(f"  {strategy:14s} success {s['success_rate']:.2f} (40 nm: {s['success_rate_40nm']:.2f})  median error {s['error_nm_median']:6.1f} nm  "
-              f"along {s['along_nm_mean']:6.1f} +- {s['along_nm_sd']:4.1f} nm  sideways {s['sideways_nm_mean']:6.1f} "
-              f"+- {s['sideways_nm_sd']:4.1f} nm (max |.| {s['sideways_abs_nm_max']:.1f})  "
-              f"{s['wall_seconds_per_run']:.2f} s/run", flush=True)
+        print(
+            f"  {strategy:14s} success {s['success_rate']:.2f} (40 nm: {s['success_rate_40nm']:.2f})  median error {s['error_nm_median']:6.1f} nm  "
+            f"along {s['along_nm_mean']:6.1f} +- {s['along_nm_sd']:4.1f} nm  sideways {s['sideways_nm_mean']:6.1f} "
+            f"+- {s['sideways_nm_sd']:4.1f} nm (max |.| {s['sideways_abs_nm_max']:.1f})  "
+            f"{s['wall_seconds_per_run']:.2f} s/run",
+            flush=True,
+        )
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    report = {"date": started.isoformat(timespec="seconds"), "machine": machine_info(),
-              "settings": {"mc_samples": 500, "mc_sigma_nm": 10, "mc_pushes": 6, "tolerance_nm": 20,
-                           "sim_seeds": 20, "sim_estimate_sigma_nm": 10, "sim_goal_nm": 500,
-                           "push_speed_m_per_s": 0.5e-6},
-              "monte_carlo": mc, "simulated_afm": sims, "process_peak_rss_kib": peak, "wall_seconds": wall}
+    report = {
+        "date": started.isoformat(timespec="seconds"),
+        "machine": machine_info(),
+        "settings": {
+            "mc_samples": 500,
+            "mc_sigma_nm": 10,
+            "mc_pushes": 6,
+            "tolerance_nm": 20,
+            "sim_seeds": 20,
+            "sim_estimate_sigma_nm": 10,
+            "sim_goal_nm": 500,
+            "push_speed_m_per_s": 0.5e-6,
+        },
+        "monte_carlo": mc,
+        "simulated_afm": sims,
+        "process_peak_rss_kib": peak,
+        "wall_seconds": wall,
+    }
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     path = RESULTS_DIR / "pushing.json"
     path.write_text(json.dumps(report, indent=2) + "\n")

@@ -37,6 +37,7 @@ leaves out ours' fsync; the "close s" column is the close()/finish() time alone.
 Run: `make bench` (default, < 3 min on 2 cores) or `... bench/bench_recording.py --quick`.
 Results: bench/results/recording.json and recording.md (recording-quick.* for --quick).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -57,7 +58,6 @@ from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
-
 from machine import cpu_model
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
@@ -73,8 +73,8 @@ class Payload:
     topic: str
     type_name: str
     count: int
-    period_ns: int          # log-time spacing between messages
-    file: str = ""          # serialized messages, length-prefixed (see save_payload)
+    period_ns: int  # log-time spacing between messages
+    file: str = ""  # serialized messages, length-prefixed (see save_payload)
     total_bytes: int = 0
 
 
@@ -92,7 +92,9 @@ def smooth_noise(rng: np.random.Generator, n: int, correlation_px: float) -> np.
     white = rng.standard_normal((n, n))
     k = np.fft.fftfreq(n)
     k2 = k[:, None] ** 2 + np.fft.rfftfreq(n)[None, :] ** 2
-    field = np.fft.irfft2(np.fft.rfft2(white) * np.exp(-k2 * (np.pi * correlation_px) ** 2), s=(n, n))
+    field = np.fft.irfft2(
+        np.fft.rfft2(white) * np.exp(-k2 * (np.pi * correlation_px) ** 2), s=(n, n)
+    )
     return field / field.std()
 
 
@@ -101,13 +103,23 @@ def sample_surface(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.nda
     yy, xx = np.mgrid[0:n, 0:n] / n
     substrate = 4e-9 * smooth_noise(rng, n, 25) + 1e-9 * smooth_noise(rng, n, 3)
     substrate += rng.uniform(-5e-9, 5e-9) * xx + rng.uniform(-5e-9, 5e-9) * yy
-    particles = np.column_stack([rng.uniform(0, n, 6), rng.uniform(0, n, 6),
-                                 rng.uniform(20e-9, 150e-9, 6), rng.uniform(4, 12, 6)])
+    particles = np.column_stack(
+        [
+            rng.uniform(0, n, 6),
+            rng.uniform(0, n, 6),
+            rng.uniform(20e-9, 150e-9, 6),
+            rng.uniform(4, 12, 6),
+        ]
+    )
     return substrate, particles
 
 
-def scan_heights(rng: np.random.Generator, substrate: np.ndarray, particles: np.ndarray,
-                 drift_px: tuple[int, int]) -> np.ndarray:
+def scan_heights(
+    rng: np.random.Generator,
+    substrate: np.ndarray,
+    particles: np.ndarray,
+    drift_px: tuple[int, int],
+) -> np.ndarray:
     """One scan of a surface: drifted substrate, gaussian particles, 0.2 nm noise; ~1e-9..2e-7 m."""
     n = substrate.shape[0]
     height = np.roll(substrate, drift_px, axis=(0, 1))
@@ -120,20 +132,23 @@ def scan_heights(rng: np.random.Generator, substrate: np.ndarray, particles: np.
 
 def stamp(ns: int):
     from builtin_interfaces.msg import Time
+
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
 def make_scans(payload: Payload, seed: int = 1) -> list[bytes]:
     """Scans of a few samples; within one sample the tip pushes particles and the scanner drifts."""
+    from rclpy.serialization import serialize_message
+
     from afm_bringup.conversions import array_to_image
     from afm_msgs.msg import RasterScan
-    from rclpy.serialization import serialize_message
+
     rng = np.random.default_rng(seed)
     out = []
     for i in range(payload.count):
         if i % 25 == 0:
             substrate, particles = sample_surface(rng, 512)
-        particles[:, :2] += rng.normal(0, 3, (len(particles), 2))      # pushed particles move
+        particles[:, :2] += rng.normal(0, 3, (len(particles), 2))  # pushed particles move
         msg = RasterScan()
         msg.header.stamp = stamp(i * payload.period_ns)
         msg.header.frame_id = "afm_scanner"
@@ -158,19 +173,31 @@ def trace_signals(rng: np.random.Generator, samples: int, rate: float) -> dict[s
     path_y = np.interp(np.arange(samples), knots, rng.uniform(0, 2e-6, len(knots)))
     z = np.repeat(100e-9 + rng.uniform(-5e-9, 5e-9, len(knots)), 5000)[:samples]
     load = np.convolve(rng.random(samples) < 2e-4, np.hanning(800), mode="same")
-    deflection = 2e-9 + 3e-9 * load + 2e-11 * np.sin(2 * np.pi * 50 * t) + 1e-10 * rng.standard_normal(samples)
+    deflection = (
+        2e-9
+        + 3e-9 * load
+        + 2e-11 * np.sin(2 * np.pi * 50 * t)
+        + 1e-10 * rng.standard_normal(samples)
+    )
     torsion = 1e-4 * ((t * 37.0) % 1.0) * (load > 0.1) + 5e-6 * rng.standard_normal(samples)
-    return {"commanded_x": path_x + 2e-10 * rng.standard_normal(samples),
-            "commanded_y": path_y + 2e-10 * rng.standard_normal(samples),
-            "commanded_z": z + 5e-11 * rng.standard_normal(samples),
-            "vertical_deflection": deflection, "lateral_torsion": torsion}
+    return {
+        "commanded_x": path_x + 2e-10 * rng.standard_normal(samples),
+        "commanded_y": path_y + 2e-10 * rng.standard_normal(samples),
+        "commanded_z": z + 5e-11 * rng.standard_normal(samples),
+        "vertical_deflection": deflection,
+        "lateral_torsion": torsion,
+    }
 
 
-def make_traces(payload: Payload, seed: int = 2, per_message: int = 1000, rate: float = 10_000.0) -> list[bytes]:
+def make_traces(
+    payload: Payload, seed: int = 2, per_message: int = 1000, rate: float = 10_000.0
+) -> list[bytes]:
     from array import array
 
-    from afm_msgs.msg import ForceTrace
     from rclpy.serialization import serialize_message
+
+    from afm_msgs.msg import ForceTrace
+
     signals = trace_signals(np.random.default_rng(seed), payload.count * per_message, rate)
     times = array("d", (np.arange(per_message) / rate).tobytes())
     out = []
@@ -209,8 +236,10 @@ def load_payload(path: str) -> list[bytes]:
 
 
 def prepare_payloads(counts: dict[str, int], workdir: Path) -> list[Payload]:
-    specs = [Payload("scans", "/afm/scan", "afm_msgs/msg/RasterScan", counts["scans"], 10 * 10**9),
-             Payload("traces", "/afm/force_trace", "afm_msgs/msg/ForceTrace", counts["traces"], 10**8)]
+    specs = [
+        Payload("scans", "/afm/scan", "afm_msgs/msg/RasterScan", counts["scans"], 10 * 10**9),
+        Payload("traces", "/afm/force_trace", "afm_msgs/msg/ForceTrace", counts["traces"], 10**8),
+    ]
     makers = {"scans": make_scans, "traces": make_traces}
     ready = []
     for spec in specs:
@@ -218,9 +247,11 @@ def prepare_payloads(counts: dict[str, int], workdir: Path) -> list[Payload]:
         file = workdir / f"{spec.name}.payload"
         total = save_payload(makers[spec.name](spec), file)
         ready.append(Payload(**{**asdict(spec), "file": str(file), "total_bytes": total}))
-        print(f"payload {spec.name}: {spec.count} messages, {total / MIB:.1f} MiB "
-              f"({total / spec.count / 1024:.1f} KiB each), built in {time.perf_counter() - t0:.1f} s",
-              flush=True)
+        print(
+            f"payload {spec.name}: {spec.count} messages, {total / MIB:.1f} MiB "
+            f"({total / spec.count / 1024:.1f} KiB each), built in {time.perf_counter() - t0:.1f} s",
+            flush=True,
+        )
     return ready
 
 
@@ -228,6 +259,7 @@ def prepare_payloads(counts: dict[str, int], workdir: Path) -> list[Payload]:
 def write_ours(path: str, payload: Payload, messages: list[bytes]) -> float:
     """Returns the time spent in close() (summary, metadata, flush, fsync, link)."""
     from afm_core.recording import QosDescription, RecordingWriter
+
     rec = RecordingWriter(path)
     channel = rec.add_channel(payload.topic, payload.type_name, [QosDescription()])
     for i, data in enumerate(messages):
@@ -242,15 +274,21 @@ def write_plain(path: str, payload: Payload, messages: list[bytes]) -> float:
     from mcap.writer import CompressionType, Writer
 
     from afm_core.recording import full_message_definition
+
     with open(path, "wb") as stream:
         writer = Writer(stream, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
         writer.start(profile="ros2")
-        schema = writer.register_schema(payload.type_name, "ros2msg",
-                                        full_message_definition(payload.type_name).encode())
+        schema = writer.register_schema(
+            payload.type_name, "ros2msg", full_message_definition(payload.type_name).encode()
+        )
         channel = writer.register_channel(payload.topic, "cdr", schema, metadata={})
         for i, data in enumerate(messages):
-            writer.add_message(channel, log_time=i * payload.period_ns, data=data,
-                               publish_time=i * payload.period_ns)
+            writer.add_message(
+                channel,
+                log_time=i * payload.period_ns,
+                data=data,
+                publish_time=i * payload.period_ns,
+            )
         t0 = time.perf_counter()
         writer.finish()
         return time.perf_counter() - t0
@@ -277,6 +315,7 @@ def reset_peak_rss() -> None:
 def run_case(case: Case) -> dict:
     """Runs in a fresh process: load payload, time one writer, verify the file, delete it."""
     from afm_core.recording import RecordingReader
+
     write = {"ours": write_ours, "plain": write_plain}[case.writer]
     messages = load_payload(case.payload.file)
     peak_before = proc_status_kib("VmHWM")
@@ -289,16 +328,28 @@ def run_case(case: Case) -> dict:
     with RecordingReader(case.output) as reader:
         count = reader.message_count
     if count != len(messages):
-        raise RuntimeError(f"{case.writer}/{case.payload.name}: file holds {count} messages, wrote {len(messages)}")
+        raise RuntimeError(
+            f"{case.writer}/{case.payload.name}: file holds {count} messages, wrote {len(messages)}"
+        )
     file_bytes = os.path.getsize(case.output)
     os.unlink(case.output)
-    return {"payload": case.payload.name, "writer": case.writer, "repetition": case.repetition,
-            "messages": len(messages), "payload_bytes": case.payload.total_bytes,
-            "seconds": seconds, "close_seconds": close_s, "file_bytes": file_bytes,
-            "messages_per_s": len(messages) / seconds, "mb_per_s": case.payload.total_bytes / MB / seconds,
-            "compression_ratio": case.payload.total_bytes / file_bytes,
-            "rss_before_kib": rss_before, "peak_rss_kib": max(peak_before, write_peak),
-            "writer_rss_kib": write_peak - rss_before, "ru_maxrss_kib": max_rss_kib()}
+    return {
+        "payload": case.payload.name,
+        "writer": case.writer,
+        "repetition": case.repetition,
+        "messages": len(messages),
+        "payload_bytes": case.payload.total_bytes,
+        "seconds": seconds,
+        "close_seconds": close_s,
+        "file_bytes": file_bytes,
+        "messages_per_s": len(messages) / seconds,
+        "mb_per_s": case.payload.total_bytes / MB / seconds,
+        "compression_ratio": case.payload.total_bytes / file_bytes,
+        "rss_before_kib": rss_before,
+        "peak_rss_kib": max(peak_before, write_peak),
+        "writer_rss_kib": write_peak - rss_before,
+        "ru_maxrss_kib": max_rss_kib(),
+    }
 
 
 def run_in_fresh_process(case: Case) -> dict:
@@ -320,11 +371,16 @@ def run_all(payloads: list[Payload], repetitions: int, warmups: int, workdir: Pa
         for rep in range(-warmups, repetitions):
             for writer in pair_order(rep):
                 output = str(workdir / f"{payload.name}-{writer}-{rep}.mcap")
-                result = run_in_fresh_process(Case(payload, writer, rep, output)) | {"warmup": rep < 0}
+                result = run_in_fresh_process(Case(payload, writer, rep, output)) | {
+                    "warmup": rep < 0
+                }
                 label = "warm-up" if rep < 0 else f"rep {rep}"
-                print(f"  {payload.name:6} {label:7} {writer:5}: {result['seconds']:6.2f} s "
-                      f"(close {result['close_seconds']:.3f} s), {result['mb_per_s']:6.1f} MB/s, "
-                      f"peak RSS {result['peak_rss_kib'] / 1024:.0f} MiB", flush=True)
+                print(
+                    f"  {payload.name:6} {label:7} {writer:5}: {result['seconds']:6.2f} s "
+                    f"(close {result['close_seconds']:.3f} s), {result['mb_per_s']:6.1f} MB/s, "
+                    f"peak RSS {result['peak_rss_kib'] / 1024:.0f} MiB",
+                    flush=True,
+                )
                 results.append(result)
     return results
 
@@ -333,38 +389,59 @@ def summarize(results: list[dict]) -> dict:
     results = [r for r in results if not r["warmup"]]
     summary = {}
     for name in dict.fromkeys(r["payload"] for r in results):
-        rows = {w: [r for r in results if r["payload"] == name and r["writer"] == w] for w in WRITERS}
+        rows = {
+            w: [r for r in results if r["payload"] == name and r["writer"] == w] for w in WRITERS
+        }
         per_writer = {}
         for writer, runs in rows.items():
             med = lambda key: statistics.median(r[key] for r in runs)  # noqa: E731
             per_writer[writer] = {
-                "repetitions": len(runs), "messages": runs[0]["messages"], "payload_bytes": runs[0]["payload_bytes"],
-                "seconds": med("seconds"), "close_seconds": med("close_seconds"),
-                "messages_per_s": med("messages_per_s"), "mb_per_s": med("mb_per_s"),
-                "min_seconds": min(r["seconds"] for r in runs), "max_seconds": max(r["seconds"] for r in runs),
-                "file_bytes": med("file_bytes"), "compression_ratio": med("compression_ratio"),
+                "repetitions": len(runs),
+                "messages": runs[0]["messages"],
+                "payload_bytes": runs[0]["payload_bytes"],
+                "seconds": med("seconds"),
+                "close_seconds": med("close_seconds"),
+                "messages_per_s": med("messages_per_s"),
+                "mb_per_s": med("mb_per_s"),
+                "min_seconds": min(r["seconds"] for r in runs),
+                "max_seconds": max(r["seconds"] for r in runs),
+                "file_bytes": med("file_bytes"),
+                "compression_ratio": med("compression_ratio"),
                 "peak_rss_kib": max(r["peak_rss_kib"] for r in runs),
-                "writer_rss_kib": statistics.median(r["writer_rss_kib"] for r in runs)}
+                "writer_rss_kib": statistics.median(r["writer_rss_kib"] for r in runs),
+            }
         pairs = list(zip(rows["ours"], rows["plain"]))  # same repetition = adjacent runs
         ratios = [p["seconds"] / o["seconds"] for o, p in pairs]  # = ours msg/s / plain msg/s
-        no_close = [(p["seconds"] - p["close_seconds"]) / (o["seconds"] - o["close_seconds"]) for o, p in pairs]
-        summary[name] = {**per_writer, "ratio_ours_over_plain": statistics.median(ratios), "pair_ratios": ratios,
-                         "ratio_ours_over_plain_excluding_close": statistics.median(no_close)}
+        no_close = [
+            (p["seconds"] - p["close_seconds"]) / (o["seconds"] - o["close_seconds"])
+            for o, p in pairs
+        ]
+        summary[name] = {
+            **per_writer,
+            "ratio_ours_over_plain": statistics.median(ratios),
+            "pair_ratios": ratios,
+            "ratio_ours_over_plain_excluding_close": statistics.median(no_close),
+        }
     return summary
 
 
-
-
 def machine_info() -> dict:
-    return {"cpu_count": os.cpu_count(), "cpus_usable": len(os.sched_getaffinity(0)), "cpu_model": cpu_model(),
-            "python": platform.python_version(), "platform": platform.platform(),
-            "load_average_at_start": os.getloadavg(),
-            "packages": {p: version(p) for p in ("mcap", "zstandard", "numpy")}}
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpus_usable": len(os.sched_getaffinity(0)),
+        "cpu_model": cpu_model(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "load_average_at_start": os.getloadavg(),
+        "packages": {p: version(p) for p in ("mcap", "zstandard", "numpy")},
+    }
 
 
 def table(summary: dict) -> list[str]:
-    head = ("| payload | writer | msgs | payload MB | time s (median) | close s | msg/s | MB/s "
-            "| file MB | compr. | peak RSS MiB | writer +RSS MiB |")
+    head = (
+        "| payload | writer | msgs | payload MB | time s (median) | close s | msg/s | MB/s "
+        "| file MB | compr. | peak RSS MiB | writer +RSS MiB |"
+    )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for name, entry in summary.items():
         for writer in WRITERS:
@@ -373,29 +450,34 @@ def table(summary: dict) -> list[str]:
                 f"| {name} | {writer} | {s['messages']} | {s['payload_bytes'] / MB:.1f} | {s['seconds']:.2f} "
                 f"({s['min_seconds']:.2f}-{s['max_seconds']:.2f}) | {s['close_seconds']:.3f} "
                 f"| {s['messages_per_s']:.0f} | {s['mb_per_s']:.1f} | {s['file_bytes'] / MB:.1f} "
-                f"| {s['compression_ratio']:.2f} | {s['peak_rss_kib'] / 1024:.0f} | {s['writer_rss_kib'] / 1024:.0f} |")
+                f"| {s['compression_ratio']:.2f} | {s['peak_rss_kib'] / 1024:.0f} | {s['writer_rss_kib'] / 1024:.0f} |"
+            )
     return lines
 
 
 def ratio_lines(summary: dict) -> list[str]:
-    return [f"- {name}: ours/plain throughput = **{e['ratio_ours_over_plain']:.3f}** "
-            f"(per pair: {', '.join(f'{r:.3f}' for r in e['pair_ratios'])}); "
-            f"without close()/finish(): {e['ratio_ours_over_plain_excluding_close']:.3f}"
-            for name, e in summary.items()]
+    return [
+        f"- {name}: ours/plain throughput = **{e['ratio_ours_over_plain']:.3f}** "
+        f"(per pair: {', '.join(f'{r:.3f}' for r in e['pair_ratios'])}); "
+        f"without close()/finish(): {e['ratio_ours_over_plain_excluding_close']:.3f}"
+        for name, e in summary.items()
+    ]
 
 
 def notes(settings: dict) -> list[str]:
-    return [f"Writers: zstd, {CHUNK_SIZE // MIB} MiB chunks; {settings['repetitions']} repetitions each "
-            f"after {settings['warmups']} discarded warm-up pair(s), interleaved (ours, plain, then plain, ours, ...), "
-            "each case in a fresh spawned process, os.sync() before each case (untimed).",
-            "Time = writer creation through close()/finish(); ours includes flush + fsync + link at close, "
-            "plain has no fsync (its data may still be in the page cache). 'close s' = close()/finish() alone.",
-            "MB = 1e6 bytes of serialized CDR payload. compr. = payload bytes / file bytes. "
-            "Peak RSS = peak of the case's own process (VmHWM), payload held in memory included; "
-            "writer +RSS = peak during the timed write minus RSS just before it (the writer's own memory). "
-            "(A spawned child's ru_maxrss starts at the parent's RSS, so it is kept in the JSON only.)",
-            "ratio = median over pairs of (ours msg/s / plain msg/s); < 1 means ours is slower. "
-            "'without close()/finish()' compares the time before close, i.e. leaves out ours' fsync."]
+    return [
+        f"Writers: zstd, {CHUNK_SIZE // MIB} MiB chunks; {settings['repetitions']} repetitions each "
+        f"after {settings['warmups']} discarded warm-up pair(s), interleaved (ours, plain, then plain, ours, ...), "
+        "each case in a fresh spawned process, os.sync() before each case (untimed).",
+        "Time = writer creation through close()/finish(); ours includes flush + fsync + link at close, "
+        "plain has no fsync (its data may still be in the page cache). 'close s' = close()/finish() alone.",
+        "MB = 1e6 bytes of serialized CDR payload. compr. = payload bytes / file bytes. "
+        "Peak RSS = peak of the case's own process (VmHWM), payload held in memory included; "
+        "writer +RSS = peak during the timed write minus RSS just before it (the writer's own memory). "
+        "(A spawned child's ru_maxrss starts at the parent's RSS, so it is kept in the JSON only.)",
+        "ratio = median over pairs of (ours msg/s / plain msg/s); < 1 means ours is slower. "
+        "'without close()/finish()' compares the time before close, i.e. leaves out ours' fsync.",
+    ]
 
 
 def write_reports(report: dict, stem: str) -> tuple[Path, Path]:
@@ -403,50 +485,88 @@ def write_reports(report: dict, stem: str) -> tuple[Path, Path]:
     json_path, md_path = RESULTS_DIR / f"{stem}.json", RESULTS_DIR / f"{stem}.md"
     json_path.write_text(json.dumps(report, indent=2) + "\n")
     m = report["machine"]
-    md = [f"# Recording throughput ({'quick' if report['settings']['quick'] else 'default'} run)", "",
-          f"Measured {report['date']} on {m['cpu_count']} CPUs ({m['cpu_model']}), Python {m['python']}, "
-          f"{m['platform']}; load average at start {', '.join(f'{x:.2f}' for x in m['load_average_at_start'])}.",
-          "", *table(report["summary"]), "", *ratio_lines(report["summary"]), "",
-          *(f"- {n}" for n in notes(report["settings"])),
-          f"- Benchmark process peak RSS (payload building): {report['process_peak_rss_kib'] / 1024:.0f} MiB; "
-          f"total wall time {report['wall_seconds']:.0f} s.", ""]
+    md = [
+        f"# Recording throughput ({'quick' if report['settings']['quick'] else 'default'} run)",
+        "",
+        f"Measured {report['date']} on {m['cpu_count']} CPUs ({m['cpu_model']}), Python {m['python']}, "
+        f"{m['platform']}; load average at start {', '.join(f'{x:.2f}' for x in m['load_average_at_start'])}.",
+        "",
+        *table(report["summary"]),
+        "",
+        *ratio_lines(report["summary"]),
+        "",
+        *(f"- {n}" for n in notes(report["settings"])),
+        f"- Benchmark process peak RSS (payload building): {report['process_peak_rss_kib'] / 1024:.0f} MiB; "
+        f"total wall time {report['wall_seconds']:.0f} s.",
+        "",
+    ]
     md_path.write_text("\n".join(md))
     return json_path, md_path
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="smoke run: few messages, 2 repetitions")
-    parser.add_argument("--repetitions", type=int, help="runs per writer and payload (default 5, quick 2)")
-    parser.add_argument("--warmups", type=int, help="discarded pairs before them (default 1, quick 0)")
+    parser.add_argument(
+        "--quick", action="store_true", help="smoke run: few messages, 2 repetitions"
+    )
+    parser.add_argument(
+        "--repetitions", type=int, help="runs per writer and payload (default 5, quick 2)"
+    )
+    parser.add_argument(
+        "--warmups", type=int, help="discarded pairs before them (default 1, quick 0)"
+    )
     parser.add_argument("--scans", type=int, help="raster scans per run (default 300, quick 20)")
-    parser.add_argument("--traces", type=int,
-                        help="force-trace messages per run (default 4000 = 400 s at 10 kHz, quick 200)")
+    parser.add_argument(
+        "--traces",
+        type=int,
+        help="force-trace messages per run (default 4000 = 400 s at 10 kHz, quick 200)",
+    )
     return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    defaults = {"repetitions": 2, "warmups": 0, "scans": 20, "traces": 200} if args.quick else \
-               {"repetitions": 5, "warmups": 1, "scans": 300, "traces": 4000}
-    settings = {k: v if getattr(args, k) is None else getattr(args, k) for k, v in defaults.items()}
+    defaults = (
+        {"repetitions": 2, "warmups": 0, "scans": 20, "traces": 200}
+        if args.quick
+        else {"repetitions": 5, "warmups": 1, "scans": 300, "traces": 4000}
+    )
+    settings = {
+        k: v if getattr(args, k) is None else getattr(args, k) for k, v in defaults.items()
+    }
     settings["quick"] = args.quick
     started, t0 = datetime.now(timezone.utc), time.perf_counter()
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    workdir = Path(tempfile.mkdtemp(prefix="run-", suffix=".tmp", dir=RESULTS_DIR))  # same disk; git-ignored
+    workdir = Path(
+        tempfile.mkdtemp(prefix="run-", suffix=".tmp", dir=RESULTS_DIR)
+    )  # same disk; git-ignored
     try:
-        payloads = prepare_payloads({"scans": settings["scans"], "traces": settings["traces"]}, workdir)
+        payloads = prepare_payloads(
+            {"scans": settings["scans"], "traces": settings["traces"]}, workdir
+        )
         results = run_all(payloads, settings["repetitions"], settings["warmups"], workdir)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
-    report = {"date": started.isoformat(timespec="seconds"), "machine": machine_info(), "settings": settings,
-              "process_peak_rss_kib": max_rss_kib(), "wall_seconds": time.perf_counter() - t0,
-              "summary": summarize(results), "runs": results}
-    print("\n" + "\n".join([*table(report["summary"]), "", *ratio_lines(report["summary"]), "",
-                            *notes(settings)]))
+    report = {
+        "date": started.isoformat(timespec="seconds"),
+        "machine": machine_info(),
+        "settings": settings,
+        "process_peak_rss_kib": max_rss_kib(),
+        "wall_seconds": time.perf_counter() - t0,
+        "summary": summarize(results),
+        "runs": results,
+    }
+    print(
+        "\n"
+        + "\n".join(
+            [*table(report["summary"]), "", *ratio_lines(report["summary"]), "", *notes(settings)]
+        )
+    )
     paths = write_reports(report, "recording-quick" if args.quick else "recording")
-    print(f"\nbenchmark process peak RSS {report['process_peak_rss_kib'] / 1024:.0f} MiB; "
-          f"wall time {report['wall_seconds']:.0f} s; wrote {paths[0]} and {paths[1]}")
+    print(
+        f"\nbenchmark process peak RSS {report['process_peak_rss_kib'] / 1024:.0f} MiB; "
+        f"wall time {report['wall_seconds']:.0f} s; wrote {paths[0]} and {paths[1]}"
+    )
     return 0
 
 

@@ -22,6 +22,7 @@ Run: `scripts/with_env.sh python bench/bench_sequencing.py [--quick]` (~2.5 min 
 --quick ~45 s).
 Results: bench/results/sequencing.json (sequencing-quick.json for --quick).
 """
+
 from __future__ import annotations
 
 import os
@@ -38,13 +39,19 @@ from importlib.metadata import version  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-
-from afm_core.planning.sequencing import (EXACT_LIMIT, AntColonyParameters, ant_colony_order,  # noqa: E402
-                                          best_order, exact_order, heuristic_order)
 from machine import cpu_model  # noqa: E402
 
+from afm_core.planning.sequencing import (  # noqa: E402
+    EXACT_LIMIT,
+    AntColonyParameters,
+    ant_colony_order,
+    best_order,
+    exact_order,
+    heuristic_order,
+)
+
 RESULTS = Path(__file__).resolve().parent / "results"
-SQUARE = 4e-6       # m
+SQUARE = 4e-6  # m
 
 
 def peak_rss_mib() -> float:
@@ -87,33 +94,61 @@ def run_case(n: int, seed: int, quick: bool) -> dict:
     ref, ref_s, how = reference(d, 2 if quick or n > 50 else 3, kicks)
     best = min(aco.cost, ours.cost, ref.cost)
     row = {
-        "n": n, "instance_seed": seed,
+        "n": n,
+        "instance_seed": seed,
         "aco": {"cost_m": aco.cost, "seconds": aco_s, "gap": aco.cost / best - 1},
-        "ours": {"method": ours.method, "optimal": ours.optimal, "cost_m": ours.cost, "seconds": ours_s,
-                 "gap": ours.cost / best - 1},
-        "best_known": {"cost_m": best, "how": how, "seconds": ref_s,
-                       "proved_optimal": n <= EXACT_LIMIT},
+        "ours": {
+            "method": ours.method,
+            "optimal": ours.optimal,
+            "cost_m": ours.cost,
+            "seconds": ours_s,
+            "gap": ours.cost / best - 1,
+        },
+        "best_known": {
+            "cost_m": best,
+            "how": how,
+            "seconds": ref_s,
+            "proved_optimal": n <= EXACT_LIMIT,
+        },
     }
-    print(f"n={n:4d} seed={seed}: aco {aco.cost * 1e6:8.4f} um ({aco_s:6.2f} s, gap {row['aco']['gap']:6.2%}) | "
-          f"ours[{ours.method}] {ours.cost * 1e6:8.4f} um ({ours_s:6.2f} s, gap {row['ours']['gap']:6.2%}) | "
-          f"best {best * 1e6:8.4f} um ({how}, {ref_s:.1f} s)", flush=True)
+    print(
+        f"n={n:4d} seed={seed}: aco {aco.cost * 1e6:8.4f} um ({aco_s:6.2f} s, gap {row['aco']['gap']:6.2%}) | "
+        f"ours[{ours.method}] {ours.cost * 1e6:8.4f} um ({ours_s:6.2f} s, gap {row['ours']['gap']:6.2%}) | "
+        f"best {best * 1e6:8.4f} um ({how}, {ref_s:.1f} s)",
+        flush=True,
+    )
     return row
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="one instance per size, shorter reference runs")
+    parser.add_argument(
+        "--quick", action="store_true", help="one instance per size, shorter reference runs"
+    )
     args = parser.parse_args()
-    cases = [(16, 1), (50, 1), (200, 1)] if args.quick else [(16, 1), (16, 2), (16, 3), (50, 1), (50, 2), (200, 1)]
+    cases = (
+        [(16, 1), (50, 1), (200, 1)]
+        if args.quick
+        else [(16, 1), (16, 2), (16, 3), (50, 1), (50, 2), (200, 1)]
+    )
     wall = time.perf_counter()
     result = {
         "measured": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "machine": {"cpus": os.cpu_count(), "cpus_usable": len(os.sched_getaffinity(0)), "cpu": cpu_model(),
-                    "python": platform.python_version(), "platform": platform.platform(),
-                    "loadavg_start": list(os.getloadavg()),
-                    "packages": {name: version(name) for name in ("numpy", "scipy")}},
-        "settings": {"square_m": SQUARE, "aco": AntColonyParameters().__dict__, "exact_limit": EXACT_LIMIT,
-                     "quick": args.quick},
+        "machine": {
+            "cpus": os.cpu_count(),
+            "cpus_usable": len(os.sched_getaffinity(0)),
+            "cpu": cpu_model(),
+            "python": platform.python_version(),
+            "platform": platform.platform(),
+            "loadavg_start": list(os.getloadavg()),
+            "packages": {name: version(name) for name in ("numpy", "scipy")},
+        },
+        "settings": {
+            "square_m": SQUARE,
+            "aco": AntColonyParameters().__dict__,
+            "exact_limit": EXACT_LIMIT,
+            "quick": args.quick,
+        },
         "cases": [run_case(n, seed, args.quick) for n, seed in cases],
     }
     result["machine"]["loadavg_end"] = list(os.getloadavg())
@@ -122,18 +157,24 @@ def main() -> None:
     RESULTS.mkdir(exist_ok=True)
     name = "sequencing-quick" if args.quick else "sequencing"
     (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2))
-    lines = ["", f"Sequencing, measured {result['measured']} on {result['machine']['cpus']} CPUs "
-             f"({result['machine']['cpu']}), Python {result['machine']['python']}, "
-             f"load {result['machine']['loadavg_start'][0]:.2f}; peak memory {result['peak_rss_mib']:.0f} MiB; "
-             f"{result['wall_seconds']:.0f} s in all.", "",
-             "| n | instance | ACO cost (um) | ACO gap | ACO time (s) | ours | ours cost (um) | ours gap | "
-             "ours time (s) | best known (um) | how |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "",
+        f"Sequencing, measured {result['measured']} on {result['machine']['cpus']} CPUs "
+        f"({result['machine']['cpu']}), Python {result['machine']['python']}, "
+        f"load {result['machine']['loadavg_start'][0]:.2f}; peak memory {result['peak_rss_mib']:.0f} MiB; "
+        f"{result['wall_seconds']:.0f} s in all.",
+        "",
+        "| n | instance | ACO cost (um) | ACO gap | ACO time (s) | ours | ours cost (um) | ours gap | "
+        "ours time (s) | best known (um) | how |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for c in result["cases"]:
-        lines.append(f"| {c['n']} | {c['instance_seed']} | {c['aco']['cost_m'] * 1e6:.4f} | {c['aco']['gap']:.2%} | "
-                     f"{c['aco']['seconds']:.2f} | {c['ours']['method']} | {c['ours']['cost_m'] * 1e6:.4f} | "
-                     f"{c['ours']['gap']:.2%} | {c['ours']['seconds']:.2f} | {c['best_known']['cost_m'] * 1e6:.4f} | "
-                     f"{c['best_known']['how']} |")
+        lines.append(
+            f"| {c['n']} | {c['instance_seed']} | {c['aco']['cost_m'] * 1e6:.4f} | {c['aco']['gap']:.2%} | "
+            f"{c['aco']['seconds']:.2f} | {c['ours']['method']} | {c['ours']['cost_m'] * 1e6:.4f} | "
+            f"{c['ours']['gap']:.2%} | {c['ours']['seconds']:.2f} | {c['best_known']['cost_m'] * 1e6:.4f} | "
+            f"{c['best_known']['how']} |"
+        )
     print("\n".join(lines))
 
 

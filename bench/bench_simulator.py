@@ -7,11 +7,11 @@ Writes bench/results/simulator.json and simulator.md. Wall times are medians ove
 repetitions, timed with perf_counter in this process; peak memory is this process's
 VmHWM. Targets (issue 3): the scan in <= 2 s; the session at >= 100x real time.
 """
+
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import platform
 import statistics
 import time
@@ -42,7 +42,9 @@ def scan_with_41_pixel_tip(afm: SimulatedAfm) -> tuple[ScanRequest, tuple]:
         grid = afm.tip.grid(pixel_nm * 1e-9, depth)
         if grid.shape[0] == TIP_PIXELS:
             size = 512 * pixel_nm * 1e-9
-            return ScanRequest(5e-6 - size / 2, 5e-6 - size / 2, size, size, 512, 512, line_rate=1.0), grid.shape
+            return ScanRequest(
+                5e-6 - size / 2, 5e-6 - size / 2, size, size, 512, 512, line_rate=1.0
+            ), grid.shape
     raise RuntimeError("no pixel size gives a 41x41 tip")
 
 
@@ -56,9 +58,16 @@ def bench_scan(repetitions: int) -> dict:
         scan = afm.raster_scan(request)
         times.append(time.perf_counter() - start)
         assert scan.complete and np.isfinite(scan.height).all()
-    return {"wall_s_median": statistics.median(times), "wall_s_min": min(times), "wall_s_max": max(times),
-            "tip_pixels": list(tip_shape), "pixel_nm": request.size_x / 512 * 1e9,
-            "drift": True, "hysteresis_and_creep": True, "repetitions": repetitions}
+    return {
+        "wall_s_median": statistics.median(times),
+        "wall_s_min": min(times),
+        "wall_s_max": max(times),
+        "tip_pixels": list(tip_shape),
+        "pixel_nm": request.size_x / 512 * 1e9,
+        "drift": True,
+        "hysteresis_and_creep": True,
+        "repetitions": repetitions,
+    }
 
 
 def push_session(afm: SimulatedAfm, sim_seconds: float) -> int:
@@ -75,9 +84,13 @@ def push_session(afm: SimulatedAfm, sim_seconds: float) -> int:
         for step in range(13):
             side = 1.0 if step % 2 == 0 else -1.0
             lateral = y + side * 78e-9
-            start_x = sphere.x - direction * (sphere.radius + afm.config.contact.tip_radius + 120e-9)
+            start_x = sphere.x - direction * (
+                sphere.radius + afm.config.contact.tip_radius + 120e-9
+            )
             afm.move_tip(start_x, lateral, 10e-6)
-            afm.move_tip(start_x + direction * 156e-9 + direction * 120e-9, lateral, 1e-6, contact=True)
+            afm.move_tip(
+                start_x + direction * 156e-9 + direction * 120e-9, lateral, 1e-6, contact=True
+            )
             afm.move_tip(start_x, lateral, 10e-6)
         cycles += 1
     return cycles
@@ -99,18 +112,26 @@ def main() -> None:
     session = bench_session(120.0 if args.quick else 600.0)
     result = {
         "measured": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version(),
-                    "platform": platform.platform()},
-        "scan_512_tip41_drift": scan, "push_session": session, "peak_rss_mib": peak_rss_mib(),
+        "machine": {
+            "cpus": __import__("os").cpu_count(),
+            "python": platform.python_version(),
+            "platform": platform.platform(),
+        },
+        "scan_512_tip41_drift": scan,
+        "push_session": session,
+        "peak_rss_mib": peak_rss_mib(),
         "quick": args.quick,
     }
     RESULTS.mkdir(exist_ok=True)
     name = "simulator-quick" if args.quick else "simulator"
     (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2))
     lines = [
-        f"# Simulator speed{' (quick)' if args.quick else ''}", "",
-        f"Measured {result['measured']} on {result['machine']['cpus']} CPUs, Python {result['machine']['python']}.", "",
-        "| figure | value | target |", "|---|---|---|",
+        f"# Simulator speed{' (quick)' if args.quick else ''}",
+        "",
+        f"Measured {result['measured']} on {result['machine']['cpus']} CPUs, Python {result['machine']['python']}.",
+        "",
+        "| figure | value | target |",
+        "|---|---|---|",
         f"| 512x512 scan, {scan['tip_pixels'][0]}x{scan['tip_pixels'][1]}-pixel tip, drift + hysteresis + creep "
         f"(median of {scan['repetitions']}) | {scan['wall_s_median']:.2f} s (min {scan['wall_s_min']:.2f}, "
         f"max {scan['wall_s_max']:.2f}) | <= 2 s |",

@@ -44,12 +44,18 @@ threshold error <= 1.1x our best fixed threshold's; dilation/erosion <= 1x Gwydd
 Reported besides: ours with the auto threshold against Gwyddion at its best, and the time of
 the Gwyddion sweep that found that best.
 """
+
 from __future__ import annotations
 
 import os
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-             "NUMBA_NUM_THREADS"):
+for _var in (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "NUMBA_NUM_THREADS",
+):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
@@ -65,9 +71,8 @@ from datetime import datetime, timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import cpu_model  # noqa: E402
-
 import numpy as np  # noqa: E402
+from machine import cpu_model  # noqa: E402
 
 from afm_core.sim.imaging import dilate as sim_dilate  # noqa: E402
 from afm_core.sim.tip import paraboloid_cone_tip  # noqa: E402
@@ -78,13 +83,14 @@ HARNESS = BENCH / "gwyddion" / "tip_harness"
 BUILD = BENCH / "gwyddion" / "build.sh"
 N_IMAGE = 512
 NOISE = 0.3e-9
-DEPTH = 20e-9                      # error over the top 20 nm of the true tip
+DEPTH = 20e-9  # error over the top 20 nm of the true tip
 TIP_SIZES = (21, 41)
-GWY_EDGES = True                   # Gwyddion 2.62 GUI default ("Use boundaries")
+GWY_EDGES = True  # Gwyddion 2.62 GUI default ("Use boundaries")
 HARNESS_ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 
 
 # --- conventions ---------------------------------------------------------------------------
+
 
 def ours_to_gwyddion(tip: np.ndarray) -> np.ndarray:
     """Our tip (t <= 0, apex 0 at the centre) as the tip field gwy_tip_dilation/erosion take.
@@ -118,6 +124,7 @@ def gwyddion_estimate_to_ours(estimate: np.ndarray) -> np.ndarray:
 
 # --- the Gwyddion harness ---------------------------------------------------------------------
 
+
 def build_harness() -> None:
     subprocess.run(["bash", str(BUILD)], check=True)
     if not os.access(HARNESS, os.X_OK):
@@ -131,26 +138,42 @@ class Gwyddion:
         self.image = np.ascontiguousarray(image, dtype="<f8")
         self.ny, self.nx = self.image.shape
         self.pixel = pixel
-        self.dir = Path(tempfile.mkdtemp(dir=workdir))     # one directory per image
+        self.dir = Path(tempfile.mkdtemp(dir=workdir))  # one directory per image
         self.path = self.dir / "image.raw"
         self.image.tofile(self.path)
         self.step = (float(self.image.max()) - float(self.image.min())) / 10000.0
 
     def _run(self, *args: str) -> dict:
-        cmd = [str(HARNESS), str(self.path), str(self.nx), str(self.ny), repr(self.nx * self.pixel),
-               repr(self.ny * self.pixel), *args]
+        cmd = [
+            str(HARNESS),
+            str(self.path),
+            str(self.nx),
+            str(self.ny),
+            repr(self.nx * self.pixel),
+            repr(self.ny * self.pixel),
+            *args,
+        ]
         done = subprocess.run(cmd, capture_output=True, text=True, env=HARNESS_ENV)
         if done.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed: {done.stderr.strip()}")
         return json.loads(done.stdout)
 
-    def estimate_full(self, tip_n: int, threshold_steps: int, use_edges: bool = GWY_EDGES) -> tuple[np.ndarray, dict]:
+    def estimate_full(
+        self, tip_n: int, threshold_steps: int, use_edges: bool = GWY_EDGES
+    ) -> tuple[np.ndarray, dict]:
         """Full blind estimate at threshold_steps whole Gwyddion steps; raw Gwyddion tip."""
         out = self.dir / f"est{tip_n}_{threshold_steps}.raw"
-        info = self._run("estimate-full", str(tip_n), repr((threshold_steps + 0.5) * self.step), str(out),
-                         "1" if use_edges else "0")
+        info = self._run(
+            "estimate-full",
+            str(tip_n),
+            repr((threshold_steps + 0.5) * self.step),
+            str(out),
+            "1" if use_edges else "0",
+        )
         if info["threshold_steps"] != threshold_steps:
-            raise RuntimeError(f"Gwyddion used {info['threshold_steps']} threshold steps, asked {threshold_steps}")
+            raise RuntimeError(
+                f"Gwyddion used {info['threshold_steps']} threshold steps, asked {threshold_steps}"
+            )
         return np.fromfile(out, "<f8").reshape(tip_n, tip_n), info
 
     def morph(self, mode: str, gwy_tip: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -162,6 +185,7 @@ class Gwyddion:
 
 
 # --- test tips and images -----------------------------------------------------------------------
+
 
 def asymmetric_tip(pixel: float, half: int, depth: float, apex_radius: float = 6e-9) -> np.ndarray:
     """A tip with no mirror symmetry: paraboloid-cone, blunter towards +x (asymmetry), plus a
@@ -176,12 +200,18 @@ def asymmetric_tip(pixel: float, half: int, depth: float, apex_radius: float = 6
 
 
 def assert_asymmetric(tip: np.ndarray, tolerance: float) -> None:
-    for name, flipped in (("x flip", tip[:, ::-1]), ("y flip", tip[::-1, :]), ("point reflection", tip[::-1, ::-1]),
-                          ("transpose", tip.T)):
+    for name, flipped in (
+        ("x flip", tip[:, ::-1]),
+        ("y flip", tip[::-1, :]),
+        ("point reflection", tip[::-1, ::-1]),
+        ("transpose", tip.T),
+    ):
         assert np.abs(flipped - tip).max() > tolerance, f"test tip is symmetric under {name}"
 
 
-def standin_characterizer(n: int = N_IMAGE, pixel: float = 2e-9, noise: float = NOISE, seed: int = 0):
+def standin_characterizer(
+    n: int = N_IMAGE, pixel: float = 2e-9, noise: float = NOISE, seed: int = 0
+):
     """Only for --gwyddion-only while afm_core.sim.characterizer does not exist: sharp cones
     (half-angle 4 deg, 25-60 nm high) scattered on a flat base, imaged with asymmetric_tip."""
     rng = np.random.default_rng(seed)
@@ -204,21 +234,30 @@ def rms_top_error(estimate: np.ndarray, true_tip: np.ndarray, depth: float = DEP
     n = max(ne, nt)
     e = np.full((n, n), estimate.min())
     t = np.full((n, n), true_tip.min())
-    e[(n - ne) // 2:(n + ne) // 2, (n - ne) // 2:(n + ne) // 2] = estimate
-    t[(n - nt) // 2:(n + nt) // 2, (n - nt) // 2:(n + nt) // 2] = true_tip
+    e[(n - ne) // 2 : (n + ne) // 2, (n - ne) // 2 : (n + ne) // 2] = estimate
+    t[(n - nt) // 2 : (n + nt) // 2, (n - nt) // 2 : (n + nt) // 2] = true_tip
     top = t >= -depth
     return float(np.sqrt(np.mean((e[top] - t[top]) ** 2)))
 
 
 # --- our implementation -----------------------------------------------------------------------------
 
+
 def import_ours():
     try:
         from afm_core.imaging import tip_estimation
     except ImportError as exc:
-        sys.exit("bench_tip: afm_core.imaging.tip_estimation is missing (" + str(exc) + "); it must provide "
-                 "estimate_tip, tip_error, erode, dilate. Run with --gwyddion-only to measure Gwyddion alone.")
-    missing = [name for name in ("estimate_tip", "tip_error", "erode", "dilate") if not hasattr(tip_estimation, name)]
+        sys.exit(
+            "bench_tip: afm_core.imaging.tip_estimation is missing ("
+            + str(exc)
+            + "); it must provide "
+            "estimate_tip, tip_error, erode, dilate. Run with --gwyddion-only to measure Gwyddion alone."
+        )
+    missing = [
+        name
+        for name in ("estimate_tip", "tip_error", "erode", "dilate")
+        if not hasattr(tip_estimation, name)
+    ]
     if missing:
         sys.exit(f"bench_tip: afm_core.imaging.tip_estimation lacks {', '.join(missing)}")
     return tip_estimation
@@ -227,6 +266,7 @@ def import_ours():
 def _optional_tip_error():
     try:
         from afm_core.imaging.tip_estimation import tip_error
+
         return tip_error
     except ImportError:
         return None
@@ -235,10 +275,13 @@ def _optional_tip_error():
 def import_characterizer(required: bool):
     try:
         from afm_core.sim.characterizer import characterizer_image
+
         return characterizer_image
     except ImportError as exc:
         if required:
-            sys.exit(f"bench_tip: afm_core.sim.characterizer is missing ({exc}); it must provide characterizer_image")
+            sys.exit(
+                f"bench_tip: afm_core.sim.characterizer is missing ({exc}); it must provide characterizer_image"
+            )
         return None
 
 
@@ -249,11 +292,17 @@ def make_image(characterizer_image):
         return image, surface, tip, 2e-9, "stand-in (bench_tip.standin_characterizer)"
     pixel = inspect.signature(characterizer_image).parameters["pixel"].default
     image, surface, tip = characterizer_image(n=N_IMAGE, noise=NOISE, seed=0)
-    return np.asarray(image, float), np.asarray(surface, float), np.asarray(tip, float), float(pixel), \
-        "afm_core.sim.characterizer.characterizer_image(n=512, noise=0.3e-9, seed=0)"
+    return (
+        np.asarray(image, float),
+        np.asarray(surface, float),
+        np.asarray(tip, float),
+        float(pixel),
+        "afm_core.sim.characterizer.characterizer_image(n=512, noise=0.3e-9, seed=0)",
+    )
 
 
 # --- check conventions -------------------------------------------------------------------------------
+
 
 def check_conventions() -> dict:
     """Asserts the mappings with asymmetric tips on non-square images; returns the measured errors."""
@@ -268,26 +317,46 @@ def check_conventions() -> dict:
         random_tip = -rng.uniform(0, 10e-9, size=(11, 11))
         random_tip[5, 5] = 0.0
         gwy = Gwyddion(surface, pixel, tmp)
-        for name, tip in (("random 11x11", random_tip), ("asymmetric 21x21", asymmetric_tip(pixel, 10, 40e-9))):
+        for name, tip in (
+            ("random 11x11", random_tip),
+            ("asymmetric 21x21", asymmetric_tip(pixel, 10, 40e-9)),
+        ):
             assert_asymmetric(tip, 1e-9)
             ours = sim_dilate(surface, tip)
             theirs, _ = gwy.morph("dilate", ours_to_gwyddion(tip))
             rel = float(np.abs(theirs - ours).max() / np.abs(ours).max())
-            wrong = {flip: float(np.abs(gwy.morph("dilate", ours_to_gwyddion(t))[0] - ours).max() / np.abs(ours).max())
-                     for flip, t in (("point-reflected", tip[::-1, ::-1]), ("x-flipped", tip[:, ::-1]),
-                                     ("y-flipped", tip[::-1, :]))}
-            print(f"dilation, {name} tip: max |gwyddion - ours| / max |ours| = {rel:.2e} "
-                  f"(with the tip {', '.join(f'{k}: {v:.2f}' for k, v in wrong.items())})")
+            wrong = {
+                flip: float(
+                    np.abs(gwy.morph("dilate", ours_to_gwyddion(t))[0] - ours).max()
+                    / np.abs(ours).max()
+                )
+                for flip, t in (
+                    ("point-reflected", tip[::-1, ::-1]),
+                    ("x-flipped", tip[:, ::-1]),
+                    ("y-flipped", tip[::-1, :]),
+                )
+            }
+            print(
+                f"dilation, {name} tip: max |gwyddion - ours| / max |ours| = {rel:.2e} "
+                f"(with the tip {', '.join(f'{k}: {v:.2f}' for k, v in wrong.items())})"
+            )
             assert rel <= 1e-12, f"gwy_tip_dilation disagrees with afm_core dilation ({rel:.2e})"
-            assert min(wrong.values()) > 1e-3, "a flipped tip also agrees: the test does not discriminate"
+            assert min(wrong.values()) > 1e-3, (
+                "a flipped tip also agrees: the test does not discriminate"
+            )
             # erosion: r(x) = min_u i(x-u) - t(u), the reverse of our dilation, with nearest-edge padding
             from scipy import ndimage
+
             reference = ndimage.grey_erosion(ours, structure=tip[::-1, ::-1], mode="nearest")
             image_gwy = Gwyddion(ours, pixel, tmp)
             eroded, _ = image_gwy.morph("erode", ours_to_gwyddion(tip))
             rel_e = float(np.abs(eroded - reference).max() / np.abs(reference).max())
-            print(f"erosion,  {name} tip: max |gwyddion - min_u i(x-u) - t(u)| / max = {rel_e:.2e}")
-            assert rel_e <= 1e-12, f"gwy_tip_erosion disagrees with the reference erosion ({rel_e:.2e})"
+            print(
+                f"erosion,  {name} tip: max |gwyddion - min_u i(x-u) - t(u)| / max = {rel_e:.2e}"
+            )
+            assert rel_e <= 1e-12, (
+                f"gwy_tip_erosion disagrees with the reference erosion ({rel_e:.2e})"
+            )
             report[f"dilation_rel_err[{name}]"] = rel
             report[f"erosion_rel_err[{name}]"] = rel_e
             try:
@@ -295,13 +364,21 @@ def check_conventions() -> dict:
             except ImportError:
                 te = None
             if te is not None and hasattr(te, "dilate") and hasattr(te, "erode"):
-                rel_d = float(np.abs(np.asarray(te.dilate(surface, tip)) - ours).max() / np.abs(ours).max())
-                rel_o = float(np.abs(np.asarray(te.erode(ours, tip)) - eroded).max() / np.abs(eroded).max())
-                print(f"          afm_core.imaging.tip_estimation: dilate vs Gwyddion {rel_d:.2e}, "
-                      f"erode vs Gwyddion {rel_o:.2e}")
+                rel_d = float(
+                    np.abs(np.asarray(te.dilate(surface, tip)) - ours).max() / np.abs(ours).max()
+                )
+                rel_o = float(
+                    np.abs(np.asarray(te.erode(ours, tip)) - eroded).max() / np.abs(eroded).max()
+                )
+                print(
+                    f"          afm_core.imaging.tip_estimation: dilate vs Gwyddion {rel_d:.2e}, "
+                    f"erode vs Gwyddion {rel_o:.2e}"
+                )
                 report[f"tip_estimation_dilate_rel_err[{name}]"] = rel_d
                 report[f"tip_estimation_erode_rel_err[{name}]"] = rel_o
-                assert rel_d <= 1e-12 and rel_o <= 1e-12, "afm_core.imaging.tip_estimation dilate/erode disagree"
+                assert rel_d <= 1e-12 and rel_o <= 1e-12, (
+                    "afm_core.imaging.tip_estimation dilate/erode disagree"
+                )
 
         # 2. blind estimate: sharp spikes imaged (no noise) by an asymmetric tip, threshold 0;
         # the estimate must be the true tip up to Gwyddion's height quantisation.
@@ -315,23 +392,36 @@ def check_conventions() -> dict:
         raw, info = gwy.estimate_full(tip.shape[0], 0)
         mapped = gwyddion_estimate_to_ours(raw)
         err = float(np.abs(mapped - tip).max())
-        alternatives = {name: float(np.abs(f(raw) - f(raw)[7, 7] - tip).max())
-                        for name, f in (("as returned", lambda a: a), ("x-flipped", lambda a: a[:, ::-1]),
-                                        ("y-flipped", lambda a: a[::-1, :]))}
-        print(f"estimate: max |gwyddion_estimate_to_ours(estimate) - true tip| = {err * 1e12:.2f} pm "
-              f"(Gwyddion's height step {gwy.step * 1e12:.2f} pm, count {info['count']}); "
-              + ", ".join(f"{k}: {v * 1e9:.2f} nm" for k, v in alternatives.items()))
+        alternatives = {
+            name: float(np.abs(f(raw) - f(raw)[7, 7] - tip).max())
+            for name, f in (
+                ("as returned", lambda a: a),
+                ("x-flipped", lambda a: a[:, ::-1]),
+                ("y-flipped", lambda a: a[::-1, :]),
+            )
+        }
+        print(
+            f"estimate: max |gwyddion_estimate_to_ours(estimate) - true tip| = {err * 1e12:.2f} pm "
+            f"(Gwyddion's height step {gwy.step * 1e12:.2f} pm, count {info['count']}); "
+            + ", ".join(f"{k}: {v * 1e9:.2f} nm" for k, v in alternatives.items())
+        )
         assert err <= 1.01 * gwy.step, "Gwyddion's estimate is not the point-reflected tip"
         assert min(alternatives.values()) > 100 * gwy.step, "an unreflected estimate also fits"
         assert raw.min() == 0.0 and np.unravel_index(raw.argmax(), raw.shape) == (7, 7)
-        report.update(estimate_max_err_m=err, gwyddion_step_m=gwy.step,
-                      estimate_alternatives_max_err_m=alternatives)
-    print("conventions OK: ours_to_gwyddion = identity (+ shift), "
-          "gwyddion_estimate_to_ours = rotate 180 deg, apex to 0")
+        report.update(
+            estimate_max_err_m=err,
+            gwyddion_step_m=gwy.step,
+            estimate_alternatives_max_err_m=alternatives,
+        )
+    print(
+        "conventions OK: ours_to_gwyddion = identity (+ shift), "
+        "gwyddion_estimate_to_ours = rotate 180 deg, apex to 0"
+    )
     return report
 
 
 # --- sweeps --------------------------------------------------------------------------------------------
+
 
 def sweep(evaluate, coarse: list[int], refine_rounds: int) -> dict[int, dict]:
     """Evaluate on the coarse grid of whole threshold steps, then refine around the best by
@@ -371,7 +461,10 @@ def measure_morphology(te, image, surface, true_tip, pixel, tmp: Path, reps: int
     machine slows both alike; medians."""
     tip41 = fit_tip(true_tip, 41)
     gwy_image, gwy_surface = Gwyddion(image, pixel, tmp), Gwyddion(surface, pixel, tmp)
-    times = {key: [] for key in ("gwyddion_dilate_s", "ours_dilate_s", "gwyddion_erode_s", "ours_erode_s")}
+    times = {
+        key: []
+        for key in ("gwyddion_dilate_s", "ours_dilate_s", "gwyddion_erode_s", "ours_erode_s")
+    }
     for _ in range(reps):
         gd = gwy_surface.morph("dilate", ours_to_gwyddion(tip41))
         times["gwyddion_dilate_s"].append(gd[1]["seconds"])
@@ -382,12 +475,20 @@ def measure_morphology(te, image, surface, true_tip, pixel, tmp: Path, reps: int
             times["ours_dilate_s"].append(seconds)
             seconds, ero = median_time(lambda: te.erode(image, tip41), 1)
             times["ours_erode_s"].append(seconds)
-    morph = {"tip": [41, 41], "repetitions": reps, "interleaved": True,
-             "measured": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-             **{key: statistics.median(v) for key, v in times.items() if v}}
+    morph = {
+        "tip": [41, 41],
+        "repetitions": reps,
+        "interleaved": True,
+        "measured": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        **{key: statistics.median(v) for key, v in times.items() if v},
+    }
     if te is not None:
-        morph["dilate_max_rel_diff"] = float(np.abs(np.asarray(dil) - gd[0]).max() / np.abs(gd[0]).max())
-        morph["erode_max_rel_diff"] = float(np.abs(np.asarray(ero) - ge[0]).max() / np.abs(ge[0]).max())
+        morph["dilate_max_rel_diff"] = float(
+            np.abs(np.asarray(dil) - gd[0]).max() / np.abs(gd[0]).max()
+        )
+        morph["erode_max_rel_diff"] = float(
+            np.abs(np.asarray(ero) - ge[0]).max() / np.abs(ge[0]).max()
+        )
     print(f"  morphology 41x41: {json.dumps(morph)}", flush=True)
     return morph
 
@@ -397,13 +498,22 @@ def remeasure_morphology() -> None:
     rows stay as measured then)."""
     result = json.loads((RESULTS / "tip.json").read_text())
     if not result.get("complete"):
-        sys.exit("bench_tip: --morphology-only needs a complete bench/results/tip.json; run the bench first")
+        sys.exit(
+            "bench_tip: --morphology-only needs a complete bench/results/tip.json; run the bench first"
+        )
     te = import_ours()
     image, surface, true_tip, pixel, _ = make_image(import_characterizer(required=True))
     build_harness()
     with tempfile.TemporaryDirectory(prefix="bench_tip_") as tmp:
-        result["morphology"] = measure_morphology(te, image, surface, true_tip, pixel, Path(tmp),
-                                                  result["morphology"].get("repetitions", 5))
+        result["morphology"] = measure_morphology(
+            te,
+            image,
+            surface,
+            true_tip,
+            pixel,
+            Path(tmp),
+            result["morphology"].get("repetitions", 5),
+        )
     result["summary"] = summarise(result)
     write_results(result)
     print(render_markdown(result))
@@ -411,16 +521,34 @@ def remeasure_morphology() -> None:
 
 # --- main -----------------------------------------------------------------------------------------------
 
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description="Blind tip estimation: ours against Gwyddion's on the same image.")
-    parser.add_argument("--quick", action="store_true", help="21x21 only (no 41x41 Gwyddion), fewer thresholds")
-    parser.add_argument("--check-conventions", action="store_true", help="assert the Gwyddion <-> ours mappings")
-    parser.add_argument("--gwyddion-only", action="store_true",
-                        help="measure Gwyddion alone (uses a stand-in image if afm_core.sim.characterizer is missing)")
-    parser.add_argument("--gwy41", type=int, default=2, metavar="N",
-                        help="thresholds for the 41x41 Gwyddion estimate (~430 s each; default 2, 0 skips)")
-    parser.add_argument("--morphology-only", action="store_true",
-                        help="measure dilation/erosion again into the last complete results")
+    parser = argparse.ArgumentParser(
+        description="Blind tip estimation: ours against Gwyddion's on the same image."
+    )
+    parser.add_argument(
+        "--quick", action="store_true", help="21x21 only (no 41x41 Gwyddion), fewer thresholds"
+    )
+    parser.add_argument(
+        "--check-conventions", action="store_true", help="assert the Gwyddion <-> ours mappings"
+    )
+    parser.add_argument(
+        "--gwyddion-only",
+        action="store_true",
+        help="measure Gwyddion alone (uses a stand-in image if afm_core.sim.characterizer is missing)",
+    )
+    parser.add_argument(
+        "--gwy41",
+        type=int,
+        default=2,
+        metavar="N",
+        help="thresholds for the 41x41 Gwyddion estimate (~430 s each; default 2, 0 skips)",
+    )
+    parser.add_argument(
+        "--morphology-only",
+        action="store_true",
+        help="measure dilation/erosion again into the last complete results",
+    )
     args = parser.parse_args()
     if args.check_conventions:
         check_conventions()
@@ -435,27 +563,48 @@ def main() -> None:
     image, surface, true_tip, pixel, source = make_image(characterizer_image)
     tip_error = te.tip_error if te is not None else _optional_tip_error()
     if tip_error is not None:
+
         def error(tip):
             return float(tip_error(tip, true_tip, DEPTH))
+
         metric = "afm_core.imaging.tip_estimation.tip_error(estimate, true_tip, 20e-9)"
     else:
         error = rms_top_error
         metric = "bench_tip.rms_top_error (fallback)"
-    print(f"image {image.shape[1]}x{image.shape[0]}, pixel {pixel * 1e9:.3g} nm, range "
-          f"{(image.max() - image.min()) * 1e9:.2f} nm, true tip {true_tip.shape[0]}x{true_tip.shape[1]}; {source}",
-          flush=True)
+    print(
+        f"image {image.shape[1]}x{image.shape[0]}, pixel {pixel * 1e9:.3g} nm, range "
+        f"{(image.max() - image.min()) * 1e9:.2f} nm, true tip {true_tip.shape[0]}x{true_tip.shape[1]}; {source}",
+        flush=True,
+    )
 
     result = {
         "measured": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "machine": {"cpus": os.cpu_count(), "cpu": cpu_model(), "python": platform.python_version(),
-                    "platform": platform.platform(), "gwyddion": gwyddion_version(),
-                    "loadavg_start": list(os.getloadavg())},
-        "quick": args.quick, "gwyddion_only": args.gwyddion_only,
-        "image": {"n": list(image.shape), "pixel_m": pixel, "noise_m": NOISE, "source": source,
-                  "range_m": float(image.max() - image.min()), "true_tip": list(true_tip.shape)},
+        "machine": {
+            "cpus": os.cpu_count(),
+            "cpu": cpu_model(),
+            "python": platform.python_version(),
+            "platform": platform.platform(),
+            "gwyddion": gwyddion_version(),
+            "loadavg_start": list(os.getloadavg()),
+        },
+        "quick": args.quick,
+        "gwyddion_only": args.gwyddion_only,
+        "image": {
+            "n": list(image.shape),
+            "pixel_m": pixel,
+            "noise_m": NOISE,
+            "source": source,
+            "range_m": float(image.max() - image.min()),
+            "true_tip": list(true_tip.shape),
+        },
         "sources_sha256": source_hashes(),
-        "error_metric": metric, "depth_m": DEPTH, "gwyddion_use_edges": GWY_EDGES,
-        "gwyddion": {}, "ours": {}, "morphology": {}, "complete": False,
+        "error_metric": metric,
+        "depth_m": DEPTH,
+        "gwyddion_use_edges": GWY_EDGES,
+        "gwyddion": {},
+        "ours": {},
+        "morphology": {},
+        "complete": False,
     }
 
     with tempfile.TemporaryDirectory(prefix="bench_tip_") as tmp:
@@ -468,16 +617,28 @@ def main() -> None:
         # suppressed); low thresholds are also Gwyddion's slowest (~50-70 s at 21x21).
         coarse_sigmas = [2, 4, 8, 16, 32] if args.quick else [0, 1, 2, 4, 6, 8, 12, 16, 24, 32]
         coarse = sorted({int(round(s * sigma_steps)) for s in coarse_sigmas})
-        print(f"Gwyddion step (image range / 10000) = {step * 1e12:.2f} pm; noise = {sigma_steps:.1f} steps; "
-              f"coarse thresholds (steps) {coarse}", flush=True)
+        print(
+            f"Gwyddion step (image range / 10000) = {step * 1e12:.2f} pm; noise = {sigma_steps:.1f} steps; "
+            f"coarse thresholds (steps) {coarse}",
+            flush=True,
+        )
 
         def gwy_eval(tip_n):
             def evaluate(k):
                 raw, info = gwy.estimate_full(tip_n, k)
                 err = error(gwyddion_estimate_to_ours(raw))
-                print(f"  gwyddion {tip_n}x{tip_n} threshold {k} steps ({k * step * 1e9:.3f} nm): "
-                      f"{info['seconds']:.1f} s, error {err * 1e9:.3f} nm, count {info['count']}", flush=True)
-                return {"threshold_m": k * step, "seconds": info["seconds"], "error_m": err, "count": info["count"]}
+                print(
+                    f"  gwyddion {tip_n}x{tip_n} threshold {k} steps ({k * step * 1e9:.3f} nm): "
+                    f"{info['seconds']:.1f} s, error {err * 1e9:.3f} nm, count {info['count']}",
+                    flush=True,
+                )
+                return {
+                    "threshold_m": k * step,
+                    "seconds": info["seconds"],
+                    "error_m": err,
+                    "count": info["count"],
+                }
+
             return evaluate
 
         # (a) Gwyddion, 21x21 sweep
@@ -489,7 +650,7 @@ def main() -> None:
             ranked = sorted(g21, key=lambda k: g21[k]["error_m"])
             best21 = ranked[0]
             neighbours = [k for k in ranked[1:] if abs(k - best21) <= max(1, best21)]
-            chosen = [best21] + neighbours[:max(0, args.gwy41 - 1)]
+            chosen = [best21] + neighbours[: max(0, args.gwy41 - 1)]
             evaluate = gwy_eval(41)
             result["gwyddion"]["41"] = {}
             for k in chosen:
@@ -498,31 +659,51 @@ def main() -> None:
 
         # (b) ours
         if te is not None:
-            for tip_n in ((21,) if args.quick else TIP_SIZES):
+            for tip_n in (21,) if args.quick else TIP_SIZES:
+
                 def ours_eval(k, tip_n=tip_n):
                     t0 = time.perf_counter()
                     est = te.estimate_tip(image, tip_n, threshold=k * step, pixel_size=pixel)
                     seconds = time.perf_counter() - t0
                     err = error(np.asarray(est.tip))
-                    print(f"  ours {tip_n}x{tip_n} threshold {k} steps ({k * step * 1e9:.3f} nm): {seconds:.2f} s, "
-                          f"error {err * 1e9:.3f} nm, {est.iterations} iterations", flush=True)
-                    return {"threshold_m": k * step, "seconds": seconds, "error_m": err,
-                            "iterations": int(est.iterations)}
+                    print(
+                        f"  ours {tip_n}x{tip_n} threshold {k} steps ({k * step * 1e9:.3f} nm): {seconds:.2f} s, "
+                        f"error {err * 1e9:.3f} nm, {est.iterations} iterations",
+                        flush=True,
+                    )
+                    return {
+                        "threshold_m": k * step,
+                        "seconds": seconds,
+                        "error_m": err,
+                        "iterations": int(est.iterations),
+                    }
+
                 t0 = time.perf_counter()
                 auto = te.estimate_tip(image, tip_n, threshold="auto", pixel_size=pixel)
                 seconds = time.perf_counter() - t0
-                auto_row = {"threshold_m": float(auto.threshold), "seconds": seconds,
-                            "error_m": error(np.asarray(auto.tip)), "iterations": int(auto.iterations),
-                            "reported_seconds": float(auto.seconds)}
-                print(f"  ours {tip_n}x{tip_n} auto: threshold {auto.threshold * 1e9:.3f} nm, {seconds:.2f} s, "
-                      f"error {auto_row['error_m'] * 1e9:.3f} nm", flush=True)
+                auto_row = {
+                    "threshold_m": float(auto.threshold),
+                    "seconds": seconds,
+                    "error_m": error(np.asarray(auto.tip)),
+                    "iterations": int(auto.iterations),
+                    "reported_seconds": float(auto.seconds),
+                }
+                print(
+                    f"  ours {tip_n}x{tip_n} auto: threshold {auto.threshold * 1e9:.3f} nm, {seconds:.2f} s, "
+                    f"error {auto_row['error_m'] * 1e9:.3f} nm",
+                    flush=True,
+                )
                 fixed_coarse = sorted(set(coarse) | {int(round(auto.threshold / step))})
                 fixed = sweep(ours_eval, fixed_coarse, 2 if args.quick else 3)
-                result["ours"][str(tip_n)] = {"auto": auto_row, "fixed": {str(k): v for k, v in fixed.items()}}
+                result["ours"][str(tip_n)] = {
+                    "auto": auto_row,
+                    "fixed": {str(k): v for k, v in fixed.items()},
+                }
                 write_results(result)
 
-        result["morphology"] = measure_morphology(te, image, surface, true_tip, pixel, Path(tmp),
-                                                  3 if args.quick else 5)
+        result["morphology"] = measure_morphology(
+            te, image, surface, true_tip, pixel, Path(tmp), 3 if args.quick else 5
+        )
     result["complete"] = True
     result["machine"]["loadavg_end"] = list(os.getloadavg())
     result["summary"] = summarise(result)
@@ -535,10 +716,10 @@ def fit_tip(tip: np.ndarray, n: int) -> np.ndarray:
     m = tip.shape[0]
     if m >= n:
         a = (m - n) // 2
-        return np.ascontiguousarray(tip[a:a + n, a:a + n])
+        return np.ascontiguousarray(tip[a : a + n, a : a + n])
     out = np.full((n, n), tip.min())
     a = (n - m) // 2
-    out[a:a + m, a:a + m] = tip
+    out[a : a + m, a : a + m] = tip
     return out
 
 
@@ -546,28 +727,39 @@ def summarise(result: dict) -> dict:
     s: dict = {}
     for n, rows in result["gwyddion"].items():
         k, row = best_of({int(k): v for k, v in rows.items()})
-        s[f"gwyddion_{n}_best"] = {"threshold_m": row["threshold_m"], "seconds": row["seconds"],
-                                   "error_m": row["error_m"]}
+        s[f"gwyddion_{n}_best"] = {
+            "threshold_m": row["threshold_m"],
+            "seconds": row["seconds"],
+            "error_m": row["error_m"],
+        }
     for n, ours in result["ours"].items():
         auto = ours["auto"]
         k, best_fixed = best_of({int(k): v for k, v in ours["fixed"].items()})
-        entry = {"auto_error_m": auto["error_m"], "auto_seconds": auto["seconds"],
-                 "best_fixed_threshold_m": best_fixed["threshold_m"], "best_fixed_error_m": best_fixed["error_m"],
-                 "auto_over_best_fixed_error": auto["error_m"] / best_fixed["error_m"]}
+        entry = {
+            "auto_error_m": auto["error_m"],
+            "auto_seconds": auto["seconds"],
+            "best_fixed_threshold_m": best_fixed["threshold_m"],
+            "best_fixed_error_m": best_fixed["error_m"],
+            "auto_over_best_fixed_error": auto["error_m"] / best_fixed["error_m"],
+        }
         entry["auto_within_10pct"] = entry["auto_over_best_fixed_error"] <= 1.1
         entry["best_fixed_seconds"] = best_fixed["seconds"]
         g = s.get(f"gwyddion_{n}_best")
         if g:
             entry["gwyddion_best_error_m"] = g["error_m"]
             entry["gwyddion_best_seconds"] = g["seconds"]
-            entry["gwyddion_sweep_seconds"] = sum(v["seconds"] for v in result["gwyddion"][n].values())
+            entry["gwyddion_sweep_seconds"] = sum(
+                v["seconds"] for v in result["gwyddion"][n].values()
+            )
             entry["gwyddion_sweep_runs"] = len(result["gwyddion"][n])
             # the estimators on equal terms: each at its best threshold (both picked knowing the true
             # tip); the automatic threshold is judged against our best fixed one (auto_within_10pct)
             entry["best_fixed_no_worse_than_gwyddion"] = best_fixed["error_m"] <= g["error_m"]
             entry["time_ratio_best_fixed_over_gwyddion"] = best_fixed["seconds"] / g["seconds"]
-            entry["time_target_met"] = entry["time_ratio_best_fixed_over_gwyddion"] <= 0.1 and \
-                entry["best_fixed_no_worse_than_gwyddion"]
+            entry["time_target_met"] = (
+                entry["time_ratio_best_fixed_over_gwyddion"] <= 0.1
+                and entry["best_fixed_no_worse_than_gwyddion"]
+            )
             # informative: our automatic threshold (chosen without the truth) against Gwyddion's best
             entry["error_no_worse_than_gwyddion"] = auto["error_m"] <= g["error_m"]
             entry["time_ratio_auto_over_gwyddion"] = auto["seconds"] / g["seconds"]
@@ -583,69 +775,105 @@ def render_markdown(result: dict) -> str:
     img = result["image"]
     size = f"{img['n'][1]}x{img['n'][0]}"
     title = "Blind tip estimation: ours vs Gwyddion" + (" (quick)" if result["quick"] else "")
-    lines = [f"# {title}", "",
-             f"Measured {result['measured']} on {result['machine']['cpus']} CPUs ({result['machine']['cpu']}), "
-             f"Python {result['machine']['python']}, Gwyddion {result['machine']['gwyddion']}, single-threaded"
-             + load_note(result["machine"]) + ".", "",
-             f"Image: {size}, pixel {img['pixel_m'] * 1e9:.3g} nm, noise {img['noise_m'] * 1e9:.2g} nm, range "
-             f"{img['range_m'] * 1e9:.2f} nm, true tip {img['true_tip'][0]}x{img['true_tip'][1]}; {img['source']}. "
-             f"Error: {result['error_metric']} (RMS over the top {result['depth_m'] * 1e9:.0f} nm of the true tip), "
-             f"Gwyddion's estimate converted by gwyddion_estimate_to_ours (180-degree rotation). Gwyddion thresholds "
-             f"are whole steps of (image range)/10000 = {result['gwyddion_step_m'] * 1e12:.2f} pm; "
-             f"use_edges={'TRUE' if result['gwyddion_use_edges'] else 'FALSE'} (its GUI default).", "",
-             "| image | tip | method | threshold (nm) | seconds | error (nm) |", "|---|---|---|---|---|---|"]
+    lines = [
+        f"# {title}",
+        "",
+        f"Measured {result['measured']} on {result['machine']['cpus']} CPUs ({result['machine']['cpu']}), "
+        f"Python {result['machine']['python']}, Gwyddion {result['machine']['gwyddion']}, single-threaded"
+        + load_note(result["machine"])
+        + ".",
+        "",
+        f"Image: {size}, pixel {img['pixel_m'] * 1e9:.3g} nm, noise {img['noise_m'] * 1e9:.2g} nm, range "
+        f"{img['range_m'] * 1e9:.2f} nm, true tip {img['true_tip'][0]}x{img['true_tip'][1]}; {img['source']}. "
+        f"Error: {result['error_metric']} (RMS over the top {result['depth_m'] * 1e9:.0f} nm of the true tip), "
+        f"Gwyddion's estimate converted by gwyddion_estimate_to_ours (180-degree rotation). Gwyddion thresholds "
+        f"are whole steps of (image range)/10000 = {result['gwyddion_step_m'] * 1e12:.2f} pm; "
+        f"use_edges={'TRUE' if result['gwyddion_use_edges'] else 'FALSE'} (its GUI default).",
+        "",
+        "| image | tip | method | threshold (nm) | seconds | error (nm) |",
+        "|---|---|---|---|---|---|",
+    ]
     for n, rows in result["gwyddion"].items():
         best = best_of({int(k): v for k, v in rows.items()})[0]
         for k, row in sorted(rows.items(), key=lambda kv: int(kv[0])):
             tag = " **(best)**" if int(k) == best else ""
-            lines.append(f"| {size} | {n}x{n} | Gwyddion full estimate{tag} | {row['threshold_m'] * 1e9:.3f} | "
-                         f"{row['seconds']:.2f} | {row['error_m'] * 1e9:.3f} |")
+            lines.append(
+                f"| {size} | {n}x{n} | Gwyddion full estimate{tag} | {row['threshold_m'] * 1e9:.3f} | "
+                f"{row['seconds']:.2f} | {row['error_m'] * 1e9:.3f} |"
+            )
     for n, ours in result["ours"].items():
         a = ours["auto"]
-        lines.append(f"| {size} | {n}x{n} | ours, auto threshold | {a['threshold_m'] * 1e9:.3f} | {a['seconds']:.2f} | "
-                     f"{a['error_m'] * 1e9:.3f} |")
+        lines.append(
+            f"| {size} | {n}x{n} | ours, auto threshold | {a['threshold_m'] * 1e9:.3f} | {a['seconds']:.2f} | "
+            f"{a['error_m'] * 1e9:.3f} |"
+        )
         best = best_of({int(k): v for k, v in ours["fixed"].items()})[0]
         for k, row in sorted(ours["fixed"].items(), key=lambda kv: int(kv[0])):
             tag = " **(best fixed)**" if int(k) == best else ""
-            lines.append(f"| {size} | {n}x{n} | ours, fixed threshold{tag} | {row['threshold_m'] * 1e9:.3f} | "
-                         f"{row['seconds']:.2f} | {row['error_m'] * 1e9:.3f} |")
+            lines.append(
+                f"| {size} | {n}x{n} | ours, fixed threshold{tag} | {row['threshold_m'] * 1e9:.3f} | "
+                f"{row['seconds']:.2f} | {row['error_m'] * 1e9:.3f} |"
+            )
     m = result["morphology"]
     if m:
         for op in ("dilate", "erode"):
-            when = f", interleaved with ours, measured {m['measured']}" if m.get("interleaved") else ""
-            lines.append(f"| {size} | 41x41 | Gwyddion gwy_tip_{'dilation' if op == 'dilate' else 'erosion'} "
-                         f"(median of {m['repetitions']}{when}) | | {m[f'gwyddion_{op}_s']:.3f} | |")
+            when = (
+                f", interleaved with ours, measured {m['measured']}"
+                if m.get("interleaved")
+                else ""
+            )
+            lines.append(
+                f"| {size} | 41x41 | Gwyddion gwy_tip_{'dilation' if op == 'dilate' else 'erosion'} "
+                f"(median of {m['repetitions']}{when}) | | {m[f'gwyddion_{op}_s']:.3f} | |"
+            )
             if f"ours_{op}_s" in m:
-                lines.append(f"| {size} | 41x41 | ours {op} (median of {m['repetitions']}; max rel. diff to "
-                             f"Gwyddion {m[f'{op}_max_rel_diff']:.1e}) | | {m[f'ours_{op}_s']:.3f} | |")
+                lines.append(
+                    f"| {size} | 41x41 | ours {op} (median of {m['repetitions']}; max rel. diff to "
+                    f"Gwyddion {m[f'{op}_max_rel_diff']:.1e}) | | {m[f'ours_{op}_s']:.3f} | |"
+                )
     s = result.get("summary", {})
     lines += ["", "| ratio | value | target |", "|---|---|---|"]
     for n in ("21", "41"):
         o = s.get(f"ours_{n}")
         if not o:
             continue
-        lines.append(f"| {n}x{n}: auto / best fixed threshold error | {o['auto_over_best_fixed_error']:.3f} "
-                     f"({o['auto_error_m'] * 1e9:.3f} vs {o['best_fixed_error_m'] * 1e9:.3f} nm) | <= 1.1 |")
+        lines.append(
+            f"| {n}x{n}: auto / best fixed threshold error | {o['auto_over_best_fixed_error']:.3f} "
+            f"({o['auto_error_m'] * 1e9:.3f} vs {o['best_fixed_error_m'] * 1e9:.3f} nm) | <= 1.1 |"
+        )
         if "gwyddion_best_error_m" in o:
-            lines.append(f"| {n}x{n}: error at the best threshold, ours vs Gwyddion (both picked knowing the true tip) "
-                         f"| {o['best_fixed_error_m'] * 1e9:.3f} vs {o['gwyddion_best_error_m'] * 1e9:.3f} nm "
-                         f"({'no worse' if o['best_fixed_no_worse_than_gwyddion'] else 'WORSE'}) | <= |")
-            lines.append(f"| {n}x{n}: time at the best threshold, ours / Gwyddion | "
-                         f"{o['time_ratio_best_fixed_over_gwyddion']:.4f} ({o['best_fixed_seconds']:.2f} vs "
-                         f"{o['gwyddion_best_seconds']:.1f} s) | <= 0.1 at equal or better error |")
-            lines.append(f"| {n}x{n}: ours with the auto threshold vs Gwyddion at its best | "
-                         f"{o['auto_error_m'] * 1e9:.3f} vs {o['gwyddion_best_error_m'] * 1e9:.3f} nm "
-                         f"({'no worse' if o['error_no_worse_than_gwyddion'] else 'worse'}), time ratio "
-                         f"{o['time_ratio_auto_over_gwyddion']:.4f} ({o['auto_seconds']:.2f} vs "
-                         f"{o['gwyddion_best_seconds']:.1f} s; Gwyddion's {o['gwyddion_sweep_runs']}-threshold sweep "
-                         f"that found its best: {o['gwyddion_sweep_seconds']:.0f} s) | (informative: Gwyddion has no "
-                         f"automatic threshold) |")
+            lines.append(
+                f"| {n}x{n}: error at the best threshold, ours vs Gwyddion (both picked knowing the true tip) "
+                f"| {o['best_fixed_error_m'] * 1e9:.3f} vs {o['gwyddion_best_error_m'] * 1e9:.3f} nm "
+                f"({'no worse' if o['best_fixed_no_worse_than_gwyddion'] else 'WORSE'}) | <= |"
+            )
+            lines.append(
+                f"| {n}x{n}: time at the best threshold, ours / Gwyddion | "
+                f"{o['time_ratio_best_fixed_over_gwyddion']:.4f} ({o['best_fixed_seconds']:.2f} vs "
+                f"{o['gwyddion_best_seconds']:.1f} s) | <= 0.1 at equal or better error |"
+            )
+            lines.append(
+                f"| {n}x{n}: ours with the auto threshold vs Gwyddion at its best | "
+                f"{o['auto_error_m'] * 1e9:.3f} vs {o['gwyddion_best_error_m'] * 1e9:.3f} nm "
+                f"({'no worse' if o['error_no_worse_than_gwyddion'] else 'worse'}), time ratio "
+                f"{o['time_ratio_auto_over_gwyddion']:.4f} ({o['auto_seconds']:.2f} vs "
+                f"{o['gwyddion_best_seconds']:.1f} s; Gwyddion's {o['gwyddion_sweep_runs']}-threshold sweep "
+                f"that found its best: {o['gwyddion_sweep_seconds']:.0f} s) | (informative: Gwyddion has no "
+                f"automatic threshold) |"
+            )
     if "dilate_time_ratio" in s:
-        lines.append(f"| 41x41 dilation time ours / Gwyddion | {s['dilate_time_ratio']:.3f} | <= 1 |")
-        lines.append(f"| 41x41 erosion time ours / Gwyddion | {s['erode_time_ratio']:.3f} | <= 1 |")
+        lines.append(
+            f"| 41x41 dilation time ours / Gwyddion | {s['dilate_time_ratio']:.3f} | <= 1 |"
+        )
+        lines.append(
+            f"| 41x41 erosion time ours / Gwyddion | {s['erode_time_ratio']:.3f} | <= 1 |"
+        )
     if not result["gwyddion"].get("41"):
-        lines += ["", "Gwyddion's 41x41 full estimate was not run "
-                  + ("(--quick)." if result["quick"] else "(--gwy41 0).")]
+        lines += [
+            "",
+            "Gwyddion's 41x41 full estimate was not run "
+            + ("(--quick)." if result["quick"] else "(--gwy41 0)."),
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -654,8 +882,11 @@ def load_note(machine: dict) -> str:
     if "loadavg_start" not in machine:
         return ""
     end = machine.get("loadavg_end")
-    return (f" (1-min load average {machine['loadavg_start'][0]:.1f} at start"
-            + (f", {end[0]:.1f} at end" if end else "") + f" on {machine['cpus']} CPUs)")
+    return (
+        f" (1-min load average {machine['loadavg_start'][0]:.1f} at start"
+        + (f", {end[0]:.1f} at end" if end else "")
+        + f" on {machine['cpus']} CPUs)"
+    )
 
 
 def write_results(result: dict) -> None:
@@ -669,6 +900,7 @@ def source_hashes() -> dict:
     """sha256 (first 12 hex digits) of the measured modules, to tell runs of changing code apart."""
     import hashlib
     import importlib.util
+
     out = {}
     for name in ("afm_core.imaging.tip_estimation", "afm_core.sim.characterizer"):
         spec = importlib.util.find_spec(name)
@@ -679,12 +911,11 @@ def source_hashes() -> dict:
     return out
 
 
-
-
 def gwyddion_version() -> str:
     try:
-        return subprocess.run(["pkg-config", "--modversion", "gwyddion"], capture_output=True, text=True,
-                              check=True).stdout.strip()
+        return subprocess.run(
+            ["pkg-config", "--modversion", "gwyddion"], capture_output=True, text=True, check=True
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 

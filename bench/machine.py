@@ -1,4 +1,5 @@
 """What the benchmarks record about the machine they ran on."""
+
 import platform
 from pathlib import Path
 

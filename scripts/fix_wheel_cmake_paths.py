@@ -5,6 +5,7 @@ targets name that interpreter's include dir and numpy's include dir; CMake refus
 whose include paths do not exist ("Imported target ... includes non-existent path").
 Running this twice is harmless: after the first run the old prefixes are gone.
 """
+
 import pathlib
 import sys
 import sysconfig
@@ -12,7 +13,9 @@ import sysconfig
 import numpy
 
 BUILD_MACHINE_PYTHON_INCLUDE = "/opt/python/cp311-cp311/include/python3.11"
-BUILD_MACHINE_NUMPY_INCLUDE = "/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include"
+BUILD_MACHINE_NUMPY_INCLUDE = (
+    "/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include"
+)
 
 
 def main(venv: pathlib.Path) -> int:

@@ -1,4 +1,5 @@
 """Shared fixtures: an isolated DDS domain per test run and node processes that always stop."""
+
 from __future__ import annotations
 
 import os
@@ -27,9 +28,14 @@ def wait_for(predicate, timeout=10.0, interval=0.05, what="condition"):
 class NodeProcess:
     def __init__(self, name, overrides=None):
         from afm_bringup.launcher import node_command
+
         self.name = name
-        self.process = subprocess.Popen(node_command(name, None, overrides), stdout=subprocess.PIPE,
-                                        stderr=subprocess.STDOUT, start_new_session=True)
+        self.process = subprocess.Popen(
+            node_command(name, None, overrides),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
 
     def stop(self, sig=signal.SIGINT, timeout=15.0) -> tuple[int, str]:
         if self.process.poll() is None:

@@ -1,4 +1,5 @@
 """Messages with distinctive values for round-trip tests (every field type we use)."""
+
 import numpy as np
 from rclpy.serialization import serialize_message
 

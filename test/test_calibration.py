@@ -17,15 +17,16 @@ What is compared, and why:
 - drift: mean velocities within 10 %; sigma within 10 % of the spread of the true velocities
   at the same moments (see the test for why not of the configured sigma).
 """
+
 import math
 
 import numpy as np
 import pytest
 
+from afm_core.instrument import ScanRequest
 from afm_core.localization import calibrate
 from afm_core.localization.calibration import load_calibration, save_calibration
 from afm_core.localization.pits import find_pits
-from afm_core.instrument import ScanRequest
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 
@@ -42,7 +43,9 @@ def calibrated():
     config = load_config()
     afm = SimulatedAfm(config)
     calibration, report = calibrate.run_calibration(afm, **QUICK)
-    rows = {row["name"]: row for row in calibrate.compare_with_simulator(calibration, report, config)}
+    rows = {
+        row["name"]: row for row in calibrate.compare_with_simulator(calibration, report, config)
+    }
     return calibration, report, rows, config
 
 
@@ -59,14 +62,27 @@ def test_hysteresis_asymmetry_exact_on_an_ideal_scanner():
     shows the pits where they are, so the fit must return the configured asymmetry: a
     rescan that asks the compensated scanner for positions past its loop tips (clamped
     drive) misplaces the pits of the lower half and fails this (-4 %)."""
-    config = merge(load_config(), {
-        "drift": {"enabled": False}, "controller": {"model_error": 0.0},
-        "scanner": {"positioning_noise_enabled": False, "creep_enabled": False, "coupling_enabled": False,
-                    "deflection_enabled": False},
-        "noise": {"height_white_sigma": 0.0, "height_flicker_sigma": 0.0}})
+    config = merge(
+        load_config(),
+        {
+            "drift": {"enabled": False},
+            "controller": {"model_error": 0.0},
+            "scanner": {
+                "positioning_noise_enabled": False,
+                "creep_enabled": False,
+                "coupling_enabled": False,
+                "deflection_enabled": False,
+            },
+            "noise": {"height_white_sigma": 0.0, "height_flicker_sigma": 0.0},
+        },
+    )
     experiment = calibrate.measure_hysteresis(SimulatedAfm(config), 1)
-    assert experiment.parameters["asymmetry"] == pytest.approx(config.scanner.hysteresis_asymmetry, rel=0.01)
-    assert experiment.parameters["loop_fraction"] == pytest.approx(config.scanner.hysteresis_fraction, rel=0.01)
+    assert experiment.parameters["asymmetry"] == pytest.approx(
+        config.scanner.hysteresis_asymmetry, rel=0.01
+    )
+    assert experiment.parameters["loop_fraction"] == pytest.approx(
+        config.scanner.hysteresis_fraction, rel=0.01
+    )
 
 
 def test_hysteresis_fit_without_creep_model_is_biased(calibrated):
@@ -84,7 +100,9 @@ def test_hysteresis_fit_without_creep_model_is_biased(calibrated):
 
 def test_walk_whitener_whitens_the_random_walk_covariance():
     moves = np.array([1, 2, 3, 5, 6, 9])
-    covariance = np.minimum.outer(moves, moves) + calibrate.WALK_MEASUREMENT_RATIO * np.eye(moves.size)
+    covariance = np.minimum.outer(moves, moves) + calibrate.WALK_MEASUREMENT_RATIO * np.eye(
+        moves.size
+    )
     whitener = calibrate.walk_whitener(moves)
     assert np.allclose(whitener @ covariance @ whitener.T, np.eye(moves.size))
 
@@ -94,17 +112,33 @@ def test_fit_creep_shares_fractions_per_group_through_a_random_walk():
     steps), drift lines and 1 nm pit noise: the fit recovers the time constants and each
     group's fractions."""
     rng = np.random.default_rng(3)
-    taus, truth = np.array([0.5, 5.0, 50.0]), {"x": np.array([0.008, 0.006, 0.006]),
-                                               "y": np.array([0.004, 0.009, 0.005])}
+    taus, truth = (
+        np.array([0.5, 5.0, 50.0]),
+        {"x": np.array([0.008, 0.006, 0.006]), "y": np.array([0.004, 0.009, 0.005])},
+    )
     step, ramp = 50e-6, 0.5
     t = np.r_[np.linspace(0.55, 1.3, 8), np.geomspace(2.0, 300.0, 32)]
     runs = []
     for group in ("x", "x", "x", "y", "y", "y"):
         walk = np.cumsum(rng.normal(0.0, 3e-9, t.size))
         drift = rng.normal(0.0, 0.05e-9) * t
-        x = (12e-6 + drift + walk + rng.normal(0.0, 1e-9, t.size)
-             - step * calibrate.creep_deficit(t, taus, ramp) @ truth[group])
-        runs.append({"t": t, "x": x, "step": step, "ramp_time": ramp, "group": group, "moves": np.arange(1, t.size + 1)})
+        x = (
+            12e-6
+            + drift
+            + walk
+            + rng.normal(0.0, 1e-9, t.size)
+            - step * calibrate.creep_deficit(t, taus, ramp) @ truth[group]
+        )
+        runs.append(
+            {
+                "t": t,
+                "x": x,
+                "step": step,
+                "ramp_time": ramp,
+                "group": group,
+                "moves": np.arange(1, t.size + 1),
+            }
+        )
     fit = calibrate.fit_creep(runs)
     assert np.allclose(fit["time_constants"], taus, rtol=0.1)
     for fitted, group in zip(fit["fractions"], ("x", "y")):
@@ -114,7 +148,9 @@ def test_fit_creep_shares_fractions_per_group_through_a_random_walk():
 
 def test_match_monotone_skips_a_stray_pit_past_the_row_end():
     expected = np.arange(40) * 150e-9
-    detected = np.r_[expected * 1.03 + 2e-6, expected[-1] * 1.03 + 2e-6 + 190e-9]   # one pit of the next row
+    detected = np.r_[
+        expected * 1.03 + 2e-6, expected[-1] * 1.03 + 2e-6 + 190e-9
+    ]  # one pit of the next row
     index = calibrate.match_monotone(expected, detected)
     assert np.array_equal(index, np.arange(40))
 
@@ -167,10 +203,20 @@ def test_drift_statistics():
     the spread of the true pair-averaged velocities at the same moments: the configured
     sigma is a population value that 12 pairs estimate only to ~20 % (10 % needs ~200
     independent pairs, the bench's scale)."""
-    config = merge(load_config(), {"controller": {"model_error": 0.0},
-                                   "drift": {"mean_velocity_x": 0.5e-9, "mean_velocity_y": 0.8e-9,
-                                             "sigma_velocity_x": 0.05e-9, "sigma_velocity_y": 0.08e-9,
-                                             "correlation_time": 1800.0, "knot_interval": 5.0}})
+    config = merge(
+        load_config(),
+        {
+            "controller": {"model_error": 0.0},
+            "drift": {
+                "mean_velocity_x": 0.5e-9,
+                "mean_velocity_y": 0.8e-9,
+                "sigma_velocity_x": 0.05e-9,
+                "sigma_velocity_y": 0.08e-9,
+                "correlation_time": 1800.0,
+                "knot_interval": 5.0,
+            },
+        },
+    )
     afm = SimulatedAfm(config)
     result = calibrate.measure_drift(afm, pairs=12, interval=2000.0)
     mean = result.parameters["mean_velocity"]
@@ -178,11 +224,17 @@ def test_drift_statistics():
     assert mean[1] == pytest.approx(0.8e-9, rel=0.10)
     moments = np.asarray(result.data["time"])
     pair = 2 * 256.0 + 250.0
-    truth = np.array([(afm.drift.offset(t + pair / 2) - afm.drift.offset(t - pair / 2)) / pair for t in moments])
+    truth = np.array(
+        [(afm.drift.offset(t + pair / 2) - afm.drift.offset(t - pair / 2)) / pair for t in moments]
+    )
     measured = np.asarray(result.data["velocity"])
-    assert result.parameters["sigma_velocity"][0] == pytest.approx(truth[:, 0].std(ddof=1), rel=0.10)
-    assert result.parameters["sigma_velocity"][1] == pytest.approx(truth[:, 1].std(ddof=1), rel=0.10)
-    assert np.sqrt(np.mean((measured - truth) ** 2, axis=0)).max() < 0.03e-9     # per pair
+    assert result.parameters["sigma_velocity"][0] == pytest.approx(
+        truth[:, 0].std(ddof=1), rel=0.10
+    )
+    assert result.parameters["sigma_velocity"][1] == pytest.approx(
+        truth[:, 1].std(ddof=1), rel=0.10
+    )
+    assert np.sqrt(np.mean((measured - truth) ** 2, axis=0)).max() < 0.03e-9  # per pair
 
 
 @pytest.mark.parametrize("asymmetry_error", [0.0, 0.05])
@@ -191,28 +243,47 @@ def test_feed_forward_inverts_the_controllers_calibrated_asymmetry(asymmetry_err
     asymmetry_error: from rest at the centre a compensated move lands at
     H_scanner(H_controller^-1(command)) (exactly the command when the models agree)."""
     from afm_core.pzt import PrandtlIshlinskii
-    config = merge(load_config(), {
-        "drift": {"enabled": False}, "controller": {"model_error": 0.0, "asymmetry_error": asymmetry_error},
-        "scanner": {"positioning_noise_enabled": False, "creep_enabled": False, "coupling_enabled": False,
-                    "deflection_enabled": False}})
+
+    config = merge(
+        load_config(),
+        {
+            "drift": {"enabled": False},
+            "controller": {"model_error": 0.0, "asymmetry_error": asymmetry_error},
+            "scanner": {
+                "positioning_noise_enabled": False,
+                "creep_enabled": False,
+                "coupling_enabled": False,
+                "deflection_enabled": False,
+            },
+        },
+    )
     afm = SimulatedAfm(config)
     scanner, centre = config.scanner, config.scanner.range_x / 2
     afm.move_tip(centre + 20e-6, centre, 1e-4)
-    controller = PrandtlIshlinskii.from_fraction(scanner.range_x, scanner.hysteresis_fraction,
-                                                 scanner.hysteresis_operators,
-                                                 scanner.hysteresis_asymmetry - asymmetry_error)
+    controller = PrandtlIshlinskii.from_fraction(
+        scanner.range_x,
+        scanner.hysteresis_fraction,
+        scanner.hysteresis_operators,
+        scanner.hysteresis_asymmetry - asymmetry_error,
+    )
     controller.reset(0.0)
     drive = controller.inverse().apply([0.0, 20e-6])[-1]
-    model = PrandtlIshlinskii.from_fraction(scanner.range_x, scanner.hysteresis_fraction,
-                                            scanner.hysteresis_operators, scanner.hysteresis_asymmetry)
+    model = PrandtlIshlinskii.from_fraction(
+        scanner.range_x,
+        scanner.hysteresis_fraction,
+        scanner.hysteresis_operators,
+        scanner.hysteresis_asymmetry,
+    )
     model.reset(0.0)
     expected = model.apply([0.0, drive])[-1]
     assert afm.truth()["tip_position"][0] - centre == pytest.approx(expected, abs=1e-12)
     assert (abs(expected - 20e-6) > 10e-9) == (asymmetry_error != 0.0)
 
 
-@pytest.mark.parametrize("controller", [{"asymmetry_error": float("nan")}, {"asymmetry_error": 2.0},
-                                        {"model_error": -1.5}])
+@pytest.mark.parametrize(
+    "controller",
+    [{"asymmetry_error": float("nan")}, {"asymmetry_error": 2.0}, {"model_error": -1.5}],
+)
 def test_controller_model_errors_out_of_range_are_refused(controller):
     with pytest.raises(ValueError, match=f"controller.{next(iter(controller))}"):
         SimulatedAfm(merge(load_config(), {"controller": controller}))
@@ -225,14 +296,14 @@ def test_feed_forward_switch_does_not_move_the_tip():
     afm.feed_forward_enabled = False
     assert afm.truth()["tip_position"] == before
     drive = afm.commanded_position()
-    assert drive != (70e-6, 40e-6)                  # the raw drive the inverse model produced
-    afm.move_tip(*drive, 1e-4)                      # a move to where it is: nothing changes
+    assert drive != (70e-6, 40e-6)  # the raw drive the inverse model produced
+    afm.move_tip(*drive, 1e-4)  # a move to where it is: nothing changes
     assert np.allclose(afm.truth()["tip_position"], before, atol=2e-9)
     afm.move_tip(90e-6, 20e-6, 1e-4)
     afm.move_tip(*drive, 1e-4)
     afm.feed_forward_enabled = True
     command = afm.commanded_position()
-    afm.move_tip(*command, 1e-4)                    # the model's idea of where it is: no jump
+    afm.move_tip(*command, 1e-4)  # the model's idea of where it is: no jump
     assert np.allclose(afm.truth()["tip_position"], afm.truth()["tip_position"], atol=1e-12)
     # back on, the compensation works again: the tip goes (about) where commanded
     afm.move_tip(60e-6, 60e-6, 1e-4)
@@ -242,8 +313,10 @@ def test_feed_forward_switch_does_not_move_the_tip():
 
 def test_pits_found_to_a_nanometre_on_an_exact_instrument():
     import sys
+
     sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
     from test_simulator import ideal
+
     afm = SimulatedAfm(ideal())
     commanded = [(40e-6 + i * 0.31e-6, 40e-6 + j * 0.29e-6) for i in range(4) for j in range(4)]
     for x, y in commanded:

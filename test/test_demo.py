@@ -1,5 +1,6 @@
 """`make demo` end to end: the graph maps, localizes, plans and pushes a particle with the
 virtual nano-hand, records everything, replays it, evaluates the replayed copy, reports."""
+
 import json
 
 import pytest

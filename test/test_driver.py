@@ -1,27 +1,34 @@
 """The driver node through its actions: results, feedback, cancel, queueing, bad input."""
-import math
-import signal
-import threading
+
 import time
 
 import numpy as np
 import pytest
+from conftest import wait_for
 from geometry_msgs.msg import PointStamped
 from rosgraph_msgs.msg import Clock
 
-from afm_bringup.commander import AfmCommander, AfmError
+from afm_bringup.commander import AfmCommander
 from afm_bringup.conversions import image_msg_to_array
 from afm_bringup.qos_profiles import LATCHED
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_msgs.msg import GroundTruth
-from conftest import wait_for
 
 pytestmark = pytest.mark.ros
 
 
-def scan_goal(origin=(54.6e-6, 54.6e-6), size=(0.8e-6, 0.8e-6), pixels=(64, 64), angle=0.0, line_rate=2.0):
-    goal = ScanImage.Goal(size_x=size[0], size_y=size[1], pixels_x=pixels[0], pixels_y=pixels[1],
-                          scan_angle_deg=angle, slow_scan_up=True, line_rate=line_rate)
+def scan_goal(
+    origin=(54.6e-6, 54.6e-6), size=(0.8e-6, 0.8e-6), pixels=(64, 64), angle=0.0, line_rate=2.0
+):
+    goal = ScanImage.Goal(
+        size_x=size[0],
+        size_y=size[1],
+        pixels_x=pixels[0],
+        pixels_y=pixels[1],
+        scan_angle_deg=angle,
+        slow_scan_up=True,
+        line_rate=line_rate,
+    )
     goal.origin.x, goal.origin.y = origin
     return goal
 
@@ -44,37 +51,60 @@ def test_scan_line_move_push_and_indent_through_actions(driver, ros_node):
     ros_node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
     with AfmCommander(server_timeout=30) as afm:
         feedback = []
-        result = afm.send("scan_image", scan_goal(), feedback=lambda f: feedback.append(f.lines_done))
+        result = afm.send(
+            "scan_image", scan_goal(), feedback=lambda f: feedback.append(f.lines_done)
+        )
         assert result.success and image_msg_to_array(result.scan.height).shape == (64, 64)
         # one feedback per line, counting up; in a burst the client may drop some, and it
         # ignores any that arrive after the result
         assert feedback and feedback == sorted(set(feedback)) and feedback[-1] <= 64
         line_goal = LocalScan.Goal(samples=200, speed=1e-6, landmark_id=7)
-        line_goal.start.x, line_goal.start.y, line_goal.end.x, line_goal.end.y = 54.7e-6, 55e-6, 55.3e-6, 55e-6
+        line_goal.start.x, line_goal.start.y, line_goal.end.x, line_goal.end.y = (
+            54.7e-6,
+            55e-6,
+            55.3e-6,
+            55e-6,
+        )
         line = afm.send("local_scan", line_goal)
         assert line.success and len(line.line.height) == 200 and line.line.landmark_id == 7
-        assert max(line.line.height) == pytest.approx(200e-9, abs=3e-9)     # crosses the sphere at (55, 55) um
+        assert max(line.line.height) == pytest.approx(
+            200e-9, abs=3e-9
+        )  # crosses the sphere at (55, 55) um
         assert afm.send("move_tip", move_goal(54.75e-6, 55.0e-6, speed=10e-6)).success
         push = afm.send("move_tip", move_goal(55.15e-6, 55.0e-6, contact=True))
         assert push.success and push.trace.task == "push" and len(push.trace.times) > 10
         indent = afm.send("indent", Indent.Goal(force=0.5e-6, dwell=0.2, position=line_goal.start))
         assert indent.success and max(indent.trace.vertical_deflection) > 1e-6
-    wait_for(lambda: truths and any(o.position.x > 55.05e-6 for o in truths[-1].objects if o.id == 0), 10,
-             what="ground truth showing the pushed sphere")
+    wait_for(
+        lambda: truths and any(o.position.x > 55.05e-6 for o in truths[-1].objects if o.id == 0),
+        10,
+        what="ground truth showing the pushed sphere",
+    )
 
 
-@pytest.mark.parametrize("action, goal, complaint", [
-    ("scan_image", scan_goal(origin=(float("nan"), 1e-6)), "origin_x=nan"),
-    ("scan_image", scan_goal(size=(0.0, 1e-6)), "size_x=0.0: must be > 0"),
-    ("scan_image", scan_goal(pixels=(100_000, 64)), "pixels_x=100000: must be within [2, 4096]"),
-    ("scan_image", scan_goal(origin=(109.5e-6, 1e-6)), "outside the scanner range"),
-    ("scan_image", scan_goal(size=(50e-6, 50e-6), line_rate=20.0), "slew limit"),
-    ("move_tip", move_goal(120e-6, 1e-6), "target.x=1.2000e-04 m: outside the scanner range [0, 1.1000e-04] m"),
-    ("move_tip", move_goal(1e-6, float("inf")), "target.y=inf"),
-    ("move_tip", move_goal(1e-6, 1e-6, speed=1.0), "slew limit"),
-    ("move_tip", move_goal(1e-6, 1e-6, frame="map"), "frame_id='map'"),
-    ("indent", Indent.Goal(force=-1.0, dwell=0.1), "force=-1.000e+00 N"),
-])
+@pytest.mark.parametrize(
+    "action, goal, complaint",
+    [
+        ("scan_image", scan_goal(origin=(float("nan"), 1e-6)), "origin_x=nan"),
+        ("scan_image", scan_goal(size=(0.0, 1e-6)), "size_x=0.0: must be > 0"),
+        (
+            "scan_image",
+            scan_goal(pixels=(100_000, 64)),
+            "pixels_x=100000: must be within [2, 4096]",
+        ),
+        ("scan_image", scan_goal(origin=(109.5e-6, 1e-6)), "outside the scanner range"),
+        ("scan_image", scan_goal(size=(50e-6, 50e-6), line_rate=20.0), "slew limit"),
+        (
+            "move_tip",
+            move_goal(120e-6, 1e-6),
+            "target.x=1.2000e-04 m: outside the scanner range [0, 1.1000e-04] m",
+        ),
+        ("move_tip", move_goal(1e-6, float("inf")), "target.y=inf"),
+        ("move_tip", move_goal(1e-6, 1e-6, speed=1.0), "slew limit"),
+        ("move_tip", move_goal(1e-6, 1e-6, frame="map"), "frame_id='map'"),
+        ("indent", Indent.Goal(force=-1.0, dwell=0.1), "force=-1.000e+00 N"),
+    ],
+)
 def test_bad_goals_are_refused_naming_the_field_and_the_tip_stays(driver, action, goal, complaint):
     with AfmCommander(server_timeout=30) as afm:
         before = afm.send("move_tip", move_goal(10e-6, 10e-6, speed=10e-6)).commanded_position
@@ -91,8 +121,12 @@ def test_cancel_stops_a_scan_and_a_queued_goal_waits_its_turn(nodes):
     with AfmCommander(server_timeout=30) as afm:
         first = afm.send("scan_image", scan_goal(pixels=(64, 512), line_rate=1.0), wait=False)
         second = afm.send("move_tip", move_goal(20e-6, 20e-6, speed=10e-6), wait=False)
-        wait_for(lambda: first.feedback is not None and first.feedback.lines_done >= 5, 90, what="scan started")
-        assert not second.done()                              # queued behind the scan
+        wait_for(
+            lambda: first.feedback is not None and first.feedback.lines_done >= 5,
+            90,
+            what="scan started",
+        )
+        assert not second.done()  # queued behind the scan
         assert second.cancel()
         assert first.cancel()
         cancelled = first.result(30)
@@ -106,7 +140,10 @@ def test_cancel_stops_a_scan_and_a_queued_goal_waits_its_turn(nodes):
 def test_a_clients_readiness_probe_leaves_running_goals_alone(nodes):
     # the probe is a cancel request: it must name no goal that exists, never "all goals"
     nodes("driver", seed=2, real_time_factor=5.0)
-    with AfmCommander(server_timeout=30) as afm, AfmCommander("second_commander", server_timeout=30) as other:
+    with (
+        AfmCommander(server_timeout=30) as afm,
+        AfmCommander("second_commander", server_timeout=30) as other,
+    ):
         scan = afm.send("scan_image", scan_goal(pixels=(32, 64), line_rate=4.0), wait=False)
         wait_for(lambda: scan.feedback is not None, 60, what="scan started")
         assert other.clients["scan_image"].wait_until_answering(30)
@@ -117,13 +154,17 @@ def test_a_clients_readiness_probe_leaves_running_goals_alone(nodes):
 
 def test_sim_clock_runs_ahead_of_wall_time(nodes, ros_node):
     clocks = []
-    ros_node.create_subscription(Clock, "/clock", lambda m: clocks.append(m.clock.sec + m.clock.nanosec * 1e-9), 50)
+    ros_node.create_subscription(
+        Clock, "/clock", lambda m: clocks.append(m.clock.sec + m.clock.nanosec * 1e-9), 50
+    )
     nodes("driver", seed=2, real_time_factor=0.0)
     # the clock before the scan is the baseline: under load DDS may match us only later
     wait_for(lambda: clocks, 30, what="/clock before the scan")
     with AfmCommander(server_timeout=30) as afm:
         wall = time.monotonic()
-        afm.send("scan_image", scan_goal(pixels=(32, 200), line_rate=1.0))   # 200 s of instrument time
+        afm.send(
+            "scan_image", scan_goal(pixels=(32, 200), line_rate=1.0)
+        )  # 200 s of instrument time
         wall = time.monotonic() - wall
     wait_for(lambda: len(clocks) > 2, 10, what="/clock")
     assert max(clocks) - min(clocks) >= 199.0 and wall < 20.0
@@ -148,7 +189,12 @@ def test_replay_backend_serves_a_recorded_session(tmp_path, nodes):
         afm.wait_until_subscribed(["/afm/scan", "/afm/scan_line", "/afm/force_trace"])
         recorded_scan = afm.send("scan_image", scan_goal())
         line_goal = LocalScan.Goal(samples=100, speed=1e-6)
-        line_goal.start.x, line_goal.start.y, line_goal.end.x, line_goal.end.y = 54.7e-6, 55e-6, 55.3e-6, 55e-6
+        line_goal.start.x, line_goal.start.y, line_goal.end.x, line_goal.end.y = (
+            54.7e-6,
+            55e-6,
+            55.3e-6,
+            55e-6,
+        )
         recorded_line = afm.send("local_scan", line_goal)
         time.sleep(1.0)
     live.stop()
@@ -156,10 +202,17 @@ def test_replay_backend_serves_a_recorded_session(tmp_path, nodes):
     nodes("driver", backend="replay", replay_input=recording)
     with AfmCommander(server_timeout=30) as afm:
         replayed_scan = afm.send("scan_image", scan_goal())
-        np.testing.assert_array_equal(image_msg_to_array(replayed_scan.scan.height),
-                                      image_msg_to_array(recorded_scan.scan.height))
+        np.testing.assert_array_equal(
+            image_msg_to_array(replayed_scan.scan.height),
+            image_msg_to_array(recorded_scan.scan.height),
+        )
         wrong_line = LocalScan.Goal(samples=100, speed=1e-6)
-        wrong_line.start.x, wrong_line.start.y, wrong_line.end.x, wrong_line.end.y = 1e-6, 1e-6, 2e-6, 1e-6
+        wrong_line.start.x, wrong_line.start.y, wrong_line.end.x, wrong_line.end.y = (
+            1e-6,
+            1e-6,
+            2e-6,
+            1e-6,
+        )
         refused = afm.send("local_scan", wrong_line)
         assert not refused.success and "does not match the next recorded line" in refused.message
         replayed_line = afm.send("local_scan", line_goal)
@@ -171,19 +224,27 @@ def test_the_driver_as_a_core_instrument_through_its_actions(driver, ros_node):
     command, so the instrument clock and the commanded position follow the driver."""
     from afm_bringup.ros_instrument import ActionInstrument
     from afm_core.instrument import LineRequest, ScanRequest
+
     instrument = ActionInstrument(ros_node, server_timeout=30)
     move = instrument.move_tip(54.7e-6, 55.0e-6, 10e-6)
     assert move.completed and instrument.commanded_position() == pytest.approx((54.7e-6, 55.0e-6))
     after_move = instrument.time
     assert after_move > 0 and instrument.last_command.kind == instrument.last_command.MOVE
     line = instrument.local_scan(LineRequest(54.7e-6, 55e-6, 55.3e-6, 55e-6, 200, 1e-6))
-    assert line.complete and len(line.height) == 200 and line.height.max() == pytest.approx(200e-9, abs=3e-9)
-    assert line.start_time >= after_move and instrument.time == pytest.approx(line.start_time + line.times[-1],
-                                                                              abs=0.05)
+    assert (
+        line.complete
+        and len(line.height) == 200
+        and line.height.max() == pytest.approx(200e-9, abs=3e-9)
+    )
+    assert line.start_time >= after_move and instrument.time == pytest.approx(
+        line.start_time + line.times[-1], abs=0.05
+    )
     assert instrument.commanded_position() == pytest.approx((55.3e-6, 55e-6))
-    scan = instrument.raster_scan(ScanRequest(54.8e-6, 54.8e-6, 0.4e-6, 0.4e-6, 32, 32, line_rate=4.0))
+    scan = instrument.raster_scan(
+        ScanRequest(54.8e-6, 54.8e-6, 0.4e-6, 0.4e-6, 32, 32, line_rate=4.0)
+    )
     assert scan.complete and scan.height.shape == (32, 32) and np.nanmax(scan.height) > 150e-9
     with pytest.raises(ValueError, match="x="):
-        instrument.move_tip(200e-6, 55e-6, 1e-6)          # refused before sending: beyond the range
+        instrument.move_tip(200e-6, 55e-6, 1e-6)  # refused before sending: beyond the range
     with pytest.raises(ValueError, match="force"):
         instrument.indent(55e-6, 55e-6, 5e-6, 0.1)

@@ -1,18 +1,18 @@
 """The graph as a user meets it: driver actions, the launcher, the CLI and the Python API."""
+
 import signal
 import subprocess
 import sys
 import threading
 import time
 
-import numpy as np
 import pytest
+from conftest import wait_for
 
 from afm_bringup.commander import AfmCommander, AfmError
 from afm_bringup.conversions import image_msg_to_array
 from afm_bringup.units import parse_length
 from afm_core.recording import RecordingReader
-from conftest import wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -22,26 +22,34 @@ AFM = [sys.executable, "-m", "afm_bringup.cli"]
 def test_scan_through_the_driver_action(nodes):
     nodes("driver", seed=3)
     with AfmCommander() as afm:
-        scan = afm.scan(origin=(54.6e-6, 54.6e-6), size=(0.8e-6, 0.8e-6), pixels=(64, 48), angle_deg=90.0)
+        scan = afm.scan(
+            origin=(54.6e-6, 54.6e-6), size=(0.8e-6, 0.8e-6), pixels=(64, 48), angle_deg=90.0
+        )
         with pytest.raises(AfmError, match="scanner range"):
             afm.scan(origin=(109.9e-6, 1e-6), size=(1e-6, 1e-6))
         with pytest.raises(AfmError, match="pixels_x"):
             afm.scan(origin=(1e-6, 1e-6), size=(1e-6, 1e-6), pixels=(1, 10))
     height = image_msg_to_array(scan.height)
     assert height.shape == (48, 64) and scan.header.frame_id == "afm_scanner"
-    assert height.max() == pytest.approx(200e-9, abs=3e-9)    # a 100 nm-radius sphere is in the area
+    assert height.max() == pytest.approx(200e-9, abs=3e-9)  # a 100 nm-radius sphere is in the area
     assert len(scan.line_start_times) == 64 and scan.scan_angle_deg == 90.0
 
 
 def test_commander_reports_a_missing_server_by_name():
-    with AfmCommander(server_timeout=0.5) as afm, pytest.raises(AfmError, match="/afm/push_particle"):
+    with (
+        AfmCommander(server_timeout=0.5) as afm,
+        pytest.raises(AfmError, match="/afm/push_particle"),
+    ):
         afm.push(goal=(1e-6, 1e-6), particle_id=1)
 
 
 def test_launch_records_and_stops_cleanly(tmp_path):
     record = tmp_path / "graph.mcap"
-    launch = subprocess.Popen(AFM + ["launch", "--record", str(record), "--log-dir", str(tmp_path / "logs")],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    launch = subprocess.Popen(
+        AFM + ["launch", "--record", str(record), "--log-dir", str(tmp_path / "logs")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
     lines = []
     threading.Thread(target=lambda: lines.extend(launch.stdout), daemon=True).start()
     wait_for(lambda: any(b"afm launch: ready" in line for line in lines), 60, what="launch ready")
@@ -49,8 +57,15 @@ def test_launch_records_and_stops_cleanly(tmp_path):
         afm.scan(origin=(54.5e-6, 54.5e-6), size=(1e-6, 1e-6), pixels=(32, 32))
     time.sleep(1.0)
     logs = sorted(p.name for p in (tmp_path / "logs").iterdir())
-    assert logs == ["driver.log", "imaging.log", "localizer.log", "nano_hand.log", "planner.log", "recorder.log",
-                    "sim2real.log"]
+    assert logs == [
+        "driver.log",
+        "imaging.log",
+        "localizer.log",
+        "nano_hand.log",
+        "planner.log",
+        "recorder.log",
+        "sim2real.log",
+    ]
     launch.send_signal(signal.SIGINT)
     launch.wait(timeout=60)
     assert launch.returncode == 0, b"".join(lines).decode()
@@ -63,10 +78,22 @@ def test_launch_records_and_stops_cleanly(tmp_path):
 
 def test_cli_help_and_info(tmp_path):
     from test_recording_files import write_session
+
     top = subprocess.run(AFM + ["--help"], capture_output=True, text=True)
     assert top.returncode == 0
-    for command in ("run", "launch", "record", "replay", "info", "recover", "scan", "push", "demo", "calibrate",
-                    "sim2real"):
+    for command in (
+        "run",
+        "launch",
+        "record",
+        "replay",
+        "info",
+        "recover",
+        "scan",
+        "push",
+        "demo",
+        "calibrate",
+        "sim2real",
+    ):
         assert command in top.stdout
         sub = subprocess.run(AFM + [command, "--help"], capture_output=True, text=True)
         assert sub.returncode == 0 and "usage: afm " + command in sub.stdout
@@ -74,7 +101,11 @@ def test_cli_help_and_info(tmp_path):
     write_session(path, n=2)
     info = subprocess.run(AFM + ["info", str(path)], capture_output=True, text=True)
     assert info.returncode == 0
-    assert "/afm/scan" in info.stdout and "afm_msgs/msg/RasterScan" in info.stdout and "messages:  6" in info.stdout
+    assert (
+        "/afm/scan" in info.stdout
+        and "afm_msgs/msg/RasterScan" in info.stdout
+        and "messages:  6" in info.stdout
+    )
     broken = tmp_path / "broken.mcap"
     broken.write_bytes(b"not an mcap file")
     info = subprocess.run(AFM + ["info", str(broken)], capture_output=True, text=True)
@@ -82,22 +113,45 @@ def test_cli_help_and_info(tmp_path):
 
 
 def test_cli_rejects_bad_lengths_by_name():
-    result = subprocess.run(AFM + ["push", "--particle", "1", "--goal", "12furlong", "3nm"],
-                            capture_output=True, text=True)
+    result = subprocess.run(
+        AFM + ["push", "--particle", "1", "--goal", "12furlong", "3nm"],
+        capture_output=True,
+        text=True,
+    )
     assert result.returncode == 2 and "goal='12furlong'" in result.stderr
 
 
 def test_calibrate_refuses_to_overwrite_and_names_a_missing_config(tmp_path):
     existing = tmp_path / "calibration.yaml"
     existing.write_text("keep me")
-    result = subprocess.run(AFM + ["calibrate", "-o", str(existing)], capture_output=True, text=True)
-    assert result.returncode != 0 and "exists" in result.stderr and existing.read_text() == "keep me"
-    result = subprocess.run(AFM + ["calibrate", "-o", str(tmp_path / "new.yaml"), "--sim-config",
-                                   str(tmp_path / "missing.yaml")], capture_output=True, text=True)
-    assert result.returncode != 0 and "missing.yaml" in result.stderr and not (tmp_path / "new.yaml").exists()
+    result = subprocess.run(
+        AFM + ["calibrate", "-o", str(existing)], capture_output=True, text=True
+    )
+    assert (
+        result.returncode != 0 and "exists" in result.stderr and existing.read_text() == "keep me"
+    )
+    result = subprocess.run(
+        AFM
+        + [
+            "calibrate",
+            "-o",
+            str(tmp_path / "new.yaml"),
+            "--sim-config",
+            str(tmp_path / "missing.yaml"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert (
+        result.returncode != 0
+        and "missing.yaml" in result.stderr
+        and not (tmp_path / "new.yaml").exists()
+    )
 
 
-@pytest.mark.parametrize("text, metres", [("500nm", 500e-9), ("1.5um", 1.5e-6), ("2e-6", 2e-6), (" 3 mm", 3e-3)])
+@pytest.mark.parametrize(
+    "text, metres", [("500nm", 500e-9), ("1.5um", 1.5e-6), ("2e-6", 2e-6), (" 3 mm", 3e-3)]
+)
 def test_lengths_with_units(text, metres):
     assert parse_length(text) == pytest.approx(metres)
 

@@ -1,4 +1,5 @@
 """Reconstruction of a nanotube, and `afm image ...` on files a lab would have."""
+
 import subprocess
 import sys
 
@@ -13,18 +14,29 @@ from afm_core.sim.instrument import SimulatedAfm
 from afm_core.sim.tip import paraboloid_cone_tip
 
 AFM = [sys.executable, "-m", "afm_bringup.cli", "image"]
-IDEAL = {"scanner": {"hysteresis_enabled": False, "creep_enabled": False, "coupling_enabled": False,
-                     "deflection_enabled": False,
-                    "positioning_noise_enabled": False},
-         "drift": {"enabled": False}, "noise": {"height_white_sigma": 0.1e-9, "height_flicker_sigma": 0.0}}
+IDEAL = {
+    "scanner": {
+        "hysteresis_enabled": False,
+        "creep_enabled": False,
+        "coupling_enabled": False,
+        "deflection_enabled": False,
+        "positioning_noise_enabled": False,
+    },
+    "drift": {"enabled": False},
+    "noise": {"height_white_sigma": 0.1e-9, "height_flicker_sigma": 0.0},
+}
 
 
 def width_above(profile, level, pixel):
     return np.count_nonzero(profile > level) * pixel
 
 
-@pytest.mark.parametrize("apex_shape, apex, widest", [("sphere", 25e-9, 25e-9), ("paraboloid", 20e-9, 29e-9)])
-def test_a_20_nm_nanotube_imaged_49_nm_wide_comes_back_as_narrow_as_the_book_s(apex_shape, apex, widest):
+@pytest.mark.parametrize(
+    "apex_shape, apex, widest", [("sphere", 25e-9, 25e-9), ("paraboloid", 20e-9, 29e-9)]
+)
+def test_a_20_nm_nanotube_imaged_49_nm_wide_comes_back_as_narrow_as_the_book_s(
+    apex_shape, apex, widest
+):
     """Book 4.4: a 20 nm high carbon nanotube imaged 49 nm wide, reconstructed ~29 nm.
     Widths at half height. Erosion is the tightest surface the image allows: the tube's
     flanks below its equator are hidden from the tip, and how much of them depends on the
@@ -32,36 +44,78 @@ def test_a_20_nm_nanotube_imaged_49_nm_wide_comes_back_as_narrow_as_the_book_s(a
     49 nm wide gives 23 nm back (closed form: the closing of the tube by a 25 nm ball is
     23.2 nm wide at half height); a paraboloid apex that images it 48 nm wide, 27 nm."""
     pixel, angle = 0.5e-9, 20.0
-    config = merge(load_config(), {**IDEAL, "tip": {"apex_radius": apex, "half_angle_deg": angle,
-                                                    "apex_shape": apex_shape},
-                                   "sample": {"spheres": [], "roughness_sigma": 0.0,
-                                              "rods": [{"x": 55e-6, "y": 55e-6, "angle": np.pi / 2, "length": 2e-6,
-                                                        "radius": 10e-9, "kind": "tube"}]}})
+    config = merge(
+        load_config(),
+        {
+            **IDEAL,
+            "tip": {"apex_radius": apex, "half_angle_deg": angle, "apex_shape": apex_shape},
+            "sample": {
+                "spheres": [],
+                "roughness_sigma": 0.0,
+                "rods": [
+                    {
+                        "x": 55e-6,
+                        "y": 55e-6,
+                        "angle": np.pi / 2,
+                        "length": 2e-6,
+                        "radius": 10e-9,
+                        "kind": "tube",
+                    }
+                ],
+            },
+        },
+    )
     afm = SimulatedAfm(config)
     n = 200
-    scan = afm.raster_scan(ScanRequest(55e-6 - n * pixel / 2, 55e-6 - n * pixel / 2, n * pixel, n * pixel, n, n))
+    scan = afm.raster_scan(
+        ScanRequest(55e-6 - n * pixel / 2, 55e-6 - n * pixel / 2, n * pixel, n * pixel, n, n)
+    )
     imaged = np.median([width_above(row, 10e-9, pixel) for row in scan.height])
-    assert 44e-9 < imaged < 54e-9                                        # the book's ~49 nm
+    assert 44e-9 < imaged < 54e-9  # the book's ~49 nm
     tip = paraboloid_cone_tip(apex, angle, pixel, depth=25e-9, apex_shape=apex_shape)
     surface = erode(scan.height.astype(float), tip)
     restored = np.median([width_above(row, 10e-9, pixel) for row in surface])
-    assert 20e-9 <= restored <= widest                                   # never narrower than the tube
-    assert surface.max() == pytest.approx(20e-9, abs=0.6e-9)             # the height is kept
+    assert 20e-9 <= restored <= widest  # never narrower than the tube
+    assert surface.max() == pytest.approx(20e-9, abs=0.6e-9)  # the height is kept
 
 
 def sim_map(tmp_path, name, angle=0.0, seed=0):
-    config = merge(load_config(), {**IDEAL, "seed": seed, "sample": {"spheres": [
-        {"x": 55.0e-6, "y": 55.0e-6, "radius": 60e-9}, {"x": 55.5e-6, "y": 55.4e-6, "radius": 60e-9}]}})
-    scan = SimulatedAfm(config).raster_scan(ScanRequest(54.5e-6, 54.5e-6, 1.5e-6, 1.5e-6, 128, 128,
-                                                        scan_angle_deg=angle, line_rate=1.0))
+    config = merge(
+        load_config(),
+        {
+            **IDEAL,
+            "seed": seed,
+            "sample": {
+                "spheres": [
+                    {"x": 55.0e-6, "y": 55.0e-6, "radius": 60e-9},
+                    {"x": 55.5e-6, "y": 55.4e-6, "radius": 60e-9},
+                ]
+            },
+        },
+    )
+    scan = SimulatedAfm(config).raster_scan(
+        ScanRequest(
+            54.5e-6, 54.5e-6, 1.5e-6, 1.5e-6, 128, 128, scan_angle_deg=angle, line_rate=1.0
+        )
+    )
     path = tmp_path / name
-    save_height_map(path, HeightMap(scan.height.astype(float), scan.pixel_size_x, scan.pixel_size_y,
-                                    scan.origin_x, scan.origin_y))
+    save_height_map(
+        path,
+        HeightMap(
+            scan.height.astype(float),
+            scan.pixel_size_x,
+            scan.pixel_size_y,
+            scan.origin_x,
+            scan.origin_y,
+        ),
+    )
     return path
 
 
 def run_cli(*args):
-    return subprocess.run(AFM + [str(a) for a in args], capture_output=True, text=True, timeout=600)
+    return subprocess.run(
+        AFM + [str(a) for a in args], capture_output=True, text=True, timeout=600
+    )
 
 
 def test_cli_landmarks_drift_tip_reconstruct(tmp_path):
@@ -73,18 +127,25 @@ def test_cli_landmarks_drift_tip_reconstruct(tmp_path):
     drift = run_cli("drift", scan0, scan90, "--line-rate", 1.0, "-o", tmp_path / "corrected.npz")
     assert drift.returncode == 0, drift.stderr
     assert load_height_map(tmp_path / "corrected.npz").height.shape == (128, 128)
-    tip = run_cli("tip", scan0, "--tip-size", 11, "--threshold", "1e-9", "-o", tmp_path / "tip.npz")
+    tip = run_cli(
+        "tip", scan0, "--tip-size", 11, "--threshold", "1e-9", "-o", tmp_path / "tip.npz"
+    )
     assert tip.returncode == 0, tip.stderr
-    rebuilt = run_cli("reconstruct", scan0, "--tip", tmp_path / "tip.npz", "-o", tmp_path / "surface.npz")
+    rebuilt = run_cli(
+        "reconstruct", scan0, "--tip", tmp_path / "tip.npz", "-o", tmp_path / "surface.npz"
+    )
     assert rebuilt.returncode == 0, rebuilt.stderr
-    image, surface = load_height_map(scan0).height, load_height_map(tmp_path / "surface.npz").height
-    assert np.all(surface <= image + 1e-15)            # erosion never raises the image
+    image, surface = (
+        load_height_map(scan0).height,
+        load_height_map(tmp_path / "surface.npz").height,
+    )
+    assert np.all(surface <= image + 1e-15)  # erosion never raises the image
 
 
 def test_cli_refuses_bad_input_by_name(tmp_path):
     scan0 = sim_map(tmp_path, "s0.npz")
     again = run_cli("reconstruct", scan0, "--tip", scan0, "-o", scan0)
-    assert again.returncode == 2 and "exists" in again.stderr           # never overwrites
+    assert again.returncode == 2 and "exists" in again.stderr  # never overwrites
     plain = tmp_path / "plain.npy"
     np.save(plain, np.zeros((8, 8)))
     missing = run_cli("landmarks", plain)

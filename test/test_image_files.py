@@ -1,24 +1,31 @@
 """User image files (afm_core.imaging.files): .npz (native), .npy and Gwyddion .gwy."""
+
 import shutil
 import subprocess
 import sys
 
+import gwyfile
 import numpy as np
 import pytest
+from gwyfile.objects import GwyContainer, GwyDataField
 
-import gwyfile
-from gwyfile.objects import GwyContainer, GwyDataField, GwySIUnit
-
-from afm_core.imaging.files import (HeightMap, ImageFileNotFound, list_channels, load_height_map,
-                                    save_height_map)
+from afm_core.imaging.files import (
+    HeightMap,
+    ImageFileNotFound,
+    list_channels,
+    load_height_map,
+    save_height_map,
+)
 from afm_core.imaging.landmarks import extract_landmarks
 
 
 def sample_map(title="topography", ny=30, nx=40, seed=0) -> HeightMap:
     rng = np.random.default_rng(seed)
     height = rng.normal(0.0, 2e-9, (ny, nx))
-    height[0, :] += 50e-9                       # row 0 (the bottom, smallest y) stands out
-    return HeightMap(height, pixel_size_x=2.5e-9, pixel_size_y=4e-9, origin_x=12e-6, origin_y=-3e-6, title=title)
+    height[0, :] += 50e-9  # row 0 (the bottom, smallest y) stands out
+    return HeightMap(
+        height, pixel_size_x=2.5e-9, pixel_size_y=4e-9, origin_x=12e-6, origin_y=-3e-6, title=title
+    )
 
 
 def assert_same(a: HeightMap, b: HeightMap):
@@ -39,6 +46,7 @@ def write_gwy(path, fields: dict):
 
 
 # -- .npz ------------------------------------------------------------------------------------
+
 
 def test_npz_round_trip(tmp_path):
     original = sample_map()
@@ -70,13 +78,19 @@ def test_npy_needs_the_pixel_size(tmp_path):
         load_height_map(path)
     hmap = load_height_map(path, pixel_size=3e-9)
     np.testing.assert_array_equal(hmap.height, height.astype(np.float64))
-    assert (hmap.pixel_size_x, hmap.pixel_size_y, hmap.origin_x, hmap.origin_y) == (3e-9, 3e-9, 0.0, 0.0)
+    assert (hmap.pixel_size_x, hmap.pixel_size_y, hmap.origin_x, hmap.origin_y) == (
+        3e-9,
+        3e-9,
+        0.0,
+        0.0,
+    )
     assert hmap.title == "plain"
     with pytest.raises(ValueError, match="cannot hold the pixel size"):
         save_height_map(tmp_path / "out.npy", hmap)
 
 
 # -- .gwy ------------------------------------------------------------------------------------
+
 
 def test_gwy_round_trip_with_several_channels(tmp_path):
     maps = [sample_map("Height", seed=5), sample_map("Height retrace", seed=6)]
@@ -102,26 +116,38 @@ def test_gwy_rows_go_top_to_bottom_and_ours_bottom_to_top(tmp_path):
     np.testing.assert_array_equal(field.data[-1], hmap.height[0])
     np.testing.assert_array_equal(field.data[0], hmap.height[-1])
     assert field["si_unit_xy"]["unitstr"] == "m" and field["si_unit_z"]["unitstr"] == "m"
-    assert field["xreal"] == pytest.approx(40 * 2.5e-9) and field["yreal"] == pytest.approx(30 * 4e-9)
+    assert field["xreal"] == pytest.approx(40 * 2.5e-9) and field["yreal"] == pytest.approx(
+        30 * 4e-9
+    )
     assert (field["xoff"], field["yoff"]) == (12e-6, -3e-6)
 
     picture = np.zeros((20, 30))
-    picture[2, 5] = 7.0                          # near the top-left corner of the Gwyddion picture
+    picture[2, 5] = 7.0  # near the top-left corner of the Gwyddion picture
     other = tmp_path / "other.gwy"
-    write_gwy(other, {"Z": GwyDataField(picture, xreal=3e-7, yreal=2e-7, si_unit_xy="m", si_unit_z="nm")})
+    write_gwy(
+        other, {"Z": GwyDataField(picture, xreal=3e-7, yreal=2e-7, si_unit_xy="m", si_unit_z="nm")}
+    )
     loaded = load_height_map(other)
     row, col = np.unravel_index(np.argmax(loaded.height), loaded.height.shape)
-    assert (row, col) == (20 - 1 - 2, 5)         # high y in our frame
+    assert (row, col) == (20 - 1 - 2, 5)  # high y in our frame
     assert loaded.height[row, col] == pytest.approx(7e-9)
 
 
-@pytest.mark.parametrize("unit, scale", [("nm", 1e-9), ("m", 1.0), ("um", 1e-6), ("\u00b5m", 1e-6),
-                                         ("pm", 1e-12), ("\u00c5", 1e-10)])
+@pytest.mark.parametrize(
+    "unit, scale",
+    [("nm", 1e-9), ("m", 1.0), ("um", 1e-6), ("\u00b5m", 1e-6), ("pm", 1e-12), ("\u00c5", 1e-10)],
+)
 def test_gwy_z_units_are_converted_to_metres(tmp_path, unit, scale):
     values = np.arange(12.0).reshape(3, 4) + 1.0
     path = tmp_path / "units.gwy"
-    write_gwy(path, {"Height": GwyDataField(values, xreal=4.0, yreal=3.0, xoff=1.0, yoff=2.0,
-                                            si_unit_xy="um", si_unit_z=unit)})
+    write_gwy(
+        path,
+        {
+            "Height": GwyDataField(
+                values, xreal=4.0, yreal=3.0, xoff=1.0, yoff=2.0, si_unit_xy="um", si_unit_z=unit
+            )
+        },
+    )
     hmap = load_height_map(path)
     np.testing.assert_allclose(hmap.height, values[::-1] * scale, rtol=1e-12)
     assert hmap.pixel_size_x == pytest.approx(1e-6) and hmap.pixel_size_y == pytest.approx(1e-6)
@@ -131,13 +157,22 @@ def test_gwy_z_units_are_converted_to_metres(tmp_path, unit, scale):
 
 def test_gwy_channel_by_title_and_missing_channels_listed(tmp_path):
     path = tmp_path / "multi.gwy"
-    write_gwy(path, {"Amplitude": GwyDataField(np.ones((4, 4)), xreal=1e-6, yreal=1e-6, si_unit_xy="m",
-                                               si_unit_z="V"),
-                     "Height": GwyDataField(np.full((4, 4), 5.0), xreal=1e-6, yreal=1e-6, si_unit_xy="m",
-                                            si_unit_z="nm")})
+    write_gwy(
+        path,
+        {
+            "Amplitude": GwyDataField(
+                np.ones((4, 4)), xreal=1e-6, yreal=1e-6, si_unit_xy="m", si_unit_z="V"
+            ),
+            "Height": GwyDataField(
+                np.full((4, 4), 5.0), xreal=1e-6, yreal=1e-6, si_unit_xy="m", si_unit_z="nm"
+            ),
+        },
+    )
     assert list_channels(path) == ["Amplitude", "Height"]
     assert np.all(load_height_map(path, channel="Height").height == pytest.approx(5e-9))
-    with pytest.raises(ValueError, match=r"'Phase' does not exist; channels: 0: 'Amplitude', 1: 'Height'"):
+    with pytest.raises(
+        ValueError, match=r"'Phase' does not exist; channels: 0: 'Amplitude', 1: 'Height'"
+    ):
         load_height_map(path, channel="Phase")
     with pytest.raises(ValueError, match="channel 2 does not exist.*'Amplitude'.*'Height'"):
         load_height_map(path, channel=2)
@@ -148,8 +183,9 @@ def test_gwy_channel_by_title_and_missing_channels_listed(tmp_path):
 def test_gwy_channel_index_is_the_position_not_gwyddions_number(tmp_path):
     container = GwyContainer()
     for number, value in ((3, 1.0), (7, 2.0)):
-        container[f"/{number}/data"] = GwyDataField(np.full((2, 3), value), xreal=3e-9, yreal=2e-9,
-                                                    si_unit_xy="m", si_unit_z="m")
+        container[f"/{number}/data"] = GwyDataField(
+            np.full((2, 3), value), xreal=3e-9, yreal=2e-9, si_unit_xy="m", si_unit_z="m"
+        )
         container[f"/{number}/data/title"] = f"ch{number}"
     path = tmp_path / "gaps.gwy"
     container.tofile(str(path))
@@ -161,11 +197,15 @@ def test_gwy_bad_content_is_rejected(tmp_path):
     nan = np.ones((3, 3))
     nan[1, 1] = np.nan
     path = tmp_path / "nan.gwy"
-    write_gwy(path, {"Height": GwyDataField(nan, xreal=1e-6, yreal=1e-6, si_unit_xy="m", si_unit_z="m")})
+    write_gwy(
+        path, {"Height": GwyDataField(nan, xreal=1e-6, yreal=1e-6, si_unit_xy="m", si_unit_z="m")}
+    )
     with pytest.raises(ValueError, match="NaN"):
         load_height_map(path)
     no_unit = tmp_path / "nounit.gwy"
-    write_gwy(no_unit, {"Height": GwyDataField(np.ones((3, 3)), xreal=1e-6, yreal=1e-6, si_unit_xy="m")})
+    write_gwy(
+        no_unit, {"Height": GwyDataField(np.ones((3, 3)), xreal=1e-6, yreal=1e-6, si_unit_xy="m")}
+    )
     with pytest.raises(ValueError, match="no height .*unit"):
         load_height_map(no_unit)
     junk = tmp_path / "junk.gwy"
@@ -187,8 +227,12 @@ def test_gwyddion_itself_reads_what_we_write(tmp_path):
     maps = [sample_map("Height", seed=8), sample_map("Phase-free height", seed=9)]
     ours, theirs = tmp_path / "ours.gwy", tmp_path / "theirs.gwy"
     save_height_map(ours, maps)
-    run = subprocess.run(["gwyddion", "--no-log-to-file", "--convert-to-gwy=" + str(theirs), str(ours)],
-                         capture_output=True, text=True, timeout=120)
+    run = subprocess.run(
+        ["gwyddion", "--no-log-to-file", "--convert-to-gwy=" + str(theirs), str(ours)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 0 and theirs.is_file(), run.stderr
     assert list_channels(theirs) == ["Height", "Phase-free height"]
     for number, original in enumerate(maps):
@@ -196,13 +240,14 @@ def test_gwyddion_itself_reads_what_we_write(tmp_path):
 
 
 def test_a_clear_error_without_gwyfile(tmp_path, monkeypatch):
-    monkeypatch.setitem(sys.modules, "gwyfile", None)          # import gwyfile now fails
+    monkeypatch.setitem(sys.modules, "gwyfile", None)  # import gwyfile now fails
     with pytest.raises(ImportError, match="pip install gwyfile"):
         save_height_map(tmp_path / "x.gwy", sample_map())
     assert not (tmp_path / "x.gwy").exists()
 
 
 # -- errors common to all formats --------------------------------------------------------------
+
 
 def test_unknown_suffix_and_missing_file(tmp_path):
     with pytest.raises(ValueError, match="unknown image file suffix '.tif'"):
@@ -262,8 +307,11 @@ def test_landmarks_are_where_they_were_after_a_gwy_round_trip(tmp_path):
     save_height_map(path, hmap)
     loaded = load_height_map(path)
     before = extract_landmarks(hmap.height, px, px, hmap.origin_x, hmap.origin_y)
-    after = extract_landmarks(loaded.height, loaded.pixel_size_x, loaded.pixel_size_y, loaded.origin_x,
-                              loaded.origin_y)
+    after = extract_landmarks(
+        loaded.height, loaded.pixel_size_x, loaded.pixel_size_y, loaded.origin_x, loaded.origin_y
+    )
     assert len(before) == len(after) == 1
-    assert after[0].x == pytest.approx(cx, abs=0.5e-9) and after[0].y == pytest.approx(cy, abs=0.5e-9)
+    assert after[0].x == pytest.approx(cx, abs=0.5e-9) and after[0].y == pytest.approx(
+        cy, abs=0.5e-9
+    )
     assert (after[0].x, after[0].y) == pytest.approx((before[0].x, before[0].y), abs=1e-15)

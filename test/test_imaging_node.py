@@ -1,6 +1,8 @@
 """The imaging node between the driver's scans and the landmark map."""
+
 import numpy as np
 import pytest
+from conftest import wait_for
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
@@ -10,18 +12,28 @@ from afm_core.instrument import ScanRequest
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 from afm_msgs.msg import LandmarkArray, RasterScan, TipShape
-from conftest import wait_for
 
 pytestmark = pytest.mark.ros
 
-SPHERES = [{"x": 55.0e-6, "y": 55.0e-6, "radius": 60e-9}, {"x": 55.5e-6, "y": 55.4e-6, "radius": 60e-9},
-           {"x": 54.6e-6, "y": 55.6e-6, "radius": 60e-9}, {"x": 55.3e-6, "y": 54.6e-6, "radius": 60e-9}]
+SPHERES = [
+    {"x": 55.0e-6, "y": 55.0e-6, "radius": 60e-9},
+    {"x": 55.5e-6, "y": 55.4e-6, "radius": 60e-9},
+    {"x": 54.6e-6, "y": 55.6e-6, "radius": 60e-9},
+    {"x": 55.3e-6, "y": 54.6e-6, "radius": 60e-9},
+]
 
 
 def simulated_scans():
     afm = SimulatedAfm(merge(load_config(), {"sample": {"spheres": SPHERES}}))
-    request = dict(origin_x=54.2e-6, origin_y=54.2e-6, size_x=1.8e-6, size_y=1.8e-6, pixels_x=128, pixels_y=128,
-                   line_rate=2.0)
+    request = dict(
+        origin_x=54.2e-6,
+        origin_y=54.2e-6,
+        size_x=1.8e-6,
+        size_y=1.8e-6,
+        pixels_x=128,
+        pixels_y=128,
+        line_rate=2.0,
+    )
     scan0 = afm.raster_scan(ScanRequest(**request))
     scan90 = afm.raster_scan(ScanRequest(**request, scan_angle_deg=90.0))
     return scan0, scan90
@@ -65,7 +77,9 @@ def test_maps_landmarks_tip_and_bad_scans(nodes, ros_node):
     count = len(marks)
     scan_pub.publish(to_msg(scan90, 4, "pair-a"))
     scan_pub.publish(to_msg(scan0, 5, "pair-a"))
-    wait_for(lambda: len(marks) > count and maps[-1].scan_id == 5, 60, what="the corrected pair's map")
+    wait_for(
+        lambda: len(marks) > count and maps[-1].scan_id == 5, 60, what="the corrected pair's map"
+    )
     assert len(marks[-1].landmarks) == 4
 
     # the node is alive and estimates the tip on demand

@@ -1,4 +1,5 @@
 """afm_msgs: every interface imports, serializes and documents its fields."""
+
 import re
 from pathlib import Path
 
@@ -36,7 +37,12 @@ def test_every_numeric_field_is_documented(path):
     undocumented = []
     for line in path.read_text().splitlines():
         stripped = line.strip()
-        if not stripped or stripped.startswith("#") or stripped == "---" or "=" in stripped.split("#")[0]:
+        if (
+            not stripped
+            or stripped.startswith("#")
+            or stripped == "---"
+            or "=" in stripped.split("#")[0]
+        ):
             continue
         if re.match(r"float(32|64)", stripped) and "#" not in stripped:
             undocumented.append(stripped)
@@ -45,16 +51,24 @@ def test_every_numeric_field_is_documented(path):
 
 def test_values_survive_serialization():
     from sample_messages import force_trace, landmarks, raster_scan
+
     for msg in (raster_scan(3), force_trace(2), landmarks(1)):
         assert deserialize_message(serialize_message(msg), type(msg)) == msg
 
 
 def test_landmark_kinds_are_distinct_constants():
-    kinds = {messages.Landmark.SPHERE, messages.Landmark.TUBE, messages.Landmark.ROD, messages.Landmark.PIT}
+    kinds = {
+        messages.Landmark.SPHERE,
+        messages.Landmark.TUBE,
+        messages.Landmark.ROD,
+        messages.Landmark.PIT,
+    }
     assert len(kinds) == 4
 
 
-@pytest.mark.parametrize("name", sorted(__import__("afm_bringup.launcher", fromlist=["NODES"]).NODES))
+@pytest.mark.parametrize(
+    "name", sorted(__import__("afm_bringup.launcher", fromlist=["NODES"]).NODES)
+)
 def test_each_nodes_params_file_documents_exactly_its_parameters_with_their_defaults(name):
     """The commented YAML shipped with a node is the reference a lab edits: it must name every
     parameter the node declares, with the node's default, and nothing it does not know."""
@@ -63,15 +77,21 @@ def test_each_nodes_params_file_documents_exactly_its_parameters_with_their_defa
     import yaml
 
     from afm_bringup.launcher import NODES
+
     spec = NODES[name]
     module = importlib.import_module(spec.module)
     table = getattr(module, "PARAMETERS", [])
     path = ROOT / spec.package / "config" / spec.params_file
     data = yaml.safe_load(path.read_text())
-    (node_name, section), = data.items()
+    ((node_name, section),) = data.items()
     documented = section["ros__parameters"] or {}
     declared = {entry[0]: entry[1] for entry in table}
-    assert set(documented) == set(declared), f"{path.name}: documented {sorted(documented)} vs declared {sorted(declared)}"
+    assert set(documented) == set(declared), (
+        f"{path.name}: documented {sorted(documented)} vs declared {sorted(declared)}"
+    )
     for key, default in declared.items():
-        assert documented[key] == pytest.approx(default) if isinstance(default, float) else documented[key] == default, \
-            f"{path.name}: {key} = {documented[key]!r}, node default {default!r}"
+        assert (
+            documented[key] == pytest.approx(default)
+            if isinstance(default, float)
+            else documented[key] == default
+        ), f"{path.name}: {key} = {documented[key]!r}, node default {default!r}"

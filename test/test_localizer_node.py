@@ -1,8 +1,11 @@
 """The localizer node in a graph with the simulated driver: it follows every command the
 driver executes, publishes the estimate, and localizes through the Localize action."""
+
 import numpy as np
 import pytest
-from geometry_msgs.msg import PoseWithCovarianceStamped, PointStamped
+from conftest import wait_for
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+from sim_calibration import oracle_calibration
 from std_msgs.msg import Header
 
 from afm_bringup.commander import AfmCommander
@@ -11,17 +14,24 @@ from afm_bringup.qos_profiles import LATCHED
 from afm_core.imaging.landmarks import Landmark
 from afm_msgs.action import MoveTip
 from afm_msgs.msg import GroundTruth, LandmarkArray
-from conftest import wait_for
-from sim_calibration import oracle_calibration
 
 pytestmark = pytest.mark.ros
 
-SPHERE = (55.0e-6, 55.0e-6)                    # the default simulator's first sphere, r = 100 nm
+SPHERE = (55.0e-6, 55.0e-6)  # the default simulator's first sphere, r = 100 nm
 
 
 def landmark(i, x, y, sigma=2e-9):
-    return Landmark(id=i, kind="sphere", x=x, y=y, covariance=np.diag([sigma ** 2, sigma ** 2]), radius=100e-9,
-                    height=200e-9, length=0.0, orientation=0.0)
+    return Landmark(
+        id=i,
+        kind="sphere",
+        x=x,
+        y=y,
+        covariance=np.diag([sigma**2, sigma**2]),
+        radius=100e-9,
+        height=200e-9,
+        length=0.0,
+        orientation=0.0,
+    )
 
 
 def move(afm, x, y):
@@ -32,27 +42,34 @@ def move(afm, x, y):
     assert result.success, result.message
 
 
-def test_localize_through_the_action_with_lost_gated_and_unknown_landmarks(tmp_path, nodes, ros_node):
+def test_localize_through_the_action_with_lost_gated_and_unknown_landmarks(
+    tmp_path, nodes, ros_node
+):
     calibration = oracle_calibration(tmp_path / "calibration.yaml")
     nodes("driver", seed=3, real_time_factor=0.0)
     nodes("localizer", calibration_file=str(calibration))
     poses, truths = [], []
     ros_node.create_subscription(PoseWithCovarianceStamped, "/afm/tip_pose", poses.append, 10)
     ros_node.create_subscription(GroundTruth, "/afm/ground_truth", truths.append, LATCHED)
-    marks = [landmark(0, *SPHERE),
-             landmark(7, 54.0e-6, 54.0e-6),                       # nothing there: lost
-             landmark(8, SPHERE[0] + 80e-9, SPHERE[1] - 80e-9, sigma=0.5e-9)]   # the sphere, mis-mapped: gated
+    marks = [
+        landmark(0, *SPHERE),
+        landmark(7, 54.0e-6, 54.0e-6),  # nothing there: lost
+        landmark(8, SPHERE[0] + 80e-9, SPHERE[1] - 80e-9, sigma=0.5e-9),
+    ]  # the sphere, mis-mapped: gated
     ros_node.create_publisher(LandmarkArray, "/afm/landmarks", LATCHED).publish(
-        landmarks_to_msg(marks, Header(frame_id=FRAME_TASK)))
+        landmarks_to_msg(marks, Header(frame_id=FRAME_TASK))
+    )
     with AfmCommander(server_timeout=30) as afm:
         refused = afm.localize(landmark_id=0)
         assert not refused.success and "no tip estimate yet" in refused.message
         move(afm, 54.7e-6, 54.75e-6)
         wait_for(lambda: poses, 10, what="a pose once the driver has moved")
         mean, cov = pose_to_mean_cov(poses[-1])
-        assert poses[-1].header.frame_id == FRAME_TASK and mean == pytest.approx((54.7e-6, 54.75e-6), abs=150e-9)
+        assert poses[-1].header.frame_id == FRAME_TASK and mean == pytest.approx(
+            (54.7e-6, 54.75e-6), abs=150e-9
+        )
         sigma_before = np.sqrt(np.diag(cov))
-        assert np.all(sigma_before > 10e-9)                         # 50 nm initial, plus a ~0.4 um move
+        assert np.all(sigma_before > 10e-9)  # 50 nm initial, plus a ~0.4 um move
 
         result = afm.localize(landmark_id=0)
         assert result.success, result.message
@@ -60,7 +77,9 @@ def test_localize_through_the_action_with_lost_gated_and_unknown_landmarks(tmp_p
         mean, cov = pose_to_mean_cov(result.pose)
         sigma = np.sqrt(np.diag(cov))
         assert np.all(sigma < 0.5 * sigma_before) and np.all(sigma < 10e-9)
-        wait_for(lambda: truths and truths[-1].header.stamp == result.pose.header.stamp or truths, 5)
+        wait_for(
+            lambda: truths and truths[-1].header.stamp == result.pose.header.stamp or truths, 5
+        )
         true_tip = np.array([truths[-1].tip_position.x, truths[-1].tip_position.y])
         assert np.all(np.abs(mean - true_tip) < 4 * sigma), (mean - true_tip, sigma)
 

@@ -1,6 +1,7 @@
 """Landmark path planning (afm_core.planning, book chapter 6): observation planning (eq. 6.1-6.10),
 single-landmark routes (Guidelines 6.1 / 6.2, Tables 6.1 / 6.2), Dijkstra chains (Fig. 6.9, Tables
 6.3 / 6.4), landmark domains and dynamic configuration (eq. 6.13-6.15). Sequencing: test_sequencing.py."""
+
 from __future__ import annotations
 
 import math
@@ -11,9 +12,17 @@ import pytest
 from afm_core.imaging.landmarks import Landmark
 from afm_core.localization.calibration import Calibration
 from afm_core.localization.motion_noise import MotionNoise
-from afm_core.planning import (cheapest_chain, covering_landmarks, landmark_domain, observation_distance,
-                               observation_distance_matrix, plan_landmark_chain, plan_landmark_configuration,
-                               plan_landmark_route, plan_observation)
+from afm_core.planning import (
+    cheapest_chain,
+    covering_landmarks,
+    landmark_domain,
+    observation_distance,
+    observation_distance_matrix,
+    plan_landmark_chain,
+    plan_landmark_configuration,
+    plan_landmark_route,
+    plan_observation,
+)
 from afm_core.planning.observation import THREE_SIGMA_MASS, line_end_distance
 
 NM = 1e-9
@@ -21,8 +30,17 @@ UM = 1e-6
 
 
 def particle(lid=0, x=0.0, y=0.0, radius=50 * NM, sigma=(5.0 * NM, 4.5 * NM)):
-    return Landmark(id=lid, kind="sphere", x=x, y=y, covariance=np.diag(np.square(sigma)), radius=radius,
-                    height=2 * radius, length=0.0, orientation=0.0)
+    return Landmark(
+        id=lid,
+        kind="sphere",
+        x=x,
+        y=y,
+        covariance=np.diag(np.square(sigma)),
+        radius=radius,
+        height=2 * radius,
+        length=0.0,
+        orientation=0.0,
+    )
 
 
 def sigmas(cov):
@@ -30,7 +48,7 @@ def sigmas(cov):
 
 
 # -- observation planning (eq. 6.1-6.10) -----------------------------------------------------------
-NOISE = MotionNoise.isotropic(0.3 * NM, cross_fraction=0.1)         # a drifty instrument: several lines
+NOISE = MotionNoise.isotropic(0.3 * NM, cross_fraction=0.1)  # a drifty instrument: several lines
 TIP_START = np.array([-400 * NM, 40 * NM])
 
 
@@ -60,7 +78,9 @@ def test_line_probabilities_integrate_the_gaussian_over_the_ellipse(direction, r
     raw = np.array([line.raw_probability for line in plan.lines])
     assert raw.sum() == pytest.approx(1 - math.exp(-4.5), abs=1e-9)
     assert sum(line.probability for line in plan.lines) == pytest.approx(1.0, abs=1e-12)
-    sigma_across = math.sqrt(plan.reference_covariance[1 if direction == "h" else 0, 1 if direction == "h" else 0])
+    sigma_across = math.sqrt(
+        plan.reference_covariance[1 if direction == "h" else 0, 1 if direction == "h" else 0]
+    )
     assert plan.covered[0] <= -3 * sigma_across and plan.covered[1] >= 3 * sigma_across
     rng = np.random.default_rng(0)
     e = rng.multivariate_normal([0, 0], plan.reference_covariance, 400_000)
@@ -68,8 +88,13 @@ def test_line_probabilities_integrate_the_gaussian_over_the_ellipse(direction, r
     across = e[:, 1 if direction == "h" else 0]
     lo, hi = plan.lines[0].band
     for line in plan.lines:
-        a, b = ((line.band[0], line.band[1]) if line.side == 0 else
-                (hi, line.band[1]) if line.side > 0 else (line.band[0], lo))
+        a, b = (
+            (line.band[0], line.band[1])
+            if line.side == 0
+            else (hi, line.band[1])
+            if line.side > 0
+            else (line.band[0], lo)
+        )
         if line.side > 0:
             hi = line.band[1]
         elif line.side < 0:
@@ -80,7 +105,7 @@ def test_line_probabilities_integrate_the_gaussian_over_the_ellipse(direction, r
 
 def test_small_probability_lines_are_dropped():
     full = wide_plan(min_line_probability=0.0)
-    book = wide_plan()                                  # TH = 0.01
+    book = wide_plan()  # TH = 0.01
     assert len(book.lines) < len(full.lines)
     assert all(line.raw_probability / THREE_SIGMA_MASS >= 0.01 for line in book.lines)
     assert sum(line.probability for line in book.lines) == pytest.approx(1.0, abs=1e-12)
@@ -122,8 +147,9 @@ def test_a_particle_in_the_ellipse_is_always_crossed(direction):
         keep &= np.all(np.abs(w) <= 3 * np.sqrt(added), axis=1)
         if line is not None:
             offset = plan.lines[line].offset
-            found |= (np.abs(offset + e0[:, across] + w_start[:, across]) < 50 * NM) & \
-                     (np.abs(offset + e0[:, across] + w[:, across]) < 50 * NM)
+            found |= (np.abs(offset + e0[:, across] + w_start[:, across]) < 50 * NM) & (
+                np.abs(offset + e0[:, across] + w[:, across]) < 50 * NM
+            )
     assert keep.sum() > n // 2
     assert found[keep].all()
     # without conditioning on 3 sigma the plan still finds the particle almost always
@@ -136,17 +162,22 @@ def test_lines_keep_three_sigma_plus_tip_radius_clear_of_the_particle(direction)
     along = 0 if direction == "h" else 1
     for line in plan.lines:
         for point, cov in ((line.start, line.start_covariance), (line.end, line.end_covariance)):
-            edge_gap = abs(point[along]) - 50 * NM               # from the particle's edge
+            edge_gap = abs(point[along]) - 50 * NM  # from the particle's edge
             assert edge_gap >= 3 * math.sqrt(cov[along, along]) + 20 * NM - 1e-15
-        assert np.sign(line.start[along]) == -np.sign(line.end[along])     # it crosses the centre line
+        assert np.sign(line.start[along]) == -np.sign(
+            line.end[along]
+        )  # it crosses the centre line
 
 
 def test_a_sharp_tip_needs_one_line_and_costs_its_travel():
-    plan = plan_observation(TIP_START, np.eye(2) * (5 * NM) ** 2, (0, 0), 50 * NM, 20 * NM,
-                            MotionNoise.book(), "h")
+    plan = plan_observation(
+        TIP_START, np.eye(2) * (5 * NM) ** 2, (0, 0), 50 * NM, 20 * NM, MotionNoise.book(), "h"
+    )
     assert len(plan.lines) == 1
     assert plan.lines[0].probability == pytest.approx(1.0)
-    assert plan.expected_cost == pytest.approx(plan.approach_length + plan.lines[0].length, rel=1e-12)
+    assert plan.expected_cost == pytest.approx(
+        plan.approach_length + plan.lines[0].length, rel=1e-12
+    )
     assert plan.success_probability > 0.9999
 
 
@@ -157,23 +188,38 @@ def test_expected_cost_grows_with_the_uncertainty():
 
 def test_particle_too_small_for_the_noise_is_refused():
     with pytest.raises(ValueError, match="particle_radius.*too small"):
-        plan_observation(TIP_START, np.eye(2) * (60 * NM) ** 2, (0, 0), 20 * NM, 20 * NM, NOISE, "h")
+        plan_observation(
+            TIP_START, np.eye(2) * (60 * NM) ** 2, (0, 0), 20 * NM, 20 * NM, NOISE, "h"
+        )
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"tip_mean": (np.nan, 0.0)}, "tip_mean"),
-    ({"tip_covariance": np.diag([1e-16, -1e-16])}, "tip_covariance.*positive semi-definite"),
-    ({"tip_covariance": np.array([[1e-16, 2e-16], [2e-16, 1e-16]])}, "tip_covariance.*positive semi-definite"),
-    ({"tip_covariance": np.eye(3)}, "tip_covariance"),
-    ({"particle_radius": -1e-9}, "particle_radius"),
-    ({"particle_radius": float("nan")}, "particle_radius"),
-    ({"tip_radius": -1e-9}, "tip_radius"),
-    ({"direction": "x"}, "direction"),
-    ({"particle_center": (0.0, float("inf"))}, "particle_center"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"tip_mean": (np.nan, 0.0)}, "tip_mean"),
+        ({"tip_covariance": np.diag([1e-16, -1e-16])}, "tip_covariance.*positive semi-definite"),
+        (
+            {"tip_covariance": np.array([[1e-16, 2e-16], [2e-16, 1e-16]])},
+            "tip_covariance.*positive semi-definite",
+        ),
+        ({"tip_covariance": np.eye(3)}, "tip_covariance"),
+        ({"particle_radius": -1e-9}, "particle_radius"),
+        ({"particle_radius": float("nan")}, "particle_radius"),
+        ({"tip_radius": -1e-9}, "tip_radius"),
+        ({"direction": "x"}, "direction"),
+        ({"particle_center": (0.0, float("inf"))}, "particle_center"),
+    ],
+)
 def test_observation_rejects_bad_input(kwargs, message):
-    args = dict(tip_mean=TIP_START, tip_covariance=np.eye(2) * 1e-16, particle_center=(0.0, 0.0),
-                particle_radius=50 * NM, tip_radius=20 * NM, noise=NOISE, direction="h")
+    args = dict(
+        tip_mean=TIP_START,
+        tip_covariance=np.eye(2) * 1e-16,
+        particle_center=(0.0, 0.0),
+        particle_radius=50 * NM,
+        tip_radius=20 * NM,
+        noise=NOISE,
+        direction="h",
+    )
     args.update(kwargs)
     with pytest.raises(ValueError, match=message):
         plan_observation(**args)
@@ -188,7 +234,7 @@ def test_motion_noise_rejects_negative_sigma():
 
 # -- single landmark: Tables 6.1 / 6.2 -------------------------------------------------------------
 R_P, R_T = 50 * NM, 10 * NM
-BOOK_STARTS = {          # Fig. 6.5 (a), (b), (c): start (m) and initial sigma (m), Table 6.1 row 1
+BOOK_STARTS = {  # Fig. 6.5 (a), (b), (c): start (m) and initial sigma (m), Table 6.1 row 1
     "6.5a": (np.array([-0.3, 0.3]) * UM, 5.0 * NM),
     "6.5b": (np.array([-0.3, 0.3]) * UM, 10.0 * NM),
     "6.5c": (np.array([-0.6, 0.5]) * UM, 5.0 * NM),
@@ -214,16 +260,23 @@ def test_book_tables_6_1_and_6_2_final_sigma_is_about_5_nm():
     finals = []
     for name, (start, sigma0) in BOOK_STARTS.items():
         for spot, mode in NATURAL.items():
-            route = plan_landmark_route(start, np.eye(2) * sigma0 ** 2, particle(radius=R_P), R_T,
-                                        MotionNoise.book(), spot=spot, mode=mode)
+            route = plan_landmark_route(
+                start,
+                np.eye(2) * sigma0**2,
+                particle(radius=R_P),
+                R_T,
+                MotionNoise.book(),
+                spot=spot,
+                mode=mode,
+            )
             final = route.final_sigma / NM
             assert route.spots == (spot,) and route.modes == (mode,)
             assert np.all((final >= 4.0) & (final <= 6.0)), (name, spot, final)
-            before = sigmas(route.waypoints[0].covariance) / NM        # P1: at the first line's start
-            assert np.all(before > sigma0 / NM)                        # the approach made it worse ...
+            before = sigmas(route.waypoints[0].covariance) / NM  # P1: at the first line's start
+            assert np.all(before > sigma0 / NM)  # the approach made it worse ...
             finals.append(final)
     finals = np.array(finals)
-    assert np.ptp(finals, axis=0).max() < 1.5                            # ... the landmark makes it consistent
+    assert np.ptp(finals, axis=0).max() < 1.5  # ... the landmark makes it consistent
 
 
 def test_detour_modes_end_close_to_5_nm_but_cost_more():
@@ -233,8 +286,14 @@ def test_detour_modes_end_close_to_5_nm_but_cost_more():
     (Guideline 6.2 picks the natural mode)."""
     start, sigma0 = BOOK_STARTS["6.5a"]
     for spot, detour in (("left", "hh"), ("right", "hh"), ("down", "vv"), ("up", "vv")):
-        kwargs = dict(start_mean=start, start_covariance=np.eye(2) * sigma0 ** 2, landmark=particle(radius=R_P),
-                      tip_radius=R_T, noise=MotionNoise.book(), spot=spot)
+        kwargs = dict(
+            start_mean=start,
+            start_covariance=np.eye(2) * sigma0**2,
+            landmark=particle(radius=R_P),
+            tip_radius=R_T,
+            noise=MotionNoise.book(),
+            spot=spot,
+        )
         long_way = plan_landmark_route(mode=detour, **kwargs)
         chosen = plan_landmark_route(**kwargs)
         assert np.all((long_way.final_sigma >= 4 * NM) & (long_way.final_sigma <= 6.5 * NM))
@@ -244,16 +303,29 @@ def test_detour_modes_end_close_to_5_nm_but_cost_more():
 
 def test_guideline_6_1_localizes_at_the_spot_nearest_the_task():
     start = np.array([-0.3, 0.3]) * UM
-    for task, spot in (((0.8, 0.05), "right"), ((-0.9, 0.0), "left"), ((0.05, 0.7), "up"), ((0.0, -0.5), "down")):
-        route = plan_landmark_route(start, np.eye(2) * (5 * NM) ** 2, particle(lid=7, radius=R_P), R_T,
-                                    MotionNoise.book(), task_point=np.array(task) * UM)
+    for task, spot in (
+        ((0.8, 0.05), "right"),
+        ((-0.9, 0.0), "left"),
+        ((0.05, 0.7), "up"),
+        ((0.0, -0.5), "down"),
+    ):
+        route = plan_landmark_route(
+            start,
+            np.eye(2) * (5 * NM) ** 2,
+            particle(lid=7, radius=R_P),
+            R_T,
+            MotionNoise.book(),
+            task_point=np.array(task) * UM,
+        )
         assert route.spots == (spot,)
         roles = [w.role for w in route.waypoints]
         assert roles[-1] == "task" and route.waypoints[-1].landmark_id == -1
         assert "observe_h" in roles and "observe_v" in roles
         assert {w.landmark_id for w in route.waypoints[:-1]} == {7}
         spot_point = route.waypoints[-2].position
-        assert np.linalg.norm(spot_point - np.array(task) * UM) < np.linalg.norm(np.array(task) * UM)
+        assert np.linalg.norm(spot_point - np.array(task) * UM) < np.linalg.norm(
+            np.array(task) * UM
+        )
 
 
 def test_route_covariances_follow_the_motion_model_and_the_kalman_update():
@@ -262,8 +334,16 @@ def test_route_covariances_follow_the_motion_model_and_the_kalman_update():
     the scalar Kalman update v r^2 / (v + r^2), then + K_h1 |x_e - x_c| (no second settling offset)."""
     noise = MotionNoise(0.08 * NM, 0.01 * NM, 0.1 * NM, 0.005 * NM, offset_x=1e-19, offset_y=2e-19)
     start, cov0 = np.array([-400 * NM, 100 * NM]), np.diag([(6 * NM) ** 2, (7 * NM) ** 2])
-    route = plan_landmark_route(start, cov0, particle(radius=R_P), R_T, noise, mode="hv", spot="up",
-                                observation_sigma=(5 * NM, 4.5 * NM))
+    route = plan_landmark_route(
+        start,
+        cov0,
+        particle(radius=R_P),
+        R_T,
+        noise,
+        mode="hv",
+        spot="up",
+        observation_sigma=(5 * NM, 4.5 * NM),
+    )
     first, observed = route.waypoints[0], route.waypoints[1]
     assert first.role == "move" and observed.role == "observe_h"
     d = first.position - start
@@ -284,33 +364,43 @@ def test_route_covariances_follow_the_motion_model_and_the_kalman_update():
         assert is_scan or closest >= R_P + R_T
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"mode": "hx"}, "mode"),
-    ({"spot": "north"}, "spot"),
-    ({"mode": "hv", "spot": "left"}, "not reachable"),
-    ({"task_point": (np.nan, 0)}, "task_point"),
-    ({"start_covariance": np.diag([1e-16, -1e-15])}, "start_covariance"),
-    ({"landmark": "P3"}, "landmark"),
-    ({"landmark": particle(radius=-5e-9)}, "radius"),
-    ({"observation_sigma": -1e-9}, "observation_sigma"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"mode": "hx"}, "mode"),
+        ({"spot": "north"}, "spot"),
+        ({"mode": "hv", "spot": "left"}, "not reachable"),
+        ({"task_point": (np.nan, 0)}, "task_point"),
+        ({"start_covariance": np.diag([1e-16, -1e-15])}, "start_covariance"),
+        ({"landmark": "P3"}, "landmark"),
+        ({"landmark": particle(radius=-5e-9)}, "radius"),
+        ({"observation_sigma": -1e-9}, "observation_sigma"),
+    ],
+)
 def test_route_rejects_bad_input(kwargs, message):
-    args = dict(start_mean=(-300 * NM, 300 * NM), start_covariance=np.eye(2) * (5 * NM) ** 2,
-                landmark=particle(), tip_radius=R_T, noise=MotionNoise.book())
+    args = dict(
+        start_mean=(-300 * NM, 300 * NM),
+        start_covariance=np.eye(2) * (5 * NM) ** 2,
+        landmark=particle(),
+        tip_radius=R_T,
+        noise=MotionNoise.book(),
+    )
     args.update(kwargs)
     with pytest.raises(ValueError, match=message):
         plan_landmark_route(**args)
 
 
 # -- many landmarks: Dijkstra (Fig. 6.9, Tables 6.3 / 6.4) ------------------------------------------
-TABLE_6_3_UM = np.array([
-    [0.0000, 0.7697, 1.0054, 0.9678, 3.1106, 3.1856],
-    [0.7697, 0.0000, 0.9222, 0.7295, 1.0197, 3.1108],
-    [1.0054, 0.9222, 0.0000, 0.6956, 0.9858, 1.0095],
-    [0.9678, 0.7295, 0.6956, 0.0000, 1.0065, 3.0627],
-    [3.1106, 1.0197, 0.9858, 1.0065, 0.0000, 0.7792],
-    [3.1856, 3.1108, 1.0095, 3.0627, 0.7792, 0.0000],
-])
+TABLE_6_3_UM = np.array(
+    [
+        [0.0000, 0.7697, 1.0054, 0.9678, 3.1106, 3.1856],
+        [0.7697, 0.0000, 0.9222, 0.7295, 1.0197, 3.1108],
+        [1.0054, 0.9222, 0.0000, 0.6956, 0.9858, 1.0095],
+        [0.9678, 0.7295, 0.6956, 0.0000, 1.0065, 3.0627],
+        [3.1106, 1.0197, 0.9858, 1.0065, 0.0000, 0.7792],
+        [3.1856, 3.1108, 1.0095, 3.0627, 0.7792, 0.0000],
+    ]
+)
 
 
 def test_dijkstra_on_table_6_3_picks_p1_p3_p6():
@@ -319,7 +409,7 @@ def test_dijkstra_on_table_6_3_picks_p1_p3_p6():
     path, cost = cheapest_chain(TABLE_6_3_UM, 0, 5)
     assert path == [0, 2, 5]
     assert cost == pytest.approx(2.0149, abs=1e-9)
-    assert int(np.argmin(TABLE_6_3_UM[0, 1:])) + 1 == 1          # greedy would go to P2 first
+    assert int(np.argmin(TABLE_6_3_UM[0, 1:])) + 1 == 1  # greedy would go to P2 first
     for via, book in ((1, 3.8805), (3, 4.0305), (4, 3.8898)):
         assert TABLE_6_3_UM[0, via] + TABLE_6_3_UM[via, 5] == pytest.approx(book, abs=1e-9)
 
@@ -348,16 +438,17 @@ def test_chain_of_near_landmarks_beats_the_nearest_one_to_the_task():
     start, cov = np.array([-0.15 * UM, 0.0]), np.eye(2) * (5 * NM) ** 2
     task = np.array([1.62 * UM, 0.05 * UM])
     chain = plan_landmark_chain(start, cov, landmarks, task, R_T, noise, required_sigma=10 * NM)
-    assert chain.landmark_ids[-1] == 15                                   # localized last next to the task
+    assert chain.landmark_ids[-1] == 15  # localized last next to the task
     assert 99 not in chain.landmark_ids and 10 not in chain.landmark_ids
     assert len(chain.landmark_ids) >= 3
-    direct = chain.weights[0, 6] + chain.weights[6, 8]                    # start -> particle 15 -> task
+    direct = chain.weights[0, 6] + chain.weights[6, 8]  # start -> particle 15 -> task
     assert chain.cost < 0.5 * direct
     assert chain.meets_required and np.all(chain.route.final_sigma <= 10 * NM)
     assert chain.route.waypoints[-1].role == "task"
     assert np.allclose(chain.route.waypoints[-1].position, task)
-    assert [lid for lid in dict.fromkeys(w.landmark_id for w in chain.route.waypoints) if lid >= 0] \
-        == list(chain.landmark_ids)
+    assert [
+        lid for lid in dict.fromkeys(w.landmark_id for w in chain.route.waypoints) if lid >= 0
+    ] == list(chain.landmark_ids)
     # the matrix of eq. 6.12 and the pairwise distance agree
     w = observation_distance_matrix(row, R_T, noise)
     assert w.shape == (6, 6) and np.all(np.diag(w) == 0)
@@ -368,10 +459,19 @@ def test_chain_of_near_landmarks_beats_the_nearest_one_to_the_task():
 def test_chain_rejects_duplicate_ids_and_unreachable_tasks():
     noise = MotionNoise.book()
     with pytest.raises(ValueError, match="unique"):
-        plan_landmark_chain((0, 0), np.eye(2) * 1e-17, [particle(1), particle(1, x=1e-6)], (2e-6, 0), R_T, noise)
+        plan_landmark_chain(
+            (0, 0), np.eye(2) * 1e-17, [particle(1), particle(1, x=1e-6)], (2e-6, 0), R_T, noise
+        )
     with pytest.raises(ValueError, match="no chain"):
-        plan_landmark_chain((0, 0), np.eye(2) * 1e-17, [particle(1, x=0.3e-6)], (20e-6, 0), R_T, noise,
-                            required_sigma=6 * NM)
+        plan_landmark_chain(
+            (0, 0),
+            np.eye(2) * 1e-17,
+            [particle(1, x=0.3e-6)],
+            (20e-6, 0),
+            R_T,
+            noise,
+            required_sigma=6 * NM,
+        )
 
 
 # -- landmark domain (eq. 6.13-6.15) ----------------------------------------------------------------
@@ -383,13 +483,13 @@ def test_domain_with_isotropic_noise_is_a_box_around_each_spot():
     lm = particle(radius=R_P, sigma=(5 * NM, 4.5 * NM))
     required = (8 * NM, 9 * NM)
     domain = landmark_domain(lm, required, R_T, noise)
-    half_x = ((8 * NM) ** 2 - (5 * NM) ** 2) / k                     # 390 nm
-    half_y = ((9 * NM) ** 2 - (4.5 * NM) ** 2) / k                   # 607.5 nm
+    half_x = ((8 * NM) ** 2 - (5 * NM) ** 2) / k  # 390 nm
+    half_y = ((9 * NM) ** 2 - (4.5 * NM) ** 2) / k  # 607.5 nm
     assert domain.half_extents() == pytest.approx([half_x, half_y], rel=1e-12)
     right = np.array([R_P + R_T + 15 * NM, 0.0])
     assert np.allclose(domain.spots[1], right)
-    corner = right + np.array([0.999 * half_x, 0.999 * half_y])      # the box's corner is in ...
-    beyond_x = right + np.array([1.001 * half_x, 0.0])                # ... just past its side is not
+    corner = right + np.array([0.999 * half_x, 0.999 * half_y])  # the box's corner is in ...
+    beyond_x = right + np.array([1.001 * half_x, 0.0])  # ... just past its side is not
     assert domain.contains([right, corner, beyond_x]).tolist() == [True, True, False]
     assert not domain.contains(domain.spots[3] + [0, 1.001 * half_y])[0]
     assert domain.contains(domain.spots[3] + [0, 0.999 * half_y])[0]
@@ -397,7 +497,7 @@ def test_domain_with_isotropic_noise_is_a_box_around_each_spot():
 
 def test_domain_with_full_cross_growth_is_a_diamond():
     k = 0.1 * NM
-    noise = MotionNoise.isotropic(k, cross_fraction=1.0)             # Var_x = Var_y = k (|dx| + |dy|)
+    noise = MotionNoise.isotropic(k, cross_fraction=1.0)  # Var_x = Var_y = k (|dx| + |dy|)
     domain = landmark_domain(particle(), 8 * NM, R_T, noise, localized_sigma=5 * NM)
     reach = ((8 * NM) ** 2 - (5 * NM) ** 2) / k
     right = domain.spots[1]
@@ -429,19 +529,31 @@ def test_covering_landmarks_and_dynamic_configuration():
     assert config.push_landmark_id == 2 and config.push_to[1] < 3.0 * UM
     # already covered: nothing to push
     config = plan_landmark_configuration(task, [moved, far], required, R_T, noise)
-    assert config.covering_ids == (1,) and config.push_landmark_id is None and config.push_distance == 0
+    assert (
+        config.covering_ids == (1,)
+        and config.push_landmark_id is None
+        and config.push_distance == 0
+    )
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"movable_ids": [5]}, "movable_ids: unknown landmark id"),
-    ({"required_sigma": 3 * NM}, "required_sigma.*below the localized sigma"),
-    ({"required_sigma": -1.0}, "required_sigma"),
-    ({"task_point": (0.0, np.nan)}, "task_point"),
-    ({"landmarks": []}, "at least one"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"movable_ids": [5]}, "movable_ids: unknown landmark id"),
+        ({"required_sigma": 3 * NM}, "required_sigma.*below the localized sigma"),
+        ({"required_sigma": -1.0}, "required_sigma"),
+        ({"task_point": (0.0, np.nan)}, "task_point"),
+        ({"landmarks": []}, "at least one"),
+    ],
+)
 def test_configuration_rejects_bad_input(kwargs, message):
-    args = dict(task_point=(0.0, 0.0), landmarks=[particle(lid=1, x=-1.5 * UM)], required_sigma=8 * NM,
-                tip_radius=R_T, noise=MotionNoise.book())
+    args = dict(
+        task_point=(0.0, 0.0),
+        landmarks=[particle(lid=1, x=-1.5 * UM)],
+        required_sigma=8 * NM,
+        tip_radius=R_T,
+        noise=MotionNoise.book(),
+    )
     args.update(kwargs)
     with pytest.raises(ValueError, match=message):
         plan_landmark_configuration(**args)

@@ -1,19 +1,19 @@
 """The whole graph on the simulated instrument: scan a 0/90 pair, the imaging node maps the
 particles, the nano-hand localizes, plans, pushes with the virtual nano-hand through the
 driver, rescans and verifies (issue 7's end-to-end push, shortened for CI)."""
+
 import math
 import threading
 import time
 
 import numpy as np
 import pytest
+from conftest import wait_for
+from sim_calibration import oracle_calibration
 
 from afm_bringup.commander import AfmCommander
 from afm_bringup.qos_profiles import LATCHED
-from afm_msgs.action import PushParticle
 from afm_msgs.msg import GroundTruth, LandmarkArray
-from conftest import wait_for
-from sim_calibration import oracle_calibration
 
 pytestmark = pytest.mark.ros
 
@@ -29,13 +29,17 @@ def map_the_sample(afm, ros_node, pair_id):
     afm.wait_until_subscribed(["/afm/scan"], "afm_imaging", timeout=60.0)
     for angle in (0.0, 90.0):
         afm.scan(ORIGIN, SIZE, PIXELS, angle_deg=angle, line_rate=4.0, pair_id=pair_id)
-    wait_for(lambda: maps and len(maps[-1].landmarks) >= 3, 60, what="the drift-corrected landmark map")
+    wait_for(
+        lambda: maps and len(maps[-1].landmarks) >= 3, 60, what="the drift-corrected landmark map"
+    )
     wait_for(lambda: truths, 30, what="the simulator's ground truth")
     return maps, truths
 
 
 def true_sphere(truths, object_id):
-    return next(np.array([o.position.x, o.position.y]) for o in truths[-1].objects if o.id == object_id)
+    return next(
+        np.array([o.position.x, o.position.y]) for o in truths[-1].objects if o.id == object_id
+    )
 
 
 @pytest.fixture
@@ -53,10 +57,12 @@ def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
         maps, truths = map_the_sample(afm, ros_node, "pair-e2e")
         marks = {lm.id: lm for lm in maps[-1].landmarks}
         # the map's particle nearest the simulator's first sphere (55, 55) um
-        particle = min(marks.values(), key=lambda lm: math.hypot(lm.position.x - 55e-6, lm.position.y - 55e-6))
+        particle = min(
+            marks.values(), key=lambda lm: math.hypot(lm.position.x - 55e-6, lm.position.y - 55e-6)
+        )
         start_map = np.array([particle.position.x, particle.position.y])
         start_true = true_sphere(truths, 0)
-        goal = start_map + np.array([0.0, -300e-9])          # away from the two other spheres
+        goal = start_map + np.array([0.0, -300e-9])  # away from the two other spheres
 
         phases, steps = [], []
 
@@ -64,19 +70,26 @@ def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
             phases.append(f.phase)
             steps.append(f.step)
 
-        result = afm.push(goal, particle_id=particle.id, tolerance=40e-9, feedback=on_feedback, timeout=600)
+        result = afm.push(
+            goal, particle_id=particle.id, tolerance=40e-9, feedback=on_feedback, timeout=600
+        )
         print("PUSH", result.message, result.error, result.success)
         assert result.message and result.steps >= 3, result.message
         assert {"localizing", "pushing", "verifying"} <= set(phases), phases
         assert max(steps) >= result.steps
-        wait_for(lambda: np.linalg.norm(true_sphere(truths, 0) - start_true) > 100e-9, 10,
-                 what="ground truth showing the pushed sphere")
+        wait_for(
+            lambda: np.linalg.norm(true_sphere(truths, 0) - start_true) > 100e-9,
+            10,
+            what="ground truth showing the pushed sphere",
+        )
         moved_true = true_sphere(truths, 0) - start_true
         moved_verified = np.array([result.achieved.x, result.achieved.y]) - start_map
         # the rescan's verdict agrees with the truth (displacements: the map's frame is not the sim's)
         assert np.linalg.norm(moved_verified - moved_true) < 25e-9, (moved_verified, moved_true)
         assert abs(moved_true[1] + 300e-9) < 60e-9 and abs(moved_true[0]) < 40e-9, moved_true
-        assert result.error == pytest.approx(np.linalg.norm(moved_verified - (goal - start_map)), abs=1e-12)
+        assert result.error == pytest.approx(
+            np.linalg.norm(moved_verified - (goal - start_map)), abs=1e-12
+        )
         assert result.success == (result.error <= 40e-9)
 
         refused = afm.push((200e-6, 55e-6), particle_id=particle.id)
@@ -84,36 +97,52 @@ def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
         refused = afm.push(goal, particle_id=999)
         assert not refused.success and "particle_id=999" in refused.message
         others = [lm for lm in marks.values() if lm.id != particle.id]
-        blocker = min(others, key=lambda lm: math.hypot(lm.position.x - goal[0], lm.position.y - goal[1]))
+        blocker = min(
+            others, key=lambda lm: math.hypot(lm.position.x - goal[0], lm.position.y - goal[1])
+        )
         beyond = np.array([blocker.position.x, blocker.position.y])
-        beyond = beyond + 300e-9 * (beyond - np.array([result.achieved.x, result.achieved.y])) / np.linalg.norm(
-            beyond - np.array([result.achieved.x, result.achieved.y]))
+        beyond = beyond + 300e-9 * (
+            beyond - np.array([result.achieved.x, result.achieved.y])
+        ) / np.linalg.norm(beyond - np.array([result.achieved.x, result.achieved.y]))
         refused = afm.push(beyond, particle_id=particle.id)
         assert not refused.success and "path blocked" in refused.message, refused.message
 
         pushing = threading.Event()
-        job = afm.push(np.array([result.achieved.x, result.achieved.y]) + np.array([-300e-9, 0.0]),
-                       particle_id=particle.id, wait=False,
-                       feedback=lambda f: pushing.set() if f.phase == "pushing" and f.step >= 1 else None)
+        job = afm.push(
+            np.array([result.achieved.x, result.achieved.y]) + np.array([-300e-9, 0.0]),
+            particle_id=particle.id,
+            wait=False,
+            feedback=lambda f: pushing.set() if f.phase == "pushing" and f.step >= 1 else None,
+        )
         if not pushing.wait(300):
             pytest.fail(f"no pushing feedback: {job.result(timeout=60).message}")
         assert job.cancel()
         cancelled = job.result(timeout=300)
-        assert not cancelled.success and "cancelled" in cancelled.message and "lifted" in cancelled.message
+        assert (
+            not cancelled.success
+            and "cancelled" in cancelled.message
+            and "lifted" in cancelled.message
+        )
 
 
 def test_assemble_pushes_several_particles_in_the_planners_order(graph, ros_node):
-    from afm_msgs.action import Assemble
     from geometry_msgs.msg import Point
+
+    from afm_msgs.action import Assemble
+
     with AfmCommander(server_timeout=60) as afm:
         maps, truths = map_the_sample(afm, ros_node, "pair-assemble")
-        marks = sorted(maps[-1].landmarks, key=lambda lm: lm.position.y)[:2]     # the two lowest spheres
+        marks = sorted(maps[-1].landmarks, key=lambda lm: lm.position.y)[
+            :2
+        ]  # the two lowest spheres
         mismatched = Assemble.Goal(particle_ids=[m.id for m in marks], goals=[Point()])
         refused = afm.send("assemble", mismatched)
         assert not refused.success and "one goal per particle" in refused.message
         starts = {m.id: np.array([m.position.x, m.position.y]) for m in marks}
         before = {i: true_sphere_near(truths, start) for i, start in starts.items()}
-        assert all(np.linalg.norm(before[i] - starts[i]) < 100e-9 for i in starts)     # mapped where they are
+        assert all(
+            np.linalg.norm(before[i] - starts[i]) < 100e-9 for i in starts
+        )  # mapped where they are
         request = Assemble.Goal(particle_ids=[m.id for m in marks], tolerance=40e-9)
         for m in marks:
             request.goals.append(Point(x=m.position.x, y=m.position.y - 200e-9))
@@ -122,7 +151,7 @@ def test_assemble_pushes_several_particles_in_the_planners_order(graph, ros_node
         assert len(result.achieved) == len(result.errors) == 2
         assert all(np.isfinite(result.errors)), result.message
         time.sleep(0.5)
-        for m in marks:                                    # each moved about 200 nm down (truth)
+        for m in marks:  # each moved about 200 nm down (truth)
             moved = true_sphere_near(truths, before[m.id]) - before[m.id]
             assert abs(moved[1] + 200e-9) < 60e-9 and abs(moved[0]) < 50e-9, (m.id, moved)
 

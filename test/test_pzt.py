@@ -1,4 +1,5 @@
 """Piezo scanner model against textbook definitions, closed forms and naive per-sample loops."""
+
 import dataclasses
 import math
 import time
@@ -6,11 +7,17 @@ import time
 import numpy as np
 import pytest
 
-from afm_core.pzt import (Creep, LateralScanner, PlayOperatorBank, PrandtlIshlinskii, ScannerParams,
-                          limit_slew)
-
+from afm_core.pzt import (
+    Creep,
+    LateralScanner,
+    PlayOperatorBank,
+    PrandtlIshlinskii,
+    ScannerParams,
+    limit_slew,
+)
 
 # -- references written from the definitions ------------------------------------------------
+
 
 def naive_play(x, thresholds, state):
     """y(k) = max(x(k) - r, min(x(k) + r, y(k-1))), one sample at a time."""
@@ -25,7 +32,7 @@ def naive_play(x, thresholds, state):
 
 def naive_pi(x, thresholds, weights, poly, state):
     a1, a2, a3 = poly
-    v = [a1 * xk + a2 * xk ** 2 + a3 * xk ** 3 for xk in x]
+    v = [a1 * xk + a2 * xk**2 + a3 * xk**3 for xk in x]
     plays = naive_play(v, thresholds, state)
     return np.array([sum(w * p for w, p in zip(weights, row)) for row in plays])
 
@@ -81,6 +88,7 @@ def branches(x, y, low, high):
 
 # -- play operators ----------------------------------------------------------------------------
 
+
 def test_single_play_operator_on_a_triangle_is_textbook_backlash():
     x = [0, 1, 2, 3, 3, 2, 1, 0, -1, -2, -1, 0, 1, 2]
     # r = 1 from rest at 0: the output lags 1 behind a rising input, 1 ahead of a falling one,
@@ -88,20 +96,24 @@ def test_single_play_operator_on_a_triangle_is_textbook_backlash():
     expected_r1 = [0, 0, 1, 2, 2, 2, 2, 1, 0, -1, -1, -1, 0, 1]
     bank = PlayOperatorBank([0.0, 1.0, 5.0])
     y = bank.apply(x)
-    np.testing.assert_array_equal(y[:, 0], x)                    # r = 0 is the identity
+    np.testing.assert_array_equal(y[:, 0], x)  # r = 0 is the identity
     np.testing.assert_array_equal(y[:, 1], expected_r1)
-    np.testing.assert_array_equal(y[:, 2], np.zeros(len(x)))     # never pushed out of its band
+    np.testing.assert_array_equal(y[:, 2], np.zeros(len(x)))  # never pushed out of its band
     np.testing.assert_array_equal(bank.state, [2, 1, 0])
     bank.reset(0.0)
-    np.testing.assert_array_equal(np.vstack([bank.apply(x[:5]), bank.apply(x[5:6]), bank.apply(x[6:])]), y)
+    np.testing.assert_array_equal(
+        np.vstack([bank.apply(x[:5]), bank.apply(x[5:6]), bank.apply(x[6:])]), y
+    )
 
 
 @pytest.mark.parametrize("seed", range(6))
 def test_vectorised_play_equals_the_per_sample_loop_bit_for_bit(seed):
     rng = np.random.default_rng(seed)
-    x = piecewise_linear(rng, 200) if seed % 2 else rng.normal(size=2000)   # noise: every sample turns
+    x = (
+        piecewise_linear(rng, 200) if seed % 2 else rng.normal(size=2000)
+    )  # noise: every sample turns
     thresholds = np.sort(rng.uniform(0, 0.5, 6))
-    state = rng.normal(0, 2, 6)                                            # even outside the band
+    state = rng.normal(0, 2, 6)  # even outside the band
     bank = PlayOperatorBank(thresholds)
     bank.state = state
     np.testing.assert_array_equal(bank.apply(x), naive_play(x, thresholds, state))
@@ -117,14 +129,17 @@ def test_vectorised_pi_equals_the_per_sample_loop():
     model = PrandtlIshlinskii([0.0, 0.05, 0.2, 0.4], [1.0, 0.3, -0.2, 0.4], (0.9, 0.05, 0.02))
     model.state = rng.normal(0, 0.1, 4)
     expected = naive_pi(x, model.thresholds, model.weights, model.polynomial, model.state)
-    np.testing.assert_allclose(model.apply(x), expected, rtol=1e-13, atol=1e-13 * np.abs(expected).max())
+    np.testing.assert_allclose(
+        model.apply(x), expected, rtol=1e-13, atol=1e-13 * np.abs(expected).max()
+    )
 
 
 # -- Prandtl-Ishlinskii loops ------------------------------------------------------------------
 
+
 def test_symmetric_pi_closes_its_loop_with_the_closed_form_width():
     centre, amplitude = 0.3, 1.0
-    r = np.array([0.0, 0.1, 0.3, 0.6, 0.9, 1.4])        # below, above A/2 and beyond A
+    r = np.array([0.0, 0.1, 0.3, 0.6, 0.9, 1.4])  # below, above A/2 and beyond A
     w = np.array([0.7, 0.2, 0.15, 0.1, 0.05, 0.3])
     model = PrandtlIshlinskii(r, w)
     model.reset(centre)
@@ -133,10 +148,12 @@ def test_symmetric_pi_closes_its_loop_with_the_closed_form_width():
     y = model.apply(x)
     period = 800
     # closed loop after the first cycle: the last two cycles are identical
-    np.testing.assert_allclose(y[-period:], y[-2 * period:-period], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(y[-period:], y[-2 * period : -period], rtol=0, atol=1e-15)
     xs, asc, desc = branches(x, y, low, high)
     # the branches meet at the turning points ...
-    assert asc[0] == pytest.approx(desc[0], abs=1e-15) and asc[-1] == pytest.approx(desc[-1], abs=1e-15)
+    assert asc[0] == pytest.approx(desc[0], abs=1e-15) and asc[-1] == pytest.approx(
+        desc[-1], abs=1e-15
+    )
     # ... and the output reverses exactly where the input does, leaving with slope w_0
     reversals = np.flatnonzero(np.diff(np.sign(np.diff(x)))) + 1
     np.testing.assert_array_equal(np.flatnonzero(np.diff(np.sign(np.diff(y)))) + 1, reversals)
@@ -158,7 +175,7 @@ def test_from_fraction_loop_has_the_requested_width_and_gain(asymmetry):
     x = triangle(-span / 2, span / 2, 800, 3)
     xs, asc, desc = branches(x, model.apply(x), -span / 2, span / 2)
     assert np.max(desc - asc) == pytest.approx(fraction * span, rel=1e-9)
-    assert asc[-1] - asc[0] == pytest.approx(span, rel=1e-12)            # tip to tip: output spans the input
+    assert asc[-1] - asc[0] == pytest.approx(span, rel=1e-12)  # tip to tip: output spans the input
     assert np.all(np.diff(asc) > 0) and np.all(np.diff(desc) > 0)
     symmetry_defect = np.max(np.abs(asc + desc[::-1] - asc[400] - desc[400]))
     if asymmetry == 0.0:
@@ -178,9 +195,9 @@ def test_from_fraction_refuses_what_it_cannot_build():
 
 def test_model_checks_monotonicity_at_construction():
     with pytest.raises(ValueError, match=r"polynomial.*p'\(x\)"):
-        PrandtlIshlinskii([0.0, 1.0], [1.0, 0.1], (1.0, 0.1, 0.0))          # a parabola turns back
+        PrandtlIshlinskii([0.0, 1.0], [1.0, 0.1], (1.0, 0.1, 0.0))  # a parabola turns back
     with pytest.raises(ValueError, match="polynomial"):
-        PrandtlIshlinskii([0.0, 1.0], [1.0, 0.1], (1.0, 1.0, 0.3))          # a2^2 > 3 a1 a3
+        PrandtlIshlinskii([0.0, 1.0], [1.0, 0.1], (1.0, 1.0, 0.3))  # a2^2 > 3 a1 a3
     with pytest.raises(ValueError, match=r"weights.*w_0 \+ \.\.\. \+ w_1"):
         PrandtlIshlinskii([0.0, 1.0], [1.0, -1.0])
     with pytest.raises(ValueError, match="weights"):
@@ -192,6 +209,7 @@ def test_model_checks_monotonicity_at_construction():
 
 
 # -- the inverse --------------------------------------------------------------------------------
+
 
 def test_inverse_parameters_for_two_operators():
     # y = v + F_1[v]: slope 1 within 2 of a reversal, 2 beyond, reached at output distance 1
@@ -214,10 +232,10 @@ def test_inverse_composes_to_the_identity_in_both_orders(make, seed):
     forward = make()
     forward.reset(0.1)
     past = 0.1 + piecewise_linear(rng, 50, 0.5)
-    forward.apply(past)                                   # start from a state with a history ...
+    forward.apply(past)  # start from a state with a history ...
     history = forward.state
 
-    x = past[-1] + piecewise_linear(rng, 300, 0.1)        # ... that small reversals do not wipe out
+    x = past[-1] + piecewise_linear(rng, 300, 0.1)  # ... that small reversals do not wipe out
     inverse = forward.inverse()
     y = forward.apply(x)
     np.testing.assert_allclose(inverse.apply(y), x, rtol=0, atol=1e-9 * np.abs(x).max())
@@ -226,10 +244,14 @@ def test_inverse_composes_to_the_identity_in_both_orders(make, seed):
     inverse = forward.inverse()
     target = y[0] + piecewise_linear(rng, 300, 0.1)
     command = inverse.apply(target)
-    np.testing.assert_allclose(forward.apply(command), target, rtol=0, atol=1e-9 * np.abs(target).max())
+    np.testing.assert_allclose(
+        forward.apply(command), target, rtol=0, atol=1e-9 * np.abs(target).max()
+    )
     # fed in chunks, the pair stays matched
     chunks = [forward.apply(inverse.apply(part)) for part in np.split(target, [7, 8, 300])]
-    np.testing.assert_allclose(np.concatenate(chunks), target, rtol=0, atol=1e-9 * np.abs(target).max())
+    np.testing.assert_allclose(
+        np.concatenate(chunks), target, rtol=0, atol=1e-9 * np.abs(target).max()
+    )
 
 
 @pytest.mark.parametrize("asymmetry", [1e-12, 1e-8, 1e-4, 0.03, -0.5])
@@ -238,7 +260,9 @@ def test_inverse_is_exact_in_metres_for_any_asymmetry(asymmetry):
     forward = PrandtlIshlinskii.from_fraction(110e-6, 0.12, asymmetry=asymmetry)
     inverse = forward.inverse()
     target = piecewise_linear(np.random.default_rng(2), 200, 40e-6)
-    np.testing.assert_allclose(forward.apply(inverse.apply(target)), target, rtol=0, atol=1e-12 * 40e-6)
+    np.testing.assert_allclose(
+        forward.apply(inverse.apply(target)), target, rtol=0, atol=1e-12 * 40e-6
+    )
 
 
 def test_inverse_reset_matches_forward_reset():
@@ -247,12 +271,13 @@ def test_inverse_reset_matches_forward_reset():
     x0 = 0.37
     forward.reset(x0)
     a1, a2, a3 = forward.polynomial
-    inverse.reset(forward.weights.sum() * (a1 * x0 + a2 * x0 ** 2 + a3 * x0 ** 3))
+    inverse.reset(forward.weights.sum() * (a1 * x0 + a2 * x0**2 + a3 * x0**3))
     target = x0 + piecewise_linear(np.random.default_rng(3), 200, 0.5)
     np.testing.assert_allclose(forward.apply(inverse.apply(target)), target, rtol=0, atol=1e-12)
 
 
 # -- creep ----------------------------------------------------------------------------------------
+
 
 def test_creep_step_response_is_the_first_order_closed_form():
     lam, c, a = np.array([2.0, 0.2, 0.02]), np.array([0.01, 0.006, 0.004]), 0.98
@@ -270,7 +295,9 @@ def test_creep_step_response_is_the_first_order_closed_form():
     np.testing.assert_allclose(creep.step_response(dt * np.arange(5000)), y, rtol=1e-12)
     # a different sample period later still lands on the continuous response (zero-order hold)
     y2 = creep.apply(np.ones(100), 0.5)
-    np.testing.assert_allclose(y2, creep.step_response(4999 * dt + 0.5 * np.arange(1, 101)), rtol=1e-12)
+    np.testing.assert_allclose(
+        y2, creep.step_response(4999 * dt + 0.5 * np.arange(1, 101)), rtol=1e-12
+    )
 
 
 def test_creep_equals_the_per_sample_loop_and_resumes_across_calls():
@@ -294,6 +321,7 @@ def test_creep_reset_is_a_settled_rest():
 
 # -- slew-rate limit ------------------------------------------------------------------------------
 
+
 def test_slew_limit_never_exceeds_max_speed_and_reaches_the_target():
     dt, max_speed = 1e-4, 50e-6
     d = max_speed * dt
@@ -302,10 +330,10 @@ def test_slew_limit_never_exceeds_max_speed_and_reaches_the_target():
     y = limit_slew(x, dt, max_speed)
     assert np.all(np.abs(np.diff(y)) <= d * (1 + 1e-9))
     ramp_samples = math.ceil(target / d)
-    assert np.all(y[10 + ramp_samples:] == target)
+    assert np.all(y[10 + ramp_samples :] == target)
     assert y[10 + ramp_samples - 2] < target
     # starting elsewhere: the first sample is limited too
-    y = limit_slew(np.full(300, 1e-6), dt, max_speed, start=0.0)   # 200 steps of d
+    y = limit_slew(np.full(300, 1e-6), dt, max_speed, start=0.0)  # 200 steps of d
     assert y[0] == pytest.approx(d) and y[-1] == 1e-6
 
 
@@ -326,9 +354,12 @@ def test_slow_paths_pass_the_slew_limit_untouched():
 
 # -- the scanner ----------------------------------------------------------------------------------
 
+
 def switched(**changes) -> ScannerParams:
     """Defaults with every *_enabled flag off, then `changes`."""
-    flags = {f.name: False for f in dataclasses.fields(ScannerParams) if f.name.endswith("_enabled")}
+    flags = {
+        f.name: False for f in dataclasses.fields(ScannerParams) if f.name.endswith("_enabled")
+    }
     return ScannerParams(**{**flags, **changes})
 
 
@@ -339,8 +370,14 @@ def random_commands(rng, n, span):
 def test_scanner_with_every_effect_off_is_exact():
     rng = np.random.default_rng(0)
     cmd_x, cmd_y = random_commands(rng, 3000, 110e-6), random_commands(rng, 3000, 110e-6)
-    zero = ScannerParams(hysteresis_fraction=0.0, hysteresis_asymmetry=0.0, creep_fractions=[0.0, 0.0, 0.0],
-                         coupling_x_to_y=0.0, coupling_y_to_x=0.0, deflection_deg=0.0)
+    zero = ScannerParams(
+        hysteresis_fraction=0.0,
+        hysteresis_asymmetry=0.0,
+        creep_fractions=[0.0, 0.0, 0.0],
+        coupling_x_to_y=0.0,
+        coupling_y_to_x=0.0,
+        deflection_deg=0.0,
+    )
     for params in (switched(), zero):
         scanner = LateralScanner(params)
         scanner.reset(cmd_x[0], cmd_y[0])
@@ -358,8 +395,14 @@ def test_scanner_clamps_commands_to_its_range():
 
 def test_coupling_and_deflection_are_matrices_about_the_range_centre():
     kxy, kyx, angle = 0.02, -0.01, 0.746
-    params = switched(coupling_enabled=True, deflection_enabled=True, clamp_to_range=False,
-                      coupling_x_to_y=kxy, coupling_y_to_x=kyx, deflection_deg=angle)
+    params = switched(
+        coupling_enabled=True,
+        deflection_enabled=True,
+        clamp_to_range=False,
+        coupling_x_to_y=kxy,
+        coupling_y_to_x=kyx,
+        deflection_deg=angle,
+    )
     scanner = LateralScanner(params)
     centre = np.array([params.range_x, params.range_y]) / 2
     theta = math.radians(angle)
@@ -368,17 +411,23 @@ def test_coupling_and_deflection_are_matrices_about_the_range_centre():
     rng = np.random.default_rng(1)
     cmd = centre[:, None] + rng.uniform(-50e-6, 50e-6, (2, 500))
     out = np.array(scanner.apply(cmd[0], cmd[1], 1e-3))
-    np.testing.assert_allclose(out - centre[:, None], matrix @ (cmd - centre[:, None]), rtol=0, atol=1e-18)
+    np.testing.assert_allclose(
+        out - centre[:, None], matrix @ (cmd - centre[:, None]), rtol=0, atol=1e-18
+    )
     # a pure x scan line comes out tilted by the deflection plus the coupling's own angle
     line = np.linspace(10e-6, 100e-6, 50)
     lx, ly = scanner.apply(line, np.full(50, centre[1]), 1e-3)
     assert math.degrees(math.atan2(ly[-1] - ly[0], lx[-1] - lx[0])) == pytest.approx(
-        angle + math.degrees(math.atan(kxy)), rel=1e-12)
+        angle + math.degrees(math.atan(kxy)), rel=1e-12
+    )
     # the deflection alone is a rotation: lengths kept
-    rotate = LateralScanner(switched(deflection_enabled=True, clamp_to_range=False, deflection_deg=angle))
+    rotate = LateralScanner(
+        switched(deflection_enabled=True, clamp_to_range=False, deflection_deg=angle)
+    )
     rx, ry = rotate.apply(cmd[0], cmd[1], 1e-3)
-    np.testing.assert_allclose(np.hypot(rx - centre[0], ry - centre[1]),
-                               np.hypot(*(cmd - centre[:, None])), rtol=1e-14)
+    np.testing.assert_allclose(
+        np.hypot(rx - centre[0], ry - centre[1]), np.hypot(*(cmd - centre[:, None])), rtol=1e-14
+    )
 
 
 def test_scanner_hysteresis_is_the_pi_model_on_the_deviation_from_mid_range():
@@ -388,8 +437,9 @@ def test_scanner_hysteresis_is_the_pi_model_on_the_deviation_from_mid_range():
     span = params.range_x
     x = span / 2 + triangle(-span / 2, span / 2, 500, 2)
     true_x, true_y = scanner.apply(x, np.full(x.size, span / 2), 1e-3)
-    model = PrandtlIshlinskii.from_fraction(span, params.hysteresis_fraction, params.hysteresis_operators,
-                                            params.hysteresis_asymmetry)
+    model = PrandtlIshlinskii.from_fraction(
+        span, params.hysteresis_fraction, params.hysteresis_operators, params.hysteresis_asymmetry
+    )
     np.testing.assert_allclose(true_x, span / 2 + model.apply(x - span / 2), rtol=1e-15)
     np.testing.assert_array_equal(true_y, span / 2)
     _, asc, desc = branches(x, true_x, 0.0, span)
@@ -406,10 +456,11 @@ def test_scanner_creep_follows_the_closed_form_after_a_move():
     true_x, _ = scanner.apply(np.full(2000, centre + step), np.full(2000, centre), dt)
     t = dt * np.arange(2000)
     fractions, taus = np.array(params.creep_fractions), np.array(params.creep_time_constants)
-    expected = centre + step * (1 - fractions.sum()
-                                + (fractions * (1 - np.exp(-t[:, None] / taus))).sum(axis=1))
+    expected = centre + step * (
+        1 - fractions.sum() + (fractions * (1 - np.exp(-t[:, None] / taus))).sum(axis=1)
+    )
     np.testing.assert_allclose(true_x, expected, rtol=1e-12)
-    creep_25s = true_x[500] - true_x[0]           # the book's 25 s after a move: a few % of the step
+    creep_25s = true_x[500] - true_x[0]  # the book's 25 s after a move: a few % of the step
     assert 0.01 * step < creep_25s < 0.03 * step
 
 
@@ -426,7 +477,10 @@ def test_scanner_snapshots_and_chunks():
     again = scanner.apply(*cmd, 1e-3)
     np.testing.assert_array_equal(whole, again)
     scanner.set_state(snapshot)
-    parts = [scanner.apply(cmd[0][s], cmd[1][s], 1e-3) for s in (slice(0, 1), slice(1, 900), slice(900, None))]
+    parts = [
+        scanner.apply(cmd[0][s], cmd[1][s], 1e-3)
+        for s in (slice(0, 1), slice(1, 900), slice(900, None))
+    ]
     np.testing.assert_allclose(np.concatenate([p[0] for p in parts]), whole[0], rtol=1e-13)
     np.testing.assert_allclose(np.concatenate([p[1] for p in parts]), whole[1], rtol=1e-13)
 
@@ -440,9 +494,17 @@ def test_scanner_at_rest_in_the_centre_stays_there():
     np.testing.assert_allclose(true_y, centre, rtol=1e-14)
 
 
-@pytest.mark.parametrize("field, value", [("hysteresis_fraction", 0.5), ("creep_fractions", [0.5, 0.6, 0.0]),
-                                          ("creep_time_constants", [1.0, -1.0, 5.0]), ("range_x", 0.0),
-                                          ("coupling_x_to_y", 1.5), ("hysteresis_asymmetry", 1.0)])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("hysteresis_fraction", 0.5),
+        ("creep_fractions", [0.5, 0.6, 0.0]),
+        ("creep_time_constants", [1.0, -1.0, 5.0]),
+        ("range_x", 0.0),
+        ("coupling_x_to_y", 1.5),
+        ("hysteresis_asymmetry", 1.0),
+    ],
+)
 def test_scanner_params_name_the_bad_field(field, value):
     with pytest.raises(ValueError, match=f"scanner.{field}"):
         ScannerParams(**{field: value})
@@ -450,11 +512,12 @@ def test_scanner_params_name_the_bad_field(field, value):
 
 # -- speed ------------------------------------------------------------------------------------------
 
+
 def test_half_a_million_samples_through_an_8_operator_pi_is_fast():
     model = PrandtlIshlinskii.from_fraction(100e-6, 0.12, n=8, asymmetry=0.03)
     rng = np.random.default_rng(0)
     raster = triangle(-50e-6, 50e-6, 1000, 250)[:500_000]
-    noisy = raster + rng.normal(0, 1e-7, raster.size)           # turning points at most samples
+    noisy = raster + rng.normal(0, 1e-7, raster.size)  # turning points at most samples
     for name, x in (("raster", raster), ("noisy raster", noisy)):
         model.reset(0.0)
         start = time.perf_counter()

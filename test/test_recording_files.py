@@ -1,4 +1,5 @@
 """The MCAP writer and reader without DDS: values, schemas, rosbag2 metadata, safety."""
+
 import errno
 import os
 
@@ -7,11 +8,17 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 from mcap_ros2.reader import read_ros2_messages
-
-from afm_core.recording import (QosDescription, RecordingError, RecordingReader, RecordingWriter,
-                                full_message_definition, recover_recording)
-from afm_core.recording import writer as writer_module
 from sample_messages import cdr, force_trace, landmarks, raster_scan
+
+from afm_core.recording import (
+    QosDescription,
+    RecordingError,
+    RecordingReader,
+    RecordingWriter,
+    full_message_definition,
+    recover_recording,
+)
+from afm_core.recording import writer as writer_module
 
 LATCHED = QosDescription(depth=1, durability="transient_local")
 STREAM = QosDescription(depth=5, reliability="best_effort")
@@ -22,15 +29,24 @@ def write_session(path, n=6):
     with RecordingWriter(path, chunk_size=64 * 1024) as rec:
         channels = {
             "/afm/scan": rec.add_channel("/afm/scan", "afm_msgs/msg/RasterScan", [LATCHED]),
-            "/afm/force_trace": rec.add_channel("/afm/force_trace", "afm_msgs/msg/ForceTrace", [STREAM]),
-            "/afm/landmarks": rec.add_channel("/afm/landmarks", "afm_msgs/msg/LandmarkArray", [LATCHED]),
+            "/afm/force_trace": rec.add_channel(
+                "/afm/force_trace", "afm_msgs/msg/ForceTrace", [STREAM]
+            ),
+            "/afm/landmarks": rec.add_channel(
+                "/afm/landmarks", "afm_msgs/msg/LandmarkArray", [LATCHED]
+            ),
         }
         for i in range(n):
-            for topic, make in (("/afm/scan", raster_scan), ("/afm/force_trace", force_trace),
-                                ("/afm/landmarks", landmarks)):
+            for topic, make in (
+                ("/afm/scan", raster_scan),
+                ("/afm/force_trace", force_trace),
+                ("/afm/landmarks", landmarks),
+            ):
                 msg = make(i)
                 originals[topic].append(msg)
-                rec.write(channels[topic], 1_000_000_000 * (i + 1) + len(originals[topic]), cdr(msg))
+                rec.write(
+                    channels[topic], 1_000_000_000 * (i + 1) + len(originals[topic]), cdr(msg)
+                )
     return originals
 
 
@@ -62,13 +78,18 @@ def test_offline_reader_returns_numpy_arrays(tmp_path):
         traces = reader.arrays("/afm/force_trace")
         marks = reader.arrays("/afm/landmarks")
     from afm_bringup.conversions import image_msg_to_array
+
     expected = np.stack([image_msg_to_array(m.height) for m in originals["/afm/scan"]])
     np.testing.assert_array_equal(scans["height"], expected)
     assert scans["height"].dtype == np.float32 and scans["height"].shape == (4, 24, 32)
     # ragged per-line times (0 and 90 deg scans alternate) stay a list
     assert [len(t) for t in scans["line_start_times"]] == [24, 32, 24, 32]
-    np.testing.assert_allclose(traces["vertical_deflection"][2], originals["/afm/force_trace"][2].vertical_deflection)
-    np.testing.assert_allclose(scans["log_time"], [1.000000001 * 0 + 1 + 1e-9 * 1, 2 + 2e-9, 3 + 3e-9, 4 + 4e-9])
+    np.testing.assert_allclose(
+        traces["vertical_deflection"][2], originals["/afm/force_trace"][2].vertical_deflection
+    )
+    np.testing.assert_allclose(
+        scans["log_time"], [1.000000001 * 0 + 1 + 1e-9 * 1, 2 + 2e-9, 3 + 3e-9, 4 + 4e-9]
+    )
     assert marks["landmarks"][0][2]["position.x"] == pytest.approx(2e-6)
 
 
@@ -83,17 +104,33 @@ def test_summary_holds_what_rosbag2_needs(tmp_path):
     assert header.profile == "ros2"
     assert summary.statistics.message_count == 9
     assert set(summary.statistics.channel_message_counts.values()) == {3}
-    assert summary.chunk_indexes and all(ci.message_index_length > 0 for ci in summary.chunk_indexes)
+    assert summary.chunk_indexes and all(
+        ci.message_index_length > 0 for ci in summary.chunk_indexes
+    )
     assert all(ci.compression == "zstd" for ci in summary.chunk_indexes)
-    assert metadata["rosbag2"]["serialized_metadata"] == ""   # rosbag2 then reads QoS as version 8
+    assert metadata["rosbag2"]["serialized_metadata"] == ""  # rosbag2 then reads QoS as version 8
     for channel in summary.channels.values():
         assert channel.message_encoding == "cdr"
         profiles = yaml.safe_load(channel.metadata["offered_qos_profiles"])
-        assert set(profiles[0]) == {"history", "depth", "reliability", "durability", "deadline", "lifespan",
-                                    "liveliness", "liveliness_lease_duration", "avoid_ros_namespace_conventions"}
-        assert all(isinstance(profiles[0][k], int) for k in ("history", "reliability", "durability", "liveliness"))
+        assert set(profiles[0]) == {
+            "history",
+            "depth",
+            "reliability",
+            "durability",
+            "deadline",
+            "lifespan",
+            "liveliness",
+            "liveliness_lease_duration",
+            "avoid_ros_namespace_conventions",
+        }
+        assert all(
+            isinstance(profiles[0][k], int)
+            for k in ("history", "reliability", "durability", "liveliness")
+        )
     scan_channel = next(c for c in summary.channels.values() if c.topic == "/afm/scan")
-    assert yaml.safe_load(scan_channel.metadata["offered_qos_profiles"])[0]["durability"] == 1  # transient local
+    assert (
+        yaml.safe_load(scan_channel.metadata["offered_qos_profiles"])[0]["durability"] == 1
+    )  # transient local
     for schema in summary.schemas.values():
         assert schema.encoding == "ros2msg"
 
@@ -101,22 +138,31 @@ def test_summary_holds_what_rosbag2_needs(tmp_path):
 def test_schema_holds_every_dependency_once_depth_first():
     text = full_message_definition("afm_msgs/msg/LandmarkArray")
     names = [line[5:] for line in text.splitlines() if line.startswith("MSG: ")]
-    assert names == ["afm_msgs/Landmark", "geometry_msgs/Point", "std_msgs/Header", "builtin_interfaces/Time"]
+    assert names == [
+        "afm_msgs/Landmark",
+        "geometry_msgs/Point",
+        "std_msgs/Header",
+        "builtin_interfaces/Time",
+    ]
     assert text.count("=" * 80) == len(names)
     assert "Landmark[] landmarks" in text.split("=" * 80)[0]
 
 
 def test_qos_description_round_trips():
     from afm_core.recording.qos import dump_profiles, load_profiles
+
     profiles = [LATCHED, STREAM, QosDescription(history="unknown", deadline_ns=2**63 - 1)]
     assert load_profiles(dump_profiles(profiles)) == profiles
 
 
-@pytest.mark.parametrize("name, complaint", [
-    ("exists.mcap", "already exists"),
-    ("no_suffix.bag", "must end in .mcap"),
-    ("missing_dir/x.mcap", "does not exist"),
-])
+@pytest.mark.parametrize(
+    "name, complaint",
+    [
+        ("exists.mcap", "already exists"),
+        ("no_suffix.bag", "must end in .mcap"),
+        ("missing_dir/x.mcap", "does not exist"),
+    ],
+)
 def test_bad_output_paths_are_refused_by_name(tmp_path, name, complaint):
     (tmp_path / "exists.mcap").write_bytes(b"precious")
     with pytest.raises(RecordingError, match=complaint):
@@ -147,8 +193,9 @@ def test_disk_filling_up_closes_a_readable_recording(tmp_path, monkeypatch):
     channel = rec.add_channel("/afm/force_trace", "afm_msgs/msg/ForceTrace", [STREAM])
     rec.write(channel, 1, cdr(force_trace(0)))
     real = writer_module.shutil.disk_usage
-    monkeypatch.setattr(writer_module.shutil, "disk_usage",
-                        lambda p: real(p)._replace(free=rec.min_free_bytes - 1))
+    monkeypatch.setattr(
+        writer_module.shutil, "disk_usage", lambda p: real(p)._replace(free=rec.min_free_bytes - 1)
+    )
     with pytest.raises(RecordingError, match="recording stopped and closed with 2 messages"):
         rec.write(channel, 2, cdr(force_trace(1)))
     with RecordingReader(tmp_path / "x.mcap") as reader:
@@ -170,9 +217,13 @@ class FailingStream:
         return getattr(self.real, name)
 
 
-def test_write_failure_leaves_no_broken_recording_and_recover_saves_the_rest(tmp_path, monkeypatch):
+def test_write_failure_leaves_no_broken_recording_and_recover_saves_the_rest(
+    tmp_path, monkeypatch
+):
     path = tmp_path / "x.mcap"
-    monkeypatch.setattr(writer_module, "open", lambda *a: FailingStream(open(*a), budget=200_000), raising=False)
+    monkeypatch.setattr(
+        writer_module, "open", lambda *a: FailingStream(open(*a), budget=200_000), raising=False
+    )
     rec = RecordingWriter(path, chunk_size=4096)
     channel = rec.add_channel("/afm/force_trace", "afm_msgs/msg/ForceTrace", [STREAM])
     with pytest.raises(RecordingError, match="No space left on device.*afm recover"):
@@ -205,5 +256,8 @@ def test_truncated_recording_is_reported_and_recoverable(tmp_path):
 def test_reader_names_missing_topics(tmp_path):
     path = tmp_path / "s.mcap"
     write_session(path, n=1)
-    with RecordingReader(path) as reader, pytest.raises(RecordingError, match="/afm/nothing.*not recorded"):
+    with (
+        RecordingReader(path) as reader,
+        pytest.raises(RecordingError, match="/afm/nothing.*not recorded"),
+    ):
         reader.arrays("/afm/nothing")

@@ -1,5 +1,6 @@
 """Particle sequencing (afm_core.planning.sequencing): the book's Table 6.5 / 6.6, exactness of the
 Held-Karp solver against brute force, the heuristic and the ant colony, unknown entries, validation."""
+
 from __future__ import annotations
 
 import itertools
@@ -8,10 +9,21 @@ import math
 import numpy as np
 import pytest
 
-from afm_core.planning import (AntColonyParameters, ant_colony_order, best_order, exact_order, heuristic_order,
-                               order_cost, validated_distances)
-from afm_core.planning.book_table_6_5 import (BOOK_ACO_ORDER, BOOK_RANDOM_ORDER_A, BOOK_RANDOM_ORDER_B,
-                                              TABLE_6_5_UM)
+from afm_core.planning import (
+    AntColonyParameters,
+    ant_colony_order,
+    best_order,
+    exact_order,
+    heuristic_order,
+    order_cost,
+    validated_distances,
+)
+from afm_core.planning.book_table_6_5 import (
+    BOOK_ACO_ORDER,
+    BOOK_RANDOM_ORDER_A,
+    BOOK_RANDOM_ORDER_B,
+    TABLE_6_5_UM,
+)
 
 
 def zero_based(order):
@@ -24,7 +36,9 @@ def euclidean(points):
 
 def brute_force(d):
     n = d.shape[0]
-    return min(order_cost(d, p) for p in itertools.permutations(range(n)) if p[0] < p[-1] or n == 1)
+    return min(
+        order_cost(d, p) for p in itertools.permutations(range(n)) if p[0] < p[-1] or n == 1
+    )
 
 
 # -- the book ---------------------------------------------------------------------------------
@@ -48,7 +62,7 @@ def test_exact_order_beats_the_books_ant_colony_on_table_6_5():
     assert result.optimal and result.method == "exact"
     assert sorted(result.order) == list(range(16))
     assert result.cost == pytest.approx(order_cost(TABLE_6_5_UM, result.order), abs=1e-12)
-    assert result.cost < 2.4766 - 0.05              # 2.4179 um: 2.4 % shorter than the book's order
+    assert result.cost < 2.4766 - 0.05  # 2.4179 um: 2.4 % shorter than the book's order
     assert result.cost == pytest.approx(2.4179, abs=5e-5)
     assert best_order(TABLE_6_5_UM).cost == pytest.approx(result.cost, abs=1e-12)
     # the heuristic reaches the optimum here too, and our ant colony is never below the optimum
@@ -64,7 +78,7 @@ def test_exact_order_equals_brute_force(n):
     for trial in range(3):
         if trial < 2:
             d = euclidean(rng.uniform(0, 3e-6, (n, 2)))
-        else:   # not metric: arbitrary symmetric weights, where greedy and local search are easily fooled
+        else:  # not metric: arbitrary symmetric weights, where greedy and local search are easily fooled
             d = rng.uniform(0.1, 10.0, (n, n))
             d = np.triu(d, 1) + np.triu(d, 1).T
         result = exact_order(d)
@@ -93,7 +107,9 @@ def test_heuristic_and_ant_colony_are_deterministic_per_seed():
     d = euclidean(np.random.default_rng(1).uniform(0, 1, (30, 2)))
     assert heuristic_order(d, kicks=20, seed=5) == heuristic_order(d, kicks=20, seed=5)
     quick = AntColonyParameters(iterations=20)
-    assert ant_colony_order(d, seed=2, parameters=quick) == ant_colony_order(d, seed=2, parameters=quick)
+    assert ant_colony_order(d, seed=2, parameters=quick) == ant_colony_order(
+        d, seed=2, parameters=quick
+    )
 
 
 def test_best_order_switches_to_the_heuristic_above_the_limit():
@@ -115,7 +131,7 @@ def test_heuristic_on_points_on_a_line_finds_the_obvious_order():
 # -- unknown entries --------------------------------------------------------------------------------
 def test_unknown_edges_are_avoided():
     d = euclidean(np.random.default_rng(4).uniform(0, 1, (9, 2)))
-    d[0, 1] = d[1, 0] = np.nan          # the shortest edges become unusable ...
+    d[0, 1] = d[1, 0] = np.nan  # the shortest edges become unusable ...
     d[2, 3] = d[3, 2] = np.inf
     for solver in (exact_order, heuristic_order, lambda m: ant_colony_order(m, seed=1)):
         result = solver(d)
@@ -141,16 +157,19 @@ def test_no_order_exists_raises():
 
 
 # -- validation ------------------------------------------------------------------------------------
-@pytest.mark.parametrize("matrix, message", [
-    (np.ones((2, 3)), "square"),
-    (np.ones(4), "square"),
-    (np.zeros((0, 0)), "at least one"),
-    (np.array([[0, -1.0], [-1.0, 0]]), "negative"),
-    (np.array([[0, 1.0], [2.0, 0]]), "not symmetric"),
-    (np.array([[0, np.nan], [1.0, 0]]), "unknown both ways"),
-    (np.array([[0, -np.inf], [-np.inf, 0]]), "negative"),
-    ([["a", "b"], ["c", "d"]], "not numeric"),
-])
+@pytest.mark.parametrize(
+    "matrix, message",
+    [
+        (np.ones((2, 3)), "square"),
+        (np.ones(4), "square"),
+        (np.zeros((0, 0)), "at least one"),
+        (np.array([[0, -1.0], [-1.0, 0]]), "negative"),
+        (np.array([[0, 1.0], [2.0, 0]]), "not symmetric"),
+        (np.array([[0, np.nan], [1.0, 0]]), "unknown both ways"),
+        (np.array([[0, -np.inf], [-np.inf, 0]]), "negative"),
+        ([["a", "b"], ["c", "d"]], "not numeric"),
+    ],
+)
 def test_bad_matrices_are_rejected_with_a_reason(matrix, message):
     with pytest.raises(ValueError, match=message):
         validated_distances(matrix)
@@ -167,7 +186,9 @@ def test_symmetry_tolerance_is_relative():
 
 def test_bad_ant_colony_parameters():
     with pytest.raises(ValueError, match="evaporation"):
-        ant_colony_order(np.ones((4, 4)) - np.eye(4), parameters=AntColonyParameters(evaporation=0.0))
+        ant_colony_order(
+            np.ones((4, 4)) - np.eye(4), parameters=AntColonyParameters(evaporation=0.0)
+        )
 
 
 def test_bad_heuristic_settings():

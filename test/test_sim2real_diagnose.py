@@ -2,6 +2,7 @@
 extra effect must name it first with its parameter within 20 %; a null session (nothing
 missing) must report no missing physics; the report, the updated config and the entry point
 work on a recorded MCAP; a config that does not describe the recording is a clear error."""
+
 import gc
 import weakref
 
@@ -12,8 +13,14 @@ import yaml
 from afm_core.sim.config import load_config, merge
 from afm_core.sim2real import regions
 from afm_core.sim2real.candidates import FrictionRegion, available, library, select
-from afm_core.sim2real.diagnose import (ConfigMismatchError, NoiseModel, build_noise_model, diagnose,
-                                        drift_covariance, gls, positioning_covariance)
+from afm_core.sim2real.diagnose import (
+    ConfigMismatchError,
+    NoiseModel,
+    diagnose,
+    drift_covariance,
+    gls,
+    positioning_covariance,
+)
 from afm_core.sim2real.features import _profile_shift, _same_segment
 from afm_core.sim2real.protocol import make_session, session_config
 
@@ -38,8 +45,10 @@ def test_gls_fits_columns_whatever_their_units():
     b -= (a @ b) / (a @ a) * a
     x = np.column_stack([1e12 * a, 1e-8 * b])
     coef, chi2, cov = gls(3.1 * a + 2.0 * b, x)
-    assert coef == pytest.approx([3.1e-12, 2e8], rel=1e-9) and chi2 == pytest.approx(0.0, abs=1e-20)
-    assert np.diag(cov) == pytest.approx(1.0 / np.sum(x ** 2, axis=0), rel=1e-9)
+    assert coef == pytest.approx([3.1e-12, 2e8], rel=1e-9) and chi2 == pytest.approx(
+        0.0, abs=1e-20
+    )
+    assert np.diag(cov) == pytest.approx(1.0 / np.sum(x**2, axis=0), rel=1e-9)
     coef, _, cov = gls(x[:, 0], np.column_stack([x[:, 0], 2.0 * x[:, 0]]))
     assert coef == pytest.approx([1.0, 0.0]) and np.isnan(cov[1, 1])
 
@@ -50,18 +59,20 @@ def test_reported_sigma_widens_to_what_the_informative_features_scatter_by():
     where everything scatters as modelled, it stays within the estimate's sampling error; a
     residual smaller than modelled never narrows it; a variance factor already applied counts."""
     from afm_core.sim2real.diagnose import Whitener, _reported_sigma
+
     rng = np.random.default_rng(9)
     n = 400
     x = np.zeros((n, 1))
     x[:40] = 1.0
     P = np.ones((n, 1))
     white = Whitener(np.eye(n))
-    model = 1.0 / np.sqrt(40 * (1 - 40 / n))       # GLS sigma of x with the offset fitted
+    model = 1.0 / np.sqrt(40 * (1 - 40 / n))  # GLS sigma of x with the offset fitted
     loud = rng.normal(0.0, 1.0, n)
     loud[:40] *= 5.0
     assert _reported_sigma(white, P, x, loud, [model])[0] == pytest.approx(5 * model, rel=0.25)
-    assert _reported_sigma(white, P, x, loud, [2 * model], variance_factor=4.0)[0] == \
-        pytest.approx(5 * model, rel=0.25)
+    assert _reported_sigma(white, P, x, loud, [2 * model], variance_factor=4.0)[
+        0
+    ] == pytest.approx(5 * model, rel=0.25)
     quiet = rng.normal(0.0, 1.0, n)
     assert model <= _reported_sigma(white, P, x, quiet, [model])[0] < 1.3 * model
     assert _reported_sigma(white, P, x, 0.1 * quiet, [model])[0] == model
@@ -100,13 +111,25 @@ def test_candidates_follow_the_config_keys():
     config = load_config()
     ok, missing = available(config)
     names = {c.name for c in ok}
-    assert {"drift_velocity", "creep_amplitude", "tip_radius", "tip_asymmetry", "coupling", "rotation"} <= names
+    assert {
+        "drift_velocity",
+        "creep_amplitude",
+        "tip_radius",
+        "tip_asymmetry",
+        "coupling",
+        "rotation",
+    } <= names
     # closed loop the asymmetry acts through the controller's calibrated one, open loop directly
     assert "hysteresis_asymmetry" in names and "hysteresis_asymmetry_open_loop" not in names
-    open_loop = {c.name for c in available(merge(config, {"controller": {"hysteresis_compensation": False}}))[0]}
-    assert "hysteresis_asymmetry_open_loop" in open_loop and "hysteresis_asymmetry" not in open_loop
+    open_loop = {
+        c.name
+        for c in available(merge(config, {"controller": {"hysteresis_compensation": False}}))[0]
+    }
+    assert (
+        "hysteresis_asymmetry_open_loop" in open_loop and "hysteresis_asymmetry" not in open_loop
+    )
     tip = next(c for c in library() if c.name == "tip_wear")
-    assert tip.nominal(config)[0] == 0.0                      # wear is off in the defaults
+    assert tip.nominal(config)[0] == 0.0  # wear is off in the defaults
     assert tip.apply(config, [2e-3]).tip.wear_enabled is True
 
 
@@ -117,27 +140,35 @@ def test_best_region_finds_the_patch_where_the_residual_follows_the_effect():
     rng = np.random.default_rng(4)
     xs, ys = np.arange(55.0, 57.0, 0.25) * 1e-6, np.array([54.15, 54.25, 54.35, 54.45]) * 1e-6
     rows = np.array([(x, y) for y in ys for x in xs])
-    columns = np.array([(x, y) for x in (55.4e-6, 56.0e-6) for y in np.arange(53.95, 54.7, 0.25) * 1e-6])
+    columns = np.array(
+        [(x, y) for x in (55.4e-6, 56.0e-6) for y in np.arange(53.95, 54.7, 0.25) * 1e-6]
+    )
     points = np.vstack([rows, columns])
     effect = rng.uniform(0.5, 1.5, len(points)) * np.where(rng.random(len(points)) < 0.5, 1, -1)
     sigma = 0.05
     truth = (55.6e-6, 54.0e-6, 56.3e-6, 54.3e-6)
     patch = regions.inside(points, truth)
     residual = 0.4 * effect * patch + rng.normal(0, sigma, len(points))
-    bounds, gain, mask = regions.best_region(points, effect, residual, sigma ** 2 * np.eye(len(points)))
+    bounds, gain, mask = regions.best_region(
+        points, effect, residual, sigma**2 * np.eye(len(points))
+    )
     np.testing.assert_array_equal(mask, patch)
     np.testing.assert_array_equal(regions.inside(points, bounds), patch)
     # closed form: the GLS chi^2 improvement of that one column
     column = effect * patch
-    assert gain == pytest.approx((column @ residual) ** 2 / (column @ column) / sigma ** 2)
-    noise_only = regions.best_region(points, effect, rng.normal(0, sigma, len(points)), sigma ** 2 * np.eye(len(points)))
+    assert gain == pytest.approx((column @ residual) ** 2 / (column @ column) / sigma**2)
+    noise_only = regions.best_region(
+        points, effect, rng.normal(0, sigma, len(points)), sigma**2 * np.eye(len(points))
+    )
     assert noise_only[1] < 0.2 * gain
     # too few segments with an effect: no region
     assert regions.best_region(points[:5], effect[:5], residual[:5], np.eye(5)) is None
     # a patch seen by one slide only is not a place on the sample: whatever is returned is
     # crossed by two slides at least
     one_slide = np.where(patch, -1, np.arange(len(points)))
-    found = regions.best_region(points, effect, residual, sigma ** 2 * np.eye(len(points)), slides=one_slide)
+    found = regions.best_region(
+        points, effect, residual, sigma**2 * np.eye(len(points)), slides=one_slide
+    )
     assert found is None or len(set(one_slide[found[2]])) >= 2
     assert found is None or found[1] < gain
 
@@ -152,16 +183,25 @@ def test_refined_region_puts_an_edge_inside_a_segment_where_the_partial_step_say
     axes, lengths = ["x"] * len(points), np.full(len(points), length)
     truth = (centres[3] - length / 2 + 0.4 * length, 54.0e-6, 56.6e-6, 54.5e-6)
     fraction = regions.overlap(points, axes, lengths, truth)
-    assert fraction[3] == pytest.approx(0.6) and fraction[2] == 0.0 and fraction[4] == pytest.approx(1.0)
+    assert (
+        fraction[3] == pytest.approx(0.6)
+        and fraction[2] == 0.0
+        and fraction[4] == pytest.approx(1.0)
+    )
     effect = np.full(len(points), 0.1)
     residual = 0.8 * effect * fraction
     cov = 1e-6 * np.eye(len(points))
     bounds, _, _ = regions.best_region(points, effect, residual, cov)
-    refined, gain, change = regions.refine_region(points, axes, lengths, effect, residual, cov, bounds)
-    assert abs(refined[0] - truth[0]) < 5e-9 and abs(refined[2] - truth[2]) < 5e-9, (refined, truth)
+    refined, gain, change = regions.refine_region(
+        points, axes, lengths, effect, residual, cov, bounds
+    )
+    assert abs(refined[0] - truth[0]) < 5e-9 and abs(refined[2] - truth[2]) < 5e-9, (
+        refined,
+        truth,
+    )
     column = effect * regions.overlap(points, axes, lengths, refined)
     assert gain == pytest.approx((column @ residual) ** 2 / (column @ column) / 1e-6)
-    assert change == pytest.approx(0.8, rel=1e-3)          # the factor's change the residual was made with
+    assert change == pytest.approx(0.8, rel=1e-3)  # the factor's change the residual was made with
 
 
 def test_friction_region_candidate_writes_its_patch_into_the_config():
@@ -170,7 +210,9 @@ def test_friction_region_candidate_writes_its_patch_into_the_config():
     assert candidate.complexity == 5 and candidate.nominal(config).tolist() == [1.0]
     updated = candidate.apply(config, [1.7])
     region = updated.contact.friction_regions[-1]
-    assert region["mu_tip_substrate_scale"] == pytest.approx(1.7) and region["x0"] == pytest.approx(55.0e-6)
+    assert region["mu_tip_substrate_scale"] == pytest.approx(1.7) and region[
+        "x0"
+    ] == pytest.approx(55.0e-6)
     assert len(updated.contact.friction_regions) == len(config.contact.friction_regions) + 1
     assert "x 55.00-56.00 um" in candidate.words
 
@@ -182,9 +224,12 @@ def null_diagnosis():
     seed = 11
     ops = make_session(_nominal(seed), protocol_seed=seed)
     longest_run, run = 0, []
-    for op in ops:                        # the longest run of lines over one segment
-        run = run + [op] if op.kind == "scan_line" and run and _same_segment(run[0], op) else \
-            ([op] if op.kind == "scan_line" else [])
+    for op in ops:  # the longest run of lines over one segment
+        run = (
+            run + [op]
+            if op.kind == "scan_line" and run and _same_segment(run[0], op)
+            else ([op] if op.kind == "scan_line" else [])
+        )
         longest_run = max(longest_run, len(run))
     handed, most_alive = [], [0]
 
@@ -198,11 +243,15 @@ def null_diagnosis():
             yield op
 
     diagnosis = diagnose(stream(), _nominal(seed))
-    diagnosis.test_streaming = {"most_alive": most_alive[0], "handed": len(handed), "longest_run": longest_run}
+    diagnosis.test_streaming = {
+        "most_alive": most_alive[0],
+        "handed": len(handed),
+        "longest_run": longest_run,
+    }
     return diagnosis
 
 
-@pytest.mark.xdist_group("null_diagnosis")     # one worker diagnoses it once
+@pytest.mark.xdist_group("null_diagnosis")  # one worker diagnoses it once
 def test_the_diagnosis_streams_the_recording(null_diagnosis):
     """Measurements are let go once their features are taken: never more alive than one run of
     scan lines over a segment (which waits for its end), never the session."""
@@ -211,13 +260,14 @@ def test_the_diagnosis_streams_the_recording(null_diagnosis):
     assert seen["most_alive"] <= seen["longest_run"] + 1, seen
 
 
-@pytest.mark.xdist_group("null_diagnosis")     # one worker diagnoses it once
+@pytest.mark.xdist_group("null_diagnosis")  # one worker diagnoses it once
 def test_null_session_reports_no_missing_physics(null_diagnosis, tmp_path):
     d = null_diagnosis
     assert d.chosen == [], d.summary()
     assert "no missing physics" in d.summary()
     assert d.timings["total"] < 120
     from afm_core.sim2real.report import write_report
+
     path = write_report(d, tmp_path)
     assert "no missing physics" in path.read_text()
     assert yaml.safe_load((tmp_path / "overrides.yaml").read_text()) in ({}, None)
@@ -229,14 +279,20 @@ def test_blunter_tip_is_named_with_its_radius(tmp_path):
     seed = 7
     truth = merge(_nominal(seed), {"tip": {"apex_radius": 26e-9}})
     ops = make_session(truth, protocol_seed=seed)
-    d = diagnose(ops, _nominal(seed), candidates=select(("tip_radius", "tip_wear", "tip_asymmetry", "height_gain",
-                                                         "bow", "latency")))
+    d = diagnose(
+        ops,
+        _nominal(seed),
+        candidates=select(
+            ("tip_radius", "tip_wear", "tip_asymmetry", "height_gain", "bow", "latency")
+        ),
+    )
     assert d.chosen and d.chosen[0] == "tip_radius", d.summary()
     fitted = d.parameters["tip.apex_radius"]["value"]
     # parameter error: of the change the model was missing (6 nm) and of the value
     assert abs(fitted - 26e-9) <= 0.2 * 6e-9, fitted
     assert d.heldout["chi2_after"] < d.heldout["chi2_before"]
     from afm_core.sim2real.report import write_report
+
     path = write_report(d, tmp_path, config=_nominal(seed))
     text = path.read_text()
     assert "tip radius" in text and (tmp_path / "residuals_time.png").is_file()
@@ -253,10 +309,19 @@ def test_friction_patch_is_named_with_its_place_and_factor():
     slide segments next to the true one (segments are 250 nm long). Against the terms that
     change the lateral force."""
     seed = 5
-    region = {"x0": 55.9e-6, "y0": 53.5e-6, "x1": 57.5e-6, "y1": 54.9e-6, "mu_tip_substrate_scale": 1.8}
+    region = {
+        "x0": 55.9e-6,
+        "y0": 53.5e-6,
+        "x1": 57.5e-6,
+        "y1": 54.9e-6,
+        "mu_tip_substrate_scale": 1.8,
+    }
     truth = merge(_nominal(seed), {"contact": {"friction_regions": [region]}})
-    d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed),
-                 candidates=select(("friction", "stick_slip", "tip_wear", "tip_radius", "latency")))
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        _nominal(seed),
+        candidates=select(("friction", "stick_slip", "tip_wear", "tip_radius", "latency")),
+    )
     assert d.chosen and d.chosen[0] == "friction_region", d.summary()
     named = d.parameters["contact.friction_regions[-1].mu_tip_substrate_scale"]
     fitted = named["value"]
@@ -270,7 +335,9 @@ def test_friction_patch_is_named_with_its_place_and_factor():
 def test_config_for_another_sample_is_a_clear_error():
     seed = 3
     ops = make_session(_nominal(seed), protocol_seed=seed, blocks=1)
-    other = merge(_nominal(seed), {"sample": {"spheres": [{"x": 50e-6, "y": 50e-6, "radius": 100e-9}]}})
+    other = merge(
+        _nominal(seed), {"sample": {"spheres": [{"x": 50e-6, "y": 50e-6, "radius": 100e-9}]}}
+    )
     with pytest.raises(ConfigMismatchError, match="does not match the recording"):
         diagnose(ops, other, candidates=[])
 
@@ -279,26 +346,50 @@ def test_line_offset_noise_is_the_offsets_noise_and_ignores_tilt_and_bow():
     """Offsets with independent noise of sd s: the robust line-to-line estimate is s (20 blocks
     of 48 lines average to ~4 %); a tilt and a bow along the slow axis change nothing."""
     from afm_core.sim2real.features import STREAK_BLOCK, line_offset_noise
+
     rng = np.random.default_rng(4)
     s = 0.2e-9
     noise = rng.normal(0.0, s, (20, STREAK_BLOCK))
     index = np.arange(STREAK_BLOCK)
     plain = np.mean([line_offset_noise(block) for block in noise])
     assert abs(plain - s) < 0.12 * s, plain
-    bent = np.mean([line_offset_noise(block + 3e-9 * index / STREAK_BLOCK + 5e-9 * (index / STREAK_BLOCK) ** 2)
-                    for block in noise])
+    bent = np.mean(
+        [
+            line_offset_noise(
+                block + 3e-9 * index / STREAK_BLOCK + 5e-9 * (index / STREAK_BLOCK) ** 2
+            )
+            for block in noise
+        ]
+    )
     assert bent == pytest.approx(plain, rel=1e-6)
-    assert line_offset_noise(1e-9 * index ** 2) < 1e-20
+    assert line_offset_noise(1e-9 * index**2) < 1e-20
 
 
 def _raster_op(height, angle=0.0, pixel=20e-9, period=0.25):
     from types import SimpleNamespace
+
     lines = height.shape[0] if angle == 0.0 else height.shape[1]
-    data = SimpleNamespace(height=height, pixel_size_x=pixel, pixel_size_y=pixel, origin_x=50e-6, origin_y=50e-6,
-                           scan_angle_deg=angle, slow_scan_up=True, line_period=period,
-                           line_start_times=np.arange(lines) * period, start_time=100.0)
-    return SimpleNamespace(kind="raster", index=3, data=data, start=(0.0, 0.0), end=(0.0, 0.0), start_time=100.0,
-                           duration=lines * period)
+    data = SimpleNamespace(
+        height=height,
+        pixel_size_x=pixel,
+        pixel_size_y=pixel,
+        origin_x=50e-6,
+        origin_y=50e-6,
+        scan_angle_deg=angle,
+        slow_scan_up=True,
+        line_period=period,
+        line_start_times=np.arange(lines) * period,
+        start_time=100.0,
+    )
+    return SimpleNamespace(
+        kind="raster",
+        index=3,
+        data=data,
+        start=(0.0, 0.0),
+        end=(0.0, 0.0),
+        start_time=100.0,
+        duration=lines * period,
+    )
 
 
 def test_streak_features_measure_whole_line_offsets_along_the_scan_lines():
@@ -306,13 +397,16 @@ def test_streak_features_measure_whole_line_offsets_along_the_scan_lines():
     lines the offsets' noise (a line's median takes the white noise down by its length); at
     90 deg the lines are the columns; images of fewer than 64 lines give none."""
     from afm_core.sim2real.features import STREAK_BLOCK, extract_features
+
     rng = np.random.default_rng(5)
     s, white, n_lines, n_pixels = 0.2e-9, 0.3e-9, 20 * STREAK_BLOCK, 256
     offsets = rng.normal(0.0, s, n_lines)
     image = offsets[:, None] + rng.normal(0.0, white, (n_lines, n_pixels))
-    expected = np.sqrt(s ** 2 + np.pi / 2 * white ** 2 / n_pixels)
+    expected = np.sqrt(s**2 + np.pi / 2 * white**2 / n_pixels)
     for angle, height in ((0.0, image), (90.0, image.T.copy())):
-        streaks = [f for f in extract_features([_raster_op(height, angle)]) if f.group == "raster.streak"]
+        streaks = [
+            f for f in extract_features([_raster_op(height, angle)]) if f.group == "raster.streak"
+        ]
         assert len(streaks) == 20
         assert abs(np.mean([f.value for f in streaks]) - expected) < 0.12 * expected
         assert streaks[0].conditions["lines"] == STREAK_BLOCK
@@ -326,18 +420,28 @@ def test_pixel_noise_is_the_white_noise_whatever_the_streaks_and_a_few_particles
     high on 2 % of the image: per block of 48 lines the pixel-to-pixel noise is w (within the
     MAD's sampling error); the offsets change nothing; at 90 deg along the columns."""
     from afm_core.sim2real.features import STREAK_BLOCK, extract_features
+
     rng = np.random.default_rng(6)
     white, n_lines, n_pixels = 0.3e-9, 4 * STREAK_BLOCK, 192
     image = rng.normal(0.0, white, (n_lines, n_pixels))
     streaked = image + rng.normal(0.0, 0.5e-9, n_lines)[:, None]
     streaked[rng.random(image.shape) < 0.02] += 50e-9
     for angle, height in ((0.0, streaked), (90.0, streaked.T.copy())):
-        pixel = [f.value for f in extract_features([_raster_op(height, angle)]) if f.group == "raster.pixel_noise"]
+        pixel = [
+            f.value
+            for f in extract_features([_raster_op(height, angle)])
+            if f.group == "raster.pixel_noise"
+        ]
         assert len(pixel) == 4
         assert abs(np.mean(pixel) - white) < 0.06 * white, pixel
-    plain = [f.value for f in extract_features([_raster_op(image)]) if f.group == "raster.pixel_noise"]
-    offsets_only = [f.value for f in extract_features([_raster_op(image + rng.normal(0.0, 0.5e-9, n_lines)[:, None])])
-                    if f.group == "raster.pixel_noise"]
+    plain = [
+        f.value for f in extract_features([_raster_op(image)]) if f.group == "raster.pixel_noise"
+    ]
+    offsets_only = [
+        f.value
+        for f in extract_features([_raster_op(image + rng.normal(0.0, 0.5e-9, n_lines)[:, None])])
+        if f.group == "raster.pixel_noise"
+    ]
     assert offsets_only == pytest.approx(plain, rel=1e-9)
 
 
@@ -349,17 +453,27 @@ def test_background_curvature_noise_follows_the_sensor_noise_model():
     from afm_core.sim.imaging import pink_noise
     from afm_core.sim2real.diagnose import Table, _bow_sensor_variance
     from afm_core.sim2real.features import _quad_background
+
     n, pixel = 32, 0.75e-6
     noise = NoiseParams(height_white_sigma=0.3e-9, height_flicker_sigma=0.4e-9)
     groups = ["raster.bow_xx", "raster.bow_yy", "raster.bow_xy"]
     cond = {"image": (n, n, pixel, pixel), "angle": 0.0}
-    table = Table(keys=[(0, g) for g in groups], groups=np.array(groups), time=np.zeros(3), xy=np.zeros((3, 2)),
-                  u=np.zeros((3, 2)), conditions=[cond] * 3, op_index=np.zeros(3, int))
+    table = Table(
+        keys=[(0, g) for g in groups],
+        groups=np.array(groups),
+        time=np.zeros(3),
+        xy=np.zeros((3, 2)),
+        u=np.zeros((3, 2)),
+        conditions=[cond] * 3,
+        op_index=np.zeros(3, int),
+    )
     predicted = _bow_sensor_variance(table, noise)
     rng = np.random.default_rng(6)
     fits = []
     for _ in range(400):
-        image = pink_noise(n * n, noise.height_flicker_sigma, rng).reshape(n, n) + rng.normal(0, 0.3e-9, (n, n))
+        image = pink_noise(n * n, noise.height_flicker_sigma, rng).reshape(n, n) + rng.normal(
+            0, 0.3e-9, (n, n)
+        )
         quad = _quad_background(image, pixel, pixel)
         fits.append([quad["xx"], quad["yy"], quad["xy"]])
     measured = np.var(np.array(fits), axis=0)
@@ -372,6 +486,7 @@ def test_background_curvature_noise_follows_the_sensor_noise_model():
 def test_pink_noise_takes_its_draws_whatever_its_level():
     """Re-simulations that change only the 1/f level share every later random number."""
     from afm_core.sim.imaging import pink_noise
+
     a, b = np.random.default_rng(8), np.random.default_rng(8)
     pink_noise(500, 0.0, a)
     pink_noise(500, 1e-9, b)
@@ -387,9 +502,21 @@ def test_coloured_noise_is_named_alone_with_its_level(tmp_path):
     seed = 21
     model = _nominal(seed)
     truth = merge(model, {"noise": {"height_flicker_sigma": 1.5e-9}})
-    d = diagnose(make_session(truth, protocol_seed=seed), model,
-                 candidates=select(("coloured_noise", "white_noise", "bow", "height_gain", "tip_radius", "rotation",
-                                    "latency")))
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        model,
+        candidates=select(
+            (
+                "coloured_noise",
+                "white_noise",
+                "bow",
+                "height_gain",
+                "tip_radius",
+                "rotation",
+                "latency",
+            )
+        ),
+    )
     assert d.chosen == ["coloured_noise"], d.summary()
     fitted = d.parameters["noise.height_flicker_sigma"]["value"]
     error = abs(fitted - 1.5e-9)
@@ -397,8 +524,11 @@ def test_coloured_noise_is_named_alone_with_its_level(tmp_path):
     assert error <= 3 * d.parameters["noise.height_flicker_sigma"]["sigma"], d.parameters
     assert d.heldout["chi2_after"] < d.heldout["chi2_before"]
     from afm_core.sim2real.report import write_report
+
     write_report(d, tmp_path, config=_nominal(seed))
-    assert load_config(tmp_path / "updated_config.yaml").noise.height_flicker_sigma == pytest.approx(fitted)
+    assert load_config(
+        tmp_path / "updated_config.yaml"
+    ).noise.height_flicker_sigma == pytest.approx(fitted)
 
 
 def test_white_noise_is_named_alone_with_its_level_not_as_coloured_noise():
@@ -410,11 +540,16 @@ def test_white_noise_is_named_alone_with_its_level_not_as_coloured_noise():
     model = _nominal(seed)
     true_sigma = 2 * model.noise.height_white_sigma
     truth = merge(model, {"noise": {"height_white_sigma": true_sigma}})
-    d = diagnose(make_session(truth, protocol_seed=seed), model,
-                 candidates=select(("white_noise", "coloured_noise", "tip_radius", "hysteresis_width")))
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        model,
+        candidates=select(("white_noise", "coloured_noise", "tip_radius", "hysteresis_width")),
+    )
     assert d.chosen == ["white_noise"], d.summary()
     fitted = d.parameters["noise.height_white_sigma"]
-    assert abs(fitted["value"] - true_sigma) <= 0.2 * (true_sigma - model.noise.height_white_sigma), fitted
+    assert abs(fitted["value"] - true_sigma) <= 0.2 * (
+        true_sigma - model.noise.height_white_sigma
+    ), fitted
     assert abs(fitted["value"] - true_sigma) <= 3 * fitted["sigma"], fitted
     coloured = next(c for c in d.candidates if c.name == "coloured_noise")
     assert not coloured.accepted
@@ -432,7 +567,11 @@ def test_a_coloured_noise_far_below_the_models_is_fitted_within_its_sigma():
     model = _nominal(seed)
     true_level = model.noise.height_flicker_sigma / 40
     truth = merge(model, {"noise": {"height_flicker_sigma": true_level}})
-    d = diagnose(make_session(truth, protocol_seed=seed), model, candidates=select(("white_noise", "coloured_noise")))
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        model,
+        candidates=select(("white_noise", "coloured_noise")),
+    )
     assert d.chosen == ["coloured_noise"], d.summary()
     fitted = d.parameters["noise.height_flicker_sigma"]
     change = model.noise.height_flicker_sigma - true_level
@@ -447,11 +586,17 @@ def test_a_z_gain_is_named_alone_not_as_white_noise_first():
     seed = 15
     model = _nominal(seed)
     truth = merge(model, {"noise": {"height_gain": 1.2}})
-    d = diagnose(make_session(truth, protocol_seed=seed), model,
-                 candidates=select(("height_gain", "white_noise", "coloured_noise", "bow")))
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        model,
+        candidates=select(("height_gain", "white_noise", "coloured_noise", "bow")),
+    )
     assert d.chosen == ["height_gain"], d.summary()
     fitted = d.parameters["noise.height_gain"]
-    assert abs(fitted["value"] - 1.2) <= 0.2 * 0.2 and abs(fitted["value"] - 1.2) <= 3 * fitted["sigma"], fitted
+    assert (
+        abs(fitted["value"] - 1.2) <= 0.2 * 0.2
+        and abs(fitted["value"] - 1.2) <= 3 * fitted["sigma"]
+    ), fitted
 
 
 def test_a_recording_on_its_own_substrate_is_not_called_noisier():
@@ -476,8 +621,12 @@ def test_feed_forward_asymmetry_error_is_named_with_its_size():
     shift every particle alike)."""
     seed = 11
     truth = merge(_nominal(seed), {"controller": {"asymmetry_error": -0.07}})
-    positional = [c for c in library()
-                  if not c.name.startswith(("tip_", "friction", "stick_slip")) and c.analytic != "sensor_noise"]
+    positional = [
+        c
+        for c in library()
+        if not c.name.startswith(("tip_", "friction", "stick_slip"))
+        and c.analytic != "sensor_noise"
+    ]
     d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed), candidates=positional)
     assert d.chosen and d.chosen[0] == "hysteresis_asymmetry", d.summary()
     fitted = d.parameters["controller.asymmetry_error"]["value"]
@@ -492,8 +641,11 @@ def test_a_large_asymmetry_error_is_fitted_with_its_sign_not_its_mirror():
     search range is profiled: the error within 3 sigma and 20 % of the truth."""
     seed = 11
     truth = merge(_nominal(seed), {"controller": {"asymmetry_error": 0.2}})
-    d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed),
-                 candidates=select(("hysteresis_asymmetry",)))
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        _nominal(seed),
+        candidates=select(("hysteresis_asymmetry",)),
+    )
     assert d.chosen == ["hysteresis_asymmetry"], d.summary()
     fitted = d.parameters["controller.asymmetry_error"]
     assert abs(fitted["value"] - 0.2) <= min(0.2 * 0.2, 3 * fitted["sigma"]), fitted
@@ -507,7 +659,12 @@ def test_a_line_pairs_shift_is_measured_whatever_its_size(lag):
     coord = np.linspace(-400e-9, 400e-9, 801)
 
     def line(centre):
-        return {"coord": coord, "height": 50e-9 * np.exp(-0.5 * ((coord - centre) / 17e-9) ** 2), "pos": centre}
+        return {
+            "coord": coord,
+            "height": 50e-9 * np.exp(-0.5 * ((coord - centre) / 17e-9) ** 2),
+            "pos": centre,
+        }
+
     shift = _profile_shift(line(0.5 * lag + 7e-9), line(-0.5 * lag + 7e-9))
     assert shift == pytest.approx(lag, abs=0.05e-9)
 
@@ -535,8 +692,11 @@ def test_sensor_latency_is_fitted_from_the_scan_direction_shift_alone():
     is named alone, within 20 %."""
     seed = 17
     truth = merge(_nominal(seed), {"noise": {"sensor_latency": 5e-3}})
-    d = diagnose(make_session(truth, protocol_seed=seed), _nominal(seed),
-                 candidates=select(("latency", "creep_amplitude", "creep_time")))
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        _nominal(seed),
+        candidates=select(("latency", "creep_amplitude", "creep_time")),
+    )
     assert d.chosen == ["latency"], d.summary()
     assert d.parameters["noise.sensor_latency"]["value"] == pytest.approx(5e-3, rel=0.2)
 
@@ -548,15 +708,24 @@ def test_a_blunter_tip_under_twice_the_creep_is_named_second_once_the_creep_is_f
     within 3 sigma and 20 % of the truth."""
     seed = 502
     model = session_config()
-    truth = merge(model, {"seed": seed,
-                          "scanner": {"creep_fractions": [2.0 * f for f in model.scanner.creep_fractions]},
-                          "tip": {"apex_radius": 1.3 * model.tip.apex_radius}})
+    truth = merge(
+        model,
+        {
+            "seed": seed,
+            "scanner": {"creep_fractions": [2.0 * f for f in model.scanner.creep_fractions]},
+            "tip": {"apex_radius": 1.3 * model.tip.apex_radius},
+        },
+    )
     d = diagnose(make_session(truth, protocol_seed=seed), model)
     assert d.chosen == ["creep_amplitude", "tip_radius"], d.summary()
-    for key, value, nominal in (("scanner.creep_fractions", 2.0, 1.0),
-                                ("tip.apex_radius", truth.tip.apex_radius, model.tip.apex_radius)):
+    for key, value, nominal in (
+        ("scanner.creep_fractions", 2.0, 1.0),
+        ("tip.apex_radius", truth.tip.apex_radius, model.tip.apex_radius),
+    ):
         fitted = d.parameters[key]
-        assert abs(fitted["value"] - value) <= min(0.2 * abs(value - nominal), 3 * fitted["sigma"]), (key, fitted)
+        assert abs(fitted["value"] - value) <= min(
+            0.2 * abs(value - nominal), 3 * fitted["sigma"]
+        ), (key, fitted)
 
 
 def test_no_second_term_on_released_factors_when_the_first_already_fits_the_held_out_blocks():
@@ -580,10 +749,21 @@ def test_slower_creep_is_named_without_a_second_term_its_joint_fit_leaves_at_the
     seed = 235
     nominal = _nominal(seed)
     factor = 2.4
-    truth = merge(nominal, {"scanner": {"creep_time_constants":
-                                        [factor * t for t in nominal.scanner.creep_time_constants]}})
-    d = diagnose(make_session(truth, protocol_seed=seed), nominal,
-                 candidates=select(("creep_time", "creep_amplitude", "drift_velocity", "tip_radius", "height_gain")))
+    truth = merge(
+        nominal,
+        {
+            "scanner": {
+                "creep_time_constants": [factor * t for t in nominal.scanner.creep_time_constants]
+            }
+        },
+    )
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        nominal,
+        candidates=select(
+            ("creep_time", "creep_amplitude", "drift_velocity", "tip_radius", "height_gain")
+        ),
+    )
     assert d.chosen == ["creep_time"], d.summary()
     fitted = d.parameters["scanner.creep_time_constants"]["value"]
     assert abs(fitted - factor) <= 0.2 * (factor - 1), fitted
@@ -597,8 +777,11 @@ def test_a_second_term_is_named_only_if_it_differs_from_the_model_by_its_reporte
     seed = 251
     model = _nominal(seed)
     truth = merge(model, {"controller": {"asymmetry_error": -0.0944}})
-    d = diagnose(make_session(truth, protocol_seed=seed), model,
-                 candidates=select(("hysteresis_asymmetry", "height_gain")))
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        model,
+        candidates=select(("hysteresis_asymmetry", "height_gain")),
+    )
     assert d.chosen == ["hysteresis_asymmetry"], d.summary()
     assert abs(d.parameters["controller.asymmetry_error"]["value"] + 0.0944) <= 0.2 * 0.0944
     assert "Wald" in next(c.note for c in d.candidates if c.name == "height_gain")
@@ -611,8 +794,11 @@ def test_a_stick_slip_ratios_sigma_is_the_chi2_profiles_not_the_jumpy_local_slop
     seed = 603
     model = _nominal(seed)
     truth = merge(model, {"contact": {"stick_slip_enabled": True, "static_friction_ratio": 1.3}})
-    d = diagnose(make_session(truth, protocol_seed=seed), model,
-                 candidates=select(("stick_slip", "friction", "tip_wear")))
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        model,
+        candidates=select(("stick_slip", "friction", "tip_wear")),
+    )
     assert d.chosen == ["stick_slip"], d.summary()
     fitted = d.parameters["contact.static_friction_ratio"]
     assert abs(fitted["value"] - 1.3) <= 0.2 * 0.3, fitted
@@ -627,8 +813,11 @@ def test_asymmetric_tip_is_fitted_to_within_its_reported_uncertainty():
     seed = 273
     nominal = _nominal(seed)
     truth = merge(nominal, {"tip": {"asymmetry": 0.27}})
-    d = diagnose(make_session(truth, protocol_seed=seed), nominal,
-                 candidates=select(("tip_asymmetry", "tip_radius", "latency", "height_gain")))
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        nominal,
+        candidates=select(("tip_asymmetry", "tip_radius", "latency", "height_gain")),
+    )
     assert d.chosen and d.chosen[0] == "tip_asymmetry", d.summary()
     fitted = d.parameters["tip.asymmetry"]
     assert abs(fitted["value"] - 0.27) <= 0.2 * 0.27, fitted
@@ -637,10 +826,25 @@ def test_asymmetric_tip_is_fitted_to_within_its_reported_uncertainty():
 
 def test_a_residual_beyond_the_noise_that_no_candidate_explains_is_not_called_consistent():
     from afm_core.sim2real.diagnose import UNEXPLAINED_P, Diagnosis
-    d = Diagnosis(n_features=10, groups={}, overall={"chi2": 60.0, "dof": 10, "p": 1e-9}, where=[],
-                  change_points=[], candidates=[], chosen=[], parameters={}, overrides={}, updated_config=None,
-                  heldout={}, missing_candidates=[], timings={})
-    assert "consistent" not in d.summary() and "no candidate in the library explains" in d.summary()
+
+    d = Diagnosis(
+        n_features=10,
+        groups={},
+        overall={"chi2": 60.0, "dof": 10, "p": 1e-9},
+        where=[],
+        change_points=[],
+        candidates=[],
+        chosen=[],
+        parameters={},
+        overrides={},
+        updated_config=None,
+        heldout={},
+        missing_candidates=[],
+        timings={},
+    )
+    assert (
+        "consistent" not in d.summary() and "no candidate in the library explains" in d.summary()
+    )
     d.overall["p"] = 2 * UNEXPLAINED_P
     assert d.summary().startswith("no missing physics: residuals consistent with the noise model")
 
@@ -650,21 +854,55 @@ def test_a_parameter_within_two_sigma_of_the_model_is_marked_as_unresolved(tmp_p
     marked in the summary and the report as one the session cannot tell; x (10 sigma) is not."""
     from afm_core.sim2real.diagnose import UNRESOLVED, CandidateResult, Diagnosis
     from afm_core.sim2real.report import write_report
+
     words = "thermal drift: the constant drift velocity differs from the model"
-    candidate = CandidateResult("drift_velocity", words, ["drift.mean_velocity_x", "drift.mean_velocity_y"],
-                                ["m/s", "m/s"], 2, estimate=np.array([3e-10, 4e-10]), sigma=np.array([3e-11, 2e-10]),
-                                accepted=True)
-    parameters = {"drift.mean_velocity_x": {"value": 3e-10, "sigma": 3e-11, "nominal": 0.0,
-                                            "candidate": "drift_velocity"},
-                  "drift.mean_velocity_y": {"value": 4e-10, "sigma": 2e-10, "nominal": 1e-10,
-                                            "candidate": "drift_velocity"}}
+    candidate = CandidateResult(
+        "drift_velocity",
+        words,
+        ["drift.mean_velocity_x", "drift.mean_velocity_y"],
+        ["m/s", "m/s"],
+        2,
+        estimate=np.array([3e-10, 4e-10]),
+        sigma=np.array([3e-11, 2e-10]),
+        accepted=True,
+    )
+    parameters = {
+        "drift.mean_velocity_x": {
+            "value": 3e-10,
+            "sigma": 3e-11,
+            "nominal": 0.0,
+            "candidate": "drift_velocity",
+        },
+        "drift.mean_velocity_y": {
+            "value": 4e-10,
+            "sigma": 2e-10,
+            "nominal": 1e-10,
+            "candidate": "drift_velocity",
+        },
+    }
     config = _nominal(3)
-    d = Diagnosis(n_features=10, groups={}, overall={"chi2": 60.0, "dof": 10, "p": 1e-9, "variance_factor": 1.0},
-                  where=[], change_points=[], candidates=[candidate], chosen=["drift_velocity"], parameters=parameters,
-                  overrides={}, updated_config=config, heldout={}, missing_candidates=[], timings={})
+    d = Diagnosis(
+        n_features=10,
+        groups={},
+        overall={"chi2": 60.0, "dof": 10, "p": 1e-9, "variance_factor": 1.0},
+        where=[],
+        change_points=[],
+        candidates=[candidate],
+        chosen=["drift_velocity"],
+        parameters=parameters,
+        overrides={},
+        updated_config=config,
+        heldout={},
+        missing_candidates=[],
+        timings={},
+    )
     x_part, y_part = d.summary().split("mean_velocity_y")
     assert UNRESOLVED not in x_part and UNRESOLVED in y_part, d.summary()
-    rows = [line for line in write_report(d, tmp_path).read_text().splitlines() if "mean_velocity" in line]
+    rows = [
+        line
+        for line in write_report(d, tmp_path).read_text().splitlines()
+        if "mean_velocity" in line
+    ]
     assert [UNRESOLVED in row for row in rows if row.startswith("| `")] == [False, True], rows
 
 
@@ -673,6 +911,7 @@ def test_a_fit_outside_the_physical_range_cannot_name_a_term():
     below 1 is held to its bound, which is the model without the term: such a fit names
     nothing. An unbounded term with a tiny value (a drift ramp in m/s^2) still acts."""
     from afm_core.sim2real.diagnose import _can_act
+
     lib = {c.name: c for c in library()}
     assert not _can_act(lib["tip_wear"], np.array([0.0]), np.array([-3e-4]))
     assert _can_act(lib["tip_wear"], np.array([0.0]), np.array([3e-4]))
@@ -683,7 +922,10 @@ def test_a_fit_outside_the_physical_range_cannot_name_a_term():
 def test_effects_select_library_terms_by_name_and_refuse_unknown_ones():
     names = [c.name for c in library()]
     assert [c.name for c in select(None)] == names == [c.name for c in select([])]
-    assert [c.name for c in select(["tip_wear", "drift_velocity"])] == ["drift_velocity", "tip_wear"]
+    assert [c.name for c in select(["tip_wear", "drift_velocity"])] == [
+        "drift_velocity",
+        "tip_wear",
+    ]
     with pytest.raises(ValueError, match=r"effects: unknown 'tip_raduis'.*tip_radius"):
         select(["tip_radius", "tip_raduis"])
 
@@ -692,13 +934,14 @@ def test_a_diagnosis_against_some_terms_says_which_were_left_out(tmp_path):
     """The summary and the report name the terms a request left out, so 'no candidate explains'
     is not read as 'the library has nothing'."""
     from afm_core.sim2real.report import write_report
+
     seed = 3
     ops = make_session(_nominal(seed), protocol_seed=seed, blocks=1)
     d = diagnose(ops, _nominal(seed), candidates=select(["height_gain"]))
     left_out = [c.name for c in library() if c.name != "height_gain"]
     assert d.not_considered == left_out
     assert [c.name for c in d.candidates if c.name in left_out] == []
-    d.overall["p"] = 0.0          # as if the residual exceeded the noise model
+    d.overall["p"] = 0.0  # as if the residual exceeded the noise model
     assert f"({len(left_out)} library terms left out)" in d.summary()
     text = write_report(d, tmp_path).read_text()
     assert "Not considered (left out by the request): " + ", ".join(left_out) in text
@@ -713,10 +956,15 @@ def test_a_second_term_must_predict_the_held_out_blocks_better_than_the_first_al
     nominal = _nominal(seed)
     wider = 1.3 * nominal.scanner.hysteresis_fraction
     truth = merge(nominal, {"scanner": {"hysteresis_fraction": wider}})
-    d = diagnose(make_session(truth, protocol_seed=seed), nominal,
-                 candidates=select(("hysteresis_width", "tip_radius")))
+    d = diagnose(
+        make_session(truth, protocol_seed=seed),
+        nominal,
+        candidates=select(("hysteresis_width", "tip_radius")),
+    )
     assert d.chosen == ["hysteresis_width"], d.summary()
     fitted = d.parameters["scanner.hysteresis_fraction"]["value"]
     assert abs(fitted - wider) <= 0.2 * (wider - nominal.scanner.hysteresis_fraction), fitted
     assert d.heldout["chi2_after"] < d.heldout["chi2_before"]
-    assert "held-out blocks fit worse with it" in next(c.note for c in d.candidates if c.name == "tip_radius")
+    assert "held-out blocks fit worse with it" in next(
+        c.note for c in d.candidates if c.name == "tip_radius"
+    )

@@ -1,6 +1,7 @@
 """The sim2real node: the /afm/sim2real action on a recorded session with a known missing
 effect (the recording's tip is blunter than the model's), on a snapshot of a live (.part)
 recording, refusals that name what is missing, and a cancel that stops between steps."""
+
 import math
 import shutil
 
@@ -15,7 +16,7 @@ from afm_msgs.action import Sim2Real
 
 pytestmark = pytest.mark.ros
 
-TRUE_APEX = 26e-9          # the model says 20 nm
+TRUE_APEX = 26e-9  # the model says 20 nm
 # the terms that change a particle's apparent size (the whole library is the diagnosis tests' job)
 SIZE_TERMS = ["tip_radius", "tip_wear", "tip_asymmetry", "height_gain"]
 
@@ -31,7 +32,9 @@ def session(tmp_path_factory):
     recording.close()
     # the same session as a recorder writes it live: small chunks, so a file cut short still
     # holds complete chunks of the first operations
-    live = RecordingInstrument(SimulatedAfm(truth), folder / "live-full.mcap", chunk_size=64 * 1024)
+    live = RecordingInstrument(
+        SimulatedAfm(truth), folder / "live-full.mcap", chunk_size=64 * 1024
+    )
     run_protocol(live, seed=1, blocks=2)
     live.close()
     return folder
@@ -42,19 +45,31 @@ def test_the_action_names_the_blunter_tip_and_refuses_what_it_cannot_do(session,
     # a recorder still writing: only the .part exists, cut mid-file like a file being appended to
     data = (session / "live-full.mcap").read_bytes()
     (session / "live.mcap.part").write_bytes(data[: int(len(data) * 0.8)])
-    nodes("sim2real", model=str(session / "model.yaml"), live_recording=str(live),
-          report_root=str(session / "reports"))
+    nodes(
+        "sim2real",
+        model=str(session / "model.yaml"),
+        live_recording=str(live),
+        report_root=str(session / "reports"),
+    )
     with AfmCommander("sim2real_test", server_timeout=30.0) as afm:
         phases = []
-        result = afm.send("sim2real", Sim2Real.Goal(recording=str(session / "session.mcap"),
-                                                    report_dir=str(session / "report"), effects=SIZE_TERMS),
-                          feedback=lambda f: phases.append(f.phase), timeout=240.0)
+        result = afm.send(
+            "sim2real",
+            Sim2Real.Goal(
+                recording=str(session / "session.mcap"),
+                report_dir=str(session / "report"),
+                effects=SIZE_TERMS,
+            ),
+            feedback=lambda f: phases.append(f.phase),
+            timeout=240.0,
+        )
         assert result.success, result.message
         assert result.missing_physics and "tip radius" in result.effects[0]
         assert "apex_radius" in result.summary
         assert (session / "report" / "report.md").is_file() and result.report.endswith("report.md")
-        assert result.updated_config and load_config(result.updated_config).tip.apex_radius == pytest.approx(
-            TRUE_APEX, abs=0.25 * (TRUE_APEX - 20e-9))
+        assert result.updated_config and load_config(
+            result.updated_config
+        ).tip.apex_radius == pytest.approx(TRUE_APEX, abs=0.25 * (TRUE_APEX - 20e-9))
         assert result.heldout_reduction > 0.5
         assert phases, "no feedback"
 
@@ -62,34 +77,66 @@ def test_the_action_names_the_blunter_tip_and_refuses_what_it_cannot_do(session,
         result = afm.send("sim2real", Sim2Real.Goal(effects=SIZE_TERMS), timeout=240.0)
         assert result.success, result.message
         assert "snapshot of live.mcap.part" in result.message
-        assert (session / "live.mcap.part").read_bytes() == data[: int(len(data) * 0.8)]   # left alone
+        assert (session / "live.mcap.part").read_bytes() == data[
+            : int(len(data) * 0.8)
+        ]  # left alone
 
-        result = afm.send("sim2real", Sim2Real.Goal(recording=str(session / "session.mcap"), effects=["tip_raduis"],
-                                                    report_dir=str(session / "misspelt")), timeout=30.0)
+        result = afm.send(
+            "sim2real",
+            Sim2Real.Goal(
+                recording=str(session / "session.mcap"),
+                effects=["tip_raduis"],
+                report_dir=str(session / "misspelt"),
+            ),
+            timeout=30.0,
+        )
         assert not result.success and "effects: unknown 'tip_raduis'" in result.message
         assert not (session / "misspelt").exists()
-        result = afm.send("sim2real", Sim2Real.Goal(recording=str(session / "nope.mcap")), timeout=30.0)
-        assert not result.success and "recording=" in result.message and "no such file" in result.message
+        result = afm.send(
+            "sim2real", Sim2Real.Goal(recording=str(session / "nope.mcap")), timeout=30.0
+        )
+        assert (
+            not result.success
+            and "recording=" in result.message
+            and "no such file" in result.message
+        )
         shutil.copy(session / "model.yaml", session / "broken.yaml")
         (session / "broken.yaml").write_text("scanner: {hysteresis_fraction: lots}\n")
-        result = afm.send("sim2real", Sim2Real.Goal(recording=str(session / "session.mcap"),
-                                                    model=str(session / "broken.yaml")), timeout=60.0)
+        result = afm.send(
+            "sim2real",
+            Sim2Real.Goal(
+                recording=str(session / "session.mcap"), model=str(session / "broken.yaml")
+            ),
+            timeout=60.0,
+        )
         assert not result.success and "hysteresis_fraction" in result.message
 
-        job = afm.send("sim2real", Sim2Real.Goal(recording=str(session / "session.mcap"),
-                                                 report_dir=str(session / "cancelled")), wait=False)
+        job = afm.send(
+            "sim2real",
+            Sim2Real.Goal(
+                recording=str(session / "session.mcap"), report_dir=str(session / "cancelled")
+            ),
+            wait=False,
+        )
         assert job.cancel()
         result = job.result(120.0)
-        assert not result.success and "cancelled" in result.message and math.isnan(result.heldout_reduction)
+        assert (
+            not result.success
+            and "cancelled" in result.message
+            and math.isnan(result.heldout_reduction)
+        )
 
 
 def test_cli_refuses_bad_input_with_the_reason(session, tmp_path):
     import subprocess
     import sys
+
     afm = [sys.executable, "-m", "afm_bringup.cli", "sim2real"]
 
     def run(*args):
-        done = subprocess.run(afm + [str(a) for a in args], capture_output=True, text=True, timeout=120)
+        done = subprocess.run(
+            afm + [str(a) for a in args], capture_output=True, text=True, timeout=120
+        )
         return done.returncode, done.stderr
 
     code, err = run(tmp_path / "missing.mcap", "--report", tmp_path / "r1")
@@ -97,10 +144,23 @@ def test_cli_refuses_bad_input_with_the_reason(session, tmp_path):
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "keep.txt").write_text("a lab's notes")
     code, err = run(session / "session.mcap", "--report", tmp_path / "full")
-    assert code != 0 and "not empty" in err and (tmp_path / "full" / "keep.txt").read_text() == "a lab's notes"
+    assert (
+        code != 0
+        and "not empty" in err
+        and (tmp_path / "full" / "keep.txt").read_text() == "a lab's notes"
+    )
     data = (session / "session.mcap").read_bytes()
     (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 3])
-    code, err = run(tmp_path / "cut.mcap", "--model", session / "model.yaml", "--report", tmp_path / "r2")
+    code, err = run(
+        tmp_path / "cut.mcap", "--model", session / "model.yaml", "--report", tmp_path / "r2"
+    )
     assert code != 0 and "cut.mcap" in err
-    code, err = run(session / "session.mcap", "--effects", "tip_radius,friktion", "--report", tmp_path / "r3")
-    assert code != 0 and "effects: unknown 'friktion'" in err and "friction" in err and not (tmp_path / "r3").exists()
+    code, err = run(
+        session / "session.mcap", "--effects", "tip_radius,friktion", "--report", tmp_path / "r3"
+    )
+    assert (
+        code != 0
+        and "effects: unknown 'friktion'" in err
+        and "friction" in err
+        and not (tmp_path / "r3").exists()
+    )

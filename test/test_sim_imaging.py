@@ -1,9 +1,10 @@
 """Simulated imaging against closed forms and brute force."""
+
 import numpy as np
 import pytest
 
-from afm_core.sim.imaging import dilate
 from afm_core.instrument import ScanRequest
+from afm_core.sim.imaging import dilate
 from afm_core.sim.instrument import SimulatedAfm
 from afm_core.sim.tip import paraboloid_cone_tip
 
@@ -15,7 +16,9 @@ def brute_force_image(surface, tip):
     out = np.full(surface.shape, -np.inf)
     for du in range(-h, h + 1):
         for dv in range(-h, h + 1):
-            shifted = padded[h + du: h + du + surface.shape[0], h + dv: h + dv + surface.shape[1]]
+            shifted = padded[
+                h + du : h + du + surface.shape[0], h + dv : h + dv + surface.shape[1]
+            ]
             out = np.maximum(out, shifted + tip[h + du, h + dv])
     return out
 
@@ -34,7 +37,7 @@ def test_tip_is_a_paraboloid_at_the_apex_and_a_cone_further_out():
     c = tip.shape[0] // 2
     assert tip[c, c] == 0.0 and tip.max() == 0.0
     r = 3 * pixel
-    assert tip[c, c + 3] == pytest.approx(-r**2 / (2 * radius))
+    assert tip[c, c + 3] == pytest.approx(-(r**2) / (2 * radius))
     # cone wall: slope 1/tan(angle) between two points outside the tangent radius R/tan(angle) = 55 nm
     z1, z2 = tip[c, c + 200], tip[c, c + 300]
     assert (z1 - z2) / (100 * pixel) == pytest.approx(1 / np.tan(np.radians(angle)), rel=1e-9)
@@ -42,27 +45,37 @@ def test_tip_is_a_paraboloid_at_the_apex_and_a_cone_further_out():
 
 def test_line_times_follow_the_slow_scan_direction():
     from test_simulator import ideal
+
     afm = SimulatedAfm(ideal())
     up = afm.raster_scan(ScanRequest(1e-6, 1e-6, 1e-6, 1e-6, 32, 16, line_rate=2.0))
-    down = afm.raster_scan(ScanRequest(1e-6, 1e-6, 1e-6, 1e-6, 32, 16, line_rate=2.0, slow_scan_up=False))
-    turned = afm.raster_scan(ScanRequest(1e-6, 1e-6, 1e-6, 1e-6, 32, 16, line_rate=2.0, scan_angle_deg=90.0))
+    down = afm.raster_scan(
+        ScanRequest(1e-6, 1e-6, 1e-6, 1e-6, 32, 16, line_rate=2.0, slow_scan_up=False)
+    )
+    turned = afm.raster_scan(
+        ScanRequest(1e-6, 1e-6, 1e-6, 1e-6, 32, 16, line_rate=2.0, scan_angle_deg=90.0)
+    )
     np.testing.assert_allclose(up.line_start_times, np.arange(16) * 0.5, atol=1e-9)
     np.testing.assert_allclose(down.line_start_times, np.arange(16)[::-1] * 0.5, atol=1e-9)
-    assert len(turned.line_start_times) == 32            # a 90 deg line is a column
+    assert len(turned.line_start_times) == 32  # a 90 deg line is a column
     assert down.start_time > up.start_time + 16 * 0.5
 
 
 def test_dilated_field_and_pointwise_dilation_agree():
     from afm_core.sim.imaging import DilatedField, dilated_heights_at
-    from afm_core.sim.sample import Sample, Sphere
-    from afm_core.sim.sample import Pit, Roughness
-    sample = Sample(spheres=[Sphere(0, 100e-9, 100e-9, 50e-9)], roughness=Roughness(1e-9, 10e-9, seed=1),
-                    pits=[Pit(1, 40e-9, 100e-9, 15e-9, 6e-9)])
+    from afm_core.sim.sample import Pit, Roughness, Sample, Sphere
+
+    sample = Sample(
+        spheres=[Sphere(0, 100e-9, 100e-9, 50e-9)],
+        roughness=Roughness(1e-9, 10e-9, seed=1),
+        pits=[Pit(1, 40e-9, 100e-9, 15e-9, 6e-9)],
+    )
     tip = paraboloid_cone_tip(10e-9, 20.0, 2e-9, 120e-9)
     field = DilatedField(sample.height, tip, 0.0, 0.0, 100, 100, 2e-9)
     xs = np.linspace(20e-9, 180e-9, 41)
     ys = np.full_like(xs, 100e-9)
-    np.testing.assert_allclose(field.at(xs, ys), dilated_heights_at(sample, tip, 2e-9, xs, ys), atol=1e-12)
+    np.testing.assert_allclose(
+        field.at(xs, ys), dilated_heights_at(sample, tip, 2e-9, xs, ys), atol=1e-12
+    )
 
 
 def test_pointwise_dilation_tries_only_offsets_that_can_win_and_equals_the_definition():
@@ -71,10 +84,14 @@ def test_pointwise_dilation_tries_only_offsets_that_can_win_and_equals_the_defin
     s(q+u) + t(u), though only the offsets that can win are tried."""
     from afm_core.sim.imaging import dilated_heights_at
     from afm_core.sim.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
-    sample = Sample(spheres=[Sphere(0, 120e-9, 100e-9, 15e-9), Sphere(1, 160e-9, 110e-9, 5e-9)],
-                    rods=[Rod(2, 60e-9, 160e-9, 0.4, 120e-9, 8e-9)],
-                    electrodes=[Electrode(3, 150e-9, 150e-9, 260e-9, 220e-9, 25e-9)],
-                    pits=[Pit(4, 90e-9, 90e-9, 15e-9, 4e-9)], roughness=Roughness(1.5e-9, 10e-9, seed=3))
+
+    sample = Sample(
+        spheres=[Sphere(0, 120e-9, 100e-9, 15e-9), Sphere(1, 160e-9, 110e-9, 5e-9)],
+        rods=[Rod(2, 60e-9, 160e-9, 0.4, 120e-9, 8e-9)],
+        electrodes=[Electrode(3, 150e-9, 150e-9, 260e-9, 220e-9, 25e-9)],
+        pits=[Pit(4, 90e-9, 90e-9, 15e-9, 4e-9)],
+        roughness=Roughness(1.5e-9, 10e-9, seed=3),
+    )
     s = np.linspace(0.0, 1.0, 250)
     for radius, asymmetry, pixel in ((30e-9, 0.3, 2e-9), (4e-9, -0.2, 1e-9)):
         tip = paraboloid_cone_tip(radius, 20.0, pixel, 60e-9, asymmetry)
@@ -83,8 +100,12 @@ def test_pointwise_dilation_tries_only_offsets_that_can_win_and_equals_the_defin
         ux, uy = (a.ravel() for a in np.meshgrid(u, u))
         for x0, y0, x1, y1 in ((20e-9, 100e-9, 280e-9, 110e-9), (60e-9, 20e-9, 220e-9, 240e-9)):
             xs, ys = x0 + s * (x1 - x0), y0 + s * (y1 - y0)
-            definition = np.max(sample.height(xs[:, None] + ux, ys[:, None] + uy) + tip.ravel(), axis=1)
-            np.testing.assert_array_equal(dilated_heights_at(sample, tip, pixel, xs, ys), definition)
+            definition = np.max(
+                sample.height(xs[:, None] + ux, ys[:, None] + uy) + tip.ravel(), axis=1
+            )
+            np.testing.assert_array_equal(
+                dilated_heights_at(sample, tip, pixel, xs, ys), definition
+            )
 
 
 @pytest.mark.parametrize("level_key", ["height_white_sigma", "height_flicker_sigma"])
@@ -96,8 +117,10 @@ def test_raster_sensor_noise_is_linear_in_its_level(level_key):
 
     def image(level):
         afm = SimulatedAfm(merge(load_config(), {"seed": 4, "noise": {level_key: level}}))
-        return afm.raster_scan(ScanRequest(50e-6, 50e-6, 1e-6, 1e-6, 48, 24, line_rate=4.0)).height.astype(float)
+        return afm.raster_scan(
+            ScanRequest(50e-6, 50e-6, 1e-6, 1e-6, 48, 24, line_rate=4.0)
+        ).height.astype(float)
 
     zero, unit, far = image(0.0), image(0.3e-9), image(1.1e-9)
-    assert np.std(far - zero) > 0.5e-9            # the level moves the image
+    assert np.std(far - zero) > 0.5e-9  # the level moves the image
     np.testing.assert_allclose(far, zero + 1.1 / 0.3 * (unit - zero), rtol=0, atol=2e-13)

@@ -1,4 +1,5 @@
 """The simulated instrument against closed forms (book ch. 2-5 physics)."""
+
 import math
 
 import numpy as np
@@ -11,8 +12,10 @@ from afm_core.sim.drift import DriftParams, ThermalDrift
 from afm_core.sim.instrument import SimulatedAfm
 from afm_core.sim.tip import Tip, TipParams, paraboloid_cone_tip
 
-QUIET = {"noise": {"height_white_sigma": 0.0, "height_flicker_sigma": 0.0, "deflection_sigma": 0.0},
-         "sample": {"roughness_sigma": 0.0}}
+QUIET = {
+    "noise": {"height_white_sigma": 0.0, "height_flicker_sigma": 0.0, "deflection_sigma": 0.0},
+    "sample": {"roughness_sigma": 0.0},
+}
 
 
 def ideal(**overrides) -> SimConfig:
@@ -25,6 +28,7 @@ def ideal(**overrides) -> SimConfig:
 
 def ideal_scanner(config) -> dict:
     from dataclasses import asdict
+
     fields = asdict(config.scanner)
     return {k: False for k, v in fields.items() if isinstance(v, bool) and k.endswith("enabled")}
 
@@ -51,9 +55,13 @@ def exact_paraboloid_image(R, Rt, x):
     """Tip apex height over horizontal distance x from a sphere's centre, for a pure
     paraboloid tip z = -u^2 / (2 Rt): the 1-D maximisation i(x) = max_v s(v) - (v - x)^2 / (2 Rt)
     solved numerically on the exact sphere profile (independent of the 2-D grid code)."""
+
     def minus(v):
         return -(R + math.sqrt(max(R * R - v * v, 0.0)) - (v - x) ** 2 / (2 * Rt))
-    best = optimize.minimize_scalar(minus, bounds=(-R, R), method="bounded", options={"xatol": 1e-14})
+
+    best = optimize.minimize_scalar(
+        minus, bounds=(-R, R), method="bounded", options={"xatol": 1e-14}
+    )
     return max(-best.fun, 0.0)
 
 
@@ -61,11 +69,15 @@ def test_sphere_image_width_matches_the_paraboloid_tip_solution():
     R, Rt, pixel = 100e-9, 30e-9, 2.5e-9
     # a 10 deg cone meets the paraboloid 480 nm below the apex: within the sphere's 200 nm
     # the tip is the paraboloid alone
-    config = ideal(sample={"spheres": [{"x": 5e-6, "y": 5e-6, "radius": R}]},
-                   tip={"apex_radius": Rt, "half_angle_deg": 10.0})
+    config = ideal(
+        sample={"spheres": [{"x": 5e-6, "y": 5e-6, "radius": R}]},
+        tip={"apex_radius": Rt, "half_angle_deg": 10.0},
+    )
     afm = SimulatedAfm(config)
     n = 200
-    scan = afm.raster_scan(ScanRequest(5e-6 - n * pixel / 2, 5e-6 - n * pixel / 2, n * pixel, n * pixel, n, n))
+    scan = afm.raster_scan(
+        ScanRequest(5e-6 - n * pixel / 2, 5e-6 - n * pixel / 2, n * pixel, n * pixel, n, n)
+    )
     profile = scan.height[n // 2]
     xs = (np.arange(n) + 0.5) * pixel - n * pixel / 2
     for level in (0.5 * R, 1.0 * R, 1.5 * R):
@@ -83,30 +95,47 @@ def test_constant_drift_stretches_frame_up_and_compresses_frame_down(frame_up):
     """Two spheres 1 um apart along y. With the sample drifting at v along +y and the slow
     scan advancing at V = pixel / line period, frame-up separations appear V/(V - v) times
     too long and frame-down ones V/(V + v) times."""
-    v = 1.0e-9                                    # m/s, a fast drift for a clear effect
+    v = 1.0e-9  # m/s, a fast drift for a clear effect
     pixels, size, line_rate = 200, 1.6e-6, 1.0
     V = size / pixels * line_rate
-    config = ideal(sample={"spheres": [{"x": 5e-6, "y": 4.5e-6, "radius": 80e-9},
-                                       {"x": 5e-6, "y": 5.5e-6, "radius": 80e-9}]},
-                   drift={"enabled": True, "mean_velocity_x": 0.0, "mean_velocity_y": v,
-                          "sigma_velocity_x": 0.0, "sigma_velocity_y": 0.0})
+    config = ideal(
+        sample={
+            "spheres": [
+                {"x": 5e-6, "y": 4.5e-6, "radius": 80e-9},
+                {"x": 5e-6, "y": 5.5e-6, "radius": 80e-9},
+            ]
+        },
+        drift={
+            "enabled": True,
+            "mean_velocity_x": 0.0,
+            "mean_velocity_y": v,
+            "sigma_velocity_x": 0.0,
+            "sigma_velocity_y": 0.0,
+        },
+    )
     afm = SimulatedAfm(config)
-    scan = afm.raster_scan(ScanRequest(4.2e-6, 4.2e-6, size, size, pixels, pixels, slow_scan_up=frame_up,
-                                       line_rate=line_rate))
+    scan = afm.raster_scan(
+        ScanRequest(
+            4.2e-6, 4.2e-6, size, size, pixels, pixels, slow_scan_up=frame_up, line_rate=line_rate
+        )
+    )
     labels, count = ndimage.label(scan.height > 80e-9)
     assert count == 2
     rows = [c[0] for c in ndimage.center_of_mass(scan.height > 80e-9, labels, [1, 2])]
     apparent = abs(rows[1] - rows[0]) * size / pixels
     factor = V / (V - v) if frame_up else V / (V + v)
     assert apparent == pytest.approx(1e-6 * factor, abs=2 * size / pixels)
-    assert abs(factor - 1) > 0.08                 # the effect is far above the pixel size
+    assert abs(factor - 1) > 0.08  # the effect is far above the pixel size
 
 
 def test_drift_statistics_and_exact_integral():
-    params = DriftParams(mean_velocity_x=1e-9, mean_velocity_y=-2e-9, sigma_velocity_x=0.0, sigma_velocity_y=0.0)
+    params = DriftParams(
+        mean_velocity_x=1e-9, mean_velocity_y=-2e-9, sigma_velocity_x=0.0, sigma_velocity_y=0.0
+    )
     drift = ThermalDrift(params, seed=3)
-    np.testing.assert_allclose(drift.offset([0.0, 10.0, 125.5]), [[0, 0], [1e-8, -2e-8], [125.5e-9, -251e-9]],
-                               atol=1e-18)
+    np.testing.assert_allclose(
+        drift.offset([0.0, 10.0, 125.5]), [[0, 0], [1e-8, -2e-8], [125.5e-9, -251e-9]], atol=1e-18
+    )
     wander = ThermalDrift(DriftParams(correlation_time=100.0), seed=4)
     t = np.arange(0, 200_000.0, 50.0)
     v = wander.velocity(t)
@@ -127,7 +156,9 @@ def test_tip_asymmetry_and_wear():
     skewed = paraboloid_cone_tip(10e-9, 20.0, 2e-9, 200e-9, asymmetry=0.3)
     c = skewed.shape[0] // 2
     np.testing.assert_allclose(symmetric, symmetric[:, ::-1])
-    assert skewed[c, c + 30] > skewed[c, c - 30]     # a > 0: the +x flank is blunter (falls off slower)
+    assert (
+        skewed[c, c + 30] > skewed[c, c - 30]
+    )  # a > 0: the +x flank is blunter (falls off slower)
     tip = Tip(TipParams(apex_radius=10e-9, wear_enabled=True, wear_rate=1e-3))
     tip.slide(5e-6)
     assert tip.apex_radius == pytest.approx(10e-9 + 5e-9)
@@ -148,14 +179,19 @@ def test_a_spherical_apex_is_a_sphere_blended_into_the_cone():
     profile = tip[c, c:]
     r_tangent = radius * np.cos(np.radians(angle))
     on_cap = r < r_tangent
-    np.testing.assert_allclose(profile[on_cap], -(radius - np.sqrt(radius**2 - r[on_cap] ** 2)), atol=1e-15)
+    np.testing.assert_allclose(
+        profile[on_cap], -(radius - np.sqrt(radius**2 - r[on_cap] ** 2)), atol=1e-15
+    )
     z_tangent = -radius * (1 - np.sin(np.radians(angle)))
     cone = (r > r_tangent) & (profile > -60e-9)
-    np.testing.assert_allclose(profile[cone], z_tangent - (r[cone] - r_tangent) / np.tan(np.radians(angle)),
-                               atol=1e-15)
-    assert np.all(np.abs(np.diff(profile)) <= pixel / np.tan(np.radians(angle)) + 1e-15)   # no step at the seam
+    np.testing.assert_allclose(
+        profile[cone], z_tangent - (r[cone] - r_tangent) / np.tan(np.radians(angle)), atol=1e-15
+    )
+    assert np.all(
+        np.abs(np.diff(profile)) <= pixel / np.tan(np.radians(angle)) + 1e-15
+    )  # no step at the seam
     cp = parab.shape[0] // 2
-    parab = parab[cp - c:cp + c + 1, cp - c:cp + c + 1]               # the sphere's grid is smaller
+    parab = parab[cp - c : cp + c + 1, cp - c : cp + c + 1]  # the sphere's grid is smaller
     assert np.all(tip <= parab) and tip[c, c + 20] < parab[c, c + 20]
     with pytest.raises(ValueError, match="apex_shape"):
         TipParams(apex_shape="cone").validate()
@@ -176,17 +212,25 @@ def test_indentation_punches_a_pit_that_the_next_scan_shows():
     result = afm.indent(3e-6, 3e-6, force=1e-6, dwell=0.5)
     depth = 1e-6 / afm.config.indentation.sample_stiffness
     assert result.completed and result.trace.task == "indent"
-    assert result.trace.vertical_deflection.max() == pytest.approx(1e-6 / afm.config.contact.normal_spring_constant)
+    assert result.trace.vertical_deflection.max() == pytest.approx(
+        1e-6 / afm.config.contact.normal_spring_constant
+    )
     scan = afm.raster_scan(ScanRequest(2.8e-6, 2.8e-6, 0.4e-6, 0.4e-6, 100, 100))
     assert scan.height.min() < -0.3 * depth
     row, col = np.unravel_index(np.argmin(scan.height), scan.height.shape)
     assert (2.8e-6 + (col + 0.5) * 4e-9) == pytest.approx(3e-6, abs=8e-9)
 
 
-@pytest.mark.parametrize("bad, field", [
-    (dict(origin_x=float("nan")), "origin_x"), (dict(size_y=0.0), "size_y"), (dict(pixels_x=100_000), "pixels_x"),
-    (dict(origin_x=109.9e-6), "scanner range"), (dict(line_rate=1e3), "line_rate"),
-])
+@pytest.mark.parametrize(
+    "bad, field",
+    [
+        (dict(origin_x=float("nan")), "origin_x"),
+        (dict(size_y=0.0), "size_y"),
+        (dict(pixels_x=100_000), "pixels_x"),
+        (dict(origin_x=109.9e-6), "scanner range"),
+        (dict(line_rate=1e3), "line_rate"),
+    ],
+)
 def test_bad_scan_requests_name_the_field_and_move_nothing(bad, field):
     afm = SimulatedAfm(ideal())
     before = (afm.commanded_position(), afm.time)
@@ -210,8 +254,11 @@ def test_moves_outside_the_range_or_too_fast_are_refused():
 def test_cancel_stops_a_raster_between_lines():
     afm = SimulatedAfm(ideal())
     calls = []
-    scan = afm.raster_scan(ScanRequest(4e-6, 4e-6, 1e-6, 1e-6, 64, 64),
-                           on_line=lambda done, total: calls.append(done), should_stop=lambda: len(calls) >= 20)
+    scan = afm.raster_scan(
+        ScanRequest(4e-6, 4e-6, 1e-6, 1e-6, 64, 64),
+        on_line=lambda done, total: calls.append(done),
+        should_stop=lambda: len(calls) >= 20,
+    )
     assert not scan.complete
     assert np.isnan(scan.height).any(axis=1).sum() == 64 - len(calls)
     assert calls == list(range(1, len(calls) + 1))
@@ -230,15 +277,26 @@ def test_pushing_moves_a_sphere_and_the_next_scan_shows_it():
 
 def test_documented_default_file_matches_the_code_defaults():
     from afm_core.sim.config import DEFAULT_CONFIG_FILE
-    assert config_from_dict(__import__("yaml").safe_load(DEFAULT_CONFIG_FILE.read_text())) == SimConfig()
+
+    assert (
+        config_from_dict(__import__("yaml").safe_load(DEFAULT_CONFIG_FILE.read_text()))
+        == SimConfig()
+    )
 
 
 def test_move_errors_accumulate_with_the_calibrated_variance_per_distance():
     """Each move adds an independent error of variance slope x distance + offset per axis
     (book Fig. 7.20b); the error persists, so it is the increments that are independent."""
     slope, offset = 0.5e-9, 4e-18
-    sim = SimulatedAfm(ideal(scanner={"positioning_noise_enabled": True, "positioning_noise_slope": slope,
-                                      "positioning_noise_offset": offset}))
+    sim = SimulatedAfm(
+        ideal(
+            scanner={
+                "positioning_noise_enabled": True,
+                "positioning_noise_slope": slope,
+                "positioning_noise_offset": offset,
+            }
+        )
+    )
     distance = 2e-6
     x0, y0 = sim.commanded_position()
     errors = []

@@ -1,5 +1,6 @@
 """Blind tip estimation (book ch. 4, Villarrubia 1997) against brute force, closed forms and the
 simulator's ground truth, with an asymmetric tip (blunt +x flank)."""
+
 import time
 
 import numpy as np
@@ -14,7 +15,7 @@ NM = 1e-9
 
 def crop(tip, size):
     c, h = tip.shape[0] // 2, size // 2
-    return tip[c - h:c + h + 1, c - h:c + h + 1]
+    return tip[c - h : c + h + 1, c - h : c + h + 1]
 
 
 def brute_dilate(surface, tip):
@@ -25,7 +26,9 @@ def brute_dilate(surface, tip):
     out = np.full(surface.shape, -np.inf)
     for a in range(-h, h + 1):
         for b in range(-h, h + 1):
-            out = np.maximum(out, padded[h + a:h + a + ny, h + b:h + b + nx] + tip[h + a, h + b])
+            out = np.maximum(
+                out, padded[h + a : h + a + ny, h + b : h + b + nx] + tip[h + a, h + b]
+            )
     return out
 
 
@@ -37,7 +40,9 @@ def brute_erode(image, tip):
     out = np.full(image.shape, np.inf)
     for a in range(-h, h + 1):
         for b in range(-h, h + 1):
-            out = np.minimum(out, padded[h - a:h - a + ny, h - b:h - b + nx] - tip[h + a, h + b])
+            out = np.minimum(
+                out, padded[h - a : h - a + ny, h - b : h - b + nx] - tip[h + a, h + b]
+            )
     return out
 
 
@@ -60,12 +65,18 @@ def brute_blind(image, tip_size, threshold):
         for y in range(h, ny - h):
             for x in range(h, nx - h):
                 i0 = image[y, x]
-                contacts = [(a, b) for a, b in offsets if not inside(y + a, x + b)
-                            or i0 - image[y + a, x + b] <= tip[h + a, h + b] + 1e-9 * np.ptp(image)]
+                contacts = [
+                    (a, b)
+                    for a, b in offsets
+                    if not inside(y + a, x + b)
+                    or i0 - image[y + a, x + b] <= tip[h + a, h + b] + 1e-9 * np.ptp(image)
+                ]
                 for wa, wb in offsets:
                     if not all(inside(y + a - wa, x + b - wb) for a, b in contacts):
                         continue
-                    bound = max(image[y + a - wa, x + b - wb] - i0 + tip[h + a, h + b] for a, b in contacts)
+                    bound = max(
+                        image[y + a - wa, x + b - wb] - i0 + tip[h + a, h + b] for a, b in contacts
+                    )
                     if bound + threshold < tip[h + wa, h + wb] - 1e-9 * np.ptp(image):
                         tip[h + wa, h + wb] = bound + threshold
                         changed = True
@@ -75,7 +86,7 @@ def brute_blind(image, tip_size, threshold):
 @pytest.fixture(scope="module")
 def asym_tip():
     tip = paraboloid_cone_tip(10 * NM, 25, 6 * NM, 60 * NM, asymmetry=0.2, max_half_width=4)
-    assert tip[4, 8] > tip[4, 0] + 1e-12      # +x flank blunter (higher) than -x
+    assert tip[4, 8] > tip[4, 0] + 1e-12  # +x flank blunter (higher) than -x
     return tip
 
 
@@ -93,8 +104,12 @@ def test_dilate_and_erode_match_their_definitions_for_an_asymmetric_tip(asym_tip
     random_tip = -rng.uniform(0, 8 * NM, size=(7, 7))
     random_tip[3, 3] = 0.0
     for tip in (asym_tip, random_tip):
-        np.testing.assert_allclose(te.dilate(surface, tip), brute_dilate(surface, tip), rtol=0, atol=1e-20)
-        np.testing.assert_allclose(te.erode(surface, tip), brute_erode(surface, tip), rtol=0, atol=1e-20)
+        np.testing.assert_allclose(
+            te.dilate(surface, tip), brute_dilate(surface, tip), rtol=0, atol=1e-20
+        )
+        np.testing.assert_allclose(
+            te.erode(surface, tip), brute_erode(surface, tip), rtol=0, atol=1e-20
+        )
         # the float32 valid-region versions used by the candidate test agree on the interior
         h = tip.shape[0] // 2
         e32 = te._erode_valid(surface.astype(np.float32), tip.astype(np.float32))
@@ -105,8 +120,8 @@ def test_erosion_is_the_adjoint_of_imaging(asym_tip):
     rng = np.random.default_rng(5)
     rough = rng.normal(scale=3 * NM, size=(60, 60))
     recon = te.erode(te.dilate(rough, asym_tip), asym_tip)
-    assert np.all(recon >= rough - 1e-18)           # never below the surface
-    assert np.any(recon > rough + 1 * NM)           # narrow pits are not reached
+    assert np.all(recon >= rough - 1e-18)  # never below the surface
+    assert np.any(recon > rough + 1 * NM)  # narrow pits are not reached
     # a smooth surface whose curvature is far below the tip's is touched everywhere: exact
     y, x = np.mgrid[0:80, 0:80] * 1.6 * NM
     smooth = 1 * NM * np.sin(2 * np.pi * x / (200 * NM)) * np.cos(2 * np.pi * y / (250 * NM))
@@ -131,12 +146,14 @@ def test_certainty_map_marks_points_the_reconstruction_gets_right():
     recon = te.erode(image, tip)
     assert np.all(recon >= surface - 1e-15)
     inner = (slice(80, -80), slice(80, -80))
-    assert certain[inner].mean() > 0.5                      # the flat substrate and the spike tops
+    assert certain[inner].mean() > 0.5  # the flat substrate and the spike tops
     np.testing.assert_allclose(recon[certain], surface[certain], rtol=0, atol=1e-15)
-    assert np.any(recon[inner] > surface[inner] + 1 * NM)    # spike flanks the tip never reaches...
-    assert not np.any(certain & (recon > surface + 1e-12))   # ...are never marked certain
-    tops = (surface > 15 * NM) & (surface >= np.maximum.reduce(
-        [np.roll(surface, s, axis=a) for s in (-1, 1) for a in (0, 1)]))
+    assert np.any(recon[inner] > surface[inner] + 1 * NM)  # spike flanks the tip never reaches...
+    assert not np.any(certain & (recon > surface + 1e-12))  # ...are never marked certain
+    tops = (surface > 15 * NM) & (
+        surface
+        >= np.maximum.reduce([np.roll(surface, s, axis=a) for s in (-1, 1) for a in (0, 1)])
+    )
     tops[:80], tops[-80:], tops[:, :80], tops[:, -80:] = False, False, False, False
     assert tops.any() and certain[tops].all()
 
@@ -153,7 +170,7 @@ def test_characterizer_is_the_dilated_spike_field_plus_noise():
     window = crop(tip, 41)
     axis_ends = np.array([window[20, 0], window[20, -1], window[0, 20], window[-1, 20]])
     assert np.all((axis_ends < -35 * NM) & (axis_ends > -60 * NM))  # the 41 window: top ~40-60 nm
-    assert window[20, -1] > window[20, 0] + 5 * NM                  # blunt +x flank
+    assert window[20, -1] > window[20, 0] + 5 * NM  # blunt +x flank
     assert abs(te.estimate_noise(image) - 0.3 * NM) < 0.05 * NM
 
 
@@ -163,6 +180,7 @@ def test_feature_points_are_the_spike_tops():
     assert len(pts) >= 10
     # each feature is a spike top, up to the noise-flat apex (within 3 pixels of a spike)
     from scipy import ndimage
+
     near_spike = ndimage.maximum_filter(surface, size=7) > 15 * NM
     assert near_spike[pts[:, 0], pts[:, 1]].all()
     kept = te.douglas_peucker(np.array([0, 0.1, 0, 5, 10, 5, 0, -0.1, 0]), 1.0)
@@ -177,8 +195,16 @@ def test_refinement_matches_the_brute_force_definition():
     surface = np.zeros((22, 22))
     for y, x in rng.integers(3, 19, size=(4, 2)):
         surface[y, x] = rng.uniform(3, 6)
-    true_tip = -np.array([[4, 3, 2.5, 3, 5], [2, 1, 0.8, 1, 3], [1.5, 0.5, 0, 0.4, 2],
-                          [2.5, 1, 0.6, 1.2, 3], [5, 4, 3, 4, 6]], float)
+    true_tip = -np.array(
+        [
+            [4, 3, 2.5, 3, 5],
+            [2, 1, 0.8, 1, 3],
+            [1.5, 0.5, 0, 0.4, 2],
+            [2.5, 1, 0.6, 1.2, 3],
+            [5, 4, 3, 4, 6],
+        ],
+        float,
+    )
     image = te.dilate(surface, true_tip) + rng.normal(scale=0.05, size=surface.shape)
     for th in (0.0, 0.1):
         brute = brute_blind(image, 5, th)
@@ -196,9 +222,11 @@ def test_noiseless_estimate_is_an_upper_bound_that_converges_to_the_true_top():
         assert est.tip[size // 2, size // 2] == 0 and est.tip.max() == 0
         assert np.all(est.tip >= true - 1e-15)
         err = te.tip_error(est, tip, 20 * NM)
-        print(f"\nnoiseless {size}x{size}: top-20 nm RMS error {err / NM:.2e} nm in {est.seconds:.2f} s")
+        print(
+            f"\nnoiseless {size}x{size}: top-20 nm RMS error {err / NM:.2e} nm in {est.seconds:.2f} s"
+        )
         assert err < 0.05 * NM
-    auto = te.estimate_tip(image, 41, "auto")                       # no noise: ~ the exact algorithm
+    auto = te.estimate_tip(image, 41, "auto")  # no noise: ~ the exact algorithm
     assert auto.threshold < 0.01 * NM and te.tip_error(auto, tip, 20 * NM) < 0.05 * NM
 
 
@@ -207,12 +235,14 @@ def test_asymmetry_is_recovered_on_the_correct_side():
     noisy, _, _ = characterizer_image(n=256, noise=0.3 * NM, seed=1)
     true = crop(tip, 41)
     rows = slice(15, 26)
-    true_gap = true[rows, 34:].mean() - true[rows, :7].mean()     # +x (blunt) minus -x flank
+    true_gap = true[rows, 34:].mean() - true[rows, :7].mean()  # +x (blunt) minus -x flank
     assert true_gap > 3 * NM
     for img, label in ((image, "noiseless"), (noisy, "0.3 nm noise, auto")):
         est = te.estimate_tip(img, 41, threshold=0.0 if img is image else "auto")
         gap = est.tip[rows, 34:].mean() - est.tip[rows, :7].mean()
-        print(f"\n{label}: +x minus -x flank height {gap / NM:.2f} nm (true {true_gap / NM:.2f} nm)")
+        print(
+            f"\n{label}: +x minus -x flank height {gap / NM:.2f} nm (true {true_gap / NM:.2f} nm)"
+        )
         assert gap > 0.5 * true_gap
         if img is image:
             assert abs(gap - true_gap) < 0.05 * true_gap
@@ -234,18 +264,23 @@ def test_noise_threshold_zero_is_too_sharp_huge_is_blunt_and_auto_is_near_the_be
         errors[float(th)] = te.tip_error(est, tip, 20 * NM)
         start = est.tip
     cold = te.estimate_tip(image, size, 4.5 * NM)
-    np.testing.assert_allclose(cold.tip, te.estimate_tip(image, size, 4.5 * NM,
-                                                         start=te.estimate_tip(image, size, 6 * NM).tip).tip,
-                               rtol=0, atol=1e-6 * np.ptp(image))
+    np.testing.assert_allclose(
+        cold.tip,
+        te.estimate_tip(image, size, 4.5 * NM, start=te.estimate_tip(image, size, 6 * NM).tip).tip,
+        rtol=0,
+        atol=1e-6 * np.ptp(image),
+    )
     best_th = min(errors, key=errors.get)
     zero = te.estimate_tip(image, size, 0.0)
     huge = te.estimate_tip(image, size, 1e-6)
-    print(f"\n{size}x{size} on 512x512, 0.3 nm noise: auto {auto.threshold / NM:.2f} nm -> {auto_err / NM:.3f} nm "
-          f"in {auto_seconds:.1f} s; best fixed {best_th / NM:.2f} nm -> {errors[best_th] / NM:.3f} nm; "
-          f"N_TH=0 -> {te.tip_error(zero, tip, 20 * NM) / NM:.2f} nm; huge -> "
-          f"{te.tip_error(huge, tip, 20 * NM) / NM:.2f} nm")
+    print(
+        f"\n{size}x{size} on 512x512, 0.3 nm noise: auto {auto.threshold / NM:.2f} nm -> {auto_err / NM:.3f} nm "
+        f"in {auto_seconds:.1f} s; best fixed {best_th / NM:.2f} nm -> {errors[best_th] / NM:.3f} nm; "
+        f"N_TH=0 -> {te.tip_error(zero, tip, 20 * NM) / NM:.2f} nm; huge -> "
+        f"{te.tip_error(huge, tip, 20 * NM) / NM:.2f} nm"
+    )
     assert te.tip_error(zero, tip, 20 * NM) > 3 * errors[best_th]
-    assert zero.tip.mean() < crop(tip, size).mean() - 3 * NM        # needle-sharp
+    assert zero.tip.mean() < crop(tip, size).mean() - 3 * NM  # needle-sharp
     assert np.all(huge.tip == 0.0) and te.tip_error(huge, tip, 20 * NM) > 3 * errors[best_th]
     assert auto_err <= 1.10 * errors[best_th]
     assert auto.sweep and all(len(s) == 4 for s in auto.sweep)
@@ -261,7 +296,9 @@ def test_speed_ups_give_the_plain_result_faster():
         fast = te.estimate_tip(image, 11, th)
         t2 = time.perf_counter()
         bare = te.estimate_tip(image, 11, th, use_features=False, limit_radius=False)
-        print(f"\nnoise {noise / NM:.1f} nm, N_TH {th / NM:.1f} nm: plain {t1 - t0:.2f} s, fast {t2 - t1:.2f} s")
+        print(
+            f"\nnoise {noise / NM:.1f} nm, N_TH {th / NM:.1f} nm: plain {t1 - t0:.2f} s, fast {t2 - t1:.2f} s"
+        )
         tol = 2e-6 * np.ptp(image)
         np.testing.assert_allclose(fast.tip, plain.tip, rtol=0, atol=tol)
         np.testing.assert_allclose(bare.tip, plain.tip, rtol=0, atol=tol)
@@ -272,8 +309,10 @@ def test_speed_on_the_512_characterizer(noisy512):
     image, _, tip = noisy512
     for size, limit in ((21, 3.0), (41, 15.0)):
         est = te.estimate_tip(image, size, 4.5 * NM)
-        print(f"\n{size}x{size} at N_TH 4.5 nm: {est.seconds:.2f} s, {est.iterations} passes, "
-              f"{est.feature_points} feature points, error {te.tip_error(est, tip, 20 * NM) / NM:.3f} nm")
+        print(
+            f"\n{size}x{size} at N_TH 4.5 nm: {est.seconds:.2f} s, {est.iterations} passes, "
+            f"{est.feature_points} feature points, error {te.tip_error(est, tip, 20 * NM) / NM:.3f} nm"
+        )
         assert est.seconds < limit
 
 
@@ -285,4 +324,6 @@ def test_tip_error_closed_form():
     expected = 1 * NM * np.sqrt((mask.sum() - 1) / mask.sum())
     assert te.tip_error(off, tip, 5 * NM) == pytest.approx(expected, rel=1e-12)
     assert te.tip_error(crop(off, 11), tip, 5 * NM) == pytest.approx(expected, rel=1e-12)
-    assert te.tip_error(tip, paraboloid_cone_tip(10 * NM, 25, 1.6 * NM, 60 * NM, 0.2), 5 * NM) < 1e-20
+    assert (
+        te.tip_error(tip, paraboloid_cone_tip(10 * NM, 25, 1.6 * NM, 60 * NM, 0.2), 5 * NM) < 1e-20
+    )

@@ -11,6 +11,7 @@ It also knows when a server really answers (wait_until_answering): the ROS graph
 server whose process has just died, or one whose replies DDS has not matched to us yet, and a
 goal sent to either is lost without a word.
 """
+
 from __future__ import annotations
 
 import threading

@@ -2,6 +2,7 @@
 
 Every subcommand has --help. Lengths accept units (500nm, 1.5um) or plain metres.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,6 +20,7 @@ def _length(name):
             return parse_length(text, name)
         except ValueError as exc:
             raise argparse.ArgumentTypeError(str(exc)) from exc
+
     return convert
 
 
@@ -66,8 +68,9 @@ def wait_for_recorder(graph):
 
     from afm_bringup import topics
     from afm_bringup.commander import AfmCommander, AfmError
+
     with AfmCommander("afm_launch_probe") as probe:
-        time.sleep(1.0)   # let the nodes create their publishers
+        time.sleep(1.0)  # let the nodes create their publishers
         try:
             probe.wait_until_subscribed(topics.RECORDED_BY_DEFAULT, timeout=20.0)
         except AfmError as exc:
@@ -87,9 +90,13 @@ def cmd_record(args):
 
 
 def cmd_replay(args):
-    overrides = {"input": args.recording, "rate": repr(float(args.rate)), "loop": str(args.loop).lower(),
-                 "publish_clock": str(not args.no_clock).lower(),
-                 "wait_for_subscribers": str(args.wait_for_subscribers)}
+    overrides = {
+        "input": args.recording,
+        "rate": repr(float(args.rate)),
+        "loop": str(args.loop).lower(),
+        "publish_clock": str(not args.no_clock).lower(),
+        "wait_for_subscribers": str(args.wait_for_subscribers),
+    }
     if args.topics:
         overrides["topics"] = "[" + ",".join(f"'{t}'" for t in args.topics) + "]"
     command = node_command("replay", None, overrides)
@@ -98,6 +105,7 @@ def cmd_replay(args):
 
 def cmd_info(args):
     from afm_core.recording import RecordingError, RecordingReader
+
     try:
         with RecordingReader(args.recording) as reader:
             topics = reader.topics()
@@ -118,6 +126,7 @@ def cmd_info(args):
 
 def cmd_recover(args):
     from afm_core.recording import RecordingError, recover_recording
+
     try:
         path, count = recover_recording(args.recording, args.output)
     except RecordingError as exc:
@@ -128,17 +137,28 @@ def cmd_recover(args):
 
 def cmd_scan(args):
     import numpy as np
+
     from afm_bringup.commander import AfmCommander, AfmError
     from afm_bringup.conversions import image_msg_to_array
+
     with AfmCommander() as afm:
         try:
-            scan = afm.scan(origin=args.origin, size=args.size, pixels=args.pixels, angle_deg=args.angle,
-                            frame_up=not args.frame_down, line_rate=args.line_rate, mode=args.mode)
+            scan = afm.scan(
+                origin=args.origin,
+                size=args.size,
+                pixels=args.pixels,
+                angle_deg=args.angle,
+                frame_up=not args.frame_down,
+                line_rate=args.line_rate,
+                mode=args.mode,
+            )
         except AfmError as exc:
             sys.exit(f"afm scan: {exc}")
     height = image_msg_to_array(scan.height)
-    print(f"scan {scan.scan_id}: {height.shape[1]} x {height.shape[0]} px, "
-          f"{nm(scan.size_x)} x {nm(scan.size_y)}, heights {nm(float(height.min()))} .. {nm(float(height.max()))}")
+    print(
+        f"scan {scan.scan_id}: {height.shape[1]} x {height.shape[0]} px, "
+        f"{nm(scan.size_x)} x {nm(scan.size_y)}, heights {nm(float(height.min()))} .. {nm(float(height.max()))}"
+    )
     if args.save:
         np.save(args.save, height)
         print(f"saved heights (metres) to {args.save}")
@@ -150,13 +170,22 @@ def cmd_push(args):
 
     def show(feedback):
         est = feedback.particle_estimate
-        print(f"step {feedback.step}/{feedback.steps_total} [{feedback.phase}] particle at "
-              f"({nm(est.x)}, {nm(est.y)}), peak lateral force {feedback.peak_lateral_force * 1e9:.2f} nN")
+        print(
+            f"step {feedback.step}/{feedback.steps_total} [{feedback.phase}] particle at "
+            f"({nm(est.x)}, {nm(est.y)}), peak lateral force {feedback.peak_lateral_force * 1e9:.2f} nN"
+        )
 
     with AfmCommander() as afm:
         try:
-            job = afm.push(goal=args.goal, particle_id=args.particle, particle_position=args.at,
-                           strategy=args.strategy, tolerance=args.tolerance, feedback=show, wait=False)
+            job = afm.push(
+                goal=args.goal,
+                particle_id=args.particle,
+                particle_position=args.at,
+                strategy=args.strategy,
+                tolerance=args.tolerance,
+                feedback=show,
+                wait=False,
+            )
             try:
                 result = job.result(args.timeout)
             except KeyboardInterrupt:
@@ -165,8 +194,10 @@ def cmd_push(args):
                 result = job.result(30.0)
         except AfmError as exc:
             sys.exit(f"afm push: {exc}")
-    print(f"{'succeeded' if result.success else 'failed'}: {result.message}; particle at "
-          f"({nm(result.achieved.x)}, {nm(result.achieved.y)}), error {nm(result.error)}")
+    print(
+        f"{'succeeded' if result.success else 'failed'}: {result.message}; particle at "
+        f"({nm(result.achieved.x)}, {nm(result.achieved.y)}), error {nm(result.error)}"
+    )
     return 0 if result.success else 1
 
 
@@ -176,180 +207,307 @@ def cmd_calibrate(args):
     from afm_core.backends import open_instrument
     from afm_core.localization.calibrate import run_calibration
     from afm_core.localization.calibration import save_calibration
+
     output = Path(args.output)
     if output.exists() and not args.overwrite:
         sys.exit(f"afm calibrate: {output} exists (use --overwrite to replace it)")
     try:
-        instrument = open_instrument(args.backend, args.sim_config, args.seed, args.daq_device, args.daq_calibration)
-        print(f"calibrating the {args.backend} instrument (book 7.2.2: drift pairs, creep, hysteresis, scanner "
-              f"matrix, motion noise, line deflection); this takes minutes", flush=True)
-        calibration, report = run_calibration(instrument, drift={"pairs": args.pairs},
-                                              source=f"afm calibrate --backend {args.backend}")
+        instrument = open_instrument(
+            args.backend, args.sim_config, args.seed, args.daq_device, args.daq_calibration
+        )
+        print(
+            f"calibrating the {args.backend} instrument (book 7.2.2: drift pairs, creep, hysteresis, scanner "
+            f"matrix, motion noise, line deflection); this takes minutes",
+            flush=True,
+        )
+        calibration, report = run_calibration(
+            instrument,
+            drift={"pairs": args.pairs},
+            source=f"afm calibrate --backend {args.backend}",
+        )
     except (ValueError, RuntimeError) as exc:
         sys.exit(f"afm calibrate: {exc}")
     save_calibration(calibration, output)
     if args.report:
-        summary = {name: experiment.parameters for name, experiment in report.items() if hasattr(experiment, "parameters")}
-        Path(args.report).write_text(json.dumps(summary, indent=2, default=lambda v: getattr(v, "tolist", str)()))
+        summary = {
+            name: experiment.parameters
+            for name, experiment in report.items()
+            if hasattr(experiment, "parameters")
+        }
+        Path(args.report).write_text(
+            json.dumps(summary, indent=2, default=lambda v: getattr(v, "tolist", str)())
+        )
     noise = calibration.motion_noise()
-    print(f"wrote {output}: hysteresis loop {calibration.hysteresis_x.loop_fraction:.3f} / "
-          f"{calibration.hysteresis_y.loop_fraction:.3f} of the range, creep time constants "
-          f"{', '.join(f'{t:.2f}' for t in calibration.creep_time_constants)} s, motion noise "
-          f"{noise.k_h1 * 1e9:.4f} nm^2/nm, drift {calibration.drift_mean_velocity[0] * 1e9:.3f}, "
-          f"{calibration.drift_mean_velocity[1] * 1e9:.3f} nm/s")
+    print(
+        f"wrote {output}: hysteresis loop {calibration.hysteresis_x.loop_fraction:.3f} / "
+        f"{calibration.hysteresis_y.loop_fraction:.3f} of the range, creep time constants "
+        f"{', '.join(f'{t:.2f}' for t in calibration.creep_time_constants)} s, motion noise "
+        f"{noise.k_h1 * 1e9:.4f} nm^2/nm, drift {calibration.drift_mean_velocity[0] * 1e9:.3f}, "
+        f"{calibration.drift_mean_velocity[1] * 1e9:.3f} nm/s"
+    )
     return 0
 
 
 def cmd_sim2real(args):
     from afm_core.sim2real.diagnose import run_sim2real
+
     report = Path(args.report)
     if report.exists() and any(report.iterdir()) and not args.overwrite:
-        sys.exit(f"afm sim2real: --report {report} is not empty (use --overwrite to write into it)")
+        sys.exit(
+            f"afm sim2real: --report {report} is not empty (use --overwrite to write into it)"
+        )
 
     def progress(phase):
         if args.verbose:
             print(f"  {phase}", file=sys.stderr, flush=True)
 
     try:
-        diagnosis = run_sim2real(args.recording, args.model or None, report, progress=progress,
-                                 effects=[e for e in args.effects.split(",") if e.strip()])
+        diagnosis = run_sim2real(
+            args.recording,
+            args.model or None,
+            report,
+            progress=progress,
+            effects=[e for e in args.effects.split(",") if e.strip()],
+        )
     except (ValueError, OSError, RuntimeError) as exc:
         sys.exit(f"afm sim2real: {exc}")
     print(diagnosis.summary())
     if diagnosis.chosen and diagnosis.heldout:
         held = diagnosis.heldout
-        print(f"held-out operations: chi2 {held['chi2_before']:.1f} -> {held['chi2_after']:.1f} for {held['dof']} dof")
-    print(f"report: {report / 'report.md'}" + (f"; updated simulator configuration: {report / 'updated_config.yaml'}"
-                                               if (report / "updated_config.yaml").is_file() else ""))
+        print(
+            f"held-out operations: chi2 {held['chi2_before']:.1f} -> {held['chi2_after']:.1f} for {held['dof']} dof"
+        )
+    print(
+        f"report: {report / 'report.md'}"
+        + (
+            f"; updated simulator configuration: {report / 'updated_config.yaml'}"
+            if (report / "updated_config.yaml").is_file()
+            else ""
+        )
+    )
     return 0
 
 
 def cmd_demo(args):
     from afm_bringup.demo import run_demo
+
     return run_demo(Path(args.output))
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="afm", description="Run, drive, record and replay the AFM nano-manipulation graph.",
-        epilog="Lengths accept units (500nm, 1.5um) or plain metres. Run `afm COMMAND --help` for details.")
+        prog="afm",
+        description="Run, drive, record and replay the AFM nano-manipulation graph.",
+        epilog="Lengths accept units (500nm, 1.5um) or plain metres. Run `afm COMMAND --help` for details.",
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("run", help="run one node in the foreground (like `ros2 run`)",
-                       description="Run one node with its default parameter file, plus overrides.")
+    p = sub.add_parser(
+        "run",
+        help="run one node in the foreground (like `ros2 run`)",
+        description="Run one node with its default parameter file, plus overrides.",
+    )
     p.add_argument("node", choices=sorted(NODES))
     p.add_argument("--params-file", help="YAML parameter file (default: the node's config/*.yaml)")
-    p.add_argument("-p", "--param", action="append", type=_param, metavar="NAME:=VALUE", help="override a parameter")
+    p.add_argument(
+        "-p",
+        "--param",
+        action="append",
+        type=_param,
+        metavar="NAME:=VALUE",
+        help="override a parameter",
+    )
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("launch", help="start the whole graph as separate processes; Ctrl-C stops all",
-                       description="Start the graph's nodes as separate processes. Ctrl-C (or any node dying) "
-                                   "stops them all, the recorder last.")
+    p = sub.add_parser(
+        "launch",
+        help="start the whole graph as separate processes; Ctrl-C stops all",
+        description="Start the graph's nodes as separate processes. Ctrl-C (or any node dying) "
+        "stops them all, the recorder last.",
+    )
     p.add_argument("--nodes", help=f"comma-separated subset (default: {','.join(GRAPH)})")
-    p.add_argument("--record", metavar="FILE.mcap", help="also record the default topics to this new file")
-    p.add_argument("--log-dir", help="write each node's output to DIR/NODE.log instead of the terminal")
-    p.add_argument("-p", "--param", action="append", type=_param, metavar="NODE.NAME:=VALUE",
-                   help="override a node parameter, e.g. -p driver.seed:=3")
+    p.add_argument(
+        "--record", metavar="FILE.mcap", help="also record the default topics to this new file"
+    )
+    p.add_argument(
+        "--log-dir", help="write each node's output to DIR/NODE.log instead of the terminal"
+    )
+    p.add_argument(
+        "-p",
+        "--param",
+        action="append",
+        type=_param,
+        metavar="NODE.NAME:=VALUE",
+        help="override a node parameter, e.g. -p driver.seed:=3",
+    )
     p.set_defaults(func=cmd_launch)
 
-    p = sub.add_parser("record", help="record topics to a new MCAP file (Ctrl-C to finish)",
-                       description="Record topics to MCAP (ros2msg schemas, cdr messages, zstd chunks, indexed) "
-                                   "that `ros2 bag play` and Foxglove open. Never overwrites a file.")
+    p = sub.add_parser(
+        "record",
+        help="record topics to a new MCAP file (Ctrl-C to finish)",
+        description="Record topics to MCAP (ros2msg schemas, cdr messages, zstd chunks, indexed) "
+        "that `ros2 bag play` and Foxglove open. Never overwrites a file.",
+    )
     p.add_argument("-o", "--output", required=True, metavar="FILE.mcap")
-    p.add_argument("topics", nargs="*", help="topics (default: scans, lines, force traces, commands, poses, "
-                                             "landmarks, goals, truth)")
+    p.add_argument(
+        "topics",
+        nargs="*",
+        help="topics (default: scans, lines, force traces, commands, poses, "
+        "landmarks, goals, truth)",
+    )
     p.add_argument("--all", action="store_true", help="record every topic that appears")
     p.add_argument("--compression", default="zstd", choices=["zstd", "lz4", "none"])
     p.set_defaults(func=cmd_record)
 
-    p = sub.add_parser("replay", help="republish a recording with its original timing",
-                       description="Republish a recording with its original timing and QoS; publishes /clock "
-                                   "so nodes with use_sim_time follow the recording's time.")
+    p = sub.add_parser(
+        "replay",
+        help="republish a recording with its original timing",
+        description="Republish a recording with its original timing and QoS; publishes /clock "
+        "so nodes with use_sim_time follow the recording's time.",
+    )
     p.add_argument("recording")
     p.add_argument("--rate", type=float, default=1.0, help="speed factor (default 1.0)")
     p.add_argument("--topics", nargs="+", help="only these topics")
     p.add_argument("--loop", action="store_true", help="start over at the end")
     p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
-    p.add_argument("--wait-for-subscribers", type=int, default=0, metavar="N",
-                   help="start only when every replayed topic has N subscribers (default 0: do not wait)")
+    p.add_argument(
+        "--wait-for-subscribers",
+        type=int,
+        default=0,
+        metavar="N",
+        help="start only when every replayed topic has N subscribers (default 0: do not wait)",
+    )
     p.set_defaults(func=cmd_replay)
 
-    p = sub.add_parser("info", help="topics, types, counts and duration of a recording (no ROS needed)")
+    p = sub.add_parser(
+        "info", help="topics, types, counts and duration of a recording (no ROS needed)"
+    )
     p.add_argument("recording")
     p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("recover", help="save the complete part of an unfinished (.part) or truncated recording")
+    p = sub.add_parser(
+        "recover", help="save the complete part of an unfinished (.part) or truncated recording"
+    )
     p.add_argument("recording")
     p.add_argument("-o", "--output", help="new file (default: NAME.recovered.mcap)")
     p.set_defaults(func=cmd_recover)
 
-    p = sub.add_parser("scan", help="acquire one raster image through the driver",
-                       description="Acquire a raster image through the running driver (afm launch).")
+    p = sub.add_parser(
+        "scan",
+        help="acquire one raster image through the driver",
+        description="Acquire a raster image through the running driver (afm launch).",
+    )
     p.add_argument("--origin", nargs=2, required=True, type=_length("origin"), metavar=("X", "Y"))
     p.add_argument("--size", nargs=2, required=True, type=_length("size"), metavar=("W", "H"))
     p.add_argument("--pixels", nargs=2, type=int, default=[256, 256], metavar=("NX", "NY"))
-    p.add_argument("--angle", type=float, default=0.0, choices=[0.0, 90.0], help="scan angle (deg)")
+    p.add_argument(
+        "--angle", type=float, default=0.0, choices=[0.0, 90.0], help="scan angle (deg)"
+    )
     p.add_argument("--frame-down", action="store_true", help="slow axis downwards")
     p.add_argument("--line-rate", type=float, default=1.0, help="lines per second (Hz)")
     p.add_argument("--mode", default="tapping", choices=["tapping", "contact"])
     p.add_argument("--save", metavar="FILE.npy", help="save the height image (metres)")
     p.set_defaults(func=cmd_scan)
 
-    p = sub.add_parser("push", help="push a particle to a goal and print feedback (Ctrl-C cancels)",
-                       description="Send a PushParticle goal to the nano-hand executor and print each step.")
+    p = sub.add_parser(
+        "push",
+        help="push a particle to a goal and print feedback (Ctrl-C cancels)",
+        description="Send a PushParticle goal to the nano-hand executor and print each step.",
+    )
     target = p.add_mutually_exclusive_group(required=True)
     target.add_argument("--particle", type=int, default=-1, help="landmark id of the particle")
-    target.add_argument("--at", nargs=2, type=_length("at"), metavar=("X", "Y"), help="particle position")
+    target.add_argument(
+        "--at", nargs=2, type=_length("at"), metavar=("X", "Y"), help="particle position"
+    )
     p.add_argument("--goal", nargs=2, required=True, type=_length("goal"), metavar=("X", "Y"))
     p.add_argument("--strategy", default="nano_hand", choices=["nano_hand", "center", "rod_hand"])
     p.add_argument("--tolerance", type=_length("tolerance"), default=20e-9)
     p.add_argument("--timeout", type=float, default=None, help="s to wait for the result")
     p.set_defaults(func=cmd_push)
 
-    p = sub.add_parser("image", help="drift compensation, tip estimation, reconstruction, landmarks on files",
-                       description="Run the imaging algorithms on image files (.npz, .gwy, .npy); no ROS needed.")
-    from afm_core.imaging.cli import add_subcommands, run as run_image
+    p = sub.add_parser(
+        "image",
+        help="drift compensation, tip estimation, reconstruction, landmarks on files",
+        description="Run the imaging algorithms on image files (.npz, .gwy, .npy); no ROS needed.",
+    )
+    from afm_core.imaging.cli import add_subcommands
+    from afm_core.imaging.cli import run as run_image
+
     add_subcommands(p, _length("length"))
     p.set_defaults(func=run_image)
 
-    p = sub.add_parser("calibrate", help="run the calibration experiments on an instrument, write the file the "
-                                         "localizer, planner and nano-hand load",
-                       description="The book's calibration experiments (7.2.2) on the instrument itself (run it "
-                                   "while no driver node uses the instrument): drift statistics from frame-up/down "
-                                   "pairs, creep and hysteresis from indentation pits, scanner matrix, motion-noise "
-                                   "variance against distance, line deflection, map and scan-region errors.")
+    p = sub.add_parser(
+        "calibrate",
+        help="run the calibration experiments on an instrument, write the file the "
+        "localizer, planner and nano-hand load",
+        description="The book's calibration experiments (7.2.2) on the instrument itself (run it "
+        "while no driver node uses the instrument): drift statistics from frame-up/down "
+        "pairs, creep and hysteresis from indentation pits, scanner matrix, motion-noise "
+        "variance against distance, line deflection, map and scan-region errors.",
+    )
     p.add_argument("--output", "-o", required=True, help="calibration YAML to write")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.add_argument("--backend", choices=["sim", "daq"], default="sim")
-    p.add_argument("--sim-config", default="", help="simulator configuration YAML (sim backend; default: defaults)")
-    p.add_argument("--seed", type=int, default=-1, help="simulator seed (sim backend; default: the config's)")
+    p.add_argument(
+        "--sim-config",
+        default="",
+        help="simulator configuration YAML (sim backend; default: defaults)",
+    )
+    p.add_argument(
+        "--seed", type=int, default=-1, help="simulator seed (sim backend; default: the config's)"
+    )
     p.add_argument("--daq-device", default="Dev1", help="NI-DAQmx device name (daq backend)")
     p.add_argument("--daq-calibration", default="", help="DAQ calibration YAML (daq backend)")
-    p.add_argument("--pairs", type=int, default=100, help="frame-up/down pairs for the drift statistics, one an hour")
-    p.add_argument("--report", default="", help="also write every experiment's fitted parameters as JSON here")
+    p.add_argument(
+        "--pairs",
+        type=int,
+        default=100,
+        help="frame-up/down pairs for the drift statistics, one an hour",
+    )
+    p.add_argument(
+        "--report", default="", help="also write every experiment's fitted parameters as JSON here"
+    )
     p.set_defaults(func=cmd_calibrate)
 
-    p = sub.add_parser("sim2real", help="where a recording and the simulator differ, which physics is missing, "
-                                        "the fitted term and its held-out improvement",
-                       description="Re-run a recording's commands in the simulator (--model), compare every "
-                                   "measurement against the noise model, rank candidate physics the model lacks "
-                                   "by held-out evidence, fit the chosen term and write report.md, plots and "
-                                   "updated_config.yaml into --report. Our recorder's files and rosbag2 MCAP both "
-                                   "work; no ROS needed.")
-    p.add_argument("recording", help="MCAP recording (needs /afm/tip_command and the measurements)")
-    p.add_argument("--model", default="", help="simulator configuration YAML (default: the simulator's defaults)")
+    p = sub.add_parser(
+        "sim2real",
+        help="where a recording and the simulator differ, which physics is missing, "
+        "the fitted term and its held-out improvement",
+        description="Re-run a recording's commands in the simulator (--model), compare every "
+        "measurement against the noise model, rank candidate physics the model lacks "
+        "by held-out evidence, fit the chosen term and write report.md, plots and "
+        "updated_config.yaml into --report. Our recorder's files and rosbag2 MCAP both "
+        "work; no ROS needed.",
+    )
+    p.add_argument(
+        "recording", help="MCAP recording (needs /afm/tip_command and the measurements)"
+    )
+    p.add_argument(
+        "--model",
+        default="",
+        help="simulator configuration YAML (default: the simulator's defaults)",
+    )
     p.add_argument("--report", required=True, help="folder for the report (created)")
-    p.add_argument("--effects", default="", metavar="NAME,NAME",
-                   help="consider only these library terms, e.g. tip_radius,tip_wear (default: all of them; "
-                        "fewer terms run faster)")
+    p.add_argument(
+        "--effects",
+        default="",
+        metavar="NAME,NAME",
+        help="consider only these library terms, e.g. tip_radius,tip_wear (default: all of them; "
+        "fewer terms run faster)",
+    )
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty report folder")
     p.add_argument("--verbose", "-v", action="store_true", help="print each analysis step")
     p.set_defaults(func=cmd_sim2real)
 
-    p = sub.add_parser("demo", help="the main job: run the graph end to end and write a report",
-                       description="Start the graph on the simulated instrument, do what the graph can do, "
-                                   "record to MCAP, replay, evaluate offline and write an HTML report.")
-    p.add_argument("--output", default="demo_output", help="folder for runs (each run gets a new subfolder)")
+    p = sub.add_parser(
+        "demo",
+        help="the main job: run the graph end to end and write a report",
+        description="Start the graph on the simulated instrument, do what the graph can do, "
+        "record to MCAP, replay, evaluate offline and write an HTML report.",
+    )
+    p.add_argument(
+        "--output", default="demo_output", help="folder for runs (each run gets a new subfolder)"
+    )
     p.set_defaults(func=cmd_demo)
     return parser
 

@@ -9,6 +9,7 @@
 Everything is SI (metres, seconds). The commander spins its own node in a background
 thread, so calls block only the caller.
 """
+
 from __future__ import annotations
 
 import threading
@@ -22,7 +23,16 @@ from rclpy.node import Node
 from afm_bringup import topics
 from afm_bringup.action_client import SafeActionClient
 from afm_bringup.qos_profiles import FEEDBACK
-from afm_msgs.action import Assemble, Indent, LocalScan, Localize, MoveTip, PushParticle, ScanImage, Sim2Real
+from afm_msgs.action import (
+    Assemble,
+    Indent,
+    Localize,
+    LocalScan,
+    MoveTip,
+    PushParticle,
+    ScanImage,
+    Sim2Real,
+)
 
 
 class AfmError(RuntimeError):
@@ -80,21 +90,28 @@ class AfmCommander:
         self.context = Context()
         rclpy.init(context=self.context)
         self.node = Node(node_name, context=self.context)
-        self.clients = {name: SafeActionClient(self.node, action_type, action_name,
-                                               feedback_sub_qos_profile=FEEDBACK)
-                        for name, (action_type, action_name) in self.ACTIONS.items()}
+        self.clients = {
+            name: SafeActionClient(
+                self.node, action_type, action_name, feedback_sub_qos_profile=FEEDBACK
+            )
+            for name, (action_type, action_name) in self.ACTIONS.items()
+        }
         self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
         self.executor.add_node(self.node)
         self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
         self._spinner.start()
 
     # -- plumbing --------------------------------------------------------------------------
-    def send(self, action: str, goal, feedback=None, wait: bool = True, timeout: float | None = None):
+    def send(
+        self, action: str, goal, feedback=None, wait: bool = True, timeout: float | None = None
+    ):
         """Send a goal; returns the result (wait=True) or a Job."""
         client = self.clients[action]
         if not client.wait_until_answering(self.server_timeout):
-            raise AfmError(f"no action server at {self.ACTIONS[action][1]} answered within {self.server_timeout} s; "
-                           "is the graph running (`afm launch`)?")
+            raise AfmError(
+                f"no action server at {self.ACTIONS[action][1]} answered within {self.server_timeout} s; "
+                "is the graph running (`afm launch`)?"
+            )
         box: dict = {}
 
         def on_feedback(message):
@@ -113,51 +130,92 @@ class AfmCommander:
         job = Job(action, handle, box)
         return job.result(timeout) if wait else job
 
-    def wait_until_subscribed(self, topics_to_check, node_name: str = "afm_recorder",
-                              timeout: float = 15.0) -> None:
+    def wait_until_subscribed(
+        self, topics_to_check, node_name: str = "afm_recorder", timeout: float = 15.0
+    ) -> None:
         """Block until node `node_name` subscribes to every listed topic that has a publisher
         (the recorder before a recorded session, a processing node before its input is sent),
         so nothing this script triggers next goes unheard."""
         deadline = time.monotonic() + timeout
         missing = list(topics_to_check)
         while time.monotonic() < deadline:
-            missing = [t for t in topics_to_check
-                       if any(p.node_name != node_name for p in self.node.get_publishers_info_by_topic(t))
-                       and not any(s.node_name == node_name
-                                   for s in self.node.get_subscriptions_info_by_topic(t))]
+            missing = [
+                t
+                for t in topics_to_check
+                if any(p.node_name != node_name for p in self.node.get_publishers_info_by_topic(t))
+                and not any(
+                    s.node_name == node_name for s in self.node.get_subscriptions_info_by_topic(t)
+                )
+            ]
             if not missing:
-                time.sleep(0.5)   # the graph shows a subscription a moment before DDS matches it
+                time.sleep(0.5)  # the graph shows a subscription a moment before DDS matches it
                 return
             time.sleep(0.1)
         raise AfmError(f"node {node_name!r} did not subscribe to {missing} within {timeout} s")
 
     # -- the instrument --------------------------------------------------------------------
-    def scan(self, origin, size, pixels=(256, 256), angle_deg=0.0, frame_up=True, line_rate=1.0,
-             mode="tapping", pair_id="", timeout=None):
-        goal = ScanImage.Goal(size_x=float(size[0]), size_y=float(size[1]), pixels_x=int(pixels[0]),
-                              pixels_y=int(pixels[1]), scan_angle_deg=float(angle_deg),
-                              slow_scan_up=bool(frame_up), line_rate=float(line_rate), mode=mode,
-                              pair_id=pair_id)
+    def scan(
+        self,
+        origin,
+        size,
+        pixels=(256, 256),
+        angle_deg=0.0,
+        frame_up=True,
+        line_rate=1.0,
+        mode="tapping",
+        pair_id="",
+        timeout=None,
+    ):
+        goal = ScanImage.Goal(
+            size_x=float(size[0]),
+            size_y=float(size[1]),
+            pixels_x=int(pixels[0]),
+            pixels_y=int(pixels[1]),
+            scan_angle_deg=float(angle_deg),
+            slow_scan_up=bool(frame_up),
+            line_rate=float(line_rate),
+            mode=mode,
+            pair_id=pair_id,
+        )
         goal.origin.x, goal.origin.y = float(origin[0]), float(origin[1])
         result = self.send("scan_image", goal, timeout=timeout)
         if not result.success:
             raise AfmError(result.message)
         return result.scan
 
-    def localize(self, landmark_id: int = -1, position=None, both_axes=True, toward=None, timeout=None):
-        goal = Localize.Goal(landmark_id=int(landmark_id), one_line=not both_axes, continue_toward=toward is not None)
+    def localize(
+        self, landmark_id: int = -1, position=None, both_axes=True, toward=None, timeout=None
+    ):
+        goal = Localize.Goal(
+            landmark_id=int(landmark_id),
+            one_line=not both_axes,
+            continue_toward=toward is not None,
+        )
         if position is not None:
             goal.position.x, goal.position.y = float(position[0]), float(position[1])
         if toward is not None:
             goal.toward.x, goal.toward.y = float(toward[0]), float(toward[1])
         return self.send("localize", goal, timeout=timeout)
 
-    def push(self, goal, particle_id: int = -1, particle_position=None, strategy="nano_hand",
-             tolerance=0.0, feedback=None, wait=True, timeout=None):
-        request = PushParticle.Goal(particle_id=int(particle_id), strategy=strategy, tolerance=float(tolerance))
+    def push(
+        self,
+        goal,
+        particle_id: int = -1,
+        particle_position=None,
+        strategy="nano_hand",
+        tolerance=0.0,
+        feedback=None,
+        wait=True,
+        timeout=None,
+    ):
+        request = PushParticle.Goal(
+            particle_id=int(particle_id), strategy=strategy, tolerance=float(tolerance)
+        )
         request.goal.x, request.goal.y = float(goal[0]), float(goal[1])
         if particle_position is not None:
-            request.particle_position.x, request.particle_position.y = map(float, particle_position[:2])
+            request.particle_position.x, request.particle_position.y = map(
+                float, particle_position[:2]
+            )
         return self.send("push_particle", request, feedback=feedback, wait=wait, timeout=timeout)
 
     # -- lifetime --------------------------------------------------------------------------

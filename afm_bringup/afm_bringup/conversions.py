@@ -1,4 +1,5 @@
 """Message <-> core-type conversions shared by the nodes (SI units both sides)."""
+
 from __future__ import annotations
 
 import time
@@ -7,8 +8,8 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from sensor_msgs.msg import Image
 
-from afm_core.recording.reader import image_to_array
 from afm_core.instrument import ForceTraceData, RasterScanData, ScanLineData
+from afm_core.recording.reader import image_to_array
 
 FRAME_SCANNER = "afm_scanner"
 FRAME_TASK = "afm_task"
@@ -44,6 +45,7 @@ def seconds_to_time(seconds: float) -> Time:
 
 def raster_scan_to_msg(scan: RasterScanData, header, scan_id: int = 0, pair_id: str = ""):
     from afm_msgs.msg import RasterScan
+
     msg = RasterScan()
     msg.header = header
     msg.height = array_to_image(scan.height, header)
@@ -67,36 +69,65 @@ def msg_to_raster_scan(msg) -> RasterScanData:
     height = image_msg_to_array(msg.height).astype(np.float32)
     lines = height.shape[0] if msg.scan_angle_deg == 0 else height.shape[1]
     if len(msg.line_start_times) != lines:
-        raise ValueError(f"line_start_times has {len(msg.line_start_times)} entries, the image has {lines} lines")
+        raise ValueError(
+            f"line_start_times has {len(msg.line_start_times)} entries, the image has {lines} lines"
+        )
     if not (msg.pixel_size_x > 0 and msg.pixel_size_y > 0):
-        raise ValueError(f"pixel_size_x/pixel_size_y = {msg.pixel_size_x}/{msg.pixel_size_y}: must be > 0")
+        raise ValueError(
+            f"pixel_size_x/pixel_size_y = {msg.pixel_size_x}/{msg.pixel_size_y}: must be > 0"
+        )
     stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-    return RasterScanData(height=height, pixel_size_x=msg.pixel_size_x, pixel_size_y=msg.pixel_size_y,
-                          origin_x=msg.origin.x, origin_y=msg.origin.y, scan_angle_deg=msg.scan_angle_deg,
-                          slow_scan_up=msg.slow_scan_up, line_period=msg.line_period,
-                          line_start_times=np.asarray(msg.line_start_times), start_time=stamp, mode=msg.mode)
+    return RasterScanData(
+        height=height,
+        pixel_size_x=msg.pixel_size_x,
+        pixel_size_y=msg.pixel_size_y,
+        origin_x=msg.origin.x,
+        origin_y=msg.origin.y,
+        scan_angle_deg=msg.scan_angle_deg,
+        slow_scan_up=msg.slow_scan_up,
+        line_period=msg.line_period,
+        line_start_times=np.asarray(msg.line_start_times),
+        start_time=stamp,
+        mode=msg.mode,
+    )
 
 
 def scan_line_to_msg(line: ScanLineData, header, start, end, landmark_id: int = -1):
     from afm_msgs.msg import ScanLine
+
     msg = ScanLine(header=header, mode=line.mode, landmark_id=int(landmark_id))
     msg.commanded_start.x, msg.commanded_start.y = float(start[0]), float(start[1])
     msg.commanded_end.x, msg.commanded_end.y = float(end[0]), float(end[1])
     msg.times, msg.x, msg.y = floats(line.times), floats(line.x), floats(line.y)
-    msg.height, msg.deflection, msg.amplitude = floats(line.height), floats(line.deflection), floats(line.amplitude)
+    msg.height, msg.deflection, msg.amplitude = (
+        floats(line.height),
+        floats(line.deflection),
+        floats(line.amplitude),
+    )
     return msg
 
 
 def force_trace_to_msg(trace: ForceTraceData, header):
     from afm_msgs.msg import ForceTrace
-    msg = ForceTrace(header=header, task=trace.task, object_id=int(trace.object_id),
-                     normal_spring_constant=float(trace.normal_spring_constant),
-                     lateral_spring_constant=float(trace.lateral_spring_constant),
-                     sample_rate=float(trace.sample_rate))
+
+    msg = ForceTrace(
+        header=header,
+        task=trace.task,
+        object_id=int(trace.object_id),
+        normal_spring_constant=float(trace.normal_spring_constant),
+        lateral_spring_constant=float(trace.lateral_spring_constant),
+        sample_rate=float(trace.sample_rate),
+    )
     msg.times = floats(trace.times)
-    msg.commanded_x, msg.commanded_y, msg.commanded_z = (floats(trace.commanded_x), floats(trace.commanded_y),
-                                                         floats(trace.commanded_z))
-    msg.vertical_deflection, msg.lateral_torsion = floats(trace.vertical_deflection), floats(trace.lateral_torsion)
+    msg.commanded_x, msg.commanded_y, msg.commanded_z = (
+        floats(trace.commanded_x),
+        floats(trace.commanded_y),
+        floats(trace.commanded_z),
+    )
+    msg.vertical_deflection, msg.lateral_torsion = (
+        floats(trace.vertical_deflection),
+        floats(trace.lateral_torsion),
+    )
     return msg
 
 
@@ -106,6 +137,7 @@ OBJECT_KINDS = {"sphere": 0, "tube": 1, "rod": 2, "pit": 3, "electrode": 4}
 def truth_to_msg(truth: dict, header):
     """Simulator ground truth (afm_core.sim.instrument.SimulatedAfm.truth()) -> GroundTruth."""
     from afm_msgs.msg import GroundTruth, ObjectState
+
     msg = GroundTruth(header=header, tip_apex_radius=float(truth["tip_apex_radius"]))
     msg.tip_position.x, msg.tip_position.y = map(float, truth["tip_position"])
     msg.commanded_position.x, msg.commanded_position.y = map(float, truth["commanded_position"])
@@ -134,11 +166,22 @@ LANDMARK_KINDS = {"sphere": 0, "tube": 1, "rod": 2, "pit": 3}
 def landmarks_to_msg(marks, header):
     """Core landmarks (afm_core.imaging.landmarks.Landmark) -> LandmarkArray."""
     from afm_msgs.msg import Landmark, LandmarkArray
+
     array = LandmarkArray(header=header)
     for mark in marks:
-        lm = Landmark(id=int(mark.id), kind=LANDMARK_KINDS[mark.kind], radius=float(mark.radius),
-                      height=float(mark.height), length=float(mark.length), orientation=float(mark.orientation))
-        lm.position.x, lm.position.y, lm.position.z = float(mark.x), float(mark.y), float(mark.height)
+        lm = Landmark(
+            id=int(mark.id),
+            kind=LANDMARK_KINDS[mark.kind],
+            radius=float(mark.radius),
+            height=float(mark.height),
+            length=float(mark.length),
+            orientation=float(mark.orientation),
+        )
+        lm.position.x, lm.position.y, lm.position.z = (
+            float(mark.x),
+            float(mark.y),
+            float(mark.height),
+        )
         lm.covariance = [float(v) for v in np.asarray(mark.covariance).ravel()]
         array.landmarks.append(lm)
     return array
@@ -173,6 +216,7 @@ def wait_for_landmarks(current, timeout: float = 5.0) -> dict:
 def msg_to_landmarks(array) -> list:
     """LandmarkArray -> core landmarks; ValueError naming the landmark and field when not finite."""
     from afm_core.imaging.landmarks import Landmark
+
     kinds = {v: k for k, v in LANDMARK_KINDS.items()}
     marks = []
     for lm in array.landmarks:
@@ -180,10 +224,22 @@ def msg_to_landmarks(array) -> list:
         if not np.all(np.isfinite(values)):
             raise ValueError(f"landmark {lm.id}: position, radius and covariance must be finite")
         if lm.kind not in kinds:
-            raise ValueError(f"landmark {lm.id}: kind={lm.kind} unknown (expected one of {sorted(kinds)})")
-        marks.append(Landmark(id=int(lm.id), kind=kinds[lm.kind], x=lm.position.x, y=lm.position.y,
-                              covariance=np.asarray(lm.covariance, float).reshape(2, 2), radius=lm.radius,
-                              height=lm.height, length=lm.length, orientation=lm.orientation))
+            raise ValueError(
+                f"landmark {lm.id}: kind={lm.kind} unknown (expected one of {sorted(kinds)})"
+            )
+        marks.append(
+            Landmark(
+                id=int(lm.id),
+                kind=kinds[lm.kind],
+                x=lm.position.x,
+                y=lm.position.y,
+                covariance=np.asarray(lm.covariance, float).reshape(2, 2),
+                radius=lm.radius,
+                height=lm.height,
+                length=lm.length,
+                orientation=lm.orientation,
+            )
+        )
     return marks
 
 
@@ -198,6 +254,7 @@ def mean_cov_to_pose(mean, covariance, header, z_variance: float = 0.0):
     """(x, y) and 2x2 covariance -> PoseWithCovarianceStamped; unknowns (z, rotations) get a
     variance so large a consumer treats them as unestimated (robot_localization's habit)."""
     from geometry_msgs.msg import PoseWithCovarianceStamped
+
     msg = PoseWithCovarianceStamped(header=header)
     msg.pose.pose.position.x, msg.pose.pose.position.y = float(mean[0]), float(mean[1])
     msg.pose.pose.orientation.w = 1.0

@@ -1,4 +1,5 @@
 """Start graph nodes as separate processes and stop them cleanly (our `ros2 launch`)."""
+
 from __future__ import annotations
 
 import os
@@ -32,6 +33,7 @@ GRAPH = ["driver", "imaging", "localizer", "planner", "nano_hand", "sim2real"]
 
 def default_params_file(name: str) -> Path | None:
     from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+
     spec = NODES[name]
     try:
         path = Path(get_package_share_directory(spec.package)) / "config" / spec.params_file
@@ -40,8 +42,11 @@ def default_params_file(name: str) -> Path | None:
     return path if path.is_file() else None
 
 
-def node_command(name: str, params_file: str | os.PathLike | None = None,
-                 overrides: dict[str, str] | None = None) -> list[str]:
+def node_command(
+    name: str,
+    params_file: str | os.PathLike | None = None,
+    overrides: dict[str, str] | None = None,
+) -> list[str]:
     """The command line that runs one node (what `ros2 run` would exec)."""
     if name not in NODES:
         raise ValueError(f"node {name!r}: expected one of {sorted(NODES)}")
@@ -64,15 +69,23 @@ class Graph:
         if self.log_dir:
             self.log_dir.mkdir(parents=True, exist_ok=True)
 
-    def start(self, name: str, overrides: dict[str, str] | None = None, alias: str | None = None,
-              params_file=None) -> subprocess.Popen:
+    def start(
+        self,
+        name: str,
+        overrides: dict[str, str] | None = None,
+        alias: str | None = None,
+        params_file=None,
+    ) -> subprocess.Popen:
         alias = alias or name
         if alias in self.processes:
             raise ValueError(f"{alias} is already running")
         output = open(self.log_dir / f"{alias}.log", "wb") if self.log_dir else None
         self.processes[alias] = subprocess.Popen(
-            node_command(name, params_file, overrides), stdout=output, stderr=subprocess.STDOUT if output else None,
-            start_new_session=True)   # Ctrl-C in the terminal reaches us, and we stop them in order
+            node_command(name, params_file, overrides),
+            stdout=output,
+            stderr=subprocess.STDOUT if output else None,
+            start_new_session=True,
+        )  # Ctrl-C in the terminal reaches us, and we stop them in order
         return self.processes[alias]
 
     def dead(self) -> dict[str, int]:
@@ -97,8 +110,10 @@ class Graph:
     def wait(self, poll: float = 0.2) -> dict[str, int]:
         """Block until any node exits or we are interrupted; then stop the rest."""
         interrupted = []
-        previous = {sig: signal.signal(sig, lambda s, _f: interrupted.append(s))
-                    for sig in (signal.SIGINT, signal.SIGTERM)}
+        previous = {
+            sig: signal.signal(sig, lambda s, _f: interrupted.append(s))
+            for sig in (signal.SIGINT, signal.SIGTERM)
+        }
         try:
             while not interrupted and not self.dead():
                 time.sleep(poll)

@@ -1,4 +1,5 @@
 """The one main loop every node uses: init, build, spin, clean shutdown on SIGINT/SIGTERM."""
+
 from __future__ import annotations
 
 import signal
@@ -7,15 +8,27 @@ import threading
 import time
 
 import rclpy
-from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor,
-                             TimeoutException)
+from rclpy.executors import (
+    ExternalShutdownException,
+    MultiThreadedExecutor,
+    SingleThreadedExecutor,
+    TimeoutException,
+)
 from rclpy.signals import SignalHandlerOptions
 
-DRAIN_IDLE = 0.01     # s without a ready callback: what had arrived is taken
+DRAIN_IDLE = 0.01  # s without a ready callback: what had arrived is taken
 
 
-def run(node_factory, program: str, args=None, *, config_errors=(ValueError,), threads: int = 1,
-        on_shutdown=None, drain_seconds: float = 0.0) -> int:
+def run(
+    node_factory,
+    program: str,
+    args=None,
+    *,
+    config_errors=(ValueError,),
+    threads: int = 1,
+    on_shutdown=None,
+    drain_seconds: float = 0.0,
+) -> int:
     """Exit status: 0 after a clean stop, 2 when the node refused its configuration
     (the message names the parameter), 1 when a callback asked to stop with an error.
 
@@ -37,7 +50,9 @@ def run(node_factory, program: str, args=None, *, config_errors=(ValueError,), t
         print(f"{program}: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
-    executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
+    executor = (
+        MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
+    )
     executor.add_node(node)
     status = 0
     try:

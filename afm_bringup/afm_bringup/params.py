@@ -1,4 +1,5 @@
 """Declare a node's parameters from one table of (name, default, meaning)."""
+
 from rcl_interfaces.msg import ParameterDescriptor
 
 

@@ -4,6 +4,7 @@ Topics are subscribed as their publishers appear (checked every `discovery_perio
 QoS that matches all of them; each channel stores the publishers' offered QoS. SIGINT and
 SIGTERM close the file properly (summary, indexes, final name).
 """
+
 from __future__ import annotations
 
 import sys
@@ -17,15 +18,31 @@ from afm_core.recording import DefinitionNotFound, RecordingError, RecordingWrit
 
 PARAMETERS = [
     ("output", "", "Path of the new .mcap file (required; never overwritten)."),
-    ("topics", topics.RECORDED_BY_DEFAULT, "Topics to record; subscribed when a publisher appears."),
-    ("all_topics", False, "Record every topic that appears (except /rosout and /parameter_events)."),
+    (
+        "topics",
+        topics.RECORDED_BY_DEFAULT,
+        "Topics to record; subscribed when a publisher appears.",
+    ),
+    (
+        "all_topics",
+        False,
+        "Record every topic that appears (except /rosout and /parameter_events).",
+    ),
     ("discovery_period", 0.5, "s between checks of the ROS graph for new publishers."),
     ("compression", "zstd", "Chunk compression: zstd, lz4 or none."),
-    ("chunk_size", 4 * 1024 * 1024, "Bytes of messages per MCAP chunk before it is compressed and written."),
-    ("min_free_bytes", 64 * 1024 * 1024, "Stop and close the recording when the disk has less free space."),
+    (
+        "chunk_size",
+        4 * 1024 * 1024,
+        "Bytes of messages per MCAP chunk before it is compressed and written.",
+    ),
+    (
+        "min_free_bytes",
+        64 * 1024 * 1024,
+        "Stop and close the recording when the disk has less free space.",
+    ),
 ]
 IGNORED_WITH_ALL = {"/rosout", "/parameter_events"}
-DRAIN_SECONDS = 5.0      # at most, after SIGINT/SIGTERM, writing what had already arrived
+DRAIN_SECONDS = 5.0  # at most, after SIGINT/SIGTERM, writing what had already arrived
 
 
 class RecorderNode(Node):
@@ -35,20 +52,27 @@ class RecorderNode(Node):
         if not self.config["output"]:
             raise RecordingError("parameter output: required (path of the new .mcap file)")
         self.writer = RecordingWriter(
-            self.config["output"], compression=self.config["compression"],
-            chunk_size=self.config["chunk_size"], min_free_bytes=self.config["min_free_bytes"])
+            self.config["output"],
+            compression=self.config["compression"],
+            chunk_size=self.config["chunk_size"],
+            min_free_bytes=self.config["min_free_bytes"],
+        )
         self.wanted = set(self.config["topics"])
         self.recorded_topics = {}
         self._skipped = set()
         self.failure: str | None = None
         self.create_timer(self.config["discovery_period"], self.discover)
         self.discover()
-        self.get_logger().info(f"recording {sorted(self.wanted) if not self.config['all_topics'] else 'all topics'}"
-                               f" to {self.writer.part} (final name {self.writer.path})")
+        self.get_logger().info(
+            f"recording {sorted(self.wanted) if not self.config['all_topics'] else 'all topics'}"
+            f" to {self.writer.part} (final name {self.writer.path})"
+        )
 
     def discover(self):
         if self.config["all_topics"]:
-            self.wanted |= {name for name, _ in self.get_topic_names_and_types()} - IGNORED_WITH_ALL
+            self.wanted |= {
+                name for name, _ in self.get_topic_names_and_types()
+            } - IGNORED_WITH_ALL
         for topic in sorted(self.wanted - set(self.recorded_topics) - self._skipped):
             publishers = self.get_publishers_info_by_topic(topic)
             publishers = [p for p in publishers if p.node_name != self.get_name()]
@@ -68,9 +92,12 @@ class RecorderNode(Node):
                 continue
             qos = subscription_qos_for(offers)
             self.recorded_topics[topic] = self.create_subscription(
-                msg_type, topic, self._writer_callback(channel), qos, raw=True)
-            self.get_logger().info(f"recording {topic} ({type_name}, {qos.reliability.name.lower()}, "
-                                   f"{qos.durability.name.lower()})")
+                msg_type, topic, self._writer_callback(channel), qos, raw=True
+            )
+            self.get_logger().info(
+                f"recording {topic} ({type_name}, {qos.reliability.name.lower()}, "
+                f"{qos.durability.name.lower()})"
+            )
 
     def _skip(self, topic, reason):
         self._skipped.add(topic)
@@ -86,13 +113,17 @@ class RecorderNode(Node):
                 self.failure = str(exc)
                 self.get_logger().error(self.failure)
                 raise SystemExit(1) from exc
+
         return write
 
     def close(self):
         path = self.writer.close()
         # The ROS context may already be down (SIGINT), so not through the node's logger.
-        print(f"afm recorder: closed {path}: {self.writer.message_count} messages on "
-              f"{len(self.writer.topics)} topics", file=sys.stderr)
+        print(
+            f"afm recorder: closed {path}: {self.writer.message_count} messages on "
+            f"{len(self.writer.topics)} topics",
+            file=sys.stderr,
+        )
 
 
 def close_recording(node: RecorderNode):
@@ -102,8 +133,14 @@ def close_recording(node: RecorderNode):
 
 def main(args=None):
     # what a reliable publisher already counts as delivered is written before the file closes
-    return run(RecorderNode, "afm recorder", args, config_errors=(RecordingError,),
-               on_shutdown=close_recording, drain_seconds=DRAIN_SECONDS)
+    return run(
+        RecorderNode,
+        "afm recorder",
+        args,
+        config_errors=(RecordingError,),
+        on_shutdown=close_recording,
+        drain_seconds=DRAIN_SECONDS,
+    )
 
 
 if __name__ == "__main__":

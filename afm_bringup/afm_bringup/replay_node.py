@@ -5,6 +5,7 @@ latched), reliably and with a deep history, so that no subscriber that asks for 
 misses a message; /clock carries the recording's time for nodes running with use_sim_time. The recording is
 streamed chunk by chunk, never loaded whole.
 """
+
 from __future__ import annotations
 
 import sys
@@ -29,11 +30,19 @@ PARAMETERS = [
     ("publish_clock", True, "Publish the recording's time on /clock (for use_sim_time)."),
     ("clock_frequency", 100.0, "Hz of /clock messages (recording time), when publish_clock."),
     ("start_delay", 1.0, "s to wait before the first message so subscribers can connect."),
-    ("wait_for_subscribers", 0, "Before playing, wait until every replayed topic has at least this many "
-                                "subscribers (0: do not wait); an evaluation pipeline then misses nothing."),
+    (
+        "wait_for_subscribers",
+        0,
+        "Before playing, wait until every replayed topic has at least this many "
+        "subscribers (0: do not wait); an evaluation pipeline then misses nothing.",
+    ),
     ("wait_timeout", 30.0, "s to wait for those subscribers before giving up with an error."),
-    ("queue_depth", 100, "Messages each publisher keeps for subscribers that fall behind or match late "
-                         "(at least the recorded depth); latched topics hold this many for late joiners."),
+    (
+        "queue_depth",
+        100,
+        "Messages each publisher keeps for subscribers that fall behind or match late "
+        "(at least the recorded depth); latched topics hold this many for late joiners.",
+    ),
 ]
 # A subscriber that has not acknowledged within this is stalled or gone; the replay goes on.
 ACKNOWLEDGE_TIMEOUT_S = 10.0
@@ -48,16 +57,22 @@ class ReplayNode(Node):
         if not self.config["rate"] > 0:
             raise RecordingError(f"parameter rate={self.config['rate']}: must be > 0")
         if not self.config["queue_depth"] >= 1:
-            raise RecordingError(f"parameter queue_depth={self.config['queue_depth']}: must be >= 1")
+            raise RecordingError(
+                f"parameter queue_depth={self.config['queue_depth']}: must be >= 1"
+            )
         if not self.config["clock_frequency"] > 0:
-            raise RecordingError(f"parameter clock_frequency={self.config['clock_frequency']}: must be > 0")
+            raise RecordingError(
+                f"parameter clock_frequency={self.config['clock_frequency']}: must be > 0"
+            )
         self.reader = RecordingReader(self.config["input"])
         recorded = self.reader.topics()
         selected = [t for t in self.config["topics"] if t]
         unknown = [t for t in selected if t not in recorded]
         if unknown:
-            raise RecordingError(f"parameter topics: {unknown} not in {self.reader.path}; "
-                                 f"recorded: {sorted(recorded)}")
+            raise RecordingError(
+                f"parameter topics: {unknown} not in {self.reader.path}; "
+                f"recorded: {sorted(recorded)}"
+            )
         self.publishers_by_topic = {}
         for topic, info in recorded.items():
             if selected and topic not in selected:
@@ -68,8 +83,11 @@ class ReplayNode(Node):
                 self.get_logger().warning(f"skipping {topic}: {exc}")
                 continue
             self.publishers_by_topic[topic] = self.create_publisher(
-                msg_type, topic, publisher_qos_for(info.offered_qos, self.config["queue_depth"]))
-        self.clock_publisher = self.create_publisher(Clock, "/clock", 10) if self.config["publish_clock"] else None
+                msg_type, topic, publisher_qos_for(info.offered_qos, self.config["queue_depth"])
+            )
+        self.clock_publisher = (
+            self.create_publisher(Clock, "/clock", 10) if self.config["publish_clock"] else None
+        )
         self.published = 0
         self.slow_topics: set[str] = set()
         self.failure: str | None = None
@@ -94,13 +112,18 @@ class ReplayNode(Node):
         wanted = self.config["wait_for_subscribers"]
         deadline = time.monotonic() + self.config["wait_timeout"]
         while wanted > 0 and rclpy.ok():
-            short = {t: p.get_subscription_count() for t, p in self.publishers_by_topic.items()
-                     if p.get_subscription_count() < wanted}
+            short = {
+                t: p.get_subscription_count()
+                for t, p in self.publishers_by_topic.items()
+                if p.get_subscription_count() < wanted
+            }
             if not short:
                 return
             if time.monotonic() > deadline:
-                raise TimeoutError(f"parameter wait_for_subscribers={wanted}: after "
-                                   f"{self.config['wait_timeout']} s these topics have fewer: {short}")
+                raise TimeoutError(
+                    f"parameter wait_for_subscribers={wanted}: after "
+                    f"{self.config['wait_timeout']} s these topics have fewer: {short}"
+                )
             time.sleep(0.05)
 
     def wait_until_delivered(self, topics, timeout_s: float = ACKNOWLEDGE_TIMEOUT_S):
@@ -111,11 +134,15 @@ class ReplayNode(Node):
         deadline = time.monotonic() + timeout_s
         for topic in topics:
             left = max(0.0, deadline - time.monotonic())
-            if not self.publishers_by_topic[topic].wait_for_all_acked(Duration(seconds=left)) \
-                    and topic not in self.slow_topics:
+            if (
+                not self.publishers_by_topic[topic].wait_for_all_acked(Duration(seconds=left))
+                and topic not in self.slow_topics
+            ):
                 self.slow_topics.add(topic)
-                self.get_logger().warning(f"{topic}: a subscriber had not acknowledged every message "
-                                          f"after {timeout_s} s; it may miss some")
+                self.get_logger().warning(
+                    f"{topic}: a subscriber had not acknowledged every message "
+                    f"after {timeout_s} s; it may miss some"
+                )
 
     def play(self):
         """Publish every selected message at its recorded time (scaled by rate)."""

@@ -10,10 +10,11 @@ reentrant callback group does this).
 `time` is the instrument clock in ROS-stamp seconds: the end of the last command the
 driver reported (its results carry the executed TipCommand).
 """
+
 from __future__ import annotations
 
 import threading
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -22,8 +23,18 @@ from afm_bringup import topics
 from afm_bringup.action_client import SafeActionClient
 from afm_bringup.conversions import FRAME_SCANNER, msg_to_raster_scan
 from afm_bringup.qos_profiles import FEEDBACK
-from afm_core.instrument import (ForceTraceData, IndentResult, LineRequest, MoveResult, RasterScanData,
-                                 ScanLineData, ScanRequest, ScannerLimits, validate_indent, validate_move)
+from afm_core.instrument import (
+    ForceTraceData,
+    IndentResult,
+    LineRequest,
+    MoveResult,
+    RasterScanData,
+    ScanLineData,
+    ScannerLimits,
+    ScanRequest,
+    validate_indent,
+    validate_move,
+)
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 
 
@@ -37,32 +48,51 @@ def stamp_seconds(stamp) -> float:
 
 
 def msg_to_scan_line(msg) -> ScanLineData:
-    return ScanLineData(times=np.asarray(msg.times, float), x=np.asarray(msg.x, float), y=np.asarray(msg.y, float),
-                        height=np.asarray(msg.height, float), deflection=np.asarray(msg.deflection, float),
-                        amplitude=np.asarray(msg.amplitude, float), start_time=stamp_seconds(msg.header.stamp),
-                        mode=msg.mode)
+    return ScanLineData(
+        times=np.asarray(msg.times, float),
+        x=np.asarray(msg.x, float),
+        y=np.asarray(msg.y, float),
+        height=np.asarray(msg.height, float),
+        deflection=np.asarray(msg.deflection, float),
+        amplitude=np.asarray(msg.amplitude, float),
+        start_time=stamp_seconds(msg.header.stamp),
+        mode=msg.mode,
+    )
 
 
 def msg_to_force_trace(msg) -> ForceTraceData:
-    return ForceTraceData(times=np.asarray(msg.times, float), commanded_x=np.asarray(msg.commanded_x, float),
-                          commanded_y=np.asarray(msg.commanded_y, float),
-                          commanded_z=np.asarray(msg.commanded_z, float),
-                          vertical_deflection=np.asarray(msg.vertical_deflection, float),
-                          lateral_torsion=np.asarray(msg.lateral_torsion, float),
-                          normal_spring_constant=msg.normal_spring_constant,
-                          lateral_spring_constant=msg.lateral_spring_constant, sample_rate=msg.sample_rate,
-                          start_time=stamp_seconds(msg.header.stamp), task=msg.task, object_id=msg.object_id)
+    return ForceTraceData(
+        times=np.asarray(msg.times, float),
+        commanded_x=np.asarray(msg.commanded_x, float),
+        commanded_y=np.asarray(msg.commanded_y, float),
+        commanded_z=np.asarray(msg.commanded_z, float),
+        vertical_deflection=np.asarray(msg.vertical_deflection, float),
+        lateral_torsion=np.asarray(msg.lateral_torsion, float),
+        normal_spring_constant=msg.normal_spring_constant,
+        lateral_spring_constant=msg.lateral_spring_constant,
+        sample_rate=msg.sample_rate,
+        start_time=stamp_seconds(msg.header.stamp),
+        task=msg.task,
+        object_id=msg.object_id,
+    )
 
 
-def call_action(client, goal, server_timeout: float, result_timeout: float,
-                should_stop: Optional[Callable[[], bool]] = None):
+def call_action(
+    client,
+    goal,
+    server_timeout: float,
+    result_timeout: float,
+    should_stop: Callable[[], bool] | None = None,
+):
     """Send a goal and block until its result (from a thread that is not spinning the node).
     should_stop() is polled while waiting; when it turns true the goal is cancelled and its
     (cancelled) result still awaited. DriverUnavailable when the server is missing, rejects
     the goal or gives no result within result_timeout s."""
     name = client._action_name
     if not client.wait_until_answering(server_timeout):
-        raise DriverUnavailable(f"action {name} did not answer within {server_timeout} s; is its node running?")
+        raise DriverUnavailable(
+            f"action {name} did not answer within {server_timeout} s; is its node running?"
+        )
     done = threading.Event()
     sent = client.send_goal_async(goal)
     sent.add_done_callback(lambda _f: done.set())
@@ -92,8 +122,14 @@ class ActionInstrument:
     the driver's message (which names the field and the limit); cancellation of the caller
     is passed on through `should_stop`."""
 
-    def __init__(self, node, limits: ScannerLimits | None = None, server_timeout: float = 10.0,
-                 result_timeout: float = 600.0, scan_pair_id: str = ""):
+    def __init__(
+        self,
+        node,
+        limits: ScannerLimits | None = None,
+        server_timeout: float = 10.0,
+        result_timeout: float = 600.0,
+        scan_pair_id: str = "",
+    ):
         """scan_pair_id: the pair_id every raster scan is requested with (e.g. "local..." for
         checks the imaging node should not turn into the map)."""
         self.node = node
@@ -103,23 +139,45 @@ class ActionInstrument:
         self.result_timeout = result_timeout
         group = ReentrantCallbackGroup()
         self._clients = {
-            "scan": SafeActionClient(node, ScanImage, topics.ACTION_SCAN_IMAGE, callback_group=group,
-                                 feedback_sub_qos_profile=FEEDBACK),
-            "line": SafeActionClient(node, LocalScan, topics.ACTION_LOCAL_SCAN, callback_group=group,
-                                 feedback_sub_qos_profile=FEEDBACK),
-            "move": SafeActionClient(node, MoveTip, topics.ACTION_MOVE_TIP, callback_group=group,
-                                 feedback_sub_qos_profile=FEEDBACK),
-            "indent": SafeActionClient(node, Indent, topics.ACTION_INDENT, callback_group=group,
-                                   feedback_sub_qos_profile=FEEDBACK),
+            "scan": SafeActionClient(
+                node,
+                ScanImage,
+                topics.ACTION_SCAN_IMAGE,
+                callback_group=group,
+                feedback_sub_qos_profile=FEEDBACK,
+            ),
+            "line": SafeActionClient(
+                node,
+                LocalScan,
+                topics.ACTION_LOCAL_SCAN,
+                callback_group=group,
+                feedback_sub_qos_profile=FEEDBACK,
+            ),
+            "move": SafeActionClient(
+                node,
+                MoveTip,
+                topics.ACTION_MOVE_TIP,
+                callback_group=group,
+                feedback_sub_qos_profile=FEEDBACK,
+            ),
+            "indent": SafeActionClient(
+                node,
+                Indent,
+                topics.ACTION_INDENT,
+                callback_group=group,
+                feedback_sub_qos_profile=FEEDBACK,
+            ),
         }
-        self._commanded: Optional[tuple[float, float]] = None
+        self._commanded: tuple[float, float] | None = None
         self.time = 0.0
         self.last_command = None
         self._lock = threading.Lock()
 
     # -- plumbing ----------------------------------------------------------------------------
-    def _call(self, name: str, goal, should_stop: Optional[Callable[[], bool]] = None):
-        result = call_action(self._clients[name], goal, self.server_timeout, self.result_timeout, should_stop)
+    def _call(self, name: str, goal, should_stop: Callable[[], bool] | None = None):
+        result = call_action(
+            self._clients[name], goal, self.server_timeout, self.result_timeout, should_stop
+        )
         command = getattr(result, "command", None)
         if command is not None and command.header.stamp.sec:
             self.observe_command(command)
@@ -149,25 +207,45 @@ class ActionInstrument:
     # -- the Instrument protocol -------------------------------------------------------------
     def commanded_position(self) -> tuple[float, float]:
         if self._commanded is None:
-            raise DriverUnavailable("commanded position unknown until the driver has executed a command")
+            raise DriverUnavailable(
+                "commanded position unknown until the driver has executed a command"
+            )
         return self._commanded
 
-    def move_tip(self, x: float, y: float, speed: float, contact: bool = False,
-                 should_stop: Optional[Callable[[], bool]] = None) -> MoveResult:
+    def move_tip(
+        self,
+        x: float,
+        y: float,
+        speed: float,
+        contact: bool = False,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> MoveResult:
         validate_move(x, y, speed, self.limits)
         goal = MoveTip.Goal(speed=float(speed), contact=bool(contact))
         goal.target.header.frame_id = FRAME_SCANNER
         goal.target.point.x, goal.target.point.y = float(x), float(y)
         result = self._call("move", goal, should_stop)
         trace = msg_to_force_trace(result.trace) if contact and result.trace.times else None
-        return MoveResult(end_x=result.commanded_position.x, end_y=result.commanded_position.y,
-                          completed=result.success, trace=trace)
+        return MoveResult(
+            end_x=result.commanded_position.x,
+            end_y=result.commanded_position.y,
+            completed=result.success,
+            trace=trace,
+        )
 
-    def local_scan(self, request: LineRequest, should_stop: Optional[Callable[[], bool]] = None,
-                   landmark_id: int = -1) -> ScanLineData:
+    def local_scan(
+        self,
+        request: LineRequest,
+        should_stop: Callable[[], bool] | None = None,
+        landmark_id: int = -1,
+    ) -> ScanLineData:
         request.validate(self.limits)
-        goal = LocalScan.Goal(samples=int(request.samples), speed=float(request.speed), mode=request.mode,
-                              landmark_id=int(landmark_id))
+        goal = LocalScan.Goal(
+            samples=int(request.samples),
+            speed=float(request.speed),
+            mode=request.mode,
+            landmark_id=int(landmark_id),
+        )
         goal.start.x, goal.start.y = float(request.start_x), float(request.start_y)
         goal.end.x, goal.end.y = float(request.end_x), float(request.end_y)
         result = self._call("line", goal, should_stop)
@@ -175,21 +253,40 @@ class ActionInstrument:
         line.complete = result.success
         return line
 
-    def indent(self, x: float, y: float, force: float, dwell: float,
-               should_stop: Optional[Callable[[], bool]] = None) -> IndentResult:
+    def indent(
+        self,
+        x: float,
+        y: float,
+        force: float,
+        dwell: float,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> IndentResult:
         validate_indent(x, y, force, dwell, self.limits)
         goal = Indent.Goal(force=float(force), dwell=float(dwell))
         goal.position.x, goal.position.y = float(x), float(y)
         result = self._call("indent", goal, should_stop)
-        return IndentResult(x=float(x), y=float(y), trace=msg_to_force_trace(result.trace), completed=result.success)
+        return IndentResult(
+            x=float(x),
+            y=float(y),
+            trace=msg_to_force_trace(result.trace),
+            completed=result.success,
+        )
 
-    def raster_scan(self, request: ScanRequest, on_line=None,
-                    should_stop: Optional[Callable[[], bool]] = None) -> RasterScanData:
+    def raster_scan(
+        self, request: ScanRequest, on_line=None, should_stop: Callable[[], bool] | None = None
+    ) -> RasterScanData:
         request.validate(self.limits)
-        goal = ScanImage.Goal(size_x=request.size_x, size_y=request.size_y, pixels_x=request.pixels_x,
-                              pixels_y=request.pixels_y, scan_angle_deg=request.scan_angle_deg,
-                              slow_scan_up=request.slow_scan_up, line_rate=request.line_rate, mode=request.mode,
-                              pair_id=self.scan_pair_id)
+        goal = ScanImage.Goal(
+            size_x=request.size_x,
+            size_y=request.size_y,
+            pixels_x=request.pixels_x,
+            pixels_y=request.pixels_y,
+            scan_angle_deg=request.scan_angle_deg,
+            slow_scan_up=request.slow_scan_up,
+            line_rate=request.line_rate,
+            mode=request.mode,
+            pair_id=self.scan_pair_id,
+        )
         goal.origin.x, goal.origin.y = float(request.origin_x), float(request.origin_y)
         result = self._call("scan", goal, should_stop)
         scan = msg_to_raster_scan(result.scan)

@@ -1,11 +1,17 @@
 """Conversions between rclpy objects and the core recording types."""
+
 from __future__ import annotations
 
 import importlib
 
 from rclpy.duration import Duration
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
-                       ReliabilityPolicy)
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    LivelinessPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
 
 from afm_core.recording.qos import RMW_DURATION_INFINITE_NS, QosDescription
 
@@ -20,8 +26,10 @@ def import_message_type(type_name: str):
         module = importlib.import_module(f"{package}.{kind}")
         return getattr(module, name)
     except (ImportError, AttributeError) as exc:
-        raise ValueError(f"type {type_name!r} is not importable here ({exc}); "
-                         "is its interface package built and sourced?") from exc
+        raise ValueError(
+            f"type {type_name!r} is not importable here ({exc}); "
+            "is its interface package built and sourced?"
+        ) from exc
 
 
 def _ns(duration) -> int:
@@ -46,15 +54,19 @@ def describe_qos(profile: QoSProfile) -> QosDescription:
 def qos_from_description(desc: QosDescription) -> QoSProfile:
     def duration(ns):
         return Duration(nanoseconds=ns) if 0 < ns < RMW_DURATION_INFINITE_NS else Duration()
+
     history = HistoryPolicy.KEEP_ALL if desc.history == "keep_all" else HistoryPolicy.KEEP_LAST
     return QoSProfile(
         history=history,
         depth=max(1, desc.depth),
-        reliability=ReliabilityPolicy[desc.reliability.upper()] if desc.reliability != "unknown"
+        reliability=ReliabilityPolicy[desc.reliability.upper()]
+        if desc.reliability != "unknown"
         else ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy[desc.durability.upper()] if desc.durability != "unknown"
+        durability=DurabilityPolicy[desc.durability.upper()]
+        if desc.durability != "unknown"
         else DurabilityPolicy.VOLATILE,
-        liveliness=LivelinessPolicy[desc.liveliness.upper()] if desc.liveliness != "unknown"
+        liveliness=LivelinessPolicy[desc.liveliness.upper()]
+        if desc.liveliness != "unknown"
         else LivelinessPolicy.AUTOMATIC,
         deadline=duration(desc.deadline_ns),
         lifespan=duration(desc.lifespan_ns),
@@ -74,7 +86,8 @@ def subscription_qos_for(offers: list[QosDescription]) -> QoSProfile:
     return QoSProfile(
         history=HistoryPolicy.KEEP_ALL,
         reliability=ReliabilityPolicy.RELIABLE if all_reliable else ReliabilityPolicy.BEST_EFFORT,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL if all_latched else DurabilityPolicy.VOLATILE)
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if all_latched else DurabilityPolicy.VOLATILE,
+    )
 
 
 def publisher_qos_for(offers: list[QosDescription], depth: int) -> QoSProfile:
@@ -86,8 +99,10 @@ def publisher_qos_for(offers: list[QosDescription], depth: int) -> QoSProfile:
     can be repaired only from the publisher's history: with the one-message history the
     graph API reports for recorded publishers, a burst reached a subscriber with a third of
     its messages missing. A reliable publisher still serves best-effort subscribers."""
-    agreed = bool(offers) and all((o.durability, o.liveliness) == (offers[0].durability, offers[0].liveliness)
-                                  for o in offers)
+    agreed = bool(offers) and all(
+        (o.durability, o.liveliness) == (offers[0].durability, offers[0].liveliness)
+        for o in offers
+    )
     profile = qos_from_description(offers[0]) if agreed else QoSProfile(depth=1)
     profile.history = HistoryPolicy.KEEP_LAST
     profile.depth = max(depth, profile.depth)

@@ -7,6 +7,7 @@ diagnoses that, so the recorder is never disturbed. All the analysis is in the c
 library; this node only resolves paths, reports the phase as feedback and turns a cancel
 request into a clean stop between analysis steps.
 """
+
 from __future__ import annotations
 
 import math
@@ -24,10 +25,22 @@ from afm_bringup.params import declare
 from afm_msgs.action import Sim2Real
 
 PARAMETERS = [
-    ("model", "", "simulator configuration YAML the recording is compared with ('' = the simulator's defaults)"),
-    ("live_recording", "", "the graph recorder's output file (its `output` parameter); a goal with an empty "
-                           "`recording` diagnoses a snapshot of it"),
-    ("report_root", "sim2real_reports", "folder under which a goal without `report_dir` gets a new report folder"),
+    (
+        "model",
+        "",
+        "simulator configuration YAML the recording is compared with ('' = the simulator's defaults)",
+    ),
+    (
+        "live_recording",
+        "",
+        "the graph recorder's output file (its `output` parameter); a goal with an empty "
+        "`recording` diagnoses a snapshot of it",
+    ),
+    (
+        "report_root",
+        "sim2real_reports",
+        "folder under which a goal without `report_dir` gets a new report folder",
+    ),
 ]
 
 
@@ -39,9 +52,16 @@ class Sim2RealNode(Node):
     def __init__(self):
         super().__init__("sim2real")
         self.config = declare(self, PARAMETERS)
-        self._busy = threading.Lock()      # one diagnosis at a time: each takes both cores for a while
-        ActionServer(self, Sim2Real, topics.ACTION_SIM2REAL, self.execute, callback_group=ReentrantCallbackGroup(),
-                     goal_callback=self.accept, cancel_callback=lambda _g: CancelResponse.ACCEPT)
+        self._busy = threading.Lock()  # one diagnosis at a time: each takes both cores for a while
+        ActionServer(
+            self,
+            Sim2Real,
+            topics.ACTION_SIM2REAL,
+            self.execute,
+            callback_group=ReentrantCallbackGroup(),
+            goal_callback=self.accept,
+            cancel_callback=lambda _g: CancelResponse.ACCEPT,
+        )
 
     def accept(self, _goal) -> GoalResponse:
         return GoalResponse.REJECT if self._busy.locked() else GoalResponse.ACCEPT
@@ -49,6 +69,7 @@ class Sim2RealNode(Node):
     def recording_for(self, goal) -> tuple[Path, str]:
         """(file to diagnose, note); raises ValueError naming what is missing."""
         from afm_core.recording import recover_recording
+
         if goal.recording:
             path = Path(goal.recording)
             if not path.is_file():
@@ -56,20 +77,27 @@ class Sim2RealNode(Node):
             return path, ""
         live = self.config["live_recording"]
         if not live:
-            raise ValueError("recording is empty and the node's live_recording parameter is not set: "
-                             "name a recording, or start the node with live_recording = the recorder's output")
+            raise ValueError(
+                "recording is empty and the node's live_recording parameter is not set: "
+                "name a recording, or start the node with live_recording = the recorder's output"
+            )
         live = Path(live)
         part = live.with_name(live.name + ".part")
         if live.is_file():
             return live, ""
         if not part.is_file():
-            raise ValueError(f"live_recording={str(live)!r}: neither it nor {part.name} exists (is the recorder running?)")
+            raise ValueError(
+                f"live_recording={str(live)!r}: neither it nor {part.name} exists (is the recorder running?)"
+            )
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-        snapshot, count = recover_recording(part, part.with_name(f"{live.stem}.snapshot-{stamp}.mcap"))
+        snapshot, count = recover_recording(
+            part, part.with_name(f"{live.stem}.snapshot-{stamp}.mcap")
+        )
         return snapshot, f"snapshot of {part.name} ({count} messages)"
 
     def execute(self, goal_handle) -> Sim2Real.Result:
         from afm_core.sim2real.diagnose import run_sim2real
+
         goal, result = goal_handle.request, Sim2Real.Result()
         result.heldout_reduction = math.nan
         if not self._busy.acquire(blocking=False):
@@ -84,8 +112,13 @@ class Sim2RealNode(Node):
                 result.message = f"refused: {exc}"
                 return result
             model = goal.model or self.config["model"] or None
-            report_dir = Path(goal.report_dir) if goal.report_dir else (
-                Path(self.config["report_root"]) / datetime.now().strftime("%Y%m%d-%H%M%S-%f"))
+            report_dir = (
+                Path(goal.report_dir)
+                if goal.report_dir
+                else (
+                    Path(self.config["report_root"]) / datetime.now().strftime("%Y%m%d-%H%M%S-%f")
+                )
+            )
 
             def progress(phase: str) -> None:
                 if goal_handle.is_cancel_requested:
@@ -94,11 +127,19 @@ class Sim2RealNode(Node):
 
             try:
                 # a snapshot ends wherever the recorder had got to: its last command may lack its data
-                diagnosis = run_sim2real(recording, model, report_dir, progress=progress,
-                                         missing_data="skip" if note else "error", effects=list(goal.effects))
+                diagnosis = run_sim2real(
+                    recording,
+                    model,
+                    report_dir,
+                    progress=progress,
+                    missing_data="skip" if note else "error",
+                    effects=list(goal.effects),
+                )
             except Cancelled:
                 goal_handle.canceled()
-                result.message = "cancelled; nothing written beyond what the report folder already had"
+                result.message = (
+                    "cancelled; nothing written beyond what the report folder already had"
+                )
                 return result
             except (ValueError, OSError, RuntimeError) as exc:
                 goal_handle.abort()

@@ -1,17 +1,17 @@
 """Topic and action names of the graph (one place, so nodes, CLI and recorder agree)."""
 
-SCAN = "/afm/scan"                      # afm_msgs/RasterScan, latched
-SCAN_LINE = "/afm/scan_line"            # afm_msgs/ScanLine, sensor-data QoS
-FORCE_TRACE = "/afm/force_trace"        # afm_msgs/ForceTrace, sensor-data QoS
-TIP_COMMAND = "/afm/tip_command"        # afm_msgs/TipCommand
-TIP_POSE = "/afm/tip_pose"              # geometry_msgs/PoseWithCovarianceStamped
-GROUND_TRUTH = "/afm/ground_truth"      # afm_msgs/GroundTruth (sim only)
-CORRECTED_MAP = "/afm/map"              # afm_msgs/RasterScan, drift-corrected, latched
-LANDMARKS = "/afm/landmarks"            # afm_msgs/LandmarkArray, latched
-TIP_SHAPE = "/afm/tip_shape"            # afm_msgs/TipShape, latched
-PLANNED_PATH = "/afm/planned_path"      # afm_msgs/PlannedPath
-PUSH_GOAL = "/afm/push_goal"            # geometry_msgs/PointStamped, every accepted push goal
-MARKERS = "/afm/markers"                # visualization_msgs/MarkerArray
+SCAN = "/afm/scan"  # afm_msgs/RasterScan, latched
+SCAN_LINE = "/afm/scan_line"  # afm_msgs/ScanLine, sensor-data QoS
+FORCE_TRACE = "/afm/force_trace"  # afm_msgs/ForceTrace, sensor-data QoS
+TIP_COMMAND = "/afm/tip_command"  # afm_msgs/TipCommand
+TIP_POSE = "/afm/tip_pose"  # geometry_msgs/PoseWithCovarianceStamped
+GROUND_TRUTH = "/afm/ground_truth"  # afm_msgs/GroundTruth (sim only)
+CORRECTED_MAP = "/afm/map"  # afm_msgs/RasterScan, drift-corrected, latched
+LANDMARKS = "/afm/landmarks"  # afm_msgs/LandmarkArray, latched
+TIP_SHAPE = "/afm/tip_shape"  # afm_msgs/TipShape, latched
+PLANNED_PATH = "/afm/planned_path"  # afm_msgs/PlannedPath
+PUSH_GOAL = "/afm/push_goal"  # geometry_msgs/PointStamped, every accepted push goal
+MARKERS = "/afm/markers"  # visualization_msgs/MarkerArray
 
 ACTION_SCAN_IMAGE = "/afm/scan_image"
 ACTION_LOCAL_SCAN = "/afm/local_scan"
@@ -25,5 +25,16 @@ SERVICE_PLAN_PATH = "/afm/plan_path"
 SERVICE_PLAN_OBSERVATION = "/afm/plan_observation"
 SERVICE_PLAN_SEQUENCE = "/afm/plan_sequence"
 
-RECORDED_BY_DEFAULT = [SCAN, SCAN_LINE, FORCE_TRACE, TIP_COMMAND, TIP_POSE, GROUND_TRUTH,
-                       CORRECTED_MAP, LANDMARKS, TIP_SHAPE, PLANNED_PATH, PUSH_GOAL]
+RECORDED_BY_DEFAULT = [
+    SCAN,
+    SCAN_LINE,
+    FORCE_TRACE,
+    TIP_COMMAND,
+    TIP_POSE,
+    GROUND_TRUTH,
+    CORRECTED_MAP,
+    LANDMARKS,
+    TIP_SHAPE,
+    PLANNED_PATH,
+    PUSH_GOAL,
+]

@@ -1,4 +1,5 @@
 """Lengths typed by people: '500nm', '1.5um', '2e-6' (metres) -> metres."""
+
 import math
 import re
 
@@ -9,8 +10,10 @@ _LENGTH = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([a-zµ
 def parse_length(text: str, name: str = "length") -> float:
     match = _LENGTH.match(str(text))
     if not match or match.group(2) not in ("",) + tuple(UNITS):
-        raise ValueError(f"{name}={text!r}: expected a number with an optional unit "
-                         f"({', '.join(UNITS)}), e.g. 500nm or 2e-6 (metres)")
+        raise ValueError(
+            f"{name}={text!r}: expected a number with an optional unit "
+            f"({', '.join(UNITS)}), e.g. 500nm or 2e-6 (metres)"
+        )
     value = float(match.group(1)) * UNITS.get(match.group(2) or "m")
     if not math.isfinite(value):
         raise ValueError(f"{name}={text!r}: must be finite")

@@ -6,6 +6,7 @@ session's data, afm_core.replay_instrument). One motion at a time: goals wait in
 queue of at most `max_queued_goals`; cancel stops a running motion where the tip is, or
 removes a waiting goal.
 """
+
 from __future__ import annotations
 
 import math
@@ -20,8 +21,15 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
 from afm_bringup import params, topics
-from afm_bringup.conversions import (FRAME_SCANNER, FRAME_TASK, force_trace_to_msg, raster_scan_to_msg,
-                                     scan_line_to_msg, seconds_to_time, truth_to_msg)
+from afm_bringup.conversions import (
+    FRAME_SCANNER,
+    FRAME_TASK,
+    force_trace_to_msg,
+    raster_scan_to_msg,
+    scan_line_to_msg,
+    seconds_to_time,
+    truth_to_msg,
+)
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import EVENTS, FEEDBACK, LATCHED, SCANS, STREAM
 from afm_core.backends import open_instrument
@@ -30,21 +38,53 @@ from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_msgs.msg import ForceTrace, GroundTruth, RasterScan, ScanLine, TipCommand
 
 PARAMETERS = [
-    ("backend", "sim", "Instrument: 'sim' (simulated AFM), 'daq' (NI DAQ card), 'replay' (a recorded session)."),
-    ("sim_config", "", "YAML file of simulator parameters (any subset; defaults: afm_core/sim/default_config.yaml)."),
+    (
+        "backend",
+        "sim",
+        "Instrument: 'sim' (simulated AFM), 'daq' (NI DAQ card), 'replay' (a recorded session).",
+    ),
+    (
+        "sim_config",
+        "",
+        "YAML file of simulator parameters (any subset; defaults: afm_core/sim/default_config.yaml).",
+    ),
     ("seed", -1, "Simulator random seed; -1 keeps the config file's seed."),
-    ("real_time_factor", 0.0, "Simulated seconds per wall second (1.0 = real time); 0 = as fast as possible."),
-    ("publish_clock", True, "Publish the instrument's time on /clock (sim and replay) for use_sim_time nodes."),
+    (
+        "real_time_factor",
+        0.0,
+        "Simulated seconds per wall second (1.0 = real time); 0 = as fast as possible.",
+    ),
+    (
+        "publish_clock",
+        True,
+        "Publish the instrument's time on /clock (sim and replay) for use_sim_time nodes.",
+    ),
     ("clock_frequency", 20.0, "Hz (wall) of /clock messages while idle."),
     ("max_queued_goals", 8, "Goals that may wait while one runs; more are rejected."),
     ("daq_device", "Dev1", "NI-DAQmx device name (daq backend)."),
-    ("daq_calibration", "", "YAML file of the DAQ calibration (daq backend; defaults: afm_core.daq.DaqCalibration)."),
-    ("replay_input", "", "Recording (.mcap) whose scans, lines and force traces the replay backend serves."),
+    (
+        "daq_calibration",
+        "",
+        "YAML file of the DAQ calibration (daq backend; defaults: afm_core.daq.DaqCalibration).",
+    ),
+    (
+        "replay_input",
+        "",
+        "Recording (.mcap) whose scans, lines and force traces the replay backend serves.",
+    ),
 ]
+
+
 def make_instrument(config: dict):
     try:
-        return open_instrument(config["backend"], config["sim_config"], config["seed"], config["daq_device"],
-                               config["daq_calibration"], config["replay_input"])
+        return open_instrument(
+            config["backend"],
+            config["sim_config"],
+            config["seed"],
+            config["daq_device"],
+            config["daq_calibration"],
+            config["replay_input"],
+        )
     except ValueError as exc:
         raise ValueError(f"parameter {exc}") from exc
 
@@ -98,29 +138,49 @@ class DriverNode(Node):
         super().__init__("afm_driver")
         self.config = params.declare(self, PARAMETERS)
         for name in ("real_time_factor", "clock_frequency"):
-            if not self.config[name] >= 0 or (name == "clock_frequency" and self.config[name] == 0):
-                raise ValueError(f"parameter {name}={self.config[name]}: must be > 0"
-                                 + (" (or 0 for as fast as possible)" if name == "real_time_factor" else ""))
+            if not self.config[name] >= 0 or (
+                name == "clock_frequency" and self.config[name] == 0
+            ):
+                raise ValueError(
+                    f"parameter {name}={self.config[name]}: must be > 0"
+                    + (" (or 0 for as fast as possible)" if name == "real_time_factor" else "")
+                )
         self.instrument = make_instrument(self.config)
         self.is_sim = self.config["backend"] == "sim"
-        self.epoch = time.time()                    # instrument time 0 <-> wall time at start
+        self.epoch = time.time()  # instrument time 0 <-> wall time at start
         self.gate = FifoGate(self.config["max_queued_goals"])
         self.pacing_origin = (time.monotonic(), self.instrument.time)
         self.scan_pub = self.create_publisher(RasterScan, topics.SCAN, SCANS)
         self.line_pub = self.create_publisher(ScanLine, topics.SCAN_LINE, STREAM)
         self.trace_pub = self.create_publisher(ForceTrace, topics.FORCE_TRACE, STREAM)
         self.command_pub = self.create_publisher(TipCommand, topics.TIP_COMMAND, EVENTS)
-        self.truth_pub = self.create_publisher(GroundTruth, topics.GROUND_TRUTH, LATCHED) if self.is_sim else None
-        self.clock_pub = (self.create_publisher(Clock, "/clock", 10)
-                          if self.config["publish_clock"] and self.config["backend"] != "daq" else None)
+        self.truth_pub = (
+            self.create_publisher(GroundTruth, topics.GROUND_TRUTH, LATCHED)
+            if self.is_sim
+            else None
+        )
+        self.clock_pub = (
+            self.create_publisher(Clock, "/clock", 10)
+            if self.config["publish_clock"] and self.config["backend"] != "daq"
+            else None
+        )
         group = ReentrantCallbackGroup()
-        for action_type, name, execute in ((ScanImage, topics.ACTION_SCAN_IMAGE, self.execute_scan),
-                                           (LocalScan, topics.ACTION_LOCAL_SCAN, self.execute_line),
-                                           (MoveTip, topics.ACTION_MOVE_TIP, self.execute_move),
-                                           (Indent, topics.ACTION_INDENT, self.execute_indent)):
-            ActionServer(self, action_type, name, self._queued(action_type, execute), callback_group=group,
-                         feedback_pub_qos_profile=FEEDBACK,
-                         goal_callback=self.accept_goal, cancel_callback=lambda _g: CancelResponse.ACCEPT)
+        for action_type, name, execute in (
+            (ScanImage, topics.ACTION_SCAN_IMAGE, self.execute_scan),
+            (LocalScan, topics.ACTION_LOCAL_SCAN, self.execute_line),
+            (MoveTip, topics.ACTION_MOVE_TIP, self.execute_move),
+            (Indent, topics.ACTION_INDENT, self.execute_indent),
+        ):
+            ActionServer(
+                self,
+                action_type,
+                name,
+                self._queued(action_type, execute),
+                callback_group=group,
+                feedback_pub_qos_profile=FEEDBACK,
+                goal_callback=self.accept_goal,
+                cancel_callback=lambda _g: CancelResponse.ACCEPT,
+            )
         if self.clock_pub is not None:
             self.create_timer(1.0 / self.config["clock_frequency"], self.publish_clock)
         self.publish_truth()
@@ -128,8 +188,10 @@ class DriverNode(Node):
     # -- plumbing ----------------------------------------------------------------------------
     def accept_goal(self, _goal):
         if self.gate.full():
-            self.get_logger().warning(f"goal rejected: {self.config['max_queued_goals']} goals already wait "
-                                      "(max_queued_goals)")
+            self.get_logger().warning(
+                f"goal rejected: {self.config['max_queued_goals']} goals already wait "
+                "(max_queued_goals)"
+            )
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
@@ -138,12 +200,14 @@ class DriverNode(Node):
             ticket = self.gate.take()
             if not self.gate.wait(ticket, lambda: goal_handle.is_cancel_requested):
                 goal_handle.canceled()
-                return action_type.Result(success=False, message="cancelled while waiting for the instrument")
+                return action_type.Result(
+                    success=False, message="cancelled while waiting for the instrument"
+                )
             try:
                 return execute(goal_handle)
-            except ValueError as exc:        # the instrument refused (e.g. a replay mismatch)
+            except ValueError as exc:  # the instrument refused (e.g. a replay mismatch)
                 return self.refuse(goal_handle, action_type.Result(), exc)
-            except Exception as exc:         # noqa: BLE001 - report it and keep serving
+            except Exception as exc:  # noqa: BLE001 - report it and keep serving
                 self.get_logger().error(f"{action_type.__name__} failed: {exc!r}")
                 goal_handle.abort()
                 return action_type.Result(success=False, message=f"driver error: {exc}")
@@ -151,6 +215,7 @@ class DriverNode(Node):
                 self.gate.release()
                 self.publish_truth()
                 self.publish_clock()
+
         return run_in_turn
 
     def stamp(self, instrument_time: float):
@@ -172,10 +237,12 @@ class DriverNode(Node):
     def stop_check(self, goal_handle):
         """Asked by the instrument between chunks of a motion: keeps real-time pacing inside
         long motions, so a cancel lands where the tip is now."""
+
         def should_stop() -> bool:
             self.pace()
             self.publish_clock()
             return goal_handle.is_cancel_requested
+
         return should_stop
 
     def publish_clock(self) -> None:
@@ -184,10 +251,16 @@ class DriverNode(Node):
 
     def publish_truth(self) -> None:
         if self.truth_pub is not None:
-            self.truth_pub.publish(truth_to_msg(self.instrument.truth(), self.header(self.instrument.time, FRAME_TASK)))
+            self.truth_pub.publish(
+                truth_to_msg(
+                    self.instrument.truth(), self.header(self.instrument.time, FRAME_TASK)
+                )
+            )
 
     def command(self, kind, start_time, start, end, duration, speed=0.0):
-        msg = TipCommand(header=self.header(start_time), kind=kind, speed=float(speed), duration=float(duration))
+        msg = TipCommand(
+            header=self.header(start_time), kind=kind, speed=float(speed), duration=float(duration)
+        )
         msg.start.x, msg.start.y = map(float, start)
         msg.end.x, msg.end.y = map(float, end)
         msg.start_voltage = msg.end_voltage = [float("nan")] * 3
@@ -213,8 +286,18 @@ class DriverNode(Node):
     # -- actions -----------------------------------------------------------------------------
     def execute_scan(self, goal_handle) -> ScanImage.Result:
         goal, result = goal_handle.request, ScanImage.Result()
-        request = ScanRequest(goal.origin.x, goal.origin.y, goal.size_x, goal.size_y, goal.pixels_x, goal.pixels_y,
-                              goal.scan_angle_deg, goal.slow_scan_up, goal.line_rate, goal.mode or "tapping")
+        request = ScanRequest(
+            goal.origin.x,
+            goal.origin.y,
+            goal.size_x,
+            goal.size_y,
+            goal.pixels_x,
+            goal.pixels_y,
+            goal.scan_angle_deg,
+            goal.slow_scan_up,
+            goal.line_rate,
+            goal.mode or "tapping",
+        )
         try:
             request.validate(self.instrument.limits)
         except ValueError as exc:
@@ -225,14 +308,25 @@ class DriverNode(Node):
             self.pace()
 
         start_time, start = self.instrument.time, self.instrument.commanded_position()
-        scan = self.instrument.raster_scan(request, on_line=on_line,
-                                           should_stop=self.stop_check(goal_handle))
+        scan = self.instrument.raster_scan(
+            request, on_line=on_line, should_stop=self.stop_check(goal_handle)
+        )
         duration = self.instrument.time - start_time
         fast_size = request.size_x if request.scan_angle_deg == 0.0 else request.size_y
-        path_length = 2 * fast_size * request.lines + math.dist(start, (request.origin_x, request.origin_y))
-        result.command = self.command(TipCommand.RASTER, start_time, start, self.instrument.commanded_position(),
-                                      duration, path_length / duration if duration > 0 else 0.0)
-        msg = raster_scan_to_msg(scan, self.header(scan.start_time), scan_id=self._next_scan_id(), pair_id=goal.pair_id)
+        path_length = 2 * fast_size * request.lines + math.dist(
+            start, (request.origin_x, request.origin_y)
+        )
+        result.command = self.command(
+            TipCommand.RASTER,
+            start_time,
+            start,
+            self.instrument.commanded_position(),
+            duration,
+            path_length / duration if duration > 0 else 0.0,
+        )
+        msg = raster_scan_to_msg(
+            scan, self.header(scan.start_time), scan_id=self._next_scan_id(), pair_id=goal.pair_id
+        )
         if scan.complete:
             self.scan_pub.publish(msg)
         result.scan = msg
@@ -245,8 +339,15 @@ class DriverNode(Node):
     def execute_line(self, goal_handle) -> LocalScan.Result:
         goal, result = goal_handle.request, LocalScan.Result()
         speed = goal.speed if goal.speed > 0 else 1e-6
-        request = LineRequest(goal.start.x, goal.start.y, goal.end.x, goal.end.y, goal.samples, speed,
-                              goal.mode or "tapping")
+        request = LineRequest(
+            goal.start.x,
+            goal.start.y,
+            goal.end.x,
+            goal.end.y,
+            goal.samples,
+            speed,
+            goal.mode or "tapping",
+        )
         try:
             request.validate(self.instrument.limits)
         except ValueError as exc:
@@ -254,11 +355,24 @@ class DriverNode(Node):
         start_time = self.instrument.time
         line = self.instrument.local_scan(request, should_stop=self.stop_check(goal_handle))
         self.pace()
-        result.command = self.command(TipCommand.SCAN_LINE, start_time, (request.start_x, request.start_y),
-                     (request.end_x, request.end_y), self.instrument.time - start_time, speed)
-        msg = scan_line_to_msg(line, self.header(line.start_time), (request.start_x, request.start_y),
-                               (request.end_x, request.end_y), goal.landmark_id)
-        goal_handle.publish_feedback(LocalScan.Feedback(fraction_done=1.0 if line.complete else 0.0))
+        result.command = self.command(
+            TipCommand.SCAN_LINE,
+            start_time,
+            (request.start_x, request.start_y),
+            (request.end_x, request.end_y),
+            self.instrument.time - start_time,
+            speed,
+        )
+        msg = scan_line_to_msg(
+            line,
+            self.header(line.start_time),
+            (request.start_x, request.start_y),
+            (request.end_x, request.end_y),
+            goal.landmark_id,
+        )
+        goal_handle.publish_feedback(
+            LocalScan.Feedback(fraction_done=1.0 if line.complete else 0.0)
+        )
         if line.complete:
             self.line_pub.publish(msg)
         result.line = msg
@@ -270,17 +384,32 @@ class DriverNode(Node):
         start_time, start = self.instrument.time, self.instrument.commanded_position()
         try:
             if goal.target.header.frame_id not in ("", FRAME_SCANNER, FRAME_TASK):
-                raise ValueError(f"target.header.frame_id={goal.target.header.frame_id!r}: expected "
-                                 f"{FRAME_SCANNER!r} or {FRAME_TASK!r}")
-            move = self.instrument.move_tip(goal.target.point.x, goal.target.point.y, speed, goal.contact,
-                                            should_stop=self.stop_check(goal_handle))
+                raise ValueError(
+                    f"target.header.frame_id={goal.target.header.frame_id!r}: expected "
+                    f"{FRAME_SCANNER!r} or {FRAME_TASK!r}"
+                )
+            move = self.instrument.move_tip(
+                goal.target.point.x,
+                goal.target.point.y,
+                speed,
+                goal.contact,
+                should_stop=self.stop_check(goal_handle),
+            )
         except ValueError as exc:
             return self.refuse(goal_handle, result, exc)
         self.pace()
-        result.command = self.command(TipCommand.PUSH if goal.contact else TipCommand.MOVE, start_time, start,
-                     (move.end_x, move.end_y), self.instrument.time - start_time, speed)
+        result.command = self.command(
+            TipCommand.PUSH if goal.contact else TipCommand.MOVE,
+            start_time,
+            start,
+            (move.end_x, move.end_y),
+            self.instrument.time - start_time,
+            speed,
+        )
         result.commanded_position.x, result.commanded_position.y = move.end_x, move.end_y
-        goal_handle.publish_feedback(MoveTip.Feedback(commanded_position=result.commanded_position))
+        goal_handle.publish_feedback(
+            MoveTip.Feedback(commanded_position=result.commanded_position)
+        )
         if move.trace is not None:
             result.trace = force_trace_to_msg(move.trace, self.header(move.trace.start_time))
             self.trace_pub.publish(result.trace)
@@ -290,13 +419,23 @@ class DriverNode(Node):
         goal, result = goal_handle.request, Indent.Result()
         start_time = self.instrument.time
         try:
-            indent = self.instrument.indent(goal.position.x, goal.position.y, goal.force, goal.dwell,
-                                            should_stop=self.stop_check(goal_handle))
+            indent = self.instrument.indent(
+                goal.position.x,
+                goal.position.y,
+                goal.force,
+                goal.dwell,
+                should_stop=self.stop_check(goal_handle),
+            )
         except ValueError as exc:
             return self.refuse(goal_handle, result, exc)
         self.pace()
-        result.command = self.command(TipCommand.INDENT, start_time, (indent.x, indent.y), (indent.x, indent.y),
-                     self.instrument.time - start_time)
+        result.command = self.command(
+            TipCommand.INDENT,
+            start_time,
+            (indent.x, indent.y),
+            (indent.x, indent.y),
+            self.instrument.time - start_time,
+        )
         goal_handle.publish_feedback(Indent.Feedback(phase="retract"))
         result.trace = force_trace_to_msg(indent.trace, self.header(indent.trace.start_time))
         if indent.completed:

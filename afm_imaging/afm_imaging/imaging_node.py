@@ -7,6 +7,7 @@ leave the map alone. The tip is estimated on demand
 (service /afm/imaging/estimate_tip) or after every map (estimate_tip_on_scan). Bad scans
 are reported and skipped; the node keeps running.
 """
+
 from __future__ import annotations
 
 import sys
@@ -21,23 +22,41 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from afm_bringup import params, topics
-from afm_bringup.conversions import (FRAME_IMAGE, FRAME_TASK, array_to_image, landmarks_to_msg, msg_to_raster_scan,
-                                     raster_scan_to_msg)
+from afm_bringup.conversions import (
+    FRAME_IMAGE,
+    FRAME_TASK,
+    array_to_image,
+    landmarks_to_msg,
+    msg_to_raster_scan,
+    raster_scan_to_msg,
+)
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import LATCHED
 from afm_core.imaging.landmarks import MapErrorModel, extract_landmarks
 from afm_msgs.msg import LandmarkArray, RasterScan, TipShape
 
-LOCAL_CHECK_PREFIX = "local"      # pair_id of scans that check an area (e.g. a push's verification)
+LOCAL_CHECK_PREFIX = "local"  # pair_id of scans that check an area (e.g. a push's verification)
 
 PARAMETERS = [
-    ("min_landmark_height", 10e-9, "m; features lower than this above the substrate are not landmarks."),
-    ("map_sigma_x", 5.0e-9, "m, map error (1 sigma) along x added to every landmark's covariance (book Fig. 7.10)."),
+    (
+        "min_landmark_height",
+        10e-9,
+        "m; features lower than this above the substrate are not landmarks.",
+    ),
+    (
+        "map_sigma_x",
+        5.0e-9,
+        "m, map error (1 sigma) along x added to every landmark's covariance (book Fig. 7.10).",
+    ),
     ("map_sigma_y", 4.5e-9, "m, map error along y (book Fig. 7.10)."),
     ("drift_order", 1, "Offset-vector order of the 0/90 drift compensation: 1 (book) or 2."),
     ("tip_size", 21, "Pixels (odd) of the blind-estimated tip's window."),
     ("tip_threshold", "auto", "Denoising threshold of the blind tip estimate: 'auto' or metres."),
-    ("estimate_tip_on_scan", False, "Re-estimate the tip after every new map (seconds of work each time)."),
+    (
+        "estimate_tip_on_scan",
+        False,
+        "Re-estimate the tip after every new map (seconds of work each time).",
+    ),
 ]
 
 
@@ -53,7 +72,9 @@ class ImagingNode(Node):
             try:
                 float(self.config["tip_threshold"])
             except ValueError:
-                raise ValueError(f"parameter tip_threshold={self.config['tip_threshold']!r}: 'auto' or metres") from None
+                raise ValueError(
+                    f"parameter tip_threshold={self.config['tip_threshold']!r}: 'auto' or metres"
+                ) from None
         self.error_model = MapErrorModel(self.config["map_sigma_x"], self.config["map_sigma_y"])
         self.pending_0: dict[str, object] = {}
         self.pending_90: dict[str, object] = {}
@@ -64,44 +85,64 @@ class ImagingNode(Node):
         self.tip_pub = self.create_publisher(TipShape, topics.TIP_SHAPE, LATCHED)
         group = MutuallyExclusiveCallbackGroup()
         # latched like the publisher, but a queue: a 0/90 pair may arrive back to back
-        scans_qos = QoSProfile(depth=10, reliability=LATCHED.reliability, durability=LATCHED.durability)
-        self.create_subscription(RasterScan, topics.SCAN, self.on_scan, scans_qos, callback_group=group)
-        self.create_service(Trigger, "/afm/imaging/estimate_tip", self.on_estimate_tip, callback_group=group)
+        scans_qos = QoSProfile(
+            depth=10, reliability=LATCHED.reliability, durability=LATCHED.durability
+        )
+        self.create_subscription(
+            RasterScan, topics.SCAN, self.on_scan, scans_qos, callback_group=group
+        )
+        self.create_service(
+            Trigger, "/afm/imaging/estimate_tip", self.on_estimate_tip, callback_group=group
+        )
 
     # -- scans -------------------------------------------------------------------------------
     def on_scan(self, msg: RasterScan) -> None:
         try:
             scan = msg_to_raster_scan(msg)
             if not np.all(np.isfinite(scan.height)):
-                raise ValueError(f"{int(np.count_nonzero(~np.isfinite(scan.height)))} NaN/inf pixels")
+                raise ValueError(
+                    f"{int(np.count_nonzero(~np.isfinite(scan.height)))} NaN/inf pixels"
+                )
         except ValueError as exc:
             self.get_logger().error(f"scan {msg.scan_id} skipped: {exc}")
             return
         if msg.pair_id.startswith(LOCAL_CHECK_PREFIX):
-            return                    # a requester's own check of a small area, not a new map
+            return  # a requester's own check of a small area, not a new map
         if msg.scan_angle_deg == 0.0 and not msg.pair_id:
             self.publish_map(scan, msg, corrected=None)
             return
-        book, other = (self.pending_0, self.pending_90) if msg.scan_angle_deg == 0.0 else (self.pending_90, self.pending_0)
+        book, other = (
+            (self.pending_0, self.pending_90)
+            if msg.scan_angle_deg == 0.0
+            else (self.pending_90, self.pending_0)
+        )
         book[msg.pair_id] = (scan, msg)
         if msg.pair_id not in other:
             if msg.scan_angle_deg == 90.0:
-                self.get_logger().warning(f"90 deg scan {msg.scan_id} (pair_id {msg.pair_id!r}) has no 0 deg partner "
-                                          "yet; it waits for one")
+                self.get_logger().warning(
+                    f"90 deg scan {msg.scan_id} (pair_id {msg.pair_id!r}) has no 0 deg partner "
+                    "yet; it waits for one"
+                )
             return
-        (scan0, msg0), (scan90, _msg90) = self.pending_0.pop(msg.pair_id), self.pending_90.pop(msg.pair_id)
+        (scan0, msg0), (scan90, _msg90) = (
+            self.pending_0.pop(msg.pair_id),
+            self.pending_90.pop(msg.pair_id),
+        )
         if scan0.scan_angle_deg != 0.0 or scan90.scan_angle_deg != 90.0:
             self.get_logger().error(f"pair {msg.pair_id!r}: needs one 0 deg and one 90 deg scan")
             return
         from afm_core.imaging.drift import compensate_pair
+
         try:
             correction = compensate_pair(scan0, scan90, order=self.config["drift_order"])
         except ValueError as exc:
             self.get_logger().error(f"pair {msg.pair_id!r}: drift compensation refused: {exc}")
             return
         vx, vy = correction.velocity
-        self.get_logger().info(f"pair {msg.pair_id!r}: drift ({vx * 1e9:.3f}, {vy * 1e9:.3f}) nm/s corrected in "
-                               f"{correction.seconds:.2f} s")
+        self.get_logger().info(
+            f"pair {msg.pair_id!r}: drift ({vx * 1e9:.3f}, {vy * 1e9:.3f}) nm/s corrected in "
+            f"{correction.seconds:.2f} s"
+        )
         self.publish_map(scan0, msg0, corrected=correction.corrected)
 
     def publish_map(self, scan, msg: RasterScan, corrected) -> None:
@@ -112,9 +153,15 @@ class ImagingNode(Node):
         out.height = array_to_image(np.asarray(height, dtype=np.float32), header)
         self.map_pub.publish(out)
         try:
-            marks = extract_landmarks(np.asarray(height, float), scan.pixel_size_x, scan.pixel_size_y, scan.origin_x,
-                                      scan.origin_y, min_height=self.config["min_landmark_height"],
-                                      error_model=self.error_model)
+            marks = extract_landmarks(
+                np.asarray(height, float),
+                scan.pixel_size_x,
+                scan.pixel_size_y,
+                scan.origin_x,
+                scan.origin_y,
+                min_height=self.config["min_landmark_height"],
+                error_model=self.error_model,
+            )
         except ValueError as exc:
             self.get_logger().error(f"landmarks of scan {msg.scan_id} skipped: {exc}")
             return
@@ -122,28 +169,41 @@ class ImagingNode(Node):
         self.landmark_pub.publish(array)
         with self.lock:
             self.latest_map = (height, scan.pixel_size_x, header)
-        self.get_logger().info(f"map {msg.scan_id} ({'drift-corrected' if corrected is not None else 'as scanned'}): "
-                               f"{len(marks)} landmarks in {time.perf_counter() - started:.2f} s")
+        self.get_logger().info(
+            f"map {msg.scan_id} ({'drift-corrected' if corrected is not None else 'as scanned'}): "
+            f"{len(marks)} landmarks in {time.perf_counter() - started:.2f} s"
+        )
         if self.config["estimate_tip_on_scan"]:
             self.estimate_tip()
 
     # -- the tip -----------------------------------------------------------------------------
     def estimate_tip(self) -> str:
         from afm_core.imaging.tip_estimation import estimate_tip
+
         with self.lock:
             latest = self.latest_map
         if latest is None:
             raise ValueError("no map yet: scan first")
         height, pixel, header = latest
         threshold = self.config["tip_threshold"]
-        estimate = estimate_tip(np.asarray(height, float), self.config["tip_size"],
-                                threshold="auto" if threshold == "auto" else float(threshold), pixel_size=pixel)
-        shape = TipShape(header=Header(stamp=header.stamp, frame_id=FRAME_IMAGE), pixel_size=float(pixel),
-                         apex_radius=float(apex_radius(estimate.tip, pixel)), source="blind_estimate")
+        estimate = estimate_tip(
+            np.asarray(height, float),
+            self.config["tip_size"],
+            threshold="auto" if threshold == "auto" else float(threshold),
+            pixel_size=pixel,
+        )
+        shape = TipShape(
+            header=Header(stamp=header.stamp, frame_id=FRAME_IMAGE),
+            pixel_size=float(pixel),
+            apex_radius=float(apex_radius(estimate.tip, pixel)),
+            source="blind_estimate",
+        )
         shape.height = array_to_image(estimate.tip.astype(np.float32), shape.header)
         self.tip_pub.publish(shape)
-        return (f"tip {self.config['tip_size']}x{self.config['tip_size']} estimated in {estimate.seconds:.2f} s, "
-                f"threshold {estimate.threshold * 1e9:.3f} nm, apex radius {shape.apex_radius * 1e9:.1f} nm")
+        return (
+            f"tip {self.config['tip_size']}x{self.config['tip_size']} estimated in {estimate.seconds:.2f} s, "
+            f"threshold {estimate.threshold * 1e9:.3f} nm, apex radius {shape.apex_radius * 1e9:.1f} nm"
+        )
 
     def on_estimate_tip(self, _request, response):
         try:
@@ -158,7 +218,7 @@ def apex_radius(tip: np.ndarray, pixel: float, depth_pixels: int = 3) -> float:
     """Radius of the paraboloid z = -r^2 / (2R) that fits the tip's top (least squares)."""
     c = tip.shape[0] // 2
     k = min(depth_pixels, c)
-    window = tip[c - k:c + k + 1, c - k:c + k + 1]
+    window = tip[c - k : c + k + 1, c - k : c + k + 1]
     offsets = np.arange(-k, k + 1) * pixel
     r2 = np.add.outer(offsets**2, offsets**2)
     mask = r2 > 0

@@ -10,6 +10,7 @@ and serves the Localize action, which runs the local scan lines through the driv
 The task frame is the scanner frame at the first command the node hears, to within
 `initial_sigma`; maps and landmarks are in the same frame.
 """
+
 from __future__ import annotations
 
 import collections
@@ -26,8 +27,16 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
 from afm_bringup import params, topics
-from afm_bringup.conversions import (FRAME_TASK, mean_cov_to_pose, msg_to_landmarks, newer_landmarks, seconds_to_time,
-                                     stamp_of, wait_for_landmarks, wait_until)
+from afm_bringup.conversions import (
+    FRAME_TASK,
+    mean_cov_to_pose,
+    msg_to_landmarks,
+    newer_landmarks,
+    seconds_to_time,
+    stamp_of,
+    wait_for_landmarks,
+    wait_until,
+)
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import EVENTS, LATCHED
 from afm_bringup.ros_instrument import ActionInstrument, DriverUnavailable, stamp_seconds
@@ -38,30 +47,74 @@ from afm_msgs.action import Localize
 from afm_msgs.msg import LandmarkArray, TipCommand
 
 PARAMETERS = [
-    ("calibration_file", "", "Calibration YAML written by `afm calibrate`; empty: the book's figures (uncalibrated)."),
-    ("initial_sigma", 50e-9, "m, 1-sigma of the tip position at the first command heard (the task frame's origin)."),
+    (
+        "calibration_file",
+        "",
+        "Calibration YAML written by `afm calibrate`; empty: the book's figures (uncalibrated).",
+    ),
+    (
+        "initial_sigma",
+        50e-9,
+        "m, 1-sigma of the tip position at the first command heard (the task frame's origin).",
+    ),
     ("publish_rate", 10.0, "Hz, steady publication of the (predicted) estimate on /afm/tip_pose."),
-    ("gate", GATE_CHI2_1DOF_999, "Mahalanobis gate: squared distance above which an observation is rejected "
-                                 "(chi-square, 1 dof; 10.83 = 99.9 %, 6.63 = 99 %)."),
+    (
+        "gate",
+        GATE_CHI2_1DOF_999,
+        "Mahalanobis gate: squared distance above which an observation is rejected "
+        "(chi-square, 1 dof; 10.83 = 99.9 %, 6.63 = 99 %).",
+    ),
     ("line_speed", 1e-6, "m/s along a local scan line."),
     ("move_speed", 2e-6, "m/s of the free moves to a line's start."),
     ("sample_spacing", 1e-9, "m between samples of a local scan line."),
-    ("threshold_fraction", 0.5, "Height threshold for the crossings, as a fraction of the landmark's height."),
-    ("margin", 50e-9, "m of substrate a line covers beyond 3 sigma and the landmark's extent, each side."),
-    ("match_radius", 300e-9, "m: a Localize goal by position observes the nearest landmark within this."),
-    ("raster_sigma", 30e-9, "m, 1-sigma per axis added after a raster image: the motion model predicts a raster "
-                            "by its net displacement, not the hysteresis residue its back-and-forth path leaves."),
-    ("history_seconds", 120.0, "s of filter history kept to re-apply an out-of-order observation."),
+    (
+        "threshold_fraction",
+        0.5,
+        "Height threshold for the crossings, as a fraction of the landmark's height.",
+    ),
+    (
+        "margin",
+        50e-9,
+        "m of substrate a line covers beyond 3 sigma and the landmark's extent, each side.",
+    ),
+    (
+        "match_radius",
+        300e-9,
+        "m: a Localize goal by position observes the nearest landmark within this.",
+    ),
+    (
+        "raster_sigma",
+        30e-9,
+        "m, 1-sigma per axis added after a raster image: the motion model predicts a raster "
+        "by its net displacement, not the hysteresis residue its back-and-forth path leaves.",
+    ),
+    (
+        "history_seconds",
+        120.0,
+        "s of filter history kept to re-apply an out-of-order observation.",
+    ),
 ]
-KINDS = {TipCommand.SCAN_LINE: "line", TipCommand.INDENT: "indent"}   # the rest moves as a free move would
+KINDS = {
+    TipCommand.SCAN_LINE: "line",
+    TipCommand.INDENT: "indent",
+}  # the rest moves as a free move would
 
 
 class LocalizerNode(Node):
     def __init__(self):
         super().__init__("afm_localizer")
         self.config = params.declare(self, PARAMETERS)
-        for name in ("initial_sigma", "publish_rate", "gate", "line_speed", "move_speed", "sample_spacing",
-                     "match_radius", "history_seconds", "raster_sigma"):
+        for name in (
+            "initial_sigma",
+            "publish_rate",
+            "gate",
+            "line_speed",
+            "move_speed",
+            "sample_spacing",
+            "match_radius",
+            "history_seconds",
+            "raster_sigma",
+        ):
             value = self.config[name]
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"parameter {name}={value}: must be finite and > 0")
@@ -69,22 +122,35 @@ class LocalizerNode(Node):
         self.calibration = load_calibration(path) if path else Calibration()
         self.instrument = ActionInstrument(self, ScannerLimits())
         self.localizer: Localizer | None = None
-        self.lock = threading.Lock()                      # the Localizer is not thread-safe
+        self.lock = threading.Lock()  # the Localizer is not thread-safe
         self.pending: collections.deque = collections.deque()
         self.landmarks: dict[int, object] = {}
         self.landmarks_stamp: float | None = None
         self.latest_clock: float | None = None
         inputs = MutuallyExclusiveCallbackGroup()
-        self.create_subscription(TipCommand, topics.TIP_COMMAND, self.on_command, EVENTS, callback_group=inputs)
-        self.create_subscription(LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED, callback_group=inputs)
+        self.create_subscription(
+            TipCommand, topics.TIP_COMMAND, self.on_command, EVENTS, callback_group=inputs
+        )
+        self.create_subscription(
+            LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED, callback_group=inputs
+        )
         self.create_subscription(Clock, "/clock", self.on_clock, 10, callback_group=inputs)
         self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, topics.TIP_POSE, 10)
         self.create_timer(1.0 / self.config["publish_rate"], self.tick, callback_group=inputs)
-        ActionServer(self, Localize, topics.ACTION_LOCALIZE, self.execute, callback_group=ReentrantCallbackGroup(),
-                     goal_callback=lambda _g: GoalResponse.ACCEPT, cancel_callback=lambda _g: CancelResponse.ACCEPT)
+        ActionServer(
+            self,
+            Localize,
+            topics.ACTION_LOCALIZE,
+            self.execute,
+            callback_group=ReentrantCallbackGroup(),
+            goal_callback=lambda _g: GoalResponse.ACCEPT,
+            cancel_callback=lambda _g: CancelResponse.ACCEPT,
+        )
         if not path:
-            self.get_logger().warning("no calibration_file: using the book's figures; run `afm calibrate` for "
-                                      "this instrument")
+            self.get_logger().warning(
+                "no calibration_file: using the book's figures; run `afm calibrate` for "
+                "this instrument"
+            )
 
     # -- inputs ------------------------------------------------------------------------------
     def on_command(self, msg: TipCommand) -> None:
@@ -112,17 +178,30 @@ class LocalizerNode(Node):
                 self.instrument.rest_at(start, start_time)
                 sigma = self.config["initial_sigma"]
                 self.localizer = Localizer(
-                    self.instrument, self.calibration, np.array(start), np.diag([sigma ** 2, sigma ** 2]),
-                    gate=self.config["gate"], line_speed=self.config["line_speed"],
-                    move_speed=self.config["move_speed"], sample_spacing=self.config["sample_spacing"],
-                    threshold_fraction=self.config["threshold_fraction"], margin=self.config["margin"],
-                    history_seconds=self.config["history_seconds"])
+                    self.instrument,
+                    self.calibration,
+                    np.array(start),
+                    np.diag([sigma**2, sigma**2]),
+                    gate=self.config["gate"],
+                    line_speed=self.config["line_speed"],
+                    move_speed=self.config["move_speed"],
+                    sample_spacing=self.config["sample_spacing"],
+                    threshold_fraction=self.config["threshold_fraction"],
+                    margin=self.config["margin"],
+                    history_seconds=self.config["history_seconds"],
+                )
             self.instrument.observe_command(msg)
             extra = self.config["raster_sigma"] ** 2 if msg.kind == TipCommand.RASTER else 0.0
             try:
-                if self.localizer.predict_command(KINDS.get(msg.kind, "move"), start, end, start_time,
-                                                  start_time + msg.duration, extra):
-                    self.publish(self.localizer.time)      # the estimate as each command ends
+                if self.localizer.predict_command(
+                    KINDS.get(msg.kind, "move"),
+                    start,
+                    end,
+                    start_time,
+                    start_time + msg.duration,
+                    extra,
+                ):
+                    self.publish(self.localizer.time)  # the estimate as each command ends
             except ValueError as exc:
                 self.get_logger().error(f"tip command ignored: {exc}")
 
@@ -133,7 +212,10 @@ class LocalizerNode(Node):
         run before it arrives would fold it into one move and drop it as an echo."""
         if self.latest_clock is None:
             return True
-        heard = max([self.instrument.time] + [stamp_seconds(m.header.stamp) + m.duration for m in list(self.pending)])
+        heard = max(
+            [self.instrument.time]
+            + [stamp_seconds(m.header.stamp) + m.duration for m in list(self.pending)]
+        )
         return heard >= self.latest_clock - 1e-6
 
     def now(self) -> float:
@@ -145,7 +227,7 @@ class LocalizerNode(Node):
     # -- outputs -----------------------------------------------------------------------------
     def tick(self) -> None:
         if not self.lock.acquire(blocking=False):
-            return                                        # an observation is running; it publishes
+            return  # an observation is running; it publishes
         try:
             self.process_pending()
             if self.localizer is not None:
@@ -155,7 +237,9 @@ class LocalizerNode(Node):
 
     def pose_msg(self, time: float) -> PoseWithCovarianceStamped:
         mean, covariance = self.localizer.at(time)
-        return mean_cov_to_pose(mean, covariance, Header(stamp=seconds_to_time(time), frame_id=FRAME_TASK))
+        return mean_cov_to_pose(
+            mean, covariance, Header(stamp=seconds_to_time(time), frame_id=FRAME_TASK)
+        )
 
     def publish(self, time: float) -> PoseWithCovarianceStamped:
         msg = self.pose_msg(time)
@@ -167,7 +251,9 @@ class LocalizerNode(Node):
         known = wait_for_landmarks(lambda: self.landmarks)
         if goal.landmark_id >= 0:
             if goal.landmark_id not in known:
-                raise ValueError(f"landmark_id={goal.landmark_id}: unknown (known ids: {sorted(known) or 'none yet'})")
+                raise ValueError(
+                    f"landmark_id={goal.landmark_id}: unknown (known ids: {sorted(known) or 'none yet'})"
+                )
             return known[goal.landmark_id]
         point = np.array([goal.position.x, goal.position.y])
         if not np.all(np.isfinite(point)):
@@ -177,13 +263,17 @@ class LocalizerNode(Node):
         nearest = min(known.values(), key=lambda m: math.hypot(m.x - point[0], m.y - point[1]))
         distance = math.hypot(nearest.x - point[0], nearest.y - point[1])
         if distance > self.config["match_radius"]:
-            raise ValueError(f"position: no landmark within match_radius={self.config['match_radius'] * 1e9:.0f} nm "
-                             f"(nearest, id {nearest.id}, is {distance * 1e9:.0f} nm away)")
+            raise ValueError(
+                f"position: no landmark within match_radius={self.config['match_radius'] * 1e9:.0f} nm "
+                f"(nearest, id {nearest.id}, is {distance * 1e9:.0f} nm away)"
+            )
         return nearest
 
     def execute(self, goal_handle) -> Localize.Result:
         goal, result = goal_handle.request, Localize.Result()
-        wait_until(lambda: self.localizer is not None or self.pending, 5.0)   # commands reach us late under load
+        wait_until(
+            lambda: self.localizer is not None or self.pending, 5.0
+        )  # commands reach us late under load
         wait_until(self.heard_every_command, 5.0)
         with self.lock:
             self.process_pending()
@@ -207,8 +297,9 @@ class LocalizerNode(Node):
                 goal_handle.canceled()
                 result.success, result.message = False, "cancelled before any line"
                 return result
-            feedback = Localize.Feedback(phase="scanning", lines_done=0,
-                                         pose=self.pose_msg(self.localizer.time))
+            feedback = Localize.Feedback(
+                phase="scanning", lines_done=0, pose=self.pose_msg(self.localizer.time)
+            )
             goal_handle.publish_feedback(feedback)
             try:
                 observation = self.localizer.observe_landmark(landmark, **for_lines)
@@ -218,12 +309,18 @@ class LocalizerNode(Node):
             self.process_pending()
             result.pose = self.publish(self.localizer.time)
         lines = observation.lines if observation is not None else []
-        goal_handle.publish_feedback(Localize.Feedback(phase="updating", lines_done=len(lines), pose=result.pose))
+        goal_handle.publish_feedback(
+            Localize.Feedback(phase="updating", lines_done=len(lines), pose=result.pose)
+        )
         result.lost = any(line.lost for line in lines)
         result.gated_out = any(line.gated_out for line in lines)
-        result.innovation = [float(line.innovation) for line in lines if math.isfinite(line.innovation)]
-        summary = "; ".join(f"{line.axis} line {line.status}" + (f" ({line.reason})" if line.reason else "")
-                            for line in lines)
+        result.innovation = [
+            float(line.innovation) for line in lines if math.isfinite(line.innovation)
+        ]
+        summary = "; ".join(
+            f"{line.axis} line {line.status}" + (f" ({line.reason})" if line.reason else "")
+            for line in lines
+        )
         result.success = observation is not None and observation.all_accepted and not failure
         if failure:
             result.message = f"driver failure: {failure}" + (f"; {summary}" if summary else "")

@@ -6,6 +6,7 @@ publishes every planned path on /afm/planned_path and its 3-sigma ellipses as ma
 /afm/markers (Foxglove / RViz). An impossible request gets success=false and a message
 naming what is wrong; the node keeps running.
 """
+
 from __future__ import annotations
 
 import math
@@ -20,26 +21,57 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from afm_bringup import params, topics
-from afm_bringup.conversions import (FRAME_TASK, msg_to_landmarks, newer_landmarks, pose_to_mean_cov, stamp_of,
-                                     wait_until)
+from afm_bringup.conversions import (
+    FRAME_TASK,
+    msg_to_landmarks,
+    newer_landmarks,
+    pose_to_mean_cov,
+    stamp_of,
+    wait_until,
+)
 from afm_bringup.node_main import run
 from afm_bringup.qos_profiles import EVENTS, LATCHED
 from afm_core.instrument import ScannerLimits, check_in_range
 from afm_core.localization.calibration import Calibration, load_calibration
-from afm_core.planning import (SPOTS, best_order, exact_order, heuristic_order, ant_colony_order,
-                               observation_distance_matrix, plan_landmark_chain, plan_landmark_route,
-                               plan_observation)
+from afm_core.planning import (
+    SPOTS,
+    ant_colony_order,
+    best_order,
+    exact_order,
+    heuristic_order,
+    observation_distance_matrix,
+    plan_landmark_chain,
+    plan_landmark_route,
+    plan_observation,
+)
 from afm_msgs.msg import LandmarkArray, PlannedPath
 from afm_msgs.srv import PlanObservation, PlanPath, PlanSequence
 
 PARAMETERS = [
-    ("calibration_file", "", "Localization calibration YAML (afm calibrate); empty: the book's figures."),
-    ("tip_radius", 50e-9, "m, tip radius R_T kept clear of a particle while observing it (book 6.1)."),
+    (
+        "calibration_file",
+        "",
+        "Localization calibration YAML (afm calibrate); empty: the book's figures.",
+    ),
+    (
+        "tip_radius",
+        50e-9,
+        "m, tip radius R_T kept clear of a particle while observing it (book 6.1).",
+    ),
     ("range_x", 110e-6, "m, scanner x range: targets outside [0, range_x] are refused."),
     ("range_y", 110e-6, "m, scanner y range."),
-    ("sequence_seed", 0, "Seed of the heuristic and ant-colony sequencers (results are reproducible)."),
+    (
+        "sequence_seed",
+        0,
+        "Seed of the heuristic and ant-colony sequencers (results are reproducible).",
+    ),
 ]
-SEQUENCERS = {"best": best_order, "exact": exact_order, "heuristic": heuristic_order, "aco": ant_colony_order}
+SEQUENCERS = {
+    "best": best_order,
+    "exact": exact_order,
+    "heuristic": heuristic_order,
+    "aco": ant_colony_order,
+}
 
 
 class PlannerNode(Node):
@@ -50,23 +82,38 @@ class PlannerNode(Node):
         self.calibration = load_calibration(path) if path else Calibration()
         self.noise = self.calibration.motion_noise()
         if not (self.config["tip_radius"] >= 0 and math.isfinite(self.config["tip_radius"])):
-            raise ValueError(f"parameter tip_radius={self.config['tip_radius']}: must be finite and >= 0 (m)")
+            raise ValueError(
+                f"parameter tip_radius={self.config['tip_radius']}: must be finite and >= 0 (m)"
+            )
         self.limits = ScannerLimits(range_x=self.config["range_x"], range_y=self.config["range_y"])
         self.lock = threading.Lock()
         self.landmarks: list = []
         self.landmarks_stamp: float | None = None
         self.tip_pose: PoseWithCovarianceStamped | None = None
         inputs, services = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
-        self.create_subscription(LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED, callback_group=inputs)
-        self.create_subscription(PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10,
-                                 callback_group=inputs)
+        self.create_subscription(
+            LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED, callback_group=inputs
+        )
+        self.create_subscription(
+            PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10, callback_group=inputs
+        )
         self.path_pub = self.create_publisher(PlannedPath, topics.PLANNED_PATH, EVENTS)
         self.marker_pub = self.create_publisher(MarkerArray, topics.MARKERS, LATCHED)
-        self.create_service(PlanPath, topics.SERVICE_PLAN_PATH, self.on_plan_path, callback_group=services)
-        self.create_service(PlanObservation, topics.SERVICE_PLAN_OBSERVATION, self.on_plan_observation,
-                            callback_group=services)
-        self.create_service(PlanSequence, topics.SERVICE_PLAN_SEQUENCE, self.on_plan_sequence,
-                            callback_group=services)
+        self.create_service(
+            PlanPath, topics.SERVICE_PLAN_PATH, self.on_plan_path, callback_group=services
+        )
+        self.create_service(
+            PlanObservation,
+            topics.SERVICE_PLAN_OBSERVATION,
+            self.on_plan_observation,
+            callback_group=services,
+        )
+        self.create_service(
+            PlanSequence,
+            topics.SERVICE_PLAN_SEQUENCE,
+            self.on_plan_sequence,
+            callback_group=services,
+        )
         self.get_logger().info(f"planning with {self.calibration.source!r} calibration")
 
     # -- inputs ------------------------------------------------------------------------------
@@ -93,8 +140,10 @@ class PlannerNode(Node):
             with self.lock:
                 latest = self.tip_pose
             if latest is None:
-                raise ValueError("start: covariance is zero and no tip estimate has arrived on "
-                                 f"{topics.TIP_POSE}; give the start with its covariance")
+                raise ValueError(
+                    "start: covariance is zero and no tip estimate has arrived on "
+                    f"{topics.TIP_POSE}; give the start with its covariance"
+                )
             mean, cov = pose_to_mean_cov(latest)
         return mean, cov
 
@@ -120,22 +169,40 @@ class PlannerNode(Node):
             check_in_range("target", target[0], target[1], self.limits)
             spot = request.localization_spot
             if spot and spot not in SPOTS:
-                raise ValueError(f"localization_spot={spot!r}: must be one of {sorted(SPOTS)} or empty")
+                raise ValueError(
+                    f"localization_spot={spot!r}: must be one of {sorted(SPOTS)} or empty"
+                )
             marks = self.known_landmarks()
             if not marks:
                 raise ValueError(f"no landmark known yet (nothing on {topics.LANDMARKS})")
             required = request.required_sigma if request.required_sigma > 0 else None
-            chain = plan_landmark_chain(mean, cov, marks, target, self.config["tip_radius"], self.noise,
-                                        required_sigma=required)
+            chain = plan_landmark_chain(
+                mean,
+                cov,
+                marks,
+                target,
+                self.config["tip_radius"],
+                self.noise,
+                required_sigma=required,
+            )
             route = chain.route
             if spot:
-                route = plan_landmark_route(mean, cov, self.landmark(chain.landmark_ids[-1]),
-                                            self.config["tip_radius"], self.noise, task_point=target, spot=spot)
+                route = plan_landmark_route(
+                    mean,
+                    cov,
+                    self.landmark(chain.landmark_ids[-1]),
+                    self.config["tip_radius"],
+                    self.noise,
+                    task_point=target,
+                    spot=spot,
+                )
             response.plan = self.route_to_msg(route)
             response.success = True
-            response.message = (f"via landmarks {list(chain.landmark_ids)}; final sigma "
-                                f"({route.final_sigma[0] * 1e9:.1f}, {route.final_sigma[1] * 1e9:.1f}) nm"
-                                + ("" if chain.meets_required else "; the required sigma is not reached"))
+            response.message = (
+                f"via landmarks {list(chain.landmark_ids)}; final sigma "
+                f"({route.final_sigma[0] * 1e9:.1f}, {route.final_sigma[1] * 1e9:.1f}) nm"
+                + ("" if chain.meets_required else "; the required sigma is not reached")
+            )
             self.publish(response.plan)
         except ValueError as exc:
             response.success, response.message = False, str(exc)
@@ -149,21 +216,32 @@ class PlannerNode(Node):
                 centre, radius = (mark.x, mark.y), mark.radius
             else:
                 centre, radius = (request.position.x, request.position.y), request.radius
-            plan = plan_observation(mean, cov, centre, radius, self.config["tip_radius"], self.noise,
-                                    direction=request.direction or "h")
+            plan = plan_observation(
+                mean,
+                cov,
+                centre,
+                radius,
+                self.config["tip_radius"],
+                self.noise,
+                direction=request.direction or "h",
+            )
             header = Header(stamp=self.get_clock().now().to_msg(), frame_id=FRAME_TASK)
             out = PlannedPath()
             out.path.header = header
             for line in plan.lines:
-                for point, covariance, role in ((line.start, line.start_covariance, "scan_start"),
-                                                (line.end, line.end_covariance, "scan_end")):
+                for point, covariance, role in (
+                    (line.start, line.start_covariance, "scan_start"),
+                    (line.end, line.end_covariance, "scan_end"),
+                ):
                     self.append_waypoint(out, header, point, covariance, role, request.landmark_id)
             out.expected_cost = float(plan.expected_cost)
             response.plan = out
             response.line_probability = [float(line.probability) for line in plan.lines]
             response.success_probability = float(plan.success_probability)
             response.success = True
-            response.message = f"{len(plan.lines)} line(s), expected travel {plan.expected_cost * 1e9:.0f} nm"
+            response.message = (
+                f"{len(plan.lines)} line(s), expected travel {plan.expected_cost * 1e9:.0f} nm"
+            )
             self.publish(out)
         except ValueError as exc:
             response.success, response.message = False, str(exc)
@@ -177,29 +255,42 @@ class PlannerNode(Node):
             if request.distance_matrix:
                 n = math.isqrt(len(request.distance_matrix))
                 if n * n != len(request.distance_matrix):
-                    raise ValueError(f"distance_matrix: {len(request.distance_matrix)} values is not n x n")
+                    raise ValueError(
+                        f"distance_matrix: {len(request.distance_matrix)} values is not n x n"
+                    )
                 matrix = np.asarray(request.distance_matrix, float).reshape(n, n)
             elif request.landmark_ids:
                 marks = [self.landmark(i) for i in request.landmark_ids]
-                matrix = observation_distance_matrix(marks, self.config["tip_radius"], self.noise, symmetric=True)
+                matrix = observation_distance_matrix(
+                    marks, self.config["tip_radius"], self.noise, symmetric=True
+                )
             else:
                 points = np.array([[p.x, p.y] for p in request.positions], float)
                 if len(points) == 0:
-                    raise ValueError("landmark_ids, positions and distance_matrix are all empty: nothing to order")
+                    raise ValueError(
+                        "landmark_ids, positions and distance_matrix are all empty: nothing to order"
+                    )
                 if not np.all(np.isfinite(points)):
                     raise ValueError("positions: must be finite (m)")
                 matrix = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
             expected = len(request.landmark_ids) or len(request.positions) or len(matrix)
             if len(matrix) != expected:
-                raise ValueError(f"distance_matrix is {len(matrix)} x {len(matrix)} but {expected} particles given")
-            result = SEQUENCERS[method](matrix, seed=self.config["sequence_seed"]) if method != "exact" \
+                raise ValueError(
+                    f"distance_matrix is {len(matrix)} x {len(matrix)} but {expected} particles given"
+                )
+            result = (
+                SEQUENCERS[method](matrix, seed=self.config["sequence_seed"])
+                if method != "exact"
                 else exact_order(matrix)
+            )
             response.order = [int(i) for i in result.order]
             response.cost = float(result.cost)
             response.optimal = bool(result.optimal)
             response.method_used = result.method
             response.success = True
-            response.message = f"{len(result.order)} particles, cost {result.cost * 1e6:.3f} um ({result.method})"
+            response.message = (
+                f"{len(result.order)} particles, cost {result.cost * 1e6:.3f} um ({result.method})"
+            )
         except ValueError as exc:
             response.success, response.message = False, str(exc)
         return response
@@ -210,13 +301,21 @@ class PlannerNode(Node):
         out = PlannedPath()
         out.path.header = header
         for waypoint in route.waypoints:
-            self.append_waypoint(out, header, waypoint.position, waypoint.covariance, waypoint.role,
-                                 waypoint.landmark_id)
+            self.append_waypoint(
+                out,
+                header,
+                waypoint.position,
+                waypoint.covariance,
+                waypoint.role,
+                waypoint.landmark_id,
+            )
         out.expected_cost = float(route.expected_cost)
         return out
 
     @staticmethod
-    def append_waypoint(out: PlannedPath, header, point, covariance, role: str, landmark_id: int) -> None:
+    def append_waypoint(
+        out: PlannedPath, header, point, covariance, role: str, landmark_id: int
+    ) -> None:
         pose = PoseStamped(header=header)
         pose.pose.position.x, pose.pose.position.y = float(point[0]), float(point[1])
         pose.pose.orientation.w = 1.0
@@ -243,12 +342,22 @@ def plan_markers(plan: PlannedPath) -> MarkerArray:
     strip.points = [pose.pose.position for pose in plan.path.poses]
     markers.markers.append(strip)
     for k, pose in enumerate(plan.path.poses):
-        cov = np.array([[plan.covariance_xx[k], plan.covariance_xy[k]], [plan.covariance_xy[k], plan.covariance_yy[k]]])
+        cov = np.array(
+            [
+                [plan.covariance_xx[k], plan.covariance_xy[k]],
+                [plan.covariance_xy[k], plan.covariance_yy[k]],
+            ]
+        )
         values, vectors = np.linalg.eigh(cov)
         angle = math.atan2(vectors[1, 1], vectors[0, 1])
-        ellipse = Marker(header=header, ns="afm_plan_sigma", id=k + 1, type=Marker.CYLINDER, action=Marker.ADD)
+        ellipse = Marker(
+            header=header, ns="afm_plan_sigma", id=k + 1, type=Marker.CYLINDER, action=Marker.ADD
+        )
         ellipse.pose.position = pose.pose.position
-        ellipse.pose.orientation.z, ellipse.pose.orientation.w = math.sin(angle / 2), math.cos(angle / 2)
+        ellipse.pose.orientation.z, ellipse.pose.orientation.w = (
+            math.sin(angle / 2),
+            math.cos(angle / 2),
+        )
         ellipse.scale.y, ellipse.scale.x = (6 * math.sqrt(max(v, 0.0)) for v in values)
         ellipse.scale.z = 1e-9
         ellipse.color.r, ellipse.color.b, ellipse.color.a = 0.9, 0.2, 0.4

@@ -1,4 +1,5 @@
 """Offline evaluation of recorded sessions (no ROS): what the images show against truth."""
+
 from __future__ import annotations
 
 import hashlib
@@ -11,9 +12,10 @@ from scipy import ndimage
 @dataclass
 class ParticleView:
     """One particle as a raster image shows it."""
-    x: float                # m, centroid in the scanner frame
+
+    x: float  # m, centroid in the scanner frame
     y: float
-    height: float           # m, peak height above the substrate level
+    height: float  # m, peak height above the substrate level
     apparent_radius: float  # m, radius of the disk with the area above half height
 
 
@@ -22,8 +24,14 @@ def substrate_level(height: np.ndarray) -> float:
     return float(np.median(height))
 
 
-def find_particles(height: np.ndarray, pixel_size_x: float, pixel_size_y: float, origin_x: float,
-                   origin_y: float, min_height: float = 20e-9) -> list[ParticleView]:
+def find_particles(
+    height: np.ndarray,
+    pixel_size_x: float,
+    pixel_size_y: float,
+    origin_x: float,
+    origin_y: float,
+    min_height: float = 20e-9,
+) -> list[ParticleView]:
     """Particles as connected regions above half their own peak height."""
     level = substrate_level(height)
     relief = height - level
@@ -35,13 +43,20 @@ def find_particles(height: np.ndarray, pixel_size_x: float, pixel_size_y: float,
         half = region & (relief > peak / 2)
         rows, cols = np.nonzero(half)
         area = half.sum() * pixel_size_x * pixel_size_y
-        views.append(ParticleView(x=origin_x + (cols.mean() + 0.5) * pixel_size_x,
-                                  y=origin_y + (rows.mean() + 0.5) * pixel_size_y,
-                                  height=peak, apparent_radius=float(np.sqrt(area / np.pi))))
+        views.append(
+            ParticleView(
+                x=origin_x + (cols.mean() + 0.5) * pixel_size_x,
+                y=origin_y + (rows.mean() + 0.5) * pixel_size_y,
+                height=peak,
+                apparent_radius=float(np.sqrt(area / np.pi)),
+            )
+        )
     return views
 
 
-def match_to_truth(found: list[ParticleView], truth_xy: np.ndarray, max_distance: float) -> list[tuple]:
+def match_to_truth(
+    found: list[ParticleView], truth_xy: np.ndarray, max_distance: float
+) -> list[tuple]:
     """Pair each true particle with the nearest found one within max_distance: (truth index, view, distance)."""
     pairs = []
     for i, (tx, ty) in enumerate(np.asarray(truth_xy).reshape(-1, 2)):
@@ -57,15 +72,22 @@ def match_to_truth(found: list[ParticleView], truth_xy: np.ndarray, max_distance
 def compare_payloads(messages_a, messages_b) -> dict:
     """Two streams of (topic, bytes): per topic, counts and whether the payloads are identical
     in order. Keeps digests, not payloads, so recordings of any size stream through."""
+
     def by_topic(stream):
         out: dict[str, list[bytes]] = {}
         for topic, data in stream:
             out.setdefault(topic, []).append(hashlib.sha256(data).digest())
         return out
+
     a, b = by_topic(messages_a), by_topic(messages_b)
-    return {topic: {"count_a": len(a.get(topic, [])), "count_b": len(b.get(topic, [])),
-                    "identical": a.get(topic) == b.get(topic)}
-            for topic in sorted(set(a) | set(b))}
+    return {
+        topic: {
+            "count_a": len(a.get(topic, [])),
+            "count_b": len(b.get(topic, [])),
+            "identical": a.get(topic) == b.get(topic),
+        }
+        for topic in sorted(set(a) | set(b))
+    }
 
 
 def image_frame_matrix(config=None, step: float = 1e-6) -> np.ndarray:
@@ -78,10 +100,16 @@ def image_frame_matrix(config=None, step: float = 1e-6) -> np.ndarray:
     are compared with what the graph planned or estimated."""
     from afm_core.sim.config import load_config, merge
     from afm_core.sim.instrument import SimulatedAfm
+
     config = load_config() if config is None else config
-    quiet = merge(config, {"drift": {"enabled": False}, "sample": {"spheres": [], "rods": [], "electrodes": [],
-                                                                   "random_spheres": 0},
-                           "scanner": {"creep_enabled": False, "positioning_noise_enabled": False}})
+    quiet = merge(
+        config,
+        {
+            "drift": {"enabled": False},
+            "sample": {"spheres": [], "rods": [], "electrodes": [], "random_spheres": 0},
+            "scanner": {"creep_enabled": False, "positioning_noise_enabled": False},
+        },
+    )
     columns = []
     for d in (np.array([step, 0.0]), np.array([0.0, step])):
         sim = SimulatedAfm(quiet)

@@ -4,11 +4,13 @@ Plain dataclasses in SI units; the driver node converts them to and from afm_msg
 request validates itself and raises ValueError naming the field and the limit, before
 anything moves: the tip never leaves the scanner range.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -16,15 +18,16 @@ import numpy as np
 @dataclass(frozen=True)
 class ScannerLimits:
     """The instrument's envelope (defaults: Veeco Dimension 3100, book 7.1)."""
-    range_x: float = 110e-6          # m, scanner x range [0, range_x]
-    range_y: float = 110e-6          # m
-    range_z: float = 7e-6            # m
-    max_speed: float = 100e-6        # m/s, slew-rate limit of the lateral piezos
-    max_pixels: int = 4096           # per image axis
+
+    range_x: float = 110e-6  # m, scanner x range [0, range_x]
+    range_y: float = 110e-6  # m
+    range_z: float = 7e-6  # m
+    max_speed: float = 100e-6  # m/s, slew-rate limit of the lateral piezos
+    max_pixels: int = 4096  # per image axis
     max_line_samples: int = 100_000  # per local scan line
-    max_line_rate: float = 50.0      # Hz
-    max_indent_force: float = 1e-6   # N
-    max_dwell: float = 600.0         # s
+    max_line_rate: float = 50.0  # Hz
+    max_indent_force: float = 1e-6  # N
+    max_dwell: float = 600.0  # s
 
 
 def _finite(name: str, value: float) -> None:
@@ -36,20 +39,27 @@ def check_in_range(name: str, x: float, y: float, limits: ScannerLimits) -> None
     _finite(f"{name}.x", x)
     _finite(f"{name}.y", y)
     if not 0.0 <= x <= limits.range_x:
-        raise ValueError(f"{name}.x={x:.4e} m: outside the scanner range [0, {limits.range_x:.4e}] m")
+        raise ValueError(
+            f"{name}.x={x:.4e} m: outside the scanner range [0, {limits.range_x:.4e}] m"
+        )
     if not 0.0 <= y <= limits.range_y:
-        raise ValueError(f"{name}.y={y:.4e} m: outside the scanner range [0, {limits.range_y:.4e}] m")
+        raise ValueError(
+            f"{name}.y={y:.4e} m: outside the scanner range [0, {limits.range_y:.4e}] m"
+        )
 
 
 def check_speed(name: str, speed: float, limits: ScannerLimits) -> None:
     _finite(name, speed)
     if not 0.0 < speed <= limits.max_speed:
-        raise ValueError(f"{name}={speed:.4e} m/s: must be > 0 and at most the slew limit {limits.max_speed:.4e} m/s")
+        raise ValueError(
+            f"{name}={speed:.4e} m/s: must be > 0 and at most the slew limit {limits.max_speed:.4e} m/s"
+        )
 
 
 @dataclass
 class ScanRequest:
     """A raster image: area (scanner frame), pixels, angle, direction, line rate."""
+
     origin_x: float
     origin_y: float
     size_x: float
@@ -58,7 +68,7 @@ class ScanRequest:
     pixels_y: int
     scan_angle_deg: float = 0.0
     slow_scan_up: bool = True
-    line_rate: float = 1.0          # Hz, lines (trace + retrace) per second
+    line_rate: float = 1.0  # Hz, lines (trace + retrace) per second
     mode: str = "tapping"
 
     def validate(self, limits: ScannerLimits = ScannerLimits()) -> None:
@@ -68,7 +78,9 @@ class ScanRequest:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}={getattr(self, name)}: must be > 0")
         if not 0 < self.line_rate <= limits.max_line_rate:
-            raise ValueError(f"line_rate={self.line_rate}: must be within (0, {limits.max_line_rate}] Hz")
+            raise ValueError(
+                f"line_rate={self.line_rate}: must be within (0, {limits.max_line_rate}] Hz"
+            )
         for name in ("pixels_x", "pixels_y"):
             value = getattr(self, name)
             if not 2 <= value <= limits.max_pixels:
@@ -78,12 +90,16 @@ class ScanRequest:
         if self.mode not in ("tapping", "contact"):
             raise ValueError(f"mode={self.mode!r}: must be 'tapping' or 'contact'")
         check_in_range("origin", self.origin_x, self.origin_y, limits)
-        check_in_range("origin + size", self.origin_x + self.size_x, self.origin_y + self.size_y, limits)
+        check_in_range(
+            "origin + size", self.origin_x + self.size_x, self.origin_y + self.size_y, limits
+        )
         fast_size = self.size_x if self.scan_angle_deg == 0.0 else self.size_y
-        speed = 2.0 * fast_size * self.line_rate      # trace takes half of the line period
+        speed = 2.0 * fast_size * self.line_rate  # trace takes half of the line period
         if speed > limits.max_speed:
-            raise ValueError(f"line_rate={self.line_rate} Hz: the tip would move at {speed:.3e} m/s, above the "
-                             f"slew limit {limits.max_speed:.3e} m/s for this size")
+            raise ValueError(
+                f"line_rate={self.line_rate} Hz: the tip would move at {speed:.3e} m/s, above the "
+                f"slew limit {limits.max_speed:.3e} m/s for this size"
+            )
 
     @property
     def lines(self) -> int:
@@ -96,36 +112,39 @@ class ScanRequest:
 
 @dataclass
 class RasterScanData:
-    height: np.ndarray              # (pixels_y, pixels_x), m, scanner-frame orientation
+    height: np.ndarray  # (pixels_y, pixels_x), m, scanner-frame orientation
     pixel_size_x: float
     pixel_size_y: float
     origin_x: float
     origin_y: float
     scan_angle_deg: float
     slow_scan_up: bool
-    line_period: float              # s, trace + retrace
-    line_start_times: np.ndarray    # s since start_time, per line index
-    start_time: float               # s, instrument clock
+    line_period: float  # s, trace + retrace
+    line_start_times: np.ndarray  # s since start_time, per line index
+    start_time: float  # s, instrument clock
     mode: str
-    complete: bool = True           # False when cancelled: lines not acquired are NaN
+    complete: bool = True  # False when cancelled: lines not acquired are NaN
 
 
 @dataclass
 class LineRequest:
     """A local scan line between two scanner-frame points."""
+
     start_x: float
     start_y: float
     end_x: float
     end_y: float
     samples: int
-    speed: float                    # m/s
+    speed: float  # m/s
     mode: str = "tapping"
 
     def validate(self, limits: ScannerLimits = ScannerLimits()) -> None:
         check_in_range("start", self.start_x, self.start_y, limits)
         check_in_range("end", self.end_x, self.end_y, limits)
         if not 2 <= self.samples <= limits.max_line_samples:
-            raise ValueError(f"samples={self.samples}: must be within [2, {limits.max_line_samples}]")
+            raise ValueError(
+                f"samples={self.samples}: must be within [2, {limits.max_line_samples}]"
+            )
         check_speed("speed", self.speed, limits)
         if self.mode not in ("tapping", "contact"):
             raise ValueError(f"mode={self.mode!r}: must be 'tapping' or 'contact'")
@@ -139,39 +158,39 @@ class LineRequest:
 
 @dataclass
 class ScanLineData:
-    times: np.ndarray               # s since start_time
-    x: np.ndarray                   # m, commanded scanner-frame positions
+    times: np.ndarray  # s since start_time
+    x: np.ndarray  # m, commanded scanner-frame positions
     y: np.ndarray
-    height: np.ndarray              # m
-    deflection: np.ndarray          # m
-    amplitude: np.ndarray           # m (tapping) or empty
-    start_time: float               # s, instrument clock
+    height: np.ndarray  # m
+    deflection: np.ndarray  # m
+    amplitude: np.ndarray  # m (tapping) or empty
+    start_time: float  # s, instrument clock
     mode: str
     complete: bool = True
 
 
 @dataclass
 class ForceTraceData:
-    times: np.ndarray               # s since start_time
-    commanded_x: np.ndarray         # m
+    times: np.ndarray  # s since start_time
+    commanded_x: np.ndarray  # m
     commanded_y: np.ndarray
     commanded_z: np.ndarray
     vertical_deflection: np.ndarray  # m
-    lateral_torsion: np.ndarray     # rad
-    normal_spring_constant: float   # N/m
+    lateral_torsion: np.ndarray  # rad
+    normal_spring_constant: float  # N/m
     lateral_spring_constant: float  # N*m/rad
-    sample_rate: float              # Hz
+    sample_rate: float  # Hz
     start_time: float
-    task: str                       # "push", "indent"
+    task: str  # "push", "indent"
     object_id: int = -1
 
 
 @dataclass
 class MoveResult:
-    end_x: float                    # m, commanded position where the move ended
+    end_x: float  # m, commanded position where the move ended
     end_y: float
-    completed: bool                 # False when stopped early (cancel)
-    trace: Optional[ForceTraceData] = None   # contact moves only
+    completed: bool  # False when stopped early (cancel)
+    trace: ForceTraceData | None = None  # contact moves only
 
 
 @dataclass
@@ -182,26 +201,40 @@ class IndentResult:
     completed: bool = True
 
 
-StopCheck = Callable[[], bool]     # returns True when the caller wants the motion stopped
+StopCheck = Callable[[], bool]  # returns True when the caller wants the motion stopped
 
 
 class Instrument(Protocol):
     """What the driver node drives. Every call advances `time` (s) by what it took."""
+
     limits: ScannerLimits
     time: float
 
     def commanded_position(self) -> tuple[float, float]: ...
 
-    def raster_scan(self, request: ScanRequest, on_line: Optional[Callable[[int, int], None]] = None,
-                    should_stop: Optional[StopCheck] = None) -> RasterScanData: ...
+    def raster_scan(
+        self,
+        request: ScanRequest,
+        on_line: Callable[[int, int], None] | None = None,
+        should_stop: StopCheck | None = None,
+    ) -> RasterScanData: ...
 
-    def local_scan(self, request: LineRequest, should_stop: Optional[StopCheck] = None) -> ScanLineData: ...
+    def local_scan(
+        self, request: LineRequest, should_stop: StopCheck | None = None
+    ) -> ScanLineData: ...
 
-    def move_tip(self, x: float, y: float, speed: float, contact: bool = False,
-                 should_stop: Optional[StopCheck] = None) -> MoveResult: ...
+    def move_tip(
+        self,
+        x: float,
+        y: float,
+        speed: float,
+        contact: bool = False,
+        should_stop: StopCheck | None = None,
+    ) -> MoveResult: ...
 
-    def indent(self, x: float, y: float, force: float, dwell: float,
-               should_stop: Optional[StopCheck] = None) -> IndentResult: ...
+    def indent(
+        self, x: float, y: float, force: float, dwell: float, should_stop: StopCheck | None = None
+    ) -> IndentResult: ...
 
     def close(self) -> None: ...
 
@@ -211,7 +244,9 @@ def validate_indent(x: float, y: float, force: float, dwell: float, limits: Scan
     _finite("force", force)
     _finite("dwell", dwell)
     if not 0 < force <= limits.max_indent_force:
-        raise ValueError(f"force={force:.3e} N: must be within (0, {limits.max_indent_force:.3e}] N")
+        raise ValueError(
+            f"force={force:.3e} N: must be within (0, {limits.max_indent_force:.3e}] N"
+        )
     if not 0 <= dwell <= limits.max_dwell:
         raise ValueError(f"dwell={dwell} s: must be within [0, {limits.max_dwell}] s")
 
@@ -219,5 +254,3 @@ def validate_indent(x: float, y: float, force: float, dwell: float, limits: Scan
 def validate_move(x: float, y: float, speed: float, limits: ScannerLimits) -> None:
     check_in_range("target", x, y, limits)
     check_speed("speed", speed, limits)
-
-

@@ -15,6 +15,7 @@ turning points and only the outputs at the turning points need a recursion. That
 a chain of clamps, and clamps compose into clamps, so it is an associative scan evaluated in
 log2(turning points) vectorised levels: O(samples * operators) numpy work, no per-sample Python.
 """
+
 from __future__ import annotations
 
 import math
@@ -23,8 +24,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import lfilter
 
-
 # -- play operators -----------------------------------------------------------------------
+
 
 def _as_sequence(values, name: str) -> np.ndarray:
     array = np.asarray(values, dtype=float)
@@ -50,8 +51,10 @@ def _prefix_clamps(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarr
     if count == 1:
         return lo, hi
     half = count // 2
-    pair_lo, pair_hi = _then(lo[0:2 * half:2], hi[0:2 * half:2], lo[1:2 * half:2], hi[1:2 * half:2])
-    pair_lo, pair_hi = _prefix_clamps(pair_lo, pair_hi)          # prefixes through 1, 3, 5, ...
+    pair_lo, pair_hi = _then(
+        lo[0 : 2 * half : 2], hi[0 : 2 * half : 2], lo[1 : 2 * half : 2], hi[1 : 2 * half : 2]
+    )
+    pair_lo, pair_hi = _prefix_clamps(pair_lo, pair_hi)  # prefixes through 1, 3, 5, ...
     out_lo, out_hi = np.empty_like(lo), np.empty_like(hi)
     out_lo[0], out_hi[0] = lo[0], hi[0]
     out_lo[1::2], out_hi[1::2] = pair_lo, pair_hi
@@ -83,7 +86,9 @@ class PlayOperatorBank:
     def __init__(self, thresholds):
         r = np.asarray(thresholds, dtype=float)
         if r.ndim != 1 or r.size == 0 or not np.isfinite(r).all() or (r < 0).any():
-            raise ValueError(f"thresholds={thresholds!r}: need a non-empty 1-D list of finite values >= 0")
+            raise ValueError(
+                f"thresholds={thresholds!r}: need a non-empty 1-D list of finite values >= 0"
+            )
         self._r = r.copy()
         self._z = np.zeros(r.size)
 
@@ -132,6 +137,7 @@ class PlayOperatorBank:
 
 # -- Prandtl-Ishlinskii hysteresis ----------------------------------------------------------
 
+
 def _check_polynomial(polynomial) -> tuple[float, float, float]:
     coefficients = tuple(float(c) for c in polynomial)
     if len(coefficients) != 3 or not all(math.isfinite(c) for c in coefficients):
@@ -139,8 +145,10 @@ def _check_polynomial(polynomial) -> tuple[float, float, float]:
     a1, a2, a3 = coefficients
     monotone = a1 > 0 and ((a2 == 0 and a3 == 0) or (a3 > 0 and a2 * a2 < 3 * a1 * a3))
     if not monotone:
-        raise ValueError(f"polynomial={coefficients}: p'(x) = a1 + 2 a2 x + 3 a3 x^2 must be > 0 for every x "
-                         "(a1 > 0, and a2 = a3 = 0 or a3 > 0 with a2^2 < 3 a1 a3)")
+        raise ValueError(
+            f"polynomial={coefficients}: p'(x) = a1 + 2 a2 x + 3 a3 x^2 must be > 0 for every x "
+            "(a1 > 0, and a2 = a3 = 0 or a3 > 0 with a2^2 < 3 a1 a3)"
+        )
     return coefficients
 
 
@@ -160,9 +168,13 @@ def _polynomial_inverse(v: np.ndarray, coefficients) -> np.ndarray:
         return v / a1
     b, c = a2 / a3, a1 / a3
     p_dep = c - b * b / 3.0
-    q_dep = 2.0 * b ** 3 / 27.0 - b * c / 3.0 - v / a3
+    q_dep = 2.0 * b**3 / 27.0 - b * c / 3.0 - v / a3
     with np.errstate(all="ignore"):
-        t = -2.0 * np.sqrt(p_dep / 3.0) * np.sinh(np.arcsinh(1.5 * q_dep / p_dep * np.sqrt(3.0 / p_dep)) / 3.0)
+        t = (
+            -2.0
+            * np.sqrt(p_dep / 3.0)
+            * np.sinh(np.arcsinh(1.5 * q_dep / p_dep * np.sqrt(3.0 / p_dep)) / 3.0)
+        )
         x = t - b / 3.0
     x = np.where(np.isfinite(x), x, v / a1)
     # Quadratic convergence: once the steps are 1e-13 of the signal scale, the error left is
@@ -179,7 +191,8 @@ def _polynomial_inverse(v: np.ndarray, coefficients) -> np.ndarray:
 
 class _WeightedPlayBank:
     """What a PI model and its inverse share: a play-operator bank and its weights."""
-    _bank: "PlayOperatorBank"
+
+    _bank: PlayOperatorBank
     _w: np.ndarray
 
     @property
@@ -221,22 +234,35 @@ class PrandtlIshlinskii(_WeightedPlayBank):
     def __init__(self, thresholds, weights, polynomial=(1.0, 0.0, 0.0)):
         r = np.asarray(thresholds, dtype=float)
         w = np.asarray(weights, dtype=float)
-        if r.ndim != 1 or r.size == 0 or not np.isfinite(r).all() or r[0] != 0.0 or (np.diff(r) <= 0).any():
-            raise ValueError(f"thresholds={thresholds!r}: need finite values 0 = r_0 < r_1 < ... < r_n")
+        if (
+            r.ndim != 1
+            or r.size == 0
+            or not np.isfinite(r).all()
+            or r[0] != 0.0
+            or (np.diff(r) <= 0).any()
+        ):
+            raise ValueError(
+                f"thresholds={thresholds!r}: need finite values 0 = r_0 < r_1 < ... < r_n"
+            )
         if w.shape != r.shape or not np.isfinite(w).all():
-            raise ValueError(f"weights={weights!r}: need one finite weight per threshold ({r.size})")
+            raise ValueError(
+                f"weights={weights!r}: need one finite weight per threshold ({r.size})"
+            )
         partial = np.cumsum(w)
         if (partial <= 0).any():
             i = int(np.argmax(partial <= 0))
-            raise ValueError(f"weights={weights!r}: partial sum w_0 + ... + w_{i} = {partial[i]:.4g} must be > 0 "
-                             "(the model would not be strictly increasing and has no inverse)")
+            raise ValueError(
+                f"weights={weights!r}: partial sum w_0 + ... + w_{i} = {partial[i]:.4g} must be > 0 "
+                "(the model would not be strictly increasing and has no inverse)"
+            )
         self._poly = _check_polynomial(polynomial)
         self._w = w.copy()
         self._bank = PlayOperatorBank(r)
 
     @classmethod
-    def from_fraction(cls, span: float, hysteresis_fraction: float, n: int = 8,
-                      asymmetry: float = 0.0) -> "PrandtlIshlinskii":
+    def from_fraction(
+        cls, span: float, hysteresis_fraction: float, n: int = 8, asymmetry: float = 0.0
+    ) -> PrandtlIshlinskii:
         """A physically typical model for inputs spanning [-span/2, span/2] around zero.
 
         Full-span triangle cycles give a major loop whose tips (where the branches meet) are
@@ -256,18 +282,22 @@ class PrandtlIshlinskii(_WeightedPlayBank):
         if int(n) != n or n < 2:
             raise ValueError(f"n={n}: need at least 2 play operators")
         if not (math.isfinite(hysteresis_fraction) and 0.0 <= hysteresis_fraction < 1.0 / 3.0):
-            raise ValueError(f"hysteresis_fraction={hysteresis_fraction}: must be in [0, 1/3) "
-                             "(wider loops would need w_0 <= 0 with these thresholds)")
+            raise ValueError(
+                f"hysteresis_fraction={hysteresis_fraction}: must be in [0, 1/3) "
+                "(wider loops would need w_0 <= 0 with these thresholds)"
+            )
         if not (math.isfinite(asymmetry) and asymmetry * asymmetry < 2.0 / 3.0):
-            raise ValueError(f"asymmetry={asymmetry}: need asymmetry^2 < 2/3 for a monotone input function")
+            raise ValueError(
+                f"asymmetry={asymmetry}: need asymmetry^2 < 2/3 for a monotone input function"
+            )
         n = int(n)
         half = 0.5 * span
-        rho = np.arange(n) / (2.0 * n)                    # thresholds in units of the amplitude
-        c = hysteresis_fraction / rho[1:].sum()           # width = span * sum_i w_i rho_i
+        rho = np.arange(n) / (2.0 * n)  # thresholds in units of the amplitude
+        c = hysteresis_fraction / rho[1:].sum()  # width = span * sum_i w_i rho_i
         weights = np.full(n, c)
-        weights[0] = 1.0 - c * (1.0 - rho[1:]).sum()      # tip-to-tip: sum_i w_i (1 - rho_i) = 1
+        weights[0] = 1.0 - c * (1.0 - rho[1:]).sum()  # tip-to-tip: sum_i w_i (1 - rho_i) = 1
         a = asymmetry
-        return cls(rho * half, weights, (1.0 - a * a, a / half, a * a / half ** 2))
+        return cls(rho * half, weights, (1.0 - a * a, a / half, a * a / half**2))
 
     @property
     def polynomial(self) -> tuple[float, float, float]:
@@ -281,7 +311,7 @@ class PrandtlIshlinskii(_WeightedPlayBank):
         x = _as_sequence(x, "x")
         return self._bank.apply(_polynomial(x, self._poly)) @ self._w
 
-    def inverse(self) -> "InversePrandtlIshlinskii":
+    def inverse(self) -> InversePrandtlIshlinskii:
         """The exact inverse, its state matched to this model's current state."""
         return InversePrandtlIshlinskii(self)
 
@@ -297,7 +327,7 @@ class InversePrandtlIshlinskii(_WeightedPlayBank):
     def __init__(self, model: PrandtlIshlinskii):
         r, w = model.thresholds, model.weights
         partial = np.cumsum(w)
-        inverse_thresholds = np.array([w[:i + 1] @ (r[i] - r[:i + 1]) for i in range(r.size)])
+        inverse_thresholds = np.array([w[: i + 1] @ (r[i] - r[: i + 1]) for i in range(r.size)])
         self._w = np.empty_like(w)
         self._w[0] = 1.0 / w[0]
         self._w[1:] = -w[1:] / (partial[1:] * partial[:-1])
@@ -318,6 +348,7 @@ class InversePrandtlIshlinskii(_WeightedPlayBank):
 
 # -- creep ------------------------------------------------------------------------------------
 
+
 class Creep:
     """Book eq. 5.29-5.31: x_i(k) = e^{-lambda_i T} x_i(k-1) + (1 - e^{-lambda_i T}) u(k-1),
     y(k) = sum_i c_i x_i(k) + a u(k).
@@ -333,9 +364,13 @@ class Creep:
         lam = np.asarray(inverse_time_constants, dtype=float)
         c = np.asarray(weights, dtype=float)
         if lam.ndim != 1 or not np.isfinite(lam).all() or (lam <= 0).any():
-            raise ValueError(f"inverse_time_constants={inverse_time_constants!r}: need finite values > 0 (1/s)")
+            raise ValueError(
+                f"inverse_time_constants={inverse_time_constants!r}: need finite values > 0 (1/s)"
+            )
         if c.shape != lam.shape or not np.isfinite(c).all():
-            raise ValueError(f"weights={weights!r}: need one finite weight per time constant ({lam.size})")
+            raise ValueError(
+                f"weights={weights!r}: need one finite weight per time constant ({lam.size})"
+            )
         if not math.isfinite(direct_gain):
             raise ValueError(f"direct_gain={direct_gain}: must be finite")
         self._lam, self._c, self._a = lam.copy(), c.copy(), float(direct_gain)
@@ -351,7 +386,9 @@ class Creep:
     def state(self, value) -> None:
         s = np.asarray(value, dtype=float)
         if s.shape != (self._x.size + 1,) or not np.isfinite(s).all():
-            raise ValueError(f"state: expected {self._x.size + 1} finite values, got shape {s.shape}")
+            raise ValueError(
+                f"state: expected {self._x.size + 1} finite values, got shape {s.shape}"
+            )
         self._x, self._u_last = s[:-1].copy(), float(s[-1])
 
     def reset(self, u0: float = 0.0) -> None:
@@ -369,7 +406,7 @@ class Creep:
         gain = -np.expm1(-self._lam * dt)
         operators = np.empty((u.size, self._lam.size))
         for i in range(self._lam.size):
-            first = decay[i] * self._x[i] + gain[i] * self._u_last     # x_i at this call's sample 0
+            first = decay[i] * self._x[i] + gain[i] * self._u_last  # x_i at this call's sample 0
             operators[:, i] = lfilter([0.0, gain[i]], [1.0, -decay[i]], u, zi=[first])[0]
         self._x, self._u_last = operators[-1].copy(), float(u[-1])
         return operators @ self._c + self._a * u
@@ -382,6 +419,7 @@ class Creep:
 
 
 # -- slew-rate limit --------------------------------------------------------------------------
+
 
 def _slew_end(x: np.ndarray, k: int, previous: float, step: float) -> int:
     """First index >= k at which a ramp from `previous` by `step` per sample no longer falls
@@ -432,34 +470,46 @@ def limit_slew(samples, dt: float, max_speed: float, start: float | None = None)
 
 # -- the scanner --------------------------------------------------------------------------------
 
+
 @dataclass
 class ScannerParams:
     """Lateral scanner imperfections (SI units). Each effect has an `*_enabled` flag; a zero
     parameter (no hysteresis width and no asymmetry, no creep, no coupling, no angle) disables
     it exactly too. Values are typical for a tube scanner (book 5.3, Dimension 3100) and are
     meant to be identified on the real instrument."""
-    range_x: float = 110e-6                   # m, x travel: commands are [0, range_x]
-    range_y: float = 110e-6                   # m
-    clamp_to_range: bool = True               # the amplifier saturates: commands clipped to [0, range]
+
+    range_x: float = 110e-6  # m, x travel: commands are [0, range_x]
+    range_y: float = 110e-6  # m
+    clamp_to_range: bool = True  # the amplifier saturates: commands clipped to [0, range]
     hysteresis_enabled: bool = True
-    hysteresis_fraction: float = 0.12         # loop width / range on full-range cycles (piezos: 10-15 %)
-    hysteresis_asymmetry: float = 0.03        # alpha of PrandtlIshlinskii.from_fraction (0 = symmetric)
-    hysteresis_operators: int = 8             # play operators per axis
+    hysteresis_fraction: float = 0.12  # loop width / range on full-range cycles (piezos: 10-15 %)
+    hysteresis_asymmetry: float = 0.03  # alpha of PrandtlIshlinskii.from_fraction (0 = symmetric)
+    hysteresis_operators: int = 8  # play operators per axis
     creep_enabled: bool = True
-    creep_time_constants: list[float] = field(default_factory=lambda: [0.5, 5.0, 50.0])    # s
-    creep_fractions: list[float] = field(default_factory=lambda: [0.008, 0.006, 0.006])   # of a step, each
+    creep_time_constants: list[float] = field(default_factory=lambda: [0.5, 5.0, 50.0])  # s
+    creep_fractions: list[float] = field(
+        default_factory=lambda: [0.008, 0.006, 0.006]
+    )  # of a step, each
     coupling_enabled: bool = True
-    coupling_x_to_y: float = 0.01             # y displacement per unit x displacement
-    coupling_y_to_x: float = 0.01             # x displacement per unit y displacement
+    coupling_x_to_y: float = 0.01  # y displacement per unit x displacement
+    coupling_y_to_x: float = 0.01  # x displacement per unit y displacement
     deflection_enabled: bool = True
-    deflection_deg: float = 0.746             # scan-line rotation, counter-clockwise (book: mean 0.746, sd 0.393)
-    positioning_noise_enabled: bool = True    # random, persistent error of every tip move (book eq. 5.5 w)
-    positioning_noise_slope: float = 0.0701e-9    # m^2 per m moved, each axis (Fig. 7.20b: a = 0.0701 nm^2/nm)
-    positioning_noise_offset: float = 0.4345e-18  # m^2 per move, each axis (Fig. 7.20b: b = 0.4345 nm^2)
+    deflection_deg: float = (
+        0.746  # scan-line rotation, counter-clockwise (book: mean 0.746, sd 0.393)
+    )
+    positioning_noise_enabled: bool = (
+        True  # random, persistent error of every tip move (book eq. 5.5 w)
+    )
+    positioning_noise_slope: float = (
+        0.0701e-9  # m^2 per m moved, each axis (Fig. 7.20b: a = 0.0701 nm^2/nm)
+    )
+    positioning_noise_offset: float = (
+        0.4345e-18  # m^2 per move, each axis (Fig. 7.20b: b = 0.4345 nm^2)
+    )
     # Scanner bow, a z artefact (not lateral, so LateralScanner ignores it; the simulated
     # instrument adds it to measured heights): the tube's free end swings on a sphere-like
     # arc, so the tip rises by 0.5 * bow_curvature * r^2 at a distance r from the range centre.
-    bow_curvature: float = 0.0                # 1/m (0 = no bow; a 5 cm tube: ~20 1/m)
+    bow_curvature: float = 0.0  # 1/m (0 = no bow; a 5 cm tube: ~20 1/m)
 
     def __post_init__(self):
         self.validate()
@@ -469,17 +519,34 @@ class ScannerParams:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"scanner.{name}={value}: must be finite and > 0 (m)")
-        if not (math.isfinite(self.hysteresis_fraction) and 0.0 <= self.hysteresis_fraction < 1.0 / 3.0):
-            raise ValueError(f"scanner.hysteresis_fraction={self.hysteresis_fraction}: must be in [0, 1/3)")
-        if not (math.isfinite(self.hysteresis_asymmetry) and self.hysteresis_asymmetry ** 2 < 2.0 / 3.0):
-            raise ValueError(f"scanner.hysteresis_asymmetry={self.hysteresis_asymmetry}: need alpha^2 < 2/3")
-        if int(self.hysteresis_operators) != self.hysteresis_operators or self.hysteresis_operators < 2:
-            raise ValueError(f"scanner.hysteresis_operators={self.hysteresis_operators}: need an integer >= 2")
+        if not (
+            math.isfinite(self.hysteresis_fraction) and 0.0 <= self.hysteresis_fraction < 1.0 / 3.0
+        ):
+            raise ValueError(
+                f"scanner.hysteresis_fraction={self.hysteresis_fraction}: must be in [0, 1/3)"
+            )
+        if not (
+            math.isfinite(self.hysteresis_asymmetry) and self.hysteresis_asymmetry**2 < 2.0 / 3.0
+        ):
+            raise ValueError(
+                f"scanner.hysteresis_asymmetry={self.hysteresis_asymmetry}: need alpha^2 < 2/3"
+            )
+        if (
+            int(self.hysteresis_operators) != self.hysteresis_operators
+            or self.hysteresis_operators < 2
+        ):
+            raise ValueError(
+                f"scanner.hysteresis_operators={self.hysteresis_operators}: need an integer >= 2"
+            )
         taus, fractions = list(self.creep_time_constants), list(self.creep_fractions)
         if len(taus) != len(fractions) or not all(math.isfinite(t) and t > 0 for t in taus):
-            raise ValueError(f"scanner.creep_time_constants={taus}: need one finite value > 0 (s) per fraction")
+            raise ValueError(
+                f"scanner.creep_time_constants={taus}: need one finite value > 0 (s) per fraction"
+            )
         if not all(math.isfinite(c) and c >= 0 for c in fractions) or sum(fractions) >= 1.0:
-            raise ValueError(f"scanner.creep_fractions={fractions}: need values >= 0 summing to < 1")
+            raise ValueError(
+                f"scanner.creep_fractions={fractions}: need values >= 0 summing to < 1"
+            )
         for name in ("coupling_x_to_y", "coupling_y_to_x"):
             value = getattr(self, name)
             if not (math.isfinite(value) and abs(value) < 1.0):
@@ -493,10 +560,12 @@ class ScannerParams:
         if not math.isfinite(self.bow_curvature):
             raise ValueError(f"scanner.bow_curvature={self.bow_curvature}: must be finite (1/m)")
         # the bow at the range corners must fit well inside any z range (7 um on the book's AFM)
-        corner_bow = 0.5 * abs(self.bow_curvature) * 0.25 * (self.range_x ** 2 + self.range_y ** 2)
+        corner_bow = 0.5 * abs(self.bow_curvature) * 0.25 * (self.range_x**2 + self.range_y**2)
         if corner_bow > 1e-6:
-            raise ValueError(f"scanner.bow_curvature={self.bow_curvature}: bows the range corners by "
-                             f"{corner_bow:.3g} m; at most 1e-6 m (|curvature| <= ~330 1/m on 110 um)")
+            raise ValueError(
+                f"scanner.bow_curvature={self.bow_curvature}: bows the range corners by "
+                f"{corner_bow:.3g} m; at most 1e-6 m (|curvature| <= ~330 1/m on 110 um)"
+            )
 
 
 class ScannerAxis:
@@ -511,12 +580,26 @@ class ScannerAxis:
         self.centre = 0.5 * self.range
         self.clamp = params.clamp_to_range
         has_loop = params.hysteresis_fraction > 0 or params.hysteresis_asymmetry != 0
-        self.hysteresis = PrandtlIshlinskii.from_fraction(
-            self.range, params.hysteresis_fraction, int(params.hysteresis_operators),
-            params.hysteresis_asymmetry) if params.hysteresis_enabled and has_loop else None
+        self.hysteresis = (
+            PrandtlIshlinskii.from_fraction(
+                self.range,
+                params.hysteresis_fraction,
+                int(params.hysteresis_operators),
+                params.hysteresis_asymmetry,
+            )
+            if params.hysteresis_enabled and has_loop
+            else None
+        )
         fractions = np.asarray(params.creep_fractions, dtype=float)
-        self.creep = Creep(1.0 / np.asarray(params.creep_time_constants, dtype=float), fractions,
-                           1.0 - fractions.sum()) if params.creep_enabled and fractions.any() else None
+        self.creep = (
+            Creep(
+                1.0 / np.asarray(params.creep_time_constants, dtype=float),
+                fractions,
+                1.0 - fractions.sum(),
+            )
+            if params.creep_enabled and fractions.any()
+            else None
+        )
         self.reset(self.centre)
 
     def _clamped(self, cmd: np.ndarray) -> np.ndarray:
@@ -541,8 +624,10 @@ class ScannerAxis:
         return position
 
     def state(self) -> dict:
-        return {"hysteresis": None if self.hysteresis is None else self.hysteresis.state,
-                "creep": None if self.creep is None else self.creep.state}
+        return {
+            "hysteresis": None if self.hysteresis is None else self.hysteresis.state,
+            "creep": None if self.creep is None else self.creep.state,
+        }
 
     def set_state(self, state: dict) -> None:
         if self.hysteresis is not None:
@@ -559,7 +644,10 @@ class LateralScanner:
     def __init__(self, params: ScannerParams | None = None):
         self.params = params if params is not None else ScannerParams()
         self.params.validate()
-        self.axes = (ScannerAxis(self.params.range_x, self.params), ScannerAxis(self.params.range_y, self.params))
+        self.axes = (
+            ScannerAxis(self.params.range_x, self.params),
+            ScannerAxis(self.params.range_y, self.params),
+        )
         self.centre = np.array([axis.centre for axis in self.axes])
         self.mixing = self._mixing_matrix(self.params)
 
@@ -571,7 +659,9 @@ class LateralScanner:
             matrix = np.array([[1.0, params.coupling_y_to_x], [params.coupling_x_to_y, 1.0]])
         if params.deflection_enabled and params.deflection_deg:
             theta = math.radians(params.deflection_deg)
-            rotation = np.array([[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]])
+            rotation = np.array(
+                [[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]]
+            )
             matrix = rotation @ matrix
         return None if (matrix == np.eye(2)).all() else matrix
 
@@ -584,7 +674,9 @@ class LateralScanner:
         """True positions (m) for uniformly sampled commands (m) at period dt (s)."""
         cmd_x, cmd_y = _as_sequence(cmd_x, "cmd_x"), _as_sequence(cmd_y, "cmd_y")
         if cmd_x.shape != cmd_y.shape:
-            raise ValueError(f"cmd_x and cmd_y: need equal lengths, got {cmd_x.size} and {cmd_y.size}")
+            raise ValueError(
+                f"cmd_x and cmd_y: need equal lengths, got {cmd_x.size} and {cmd_y.size}"
+            )
         if not (math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt={dt}: must be finite and > 0 (s)")
         x, y = (axis.apply(cmd, dt) for axis, cmd in zip(self.axes, (cmd_x, cmd_y)))

@@ -4,13 +4,30 @@ z-piezo monitor and the deflection), as on the book's Dimension 3100 platform.
 `DaqInstrument` is the Instrument; `DaqBoundary` is the one hardware seam, implemented by
 `NidaqmxBoundary` (NI-DAQmx, imported lazily) and by `FakeDaq` for tests without hardware.
 """
+
 from afm_core.daq.boundary import DaqBoundary, DaqUnavailable, FakeDaq
-from afm_core.daq.instrument import DaqCalibration, DaqInstrument, FeedForward, IdentityFeedForward, as_feed_forward
+from afm_core.daq.instrument import (
+    DaqCalibration,
+    DaqInstrument,
+    FeedForward,
+    IdentityFeedForward,
+    as_feed_forward,
+)
 from afm_core.daq.nidaqmx_boundary import NidaqmxBoundary
 
-__all__ = ["DaqBoundary", "DaqCalibration", "DaqInstrument", "DaqUnavailable", "FakeDaq", "FeedForward",
-           "load_calibration", "open_daq_instrument",
-           "IdentityFeedForward", "NidaqmxBoundary", "as_feed_forward"]
+__all__ = [
+    "DaqBoundary",
+    "DaqCalibration",
+    "DaqInstrument",
+    "DaqUnavailable",
+    "FakeDaq",
+    "FeedForward",
+    "load_calibration",
+    "open_daq_instrument",
+    "IdentityFeedForward",
+    "NidaqmxBoundary",
+    "as_feed_forward",
+]
 
 
 def load_calibration(path=None) -> DaqCalibration:
@@ -21,6 +38,7 @@ def load_calibration(path=None) -> DaqCalibration:
     from pathlib import Path
 
     import yaml
+
     if path is None:
         return DaqCalibration()
     path = Path(path)
@@ -32,13 +50,19 @@ def load_calibration(path=None) -> DaqCalibration:
     for key, value in data.items():
         if key in ("x_hysteresis", "y_hysteresis"):
             from afm_core.pzt import PrandtlIshlinskii
-            model = PrandtlIshlinskii(value["thresholds"], value["weights"],
-                                      tuple(value.get("polynomial", (1.0, 0.0, 0.0))))
+
+            model = PrandtlIshlinskii(
+                value["thresholds"],
+                value["weights"],
+                tuple(value.get("polynomial", (1.0, 0.0, 0.0))),
+            )
             values[key[0] + "_feed_forward"] = model.inverse()
         elif key in fields:
             values[key] = tuple(value) if isinstance(value, list) else value
         else:
-            raise ValueError(f"daq calibration {str(path)!r}: unknown key {key!r}; known: {sorted(fields)}")
+            raise ValueError(
+                f"daq calibration {str(path)!r}: unknown key {key!r}; known: {sorted(fields)}"
+            )
     calibration = DaqCalibration(**values)
     calibration.validate()
     return calibration

@@ -4,9 +4,11 @@ Everything above it (calibration, paths, validation, images) is plain numpy and 
 against `FakeDaq`; everything below it (`NidaqmxBoundary`) is the thin vendor layer that
 can only be exercised on the real platform.
 """
+
 from __future__ import annotations
 
-from typing import Callable, Optional, Protocol
+from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
@@ -18,8 +20,14 @@ class DaqUnavailable(RuntimeError):
 class DaqBoundary(Protocol):
     """What the backend needs from a DAQ card, in volts, rows = channels in configure order."""
 
-    def configure(self, ao_channels: list[str], ai_channels: list[str], sample_rate: float,
-                  ao_range: tuple[float, float], ai_range: tuple[float, float]) -> None:
+    def configure(
+        self,
+        ao_channels: list[str],
+        ai_channels: list[str],
+        sample_rate: float,
+        ao_range: tuple[float, float],
+        ai_range: tuple[float, float],
+    ) -> None:
         """Set up the channels once; `sample_rate` (Hz) clocks both AO and AI."""
 
     def write_read(self, ao_samples: np.ndarray) -> np.ndarray:
@@ -33,7 +41,7 @@ class DaqBoundary(Protocol):
     def close(self) -> None: ...
 
 
-Respond = Callable[[np.ndarray], np.ndarray]   # (n_ao, n) volts written -> (n_ai, n) volts read
+Respond = Callable[[np.ndarray], np.ndarray]  # (n_ao, n) volts written -> (n_ai, n) volts read
 
 
 class FakeDaq:
@@ -44,15 +52,15 @@ class FakeDaq:
     Writing outside the configured AO range raises, as the real driver does.
     """
 
-    def __init__(self, respond: Optional[Respond] = None):
+    def __init__(self, respond: Respond | None = None):
         self.respond = respond
         self.ao_channels: list[str] = []
         self.ai_channels: list[str] = []
         self.sample_rate = 0.0
         self.ao_range = (-10.0, 10.0)
         self.ai_range = (-10.0, 10.0)
-        self.writes: list[tuple[str, np.ndarray]] = []   # ("ramp" | "static", (n_ao, n) volts)
-        self.now = 0.0                                  # s, simulated time
+        self.writes: list[tuple[str, np.ndarray]] = []  # ("ramp" | "static", (n_ao, n) volts)
+        self.now = 0.0  # s, simulated time
         self.closed = False
 
     def configure(self, ao_channels, ai_channels, sample_rate, ao_range, ai_range) -> None:
@@ -67,8 +75,14 @@ class FakeDaq:
             raise RuntimeError("FakeDaq: write before configure")
         volts = np.array(volts, dtype=float)
         if volts.shape[0] != len(self.ao_channels):
-            raise ValueError(f"FakeDaq: {volts.shape[0]} AO rows for {len(self.ao_channels)} channels")
-        if not np.all(np.isfinite(volts)) or volts.min() < self.ao_range[0] or volts.max() > self.ao_range[1]:
+            raise ValueError(
+                f"FakeDaq: {volts.shape[0]} AO rows for {len(self.ao_channels)} channels"
+            )
+        if (
+            not np.all(np.isfinite(volts))
+            or volts.min() < self.ao_range[0]
+            or volts.max() > self.ao_range[1]
+        ):
             raise ValueError(f"FakeDaq: AO samples outside the configured range {self.ao_range} V")
         return volts
 
@@ -82,9 +96,11 @@ class FakeDaq:
             return np.zeros((len(self.ai_channels), volts.shape[1]))
         readings = np.asarray(self.respond(volts), dtype=float)
         if readings.shape != (len(self.ai_channels), volts.shape[1]):
-            raise ValueError(f"FakeDaq: respond returned {readings.shape}, expected "
-                             f"{(len(self.ai_channels), volts.shape[1])}")
-        return np.clip(readings, *self.ai_range)      # an ADC saturates at its range
+            raise ValueError(
+                f"FakeDaq: respond returned {readings.shape}, expected "
+                f"{(len(self.ai_channels), volts.shape[1])}"
+            )
+        return np.clip(readings, *self.ai_range)  # an ADC saturates at its range
 
     def write_static(self, volts: np.ndarray) -> None:
         volts = self._check(np.asarray(volts, dtype=float).reshape(-1, 1))

@@ -11,20 +11,33 @@ afm_core.instrument, slew rate between every two samples, AO clamps after the in
 hysteresis feed-forward) before the first sample is written; the same plan is then executed.
 A last guard refuses to write any sample outside the clamps.
 """
+
 from __future__ import annotations
 
 import copy
 import math
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, Optional, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from afm_core.daq.boundary import DaqBoundary
-from afm_core.instrument import (ForceTraceData, IndentResult, LineRequest, MoveResult, RasterScanData,
-                                 ScanLineData, ScannerLimits, ScanRequest, StopCheck, check_speed,
-                                 validate_indent, validate_move)
+from afm_core.instrument import (
+    ForceTraceData,
+    IndentResult,
+    LineRequest,
+    MoveResult,
+    RasterScanData,
+    ScanLineData,
+    ScannerLimits,
+    ScanRequest,
+    StopCheck,
+    check_speed,
+    validate_indent,
+    validate_move,
+)
 
 
 class FeedForward(Protocol):
@@ -70,7 +83,9 @@ def as_feed_forward(model: Any) -> FeedForward:
         return model
     if callable(model):
         return _FunctionFeedForward(model)
-    raise TypeError(f"feed-forward {model!r}: needs apply(np.ndarray) -> np.ndarray or to be callable")
+    raise TypeError(
+        f"feed-forward {model!r}: needs apply(np.ndarray) -> np.ndarray or to be callable"
+    )
 
 
 @dataclass
@@ -81,6 +96,7 @@ class DaqCalibration:
     be measured on the real set-up (scanner sensitivity on a calibration grating, deflection
     sensitivity on a force curve on a hard sample, spring constants by thermal tune).
     """
+
     # Lateral outputs: volts = offset + volts_per_metre * command position; 0.18 V/um over
     # 110 um spans -9.9 V .. +9.9 V.
     x_volts_per_metre: float = 0.18e6
@@ -95,30 +111,36 @@ class DaqCalibration:
     z_offset_volts: float = 0.0
     z_volts_limits: tuple[float, float] = (-10.0, 10.0)
     # Inputs: metres = metres_per_volt * (volts - offset).
-    z_monitor_metres_per_volt: float = 0.35e-6      # topography from the z-piezo monitor
+    z_monitor_metres_per_volt: float = 0.35e-6  # topography from the z-piezo monitor
     z_monitor_offset_volts: float = 0.0
-    deflection_metres_per_volt: float = 50e-9       # inverse optical-lever sensitivity
+    deflection_metres_per_volt: float = 50e-9  # inverse optical-lever sensitivity
     deflection_offset_volts: float = 0.0
-    lateral_radians_per_volt: float = 1e-3          # torsion
+    lateral_radians_per_volt: float = 1e-3  # torsion
     lateral_offset_volts: float = 0.0
-    normal_spring_constant: float = 0.2             # N/m
-    lateral_spring_constant: float = 1e-9           # N*m/rad
-    sample_rate: float = 100e3                      # Hz, one clock for AO and AI
+    normal_spring_constant: float = 0.2  # N/m
+    lateral_spring_constant: float = 1e-9  # N*m/rad
+    sample_rate: float = 100e3  # Hz, one clock for AO and AI
     # Channels (device-relative names).
     ao_x: str = "ao0"
     ao_y: str = "ao1"
-    ao_z: Optional[str] = None
+    ao_z: str | None = None
     ai_z: str = "ai0"
     ai_deflection: str = "ai1"
-    ai_lateral: Optional[str] = None
+    ai_lateral: str | None = None
     ai_range: tuple[float, float] = (-10.0, 10.0)
     # Inverse hysteresis per axis (FeedForward, plain callable, or None for identity).
     x_feed_forward: Any = None
     y_feed_forward: Any = None
 
     def validate(self) -> None:
-        for name in ("x_volts_per_metre", "y_volts_per_metre", "z_volts_per_metre", "z_monitor_metres_per_volt",
-                     "deflection_metres_per_volt", "lateral_radians_per_volt"):
+        for name in (
+            "x_volts_per_metre",
+            "y_volts_per_metre",
+            "z_volts_per_metre",
+            "z_monitor_metres_per_volt",
+            "deflection_metres_per_volt",
+            "lateral_radians_per_volt",
+        ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value != 0.0):
                 raise ValueError(f"calibration.{name}={value}: must be finite and non-zero")
@@ -135,12 +157,13 @@ class DaqCalibration:
 @dataclass
 class _Step:
     """One chunk of a plan: desired positions per sample (m) and how to treat it."""
-    kind: str            # "travel" (no data), "line" (raster line), "scan" (local scan), "press" (indent)
+
+    kind: str  # "travel" (no data), "line" (raster line), "scan" (local scan), "press" (indent)
     x: np.ndarray
     y: np.ndarray
-    z: np.ndarray        # z output command (m), held constant outside indentation
-    field: str           # request field(s) to name when this chunk is refused
-    index: int = -1      # raster line index
+    z: np.ndarray  # z output command (m), held constant outside indentation
+    field: str  # request field(s) to name when this chunk is refused
+    index: int = -1  # raster line index
 
 
 class DaqInstrument:
@@ -153,9 +176,17 @@ class DaqInstrument:
     waits during moves.
     """
 
-    def __init__(self, boundary: DaqBoundary, calibration: DaqCalibration, limits: ScannerLimits = ScannerLimits(),
-                 clock: Callable[[], float] = time.monotonic, *, travel_speed: Optional[float] = None,
-                 indent_speed: float = 1e-6, chunk_seconds: float = 0.1):
+    def __init__(
+        self,
+        boundary: DaqBoundary,
+        calibration: DaqCalibration,
+        limits: ScannerLimits = ScannerLimits(),
+        clock: Callable[[], float] = time.monotonic,
+        *,
+        travel_speed: float | None = None,
+        indent_speed: float = 1e-6,
+        chunk_seconds: float = 0.1,
+    ):
         calibration.validate()
         self.boundary = boundary
         self.calibration = calibration
@@ -174,15 +205,27 @@ class DaqInstrument:
         self._ffx.reset()
         self._ffy.reset()
         c = calibration
-        self._axes = [("x", c.x_volts_limits), ("y", c.y_volts_limits)] + ([("z", c.z_volts_limits)] if c.ao_z else [])
+        self._axes = [("x", c.x_volts_limits), ("y", c.y_volts_limits)] + (
+            [("z", c.z_volts_limits)] if c.ao_z else []
+        )
         ai = [c.ai_z, c.ai_deflection] + ([c.ai_lateral] if c.ai_lateral else [])
-        boundary.configure([c.ao_x, c.ao_y] + ([c.ao_z] if c.ao_z else []), ai, self.fs,
-                           (min(lo for _, (lo, _) in self._axes), max(hi for _, (_, hi) in self._axes)), c.ai_range)
+        boundary.configure(
+            [c.ao_x, c.ao_y] + ([c.ao_z] if c.ao_z else []),
+            ai,
+            self.fs,
+            (min(lo for _, (lo, _) in self._axes), max(hi for _, (_, hi) in self._axes)),
+            c.ai_range,
+        )
 
         def zero_volt_position(offset, v_per_m, volt_limits, span):
             return float(np.clip((np.clip(0.0, *volt_limits) - offset) / v_per_m, 0.0, span))
-        x0 = zero_volt_position(c.x_offset_volts, c.x_volts_per_metre, c.x_volts_limits, limits.range_x)
-        y0 = zero_volt_position(c.y_offset_volts, c.y_volts_per_metre, c.y_volts_limits, limits.range_y)
+
+        x0 = zero_volt_position(
+            c.x_offset_volts, c.x_volts_per_metre, c.x_volts_limits, limits.range_x
+        )
+        y0 = zero_volt_position(
+            c.y_offset_volts, c.y_volts_per_metre, c.y_volts_limits, limits.range_y
+        )
         volts = self._volts(np.array([x0]), np.array([y0]), np.zeros(1), self._ffx, self._ffy)
         self._check_volts(volts, "calibration (start-up position)", ValueError)
         boundary.write_static(volts[:, 0])
@@ -205,8 +248,10 @@ class DaqInstrument:
     # ---- conversions -----------------------------------------------------------------------
     def _volts(self, x, y, z, ffx: FeedForward, ffy: FeedForward) -> np.ndarray:
         c = self.calibration
-        rows = [c.x_offset_volts + c.x_volts_per_metre * ffx.apply(x),
-                c.y_offset_volts + c.y_volts_per_metre * ffy.apply(y)]
+        rows = [
+            c.x_offset_volts + c.x_volts_per_metre * ffx.apply(x),
+            c.y_offset_volts + c.y_volts_per_metre * ffy.apply(y),
+        ]
         if c.ao_z:
             rows.append(c.z_offset_volts + c.z_volts_per_metre * np.asarray(z, dtype=float))
         return np.vstack(rows)
@@ -216,17 +261,22 @@ class DaqInstrument:
             v = volts[row]
             excess = np.where(np.isfinite(v), np.maximum(lo - v, v - hi), np.inf)
             if excess.max() > 0:
-                i = int(np.argmax(excess))      # report the worst sample
-                raise error(f"{field}: the {axis} output would be {v[i]:.4g} V, outside the AO clamp "
-                            f"[{lo:g}, {hi:g}] V (DaqCalibration.{axis}_volts_limits)")
+                i = int(np.argmax(excess))  # report the worst sample
+                raise error(
+                    f"{field}: the {axis} output would be {v[i]:.4g} V, outside the AO clamp "
+                    f"[{lo:g}, {hi:g}] V (DaqCalibration.{axis}_volts_limits)"
+                )
 
     def _measure(self, ai: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """AI volts -> topography (m), deflection (m), torsion (rad)."""
         c = self.calibration
         height = c.z_monitor_metres_per_volt * (ai[0] - c.z_monitor_offset_volts)
         deflection = c.deflection_metres_per_volt * (ai[1] - c.deflection_offset_volts)
-        lateral = (c.lateral_radians_per_volt * (ai[2] - c.lateral_offset_volts) if c.ai_lateral
-                   else np.zeros(ai.shape[1]))
+        lateral = (
+            c.lateral_radians_per_volt * (ai[2] - c.lateral_offset_volts)
+            if c.ai_lateral
+            else np.zeros(ai.shape[1])
+        )
         return height, deflection, lateral
 
     # ---- planning --------------------------------------------------------------------------
@@ -236,18 +286,22 @@ class DaqInstrument:
         k = np.arange(1, n + 1) / n
         path = [a + (b - a) * k for a, b in zip(start, end)]
         for axis, b in zip(path, end):
-            axis[-1] = b                    # land exactly on the target, free of rounding
+            axis[-1] = b  # land exactly on the target, free of rounding
         bounds = list(range(0, n, self._chunk)) + [n]
         if len(bounds) > 2 and bounds[-1] - bounds[-2] < 2:
-            del bounds[-2]                  # finite AO needs >= 2 samples: fold a lone tail into the chunk before
+            del bounds[-2]  # finite AO needs >= 2 samples: fold a lone tail into the chunk before
         for i, j in zip(bounds[:-1], bounds[1:]):
             yield _Step(kind, path[0][i:j], path[1][i:j], path[2][i:j], field)
 
-    def _travel(self, x: float, y: float, speed: float, field: str, kind: str = "travel") -> Iterator[_Step]:
+    def _travel(
+        self, x: float, y: float, speed: float, field: str, kind: str = "travel"
+    ) -> Iterator[_Step]:
         x0, y0 = self._pos
         distance = math.hypot(x - x0, y - y0)
         if distance > 0.0:
-            yield from self._ramp((x0, y0, self._z), (x, y, self._z), distance / speed, kind, field)
+            yield from self._ramp(
+                (x0, y0, self._z), (x, y, self._z), distance / speed, kind, field
+            )
 
     def _check_plan(self, steps: Iterator[_Step]) -> None:
         """Run the plan on copies of the feed-forward state: slew and clamps, nothing written."""
@@ -258,10 +312,14 @@ class DaqInstrument:
             dy = np.diff(step.y, prepend=py)
             speed = float(np.max(np.hypot(dx, dy))) * self.fs
             if speed > self.limits.max_speed * (1 + 1e-9):
-                raise ValueError(f"{step.field}: the path would move the tip at {speed:.3e} m/s, above the "
-                                 f"slew limit {self.limits.max_speed:.3e} m/s")
+                raise ValueError(
+                    f"{step.field}: the path would move the tip at {speed:.3e} m/s, above the "
+                    f"slew limit {self.limits.max_speed:.3e} m/s"
+                )
             px, py = step.x[-1], step.y[-1]
-            self._check_volts(self._volts(step.x, step.y, step.z, ffx, ffy), step.field, ValueError)
+            self._check_volts(
+                self._volts(step.x, step.y, step.z, ffx, ffy), step.field, ValueError
+            )
 
     # ---- execution -------------------------------------------------------------------------
     def _write(self, step: _Step) -> np.ndarray:
@@ -278,7 +336,7 @@ class DaqInstrument:
         self.boundary.write_static(self._last.copy())
 
     @staticmethod
-    def _stopped(should_stop: Optional[StopCheck]) -> bool:
+    def _stopped(should_stop: StopCheck | None) -> bool:
         return bool(should_stop and should_stop())
 
     # ---- raster ----------------------------------------------------------------------------
@@ -287,8 +345,18 @@ class DaqInstrument:
         lines, pixels = r.lines, r.pixels_per_line
         n_half = max(2, math.ceil(self.fs / (2.0 * r.line_rate) - 1e-9))
         fast0, fast_size = (r.origin_x, r.size_x) if fast_x else (r.origin_y, r.size_y)
-        slow0, pitch = (r.origin_y, r.size_y / r.pixels_y) if fast_x else (r.origin_x, r.size_x / r.pixels_x)
-        return fast_x, lines, pixels, n_half, fast0, fast_size, slow0 + (np.arange(lines) + 0.5) * pitch
+        slow0, pitch = (
+            (r.origin_y, r.size_y / r.pixels_y) if fast_x else (r.origin_x, r.size_x / r.pixels_x)
+        )
+        return (
+            fast_x,
+            lines,
+            pixels,
+            n_half,
+            fast0,
+            fast_size,
+            slow0 + (np.arange(lines) + 0.5) * pitch,
+        )
 
     def _raster_steps(self, r: ScanRequest) -> Iterator[_Step]:
         fast_x, lines, _, n_half, fast0, fast_size, slow = self._raster_geometry(r)
@@ -296,25 +364,35 @@ class DaqInstrument:
         first = (fast0, slow[order[0]]) if fast_x else (slow[order[0]], fast0)
         yield from self._travel(*first, self.travel_speed, "origin")
         k = np.arange(1, n_half + 1) / n_half
-        fast = np.concatenate([fast0 + fast_size * k, fast0 + fast_size * (1.0 - k)])   # trace, retrace
+        fast = np.concatenate(
+            [fast0 + fast_size * k, fast0 + fast_size * (1.0 - k)]
+        )  # trace, retrace
         z = np.full(2 * n_half, self._z)
         for i, line in enumerate(order):
             here, there = slow[line], slow[order[i + 1]] if i + 1 < lines else slow[line]
-            s = np.concatenate([np.full(n_half, here), here + (there - here) * k])     # step during retrace
+            s = np.concatenate(
+                [np.full(n_half, here), here + (there - here) * k]
+            )  # step during retrace
             x, y = (fast, s) if fast_x else (s, fast)
             yield _Step("line", x, y, z, "line_rate / size (line path)", line)
 
-    def raster_scan(self, request: ScanRequest, on_line: Optional[Callable[[int, int], None]] = None,
-                    should_stop: Optional[StopCheck] = None) -> RasterScanData:
+    def raster_scan(
+        self,
+        request: ScanRequest,
+        on_line: Callable[[int, int], None] | None = None,
+        should_stop: StopCheck | None = None,
+    ) -> RasterScanData:
         """Image an area: one synchronised trace + retrace per line, topography from the z monitor
         averaged into pixels; the slow axis steps during the retrace."""
         request.validate(self.limits)
         fast_x, lines, pixels, n_half, *_ = self._raster_geometry(request)
         if n_half < pixels:
             name = "pixels_x" if fast_x else "pixels_y"
-            raise ValueError(f"{name}={pixels}: a trace at line_rate {request.line_rate} Hz has {n_half} samples at "
-                             f"sample_rate {self.fs:g} Hz, fewer than one per pixel; lower line_rate to at most "
-                             f"{self.fs / (2 * pixels):.4g} Hz")
+            raise ValueError(
+                f"{name}={pixels}: a trace at line_rate {request.line_rate} Hz has {n_half} samples at "
+                f"sample_rate {self.fs:g} Hz, fewer than one per pixel; lower line_rate to at most "
+                f"{self.fs / (2 * pixels):.4g} Hz"
+            )
         self._check_plan(self._raster_steps(request))
 
         height = np.full((request.pixels_y, request.pixels_x), np.nan)
@@ -345,29 +423,46 @@ class DaqInstrument:
             done += 1
             if on_line:
                 on_line(done, lines)
-        return RasterScanData(height=height, pixel_size_x=request.size_x / request.pixels_x,
-                              pixel_size_y=request.size_y / request.pixels_y, origin_x=request.origin_x,
-                              origin_y=request.origin_y, scan_angle_deg=request.scan_angle_deg,
-                              slow_scan_up=request.slow_scan_up, line_period=2 * n_half / self.fs,
-                              line_start_times=line_times, start_time=self.time if start is None else start,
-                              mode=request.mode, complete=complete)
+        return RasterScanData(
+            height=height,
+            pixel_size_x=request.size_x / request.pixels_x,
+            pixel_size_y=request.size_y / request.pixels_y,
+            origin_x=request.origin_x,
+            origin_y=request.origin_y,
+            scan_angle_deg=request.scan_angle_deg,
+            slow_scan_up=request.slow_scan_up,
+            line_period=2 * n_half / self.fs,
+            line_start_times=line_times,
+            start_time=self.time if start is None else start,
+            mode=request.mode,
+            complete=complete,
+        )
 
     # ---- local scan ------------------------------------------------------------------------
-    def local_scan(self, request: LineRequest, should_stop: Optional[StopCheck] = None) -> ScanLineData:
+    def local_scan(
+        self, request: LineRequest, should_stop: StopCheck | None = None
+    ) -> ScanLineData:
         """One synchronised ramp start -> end at `speed`; the DAQ samples are averaged into
         `samples` equal bins (times, positions and signals are the bin means)."""
         request.validate(self.limits)
         n = max(2, math.ceil(request.length / request.speed * self.fs - 1e-9))
         if n < request.samples:
-            raise ValueError(f"samples={request.samples}: the line takes {n / self.fs:.4g} s, only {n} DAQ samples at "
-                             f"sample_rate {self.fs:g} Hz; request at most {n} samples or a lower speed")
+            raise ValueError(
+                f"samples={request.samples}: the line takes {n / self.fs:.4g} s, only {n} DAQ samples at "
+                f"sample_rate {self.fs:g} Hz; request at most {n} samples or a lower speed"
+            )
 
         def plan():
             yield from self._travel(request.start_x, request.start_y, self.travel_speed, "start")
             k = np.arange(1, n + 1) / n
-            yield _Step("scan", request.start_x + (request.end_x - request.start_x) * k,
-                        request.start_y + (request.end_y - request.start_y) * k, np.full(n, self._z),
-                        "start / end / speed")
+            yield _Step(
+                "scan",
+                request.start_x + (request.end_x - request.start_x) * k,
+                request.start_y + (request.end_y - request.start_y) * k,
+                np.full(n, self._z),
+                "start / end / speed",
+            )
+
         self._check_plan(plan())
 
         bins = np.arange(n) * request.samples // n
@@ -375,22 +470,38 @@ class DaqInstrument:
 
         def binned(values):
             return np.bincount(bins, weights=values, minlength=request.samples) / counts
+
         wrote = False
         for step in plan():
             if self._stopped(should_stop):
                 if wrote:
                     self._hold()
                 nan = np.full(request.samples, np.nan)
-                return ScanLineData(times=nan, x=nan.copy(), y=nan.copy(), height=nan.copy(),
-                                    deflection=nan.copy(), amplitude=np.empty(0), start_time=self.time,
-                                    mode=request.mode, complete=False)
+                return ScanLineData(
+                    times=nan,
+                    x=nan.copy(),
+                    y=nan.copy(),
+                    height=nan.copy(),
+                    deflection=nan.copy(),
+                    amplitude=np.empty(0),
+                    start_time=self.time,
+                    mode=request.mode,
+                    complete=False,
+                )
             start = self.time
             ai = self._write(step)
             wrote = True
         height, deflection, _ = self._measure(ai)
-        return ScanLineData(times=binned(np.arange(1, n + 1) / self.fs), x=binned(step.x), y=binned(step.y),
-                            height=binned(height), deflection=binned(deflection), amplitude=np.empty(0),
-                            start_time=start, mode=request.mode)
+        return ScanLineData(
+            times=binned(np.arange(1, n + 1) / self.fs),
+            x=binned(step.x),
+            y=binned(step.y),
+            height=binned(height),
+            deflection=binned(deflection),
+            amplitude=np.empty(0),
+            start_time=start,
+            mode=request.mode,
+        )
 
     # ---- move ------------------------------------------------------------------------------
     def _trace(self, steps_and_ai, start: float, task: str) -> ForceTraceData:
@@ -398,18 +509,38 @@ class DaqInstrument:
         for step, t, ai in steps_and_ai:
             _, deflection, lateral = self._measure(ai)
             parts["t"].append(t - start + np.arange(1, len(step.x) + 1) / self.fs)
-            for key, values in (("x", step.x), ("y", step.y), ("z", step.z), ("d", deflection), ("l", lateral)):
+            for key, values in (
+                ("x", step.x),
+                ("y", step.y),
+                ("z", step.z),
+                ("d", deflection),
+                ("l", lateral),
+            ):
                 parts[key].append(values)
         cat = {key: np.concatenate(v) if v else np.empty(0) for key, v in parts.items()}
         c = self.calibration
-        return ForceTraceData(times=cat["t"], commanded_x=cat["x"], commanded_y=cat["y"], commanded_z=cat["z"],
-                              vertical_deflection=cat["d"], lateral_torsion=cat["l"],
-                              normal_spring_constant=c.normal_spring_constant,
-                              lateral_spring_constant=c.lateral_spring_constant, sample_rate=self.fs,
-                              start_time=start, task=task)
+        return ForceTraceData(
+            times=cat["t"],
+            commanded_x=cat["x"],
+            commanded_y=cat["y"],
+            commanded_z=cat["z"],
+            vertical_deflection=cat["d"],
+            lateral_torsion=cat["l"],
+            normal_spring_constant=c.normal_spring_constant,
+            lateral_spring_constant=c.lateral_spring_constant,
+            sample_rate=self.fs,
+            start_time=start,
+            task=task,
+        )
 
-    def move_tip(self, x: float, y: float, speed: float, contact: bool = False,
-                 should_stop: Optional[StopCheck] = None) -> MoveResult:
+    def move_tip(
+        self,
+        x: float,
+        y: float,
+        speed: float,
+        contact: bool = False,
+        should_stop: StopCheck | None = None,
+    ) -> MoveResult:
         """Rate-limited ramp to (x, y); in contact (a push) deflection and torsion are recorded."""
         validate_move(x, y, speed, self.limits)
         self._check_plan(self._travel(x, y, speed, "target / speed"))
@@ -428,8 +559,9 @@ class DaqInstrument:
         return MoveResult(end_x=self._pos[0], end_y=self._pos[1], completed=completed, trace=trace)
 
     # ---- indent ----------------------------------------------------------------------------
-    def indent(self, x: float, y: float, force: float, dwell: float,
-               should_stop: Optional[StopCheck] = None) -> IndentResult:
+    def indent(
+        self, x: float, y: float, force: float, dwell: float, should_stop: StopCheck | None = None
+    ) -> IndentResult:
         """Press at (x, y): ramp the z output by force / normal_spring_constant from the current
         (in contact, zero deflection) level, dwell, retract; returns the deflection trace.
 
@@ -440,24 +572,35 @@ class DaqInstrument:
         validate_indent(x, y, force, dwell, self.limits)
         c = self.calibration
         if not c.ao_z:
-            raise ValueError("indent: needs an AO z channel (DaqCalibration.ao_z is not set); this DAQ "
-                             "set-up can only move laterally")
+            raise ValueError(
+                "indent: needs an AO z channel (DaqCalibration.ao_z is not set); this DAQ "
+                "set-up can only move laterally"
+            )
         depth = force / c.normal_spring_constant
         if depth > self.limits.range_z:
-            raise ValueError(f"force={force:.3e} N: needs {depth:.3e} m of z travel (force / normal_spring_constant), "
-                             f"above range_z {self.limits.range_z:.3e} m")
+            raise ValueError(
+                f"force={force:.3e} N: needs {depth:.3e} m of z travel (force / normal_spring_constant), "
+                f"above range_z {self.limits.range_z:.3e} m"
+            )
         z0 = self._z
         field = f"force={force:.3e} N"
 
         def press():
-            yield from self._ramp((x, y, z0), (x, y, z0 + depth), depth / self.indent_speed, "press", field)
+            yield from self._ramp(
+                (x, y, z0), (x, y, z0 + depth), depth / self.indent_speed, "press", field
+            )
             if dwell > 0:
-                yield from self._ramp((x, y, z0 + depth), (x, y, z0 + depth), dwell, "press", field)
+                yield from self._ramp(
+                    (x, y, z0 + depth), (x, y, z0 + depth), dwell, "press", field
+                )
 
         def plan():
             yield from self._travel(x, y, self.travel_speed, "position")
             yield from press()
-            yield from self._ramp((x, y, z0 + depth), (x, y, z0), depth / self.indent_speed, "retract", field)
+            yield from self._ramp(
+                (x, y, z0 + depth), (x, y, z0), depth / self.indent_speed, "retract", field
+            )
+
         self._check_plan(plan())
 
         wrote, completed, record, start = False, True, [], None
@@ -465,8 +608,12 @@ class DaqInstrument:
             if self._stopped(should_stop):
                 if wrote:
                     self._hold()
-                return IndentResult(x=self._pos[0], y=self._pos[1], trace=self._trace([], self.time, "indent"),
-                                    completed=False)
+                return IndentResult(
+                    x=self._pos[0],
+                    y=self._pos[1],
+                    trace=self._trace([], self.time, "indent"),
+                    completed=False,
+                )
             self._write(step)
             wrote = True
         start = self.time
@@ -476,9 +623,16 @@ class DaqInstrument:
                 break
             t = self.time
             record.append((step, t, self._write(step)))
-        if self._z != z0:                   # always retract, from wherever the press stopped
-            for step in self._ramp((x, y, self._z), (x, y, z0), abs(self._z - z0) / self.indent_speed,
-                                   "retract", field):
+        if self._z != z0:  # always retract, from wherever the press stopped
+            for step in self._ramp(
+                (x, y, self._z),
+                (x, y, z0),
+                abs(self._z - z0) / self.indent_speed,
+                "retract",
+                field,
+            ):
                 t = self.time
                 record.append((step, t, self._write(step)))
-        return IndentResult(x=x, y=y, trace=self._trace(record, start, "indent"), completed=completed)
+        return IndentResult(
+            x=x, y=y, trace=self._trace(record, start, "indent"), completed=completed
+        )

@@ -11,9 +11,8 @@ a time, and the outputs keep their last level when a task stops.
 Construction checks package, driver and device and raises `DaqUnavailable` naming what is
 missing, so a driver node started without hardware fails at start-up with that message.
 """
-from __future__ import annotations
 
-from typing import Optional
+from __future__ import annotations
 
 import numpy as np
 
@@ -28,7 +27,8 @@ def _driver_error(error: Exception) -> DaqUnavailable:
         return DaqUnavailable(
             "NI-DAQmx driver/runtime not found: the 'nidaqmx' Python package is installed but the "
             "NI-DAQmx driver is not (install it from NI; on Linux `python -m nidaqmx installdriver`). "
-            f"Driver said: {error}")
+            f"Driver said: {error}"
+        )
     return DaqUnavailable(f"NI-DAQmx could not list the local devices: {kind}: {error}")
 
 
@@ -40,21 +40,26 @@ class NidaqmxBoundary:
     channels ("DEFAULT", "RSE", "NRSE", "DIFF"): how the controller's monitor BNCs are wired.
     """
 
-    def __init__(self, device: str = "Dev1", terminal_config: str = "DEFAULT", timeout_margin: float = 5.0):
+    def __init__(
+        self, device: str = "Dev1", terminal_config: str = "DEFAULT", timeout_margin: float = 5.0
+    ):
         try:
             import nidaqmx
             import nidaqmx.system
         except ImportError as e:
             raise DaqUnavailable(
                 "NI-DAQmx unavailable: the Python package 'nidaqmx' is not installed "
-                f"(pip install nidaqmx; it also needs the NI-DAQmx driver) [{e}]") from e
+                f"(pip install nidaqmx; it also needs the NI-DAQmx driver) [{e}]"
+            ) from e
         try:
             names = list(nidaqmx.system.System.local().devices.device_names)
-        except Exception as e:           # the driver is loaded on this first call
+        except Exception as e:  # the driver is loaded on this first call
             raise _driver_error(e) from e
         if device not in names:
-            raise DaqUnavailable(f'DAQ device "{device}" not present; NI-DAQmx sees: '
-                                 f'{", ".join(names) if names else "no devices"}')
+            raise DaqUnavailable(
+                f'DAQ device "{device}" not present; NI-DAQmx sees: '
+                f"{', '.join(names) if names else 'no devices'}"
+            )
         self._nidaqmx = nidaqmx
         self.device = device
         self.terminal_config = terminal_config
@@ -67,23 +72,38 @@ class NidaqmxBoundary:
     def _physical(self, channel: str) -> str:
         return channel if "/" in channel else f"{self.device}/{channel}"
 
-    def configure(self, ao_channels: list[str], ai_channels: list[str], sample_rate: float,
-                  ao_range: tuple[float, float], ai_range: tuple[float, float]) -> None:
+    def configure(
+        self,
+        ao_channels: list[str],
+        ai_channels: list[str],
+        sample_rate: float,
+        ao_range: tuple[float, float],
+        ai_range: tuple[float, float],
+    ) -> None:
         from nidaqmx.constants import RegenerationMode, TerminalConfiguration
         from nidaqmx.stream_readers import AnalogMultiChannelReader
         from nidaqmx.stream_writers import AnalogMultiChannelWriter
 
         self._close_tasks()
         Task = self._nidaqmx.Task
-        self._ao, self._ai, self._static = Task("afm_ao_ramp"), Task("afm_ai"), Task("afm_ao_static")
+        self._ao, self._ai, self._static = (
+            Task("afm_ao_ramp"),
+            Task("afm_ai"),
+            Task("afm_ao_static"),
+        )
         terminal = TerminalConfiguration[self.terminal_config]
         for channel in ao_channels:
             for task in (self._ao, self._static):
-                task.ao_channels.add_ao_voltage_chan(self._physical(channel), min_val=ao_range[0],
-                                                     max_val=ao_range[1])
+                task.ao_channels.add_ao_voltage_chan(
+                    self._physical(channel), min_val=ao_range[0], max_val=ao_range[1]
+                )
         for channel in ai_channels:
-            self._ai.ai_channels.add_ai_voltage_chan(self._physical(channel), terminal_config=terminal,
-                                                     min_val=ai_range[0], max_val=ai_range[1])
+            self._ai.ai_channels.add_ai_voltage_chan(
+                self._physical(channel),
+                terminal_config=terminal,
+                min_val=ai_range[0],
+                max_val=ai_range[1],
+            )
         # Never replay stale samples: a late write must fail, not repeat a ramp.
         self._ao.out_stream.regen_mode = RegenerationMode.DONT_ALLOW_REGENERATION
         self._writer = AnalogMultiChannelWriter(self._ao.out_stream, auto_start=False)
@@ -98,18 +118,25 @@ class NidaqmxBoundary:
             raise RuntimeError("NidaqmxBoundary: write_read before configure")
         data = np.ascontiguousarray(ao_samples, dtype=np.float64)
         n = data.shape[1]
-        self._ao.timing.cfg_samp_clk_timing(self.sample_rate, sample_mode=AcquisitionType.FINITE,
-                                            samps_per_chan=n)
-        self._ai.timing.cfg_samp_clk_timing(self.sample_rate, source=f"/{self.device}/ao/SampleClock",
-                                            sample_mode=AcquisitionType.FINITE, samps_per_chan=n)
+        self._ao.timing.cfg_samp_clk_timing(
+            self.sample_rate, sample_mode=AcquisitionType.FINITE, samps_per_chan=n
+        )
+        self._ai.timing.cfg_samp_clk_timing(
+            self.sample_rate,
+            source=f"/{self.device}/ao/SampleClock",
+            sample_mode=AcquisitionType.FINITE,
+            samps_per_chan=n,
+        )
         self._writer.write_many_sample(data)
         readings = np.zeros((self._n_ai, n))
         timeout = n / self.sample_rate + self.timeout_margin
-        self._ai.start()                 # armed: waits for the AO sample clock
+        self._ai.start()  # armed: waits for the AO sample clock
         try:
             self._ao.start()
             try:
-                self._reader.read_many_sample(readings, number_of_samples_per_channel=n, timeout=timeout)
+                self._reader.read_many_sample(
+                    readings, number_of_samples_per_channel=n, timeout=timeout
+                )
                 self._ao.wait_until_done(timeout=self.timeout_margin)
             finally:
                 self._ao.stop()
@@ -130,7 +157,7 @@ class NidaqmxBoundary:
             self._static.write([float(v) for v in np.ravel(volts)])
         finally:
             self._static.stop()
-            self._static.control(TaskMode.TASK_UNRESERVE)   # free for the next ramp; levels hold
+            self._static.control(TaskMode.TASK_UNRESERVE)  # free for the next ramp; levels hold
 
     def _close_tasks(self) -> None:
         for task in (self._ao, self._ai, self._static):
@@ -142,10 +169,11 @@ class NidaqmxBoundary:
         self._close_tasks()
 
 
-def available_devices() -> Optional[list[str]]:
+def available_devices() -> list[str] | None:
     """Device names NI-DAQmx sees, or None when the package or driver is missing (diagnostics)."""
     try:
         import nidaqmx.system
+
         return list(nidaqmx.system.System.local().devices.device_names)
     except Exception:
         return None

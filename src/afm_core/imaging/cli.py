@@ -7,6 +7,7 @@
 
 Files: .npz (ours), .gwy (Gwyddion), .npy (give --pixel-size). Output never overwrites.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,79 +21,149 @@ from afm_core.imaging.files import HeightMap, load_height_map, save_height_map
 from afm_core.instrument import RasterScanData
 
 
-def _scan(hmap: HeightMap, angle: float, frame_up: bool, line_rate: float, start: float) -> RasterScanData:
+def _scan(
+    hmap: HeightMap, angle: float, frame_up: bool, line_rate: float, start: float
+) -> RasterScanData:
     lines = hmap.height.shape[0] if angle == 0.0 else hmap.height.shape[1]
     order = np.arange(lines) if frame_up else np.arange(lines)[::-1]
     starts = np.empty(lines)
     starts[order] = np.arange(lines) / line_rate
-    return RasterScanData(height=hmap.height, pixel_size_x=hmap.pixel_size_x, pixel_size_y=hmap.pixel_size_y,
-                          origin_x=hmap.origin_x, origin_y=hmap.origin_y, scan_angle_deg=angle, slow_scan_up=frame_up,
-                          line_period=1.0 / line_rate, line_start_times=starts, start_time=start, mode="tapping")
+    return RasterScanData(
+        height=hmap.height,
+        pixel_size_x=hmap.pixel_size_x,
+        pixel_size_y=hmap.pixel_size_y,
+        origin_x=hmap.origin_x,
+        origin_y=hmap.origin_y,
+        scan_angle_deg=angle,
+        slow_scan_up=frame_up,
+        line_period=1.0 / line_rate,
+        line_start_times=starts,
+        start_time=start,
+        mode="tapping",
+    )
 
 
 def cmd_drift(args) -> int:
     from afm_core.imaging.drift import compensate_pair
+
     if not args.line_rate > 0:
         raise ValueError(f"--line-rate={args.line_rate}: must be > 0 Hz")
     first = load_height_map(args.scan0, args.channel, args.pixel_size)
     second = load_height_map(args.scan90, args.channel, args.pixel_size)
     lines0 = first.height.shape[0]
     gap = args.gap if args.gap is not None else lines0 / args.line_rate
-    result = compensate_pair(_scan(first, 0.0, not args.down0, args.line_rate, 0.0),
-                             _scan(second, 90.0, not args.down90, args.line_rate, gap), order=args.order)
-    save_height_map(args.output, HeightMap(result.corrected, first.pixel_size_x, first.pixel_size_y,
-                                           first.origin_x, first.origin_y, title="drift-corrected"))
+    result = compensate_pair(
+        _scan(first, 0.0, not args.down0, args.line_rate, 0.0),
+        _scan(second, 90.0, not args.down90, args.line_rate, gap),
+        order=args.order,
+    )
+    save_height_map(
+        args.output,
+        HeightMap(
+            result.corrected,
+            first.pixel_size_x,
+            first.pixel_size_y,
+            first.origin_x,
+            first.origin_y,
+            title="drift-corrected",
+        ),
+    )
     vx, vy = result.velocity
-    print(f"drift velocity ({vx * 1e9:.4f}, {vy * 1e9:.4f}) nm/s; {len(result.feature_offsets)} feature regions; "
-          f"{result.seconds:.2f} s; wrote {args.output}")
+    print(
+        f"drift velocity ({vx * 1e9:.4f}, {vy * 1e9:.4f}) nm/s; {len(result.feature_offsets)} feature regions; "
+        f"{result.seconds:.2f} s; wrote {args.output}"
+    )
     return 0
 
 
 def cmd_tip(args) -> int:
     from afm_core.imaging.tip_estimation import estimate_tip
+
     image = load_height_map(args.image, args.channel, args.pixel_size)
     if image.pixel_size_x != image.pixel_size_y:
-        raise ValueError(f"{args.image}: blind tip estimation needs square pixels "
-                         f"({image.pixel_size_x:.3e} x {image.pixel_size_y:.3e} m)")
+        raise ValueError(
+            f"{args.image}: blind tip estimation needs square pixels "
+            f"({image.pixel_size_x:.3e} x {image.pixel_size_y:.3e} m)"
+        )
     threshold = args.threshold if args.threshold == "auto" else float(args.threshold)
-    estimate = estimate_tip(image.height, args.tip_size, threshold=threshold, pixel_size=image.pixel_size_x)
-    save_height_map(args.output, HeightMap(estimate.tip, image.pixel_size_x, image.pixel_size_y, title="tip"))
-    print(f"tip {args.tip_size}x{args.tip_size}: threshold {estimate.threshold * 1e9:.3f} nm, "
-          f"{estimate.iterations} iterations, {estimate.seconds:.2f} s; wrote {args.output}")
+    estimate = estimate_tip(
+        image.height, args.tip_size, threshold=threshold, pixel_size=image.pixel_size_x
+    )
+    save_height_map(
+        args.output, HeightMap(estimate.tip, image.pixel_size_x, image.pixel_size_y, title="tip")
+    )
+    print(
+        f"tip {args.tip_size}x{args.tip_size}: threshold {estimate.threshold * 1e9:.3f} nm, "
+        f"{estimate.iterations} iterations, {estimate.seconds:.2f} s; wrote {args.output}"
+    )
     return 0
 
 
 def cmd_reconstruct(args) -> int:
     from afm_core.imaging.tip_estimation import erode
+
     image = load_height_map(args.image, args.channel, args.pixel_size)
     tip = load_height_map(args.tip)
     if not np.isclose(tip.pixel_size_x, image.pixel_size_x, rtol=1e-6):
-        raise ValueError(f"--tip pixel size {tip.pixel_size_x:.4e} m differs from the image's "
-                         f"{image.pixel_size_x:.4e} m")
+        raise ValueError(
+            f"--tip pixel size {tip.pixel_size_x:.4e} m differs from the image's "
+            f"{image.pixel_size_x:.4e} m"
+        )
     started = time.perf_counter()
     surface = erode(image.height, tip.height)
-    save_height_map(args.output, HeightMap(surface, image.pixel_size_x, image.pixel_size_y, image.origin_x,
-                                           image.origin_y, title="reconstructed"))
-    print(f"eroded by the {tip.height.shape[0]}x{tip.height.shape[1]} tip in {time.perf_counter() - started:.2f} s; "
-          f"wrote {args.output}")
+    save_height_map(
+        args.output,
+        HeightMap(
+            surface,
+            image.pixel_size_x,
+            image.pixel_size_y,
+            image.origin_x,
+            image.origin_y,
+            title="reconstructed",
+        ),
+    )
+    print(
+        f"eroded by the {tip.height.shape[0]}x{tip.height.shape[1]} tip in {time.perf_counter() - started:.2f} s; "
+        f"wrote {args.output}"
+    )
     return 0
 
 
 def cmd_landmarks(args) -> int:
     from afm_core.imaging.landmarks import extract_landmarks
+
     image = load_height_map(args.image, args.channel, args.pixel_size)
-    marks = extract_landmarks(image.height, image.pixel_size_x, image.pixel_size_y, image.origin_x, image.origin_y,
-                              min_height=args.min_height)
+    marks = extract_landmarks(
+        image.height,
+        image.pixel_size_x,
+        image.pixel_size_y,
+        image.origin_x,
+        image.origin_y,
+        min_height=args.min_height,
+    )
     print(f"{len(marks)} landmarks in {args.image}")
     for m in marks:
         sx, sy = np.sqrt(np.diag(m.covariance))
-        print(f"  {m.id:3d} {m.kind:6s} at ({m.x * 1e9:10.1f}, {m.y * 1e9:10.1f}) nm  sigma ({sx * 1e9:.1f}, "
-              f"{sy * 1e9:.1f}) nm  height {m.height * 1e9:.1f} nm")
+        print(
+            f"  {m.id:3d} {m.kind:6s} at ({m.x * 1e9:10.1f}, {m.y * 1e9:10.1f}) nm  sigma ({sx * 1e9:.1f}, "
+            f"{sy * 1e9:.1f}) nm  height {m.height * 1e9:.1f} nm"
+        )
     if args.json:
-        rows = [{"id": m.id, "kind": m.kind, "x": m.x, "y": m.y, "covariance": np.asarray(m.covariance).tolist(),
-                 "radius": m.radius, "height": m.height, "length": m.length, "orientation": m.orientation}
-                for m in marks]
-        with open(args.json, "x") as handle:      # never overwrite
+        rows = [
+            {
+                "id": m.id,
+                "kind": m.kind,
+                "x": m.x,
+                "y": m.y,
+                "covariance": np.asarray(m.covariance).tolist(),
+                "radius": m.radius,
+                "height": m.height,
+                "length": m.length,
+                "orientation": m.orientation,
+            }
+            for m in marks
+        ]
+        with open(args.json, "x") as handle:  # never overwrite
             json.dump(rows, handle, indent=2)
         print(f"wrote {args.json} (SI units)")
     return 0
@@ -106,25 +177,41 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
         p.add_argument("--channel", default=0, help=".gwy channel: index or title (default 0)")
         p.add_argument("--pixel-size", type=length, help="for .npy files: pixel size (e.g. 2nm)")
 
-    p = sub.add_parser("drift", help="correct thermal drift from a 0 deg / 90 deg scan pair",
-                       description="Thermal-drift compensation from a 0/90 deg pair of the same area (book ch. 3).")
+    p = sub.add_parser(
+        "drift",
+        help="correct thermal drift from a 0 deg / 90 deg scan pair",
+        description="Thermal-drift compensation from a 0/90 deg pair of the same area (book ch. 3).",
+    )
     p.add_argument("scan0", help="0 deg scan (rows = fast lines)")
     p.add_argument("scan90", help="90 deg scan of the same area (columns = fast lines)")
-    p.add_argument("--line-rate", type=float, required=True, help="lines per second of both scans (Hz)")
+    p.add_argument(
+        "--line-rate", type=float, required=True, help="lines per second of both scans (Hz)"
+    )
     p.add_argument("--down0", action="store_true", help="the 0 deg scan was frame-down")
     p.add_argument("--down90", action="store_true", help="the 90 deg scan was frame-down")
-    p.add_argument("--gap", type=float, help="s from the start of the 0 deg scan to the 90 deg one "
-                                             "(default: right after it)")
-    p.add_argument("--order", type=int, default=1, choices=[1, 2], help="offset-vector order (book: 1)")
+    p.add_argument(
+        "--gap",
+        type=float,
+        help="s from the start of the 0 deg scan to the 90 deg one (default: right after it)",
+    )
+    p.add_argument(
+        "--order", type=int, default=1, choices=[1, 2], help="offset-vector order (book: 1)"
+    )
     p.add_argument("-o", "--output", required=True, help="corrected map (.npz or .gwy)")
     common(p)
     p.set_defaults(image_func=cmd_drift)
 
-    p = sub.add_parser("tip", help="blind tip estimation", description="Blind tip estimation (book ch. 4).")
+    p = sub.add_parser(
+        "tip", help="blind tip estimation", description="Blind tip estimation (book ch. 4)."
+    )
     p.add_argument("image")
     p.add_argument("--tip-size", type=int, default=21, help="tip window in pixels (odd)")
-    p.add_argument("--threshold", default="auto", help="denoising threshold in metres, or auto (default)")
-    p.add_argument("-o", "--output", required=True, help="tip (.npz or .gwy), apex 0 at the centre")
+    p.add_argument(
+        "--threshold", default="auto", help="denoising threshold in metres, or auto (default)"
+    )
+    p.add_argument(
+        "-o", "--output", required=True, help="tip (.npz or .gwy), apex 0 at the centre"
+    )
     common(p)
     p.set_defaults(image_func=cmd_tip)
 
@@ -137,7 +224,9 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
 
     p = sub.add_parser("landmarks", help="particles and tubes with centre and covariance")
     p.add_argument("image")
-    p.add_argument("--min-height", type=length, default=10e-9, help="features lower than this are ignored")
+    p.add_argument(
+        "--min-height", type=length, default=10e-9, help="features lower than this are ignored"
+    )
     p.add_argument("--json", help="also write the landmarks to this new JSON file")
     common(p)
     p.set_defaults(image_func=cmd_landmarks)

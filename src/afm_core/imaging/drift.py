@@ -70,6 +70,7 @@ The method attributes every difference between the two images to drift: scanner 
 creep and cross-coupling must be compensated (or negligible) first. SI units throughout (m, s);
 image axes: row = y index, column = x index.
 """
+
 from __future__ import annotations
 
 import math
@@ -81,26 +82,32 @@ from scipy import ndimage, sparse
 
 from afm_core.instrument import RasterScanData
 
-KNOT_LINES = 8                   # time-spline knot spacing, in line periods of the 0 deg scan
-DRIFT_SIGMA_VELOCITY = 0.21e-9   # m/s, stationary spread of the drift velocity (book Fig. 7.9, v_y)
+KNOT_LINES = 8  # time-spline knot spacing, in line periods of the 0 deg scan
+DRIFT_SIGMA_VELOCITY = 0.21e-9  # m/s, stationary spread of the drift velocity (book Fig. 7.9, v_y)
 DRIFT_CORRELATION_TIME = 1800.0  # s, how long the drift velocity stays about the same
-ROTATION_PRIOR = 0.01           # weight of the rotation prior in the Newton fit (see _newton_ncc)
-MIN_NCC = 0.9                    # a feature match below this is not used
-MIN_FEATURE_PIXELS = 9           # smaller blobs above the threshold are noise
-_VALUE_FLOOR = 0.15e-9           # m, model-error floor of p0, p1 (1 sigma)
-_GRADIENT_FLOOR = 5e-4           # model-error floor of p2..p5 (1 sigma)
-_ROTATION_SIGMA = 0.1            # rad: a round particle does not fix the rotation part of p (p3 - p4)
+ROTATION_PRIOR = 0.01  # weight of the rotation prior in the Newton fit (see _newton_ncc)
+MIN_NCC = 0.9  # a feature match below this is not used
+MIN_FEATURE_PIXELS = 9  # smaller blobs above the threshold are noise
+_VALUE_FLOOR = 0.15e-9  # m, model-error floor of p0, p1 (1 sigma)
+_GRADIENT_FLOOR = 5e-4  # model-error floor of p2..p5 (1 sigma)
+_ROTATION_SIGMA = 0.1  # rad: a round particle does not fix the rotation part of p (p3 - p4)
 
 
 @dataclass
 class DriftCorrection:
-    corrected: np.ndarray          # height map (m) in the scanner frame at t_ref, same grid as the 0 deg image
-    velocity: tuple                # (vx, vy) m/s, slope of the per-line displacements against time
-    offsets: np.ndarray            # (rows, 2): drift displacement (dx, dy) in m of each 0 deg row relative to t_ref
-    feature_offsets: list          # per feature region: (row0, col0, p vector in SI, ncc)
-    seconds: float                 # wall-clock time of the computation
-    t_ref: float = 0.0             # s, instrument clock: the corrected map is the sample as at this moment
-    valid: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), bool))  # False where the map extends the data
+    corrected: (
+        np.ndarray
+    )  # height map (m) in the scanner frame at t_ref, same grid as the 0 deg image
+    velocity: tuple  # (vx, vy) m/s, slope of the per-line displacements against time
+    offsets: (
+        np.ndarray
+    )  # (rows, 2): drift displacement (dx, dy) in m of each 0 deg row relative to t_ref
+    feature_offsets: list  # per feature region: (row0, col0, p vector in SI, ncc)
+    seconds: float  # wall-clock time of the computation
+    t_ref: float = 0.0  # s, instrument clock: the corrected map is the sample as at this moment
+    valid: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 0), bool)
+    )  # False where the map extends the data
 
 
 # -- the offset vector (eq. 3.15 / 3.17) ---------------------------------------------------------
@@ -117,7 +124,9 @@ def offset_displacement(p, dx, dy):
     the region centre. p = (p0..p5) or (p0..p11) in consistent units (SI: m, 1, 1/m)."""
     p = np.asarray(p, float)
     if p.shape not in ((6,), (12,)):
-        raise ValueError(f"p: {p.shape[0] if p.ndim == 1 else p.shape} parameters; the offset vector has 6 or 12")
+        raise ValueError(
+            f"p: {p.shape[0] if p.ndim == 1 else p.shape} parameters; the offset vector has 6 or 12"
+        )
     b = _basis(dx, dy, 1 if len(p) == 6 else 2)
     return b @ p[0::2], b @ p[1::2]
 
@@ -128,7 +137,7 @@ def recentre(p, dx: float, dy: float):
     u0, v0 = offset_displacement(p, dx, dy)
     q = p.copy()
     q[0], q[1] = u0, v0
-    if len(p) == 12:    # first derivatives change with the centre: du/dx = p2 + p6 dx + p10 dy, ...
+    if len(p) == 12:  # first derivatives change with the centre: du/dx = p2 + p6 dx + p10 dy, ...
         q[2] = p[2] + p[6] * dx + p[10] * dy
         q[3] = p[3] + p[7] * dx + p[11] * dy
         q[4] = p[4] + p[8] * dy + p[10] * dx
@@ -140,7 +149,10 @@ def recentre(p, dx: float, dy: float):
 def _cubic_weights(t):
     """Uniform cubic B-spline weights of the 4 coefficients i-1..i+2 at i + t, and their derivatives."""
     t2, t3 = t * t, t * t * t
-    w = np.stack([(1 - t) ** 3 / 6, (3 * t3 - 6 * t2 + 4) / 6, (-3 * t3 + 3 * t2 + 3 * t + 1) / 6, t3 / 6], -1)
+    w = np.stack(
+        [(1 - t) ** 3 / 6, (3 * t3 - 6 * t2 + 4) / 6, (-3 * t3 + 3 * t2 + 3 * t + 1) / 6, t3 / 6],
+        -1,
+    )
     dw = np.stack([-0.5 * (1 - t) ** 2, 1.5 * t2 - 2 * t, -1.5 * t2 + t + 0.5, 0.5 * t2], -1)
     return w, dw
 
@@ -149,12 +161,13 @@ class BSplineImage:
     """Bicubic B-spline interpolation of an image: the coefficient grid Q (scipy's exact cubic
     spline prefilter, mirror boundary) and the 4x4 evaluation p(u, v) = U M Q M^T V^T (eq. 3.11),
     with its analytic derivatives. Matches scipy.ndimage.map_coordinates(order=3, mode='mirror')."""
+
     PAD = 3
 
     def __init__(self, image: np.ndarray):
         image = np.asarray(image, float)
         coeffs = ndimage.spline_filter(image, order=3, mode="mirror")
-        self.coeffs = np.pad(coeffs, self.PAD, mode="reflect")   # scipy 'mirror' == numpy 'reflect'
+        self.coeffs = np.pad(coeffs, self.PAD, mode="reflect")  # scipy 'mirror' == numpy 'reflect'
         self.shape = image.shape
 
     def __call__(self, rows, cols, derivatives: bool = False):
@@ -168,8 +181,8 @@ class BSplineImage:
         offs = np.arange(-1, 3)
         idx_r = (ir[..., None] + offs + self.PAD)[..., :, None]
         idx_c = (ic[..., None] + offs + self.PAD)[..., None, :]
-        q = self.coeffs[idx_r, idx_c]                           # (..., 4, 4): Q
-        qc = np.matmul(q, wc[..., None])[..., 0]                # Q M^T V^T
+        q = self.coeffs[idx_r, idx_c]  # (..., 4, 4): Q
+        qc = np.matmul(q, wc[..., None])[..., 0]  # Q M^T V^T
         value = np.sum(wr * qc, axis=-1)
         if not derivatives:
             return value
@@ -200,11 +213,15 @@ def pixel_times(scan: RasterScanData, rows, cols):
 def _check_scan(name: str, scan: RasterScanData) -> None:
     h = np.asarray(scan.height)
     if h.ndim != 2 or min(h.shape) < 16:
-        raise ValueError(f"{name}.height: shape {h.shape}; need a 2-D image of at least 16 x 16 pixels")
+        raise ValueError(
+            f"{name}.height: shape {h.shape}; need a 2-D image of at least 16 x 16 pixels"
+        )
     bad = int(np.count_nonzero(~np.isfinite(h)))
     if bad:
-        raise ValueError(f"{name}.height: {bad} NaN/inf pixels (incomplete scan?); drift compensation needs "
-                         f"a complete image")
+        raise ValueError(
+            f"{name}.height: {bad} NaN/inf pixels (incomplete scan?); drift compensation needs "
+            f"a complete image"
+        )
     if scan.scan_angle_deg not in (0.0, 90.0):
         raise ValueError(f"{name}.scan_angle_deg={scan.scan_angle_deg}: must be 0 or 90")
     lines = h.shape[0] if scan.scan_angle_deg == 0.0 else h.shape[1]
@@ -222,25 +239,31 @@ def _check_scan(name: str, scan: RasterScanData) -> None:
 
 def _check_same_area(a: RasterScanData, b: RasterScanData, name_b: str) -> None:
     if np.shape(a.height) != np.shape(b.height):
-        raise ValueError(f"{name_b}.height: shape {np.shape(b.height)} differs from {np.shape(a.height)}; "
-                         f"both scans must have the same pixels")
+        raise ValueError(
+            f"{name_b}.height: shape {np.shape(b.height)} differs from {np.shape(a.height)}; "
+            f"both scans must have the same pixels"
+        )
     for attr in ("pixel_size_x", "pixel_size_y"):
         if not math.isclose(getattr(a, attr), getattr(b, attr), rel_tol=1e-6):
-            raise ValueError(f"{name_b}.{attr}={getattr(b, attr):.6e}: differs from {getattr(a, attr):.6e}; "
-                             f"both scans must cover the same area")
+            raise ValueError(
+                f"{name_b}.{attr}={getattr(b, attr):.6e}: differs from {getattr(a, attr):.6e}; "
+                f"both scans must cover the same area"
+            )
     for attr, pix in (("origin_x", a.pixel_size_x), ("origin_y", a.pixel_size_y)):
         if abs(getattr(a, attr) - getattr(b, attr)) > 1e-3 * pix:
-            raise ValueError(f"{name_b}.{attr}={getattr(b, attr):.6e}: differs from {getattr(a, attr):.6e}; "
-                             f"both scans must cover the same area")
+            raise ValueError(
+                f"{name_b}.{attr}={getattr(b, attr):.6e}: differs from {getattr(a, attr):.6e}; "
+                f"both scans must cover the same area"
+            )
 
 
 # -- features ---------------------------------------------------------------------------------
 @dataclass
 class _Blob:
     label_slice: tuple
-    centroid: np.ndarray        # (row, col), height-weighted over the part above half height
+    centroid: np.ndarray  # (row, col), height-weighted over the part above half height
     peak: float
-    window: tuple = ()          # (r0, r1, c0, c1), half-open, region with margin
+    window: tuple = ()  # (r0, r1, c0, c1), half-open, region with margin
 
 
 def _background(height: np.ndarray):
@@ -344,7 +367,7 @@ def _windows(blobs: list, shape) -> list:
         margin = max(4, int(math.ceil(0.3 * size)))
         r0, r1, c0, c1 = sr.start - margin, sr.stop + margin, sc.start - margin, sc.stop + margin
         if r0 < 2 or c0 < 2 or r1 > ny - 2 or c1 > nx - 2:
-            continue          # a particle cut by the image edge is no reliable feature
+            continue  # a particle cut by the image edge is no reliable feature
         blob.window = (r0, r1, c0, c1)
         kept.append(blob)
     return kept
@@ -353,27 +376,37 @@ def _windows(blobs: list, shape) -> list:
 # -- Newton iteration on the normalised cross-correlation (eq. 3.19-3.22) --------------------------
 @dataclass
 class _Fit:
-    p: np.ndarray               # pixel units, about the window centre
-    cov: np.ndarray             # covariance of p (Gauss-Newton), pixel units
+    p: np.ndarray  # pixel units, about the window centre
+    cov: np.ndarray  # covariance of p (Gauss-Newton), pixel units
     ncc: float
     converged: bool
-    projection: np.ndarray = None   # (P, 2N): p (pixel units) per displacement (du, dv) of each region pixel
-    rows_def: np.ndarray = None     # where the region's pixels are in the deformation image
+    projection: np.ndarray = (
+        None  # (P, 2N): p (pixel units) per displacement (du, dv) of each region pixel
+    )
+    rows_def: np.ndarray = None  # where the region's pixels are in the deformation image
     cols_def: np.ndarray = None
-    p_data: np.ndarray = None       # p without the rotation prior's pull: projection @ (du, dv)
+    p_data: np.ndarray = None  # p without the rotation prior's pull: projection @ (du, dv)
 
 
-def _newton_ncc(g: np.ndarray, rows: np.ndarray, cols: np.ndarray, centre, spline: BSplineImage,
-                p_start: np.ndarray, order: int, max_iter: int = 60) -> _Fit:
+def _newton_ncc(
+    g: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    centre,
+    spline: BSplineImage,
+    p_start: np.ndarray,
+    order: int,
+    max_iter: int = 60,
+) -> _Fit:
     r0, c0 = centre
     scale = max(float(np.max(np.abs(rows - r0))), float(np.max(np.abs(cols - c0))), 1.0)
-    basis = _basis((cols - c0) / scale, (rows - r0) / scale, order)       # (N, m)
+    basis = _basis((cols - c0) / scale, (rows - r0) / scale, order)  # (N, m)
     m = basis.shape[1]
     powers = np.array([0, 1, 1, 2, 2, 2][:m], float)
     gc = g - g.mean()
     g_hat = gc / np.linalg.norm(gc)
     q = np.zeros(2 * m)
-    q[:len(p_start)] = p_start * np.repeat(scale ** powers[:len(p_start) // 2], 2)
+    q[: len(p_start)] = p_start * np.repeat(scale ** powers[: len(p_start) // 2], 2)
 
     def evaluate(q, jacobian: bool):
         u, v = basis @ q[0::2], basis @ q[1::2]
@@ -393,7 +426,7 @@ def _newton_ncc(g: np.ndarray, rows: np.ndarray, cols: np.ndarray, centre, splin
         dh[:, 0::2] = h_col[:, None] * basis
         dh[:, 1::2] = h_row[:, None] * basis
         dh -= dh.mean(axis=0)
-        a = (dh - np.outer(h_hat, h_hat @ dh)) / norm        # d h^ / dq
+        a = (dh - np.outer(h_hat, h_hat @ dh)) / norm  # d h^ / dq
         return r, a
 
     res = evaluate(q, True)
@@ -422,11 +455,13 @@ def _newton_ncc(g: np.ndarray, rows: np.ndarray, cols: np.ndarray, centre, splin
     for _ in range(max_iter):
         ata = a.T @ a + prior
         try:
-            delta = np.linalg.solve(ata + lam * np.diag(np.diag(ata) + 1e-12),
-                                    a.T @ r - weight * e * (float(e @ q) - tau0))
+            delta = np.linalg.solve(
+                ata + lam * np.diag(np.diag(ata) + 1e-12),
+                a.T @ r - weight * e * (float(e @ q) - tau0),
+            )
         except np.linalg.LinAlgError:
             break
-        if np.max(np.abs(delta)) < 1e-4:          # pixels at the region's edge
+        if np.max(np.abs(delta)) < 1e-4:  # pixels at the region's edge
             converged = True
             break
         trial = evaluate(q + delta, True)
@@ -436,13 +471,13 @@ def _newton_ncc(g: np.ndarray, rows: np.ndarray, cols: np.ndarray, centre, splin
             new_cost = total(r, q)
             gain, cost = cost - new_cost, new_cost
             lam = max(lam / 4, 1e-9)
-            if gain < 1e-4 * cost:                # converged to well below the noise
+            if gain < 1e-4 * cost:  # converged to well below the noise
                 converged = True
                 break
         else:
             lam *= 8
             if lam > 1e8:
-                converged = True                  # no descent left: at the optimum within rounding
+                converged = True  # no descent left: at the optimum within rounding
                 break
     # Linearised, the fit is a weighted least-squares projection of the true displacement field
     # onto the offset-vector model, q = (a^T a + prior)^-1 (a^T M (du, dv) + prior q_start), with
@@ -454,14 +489,14 @@ def _newton_ncc(g: np.ndarray, rows: np.ndarray, cols: np.ndarray, centre, splin
     norm = float(np.linalg.norm(hc))
     h_hat = hc / norm
     ncc = 1.0 - float(r @ r) / 2.0
-    unscale = np.repeat(scale ** powers, 2)
+    unscale = np.repeat(scale**powers, 2)
     try:
         ata_inv = np.linalg.inv(a.T @ a + prior)
     except np.linalg.LinAlgError:
-        return _Fit(q / unscale, np.diag(np.full(2 * m, np.inf)), 0.0, False)     # unusable
+        return _Fit(q / unscale, np.diag(np.full(2 * m, np.inf)), 0.0, False)  # unusable
     dof = max(len(r) - 2 * m, 1)
     cov = ata_inv * float(r @ r) / dof / np.outer(unscale, unscale)
-    pa = ata_inv @ a.T / unscale[:, None]                 # (P, N): p per unit change of h^
+    pa = ata_inv @ a.T / unscale[:, None]  # (P, N): p per unit change of h^
     sens = _normalisation_adjoint(pa, h_hat, norm)
     projection = np.hstack([sens * h_col, sens * h_row])
     p_data = (q - ata_inv @ (weight * e * tau0)) / unscale
@@ -476,12 +511,22 @@ def _normalisation_adjoint(pa: np.ndarray, h_hat: np.ndarray, norm: float) -> np
 
 
 def _si_factors(n: int, px: float, py: float) -> np.ndarray:
-    s = np.array([px, py,                              # p0 (u), p1 (v): m
-                  1.0, py / px,                        # p2 du/dx, p3 dv/dx
-                  px / py, 1.0,                        # p4 du/dy, p5 dv/dy
-                  1 / px, py / px**2,                  # p6 d2u/dx2, p7 d2v/dx2
-                  px / py**2, 1 / py,                  # p8 d2u/dy2, p9 d2v/dy2
-                  1 / py, 1 / px])                     # p10 d2u/dxdy, p11 d2v/dxdy
+    s = np.array(
+        [
+            px,
+            py,  # p0 (u), p1 (v): m
+            1.0,
+            py / px,  # p2 du/dx, p3 dv/dx
+            px / py,
+            1.0,  # p4 du/dy, p5 dv/dy
+            1 / px,
+            py / px**2,  # p6 d2u/dx2, p7 d2v/dx2
+            px / py**2,
+            1 / py,  # p8 d2u/dy2, p9 d2v/dy2
+            1 / py,
+            1 / px,
+        ]
+    )  # p10 d2u/dxdy, p11 d2v/dxdy
     return s[:n]
 
 
@@ -507,7 +552,10 @@ def band_partition(row_extents) -> tuple[list, list]:
             bands.append([i])
             bottoms.append(ext[i][1])
     centre = [0.5 * (a + b) for a, b in ext]
-    splits = [0.5 * (max(centre[i] for i in a) + min(centre[i] for i in b)) for a, b in zip(bands[:-1], bands[1:])]
+    splits = [
+        0.5 * (max(centre[i] for i in a) + min(centre[i] for i in b))
+        for a, b in zip(bands[:-1], bands[1:])
+    ]
     return bands, splits
 
 
@@ -517,7 +565,9 @@ def band_offset_vectors(centres, ps, bands) -> list:
     out = []
     for band in bands:
         centre = np.mean([centres[i] for i in band], axis=0)
-        moved = [recentre(ps[i], centre[1] - centres[i][1], centre[0] - centres[i][0]) for i in band]
+        moved = [
+            recentre(ps[i], centre[1] - centres[i][1], centre[0] - centres[i][0]) for i in band
+        ]
         out.append((centre, np.mean(moved, axis=0)))
     return out
 
@@ -542,7 +592,9 @@ class _TimeSpline:
         t = np.atleast_1d(np.asarray(t, float))
         i, w = self._weights(t, derivative)
         cols = (i[:, None] - 1 + np.arange(4)).ravel()
-        return sparse.csr_matrix((w.ravel(), (np.repeat(np.arange(len(t)), 4), cols)), shape=(len(t), self.n))
+        return sparse.csr_matrix(
+            (w.ravel(), (np.repeat(np.arange(len(t)), 4), cols)), shape=(len(t), self.n)
+        )
 
     def __call__(self, coeffs: np.ndarray, t, derivative: bool = False) -> np.ndarray:
         """D(t) (or D'(t)) for coefficients (n, k): shape t.shape + (k,)."""
@@ -552,11 +604,11 @@ class _TimeSpline:
 
 @dataclass
 class _FeatureObs:
-    z: np.ndarray               # (p0 .. p5) in SI
-    cov: np.ndarray             # (6, 6) covariance of z, SI
-    projection: np.ndarray      # (6, 2N): z per displacement (dx, dy) in m of each region pixel
-    t0: np.ndarray              # (N,) when each region pixel was imaged at 0 deg
-    t90: np.ndarray             # (N,) when its match was imaged at 90 deg
+    z: np.ndarray  # (p0 .. p5) in SI
+    cov: np.ndarray  # (6, 6) covariance of z, SI
+    projection: np.ndarray  # (6, 2N): z per displacement (dx, dy) in m of each region pixel
+    t0: np.ndarray  # (N,) when each region pixel was imaged at 0 deg
+    t90: np.ndarray  # (N,) when its match was imaged at 90 deg
 
 
 def _fit_drift(obs: list, t_ref: float, t_start: float, t_end: float, spacing: float):
@@ -574,15 +626,17 @@ def _fit_drift(obs: list, t_ref: float, t_start: float, t_end: float, spacing: f
     the feature with the largest chi-square is dropped while it is an outlier."""
     spline = _TimeSpline(t_start, t_end, spacing)
     n = spline.n
-    nm = 1e9                                          # solve in nm: well-scaled normal equations
+    nm = 1e9  # solve in nm: well-scaled normal equations
     sigma_pen = nm * math.sqrt(2.0 * DRIFT_SIGMA_VELOCITY**2 * spacing**3 / DRIFT_CORRELATION_TIME)
-    unit = np.array([nm, nm, 1, 1, 1, 1])             # z in nm and dimensionless gradients
+    unit = np.array([nm, nm, 1, 1, 1, 1])  # z in nm and dimensionless gradients
     blocks = []
     for o in obs:
-        psi = spline.rows(o.t90) - spline.rows(o.t0)                  # (N, n), sparse
+        psi = spline.rows(o.t90) - spline.rows(o.t0)  # (N, n), sparse
         half = o.projection.shape[1] // 2
-        design = np.hstack([(psi.T @ o.projection[:, :half].T).T, (psi.T @ o.projection[:, half:].T).T])  # (6, 2n)
-        design = design * unit[:, None] / nm                              # per nm of coefficient
+        design = np.hstack(
+            [(psi.T @ o.projection[:, :half].T).T, (psi.T @ o.projection[:, half:].T).T]
+        )  # (6, 2n)
+        design = design * unit[:, None] / nm  # per nm of coefficient
         cov = o.cov * np.outer(unit, unit)
         try:
             white = np.linalg.inv(np.linalg.cholesky(cov))
@@ -597,40 +651,53 @@ def _fit_drift(obs: list, t_ref: float, t_start: float, t_end: float, spacing: f
     keep = np.ones(len(obs), bool)
     while True:
         design = np.vstack([blocks[k][0] for k in range(len(obs)) if keep[k]] + [pen, anchor])
-        rhs = np.concatenate([blocks[k][1] for k in range(len(obs)) if keep[k]] + [np.zeros(len(pen) + 2)])
+        rhs = np.concatenate(
+            [blocks[k][1] for k in range(len(obs)) if keep[k]] + [np.zeros(len(pen) + 2)]
+        )
         coeffs = np.linalg.lstsq(design, rhs, rcond=None)[0]
-        chi2 = np.array([float(np.sum((blocks[k][0] @ coeffs - blocks[k][1]) ** 2)) if keep[k] else 0.0
-                         for k in range(len(obs))])
+        chi2 = np.array(
+            [
+                float(np.sum((blocks[k][0] @ coeffs - blocks[k][1]) ** 2)) if keep[k] else 0.0
+                for k in range(len(obs))
+            ]
+        )
         kept = chi2[keep]
         limit = max(50.0, 10.0 * float(np.median(kept)))
         if keep.sum() <= 2 or kept.max() <= limit:
             break
         keep[int(np.argmax(np.where(keep, chi2, -1.0)))] = False
     coeffs = coeffs.reshape(2, n).T
-    coeffs -= spline(coeffs, t_ref)                   # D(t_ref) = 0 exactly (the B-splines sum to 1)
+    coeffs -= spline(coeffs, t_ref)  # D(t_ref) = 0 exactly (the B-splines sum to 1)
     coeffs /= nm
     return spline, coeffs, keep
 
 
 # -- the main entry ---------------------------------------------------------------------------
-def compensate_pair(scan0: RasterScanData, scan90: RasterScanData, order: int = 1,
-                    method: str = "time") -> DriftCorrection:
+def compensate_pair(
+    scan0: RasterScanData, scan90: RasterScanData, order: int = 1, method: str = "time"
+) -> DriftCorrection:
     """Reconstruct the 0 deg image free of thermal drift from a 0 deg / 90 deg pair of the same
     area (book ch. 3). `order`: 1 (6-parameter offset vector, the book's choice) or 2 (12
     parameters, eq. 3.17). `method`: "time" (drift as a smooth function of time, see the module
     doc) or "book" (eq. 3.23-3.27 literally)."""
     started = _time.perf_counter()
     if order not in (1, 2):
-        raise ValueError(f"order={order!r}: must be 1 (first-order offset vector) or 2 (second-order)")
+        raise ValueError(
+            f"order={order!r}: must be 1 (first-order offset vector) or 2 (second-order)"
+        )
     if method not in ("time", "book"):
         raise ValueError(f"method={method!r}: must be 'time' or 'book'")
     _check_scan("scan0", scan0)
     _check_scan("scan90", scan90)
     if scan0.scan_angle_deg != 0.0:
-        raise ValueError(f"scan0.scan_angle_deg={scan0.scan_angle_deg}: the reference must be the 0 deg scan")
+        raise ValueError(
+            f"scan0.scan_angle_deg={scan0.scan_angle_deg}: the reference must be the 0 deg scan"
+        )
     if scan90.scan_angle_deg != 90.0:
-        raise ValueError(f"scan90.scan_angle_deg={scan90.scan_angle_deg}: the deformation image must be the "
-                         f"90 deg scan")
+        raise ValueError(
+            f"scan90.scan_angle_deg={scan90.scan_angle_deg}: the deformation image must be the "
+            f"90 deg scan"
+        )
     _check_same_area(scan0, scan90, "scan90")
 
     h0 = np.asarray(scan0.height, float)
@@ -642,8 +709,10 @@ def compensate_pair(scan0: RasterScanData, scan90: RasterScanData, order: int = 
     blobs0, threshold = _blobs(h0)
     blobs0 = _windows(blobs0, h0.shape)
     if not blobs0:
-        raise ValueError("scan0.height: no feature regions (particles above the substrate, away from the "
-                         "image edge) found; drift compensation needs at least one")
+        raise ValueError(
+            "scan0.height: no feature regions (particles above the substrate, away from the "
+            "image edge) found; drift compensation needs at least one"
+        )
     blobs90, _ = _blobs(h90, threshold)
     shift = _global_shift(h0, h90)
     _, A, b = _match_blobs(blobs0, blobs90, shift)
@@ -654,15 +723,28 @@ def compensate_pair(scan0: RasterScanData, scan90: RasterScanData, order: int = 
         r_lo, r_hi, c_lo, c_hi = blob.window
         centre = np.array([0.5 * (r_lo + r_hi - 1), 0.5 * (c_lo + c_hi - 1)])
         pred = A @ centre + b
-        grad = A - np.eye(2)            # d(row', col')/d(row, col) - I
-        p_start = np.array([pred[1] - centre[1], pred[0] - centre[0],
-                            grad[1, 1], grad[0, 1], grad[1, 0], grad[0, 0]])
+        grad = A - np.eye(2)  # d(row', col')/d(row, col) - I
+        p_start = np.array(
+            [
+                pred[1] - centre[1],
+                pred[0] - centre[0],
+                grad[1, 1],
+                grad[0, 1],
+                grad[1, 0],
+                grad[0, 0],
+            ]
+        )
         rows, cols = np.mgrid[r_lo:r_hi, c_lo:c_hi]
         rows, cols = rows.ravel().astype(float), cols.ravel().astype(float)
         # a region the drift has partly carried out of the 90 deg image is matched on the part
         # that stays inside (3 pixels of slack for the start value's error)
         target = np.stack([rows, cols], axis=1) @ A.T + b
-        keep = ((target[:, 0] >= 3) & (target[:, 0] <= ny - 4) & (target[:, 1] >= 3) & (target[:, 1] <= nx - 4))
+        keep = (
+            (target[:, 0] >= 3)
+            & (target[:, 0] <= ny - 4)
+            & (target[:, 1] >= 3)
+            & (target[:, 1] <= nx - 4)
+        )
         c_pred = A @ blob.centroid + b
         if keep.mean() < 0.6 or not (0 <= c_pred[0] <= ny - 1 and 0 <= c_pred[1] <= nx - 1):
             continue
@@ -674,15 +756,23 @@ def compensate_pair(scan0: RasterScanData, scan90: RasterScanData, order: int = 
             if fit2.ncc >= fit.ncc:
                 fit = fit2
         u, v = offset_displacement(fit.p, cols - centre[1], rows - centre[0])
-        inside = (np.min(rows + v) >= 0 and np.max(rows + v) <= ny - 1 and np.min(cols + u) >= 0
-                  and np.max(cols + u) <= nx - 1)
+        inside = (
+            np.min(rows + v) >= 0
+            and np.max(rows + v) <= ny - 1
+            and np.min(cols + u) >= 0
+            and np.max(cols + u) <= nx - 1
+        )
         if fit.ncc >= MIN_NCC and inside and np.all(np.isfinite(fit.p)):
             fits.append((blob, centre, fit, rows, cols))
     if not fits:
-        raise ValueError("scan0.height: no feature region could be matched in scan90 (normalised "
-                         f"cross-correlation >= {MIN_NCC}); are they images of the same area?")
+        raise ValueError(
+            "scan0.height: no feature region could be matched in scan90 (normalised "
+            f"cross-correlation >= {MIN_NCC}); are they images of the same area?"
+        )
 
-    feature_offsets = [(float(c[0]), float(c[1]), _to_si(f.p, px, py), float(f.ncc)) for _, c, f, *_ in fits]
+    feature_offsets = [
+        (float(c[0]), float(c[1]), _to_si(f.p, px, py), float(f.ncc)) for _, c, f, *_ in fits
+    ]
     # Reference line c: the middle line of the 0 deg scan (in time). Anchoring there keeps the
     # whole map's frame interpolated between feature regions; at the first line it would rest
     # on an extrapolation of the drift, whose error would shift every row.
@@ -699,17 +789,35 @@ def compensate_pair(scan0: RasterScanData, scan90: RasterScanData, order: int = 
         for blob, centre, fit, rows, cols in fits:
             n_pix = rows.size
             projection = fit.projection[:6] * f[:, None]
-            projection[:, :n_pix] /= px                   # du in columns = dx / px
+            projection[:, :n_pix] /= px  # du in columns = dx / px
             projection[:, n_pix:] /= py
-            obs.append(_FeatureObs(
-                z=_to_si(fit.p_data, px, py)[:6], cov=fit.cov[:6, :6] * np.outer(f, f) + floor, projection=projection,
-                t0=pixel_times(scan0, rows, cols), t90=pixel_times(scan90, fit.rows_def, fit.cols_def)))
-        t_all = np.concatenate([[t_ref, scan0.start_time + np.min(scan0.line_start_times),
-                                 scan0.start_time + np.max(scan0.line_start_times) + scan0.line_period]]
-                               + [o.t0 for o in obs] + [o.t90 for o in obs])
+            obs.append(
+                _FeatureObs(
+                    z=_to_si(fit.p_data, px, py)[:6],
+                    cov=fit.cov[:6, :6] * np.outer(f, f) + floor,
+                    projection=projection,
+                    t0=pixel_times(scan0, rows, cols),
+                    t90=pixel_times(scan90, fit.rows_def, fit.cols_def),
+                )
+            )
+        t_all = np.concatenate(
+            [
+                [
+                    t_ref,
+                    scan0.start_time + np.min(scan0.line_start_times),
+                    scan0.start_time + np.max(scan0.line_start_times) + scan0.line_period,
+                ]
+            ]
+            + [o.t0 for o in obs]
+            + [o.t90 for o in obs]
+        )
         spacing = KNOT_LINES * scan0.line_period
-        tspline, coeffs, keep = _fit_drift(obs, t_ref, float(t_all.min()), float(t_all.max()), spacing)
-        feature_offsets = [entry for entry, used in zip(feature_offsets, keep) if used]   # outliers dropped
+        tspline, coeffs, keep = _fit_drift(
+            obs, t_ref, float(t_all.min()), float(t_all.max()), spacing
+        )
+        feature_offsets = [
+            entry for entry, used in zip(feature_offsets, keep) if used
+        ]  # outliers dropped
 
         def displacement(rows, cols):
             d = tspline(coeffs, pixel_times(scan0, rows, cols))
@@ -727,10 +835,15 @@ def compensate_pair(scan0: RasterScanData, scan90: RasterScanData, order: int = 
 
     corrected, valid = _resample(h0, displacement, px, py)
     velocity = _slope(row_times, offsets)
-    return DriftCorrection(corrected=corrected.astype(np.asarray(scan0.height).dtype, copy=False),
-                           velocity=(float(velocity[0]), float(velocity[1])), offsets=offsets,
-                           feature_offsets=feature_offsets, seconds=_time.perf_counter() - started,
-                           t_ref=t_ref, valid=valid)
+    return DriftCorrection(
+        corrected=corrected.astype(np.asarray(scan0.height).dtype, copy=False),
+        velocity=(float(velocity[0]), float(velocity[1])),
+        offsets=offsets,
+        feature_offsets=feature_offsets,
+        seconds=_time.perf_counter() - started,
+        t_ref=t_ref,
+        valid=valid,
+    )
 
 
 def _slope(t: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -758,7 +871,9 @@ def _book_line_offsets(fits, shape, ref_line: int) -> np.ndarray:
     of the line mean of (u, v)."""
     ny, nx = shape
     centres = [c for _, c, *_ in fits]
-    ps = [f.p[:6] for _, _, f, *_ in fits]         # first order: the band means extrapolate p over the band
+    ps = [
+        f.p[:6] for _, _, f, *_ in fits
+    ]  # first order: the band means extrapolate p over the band
     extents = [(blob.window[0], blob.window[1] - 1) for blob, *_ in fits]
     bands, splits = band_partition(extents)
     band_p = band_offset_vectors(centres, ps, bands)
@@ -783,7 +898,9 @@ def _book_line_offsets(fits, shape, ref_line: int) -> np.ndarray:
 
 
 # -- frame up / frame down (eq. 5.32-5.36) -----------------------------------------------------
-def velocity_from_up_down(scan_up: RasterScanData, scan_down: RasterScanData) -> tuple[float, float]:
+def velocity_from_up_down(
+    scan_up: RasterScanData, scan_down: RasterScanData
+) -> tuple[float, float]:
     """Drift velocity (vx, vy) in m/s from a frame-up and a frame-down image of the same area at
     the same angle (book 5.3.3).
 
@@ -812,6 +929,7 @@ class UpDownObservations:
     """The particles matched between a frame-up and a frame-down image: their positions
     (n, 2) as (x, y) in m from the image origin, in image units (commanded pixel size), and
     the instrument-clock moments (n,) their centres were imaged (`pixel_times`)."""
+
     position_up: np.ndarray
     position_down: np.ndarray
     t_up: np.ndarray
@@ -823,12 +941,16 @@ def up_down_observations(scan_up: RasterScanData, scan_down: RasterScanData) -> 
     _check_scan("scan_up", scan_up)
     _check_scan("scan_down", scan_down)
     if scan_down.scan_angle_deg != scan_up.scan_angle_deg:
-        raise ValueError(f"scan_down.scan_angle_deg={scan_down.scan_angle_deg}: must equal "
-                         f"scan_up.scan_angle_deg={scan_up.scan_angle_deg}")
+        raise ValueError(
+            f"scan_down.scan_angle_deg={scan_down.scan_angle_deg}: must equal "
+            f"scan_up.scan_angle_deg={scan_up.scan_angle_deg}"
+        )
     if not scan_up.slow_scan_up:
         raise ValueError("scan_up.slow_scan_up=False: the frame-up image must be scanned upwards")
     if scan_down.slow_scan_up:
-        raise ValueError("scan_down.slow_scan_up=True: the frame-down image must be scanned downwards")
+        raise ValueError(
+            "scan_down.slow_scan_up=True: the frame-down image must be scanned downwards"
+        )
     _check_same_area(scan_up, scan_down, "scan_down")
     hu = np.asarray(scan_up.height, float)
     hd = np.asarray(scan_down.height, float)
@@ -840,16 +962,22 @@ def up_down_observations(scan_up: RasterScanData, scan_down: RasterScanData) -> 
         raise ValueError(f"scan_up.height: {len(blobs_u)} particle(s) found; need at least two")
     pairs, _, _ = _match_blobs(blobs_u, blobs_d, _global_shift(hu, hd))
     if len(pairs) < 2:
-        raise ValueError(f"scan_down.height: only {len(pairs)} particle(s) match the frame-up image; need two")
+        raise ValueError(
+            f"scan_down.height: only {len(pairs)} particle(s) match the frame-up image; need two"
+        )
     pu = np.array([blobs_u[i].centroid for i, _ in pairs])
     pd = np.array([blobs_d[j].centroid for _, j in pairs])
     tu = pixel_times(scan_up, pu[:, 0], pu[:, 1])
     td = pixel_times(scan_down, pd[:, 0], pd[:, 1])
     if np.ptp(tu - td) <= 0:
-        raise ValueError("scan_up.height: the particles were imaged at the same moments; need particles on "
-                         "different lines")
+        raise ValueError(
+            "scan_up.height: the particles were imaged at the same moments; need particles on "
+            "different lines"
+        )
     scale = np.array([scan_up.pixel_size_x, scan_up.pixel_size_y])
-    return UpDownObservations(position_up=pu[:, ::-1] * scale, position_down=pd[:, ::-1] * scale, t_up=tu, t_down=td)
+    return UpDownObservations(
+        position_up=pu[:, ::-1] * scale, position_down=pd[:, ::-1] * scale, t_up=tu, t_down=td
+    )
 
 
 def up_down_velocity(obs: UpDownObservations) -> tuple[float, float]:
@@ -869,6 +997,13 @@ def sampled_velocity(offset, t_up, t_down) -> np.ndarray:
     stretches of the two frames where the particles are), which is the truth to compare a
     measured pair velocity with (not the mean velocity over the pair's whole span)."""
     t_up, t_down = np.asarray(t_up, float), np.asarray(t_down, float)
-    return np.array(up_down_velocity(UpDownObservations(position_up=np.asarray(offset(t_up), float),
-                                                        position_down=np.asarray(offset(t_down), float),
-                                                        t_up=t_up, t_down=t_down)))
+    return np.array(
+        up_down_velocity(
+            UpDownObservations(
+                position_up=np.asarray(offset(t_up), float),
+                position_down=np.asarray(offset(t_down), float),
+                t_up=t_up,
+                t_down=t_down,
+            )
+        )
+    )

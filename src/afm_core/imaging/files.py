@@ -29,21 +29,44 @@ lists the ones that do), units that cannot be converted to metres, NaN or infini
 malformed files raise ValueError naming the problem. Saving never overwrites a file
 (FileExistsError).
 """
+
 from __future__ import annotations
 
 import io
 import math
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence, Union
 
 import numpy as np
 
 SUFFIXES = (".npz", ".npy", ".gwy")
-_SI_PREFIX = {"": 1.0, "Y": 1e24, "Z": 1e21, "E": 1e18, "P": 1e15, "T": 1e12, "G": 1e9, "M": 1e6, "k": 1e3,
-              "h": 1e2, "da": 1e1, "d": 1e-1, "c": 1e-2, "m": 1e-3, "u": 1e-6, "\u00b5": 1e-6, "\u03bc": 1e-6,
-              "n": 1e-9, "p": 1e-12, "f": 1e-15, "a": 1e-18, "z": 1e-21, "y": 1e-24}
+_SI_PREFIX = {
+    "": 1.0,
+    "Y": 1e24,
+    "Z": 1e21,
+    "E": 1e18,
+    "P": 1e15,
+    "T": 1e12,
+    "G": 1e9,
+    "M": 1e6,
+    "k": 1e3,
+    "h": 1e2,
+    "da": 1e1,
+    "d": 1e-1,
+    "c": 1e-2,
+    "m": 1e-3,
+    "u": 1e-6,
+    "\u00b5": 1e-6,
+    "\u03bc": 1e-6,
+    "n": 1e-9,
+    "p": 1e-12,
+    "f": 1e-15,
+    "a": 1e-18,
+    "z": 1e-21,
+    "y": 1e-24,
+}
 _ANGSTROM = ("\u00c5", "\u212b", "angstrom", "Angstrom")
 
 
@@ -53,11 +76,11 @@ class ImageFileNotFound(FileNotFoundError, ValueError):
 
 @dataclass
 class HeightMap:
-    height: np.ndarray          # m, rows = y (row 0 at origin_y), columns = x
-    pixel_size_x: float         # m
-    pixel_size_y: float         # m
-    origin_x: float = 0.0       # m, lower-left corner of the area (pixel (0, 0)'s outer corner)
-    origin_y: float = 0.0       # m
+    height: np.ndarray  # m, rows = y (row 0 at origin_y), columns = x
+    pixel_size_x: float  # m
+    pixel_size_y: float  # m
+    origin_x: float = 0.0  # m, lower-left corner of the area (pixel (0, 0)'s outer corner)
+    origin_y: float = 0.0  # m
     title: str = ""
 
     @property
@@ -73,7 +96,9 @@ class HeightMap:
         finite pixel sizes and finite origin."""
         h = np.asarray(self.height)
         if h.ndim != 2 or min(h.shape) < 1:
-            raise ValueError(f"{where}: height must be a non-empty 2-D array (rows = y), got shape {h.shape}")
+            raise ValueError(
+                f"{where}: height must be a non-empty 2-D array (rows = y), got shape {h.shape}"
+            )
         if not np.issubdtype(h.dtype, np.number) or np.iscomplexobj(h):
             raise ValueError(f"{where}: height must be real numbers (m), got dtype {h.dtype}")
         bad = int(np.count_nonzero(~np.isfinite(h)))
@@ -91,7 +116,7 @@ class HeightMap:
             raise ValueError(f"{where}: title={self.title!r} must be a string")
 
 
-def load_height_map(path, channel: Union[int, str] = 0, pixel_size: float | None = None) -> HeightMap:
+def load_height_map(path, channel: int | str = 0, pixel_size: float | None = None) -> HeightMap:
     """The height map in `path` (.npz, .npy or .gwy), heights in metres, rows along +y.
 
     `channel`: for .gwy, the position in `list_channels(path)` or the channel's title; a
@@ -99,7 +124,9 @@ def load_height_map(path, channel: Union[int, str] = 0, pixel_size: float | None
     needed for .npy; for the other formats, which carry their own, it is only checked
     against the file's (ValueError if it disagrees)."""
     path, suffix = _checked_path(path, must_exist=True)
-    if pixel_size is not None and not (_is_number(pixel_size) and math.isfinite(pixel_size) and pixel_size > 0):
+    if pixel_size is not None and not (
+        _is_number(pixel_size) and math.isfinite(pixel_size) and pixel_size > 0
+    ):
         raise ValueError(f"pixel_size={pixel_size!r}: must be a finite number > 0 (m)")
     if suffix == ".npy":
         hmap = _load_npy(path, channel, pixel_size)
@@ -110,38 +137,47 @@ def load_height_map(path, channel: Union[int, str] = 0, pixel_size: float | None
     if pixel_size is not None and suffix != ".npy":
         for name in ("pixel_size_x", "pixel_size_y"):
             if not math.isclose(getattr(hmap, name), pixel_size, rel_tol=1e-6):
-                raise ValueError(f"{path}: pixel_size={pixel_size!r} m disagrees with the file's "
-                                 f"{name}={getattr(hmap, name)!r} m; leave pixel_size out for this format")
+                raise ValueError(
+                    f"{path}: pixel_size={pixel_size!r} m disagrees with the file's "
+                    f"{name}={getattr(hmap, name)!r} m; leave pixel_size out for this format"
+                )
     hmap.validate(str(path) + (f" channel {channel!r}" if suffix == ".gwy" else ""))
     return hmap
 
 
-def save_height_map(path, hmap: Union[HeightMap, Sequence[HeightMap]]) -> None:
+def save_height_map(path, hmap: HeightMap | Sequence[HeightMap]) -> None:
     """Write `hmap` to `path`: .npz (one map) or .gwy (one map or a sequence of maps, one
     channel each, in order), by the suffix. Never overwrites: FileExistsError if the file
     exists. Heights in metres; the .gwy units are m (lateral and z)."""
     path, suffix = _checked_path(path, must_exist=False)
     maps = [hmap] if isinstance(hmap, HeightMap) else list(hmap)
     if not maps or not all(isinstance(m, HeightMap) for m in maps):
-        raise ValueError(f"hmap: expected a HeightMap or a non-empty sequence of them, got {type(hmap).__name__}")
+        raise ValueError(
+            f"hmap: expected a HeightMap or a non-empty sequence of them, got {type(hmap).__name__}"
+        )
     for number, m in enumerate(maps):
         m.validate(f"hmap[{number}]" if len(maps) > 1 else "hmap")
     if suffix == ".npy":
         raise ValueError(f"{path}: .npy cannot hold the pixel size; save as .npz (native) or .gwy")
     if suffix == ".npz":
         if len(maps) != 1:
-            raise ValueError(f"{path}: a .npz holds one height map, got {len(maps)}; use .gwy for several channels")
+            raise ValueError(
+                f"{path}: a .npz holds one height map, got {len(maps)}; use .gwy for several channels"
+            )
         payload = _npz_bytes(maps[0])
     else:
         payload = _gwy_bytes(maps)
     if path.exists():
-        raise FileExistsError(f"{path}: already exists; not overwriting it (choose another name or remove it)")
+        raise FileExistsError(
+            f"{path}: already exists; not overwriting it (choose another name or remove it)"
+        )
     try:
-        with open(path, "xb") as f:          # exclusive create: never clobbers, even in a race
+        with open(path, "xb") as f:  # exclusive create: never clobbers, even in a race
             f.write(payload)
     except FileExistsError:
-        raise FileExistsError(f"{path}: already exists; not overwriting it (choose another name or remove it)") \
-            from None
+        raise FileExistsError(
+            f"{path}: already exists; not overwriting it (choose another name or remove it)"
+        ) from None
 
 
 def list_channels(path) -> list[str]:
@@ -157,9 +193,12 @@ def list_channels(path) -> list[str]:
 
 # -- .npy / .npz ----------------------------------------------------------------------------
 
+
 def _load_npy(path: Path, channel, pixel_size) -> HeightMap:
     if pixel_size is None:
-        raise ValueError(f"{path}: a .npy holds only heights; give pixel_size (m) or use a .npz/.gwy file")
+        raise ValueError(
+            f"{path}: a .npy holds only heights; give pixel_size (m) or use a .npz/.gwy file"
+        )
     _single_channel(path, channel, path.stem)
     try:
         height = np.load(path, allow_pickle=False)
@@ -175,7 +214,9 @@ def _load_npz(path: Path, channel, pixel_size) -> HeightMap:
         raise ValueError(f"{path}: not a readable .npz archive ({exc})") from exc
     with archive:
         if "height" not in archive.files:
-            raise ValueError(f"{path}: no 'height' array in the archive (has {sorted(archive.files)})")
+            raise ValueError(
+                f"{path}: no 'height' array in the archive (has {sorted(archive.files)})"
+            )
         title = _npz_string(archive, "title", path)
         _single_channel(path, channel, title)
         values = {}
@@ -185,12 +226,20 @@ def _load_npz(path: Path, channel, pixel_size) -> HeightMap:
         missing = [n for n in ("pixel_size_x", "pixel_size_y") if n not in values]
         if missing:
             if pixel_size is None:
-                raise ValueError(f"{path}: no {' or '.join(missing)} in the archive; give pixel_size (m)")
+                raise ValueError(
+                    f"{path}: no {' or '.join(missing)} in the archive; give pixel_size (m)"
+                )
             for name in missing:
                 values[name] = float(pixel_size)
         height = _heights(archive["height"], path)
-    return HeightMap(height, values["pixel_size_x"], values["pixel_size_y"], values.get("origin_x", 0.0),
-                     values.get("origin_y", 0.0), title)
+    return HeightMap(
+        height,
+        values["pixel_size_x"],
+        values["pixel_size_y"],
+        values.get("origin_x", 0.0),
+        values.get("origin_y", 0.0),
+        title,
+    )
 
 
 def _npz_title(path: Path) -> str:
@@ -214,32 +263,47 @@ def _npz_string(archive, name: str, path: Path) -> str:
 def _npz_scalar(archive, name: str, path: Path) -> float:
     value = archive[name]
     if value.size != 1 or value.dtype.kind not in "iuf":
-        raise ValueError(f"{path}: '{name}' must be a single number (m), got {value.dtype} of shape {value.shape}")
+        raise ValueError(
+            f"{path}: '{name}' must be a single number (m), got {value.dtype} of shape {value.shape}"
+        )
     return float(value.reshape(()))
 
 
 def _npz_bytes(m: HeightMap) -> bytes:
     buffer = io.BytesIO()
-    np.savez(buffer, height=np.asarray(m.height, dtype=np.float64), pixel_size_x=np.float64(m.pixel_size_x),
-             pixel_size_y=np.float64(m.pixel_size_y), origin_x=np.float64(m.origin_x),
-             origin_y=np.float64(m.origin_y), title=np.str_(m.title))
+    np.savez(
+        buffer,
+        height=np.asarray(m.height, dtype=np.float64),
+        pixel_size_x=np.float64(m.pixel_size_x),
+        pixel_size_y=np.float64(m.pixel_size_y),
+        origin_x=np.float64(m.origin_x),
+        origin_y=np.float64(m.origin_y),
+        title=np.str_(m.title),
+    )
     return buffer.getvalue()
 
 
 def _single_channel(path: Path, channel, title: str) -> None:
-    if isinstance(channel, bool) or not (channel == 0 or (isinstance(channel, str) and channel == title)):
-        raise ValueError(f"{path}: channel {channel!r} does not exist; this file holds one map: "
-                         f"channel 0 {title!r}")
+    if isinstance(channel, bool) or not (
+        channel == 0 or (isinstance(channel, str) and channel == title)
+    ):
+        raise ValueError(
+            f"{path}: channel {channel!r} does not exist; this file holds one map: "
+            f"channel 0 {title!r}"
+        )
 
 
 # -- .gwy -------------------------------------------------------------------------------------
+
 
 def _gwyfile():
     try:
         import gwyfile
     except ImportError as exc:
-        raise ImportError("reading and writing .gwy (Gwyddion) files needs the 'gwyfile' package: "
-                          "pip install gwyfile") from exc
+        raise ImportError(
+            "reading and writing .gwy (Gwyddion) files needs the 'gwyfile' package: "
+            "pip install gwyfile"
+        ) from exc
     return gwyfile
 
 
@@ -247,14 +311,20 @@ def _read_gwy(path: Path):
     gwyfile = _gwyfile()
     data = path.read_bytes()
     if data[:4] != b"GWYP":
-        hint = " (an old Gwyddion 1 file: re-save it with a current Gwyddion)" if data[:4] == b"GWYO" else ""
+        hint = (
+            " (an old Gwyddion 1 file: re-save it with a current Gwyddion)"
+            if data[:4] == b"GWYO"
+            else ""
+        )
         raise ValueError(f"{path}: not a Gwyddion .gwy file (no GWYP header){hint}")
     try:
         container = gwyfile.objects.GwyObject.frombuffer(data[4:])
-    except Exception as exc:            # truncated or corrupt: struct/unicode/index errors
+    except Exception as exc:  # truncated or corrupt: struct/unicode/index errors
         raise ValueError(f"{path}: malformed .gwy file ({type(exc).__name__}: {exc})") from exc
     if getattr(container, "name", None) != "GwyContainer":
-        raise ValueError(f"{path}: the top object is {getattr(container, 'name', '?')!r}, not a GwyContainer")
+        raise ValueError(
+            f"{path}: the top object is {getattr(container, 'name', '?')!r}, not a GwyContainer"
+        )
     return container
 
 
@@ -266,7 +336,7 @@ def _gwy_channels(container, path: Path) -> list[tuple[int, str, object]]:
         if match and getattr(value, "name", None) == "GwyDataField":
             number = int(match.group(1))
             title = container.get(f"/{number}/data/title", f"channel {number}")
-            if isinstance(title, int):                     # gwyfile reads a 1-char 'c' component as a byte
+            if isinstance(title, int):  # gwyfile reads a 1-char 'c' component as a byte
                 title = chr(title)
             channels.append((number, str(title), value))
     return sorted(channels, key=lambda item: item[0])
@@ -278,8 +348,10 @@ def _load_gwy(path: Path, channel) -> HeightMap:
     if isinstance(channel, str):
         chosen = [c for c in channels if c[1] == channel]
         if len(chosen) > 1:
-            raise ValueError(f"{path}: {len(chosen)} channels are titled {channel!r}; choose one by index "
-                             f"(channels: {available})")
+            raise ValueError(
+                f"{path}: {len(chosen)} channels are titled {channel!r}; choose one by index "
+                f"(channels: {available})"
+            )
     elif isinstance(channel, (int, np.integer)) and not isinstance(channel, bool):
         chosen = [channels[channel]] if 0 <= channel < len(channels) else []
     else:
@@ -309,12 +381,20 @@ def _load_gwy(path: Path, channel) -> HeightMap:
         if not (_is_number(value) and math.isfinite(value)):
             raise ValueError(f"{where}: {name}={value!r} must be a finite offset")
         offsets[name] = float(value) * lateral
-    height = raw.reshape(yres, xres)[::-1] * z_scale       # Gwyddion's top row becomes our last row (y up)
+    height = (
+        raw.reshape(yres, xres)[::-1] * z_scale
+    )  # Gwyddion's top row becomes our last row (y up)
     bad = int(np.count_nonzero(~np.isfinite(height)))
     if bad:
         raise ValueError(f"{where}: {bad} NaN or infinite value(s) in the data")
-    return HeightMap(np.ascontiguousarray(height), sizes["xreal"] / xres, sizes["yreal"] / yres,
-                     offsets["xoff"], offsets["yoff"], title)
+    return HeightMap(
+        np.ascontiguousarray(height),
+        sizes["xreal"] / xres,
+        sizes["yreal"] / yres,
+        offsets["xoff"],
+        offsets["yoff"],
+        title,
+    )
 
 
 def _gwy_bytes(maps: list[HeightMap]) -> bytes:
@@ -322,13 +402,23 @@ def _gwy_bytes(maps: list[HeightMap]) -> bytes:
     objects = gwyfile.objects
     container = objects.GwyContainer()
     for number, m in enumerate(maps):
-        data = np.ascontiguousarray(np.asarray(m.height, dtype=np.float64)[::-1])   # our row 0 at the bottom
-        field = objects.GwyDataField(data, xreal=float(m.size_x), yreal=float(m.size_y), xoff=float(m.origin_x),
-                                     yoff=float(m.origin_y), si_unit_xy=objects.GwySIUnit(unitstr="m"),
-                                     si_unit_z=objects.GwySIUnit(unitstr="m"))
+        data = np.ascontiguousarray(
+            np.asarray(m.height, dtype=np.float64)[::-1]
+        )  # our row 0 at the bottom
+        field = objects.GwyDataField(
+            data,
+            xreal=float(m.size_x),
+            yreal=float(m.size_y),
+            xoff=float(m.origin_x),
+            yoff=float(m.origin_y),
+            si_unit_xy=objects.GwySIUnit(unitstr="m"),
+            si_unit_z=objects.GwySIUnit(unitstr="m"),
+        )
         container[f"/{number}/data"] = field
         container[f"/{number}/data/title"] = m.title or f"height {number}"
-        container.typecodes[f"/{number}/data/title"] = "s"   # gwyfile would guess 'c' for a 1-char title
+        container.typecodes[f"/{number}/data/title"] = (
+            "s"  # gwyfile would guess 'c' for a 1-char title
+        )
     buffer = io.BytesIO()
     container.tofile(buffer)
     return buffer.getvalue()
@@ -336,7 +426,9 @@ def _gwy_bytes(maps: list[HeightMap]) -> bytes:
 
 def _unit_scale(unit, where: str, what: str) -> float:
     """Metres per unit of a Gwyddion SI unit (GwySIUnit or string): m with an SI prefix, or Å."""
-    text = unit if isinstance(unit, str) else (unit.get("unitstr") if hasattr(unit, "get") else None)
+    text = (
+        unit if isinstance(unit, str) else (unit.get("unitstr") if hasattr(unit, "get") else None)
+    )
     if text is None or not str(text).strip():
         raise ValueError(f"{where}: no {what} unit; expected a length such as 'm' or 'nm'")
     text = str(text).strip()
@@ -349,13 +441,16 @@ def _unit_scale(unit, where: str, what: str) -> float:
 
 # -- common ---------------------------------------------------------------------------------
 
+
 def _checked_path(path, must_exist: bool) -> tuple[Path, str]:
     if not isinstance(path, (str, Path)):
         raise ValueError(f"path={path!r}: must be a str or pathlib.Path")
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
-        raise ValueError(f"{path}: unknown image file suffix {path.suffix!r}; supported: {', '.join(SUFFIXES)}")
+        raise ValueError(
+            f"{path}: unknown image file suffix {path.suffix!r}; supported: {', '.join(SUFFIXES)}"
+        )
     if must_exist and not path.is_file():
         raise ImageFileNotFound(2, f"{path}: no such image file", str(path))
     return path, suffix
@@ -364,7 +459,9 @@ def _checked_path(path, must_exist: bool) -> tuple[Path, str]:
 def _heights(values, path: Path) -> np.ndarray:
     height = np.asarray(values)
     if height.ndim != 2 or min(height.shape) < 1:
-        raise ValueError(f"{path}: height must be a non-empty 2-D array (rows = y), got shape {height.shape}")
+        raise ValueError(
+            f"{path}: height must be a non-empty 2-D array (rows = y), got shape {height.shape}"
+        )
     if height.dtype.kind not in "iuf":
         raise ValueError(f"{path}: height must be real numbers (m), got dtype {height.dtype}")
     height = height.astype(np.float64)

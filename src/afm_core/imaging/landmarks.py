@@ -44,17 +44,20 @@ so the centre of gravity of what is inside is biased towards the image's interio
 The map should be drift-corrected first (afm_core.imaging.drift) when it is to be a
 localization map: this module measures the image as it is.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 from scipy import ndimage
 
-PROMINENCE_FRACTION = 0.1      # a peak is a feature of its own if it stands out this much of its height ...
-PROMINENCE_MIN_HEIGHT = 0.5    # ... and at least this fraction of min_height out of its saddle
+PROMINENCE_FRACTION = (
+    0.1  # a peak is a feature of its own if it stands out this much of its height ...
+)
+PROMINENCE_MIN_HEIGHT = 0.5  # ... and at least this fraction of min_height out of its saddle
 _EIGHT = np.ones((3, 3), dtype=bool)
 
 
@@ -62,32 +65,45 @@ _EIGHT = np.ones((3, 3), dtype=bool)
 class Landmark:
     """One landmark, in the map's frame (pixel (row, col) centre at origin + (col + 0.5) * pixel_x,
     origin + (row + 0.5) * pixel_y). SI units: m, m^2, rad."""
+
     id: int
-    kind: str                   # "sphere" | "tube" | "rod"
-    x: float                    # m, centre (mean centre of gravity over the thresholds)
-    y: float                    # m
-    covariance: np.ndarray = field(compare=False)   # 2x2, m^2: map error model + spread over thresholds
-    radius: float               # m, apparent height / 2 (true radius of a sphere or cylinder on the substrate)
-    height: float               # m, apparent height above the substrate
-    length: float               # m, axis length of a tube/rod (tip broadening removed); 0 for a sphere
-    orientation: float          # rad from +x in (-pi/2, pi/2], axis of a tube/rod; 0 for a sphere
-    half_width: float = 0.0     # m, apparent (tip-broadened) half-width at half height; sphere: apparent radius
-    elongation: float = 1.0     # sqrt of the ratio of the region's principal second moments
-    thresholds_used: int = 0    # how many height thresholds the centre was averaged over
+    kind: str  # "sphere" | "tube" | "rod"
+    x: float  # m, centre (mean centre of gravity over the thresholds)
+    y: float  # m
+    covariance: np.ndarray = field(
+        compare=False
+    )  # 2x2, m^2: map error model + spread over thresholds
+    radius: float  # m, apparent height / 2 (true radius of a sphere or cylinder on the substrate)
+    height: float  # m, apparent height above the substrate
+    length: float  # m, axis length of a tube/rod (tip broadening removed); 0 for a sphere
+    orientation: float  # rad from +x in (-pi/2, pi/2], axis of a tube/rod; 0 for a sphere
+    half_width: float = (
+        0.0  # m, apparent (tip-broadened) half-width at half height; sphere: apparent radius
+    )
+    elongation: float = 1.0  # sqrt of the ratio of the region's principal second moments
+    thresholds_used: int = 0  # how many height thresholds the centre was averaged over
 
 
 @dataclass(frozen=True)
 class MapErrorModel:
     """Standard deviation of a landmark centre in a map (book Fig. 7.10: 5.0 / 4.5 nm)."""
-    sigma_x: float = 5.0e-9     # m
-    sigma_y: float = 4.5e-9     # m
+
+    sigma_x: float = 5.0e-9  # m
+    sigma_y: float = 4.5e-9  # m
 
 
-def extract_landmarks(height: np.ndarray, pixel_size_x: float, pixel_size_y: float, origin_x: float = 0.0,
-                      origin_y: float = 0.0, min_height: float = 10e-9,
-                      thresholds: Sequence[float] = (0.3, 0.4, 0.5, 0.6, 0.7),
-                      error_model: MapErrorModel = MapErrorModel(), tube_elongation: float = 3.0,
-                      tube_max_height: float = 50e-9) -> list[Landmark]:
+def extract_landmarks(
+    height: np.ndarray,
+    pixel_size_x: float,
+    pixel_size_y: float,
+    origin_x: float = 0.0,
+    origin_y: float = 0.0,
+    min_height: float = 10e-9,
+    thresholds: Sequence[float] = (0.3, 0.4, 0.5, 0.6, 0.7),
+    error_model: MapErrorModel = MapErrorModel(),
+    tube_elongation: float = 3.0,
+    tube_max_height: float = 50e-9,
+) -> list[Landmark]:
     """Landmarks of a height map (rows = y, metres), sorted by position (row of the centre,
     then x) with ids 0, 1, ... in that order, so the same map always gives the same ids.
 
@@ -96,11 +112,21 @@ def extract_landmarks(height: np.ndarray, pixel_size_x: float, pixel_size_y: flo
     Raises ValueError naming the argument for bad input (not a 2-D array, NaN or infinite
     pixels, non-positive pixel size, thresholds outside (0, 1), ...).
     """
-    h = _validated(height, pixel_size_x, pixel_size_y, origin_x, origin_y, min_height, thresholds,
-                   error_model, tube_elongation, tube_max_height)
+    h = _validated(
+        height,
+        pixel_size_x,
+        pixel_size_y,
+        origin_x,
+        origin_y,
+        min_height,
+        thresholds,
+        error_model,
+        tube_elongation,
+        tube_max_height,
+    )
     fractions = sorted(float(t) for t in thresholds)
     h = h - substrate_plane(h, min_height)
-    detect = 0.5 * fractions[0] * min_height          # below every threshold level of every feature
+    detect = 0.5 * fractions[0] * min_height  # below every threshold level of every feature
     seeds = _peaks(h, detect, min_height)
     if not seeds:
         return []
@@ -115,7 +141,9 @@ def extract_landmarks(height: np.ndarray, pixel_size_x: float, pixel_size_y: flo
         measured = _measure(h, window, (row, col), saddle, fractions, seed_pixels, grid)
         if measured is not None:
             found.append(measured)
-    landmarks = [_landmark(m, fractions, error_model, tube_elongation, tube_max_height) for m in found]
+    landmarks = [
+        _landmark(m, fractions, error_model, tube_elongation, tube_max_height) for m in found
+    ]
     landmarks.sort(key=lambda lm: (math.floor((lm.y - origin_y) / pixel_size_y), lm.x))
     for number, landmark in enumerate(landmarks):
         landmark.id = number
@@ -130,14 +158,16 @@ def substrate_plane(h: np.ndarray, min_height: float, iterations: int = 20) -> n
     3 robust sigmas of the plane (but never more than min_height / 2 above it, and at
     least 5 % of min_height either side), until that set stops changing."""
     rows, cols = np.indices(h.shape, dtype=float)
-    design = np.stack([np.ones(h.size), cols.ravel() / max(h.shape[1], 1), rows.ravel() / max(h.shape[0], 1)], 1)
+    design = np.stack(
+        [np.ones(h.size), cols.ravel() / max(h.shape[1], 1), rows.ravel() / max(h.shape[0], 1)], 1
+    )
     z = h.ravel()
     keep = z <= np.median(z)
     plane = np.full(z.size, float(np.median(z)))
     for _ in range(iterations):
         if keep.sum() < 3:
             break
-        weighted = design * keep[:, None]                 # normal equations: 3 x 3, fast on big maps
+        weighted = design * keep[:, None]  # normal equations: 3 x 3, fast on big maps
         coef, *_ = np.linalg.lstsq(weighted.T @ design, weighted.T @ z, rcond=None)
         plane = design @ coef
         resid = z - plane
@@ -153,6 +183,7 @@ def substrate_plane(h: np.ndarray, min_height: float, iterations: int = 20) -> n
 
 # -- internals ------------------------------------------------------------------------------
 
+
 @dataclass
 class _Grid:
     shape: tuple
@@ -164,30 +195,42 @@ class _Grid:
 
 @dataclass
 class _Measured:
-    centres: np.ndarray          # (n, 2) centroid per usable threshold
-    fractions: list              # the thresholds used
+    centres: np.ndarray  # (n, 2) centroid per usable threshold
+    fractions: list  # the thresholds used
     elongations: list
-    orientations: list           # rad, per threshold
-    extents: list                # m along the principal axis
-    areas: list                  # m^2
+    orientations: list  # rad, per threshold
+    extents: list  # m along the principal axis
+    areas: list  # m^2
     height: float
 
 
-def _validated(height, px, py, ox, oy, min_height, thresholds, error_model, tube_elongation, tube_max_height):
+def _validated(
+    height, px, py, ox, oy, min_height, thresholds, error_model, tube_elongation, tube_max_height
+):
     try:
         h = np.asarray(height, dtype=float)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"height: not a numeric array ({exc})") from exc
     if h.ndim != 2:
-        raise ValueError(f"height: must be a 2-D array (rows = y), got {h.ndim}-D of shape {h.shape}")
+        raise ValueError(
+            f"height: must be a 2-D array (rows = y), got {h.ndim}-D of shape {h.shape}"
+        )
     if min(h.shape) < 1:
         raise ValueError(f"height: empty array of shape {h.shape}")
     bad = int(np.count_nonzero(~np.isfinite(h)))
     if bad:
         raise ValueError(f"height: {bad} NaN or infinite pixel(s); fill or crop them first")
-    for name, value in (("pixel_size_x", px), ("pixel_size_y", py), ("min_height", min_height),
-                        ("tube_max_height", tube_max_height)):
-        if not (isinstance(value, (int, float, np.floating, np.integer)) and math.isfinite(value) and value > 0):
+    for name, value in (
+        ("pixel_size_x", px),
+        ("pixel_size_y", py),
+        ("min_height", min_height),
+        ("tube_max_height", tube_max_height),
+    ):
+        if not (
+            isinstance(value, (int, float, np.floating, np.integer))
+            and math.isfinite(value)
+            and value > 0
+        ):
             raise ValueError(f"{name}={value!r}: must be a finite number > 0 (m)")
     for name, value in (("origin_x", ox), ("origin_y", oy)):
         if not (isinstance(value, (int, float, np.floating, np.integer)) and math.isfinite(value)):
@@ -195,9 +238,13 @@ def _validated(height, px, py, ox, oy, min_height, thresholds, error_model, tube
     try:
         values = [float(t) for t in thresholds]
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"thresholds={thresholds!r}: must be a sequence of numbers in (0, 1)") from exc
+        raise ValueError(
+            f"thresholds={thresholds!r}: must be a sequence of numbers in (0, 1)"
+        ) from exc
     if not values or not all(0.0 < t < 1.0 for t in values) or len(set(values)) != len(values):
-        raise ValueError(f"thresholds={thresholds!r}: must be distinct fractions of the peak height in (0, 1)")
+        raise ValueError(
+            f"thresholds={thresholds!r}: must be distinct fractions of the peak height in (0, 1)"
+        )
     if not (math.isfinite(tube_elongation) and tube_elongation > 1.0):
         raise ValueError(f"tube_elongation={tube_elongation!r}: must be a finite ratio > 1")
     for name in ("sigma_x", "sigma_y"):
@@ -213,7 +260,7 @@ def _peaks(h: np.ndarray, level: float, min_height: float) -> list[tuple[int, fl
     peak is a feature of its own if it stands out of the meeting height enough; the saddle
     of a feature is the highest level at which it meets another feature (-inf if never)."""
     ny, nx = h.shape
-    width = nx + 2                                   # padded by one never-flooded pixel all round
+    width = nx + 2  # padded by one never-flooded pixel all round
     padded = np.full((ny + 2, width), -np.inf)
     padded[1:-1, 1:-1] = h
     flat = padded.ravel()
@@ -235,7 +282,9 @@ def _peaks(h: np.ndarray, level: float, min_height: float) -> list[tuple[int, fl
         return root
 
     def stands_out(top: float, z: float) -> bool:
-        return top >= min_height and top - z >= max(PROMINENCE_MIN_HEIGHT * min_height, PROMINENCE_FRACTION * top)
+        return top >= min_height and top - z >= max(
+            PROMINENCE_MIN_HEIGHT * min_height, PROMINENCE_FRACTION * top
+        )
 
     for i in order.tolist():
         roots = {find(i + s) for s in steps if parent[i + s] >= 0}
@@ -274,9 +323,14 @@ def _measure(h, window, seed, saddle, fractions, seed_pixels, grid: _Grid) -> _M
     local = (seed[0] - r0, seed[1] - c0)
     top = float(h[seed])
     base = max(0.0, saddle)
-    others = np.array([(r - r0, c - c0) for r, c in seed_pixels
-                       if (r, c) != seed and 0 <= r - r0 < sub.shape[0] and 0 <= c - c0 < sub.shape[1]],
-                      dtype=int).reshape(-1, 2)
+    others = np.array(
+        [
+            (r - r0, c - c0)
+            for r, c in seed_pixels
+            if (r, c) != seed and 0 <= r - r0 < sub.shape[0] and 0 <= c - c0 < sub.shape[1]
+        ],
+        dtype=int,
+    ).reshape(-1, 2)
     out = _Measured(np.empty((0, 2)), [], [], [], [], [], top)
     centres = []
     lowest_region = None
@@ -284,17 +338,21 @@ def _measure(h, window, seed, saddle, fractions, seed_pixels, grid: _Grid) -> _M
         labels, _ = ndimage.label(sub > base + fraction * (top - base), structure=_EIGHT)
         region = labels == labels[local]
         if region[others[:, 0], others[:, 1]].any():
-            continue                                 # still joined to another feature: centroid biased
+            continue  # still joined to another feature: centroid biased
         rows, cols = np.nonzero(region)
         rows_g, cols_g = rows + r0, cols + c0
-        if rows_g.min() == 0 or cols_g.min() == 0 or rows_g.max() == grid.shape[0] - 1 \
-                or cols_g.max() == grid.shape[1] - 1:
-            return None                              # cut by the image border: skip the feature
+        if (
+            rows_g.min() == 0
+            or cols_g.min() == 0
+            or rows_g.max() == grid.shape[0] - 1
+            or cols_g.max() == grid.shape[1] - 1
+        ):
+            return None  # cut by the image border: skip the feature
         xs = grid.ox + (cols_g + 0.5) * grid.px
         ys = grid.oy + (rows_g + 0.5) * grid.py
         mx, my = float(xs.mean()), float(ys.mean())
         dx, dy = xs - mx, ys - my
-        cxx = float(np.mean(dx * dx)) + grid.px**2 / 12.0      # a pixel is a square, not a point
+        cxx = float(np.mean(dx * dx)) + grid.px**2 / 12.0  # a pixel is a square, not a point
         cyy = float(np.mean(dy * dy)) + grid.py**2 / 12.0
         cxy = float(np.mean(dx * dy))
         spread = math.hypot(0.5 * (cxx - cyy), cxy)
@@ -306,7 +364,9 @@ def _measure(h, window, seed, saddle, fractions, seed_pixels, grid: _Grid) -> _M
         out.fractions.append(fraction)
         out.elongations.append(math.sqrt(big / max(small, 1e-300)))
         out.orientations.append(angle)
-        out.extents.append(float(along.max() - along.min()) + abs(ux) * grid.px + abs(uy) * grid.py)
+        out.extents.append(
+            float(along.max() - along.min()) + abs(ux) * grid.px + abs(uy) * grid.py
+        )
         out.areas.append(rows.size * grid.px * grid.py)
         if lowest_region is None:
             lowest_region = region
@@ -329,7 +389,9 @@ def _stadium(extent: float, area: float) -> tuple[float, float]:
     return w, extent - 2.0 * w
 
 
-def _landmark(m: _Measured, fractions, error_model: MapErrorModel, tube_elongation, tube_max_height) -> Landmark:
+def _landmark(
+    m: _Measured, fractions, error_model: MapErrorModel, tube_elongation, tube_max_height
+) -> Landmark:
     n = len(m.centres)
     x, y = (float(v) for v in m.centres.mean(axis=0))
     covariance = np.diag([error_model.sigma_x**2, error_model.sigma_y**2]).astype(float)
@@ -337,11 +399,23 @@ def _landmark(m: _Measured, fractions, error_model: MapErrorModel, tube_elongati
         covariance = covariance + np.cov(m.centres, rowvar=False)
     covariance = 0.5 * (covariance + covariance.T)
     elongation = float(np.mean(m.elongations))
-    half = int(np.argmin([abs(f - 0.5) for f in m.fractions]))      # the threshold nearest half height
+    half = int(np.argmin([abs(f - 0.5) for f in m.fractions]))  # the threshold nearest half height
     radius = 0.5 * m.height
     if elongation < tube_elongation:
-        return Landmark(-1, "sphere", x, y, covariance, radius, m.height, 0.0, 0.0,
-                        half_width=math.sqrt(m.areas[half] / math.pi), elongation=elongation, thresholds_used=n)
+        return Landmark(
+            -1,
+            "sphere",
+            x,
+            y,
+            covariance,
+            radius,
+            m.height,
+            0.0,
+            0.0,
+            half_width=math.sqrt(m.areas[half] / math.pi),
+            elongation=elongation,
+            thresholds_used=n,
+        )
     doubled = np.mean(np.exp(2j * np.asarray(m.orientations)))
     orientation = 0.5 * float(np.angle(doubled))
     if orientation <= -math.pi / 2:
@@ -349,5 +423,17 @@ def _landmark(m: _Measured, fractions, error_model: MapErrorModel, tube_elongati
     shapes = [_stadium(e, a) for e, a in zip(m.extents, m.areas)]
     length = float(np.mean([L for _, L in shapes]))
     kind = "tube" if m.height <= tube_max_height else "rod"
-    return Landmark(-1, kind, x, y, covariance, radius, m.height, length, orientation,
-                    half_width=shapes[half][0], elongation=elongation, thresholds_used=n)
+    return Landmark(
+        -1,
+        kind,
+        x,
+        y,
+        covariance,
+        radius,
+        m.height,
+        length,
+        orientation,
+        half_width=shapes[half][0],
+        elongation=elongation,
+        thresholds_used=n,
+    )

@@ -72,6 +72,7 @@ Speed-ups (book 4.2); (a) and (c) do not change the limit:
       are dropped, and the remaining contacts are processed in chunks, dropping the pixels
       whose running bound reaches T - N_TH and stopping as soon as none is left (Fig. 4.12).
 """
+
 from __future__ import annotations
 
 import time
@@ -82,7 +83,7 @@ from scipy import ndimage
 
 from afm_core.sim.imaging import dilate as _sim_dilate
 
-_REL_EPS = 1e-9      # relative (to the image's height range) tolerance for "no change"
+_REL_EPS = 1e-9  # relative (to the image's height range) tolerance for "no change"
 
 
 def dilate(surface: np.ndarray, tip: np.ndarray) -> np.ndarray:
@@ -105,16 +106,22 @@ def opening(image: np.ndarray, tip: np.ndarray) -> np.ndarray:
 
 @dataclass
 class TipEstimate:
-    tip: np.ndarray          # (n, n) heights, m, apex 0 at centre, <= 0 elsewhere
-    threshold: float         # m, the denoising threshold used
-    iterations: int          # passes over the image (feature passes + full passes)
+    tip: np.ndarray  # (n, n) heights, m, apex 0 at centre, <= 0 elsewhere
+    threshold: float  # m, the denoising threshold used
+    iterations: int  # passes over the image (feature passes + full passes)
     seconds: float
-    sweep: list = field(default_factory=list)   # [(threshold, rms_change, apex_count, area_change)] for auto
-    critical_threshold: float | None = None     # auto/book: lowest swept threshold whose top has several apexes
-    noise: float | None = None                  # auto: the image noise estimate used to size the sweep
+    sweep: list = field(
+        default_factory=list
+    )  # [(threshold, rms_change, apex_count, area_change)] for auto
+    critical_threshold: float | None = (
+        None  # auto/book: lowest swept threshold whose top has several apexes
+    )
+    noise: float | None = None  # auto: the image noise estimate used to size the sweep
     feature_points: int = 0
-    window: int = 0                             # tip window the full passes worked on (speed-up b)
-    scores: dict = field(default_factory=dict)  # auto: threshold -> RMS difference from the consensus tip
+    window: int = 0  # tip window the full passes worked on (speed-up b)
+    scores: dict = field(
+        default_factory=dict
+    )  # auto: threshold -> RMS difference from the consensus tip
 
 
 def _erode_valid(a: np.ndarray, tip: np.ndarray) -> np.ndarray:
@@ -126,7 +133,9 @@ def _erode_valid(a: np.ndarray, tip: np.ndarray) -> np.ndarray:
     tmp = np.empty_like(out)
     for i in range(k):
         for j in range(k):
-            np.subtract(a[2 * h - i:2 * h - i + ny, 2 * h - j:2 * h - j + nx], tip[i, j], out=tmp)
+            np.subtract(
+                a[2 * h - i : 2 * h - i + ny, 2 * h - j : 2 * h - j + nx], tip[i, j], out=tmp
+            )
             np.minimum(out, tmp, out=out)
     return out
 
@@ -139,7 +148,7 @@ def _dilate_valid(a: np.ndarray, tip: np.ndarray) -> np.ndarray:
     tmp = np.empty_like(out)
     for i in range(k):
         for j in range(k):
-            np.add(a[i:i + ny, j:j + nx], tip[i, j], out=tmp)
+            np.add(a[i : i + ny, j : j + nx], tip[i, j], out=tmp)
             np.maximum(out, tmp, out=out)
     return out
 
@@ -170,8 +179,8 @@ class _Estimator:
         self.flat = padded.ravel()
         span = float(self.image.max() - self.image.min())
         self.eps = _REL_EPS * max(span, np.finfo(float).tiny)
-        a, b = np.mgrid[-self.h:self.h + 1, -self.h:self.h + 1]
-        self.off = (a * self.nx + b).ravel()          # flat image offset of each tip pixel
+        a, b = np.mgrid[-self.h : self.h + 1, -self.h : self.h + 1]
+        self.off = (a * self.nx + b).ravel()  # flat image offset of each tip pixel
         self.centre = (self.k * self.k) // 2
         self.image32 = (padded - float(self.image.mean())).astype(np.float32)
         self.test_eps = 1e-6 * max(span, np.finfo(float).tiny)
@@ -180,20 +189,21 @@ class _Estimator:
         """Image points (image coordinates) a whole tip half-width from the edge: the apex there
         has every tip pixel over the image."""
         m = np.zeros(self.image.shape, bool)
-        m[self.h:self.image.shape[0] - self.h, self.h:self.image.shape[1] - self.h] = True
+        m[self.h : self.image.shape[0] - self.h, self.h : self.image.shape[1] - self.h] = True
         return m
 
     def flat_index(self, rows, cols) -> np.ndarray:
         """Flat (padded) indices of image points (row, col)."""
         return (np.asarray(rows) + self.h) * self.nx + (np.asarray(cols) + self.h)
 
-    def refine_point(self, g: int, tf: np.ndarray, th: float, order: np.ndarray,
-                     early: bool = True) -> bool:
+    def refine_point(
+        self, g: int, tf: np.ndarray, th: float, order: np.ndarray, early: bool = True
+    ) -> bool:
         """Refine the flat tip bound `tf` in place at image point g (flat index). True if changed."""
         flat, off, eps = self.flat, self.off, self.eps
         i0 = flat[g]
-        m = flat[g - off] - i0                        # contact c = 0 (the apex): i(x'-w) - i(x')
-        low = np.flatnonzero(m + th < tf - eps)       # tip pixels this point may still lower
+        m = flat[g - off] - i0  # contact c = 0 (the apex): i(x'-w) - i(x')
+        low = np.flatnonzero(m + th < tf - eps)  # tip pixels this point may still lower
         if low.size == 0:
             return False
         if early:
@@ -203,7 +213,7 @@ class _Estimator:
                 return False
         ml = m[low]
         tc = tf[order]
-        valid = flat[g + off[order]] - i0 + tc >= -eps   # eq. 4.33: the apex stays under the image
+        valid = flat[g + off[order]] - i0 + tc >= -eps  # eq. 4.33: the apex stays under the image
         vc = order[valid]
         if vc.size:
             tv = tc[valid] - i0
@@ -221,7 +231,7 @@ class _Estimator:
                     if not keep.all():
                         low, ml = low[keep], ml[keep]
                         if low.size == 0:
-                            return False       # the point cannot update the bound (Fig. 4.12)
+                            return False  # the point cannot update the bound (Fig. 4.12)
                     chunk = min(chunk * 2, max(512, 65536 // max(low.size, 1)))
                 start = stop
         new = ml + th
@@ -250,11 +260,11 @@ class _Estimator:
         ny0, nx0 = self.image.shape
         img = self.image32
         t32 = tip.astype(np.float32)
-        r = _erode_valid(img, t32)                    # every image point, from its pixels in the image
-        q = np.minimum(r + np.float32(th), img[h:h + ny0, h:h + nx0] + np.float32(self.eps))
-        reach = _dilate_valid(q, t32)                 # x' in [h, n-h) of the image
-        excess = img[2 * h:ny0, 2 * h:nx0] - reach
-        sel = (excess > self.test_eps) & mask[h:ny0 - h, h:nx0 - h]
+        r = _erode_valid(img, t32)  # every image point, from its pixels in the image
+        q = np.minimum(r + np.float32(th), img[h : h + ny0, h : h + nx0] + np.float32(self.eps))
+        reach = _dilate_valid(q, t32)  # x' in [h, n-h) of the image
+        excess = img[2 * h : ny0, 2 * h : nx0] - reach
+        sel = (excess > self.test_eps) & mask[h : ny0 - h, h : nx0 - h]
         py, px = np.nonzero(sel)
         order = np.argsort(-excess[py, px], kind="stable")
         return (py[order] + 2 * h) * nx + (px[order] + 2 * h)
@@ -272,7 +282,9 @@ class _Estimator:
                 break
         return passes
 
-    def run_full(self, tip: np.ndarray, th: float, max_passes: int, mask: np.ndarray) -> tuple[int, bool]:
+    def run_full(
+        self, tip: np.ndarray, th: float, max_passes: int, mask: np.ndarray
+    ) -> tuple[int, bool]:
         """Full passes over all (masked) image points, with the candidate test, until a pass
         changes nothing. Returns (passes, converged)."""
         tf = tip.ravel()
@@ -308,7 +320,7 @@ def douglas_peucker(values: np.ndarray, tolerance: float) -> np.ndarray:
             continue
         xs = np.arange(a + 1, b)
         chord = values[a] + (values[b] - values[a]) * (xs - a) / (b - a)
-        dev = np.abs(values[a + 1:b] - chord)
+        dev = np.abs(values[a + 1 : b] - chord)
         j = int(np.argmax(dev))
         if dev[j] > tolerance:
             m = a + 1 + j
@@ -328,8 +340,9 @@ def _dp_peak(line: np.ndarray, centre: int, tolerance: float) -> bool:
     return line[centre] > line[kept[pos - 1]] and line[centre] > line[kept[pos + 1]]
 
 
-def feature_points(image: np.ndarray, tip_size: int, noise: float | None = None,
-                   mask: np.ndarray | None = None) -> np.ndarray:
+def feature_points(
+    image: np.ndarray, tip_size: int, noise: float | None = None, mask: np.ndarray | None = None
+) -> np.ndarray:
     """(row, col) of "type 1" feature points: local maxima enclosed by closed contours.
 
     Candidates are local maxima of their (tip_size/5)-neighbourhood whose height above the
@@ -352,17 +365,25 @@ def feature_points(image: np.ndarray, tip_size: int, noise: float | None = None,
     for y, x in zip(*np.nonzero(cand)):
         lo_x, hi_x = max(0, x - 2 * h), min(image.shape[1], x + 2 * h + 1)
         lo_y, hi_y = max(0, y - 2 * h), min(image.shape[0], y + 2 * h + 1)
-        if _dp_peak(image[y, lo_x:hi_x], x - lo_x, step) and _dp_peak(image[lo_y:hi_y, x], y - lo_y, step):
+        if _dp_peak(image[y, lo_x:hi_x], x - lo_x, step) and _dp_peak(
+            image[lo_y:hi_y, x], y - lo_y, step
+        ):
             out.append((y, x))
     pts = np.array(out, dtype=int).reshape(-1, 2)
     # strongest features first: they constrain the tip most
-    return pts[np.argsort(-(image - floor)[pts[:, 0], pts[:, 1]], kind="stable")] if len(pts) else pts
+    return (
+        pts[np.argsort(-(image - floor)[pts[:, 0], pts[:, 1]], kind="stable")] if len(pts) else pts
+    )
 
 
 def estimate_noise(image: np.ndarray) -> float:
     """Robust white-noise sigma: MAD of the second differences along rows (smooth tip-shaped
     slopes cancel; sharp features are outliers), for N(0, s^2) noise var(d2) = 6 s^2."""
-    d2 = np.asarray(image, float)[:, 2:] - 2 * np.asarray(image, float)[:, 1:-1] + np.asarray(image, float)[:, :-2]
+    d2 = (
+        np.asarray(image, float)[:, 2:]
+        - 2 * np.asarray(image, float)[:, 1:-1]
+        + np.asarray(image, float)[:, :-2]
+    )
     d2 = d2.ravel()
     mad = np.median(np.abs(d2 - np.median(d2)))
     return float(1.4826 * mad / np.sqrt(6.0))
@@ -372,8 +393,14 @@ def estimate_noise(image: np.ndarray) -> float:
 # Estimation at one threshold
 
 
-def _estimate_fixed(est: _Estimator, th: float, max_passes: int, start: np.ndarray | None,
-                    features: np.ndarray | None, window: int) -> tuple[np.ndarray, int, bool]:
+def _estimate_fixed(
+    est: _Estimator,
+    th: float,
+    max_passes: int,
+    start: np.ndarray | None,
+    features: np.ndarray | None,
+    window: int,
+) -> tuple[np.ndarray, int, bool]:
     """One blind estimate at threshold th from `start` (None: the flat upper bound 0; else
     any upper bound of the result, e.g. the estimate at a higher threshold). The feature
     points refine first (speed-up a); the full passes then work on the centred
@@ -391,9 +418,9 @@ def _estimate_fixed(est: _Estimator, th: float, max_passes: int, start: np.ndarr
     if window < k:
         sub = _Estimator(est.image, window)
         lo = h - window // 2
-        inner = np.ascontiguousarray(tip[lo:lo + window, lo:lo + window])
+        inner = np.ascontiguousarray(tip[lo : lo + window, lo : lo + window])
         p, converged = sub.run_full(inner, th, max_passes, interior)
-        tip[lo:lo + window, lo:lo + window] = inner
+        tip[lo : lo + window, lo : lo + window] = inner
     else:
         p, converged = est.run_full(tip, th, max_passes, interior)
     tip[h, h] = 0.0
@@ -410,8 +437,8 @@ def _work_window(est: _Estimator, features: np.ndarray | None, th: float) -> int
     inside = interior[features[:, 0], features[:, 1]]
     est.run_points(est.flat_index(features[inside, 0], features[inside, 1]), pre.ravel(), th, 50)
     h = est.h
-    arms = [pre[h, h::-1], pre[h, h:], pre[h::-1, h], pre[h:, h]]     # Vxl, Vxr, Vyf, Vyb
-    r = max(int(np.argmin(arm)) for arm in arms) + 1       # all four troughs inside, with a margin
+    arms = [pre[h, h::-1], pre[h, h:], pre[h::-1, h], pre[h:, h]]  # Vxl, Vxr, Vyf, Vyb
+    r = max(int(np.argmin(arm)) for arm in arms) + 1  # all four troughs inside, with a margin
     return 2 * r + 1 if r < h else est.k
 
 
@@ -428,10 +455,16 @@ def feature_consensus_tip(image: np.ndarray, features: np.ndarray, tip_size: int
     image = np.asarray(image, float)
     h = tip_size // 2
     ny, nx = image.shape
-    pts = [(y, x) for y, x in np.asarray(features).reshape(-1, 2) if h <= y < ny - h and h <= x < nx - h]
+    pts = [
+        (y, x)
+        for y, x in np.asarray(features).reshape(-1, 2)
+        if h <= y < ny - h and h <= x < nx - h
+    ]
     if not pts:
         return np.zeros((tip_size, tip_size))
-    bounds = np.stack([image[y - h:y + h + 1, x - h:x + h + 1][::-1, ::-1] - image[y, x] for y, x in pts])
+    bounds = np.stack(
+        [image[y - h : y + h + 1, x - h : x + h + 1][::-1, ::-1] - image[y, x] for y, x in pts]
+    )
     return np.median(bounds, axis=0)
 
 
@@ -443,7 +476,9 @@ def apex_count(tip: np.ndarray, band: float) -> int:
     return int((top & peaks).sum())
 
 
-def _book_choice(ths: np.ndarray, counts: np.ndarray, rates: np.ndarray) -> tuple[float | None, float | None]:
+def _book_choice(
+    ths: np.ndarray, counts: np.ndarray, rates: np.ndarray
+) -> tuple[float | None, float | None]:
     """Book 4.3.2 literally: the critical threshold is the first (sweeping upwards) whose
     tip top has several apexes; the choice is the local maximum of the area change rate
     nearest to it (rate k: between thresholds k-1 and k). (None, None) if no split."""
@@ -451,8 +486,11 @@ def _book_choice(ths: np.ndarray, counts: np.ndarray, rates: np.ndarray) -> tupl
     if multi.size == 0:
         return None, None
     ic = int(multi[0])
-    peaks = [j for j in range(1, len(ths))
-             if rates[j] >= rates[j - 1] and (j + 1 >= len(ths) or rates[j] >= rates[j + 1])]
+    peaks = [
+        j
+        for j in range(1, len(ths))
+        if rates[j] >= rates[j - 1] and (j + 1 >= len(ths) or rates[j] >= rates[j + 1])
+    ]
     if not peaks:
         return float(ths[ic]), float(ths[ic])
     j = min(peaks, key=lambda j: (abs(j - ic), -rates[j]))
@@ -471,17 +509,27 @@ def _sweep_table(tips: dict, pixel_size: float, band: float) -> list:
             rms = area = 0.0
         else:
             diff = tip - prev
-            rms = float(np.sqrt(np.mean(diff ** 2)))
-            area = float(np.abs(diff).sum() * pixel_size ** 2 / (th - prev_th))
+            rms = float(np.sqrt(np.mean(diff**2)))
+            area = float(np.abs(diff).sum() * pixel_size**2 / (th - prev_th))
         out.append((float(th), rms, apex_count(tip, band), area))
         prev, prev_th = tip, th
     return out
 
 
-def estimate_tip(image: np.ndarray, tip_size: int, threshold: float | str = "auto", pixel_size: float = 1.0,
-                 max_iterations: int = 50, *, depth: float = 20e-9, noise: float | None = None,
-                 thresholds=None, use_features: bool = True, limit_radius: bool = True,
-                 start: np.ndarray | None = None) -> TipEstimate:
+def estimate_tip(
+    image: np.ndarray,
+    tip_size: int,
+    threshold: float | str = "auto",
+    pixel_size: float = 1.0,
+    max_iterations: int = 50,
+    *,
+    depth: float = 20e-9,
+    noise: float | None = None,
+    thresholds=None,
+    use_features: bool = True,
+    limit_radius: bool = True,
+    start: np.ndarray | None = None,
+) -> TipEstimate:
     """Blind tip estimate (tip_size x tip_size, odd) from `image` (heights, m; pixel_size only
     scales the reported area changes).
 
@@ -515,22 +563,41 @@ def estimate_tip(image: np.ndarray, tip_size: int, threshold: float | str = "aut
             start = np.minimum(np.asarray(start, float), 0.0)
             if start.shape != (est.k, est.k):
                 raise ValueError(f"start: shape {start.shape}, expected {(est.k, est.k)}")
-        features = feature_points(image, tip_size, noise) if use_features and start is None else None
+        features = (
+            feature_points(image, tip_size, noise) if use_features and start is None else None
+        )
         window = _work_window(est, features, th) if limit_radius else est.k
         tip, passes, _ = _estimate_fixed(est, th, max_iterations, start, features, window)
-        return TipEstimate(tip, th, passes, time.perf_counter() - t_start, [],
-                           feature_points=0 if features is None else len(features), window=window)
+        return TipEstimate(
+            tip,
+            th,
+            passes,
+            time.perf_counter() - t_start,
+            [],
+            feature_points=0 if features is None else len(features),
+            window=window,
+        )
     if threshold not in ("auto", "book"):
         raise ValueError(f"threshold={threshold!r}: a number (m), 'auto' or 'book'")
     sigma = estimate_noise(image) if noise is None else float(noise)
     features = feature_points(image, tip_size, sigma) if use_features else None
-    if sigma <= 1e-6 * max(float(image.max() - image.min()), np.finfo(float).tiny) and thresholds is None:
+    if (
+        sigma <= 1e-6 * max(float(image.max() - image.min()), np.finfo(float).tiny)
+        and thresholds is None
+    ):
         # noiseless: the exact algorithm (N_TH = 0) is the answer
         window = _work_window(est, features, 0.0) if limit_radius else est.k
         tip, passes, _ = _estimate_fixed(est, 0.0, max_iterations, None, features, window)
-        return TipEstimate(tip, 0.0, passes, time.perf_counter() - t_start,
-                           _sweep_table({0.0: tip}, pixel_size, est.eps), noise=sigma,
-                           feature_points=0 if features is None else len(features), window=window)
+        return TipEstimate(
+            tip,
+            0.0,
+            passes,
+            time.perf_counter() - t_start,
+            _sweep_table({0.0: tip}, pixel_size, est.eps),
+            noise=sigma,
+            feature_points=0 if features is None else len(features),
+            window=window,
+        )
     band = 0.05 * sigma if sigma > 0 else est.eps
     tips: dict = {}
     converged: dict = {}
@@ -545,26 +612,46 @@ def estimate_tip(image: np.ndarray, tip_size: int, threshold: float | str = "aut
             return tips[th]
         above = [t for t in tips if t > th]
         start = tips[th] if th in tips else (tips[min(above)] if above else None)
-        tip, p, done = _estimate_fixed(est, th, cap, start, features if start is None else None, window)
+        tip, p, done = _estimate_fixed(
+            est, th, cap, start, features if start is None else None, window
+        )
         tips[th], converged[th] = tip, done or cap >= max_iterations
         passes[0] += p
         return tip
 
     if threshold == "book":
-        ths = np.sort(np.asarray(thresholds, float)) if thresholds is not None else np.arange(0, 41) * (sigma / 2)
+        ths = (
+            np.sort(np.asarray(thresholds, float))
+            if thresholds is not None
+            else np.arange(0, 41) * (sigma / 2)
+        )
         for th in ths[::-1]:
             run(th)
         sweep = _sweep_table(tips, pixel_size, band)
-        chosen, critical = _book_choice(np.array([s[0] for s in sweep]), np.array([s[2] for s in sweep]),
-                                        np.array([s[3] for s in sweep]))
+        chosen, critical = _book_choice(
+            np.array([s[0] for s in sweep]),
+            np.array([s[2] for s in sweep]),
+            np.array([s[3] for s in sweep]),
+        )
         if chosen is None:
             chosen = float(ths[int(np.argmax([s[3] for s in sweep]))])
-        return TipEstimate(tips[chosen], chosen, passes[0], time.perf_counter() - t_start, sweep,
-                           critical_threshold=critical, noise=sigma,
-                           feature_points=0 if features is None else len(features), window=window)
+        return TipEstimate(
+            tips[chosen],
+            chosen,
+            passes[0],
+            time.perf_counter() - t_start,
+            sweep,
+            critical_threshold=critical,
+            noise=sigma,
+            feature_points=0 if features is None else len(features),
+            window=window,
+        )
 
-    reference = feature_consensus_tip(image, features if features is not None else
-                                      feature_points(image, tip_size, sigma), tip_size)
+    reference = feature_consensus_tip(
+        image,
+        features if features is not None else feature_points(image, tip_size, sigma),
+        tip_size,
+    )
     region = reference >= -depth
     scores: dict = {}
 
@@ -593,7 +680,7 @@ def estimate_tip(image: np.ndarray, tip_size: int, threshold: float | str = "aut
                     break
             if best < top - 0.5 * coarse or top > span:
                 break
-            top *= 2.0                      # the minimum is at the top: look higher
+            top *= 2.0  # the minimum is at the top: look higher
         # fine: converged estimates at the coarse minimum, then +-sigma and +-sigma/2 around
         # the best converged one (one pass is not enough to rank close thresholds at high noise)
         score(best)
@@ -607,14 +694,23 @@ def estimate_tip(image: np.ndarray, tip_size: int, threshold: float | str = "aut
     sweep = _sweep_table(tips, pixel_size, band)
     counts = [s[2] for s in sweep]
     critical = next((s[0] for s in sweep if s[2] > 1), None) if counts and counts[0] <= 1 else None
-    return TipEstimate(tips[chosen], chosen, passes[0], time.perf_counter() - t_start, sweep,
-                       critical_threshold=critical, noise=sigma,
-                       feature_points=0 if features is None else len(features), window=window,
-                       scores=dict(sorted(scores.items())))
+    return TipEstimate(
+        tips[chosen],
+        chosen,
+        passes[0],
+        time.perf_counter() - t_start,
+        sweep,
+        critical_threshold=critical,
+        noise=sigma,
+        feature_points=0 if features is None else len(features),
+        window=window,
+        scores=dict(sorted(scores.items())),
+    )
 
 
-def estimate_tip_plain(image: np.ndarray, tip_size: int, threshold: float = 0.0,
-                       max_iterations: int = 50) -> TipEstimate:
+def estimate_tip_plain(
+    image: np.ndarray, tip_size: int, threshold: float = 0.0, max_iterations: int = 50
+) -> TipEstimate:
     """Villarrubia's original algorithm, without the speed-ups: every interior point, every
     contact allowed by eq. 4.33 and every tip pixel, pass after pass until no change. The
     reference the fast estimate must agree with (slow: use small images)."""
@@ -631,7 +727,9 @@ def estimate_tip_plain(image: np.ndarray, tip_size: int, threshold: float = 0.0,
         for g in points:
             i0 = flat[g]
             valid = np.flatnonzero(flat[g + off] - i0 + tf >= -eps)
-            bound = (flat[(g + off[valid])[:, None] - off[None, :]] + (tf[valid] - i0)[:, None]).max(axis=0)
+            bound = (
+                flat[(g + off[valid])[:, None] - off[None, :]] + (tf[valid] - i0)[:, None]
+            ).max(axis=0)
             lower = bound + th < tf - eps
             if lower.any():
                 tf[lower] = bound[lower] + th
@@ -645,7 +743,9 @@ def estimate_tip_plain(image: np.ndarray, tip_size: int, threshold: float = 0.0,
 # Certainty map and error
 
 
-def certainty_map(image: np.ndarray, tip: np.ndarray, tolerance: float | None = None) -> np.ndarray:
+def certainty_map(
+    image: np.ndarray, tip: np.ndarray, tolerance: float | None = None
+) -> np.ndarray:
     """Villarrubia's certainty map: True at the points y of the reconstruction
     r = erode(image, tip) that the tip, with its apex at some image point x, touches there and
     nowhere else (i(x) - t(u) = r(x+u) for the single u = y - x; with t <= 0 the tip's
@@ -664,14 +764,14 @@ def certainty_map(image: np.ndarray, tip: np.ndarray, tolerance: float | None = 
     r = erode(image, tip)
     if tolerance is None:
         tolerance = 1e-9 * max(float(image.max() - image.min()), np.finfo(float).tiny)
-    ix = image[2 * h:ny - 2 * h, 2 * h:nx - 2 * h]
+    ix = image[2 * h : ny - 2 * h, 2 * h : nx - 2 * h]
     my, mx = ix.shape
     count = np.zeros(ix.shape, np.int32)
     where = np.zeros(ix.shape, np.int32)
     for a in range(k):
         for b in range(k):
-            rs = r[h + a:h + a + my, h + b:h + b + mx]          # r(x + u), u = (a - h, b - h)
-            touch = np.abs(ix - tip[a, b] - rs) <= tolerance      # tip surface at x+u: i(x) - t(u)
+            rs = r[h + a : h + a + my, h + b : h + b + mx]  # r(x + u), u = (a - h, b - h)
+            touch = np.abs(ix - tip[a, b] - rs) <= tolerance  # tip surface at x+u: i(x) - t(u)
             count += touch
             where[touch] = a * k + b
     single = count == 1
@@ -689,7 +789,7 @@ def tip_error(estimate, true_tip: np.ndarray, depth: float) -> float:
     true = np.asarray(true_tip, float)
     k = min(est.shape[0], true.shape[0])
     ce, ct = est.shape[0] // 2, true.shape[0] // 2
-    e = est[ce - k // 2:ce + k // 2 + 1, ce - k // 2:ce + k // 2 + 1] - est[ce, ce]
-    t = true[ct - k // 2:ct + k // 2 + 1, ct - k // 2:ct + k // 2 + 1] - true[ct, ct]
+    e = est[ce - k // 2 : ce + k // 2 + 1, ce - k // 2 : ce + k // 2 + 1] - est[ce, ce]
+    t = true[ct - k // 2 : ct + k // 2 + 1, ct - k // 2 : ct + k // 2 + 1] - true[ct, ct]
     sel = t >= -depth
     return float(np.sqrt(np.mean((e[sel] - t[sel]) ** 2)))

@@ -53,6 +53,7 @@ Experiments (`run_calibration` runs the drift pairs first, then the others in th
   (eq. 5.32-5.36, Fig. 7.9); the same frames give the map error (Fig. 7.10) and the
   scan-region error (Fig. 7.11).
 """
+
 from __future__ import annotations
 
 import math
@@ -70,24 +71,27 @@ from afm_core.localization.calibration import Calibration, HysteresisFit
 from afm_core.localization.pits import DetectedPit, find_pits
 from afm_core.pzt import Creep, PlayOperatorBank, PrandtlIshlinskii
 
-MAX_LINE_RATE = 10.0          # Hz, rescans: slower than the slew limit allows keeps the tracking honest
-MODEL_DT = 2e-3               # s, time step of the drive reconstruction in the hysteresis fit
+MAX_LINE_RATE = 10.0  # Hz, rescans: slower than the slew limit allows keeps the tracking honest
+MODEL_DT = 2e-3  # s, time step of the drive reconstruction in the hysteresis fit
 
 
 @dataclass
 class Experiment:
-    parameters: dict = field(default_factory=dict)   # fitted values, SI
-    data: dict = field(default_factory=dict)         # raw data for a plot, SI, lists
+    parameters: dict = field(default_factory=dict)  # fitted values, SI
+    data: dict = field(default_factory=dict)  # raw data for a plot, SI, lists
 
 
 # -- checks and small helpers -------------------------------------------------------------------
+
 
 def _positive(name: str, value: float, upper: float | None = None, unit: str = "") -> float:
     value = float(value)
     if not (math.isfinite(value) and value > 0):
         raise ValueError(f"{name}={value}: must be finite and > 0{(' ' + unit) if unit else ''}")
     if upper is not None and value > upper:
-        raise ValueError(f"{name}={value:.4g}: above the limit {upper:.4g}{(' ' + unit) if unit else ''}")
+        raise ValueError(
+            f"{name}={value:.4g}: above the limit {upper:.4g}{(' ' + unit) if unit else ''}"
+        )
     return value
 
 
@@ -127,8 +131,10 @@ def wait(instrument, seconds: float) -> None:
 
 def _set_feed_forward(instrument, enabled: bool) -> None:
     if not hasattr(instrument, "feed_forward_enabled"):
-        raise ValueError("instrument: has no feed_forward_enabled switch; the hysteresis experiment drives the "
-                         "piezos open loop (raw voltages) and needs it")
+        raise ValueError(
+            "instrument: has no feed_forward_enabled switch; the hysteresis experiment drives the "
+            "piezos open loop (raw voltages) and needs it"
+        )
     instrument.feed_forward_enabled = enabled
 
 
@@ -174,8 +180,9 @@ def _punch_at(instrument, x: float, y: float, speed: float, force: float) -> flo
     return moment
 
 
-def rescan(instrument, lo, hi, pixel: float, slow_axis: int, slow_up: bool = True,
-           approach: float = 0.0) -> RasterScanData:
+def rescan(
+    instrument, lo, hi, pixel: float, slow_axis: int, slow_up: bool = True, approach: float = 0.0
+) -> RasterScanData:
     """A raster image of the box [lo, hi] (m) with square pixels of about `pixel` and its slow
     axis along `slow_axis` (0 = x: 90 deg scan; 1 = y: 0 deg). The slow axis moves once,
     monotonically, so a row of pits along it is imaged on one branch of the (compensated)
@@ -188,27 +195,45 @@ def rescan(instrument, lo, hi, pixel: float, slow_axis: int, slow_up: bool = Tru
     size = hi - lo
     pixels = np.maximum(16, np.ceil(size / pixel)).astype(int)
     if pixels.max() > limits.max_pixels:
-        raise ValueError(f"pixel={pixel:.3g} m: the rescan of {size[0]:.3g} x {size[1]:.3g} m would need "
-                         f"{pixels.max()} pixels, above max_pixels {limits.max_pixels}")
+        raise ValueError(
+            f"pixel={pixel:.3g} m: the rescan of {size[0]:.3g} x {size[1]:.3g} m would need "
+            f"{pixels.max()} pixels, above max_pixels {limits.max_pixels}"
+        )
     fast = 1 - slow_axis
     rate = min(MAX_LINE_RATE, limits.max_line_rate, 0.95 * limits.max_speed / (2.0 * size[fast]))
     if approach > 0:
         start = lo.copy() if slow_up else hi.copy()
-        start[slow_axis] = (max(0.0, start[slow_axis] - approach) if slow_up
-                            else min(start[slow_axis] + approach, [limits.range_x, limits.range_y][slow_axis]))
+        start[slow_axis] = (
+            max(0.0, start[slow_axis] - approach)
+            if slow_up
+            else min(start[slow_axis] + approach, [limits.range_x, limits.range_y][slow_axis])
+        )
         instrument.move_tip(float(start[0]), float(start[1]), 0.5 * limits.max_speed)
-    request = ScanRequest(float(lo[0]), float(lo[1]), float(size[0]), float(size[1]), int(pixels[0]), int(pixels[1]),
-                          scan_angle_deg=90.0 if slow_axis == 0 else 0.0, slow_scan_up=slow_up, line_rate=rate)
+    request = ScanRequest(
+        float(lo[0]),
+        float(lo[1]),
+        float(size[0]),
+        float(size[1]),
+        int(pixels[0]),
+        int(pixels[1]),
+        scan_angle_deg=90.0 if slow_axis == 0 else 0.0,
+        slow_scan_up=slow_up,
+        line_rate=rate,
+    )
     return instrument.raster_scan(request)
 
 
 # -- matching detected pits to the punches ---------------------------------------------------------
 
+
 def match_points(expected, detected, gate: float) -> np.ndarray:
     """For each expected point (n, 2) the index of its detected pit (m, 2), -1 if none: first
     the common shift that brings most points within `gate` (every expected-detected offset is
     a candidate), then mutual nearest neighbours after the median shift of those."""
-    expected, detected = np.asarray(expected, float).reshape(-1, 2), np.asarray(detected, float).reshape(-1, 2)
+    expected, detected = (
+        np.asarray(expected, float).reshape(-1, 2),
+        np.asarray(detected, float).reshape(-1, 2),
+    )
     result = np.full(len(expected), -1)
     if not len(expected) or not len(detected):
         return result
@@ -234,7 +259,9 @@ def match_points(expected, detected, gate: float) -> np.ndarray:
     return result
 
 
-def match_monotone(expected, detected, spacing: float | None = None, end_tolerance: float | None = None) -> np.ndarray:
+def match_monotone(
+    expected, detected, spacing: float | None = None, end_tolerance: float | None = None
+) -> np.ndarray:
     """Pits along a line whose positions are a monotone, smooth (not necessarily linear)
     function of the expected values (e.g. the drive of a hysteresis sweep, the commanded
     positions along a lane): index into `detected` per expected value, -1 if none.
@@ -256,13 +283,13 @@ def match_monotone(expected, detected, spacing: float | None = None, end_toleran
     kept = np.arange(len(d_sorted))
     for _ in range(3):
         gaps = np.diff(d_sorted[kept])
-        typical = np.array([np.median(gaps[max(0, i - 3):i + 4]) for i in range(len(gaps))])
+        typical = np.array([np.median(gaps[max(0, i - 3) : i + 4]) for i in range(len(gaps))])
         close = np.flatnonzero(gaps < 0.5 * typical)
         if not close.size:
             break
         kept = np.delete(kept, close[0] + 1)
     gaps = np.diff(d_sorted[kept])
-    typical = np.array([np.median(gaps[max(0, i - 3):i + 4]) for i in range(len(gaps))])
+    typical = np.array([np.median(gaps[max(0, i - 3) : i + 4]) for i in range(len(gaps))])
     # the expected values are about uniformly spaced (sweeps, lanes): a gap spans
     # round(gap / typical) of their steps
     ratio = gaps / typical
@@ -288,7 +315,9 @@ def match_monotone(expected, detected, spacing: float | None = None, end_toleran
             misfit = float(np.sum((x - x.mean() - (d_sorted[kept] - d_sorted[kept].mean())) ** 2))
         if end_tolerance is not None:
             ends = np.abs(d_sorted[kept][[0, -1]] - x[[0, -1]])
-            misfit += 1e6 * float(np.sum(np.maximum(ends - end_tolerance, 0.0) ** 2)) * (1 + misfit)
+            misfit += (
+                1e6 * float(np.sum(np.maximum(ends - end_tolerance, 0.0) ** 2)) * (1 + misfit)
+            )
         if misfit < best:
             best, best_offset = misfit, offset
     if best_offset is None:
@@ -299,6 +328,7 @@ def match_monotone(expected, detected, spacing: float | None = None, end_toleran
 
 
 # -- creep (eq. 5.29-5.31, Fig. 7.7) ------------------------------------------------------------------
+
 
 def creep_deficit(t, time_constants, ramp_time: float) -> np.ndarray:
     """For a step applied as a ramp over [0, ramp_time]: how far each creep operator of eq.
@@ -312,7 +342,9 @@ def creep_deficit(t, time_constants, ramp_time: float) -> np.ndarray:
     return (tau / ramp_time) * -np.expm1(-ramp_time / tau) * np.exp(-(t - ramp_time) / tau)
 
 
-WALK_MEASUREMENT_RATIO = 0.1   # a pit's own position noise (~1 nm)^2 over one move's walk step (~3 nm)^2
+WALK_MEASUREMENT_RATIO = (
+    0.1  # a pit's own position noise (~1 nm)^2 over one move's walk step (~3 nm)^2
+)
 
 
 def walk_whitener(moves, pit_to_walk_ratio: float = WALK_MEASUREMENT_RATIO) -> np.ndarray:
@@ -328,7 +360,9 @@ def walk_whitener(moves, pit_to_walk_ratio: float = WALK_MEASUREMENT_RATIO) -> n
     return linalg.solve_triangular(np.linalg.cholesky(covariance), np.eye(k.size), lower=True)
 
 
-def fit_creep(runs: list[dict], n_constants: int = 3, guess=(1.0, 10.0, 100.0), drift_curvature: bool = False) -> dict:
+def fit_creep(
+    runs: list[dict], n_constants: int = 3, guess=(1.0, 10.0, 100.0), drift_curvature: bool = False
+) -> dict:
     """Nonlinear least squares (scipy.optimize.least_squares) over all runs at once: shared
     time constants, per group of runs (an axis) the fractions c_i >= 0 (of the commanded step
     S), per run the settled position x_inf and a drift velocity v:
@@ -349,23 +383,38 @@ def fit_creep(runs: list[dict], n_constants: int = 3, guess=(1.0, 10.0, 100.0), 
     for k, run in enumerate(runs):
         t, x = np.asarray(run["t"], float), np.asarray(run["x"], float) * 1e9
         whitener = np.eye(t.size) if run.get("moves") is None else walk_whitener(run["moves"])
-        prepared.append((t, x, float(run["step"]) * 1e9, float(run["ramp_time"]), float(np.mean(t)), whitener,
-                         groups.index(run.get("group", k))))
+        prepared.append(
+            (
+                t,
+                x,
+                float(run["step"]) * 1e9,
+                float(run["ramp_time"]),
+                float(np.mean(t)),
+                whitener,
+                groups.index(run.get("group", k)),
+            )
+        )
 
     extra = 3 if drift_curvature else 2
 
     def unpack(theta):
         taus = np.exp(theta[:n_constants])
-        fractions = theta[n_constants:n_constants * (1 + len(groups))].reshape(len(groups), n_constants)
-        per_run = theta[n_constants * (1 + len(groups)):].reshape(len(prepared), extra)
+        fractions = theta[n_constants : n_constants * (1 + len(groups))].reshape(
+            len(groups), n_constants
+        )
+        per_run = theta[n_constants * (1 + len(groups)) :].reshape(len(prepared), extra)
         return taus, fractions, per_run
 
     def residuals(theta, whiten=True):
         taus, fractions, per_run = unpack(theta)
         out = []
         for (t, x, step, ramp, t_mid, whitener, group), p in zip(prepared, per_run):
-            model = (p[0] + p[1] * (t - t_mid) + (p[2] * (t - t_mid) ** 2 if drift_curvature else 0.0)
-                     - step * creep_deficit(t, taus, ramp) @ fractions[group])
+            model = (
+                p[0]
+                + p[1] * (t - t_mid)
+                + (p[2] * (t - t_mid) ** 2 if drift_curvature else 0.0)
+                - step * creep_deficit(t, taus, ramp) @ fractions[group]
+            )
             out.append(whitener @ (model - x) if whiten else model - x)
         return np.concatenate(out)
 
@@ -376,28 +425,57 @@ def fit_creep(runs: list[dict], n_constants: int = 3, guess=(1.0, 10.0, 100.0), 
         theta0 += [x[-1]] + [0.0] * (extra - 1)
         lower += [-np.inf] * extra
         upper += [np.inf] * extra
-    fit = optimize.least_squares(residuals, theta0, bounds=(lower, upper), x_scale="jac", method="trf",
-                                 kwargs={"whiten": False})
+    fit = optimize.least_squares(
+        residuals,
+        theta0,
+        bounds=(lower, upper),
+        x_scale="jac",
+        method="trf",
+        kwargs={"whiten": False},
+    )
     if any(run.get("moves") is not None for run in runs):
         # started from the ordinary fit: the whitened cost alone has shallow valleys far off
-        fit = optimize.least_squares(residuals, np.clip(fit.x, lower, upper), bounds=(lower, upper), x_scale="jac",
-                                     method="trf", loss="soft_l1", f_scale=10.0)
+        fit = optimize.least_squares(
+            residuals,
+            np.clip(fit.x, lower, upper),
+            bounds=(lower, upper),
+            x_scale="jac",
+            method="trf",
+            loss="soft_l1",
+            f_scale=10.0,
+        )
     taus, fractions, per_run = unpack(fit.x)
     order = np.argsort(taus)
     misfit = residuals(fit.x, whiten=False)
-    rms = float(np.sqrt(np.mean(misfit ** 2))) * 1e-9
+    rms = float(np.sqrt(np.mean(misfit**2))) * 1e-9
     ends = np.cumsum([len(t) for t, *_ in prepared])[:-1]
     models = [(x + r) * 1e-9 for (_, x, *_), r in zip(prepared, np.split(misfit, ends))]
-    return {"time_constants": taus[order].tolist(),
-            "fractions": [f[order].tolist() for f in fractions],
-            "settled": [float(p[0]) * 1e-9 for p in per_run],
-            "drift_velocity": [float(p[1]) * 1e-9 for p in per_run],
-            "model": [m.tolist() for m in models], "rms_residual": rms, "success": bool(fit.success)}
+    return {
+        "time_constants": taus[order].tolist(),
+        "fractions": [f[order].tolist() for f in fractions],
+        "settled": [float(p[0]) * 1e-9 for p in per_run],
+        "drift_velocity": [float(p[1]) * 1e-9 for p in per_run],
+        "model": [m.tolist() for m in models],
+        "rms_residual": rms,
+        "success": bool(fit.success),
+    }
 
 
-def measure_creep(instrument, *, step: float = 50e-6, duration: float = 300.0, pits: int = 40, fast_pits: int = 8,
-                  repeats: int = 5, pit_spacing: float = 150e-9, settle: float = 300.0, lane_offset: float = 15e-6,
-                  pixel: float = 10e-9, force: float | None = None, guess=(1.0, 10.0, 100.0)) -> Experiment:
+def measure_creep(
+    instrument,
+    *,
+    step: float = 50e-6,
+    duration: float = 300.0,
+    pits: int = 40,
+    fast_pits: int = 8,
+    repeats: int = 5,
+    pit_spacing: float = 150e-9,
+    settle: float = 300.0,
+    lane_offset: float = 15e-6,
+    pixel: float = 10e-9,
+    force: float | None = None,
+    guess=(1.0, 10.0, 100.0),
+) -> Experiment:
     """Creep of each axis in normal (compensated) operation (book 7.2.2, Fig. 7.7).
 
     Per axis, `repeats` runs: rest at centre - step/2 for `settle` s (earlier creep dies
@@ -421,7 +499,9 @@ def measure_creep(instrument, *, step: float = 50e-6, duration: float = 300.0, p
     pit_spacing = _positive("pit_spacing", pit_spacing, 5e-6, "m")
     force = _force(instrument, force)
     centre = _centre(instrument)
-    run_spacing = 0.05 * step + 1.5e-6          # past the creep a rescan box reaches back (5 % of the step)
+    run_spacing = (
+        0.05 * step + 1.5e-6
+    )  # past the creep a rescan box reaches back (5 % of the step)
     plans = []
     for axis in (0, 1):
         other = 1 - axis
@@ -432,8 +512,12 @@ def measure_creep(instrument, *, step: float = 50e-6, duration: float = 300.0, p
             start[other] = end[other] = centre[other] + lane_offset - pits * pit_spacing / 2
             last = end.copy()
             last[other] += (pits - 1) * pit_spacing
-            _check_box(f"creep lane ({'xy'[axis]}, run {repeat})", instrument, np.minimum(start, last),
-                       np.maximum(end, last))
+            _check_box(
+                f"creep lane ({'xy'[axis]}, run {repeat})",
+                instrument,
+                np.minimum(start, last),
+                np.maximum(end, last),
+            )
             plans.append((axis, start, end))
     runs, data = [], {"x": [], "y": []}
     for axis, start, end in plans:
@@ -452,9 +536,12 @@ def measure_creep(instrument, *, step: float = 50e-6, duration: float = 300.0, p
             wait(instrument, t0 + when - float(instrument.time))
             target = end.copy()
             target[other] += k * pit_spacing
-            moments.append(_punch_at(instrument, float(target[0]), float(target[1]), limits.max_speed, force) - t0)
+            moments.append(
+                _punch_at(instrument, float(target[0]), float(target[1]), limits.max_speed, force)
+                - t0
+            )
             lane.append(float(target[other]))
-        reach = 0.05 * step + 0.5e-6           # creep is a few % of the step: the image covers up to 5 %
+        reach = 0.05 * step + 0.5e-6  # creep is a few % of the step: the image covers up to 5 %
         lo, hi = end.copy(), end.copy()
         lo[axis] -= reach
         hi[axis] += 0.5e-6
@@ -466,41 +553,67 @@ def measure_creep(instrument, *, step: float = 50e-6, duration: float = 300.0, p
         ok = index >= 0
         name = "xy"[axis]
         if ok.sum() < 8:
-            raise RuntimeError(f"creep ({name}, run {len(data[name])}): only {int(ok.sum())} of {pits} pits found "
-                               "in the rescan")
+            raise RuntimeError(
+                f"creep ({name}, run {len(data[name])}): only {int(ok.sum())} of {pits} pits found "
+                "in the rescan"
+            )
         positions = np.array([[detected[j].x, detected[j].y][axis] for j in index[ok]])
         times = np.asarray(moments)[ok]
         # pit k comes after k moves along the lane (the step itself is common to all: x_inf)
-        runs.append({"t": times, "x": positions, "step": step, "ramp_time": ramp_time, "group": name,
-                     "moves": np.flatnonzero(ok) + 1})
-        data[name].append({"t": times.tolist(), "position": positions.tolist(), "step": step,
-                           "ramp_time": ramp_time, "pits_punched": pits, "pits_found": int(ok.sum())})
+        runs.append(
+            {
+                "t": times,
+                "x": positions,
+                "step": step,
+                "ramp_time": ramp_time,
+                "group": name,
+                "moves": np.flatnonzero(ok) + 1,
+            }
+        )
+        data[name].append(
+            {
+                "t": times.tolist(),
+                "position": positions.tolist(),
+                "step": step,
+                "ramp_time": ramp_time,
+                "pits_punched": pits,
+                "pits_found": int(ok.sum()),
+            }
+        )
     fit = fit_creep(runs, guess=guess)
     for record, model in zip(data["x"] + data["y"], fit["model"]):
         record["model"] = model
-    parameters = {"time_constants": fit["time_constants"], "fractions_x": fit["fractions"][0],
-                  "fractions_y": fit["fractions"][1], "drift_velocity": fit["drift_velocity"],
-                  "rms_residual": fit["rms_residual"], "success": fit["success"]}
+    parameters = {
+        "time_constants": fit["time_constants"],
+        "fractions_x": fit["fractions"][0],
+        "fractions_y": fit["fractions"][1],
+        "drift_velocity": fit["drift_velocity"],
+        "rms_residual": fit["rms_residual"],
+        "success": fit["success"],
+    }
     return Experiment(parameters, data)
 
 
 # -- hysteresis (eq. 5.22-5.23, Fig. 7.6a) ---------------------------------------------------------
 
+
 def asymmetric_polynomial(alpha: float, half: float) -> tuple[float, float, float]:
     """The input function of PrandtlIshlinskii.from_fraction: p(xi) = (1 - a^2) xi + a xi^2 +
     a^2 xi^3 in xi = x / half, as coefficients of x."""
-    return (1.0 - alpha * alpha, alpha / half, alpha * alpha / half ** 2)
+    return (1.0 - alpha * alpha, alpha / half, alpha * alpha / half**2)
 
 
-def major_loop(model: PrandtlIshlinskii, half: float, samples: int = 2001) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def major_loop(
+    model: PrandtlIshlinskii, half: float, samples: int = 2001
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(x, ascending, descending) branches of the major loop of a full-span triangle cycle
     [-half, half], after a first sweep has wiped the memory."""
     x = np.linspace(-half, half, samples)
     cycle = np.concatenate([x, x[::-1][1:], x[1:]])
     model.reset(0.0)
     y = model.apply(cycle)
-    descending = y[samples - 1:2 * samples - 1][::-1]
-    ascending = y[2 * samples - 2:]
+    descending = y[samples - 1 : 2 * samples - 1][::-1]
+    ascending = y[2 * samples - 2 :]
     return x, ascending, descending
 
 
@@ -514,8 +627,16 @@ def loop_measures(model: PrandtlIshlinskii, half: float) -> tuple[float, float]:
     return float(np.max(descending - ascending) / span), float(span / (2 * half))
 
 
-def _operator_design(times: np.ndarray, drive: np.ndarray, centre: float, thresholds: np.ndarray, alpha: float,
-                     half: float, creep: tuple | None, pit_times: np.ndarray) -> np.ndarray:
+def _operator_design(
+    times: np.ndarray,
+    drive: np.ndarray,
+    centre: float,
+    thresholds: np.ndarray,
+    alpha: float,
+    half: float,
+    creep: tuple | None,
+    pit_times: np.ndarray,
+) -> np.ndarray:
     """Columns: each play operator's output on p(drive - centre), through the creep operator
     (linear, DC gain 1, so creep of the weighted sum = weighted sum of the creeps), at the pit
     moments."""
@@ -529,14 +650,29 @@ def _operator_design(times: np.ndarray, drive: np.ndarray, centre: float, thresh
         time_constants, fractions = creep
         dt = float(times[1] - times[0])
         for k in range(outputs.shape[1]):
-            operator = Creep(1.0 / np.asarray(time_constants), np.asarray(fractions), 1.0 - float(np.sum(fractions)))
+            operator = Creep(
+                1.0 / np.asarray(time_constants),
+                np.asarray(fractions),
+                1.0 - float(np.sum(fractions)),
+            )
             operator.reset(outputs[0, k])
             outputs[:, k] = operator.apply(outputs[:, k], dt)
-    return np.stack([np.interp(pit_times, times, outputs[:, k]) for k in range(outputs.shape[1])], axis=1)
+    return np.stack(
+        [np.interp(pit_times, times, outputs[:, k]) for k in range(outputs.shape[1])], axis=1
+    )
 
 
-def fit_hysteresis(times, drive, centre: float, half: float, pit_times, positions, thresholds,
-                   creep: tuple | None = None, alpha_bound: float = 0.3) -> dict:
+def fit_hysteresis(
+    times,
+    drive,
+    centre: float,
+    half: float,
+    pit_times,
+    positions,
+    thresholds,
+    creep: tuple | None = None,
+    alpha_bound: float = 0.3,
+) -> dict:
     """Least-squares PI fit (book 7.2.2): for fixed thresholds the model is linear in the
     weights, position = offset + sum_i w_i (C F_{r_i}[p_alpha(drive - centre)])(t_pit), so
     the weights come from a bounded linear least squares (w_i >= 0: every branch slope
@@ -549,33 +685,58 @@ def fit_hysteresis(times, drive, centre: float, half: float, pit_times, position
     target = positions * 1e6
 
     def solve(alpha):
-        design = _operator_design(times, drive, centre, thresholds, alpha, half, creep, pit_times) * 1e6
+        design = (
+            _operator_design(times, drive, centre, thresholds, alpha, half, creep, pit_times) * 1e6
+        )
         design = np.hstack([design, np.ones((len(pit_times), 1))])
         lower = np.r_[np.full(thresholds.size, 0.0), -np.inf]
         upper = np.r_[np.full(thresholds.size, np.inf), np.inf]
-        lower[0] = 1e-6                                  # w_0 > 0: the model must stay invertible
+        lower[0] = 1e-6  # w_0 > 0: the model must stay invertible
         result = optimize.lsq_linear(design, target, bounds=(lower, upper), method="bvls")
         return result, design
 
-    search = optimize.minimize_scalar(lambda a: float(np.sum(solve(a)[0].fun ** 2)), bounds=(-alpha_bound, alpha_bound),
-                                      method="bounded", options={"xatol": 1e-5})
+    search = optimize.minimize_scalar(
+        lambda a: float(np.sum(solve(a)[0].fun ** 2)),
+        bounds=(-alpha_bound, alpha_bound),
+        method="bounded",
+        options={"xatol": 1e-5},
+    )
     alpha = float(search.x)
     result, design = solve(alpha)
     weights, offset = result.x[:-1], result.x[-1]
     model = PrandtlIshlinskii(thresholds, weights, asymmetric_polynomial(alpha, half))
     fraction, gain = loop_measures(model, half)
-    return {"thresholds": thresholds.tolist(), "weights": weights.tolist(),
-            "polynomial": list(asymmetric_polynomial(alpha, half)), "asymmetry": alpha,
-            "loop_fraction": fraction, "gain": gain, "offset": float(offset) * 1e-6,
-            "predicted": (design @ result.x * 1e-6).tolist(),
-            "rms_residual": float(np.sqrt(np.mean(result.fun ** 2))) * 1e-6}
+    return {
+        "thresholds": thresholds.tolist(),
+        "weights": weights.tolist(),
+        "polynomial": list(asymmetric_polynomial(alpha, half)),
+        "asymmetry": alpha,
+        "loop_fraction": fraction,
+        "gain": gain,
+        "offset": float(offset) * 1e-6,
+        "predicted": (design @ result.x * 1e-6).tolist(),
+        "rms_residual": float(np.sqrt(np.mean(result.fun**2))) * 1e-6,
+    }
 
 
-def measure_hysteresis(instrument, axis: int, *, creep: tuple | None = None, cycle_fraction: float = 0.9,
-                       steps_per_sweep: int = 128, pit_every: int = 4, operators: int = 12,
-                       lane_offset: float = -8e-6, branch_gap: float = 3e-6, speed: float = 20e-6,
-                       settle: float = 300.0, pixel: float = 30e-9, rescans=("up", "down"),
-                       force: float | None = None, ignore=None) -> Experiment:
+def measure_hysteresis(
+    instrument,
+    axis: int,
+    *,
+    creep: tuple | None = None,
+    cycle_fraction: float = 0.9,
+    steps_per_sweep: int = 128,
+    pit_every: int = 4,
+    operators: int = 12,
+    lane_offset: float = -8e-6,
+    branch_gap: float = 3e-6,
+    speed: float = 20e-6,
+    settle: float = 300.0,
+    pixel: float = 30e-9,
+    rescans=("up", "down"),
+    force: float | None = None,
+    ignore=None,
+) -> Experiment:
     """PI hysteresis of one axis (0 = x, 1 = y) driven open loop (book 7.2.2, Fig. 7.6a).
 
     Feed-forward off; from the range centre the drive rises to the upper bound of the cycle
@@ -598,8 +759,10 @@ def measure_hysteresis(instrument, axis: int, *, creep: tuple | None = None, cyc
     if axis not in (0, 1):
         raise ValueError(f"axis={axis}: must be 0 (x) or 1 (y)")
     if not (math.isfinite(cycle_fraction) and 0.2 <= cycle_fraction <= 0.9):
-        raise ValueError(f"cycle_fraction={cycle_fraction}: must be within [0.2, 0.9] of the half range (the rescan "
-                         "needs the outer 10 % clear, see below)")
+        raise ValueError(
+            f"cycle_fraction={cycle_fraction}: must be within [0.2, 0.9] of the half range (the rescan "
+            "needs the outer 10 % clear, see below)"
+        )
     steps_per_sweep = _count("steps_per_sweep", steps_per_sweep, 8, 4096)
     pit_every = _count("pit_every", pit_every, 1, steps_per_sweep // 4)
     operators = _count("operators", operators, 2, 64)
@@ -637,12 +800,16 @@ def measure_hysteresis(instrument, axis: int, *, creep: tuple | None = None, cyc
         step = 2 * amplitude / steps_per_sweep
         for k in range(1, steps_per_sweep // 2 + 1):
             timeline.move(*point(centre[axis] + k * step, lane_drive), speed)
-        pits = []                                   # (branch, drive, moment)
+        pits = []  # (branch, drive, moment)
         top, bottom = centre[axis] + amplitude, centre[axis] - amplitude
-        for branch, start, sign, b in (("descending", top, -1.0, lane_drive),
-                                       ("ascending", bottom, 1.0, lane_drive + branch_gap)):
+        for branch, start, sign, b in (
+            ("descending", top, -1.0, lane_drive),
+            ("ascending", bottom, 1.0, lane_drive + branch_gap),
+        ):
             if branch == "ascending":
-                timeline.move(*point(bottom, b), speed)           # to the second lane, along the other axis only
+                timeline.move(
+                    *point(bottom, b), speed
+                )  # to the second lane, along the other axis only
             for k in range(steps_per_sweep + 1):
                 drive = start + sign * k * step
                 if k:
@@ -669,10 +836,14 @@ def measure_hysteresis(instrument, axis: int, *, creep: tuple | None = None, cyc
     measured = np.full((len(rescans), len(pits)), np.nan)
     all_detected = []
     for row, direction in enumerate(rescans):
-        scan = rescan(instrument, box_lo, box_hi, pixel, slow_axis=axis, slow_up=(direction == "up"))
+        scan = rescan(
+            instrument, box_lo, box_hi, pixel, slow_axis=axis, slow_up=(direction == "up")
+        )
         detected = find_pits(scan)
         if len(detected) < 8:
-            raise RuntimeError(f"hysteresis ({'xy'[axis]}): only {len(detected)} pits found in the {direction} rescan")
+            raise RuntimeError(
+                f"hysteresis ({'xy'[axis]}): only {len(detected)} pits found in the {direction} rescan"
+            )
         if ignore is not None and len(ignore):
             # another image put them there: up to ~1 um off along this rescan's slow axis (the
             # compensation residual of a full-range pass), well within 0.3 um across it
@@ -693,32 +864,64 @@ def measure_hysteresis(instrument, axis: int, *, creep: tuple | None = None, cyc
         for branch, sign in (("descending", -1.0), ("ascending", 1.0)):
             in_row = np.flatnonzero(keep & (np.sign(offset) == sign))
             wanted = np.flatnonzero(branches == branch)
-            index = match_monotone(drives[wanted], along[in_row], pit_every * step,
-                                   end_tolerance=0.3 * pit_every * step)
+            index = match_monotone(
+                drives[wanted],
+                along[in_row],
+                pit_every * step,
+                end_tolerance=0.3 * pit_every * step,
+            )
             for i, j in zip(wanted, index):
                 if j >= 0:
                     measured[row, i] = along[in_row[j]]
     found = np.all(np.isfinite(measured), axis=0)
     if found.sum() < 2 * operators:
-        raise RuntimeError(f"hysteresis ({'xy'[axis]}): only {int(found.sum())} of {len(pits)} pits found in every "
-                           f"rescan; need {2 * operators}")
+        raise RuntimeError(
+            f"hysteresis ({'xy'[axis]}): only {int(found.sum())} of {len(pits)} pits found in every "
+            f"rescan; need {2 * operators}"
+        )
     positions = measured[:, found].mean(axis=0)
     times, drive = timeline.sampled(axis, MODEL_DT)
     thresholds = np.arange(operators) * amplitude / (2 * operators)
-    fit = fit_hysteresis(times, drive, centre[axis], half, moments[found], positions, thresholds, creep)
-    parameters = {key: fit[key] for key in ("thresholds", "weights", "polynomial", "asymmetry", "loop_fraction",
-                                            "gain", "offset", "rms_residual")}
-    data = {"branch": branches[found].tolist(), "drive": drives[found].tolist(), "time": moments[found].tolist(),
-            "position": positions.tolist(), "position_per_rescan": measured[:, found].tolist(),
-            "predicted": fit["predicted"], "pits_punched": len(pits), "pits_found": int(found.sum()),
-            "all_detected": all_detected[0],
-            # the drive as issued (piecewise linear between these knots), to refit or plot
-            "drive_knots": {"time": list(timeline.times), "drive": [c[axis] for c in timeline.commands]},
-            "centre": float(centre[axis]), "half_range": half}
+    fit = fit_hysteresis(
+        times, drive, centre[axis], half, moments[found], positions, thresholds, creep
+    )
+    parameters = {
+        key: fit[key]
+        for key in (
+            "thresholds",
+            "weights",
+            "polynomial",
+            "asymmetry",
+            "loop_fraction",
+            "gain",
+            "offset",
+            "rms_residual",
+        )
+    }
+    data = {
+        "branch": branches[found].tolist(),
+        "drive": drives[found].tolist(),
+        "time": moments[found].tolist(),
+        "position": positions.tolist(),
+        "position_per_rescan": measured[:, found].tolist(),
+        "predicted": fit["predicted"],
+        "pits_punched": len(pits),
+        "pits_found": int(found.sum()),
+        "all_detected": all_detected[0],
+        # the drive as issued (piecewise linear between these knots), to refit or plot
+        "drive_knots": {
+            "time": list(timeline.times),
+            "drive": [c[axis] for c in timeline.commands],
+        },
+        "centre": float(centre[axis]),
+        "half_range": half,
+    }
     return Experiment(parameters, data)
 
 
-def _without_known(detected: list[DetectedPit], known: np.ndarray, slow_axis: int) -> list[DetectedPit]:
+def _without_known(
+    detected: list[DetectedPit], known: np.ndarray, slow_axis: int
+) -> list[DetectedPit]:
     """`detected` less the pits that are `known` from another image. That image placed them up
     to ~1 um differently along this one's slow axis (the compensation residual of a
     full-range pass differs between the two), the same to ~0.3 um across it: the shift is
@@ -739,7 +942,9 @@ def _without_known(detected: list[DetectedPit], known: np.ndarray, slow_axis: in
     return [p for j, p in enumerate(detected) if j not in drop]
 
 
-def refit_hysteresis(experiment: Experiment, creep: tuple | None = None, operators: int | None = None) -> dict:
+def refit_hysteresis(
+    experiment: Experiment, creep: tuple | None = None, operators: int | None = None
+) -> dict:
     """`fit_hysteresis` again on a measure_hysteresis experiment's data (another creep model,
     another number of operators)."""
     data = experiment.data
@@ -749,20 +954,41 @@ def refit_hysteresis(experiment: Experiment, creep: tuple | None = None, operato
     thresholds = np.asarray(experiment.parameters["thresholds"])
     if operators is not None:
         thresholds = np.arange(operators) * (thresholds[1] * thresholds.size) / operators
-    return fit_hysteresis(times, drive, data["centre"], data["half_range"], data["time"], data["position"],
-                          thresholds, creep)
+    return fit_hysteresis(
+        times,
+        drive,
+        data["centre"],
+        data["half_range"],
+        data["time"],
+        data["position"],
+        thresholds,
+        creep,
+    )
 
 
 def hysteresis_fit_of(experiment: Experiment) -> HysteresisFit:
     p = experiment.parameters
-    return HysteresisFit(thresholds=list(p["thresholds"]), weights=list(p["weights"]), polynomial=list(p["polynomial"]),
-                         loop_fraction=float(p["loop_fraction"]), asymmetry=float(p["asymmetry"]))
+    return HysteresisFit(
+        thresholds=list(p["thresholds"]),
+        weights=list(p["weights"]),
+        polynomial=list(p["polynomial"]),
+        loop_fraction=float(p["loop_fraction"]),
+        asymmetry=float(p["asymmetry"]),
+    )
 
 
 # -- scanner matrix ----------------------------------------------------------------------------------
 
-def measure_scanner_matrix(instrument, *, site=(-20e-6, 20e-6), grid: int = 5, spacing: float = 1e-6,
-                           pixel: float = 10e-9, force: float | None = None) -> Experiment:
+
+def measure_scanner_matrix(
+    instrument,
+    *,
+    site=(-20e-6, 20e-6),
+    grid: int = 5,
+    spacing: float = 1e-6,
+    pixel: float = 10e-9,
+    force: float | None = None,
+) -> Experiment:
     """Imaged displacement per commanded displacement in normal (compensated) operation: a
     grid x grid pattern of pits `spacing` apart, punched row by row (serpentine, moves as
     short as the localizer's), rescanned; the affine fit image = M command + b gives M.
@@ -778,9 +1004,19 @@ def measure_scanner_matrix(instrument, *, site=(-20e-6, 20e-6), grid: int = 5, s
     spacing = _positive("spacing", spacing, 10e-6, "m")
     force = _force(instrument, force)
     origin = _centre(instrument) + np.asarray(site, float)
-    commands = np.array([origin + spacing * np.array([i if j % 2 == 0 else grid - 1 - i, j])
-                         for j in range(grid) for i in range(grid)])
-    _check_box("scanner-matrix grid", instrument, commands.min(axis=0) - 0.5e-6, commands.max(axis=0) + 5e-6)
+    commands = np.array(
+        [
+            origin + spacing * np.array([i if j % 2 == 0 else grid - 1 - i, j])
+            for j in range(grid)
+            for i in range(grid)
+        ]
+    )
+    _check_box(
+        "scanner-matrix grid",
+        instrument,
+        commands.min(axis=0) - 0.5e-6,
+        commands.max(axis=0) + 5e-6,
+    )
     # Come from beyond the far corner, so every move of the pattern is a short move after a
     # reversal, as in manipulation (the compensated gain of a short move after a reversal
     # differs from that of a long monotone run by the model error of the feed-forward).
@@ -788,7 +1024,13 @@ def measure_scanner_matrix(instrument, *, site=(-20e-6, 20e-6), grid: int = 5, s
     instrument.move_tip(float(beyond[0]), float(beyond[1]), 0.5 * limits.max_speed)
     for x, y in commands:
         _punch_at(instrument, float(x), float(y), 0.1 * limits.max_speed, force)
-    scan = rescan(instrument, commands.min(axis=0) - 0.5e-6, commands.max(axis=0) + 0.5e-6, pixel, slow_axis=1)
+    scan = rescan(
+        instrument,
+        commands.min(axis=0) - 0.5e-6,
+        commands.max(axis=0) + 0.5e-6,
+        pixel,
+        slow_axis=1,
+    )
     detected = find_pits(scan)
     found = np.array([[p.x, p.y] for p in detected]).reshape(-1, 2)
     index = match_points(commands, found, 0.3 * spacing)
@@ -799,11 +1041,14 @@ def measure_scanner_matrix(instrument, *, site=(-20e-6, 20e-6), grid: int = 5, s
     solution, *_ = np.linalg.lstsq(design, found[index[ok]] - origin, rcond=None)
     matrix = solution[:2].T
     residual = found[index[ok]] - origin - design @ solution
-    return Experiment({"scanner_matrix": matrix.tolist(), "rms_residual": float(np.sqrt(np.mean(residual ** 2)))},
-                      {"commanded": commands[ok].tolist(), "imaged": found[index[ok]].tolist()})
+    return Experiment(
+        {"scanner_matrix": matrix.tolist(), "rms_residual": float(np.sqrt(np.mean(residual**2)))},
+        {"commanded": commands[ok].tolist(), "imaged": found[index[ok]].tolist()},
+    )
 
 
 # -- motion noise (Fig. 7.6e, Fig. 7.20b) -----------------------------------------------------------------
+
 
 def fit_variance_line(distances, variances, counts) -> tuple[float, float]:
     """sigma^2 = a d + b by weighted least squares: a sample variance from n values has a
@@ -813,15 +1058,25 @@ def fit_variance_line(distances, variances, counts) -> tuple[float, float]:
     expected = np.maximum(v, 1e-30)
     for _ in range(5):
         w = np.sqrt((n - 1) / 2) / expected
-        (a, b), *_ = np.linalg.lstsq(np.stack([d, np.ones_like(d)], axis=1) * w[:, None], v * w, rcond=None)
+        (a, b), *_ = np.linalg.lstsq(
+            np.stack([d, np.ones_like(d)], axis=1) * w[:, None], v * w, rcond=None
+        )
         expected = np.maximum(a * d + b, 0.1 * np.maximum(v, 1e-30))
     return float(a), float(b)
 
 
-def measure_motion_noise(instrument, *, distances=(0.25e-6, 0.5e-6, 1e-6, 2e-6, 4e-6), trials: int = 40,
-                         row_spacing: float = 200e-9, site=(-45e-6, -45e-6),
-                         speed: float = 10e-6, settle: float = 300.0, pixel: float = 15e-9,
-                         force: float | None = None) -> Experiment:
+def measure_motion_noise(
+    instrument,
+    *,
+    distances=(0.25e-6, 0.5e-6, 1e-6, 2e-6, 4e-6),
+    trials: int = 40,
+    row_spacing: float = 200e-9,
+    site=(-45e-6, -45e-6),
+    speed: float = 10e-6,
+    settle: float = 300.0,
+    pixel: float = 15e-9,
+    force: float | None = None,
+) -> Experiment:
     """Motion error variance against distance (book Fig. 7.6e; Fig. 7.20b sigma^2 = a d + b).
 
     For each axis and each distance d: `trials` trials, each a pit A, one move of d along the
@@ -857,7 +1112,12 @@ def measure_motion_noise(instrument, *, distances=(0.25e-6, 0.5e-6, 1e-6, 2e-6, 
         end = start.copy()
         end[axis] += d
         end[1 - axis] += extent
-        _check_box(f"motion-noise lane ({'xy'[axis]}, d={d:.3g} m)", instrument, start - 0.5e-6, end + 0.5e-6)
+        _check_box(
+            f"motion-noise lane ({'xy'[axis]}, d={d:.3g} m)",
+            instrument,
+            start - 0.5e-6,
+            end + 0.5e-6,
+        )
     data, samples = {"x": [], "y": []}, []
     for axis, d, start in lanes:
         other = 1 - axis
@@ -898,10 +1158,12 @@ def measure_motion_noise(instrument, *, distances=(0.25e-6, 0.5e-6, 1e-6, 2e-6, 
             group = [i] if i is not None else []
         separations = np.array(separations).reshape(-1, 2)
         row_index = np.array(row_index)
-        keep = row_index > 0                                       # the first trial has another history
+        keep = row_index > 0  # the first trial has another history
         separations, row_index = separations[keep], row_index[keep]
         if len(separations) < 5:
-            raise RuntimeError(f"motion noise ({'xy'[axis]}, d={d:.3g} m): only {len(separations)} trials measured")
+            raise RuntimeError(
+                f"motion noise ({'xy'[axis]}, d={d:.3g} m): only {len(separations)} trials measured"
+            )
         residual = []
         for component in (0, 1):
             trend = np.polyfit(row_index, separations[:, component], 1)
@@ -910,29 +1172,51 @@ def measure_motion_noise(instrument, *, distances=(0.25e-6, 0.5e-6, 1e-6, 2e-6, 
         var_along = float(np.sum(residual[0] ** 2) / (n - 2))
         var_across = float(np.sum(residual[1] ** 2) / (n - 2))
         samples.append((axis, d, n - 1, var_along, var_across))
-        data["xy"[axis]].append({"distance": d, "trials": n, "mean_separation": float(separations[:, 0].mean()),
-                                 "variance_along": var_along, "variance_across": var_across})
+        data["xy"[axis]].append(
+            {
+                "distance": d,
+                "trials": n,
+                "mean_separation": float(separations[:, 0].mean()),
+                "variance_along": var_along,
+                "variance_across": var_across,
+            }
+        )
     parameters = {}
     for axis in (0, 1):
         rows = [s for s in samples if s[0] == axis]
-        a, b = fit_variance_line([r[1] for r in rows], [r[3] for r in rows], [r[2] + 1 for r in rows])
+        a, b = fit_variance_line(
+            [r[1] for r in rows], [r[3] for r in rows], [r[2] + 1 for r in rows]
+        )
         parameters[f"slope_{'xy'[axis]}"], parameters[f"offset_{'xy'[axis]}"] = a, b
-    cross_a, cross_b = fit_variance_line([r[1] for r in samples], [r[4] for r in samples], [r[2] + 1 for r in samples])
+    cross_a, cross_b = fit_variance_line(
+        [r[1] for r in samples], [r[4] for r in samples], [r[2] + 1 for r in samples]
+    )
     parameters["cross_slope"], parameters["cross_offset"] = cross_a, cross_b
     # one slope from every component (along and across, both axes): the best estimate when
     # the noise is isotropic, as the simulator's is; compare the per-axis ones with it
-    pooled_a, pooled_b = fit_variance_line([r[1] for r in samples] * 2,
-                                           [r[3] for r in samples] + [r[4] for r in samples],
-                                           [r[2] + 1 for r in samples] * 2)
+    pooled_a, pooled_b = fit_variance_line(
+        [r[1] for r in samples] * 2,
+        [r[3] for r in samples] + [r[4] for r in samples],
+        [r[2] + 1 for r in samples] * 2,
+    )
     parameters["pooled_slope"], parameters["pooled_offset"] = pooled_a, pooled_b
     return Experiment(parameters, data)
 
 
 # -- scan-line deflection (Fig. 7.12) ----------------------------------------------------------------
 
-def measure_line_deflection(instrument, *, lines: int = 20, length: float = 1e-6, line_spacing: float = 0.4e-6,
-                            site=(20e-6, -25e-6), speed: float = 1e-6, pixel: float = 10e-9,
-                            force: float | None = None) -> Experiment:
+
+def measure_line_deflection(
+    instrument,
+    *,
+    lines: int = 20,
+    length: float = 1e-6,
+    line_spacing: float = 0.4e-6,
+    site=(20e-6, -25e-6),
+    speed: float = 1e-6,
+    pixel: float = 10e-9,
+    force: float | None = None,
+) -> Experiment:
     """Deflection of local scan lines (book Fig. 7.12): for each line, a pit at its start,
     the local scan, a pit where it ended; half the lines horizontal, half vertical. The angle
     between the pit-to-pit vector and the commanded direction (counter-clockwise positive)
@@ -945,24 +1229,39 @@ def measure_line_deflection(instrument, *, lines: int = 20, length: float = 1e-6
     origin = _centre(instrument) + np.asarray(site, float)
     starts, ends = [], []
     for k in range(lines):
-        if k % 2 == 0:     # horizontal lines, stacked along y
+        if k % 2 == 0:  # horizontal lines, stacked along y
             s = origin + np.array([0.0, (k // 2) * line_spacing])
             e = s + np.array([length, 0.0])
-        else:              # vertical lines, to the right of the horizontal block
+        else:  # vertical lines, to the right of the horizontal block
             s = origin + np.array([length + 1e-6 + (k // 2) * line_spacing, 0.0])
             e = s + np.array([0.0, length])
         starts.append(s)
         ends.append(e)
     starts, ends = np.array(starts), np.array(ends)
     everything = np.vstack([starts, ends])
-    _check_box("line-deflection site", instrument, everything.min(axis=0) - 0.5e-6, everything.max(axis=0) + 0.5e-6)
-    samples = max(2, int(round(length / 10e-9)))      # 10 nm per sample: the line is not what is measured
+    _check_box(
+        "line-deflection site",
+        instrument,
+        everything.min(axis=0) - 0.5e-6,
+        everything.max(axis=0) + 0.5e-6,
+    )
+    samples = max(
+        2, int(round(length / 10e-9))
+    )  # 10 nm per sample: the line is not what is measured
     for s, e in zip(starts, ends):
         _punch_at(instrument, float(s[0]), float(s[1]), 0.1 * limits.max_speed, force)
-        instrument.local_scan(LineRequest(float(s[0]), float(s[1]), float(e[0]), float(e[1]), samples, speed))
+        instrument.local_scan(
+            LineRequest(float(s[0]), float(s[1]), float(e[0]), float(e[1]), samples, speed)
+        )
         x, y = instrument.commanded_position()
         instrument.indent(x, y, force, 0.0)
-    scan = rescan(instrument, everything.min(axis=0) - 0.4e-6, everything.max(axis=0) + 0.4e-6, pixel, slow_axis=1)
+    scan = rescan(
+        instrument,
+        everything.min(axis=0) - 0.4e-6,
+        everything.max(axis=0) + 0.4e-6,
+        pixel,
+        slow_axis=1,
+    )
     detected = np.array([[p.x, p.y] for p in find_pits(scan)]).reshape(-1, 2)
     index = match_points(everything, detected, 0.3 * line_spacing)
     n = len(starts)
@@ -973,16 +1272,21 @@ def measure_line_deflection(instrument, *, lines: int = 20, length: float = 1e-6
             continue
         measured = detected[j] - detected[i]
         commanded = ends[k] - starts[k]
-        angle = math.atan2(commanded[0] * measured[1] - commanded[1] * measured[0], float(commanded @ measured))
+        angle = math.atan2(
+            commanded[0] * measured[1] - commanded[1] * measured[0], float(commanded @ measured)
+        )
         angles.append(math.degrees(angle))
     if len(angles) < 2:
         raise RuntimeError(f"line deflection: only {len(angles)} of {n} lines measured")
     angles = np.array(angles)
-    return Experiment({"mean_deg": float(angles.mean()), "sigma_deg": float(angles.std(ddof=1))},
-                      {"angles_deg": angles.tolist(), "length": length})
+    return Experiment(
+        {"mean_deg": float(angles.mean()), "sigma_deg": float(angles.std(ddof=1))},
+        {"angles_deg": angles.tolist(), "length": length},
+    )
 
 
 # -- drift, map error, scan-region error (eq. 5.32-5.36, Fig. 7.9-7.11) ---------------------------------
+
 
 def _particle_area(instrument, area) -> tuple[np.ndarray, np.ndarray]:
     lo, hi = np.asarray(area[:2], float), np.asarray(area[:2], float) + np.asarray(area[2:], float)
@@ -992,9 +1296,17 @@ def _particle_area(instrument, area) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def measure_drift(instrument, *, area=(54.1e-6, 53.85e-6, 2.0e-6, 3.0e-6), pairs: int = 20, pixel: float = 15.625e-9,
-                  frame_time: float = 256.0, interval: float = 3600.0, search: float = 6e-6,
-                  settle: float = 300.0) -> Experiment:
+def measure_drift(
+    instrument,
+    *,
+    area=(54.1e-6, 53.85e-6, 2.0e-6, 3.0e-6),
+    pairs: int = 20,
+    pixel: float = 15.625e-9,
+    frame_time: float = 256.0,
+    interval: float = 3600.0,
+    search: float = 6e-6,
+    settle: float = 300.0,
+) -> Experiment:
     """Drift velocity statistics (book 5.3.3, 7.2.2, Fig. 7.9): `pairs` frame-up / frame-down
     image pairs of an area with at least two particles on different lines, a pair starting
     every `interval` s (the drift velocity wanders slowly; samples closer than its
@@ -1028,12 +1340,16 @@ def measure_drift(instrument, *, area=(54.1e-6, 53.85e-6, 2.0e-6, 3.0e-6), pairs
     size = hi - lo
     pixels = np.maximum(16, np.round(size / pixel)).astype(int)
     if pixels.max() > limits.max_pixels:
-        raise ValueError(f"pixel={pixel:.3g} m: the frame needs {pixels.max()} pixels, "
-                         f"above max_pixels {limits.max_pixels}")
+        raise ValueError(
+            f"pixel={pixel:.3g} m: the frame needs {pixels.max()} pixels, "
+            f"above max_pixels {limits.max_pixels}"
+        )
     line_rate = pixels[1] / frame_time
     if 2.0 * size[0] * line_rate > limits.max_speed or line_rate > limits.max_line_rate:
-        raise ValueError(f"frame_time={frame_time} s: {pixels[1]} lines of {size[0]:.3g} m would exceed the slew "
-                         f"limit {limits.max_speed} m/s or max_line_rate {limits.max_line_rate} Hz")
+        raise ValueError(
+            f"frame_time={frame_time} s: {pixels[1]} lines of {size[0]:.3g} m would exceed the slew "
+            f"limit {limits.max_speed} m/s or max_line_rate {limits.max_line_rate} Hz"
+        )
     centre = 0.5 * (lo + hi)
     velocities, moments, frames, particle_times = [], [], [], []
     for k in range(pairs):
@@ -1043,18 +1359,31 @@ def measure_drift(instrument, *, area=(54.1e-6, 53.85e-6, 2.0e-6, 3.0e-6), pairs
         # rest at the middle of the first line: the fast axis then oscillates about where its
         # creep has settled (resting at the line's start, the slow creep would follow the line
         # mean for the first minutes of the frame and look like drift along x)
-        instrument.move_tip(float(lo[0] + 0.5 * size[0]), float(lo[1] + 0.5 * size[1] / pixels[1]),
-                            0.1 * limits.max_speed)
+        instrument.move_tip(
+            float(lo[0] + 0.5 * size[0]),
+            float(lo[1] + 0.5 * size[1] / pixels[1]),
+            0.1 * limits.max_speed,
+        )
         wait(instrument, settle)
-        request = dict(origin_x=float(lo[0]), origin_y=float(lo[1]), size_x=float(size[0]), size_y=float(size[1]),
-                       pixels_x=int(pixels[0]), pixels_y=int(pixels[1]), line_rate=float(line_rate))
+        request = dict(
+            origin_x=float(lo[0]),
+            origin_y=float(lo[1]),
+            size_x=float(size[0]),
+            size_y=float(size[1]),
+            pixels_x=int(pixels[0]),
+            pixels_y=int(pixels[1]),
+            line_rate=float(line_rate),
+        )
         up = instrument.raster_scan(ScanRequest(slow_scan_up=True, **request))
         # rest again before the frame down: it then starts from a settled creep state as the
         # frame up did, and the slow axis' creep lag builds up alike in both (mirror images),
         # so its effect on the particles' separations is the same in both frames and cancels
         # (reversing at once, the lag would swing from -L to +L during the frame down)
-        instrument.move_tip(float(lo[0] + 0.5 * size[0]), float(lo[1] + size[1] - 0.5 * size[1] / pixels[1]),
-                            0.1 * limits.max_speed)
+        instrument.move_tip(
+            float(lo[0] + 0.5 * size[0]),
+            float(lo[1] + size[1] - 0.5 * size[1] / pixels[1]),
+            0.1 * limits.max_speed,
+        )
         wait(instrument, settle)
         down = instrument.raster_scan(ScanRequest(slow_scan_up=False, **request))
         observations = up_down_observations(up, down)
@@ -1065,10 +1394,20 @@ def measure_drift(instrument, *, area=(54.1e-6, 53.85e-6, 2.0e-6, 3.0e-6), pairs
         if k < pairs - 1:
             wait(instrument, start + interval - float(instrument.time))
     v = np.array(velocities)
-    parameters = {"mean_velocity": v.mean(axis=0).tolist(), "sigma_velocity": v.std(axis=0, ddof=1).tolist(),
-                  "pairs": pairs}
-    return Experiment(parameters, {"time": moments, "velocity": v.tolist(), "particle_times": particle_times,
-                                   "frames": frames})
+    parameters = {
+        "mean_velocity": v.mean(axis=0).tolist(),
+        "sigma_velocity": v.std(axis=0, ddof=1).tolist(),
+        "pairs": pairs,
+    }
+    return Experiment(
+        parameters,
+        {
+            "time": moments,
+            "velocity": v.tolist(),
+            "particle_times": particle_times,
+            "frames": frames,
+        },
+    )
 
 
 def _find_particle_cluster(instrument, centre, search: float, frame) -> np.ndarray:
@@ -1077,15 +1416,34 @@ def _find_particle_cluster(instrument, centre, search: float, frame) -> np.ndarr
     `centre` itself is returned when still none is."""
     limits = instrument.limits
     for attempt in range(4):
-        reach = search * 2 ** attempt
+        reach = search * 2**attempt
         size = np.array([min(reach, limits.range_x), min(reach, limits.range_y)])
-        lo = np.clip(np.asarray(centre) - size / 2, 0.0, [limits.range_x - size[0], limits.range_y - size[1]])
+        lo = np.clip(
+            np.asarray(centre) - size / 2,
+            0.0,
+            [limits.range_x - size[0], limits.range_y - size[1]],
+        )
         rate = min(MAX_LINE_RATE, limits.max_line_rate, 0.95 * limits.max_speed / (2.0 * size[0]))
-        pixels = int(min(limits.max_pixels, 128 * 2 ** attempt))
-        scan = instrument.raster_scan(ScanRequest(float(lo[0]), float(lo[1]), float(size[0]), float(size[1]), pixels,
-                                                  pixels, line_rate=rate))
-        marks = extract_landmarks(np.asarray(scan.height, float), scan.pixel_size_x, scan.pixel_size_y,
-                                  scan.origin_x, scan.origin_y, min_height=30e-9)
+        pixels = int(min(limits.max_pixels, 128 * 2**attempt))
+        scan = instrument.raster_scan(
+            ScanRequest(
+                float(lo[0]),
+                float(lo[1]),
+                float(size[0]),
+                float(size[1]),
+                pixels,
+                pixels,
+                line_rate=rate,
+            )
+        )
+        marks = extract_landmarks(
+            np.asarray(scan.height, float),
+            scan.pixel_size_x,
+            scan.pixel_size_y,
+            scan.origin_x,
+            scan.origin_y,
+            min_height=30e-9,
+        )
         if marks:
             break
     if not marks:
@@ -1097,7 +1455,9 @@ def _find_particle_cluster(instrument, centre, search: float, frame) -> np.ndarr
     return 0.5 * (near.min(axis=0) + near.max(axis=0))
 
 
-def map_errors(frames: list[RasterScanData], lines: int = 11, min_height: float = 30e-9) -> Experiment:
+def map_errors(
+    frames: list[RasterScanData], lines: int = 11, min_height: float = 30e-9
+) -> Experiment:
     """Map error (book Fig. 7.10) and scan-region error (Fig. 7.11) from repeated images of
     the same particles.
 
@@ -1115,14 +1475,22 @@ def map_errors(frames: list[RasterScanData], lines: int = 11, min_height: float 
     reference = None
     for scan in frames:
         height = np.asarray(scan.height, float)
-        marks = extract_landmarks(height, scan.pixel_size_x, scan.pixel_size_y, scan.origin_x, scan.origin_y,
-                                  min_height=min_height)
+        marks = extract_landmarks(
+            height,
+            scan.pixel_size_x,
+            scan.pixel_size_y,
+            scan.origin_x,
+            scan.origin_y,
+            min_height=min_height,
+        )
         if len(marks) < 2:
             continue
         # relative to the frame's centre: the frames follow the drifting particles, so that is
         # where the same particle is found again
-        frame_centre = [scan.origin_x + 0.5 * height.shape[1] * scan.pixel_size_x,
-                        scan.origin_y + 0.5 * height.shape[0] * scan.pixel_size_y]
+        frame_centre = [
+            scan.origin_x + 0.5 * height.shape[1] * scan.pixel_size_x,
+            scan.origin_y + 0.5 * height.shape[0] * scan.pixel_size_y,
+        ]
         points = np.array([[m.x, m.y] for m in marks]) - frame_centre
         if reference is None:
             reference = points[:2].copy()
@@ -1152,9 +1520,13 @@ def map_errors(frames: list[RasterScanData], lines: int = 11, min_height: float 
     if len(relative) < 3:
         raise ValueError(f"frames: two particles found in only {len(relative)} images; need 3")
     region = np.array(region)
-    return Experiment({"map_sigma": relative.std(axis=0, ddof=1).tolist(),
-                       "scan_region_sigma": float(region.std(ddof=1)) if len(region) > 1 else float("nan")},
-                      {"relative_position": relative.tolist(), "region_offsets": region.tolist()})
+    return Experiment(
+        {
+            "map_sigma": relative.std(axis=0, ddof=1).tolist(),
+            "scan_region_sigma": float(region.std(ddof=1)) if len(region) > 1 else float("nan"),
+        },
+        {"relative_position": relative.tolist(), "region_offsets": region.tolist()},
+    )
 
 
 def _crossing_midpoint(profile: np.ndarray, level: float, near: float) -> float | None:
@@ -1179,10 +1551,18 @@ def _crossing_midpoint(profile: np.ndarray, level: float, near: float) -> float 
 
 # -- everything ---------------------------------------------------------------------------------------
 
-def run_calibration(instrument, *, creep: dict | None = None, hysteresis: dict | None = None,
-                    scanner_matrix: dict | None = None, motion_noise: dict | None = None,
-                    line_deflection: dict | None = None, drift: dict | None = None,
-                    source: str | None = None) -> tuple[Calibration, dict]:
+
+def run_calibration(
+    instrument,
+    *,
+    creep: dict | None = None,
+    hysteresis: dict | None = None,
+    scanner_matrix: dict | None = None,
+    motion_noise: dict | None = None,
+    line_deflection: dict | None = None,
+    drift: dict | None = None,
+    source: str | None = None,
+) -> tuple[Calibration, dict]:
     """All experiments, in an order where each can use what the previous measured (creep
     before hysteresis: the hysteresis fit includes it; drift, map and scan-region errors
     first, before there are pits). Each keyword is that experiment's options
@@ -1204,8 +1584,9 @@ def run_calibration(instrument, *, creep: dict | None = None, hysteresis: dict |
     creep_y = (result.parameters["time_constants"], result.parameters["fractions_y"])
     options = dict(hysteresis or {})
     report["hysteresis_x"] = measure_hysteresis(instrument, 0, creep=creep_x, **options)
-    report["hysteresis_y"] = measure_hysteresis(instrument, 1, creep=creep_y,
-                                                ignore=report["hysteresis_x"].data["all_detected"], **options)
+    report["hysteresis_y"] = measure_hysteresis(
+        instrument, 1, creep=creep_y, ignore=report["hysteresis_x"].data["all_detected"], **options
+    )
     report["scanner_matrix"] = measure_scanner_matrix(instrument, **(scanner_matrix or {}))
     report["motion_noise"] = measure_motion_noise(instrument, **(motion_noise or {}))
     report["line_deflection"] = measure_line_deflection(instrument, **(line_deflection or {}))
@@ -1220,7 +1601,8 @@ def run_calibration(instrument, *, creep: dict | None = None, hysteresis: dict |
         creep_time_constants=list(result.parameters["time_constants"]),
         creep_fractions_x=list(result.parameters["fractions_x"]),
         creep_fractions_y=list(result.parameters["fractions_y"]),
-        motion_noise_slope_x=max(0.0, noise["slope_x"]), motion_noise_slope_y=max(0.0, noise["slope_y"]),
+        motion_noise_slope_x=max(0.0, noise["slope_x"]),
+        motion_noise_slope_y=max(0.0, noise["slope_y"]),
         motion_noise_cross_slope=max(0.0, noise["cross_slope"]),
         motion_noise_offset=max(0.0, 0.5 * (noise["offset_x"] + noise["offset_y"])),
         drift_mean_velocity=list(drift_result.parameters["mean_velocity"]),
@@ -1228,8 +1610,12 @@ def run_calibration(instrument, *, creep: dict | None = None, hysteresis: dict |
         map_sigma=list(errors["map_sigma"]),
         scan_region_sigma=float(errors["scan_region_sigma"]),
         line_deflection_mean_deg=float(report["line_deflection"].parameters["mean_deg"]),
-        line_deflection_sigma_deg=float(report["line_deflection"].parameters["sigma_deg"]))
-    summary = {name: {"parameters": value.parameters, "data": value.data} for name, value in report.items()}
+        line_deflection_sigma_deg=float(report["line_deflection"].parameters["sigma_deg"]),
+    )
+    summary = {
+        name: {"parameters": value.parameters, "data": value.data}
+        for name, value in report.items()
+    }
     summary["instrument_seconds"] = float(instrument.time) - clock0
     summary["wall_seconds"] = wallclock.perf_counter() - started
     return calibration, summary
@@ -1237,10 +1623,13 @@ def run_calibration(instrument, *, creep: dict | None = None, hysteresis: dict |
 
 # -- against the simulator's configuration (tests, bench) -------------------------------------------------
 
+
 def creep_step_response(time_constants, fractions, t) -> np.ndarray:
     """Creep part of the unit step response, sum_i c_i (1 - e^{-t/tau_i}) (eq. 5.29-5.31)."""
     t = np.asarray(t, float)[:, None]
-    return (-np.expm1(-t / np.asarray(time_constants, float)[None, :])) @ np.asarray(fractions, float)
+    return (-np.expm1(-t / np.asarray(time_constants, float)[None, :])) @ np.asarray(
+        fractions, float
+    )
 
 
 def branch_error(fit: HysteresisFit, true_model: PrandtlIshlinskii, half: float) -> float:
@@ -1265,17 +1654,44 @@ def compare_with_simulator(calibration: Calibration, report: dict, config) -> li
 
     def row(name, recovered, true, note=""):
         relative = None if true in (None, 0) else (recovered - true) / abs(true)
-        rows.append({"name": name, "recovered": recovered, "true": true, "relative_error": relative, "note": note})
+        rows.append(
+            {
+                "name": name,
+                "recovered": recovered,
+                "true": true,
+                "relative_error": relative,
+                "note": note,
+            }
+        )
 
-    for axis, fit, span in (("x", calibration.hysteresis_x, scanner.range_x),
-                            ("y", calibration.hysteresis_y, scanner.range_y)):
-        true_model = PrandtlIshlinskii.from_fraction(span, scanner.hysteresis_fraction,
-                                                     int(scanner.hysteresis_operators), scanner.hysteresis_asymmetry)
-        row(f"hysteresis_{axis}.loop_fraction", fit.loop_fraction, scanner.hysteresis_fraction,
-            "loop width / tip-to-tip span of the full-range major loop")
-        row(f"hysteresis_{axis}.asymmetry", fit.asymmetry, scanner.hysteresis_asymmetry, "alpha of from_fraction")
-        row(f"hysteresis_{axis}.branch_error", branch_error(fit, true_model, span / 2), None,
-            "max branch misfit / true loop width (relative_error = the value)")
+    for axis, fit, span in (
+        ("x", calibration.hysteresis_x, scanner.range_x),
+        ("y", calibration.hysteresis_y, scanner.range_y),
+    ):
+        true_model = PrandtlIshlinskii.from_fraction(
+            span,
+            scanner.hysteresis_fraction,
+            int(scanner.hysteresis_operators),
+            scanner.hysteresis_asymmetry,
+        )
+        row(
+            f"hysteresis_{axis}.loop_fraction",
+            fit.loop_fraction,
+            scanner.hysteresis_fraction,
+            "loop width / tip-to-tip span of the full-range major loop",
+        )
+        row(
+            f"hysteresis_{axis}.asymmetry",
+            fit.asymmetry,
+            scanner.hysteresis_asymmetry,
+            "alpha of from_fraction",
+        )
+        row(
+            f"hysteresis_{axis}.branch_error",
+            branch_error(fit, true_model, span / 2),
+            None,
+            "max branch misfit / true loop width (relative_error = the value)",
+        )
         rows[-1]["relative_error"] = rows[-1]["recovered"]
         gain = report[f"hysteresis_{axis}"]["parameters"]["gain"]
         row(f"hysteresis_{axis}.gain", gain, 1.0, "tip-to-tip output / input span")
@@ -1286,29 +1702,62 @@ def compare_with_simulator(calibration: Calibration, report: dict, config) -> li
     true_fractions = np.asarray(scanner.creep_fractions)[order]
     t = np.linspace(0.0, 25.0, 501)
     true_curve = creep_step_response(np.sort(true_taus), true_fractions, t)
-    for axis, fractions in (("x", calibration.creep_fractions_x), ("y", calibration.creep_fractions_y)):
+    for axis, fractions in (
+        ("x", calibration.creep_fractions_x),
+        ("y", calibration.creep_fractions_y),
+    ):
         for i, (c, true_c) in enumerate(zip(fractions, true_fractions)):
             row(f"creep.fractions_{axis}[{i}]", c, float(true_c))
         curve = creep_step_response(taus, fractions, t)
-        row(f"creep.step_response_{axis}", float(np.max(np.abs(curve - true_curve)) / true_curve[-1]), None,
-            "max |fitted - true| creep over 0-25 s / true creep at 25 s (relative_error = the value)")
+        row(
+            f"creep.step_response_{axis}",
+            float(np.max(np.abs(curve - true_curve)) / true_curve[-1]),
+            None,
+            "max |fitted - true| creep over 0-25 s / true creep at 25 s (relative_error = the value)",
+        )
         rows[-1]["relative_error"] = rows[-1]["recovered"]
     row("drift.mean_velocity_x", calibration.drift_mean_velocity[0], drift.mean_velocity_x, "m/s")
     row("drift.mean_velocity_y", calibration.drift_mean_velocity[1], drift.mean_velocity_y, "m/s")
-    row("drift.sigma_velocity_x", calibration.drift_sigma_velocity[0], drift.sigma_velocity_x, "m/s")
-    row("drift.sigma_velocity_y", calibration.drift_sigma_velocity[1], drift.sigma_velocity_y, "m/s")
+    row(
+        "drift.sigma_velocity_x",
+        calibration.drift_sigma_velocity[0],
+        drift.sigma_velocity_x,
+        "m/s",
+    )
+    row(
+        "drift.sigma_velocity_y",
+        calibration.drift_sigma_velocity[1],
+        drift.sigma_velocity_y,
+        "m/s",
+    )
     noise = report["motion_noise"]["parameters"]
     for name in ("pooled_slope", "slope_x", "slope_y", "cross_slope"):
-        row(f"motion_noise.{name}", noise[name], scanner.positioning_noise_slope,
-            "m^2/m (the simulator's noise is isotropic: every slope is the configured one)")
-    row("motion_noise.offset", calibration.motion_noise_offset, scanner.positioning_noise_offset,
-        "m^2 (includes the pit-position noise of two pits)")
+        row(
+            f"motion_noise.{name}",
+            noise[name],
+            scanner.positioning_noise_slope,
+            "m^2/m (the simulator's noise is isotropic: every slope is the configured one)",
+        )
+    row(
+        "motion_noise.offset",
+        calibration.motion_noise_offset,
+        scanner.positioning_noise_offset,
+        "m^2 (includes the pit-position noise of two pits)",
+    )
     matrix = np.asarray(calibration.scanner_matrix)
-    row("scanner_matrix - I (max abs)", float(np.max(np.abs(matrix - np.eye(2)))), None,
+    row(
+        "scanner_matrix - I (max abs)",
+        float(np.max(np.abs(matrix - np.eye(2)))),
+        None,
         "against the image frame: coupling and rotation cancel; configured coupling "
-        f"{scanner.coupling_x_to_y}, rotation {scanner.deflection_deg} deg (absolute)")
-    row("line_deflection_mean_deg", calibration.line_deflection_mean_deg, None,
-        f"against the image frame; configured absolute rotation {scanner.deflection_deg} deg cancels")
+        f"{scanner.coupling_x_to_y}, rotation {scanner.deflection_deg} deg (absolute)",
+    )
+    row(
+        "line_deflection_mean_deg",
+        calibration.line_deflection_mean_deg,
+        None,
+        f"against the image frame; configured absolute rotation {scanner.deflection_deg} deg cancels",
+    )
     row("line_deflection_sigma_deg", calibration.line_deflection_sigma_deg, None, "")
     row("map_sigma_x", calibration.map_sigma[0], None, "book Fig. 7.10: 5.0 nm")
     row("map_sigma_y", calibration.map_sigma[1], None, "book Fig. 7.10: 4.5 nm")

@@ -4,6 +4,7 @@ experiments and writes it; the motion model, the observation model and the plann
 
 Defaults are the book's figures, for an instrument nobody has calibrated yet.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -21,61 +22,85 @@ from afm_core.sim.config import dataclass_from_dict
 class HysteresisFit:
     """Prandtl-Ishlinskii model of one axis driven open loop (no feed-forward), about the
     range centre: y - centre = H[x - centre] (afm_core.pzt.PrandtlIshlinskii arguments)."""
-    thresholds: list[float] = field(default_factory=list)     # m
-    weights: list[float] = field(default_factory=list)        # 1
+
+    thresholds: list[float] = field(default_factory=list)  # m
+    weights: list[float] = field(default_factory=list)  # 1
     polynomial: list[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])
-    loop_fraction: float = 0.0        # loop width / range on a full-range cycle, from the fit
-    asymmetry: float = 0.0            # ascending/descending branch asymmetry, from the fit
+    loop_fraction: float = 0.0  # loop width / range on a full-range cycle, from the fit
+    asymmetry: float = 0.0  # ascending/descending branch asymmetry, from the fit
 
 
 @dataclass
 class Calibration:
-    source: str = "book defaults"                             # what produced it, and when
+    source: str = "book defaults"  # what produced it, and when
     # true displacement per commanded displacement in normal (compensated) operation:
     # gain, x/y coupling and scan-line rotation together; rows: true x, true y.
     scanner_matrix: list[list[float]] = field(default_factory=lambda: [[1.0, 0.0], [0.0, 1.0]])
     hysteresis_x: HysteresisFit = field(default_factory=HysteresisFit)
     hysteresis_y: HysteresisFit = field(default_factory=HysteresisFit)
-    creep_time_constants: list[float] = field(default_factory=list)   # s
-    creep_fractions_x: list[float] = field(default_factory=list)      # of a commanded step, per time constant
+    creep_time_constants: list[float] = field(default_factory=list)  # s
+    creep_fractions_x: list[float] = field(
+        default_factory=list
+    )  # of a commanded step, per time constant
     creep_fractions_y: list[float] = field(default_factory=list)
-    motion_noise_slope_x: float = 0.0701e-9      # m^2 per m moved along x (Fig. 7.20b a = 0.0701 nm^2/nm)
-    motion_noise_slope_y: float = 0.0701e-9      # m^2 per m moved along y
+    motion_noise_slope_x: float = (
+        0.0701e-9  # m^2 per m moved along x (Fig. 7.20b a = 0.0701 nm^2/nm)
+    )
+    motion_noise_slope_y: float = 0.0701e-9  # m^2 per m moved along y
     motion_noise_cross_slope: float = 0.00701e-9  # m^2 per m moved along the other axis
-    motion_noise_offset: float = 0.4345e-18      # m^2 per move (b = 0.4345 nm^2)
-    drift_mean_velocity: list[float] = field(default_factory=lambda: [-4.0e-12, 9.9e-11])  # m/s (Fig. 7.9)
+    motion_noise_offset: float = 0.4345e-18  # m^2 per move (b = 0.4345 nm^2)
+    drift_mean_velocity: list[float] = field(
+        default_factory=lambda: [-4.0e-12, 9.9e-11]
+    )  # m/s (Fig. 7.9)
     drift_sigma_velocity: list[float] = field(default_factory=lambda: [2.7e-11, 2.09e-10])  # m/s
-    map_sigma: list[float] = field(default_factory=lambda: [5.0e-9, 4.5e-9])   # m, x / y (Fig. 7.10)
-    scan_region_sigma: float = 4.7e-9                                        # m (Fig. 7.11)
-    line_deflection_mean_deg: float = 0.746                                  # deg (Fig. 7.12)
-    line_deflection_sigma_deg: float = 0.393                                 # deg
+    map_sigma: list[float] = field(
+        default_factory=lambda: [5.0e-9, 4.5e-9]
+    )  # m, x / y (Fig. 7.10)
+    scan_region_sigma: float = 4.7e-9  # m (Fig. 7.11)
+    line_deflection_mean_deg: float = 0.746  # deg (Fig. 7.12)
+    line_deflection_sigma_deg: float = 0.393  # deg
 
     def __post_init__(self):
         self.validate()
 
     def validate(self) -> None:
         matrix = self.scanner_matrix
-        if len(matrix) != 2 or any(len(row) != 2 for row in matrix) or \
-                not all(math.isfinite(v) for row in matrix for v in row):
+        if (
+            len(matrix) != 2
+            or any(len(row) != 2 for row in matrix)
+            or not all(math.isfinite(v) for row in matrix for v in row)
+        ):
             raise ValueError(f"calibration scanner_matrix={matrix}: need a finite 2x2 matrix")
-        if len(self.creep_fractions_x) != len(self.creep_time_constants) or \
-                len(self.creep_fractions_y) != len(self.creep_time_constants):
-            raise ValueError("calibration creep_fractions_x/_y: need one value per creep_time_constants entry")
+        if len(self.creep_fractions_x) != len(self.creep_time_constants) or len(
+            self.creep_fractions_y
+        ) != len(self.creep_time_constants):
+            raise ValueError(
+                "calibration creep_fractions_x/_y: need one value per creep_time_constants entry"
+            )
         if not all(math.isfinite(t) and t > 0 for t in self.creep_time_constants):
-            raise ValueError(f"calibration creep_time_constants={self.creep_time_constants}: need values > 0 (s)")
+            raise ValueError(
+                f"calibration creep_time_constants={self.creep_time_constants}: need values > 0 (s)"
+            )
         for name in ("drift_mean_velocity", "drift_sigma_velocity", "map_sigma"):
             value = getattr(self, name)
             if len(value) != 2 or not all(math.isfinite(v) for v in value):
                 raise ValueError(f"calibration {name}={value}: need two finite values (x, y)")
         if min(self.drift_sigma_velocity) < 0:
-            raise ValueError(f"calibration drift_sigma_velocity={self.drift_sigma_velocity}: need values >= 0 (m/s)")
-        self.motion_noise()   # checks the noise fields
+            raise ValueError(
+                f"calibration drift_sigma_velocity={self.drift_sigma_velocity}: need values >= 0 (m/s)"
+            )
+        self.motion_noise()  # checks the noise fields
 
     def motion_noise(self) -> MotionNoise:
         """The noise a free move adds."""
-        return MotionNoise(k_h1=self.motion_noise_slope_x, k_h2=self.motion_noise_cross_slope,
-                           k_v1=self.motion_noise_slope_y, k_v2=self.motion_noise_cross_slope,
-                           offset_x=self.motion_noise_offset, offset_y=self.motion_noise_offset)
+        return MotionNoise(
+            k_h1=self.motion_noise_slope_x,
+            k_h2=self.motion_noise_cross_slope,
+            k_v1=self.motion_noise_slope_y,
+            k_v2=self.motion_noise_cross_slope,
+            offset_x=self.motion_noise_offset,
+            offset_y=self.motion_noise_offset,
+        )
 
 
 def calibration_from_dict(data: dict) -> Calibration:
@@ -98,6 +123,8 @@ def save_calibration(calibration: Calibration, path: str | Path) -> None:
     calibration.validate()
     path = Path(path)
     temporary = path.with_name(path.name + ".part")
-    temporary.write_text("# afm localization calibration (SI units: m, s, m^2); see afm_core.localization.calibration\n"
-                         + yaml.safe_dump(dataclasses.asdict(calibration), sort_keys=False))
+    temporary.write_text(
+        "# afm localization calibration (SI units: m, s, m^2); see afm_core.localization.calibration\n"
+        + yaml.safe_dump(dataclasses.asdict(calibration), sort_keys=False)
+    )
     temporary.replace(path)

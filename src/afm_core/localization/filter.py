@@ -42,37 +42,42 @@ it is split in proportion to time, exact for the drift terms and for a constant-
 without creep, linear interpolation otherwise) and everything after it is re-applied,
 observations re-gated. An observation older than the history is rejected with that reason.
 """
+
 from __future__ import annotations
 
 import copy
 import math
 from bisect import bisect_right
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from afm_core.localization.observation import check_covariance
 
-DRIFT_CORRELATION_TIME = 1800.0   # s, how long a drift velocity stays about the same (the simulator's default)
+DRIFT_CORRELATION_TIME = (
+    1800.0  # s, how long a drift velocity stays about the same (the simulator's default)
+)
 
-GATE_CHI2_1DOF_99 = 6.634896601021214      # scipy.stats.chi2.ppf(0.99, 1)
-GATE_CHI2_1DOF_999 = 10.827566170662733    # scipy.stats.chi2.ppf(0.999, 1): the default gate
+GATE_CHI2_1DOF_99 = 6.634896601021214  # scipy.stats.chi2.ppf(0.99, 1)
+GATE_CHI2_1DOF_999 = 10.827566170662733  # scipy.stats.chi2.ppf(0.999, 1): the default gate
 DEFAULT_HISTORY_SECONDS = 120.0
 AXES = {"x": (1.0, 0.0), "y": (0.0, 1.0), 0: (1.0, 0.0), 1: (0.0, 1.0)}
 
-Extrapolate = Callable[[float, float], tuple]   # (from_time, to_time) -> (mean increment (2,), added covariance)
+Extrapolate = Callable[
+    [float, float], tuple
+]  # (from_time, to_time) -> (mean increment (2,), added covariance)
 
 
 @dataclass(frozen=True)
 class UpdateResult:
     accepted: bool
-    reason: str                 # "" when accepted; why not otherwise ("gated_out: ...", "too_old: ...")
-    time: float                 # s, when the observation applies
-    innovation: float           # m, z - u . x(t)^-
+    reason: str  # "" when accepted; why not otherwise ("gated_out: ...", "too_old: ...")
+    time: float  # s, when the observation applies
+    innovation: float  # m, z - u . x(t)^-
     innovation_variance: float  # m^2, S = u P u^T + R
-    mahalanobis: float          # sqrt(nu^2 / S), dimensionless
+    mahalanobis: float  # sqrt(nu^2 / S), dimensionless
 
     @property
     def gated_out(self) -> bool:
@@ -80,23 +85,23 @@ class UpdateResult:
 
     @property
     def mahalanobis_squared(self) -> float:
-        return self.mahalanobis ** 2
+        return self.mahalanobis**2
 
 
 @dataclass
 class _Entry:
-    kind: str                   # "start" | "predict" | "update"
-    time: float                 # s, time of the state after this entry
-    mean: np.ndarray            # state after the entry: (6,) tip, landmark map error, drift velocity
-    covariance: np.ndarray      # (6, 6)
-    landmark: object = None     # key of the landmark whose map error the state carries after it
-    increment: np.ndarray | None = None     # predict
+    kind: str  # "start" | "predict" | "update"
+    time: float  # s, time of the state after this entry
+    mean: np.ndarray  # state after the entry: (6,) tip, landmark map error, drift velocity
+    covariance: np.ndarray  # (6, 6)
+    landmark: object = None  # key of the landmark whose map error the state carries after it
+    increment: np.ndarray | None = None  # predict
     process: np.ndarray | None = None
-    start_time: float = math.nan            # predict: when the step began
-    value: float = math.nan                 # update
+    start_time: float = math.nan  # predict: when the step began
+    value: float = math.nan  # update
     variance: float = math.nan
     direction: np.ndarray | None = None
-    map_covariance: np.ndarray | None = None    # update: the landmark's (None: no landmark)
+    map_covariance: np.ndarray | None = None  # update: the landmark's (None: no landmark)
 
 
 def _direction(axis) -> np.ndarray:
@@ -113,9 +118,17 @@ def _direction(axis) -> np.ndarray:
 class TipFilter:
     """2-D tip position, timestamped predict / one-axis update with gating and a history."""
 
-    def __init__(self, mean, covariance, time: float = 0.0, gate: float = GATE_CHI2_1DOF_999,
-                 history_seconds: float = DEFAULT_HISTORY_SECONDS, extrapolate: Optional[Extrapolate] = None,
-                 drift_sigma=(0.0, 0.0), drift_correlation_time: float = DRIFT_CORRELATION_TIME):
+    def __init__(
+        self,
+        mean,
+        covariance,
+        time: float = 0.0,
+        gate: float = GATE_CHI2_1DOF_999,
+        history_seconds: float = DEFAULT_HISTORY_SECONDS,
+        extrapolate: Extrapolate | None = None,
+        drift_sigma=(0.0, 0.0),
+        drift_correlation_time: float = DRIFT_CORRELATION_TIME,
+    ):
         m = np.asarray(mean, dtype=float)
         if m.shape != (2,) or not np.isfinite(m).all():
             raise ValueError(f"initial_mean={mean}: need two finite values (m)")
@@ -130,7 +143,9 @@ class TipFilter:
         if sigma_w.shape != (2,) or not (np.isfinite(sigma_w).all() and (sigma_w >= 0).all()):
             raise ValueError(f"drift_sigma={drift_sigma}: need two finite values >= 0 (m/s)")
         if not (math.isfinite(drift_correlation_time) and drift_correlation_time > 0):
-            raise ValueError(f"drift_correlation_time={drift_correlation_time}: must be finite and > 0 s")
+            raise ValueError(
+                f"drift_correlation_time={drift_correlation_time}: must be finite and > 0 s"
+            )
         self.gate = float(gate)
         self.history_seconds = float(history_seconds)
         self.extrapolate = extrapolate
@@ -139,7 +154,7 @@ class TipFilter:
         self._kf.B = np.vstack([np.eye(2), np.zeros((4, 2))])
         mean6, cov6 = np.zeros(6), np.zeros((6, 6))
         mean6[:2], cov6[:2, :2] = m, p
-        cov6[4:, 4:] = np.diag(sigma_w ** 2)
+        cov6[4:, 4:] = np.diag(sigma_w**2)
         self._set(mean6, cov6, None)
         self._history = [_Entry("start", float(time), mean6, cov6)]
 
@@ -174,11 +189,13 @@ class TipFilter:
         OU terms, per axis), the motion's process noise on x."""
         tau = self.drift_correlation_time
         phi = math.exp(-dt / tau)
-        var = self.drift_sigma ** 2
+        var = self.drift_sigma**2
         f, q = np.eye(6), np.zeros((6, 6))
         f[0:2, 4:6] = tau * (1.0 - phi) * np.eye(2)
         f[4:6, 4:6] = phi * np.eye(2)
-        q[0:2, 0:2] = np.asarray(process) + np.diag(var * tau * tau * max(0.0, 2 * dt / tau - 3 + 4 * phi - phi * phi))
+        q[0:2, 0:2] = np.asarray(process) + np.diag(
+            var * tau * tau * max(0.0, 2 * dt / tau - 3 + 4 * phi - phi * phi)
+        )
         q[0:2, 4:6] = q[4:6, 0:2] = np.diag(var * tau * (1.0 - phi) ** 2)
         q[4:6, 4:6] = np.diag(var * (1.0 - phi * phi))
         return f, q
@@ -189,8 +206,15 @@ class TipFilter:
 
     def _predict_entry(self, time: float, increment, process, start_time: float) -> _Entry:
         self._predict(increment, process, time - start_time)
-        return _Entry("predict", float(time), *self._state(), self._landmark, increment, process,
-                      start_time=start_time)
+        return _Entry(
+            "predict",
+            float(time),
+            *self._state(),
+            self._landmark,
+            increment,
+            process,
+            start_time=start_time,
+        )
 
     def predict(self, time: float, increment, process) -> None:
         """Motion from the latest time to `time`: mean += increment, P += process."""
@@ -199,12 +223,17 @@ class TipFilter:
             raise ValueError(f"increment={increment}: need two finite values (m)")
         process = check_covariance("process", process)
         if not math.isfinite(time) or time < self.time:
-            raise ValueError(f"time={time}: predictions must come in time order (latest {self.time})")
-        self._history.append(self._predict_entry(time, increment.copy(), process.copy(), self.time))
+            raise ValueError(
+                f"time={time}: predictions must come in time order (latest {self.time})"
+            )
+        self._history.append(
+            self._predict_entry(time, increment.copy(), process.copy(), self.time)
+        )
         self._prune()
 
-    def _try_update(self, time: float, value: float, variance: float, u: np.ndarray, landmark,
-                    map_covariance) -> UpdateResult:
+    def _try_update(
+        self, time: float, value: float, variance: float, u: np.ndarray, landmark, map_covariance
+    ) -> UpdateResult:
         """Gate and (if accepted) apply to the current state; filterpy does the algebra on a copy
         that replaces the filter only when the observation passes the gate. A landmark other
         than the one the state carries first replaces b by the new landmark's map error."""
@@ -214,25 +243,48 @@ class TipFilter:
             trial.P[2:4, :] = 0.0
             trial.P[:, 2:4] = 0.0
             trial.P[2:4, 2:4] = map_covariance
-        h = np.concatenate([u, u if landmark is not None else np.zeros(2), np.zeros(2)]).reshape(1, 6)
+        h = np.concatenate([u, u if landmark is not None else np.zeros(2), np.zeros(2)]).reshape(
+            1, 6
+        )
         trial.update(np.array([[value]]), R=np.array([[variance]]), H=h)
         innovation = float(trial.y[0, 0])
         s = float(trial.S[0, 0])
         distance = float(trial.mahalanobis)
-        if not distance ** 2 <= self.gate:
-            return UpdateResult(False, f"gated_out: squared Mahalanobis distance {distance ** 2:.3g} > gate {self.gate:.3g}",
-                                time, innovation, s, distance)
+        if not distance**2 <= self.gate:
+            return UpdateResult(
+                False,
+                f"gated_out: squared Mahalanobis distance {distance**2:.3g} > gate {self.gate:.3g}",
+                time,
+                innovation,
+                s,
+                distance,
+            )
         self._kf = trial
         if landmark is not None:
             self._landmark = landmark
         return UpdateResult(True, "", time, innovation, s, distance)
 
     def _update_entry(self, time, value, variance, u, map_covariance) -> _Entry:
-        return _Entry("update", time, *self._state(), self._landmark, value=value, variance=variance, direction=u,
-                      map_covariance=map_covariance)
+        return _Entry(
+            "update",
+            time,
+            *self._state(),
+            self._landmark,
+            value=value,
+            variance=variance,
+            direction=u,
+            map_covariance=map_covariance,
+        )
 
-    def update_axis(self, time: float, value: float, variance: float, axis="x", landmark=None,
-                    map_covariance=None) -> UpdateResult:
+    def update_axis(
+        self,
+        time: float,
+        value: float,
+        variance: float,
+        axis="x",
+        landmark=None,
+        map_covariance=None,
+    ) -> UpdateResult:
         """One scalar observation z = u . (x(time) + b) + v, v ~ N(0, variance); axis "x", "y" or
         a unit vector u. landmark: a hashable key of the landmark the line crossed and
         map_covariance its 2x2 map covariance (m^2; b's, not counted in `variance`); without a
@@ -247,14 +299,24 @@ class TipFilter:
         elif map_covariance is not None:
             raise ValueError("map_covariance given without the landmark it belongs to")
         # with a landmark, its map error may be all the noise there is (a perfect line)
-        if not (variance > 0 or (variance == 0 and landmark is not None and u @ map_covariance @ u > 0)):
-            raise ValueError(f"variance={variance}: must be > 0 m^2 (or 0 with a landmark whose map error "
-                             "along the line is > 0)")
+        if not (
+            variance > 0 or (variance == 0 and landmark is not None and u @ map_covariance @ u > 0)
+        ):
+            raise ValueError(
+                f"variance={variance}: must be > 0 m^2 (or 0 with a landmark whose map error "
+                "along the line is > 0)"
+            )
         time, value, variance = float(time), float(value), float(variance)
         if time < self.oldest_time:
-            return UpdateResult(False, f"too_old: t={time:.6g} s is before the history's start "
-                                       f"{self.oldest_time:.6g} s (history {self.history_seconds:g} s)",
-                                time, math.nan, math.nan, math.nan)
+            return UpdateResult(
+                False,
+                f"too_old: t={time:.6g} s is before the history's start "
+                f"{self.oldest_time:.6g} s (history {self.history_seconds:g} s)",
+                time,
+                math.nan,
+                math.nan,
+                math.nan,
+            )
         if time >= self.time:
             if time > self.time:
                 self._extend_to(time)
@@ -272,19 +334,36 @@ class TipFilter:
             increment, process = self.extrapolate(self.time, time)
             self.predict(time, increment, process)
 
-    def _insert_past(self, time: float, value: float, variance: float, u: np.ndarray, landmark,
-                     map_covariance) -> UpdateResult:
+    def _insert_past(
+        self, time: float, value: float, variance: float, u: np.ndarray, landmark, map_covariance
+    ) -> UpdateResult:
         history = self._history
         times = [e.time for e in history]
-        k = bisect_right(times, time)            # entries [0, k) end at or before `time`
+        k = bisect_right(times, time)  # entries [0, k) end at or before `time`
         later = history[k:]
         if later and later[0].kind == "predict" and later[0].start_time < time:
-            step = later[0]                      # split the step that spans `time`
+            step = later[0]  # split the step that spans `time`
             f = (time - step.start_time) / (step.time - step.start_time)
-            first = _Entry("predict", time, None, None, None, f * step.increment, f * step.process,
-                           start_time=step.start_time)
-            second = _Entry("predict", step.time, None, None, None, (1 - f) * step.increment, (1 - f) * step.process,
-                            start_time=time)
+            first = _Entry(
+                "predict",
+                time,
+                None,
+                None,
+                None,
+                f * step.increment,
+                f * step.process,
+                start_time=step.start_time,
+            )
+            second = _Entry(
+                "predict",
+                step.time,
+                None,
+                None,
+                None,
+                (1 - f) * step.increment,
+                (1 - f) * step.process,
+                start_time=time,
+            )
             head, later = [first], [second] + later[1:]
         else:
             head = []
@@ -293,21 +372,40 @@ class TipFilter:
         self._set(base[-1].mean, base[-1].covariance, base[-1].landmark)
         new_history = list(base)
         for entry in head:
-            new_history.append(self._predict_entry(entry.time, entry.increment, entry.process, entry.start_time))
+            new_history.append(
+                self._predict_entry(entry.time, entry.increment, entry.process, entry.start_time)
+            )
         result = self._try_update(time, value, variance, u, landmark, map_covariance)
-        if not result.accepted:                   # leave everything as it was
+        if not result.accepted:  # leave everything as it was
             self._kf, self._landmark, self._history = saved_kf, saved_landmark, saved_history
             return result
         new_history.append(self._update_entry(time, value, variance, u, map_covariance))
         for entry in later:
             if entry.kind == "predict":
-                new_history.append(self._predict_entry(entry.time, entry.increment, entry.process, entry.start_time))
+                new_history.append(
+                    self._predict_entry(
+                        entry.time, entry.increment, entry.process, entry.start_time
+                    )
+                )
             elif entry.kind == "update":
-                replay = self._try_update(entry.time, entry.value, entry.variance, entry.direction, entry.landmark
-                                          if entry.map_covariance is not None else None, entry.map_covariance)
+                replay = self._try_update(
+                    entry.time,
+                    entry.value,
+                    entry.variance,
+                    entry.direction,
+                    entry.landmark if entry.map_covariance is not None else None,
+                    entry.map_covariance,
+                )
                 if replay.accepted:
-                    new_history.append(self._update_entry(entry.time, entry.value, entry.variance, entry.direction,
-                                                          entry.map_covariance))
+                    new_history.append(
+                        self._update_entry(
+                            entry.time,
+                            entry.value,
+                            entry.variance,
+                            entry.direction,
+                            entry.map_covariance,
+                        )
+                    )
         self._history = new_history
         return result
 
@@ -319,8 +417,9 @@ class TipFilter:
             k += 1
         if k:
             oldest = self._history[k]
-            self._history = [_Entry("start", oldest.time, oldest.mean, oldest.covariance, oldest.landmark)] \
-                + self._history[k + 1:]
+            self._history = [
+                _Entry("start", oldest.time, oldest.mean, oldest.covariance, oldest.landmark)
+            ] + self._history[k + 1 :]
 
     # -- queries ---------------------------------------------------------------------------------
     def at(self, time: float) -> tuple[np.ndarray, np.ndarray]:
@@ -333,8 +432,11 @@ class TipFilter:
         if time >= self.time:
             if time == self.time:
                 return self.mean, self.covariance
-            increment, process = (np.zeros(2), np.zeros((2, 2))) if self.extrapolate is None else \
-                self.extrapolate(self.time, time)
+            increment, process = (
+                (np.zeros(2), np.zeros((2, 2)))
+                if self.extrapolate is None
+                else self.extrapolate(self.time, time)
+            )
             return self._carried(self._history[-1], increment, process, time - self.time)
         if time < self.oldest_time:
             raise ValueError(f"time={time}: before the history's start {self.oldest_time} s")
@@ -345,9 +447,13 @@ class TipFilter:
         if entry.kind != "predict" or entry.start_time >= time:
             return before.mean[:2].copy(), before.covariance[:2, :2].copy()
         f = (time - entry.start_time) / (entry.time - entry.start_time)
-        return self._carried(before, f * entry.increment, f * entry.process, time - entry.start_time)
+        return self._carried(
+            before, f * entry.increment, f * entry.process, time - entry.start_time
+        )
 
-    def _carried(self, entry: _Entry, increment, process, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    def _carried(
+        self, entry: _Entry, increment, process, dt: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(mean, covariance) of the tip: `entry`'s state predicted over dt (not stored)."""
         f, q = self._transition(dt, process)
         mean = f @ entry.mean

@@ -16,42 +16,55 @@ the limit, before anything moves. A lost landmark, a gated-out observation or an
 error during a line is reported in the result; the estimate then still carries every motion
 that happened (the localizer re-reads the instrument's command and clock).
 """
+
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Optional
 
 import numpy as np
 
 from afm_core.instrument import Instrument, LineRequest, check_in_range
 from afm_core.localization.calibration import Calibration
-from afm_core.localization.filter import DEFAULT_HISTORY_SECONDS, GATE_CHI2_1DOF_999, TipFilter, UpdateResult
+from afm_core.localization.filter import (
+    DEFAULT_HISTORY_SECONDS,
+    GATE_CHI2_1DOF_999,
+    TipFilter,
+    UpdateResult,
+)
 from afm_core.localization.motion import MotionModel, MotionStep
-from afm_core.localization.observation import (DEFAULT_THRESHOLD_FRACTION, LineObservation, MapLandmark,
-                                               as_map_landmark, observe_line)
+from afm_core.localization.observation import (
+    DEFAULT_THRESHOLD_FRACTION,
+    LineObservation,
+    MapLandmark,
+    as_map_landmark,
+    observe_line,
+)
 
-DEFAULT_LINE_SPEED = 1e-6         # m/s along a local scan line
-DEFAULT_MOVE_SPEED = 2e-6         # m/s, free moves
-DEFAULT_SAMPLE_SPACING = 1e-9     # m between line samples
-DEFAULT_MARGIN = 50e-9            # m of substrate beyond the landmark's extent and 3 sigma at each line end
-DEFAULT_TIP_ALLOWANCE = 30e-9     # m, lateral tip broadening when the landmark's apparent half-width is unknown
+DEFAULT_LINE_SPEED = 1e-6  # m/s along a local scan line
+DEFAULT_MOVE_SPEED = 2e-6  # m/s, free moves
+DEFAULT_SAMPLE_SPACING = 1e-9  # m between line samples
+DEFAULT_MARGIN = 50e-9  # m of substrate beyond the landmark's extent and 3 sigma at each line end
+DEFAULT_TIP_ALLOWANCE = (
+    30e-9  # m, lateral tip broadening when the landmark's apparent half-width is unknown
+)
 
 
 @dataclass
 class LineResult:
     """One local scan line of a landmark observation."""
-    axis: str                            # "x" (horizontal line) or "y" (vertical line)
-    status: str                          # "accepted" | "gated_out" | "lost" | "too_old" | "instrument_error" | "not_run"
+
+    axis: str  # "x" (horizontal line) or "y" (vertical line)
+    status: str  # "accepted" | "gated_out" | "lost" | "too_old" | "instrument_error" | "not_run"
     reason: str = ""
-    request: Optional[LineRequest] = None
-    observation: Optional[LineObservation] = None
-    update: Optional[UpdateResult] = None
-    innovation: float = math.nan         # m, map value - predicted tip position along u at x_kp
-    innovation_sigma: float = math.nan   # m, sqrt(S)
+    request: LineRequest | None = None
+    observation: LineObservation | None = None
+    update: UpdateResult | None = None
+    innovation: float = math.nan  # m, map value - predicted tip position along u at x_kp
+    innovation_sigma: float = math.nan  # m, sqrt(S)
     mahalanobis: float = math.nan
-    mean_at_crossing: Optional[np.ndarray] = None        # estimate at x_kp after the update (or prediction)
-    covariance_at_crossing: Optional[np.ndarray] = None
+    mean_at_crossing: np.ndarray | None = None  # estimate at x_kp after the update (or prediction)
+    covariance_at_crossing: np.ndarray | None = None
 
     @property
     def accepted(self) -> bool:
@@ -69,6 +82,7 @@ class LineResult:
 @dataclass
 class ObservationResult:
     """A landmark observation: its lines, and the pose after the last line's end."""
+
     landmark_id: int
     lines: list = field(default_factory=list)
     mean: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
@@ -96,8 +110,8 @@ class ObservationResult:
 
 @dataclass
 class MoveOutcome:
-    command: tuple                       # m, commanded end point
-    mean: np.ndarray                     # estimate after the move
+    command: tuple  # m, commanded end point
+    mean: np.ndarray  # estimate after the move
     covariance: np.ndarray
     time: float
     completed: bool
@@ -113,18 +127,30 @@ def _vector(name: str, value) -> np.ndarray:
 
 
 class Localizer:
-    def __init__(self, instrument: Instrument, calibration: Calibration, initial_mean, initial_cov, *,
-                 gate: float = GATE_CHI2_1DOF_999, line_speed: float = DEFAULT_LINE_SPEED,
-                 move_speed: float = DEFAULT_MOVE_SPEED, sample_spacing: float = DEFAULT_SAMPLE_SPACING,
-                 threshold_fraction: float = DEFAULT_THRESHOLD_FRACTION, margin: float = DEFAULT_MARGIN,
-                 history_seconds: float = DEFAULT_HISTORY_SECONDS):
+    def __init__(
+        self,
+        instrument: Instrument,
+        calibration: Calibration,
+        initial_mean,
+        initial_cov,
+        *,
+        gate: float = GATE_CHI2_1DOF_999,
+        line_speed: float = DEFAULT_LINE_SPEED,
+        move_speed: float = DEFAULT_MOVE_SPEED,
+        sample_spacing: float = DEFAULT_SAMPLE_SPACING,
+        threshold_fraction: float = DEFAULT_THRESHOLD_FRACTION,
+        margin: float = DEFAULT_MARGIN,
+        history_seconds: float = DEFAULT_HISTORY_SECONDS,
+    ):
         """initial_mean / initial_cov: the tip's position (task frame, m) and covariance (m^2)
         now, with the instrument at rest at its current command (creep settled)."""
         for name, value in (("line_speed", line_speed), ("move_speed", move_speed)):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}={value}: must be finite and > 0 m/s")
             if value > instrument.limits.max_speed:
-                raise ValueError(f"{name}={value:.3e} m/s: above the slew limit {instrument.limits.max_speed:.3e} m/s")
+                raise ValueError(
+                    f"{name}={value:.3e} m/s: above the slew limit {instrument.limits.max_speed:.3e} m/s"
+                )
         if not (math.isfinite(sample_spacing) and sample_spacing > 0):
             raise ValueError(f"sample_spacing={sample_spacing}: must be finite and > 0 m")
         if not (math.isfinite(margin) and margin >= 0):
@@ -137,10 +163,16 @@ class Localizer:
         self.sample_spacing, self.margin = float(sample_spacing), float(margin)
         self.threshold_fraction = float(threshold_fraction)
         self.model = MotionModel(calibration, instrument.commanded_position(), instrument.time)
-        self.filter = TipFilter(initial_mean, initial_cov, instrument.time, gate=gate,
-                                history_seconds=history_seconds, extrapolate=self._extrapolate,
-                                drift_sigma=calibration.drift_sigma_velocity)
-        self.steps: list[MotionStep] = []        # every motion predicted (for inspection)
+        self.filter = TipFilter(
+            initial_mean,
+            initial_cov,
+            instrument.time,
+            gate=gate,
+            history_seconds=history_seconds,
+            extrapolate=self._extrapolate,
+            drift_sigma=calibration.drift_sigma_velocity,
+        )
+        self.steps: list[MotionStep] = []  # every motion predicted (for inspection)
 
     # -- estimate ----------------------------------------------------------------------------------
     @property
@@ -181,8 +213,15 @@ class Localizer:
         elif elapsed > 0:
             self._apply(self.model.hold(elapsed))
 
-    def predict_command(self, kind: str, start, end, start_time: float, end_time: float,
-                        extra_variance: float = 0.0) -> bool:
+    def predict_command(
+        self,
+        kind: str,
+        start,
+        end,
+        start_time: float,
+        end_time: float,
+        extra_variance: float = 0.0,
+    ) -> bool:
         """Predict a command someone else sent the instrument (a driver reports every one it
         executes): hold until it starts, a free move to its start if the tip was commanded
         elsewhere, then the command itself ("line" along a scan line, "move" otherwise) over its
@@ -198,7 +237,9 @@ class Localizer:
         if kind == "indent":
             start, kind = np.asarray(self.model.command, dtype=float), "move"
         if not (math.isfinite(start_time) and math.isfinite(end_time) and end_time >= start_time):
-            raise ValueError(f"start_time={start_time}, end_time={end_time}: need finite times, end >= start (s)")
+            raise ValueError(
+                f"start_time={start_time}, end_time={end_time}: need finite times, end >= start (s)"
+            )
         if end_time <= self.model.time:
             return False
         if start_time > self.model.time:
@@ -213,21 +254,23 @@ class Localizer:
         return True
 
     # -- moves -----------------------------------------------------------------------------------
-    def _speed(self, speed: Optional[float]) -> float:
+    def _speed(self, speed: float | None) -> float:
         speed = self.move_speed if speed is None else float(speed)
         if not (math.isfinite(speed) and 0 < speed <= self.instrument.limits.max_speed):
-            raise ValueError(f"speed={speed}: must be > 0 and at most the slew limit "
-                             f"{self.instrument.limits.max_speed:.3e} m/s")
+            raise ValueError(
+                f"speed={speed}: must be > 0 and at most the slew limit "
+                f"{self.instrument.limits.max_speed:.3e} m/s"
+            )
         return speed
 
-    def command_for(self, x: float, y: float, speed: Optional[float] = None) -> tuple[float, float]:
+    def command_for(self, x: float, y: float, speed: float | None = None) -> tuple[float, float]:
         """The command that brings the tip (as estimated now) to task-frame (x, y)."""
         target = _vector("target", (x, y))
         command = self.model.command_for(target - self.mean, self._speed(speed))
         check_in_range("target command", command[0], command[1], self.instrument.limits)
         return command
 
-    def move_command(self, x: float, y: float, speed: Optional[float] = None) -> MoveOutcome:
+    def move_command(self, x: float, y: float, speed: float | None = None) -> MoveOutcome:
         """Command the scanner to (x, y) (scanner frame) and predict the move."""
         speed = self._speed(speed)
         _vector("command", (x, y))
@@ -240,7 +283,7 @@ class Localizer:
             self.sync()
         return MoveOutcome(self.model.command, self.mean, self.covariance, self.time, completed)
 
-    def move_to(self, x: float, y: float, speed: Optional[float] = None) -> MoveOutcome:
+    def move_to(self, x: float, y: float, speed: float | None = None) -> MoveOutcome:
         """Move the tip to task-frame (x, y): the command is the motion model inverted about the
         current estimate (creep still to come and drift included)."""
         self.sync()
@@ -259,11 +302,21 @@ class Localizer:
     # -- landmark observation -------------------------------------------------------------------
     def _line_half_length(self, landmark: MapLandmark, u: np.ndarray) -> float:
         sigma = math.sqrt(max(0.0, float(u @ (self.covariance + landmark.covariance) @ u)))
-        extent = landmark.half_width if landmark.half_width > 0 else landmark.radius + DEFAULT_TIP_ALLOWANCE
+        extent = (
+            landmark.half_width
+            if landmark.half_width > 0
+            else landmark.radius + DEFAULT_TIP_ALLOWANCE
+        )
         return 3.0 * sigma + extent + self.margin
 
-    def plan_line(self, landmark, axis: str, sign: float = 1.0, before: Optional[float] = None,
-                  after: Optional[float] = None) -> tuple[LineRequest, np.ndarray, float]:
+    def plan_line(
+        self,
+        landmark,
+        axis: str,
+        sign: float = 1.0,
+        before: float | None = None,
+        after: float | None = None,
+    ) -> tuple[LineRequest, np.ndarray, float]:
         """A line along task-frame axis `axis` ("x" or "y") through the landmark's map position,
         in the direction `sign`, long enough to start and end clear of it with 3 sigma of the
         tip's and the landmark's uncertainty: it starts `before` and ends `after` metres (task
@@ -285,21 +338,33 @@ class Localizer:
         # the end: where the model (creep still to come included) puts the tip (before + after) * d
         # further along, trying the approach move on a copy first
         trial = self.model.copy()
-        approach = trial.move(start[0], start[1], math.dist(start, trial.command) / self.move_speed, "move")
+        approach = trial.move(
+            start[0], start[1], math.dist(start, trial.command) / self.move_speed, "move"
+        )
         start_predicted = self.mean + approach.mean
-        end = trial.command_for(landmark.position + after * d - start_predicted, self.line_speed, "line")
+        end = trial.command_for(
+            landmark.position + after * d - start_predicted, self.line_speed, "line"
+        )
         step = np.subtract(end, start)
         limits = self.instrument.limits
         check_in_range(f"{axis} line start", start[0], start[1], limits)
         check_in_range(f"{axis} line end", end[0], end[1], limits)
         length = float(np.hypot(*step))
-        samples = int(min(limits.max_line_samples, max(16, math.ceil(length / self.sample_spacing) + 1)))
+        samples = int(
+            min(limits.max_line_samples, max(16, math.ceil(length / self.sample_spacing) + 1))
+        )
         request = LineRequest(start[0], start[1], end[0], end[1], samples, self.line_speed)
         request.validate(limits)
         return request, self.model.line_direction(*step), half
 
-    def observe_line(self, landmark, axis: str, sign: float = 1.0, before: Optional[float] = None,
-                     after: Optional[float] = None) -> LineResult:
+    def observe_line(
+        self,
+        landmark,
+        axis: str,
+        sign: float = 1.0,
+        before: float | None = None,
+        after: float | None = None,
+    ) -> LineResult:
         """One local scan line across the landmark (see plan_line) and its update at the
         crossing point, carried to the line's end (eq. 5.9-5.21)."""
         landmark = as_map_landmark(landmark)
@@ -318,23 +383,39 @@ class Localizer:
             self._apply(self.model.hold(start_time - self.model.time))
         times = np.asarray(data.times, dtype=float)
         line_start = (float(data.x[0]), float(data.y[0]))
-        if line_start != self.model.command:         # the scan's own approach, not through move_tip
+        if line_start != self.model.command:  # the scan's own approach, not through move_tip
             self._apply(self.model.move(line_start[0], line_start[1], 0.0, "move"))
         expected = self._expected_index(landmark, request, direction)
-        obs = observe_line(data, landmark, self.calibration, direction, self.threshold_fraction, expected)
+        obs = observe_line(
+            data, landmark, self.calibration, direction, self.threshold_fraction, expected
+        )
         end = (float(data.x[-1]), float(data.y[-1]))
         end_time = start_time + float(times[-1])
         result = LineResult(axis, "lost", obs.reason, request, obs)
         if obs.ok:
             kp_time = obs.time
-            self._apply(self.model.move(obs.command[0], obs.command[1], kp_time - self.model.time, "line"))
+            self._apply(
+                self.model.move(obs.command[0], obs.command[1], kp_time - self.model.time, "line")
+            )
             key = landmark.id if landmark.id >= 0 else (landmark.x, landmark.y)
-            update = self.filter.update_axis(kp_time, obs.value, obs.line_variance, obs.direction,
-                                             landmark=key, map_covariance=landmark.covariance)
+            update = self.filter.update_axis(
+                kp_time,
+                obs.value,
+                obs.line_variance,
+                obs.direction,
+                landmark=key,
+                map_covariance=landmark.covariance,
+            )
             result.update = update
             result.innovation, result.mahalanobis = update.innovation, update.mahalanobis
-            result.innovation_sigma = math.sqrt(update.innovation_variance) if update.innovation_variance >= 0 else math.nan
-            result.status = "accepted" if update.accepted else ("gated_out" if update.gated_out else "too_old")
+            result.innovation_sigma = (
+                math.sqrt(update.innovation_variance)
+                if update.innovation_variance >= 0
+                else math.nan
+            )
+            result.status = (
+                "accepted" if update.accepted else ("gated_out" if update.gated_out else "too_old")
+            )
             result.reason = update.reason
             result.mean_at_crossing, result.covariance_at_crossing = self.mean, self.covariance
         # carry the estimate to the line's end (eq. 5.20-5.21), then whatever time is left
@@ -342,15 +423,25 @@ class Localizer:
         self.sync()
         return result
 
-    def _expected_index(self, landmark: MapLandmark, request: LineRequest, direction: np.ndarray) -> float:
+    def _expected_index(
+        self, landmark: MapLandmark, request: LineRequest, direction: np.ndarray
+    ) -> float:
         """Fractional sample index at which the tip is predicted to pass the landmark."""
-        start = self.mean       # estimate at the line start (we are there now)
+        start = self.mean  # estimate at the line start (we are there now)
         along = float((landmark.position - start) @ direction)
-        true_length = float(np.hypot(*(self.model.matrix @ np.array([request.end_x - request.start_x,
-                                                                         request.end_y - request.start_y]))))
+        true_length = float(
+            np.hypot(
+                *(
+                    self.model.matrix
+                    @ np.array([request.end_x - request.start_x, request.end_y - request.start_y])
+                )
+            )
+        )
         return (request.samples - 1) * along / true_length
 
-    def plan_observation(self, landmark, both_axes: bool = True, toward=None) -> list[tuple[str, float, Optional[float]]]:
+    def plan_observation(
+        self, landmark, both_axes: bool = True, toward=None
+    ) -> list[tuple[str, float, float | None]]:
         """The lines observe_landmark runs, as (axis, sign, after) for observe_line, each checked
         against the scanner range from the estimate of now (ValueError naming the line).
 
@@ -373,13 +464,18 @@ class Localizer:
         if toward is not None:
             toward = np.asarray(toward, dtype=float)
             if toward.shape != (2,) or not np.all(np.isfinite(toward)):
-                raise ValueError(f"toward={toward.tolist()}: must be a finite task-frame point (x, y) in m")
+                raise ValueError(
+                    f"toward={toward.tolist()}: must be a finite task-frame point (x, y) in m"
+                )
             axis, sign, _ = lines[-1]
             k = 0 if axis == "x" else 1
             along = float(toward[k] - landmark.position[k])
             half = self._line_half_length(landmark, np.eye(2)[k])
-            lines[-1] = (axis, math.copysign(1.0, along) if along else sign,
-                         abs(along) if abs(along) > half else None)      # None: the usual end
+            lines[-1] = (
+                axis,
+                math.copysign(1.0, along) if along else sign,
+                abs(along) if abs(along) > half else None,
+            )  # None: the usual end
         for axis, sign, after in lines:
             self.plan_line(landmark, axis, sign, after=after)
         return lines
@@ -394,7 +490,7 @@ class Localizer:
         for axis, sign, after in lines:
             try:
                 line = self.observe_line(landmark, axis, sign, after=after)
-            except ValueError as exc:          # the re-planned line left the scanner range
+            except ValueError as exc:  # the re-planned line left the scanner range
                 line = LineResult(axis, "not_run", f"line not run: {exc}")
             result.lines.append(line)
             if line.status == "instrument_error":

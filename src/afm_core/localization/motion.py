@@ -27,6 +27,7 @@ State (`MotionState`): time, last command and the creep operators' states: all o
 explicit, copyable and restorable, so a filter can re-run history and the localizer can try
 a move on a copy (`command_for`) before making it.
 """
+
 from __future__ import annotations
 
 import math
@@ -37,8 +38,8 @@ import numpy as np
 from afm_core.localization.calibration import Calibration
 from afm_core.pzt import Creep
 
-DRIFT_SIGN = -1.0          # task-frame tip displacement per unit of calibrated (sample) drift
-RAMP_SAMPLE_TIME = 0.01    # s, creep operators sample a commanded ramp at least this finely
+DRIFT_SIGN = -1.0  # task-frame tip displacement per unit of calibrated (sample) drift
+RAMP_SAMPLE_TIME = 0.01  # s, creep operators sample a commanded ramp at least this finely
 RAMP_MIN_SAMPLES = 8
 RAMP_MAX_SAMPLES = 2000
 
@@ -48,26 +49,31 @@ KINDS = ("move", "line", "hold")
 @dataclass
 class MotionState:
     """Everything the model remembers (copies; restore with MotionModel.set_state)."""
-    time: float                       # s, instrument clock
-    command: np.ndarray               # (2,) m, last commanded scanner position
-    creep: tuple                      # per axis: Creep.state array, or None without creep
 
-    def copy(self) -> "MotionState":
-        return MotionState(self.time, self.command.copy(),
-                           tuple(None if s is None else np.array(s, dtype=float) for s in self.creep))
+    time: float  # s, instrument clock
+    command: np.ndarray  # (2,) m, last commanded scanner position
+    creep: tuple  # per axis: Creep.state array, or None without creep
+
+    def copy(self) -> MotionState:
+        return MotionState(
+            self.time,
+            self.command.copy(),
+            tuple(None if s is None else np.array(s, dtype=float) for s in self.creep),
+        )
 
 
 @dataclass(frozen=True)
 class MotionStep:
     """One predicted motion: what the filter's prediction step needs, and what produced it."""
-    kind: str                         # "move" | "line" | "hold"
-    start_time: float                 # s
-    end_time: float                   # s
-    start_command: tuple              # m
-    end_command: tuple                # m
-    mean: np.ndarray                  # (2,) m, predicted true displacement in the task frame
-    covariance: np.ndarray            # (2, 2) m^2, covariance the motion adds
-    commanded_distance: float         # m
+
+    kind: str  # "move" | "line" | "hold"
+    start_time: float  # s
+    end_time: float  # s
+    start_command: tuple  # m
+    end_command: tuple  # m
+    mean: np.ndarray  # (2,) m, predicted true displacement in the task frame
+    covariance: np.ndarray  # (2, 2) m^2, covariance the motion adds
+    commanded_distance: float  # m
 
     @property
     def duration(self) -> float:
@@ -90,16 +96,20 @@ class MotionModel:
         self.calibration = calibration
         self.matrix = np.array(calibration.scanner_matrix, dtype=float)
         if abs(np.linalg.det(self.matrix)) < 1e-6:
-            raise ValueError(f"calibration scanner_matrix={calibration.scanner_matrix}: singular, cannot be inverted")
+            raise ValueError(
+                f"calibration scanner_matrix={calibration.scanner_matrix}: singular, cannot be inverted"
+            )
         self.inverse_matrix = np.linalg.inv(self.matrix)
         self.noise = calibration.motion_noise()
         self.drift_velocity = DRIFT_SIGN * np.array(calibration.drift_mean_velocity, dtype=float)
         self.deflection_sigma = math.radians(calibration.line_deflection_sigma_deg)
         taus = np.array(calibration.creep_time_constants, dtype=float)
-        self._creep_params = []          # per axis: (inverse time constants, fractions, direct gain) or None
+        self._creep_params = []  # per axis: (inverse time constants, fractions, direct gain) or None
         for fractions in (calibration.creep_fractions_x, calibration.creep_fractions_y):
             f = np.array(fractions, dtype=float)
-            self._creep_params.append((1.0 / taus, f, 1.0 - float(f.sum())) if taus.size and f.any() else None)
+            self._creep_params.append(
+                (1.0 / taus, f, 1.0 - float(f.sum())) if taus.size and f.any() else None
+            )
         self._creep = [None if p is None else Creep(*p) for p in self._creep_params]
         self.reset(command, time)
 
@@ -115,8 +125,11 @@ class MotionModel:
 
     @property
     def state(self) -> MotionState:
-        return MotionState(self._time, self._command.copy(),
-                           tuple(None if c is None else c.state for c in self._creep))
+        return MotionState(
+            self._time,
+            self._command.copy(),
+            tuple(None if c is None else c.state for c in self._creep),
+        )
 
     def set_state(self, state: MotionState) -> None:
         self._time = float(state.time)
@@ -125,7 +138,7 @@ class MotionModel:
             if creep is not None:
                 creep.state = s
 
-    def copy(self) -> "MotionModel":
+    def copy(self) -> MotionModel:
         other = MotionModel.__new__(MotionModel)
         other.__dict__.update(self.__dict__)
         other._creep = [None if p is None else Creep(*p) for p in self._creep_params]
@@ -155,14 +168,21 @@ class MotionModel:
         if duration <= 0.0:
             self._command = target.copy()
             for creep, c in zip(self._creep, target):
-                if creep is not None:                 # an instantaneous step: seen from the next sample on
+                if creep is not None:  # an instantaneous step: seen from the next sample on
                     state = creep.state
                     state[-1] = c
                     creep.state = state
             return
         moving = bool(np.any(target != self._command))
-        n = 1 if not moving else int(min(RAMP_MAX_SAMPLES, max(RAMP_MIN_SAMPLES,
-                                                                 math.ceil(duration / RAMP_SAMPLE_TIME))))
+        n = (
+            1
+            if not moving
+            else int(
+                min(
+                    RAMP_MAX_SAMPLES, max(RAMP_MIN_SAMPLES, math.ceil(duration / RAMP_SAMPLE_TIME))
+                )
+            )
+        )
         fractions = np.arange(1, n + 1) / n
         path = self._command[None, :] + fractions[:, None] * (target - self._command)[None, :]
         path[-1] = target
@@ -200,8 +220,19 @@ class MotionModel:
             if kind == "line" and distance > 0:
                 length = float(np.hypot(*true_step))
                 across = np.array([-true_step[1], true_step[0]]) / length
-                covariance = covariance + (self.deflection_sigma * length) ** 2 * np.outer(across, across)
-        return MotionStep(kind, start_time, self._time, tuple(start_command), tuple(target), mean, covariance, distance)
+                covariance = covariance + (self.deflection_sigma * length) ** 2 * np.outer(
+                    across, across
+                )
+        return MotionStep(
+            kind,
+            start_time,
+            self._time,
+            tuple(start_command),
+            tuple(target),
+            mean,
+            covariance,
+            distance,
+        )
 
     def hold(self, duration: float) -> MotionStep:
         """Time passes with the command held: creep still to come, drift."""
@@ -220,7 +251,9 @@ class MotionModel:
         """The commanded step whose true displacement is `displacement`, creep and drift aside."""
         return self.inverse_matrix @ np.asarray(displacement, dtype=float)
 
-    def command_for(self, displacement, speed: float, kind: str = "move", iterations: int = 3) -> tuple[float, float]:
+    def command_for(
+        self, displacement, speed: float, kind: str = "move", iterations: int = 3
+    ) -> tuple[float, float]:
         """The commanded end point of a move (at `speed`, m/s) whose predicted mean true
         displacement, creep still to come and drift included, is `displacement` (m).
         Tried on copies of this model; this model is unchanged."""

@@ -9,6 +9,7 @@ Drift that the motion model's mean does not remove is no noise of a move but a v
 that persists for minutes: the filter carries it as state (`TipFilter` drift_sigma).
 All values SI: slopes in m^2 per m moved, offsets in m^2.
 """
+
 from __future__ import annotations
 
 import math
@@ -19,12 +20,12 @@ import numpy as np
 
 @dataclass(frozen=True)
 class MotionNoise:
-    k_h1: float                      # m^2/m: x variance per metre moved along x
-    k_h2: float                      # m^2/m: y variance per metre moved along x
-    k_v1: float                      # m^2/m: y variance per metre moved along y
-    k_v2: float                      # m^2/m: x variance per metre moved along y
-    offset_x: float = 0.0            # m^2 added by any move (settling), x
-    offset_y: float = 0.0            # m^2, y
+    k_h1: float  # m^2/m: x variance per metre moved along x
+    k_h2: float  # m^2/m: y variance per metre moved along x
+    k_v1: float  # m^2/m: y variance per metre moved along y
+    k_v2: float  # m^2/m: x variance per metre moved along y
+    offset_x: float = 0.0  # m^2 added by any move (settling), x
+    offset_y: float = 0.0  # m^2, y
 
     def __post_init__(self):
         for name in ("k_h1", "k_h2", "k_v1", "k_v2", "offset_x", "offset_y"):
@@ -33,12 +34,14 @@ class MotionNoise:
                 raise ValueError(f"motion noise {name}={value}: must be finite and >= 0")
 
     @classmethod
-    def isotropic(cls, slope: float, offset: float = 0.0, cross_fraction: float = 0.0) -> "MotionNoise":
+    def isotropic(
+        cls, slope: float, offset: float = 0.0, cross_fraction: float = 0.0
+    ) -> MotionNoise:
         """sigma^2 = slope d + offset on the moving axis; cross_fraction of the slope on the other."""
         return cls(slope, cross_fraction * slope, slope, cross_fraction * slope, offset, offset)
 
     @classmethod
-    def book(cls) -> "MotionNoise":
+    def book(cls) -> MotionNoise:
         """Fig. 7.20b: a = 0.0701 nm^2/nm, b = 0.4345 nm^2 (1 um range); 10 % cross-axis growth
         (the book's 'slightly')."""
         return cls.isotropic(0.0701e-9, 0.4345e-18, cross_fraction=0.1)

@@ -31,6 +31,7 @@ Observation noise (eq. 5.15, 7.1): v = v_map + v_region + v_deflection:
 - v_deflection: `line_deflection_sigma_deg` times the largest perpendicular offset of the
   line from the centre, the landmark radius (book: "the maximum d_kp is the radius", ~2 nm).
 """
+
 from __future__ import annotations
 
 import math
@@ -42,7 +43,7 @@ from afm_core.instrument import ScanLineData
 from afm_core.localization.calibration import Calibration
 
 DEFAULT_THRESHOLD_FRACTION = 0.5
-EDGE_FRACTION = 0.1            # of the samples at each end: the line's substrate level
+EDGE_FRACTION = 0.1  # of the samples at each end: the line's substrate level
 MIN_EDGE_SAMPLES = 3
 KINDS = ("sphere", "tube", "rod")
 
@@ -58,7 +59,9 @@ def check_covariance(name: str, covariance) -> np.ndarray:
         raise ValueError(f"{name}={c.tolist()}: must be symmetric")
     smallest = float(np.linalg.eigvalsh(c).min())
     if smallest < -1e-12 * max(float(np.abs(c).max()), 1e-300):
-        raise ValueError(f"{name}={c.tolist()}: not positive semi-definite (smallest eigenvalue {smallest:.3e})")
+        raise ValueError(
+            f"{name}={c.tolist()}: not positive semi-definite (smallest eigenvalue {smallest:.3e})"
+        )
     return 0.5 * (c + c.T)
 
 
@@ -66,14 +69,15 @@ def check_covariance(name: str, covariance) -> np.ndarray:
 class MapLandmark:
     """A landmark in the task frame, as the localizer uses it (SI units).
     `from_landmark` converts an `afm_core.imaging.landmarks.Landmark`."""
-    x: float                          # m, centre in the task frame
+
+    x: float  # m, centre in the task frame
     y: float
-    covariance: np.ndarray            # 2x2 m^2, map error of the centre
-    radius: float                     # m (sphere radius, tube/rod radius)
-    kind: str = "sphere"              # "sphere" | "tube" | "rod"
-    height: float = 0.0               # m, apparent height above the substrate; 0: 2 * radius
-    orientation: float = 0.0          # rad from +x, axis of a tube/rod
-    half_width: float = 0.0           # m, apparent half-width at half height; 0: unknown
+    covariance: np.ndarray  # 2x2 m^2, map error of the centre
+    radius: float  # m (sphere radius, tube/rod radius)
+    kind: str = "sphere"  # "sphere" | "tube" | "rod"
+    height: float = 0.0  # m, apparent height above the substrate; 0: 2 * radius
+    orientation: float = 0.0  # rad from +x, axis of a tube/rod
+    half_width: float = 0.0  # m, apparent half-width at half height; 0: unknown
     id: int = -1
 
     def __post_init__(self):
@@ -109,12 +113,19 @@ class MapLandmark:
         return np.array([math.cos(self.orientation), math.sin(self.orientation)])
 
     @classmethod
-    def from_landmark(cls, landmark) -> "MapLandmark":
+    def from_landmark(cls, landmark) -> MapLandmark:
         """From afm_core.imaging.landmarks.Landmark (or anything with the same fields)."""
-        return cls(x=float(landmark.x), y=float(landmark.y), covariance=np.array(landmark.covariance, dtype=float),
-                   radius=float(landmark.radius), kind=str(landmark.kind), height=float(getattr(landmark, "height", 0.0)),
-                   orientation=float(getattr(landmark, "orientation", 0.0)),
-                   half_width=float(getattr(landmark, "half_width", 0.0)), id=int(getattr(landmark, "id", -1)))
+        return cls(
+            x=float(landmark.x),
+            y=float(landmark.y),
+            covariance=np.array(landmark.covariance, dtype=float),
+            radius=float(landmark.radius),
+            kind=str(landmark.kind),
+            height=float(getattr(landmark, "height", 0.0)),
+            orientation=float(getattr(landmark, "orientation", 0.0)),
+            half_width=float(getattr(landmark, "half_width", 0.0)),
+            id=int(getattr(landmark, "id", -1)),
+        )
 
 
 def as_map_landmark(landmark) -> MapLandmark:
@@ -135,7 +146,7 @@ def line_variance(landmark: MapLandmark, calibration: Calibration) -> float:
     """The part of eq. 5.15 each line draws afresh: scan-region error + line-deflection error
     (m^2). The map error is the landmark's, shared by every line across it."""
     deflection = math.radians(calibration.line_deflection_sigma_deg) * landmark.radius
-    return calibration.scan_region_sigma ** 2 + deflection ** 2
+    return calibration.scan_region_sigma**2 + deflection**2
 
 
 def observation_variance(landmark: MapLandmark, direction, calibration: Calibration) -> float:
@@ -147,19 +158,23 @@ def observation_variance(landmark: MapLandmark, direction, calibration: Calibrat
 @dataclass
 class LineObservation:
     """What one local scan line saw. status "ok" or "lost" (reason says why)."""
+
     status: str
     reason: str = ""
-    threshold: float = math.nan             # m, absolute height threshold used
-    substrate: float = math.nan             # m, line's substrate level
-    crossings: tuple = (math.nan, math.nan)  # fractional sample indices of the rising / falling crossing
-    index: float = math.nan                 # fractional sample index of the midpoint (x_kp)
-    time: float = math.nan                  # s, instrument clock at x_kp
-    command: tuple = (math.nan, math.nan)   # m, commanded scanner position at x_kp
+    threshold: float = math.nan  # m, absolute height threshold used
+    substrate: float = math.nan  # m, line's substrate level
+    crossings: tuple = (
+        math.nan,
+        math.nan,
+    )  # fractional sample indices of the rising / falling crossing
+    index: float = math.nan  # fractional sample index of the midpoint (x_kp)
+    time: float = math.nan  # s, instrument clock at x_kp
+    command: tuple = (math.nan, math.nan)  # m, commanded scanner position at x_kp
     direction: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))  # u (task frame)
-    value: float = math.nan                 # m, z = u . m
-    variance: float = math.nan              # m^2, observation noise (eq. 5.15)
-    line_variance: float = math.nan         # m^2, its part without the landmark's map error
-    width: float = math.nan                 # m, commanded distance between the crossings
+    value: float = math.nan  # m, z = u . m
+    variance: float = math.nan  # m^2, observation noise (eq. 5.15)
+    line_variance: float = math.nan  # m^2, its part without the landmark's map error
+    width: float = math.nan  # m, commanded distance between the crossings
 
     @property
     def ok(self) -> bool:
@@ -176,10 +191,16 @@ def line_noise(height) -> float:
     """Robust sigma of a profile's noise from its sample-to-sample differences (MAD; the
     flanks of a landmark, a minority of the differences, do not count)."""
     steps = np.diff(np.asarray(height, dtype=float))
-    return float(np.median(np.abs(steps - np.median(steps))) / (0.6745 * math.sqrt(2))) if steps.size else 0.0
+    return (
+        float(np.median(np.abs(steps - np.median(steps))) / (0.6745 * math.sqrt(2)))
+        if steps.size
+        else 0.0
+    )
 
 
-def find_crossings(height, threshold: float, expected_index: float | None = None, margin: float | None = None):
+def find_crossings(
+    height, threshold: float, expected_index: float | None = None, margin: float | None = None
+):
     """Pairs (rising, falling) of threshold crossings as fractional indices; the pair whose
     midpoint is nearest `expected_index` (default: the line's middle) first. Returns
     (pairs, reason) with reason non-empty when there is no complete pair.
@@ -202,30 +223,43 @@ def find_crossings(height, threshold: float, expected_index: float | None = None
         raise ValueError(f"margin={margin}: must be finite and >= 0 (height units of the profile)")
     edges = np.flatnonzero(np.diff(above.astype(np.int8))) + 1
     bounds = np.concatenate([[0], edges, [h.size]])
-    runs = [[int(i), int(j)] for i, j in zip(bounds[:-1], bounds[1:]) if above[i]]     # [first, end) above
+    runs = [
+        [int(i), int(j)] for i, j in zip(bounds[:-1], bounds[1:]) if above[i]
+    ]  # [first, end) above
     merged = [runs[0]]
     for run in runs[1:]:
-        if h[merged[-1][1]:run[0]].min() >= threshold - margin:
+        if h[merged[-1][1] : run[0]].min() >= threshold - margin:
             merged[-1][1] = run[1]
         else:
             merged.append(run)
     reaching = [(i, j) for i, j in merged if h[i:j].max() >= threshold + margin]
     if not reaching:
-        return [], (f"no run above the threshold reaches it + margin {margin:.3g}: the line missed the landmark "
-                    "(what rises above the threshold is noise)")
-    pairs = [(_crossing(h, threshold, i - 1), _crossing(h, threshold, j - 1)) for i, j in reaching
-             if i > 0 and j < h.size]
+        return [], (
+            f"no run above the threshold reaches it + margin {margin:.3g}: the line missed the landmark "
+            "(what rises above the threshold is noise)"
+        )
+    pairs = [
+        (_crossing(h, threshold, i - 1), _crossing(h, threshold, j - 1))
+        for i, j in reaching
+        if i > 0 and j < h.size
+    ]
     if not pairs:
-        where = "starts" if above[0] else "ends"         # an edge run above the threshold is not a pair
+        where = "starts" if above[0] else "ends"  # an edge run above the threshold is not a pair
         return [], f"the line {where} on the landmark: no rising/falling crossing pair"
     centre = 0.5 * (h.size - 1) if expected_index is None else float(expected_index)
     pairs.sort(key=lambda p: abs(0.5 * (p[0] + p[1]) - centre))
     return pairs, ""
 
 
-def observe_line(line: ScanLineData, landmark, calibration: Calibration, line_direction,
-                 threshold_fraction: float = DEFAULT_THRESHOLD_FRACTION,
-                 expected_index: float | None = None, max_width: float | None = None) -> LineObservation:
+def observe_line(
+    line: ScanLineData,
+    landmark,
+    calibration: Calibration,
+    line_direction,
+    threshold_fraction: float = DEFAULT_THRESHOLD_FRACTION,
+    expected_index: float | None = None,
+    max_width: float | None = None,
+) -> LineObservation:
     """The landmark observation of one local scan line (eq. 5.9-5.15).
 
     line_direction: the line's true direction in the task frame (the motion model's
@@ -249,8 +283,12 @@ def observe_line(line: ScanLineData, landmark, calibration: Calibration, line_di
     if not np.isfinite(h).all():
         return LineObservation("lost", "the height profile has non-finite samples", direction=u)
     if landmark.elongated and abs(float(u @ (d / np.hypot(*d)))) < math.cos(math.radians(60.0)):
-        return LineObservation("lost", "the line runs within 30 deg of the tube's axis: it cannot measure "
-                                       "the position across the tube", direction=u)
+        return LineObservation(
+            "lost",
+            "the line runs within 30 deg of the tube's axis: it cannot measure "
+            "the position across the tube",
+            direction=u,
+        )
     edge = max(MIN_EDGE_SAMPLES, int(EDGE_FRACTION * n))
     substrate = float(np.median(np.concatenate([h[:edge], h[-edge:]])))
     threshold = substrate + threshold_fraction * landmark.apparent_height
@@ -263,16 +301,35 @@ def observe_line(line: ScanLineData, landmark, calibration: Calibration, line_di
     if max_width is None:
         max_width = 4.0 * landmark.apparent_height + 200e-9
     rising, falling = pairs[0]
-    width = float(np.hypot(np.interp(falling, samples, xs) - np.interp(rising, samples, xs),
-                           np.interp(falling, samples, ys) - np.interp(rising, samples, ys)))
+    width = float(
+        np.hypot(
+            np.interp(falling, samples, xs) - np.interp(rising, samples, xs),
+            np.interp(falling, samples, ys) - np.interp(rising, samples, ys),
+        )
+    )
     if width > max_width:
-        return LineObservation("lost", f"crossing pair {width:.3e} m apart, wider than {max_width:.3e} m: "
-                                       "not this landmark", crossings=(rising, falling), width=width, **base)
+        return LineObservation(
+            "lost",
+            f"crossing pair {width:.3e} m apart, wider than {max_width:.3e} m: not this landmark",
+            crossings=(rising, falling),
+            width=width,
+            **base,
+        )
     index = 0.5 * (rising + falling)
     time = float(line.start_time + np.interp(index, samples, np.asarray(line.times, dtype=float)))
     command = (float(np.interp(index, samples, xs)), float(np.interp(index, samples, ys)))
-    return LineObservation("ok", "", threshold=threshold, substrate=substrate, crossings=(rising, falling),
-                           index=index, time=time, command=command, direction=u,
-                           value=float(u @ landmark.position),
-                           variance=observation_variance(landmark, u, calibration),
-                           line_variance=line_variance(landmark, calibration), width=width)
+    return LineObservation(
+        "ok",
+        "",
+        threshold=threshold,
+        substrate=substrate,
+        crossings=(rising, falling),
+        index=index,
+        time=time,
+        command=command,
+        direction=u,
+        value=float(u @ landmark.position),
+        variance=observation_variance(landmark, u, calibration),
+        line_variance=line_variance(landmark, calibration),
+        width=width,
+    )

@@ -22,6 +22,7 @@ Coordinates are the image's, i.e. the commanded scanner frame of the rescan (pix
 origin + (index + 0.5) * pixel size): the calibration compares them with the commands that
 punched the pits. `time` is when the rescan imaged the pit's centre (instrument clock).
 """
+
 from __future__ import annotations
 
 import math
@@ -33,29 +34,37 @@ from scipy import ndimage
 from afm_core.imaging.drift import pixel_times
 from afm_core.instrument import RasterScanData
 
-NOISE_SIGMAS = 6.0          # detection threshold in robust sigmas of the depth noise
-FIT_DEPTH_FRACTION = 1 / 3  # paraboloid fitted to the pixels deeper than this fraction of the pit's depth
+NOISE_SIGMAS = 6.0  # detection threshold in robust sigmas of the depth noise
+FIT_DEPTH_FRACTION = (
+    1 / 3
+)  # paraboloid fitted to the pixels deeper than this fraction of the pit's depth
 MIN_FIT_PIXELS = 5
-MIN_PIT_PIXELS = 3          # smaller regions are noise (a pit spans several pixels at the pixel sizes used)
+MIN_PIT_PIXELS = (
+    3  # smaller regions are noise (a pit spans several pixels at the pixel sizes used)
+)
 
 
 @dataclass(frozen=True)
 class DetectedPit:
-    x: float            # m, image (commanded scanner) frame
-    y: float            # m
-    depth: float        # m, below the local substrate
-    time: float         # s, instrument clock when the rescan imaged the centre
-    pixels: int         # pixels above the detection threshold
-    fitted: bool        # True: paraboloid fit; False: depth-weighted centroid (coarse image)
+    x: float  # m, image (commanded scanner) frame
+    y: float  # m
+    depth: float  # m, below the local substrate
+    time: float  # s, instrument clock when the rescan imaged the centre
+    pixels: int  # pixels above the detection threshold
+    fitted: bool  # True: paraboloid fit; False: depth-weighted centroid (coarse image)
 
 
 def _check(scan: RasterScanData, min_depth: float, max_radius: float) -> np.ndarray:
     height = np.asarray(scan.height, dtype=float)
     if height.ndim != 2 or min(height.shape) < 3:
-        raise ValueError(f"scan.height: shape {height.shape}; need a 2-D image of at least 3 x 3 pixels")
+        raise ValueError(
+            f"scan.height: shape {height.shape}; need a 2-D image of at least 3 x 3 pixels"
+        )
     bad = int(np.count_nonzero(~np.isfinite(height)))
     if bad:
-        raise ValueError(f"scan.height: {bad} NaN/inf pixels (incomplete scan?); pit detection needs a complete image")
+        raise ValueError(
+            f"scan.height: {bad} NaN/inf pixels (incomplete scan?); pit detection needs a complete image"
+        )
     for name in ("pixel_size_x", "pixel_size_y"):
         value = getattr(scan, name)
         if not (math.isfinite(value) and value > 0):
@@ -72,12 +81,16 @@ def depth_map(scan: RasterScanData, max_radius: float = 150e-9) -> np.ndarray:
     height = _check(scan, 0.0, max_radius)
     fast_axis = 1 if scan.scan_angle_deg == 0.0 else 0
     levelled = height - np.median(height, axis=fast_axis, keepdims=True)
-    window = (2 * int(math.ceil(max_radius / scan.pixel_size_y)) + 1,
-              2 * int(math.ceil(max_radius / scan.pixel_size_x)) + 1)
+    window = (
+        2 * int(math.ceil(max_radius / scan.pixel_size_y)) + 1,
+        2 * int(math.ceil(max_radius / scan.pixel_size_x)) + 1,
+    )
     return ndimage.grey_closing(levelled, size=window) - levelled
 
 
-def find_pits(scan: RasterScanData, min_depth: float = 5e-9, max_radius: float = 150e-9) -> list[DetectedPit]:
+def find_pits(
+    scan: RasterScanData, min_depth: float = 5e-9, max_radius: float = 150e-9
+) -> list[DetectedPit]:
     """Pits in `scan`, sorted by time of imaging. min_depth (m): shallower depressions are not
     pits; max_radius (m): a larger apparent radius is not a pit (the closing window is twice it)."""
     height = _check(scan, min_depth, max_radius)
@@ -93,7 +106,12 @@ def find_pits(scan: RasterScanData, min_depth: float = 5e-9, max_radius: float =
         if region is None:
             continue
         rows, cols = region
-        if rows.start == 0 or cols.start == 0 or rows.stop == rows_total or cols.stop == cols_total:
+        if (
+            rows.start == 0
+            or cols.start == 0
+            or rows.stop == rows_total
+            or cols.stop == cols_total
+        ):
             continue
         mask = labels[region] == index
         if not MIN_PIT_PIXELS <= mask.sum() <= max_pixels:
@@ -102,16 +120,26 @@ def find_pits(scan: RasterScanData, min_depth: float = 5e-9, max_radius: float =
         deepest = float(part.max())
         rr, cc = np.nonzero(part > FIT_DEPTH_FRACTION * deepest)
         rr, cc = rr + rows.start, cc + cols.start
-        row, col, fitted = (_paraboloid_centre(height, rr, cc, px, py) if rr.size >= MIN_FIT_PIXELS
-                            else (None, None, False))
+        row, col, fitted = (
+            _paraboloid_centre(height, rr, cc, px, py)
+            if rr.size >= MIN_FIT_PIXELS
+            else (None, None, False)
+        )
         if row is None:
             weights = np.clip(part - 0.5 * threshold, 0.0, None)
             r_all, c_all = np.mgrid[rows, cols]
             row = float((weights * r_all).sum() / weights.sum())
             col = float((weights * c_all).sum() / weights.sum())
-        pits.append(DetectedPit(x=scan.origin_x + (col + 0.5) * px, y=scan.origin_y + (row + 0.5) * py,
-                                depth=deepest, time=float(pixel_times(scan, row, col)), pixels=int(mask.sum()),
-                                fitted=fitted))
+        pits.append(
+            DetectedPit(
+                x=scan.origin_x + (col + 0.5) * px,
+                y=scan.origin_y + (row + 0.5) * py,
+                depth=deepest,
+                time=float(pixel_times(scan, row, col)),
+                pixels=int(mask.sum()),
+                fitted=fitted,
+            )
+        )
     return sorted(pits, key=lambda pit: pit.time)
 
 
@@ -119,7 +147,7 @@ def _paraboloid_centre(height, rr, cc, px, py):
     """(row, col) of the bottom of z = a + b x + c y + d (x^2 + y^2) fitted to the pixels, in
     physical units so unequal pixel sizes keep the pit round; None when it is no bowl or the
     bottom falls outside the fitted pixels (then the centroid is the safer answer)."""
-    unit = max(px, py)          # lengths in pixels of about 1, heights in nm: a well-scaled system
+    unit = max(px, py)  # lengths in pixels of about 1, heights in nm: a well-scaled system
     x, y = (cc - cc.mean()) * (px / unit), (rr - rr.mean()) * (py / unit)
     design = np.stack([np.ones_like(x), x, y, x * x + y * y], axis=1)
     (a, b, c, d), *_ = np.linalg.lstsq(design, height[rr, cc] * 1e9, rcond=None)

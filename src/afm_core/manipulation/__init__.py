@@ -26,18 +26,53 @@ protocol only (simulator, hardware driver, replay):
 The pushing physics is afm_core.sim.pushing (the planners use it as their model; nothing here
 writes another one).
 """
+
 from afm_core.manipulation.execute import ExecutionResult, StepReport, execute_plan, force_summary
 from afm_core.manipulation.monte_carlo import MonteCarloResult, monte_carlo_push
-from afm_core.manipulation.strategies import (NanoHandParams, ParticleEstimate, PushPlan, Stroke, arc_hand_plan,
-                                              centre_push_plan, check_plan_limits, choose_nano_hand_params,
-                                              nano_hand_plan, path_blocker, predict_particle,
-                                              rod_hand_plan)
-from afm_core.manipulation.verify import ControlPoint, VerificationResult, find_particles, find_pits, verify_push
+from afm_core.manipulation.strategies import (
+    NanoHandParams,
+    ParticleEstimate,
+    PushPlan,
+    Stroke,
+    arc_hand_plan,
+    centre_push_plan,
+    check_plan_limits,
+    choose_nano_hand_params,
+    nano_hand_plan,
+    path_blocker,
+    predict_particle,
+    rod_hand_plan,
+)
+from afm_core.manipulation.verify import (
+    ControlPoint,
+    VerificationResult,
+    find_particles,
+    find_pits,
+    verify_push,
+)
 
 __all__ = [
-    "NanoHandParams", "ParticleEstimate", "PushPlan", "Stroke", "arc_hand_plan", "centre_push_plan",
-    "check_plan_limits", "choose_nano_hand_params", "nano_hand_plan", "path_blocker", "predict_particle",
+    "NanoHandParams",
+    "ParticleEstimate",
+    "PushPlan",
+    "Stroke",
+    "arc_hand_plan",
+    "centre_push_plan",
+    "check_plan_limits",
+    "choose_nano_hand_params",
+    "nano_hand_plan",
+    "path_blocker",
+    "predict_particle",
     "rod_hand_plan",
-    "MonteCarloResult", "monte_carlo_push", "ExecutionResult", "StepReport", "execute_plan", "force_summary",
-    "ControlPoint", "VerificationResult", "find_particles", "find_pits", "verify_push",
+    "MonteCarloResult",
+    "monte_carlo_push",
+    "ExecutionResult",
+    "StepReport",
+    "execute_plan",
+    "force_summary",
+    "ControlPoint",
+    "VerificationResult",
+    "find_particles",
+    "find_pits",
+    "verify_push",
 ]

@@ -24,11 +24,12 @@ Frames: plans are in the afm_task frame; `to_instrument` maps a task point to th
 commanded frame (default: the identity, i.e. the caller has already put the plan in instrument
 coordinates, or the localization says the two frames coincide).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Callable, Optional
 
 import numpy as np
 
@@ -38,33 +39,39 @@ from afm_core.manipulation.strategies import PushPlan, predict_particle
 
 @dataclass
 class StepReport:
-    index: int                      # stroke index in the plan (0-based)
-    total: int                      # strokes in the plan
+    index: int  # stroke index in the plan (0-based)
+    total: int  # strokes in the plan
     label: str
     contact: bool
-    end: tuple[float, float]        # commanded end (instrument frame, m)
-    completed: bool                 # the instrument finished the move
-    peak_lateral_force: float       # N (0 for lifted strokes)
-    peak_normal_force: float        # N
-    object_id: int = -1             # what the instrument says it pushed (-1: nothing / unknown)
+    end: tuple[float, float]  # commanded end (instrument frame, m)
+    completed: bool  # the instrument finished the move
+    peak_lateral_force: float  # N (0 for lifted strokes)
+    peak_normal_force: float  # N
+    object_id: int = -1  # what the instrument says it pushed (-1: nothing / unknown)
 
 
 @dataclass
 class ExecutionResult:
-    completed: bool                 # every stroke done
+    completed: bool  # every stroke done
     cancelled: bool
     strokes_done: int
     steps: list[StepReport] = field(default_factory=list)
-    lift_position: Optional[tuple[float, float]] = None   # where the tip was lifted clear to (instrument frame)
-    predicted_particle: Optional[np.ndarray] = None       # model's particle centre after the strokes done (task)
-    duration: float = 0.0           # s of instrument time
+    lift_position: tuple[float, float] | None = (
+        None  # where the tip was lifted clear to (instrument frame)
+    )
+    predicted_particle: np.ndarray | None = (
+        None  # model's particle centre after the strokes done (task)
+    )
+    duration: float = 0.0  # s of instrument time
 
 
 def force_summary(trace, tip_height: float = 10e-6) -> tuple[float, float]:
     """(peak lateral force, peak normal force) in N of a ForceTraceData (0, 0 for None)."""
     if trace is None or len(trace.lateral_torsion) == 0:
         return 0.0, 0.0
-    lateral = float(np.max(np.abs(trace.lateral_torsion))) * trace.lateral_spring_constant / tip_height
+    lateral = (
+        float(np.max(np.abs(trace.lateral_torsion))) * trace.lateral_spring_constant / tip_height
+    )
     normal = float(np.max(trace.vertical_deflection)) * trace.normal_spring_constant
     return lateral, normal
 
@@ -86,7 +93,9 @@ def clear_point(particle: np.ndarray, axis: np.ndarray, distance: float, limits)
     raise ValueError(f"no point {distance:.4e} m from the particle is inside the scanner range")
 
 
-def pushed_object_after(plan: PushPlan, strokes_done: int, contact_params=None) -> tuple[np.ndarray, float, np.ndarray]:
+def pushed_object_after(
+    plan: PushPlan, strokes_done: int, contact_params=None
+) -> tuple[np.ndarray, float, np.ndarray]:
     """(predicted centre of what the last done stroke pushed, its radius, the stroke's direction)
     in the task frame: the particle (centre and nano-hand plans: the pushing model on the done
     strokes); for rod and arc plans the contact point ahead of the last stroke's end."""
@@ -101,11 +110,19 @@ def pushed_object_after(plan: PushPlan, strokes_done: int, contact_params=None) 
     return np.asarray(last.end, float) + reach * d, plan.particle_radius, d
 
 
-def execute_plan(instrument: Instrument, plan: PushPlan, *, speed: float = 0.5e-6, lift_speed: float | None = None,
-                 on_step: Optional[Callable[[StepReport], None]] = None,
-                 should_stop: Optional[Callable[[], bool]] = None, margin: float = 50e-9,
-                 tip_height: float = 10e-6, to_instrument: Callable[[np.ndarray], np.ndarray] = _identity,
-                 contact_params=None) -> ExecutionResult:
+def execute_plan(
+    instrument: Instrument,
+    plan: PushPlan,
+    *,
+    speed: float = 0.5e-6,
+    lift_speed: float | None = None,
+    on_step: Callable[[StepReport], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
+    margin: float = 50e-9,
+    tip_height: float = 10e-6,
+    to_instrument: Callable[[np.ndarray], np.ndarray] = _identity,
+    contact_params=None,
+) -> ExecutionResult:
     """Run `plan` on `instrument` (module docstring). speed: pushing speed (m/s); lift_speed:
     lifted moves (default 10 x speed, at most the slew limit). margin: extra clearance of the
     lift-clear point beyond particle radius + tip radius (cover the particle's uncertainty)."""
@@ -133,9 +150,17 @@ def execute_plan(instrument: Instrument, plan: PushPlan, *, speed: float = 0.5e-
         instrument.move_tip(float(a[0]), float(a[1]), lift_speed, contact=False)
         move = instrument.move_tip(float(b[0]), float(b[1]), speed, contact=stroke.contact)
         lateral, normal = force_summary(move.trace, tip_height) if stroke.contact else (0.0, 0.0)
-        report = StepReport(i, len(plan.strokes), stroke.label, stroke.contact, (move.end_x, move.end_y),
-                            move.completed, lateral, normal,
-                            move.trace.object_id if move.trace is not None else -1)
+        report = StepReport(
+            i,
+            len(plan.strokes),
+            stroke.label,
+            stroke.contact,
+            (move.end_x, move.end_y),
+            move.completed,
+            lateral,
+            normal,
+            move.trace.object_id if move.trace is not None else -1,
+        )
         result.steps.append(report)
         result.strokes_done = i + 1
         if on_step is not None:
@@ -147,7 +172,10 @@ def execute_plan(instrument: Instrument, plan: PushPlan, *, speed: float = 0.5e-
         result.completed = True
     if result.cancelled:
         tip = np.array(instrument.commanded_position(), float)
-        result.lift_position = (float(tip[0]), float(tip[1]))      # lifted where it is unless too close
+        result.lift_position = (
+            float(tip[0]),
+            float(tip[1]),
+        )  # lifted where it is unless too close
         if result.strokes_done:
             obj, radius, direction = pushed_object_after(plan, result.strokes_done, contact_params)
             result.predicted_particle = obj

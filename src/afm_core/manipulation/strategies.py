@@ -115,34 +115,37 @@ zigzag aimed radially; the hands' last strokes lie on an arc around the ring's c
 together they form the arc-shaped hand. Particles are pushed nearest-first and the whole plan
 is checked in the model with all particles present.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Iterable, Iterator, Optional, Sequence
 
 import numpy as np
 
 from afm_core.instrument import ScannerLimits
 
 NM = 1e-9
-DEFAULT_TIP_RADIUS = 50e-9          # m, effective contact radius R_T (book 7.3: 50 nm)
-DEFAULT_PARTICLE_RADIUS = 100e-9    # m, polystyrene spheres (book: ~100 nm)
-DEFAULT_SIGMA = 10e-9               # m, centre uncertainty (book 6.4.3: 10 nm)
-DEFAULT_MAX_DISTANCE = 20e-6        # m, longest push a plan accepts
+DEFAULT_TIP_RADIUS = 50e-9  # m, effective contact radius R_T (book 7.3: 50 nm)
+DEFAULT_PARTICLE_RADIUS = 100e-9  # m, polystyrene spheres (book: ~100 nm)
+DEFAULT_SIGMA = 10e-9  # m, centre uncertainty (book 6.4.3: 10 nm)
+DEFAULT_MAX_DISTANCE = 20e-6  # m, longest push a plan accepts
 
 
 # --------------------------------------------------------------------------------------------
 # Data
 # --------------------------------------------------------------------------------------------
 
+
 @dataclass(frozen=True)
 class Stroke:
     """One straight tip motion (afm_task frame, m). contact=True pushes; False moves lifted."""
+
     start: np.ndarray
     end: np.ndarray
     contact: bool = True
-    label: str = ""                 # "left", "right", "centre", "rod", "axial", ...
+    label: str = ""  # "left", "right", "centre", "rod", "axial", ...
 
     @property
     def length(self) -> float:
@@ -152,10 +155,11 @@ class Stroke:
 @dataclass
 class ParticleEstimate:
     """Where the particle is believed to be (afm_task frame) and how sure we are."""
+
     x: float
     y: float
     radius: float = DEFAULT_PARTICLE_RADIUS
-    sigma: float = DEFAULT_SIGMA    # m, 1-sigma of the centre per axis (relative to the tip)
+    sigma: float = DEFAULT_SIGMA  # m, 1-sigma of the centre per axis (relative to the tip)
 
     @property
     def xy(self) -> np.ndarray:
@@ -165,19 +169,24 @@ class ParticleEstimate:
 @dataclass
 class PushPlan:
     """A list of strokes plus what the planner assumed and predicted."""
-    kind: str                               # "centre", "nano_hand", "rod", "arc"
+
+    kind: str  # "centre", "nano_hand", "rod", "arc"
     strokes: list[Stroke]
-    particle: np.ndarray                    # (2,) estimated start centre (rod: centre)
-    goal: np.ndarray                        # (2,) goal centre
-    axis: np.ndarray                        # (2,) unit push axis u (rod/arc: centre -> goal)
+    particle: np.ndarray  # (2,) estimated start centre (rod: centre)
+    goal: np.ndarray  # (2,) goal centre
+    axis: np.ndarray  # (2,) unit push axis u (rod/arc: centre -> goal)
     particle_radius: float
     tip_radius: float
-    path_offsets: Optional[tuple[float, float]] = None   # lateral coords of the (left, right) paths at the end
-    predicted: Optional[np.ndarray] = None  # (2,) predicted final centre (model, nominal start)
-    predicted_track: list = field(default_factory=list)  # predicted centre (or pose) after each stroke
+    path_offsets: tuple[float, float] | None = (
+        None  # lateral coords of the (left, right) paths at the end
+    )
+    predicted: np.ndarray | None = None  # (2,) predicted final centre (model, nominal start)
+    predicted_track: list = field(
+        default_factory=list
+    )  # predicted centre (or pose) after each stroke
     params: object = None
-    goal_angle: Optional[float] = None      # rod plans: goal axis angle (rad)
-    predicted_angle: Optional[float] = None
+    goal_angle: float | None = None  # rod plans: goal axis angle (rad)
+    predicted_angle: float | None = None
     extra: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -203,7 +212,7 @@ class PushPlan:
     def contact_strokes(self) -> list[Stroke]:
         return [s for s in self.strokes if s.contact]
 
-    def first_steps(self, n: int) -> "PushPlan":
+    def first_steps(self, n: int) -> PushPlan:
         """The same plan cut after its first n contact strokes (and the lifted ones between)."""
         kept, count = [], 0
         for stroke in self.strokes:
@@ -218,32 +227,45 @@ class PushPlan:
 @dataclass(frozen=True)
 class NanoHandParams:
     """The zigzag's geometry (Table 7.6 names, metres). step = push - back on each side."""
+
     left_push: float
     right_push: float
     left_back: float
     right_back: float
-    initial_h: float        # approach of the first push before its nominal contact (L_initial_h)
-    h: float                # separation of the two paths (L_h)
-    step: float             # advance of the pushing front per step (L_step)
+    initial_h: float  # approach of the first push before its nominal contact (L_initial_h)
+    h: float  # separation of the two paths (L_h)
+    step: float  # advance of the pushing front per step (L_step)
 
     @classmethod
-    def book(cls) -> "NanoHandParams":
+    def book(cls) -> NanoHandParams:
         """Table 7.6 (book 7.3.1): 156, 156, 120, 120, 78, 120, 36 nm."""
         return cls(156 * NM, 156 * NM, 120 * NM, 120 * NM, 78 * NM, 120 * NM, 36 * NM)
 
     def validate(self) -> None:
-        for name in ("left_push", "right_push", "left_back", "right_back", "initial_h", "h", "step"):
+        for name in (
+            "left_push",
+            "right_push",
+            "left_back",
+            "right_back",
+            "initial_h",
+            "h",
+            "step",
+        ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"NanoHandParams.{name}={value}: must be finite and > 0 m")
         for side in ("left", "right"):
             push, back = getattr(self, f"{side}_push"), getattr(self, f"{side}_back")
             if abs(push - back - self.step) > 1e-12:
-                raise ValueError(f"NanoHandParams.{side}_push - {side}_back = {push - back:.4e} m: must equal "
-                                 f"step = {self.step:.4e} m (each step advances the front by L_step)")
+                raise ValueError(
+                    f"NanoHandParams.{side}_push - {side}_back = {push - back:.4e} m: must equal "
+                    f"step = {self.step:.4e} m (each step advances the front by L_step)"
+                )
             if push <= self.initial_h:
-                raise ValueError(f"NanoHandParams.{side}_push={push:.4e} m: must exceed initial_h="
-                                 f"{self.initial_h:.4e} m, or the first push never touches the particle")
+                raise ValueError(
+                    f"NanoHandParams.{side}_push={push:.4e} m: must exceed initial_h="
+                    f"{self.initial_h:.4e} m, or the first push never touches the particle"
+                )
 
     def push(self, k: int) -> float:
         return self.left_push if k % 2 == 0 else self.right_push
@@ -255,6 +277,7 @@ class NanoHandParams:
 # --------------------------------------------------------------------------------------------
 # Validation helpers
 # --------------------------------------------------------------------------------------------
+
 
 def _point(name: str, value) -> np.ndarray:
     try:
@@ -280,15 +303,25 @@ def _positive(name: str, value: float, upper: float | None = None, unit: str = "
 def _particle(obj, radius: float | None, sigma: float | None = None) -> ParticleEstimate:
     """Accept a ParticleEstimate, a Sphere / Landmark (x, y, radius) or a point (x, y)."""
     if isinstance(obj, ParticleEstimate):
-        est = ParticleEstimate(obj.x, obj.y, obj.radius if radius is None else radius,
-                               obj.sigma if sigma is None else sigma)
+        est = ParticleEstimate(
+            obj.x,
+            obj.y,
+            obj.radius if radius is None else radius,
+            obj.sigma if sigma is None else sigma,
+        )
     elif hasattr(obj, "x") and hasattr(obj, "y"):
         r = radius if radius is not None else getattr(obj, "radius", DEFAULT_PARTICLE_RADIUS)
-        est = ParticleEstimate(float(obj.x), float(obj.y), float(r), DEFAULT_SIGMA if sigma is None else sigma)
+        est = ParticleEstimate(
+            float(obj.x), float(obj.y), float(r), DEFAULT_SIGMA if sigma is None else sigma
+        )
     else:
         p = _point("particle", obj)
-        est = ParticleEstimate(p[0], p[1], DEFAULT_PARTICLE_RADIUS if radius is None else radius,
-                               DEFAULT_SIGMA if sigma is None else sigma)
+        est = ParticleEstimate(
+            p[0],
+            p[1],
+            DEFAULT_PARTICLE_RADIUS if radius is None else radius,
+            DEFAULT_SIGMA if sigma is None else sigma,
+        )
     _point("particle", (est.x, est.y))
     _positive("particle.radius", est.radius)
     if not (math.isfinite(est.sigma) and est.sigma >= 0):
@@ -302,47 +335,69 @@ def _axis(start: np.ndarray, goal: np.ndarray, max_distance: float) -> tuple[np.
     if dist == 0.0:
         raise ValueError("goal: the same point as the particle (distance 0 m): nothing to push")
     if dist > max_distance:
-        raise ValueError(f"goal: {dist:.4e} m from the particle, beyond max_distance={max_distance:.4e} m")
+        raise ValueError(
+            f"goal: {dist:.4e} m from the particle, beyond max_distance={max_distance:.4e} m"
+        )
     return d / dist, dist
 
 
 def check_plan_limits(plan: PushPlan, limits: ScannerLimits, margin: float = 0.0) -> None:
     """Raise ValueError naming the stroke and the limit if any stroke point leaves
     [margin, range - margin] of the scanner (or the goal does)."""
-    for name, p in [("goal", plan.goal), *[(f"strokes[{i}].{end}", getattr(s, end))
-                                           for i, s in enumerate(plan.strokes) for end in ("start", "end")]]:
+    for name, p in [
+        ("goal", plan.goal),
+        *[
+            (f"strokes[{i}].{end}", getattr(s, end))
+            for i, s in enumerate(plan.strokes)
+            for end in ("start", "end")
+        ],
+    ]:
         x, y = float(p[0]), float(p[1])
         if not (math.isfinite(x) and math.isfinite(y)):
             raise ValueError(f"{name}=({x}, {y}): must be finite")
         if not margin <= x <= limits.range_x - margin:
-            raise ValueError(f"{name}.x={x:.4e} m: outside the scanner range [{margin:.4e}, "
-                             f"{limits.range_x - margin:.4e}] m")
+            raise ValueError(
+                f"{name}.x={x:.4e} m: outside the scanner range [{margin:.4e}, "
+                f"{limits.range_x - margin:.4e}] m"
+            )
         if not margin <= y <= limits.range_y - margin:
-            raise ValueError(f"{name}.y={y:.4e} m: outside the scanner range [{margin:.4e}, "
-                             f"{limits.range_y - margin:.4e}] m")
+            raise ValueError(
+                f"{name}.y={y:.4e} m: outside the scanner range [{margin:.4e}, "
+                f"{limits.range_y - margin:.4e}] m"
+            )
 
 
 # --------------------------------------------------------------------------------------------
 # The pushing model as the planner's predictor
 # --------------------------------------------------------------------------------------------
 
+
 def _contact_params(contact_params, tip_radius: float):
     from afm_core.sim.pushing import ContactParams
+
     if contact_params is None:
         return ContactParams(tip_radius=tip_radius)
     return contact_params
 
 
-def simulate_strokes(sample, strokes: Iterable[Stroke], contact_params, track_id: int | None = None) -> list:
+def simulate_strokes(
+    sample, strokes: Iterable[Stroke], contact_params, track_id: int | None = None
+) -> list:
     """Apply the contact strokes to a sim Sample in place with afm_core.sim.pushing (lifted
     strokes move nothing). Returns the tracked object's (x, y[, angle]) after each stroke."""
     from afm_core.sim.pushing import push_along_path
+
     track = []
     objs = {o.id: o for o in sample.movable}
     for stroke in strokes:
         if stroke.contact:
-            push_along_path(sample, np.array([stroke.start[0], stroke.end[0]]),
-                            np.array([stroke.start[1], stroke.end[1]]), 1e-3, contact_params)
+            push_along_path(
+                sample,
+                np.array([stroke.start[0], stroke.end[0]]),
+                np.array([stroke.start[1], stroke.end[1]]),
+                1e-3,
+                contact_params,
+            )
         if track_id is not None:
             o = objs[track_id]
             track.append((o.x, o.y, o.angle) if hasattr(o, "angle") else (o.x, o.y))
@@ -353,9 +408,12 @@ def predict_particle(plan: PushPlan, contact_params=None, start=None) -> list[np
     """The particle's centre after each stroke of `plan` in the pushing model, starting at
     `start` (default: the plan's estimate)."""
     from afm_core.sim.sample import Sample, Sphere
+
     c0 = plan.particle if start is None else _point("start", start)
     sample = Sample(spheres=[Sphere(0, float(c0[0]), float(c0[1]), plan.particle_radius)])
-    track = simulate_strokes(sample, plan.strokes, _contact_params(contact_params, plan.tip_radius), 0)
+    track = simulate_strokes(
+        sample, plan.strokes, _contact_params(contact_params, plan.tip_radius), 0
+    )
     return [np.array(p) for p in track]
 
 
@@ -363,10 +421,21 @@ def predict_particle(plan: PushPlan, contact_params=None, start=None) -> list[np
 # Centre pushing (baseline)
 # --------------------------------------------------------------------------------------------
 
-def centre_push_plan(particle, goal, *, tip_radius: float = DEFAULT_TIP_RADIUS, particle_radius: float | None = None,
-                     push: float = 156 * NM, back: float = 120 * NM, approach: float = 78 * NM,
-                     steps: int | None = None, single: bool = False, limits: ScannerLimits | None = None,
-                     max_distance: float = DEFAULT_MAX_DISTANCE) -> PushPlan:
+
+def centre_push_plan(
+    particle,
+    goal,
+    *,
+    tip_radius: float = DEFAULT_TIP_RADIUS,
+    particle_radius: float | None = None,
+    push: float = 156 * NM,
+    back: float = 120 * NM,
+    approach: float = 78 * NM,
+    steps: int | None = None,
+    single: bool = False,
+    limits: ScannerLimits | None = None,
+    max_distance: float = DEFAULT_MAX_DISTANCE,
+) -> PushPlan:
     """Straight pushes through the estimated centre towards the goal.
 
     single=True: one stroke from `approach` before contact to where the tip touches a particle
@@ -382,7 +451,9 @@ def centre_push_plan(particle, goal, *, tip_radius: float = DEFAULT_TIP_RADIUS, 
     for name, value in (("push", push), ("back", back), ("approach", approach)):
         _positive(name, value)
     if back >= push:
-        raise ValueError(f"back={back:.4e} m: must be < push={push:.4e} m (each step must advance)")
+        raise ValueError(
+            f"back={back:.4e} m: must be < push={push:.4e} m (each step must advance)"
+        )
     D = est.radius + tip_radius
     s0 = -(D + approach)
     final = dist - D
@@ -401,13 +472,25 @@ def centre_push_plan(particle, goal, *, tip_radius: float = DEFAULT_TIP_RADIUS, 
             ends.append((start, start + push))
         start_last = ends[-1][0]
         if final <= start_last + 1e-12:
-            raise ValueError(f"steps={steps}: too many for a {dist:.4e} m push (the last stroke would start "
-                             f"beyond where it has to end)")
+            raise ValueError(
+                f"steps={steps}: too many for a {dist:.4e} m push (the last stroke would start "
+                f"beyond where it has to end)"
+            )
         ends[-1] = (start_last, final)
     for a, b in ends:
         strokes.append(Stroke(c0 + a * u, c0 + b * u, True, "centre"))
-    plan = PushPlan("centre", strokes, c0, g, u, est.radius, tip_radius, path_offsets=(0.0, 0.0),
-                    predicted=g.copy(), params={"push": push, "back": back, "approach": approach, "single": single})
+    plan = PushPlan(
+        "centre",
+        strokes,
+        c0,
+        g,
+        u,
+        est.radius,
+        tip_radius,
+        path_offsets=(0.0, 0.0),
+        predicted=g.copy(),
+        params={"push": push, "back": back, "approach": approach, "single": single},
+    )
     if limits is not None:
         check_plan_limits(plan, limits)
     return plan
@@ -417,12 +500,22 @@ def centre_push_plan(particle, goal, *, tip_radius: float = DEFAULT_TIP_RADIUS, 
 # The virtual nano-hand zigzag
 # --------------------------------------------------------------------------------------------
 
+
 def _lead(D: float, e: float) -> float:
     return math.sqrt(max(D * D - e * e, 0.0))
 
 
-def _zigzag_strokes(c0, u, n_left, params: NanoHandParams, D: float, steps: int, trim: float,
-                    last_extra: float, first_left: bool) -> tuple[list[Stroke], tuple[float, float]]:
+def _zigzag_strokes(
+    c0,
+    u,
+    n_left,
+    params: NanoHandParams,
+    D: float,
+    steps: int,
+    trim: float,
+    last_extra: float,
+    first_left: bool,
+) -> tuple[list[Stroke], tuple[float, float]]:
     """The zigzag's strokes; the last one is `last_extra` longer and moved `trim` sideways."""
     a = 0.5 * params.h
     s = -(_lead(D, a) + params.initial_h)
@@ -431,8 +524,14 @@ def _zigzag_strokes(c0, u, n_left, params: NanoHandParams, D: float, steps: int,
         left = (k % 2 == 0) == first_left
         lat = (a if left else -a) + (trim if k == steps - 1 else 0.0)
         push = params.push(k) + (last_extra if k == steps - 1 else 0.0)
-        strokes.append(Stroke(c0 + s * u + lat * n_left, c0 + (s + push) * u + lat * n_left, True,
-                              "left" if left else "right"))
+        strokes.append(
+            Stroke(
+                c0 + s * u + lat * n_left,
+                c0 + (s + push) * u + lat * n_left,
+                True,
+                "left" if left else "right",
+            )
+        )
         s = s + params.push(k) - params.back(k)
     return strokes, (a, -a)
 
@@ -443,10 +542,21 @@ def nominal_reach(params: NanoHandParams, D: float, steps: int) -> float:
     return params.left_push - params.initial_h + (steps - 1) * params.step
 
 
-def nano_hand_plan(particle, goal, params: NanoHandParams | None = None, *, tip_radius: float = DEFAULT_TIP_RADIUS,
-                   particle_radius: float | None = None, steps: int | None = None, aim: bool = True,
-                   first_side: str = "left", contact_params=None, limits: ScannerLimits | None = None,
-                   max_distance: float = DEFAULT_MAX_DISTANCE, aim_iterations: int = 6) -> PushPlan:
+def nano_hand_plan(
+    particle,
+    goal,
+    params: NanoHandParams | None = None,
+    *,
+    tip_radius: float = DEFAULT_TIP_RADIUS,
+    particle_radius: float | None = None,
+    steps: int | None = None,
+    aim: bool = True,
+    first_side: str = "left",
+    contact_params=None,
+    limits: ScannerLimits | None = None,
+    max_distance: float = DEFAULT_MAX_DISTANCE,
+    aim_iterations: int = 6,
+) -> PushPlan:
     """The virtual nano-hand zigzag from the estimated centre towards the goal (module docstring).
 
     params: NanoHandParams (default: Table 7.6, NanoHandParams.book()). steps: number of pushes
@@ -468,8 +578,10 @@ def nano_hand_plan(particle, goal, params: NanoHandParams | None = None, *, tip_
         raise ValueError(f"first_side={first_side!r}: must be 'left' or 'right'")
     D = est.radius + tip_radius
     if 0.5 * params.h >= D:
-        raise ValueError(f"params.h/2={0.5 * params.h:.4e} m: must be < R_P + R_T = {D:.4e} m, or the paths "
-                         f"never touch the particle")
+        raise ValueError(
+            f"params.h/2={0.5 * params.h:.4e} m: must be < R_P + R_T = {D:.4e} m, or the paths "
+            f"never touch the particle"
+        )
     if steps is None:
         # the count whose nominal reach is nearest, and its neighbours: aim each, keep the best
         # (how well the end can be put on the goal depends on how much contact the last push has)
@@ -477,16 +589,29 @@ def nano_hand_plan(particle, goal, params: NanoHandParams | None = None, *, tip_
         best = None
         for n in sorted({max(1, nominal - 1), nominal, nominal + 1}):
             try:
-                cand = nano_hand_plan(est, g, params, tip_radius=tip_radius, steps=n, aim=aim, first_side=first_side,
-                                      contact_params=contact_params, max_distance=max_distance,
-                                      aim_iterations=aim_iterations)
+                cand = nano_hand_plan(
+                    est,
+                    g,
+                    params,
+                    tip_radius=tip_radius,
+                    steps=n,
+                    aim=aim,
+                    first_side=first_side,
+                    contact_params=contact_params,
+                    max_distance=max_distance,
+                    aim_iterations=aim_iterations,
+                )
             except ValueError:
                 continue
-            if best is None or (np.hypot(*cand.extra.get("predicted_error", (0, 0)))
-                                < np.hypot(*best.extra.get("predicted_error", (0, 0))) - 1e-12):
+            if best is None or (
+                np.hypot(*cand.extra.get("predicted_error", (0, 0)))
+                < np.hypot(*best.extra.get("predicted_error", (0, 0))) - 1e-12
+            ):
                 best = cand
         if best is None:
-            raise ValueError(f"goal: {dist:.4e} m: no step count around {nominal} gives a push plan with these params")
+            raise ValueError(
+                f"goal: {dist:.4e} m: no step count around {nominal} gives a push plan with these params"
+            )
         if limits is not None:
             check_plan_limits(best, limits)
         return best
@@ -495,27 +620,45 @@ def nano_hand_plan(particle, goal, params: NanoHandParams | None = None, *, tip_
     n_left = np.array([-u[1], u[0]])
     first_left = first_side == "left"
     a = 0.5 * params.h
-    min_last = params.initial_h + 0.25 * params.step       # the last push must still reach the particle
+    min_last = params.initial_h + 0.25 * params.step  # the last push must still reach the particle
     cp = _contact_params(contact_params, tip_radius)
 
     def build(x: np.ndarray) -> PushPlan:
         extra, trim = float(x[0]), float(x[1])
-        strokes, offsets = _zigzag_strokes(c0, u, n_left, params, D, steps, trim, extra, first_left)
-        plan = PushPlan("nano_hand", strokes, c0, g, u, est.radius, tip_radius, path_offsets=offsets,
-                        params=params, extra={"steps": steps, "last_push_extra": extra, "last_path_trim": trim,
-                                              "first_side": first_side})
+        strokes, offsets = _zigzag_strokes(
+            c0, u, n_left, params, D, steps, trim, extra, first_left
+        )
+        plan = PushPlan(
+            "nano_hand",
+            strokes,
+            c0,
+            g,
+            u,
+            est.radius,
+            tip_radius,
+            path_offsets=offsets,
+            params=params,
+            extra={
+                "steps": steps,
+                "last_push_extra": extra,
+                "last_path_trim": trim,
+                "first_side": first_side,
+            },
+        )
         track = predict_particle(plan, cp)
         plan.predicted_track, plan.predicted = track, track[-1]
         err = plan.predicted - g
-        plan.extra["predicted_error"] = (float(err @ u), float(err @ n_left))    # (along, lateral)
+        plan.extra["predicted_error"] = (float(err @ u), float(err @ n_left))  # (along, lateral)
         return plan
 
     x = np.array([dist - nominal_reach(params, D, steps) if aim else 0.0, 0.0])
     lo = np.array([min_last - params.push(steps - 1), -0.5 * a])
     hi = np.array([x[0] + 2 * params.step, 0.5 * a])
     if aim and x[0] < lo[0]:
-        raise ValueError(f"goal: {dist:.4e} m is too short for steps={steps} with these params (the last push "
-                         f"would be {params.push(steps - 1) + x[0]:.4e} m, below {min_last:.4e} m)")
+        raise ValueError(
+            f"goal: {dist:.4e} m is too short for steps={steps} with these params (the last push "
+            f"would be {params.push(steps - 1) + x[0]:.4e} m, below {min_last:.4e} m)"
+        )
     plan = best = build(x)
     # Aiming: damped Newton steps on (last push's extra length, last path's sideways trim) with a
     # finite-difference Jacobian, bounded (the trim to +-a/2, so the last path stays on its side of
@@ -559,9 +702,15 @@ def _slide(D: float, e: float, travel: float) -> float:
     return D * (math.sin(t1) - math.sin(t0))
 
 
-def choose_nano_hand_params(particle_sigma: float, particle_radius: float = DEFAULT_PARTICLE_RADIUS,
-                            tip_radius: float = DEFAULT_TIP_RADIUS, *, tip_sigma: float = 0.0,
-                            confidence: float = 3.0, margin: float = 10 * NM) -> NanoHandParams:
+def choose_nano_hand_params(
+    particle_sigma: float,
+    particle_radius: float = DEFAULT_PARTICLE_RADIUS,
+    tip_radius: float = DEFAULT_TIP_RADIUS,
+    *,
+    tip_sigma: float = 0.0,
+    confidence: float = 3.0,
+    margin: float = 10 * NM,
+) -> NanoHandParams:
     """The zigzag geometry for the current uncertainties (rules in the module docstring):
     sigma = hypot(particle_sigma, tip_sigma) is the centre's uncertainty relative to the tip.
     Gives Table 7.6 (within 5 nm) for sigma 10 nm, R_P 100 nm, R_T 50 nm."""
@@ -579,9 +728,11 @@ def choose_nano_hand_params(particle_sigma: float, particle_radius: float = DEFA
     ks = confidence * sigma
     lo, hi = ks + margin, D - ks - margin
     if lo > hi:
-        raise ValueError(f"particle_sigma={particle_sigma:.4e} m (relative sigma {sigma:.4e} m): the uncertainty "
-                         f"region (+-{ks:.4e} m) is too wide for R_P + R_T = {D:.4e} m; the limit is "
-                         f"sigma <= {(D / 2 - margin) / confidence:.4e} m: localise the tip/particle better first")
+        raise ValueError(
+            f"particle_sigma={particle_sigma:.4e} m (relative sigma {sigma:.4e} m): the uncertainty "
+            f"region (+-{ks:.4e} m) is too wide for R_P + R_T = {D:.4e} m; the limit is "
+            f"sigma <= {(D / 2 - margin) / confidence:.4e} m: localise the tip/particle better first"
+        )
     a = min(max(0.4 * D, lo), hi)
     # L_step: slide at offset a <= a / 4 (closed form inverted)
     t0 = math.asin(a / D)
@@ -598,15 +749,28 @@ def choose_nano_hand_params(particle_sigma: float, particle_radius: float = DEFA
 # Rod-like hand
 # --------------------------------------------------------------------------------------------
 
+
 def _wrap_half_turn(angle: float) -> float:
     """Angle difference folded into (-pi/2, pi/2] (a rod's axis has no head)."""
     return (angle + 0.5 * math.pi) % math.pi - 0.5 * math.pi
 
 
-def rod_hand_plan(rod, goal_pose, *, tip_radius: float = DEFAULT_TIP_RADIUS, step: float = 40 * NM,
-                  grip: float = 0.8, clearance: float = 60 * NM, tolerance: float = 5 * NM,
-                  max_strokes: int = 200, axial: bool = False, electrodes: Sequence = (), contact_params=None,
-                  limits: ScannerLimits | None = None, max_distance: float = DEFAULT_MAX_DISTANCE) -> PushPlan:
+def rod_hand_plan(
+    rod,
+    goal_pose,
+    *,
+    tip_radius: float = DEFAULT_TIP_RADIUS,
+    step: float = 40 * NM,
+    grip: float = 0.8,
+    clearance: float = 60 * NM,
+    tolerance: float = 5 * NM,
+    max_strokes: int = 200,
+    axial: bool = False,
+    electrodes: Sequence = (),
+    contact_params=None,
+    limits: ScannerLimits | None = None,
+    max_distance: float = DEFAULT_MAX_DISTANCE,
+) -> PushPlan:
     """A rod-like virtual nano-hand: translate and rotate a rod/tube to goal_pose (x, y, angle).
 
     rod: anything with x, y, angle, length, radius (a sim Rod or a tube Landmark converted).
@@ -618,6 +782,7 @@ def rod_hand_plan(rod, goal_pose, *, tip_radius: float = DEFAULT_TIP_RADIUS, ste
     is as unstable as centre pushing a sphere (a tip a few nm off the axis slides off the cap and
     turns the tube), so it is off by default; plan goals across the axis plus a rotation."""
     from afm_core.sim.sample import Electrode, Rod, Sample
+
     for name in ("x", "y", "angle", "length", "radius"):
         if not hasattr(rod, name):
             raise ValueError(f"rod: needs x, y, angle, length, radius (missing {name})")
@@ -641,11 +806,15 @@ def rod_hand_plan(rod, goal_pose, *, tip_radius: float = DEFAULT_TIP_RADIUS, ste
     dist = math.hypot(gx - rx, gy - ry)
     dang = _wrap_half_turn(ga - ang)
     if dist > max_distance:
-        raise ValueError(f"goal_pose: {dist:.4e} m from the rod, beyond max_distance={max_distance:.4e} m")
+        raise ValueError(
+            f"goal_pose: {dist:.4e} m from the rod, beyond max_distance={max_distance:.4e} m"
+        )
     if dist < tolerance and abs(dang) * 0.5 * length * grip < tolerance:
         raise ValueError("goal_pose: the rod is already there (within tolerance): nothing to push")
     ga = ang + dang
-    walls = [Electrode(1000 + i, e.x0, e.y0, e.x1, e.y1, e.thickness) for i, e in enumerate(electrodes)]
+    walls = [
+        Electrode(1000 + i, e.x0, e.y0, e.x1, e.y1, e.thickness) for i, e in enumerate(electrodes)
+    ]
     model_rod = Rod(0, rx, ry, ang, length, radius, getattr(rod, "kind", "rod"))
     sample = Sample(rods=[model_rod], electrodes=walls)
     cp = _contact_params(contact_params, tip_radius)
@@ -674,7 +843,9 @@ def rod_hand_plan(rod, goal_pose, *, tip_radius: float = DEFAULT_TIP_RADIUS, ste
             break
         # alternate the two points when both are off (the rod-like hand), never the same twice
         # in a row unless it is the only one left
-        normal_opts = sorted([o for o in options if o[1] != "axial" and o[0] >= tolerance], key=lambda o: -o[0])
+        normal_opts = sorted(
+            [o for o in options if o[1] != "axial" and o[0] >= tolerance], key=lambda o: -o[0]
+        )
         if worst[1] != "axial" and len(normal_opts) == 2 and normal_opts[0][1] == last_point:
             worst = normal_opts[1]
         _, label, sp, r = worst
@@ -700,12 +871,26 @@ def rod_hand_plan(rod, goal_pose, *, tip_radius: float = DEFAULT_TIP_RADIUS, ste
         raise ValueError("goal_pose: nothing to push within tolerance")
     c0 = np.array([rx, ry])
     g = np.array([gx, gy])
-    axis = (g - c0) / np.hypot(*(g - c0)) if np.hypot(*(g - c0)) > 0 else np.array([math.cos(ang), math.sin(ang)])
-    plan = PushPlan("rod", strokes, c0, g, axis, radius, tip_radius, predicted=np.array(track[-1][:2]),
-                    predicted_track=track, params={"step": step, "grip": grip, "clearance": clearance,
-                                                   "tolerance": tolerance},
-                    goal_angle=ga, predicted_angle=track[-1][2],
-                    extra={"start_angle": ang, "length": length, "converged": len(strokes) < max_strokes})
+    axis = (
+        (g - c0) / np.hypot(*(g - c0))
+        if np.hypot(*(g - c0)) > 0
+        else np.array([math.cos(ang), math.sin(ang)])
+    )
+    plan = PushPlan(
+        "rod",
+        strokes,
+        c0,
+        g,
+        axis,
+        radius,
+        tip_radius,
+        predicted=np.array(track[-1][:2]),
+        predicted_track=track,
+        params={"step": step, "grip": grip, "clearance": clearance, "tolerance": tolerance},
+        goal_angle=ga,
+        predicted_angle=track[-1][2],
+        extra={"start_angle": ang, "length": length, "converged": len(strokes) < max_strokes},
+    )
     if limits is not None:
         check_plan_limits(plan, limits)
     return plan
@@ -715,10 +900,21 @@ def rod_hand_plan(rod, goal_pose, *, tip_radius: float = DEFAULT_TIP_RADIUS, ste
 # Arc-shaped hand: gathering particles onto a ring
 # --------------------------------------------------------------------------------------------
 
-def arc_hand_plan(particles: Sequence, centre, radius: float, *, slots: int | None = None, phase: float = 0.0,
-                  params: NanoHandParams | None = None, tip_radius: float = DEFAULT_TIP_RADIUS,
-                  tolerance: float = 2 * NM, contact_params=None, limits: ScannerLimits | None = None,
-                  max_distance: float = DEFAULT_MAX_DISTANCE) -> PushPlan:
+
+def arc_hand_plan(
+    particles: Sequence,
+    centre,
+    radius: float,
+    *,
+    slots: int | None = None,
+    phase: float = 0.0,
+    params: NanoHandParams | None = None,
+    tip_radius: float = DEFAULT_TIP_RADIUS,
+    tolerance: float = 2 * NM,
+    contact_params=None,
+    limits: ScannerLimits | None = None,
+    max_distance: float = DEFAULT_MAX_DISTANCE,
+) -> PushPlan:
     """Gather particles onto a ring of `radius` about `centre`: `slots` equally spaced places
     (default: one per particle, so six particles make the hexagon of Fig. 7.26f) starting at
     angle `phase`; each particle is assigned a slot (minimum total distance) and carried there
@@ -729,6 +925,7 @@ def arc_hand_plan(particles: Sequence, centre, radius: float, *, slots: int | No
     from scipy.optimize import linear_sum_assignment
 
     from afm_core.sim.sample import Sample, Sphere
+
     ests = [_particle(p, None) for p in particles]
     if not ests:
         raise ValueError("particles: empty; nothing to gather")
@@ -736,14 +933,18 @@ def arc_hand_plan(particles: Sequence, centre, radius: float, *, slots: int | No
     _positive("radius", radius)
     n_slots = len(ests) if slots is None else slots
     if not (isinstance(n_slots, (int, np.integer)) and n_slots >= len(ests)):
-        raise ValueError(f"slots={slots}: must be an integer >= the number of particles ({len(ests)})")
+        raise ValueError(
+            f"slots={slots}: must be an integer >= the number of particles ({len(ests)})"
+        )
     if not math.isfinite(phase):
         raise ValueError(f"phase={phase}: must be finite")
     chord = 2 * radius * math.sin(math.pi / n_slots) if n_slots > 1 else math.inf
     widest = 2 * max(e.radius for e in ests)
     if chord < widest:
-        raise ValueError(f"radius={radius:.4e} m: {n_slots} slots are {chord:.4e} m apart, closer than a particle's "
-                         f"diameter {widest:.4e} m")
+        raise ValueError(
+            f"radius={radius:.4e} m: {n_slots} slots are {chord:.4e} m apart, closer than a particle's "
+            f"diameter {widest:.4e} m"
+        )
     angles = phase + 2 * math.pi * np.arange(n_slots) / n_slots
     slot_xy = c + radius * np.stack([np.cos(angles), np.sin(angles)], axis=1)
     cost = np.array([[np.hypot(*(e.xy - s)) for s in slot_xy] for e in ests])
@@ -756,20 +957,42 @@ def arc_hand_plan(particles: Sequence, centre, radius: float, *, slots: int | No
         e = ests[i]
         if np.hypot(*(e.xy - assignment[i])) <= tolerance:
             continue
-        sub = nano_hand_plan(e, assignment[i], params, tip_radius=tip_radius, contact_params=contact_params,
-                             max_distance=max_distance)
+        sub = nano_hand_plan(
+            e,
+            assignment[i],
+            params,
+            tip_radius=tip_radius,
+            contact_params=contact_params,
+            max_distance=max_distance,
+        )
         sub_plans[i] = sub
         strokes.extend(sub.strokes)
     if not strokes:
-        raise ValueError("particles: all already on their slots (within tolerance); nothing to push")
+        raise ValueError(
+            "particles: all already on their slots (within tolerance); nothing to push"
+        )
     sample = Sample(spheres=[Sphere(i, e.x, e.y, e.radius) for i, e in enumerate(ests)])
     simulate_strokes(sample, strokes, _contact_params(contact_params, tip_radius))
     finals = np.array([[s.x, s.y] for s in sample.spheres])
-    plan = PushPlan("arc", strokes, c.copy(), c.copy(), np.array([1.0, 0.0]), max(e.radius for e in ests), tip_radius,
-                    predicted=finals.mean(axis=0), predicted_track=[finals],
-                    params=params if params is not None else NanoHandParams.book(),
-                    extra={"assignment": assignment, "radius": radius, "slots": slot_xy, "order": order,
-                           "sub_plans": sub_plans})
+    plan = PushPlan(
+        "arc",
+        strokes,
+        c.copy(),
+        c.copy(),
+        np.array([1.0, 0.0]),
+        max(e.radius for e in ests),
+        tip_radius,
+        predicted=finals.mean(axis=0),
+        predicted_track=[finals],
+        params=params if params is not None else NanoHandParams.book(),
+        extra={
+            "assignment": assignment,
+            "radius": radius,
+            "slots": slot_xy,
+            "order": order,
+            "sub_plans": sub_plans,
+        },
+    )
     if limits is not None:
         check_plan_limits(plan, limits)
     return plan
@@ -790,6 +1013,9 @@ def path_blocker(start, goal, radius: float, tip_radius: float, others):
         rel = np.array([other.x, other.y]) - start
         along = float(rel @ u)
         across = abs(float(rel[0] * u[1] - rel[1] * u[0]))
-        if -(radius + 2 * tip_radius) < along < length + radius + other.radius and across < radius + other.radius:
+        if (
+            -(radius + 2 * tip_radius) < along < length + radius + other.radius
+            and across < radius + other.radius
+        ):
             hits.append((along, other))
     return min(hits, key=lambda h: h[0])[1] if hits else None

@@ -26,11 +26,12 @@ verify_push(instrument, request, goal, ...):
 
 Without control points the offset is 0 and `drift_corrected` is False.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Optional, Sequence
 
 import numpy as np
 
@@ -40,10 +41,10 @@ from afm_core.instrument import Instrument, RasterScanData, ScanRequest
 
 @dataclass
 class ControlPoint:
-    kind: str                       # "pit" | "landmark"
-    before: np.ndarray              # (2,) reference frame
-    after: np.ndarray               # (2,) after-image frame
-    used: bool = True               # inlier of the offset estimate
+    kind: str  # "pit" | "landmark"
+    before: np.ndarray  # (2,) reference frame
+    after: np.ndarray  # (2,) after-image frame
+    used: bool = True  # inlier of the offset estimate
 
     @property
     def displacement(self) -> np.ndarray:
@@ -52,17 +53,17 @@ class ControlPoint:
 
 @dataclass
 class VerificationResult:
-    achieved: np.ndarray            # (2,) particle centre, reference frame
-    goal: np.ndarray                # (2,)
-    error_vector: np.ndarray        # achieved - goal
-    error: float                    # |error_vector|, m
-    offset: np.ndarray              # (2,) after-image frame minus reference frame (drift etc.)
+    achieved: np.ndarray  # (2,) particle centre, reference frame
+    goal: np.ndarray  # (2,)
+    error_vector: np.ndarray  # achieved - goal
+    error: float  # |error_vector|, m
+    offset: np.ndarray  # (2,) after-image frame minus reference frame (drift etc.)
     control_points: list[ControlPoint] = field(default_factory=list)
     drift_corrected: bool = False
-    raw_position: Optional[np.ndarray] = None       # particle centre in the after image's frame
-    particle: Optional[Landmark] = None             # the after-image landmark
-    offset_spread: float = 0.0      # m, rms of the used control points' displacements about the offset
-    after: Optional[RasterScanData] = None
+    raw_position: np.ndarray | None = None  # particle centre in the after image's frame
+    particle: Landmark | None = None  # the after-image landmark
+    offset_spread: float = 0.0  # m, rms of the used control points' displacements about the offset
+    after: RasterScanData | None = None
 
     def along_lateral(self, start, axis) -> tuple[float, float]:
         """Achieved displacement from `start` along `axis` and sideways (+ left)."""
@@ -72,8 +73,12 @@ class VerificationResult:
 
 
 def _image_args(scan: RasterScanData) -> dict:
-    return dict(pixel_size_x=scan.pixel_size_x, pixel_size_y=scan.pixel_size_y,
-                origin_x=scan.origin_x, origin_y=scan.origin_y)
+    return dict(
+        pixel_size_x=scan.pixel_size_x,
+        pixel_size_y=scan.pixel_size_y,
+        origin_x=scan.origin_x,
+        origin_y=scan.origin_y,
+    )
 
 
 def find_pits(scan: RasterScanData, pit_depth: float = 3e-9) -> list[Landmark]:
@@ -81,7 +86,9 @@ def find_pits(scan: RasterScanData, pit_depth: float = 3e-9) -> list[Landmark]:
     the median clipped off) at least `pit_depth` deep (their `height` is the apparent depth)."""
     height = np.asarray(scan.height, float)
     if not np.all(np.isfinite(height)):
-        raise ValueError("scan.height: has NaN pixels (an incomplete scan); rescan before verifying")
+        raise ValueError(
+            "scan.height: has NaN pixels (an incomplete scan); rescan before verifying"
+        )
     # particles would be deep holes of the negated map and upset its substrate fit: clip them
     # to just above the substrate first
     clipped = np.minimum(height, float(np.median(height)) + 0.5 * pit_depth)
@@ -91,7 +98,9 @@ def find_pits(scan: RasterScanData, pit_depth: float = 3e-9) -> list[Landmark]:
 def find_particles(scan: RasterScanData, min_height: float = 10e-9) -> list[Landmark]:
     height = np.asarray(scan.height, float)
     if not np.all(np.isfinite(height)):
-        raise ValueError("scan.height: has NaN pixels (an incomplete scan); rescan before verifying")
+        raise ValueError(
+            "scan.height: has NaN pixels (an incomplete scan); rescan before verifying"
+        )
     return extract_landmarks(height, min_height=min_height, **_image_args(scan))
 
 
@@ -114,12 +123,25 @@ def _point(name, value) -> np.ndarray:
     return p
 
 
-def verify_push(instrument: Instrument, request: ScanRequest, goal, *, expected=None, start=None,
-                before: RasterScanData | None = None, reference_points: Sequence | None = None,
-                use_landmarks: bool = True, particle_radius: float = 100e-9, pit_depth: float = 3e-9,
-                min_height: float = 10e-9, match_radius: float = 60e-9, inlier_radius: float = 10e-9,
-                particle_match_radius: float | None = None, offset_guess=None,
-                after: RasterScanData | None = None) -> VerificationResult:
+def verify_push(
+    instrument: Instrument,
+    request: ScanRequest,
+    goal,
+    *,
+    expected=None,
+    start=None,
+    before: RasterScanData | None = None,
+    reference_points: Sequence | None = None,
+    use_landmarks: bool = True,
+    particle_radius: float = 100e-9,
+    pit_depth: float = 3e-9,
+    min_height: float = 10e-9,
+    match_radius: float = 60e-9,
+    inlier_radius: float = 10e-9,
+    particle_match_radius: float | None = None,
+    offset_guess=None,
+    after: RasterScanData | None = None,
+) -> VerificationResult:
     """Rescan and verify (module docstring). start: the particle's position before the push in
     the reference frame (leaves the pushed particle out of the landmark control points; default:
     none left out except the one matched as the particle). after: an already taken after-scan
@@ -128,10 +150,16 @@ def verify_push(instrument: Instrument, request: ScanRequest, goal, *, expected=
     exp = g if expected is None else _point("expected", expected)
     if not (math.isfinite(particle_radius) and particle_radius > 0):
         raise ValueError(f"particle_radius={particle_radius}: must be finite and > 0 m")
-    for name, value in (("match_radius", match_radius), ("inlier_radius", inlier_radius), ("pit_depth", pit_depth)):
+    for name, value in (
+        ("match_radius", match_radius),
+        ("inlier_radius", inlier_radius),
+        ("pit_depth", pit_depth),
+    ):
         if not (math.isfinite(value) and value > 0):
             raise ValueError(f"{name}={value}: must be finite and > 0 m")
-    p_radius = 2 * particle_radius + 100e-9 if particle_match_radius is None else particle_match_radius
+    p_radius = (
+        2 * particle_radius + 100e-9 if particle_match_radius is None else particle_match_radius
+    )
     if after is None:
         after = instrument.raster_scan(request)
     if not after.complete:
@@ -152,7 +180,7 @@ def verify_push(instrument: Instrument, request: ScanRequest, goal, *, expected=
             for lm in find_particles(before, min_height):
                 xy = _xy(lm)
                 if st is not None and np.hypot(*(xy - st)) < p_radius:
-                    continue                         # the pushed particle
+                    continue  # the pushed particle
                 ref_landmarks.append(xy)
 
     # first offset guess: median nearest-neighbour displacement of the pits
@@ -194,12 +222,23 @@ def verify_push(instrument: Instrument, request: ScanRequest, goal, *, expected=
 
     k, d = _nearest(la, exp + offset)
     if k < 0 or d > p_radius:
-        raise ValueError(f"particle: no landmark within particle_match_radius={p_radius:.4e} m of the expected "
-                         f"position {tuple(exp)} (+ offset {tuple(offset)}) in the after scan")
+        raise ValueError(
+            f"particle: no landmark within particle_match_radius={p_radius:.4e} m of the expected "
+            f"position {tuple(exp)} (+ offset {tuple(offset)}) in the after scan"
+        )
     raw = la[k].copy()
     achieved = raw - offset
     err = achieved - g
-    return VerificationResult(achieved=achieved, goal=g, error_vector=err, error=float(np.hypot(*err)),
-                              offset=offset, control_points=controls,
-                              drift_corrected=any(c.used for c in controls), raw_position=raw,
-                              particle=particles_after[k], offset_spread=spread, after=after)
+    return VerificationResult(
+        achieved=achieved,
+        goal=g,
+        error_vector=err,
+        error=float(np.hypot(*err)),
+        offset=offset,
+        control_points=controls,
+        drift_corrected=any(c.used for c in controls),
+        raw_position=raw,
+        particle=particles_after[k],
+        offset_spread=spread,
+        after=after,
+    )

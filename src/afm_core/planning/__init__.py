@@ -15,22 +15,73 @@ Entry points:
 All SI (m, m^2, s), frame afm_task. Motion noise is afm_core.localization.MotionNoise.
 Bad input raises ValueError naming the field and its limit.
 """
-from .domain import (LandmarkConfiguration, LandmarkDomain, covering_landmarks, landmark_domain,
-                     plan_landmark_configuration)
-from .landmark_paths import (BOOK_OBSERVATION_SIGMA, MODES, ROLES, SPOTS, LandmarkChain, LandmarkRoute, Waypoint,
-                             cheapest_chain, nearest_spot, observation_distance, observation_distance_matrix,
-                             plan_landmark_chain, plan_landmark_route)
+
+from .domain import (
+    LandmarkConfiguration,
+    LandmarkDomain,
+    covering_landmarks,
+    landmark_domain,
+    plan_landmark_configuration,
+)
+from .landmark_paths import (
+    BOOK_OBSERVATION_SIGMA,
+    MODES,
+    ROLES,
+    SPOTS,
+    LandmarkChain,
+    LandmarkRoute,
+    Waypoint,
+    cheapest_chain,
+    nearest_spot,
+    observation_distance,
+    observation_distance_matrix,
+    plan_landmark_chain,
+    plan_landmark_route,
+)
 from .observation import ObservationPlan, ScanLine, plan_observation
-from .sequencing import (EXACT_LIMIT, EXACT_MAX, AntColonyParameters, SequencingResult, ant_colony_order,
-                         best_order, exact_order, heuristic_order, order_cost, validated_distances)
+from .sequencing import (
+    EXACT_LIMIT,
+    EXACT_MAX,
+    AntColonyParameters,
+    SequencingResult,
+    ant_colony_order,
+    best_order,
+    exact_order,
+    heuristic_order,
+    order_cost,
+    validated_distances,
+)
 
 __all__ = [
-    "plan_observation", "ObservationPlan", "ScanLine",
-    "plan_landmark_route", "LandmarkRoute", "Waypoint", "MODES", "ROLES", "SPOTS", "BOOK_OBSERVATION_SIGMA",
-    "nearest_spot", "observation_distance", "observation_distance_matrix", "cheapest_chain",
-    "plan_landmark_chain", "LandmarkChain",
-    "best_order", "exact_order", "heuristic_order", "ant_colony_order", "order_cost", "validated_distances",
-    "SequencingResult", "AntColonyParameters", "EXACT_LIMIT", "EXACT_MAX",
-    "landmark_domain", "covering_landmarks", "plan_landmark_configuration", "LandmarkDomain",
+    "plan_observation",
+    "ObservationPlan",
+    "ScanLine",
+    "plan_landmark_route",
+    "LandmarkRoute",
+    "Waypoint",
+    "MODES",
+    "ROLES",
+    "SPOTS",
+    "BOOK_OBSERVATION_SIGMA",
+    "nearest_spot",
+    "observation_distance",
+    "observation_distance_matrix",
+    "cheapest_chain",
+    "plan_landmark_chain",
+    "LandmarkChain",
+    "best_order",
+    "exact_order",
+    "heuristic_order",
+    "ant_colony_order",
+    "order_cost",
+    "validated_distances",
+    "SequencingResult",
+    "AntColonyParameters",
+    "EXACT_LIMIT",
+    "EXACT_MAX",
+    "landmark_domain",
+    "covering_landmarks",
+    "plan_landmark_configuration",
+    "LandmarkDomain",
     "LandmarkConfiguration",
 ]

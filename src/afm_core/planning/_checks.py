@@ -1,4 +1,5 @@
 """Input checks shared by the planning modules: each raises ValueError naming the field and the limit."""
+
 from __future__ import annotations
 
 import math
@@ -7,14 +8,18 @@ import numpy as np
 
 from afm_core.localization.motion_noise import MotionNoise
 
-PSD_TOLERANCE = 1e-30      # m^2: eigenvalues down to -this count as zero (rounding of nm^2-sized numbers)
+PSD_TOLERANCE = (
+    1e-30  # m^2: eigenvalues down to -this count as zero (rounding of nm^2-sized numbers)
+)
 
 
 def point(value, name: str) -> np.ndarray:
     try:
         p = np.array(value, dtype=float).reshape(-1)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be an (x, y) pair of numbers in metres, got {value!r}") from None
+        raise ValueError(
+            f"{name}: must be an (x, y) pair of numbers in metres, got {value!r}"
+        ) from None
     if p.shape != (2,):
         raise ValueError(f"{name}: must be an (x, y) pair in metres, got {p.size} values")
     if not np.isfinite(p).all():
@@ -26,7 +31,9 @@ def covariance(value, name: str) -> np.ndarray:
     try:
         c = np.array(value, dtype=float)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a 2x2 covariance matrix in m^2, got {value!r}") from None
+        raise ValueError(
+            f"{name}: must be a 2x2 covariance matrix in m^2, got {value!r}"
+        ) from None
     if c.shape != (2, 2):
         raise ValueError(f"{name}: must be a 2x2 covariance matrix in m^2, got shape {c.shape}")
     if not np.isfinite(c).all():
@@ -36,7 +43,9 @@ def covariance(value, name: str) -> np.ndarray:
     c = 0.5 * (c + c.T)
     smallest = float(np.linalg.eigvalsh(c)[0])
     if smallest < -PSD_TOLERANCE:
-        raise ValueError(f"{name}: must be positive semi-definite, smallest eigenvalue {smallest} m^2 < 0")
+        raise ValueError(
+            f"{name}: must be positive semi-definite, smallest eigenvalue {smallest} m^2 < 0"
+        )
     return c
 
 
@@ -56,8 +65,10 @@ def sigma_pair(value, name: str, allow_zero: bool = False) -> np.ndarray:
     try:
         s = np.broadcast_to(np.array(value, dtype=float).reshape(-1), (2,)).copy()
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a number or an (x, y) pair of standard deviations in metres, "
-                         f"got {value!r}") from None
+        raise ValueError(
+            f"{name}: must be a number or an (x, y) pair of standard deviations in metres, "
+            f"got {value!r}"
+        ) from None
     for axis, v in zip("xy", s):
         positive(v, f"{name} ({axis})", allow_zero)
     return s
@@ -65,7 +76,9 @@ def sigma_pair(value, name: str, allow_zero: bool = False) -> np.ndarray:
 
 def motion_noise(value, name: str = "noise") -> MotionNoise:
     if not isinstance(value, MotionNoise):
-        raise ValueError(f"{name}: must be an afm_core.localization.MotionNoise, got {type(value).__name__}")
+        raise ValueError(
+            f"{name}: must be an afm_core.localization.MotionNoise, got {type(value).__name__}"
+        )
     return value
 
 

@@ -19,11 +19,12 @@ point, push the movable landmark that needs the shortest push along the straight
 towards the task point until its domain holds it (the push itself is the virtual nano-hand's
 job, afm_core's pushing code; this module only says which particle and where to).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -36,11 +37,12 @@ from .landmark_paths import SPOTS, landmark_site
 @dataclass(frozen=True)
 class LandmarkDomain:
     """Where a tip localized at one of the landmark's four spots can reach within the required variance."""
+
     landmark_id: int
-    center: np.ndarray              # (2,) m, landmark centre
-    spots: np.ndarray               # (4, 2) m: left, right, down, up
+    center: np.ndarray  # (2,) m, landmark centre
+    spots: np.ndarray  # (4, 2) m: left, right, down, up
     localized_variance: np.ndarray  # (2,) m^2, Var(P_l) per axis
-    required_variance: np.ndarray   # (2,) m^2, Var(P_t) per axis
+    required_variance: np.ndarray  # (2,) m^2, Var(P_t) per axis
     noise: MotionNoise
 
     def slack(self, points) -> np.ndarray:
@@ -50,7 +52,7 @@ class LandmarkDomain:
         if p.shape[-1] != 2 or not np.isfinite(p).all():
             raise ValueError(f"points: must be finite (x, y) pairs in metres, got shape {p.shape}")
         n = self.noise
-        d = np.abs(p[:, None, :] - self.spots[None, :, :])              # (points, spots, 2)
+        d = np.abs(p[:, None, :] - self.spots[None, :, :])  # (points, spots, 2)
         moved = (d > 0).any(axis=-1)
         var_x = n.k_h1 * d[..., 0] + n.k_v2 * d[..., 1] + np.where(moved, n.offset_x, 0.0)
         var_y = n.k_h2 * d[..., 0] + n.k_v1 * d[..., 1] + np.where(moved, n.offset_y, 0.0)
@@ -68,27 +70,33 @@ class LandmarkDomain:
         by = self.required_variance[1] - self.localized_variance[1] - n.offset_y
         if bx < 0 or by < 0:
             return np.zeros(2)
-        reach_x = min(bx / n.k_h1 if n.k_h1 > 0 else math.inf, by / n.k_h2 if n.k_h2 > 0 else math.inf)
-        reach_y = min(bx / n.k_v2 if n.k_v2 > 0 else math.inf, by / n.k_v1 if n.k_v1 > 0 else math.inf)
+        reach_x = min(
+            bx / n.k_h1 if n.k_h1 > 0 else math.inf, by / n.k_h2 if n.k_h2 > 0 else math.inf
+        )
+        reach_y = min(
+            bx / n.k_v2 if n.k_v2 > 0 else math.inf, by / n.k_v1 if n.k_v1 > 0 else math.inf
+        )
         return np.array([reach_x, reach_y])
 
 
 @dataclass(frozen=True)
 class LandmarkConfiguration:
     """Which landmarks' domains hold the task point, or which particle to push where first."""
-    covering_ids: tuple[int, ...]        # landmarks whose domain holds the task point now
-    push_landmark_id: int | None         # None when some landmark already covers it
-    push_from: np.ndarray | None         # (2,) m, the particle's centre now
-    push_to: np.ndarray | None           # (2,) m, where its centre must go
-    push_distance: float                 # m, 0 when no push is needed
+
+    covering_ids: tuple[int, ...]  # landmarks whose domain holds the task point now
+    push_landmark_id: int | None  # None when some landmark already covers it
+    push_from: np.ndarray | None  # (2,) m, the particle's centre now
+    push_to: np.ndarray | None  # (2,) m, where its centre must go
+    push_distance: float  # m, 0 when no push is needed
 
 
 def _variance_pair(sigma, name) -> np.ndarray:
     return _checks.sigma_pair(sigma, name) ** 2
 
 
-def landmark_domain(landmark, required_sigma, tip_radius: float, noise: MotionNoise,
-                    localized_sigma=None) -> LandmarkDomain:
+def landmark_domain(
+    landmark, required_sigma, tip_radius: float, noise: MotionNoise, localized_sigma=None
+) -> LandmarkDomain:
     """Domain of one landmark (eq. 6.13-6.15). `localized_sigma`: sigma of a tip localized beside it
     (default: the landmark's observation sigma, i.e. its map error, else the book's 5.0 / 4.5 nm);
     `required_sigma`: sigma the task allows, one number or (x, y)."""
@@ -100,7 +108,7 @@ def landmark_domain(landmark, required_sigma, tip_radius: float, noise: MotionNo
 
 
 def _domain(site, required, tip_radius, noise) -> LandmarkDomain:
-    localized = site.observation_sigma ** 2
+    localized = site.observation_sigma**2
     offsets = site.radius + tip_radius + 3 * site.observation_sigma
     spots = np.repeat(site.center[None, :], 4, axis=0)
     for row, (axis, sign) in enumerate(SPOTS.values()):
@@ -108,8 +116,14 @@ def _domain(site, required, tip_radius, noise) -> LandmarkDomain:
     return LandmarkDomain(site.id, site.center, spots, localized, required, noise)
 
 
-def covering_landmarks(task_point, landmarks: Sequence, required_sigma, tip_radius: float, noise: MotionNoise,
-                       localized_sigma=None) -> list[int]:
+def covering_landmarks(
+    task_point,
+    landmarks: Sequence,
+    required_sigma,
+    tip_radius: float,
+    noise: MotionNoise,
+    localized_sigma=None,
+) -> list[int]:
     """Ids of the landmarks whose domain holds the task point, best (largest slack) first."""
     task = _checks.point(task_point, "task_point")
     noise = _checks.motion_noise(noise)
@@ -117,17 +131,26 @@ def covering_landmarks(task_point, landmarks: Sequence, required_sigma, tip_radi
     required = _variance_pair(required_sigma, "required_sigma")
     slack = []
     for i, lm in enumerate(landmarks):
-        domain = _domain(landmark_site(lm, localized_sigma, f"landmarks[{i}]"), required, tip_radius, noise)
+        domain = _domain(
+            landmark_site(lm, localized_sigma, f"landmarks[{i}]"), required, tip_radius, noise
+        )
         s = float(domain.slack(task)[0])
         if s >= 0:
             slack.append((s, domain.landmark_id))
     return [lid for _, lid in sorted(slack, key=lambda t: -t[0])]
 
 
-def plan_landmark_configuration(task_point, landmarks: Sequence, required_sigma, tip_radius: float,
-                                noise: MotionNoise, movable_ids: Sequence[int] | None = None,
-                                localized_sigma=None, keep_clear: float = 0.0,
-                                resolution: int = 400) -> LandmarkConfiguration:
+def plan_landmark_configuration(
+    task_point,
+    landmarks: Sequence,
+    required_sigma,
+    tip_radius: float,
+    noise: MotionNoise,
+    movable_ids: Sequence[int] | None = None,
+    localized_sigma=None,
+    keep_clear: float = 0.0,
+    resolution: int = 400,
+) -> LandmarkConfiguration:
     """Covering landmarks of the task point; if there are none, the push that makes one (6.4).
 
     A candidate is pushed straight towards the task point; its centre stops once the task point
@@ -144,7 +167,9 @@ def plan_landmark_configuration(task_point, landmarks: Sequence, required_sigma,
     required = _variance_pair(required_sigma, "required_sigma")
     if not (isinstance(resolution, int) and resolution >= 2):
         raise ValueError(f"resolution={resolution!r}: must be an integer >= 2")
-    sites = [landmark_site(lm, localized_sigma, f"landmarks[{i}]") for i, lm in enumerate(landmarks)]
+    sites = [
+        landmark_site(lm, localized_sigma, f"landmarks[{i}]") for i, lm in enumerate(landmarks)
+    ]
     if not sites:
         raise ValueError("landmarks: need at least one landmark")
     ids = [s.id for s in sites]
@@ -153,10 +178,14 @@ def plan_landmark_configuration(task_point, landmarks: Sequence, required_sigma,
         if unknown:
             raise ValueError(f"movable_ids: unknown landmark id(s) {unknown}; known ids are {ids}")
     for s in sites:
-        if (s.observation_sigma ** 2 > required).any():
-            raise ValueError(f"required_sigma={np.sqrt(required).tolist()} m: below the localized sigma "
-                             f"{s.observation_sigma.tolist()} m of landmark {s.id}; no landmark domain can hold it")
-    covering = covering_landmarks(task, landmarks, np.sqrt(required), tip_radius, noise, localized_sigma)
+        if (s.observation_sigma**2 > required).any():
+            raise ValueError(
+                f"required_sigma={np.sqrt(required).tolist()} m: below the localized sigma "
+                f"{s.observation_sigma.tolist()} m of landmark {s.id}; no landmark domain can hold it"
+            )
+    covering = covering_landmarks(
+        task, landmarks, np.sqrt(required), tip_radius, noise, localized_sigma
+    )
     if covering:
         return LandmarkConfiguration(tuple(covering), None, None, None, 0.0)
     movable = set(ids) if movable_ids is None else set(int(i) for i in movable_ids)
@@ -172,7 +201,9 @@ def plan_landmark_configuration(task_point, landmarks: Sequence, required_sigma,
         direction = offset / distance
 
         def inside(travel: float) -> bool:
-            moved = type(site)(site.id, site.center + direction * travel, site.radius, site.observation_sigma)
+            moved = type(site)(
+                site.id, site.center + direction * travel, site.radius, site.observation_sigma
+            )
             return bool(_domain(moved, required, tip_radius, noise).contains(task)[0])
 
         travels = np.linspace(0.0, distance - closest, resolution)
@@ -181,7 +212,7 @@ def plan_landmark_configuration(task_point, landmarks: Sequence, required_sigma,
             continue
         lo_index = int(np.searchsorted(travels, hits[0])) - 1
         lo, hi = (float(travels[lo_index]), float(hits[0])) if lo_index >= 0 else (0.0, 0.0)
-        for _ in range(60):                 # shortest push: bisect between the last miss and the first hit
+        for _ in range(60):  # shortest push: bisect between the last miss and the first hit
             if hi - lo <= 1e-12:
                 break
             mid = 0.5 * (lo + hi)
@@ -189,11 +220,18 @@ def plan_landmark_configuration(task_point, landmarks: Sequence, required_sigma,
         if best is None or hi < best[0]:
             best = (hi, site, site.center + direction * hi)
     if best is None:
-        raise ValueError(f"task_point={task.tolist()}: no movable landmark can be pushed so that its domain "
-                         f"holds it within required_sigma={np.sqrt(required).tolist()} m")
+        raise ValueError(
+            f"task_point={task.tolist()}: no movable landmark can be pushed so that its domain "
+            f"holds it within required_sigma={np.sqrt(required).tolist()} m"
+        )
     travel, site, target = best
     return LandmarkConfiguration((), site.id, site.center.copy(), target, float(travel))
 
 
-__all__ = ["LandmarkDomain", "LandmarkConfiguration", "landmark_domain", "covering_landmarks",
-           "plan_landmark_configuration"]
+__all__ = [
+    "LandmarkDomain",
+    "LandmarkConfiguration",
+    "landmark_domain",
+    "covering_landmarks",
+    "plan_landmark_configuration",
+]

@@ -28,11 +28,12 @@ be planned (the tip would be too uncertain for the particle) have no edge. The m
 (eq. 6.12) with a start node and a task node is searched with
 scipy.sparse.csgraph.dijkstra for the cheapest chain of observations (Fig. 6.9).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -43,31 +44,32 @@ from afm_core.localization.motion_noise import MotionNoise
 from . import _checks
 from .observation import ObservationPlan, line_end_distance, plan_observation
 
-BOOK_OBSERVATION_SIGMA = (5.0e-9, 4.5e-9)     # m, map error sigma x / y (Fig. 7.10)
+BOOK_OBSERVATION_SIGMA = (5.0e-9, 4.5e-9)  # m, map error sigma x / y (Fig. 7.10)
 SPOTS = {"left": (0, -1.0), "right": (0, 1.0), "down": (1, -1.0), "up": (1, 1.0)}
-MODES = {"hh": (0, 0), "hv": (0, 1), "vh": (1, 0), "vv": (1, 1)}    # (first line axis, spot axis)
+MODES = {"hh": (0, 0), "hv": (0, 1), "vh": (1, 0), "vv": (1, 1)}  # (first line axis, spot axis)
 ROLES = ("move", "observe_h", "observe_v", "task")
 
 
 @dataclass(frozen=True)
 class Waypoint:
-    position: np.ndarray        # (2,) m, afm_task frame
-    covariance: np.ndarray      # 2x2 m^2 on arrival (after the update for an observation)
-    role: str                   # "move" | "observe_h" | "observe_v" | "task"
-    landmark_id: int            # -1 when the waypoint belongs to no landmark
+    position: np.ndarray  # (2,) m, afm_task frame
+    covariance: np.ndarray  # 2x2 m^2 on arrival (after the update for an observation)
+    role: str  # "move" | "observe_h" | "observe_v" | "task"
+    landmark_id: int  # -1 when the waypoint belongs to no landmark
 
 
 @dataclass(frozen=True)
 class LandmarkRoute:
     """A planned tip route: waypoints from `start` (not itself a waypoint) to the end."""
+
     start: np.ndarray
     start_covariance: np.ndarray
     waypoints: tuple[Waypoint, ...]
-    length: float               # m, nominal travel (each landmark found on its first line)
-    expected_cost: float        # m, travel with each observation line at its expected cost (eq. 6.10)
+    length: float  # m, nominal travel (each landmark found on its first line)
+    expected_cost: float  # m, travel with each observation line at its expected cost (eq. 6.10)
     landmark_ids: tuple[int, ...]
-    modes: tuple[str, ...]      # scan mode per landmark
-    spots: tuple[str, ...]      # localization spot per landmark
+    modes: tuple[str, ...]  # scan mode per landmark
+    spots: tuple[str, ...]  # localization spot per landmark
     observations: tuple[ObservationPlan, ...]
 
     @property
@@ -82,11 +84,14 @@ class LandmarkRoute:
 @dataclass(frozen=True)
 class LandmarkChain:
     """Cheapest chain of landmark observations from the start to the task (Dijkstra, Fig. 6.9)."""
+
     landmark_ids: tuple[int, ...]
-    cost: float                 # m, sum of the chain's edge weights
-    weights: np.ndarray         # (n + 2) x (n + 2): start, the landmarks in input order, task; inf: no edge
+    cost: float  # m, sum of the chain's edge weights
+    weights: (
+        np.ndarray
+    )  # (n + 2) x (n + 2): start, the landmarks in input order, task; inf: no edge
     route: LandmarkRoute
-    meets_required: bool        # the route's final sigma is within required_sigma (True when none given)
+    meets_required: bool  # the route's final sigma is within required_sigma (True when none given)
 
 
 @dataclass(frozen=True)
@@ -95,7 +100,7 @@ class _Site:
     center: np.ndarray
     radius: float
     observation_sigma: np.ndarray
-    covariance = None           # the observation sigma above already holds the map error
+    covariance = None  # the observation sigma above already holds the map error
 
     @property
     def x(self) -> float:
@@ -113,8 +118,10 @@ def landmark_site(landmark, observation_sigma=None, name: str = "landmark") -> _
     try:
         lid, x, y, radius = int(landmark.id), landmark.x, landmark.y, landmark.radius
     except (AttributeError, TypeError, ValueError):
-        raise ValueError(f"{name}: needs id, x, y and radius (an afm_core.imaging.landmarks.Landmark), "
-                         f"got {landmark!r}") from None
+        raise ValueError(
+            f"{name}: needs id, x, y and radius (an afm_core.imaging.landmarks.Landmark), "
+            f"got {landmark!r}"
+        ) from None
     center = _checks.point((x, y), f"{name} {lid} centre (x, y)")
     r = _checks.positive(radius, f"{name} {lid} radius")
     if observation_sigma is not None:
@@ -181,50 +188,91 @@ class _Builder:
         self.cov = _kalman_axis_update(self.cov, axis, float(site.observation_sigma[axis]))
         slope = self.noise.k_h1 if axis == 0 else self.noise.k_v1
         end = crossing.copy()
-        end[axis] += math.copysign(line_end_distance(self.cov[axis, axis], slope, 0.0, tip_radius + site.radius),
-                                   line.end[axis] - crossing[axis])
+        end[axis] += math.copysign(
+            line_end_distance(self.cov[axis, axis], slope, 0.0, tip_radius + site.radius),
+            line.end[axis] - crossing[axis],
+        )
         rest = end - crossing
         self.cov = _continue(self.noise, self.cov, rest)
         scanned = float(np.hypot(*to_crossing) + np.hypot(*rest))
         self.length += scanned
-        self.expected += plan.expected_cost - line.length + scanned    # approach + expected lines (eq. 6.10)
+        self.expected += (
+            plan.expected_cost - line.length + scanned
+        )  # approach + expected lines (eq. 6.10)
         self.position = end
-        self.waypoints.append(Waypoint(self.position.copy(), self.cov.copy(),
-                                       "observe_h" if axis == 0 else "observe_v", site.id))
+        self.waypoints.append(
+            Waypoint(
+                self.position.copy(),
+                self.cov.copy(),
+                "observe_h" if axis == 0 else "observe_v",
+                site.id,
+            )
+        )
 
 
-def _localize(builder: _Builder, site: _Site, first_axis: int, spot: str, second_sign: float,
-              tip_radius: float) -> list[ObservationPlan]:
+def _localize(
+    builder: _Builder,
+    site: _Site,
+    first_axis: int,
+    spot: str,
+    second_sign: float,
+    tip_radius: float,
+) -> list[ObservationPlan]:
     """Two lines (first_axis, then the other) ending at `spot`; second_sign: side the second line starts on."""
     noise = builder.noise
     spot_axis, spot_sign = SPOTS[spot]
     second_axis = 1 - first_axis
     plans = []
-    plan = plan_observation(builder.position, builder.cov, site.center, site.radius, tip_radius, noise,
-                            "h" if first_axis == 0 else "v")
+    plan = plan_observation(
+        builder.position,
+        builder.cov,
+        site.center,
+        site.radius,
+        tip_radius,
+        noise,
+        "h" if first_axis == 0 else "v",
+    )
     builder.observe(plan, site, tip_radius)
     plans.append(plan)
     # round the corner: out along the second axis beside the particle, then to its centre line
     corner = builder.position.copy()
-    for _ in range(2):            # the corner's distance from the particle is the second line's start distance
+    for _ in range(
+        2
+    ):  # the corner's distance from the particle is the second line's start distance
         corner[second_axis] = site.center[second_axis] + second_sign * _clear_distance(
-            noise.predict(builder.cov, *(corner - builder.position)), second_axis, site, tip_radius)
-        trial = plan_observation(corner, noise.predict(builder.cov, *(corner - builder.position)),
-                                 site.center, site.radius, tip_radius, noise, "h" if second_axis == 0 else "v")
+            noise.predict(builder.cov, *(corner - builder.position)), second_axis, site, tip_radius
+        )
+        trial = plan_observation(
+            corner,
+            noise.predict(builder.cov, *(corner - builder.position)),
+            site.center,
+            site.radius,
+            tip_radius,
+            noise,
+            "h" if second_axis == 0 else "v",
+        )
         corner[second_axis] = trial.lines[0].start[second_axis]
     builder.move(corner, "move", site.id)
-    plan = plan_observation(builder.position, builder.cov, site.center, site.radius, tip_radius, noise,
-                            "h" if second_axis == 0 else "v")
+    plan = plan_observation(
+        builder.position,
+        builder.cov,
+        site.center,
+        site.radius,
+        tip_radius,
+        noise,
+        "h" if second_axis == 0 else "v",
+    )
     builder.observe(plan, site, tip_radius)
     plans.append(plan)
-    if spot_axis == first_axis:   # "hh" / "vv": round the next corner to the spot on the first axis
+    if spot_axis == first_axis:  # "hh" / "vv": round the next corner to the spot on the first axis
         target = site.center.copy()
         target[spot_axis] += spot_sign * _clear_distance(builder.cov, spot_axis, site, tip_radius)
         corner = builder.position.copy()
         corner[spot_axis] = target[spot_axis]
         builder.move(corner, "move", site.id)
-        target[spot_axis] = site.center[spot_axis] + spot_sign * _clear_distance(builder.cov, spot_axis, site,
-                                                                                  tip_radius)
+        target[spot_axis] = site.center[spot_axis] + spot_sign * _clear_distance(
+            builder.cov, spot_axis, site, tip_radius
+        )
         builder.move(target, "move", site.id)
     return plans
 
@@ -236,13 +284,25 @@ def _spot_point(site: _Site, spot: str, tip_radius: float) -> np.ndarray:
     return p
 
 
-def nearest_spot(site_center, site_radius: float, tip_radius: float, toward, observation_sigma=BOOK_OBSERVATION_SIGMA,
-                 allowed: Sequence[str] = tuple(SPOTS)) -> str:
+def nearest_spot(
+    site_center,
+    site_radius: float,
+    tip_radius: float,
+    toward,
+    observation_sigma=BOOK_OBSERVATION_SIGMA,
+    allowed: Sequence[str] = tuple(SPOTS),
+) -> str:
     """Guideline 6.1: the localization spot (of `allowed`) nearest the point `toward`."""
-    site = _Site(-1, _checks.point(site_center, "site_center"), _checks.positive(site_radius, "site_radius"),
-                 _checks.sigma_pair(observation_sigma, "observation_sigma"))
+    site = _Site(
+        -1,
+        _checks.point(site_center, "site_center"),
+        _checks.positive(site_radius, "site_radius"),
+        _checks.sigma_pair(observation_sigma, "observation_sigma"),
+    )
     toward = _checks.point(toward, "toward")
-    return min(allowed, key=lambda s: float(np.linalg.norm(_spot_point(site, s, tip_radius) - toward)))
+    return min(
+        allowed, key=lambda s: float(np.linalg.norm(_spot_point(site, s, tip_radius) - toward))
+    )
 
 
 def _single(start, cov, site, tip_radius, noise, mode, spot, second_sign):
@@ -251,9 +311,17 @@ def _single(start, cov, site, tip_radius, noise, mode, spot, second_sign):
     return builder, plans
 
 
-def plan_landmark_route(start_mean, start_covariance, landmark, tip_radius: float, noise: MotionNoise,
-                        task_point=None, mode: str | None = None, spot: str | None = None,
-                        observation_sigma=None) -> LandmarkRoute:
+def plan_landmark_route(
+    start_mean,
+    start_covariance,
+    landmark,
+    tip_radius: float,
+    noise: MotionNoise,
+    task_point=None,
+    mode: str | None = None,
+    spot: str | None = None,
+    observation_sigma=None,
+) -> LandmarkRoute:
     """Route from the tip's Gaussian through one landmark's localization to the task point.
 
     `landmark`: an imaging Landmark (or an object with id, x, y, radius[, covariance]).
@@ -275,14 +343,26 @@ def plan_landmark_route(start_mean, start_covariance, landmark, tip_radius: floa
     if spot is not None and spot not in SPOTS:
         raise ValueError(f"spot={spot!r}: must be one of {sorted(SPOTS)}")
     if mode is not None and spot is not None and SPOTS[spot][0] != MODES[mode][1]:
-        raise ValueError(f"spot={spot!r} is not reachable in mode={mode!r}: mode {mode!r} ends on the "
-                         f"{'left/right' if MODES[mode][1] == 0 else 'down/up'} spots")
+        raise ValueError(
+            f"spot={spot!r} is not reachable in mode={mode!r}: mode {mode!r} ends on the "
+            f"{'left/right' if MODES[mode][1] == 0 else 'down/up'} spots"
+        )
     if spot is None:
         allowed = [s for s in SPOTS if mode is None or SPOTS[s][0] == MODES[mode][1]]
-        spot = nearest_spot(site.center, site.radius, tip_radius, task if task is not None else start,
-                            site.observation_sigma, allowed)
+        spot = nearest_spot(
+            site.center,
+            site.radius,
+            tip_radius,
+            task if task is not None else start,
+            site.observation_sigma,
+            allowed,
+        )
     spot_axis, spot_sign = SPOTS[spot]
-    modes = [mode] if mode is not None else [m for m, (_, end_axis) in MODES.items() if end_axis == spot_axis]
+    modes = (
+        [mode]
+        if mode is not None
+        else [m for m, (_, end_axis) in MODES.items() if end_axis == spot_axis]
+    )
     best = None
     for m in modes:
         first_axis = MODES[m][0]
@@ -295,8 +375,17 @@ def plan_landmark_route(start_mean, start_covariance, landmark, tip_radius: floa
             if best is None or builder.expected < best[0].expected - 1e-15:
                 best = (builder, plans, m)
     builder, plans, m = best
-    return LandmarkRoute(start, cov, tuple(builder.waypoints), builder.length, builder.expected, (site.id,),
-                         (m,), (spot,), tuple(plans))
+    return LandmarkRoute(
+        start,
+        cov,
+        tuple(builder.waypoints),
+        builder.length,
+        builder.expected,
+        (site.id,),
+        (m,),
+        (spot,),
+        tuple(plans),
+    )
 
 
 # -- many landmarks ------------------------------------------------------------------------
@@ -307,30 +396,55 @@ def _observation_cost(position, cov, site: _Site, tip_radius: float, noise: Moti
     costs = []
     for direction in ("h", "v"):
         try:
-            plan = plan_observation(position, cov, site.center, site.radius, tip_radius, noise, direction)
+            plan = plan_observation(
+                position, cov, site.center, site.radius, tip_radius, noise, direction
+            )
             costs.append(len(plan.lines) * plan.expected_cost)
         except ValueError:
             costs.append(math.inf)
     return min(costs)
 
 
-ARRIVAL_SIGMA_FACTOR = 3.0    # arrival sigma assumed when predicting a localization: 3x the observation sigma
+ARRIVAL_SIGMA_FACTOR = (
+    3.0  # arrival sigma assumed when predicting a localization: 3x the observation sigma
+)
 
 
-def _localized_covariance(site: _Site, spot: str, tip_radius: float, noise: MotionNoise) -> np.ndarray:
+def _localized_covariance(
+    site: _Site, spot: str, tip_radius: float, noise: MotionNoise
+) -> np.ndarray:
     """Covariance at `spot` after localizing at the site (both lines, the growth after each update and
     the moves round the particle included), for a tip arriving from the opposite side with
     ARRIVAL_SIGMA_FACTOR times the observation sigma (conservative: the Kalman posterior grows with
     the prior, and a tip hopping between near landmarks arrives better than that)."""
-    key = (site.id, spot, tip_radius, noise, tuple(site.center), site.radius, tuple(site.observation_sigma))
+    key = (
+        site.id,
+        spot,
+        tip_radius,
+        noise,
+        tuple(site.center),
+        site.radius,
+        tuple(site.observation_sigma),
+    )
     cached = _LOCALIZED_CACHE.get(key)
     if cached is None:
         axis, sign = SPOTS[spot]
         arrival = site.center.copy()
-        arrival[axis] -= sign * 2 * (site.radius + tip_radius + 10 * float(site.observation_sigma.max()))
-        route = plan_landmark_route(arrival, np.diag((ARRIVAL_SIGMA_FACTOR * site.observation_sigma) ** 2), site,
-                                    tip_radius, noise, spot=spot, observation_sigma=site.observation_sigma)
-        cached = _LOCALIZED_CACHE.setdefault(key, (route.final_covariance, route.waypoints[-1].position))
+        arrival[axis] -= (
+            sign * 2 * (site.radius + tip_radius + 10 * float(site.observation_sigma.max()))
+        )
+        route = plan_landmark_route(
+            arrival,
+            np.diag((ARRIVAL_SIGMA_FACTOR * site.observation_sigma) ** 2),
+            site,
+            tip_radius,
+            noise,
+            spot=spot,
+            observation_sigma=site.observation_sigma,
+        )
+        cached = _LOCALIZED_CACHE.setdefault(
+            key, (route.final_covariance, route.waypoints[-1].position)
+        )
         if len(_LOCALIZED_CACHE) > 4096:
             _LOCALIZED_CACHE.clear()
     return cached
@@ -339,8 +453,9 @@ def _localized_covariance(site: _Site, spot: str, tip_radius: float, noise: Moti
 _LOCALIZED_CACHE: dict = {}
 
 
-def observation_distance(from_landmark, to_landmark, tip_radius: float, noise: MotionNoise,
-                         observation_sigma=None) -> float:
+def observation_distance(
+    from_landmark, to_landmark, tip_radius: float, noise: MotionNoise, observation_sigma=None
+) -> float:
     """Eq. 6.11: scan count x expected travel (m) to observe `to_landmark` from the spot of
     `from_landmark` nearest to it, with the covariance of a tip localized there (see
     _localized_covariance); inf when the observation cannot be planned."""
@@ -356,20 +471,27 @@ def _pair_cost(a: _Site, b: _Site, tip_radius: float, noise: MotionNoise) -> flo
     try:
         cov, position = _localized_covariance(a, spot, tip_radius, noise)
     except ValueError:
-        return math.inf             # the tip cannot even localize at `a` with this noise
+        return math.inf  # the tip cannot even localize at `a` with this noise
     return _observation_cost(position, cov, b, tip_radius, noise)
 
 
 def _sites(landmarks, observation_sigma) -> list[_Site]:
-    sites = [landmark_site(lm, observation_sigma, f"landmarks[{i}]") for i, lm in enumerate(landmarks)]
+    sites = [
+        landmark_site(lm, observation_sigma, f"landmarks[{i}]") for i, lm in enumerate(landmarks)
+    ]
     ids = [s.id for s in sites]
     if len(set(ids)) != len(ids):
         raise ValueError(f"landmarks: ids must be unique, got {ids}")
     return sites
 
 
-def observation_distance_matrix(landmarks: Sequence, tip_radius: float, noise: MotionNoise,
-                                observation_sigma=None, symmetric: bool = False) -> np.ndarray:
+def observation_distance_matrix(
+    landmarks: Sequence,
+    tip_radius: float,
+    noise: MotionNoise,
+    observation_sigma=None,
+    symmetric: bool = False,
+) -> np.ndarray:
     """Eq. 6.12: W[i, j] = observation distance from landmark i to j (eq. 6.11), 0 on the diagonal,
     inf where the observation cannot be planned. `symmetric`: max(W, W^T), for sequencing."""
     tip_radius = _checks.positive(tip_radius, "tip_radius", allow_zero=True)
@@ -401,19 +523,33 @@ def cheapest_chain(weights, source: int, target: int) -> tuple[list[int], float]
     rows, cols = np.nonzero(np.isfinite(w))
     # csgraph drops explicit zeros in a sparse matrix's structure only if told to; a zero-cost edge
     # is kept by nudging it to the smallest positive float, which changes no sum measurably.
-    graph = csr_matrix((np.maximum(w[rows, cols], np.finfo(float).tiny), (rows, cols)), shape=(n, n))
-    distances, predecessors = dijkstra(graph, directed=True, indices=source, return_predecessors=True)
+    graph = csr_matrix(
+        (np.maximum(w[rows, cols], np.finfo(float).tiny), (rows, cols)), shape=(n, n)
+    )
+    distances, predecessors = dijkstra(
+        graph, directed=True, indices=source, return_predecessors=True
+    )
     if not np.isfinite(distances[target]):
         raise ValueError(f"no chain of known edges leads from node {source} to node {target}")
     path = [target]
     while path[-1] != source:
         path.append(int(predecessors[path[-1]]))
     path.reverse()
-    return path, float(sum(w[a, b] if np.isfinite(w[a, b]) else 0.0 for a, b in zip(path, path[1:])))
+    return path, float(
+        sum(w[a, b] if np.isfinite(w[a, b]) else 0.0 for a, b in zip(path, path[1:]))
+    )
 
 
-def plan_landmark_chain(start_mean, start_covariance, landmarks: Sequence, task_point, tip_radius: float,
-                        noise: MotionNoise, required_sigma=None, observation_sigma=None) -> LandmarkChain:
+def plan_landmark_chain(
+    start_mean,
+    start_covariance,
+    landmarks: Sequence,
+    task_point,
+    tip_radius: float,
+    noise: MotionNoise,
+    required_sigma=None,
+    observation_sigma=None,
+) -> LandmarkChain:
     """Cheapest chain of landmark observations from the tip's Gaussian to the task point (6.2.2).
 
     Nodes: the start, every landmark, the task. Edges: start -> landmark (expected cost of
@@ -430,7 +566,9 @@ def plan_landmark_chain(start_mean, start_covariance, landmarks: Sequence, task_
     task = _checks.point(task_point, "task_point")
     tip_radius = _checks.positive(tip_radius, "tip_radius", allow_zero=True)
     noise = _checks.motion_noise(noise)
-    required = None if required_sigma is None else _checks.sigma_pair(required_sigma, "required_sigma")
+    required = (
+        None if required_sigma is None else _checks.sigma_pair(required_sigma, "required_sigma")
+    )
     sites = _sites(landmarks, observation_sigma)
     n = len(sites)
     if n == 0:
@@ -445,8 +583,11 @@ def plan_landmark_chain(start_mean, start_covariance, landmarks: Sequence, task_
         w[0, j + 1] = _observation_cost(start, cov, site, tip_radius, noise)
         try:
             localized, spot = _localized_covariance(
-                site, nearest_spot(site.center, site.radius, tip_radius, task, site.observation_sigma),
-                tip_radius, noise)
+                site,
+                nearest_spot(site.center, site.radius, tip_radius, task, site.observation_sigma),
+                tip_radius,
+                noise,
+            )
         except ValueError:
             localized = None
         if localized is not None:
@@ -462,8 +603,10 @@ def plan_landmark_chain(start_mean, start_covariance, landmarks: Sequence, task_
     try:
         path, cost = cheapest_chain(w, 0, task_node)
     except ValueError:
-        raise ValueError("task_point: no chain of landmark observations reaches it"
-                         + ("" if required is None else f" within required_sigma={required.tolist()} m")) from None
+        raise ValueError(
+            "task_point: no chain of landmark observations reaches it"
+            + ("" if required is None else f" within required_sigma={required.tolist()} m")
+        ) from None
     chain = [sites[k - 1] for k in path[1:-1]]
     route = _chain_route(start, cov, chain, task, tip_radius, noise)
     met = required is None or bool((route.final_sigma <= required * (1 + 1e-12)).all())
@@ -476,11 +619,16 @@ def _chain_route(start, cov, chain: list[_Site], task, tip_radius, noise) -> Lan
     position, covariance = start, cov
     for k, site in enumerate(chain):
         aim = chain[k + 1].center if k + 1 < len(chain) else task
-        route = plan_landmark_route(position, covariance, site, tip_radius, noise,
-                                    task_point=task if k + 1 == len(chain) else None,
-                                    spot=nearest_spot(site.center, site.radius, tip_radius, aim,
-                                                      site.observation_sigma),
-                                    observation_sigma=site.observation_sigma)
+        route = plan_landmark_route(
+            position,
+            covariance,
+            site,
+            tip_radius,
+            noise,
+            task_point=task if k + 1 == len(chain) else None,
+            spot=nearest_spot(site.center, site.radius, tip_radius, aim, site.observation_sigma),
+            observation_sigma=site.observation_sigma,
+        )
         waypoints += route.waypoints
         plans += route.observations
         modes += route.modes
@@ -492,5 +640,14 @@ def _chain_route(start, cov, chain: list[_Site], task, tip_radius, noise) -> Lan
         d = task - start
         waypoints.append(Waypoint(task, noise.predict(cov, d[0], d[1]), "task", -1))
         length = expected = float(np.hypot(*d))
-    return LandmarkRoute(start, cov, tuple(waypoints), length, expected, tuple(s.id for s in chain),
-                         tuple(modes), tuple(spots), tuple(plans))
+    return LandmarkRoute(
+        start,
+        cov,
+        tuple(waypoints),
+        length,
+        expected,
+        tuple(s.id for s in chain),
+        tuple(modes),
+        tuple(spots),
+        tuple(plans),
+    )

@@ -38,6 +38,7 @@ All SI (m, m^2). Lines are axis-aligned: direction "h" scans along x, "v" along 
 approach is one straight move: the caller brings the tip round the particle first when it
 starts on the far side (landmark_paths does, with corner waypoints).
 """
+
 from __future__ import annotations
 
 import math
@@ -50,22 +51,27 @@ from afm_core.localization.motion_noise import MotionNoise
 
 from . import _checks
 
-THREE_SIGMA_MASS = 1.0 - math.exp(-4.5)     # mass of a 2-D Gaussian inside its 3-sigma (Mahalanobis) ellipse
+THREE_SIGMA_MASS = 1.0 - math.exp(
+    -4.5
+)  # mass of a 2-D Gaussian inside its 3-sigma (Mahalanobis) ellipse
 MAX_LINES = 200
 
 
 @dataclass(frozen=True)
 class ScanLine:
     """One local scan line L_k of an observation plan."""
-    start: np.ndarray                # (2,) m, commanded
-    end: np.ndarray                  # (2,) m
-    offset: float                    # m, across offset of the line from the particle centre
-    band: tuple[float, float]        # m: initial across errors for which this line must cross the particle
-    probability: float               # eq. 6.9, normalised over the plan's lines
-    raw_probability: float           # Gaussian mass of the line's area (part of the ellipse)
-    side: int                        # 0 for L0, +1 lines covering e_across > 0 (Area 1), -1 (Area 3)
-    start_covariance: np.ndarray     # 2x2 m^2, predicted at the start (no observation yet)
-    end_covariance: np.ndarray       # 2x2 m^2, predicted at the end
+
+    start: np.ndarray  # (2,) m, commanded
+    end: np.ndarray  # (2,) m
+    offset: float  # m, across offset of the line from the particle centre
+    band: tuple[
+        float, float
+    ]  # m: initial across errors for which this line must cross the particle
+    probability: float  # eq. 6.9, normalised over the plan's lines
+    raw_probability: float  # Gaussian mass of the line's area (part of the ellipse)
+    side: int  # 0 for L0, +1 lines covering e_across > 0 (Area 1), -1 (Area 3)
+    start_covariance: np.ndarray  # 2x2 m^2, predicted at the start (no observation yet)
+    end_covariance: np.ndarray  # 2x2 m^2, predicted at the end
 
     @property
     def length(self) -> float:
@@ -75,30 +81,35 @@ class ScanLine:
 @dataclass(frozen=True)
 class ObservationPlan:
     """Scan lines that find a particle if it is anywhere in the tip's 3-sigma ellipse (eq. 6.1-6.10)."""
-    direction: str                   # "h" (lines along x) or "v" (along y)
-    particle_center: np.ndarray      # (2,) m
-    particle_radius: float           # m
-    tip_radius: float                # m
-    approach_start: np.ndarray       # (2,) m, the tip's mean when planning
-    approach_length: float           # m, from approach_start to lines[0].start
-    reference_covariance: np.ndarray # 2x2 m^2 at lines[0].start: the Gaussian whose ellipse is covered
+
+    direction: str  # "h" (lines along x) or "v" (along y)
+    particle_center: np.ndarray  # (2,) m
+    particle_radius: float  # m
+    tip_radius: float  # m
+    approach_start: np.ndarray  # (2,) m, the tip's mean when planning
+    approach_length: float  # m, from approach_start to lines[0].start
+    reference_covariance: (
+        np.ndarray
+    )  # 2x2 m^2 at lines[0].start: the Gaussian whose ellipse is covered
     lines: tuple[ScanLine, ...]
     step_lengths: tuple[float, ...]  # m, move from lines[k-1].end to lines[k].start (k >= 1)
-    expected_cost: float             # m, expected travel until the particle is found (eq. 6.10)
-    success_probability: float       # P(initial across error within the union of the bands)
-    covered: tuple[float, float]     # m, the union of the bands (initial across error)
+    expected_cost: float  # m, expected travel until the particle is found (eq. 6.10)
+    success_probability: float  # P(initial across error within the union of the bands)
+    covered: tuple[float, float]  # m, the union of the bands (initial across error)
 
     @property
     def total_length(self) -> float:
         """Travel if the particle is found on the last line (or not at all)."""
-        return self.approach_length + sum(self.step_lengths) + sum(line.length for line in self.lines)
+        return (
+            self.approach_length + sum(self.step_lengths) + sum(line.length for line in self.lines)
+        )
 
 
 @dataclass(frozen=True)
 class _Slopes:
-    along: float           # along variance per m moved along the line
-    cross: float           # across variance per m moved along the line
-    across: float          # across variance per m moved across
+    along: float  # along variance per m moved along the line
+    cross: float  # across variance per m moved along the line
+    across: float  # across variance per m moved across
     along_per_across: float
     offset_along: float
     offset_across: float
@@ -106,12 +117,15 @@ class _Slopes:
 
 def _slopes(noise: MotionNoise, axis: int) -> _Slopes:
     if axis == 0:
-        return _Slopes(noise.k_h1, noise.k_h2, noise.k_v1, noise.k_v2, noise.offset_x, noise.offset_y)
+        return _Slopes(
+            noise.k_h1, noise.k_h2, noise.k_v1, noise.k_v2, noise.offset_x, noise.offset_y
+        )
     return _Slopes(noise.k_v1, noise.k_v2, noise.k_h1, noise.k_h2, noise.offset_y, noise.offset_x)
 
 
-def line_end_distance(variance_along: float, slope_along: float, travelled_before_centre: float,
-                      clearance: float) -> float:
+def line_end_distance(
+    variance_along: float, slope_along: float, travelled_before_centre: float, clearance: float
+) -> float:
     """Eq. 6.2: distance l past the particle centre at which a line may end, the root >= clearance of
     l = 3 sqrt(variance + slope (l_1 + l)) + clearance (clearance = R_T + R_P; variance at the line's
     start, l_1 its distance to the centre). (l - c)^2 = 9 (W + K l) is a quadratic with one root >= c."""
@@ -139,7 +153,11 @@ def _strip_mass(t1: float, t2: float) -> float:
 
     def density_times_chord_mass(t: float) -> float:
         # phi(t) * P(|conditional along error| <= sqrt(9 - t^2) conditional sigmas)
-        return math.exp(-0.5 * t * t) / math.sqrt(2 * math.pi) * math.erf(math.sqrt(max(9.0 - t * t, 0.0) / 2))
+        return (
+            math.exp(-0.5 * t * t)
+            / math.sqrt(2 * math.pi)
+            * math.erf(math.sqrt(max(9.0 - t * t, 0.0) / 2))
+        )
 
     return float(integrate.quad(density_times_chord_mass, t1, t2, epsabs=1e-12, epsrel=1e-10)[0])
 
@@ -148,9 +166,17 @@ def _normal_mass(t1: float, t2: float) -> float:
     return float(special.ndtr(t2) - special.ndtr(t1))
 
 
-def plan_observation(tip_mean, tip_covariance, particle_center, particle_radius: float, tip_radius: float,
-                     noise: MotionNoise, direction: str = "h", min_line_probability: float = 0.01,
-                     first_side: int = 1) -> ObservationPlan:
+def plan_observation(
+    tip_mean,
+    tip_covariance,
+    particle_center,
+    particle_radius: float,
+    tip_radius: float,
+    noise: MotionNoise,
+    direction: str = "h",
+    min_line_probability: float = 0.01,
+    first_side: int = 1,
+) -> ObservationPlan:
     """Plan the local scan lines L0, L1, ... that find the particle (see the module docstring).
 
     Raises ValueError naming the argument for bad input (NaN, non-PSD covariance, non-positive
@@ -189,7 +215,9 @@ def plan_observation(tip_mean, tip_covariance, particle_center, particle_radius:
     distance = abs(rel[a])
     start_distance = clearance
     for _ in range(60):
-        cov_start = move(cov0, distance - start_distance if distance != start_distance else 0.0, -rel[b])
+        cov_start = move(
+            cov0, distance - start_distance if distance != start_distance else 0.0, -rel[b]
+        )
         new = 3 * math.sqrt(cov_start[a, a]) + clearance
         if abs(new - start_distance) < 1e-15:
             break
@@ -204,39 +232,66 @@ def plan_observation(tip_mean, tip_covariance, particle_center, particle_radius:
     lines: list[ScanLine] = []
     steps: list[float] = []
 
-    def scan(cov: np.ndarray, along_start: float, offset: float) -> tuple[np.ndarray, float, float]:
+    def scan(
+        cov: np.ndarray, along_start: float, offset: float
+    ) -> tuple[np.ndarray, float, float]:
         """Line at `offset` from along_start (signed) across the centre: end covariance, end, half-width h."""
-        end_distance = line_end_distance(cov[a, a] + k.offset_along, k.along, abs(along_start), clearance)
+        end_distance = line_end_distance(
+            cov[a, a] + k.offset_along, k.along, abs(along_start), clearance
+        )
         along_end = -math.copysign(end_distance, along_start)
         cov_end = move(cov, along_end - along_start, 0.0)
         accumulated = cov_end[b, b] - var_across_ref
         return cov_end, along_end, r_p - 3 * math.sqrt(max(accumulated, 0.0))
 
     def add(cov_s, cov_e, along_s, along_e, offset, band, side, mass):
-        lines.append(ScanLine(at(along_s, offset), at(along_e, offset), offset, band, mass, mass, side,
-                              cov_s, cov_e))
+        lines.append(
+            ScanLine(
+                at(along_s, offset),
+                at(along_e, offset),
+                offset,
+                band,
+                mass,
+                mass,
+                side,
+                cov_s,
+                cov_e,
+            )
+        )
 
     # Step 1 (L0)
     cov_end, along_end, h0 = scan(cov_start, side_along * start_distance, 0.0)
     if h0 <= 0:
-        raise ValueError(f"particle_radius={r_p} m: too small for the motion noise; 3 sigma of the across "
-                         f"error added by the approach and L0 is {r_p - h0:.3g} m >= R_P, so no line "
-                         "is sure to cross the particle")
+        raise ValueError(
+            f"particle_radius={r_p} m: too small for the motion noise; 3 sigma of the across "
+            f"error added by the approach and L0 is {r_p - h0:.3g} m >= R_P, so no line "
+            "is sure to cross the particle"
+        )
     covered = [-h0, h0]
-    add(cov_start, cov_end, side_along * start_distance, along_end, 0.0, (-h0, h0), 0,
-        _strip_mass(-h0 / sigma_ref, h0 / sigma_ref))
-    state = (cov_end, along_end, 0.0)       # covariance, along position, offset of the tip now
+    add(
+        cov_start,
+        cov_end,
+        side_along * start_distance,
+        along_end,
+        0.0,
+        (-h0, h0),
+        0,
+        _strip_mass(-h0 / sigma_ref, h0 / sigma_ref),
+    )
+    state = (cov_end, along_end, 0.0)  # covariance, along position, offset of the tip now
 
     # Steps 2-5: one side of L0, then the other.
     for side in (first_side, -first_side):
         edge_index = 1 if side > 0 else 0
         while side * covered[edge_index] < ellipse:
             if len(lines) >= MAX_LINES:
-                raise ValueError(f"tip_covariance: needs more than {MAX_LINES} scan lines to cover its "
-                                 f"3-sigma ellipse (sigma_across {sigma_ref:.3g} m, R_P {r_p:.3g} m)")
+                raise ValueError(
+                    f"tip_covariance: needs more than {MAX_LINES} scan lines to cover its "
+                    f"3-sigma ellipse (sigma_across {sigma_ref:.3g} m, R_P {r_p:.3g} m)"
+                )
             cov, along_now, offset_now = state
             reach = side * covered[edge_index] + side * offset_now + r_p
-            line_growth = k.cross * 2 * abs(along_now)           # first estimate of the line's own growth
+            line_growth = k.cross * 2 * abs(along_now)  # first estimate of the line's own growth
             shortfall = 0.0
             for _ in range(8):
                 accumulated = cov[b, b] - var_across_ref + k.offset_across + line_growth
@@ -245,7 +300,8 @@ def plan_observation(tip_mean, tip_covariance, particle_center, particle_radius:
                     raise ValueError(
                         f"particle_radius={r_p} m: too small for the motion noise; after "
                         f"{len(lines)} lines 3 sigma of the added across error reaches R_P, so the "
-                        f"next line cannot be sure to cross (tip_covariance sigma_across {sigma_ref:.3g} m)")
+                        f"next line cannot be sure to cross (tip_covariance sigma_across {sigma_ref:.3g} m)"
+                    )
                 offset_new = offset_now - side * u
                 # the line starts where the last one ended, moved out if its sigma_along grew
                 cov_step = move(cov, 0.0, u)
@@ -259,7 +315,8 @@ def plan_observation(tip_mean, tip_covariance, particle_center, particle_radius:
                     raise ValueError(
                         f"particle_radius={r_p} m: too small for the motion noise; after {len(lines)} "
                         f"lines 3 sigma of the added across error ({r_p - h:.3g} m) reaches R_P, so the "
-                        f"next line cannot be sure to cross (tip_covariance sigma_across {sigma_ref:.3g} m)")
+                        f"next line cannot be sure to cross (tip_covariance sigma_across {sigma_ref:.3g} m)"
+                    )
                 # the band's near edge must reach what is covered (no gap); shrink the step if not
                 near_edge = -offset_new - side * h
                 gap = side * (near_edge - covered[edge_index])
@@ -267,13 +324,15 @@ def plan_observation(tip_mean, tip_covariance, particle_center, particle_radius:
                     break
                 shortfall += max(gap, 0.0) + 1e-15
             else:
-                raise ValueError(f"particle_radius={r_p} m: no across step keeps the bands of the lines "
-                                 f"contiguous after {len(lines)} lines (motion noise too large)")
+                raise ValueError(
+                    f"particle_radius={r_p} m: no across step keeps the bands of the lines "
+                    f"contiguous after {len(lines)} lines (motion noise too large)"
+                )
             band = (-offset_new - h, -offset_new + h)
-            new_part = ((covered[1], band[1]) if side > 0 else (band[0], covered[0]))
+            new_part = (covered[1], band[1]) if side > 0 else (band[0], covered[0])
             mass = _strip_mass(new_part[0] / sigma_ref, new_part[1] / sigma_ref)
             if mass / THREE_SIGMA_MASS < min_line_probability:
-                break                       # small-probability event (TH): not planned, nor beyond it
+                break  # small-probability event (TH): not planned, nor beyond it
             covered[edge_index] = band[edge_index]
             steps.append(float(math.hypot(along_new - along_now, u)))
             add(cov_step, cov_e, along_new, along_e, offset_new, band, side, mass)
@@ -286,8 +345,30 @@ def plan_observation(tip_mean, tip_covariance, particle_center, particle_radius:
         travelled += (steps[i - 1] if i else 0.0) + line.length
         p = line.raw_probability / total
         expected += p * travelled
-        normalised.append(ScanLine(line.start, line.end, line.offset, line.band, p, line.raw_probability,
-                                   line.side, line.start_covariance, line.end_covariance))
-    return ObservationPlan(direction, centre, r_p, r_t, mean, approach_length, cov_start, tuple(normalised),
-                           tuple(steps), expected, _normal_mass(covered[0] / sigma_ref, covered[1] / sigma_ref),
-                           (covered[0], covered[1]))
+        normalised.append(
+            ScanLine(
+                line.start,
+                line.end,
+                line.offset,
+                line.band,
+                p,
+                line.raw_probability,
+                line.side,
+                line.start_covariance,
+                line.end_covariance,
+            )
+        )
+    return ObservationPlan(
+        direction,
+        centre,
+        r_p,
+        r_t,
+        mean,
+        approach_length,
+        cov_start,
+        tuple(normalised),
+        tuple(steps),
+        expected,
+        _normal_mass(covered[0] / sigma_ref, covered[1] / sigma_ref),
+        (covered[0], covered[1]),
+    )

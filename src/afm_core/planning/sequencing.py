@@ -18,26 +18,28 @@ Unknown entries (NaN or +inf) are edges the tip cannot use. An order that needs 
 infinite cost; when no order avoids them the solvers raise ValueError (the exact solver
 proves it; the heuristic says it found none).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
-EXACT_MAX = 20           # Held-Karp table: 2^20 * 20 float64 = 168 MB; beyond that, refuse
-EXACT_LIMIT = 16         # best_order's default switch to the heuristic (2^16 * 16 table: 8 MB, ~0.1 s)
+EXACT_MAX = 20  # Held-Karp table: 2^20 * 20 float64 = 168 MB; beyond that, refuse
+EXACT_LIMIT = 16  # best_order's default switch to the heuristic (2^16 * 16 table: 8 MB, ~0.1 s)
 SYMMETRY_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True)
 class SequencingResult:
     """An order of particle indices (0-based) and its cost (sum of consecutive distances)."""
+
     order: tuple[int, ...]
     cost: float
-    method: str                  # "exact", "heuristic", "ant_colony"
-    optimal: bool                # True only when the exact solver proved it
+    method: str  # "exact", "heuristic", "ant_colony"
+    optimal: bool  # True only when the exact solver proved it
 
 
 @dataclass(frozen=True)
@@ -46,12 +48,13 @@ class AntColonyParameters:
     reference [1] but prints no values, so these are the textbook ones: alpha = 1 (pheromone
     weight), beta = 2 (distance weight), rho = 0.5 (evaporation), one ant per particle,
     initial pheromone = ants / (cost of a nearest-neighbour order)."""
+
     iterations: int = 200
-    ants: int | None = None      # None: one per particle
+    ants: int | None = None  # None: one per particle
     alpha: float = 1.0
     beta: float = 2.0
     evaporation: float = 0.5
-    deposit: float = 1.0         # Q: pheromone an ant lays, divided by its order's cost
+    deposit: float = 1.0  # Q: pheromone an ant lays, divided by its order's cost
 
 
 # -- validation --------------------------------------------------------------------------
@@ -72,21 +75,27 @@ def validated_distances(matrix, tolerance: float = SYMMETRY_TOLERANCE) -> np.nda
         raise ValueError("distance matrix: must have at least one particle, got 0 x 0")
     if np.isneginf(d).any() or (d < 0).any():
         i, j = np.argwhere(np.isneginf(d) | (d < 0))[0]
-        raise ValueError(f"distance matrix: entry [{i}, {j}] = {d[i, j]} is negative; distances must be >= 0")
+        raise ValueError(
+            f"distance matrix: entry [{i}, {j}] = {d[i, j]} is negative; distances must be >= 0"
+        )
     d[np.isnan(d)] = np.inf
     unknown = np.isinf(d)
     if (unknown != unknown.T).any():
         i, j = np.argwhere(unknown != unknown.T)[0]
-        raise ValueError(f"distance matrix: entry [{i}, {j}] = {d[i, j]} but [{j}, {i}] = {d[j, i]}; "
-                         "an unknown distance must be unknown both ways")
+        raise ValueError(
+            f"distance matrix: entry [{i}, {j}] = {d[i, j]} but [{j}, {i}] = {d[j, i]}; "
+            "an unknown distance must be unknown both ways"
+        )
     finite = np.where(unknown, 0.0, d)
-    scale = float(finite.max()) or 1.0          # relative: metres and micrometres alike
+    scale = float(finite.max()) or 1.0  # relative: metres and micrometres alike
     asymmetry = np.abs(finite - finite.T)
     if asymmetry.max() > tolerance * scale:
         i, j = np.unravel_index(np.argmax(asymmetry), asymmetry.shape)
-        raise ValueError(f"distance matrix: not symmetric, [{i}, {j}] = {d[i, j]} vs [{j}, {i}] = {d[j, i]} "
-                         f"(tolerance {tolerance} x {scale})")
-    np.fill_diagonal(d, 0.0)     # staying put is free; the diagonal is never an edge of an order
+        raise ValueError(
+            f"distance matrix: not symmetric, [{i}, {j}] = {d[i, j]} vs [{j}, {i}] = {d[j, i]} "
+            f"(tolerance {tolerance} x {scale})"
+        )
+    np.fill_diagonal(d, 0.0)  # staying put is free; the diagonal is never an edge of an order
     return d
 
 
@@ -104,9 +113,14 @@ def order_cost(matrix, order: Sequence[int]) -> float:
 def _result(d: np.ndarray, order, method: str, optimal: bool) -> SequencingResult:
     cost = order_cost(d, order)
     if not math.isfinite(cost):
-        raise ValueError(f"{method}: found no order that avoids the unknown (NaN/inf) distances"
-                         + (" (none exists)" if optimal else " (one may still exist; try the exact solver "
-                                                             "for n <= %d)" % EXACT_MAX))
+        raise ValueError(
+            f"{method}: found no order that avoids the unknown (NaN/inf) distances"
+            + (
+                " (none exists)"
+                if optimal
+                else " (one may still exist; try the exact solver for n <= %d)" % EXACT_MAX
+            )
+        )
     return SequencingResult(tuple(int(i) for i in order), cost, method, optimal)
 
 
@@ -122,8 +136,10 @@ def exact_order(matrix) -> SequencingResult:
     d = validated_distances(matrix)
     n = d.shape[0]
     if n > EXACT_MAX:
-        raise ValueError(f"exact_order: {n} particles; the exact solver is limited to {EXACT_MAX} "
-                         f"(its table needs 2^n * n entries); use heuristic_order")
+        raise ValueError(
+            f"exact_order: {n} particles; the exact solver is limited to {EXACT_MAX} "
+            f"(its table needs 2^n * n entries); use heuristic_order"
+        )
     if n == 1:
         return SequencingResult((0,), 0.0, "exact", True)
     full = (1 << n) - 1
@@ -140,14 +156,16 @@ def exact_order(matrix) -> SequencingResult:
         for end in range(n):
             with_end = layer[(layer >> end) & 1 == 1]
             before = with_end ^ (1 << end)
-            candidates = best[before] + d[:, end]          # inf where the previous end is not in `before`
+            candidates = best[before] + d[:, end]  # inf where the previous end is not in `before`
             previous = np.argmin(candidates, axis=1)
             best[with_end, end] = candidates[np.arange(len(with_end)), previous]
             came_from[with_end, end] = previous
     end = int(np.argmin(best[full]))
     if not math.isfinite(best[full, end]):
-        raise ValueError("exact_order: no order visits every particle using only known distances "
-                         "(the unknown NaN/inf entries disconnect them)")
+        raise ValueError(
+            "exact_order: no order visits every particle using only known distances "
+            "(the unknown NaN/inf entries disconnect them)"
+        )
     order, mask = [end], full
     while mask != (1 << end):
         previous = int(came_from[mask, end])
@@ -180,7 +198,7 @@ def _nearest_neighbour_tour(e: np.ndarray, start: int) -> np.ndarray:
         row = np.where(visited, np.inf, e[current])
         dummy = size - 1
         if not visited[dummy] and k < size - 1:
-            row[dummy] = np.inf       # the dummy (path end) goes last, so the path is built greedily
+            row[dummy] = np.inf  # the dummy (path end) goes last, so the path is built greedily
         current = int(np.argmin(row))
         tour[k] = current
         visited[current] = True
@@ -208,12 +226,14 @@ def _two_opt(e: np.ndarray, tour: np.ndarray, eps: float) -> tuple[np.ndarray, b
             k = int(np.argmin(delta))
             if delta[k] < -eps:
                 j = int(js[k])
-                tour[i + 1:j + 1] = tour[i + 1:j + 1][::-1].copy()
+                tour[i + 1 : j + 1] = tour[i + 1 : j + 1][::-1].copy()
                 improved = improved_any = True
     return tour, improved_any
 
 
-def _or_opt(e: np.ndarray, tour: np.ndarray, eps: float, max_segment: int = 3) -> tuple[np.ndarray, bool]:
+def _or_opt(
+    e: np.ndarray, tour: np.ndarray, eps: float, max_segment: int = 3
+) -> tuple[np.ndarray, bool]:
     """Move a segment of 1-3 consecutive nodes (either way round) to its best other place."""
     size = len(tour)
     improved_any = False
@@ -229,18 +249,21 @@ def _or_opt(e: np.ndarray, tour: np.ndarray, eps: float, max_segment: int = 3) -
                 segment = tour[positions]
                 before, after = tour[(i - 1) % size], tour[(i + length) % size]
                 removal_gain = e[before, segment[0]] + e[segment[-1], after] - e[before, after]
-                rest = np.delete(np.roll(tour, -i), np.arange(length))      # starts at `after`
+                rest = np.delete(np.roll(tour, -i), np.arange(length))  # starts at `after`
                 u, v = rest, np.roll(rest, -1)
                 base = e[u, v]
                 forward = e[u, segment[0]] + e[segment[-1], v] - base
                 backward = e[u, segment[-1]] + e[segment[0], v] - base
-                forward[-1] = backward[-1] = np.inf          # (before, after): where it came from
+                forward[-1] = backward[-1] = np.inf  # (before, after): where it came from
                 k_f, k_b = int(np.argmin(forward)), int(np.argmin(backward))
-                insert_cost, reverse, k = ((forward[k_f], False, k_f) if forward[k_f] <= backward[k_b]
-                                           else (backward[k_b], True, k_b))
+                insert_cost, reverse, k = (
+                    (forward[k_f], False, k_f)
+                    if forward[k_f] <= backward[k_b]
+                    else (backward[k_b], True, k_b)
+                )
                 if insert_cost - removal_gain < -eps:
                     piece = segment[::-1] if reverse else segment
-                    tour = np.concatenate([rest[:k + 1], piece, rest[k + 1:]])
+                    tour = np.concatenate([rest[: k + 1], piece, rest[k + 1 :]])
                     improved = improved_any = True
                 i += 1
     return tour, improved_any
@@ -265,7 +288,7 @@ def _double_bridge(tour: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def _path_from_tour(tour: np.ndarray, dummy: int) -> np.ndarray:
     k = int(np.flatnonzero(tour == dummy)[0])
-    return np.concatenate([tour[k + 1:], tour[:k]])
+    return np.concatenate([tour[k + 1 :], tour[:k]])
 
 
 def heuristic_order(matrix, starts: int = 8, kicks: int = 0, seed: int = 0) -> SequencingResult:
@@ -299,8 +322,9 @@ def heuristic_order(matrix, starts: int = 8, kicks: int = 0, seed: int = 0) -> S
 
 
 # -- the book's ant colony --------------------------------------------------------------------
-def ant_colony_order(matrix, seed: int = 0, parameters: AntColonyParameters = AntColonyParameters()
-                     ) -> SequencingResult:
+def ant_colony_order(
+    matrix, seed: int = 0, parameters: AntColonyParameters = AntColonyParameters()
+) -> SequencingResult:
     """Ant System for the open path (book 6.3.2). Each ant starts at a random particle and
     picks the next unvisited one with probability ~ tau^alpha * (1/d)^beta; after all ants
     have built an order, pheromone evaporates by rho and each ant lays deposit / cost on its
@@ -312,15 +336,19 @@ def ant_colony_order(matrix, seed: int = 0, parameters: AntColonyParameters = An
     if p.iterations < 1 or (p.ants is not None and p.ants < 1):
         raise ValueError(f"ant colony: iterations={p.iterations} and ants={p.ants} must be >= 1")
     if not (0 < p.evaporation <= 1) or p.alpha < 0 or p.beta < 0 or p.deposit <= 0:
-        raise ValueError(f"ant colony: evaporation={p.evaporation} must be in (0, 1], alpha={p.alpha} and "
-                         f"beta={p.beta} >= 0, deposit={p.deposit} > 0")
+        raise ValueError(
+            f"ant colony: evaporation={p.evaporation} must be in (0, 1], alpha={p.alpha} and "
+            f"beta={p.beta} >= 0, deposit={p.deposit} > 0"
+        )
     if n <= 2:
         return exact_order(d)
     rng = np.random.default_rng(seed)
     ants = p.ants or n
     known = np.isfinite(d)
     positive = d[known & (d > 0)]
-    floor = (positive.min() if positive.size else 1.0) * 1e-3     # coincident particles: huge, finite visibility
+    floor = (
+        positive.min() if positive.size else 1.0
+    ) * 1e-3  # coincident particles: huge, finite visibility
     visibility = np.where(known, 1.0 / np.maximum(d, floor), 0.0) ** p.beta
     np.fill_diagonal(visibility, 0.0)
     try:
@@ -331,7 +359,7 @@ def ant_colony_order(matrix, seed: int = 0, parameters: AntColonyParameters = An
     rows = np.arange(ants)
     best_order, best_cost = None, np.inf
     for _ in range(p.iterations):
-        weight = pheromone ** p.alpha * visibility
+        weight = pheromone**p.alpha * visibility
         orders = np.empty((ants, n), dtype=int)
         orders[:, 0] = current = rng.integers(0, n, ants)
         unvisited = np.ones((ants, n), dtype=bool)
@@ -340,8 +368,8 @@ def ant_colony_order(matrix, seed: int = 0, parameters: AntColonyParameters = An
         for step in range(1, n):
             w = weight[current] * unvisited
             total = w.sum(axis=1)
-            stuck |= total <= 0                         # only unknown edges left: this ant fails
-            w[stuck] = unvisited[stuck]                 # let it finish anywhere; its cost is inf
+            stuck |= total <= 0  # only unknown edges left: this ant fails
+            w[stuck] = unvisited[stuck]  # let it finish anywhere; its cost is inf
             cumulative = np.cumsum(w, axis=1)
             draw = rng.random(ants) * cumulative[:, -1]
             current = np.minimum((cumulative <= draw[:, None]).sum(axis=1), n - 1)
@@ -359,7 +387,9 @@ def ant_colony_order(matrix, seed: int = 0, parameters: AntColonyParameters = An
             np.add.at(pheromone, (a, b), amount)
             np.add.at(pheromone, (b, a), amount)
     if best_order is None:
-        raise ValueError("ant_colony_order: no ant found an order that avoids the unknown (NaN/inf) distances")
+        raise ValueError(
+            "ant_colony_order: no ant found an order that avoids the unknown (NaN/inf) distances"
+        )
     return _result(d, best_order, "ant_colony", False)
 
 

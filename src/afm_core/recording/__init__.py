@@ -2,6 +2,7 @@
 
 The recorder and replay *nodes* (afm_bringup) only move bytes between DDS and these classes.
 """
+
 from afm_core.recording.definitions import DefinitionNotFound, full_message_definition
 from afm_core.recording.errors import RecordingError
 from afm_core.recording.qos import QosDescription

@@ -5,17 +5,33 @@ text followed by the text of every type it depends on, each once, depth first, e
 a line of 80 '=' and a `MSG: pkg/Type` line. The .msg files come from the ament index
 (`<prefix>/share/<pkg>/msg/<Type>.msg` for every prefix on AMENT_PREFIX_PATH).
 """
+
 from __future__ import annotations
 
 import os
 import re
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
-PRIMITIVE_TYPES = frozenset({
-    "bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
-    "int32", "uint32", "int64", "uint64", "string", "wstring",
-})
+PRIMITIVE_TYPES = frozenset(
+    {
+        "bool",
+        "byte",
+        "char",
+        "float32",
+        "float64",
+        "int8",
+        "uint8",
+        "int16",
+        "uint16",
+        "int32",
+        "uint32",
+        "int64",
+        "uint64",
+        "string",
+        "wstring",
+    }
+)
 # A field line starts with its type, e.g. "geometry_msgs/Point[] goals" or "float64[4] c".
 FIELD_TYPE = re.compile(r"^\s*([A-Za-z][A-Za-z0-9_/]*)(?:\[[^\]]*\])?(?:<=\d+)?\s+", re.MULTILINE)
 SEPARATOR = "=" * 80
@@ -38,10 +54,11 @@ def split_type_name(type_name: str) -> tuple[str, str]:
         return parts[0], parts[1]
     raise DefinitionNotFound(
         f"type name {type_name!r} is not of the form 'package/msg/Type' (only message types"
-        " with a .msg file can be recorded)")
+        " with a .msg file can be recorded)"
+    )
 
 
-@lru_cache(maxsize=None)
+@cache
 def _read_msg_file(package: str, type_name: str, prefixes: tuple[str, ...]) -> str:
     for prefix in prefixes:
         candidate = Path(prefix) / "share" / package / "msg" / f"{type_name}.msg"
@@ -49,7 +66,8 @@ def _read_msg_file(package: str, type_name: str, prefixes: tuple[str, ...]) -> s
             return candidate.read_text()
     raise DefinitionNotFound(
         f"no {package}/msg/{type_name}.msg under any AMENT_PREFIX_PATH entry "
-        f"({len(prefixes)} searched); is the workspace sourced?")
+        f"({len(prefixes)} searched); is the workspace sourced?"
+    )
 
 
 def dependencies(msg_text: str, package: str) -> list[str]:

@@ -3,26 +3,34 @@
 Streams: messages are decoded one at a time from the chunks they live in; only what a
 caller asks for (e.g. one topic's arrays) is ever held in memory.
 """
+
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator
 
 import numpy as np
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
-from mcap.stream_reader import StreamReader
 from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
 from afm_core.recording.errors import RecordingError
 from afm_core.recording.qos import QosDescription, load_profiles
 from afm_core.recording.writer import RecordingWriter
 
-IMAGE_DTYPES = {"32FC1": np.float32, "64FC1": np.float64, "8UC1": np.uint8, "mono8": np.uint8,
-                "16UC1": np.uint16, "mono16": np.uint16, "32SC1": np.int32}
+IMAGE_DTYPES = {
+    "32FC1": np.float32,
+    "64FC1": np.float64,
+    "8UC1": np.uint8,
+    "mono8": np.uint8,
+    "16UC1": np.uint16,
+    "mono16": np.uint16,
+    "32SC1": np.int32,
+}
 
 
 @dataclass
@@ -38,14 +46,22 @@ class TopicInfo:
 def image_to_array(image) -> np.ndarray:
     """sensor_msgs/Image (decoded) -> 2-D array, honouring encoding, step and endianness."""
     if image.encoding not in IMAGE_DTYPES:
-        raise RecordingError(f"image encoding {image.encoding!r} not supported; expected one of {sorted(IMAGE_DTYPES)}")
+        raise RecordingError(
+            f"image encoding {image.encoding!r} not supported; expected one of {sorted(IMAGE_DTYPES)}"
+        )
     dtype = np.dtype(IMAGE_DTYPES[image.encoding]).newbyteorder(">" if image.is_bigendian else "<")
     raw = np.frombuffer(bytes(image.data), dtype=np.uint8)
     if image.height == 0 or image.width == 0:
         return np.zeros((image.height, image.width), dtype=dtype.newbyteorder("="))
     rows = raw[: image.height * image.step].reshape(image.height, image.step)
     row_bytes = image.width * dtype.itemsize
-    return rows[:, :row_bytes].copy().view(dtype).reshape(image.height, image.width).astype(dtype.newbyteorder("="))
+    return (
+        rows[:, :row_bytes]
+        .copy()
+        .view(dtype)
+        .reshape(image.height, image.width)
+        .astype(dtype.newbyteorder("="))
+    )
 
 
 def _is_image(value) -> bool:
@@ -103,12 +119,14 @@ class RecordingReader:
             self._stream.close()
             raise RecordingError(
                 f"recording {str(self.path)!r} is truncated or corrupt ({exc}); "
-                f"`afm recover {self.path}` saves the complete chunks") from exc
+                f"`afm recover {self.path}` saves the complete chunks"
+            ) from exc
         if self.summary is None or self.summary.statistics is None:
             self._stream.close()
             raise RecordingError(
                 f"recording {str(self.path)!r} has no summary (the writer did not finish); "
-                f"`afm recover {self.path}` rebuilds it")
+                f"`afm recover {self.path}` rebuilds it"
+            )
 
     def close(self):
         self._stream.close()
@@ -158,17 +176,26 @@ class RecordingReader:
         known = self.topics()
         missing = [t for t in topics if t not in known]
         if missing:
-            raise RecordingError(f"{self.path}: topic(s) {missing} not recorded; recorded: {sorted(known)}")
+            raise RecordingError(
+                f"{self.path}: topic(s) {missing} not recorded; recorded: {sorted(known)}"
+            )
         return topics
 
     # -- messages --------------------------------------------------------------------------
-    def raw_messages(self, topics: Iterable[str] | None = None,
-                     start_ns: int | None = None, end_ns: int | None = None
-                     ) -> Iterator[tuple[Schema, Channel, Message]]:
+    def raw_messages(
+        self,
+        topics: Iterable[str] | None = None,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+    ) -> Iterator[tuple[Schema, Channel, Message]]:
         """(schema, channel, message) in log-time order, CDR bytes untouched (for replay)."""
         try:
-            yield from self._reader.iter_messages(topics=self._check_topics(topics), start_time=start_ns,
-                                                  end_time=end_ns, log_time_order=True)
+            yield from self._reader.iter_messages(
+                topics=self._check_topics(topics),
+                start_time=start_ns,
+                end_time=end_ns,
+                log_time_order=True,
+            )
         except McapError as exc:
             raise RecordingError(f"{self.path}: corrupt data while reading ({exc})") from exc
 
@@ -176,7 +203,8 @@ class RecordingReader:
         """(topic, log_time_ns, decoded message) in log-time order."""
         try:
             for _schema, channel, message, decoded in self._reader.iter_decoded_messages(
-                    topics=self._check_topics(topics), log_time_order=True):
+                topics=self._check_topics(topics), log_time_order=True
+            ):
                 yield channel.topic, message.log_time, decoded
         except McapError as exc:
             raise RecordingError(f"{self.path}: corrupt data while reading ({exc})") from exc
@@ -195,7 +223,9 @@ class RecordingReader:
         return {key: _stack(values) for key, values in columns.items()}
 
 
-def recover_recording(source: str | os.PathLike, output: str | os.PathLike | None = None) -> tuple[Path, int]:
+def recover_recording(
+    source: str | os.PathLike, output: str | os.PathLike | None = None
+) -> tuple[Path, int]:
     """Copy every complete message of an unfinished or truncated file into a new recording.
 
     Returns the new file and its message count. The source is never modified.
@@ -220,10 +250,16 @@ def recover_recording(source: str | os.PathLike, output: str | os.PathLike | Non
                         continue
                     profiles = load_profiles(record.metadata.get("offered_qos_profiles", ""))
                     channel_map[record.id] = writer.add_channel(
-                        record.topic, schema.name, profiles, definition=schema.data.decode())
+                        record.topic, schema.name, profiles, definition=schema.data.decode()
+                    )
                 elif isinstance(record, Message) and record.channel_id in channel_map:
-                    writer.write(channel_map[record.channel_id], record.log_time, record.data,
-                                 record.publish_time, record.sequence)
+                    writer.write(
+                        channel_map[record.channel_id],
+                        record.log_time,
+                        record.data,
+                        record.publish_time,
+                        record.sequence,
+                    )
         except RecordingError:
             raise
         except Exception:  # noqa: BLE001 - the stream ends wherever the file was cut

@@ -8,6 +8,7 @@ Safety rules, because a recording is often the only copy of an experiment:
 - an I/O failure mid-file leaves only the `.part` file, never a broken `<name>`;
   `afm recover` turns a `.part` into a readable recording.
 """
+
 from __future__ import annotations
 
 import os
@@ -23,7 +24,11 @@ from afm_core.recording.qos import QosDescription, dump_profiles
 
 PART_SUFFIX = ".part"
 LIBRARY = "afm_core recorder 0.1"
-COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+COMPRESSIONS = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
 
 
 def part_path(path: Path) -> Path:
@@ -36,11 +41,14 @@ def check_output_path(path: str | os.PathLike) -> Path:
     if path.suffix != ".mcap":
         raise RecordingError(f"output {str(path)!r}: the file name must end in .mcap")
     if path.exists():
-        raise RecordingError(f"output {str(path)!r} already exists; recordings are never overwritten")
+        raise RecordingError(
+            f"output {str(path)!r} already exists; recordings are never overwritten"
+        )
     if part_path(path).exists():
         raise RecordingError(
             f"output {str(path)!r}: an unfinished recording {part_path(path).name!r} is in the way; "
-            f"run `afm recover {part_path(path)}` or remove it")
+            f"run `afm recover {part_path(path)}` or remove it"
+        )
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise RecordingError(f"output {str(path)!r}: directory {str(parent)!r} does not exist")
@@ -58,11 +66,19 @@ class RecordingWriter:
             rec.write(ch, log_time_ns, cdr_bytes)
     """
 
-    def __init__(self, path: str | os.PathLike, *, compression: str = "zstd",
-                 chunk_size: int = 4 * 1024 * 1024, min_free_bytes: int = 64 * 1024 * 1024,
-                 free_space_check_bytes: int = 8 * 1024 * 1024):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        compression: str = "zstd",
+        chunk_size: int = 4 * 1024 * 1024,
+        min_free_bytes: int = 64 * 1024 * 1024,
+        free_space_check_bytes: int = 8 * 1024 * 1024,
+    ):
         if compression not in COMPRESSIONS:
-            raise RecordingError(f"compression={compression!r}: expected one of {sorted(COMPRESSIONS)}")
+            raise RecordingError(
+                f"compression={compression!r}: expected one of {sorted(COMPRESSIONS)}"
+            )
         if chunk_size < 1024:
             raise RecordingError(f"chunk_size={chunk_size}: must be at least 1024 bytes")
         self.path = check_output_path(path)
@@ -78,13 +94,22 @@ class RecordingWriter:
         try:
             self._stream = open(self.part, "xb")
         except OSError as exc:
-            raise RecordingError(f"output {str(self.part)!r}: cannot create: {exc.strerror}") from exc
-        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
+            raise RecordingError(
+                f"output {str(self.part)!r}: cannot create: {exc.strerror}"
+            ) from exc
+        self._writer = Writer(
+            self._stream, chunk_size=chunk_size, compression=COMPRESSIONS[compression]
+        )
         self._guard(lambda: self._writer.start(profile=Profile.ROS2, library=LIBRARY))
 
     # -- channels -------------------------------------------------------------------------
-    def add_channel(self, topic: str, type_name: str, offered_qos: list[QosDescription],
-                    definition: str | None = None) -> int:
+    def add_channel(
+        self,
+        topic: str,
+        type_name: str,
+        offered_qos: list[QosDescription],
+        definition: str | None = None,
+    ) -> int:
         """Register a topic; `definition` defaults to the full .msg text from the ament index."""
         if topic in self._channels:
             raise RecordingError(f"topic {topic!r} is already recorded")
@@ -92,12 +117,20 @@ class RecordingWriter:
             raise RecordingError(f"topic {topic!r}: must be absolute (start with '/')")
         if type_name not in self._schemas:
             text = definition if definition is not None else full_message_definition(type_name)
-            self._schemas[type_name] = self._guard(lambda: self._writer.register_schema(
-                name=type_name, encoding=SchemaEncoding.ROS2, data=text.encode()))
+            self._schemas[type_name] = self._guard(
+                lambda: self._writer.register_schema(
+                    name=type_name, encoding=SchemaEncoding.ROS2, data=text.encode()
+                )
+            )
         metadata = {"offered_qos_profiles": dump_profiles(offered_qos)}
-        channel_id = self._guard(lambda: self._writer.register_channel(
-            topic=topic, message_encoding=MessageEncoding.CDR,
-            schema_id=self._schemas[type_name], metadata=metadata))
+        channel_id = self._guard(
+            lambda: self._writer.register_channel(
+                topic=topic,
+                message_encoding=MessageEncoding.CDR,
+                schema_id=self._schemas[type_name],
+                metadata=metadata,
+            )
+        )
         self._channels[topic] = channel_id
         return channel_id
 
@@ -106,14 +139,25 @@ class RecordingWriter:
         return dict(self._channels)
 
     # -- messages -------------------------------------------------------------------------
-    def write(self, channel_id: int, log_time_ns: int, data: bytes,
-              publish_time_ns: int | None = None, sequence: int = 0) -> None:
+    def write(
+        self,
+        channel_id: int,
+        log_time_ns: int,
+        data: bytes,
+        publish_time_ns: int | None = None,
+        sequence: int = 0,
+    ) -> None:
         if self.closed:
             raise RecordingError(f"{self.path}: recording is closed")
-        self._guard(lambda: self._writer.add_message(
-            channel_id=channel_id, log_time=int(log_time_ns), data=data,
-            publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
-            sequence=sequence))
+        self._guard(
+            lambda: self._writer.add_message(
+                channel_id=channel_id,
+                log_time=int(log_time_ns),
+                data=data,
+                publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
+                sequence=sequence,
+            )
+        )
         self.message_count += 1
         self._bytes_since_check += len(data)
         if self._bytes_since_check >= self._check_every:
@@ -126,8 +170,12 @@ class RecordingWriter:
         if self.closed:
             return self.path
         self.closed = True
-        self._guard(lambda: self._writer.add_metadata(
-            "rosbag2", {"serialized_metadata": "", "ROS_DISTRO": "jazzy"}), closing=True)
+        self._guard(
+            lambda: self._writer.add_metadata(
+                "rosbag2", {"serialized_metadata": "", "ROS_DISTRO": "jazzy"}
+            ),
+            closing=True,
+        )
         self._guard(self._writer.finish, closing=True)
         self._guard(self._stream.flush, closing=True)
         self._guard(lambda: os.fsync(self._stream.fileno()), closing=True)
@@ -136,9 +184,10 @@ class RecordingWriter:
             os.link(self.part, self.path)  # fails rather than overwrite a file that appeared
         except FileExistsError as exc:
             raise RecordingError(
-                f"{self.path} appeared while recording; the recording stays at {self.part}") from exc
+                f"{self.path} appeared while recording; the recording stays at {self.part}"
+            ) from exc
         os.unlink(self.part)
-        self._fsync_directory()   # the new name, and the .part's removal, survive a power cut
+        self._fsync_directory()  # the new name, and the .part's removal, survive a power cut
         return self.path
 
     def __enter__(self):
@@ -161,12 +210,15 @@ class RecordingWriter:
         free = shutil.disk_usage(parent).free
         if free >= self.min_free_bytes:
             return
-        message = (f"{self.path}: only {free / 2**20:.1f} MiB free on {parent}, below "
-                   f"min_free_bytes={self.min_free_bytes / 2**20:.1f} MiB")
+        message = (
+            f"{self.path}: only {free / 2**20:.1f} MiB free on {parent}, below "
+            f"min_free_bytes={self.min_free_bytes / 2**20:.1f} MiB"
+        )
         if closing_on_low:
             self.close()
-            raise RecordingError(message + f"; recording stopped and closed with "
-                                 f"{self.message_count} messages")
+            raise RecordingError(
+                message + f"; recording stopped and closed with {self.message_count} messages"
+            )
         raise RecordingError(message + "; not starting")
 
     def _guard(self, action, closing: bool = False):
@@ -180,4 +232,5 @@ class RecordingWriter:
                 pass
             raise RecordingError(
                 f"{self.path}: write failed ({exc.strerror or exc}); the incomplete data is in "
-                f"{self.part}; `afm recover {self.part}` saves what reached the disk") from exc
+                f"{self.part}; `afm recover {self.part}` saves what reached the disk"
+            ) from exc

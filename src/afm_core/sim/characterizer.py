@@ -10,6 +10,7 @@ to the spike's height. The image is the grey dilation of the sampled surface by 
 With the default tip (apex radius 10 nm, half-angle 25 deg, asymmetry 0.2) and pixel
 (1.6 nm), a 41x41 tip window covers the tip's top ~40-50 nm (a 21x21 window the top ~13 nm).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -17,20 +18,27 @@ import numpy as np
 from afm_core.sim.imaging import dilate
 from afm_core.sim.tip import paraboloid_cone_tip
 
-DEFAULT_PIXEL = 1.6e-9          # m
-DEFAULT_APEX_RADIUS = 10e-9     # m
+DEFAULT_PIXEL = 1.6e-9  # m
+DEFAULT_APEX_RADIUS = 10e-9  # m
 DEFAULT_HALF_ANGLE_DEG = 25.0
-DEFAULT_ASYMMETRY = 0.2         # +x flank blunter (afm_core.sim.tip convention)
+DEFAULT_ASYMMETRY = 0.2  # +x flank blunter (afm_core.sim.tip convention)
 
 
 def default_tip(pixel: float = DEFAULT_PIXEL, depth: float = 100e-9) -> np.ndarray:
     """The characterised tip sampled at `pixel`, deep enough to image the tallest spikes."""
-    return paraboloid_cone_tip(DEFAULT_APEX_RADIUS, DEFAULT_HALF_ANGLE_DEG, pixel, depth,
-                               asymmetry=DEFAULT_ASYMMETRY)
+    return paraboloid_cone_tip(
+        DEFAULT_APEX_RADIUS, DEFAULT_HALF_ANGLE_DEG, pixel, depth, asymmetry=DEFAULT_ASYMMETRY
+    )
 
 
-def spike_field(n: int, pixel: float, rng: np.random.Generator, count: int | None = None,
-                heights: tuple[float, float] = (20e-9, 80e-9), half_angle_deg: float = 6.0) -> np.ndarray:
+def spike_field(
+    n: int,
+    pixel: float,
+    rng: np.random.Generator,
+    count: int | None = None,
+    heights: tuple[float, float] = (20e-9, 80e-9),
+    half_angle_deg: float = 6.0,
+) -> np.ndarray:
     """(n, n) surface: a flat substrate at 0 with `count` sharp cones at random sub-pixel
     positions, heights uniform in `heights`, cone half-angle `half_angle_deg`."""
     if count is None:
@@ -52,9 +60,15 @@ def spike_field(n: int, pixel: float, rng: np.random.Generator, count: int | Non
     return surface
 
 
-def characterizer_image(n: int = 512, pixel: float = DEFAULT_PIXEL, tip: np.ndarray | None = None,
-                        noise: float = 0.3e-9, seed: int = 0, count: int | None = None,
-                        heights: tuple[float, float] = (20e-9, 80e-9)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def characterizer_image(
+    n: int = 512,
+    pixel: float = DEFAULT_PIXEL,
+    tip: np.ndarray | None = None,
+    noise: float = 0.3e-9,
+    seed: int = 0,
+    count: int | None = None,
+    heights: tuple[float, float] = (20e-9, 80e-9),
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(image, surface, tip): the spike field imaged by `tip` (default `default_tip(pixel)`)
     with white noise of standard deviation `noise` (m) added to the image."""
     rng = np.random.default_rng(seed)

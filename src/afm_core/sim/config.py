@@ -4,6 +4,7 @@ Every effect is switchable and parameterised here; defaults come from the book (
 default_config.yaml, which documents each value). Unknown keys and wrong types are errors
 that name the key, so a typo never silently leaves an effect at its default.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -26,21 +27,27 @@ DEFAULT_CONFIG_FILE = Path(__file__).with_name("default_config.yaml")
 @dataclass
 class NoiseParams:
     """The sensors: noise, the z feedback's lag, the z sensor's calibration and latency."""
-    height_white_sigma: float = 0.3e-9        # m, white sensor noise per pixel
-    height_flicker_sigma: float = 0.2e-9      # m, 1/f noise over the acquisition sequence
-    deflection_sigma: float = 0.05e-9         # m, deflection signal noise
-    feedback_time_constant: float = 2e-4      # s, z-feedback lag: deflection error ~ lag * dh/dt
+
+    height_white_sigma: float = 0.3e-9  # m, white sensor noise per pixel
+    height_flicker_sigma: float = 0.2e-9  # m, 1/f noise over the acquisition sequence
+    deflection_sigma: float = 0.05e-9  # m, deflection signal noise
+    feedback_time_constant: float = 2e-4  # s, z-feedback lag: deflection error ~ lag * dh/dt
     # A miscalibrated z sensor scales the z piezo signal it reports: every measured height
     # (objects, roughness, bow; about the mean substrate plane, height 0) is gain x the true one.
-    height_gain: float = 1.0                  # dimensionless, 1 = calibrated
+    height_gain: float = 1.0  # dimensionless, 1 = calibrated
     # Filters and the acquisition chain delay the measured signals (height, deflection,
     # force-trace deflection and torsion) against the commanded positions: the value reported
     # at time t is the one at t - latency, so an image shifts by scan speed x latency.
-    sensor_latency: float = 0.0               # s
+    sensor_latency: float = 0.0  # s
 
     def __post_init__(self):
-        for name in ("height_white_sigma", "height_flicker_sigma", "deflection_sigma", "feedback_time_constant",
-                     "sensor_latency"):
+        for name in (
+            "height_white_sigma",
+            "height_flicker_sigma",
+            "deflection_sigma",
+            "feedback_time_constant",
+            "sensor_latency",
+        ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"noise.{name}={value}: must be finite and >= 0")
@@ -52,35 +59,41 @@ class NoiseParams:
 
 @dataclass
 class SampleParams:
-    roughness_sigma: float = 0.3e-9           # m rms of the substrate
-    roughness_correlation: float = 20e-9      # m
+    roughness_sigma: float = 0.3e-9  # m rms of the substrate
+    roughness_correlation: float = 20e-9  # m
     # Near the scanner's centre (55 um, 55 um), where the tip rests at power-on.
-    spheres: list = field(default_factory=lambda: [
-        {"x": 55.0e-6, "y": 55.0e-6, "radius": 100e-9},
-        {"x": 55.6e-6, "y": 55.3e-6, "radius": 100e-9},
-        {"x": 54.6e-6, "y": 55.7e-6, "radius": 100e-9}])
-    random_spheres: int = 0                   # extra spheres scattered over random_area
-    random_area: list = field(default_factory=lambda: [52e-6, 52e-6, 6e-6, 6e-6])   # x0, y0, width, height (m)
-    radius_mean: float = 100e-9               # m, polystyrene spheres (book: ~100 nm)
-    radius_sigma: float = 5e-9                # m
+    spheres: list = field(
+        default_factory=lambda: [
+            {"x": 55.0e-6, "y": 55.0e-6, "radius": 100e-9},
+            {"x": 55.6e-6, "y": 55.3e-6, "radius": 100e-9},
+            {"x": 54.6e-6, "y": 55.7e-6, "radius": 100e-9},
+        ]
+    )
+    random_spheres: int = 0  # extra spheres scattered over random_area
+    random_area: list = field(
+        default_factory=lambda: [52e-6, 52e-6, 6e-6, 6e-6]
+    )  # x0, y0, width, height (m)
+    radius_mean: float = 100e-9  # m, polystyrene spheres (book: ~100 nm)
+    radius_sigma: float = 5e-9  # m
     rods: list = field(default_factory=list)  # {x, y, angle (rad), length, radius, kind: rod|tube}
-    electrodes: list = field(default_factory=list)   # {x0, y0, x1, y1, thickness}
+    electrodes: list = field(default_factory=list)  # {x0, y0, x1, y1, thickness}
 
 
 @dataclass
 class ControllerParams:
     """The AFM controller's own hysteresis feed-forward: it inverts a PI model of the
     scanner, as calibrated. The calibration is never exact, so a residual remains."""
+
     hysteresis_compensation: bool = True
-    model_error: float = 0.1                  # relative error of the calibrated loop width (0: perfect)
-    asymmetry_error: float = 0.0              # its calibrated asymmetry is the scanner's minus this (0: exact)
+    model_error: float = 0.1  # relative error of the calibrated loop width (0: perfect)
+    asymmetry_error: float = 0.0  # its calibrated asymmetry is the scanner's minus this (0: exact)
 
 
 @dataclass
 class IndentParams:
-    sample_stiffness: float = 50.0            # N/m, pit depth = force / stiffness
-    approach_time: float = 0.05               # s
-    retract_time: float = 0.05                # s
+    sample_stiffness: float = 50.0  # N/m, pit depth = force / stiffness
+    approach_time: float = 0.05  # s
+    retract_time: float = 0.05  # s
 
 
 @dataclass
@@ -172,8 +185,11 @@ def _deep_update(base: dict, overrides: dict, path: str) -> dict:
         where = f"{path}.{key}" if path else key
         if key not in base:
             raise ValueError(f"{path or 'config'}: unknown key {key!r}; known: {sorted(base)}")
-        out[key] = _deep_update(base[key], value, where) if isinstance(base[key], dict) and isinstance(value, dict) \
+        out[key] = (
+            _deep_update(base[key], value, where)
+            if isinstance(base[key], dict) and isinstance(value, dict)
             else value
+        )
     return out
 
 

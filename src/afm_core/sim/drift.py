@@ -12,6 +12,7 @@ drift speeds up steadily for a while. A constant acceleration a per axis adds a 
 velocity and 0.5 a t^2 to the offset (t from the instrument's power-on), on top of the
 wandering velocity above; zero (the default) leaves the drift exactly as without it.
 """
+
 from __future__ import annotations
 
 import math
@@ -24,14 +25,14 @@ from scipy import signal
 @dataclass
 class DriftParams:
     enabled: bool = True
-    mean_velocity_x: float = -0.004e-9     # m/s (book Fig. 7.9)
-    mean_velocity_y: float = 0.099e-9      # m/s
-    sigma_velocity_x: float = 0.027e-9     # m/s, stationary spread
-    sigma_velocity_y: float = 0.209e-9     # m/s
-    correlation_time: float = 1800.0       # s, how long the velocity stays about the same
-    knot_interval: float = 1.0             # s between velocity knots
-    acceleration_x: float = 0.0            # m/s^2, ramped drift: velocity grows by a t, offset by 0.5 a t^2
-    acceleration_y: float = 0.0            # m/s^2
+    mean_velocity_x: float = -0.004e-9  # m/s (book Fig. 7.9)
+    mean_velocity_y: float = 0.099e-9  # m/s
+    sigma_velocity_x: float = 0.027e-9  # m/s, stationary spread
+    sigma_velocity_y: float = 0.209e-9  # m/s
+    correlation_time: float = 1800.0  # s, how long the velocity stays about the same
+    knot_interval: float = 1.0  # s between velocity knots
+    acceleration_x: float = 0.0  # m/s^2, ramped drift: velocity grows by a t, offset by 0.5 a t^2
+    acceleration_y: float = 0.0  # m/s^2
 
     def __post_init__(self):
         # checked when the configuration is read, so a bad file fails before a session starts
@@ -64,8 +65,11 @@ class ThermalDrift:
         self.mean = np.array([params.mean_velocity_x, params.mean_velocity_y])
         self.sigma = np.array([params.sigma_velocity_x, params.sigma_velocity_y])
         # None when there is no ramp, so the default drift is computed exactly as without it
-        self.acceleration = (np.array([params.acceleration_x, params.acceleration_y])
-                             if params.acceleration_x or params.acceleration_y else None)
+        self.acceleration = (
+            np.array([params.acceleration_x, params.acceleration_y])
+            if params.acceleration_x or params.acceleration_y
+            else None
+        )
         first = self.mean + self.sigma * self.rng.normal(size=2)
         # knots at t = 0, dt, 2 dt, ...: arrays grown by doubling, so a long session's queries
         # stay linear in the knots they add
@@ -83,7 +87,7 @@ class ThermalDrift:
             capacity = max(needed, 2 * len(self._velocity))
             for name in ("_velocity", "_offset"):
                 grown = np.empty((capacity, 2))
-                grown[:self._count] = getattr(self, name)[:self._count]
+                grown[: self._count] = getattr(self, name)[: self._count]
                 setattr(self, name, grown)
         decay = np.exp(-p.knot_interval / p.correlation_time)
         spread = self.sigma * np.sqrt(1.0 - decay**2)
@@ -91,12 +95,16 @@ class ThermalDrift:
         innovations = spread * self.rng.normal(size=(new, 2))
         # the Ornstein-Uhlenbeck recursion v_k - mean = decay (v_{k-1} - mean) + spread e_k
         previous = self._velocity[self._count - 1] - self.mean
-        deviation = signal.lfilter([1.0], [1.0, -decay], innovations, axis=0, zi=decay * previous[None, :])[0]
+        deviation = signal.lfilter(
+            [1.0], [1.0, -decay], innovations, axis=0, zi=decay * previous[None, :]
+        )[0]
         velocity = self.mean + deviation
         before = np.vstack([self._velocity[self._count - 1], velocity[:-1]])
-        offsets = self._offset[self._count - 1] + np.cumsum(0.5 * (before + velocity) * p.knot_interval, axis=0)
-        self._velocity[self._count:needed] = velocity
-        self._offset[self._count:needed] = offsets
+        offsets = self._offset[self._count - 1] + np.cumsum(
+            0.5 * (before + velocity) * p.knot_interval, axis=0
+        )
+        self._velocity[self._count : needed] = velocity
+        self._offset[self._count : needed] = offsets
         self._count = needed
 
     def _interval(self, t: np.ndarray):

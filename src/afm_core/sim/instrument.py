@@ -12,15 +12,26 @@ r from the range centre), the z sensor's gain (measured height = gain x the feed
 height about the mean substrate plane) and its latency (every measured signal reports at t
 the value it took at t - latency, while positions are stamped with the commands at t).
 """
+
 from __future__ import annotations
 
 import math
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import numpy as np
 
-from afm_core.instrument import (ForceTraceData, IndentResult, LineRequest, MoveResult, RasterScanData,
-                                 ScanLineData, ScanRequest, StopCheck, validate_indent, validate_move)
+from afm_core.instrument import (
+    ForceTraceData,
+    IndentResult,
+    LineRequest,
+    MoveResult,
+    RasterScanData,
+    ScanLineData,
+    ScanRequest,
+    StopCheck,
+    validate_indent,
+    validate_move,
+)
 from afm_core.pzt import LateralScanner, PrandtlIshlinskii
 from afm_core.sim.config import SimConfig, load_config
 from afm_core.sim.drift import ThermalDrift
@@ -29,9 +40,9 @@ from afm_core.sim.pushing import StickSlipState, push_along_path
 from afm_core.sim.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
 from afm_core.sim.tip import Tip
 
-LINES_PER_CHUNK = 16          # raster lines simulated at once (progress and cancel granularity)
-MOVE_STEP = 2e-9              # m, path sampling of moves (pushes resolve objects finer inside)
-IDLE_STEP = 0.05              # s, scanner sampling while holding still (creep keeps going)
+LINES_PER_CHUNK = 16  # raster lines simulated at once (progress and cancel granularity)
+MOVE_STEP = 2e-9  # m, path sampling of moves (pushes resolve objects finer inside)
+IDLE_STEP = 0.05  # s, scanner sampling while holding still (creep keeps going)
 INDENT_SAMPLES = 200
 
 
@@ -42,13 +53,22 @@ class RasterPath:
     def __init__(self, request: ScanRequest):
         self.fast_is_x = request.scan_angle_deg == 0.0
         self.n_fast, self.n_lines = request.pixels_per_line, request.lines
-        self.pixel_x, self.pixel_y = request.size_x / request.pixels_x, request.size_y / request.pixels_y
-        fast_pixel, slow_pixel = ((self.pixel_x, self.pixel_y) if self.fast_is_x
-                                  else (self.pixel_y, self.pixel_x))
-        fast_origin, slow_origin = ((request.origin_x, request.origin_y) if self.fast_is_x
-                                    else (request.origin_y, request.origin_x))
+        self.pixel_x, self.pixel_y = (
+            request.size_x / request.pixels_x,
+            request.size_y / request.pixels_y,
+        )
+        fast_pixel, slow_pixel = (
+            (self.pixel_x, self.pixel_y) if self.fast_is_x else (self.pixel_y, self.pixel_x)
+        )
+        fast_origin, slow_origin = (
+            (request.origin_x, request.origin_y)
+            if self.fast_is_x
+            else (request.origin_y, request.origin_x)
+        )
         fast_coords = fast_origin + (np.arange(self.n_fast) + 0.5) * fast_pixel
-        self.line_order = np.arange(self.n_lines) if request.slow_scan_up else np.arange(self.n_lines)[::-1]
+        self.line_order = (
+            np.arange(self.n_lines) if request.slow_scan_up else np.arange(self.n_lines)[::-1]
+        )
         self.slow_coords = slow_origin + (self.line_order + 0.5) * slow_pixel
         self.trace_back = np.concatenate([fast_coords, fast_coords[::-1]])
         self.first = self.to_xy(fast_coords[0], self.slow_coords[0])
@@ -58,8 +78,8 @@ class RasterPath:
 
     def chunk(self, done: int):
         """(line indices, commanded x, y) of the next LINES_PER_CHUNK lines after `done`."""
-        lines = self.line_order[done:done + LINES_PER_CHUNK]
-        slow = np.repeat(self.slow_coords[done:done + len(lines)], 2 * self.n_fast)
+        lines = self.line_order[done : done + LINES_PER_CHUNK]
+        slow = np.repeat(self.slow_coords[done : done + len(lines)], 2 * self.n_fast)
         return (lines, *self.to_xy(np.tile(self.trace_back, len(lines)), slow))
 
 
@@ -74,7 +94,11 @@ class _DelayedPath:
         self.t, self.x, self.y = np.array([t0]), np.array([x0]), np.array([y0])
 
     def __call__(self, times: np.ndarray, xs: np.ndarray, ys: np.ndarray):
-        t, x, y = (np.concatenate([self.t, times]), np.concatenate([self.x, xs]), np.concatenate([self.y, ys]))
+        t, x, y = (
+            np.concatenate([self.t, times]),
+            np.concatenate([self.x, xs]),
+            np.concatenate([self.y, ys]),
+        )
         query = np.maximum(times - self.latency, t[0])
         delayed = query, np.interp(query, t, x), np.interp(query, t, y)
         # later queries start after times[-1] - latency: keep the samples from just before that
@@ -92,24 +116,48 @@ def delay_samples(signal: np.ndarray, delay: float) -> np.ndarray:
 
 def build_sample(config: SimConfig, rng: np.random.Generator) -> Sample:
     params = config.sample
-    sample = Sample(roughness=Roughness(params.roughness_sigma, params.roughness_correlation,
-                                        int(rng.integers(2**31))))
+    sample = Sample(
+        roughness=Roughness(
+            params.roughness_sigma, params.roughness_correlation, int(rng.integers(2**31))
+        )
+    )
     next_id = 0
     for spec in params.spheres:
-        sample.spheres.append(Sphere(next_id, float(spec["x"]), float(spec["y"]), float(spec["radius"])))
+        sample.spheres.append(
+            Sphere(next_id, float(spec["x"]), float(spec["y"]), float(spec["radius"]))
+        )
         next_id += 1
     x0, y0, width, height = params.random_area
     for _ in range(params.random_spheres):
         radius = max(10e-9, rng.normal(params.radius_mean, params.radius_sigma))
-        sample.spheres.append(Sphere(next_id, x0 + rng.uniform() * width, y0 + rng.uniform() * height, radius))
+        sample.spheres.append(
+            Sphere(next_id, x0 + rng.uniform() * width, y0 + rng.uniform() * height, radius)
+        )
         next_id += 1
     for spec in params.rods:
-        sample.rods.append(Rod(next_id, float(spec["x"]), float(spec["y"]), float(spec.get("angle", 0.0)),
-                               float(spec["length"]), float(spec["radius"]), spec.get("kind", "rod")))
+        sample.rods.append(
+            Rod(
+                next_id,
+                float(spec["x"]),
+                float(spec["y"]),
+                float(spec.get("angle", 0.0)),
+                float(spec["length"]),
+                float(spec["radius"]),
+                spec.get("kind", "rod"),
+            )
+        )
         next_id += 1
     for spec in params.electrodes:
-        sample.electrodes.append(Electrode(next_id, float(spec["x0"]), float(spec["y0"]), float(spec["x1"]),
-                                           float(spec["y1"]), float(spec["thickness"])))
+        sample.electrodes.append(
+            Electrode(
+                next_id,
+                float(spec["x0"]),
+                float(spec["y0"]),
+                float(spec["x1"]),
+                float(spec["y1"]),
+                float(spec["thickness"]),
+            )
+        )
         next_id += 1
     return sample
 
@@ -121,15 +169,17 @@ class SimulatedAfm:
         streams = np.random.SeedSequence(self.config.seed).spawn(5)
         self.noise_rng = np.random.default_rng(streams[0])
         self.sample = build_sample(self.config, np.random.default_rng(streams[1]))
-        self.drift = ThermalDrift(self.config.drift, seed=int(np.random.default_rng(streams[2]).integers(2**31)))
+        self.drift = ThermalDrift(
+            self.config.drift, seed=int(np.random.default_rng(streams[2]).integers(2**31))
+        )
         self.tip = Tip(self.config.tip)
         self.scanner = LateralScanner(self.config.scanner)
         self.positioning_rng = np.random.default_rng(streams[4])
-        self._position_error = np.zeros(2)      # m, accumulated random error of the moves so far
+        self._position_error = np.zeros(2)  # m, accumulated random error of the moves so far
         self.feed_forward = self._controller_feed_forward()
-        self._open_loop_models = None           # the controller's forward models while feed-forward is off
+        self._open_loop_models = None  # the controller's forward models while feed-forward is off
         self.time = 0.0
-        self._commanded = tuple(float(c) for c in self.scanner.centre)   # at rest at power-on
+        self._commanded = tuple(float(c) for c in self.scanner.centre)  # at rest at power-on
         self.scanner.reset(*self._commanded)
         self._true_scanner = self._commanded
 
@@ -138,19 +188,31 @@ class SimulatedAfm:
         loop width off by model_error and the asymmetry by asymmetry_error), demagnetised; None
         when compensation is off."""
         scanner, controller = self.config.scanner, self.config.controller
-        if not (controller.hysteresis_compensation and scanner.hysteresis_enabled and scanner.hysteresis_fraction > 0):
+        if not (
+            controller.hysteresis_compensation
+            and scanner.hysteresis_enabled
+            and scanner.hysteresis_fraction > 0
+        ):
             return None
         if not (math.isfinite(controller.model_error) and controller.model_error > -1.0):
-            raise ValueError(f"controller.model_error={controller.model_error}: must be finite and > -1 "
-                             "(relative error of the calibrated loop width)")
+            raise ValueError(
+                f"controller.model_error={controller.model_error}: must be finite and > -1 "
+                "(relative error of the calibrated loop width)"
+            )
         fraction = scanner.hysteresis_fraction * (1.0 + controller.model_error)
         asymmetry = scanner.hysteresis_asymmetry - controller.asymmetry_error
         if not (math.isfinite(asymmetry) and asymmetry * asymmetry < 2.0 / 3.0):
-            raise ValueError(f"controller.asymmetry_error={controller.asymmetry_error}: the controller's asymmetry "
-                             f"(scanner.hysteresis_asymmetry minus it) is {asymmetry}; need a finite value with "
-                             "square < 2/3")
-        models = [PrandtlIshlinskii.from_fraction(span, fraction, int(scanner.hysteresis_operators), asymmetry)
-                  for span in (scanner.range_x, scanner.range_y)]
+            raise ValueError(
+                f"controller.asymmetry_error={controller.asymmetry_error}: the controller's asymmetry "
+                f"(scanner.hysteresis_asymmetry minus it) is {asymmetry}; need a finite value with "
+                "square < 2/3"
+            )
+        models = [
+            PrandtlIshlinskii.from_fraction(
+                span, fraction, int(scanner.hysteresis_operators), asymmetry
+            )
+            for span in (scanner.range_x, scanner.range_y)
+        ]
         for model in models:
             model.reset(0.0)
         return models
@@ -187,7 +249,9 @@ class SimulatedAfm:
             drive, models = [], self._controller_models()
             for axis, (inverse, model) in enumerate(zip(self.feed_forward, models)):
                 # re-applying the last command leaves a play operator where it is: the current drive
-                drive.append(float(centre[axis] + inverse.apply([self._commanded[axis] - centre[axis]])[-1]))
+                drive.append(
+                    float(centre[axis] + inverse.apply([self._commanded[axis] - centre[axis]])[-1])
+                )
                 # inverse states z'_i = W_i z_i + sum_{j>i} w_j z_j (InversePrandtlIshlinskii): solve for z
                 w = model.weights
                 coupling = np.triu(np.tile(w, (w.size, 1)), 1) + np.diag(np.cumsum(w))
@@ -196,10 +260,14 @@ class SimulatedAfm:
             self._commanded = tuple(drive)
             return
         if self._open_loop_models is None:
-            raise ValueError("feed_forward_enabled=True: this configuration has no hysteresis compensation "
-                             "(controller.hysteresis_compensation, scanner.hysteresis_enabled)")
-        commanded = [float(centre[axis] + model.apply([self._commanded[axis] - centre[axis]])[-1])
-                     for axis, model in enumerate(self._open_loop_models)]
+            raise ValueError(
+                "feed_forward_enabled=True: this configuration has no hysteresis compensation "
+                "(controller.hysteresis_compensation, scanner.hysteresis_enabled)"
+            )
+        commanded = [
+            float(centre[axis] + model.apply([self._commanded[axis] - centre[axis]])[-1])
+            for axis, model in enumerate(self._open_loop_models)
+        ]
         self.feed_forward = [model.inverse() for model in self._open_loop_models]
         self._open_loop_models = None
         self._commanded = tuple(commanded)
@@ -208,7 +276,13 @@ class SimulatedAfm:
     def commanded_position(self) -> tuple[float, float]:
         return self._commanded
 
-    def _drive(self, cmd_x: np.ndarray, cmd_y: np.ndarray, dt: float, position_error: np.ndarray | None = None):
+    def _drive(
+        self,
+        cmd_x: np.ndarray,
+        cmd_y: np.ndarray,
+        dt: float,
+        position_error: np.ndarray | None = None,
+    ):
         """Send a uniformly sampled command path; returns (times, true scanner x, y).
         Sample k is taken at time + (k + 1) * dt. position_error (2, n), m: the moves' random
         error along this path (default: the error accumulated so far, held)."""
@@ -217,7 +291,9 @@ class SimulatedAfm:
             centre = self.scanner.centre
             drive_x = centre[0] + self.feed_forward[0].apply(drive_x - centre[0])
             drive_y = centre[1] + self.feed_forward[1].apply(drive_y - centre[1])
-        elif self._open_loop_models is not None:      # feed-forward off: the controller's model follows the drive
+        elif (
+            self._open_loop_models is not None
+        ):  # feed-forward off: the controller's model follows the drive
             centre = self.scanner.centre
             self._open_loop_models[0].apply(drive_x - centre[0])
             self._open_loop_models[1].apply(drive_y - centre[1])
@@ -238,7 +314,9 @@ class SimulatedAfm:
         offset = self.drift.offset(times)
         return true_x - offset[..., 0], true_y - offset[..., 1]
 
-    def _measured_height(self, height: np.ndarray, true_x: np.ndarray, true_y: np.ndarray) -> np.ndarray:
+    def _measured_height(
+        self, height: np.ndarray, true_x: np.ndarray, true_y: np.ndarray
+    ) -> np.ndarray:
         """What the z sensor reports for the feedback's height (m above the mean substrate
         plane) with the scanner truly at (true_x, true_y): plus the scanner bow, times the
         sensor's gain. Noise is added by the caller (it is in the reported signal, not scaled)."""
@@ -272,24 +350,37 @@ class SimulatedAfm:
         n = max(2, int(math.ceil(distance / MOVE_STEP)))
         s = np.linspace(0.0, 1.0, n + 1)[1:]
         path_x, path_y = x0 + s * (x - x0), y0 + s * (y - y0)
-        path_x[-1], path_y[-1] = x, y          # end exactly where commanded
+        path_x[-1], path_y[-1] = x, y  # end exactly where commanded
         return path_x, path_y, (distance / speed) / n if distance else 1e-3
 
     def _imaging_depth(self) -> float:
-        tallest = max([2 * s.radius for s in self.sample.spheres] + [2 * r.radius for r in self.sample.rods]
-                      + [e.thickness for e in self.sample.electrodes] + [20e-9])
+        tallest = max(
+            [2 * s.radius for s in self.sample.spheres]
+            + [2 * r.radius for r in self.sample.rods]
+            + [e.thickness for e in self.sample.electrodes]
+            + [20e-9]
+        )
         return tallest + 10e-9
 
     # -- raster images -----------------------------------------------------------------------
-    def raster_scan(self, request: ScanRequest, on_line: Optional[Callable[[int, int], None]] = None,
-                    should_stop: Optional[StopCheck] = None) -> RasterScanData:
+    def raster_scan(
+        self,
+        request: ScanRequest,
+        on_line: Callable[[int, int], None] | None = None,
+        should_stop: StopCheck | None = None,
+    ) -> RasterScanData:
         request.validate(self.limits)
         path = RasterPath(request)
-        fast_is_x, n_fast, n_lines, line_order = path.fast_is_x, path.n_fast, path.n_lines, path.line_order
+        fast_is_x, n_fast, n_lines, line_order = (
+            path.fast_is_x,
+            path.n_fast,
+            path.n_lines,
+            path.line_order,
+        )
         px, py = path.pixel_x, path.pixel_y
         self.move_tip(*path.first, self.limits.max_speed / 10)
         line_period = 1.0 / request.line_rate
-        dt = 0.5 * line_period / n_fast          # trace in the first half, retrace in the second
+        dt = 0.5 * line_period / n_fast  # trace in the first half, retrace in the second
         field = self._field_for(request)
         latency = self.config.noise.sensor_latency
         delayed = _DelayedPath(latency, self.time, *self._true_scanner) if latency > 0 else None
@@ -309,9 +400,13 @@ class SimulatedAfm:
             sx, sy = self.sample_frame(at_x, at_y, at_t)
             values = field.at(sx, sy).reshape(len(chunk), 2 * n_fast)[:, :n_fast]
             if self._has_bow() or self.config.noise.height_gain != 1.0:
-                trace_x, trace_y = (a.reshape(len(chunk), 2 * n_fast)[:, :n_fast] for a in (at_x, at_y))
+                trace_x, trace_y = (
+                    a.reshape(len(chunk), 2 * n_fast)[:, :n_fast] for a in (at_x, at_y)
+                )
                 values = self._measured_height(values, trace_x, trace_y)
-            values = values + self.noise_rng.normal(0.0, self.config.noise.height_white_sigma, values.shape)
+            values = values + self.noise_rng.normal(
+                0.0, self.config.noise.height_white_sigma, values.shape
+            )
             line_times = times.reshape(len(chunk), 2 * n_fast)[:, 0] - dt - start
             for row_values, line_index, t_line in zip(values, chunk, line_times):
                 if fast_is_x:
@@ -323,26 +418,46 @@ class SimulatedAfm:
                 if on_line is not None:
                     on_line(done, n_lines)
         acquired = np.isfinite(line_start)
-        flicker = pink_noise(int(acquired.sum()) * n_fast, self.config.noise.height_flicker_sigma, self.noise_rng)
+        flicker = pink_noise(
+            int(acquired.sum()) * n_fast, self.config.noise.height_flicker_sigma, self.noise_rng
+        )
         order = [i for i in line_order if acquired[i]]
         for k, line_index in enumerate(order):
-            segment = flicker[k * n_fast:(k + 1) * n_fast]
+            segment = flicker[k * n_fast : (k + 1) * n_fast]
             if fast_is_x:
                 height[line_index, :] += segment
             else:
                 height[:, line_index] += segment
-        return RasterScanData(height=height.astype(np.float32), pixel_size_x=px, pixel_size_y=py,
-                              origin_x=request.origin_x, origin_y=request.origin_y,
-                              scan_angle_deg=request.scan_angle_deg, slow_scan_up=request.slow_scan_up,
-                              line_period=line_period, line_start_times=line_start, start_time=start,
-                              mode=request.mode, complete=complete)
+        return RasterScanData(
+            height=height.astype(np.float32),
+            pixel_size_x=px,
+            pixel_size_y=py,
+            origin_x=request.origin_x,
+            origin_y=request.origin_y,
+            scan_angle_deg=request.scan_angle_deg,
+            slow_scan_up=request.slow_scan_up,
+            line_period=line_period,
+            line_start_times=line_start,
+            start_time=start,
+            mode=request.mode,
+            complete=complete,
+        )
 
     def _field_for(self, request: ScanRequest) -> DilatedField:
         """Dilated surface over the scan area plus a margin for where hysteresis, creep and
         drift may have put the tip."""
         pixel = min(request.size_x / request.pixels_x, request.size_y / request.pixels_y)
-        margin = 0.05 * max(request.size_x, request.size_y) + 20e-9 + float(
-            np.max(np.abs(self.drift.offset(self.time + 2 * request.lines / request.line_rate + 10.0))))
+        margin = (
+            0.05 * max(request.size_x, request.size_y)
+            + 20e-9
+            + float(
+                np.max(
+                    np.abs(
+                        self.drift.offset(self.time + 2 * request.lines / request.line_rate + 10.0)
+                    )
+                )
+            )
+        )
         x0, y0 = request.origin_x - margin, request.origin_y - margin
         nx = int(math.ceil((request.size_x + 2 * margin) / pixel)) + 1
         ny = int(math.ceil((request.size_y + 2 * margin) / pixel)) + 1
@@ -350,7 +465,9 @@ class SimulatedAfm:
         return DilatedField(self.sample.height, tip, x0, y0, nx, ny, pixel)
 
     # -- local scan lines --------------------------------------------------------------------
-    def local_scan(self, request: LineRequest, should_stop: Optional[StopCheck] = None) -> ScanLineData:
+    def local_scan(
+        self, request: LineRequest, should_stop: StopCheck | None = None
+    ) -> ScanLineData:
         request.validate(self.limits)
         self.move_tip(request.start_x, request.start_y, self.limits.max_speed / 10)
         s = np.linspace(0.0, 1.0, request.samples)
@@ -358,30 +475,53 @@ class SimulatedAfm:
         cmd_y = request.start_y + s * (request.end_y - request.start_y)
         dt = request.length / request.speed / (request.samples - 1)
         times, tx, ty = self._drive(cmd_x, cmd_y, dt)
-        times = times - dt          # the first sample is taken where the line starts, at once
+        times = times - dt  # the first sample is taken where the line starts, at once
         start = float(times[0])
         noise = self.config.noise
         # with sensor latency each sample reports where the tip was `latency` before its time
-        at_t, at_x, at_y = (times, tx, ty) if noise.sensor_latency == 0 else \
-            _DelayedPath(noise.sensor_latency, float(times[0]), float(tx[0]), float(ty[0]))(times, tx, ty)
+        at_t, at_x, at_y = (
+            (times, tx, ty)
+            if noise.sensor_latency == 0
+            else _DelayedPath(noise.sensor_latency, float(times[0]), float(tx[0]), float(ty[0]))(
+                times, tx, ty
+            )
+        )
         sx, sy = self.sample_frame(at_x, at_y, at_t)
         spacing = request.length / (request.samples - 1)
         tip = self.tip.grid(max(min(spacing, 5e-9), 0.5e-9), self._imaging_depth())
         height = dilated_heights_at(self.sample, tip, max(min(spacing, 5e-9), 0.5e-9), sx, sy)
-        if self._has_bow():         # the feedback follows the bow too: it is in the lag error
+        if self._has_bow():  # the feedback follows the bow too: it is in the lag error
             height = height + self._bow(at_x, at_y)
         slope = np.gradient(height, times) if len(times) > 1 else np.zeros_like(height)
-        deflection = noise.feedback_time_constant * slope + self.noise_rng.normal(0, noise.deflection_sigma, len(s))
+        deflection = noise.feedback_time_constant * slope + self.noise_rng.normal(
+            0, noise.deflection_sigma, len(s)
+        )
         height = self._height_gain(height)
         height = height + self.noise_rng.normal(0, noise.height_white_sigma, len(s))
         height = height + pink_noise(len(s), noise.height_flicker_sigma, self.noise_rng)
-        amplitude = (np.full(len(s), 10e-9) - deflection) if request.mode == "tapping" else np.array([])
-        return ScanLineData(times=times - start, x=cmd_x, y=cmd_y, height=height, deflection=deflection,
-                            amplitude=amplitude, start_time=start, mode=request.mode)
+        amplitude = (
+            (np.full(len(s), 10e-9) - deflection) if request.mode == "tapping" else np.array([])
+        )
+        return ScanLineData(
+            times=times - start,
+            x=cmd_x,
+            y=cmd_y,
+            height=height,
+            deflection=deflection,
+            amplitude=amplitude,
+            start_time=start,
+            mode=request.mode,
+        )
 
     # -- moves and pushes --------------------------------------------------------------------
-    def move_tip(self, x: float, y: float, speed: float, contact: bool = False,
-                 should_stop: Optional[StopCheck] = None) -> MoveResult:
+    def move_tip(
+        self,
+        x: float,
+        y: float,
+        speed: float,
+        contact: bool = False,
+        should_stop: StopCheck | None = None,
+    ) -> MoveResult:
         validate_move(x, y, speed, self.limits)
         error_path = self._positioning_error_path(x, y)
         cmd_x, cmd_y, dt = self._ramp(x, y, speed)
@@ -392,20 +532,35 @@ class SimulatedAfm:
         stick_slip, last_x, last_y = None, 0.0, 0.0
         if contact:
             # the tip lands where it is: the slid distance (wear) and the stick-slip spring start here
-            here = self.sample_frame(np.array([self._true_scanner[0]]), np.array([self._true_scanner[1]]),
-                                     np.array([self.time]))
+            here = self.sample_frame(
+                np.array([self._true_scanner[0]]),
+                np.array([self._true_scanner[1]]),
+                np.array([self.time]),
+            )
             last_x, last_y = float(here[0][0]), float(here[1][0])
-            stick_slip = StickSlipState(0.0, last_x, last_y) if self.config.contact.stick_slip_enabled else None
+            stick_slip = (
+                StickSlipState(0.0, last_x, last_y)
+                if self.config.contact.stick_slip_enabled
+                else None
+            )
         for index in chunks:
             if should_stop is not None and should_stop():
                 completed = False
                 break
-            times, tx, ty = self._drive(cmd_x[index], cmd_y[index], dt,
-                                        None if error_path is None else error_path[:, index])
+            times, tx, ty = self._drive(
+                cmd_x[index],
+                cmd_y[index],
+                dt,
+                None if error_path is None else error_path[:, index],
+            )
             if contact:
                 sx, sy = self.sample_frame(tx, ty, times)
                 result = push_along_path(self.sample, sx, sy, dt, self.config.contact, stick_slip)
-                self.tip.slide(float(np.sum(np.hypot(np.diff(sx, prepend=last_x), np.diff(sy, prepend=last_y)))))
+                self.tip.slide(
+                    float(
+                        np.sum(np.hypot(np.diff(sx, prepend=last_x), np.diff(sy, prepend=last_y)))
+                    )
+                )
                 last_x, last_y = float(sx[-1]), float(sy[-1])
                 traces.append((times, cmd_x[index], cmd_y[index], result))
         trace = self._force_trace(traces, start, dt) if contact and traces else None
@@ -434,31 +589,55 @@ class SimulatedAfm:
         deflection = np.concatenate([p[3].vertical_deflection for p in pieces])
         torsion = np.concatenate([p[3].lateral_torsion for p in pieces])
         latency = self.config.noise.sensor_latency
-        if latency > 0:             # the signals lag the commands (sampled at 1/dt)
-            deflection, torsion = delay_samples(deflection, latency / dt), delay_samples(torsion, latency / dt)
-        deflection = deflection + self.noise_rng.normal(0, self.config.noise.deflection_sigma, len(deflection))
+        if latency > 0:  # the signals lag the commands (sampled at 1/dt)
+            deflection, torsion = (
+                delay_samples(deflection, latency / dt),
+                delay_samples(torsion, latency / dt),
+            )
+        deflection = deflection + self.noise_rng.normal(
+            0, self.config.noise.deflection_sigma, len(deflection)
+        )
         moved = sorted({i for p in pieces for i in p[3].moved_ids})
-        return ForceTraceData(times=times, commanded_x=cx, commanded_y=cy, commanded_z=np.zeros_like(cx),
-                              vertical_deflection=deflection, lateral_torsion=torsion,
-                              normal_spring_constant=contact.normal_spring_constant,
-                              lateral_spring_constant=contact.lateral_spring_constant,
-                              sample_rate=1.0 / dt, start_time=start, task="push",
-                              object_id=moved[0] if moved else -1)
+        return ForceTraceData(
+            times=times,
+            commanded_x=cx,
+            commanded_y=cy,
+            commanded_z=np.zeros_like(cx),
+            vertical_deflection=deflection,
+            lateral_torsion=torsion,
+            normal_spring_constant=contact.normal_spring_constant,
+            lateral_spring_constant=contact.lateral_spring_constant,
+            sample_rate=1.0 / dt,
+            start_time=start,
+            task="push",
+            object_id=moved[0] if moved else -1,
+        )
 
     # -- indentation -------------------------------------------------------------------------
-    def indent(self, x: float, y: float, force: float, dwell: float,
-               should_stop: Optional[StopCheck] = None) -> IndentResult:
+    def indent(
+        self, x: float, y: float, force: float, dwell: float, should_stop: StopCheck | None = None
+    ) -> IndentResult:
         validate_indent(x, y, force, dwell, self.limits)
         move = self.move_tip(x, y, self.limits.max_speed / 10, should_stop=should_stop)
         if not move.completed:
-            return IndentResult(x=move.end_x, y=move.end_y, completed=False, trace=self._indent_trace(0.0, 0.0, self.time))
+            return IndentResult(
+                x=move.end_x,
+                y=move.end_y,
+                completed=False,
+                trace=self._indent_trace(0.0, 0.0, self.time),
+            )
         params = self.config.indentation
         start = self.time
-        sx, sy = self.sample_frame(np.array([self._true_scanner[0]]), np.array([self._true_scanner[1]]),
-                                   np.array([self.time]))
+        sx, sy = self.sample_frame(
+            np.array([self._true_scanner[0]]),
+            np.array([self._true_scanner[1]]),
+            np.array([self.time]),
+        )
         depth = force / params.sample_stiffness
         radius = math.sqrt(2 * self.tip.apex_radius * depth) * 1.5
-        self.sample.pits.append(Pit(self.sample.next_id(), float(sx[0]), float(sy[0]), radius, depth))
+        self.sample.pits.append(
+            Pit(self.sample.next_id(), float(sx[0]), float(sy[0]), radius, depth)
+        )
         self.hold(params.approach_time + dwell + params.retract_time)
         trace = self._indent_trace(force, dwell, start)
         return IndentResult(x=x, y=y, trace=trace)
@@ -470,22 +649,43 @@ class SimulatedAfm:
 
         def load(t):
             """The load profile (0..1) at times t: approach ramp, dwell, retract ramp."""
-            up = np.clip(t / params.approach_time, 0, 1) if params.approach_time else np.ones_like(t)
-            down = np.clip((duration - t) / params.retract_time, 0, 1) if params.retract_time else np.ones_like(t)
+            up = (
+                np.clip(t / params.approach_time, 0, 1)
+                if params.approach_time
+                else np.ones_like(t)
+            )
+            down = (
+                np.clip((duration - t) / params.retract_time, 0, 1)
+                if params.retract_time
+                else np.ones_like(t)
+            )
             return np.minimum(up, down)
 
         latency = self.config.noise.sensor_latency
         # the measured deflection lags the commanded z by the sensor latency
-        profile = (load(times) if latency == 0 else load(times - latency)) * force / contact.normal_spring_constant
-        deflection = profile + self.noise_rng.normal(0, self.config.noise.deflection_sigma, len(times))
+        profile = (
+            (load(times) if latency == 0 else load(times - latency))
+            * force
+            / contact.normal_spring_constant
+        )
+        deflection = profile + self.noise_rng.normal(
+            0, self.config.noise.deflection_sigma, len(times)
+        )
         z = load(times) * force / self.config.indentation.sample_stiffness
         x, y = self._commanded
-        return ForceTraceData(times=times, commanded_x=np.full_like(times, x), commanded_y=np.full_like(times, y),
-                              commanded_z=z, vertical_deflection=deflection, lateral_torsion=np.zeros_like(times),
-                              normal_spring_constant=contact.normal_spring_constant,
-                              lateral_spring_constant=contact.lateral_spring_constant,
-                              sample_rate=(len(times) - 1) / duration if duration else 0.0, start_time=start,
-                              task="indent")
+        return ForceTraceData(
+            times=times,
+            commanded_x=np.full_like(times, x),
+            commanded_y=np.full_like(times, y),
+            commanded_z=z,
+            vertical_deflection=deflection,
+            lateral_torsion=np.zeros_like(times),
+            normal_spring_constant=contact.normal_spring_constant,
+            lateral_spring_constant=contact.lateral_spring_constant,
+            sample_rate=(len(times) - 1) / duration if duration else 0.0,
+            start_time=start,
+            task="indent",
+        )
 
     # -- truth -------------------------------------------------------------------------------
     def truth(self) -> dict:

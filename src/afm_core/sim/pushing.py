@@ -103,6 +103,7 @@ Stretches where the tip touches nothing are found with vectorised distance tests
 steps in contact cost Python time. The friction tables (disc patch, beta, rod end caps) are
 computed on first use, ~0.15 s in all.
 """
+
 from __future__ import annotations
 
 import math
@@ -117,45 +118,77 @@ from afm_core.sim.sample import Rod, Sample
 @dataclass
 class ContactParams:
     """Tip, contact and friction parameters (SI units)."""
-    tip_radius: float = 50e-9                 # m, effective contact radius R_T (book: 50 nm)
-    mu_tip_particle: float = 0.3              # tip-object friction coefficient mu_tp
-    substrate_friction_force: float = 5e-9    # N, Coulomb sliding friction F_c of a sphere (adhesion + weight load)
-    viscous_coefficient: float = 1e-3         # N s/m, sphere viscous friction c (c v = 1 nN at 1 um/s)
-    substrate_contact_radius: float = 10e-9   # m, radius a of a sphere's contact patch (spin friction)
-    mu_tip_substrate: float = 0.1             # tip-substrate sliding friction coefficient mu_ts
-    normal_force: float = 10e-9               # N, contact-mode setpoint N
-    normal_spring_constant: float = 0.2       # N/m, cantilever k_n
-    lateral_spring_constant: float = 1e-9     # N m/rad, torsional stiffness
-    tip_height: float = 10e-6                 # m, lever arm of the lateral force about the cantilever axis
-    rod_friction_per_length: float = 0.05     # N/m, Coulomb friction of a rod per unit length (F_c per 100 nm)
-    rod_viscous_per_length: float = 1e4       # N s/m^2, viscous friction of a rod per unit length (c per 100 nm)
-    rod_contact_halfwidth: float = 5e-9       # m, half-length b of the tip's contact on a rod
-    substep_fraction: float = 0.1             # mechanics step <= this x min(R_T, smallest object radius)
+
+    tip_radius: float = 50e-9  # m, effective contact radius R_T (book: 50 nm)
+    mu_tip_particle: float = 0.3  # tip-object friction coefficient mu_tp
+    substrate_friction_force: float = (
+        5e-9  # N, Coulomb sliding friction F_c of a sphere (adhesion + weight load)
+    )
+    viscous_coefficient: float = 1e-3  # N s/m, sphere viscous friction c (c v = 1 nN at 1 um/s)
+    substrate_contact_radius: float = (
+        10e-9  # m, radius a of a sphere's contact patch (spin friction)
+    )
+    mu_tip_substrate: float = 0.1  # tip-substrate sliding friction coefficient mu_ts
+    normal_force: float = 10e-9  # N, contact-mode setpoint N
+    normal_spring_constant: float = 0.2  # N/m, cantilever k_n
+    lateral_spring_constant: float = 1e-9  # N m/rad, torsional stiffness
+    tip_height: float = 10e-6  # m, lever arm of the lateral force about the cantilever axis
+    rod_friction_per_length: float = (
+        0.05  # N/m, Coulomb friction of a rod per unit length (F_c per 100 nm)
+    )
+    rod_viscous_per_length: float = (
+        1e4  # N s/m^2, viscous friction of a rod per unit length (c per 100 nm)
+    )
+    rod_contact_halfwidth: float = 5e-9  # m, half-length b of the tip's contact on a rod
+    substep_fraction: float = 0.1  # mechanics step <= this x min(R_T, smallest object radius)
     # {x0, y0, x1, y1 (m, afm_task frame), substrate_friction_scale, mu_tip_substrate_scale}:
     # inside, F_c (spheres; rods per length) and mu_ts are scaled (see the module docstring)
     friction_regions: list = field(default_factory=list)
-    stick_slip_enabled: bool = False          # tip-substrate friction as a stick-slip saw-tooth
-    static_friction_ratio: float = 1.5        # static / kinetic tip-substrate friction (>= 1; 1: no saw-tooth)
-    stick_slip_stiffness: float = 0.05        # N/m, lateral contact stiffness of the spring-slider
+    stick_slip_enabled: bool = False  # tip-substrate friction as a stick-slip saw-tooth
+    static_friction_ratio: float = (
+        1.5  # static / kinetic tip-substrate friction (>= 1; 1: no saw-tooth)
+    )
+    stick_slip_stiffness: float = 0.05  # N/m, lateral contact stiffness of the spring-slider
 
     def __post_init__(self):
-        positive = ("tip_radius", "normal_spring_constant", "lateral_spring_constant", "tip_height")
+        positive = (
+            "tip_radius",
+            "normal_spring_constant",
+            "lateral_spring_constant",
+            "tip_height",
+        )
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"ContactParams.{name} = {getattr(self, name)} must be > 0")
-        for name in ("mu_tip_particle", "substrate_friction_force", "viscous_coefficient",
-                     "substrate_contact_radius", "mu_tip_substrate", "normal_force",
-                     "rod_friction_per_length", "rod_viscous_per_length", "rod_contact_halfwidth"):
+        for name in (
+            "mu_tip_particle",
+            "substrate_friction_force",
+            "viscous_coefficient",
+            "substrate_contact_radius",
+            "mu_tip_substrate",
+            "normal_force",
+            "rod_friction_per_length",
+            "rod_viscous_per_length",
+            "rod_contact_halfwidth",
+        ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"ContactParams.{name} = {getattr(self, name)} must be >= 0")
         if not 0 < self.substep_fraction <= 0.5:
-            raise ValueError(f"ContactParams.substep_fraction = {self.substep_fraction} must be in (0, 0.5]")
+            raise ValueError(
+                f"ContactParams.substep_fraction = {self.substep_fraction} must be in (0, 0.5]"
+            )
         if not (math.isfinite(self.static_friction_ratio) and self.static_friction_ratio >= 1):
-            raise ValueError(f"contact.static_friction_ratio={self.static_friction_ratio}: must be finite and >= 1 "
-                             "(static over kinetic friction)")
+            raise ValueError(
+                f"contact.static_friction_ratio={self.static_friction_ratio}: must be finite and >= 1 "
+                "(static over kinetic friction)"
+            )
         if not (math.isfinite(self.stick_slip_stiffness) and self.stick_slip_stiffness > 0):
-            raise ValueError(f"contact.stick_slip_stiffness={self.stick_slip_stiffness}: must be finite and > 0 (N/m)")
-        self.friction_regions = [_checked_region(region, i) for i, region in enumerate(self.friction_regions)]
+            raise ValueError(
+                f"contact.stick_slip_stiffness={self.stick_slip_stiffness}: must be finite and > 0 (N/m)"
+            )
+        self.friction_regions = [
+            _checked_region(region, i) for i, region in enumerate(self.friction_regions)
+        ]
 
 
 _REGION_BOUNDS = ("x0", "y0", "x1", "y1")
@@ -166,25 +199,35 @@ def _checked_region(region, index: int) -> dict:
     """A friction region as a dict of floats (scales default to 1); errors name the key."""
     where = f"contact.friction_regions[{index}]"
     if not isinstance(region, dict):
-        raise ValueError(f"{where}={region!r}: expected a mapping {{x0, y0, x1, y1, substrate_friction_scale, "
-                         "mu_tip_substrate_scale}")
+        raise ValueError(
+            f"{where}={region!r}: expected a mapping {{x0, y0, x1, y1, substrate_friction_scale, "
+            "mu_tip_substrate_scale}"
+        )
     unknown = sorted(set(region) - set(_REGION_BOUNDS + _REGION_SCALES))
     if unknown:
-        raise ValueError(f"{where}: unknown key(s) {unknown}; known: {list(_REGION_BOUNDS + _REGION_SCALES)}")
+        raise ValueError(
+            f"{where}: unknown key(s) {unknown}; known: {list(_REGION_BOUNDS + _REGION_SCALES)}"
+        )
     missing = [key for key in _REGION_BOUNDS if key not in region]
     if missing:
         raise ValueError(f"{where}: missing {missing} (m, afm_task frame)")
     out = {}
     for key in _REGION_BOUNDS + _REGION_SCALES:
         value = region.get(key, 1.0)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or not math.isfinite(value)
+        ):
             raise ValueError(f"{where}.{key}={value!r}: expected a finite number")
         if key in _REGION_SCALES and value < 0:
             raise ValueError(f"{where}.{key}={value!r}: must be >= 0")
         out[key] = float(value)
     if not (out["x1"] > out["x0"] and out["y1"] > out["y0"]):
-        raise ValueError(f"{where}: need x1 > x0 and y1 > y0, got x {out['x0']}..{out['x1']}, "
-                         f"y {out['y0']}..{out['y1']}")
+        raise ValueError(
+            f"{where}: need x1 > x0 and y1 > y0, got x {out['x0']}..{out['x1']}, "
+            f"y {out['y0']}..{out['y1']}"
+        )
     return out
 
 
@@ -193,8 +236,17 @@ class FrictionMap:
     containing each point (1 outside every region)."""
 
     def __init__(self, regions: list[dict]):
-        self.regions = [(r["x0"], r["x1"], r["y0"], r["y1"], r["substrate_friction_scale"],
-                         r["mu_tip_substrate_scale"]) for r in regions]
+        self.regions = [
+            (
+                r["x0"],
+                r["x1"],
+                r["y0"],
+                r["y1"],
+                r["substrate_friction_scale"],
+                r["mu_tip_substrate_scale"],
+            )
+            for r in regions
+        ]
 
     def scales(self, x, y, which: int) -> np.ndarray:
         """Vectorised; which = 0: the objects' substrate friction, 1: the tip's."""
@@ -202,7 +254,9 @@ class FrictionMap:
         out = np.ones(np.broadcast(x, y).shape)
         for region in self.regions:
             x0, x1, y0, y1 = region[:4]
-            out = np.where((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1), out * region[4 + which], out)
+            out = np.where(
+                (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1), out * region[4 + which], out
+            )
         return out
 
     def scale(self, x: float, y: float, which: int) -> float:
@@ -217,13 +271,20 @@ class FrictionMap:
 @dataclass
 class StickSlipState:
     """The tip-substrate contact's spring, carried between the pieces a contact move is fed in."""
-    force: float = 0.0                  # N, spring force (0: the tip has just landed)
-    x: float | None = None              # m, last tip position (sample frame); None: no sample yet
+
+    force: float = 0.0  # N, spring force (0: the tip has just landed)
+    x: float | None = None  # m, last tip position (sample frame); None: no sample yet
     y: float | None = None
 
 
-def stick_slip_force(x: np.ndarray, y: np.ndarray, kinetic: np.ndarray, ratio: float, stiffness: float,
-                     state: StickSlipState) -> np.ndarray:
+def stick_slip_force(
+    x: np.ndarray,
+    y: np.ndarray,
+    kinetic: np.ndarray,
+    ratio: float,
+    stiffness: float,
+    state: StickSlipState,
+) -> np.ndarray:
     """Lateral force (N) of a 1-D spring-slider at the tip positions (x, y): the spring loads
     by stiffness x distance travelled; where it exceeds the static friction ratio x kinetic it
     slips back to the kinetic level and loads again over the rest of the step (so the
@@ -250,9 +311,9 @@ def stick_slip_force(x: np.ndarray, y: np.ndarray, kinetic: np.ndarray, ratio: f
 @dataclass
 class PushStepResult:
     moved_ids: list[int]
-    lateral_force: np.ndarray        # N, per path sample, positive = opposing the tip's motion
+    lateral_force: np.ndarray  # N, per path sample, positive = opposing the tip's motion
     vertical_deflection: np.ndarray  # m
-    lateral_torsion: np.ndarray      # rad
+    lateral_torsion: np.ndarray  # rad
 
 
 # --------------------------------------------------------------------------------------------
@@ -273,14 +334,16 @@ def disc_friction(rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     by midpoint quadrature in polar coordinates; far field f = 1, m = 1/(4 rho)."""
     global _DISC
     if _DISC is None:
-        nr, nt = 120, 120                        # half disc x >= 0 (the integrands are even in x)
+        nr, nt = 120, 120  # half disc x >= 0 (the integrands are even in x)
         r = (np.arange(nr) + 0.5) / nr
         th = (np.arange(nt) + 0.5) * (np.pi / nt) - 0.5 * np.pi
         rr, tt = np.meshgrid(r, th, indexing="ij")
         x, y = (rr * np.cos(tt)).ravel(), (rr * np.sin(tt)).ravel()
         w = rr.ravel() * (1.0 / nr) * (np.pi / nt) * 2.0 / np.pi
         f, m = [], []
-        for chunk in np.array_split(np.exp(_LOG_RHO), 12):   # IRC at (0, -rho): velocity (-(y + rho), x)
+        for chunk in np.array_split(
+            np.exp(_LOG_RHO), 12
+        ):  # IRC at (0, -rho): velocity (-(y + rho), x)
             yy = y[None, :] + chunk[:, None]
             d = np.hypot(x[None, :], yy)
             f.extend(np.sum(w * yy / d, axis=1))
@@ -308,7 +371,9 @@ def sticking_deflection(alpha: np.ndarray, eps) -> np.ndarray:
         for _ in range(56):
             mid = 0.5 * (lo + hi)
             gap = np.tan(alpha) - np.tan(mid)
-            rho = np.where(gap > 0, 1.0 / (eps * np.cos(mid) * np.where(gap > 0, gap, 1.0)), np.inf)
+            rho = np.where(
+                gap > 0, 1.0 / (eps * np.cos(mid) * np.where(gap > 0, gap, 1.0)), np.inf
+            )
             f, m = disc_friction(rho)
             positive = np.sin(mid) * f - eps * m > 0
             hi = np.where(positive, mid, hi)
@@ -328,7 +393,9 @@ def _beta_table(eps: float) -> list[float]:
     table = _BETA_TABLES.get(key)
     if table is None:
         if _BETA_2D is None:
-            _BETA_2D = sticking_deflection(np.linspace(0.0, _ALPHA_MAX, _N_ALPHA)[None, :], _EPS_GRID[:, None])
+            _BETA_2D = sticking_deflection(
+                np.linspace(0.0, _ALPHA_MAX, _N_ALPHA)[None, :], _EPS_GRID[:, None]
+            )
         if key <= _EPS_GRID[0]:
             row = _BETA_2D[0] * (key / _EPS_GRID[0]) ** 2
         else:
@@ -383,11 +450,15 @@ def _nelder_mead_2d(f, x0, y0, step, tol=1e-11, max_iter=2000):
         elif fr < vals[1]:
             pts[2], vals[2] = (rx, ry), fr
         else:
-            kx, ky = (0.5 * (cx + rx), 0.5 * (cy + ry)) if fr < vals[2] else (0.5 * (cx + wx), 0.5 * (cy + wy))
+            kx, ky = (
+                (0.5 * (cx + rx), 0.5 * (cy + ry))
+                if fr < vals[2]
+                else (0.5 * (cx + wx), 0.5 * (cy + wy))
+            )
             fk = f(kx, ky)
             if fk < min(fr, vals[2]):
                 pts[2], vals[2] = (kx, ky), fk
-            else:                                    # shrink towards the best point
+            else:  # shrink towards the best point
                 bx, by = pts[0]
                 pts = [pts[0]] + [(0.5 * (bx + qx), 0.5 * (by + qy)) for qx, qy in pts[1:]]
                 vals = [vals[0]] + [f(*q) for q in pts[1:]]
@@ -408,10 +479,19 @@ def rod_end_twists() -> np.ndarray:
             particular = c / (c @ c)
             null = np.linalg.svd(c[None, :])[2][1:].T
             z0 = np.zeros(2) if previous is None else null.T @ (previous - particular)
-            (p0, p1, p2), (a0, a1, a2), (b0, b1, b2) = particular.tolist(), null[:, 0].tolist(), null[:, 1].tolist()
-            za, zb = _nelder_mead_2d(lambda u, v: line_work(p0 + u * a0 + v * b0, p1 + u * a1 + v * b1,
-                                                            p2 + u * a2 + v * b2),
-                                     float(z0[0]), float(z0[1]), 0.05 if previous is None else 0.01)
+            (p0, p1, p2), (a0, a1, a2), (b0, b1, b2) = (
+                particular.tolist(),
+                null[:, 0].tolist(),
+                null[:, 1].tolist(),
+            )
+            za, zb = _nelder_mead_2d(
+                lambda u, v: line_work(
+                    p0 + u * a0 + v * b0, p1 + u * a1 + v * b1, p2 + u * a2 + v * b2
+                ),
+                float(z0[0]),
+                float(z0[1]),
+                0.05 if previous is None else 0.01,
+            )
             previous = particular + null @ np.array([za, zb])
             rows.append(tuple(float(v) for v in previous))
         _END_TABLE = rows
@@ -421,6 +501,7 @@ def rod_end_twists() -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Geometry helpers (pure Python floats: these run per step)
 # --------------------------------------------------------------------------------------------
+
 
 def _closest_on_segment(px, py, ax, ay, bx, by):
     abx, aby = bx - ax, by - ay
@@ -480,7 +561,7 @@ def _capsule_out_of_box(ax, ay, bx, by, r, x0, x1, y0, y1):
         smin, smax = min(pa, pb) - r, max(pa, pb) + r
         proj = [cx * kx + cy * ky for cx, cy in corners]
         rmin, rmax = min(proj), max(proj)
-        forward, backward = rmax - smin, smax - rmin      # move +k by forward, or -k by backward
+        forward, backward = rmax - smin, smax - rmin  # move +k by forward, or -k by backward
         if forward <= 0 or backward <= 0:
             return None
         if best is None or min(forward, backward) < best[0]:
@@ -492,7 +573,7 @@ def _capsule_out_of_box(ax, ay, bx, by, r, x0, x1, y0, y1):
 # The world the tip moves in
 # --------------------------------------------------------------------------------------------
 
-_TOL = 1e-13       # m, overlaps below this are contact
+_TOL = 1e-13  # m, overlaps below this are contact
 _MAX_PASSES = 8
 _DETAILED_STEPS_AFTER_CONTACT = 16
 
@@ -500,18 +581,22 @@ _DETAILED_STEPS_AFTER_CONTACT = 16
 class _World:
     def __init__(self, sample: Sample, params: ContactParams, friction: FrictionMap | None = None):
         self.p = params
-        self.friction = friction          # None: uniform friction (the default, exactly as before regions)
+        self.friction = friction  # None: uniform friction (the default, exactly as before regions)
         self.objs = sample.movable
         self.is_rod = [isinstance(o, Rod) for o in self.objs]
-        self.bl = [self._bounds_of(i) for i in range(len(self.objs))]     # (x0, x1, y0, y1)
+        self.bl = [self._bounds_of(i) for i in range(len(self.objs))]  # (x0, x1, y0, y1)
         # for vectorised box queries: row (x0, -x1, y0, -y1) < (qx1, -qx0, qy1, -qy0)
-        self.box = np.array([(b[0], -b[1], b[2], -b[3]) for b in self.bl], dtype=float).reshape(-1, 4)
+        self.box = np.array([(b[0], -b[1], b[2], -b[3]) for b in self.bl], dtype=float).reshape(
+            -1, 4
+        )
         self.electrodes = [(e.x0, e.x1, e.y0, e.y1) for e in sample.electrodes]
         self.rt = params.tip_radius
         self.mu_angle = math.atan(params.mu_tip_particle)
         self.riding: set[int] = set()
-        self.local_margin = max(8 * params.tip_radius,
-                                max((o.length for o in self.objs if isinstance(o, Rod)), default=0.0))
+        self.local_margin = max(
+            8 * params.tip_radius,
+            max((o.length for o in self.objs if isinstance(o, Rod)), default=0.0),
+        )
         self.local_box = (0.0, 0.0, 0.0, 0.0)
         self.local: list[int] = []
         self.local_set: set[int] = set()
@@ -568,7 +653,11 @@ class _World:
         if not (x0 >= lx0 and x1 <= lx1 and y0 >= ly0 and y1 <= ly1):
             return self.query_all(x0, x1, y0, y1)
         bl = self.bl
-        return [i for i in self.local if bl[i][0] < x1 and bl[i][1] > x0 and bl[i][2] < y1 and bl[i][3] > y0]
+        return [
+            i
+            for i in self.local
+            if bl[i][0] < x1 and bl[i][1] > x0 and bl[i][2] < y1 and bl[i][3] > y0
+        ]
 
     # ---- elementary motions
     def translate(self, i, dx, dy):
@@ -673,8 +762,12 @@ class _World:
                 if od > D:
                     sx, sy = self.prev_x - px, self.prev_y - py
                     back = ox * sx + oy * sy
-                    lam = (-back - math.sqrt(max(back * back - (sx * sx + sy * sy) * (od * od - D * D), 0.0))) \
-                        / max(sx * sx + sy * sy, 1e-300)
+                    lam = (
+                        -back
+                        - math.sqrt(
+                            max(back * back - (sx * sx + sy * sy) * (od * od - D * D), 0.0)
+                        )
+                    ) / max(sx * sx + sy * sy, 1e-300)
                     ox, oy = ox + lam * sx, oy + lam * sy
                     od = math.hypot(ox, oy)
                 if od > 0:
@@ -724,7 +817,7 @@ class _World:
             return None
         if d > 1e-30:
             nx, ny = dx / d, dy / d
-        else:                                     # axes cross: push b off a's axis sideways
+        else:  # axes cross: push b off a's axis sideways
             if ra:
                 ex, ey = math.cos(oa.angle), math.sin(oa.angle)
                 nx, ny = -ey, ex
@@ -780,9 +873,13 @@ class _World:
                     stuck = True
         if self.relax(moved, px, py, stuck):
             return
-        jammed = [i for i in moved if i not in self.riding and self.tip_gap(i, px, py)[0] < -1e-3 * self.rt]
+        jammed = [
+            i
+            for i in moved
+            if i not in self.riding and self.tip_gap(i, px, py)[0] < -1e-3 * self.rt
+        ]
         if jammed:
-            self.riding.update(jammed)      # the feedback lifts the tip over them ...
+            self.riding.update(jammed)  # the feedback lifts the tip over them ...
             self.relax(moved, px, py, True)  # ... and the objects settle without it
 
     def relax(self, moved, px, py, overlapping) -> bool:
@@ -858,12 +955,19 @@ class _World:
                 w = 0.5 if j in (0, k) else 1.0
                 dd = math.hypot(o.x - x + s * (c1 - c0), o.y - y + s * (s1 - s0))
                 # this point's friction scale, midway along its step (x 1.0 is exact: no regions, no change)
-                scale = 1.0 if self.friction is None else self.friction.scale(
-                    0.5 * (o.x + x + s * (c0 + c1)), 0.5 * (o.y + y + s * (s0 + s1)), 0)
+                scale = (
+                    1.0
+                    if self.friction is None
+                    else self.friction.scale(
+                        0.5 * (o.x + x + s * (c0 + c1)), 0.5 * (o.y + y + s * (s0 + s1)), 0
+                    )
+                )
                 coulomb += w * scale * dd
                 viscous += w * dd * dd
             ds = o.length / k if o.length > 0 else 1.0
-            energy += (p.rod_friction_per_length * coulomb + p.rod_viscous_per_length * viscous / dt) * ds
+            energy += (
+                p.rod_friction_per_length * coulomb + p.rod_viscous_per_length * viscous / dt
+            ) * ds
         return energy
 
     # ---- vectorised search for the next contact while nothing moves
@@ -888,7 +992,10 @@ class _World:
             ab2 = np.maximum(abx * abx + aby * aby, 1e-300)
             t = np.clip(((xs[:, None] - ax) * abx + (ys[:, None] - ay) * aby) / ab2, 0.0, 1.0)
             dd = np.array([self.objs[i].radius for i in rods]) + r
-            hit |= np.any((xs[:, None] - ax - t * abx) ** 2 + (ys[:, None] - ay - t * aby) ** 2 < dd * dd, axis=1)
+            hit |= np.any(
+                (xs[:, None] - ax - t * abx) ** 2 + (ys[:, None] - ay - t * aby) ** 2 < dd * dd,
+                axis=1,
+            )
         k = int(np.argmax(hit))
         return j0 + k if hit[k] else j1
 
@@ -896,6 +1003,7 @@ class _World:
 # --------------------------------------------------------------------------------------------
 # The path
 # --------------------------------------------------------------------------------------------
+
 
 def _mechanics_vertices(x, y, h):
     """Vertices of the mechanics path: the samples where the arc length passes a multiple of h
@@ -911,7 +1019,9 @@ def _mechanics_vertices(x, y, h):
     idx = np.nonzero(keep)[0]
     chord = np.hypot(np.diff(x[idx]), np.diff(y[idx]))
     pieces = np.maximum(np.ceil(chord / h).astype(np.int64), 1)
-    first_step = np.concatenate([[1], 1 + np.cumsum(pieces)[:-1]])   # vertex index of each chord's first step
+    first_step = np.concatenate(
+        [[1], 1 + np.cumsum(pieces)[:-1]]
+    )  # vertex index of each chord's first step
     which = np.repeat(np.arange(idx.size - 1), pieces)
     frac = (np.arange(which.size) - (first_step[which] - 1) + 1) / pieces[which]
     i0, i1 = idx[which], idx[which + 1]
@@ -922,14 +1032,21 @@ def _mechanics_vertices(x, y, h):
     samples = np.arange(1, n)
     chord_of = np.searchsorted(idx, samples, side="left") - 1
     span = cum[idx[chord_of + 1]] - cum[idx[chord_of]]
-    pos = np.where(span > 0, (cum[samples] - cum[idx[chord_of]]) / np.where(span > 0, span, 1.0), 1.0)
+    pos = np.where(
+        span > 0, (cum[samples] - cum[idx[chord_of]]) / np.where(span > 0, span, 1.0), 1.0
+    )
     piece = np.clip(np.ceil(pos * pieces[chord_of]).astype(np.int64) - 1, 0, pieces[chord_of] - 1)
     sample_step = np.concatenate([[1], first_step[chord_of] + piece])
     return vx, vy, vt, sample_step
 
 
-def _tip_substrate_scales(friction: FrictionMap, x: np.ndarray, y: np.ndarray, x_before: float | None,
-                          y_before: float | None) -> np.ndarray:
+def _tip_substrate_scales(
+    friction: FrictionMap,
+    x: np.ndarray,
+    y: np.ndarray,
+    x_before: float | None,
+    y_before: float | None,
+) -> np.ndarray:
     """The tip friction scale for each sample, at the middle of the step into it (the first
     sample's step starts at (x_before, y_before), or at the sample itself)."""
     px = np.concatenate([[x[0] if x_before is None else x_before], x[:-1]])
@@ -937,8 +1054,14 @@ def _tip_substrate_scales(friction: FrictionMap, x: np.ndarray, y: np.ndarray, x
     return friction.scales(0.5 * (px + x), 0.5 * (py + y), 1)
 
 
-def push_along_path(sample: Sample, path_x: np.ndarray, path_y: np.ndarray, dt: float,
-                    params: ContactParams, stick_slip: StickSlipState | None = None) -> PushStepResult:
+def push_along_path(
+    sample: Sample,
+    path_x: np.ndarray,
+    path_y: np.ndarray,
+    dt: float,
+    params: ContactParams,
+    stick_slip: StickSlipState | None = None,
+) -> PushStepResult:
     """Move the tip through the true positions (path_x[k], path_y[k]) (sample frame, m), one
     every dt seconds, in contact with the substrate; push the sample's movable objects in
     place. Returns the ids of the objects that moved and the force trace per sample.
@@ -966,12 +1089,20 @@ def push_along_path(sample: Sample, path_x: np.ndarray, path_y: np.ndarray, dt: 
         kinetic = np.full(n, p.mu_tip_substrate * p.normal_force)
         if friction is not None:
             kinetic = kinetic * _tip_substrate_scales(friction, x, y, *before)
-        return stick_slip_force(x, y, kinetic, p.static_friction_ratio, p.stick_slip_stiffness, stick_slip)
+        return stick_slip_force(
+            x, y, kinetic, p.static_friction_ratio, p.stick_slip_stiffness, stick_slip
+        )
 
     world = _World(sample, p, friction)
-    reach = p.tip_radius + 2 * max((hb[1] - hb[0]) + (hb[3] - hb[2]) for hb in world.bl) if world.bl else 0.0
+    reach = (
+        p.tip_radius + 2 * max((hb[1] - hb[0]) + (hb[3] - hb[2]) for hb in world.bl)
+        if world.bl
+        else 0.0
+    )
     near = world.query_all(x.min() - reach, x.max() + reach, y.min() - reach, y.max() + reach)
-    h = p.substep_fraction * min([p.tip_radius, *(world.objs[i].radius for i in near if world.objs[i].radius > 0)])
+    h = p.substep_fraction * min(
+        [p.tip_radius, *(world.objs[i].radius for i in near if world.objs[i].radius > 0)]
+    )
     # Objects the tip overlaps at the first sample: a shallow overlap is a contact carried over
     # from a previous call (a path fed in pieces), pushed out now; a deep one means the tip
     # starts on top of the object and rides over it.
@@ -1010,17 +1141,19 @@ def push_along_path(sample: Sample, path_x: np.ndarray, path_y: np.ndarray, dt: 
                     scales = _tip_substrate_scales(friction, x, y, None, None)
                     scales[0] = scales[1]
                     forces[moving] = sliding * scales[moving]
-        return PushStepResult([], forces, deflection, forces * p.tip_height / p.lateral_spring_constant)
+        return PushStepResult(
+            [], forces, deflection, forces * p.tip_height / p.lateral_spring_constant
+        )
 
     X, Y, T, sample_step = _mechanics_vertices(x, y, h)
     m = X.size
     lengths = np.concatenate([[0.0], np.hypot(np.diff(X), np.diff(Y))])
     if friction is None:
         tip_force = np.where(lengths > 0, sliding, 0.0)
-    else:                       # scaled at the middle of each step
+    else:  # scaled at the middle of each step
         mid_scale = friction.scales(0.5 * (X[:-1] + X[1:]), 0.5 * (Y[:-1] + Y[1:]), 1)
         tip_force = np.where(lengths > 0, sliding * np.concatenate([[1.0], mid_scale]), 0.0)
-    object_force = np.zeros(m)          # N, the pushed objects' dissipation per unit tip travel
+    object_force = np.zeros(m)  # N, the pushed objects' dissipation per unit tip travel
     Xl, Yl, Tl, Ll = X.tolist(), Y.tolist(), T.tolist(), lengths.tolist()
     j = 1
     detailed_until = 0
@@ -1058,4 +1191,6 @@ def push_along_path(sample: Sample, path_x: np.ndarray, path_y: np.ndarray, dt: 
         if n > 1:
             forces[0] = forces[1]
     moved = [world.objs[i].id for i in world.touched_order if world._pose(i) != world.initial[i]]
-    return PushStepResult(moved, forces, deflection, forces * p.tip_height / p.lateral_spring_constant)
+    return PushStepResult(
+        moved, forces, deflection, forces * p.tip_height / p.lateral_spring_constant
+    )

@@ -4,10 +4,10 @@ Objects live in the sample-fixed task frame (afm_task). Spheres and rods/tubes m
 pushed (afm_core.sim.pushing mutates their poses); electrodes never move; pits are dents
 the tip punched. Heights in metres above the mean substrate plane.
 """
+
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -16,6 +16,7 @@ import numpy as np
 @dataclass
 class Sphere:
     """A particle resting on the substrate (centre at height = radius)."""
+
     id: int
     x: float
     y: float
@@ -25,10 +26,17 @@ class Sphere:
     def height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         d2 = (xs - self.x) ** 2 + (ys - self.y) ** 2
         inside = d2 < self.radius**2
-        return np.where(inside, self.radius + np.sqrt(np.where(inside, self.radius**2 - d2, 0.0)), -np.inf)
+        return np.where(
+            inside, self.radius + np.sqrt(np.where(inside, self.radius**2 - d2, 0.0)), -np.inf
+        )
 
     def bounds(self) -> tuple[float, float, float, float]:
-        return self.x - self.radius, self.x + self.radius, self.y - self.radius, self.y + self.radius
+        return (
+            self.x - self.radius,
+            self.x + self.radius,
+            self.y - self.radius,
+            self.y + self.radius,
+        )
 
     def top(self) -> float:
         """Its highest point above the mean substrate plane (m)."""
@@ -39,13 +47,14 @@ class Sphere:
 class Rod:
     """A rod or nanotube lying on the substrate: a capsule (cylinder with round ends) of
     `radius` whose axis, at height `radius`, runs `length` long through (x, y) at `angle`."""
+
     id: int
     x: float
     y: float
-    angle: float        # rad, axis direction from +x
-    length: float       # m, end to end of the axis segment
+    angle: float  # rad, axis direction from +x
+    length: float  # m, end to end of the axis segment
     radius: float
-    kind: str = "rod"   # "rod" or "tube"
+    kind: str = "rod"  # "rod" or "tube"
 
     def endpoints(self) -> tuple[np.ndarray, np.ndarray]:
         half = 0.5 * self.length * np.array([np.cos(self.angle), np.sin(self.angle)])
@@ -55,13 +64,17 @@ class Rod:
     def distance_to_axis(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         a, b = self.endpoints()
         ab = b - a
-        t = np.clip(((xs - a[0]) * ab[0] + (ys - a[1]) * ab[1]) / max(float(ab @ ab), 1e-30), 0.0, 1.0)
+        t = np.clip(
+            ((xs - a[0]) * ab[0] + (ys - a[1]) * ab[1]) / max(float(ab @ ab), 1e-30), 0.0, 1.0
+        )
         return np.hypot(xs - (a[0] + t * ab[0]), ys - (a[1] + t * ab[1]))
 
     def height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         d = self.distance_to_axis(xs, ys)
         inside = d < self.radius
-        return np.where(inside, self.radius + np.sqrt(np.where(inside, self.radius**2 - d**2, 0.0)), -np.inf)
+        return np.where(
+            inside, self.radius + np.sqrt(np.where(inside, self.radius**2 - d**2, 0.0)), -np.inf
+        )
 
     def bounds(self) -> tuple[float, float, float, float]:
         a, b = self.endpoints()
@@ -75,6 +88,7 @@ class Rod:
 @dataclass
 class Electrode:
     """A fixed rectangular metal pad (axis-aligned) of uniform height."""
+
     id: int
     x0: float
     y0: float
@@ -97,6 +111,7 @@ class Electrode:
 @dataclass
 class Pit:
     """An indentation: a paraboloid dent of the tip's apex shape, `depth` deep, `radius` wide."""
+
     id: int
     x: float
     y: float
@@ -109,7 +124,12 @@ class Pit:
         return np.where(r2 < 1.0, -self.depth * (1.0 - r2), 0.0)
 
     def bounds(self) -> tuple[float, float, float, float]:
-        return self.x - self.radius, self.x + self.radius, self.y - self.radius, self.y + self.radius
+        return (
+            self.x - self.radius,
+            self.x + self.radius,
+            self.y - self.radius,
+            self.y + self.radius,
+        )
 
 
 class Roughness:
@@ -124,16 +144,21 @@ class Roughness:
             rng = np.random.default_rng(seed)
             k = np.fft.fftfreq(tile_pixels, d=self.pixel) * 2 * np.pi
             kx, ky = np.meshgrid(k, k)
-            spectrum = np.exp(-(kx**2 + ky**2) * correlation**2 / 8.0)   # Gaussian correlation
-            field_ = np.fft.ifft2(np.fft.fft2(rng.normal(size=self.tile.shape)) * np.sqrt(spectrum)).real
+            spectrum = np.exp(-(kx**2 + ky**2) * correlation**2 / 8.0)  # Gaussian correlation
+            field_ = np.fft.ifft2(
+                np.fft.fft2(rng.normal(size=self.tile.shape)) * np.sqrt(spectrum)
+            ).real
             self.tile = field_ / field_.std() * sigma
 
     def height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         if self.sigma == 0:
             return np.zeros(np.broadcast(xs, ys).shape)
         from scipy.ndimage import map_coordinates
+
         coords = np.stack([np.asarray(ys) / self.pixel, np.asarray(xs) / self.pixel])
-        return map_coordinates(self.tile, coords.reshape(2, -1), order=1, mode="grid-wrap").reshape(coords.shape[1:])
+        return map_coordinates(
+            self.tile, coords.reshape(2, -1), order=1, mode="grid-wrap"
+        ).reshape(coords.shape[1:])
 
 
 @dataclass
@@ -160,14 +185,21 @@ class Sample:
         z = self.base_height(xs, ys)
         if xs.size == 0:
             return z
-        return np.maximum(z, self.object_height(xs, ys, self.objects_near(xs.min(), xs.max(), ys.min(), ys.max())))
+        return np.maximum(
+            z,
+            self.object_height(xs, ys, self.objects_near(xs.min(), xs.max(), ys.min(), ys.max())),
+        )
 
     def base_height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         """The substrate: roughness and pits, without the objects lying on it."""
-        z = self.roughness.height(xs, ys) if self.roughness is not None else np.zeros(np.broadcast(xs, ys).shape)
+        z = (
+            self.roughness.height(xs, ys)
+            if self.roughness is not None
+            else np.zeros(np.broadcast(xs, ys).shape)
+        )
         if self.pits and np.size(xs):
             x_lo, x_hi, y_lo, y_hi = np.min(xs), np.max(xs), np.min(ys), np.max(ys)
-            for pit in self.pits:           # calibration punches dozens: only those in reach count
+            for pit in self.pits:  # calibration punches dozens: only those in reach count
                 b = pit.bounds()
                 if not (b[1] < x_lo or b[0] > x_hi or b[3] < y_lo or b[2] > y_hi):
                     z = z + pit.depression(xs, ys)
@@ -179,8 +211,14 @@ class Sample:
         span = float(np.ptp(self.roughness.tile)) if self.roughness is not None else 0.0
         deepest = 0.0
         for pit in self.pits:
-            deepest = max(deepest, sum(other.depth for other in self.pits
-                                       if math.hypot(other.x - pit.x, other.y - pit.y) < other.radius + pit.radius))
+            deepest = max(
+                deepest,
+                sum(
+                    other.depth
+                    for other in self.pits
+                    if math.hypot(other.x - pit.x, other.y - pit.y) < other.radius + pit.radius
+                ),
+            )
         return span + deepest
 
     def objects_near(self, x_lo: float, x_hi: float, y_lo: float, y_hi: float) -> list:

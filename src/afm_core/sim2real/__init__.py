@@ -1,10 +1,23 @@
 """sim2real: record a session from any instrument, read it back as operations, and re-run
 the same commands in the simulator (issue 8's I/O layer)."""
-from afm_core.sim2real.resimulate import (Resimulation, check_config_matches, check_operation, load_sim_config,
-                                          resimulate)
-from afm_core.sim2real.session import (Operation, OperationStream, RecordingInstrument, SessionError,
-                                       SessionWriter, indent_request_from_trace, operation_from_call,
-                                       read_operations)
+
+from afm_core.sim2real.resimulate import (
+    Resimulation,
+    check_config_matches,
+    check_operation,
+    load_sim_config,
+    resimulate,
+)
+from afm_core.sim2real.session import (
+    Operation,
+    OperationStream,
+    RecordingInstrument,
+    SessionError,
+    SessionWriter,
+    indent_request_from_trace,
+    operation_from_call,
+    read_operations,
+)
 
 __all__ = [
     "Operation",

@@ -6,6 +6,7 @@ configuration. Its design columns are the sensitivities of the features to those
 computed by re-simulating with each value stepped. A candidate whose keys the configuration
 does not have (an older simulator) is left out, and the report says so.
 """
+
 from __future__ import annotations
 
 import copy
@@ -19,16 +20,18 @@ from afm_core.sim.config import SimConfig, merge
 
 @dataclass
 class Candidate:
-    name: str                      # short id
-    words: str                     # what a microscopist would call it
-    keys: list                     # dotted config keys, one per parameter
-    steps: list                    # finite-difference steps, in the parameters' units
-    units: list                    # for the report
-    scale: bool = False            # the parameter is a factor on a list-valued key (nominal 1)
-    enable: dict = field(default_factory=dict)   # dotted key -> value, set whenever the term is fitted
-    lower: list | None = None      # bounds of the parameters (None: unbounded)
+    name: str  # short id
+    words: str  # what a microscopist would call it
+    keys: list  # dotted config keys, one per parameter
+    steps: list  # finite-difference steps, in the parameters' units
+    units: list  # for the report
+    scale: bool = False  # the parameter is a factor on a list-valued key (nominal 1)
+    enable: dict = field(
+        default_factory=dict
+    )  # dotted key -> value, set whenever the term is fitted
+    lower: list | None = None  # bounds of the parameters (None: unbounded)
     upper: list | None = None
-    display: list | None = None    # per parameter: (factor, unit) for the report
+    display: list | None = None  # per parameter: (factor, unit) for the report
     # how the term acts, which decides how its design columns are computed:
     # geometric: it moves where the scanner puts the tip (drift, scanner); the shapes of what is
     #   measured (widths, heights) do not change at a given tip-particle geometry, and the
@@ -118,26 +121,48 @@ class FrictionRegion(Candidate):
     frame) found from the data (sim2real.regions); the factor is the parameter. Only the
     tip's friction is measured by the slides; the particles' substrate friction there is left
     as modelled."""
+
     bounds: tuple = (0.0, 0.0, 0.0, 0.0)
 
     @classmethod
-    def at(cls, bounds, step: float = 0.3) -> "FrictionRegion":
+    def at(cls, bounds, step: float = 0.3) -> FrictionRegion:
         x0, y0, x1, y1 = (float(b) for b in bounds)
-        words = (f"friction changes in one region of the sample: the tip-substrate friction differs inside "
-                 f"x {x0 * 1e6:.2f}-{x1 * 1e6:.2f} um, y {y0 * 1e6:.2f}-{y1 * 1e6:.2f} um (a patch of contamination "
-                 "or of another material)")
-        return cls("friction_region", words, ["contact.friction_regions[-1].mu_tip_substrate_scale"], [float(step)],
-                   ["factor"], imaging=False, lower=[0.0], searched=4, bounds=(x0, y0, x1, y1))
+        words = (
+            f"friction changes in one region of the sample: the tip-substrate friction differs inside "
+            f"x {x0 * 1e6:.2f}-{x1 * 1e6:.2f} um, y {y0 * 1e6:.2f}-{y1 * 1e6:.2f} um (a patch of contamination "
+            "or of another material)"
+        )
+        return cls(
+            "friction_region",
+            words,
+            ["contact.friction_regions[-1].mu_tip_substrate_scale"],
+            [float(step)],
+            ["factor"],
+            imaging=False,
+            lower=[0.0],
+            searched=4,
+            bounds=(x0, y0, x1, y1),
+        )
 
     def nominal(self, config: SimConfig) -> np.ndarray:
         return np.array([1.0])
 
     def overrides(self, config: SimConfig, theta) -> dict:
         x0, y0, x1, y1 = self.bounds
-        region = {"x0": x0, "y0": y0, "x1": x1, "y1": y1, "substrate_friction_scale": 1.0,
-                  "mu_tip_substrate_scale": float(self.clip(theta)[0])}
-        return {"contact": {"friction_regions": [dict(r) for r in get_key(config, "contact.friction_regions")]
-                            + [region]}}
+        region = {
+            "x0": x0,
+            "y0": y0,
+            "x1": x1,
+            "y1": y1,
+            "substrate_friction_scale": 1.0,
+            "mu_tip_substrate_scale": float(self.clip(theta)[0]),
+        }
+        return {
+            "contact": {
+                "friction_regions": [dict(r) for r in get_key(config, "contact.friction_regions")]
+                + [region]
+            }
+        }
 
 
 def get_key(config, key: str):
@@ -183,64 +208,224 @@ ASYMMETRY_SEARCH = (-0.45, 0.45)
 def library() -> list[Candidate]:
     """Every candidate term the tool knows (filtered by `available`)."""
     return [
-        Candidate("drift_velocity", "thermal drift: the constant drift velocity differs from the model",
-                  ["drift.mean_velocity_x", "drift.mean_velocity_y"], [5e-11, 5e-11], ["m/s", "m/s"],
-                  display=[NM_S, NM_S], geometric=True, analytic="drift_velocity"),
-        Candidate("drift_ramp", "drift ramp: the drift speeds up steadily (temperature still settling)",
-                  ["drift.acceleration_x", "drift.acceleration_y"], [1e-13, 1e-13], ["m/s^2", "m/s^2"],
-                  display=[(1e9, "nm/s^2"), (1e9, "nm/s^2")], geometric=True, analytic="drift_ramp"),
-        Candidate("creep_amplitude", "piezo creep: more (or less) creep after each move than modelled",
-                  ["scanner.creep_fractions"], [0.5], ["x nominal fractions"], scale=True, lower=[0.0],
-                  geometric=True, requires={"scanner.creep_enabled": True}),
-        Candidate("creep_time", "piezo creep: the creep time constants differ (faster/slower settling)",
-                  ["scanner.creep_time_constants"], [0.4], ["x nominal time constants"], scale=True,
-                  lower=[0.05], geometric=True, requires={"scanner.creep_enabled": True}),
-        Candidate("hysteresis_residual", "hysteresis: the controller's feed-forward leaves more (or less) of the "
-                  "loop than modelled (its calibrated loop width is off)", ["controller.model_error"], [0.05],
-                  ["relative loop-width error"], lower=[-0.9], upper=[2.0], geometric=True,
-                  requires={"controller.hysteresis_compensation": True, "scanner.hysteresis_enabled": True}),
-        Candidate("hysteresis_asymmetry", "hysteresis: ascending and descending branches differ more (or less) "
-                  "than the controller's feed-forward assumes (its calibrated asymmetry is off)",
-                  ["controller.asymmetry_error"], [0.03], [""], lower=[-0.8], upper=[0.8], geometric=True,
-                  search_range=ASYMMETRY_SEARCH,
-                  requires={"controller.hysteresis_compensation": True, "scanner.hysteresis_enabled": True}),
-        Candidate("hysteresis_asymmetry_open_loop", "hysteresis: ascending and descending branches differ "
-                  "(asymmetry, scanner driven open loop)",
-                  ["scanner.hysteresis_asymmetry"], [0.05], [""], lower=[-0.8], upper=[0.8], geometric=True,
-                  search_range=ASYMMETRY_SEARCH,
-                  requires={"controller.hysteresis_compensation": False, "scanner.hysteresis_enabled": True}),
-        Candidate("hysteresis_width", "hysteresis: the loop is wider/narrower than calibrated",
-                  ["scanner.hysteresis_fraction"], [0.01], ["of range"], lower=[0.0], upper=[0.33], geometric=True,
-                  requires={"scanner.hysteresis_enabled": True}),
-        Candidate("coupling", "x/y cross-coupling of the scanner tube",
-                  ["scanner.coupling_x_to_y", "scanner.coupling_y_to_x"], [0.005, 0.005], ["", ""],
-                  enable={"scanner.coupling_enabled": True}, lower=[-0.5, -0.5], upper=[0.5, 0.5], geometric=True),
-        Candidate("rotation", "scan-line rotation (the scan axes are rotated)", ["scanner.deflection_deg"], [0.3],
-                  ["deg"], enable={"scanner.deflection_enabled": True}, geometric=True),
-        Candidate("bow", "scanner bow (the image background is curved)", ["scanner.bow_curvature"], [5.0],
-                  ["1/m"], lower=[-300.0], upper=[300.0], analytic="bow"),
-        Candidate("tip_radius", "tip radius: the tip is blunter/sharper than modelled", ["tip.apex_radius"], [4e-9],
-                  ["m"], lower=[1e-9], display=[NM]),
-        Candidate("tip_wear", "tip wear: the tip blunts while sliding in contact", ["tip.wear_rate"], [5e-4],
-                  ["m per m slid"], enable={"tip.wear_enabled": True}, lower=[0.0]),
-        Candidate("tip_asymmetry", "tip asymmetry: one flank of the tip is blunter", ["tip.asymmetry"], [0.15],
-                  [""], lower=[-0.9], upper=[0.9]),
-        Candidate("friction", "tip-substrate friction coefficient differs", ["contact.mu_tip_substrate"], [0.02],
-                  [""], lower=[0.0], imaging=False),
-        Candidate("stick_slip", "stick-slip: the tip sticks and slips while sliding",
-                  ["contact.static_friction_ratio"], [0.3], ["static/kinetic"],
-                  enable={"contact.stick_slip_enabled": True}, lower=[1.0], imaging=False),
-        Candidate("height_gain", "z-sensor gain: heights are scaled (z calibration off)", ["noise.height_gain"],
-                  [0.02], [""], lower=[0.1], upper=[10.0], analytic="height_gain"),
-        Candidate("white_noise", "white z noise: the height signal is noisier (or quieter) from pixel to pixel "
-                  "than modelled (grainy images; a sample rougher at the pixel scale than modelled looks alike)",
-                  ["noise.height_white_sigma"], [0.1e-9], ["m"], lower=[0.0], display=[NM], analytic="sensor_noise"),
-        Candidate("coloured_noise", "coloured (1/f) z noise: the height signal wanders more (or less) than "
-                  "modelled (whole scan lines offset from their neighbours: streaks in images)",
-                  ["noise.height_flicker_sigma"], [0.1e-9], ["m"], lower=[0.0], display=[NM],
-                  analytic="sensor_noise"),
-        Candidate("latency", "sensor latency: signals lag the scan position", ["noise.sensor_latency"], [3e-3],
-                  ["s"], lower=[0.0], upper=[1.0], display=[(1e3, "ms")]),
+        Candidate(
+            "drift_velocity",
+            "thermal drift: the constant drift velocity differs from the model",
+            ["drift.mean_velocity_x", "drift.mean_velocity_y"],
+            [5e-11, 5e-11],
+            ["m/s", "m/s"],
+            display=[NM_S, NM_S],
+            geometric=True,
+            analytic="drift_velocity",
+        ),
+        Candidate(
+            "drift_ramp",
+            "drift ramp: the drift speeds up steadily (temperature still settling)",
+            ["drift.acceleration_x", "drift.acceleration_y"],
+            [1e-13, 1e-13],
+            ["m/s^2", "m/s^2"],
+            display=[(1e9, "nm/s^2"), (1e9, "nm/s^2")],
+            geometric=True,
+            analytic="drift_ramp",
+        ),
+        Candidate(
+            "creep_amplitude",
+            "piezo creep: more (or less) creep after each move than modelled",
+            ["scanner.creep_fractions"],
+            [0.5],
+            ["x nominal fractions"],
+            scale=True,
+            lower=[0.0],
+            geometric=True,
+            requires={"scanner.creep_enabled": True},
+        ),
+        Candidate(
+            "creep_time",
+            "piezo creep: the creep time constants differ (faster/slower settling)",
+            ["scanner.creep_time_constants"],
+            [0.4],
+            ["x nominal time constants"],
+            scale=True,
+            lower=[0.05],
+            geometric=True,
+            requires={"scanner.creep_enabled": True},
+        ),
+        Candidate(
+            "hysteresis_residual",
+            "hysteresis: the controller's feed-forward leaves more (or less) of the "
+            "loop than modelled (its calibrated loop width is off)",
+            ["controller.model_error"],
+            [0.05],
+            ["relative loop-width error"],
+            lower=[-0.9],
+            upper=[2.0],
+            geometric=True,
+            requires={
+                "controller.hysteresis_compensation": True,
+                "scanner.hysteresis_enabled": True,
+            },
+        ),
+        Candidate(
+            "hysteresis_asymmetry",
+            "hysteresis: ascending and descending branches differ more (or less) "
+            "than the controller's feed-forward assumes (its calibrated asymmetry is off)",
+            ["controller.asymmetry_error"],
+            [0.03],
+            [""],
+            lower=[-0.8],
+            upper=[0.8],
+            geometric=True,
+            search_range=ASYMMETRY_SEARCH,
+            requires={
+                "controller.hysteresis_compensation": True,
+                "scanner.hysteresis_enabled": True,
+            },
+        ),
+        Candidate(
+            "hysteresis_asymmetry_open_loop",
+            "hysteresis: ascending and descending branches differ "
+            "(asymmetry, scanner driven open loop)",
+            ["scanner.hysteresis_asymmetry"],
+            [0.05],
+            [""],
+            lower=[-0.8],
+            upper=[0.8],
+            geometric=True,
+            search_range=ASYMMETRY_SEARCH,
+            requires={
+                "controller.hysteresis_compensation": False,
+                "scanner.hysteresis_enabled": True,
+            },
+        ),
+        Candidate(
+            "hysteresis_width",
+            "hysteresis: the loop is wider/narrower than calibrated",
+            ["scanner.hysteresis_fraction"],
+            [0.01],
+            ["of range"],
+            lower=[0.0],
+            upper=[0.33],
+            geometric=True,
+            requires={"scanner.hysteresis_enabled": True},
+        ),
+        Candidate(
+            "coupling",
+            "x/y cross-coupling of the scanner tube",
+            ["scanner.coupling_x_to_y", "scanner.coupling_y_to_x"],
+            [0.005, 0.005],
+            ["", ""],
+            enable={"scanner.coupling_enabled": True},
+            lower=[-0.5, -0.5],
+            upper=[0.5, 0.5],
+            geometric=True,
+        ),
+        Candidate(
+            "rotation",
+            "scan-line rotation (the scan axes are rotated)",
+            ["scanner.deflection_deg"],
+            [0.3],
+            ["deg"],
+            enable={"scanner.deflection_enabled": True},
+            geometric=True,
+        ),
+        Candidate(
+            "bow",
+            "scanner bow (the image background is curved)",
+            ["scanner.bow_curvature"],
+            [5.0],
+            ["1/m"],
+            lower=[-300.0],
+            upper=[300.0],
+            analytic="bow",
+        ),
+        Candidate(
+            "tip_radius",
+            "tip radius: the tip is blunter/sharper than modelled",
+            ["tip.apex_radius"],
+            [4e-9],
+            ["m"],
+            lower=[1e-9],
+            display=[NM],
+        ),
+        Candidate(
+            "tip_wear",
+            "tip wear: the tip blunts while sliding in contact",
+            ["tip.wear_rate"],
+            [5e-4],
+            ["m per m slid"],
+            enable={"tip.wear_enabled": True},
+            lower=[0.0],
+        ),
+        Candidate(
+            "tip_asymmetry",
+            "tip asymmetry: one flank of the tip is blunter",
+            ["tip.asymmetry"],
+            [0.15],
+            [""],
+            lower=[-0.9],
+            upper=[0.9],
+        ),
+        Candidate(
+            "friction",
+            "tip-substrate friction coefficient differs",
+            ["contact.mu_tip_substrate"],
+            [0.02],
+            [""],
+            lower=[0.0],
+            imaging=False,
+        ),
+        Candidate(
+            "stick_slip",
+            "stick-slip: the tip sticks and slips while sliding",
+            ["contact.static_friction_ratio"],
+            [0.3],
+            ["static/kinetic"],
+            enable={"contact.stick_slip_enabled": True},
+            lower=[1.0],
+            imaging=False,
+        ),
+        Candidate(
+            "height_gain",
+            "z-sensor gain: heights are scaled (z calibration off)",
+            ["noise.height_gain"],
+            [0.02],
+            [""],
+            lower=[0.1],
+            upper=[10.0],
+            analytic="height_gain",
+        ),
+        Candidate(
+            "white_noise",
+            "white z noise: the height signal is noisier (or quieter) from pixel to pixel "
+            "than modelled (grainy images; a sample rougher at the pixel scale than modelled looks alike)",
+            ["noise.height_white_sigma"],
+            [0.1e-9],
+            ["m"],
+            lower=[0.0],
+            display=[NM],
+            analytic="sensor_noise",
+        ),
+        Candidate(
+            "coloured_noise",
+            "coloured (1/f) z noise: the height signal wanders more (or less) than "
+            "modelled (whole scan lines offset from their neighbours: streaks in images)",
+            ["noise.height_flicker_sigma"],
+            [0.1e-9],
+            ["m"],
+            lower=[0.0],
+            display=[NM],
+            analytic="sensor_noise",
+        ),
+        Candidate(
+            "latency",
+            "sensor latency: signals lag the scan position",
+            ["noise.sensor_latency"],
+            [3e-3],
+            ["s"],
+            lower=[0.0],
+            upper=[1.0],
+            display=[(1e3, "ms")],
+        ),
     ]
 
 
@@ -255,8 +440,10 @@ def select(effects=None) -> list[Candidate]:
     known = {c.name for c in lib}
     unknown = [n for n in names if n not in known]
     if unknown:
-        raise ValueError(f"effects: unknown {', '.join(repr(n) for n in unknown)}; the library has "
-                         + ", ".join(c.name for c in lib))
+        raise ValueError(
+            f"effects: unknown {', '.join(repr(n) for n in unknown)}; the library has "
+            + ", ".join(c.name for c in lib)
+        )
     return [c for c in lib if c.name in names]
 
 
@@ -269,8 +456,11 @@ def available(config: SimConfig, candidates=None) -> tuple[list[Candidate], list
         if not all(has_key(config, key) for key in keys):
             missing.append(candidate.name)
         elif not all(get_key(config, key) == value for key, value in candidate.requires.items()):
-            missing.append(f"{candidate.name} (cannot act unless "
-                           + ", ".join(f"{k} = {v}" for k, v in candidate.requires.items()) + ")")
+            missing.append(
+                f"{candidate.name} (cannot act unless "
+                + ", ".join(f"{k} = {v}" for k, v in candidate.requires.items())
+                + ")"
+            )
         else:
             ok.append(candidate)
     return ok, missing

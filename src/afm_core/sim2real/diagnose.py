@@ -58,15 +58,17 @@ Method (all SI):
 6. **Held-out demonstration**: fit on one fold only, re-simulate the whole session with that
    fit, residuals on the other fold before and after.
 """
+
 from __future__ import annotations
 
 import dataclasses
 import functools
 import math
 import time as _time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, NamedTuple, Optional
+from typing import NamedTuple
 
 import numpy as np
 from numpy.polynomial import chebyshev
@@ -75,32 +77,55 @@ from scipy import linalg, stats
 from afm_core.sim.config import SimConfig, load_config, merge
 from afm_core.sim.imaging import pink_noise
 from afm_core.sim2real import regions
-from afm_core.sim2real.candidates import (Candidate, FrictionRegion, available, has_key, library, merge_overrides,
-                                         select)
-from afm_core.sim2real.features import (POSITION_GROUPS, SEGMENT, STREAK_MIN_LINES, Feature, FeatureExtractor,
-                                        extract_features, raster_noise_statistics)
+from afm_core.sim2real.candidates import (
+    Candidate,
+    FrictionRegion,
+    available,
+    has_key,
+    library,
+    merge_overrides,
+    select,
+)
+from afm_core.sim2real.features import (
+    POSITION_GROUPS,
+    SEGMENT,
+    STREAK_MIN_LINES,
+    Feature,
+    FeatureExtractor,
+    extract_features,
+    raster_noise_statistics,
+)
 from afm_core.sim2real.protocol import TrajectoryDrift, deterministic, replay
 
-ALPHA = 0.05                       # family-wise false "missing physics" rate on null recordings
-UNEXPLAINED_P = 1e-3               # overall chi^2 p below which a residual no term explains is not called noise
-MIN_MATCHED_FRACTION = 0.7         # of the recorded features the reference simulation must reproduce
-SHIFT = 10e-9                      # m, drift shift of the sensitivity replays
-POSITION_PRECISION = 2e-9          # m, how well a measured position pins the drift trajectory
-LOST_FEATURE_RETRIES = 2           # quarterings of a sensitivity step that made the re-simulation lose features
-LINEAR_REACH = 2.0                 # steps: how far a term's derivative column is trusted to extrapolate
-COLLINEAR = 1e-9                   # |R_jj| of a unit-norm column below which it repeats the others
-REGION_MIN_STEP = 0.05             # smallest change of a friction region's factor its design column is taken over
+ALPHA = 0.05  # family-wise false "missing physics" rate on null recordings
+UNEXPLAINED_P = 1e-3  # overall chi^2 p below which a residual no term explains is not called noise
+MIN_MATCHED_FRACTION = 0.7  # of the recorded features the reference simulation must reproduce
+SHIFT = 10e-9  # m, drift shift of the sensitivity replays
+POSITION_PRECISION = 2e-9  # m, how well a measured position pins the drift trajectory
+LOST_FEATURE_RETRIES = (
+    2  # quarterings of a sensitivity step that made the re-simulation lose features
+)
+LINEAR_REACH = 2.0  # steps: how far a term's derivative column is trusted to extrapolate
+COLLINEAR = 1e-9  # |R_jj| of a unit-norm column below which it repeats the others
+REGION_MIN_STEP = (
+    0.05  # smallest change of a friction region's factor its design column is taken over
+)
 SHAPE_GROUPS = ("line.width", "line.peak", "line.asym", "raster.height", "raster.half_width")
 HEIGHT_GROUPS = ("line.peak", "raster.height")
 BOW_GROUPS = ("raster.bow_xx", "raster.bow_yy", "raster.bow_xy")
 PUSH_GROUPS = ("push.torsion", "push.fluct")
-REALIZATIONS = 6             # other substrates and noise draws the noise statistics' common part is taken from
+REALIZATIONS = (
+    6  # other substrates and noise draws the noise statistics' common part is taken from
+)
 REALIZATION_NOISE_SEED = 3000  # their first noise seed (the replicas' are 1000, 1001, ...)
-NOISE_LEVELS = 5             # re-simulated levels a noise term's statistics curve is fitted through
-NOISE_WIDENINGS = 3          # times that curve's range may grow towards a level beyond it
+NOISE_LEVELS = 5  # re-simulated levels a noise term's statistics curve is fitted through
+NOISE_WIDENINGS = 3  # times that curve's range may grow towards a level beyond it
 NOISE_PROFILE_POINTS = 2001  # levels its chi^2 profile is evaluated on
-NOISE_ZOOM = 4.0             # sigmas either side of the level the curve is fitted again through
-NOISE_GROUPS = ("raster.streak", "raster.pixel_noise")  # noise statistics: move only with the sensor noise
+NOISE_ZOOM = 4.0  # sigmas either side of the level the curve is fitted again through
+NOISE_GROUPS = (
+    "raster.streak",
+    "raster.pixel_noise",
+)  # noise statistics: move only with the sensor noise
 
 
 class ConfigMismatchError(ValueError):
@@ -113,13 +138,14 @@ class NoFeaturesError(ValueError):
 
 # -- feature tables ---------------------------------------------------------------------------
 
+
 @dataclass
 class Table:
     keys: list
     groups: np.ndarray
     time: np.ndarray
-    xy: np.ndarray               # (N, 2)
-    u: np.ndarray                # (N, 2)
+    xy: np.ndarray  # (N, 2)
+    u: np.ndarray  # (N, 2)
     conditions: list
     op_index: np.ndarray
 
@@ -134,20 +160,32 @@ def _values(features: dict, keys) -> np.ndarray:
 
 def _table(keys, rec: dict) -> Table:
     fs = [rec[k] for k in keys]
-    return Table(keys=list(keys), groups=np.array([f.group for f in fs]), time=np.array([f.time for f in fs]),
-                 xy=np.array([(f.x, f.y) for f in fs]), u=np.array([f.u for f in fs], float),
-                 conditions=[f.conditions for f in fs], op_index=np.array([k[0] for k in keys]))
+    return Table(
+        keys=list(keys),
+        groups=np.array([f.group for f in fs]),
+        time=np.array([f.time for f in fs]),
+        xy=np.array([(f.x, f.y) for f in fs]),
+        u=np.array([f.u for f in fs], float),
+        conditions=[f.conditions for f in fs],
+        op_index=np.array([k[0] for k in keys]),
+    )
 
 
 # -- noise model --------------------------------------------------------------------------------
+
 
 def drift_covariance(t: np.ndarray, sigma: float, tau: float) -> np.ndarray:
     """Cov(D(t_i), D(t_j)) of the integral of a stationary OU velocity (spread sigma, time tau)."""
     t = np.maximum(np.asarray(t, float), 0.0)
     ti, tj = t[:, None], t[None, :]
-    bracket = (2 * np.minimum(ti, tj) / tau - 1 + np.exp(-ti / tau) + np.exp(-tj / tau)
-               - np.exp(-np.abs(ti - tj) / tau))
-    return sigma ** 2 * tau ** 2 * bracket
+    bracket = (
+        2 * np.minimum(ti, tj) / tau
+        - 1
+        + np.exp(-ti / tau)
+        + np.exp(-tj / tau)
+        - np.exp(-np.abs(ti - tj) / tau)
+    )
+    return sigma**2 * tau**2 * bracket
 
 
 def positioning_covariance(t: np.ndarray, moves: list, slope: float, offset: float) -> np.ndarray:
@@ -164,10 +202,12 @@ def positioning_covariance(t: np.ndarray, moves: list, slope: float, offset: flo
 
 @dataclass
 class NoiseModel:
-    white: np.ndarray            # per-feature variance
-    cov: np.ndarray              # full covariance
-    group_sigma: dict            # group -> pooled white sigma
-    common: np.ndarray | None = None   # its part shared across groups: drift wander, positioning walk
+    white: np.ndarray  # per-feature variance
+    cov: np.ndarray  # full covariance
+    group_sigma: dict  # group -> pooled white sigma
+    common: np.ndarray | None = (
+        None  # its part shared across groups: drift wander, positioning walk
+    )
 
     def overdispersed(self, factors: dict, groups: np.ndarray) -> None:
         """Scale each group's own part by its overdispersion factor (variance). The shared
@@ -177,16 +217,20 @@ class NoiseModel:
         scale = np.sqrt(np.array([factors.get(g, 1.0) for g in groups]))
         common = self.common if self.common is not None else np.zeros_like(self.cov)
         self.cov = (self.cov - common) * np.outer(scale, scale) + common
-        self.white = self.white * scale ** 2
+        self.white = self.white * scale**2
 
 
-def _pooled_white(values: np.ndarray, groups: np.ndarray, shrink: float, reference: np.ndarray | None = None):
+def _pooled_white(
+    values: np.ndarray, groups: np.ndarray, shrink: float, reference: np.ndarray | None = None
+):
     """Per-feature variance from K replicas (K, N): per feature, shrunk towards its group's pool."""
     count = np.isfinite(values).sum(axis=0)
     k = values.shape[0]
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.nanmean(np.where(count >= 1, values, 0.0), axis=0)
-        spread = np.where(count >= 2, np.nansum((values - mean) ** 2, axis=0) / np.maximum(count - 1, 1), np.nan)
+        spread = np.where(
+            count >= 2, np.nansum((values - mean) ** 2, axis=0) / np.maximum(count - 1, 1), np.nan
+        )
     size = np.abs(reference) if reference is not None else np.abs(mean)
     white = np.empty(values.shape[1])
     pools = {}
@@ -194,10 +238,16 @@ def _pooled_white(values: np.ndarray, groups: np.ndarray, shrink: float, referen
         sel = groups == group
         # a feature the simulation reproduces without noise still has a finite precision: 0.1 % of
         # its size (torsion), 0.01 nm for positions (whose size is the scanner coordinate)
-        floor = (1e-11 if group in POSITION_GROUPS or group == "line.dir"
-                 else 1e-3 * float(np.sqrt(np.nanmean(size[sel] ** 2))) + 1e-15) ** 2
+        floor = (
+            1e-11
+            if group in POSITION_GROUPS or group == "line.dir"
+            else 1e-3 * float(np.sqrt(np.nanmean(size[sel] ** 2))) + 1e-15
+        ) ** 2
         good = sel & np.isfinite(spread)
-        pooled = max(float(np.sum(spread[good] * (count[good] - 1)) / max(np.sum(count[good] - 1), 1)), floor)
+        pooled = max(
+            float(np.sum(spread[good] * (count[good] - 1)) / max(np.sum(count[good] - 1), 1)),
+            floor,
+        )
         dof = np.maximum(count[sel] - 1, 0)
         own = np.nan_to_num(spread[sel])
         white[sel] = np.maximum((dof * own + shrink * pooled) / (dof + shrink), floor)
@@ -227,7 +277,7 @@ def _bow_roughness_variance(table: Table, roughness: float) -> np.ndarray:
     out = np.zeros(len(table.keys))
     for i, (group, cond) in enumerate(zip(table.groups, table.conditions)):
         if group in BOW_GROUPS and "image" in cond:
-            out[i] = 2 * roughness ** 2 * float(np.sum(_bow_weights(group, cond["image"]) ** 2))
+            out[i] = 2 * roughness**2 * float(np.sum(_bow_weights(group, cond["image"]) ** 2))
     return out
 
 
@@ -239,25 +289,40 @@ def _bow_sensor_variance(table: Table, noise, draws: int = 400) -> np.ndarray:
     it as the simulator does (one sequence over the lines in acquisition order)."""
     out = np.full(len(table.keys), np.nan)
     rng = np.random.default_rng(0)
-    images: dict = {}                   # one image's features share the draws
+    images: dict = {}  # one image's features share the draws
     for i, (group, cond) in enumerate(zip(table.groups, table.conditions)):
         if group in BOW_GROUPS and "image" in cond:
             images.setdefault(int(table.op_index[i]), []).append(i)
     for rows in images.values():
         cond = table.conditions[rows[0]]
         ny, nx, _, _ = cond["image"]
-        weights = np.array([_bow_weights(table.groups[i], cond["image"]).reshape(ny, nx) for i in rows])
-        if cond.get("angle", 0.0) != 0.0:           # lines are columns: the sequence runs down them
+        weights = np.array(
+            [_bow_weights(table.groups[i], cond["image"]).reshape(ny, nx) for i in rows]
+        )
+        if cond.get("angle", 0.0) != 0.0:  # lines are columns: the sequence runs down them
             weights = weights.transpose(0, 2, 1)
         weights = weights.reshape(len(rows), -1)
-        flicker = np.array([weights @ pink_noise(ny * nx, noise.height_flicker_sigma, rng) for _ in range(draws)])
-        out[rows] = noise.height_white_sigma ** 2 * np.sum(weights ** 2, axis=1) + np.mean(flicker ** 2, axis=0)
+        flicker = np.array(
+            [weights @ pink_noise(ny * nx, noise.height_flicker_sigma, rng) for _ in range(draws)]
+        )
+        out[rows] = noise.height_white_sigma**2 * np.sum(weights**2, axis=1) + np.mean(
+            flicker**2, axis=0
+        )
     return out
 
 
-def build_noise_model(config: SimConfig, table: Table, sensor: np.ndarray, J: np.ndarray, moves: list,
-                      reference: np.ndarray | None = None, shrink: float = 4.0, J_shape: np.ndarray | None = None,
-                      mismatch=None, extra_white: np.ndarray | None = None) -> NoiseModel:
+def build_noise_model(
+    config: SimConfig,
+    table: Table,
+    sensor: np.ndarray,
+    J: np.ndarray,
+    moves: list,
+    reference: np.ndarray | None = None,
+    shrink: float = 4.0,
+    J_shape: np.ndarray | None = None,
+    mismatch=None,
+    extra_white: np.ndarray | None = None,
+) -> NoiseModel:
     """sensor: (K, N) features of re-simulations with only the sensor noise on (at the recorded
     geometry); J: (N, 2) sensitivity of every feature to a drift offset; moves: (time, distance)
     of the free moves. White part from `sensor`; drift wander and positioning walk analytic,
@@ -267,7 +332,9 @@ def build_noise_model(config: SimConfig, table: Table, sensor: np.ndarray, J: np
     the drift trajectory follows there and the variance of the walk and wander since)."""
     white, pools = _pooled_white(sensor, table.groups, shrink, reference)
     analytic = _bow_sensor_variance(table, config.noise)
-    white = np.where(np.isfinite(analytic), analytic * (1.0 + 1.0 / max(sensor.shape[0], 1)), white)
+    white = np.where(
+        np.isfinite(analytic), analytic * (1.0 + 1.0 / max(sensor.shape[0], 1)), white
+    )
     white = white + _bow_roughness_variance(table, config.sample.roughness_sigma)
     if extra_white is not None:
         white = white + extra_white
@@ -292,11 +359,14 @@ def build_noise_model(config: SimConfig, table: Table, sensor: np.ndarray, J: np
         if d.enabled:
             for axis, sigma in enumerate((d.sigma_velocity_x, d.sigma_velocity_y)):
                 if sigma > 0:
-                    common[np.ix_(active, active)] += np.outer(Ja[:, axis], Ja[:, axis]) * drift_covariance(
-                        t, sigma, d.correlation_time)
+                    common[np.ix_(active, active)] += np.outer(
+                        Ja[:, axis], Ja[:, axis]
+                    ) * drift_covariance(t, sigma, d.correlation_time)
         s = config.scanner
         if s.positioning_noise_enabled:
-            walk = positioning_covariance(t, moves, s.positioning_noise_slope, s.positioning_noise_offset)
+            walk = positioning_covariance(
+                t, moves, s.positioning_noise_slope, s.positioning_noise_offset
+            )
             common[np.ix_(active, active)] += (Ja @ Ja.T) * walk
     return NoiseModel(white=white, cov=cov + common, group_sigma=group_sigma, common=common)
 
@@ -311,6 +381,7 @@ def nuisance_columns(table: Table, J: np.ndarray | None = None) -> np.ndarray:
 
 
 # -- GLS ---------------------------------------------------------------------------------------
+
 
 class Whitener:
     def __init__(self, cov: np.ndarray):
@@ -350,6 +421,7 @@ def gls(rw: np.ndarray, xw: np.ndarray):
 
 # -- result ------------------------------------------------------------------------------------
 
+
 @dataclass
 class CandidateResult:
     name: str
@@ -357,12 +429,12 @@ class CandidateResult:
     keys: list
     units: list
     size: int
-    estimate: np.ndarray = None        # config values (linearised fit, all data)
+    estimate: np.ndarray = None  # config values (linearised fit, all data)
     sigma: np.ndarray = None
-    delta_chi2: float = 0.0            # over the nuisance-only model, scaled
+    delta_chi2: float = 0.0  # over the nuisance-only model, scaled
     statistic_threshold: float = 0.0
     bic_gain: float = 0.0
-    heldout_gain: float = 0.0          # chi^2 improvement on held-out blocks
+    heldout_gain: float = 0.0  # chi^2 improvement on held-out blocks
     significant: bool = False
     accepted: bool = False
     note: str = ""
@@ -371,22 +443,22 @@ class CandidateResult:
 @dataclass
 class Diagnosis:
     n_features: int
-    groups: dict                      # group -> {n, chi2, dof, p}
-    overall: dict                     # chi2, dof, p, variance factor
-    where: list                       # deviations by condition, most significant first
+    groups: dict  # group -> {n, chi2, dof, p}
+    overall: dict  # chi2, dof, p, variance factor
+    where: list  # deviations by condition, most significant first
     change_points: list
-    candidates: list                  # CandidateResult, best first
-    chosen: list                      # names of the chosen terms ([] = no missing physics)
-    parameters: dict                  # key -> {value, sigma, nominal}
-    overrides: dict                   # nested config overrides of the fitted terms
-    updated_config: Optional[SimConfig]
-    heldout: dict                     # before/after on held-out operations
+    candidates: list  # CandidateResult, best first
+    chosen: list  # names of the chosen terms ([] = no missing physics)
+    parameters: dict  # key -> {value, sigma, nominal}
+    overrides: dict  # nested config overrides of the fitted terms
+    updated_config: SimConfig | None
+    heldout: dict  # before/after on held-out operations
     missing_candidates: list
     timings: dict
-    residuals: dict = field(default_factory=dict)   # arrays for plots
+    residuals: dict = field(default_factory=dict)  # arrays for plots
     message: str = ""
-    drift: dict = field(default_factory=dict)       # the recorded drift trajectory (times, offsets)
-    not_considered: list = field(default_factory=list)   # library terms left out by the caller
+    drift: dict = field(default_factory=dict)  # the recorded drift trajectory (times, offsets)
+    not_considered: list = field(default_factory=list)  # library terms left out by the caller
 
     @property
     def missing_physics(self) -> bool:
@@ -396,17 +468,25 @@ class Diagnosis:
         if not self.chosen:
             fit = f"chi2 {self.overall['chi2']:.1f} for {self.overall['dof']} dof, p = {self.overall['p']:.3g}"
             if self.overall["p"] < UNEXPLAINED_P:
-                among = (f"of those considered ({len(self.not_considered)} library terms left out)"
-                         if self.not_considered else "in the library")
-                return (f"no candidate {among} explains the residual, which exceeds the noise model ({fit}): "
-                        "physics the library lacks or a noise model too optimistic (see where it deviates)")
+                among = (
+                    f"of those considered ({len(self.not_considered)} library terms left out)"
+                    if self.not_considered
+                    else "in the library"
+                )
+                return (
+                    f"no candidate {among} explains the residual, which exceeds the noise model ({fit}): "
+                    "physics the library lacks or a noise model too optimistic (see where it deviates)"
+                )
             return f"no missing physics: residuals consistent with the noise model ({fit})"
         parts = []
         for name in self.chosen:
             c = next(c for c in self.candidates if c.name == name)
-            values = ", ".join(f"{k.split('.')[-1]} = {v['value']:.4g} +- {v['sigma']:.2g} (model {v['nominal']:.4g}"
-                               f"{'; ' + UNRESOLVED if unresolved(v) else ''})"
-                               for k, v in self.parameters.items() if v.get("candidate") == name)
+            values = ", ".join(
+                f"{k.split('.')[-1]} = {v['value']:.4g} +- {v['sigma']:.2g} (model {v['nominal']:.4g}"
+                f"{'; ' + UNRESOLVED if unresolved(v) else ''})"
+                for k, v in self.parameters.items()
+                if v.get("candidate") == name
+            )
             parts.append(f"{c.words}: {values}")
         return "missing physics: " + "; ".join(parts)
 
@@ -422,6 +502,7 @@ def unresolved(parameter: dict) -> bool:
 
 # -- the recorded drift trajectory ----------------------------------------------------------------
 
+
 def nominal_drift(config: SimConfig, t: np.ndarray) -> np.ndarray:
     """(N, 2) drift offset of the model's deterministic drift (mean velocity and ramp) at t."""
     t = np.asarray(t, float)
@@ -430,7 +511,7 @@ def nominal_drift(config: SimConfig, t: np.ndarray) -> np.ndarray:
         return np.zeros(t.shape + (2,))
     v = np.array([d.mean_velocity_x, d.mean_velocity_y])
     a = np.array([d.acceleration_x, d.acceleration_y])
-    return v * t[..., None] + 0.5 * a * (t ** 2)[..., None]
+    return v * t[..., None] + 0.5 * a * (t**2)[..., None]
 
 
 class ScannerMap:
@@ -449,7 +530,9 @@ class ScannerMap:
         self.anchors = anchors
         self.items: dict = {}
         self.obs = [[], []]
-        feats = sorted((f for f in f_rec.values() if f.group in POSITION_GROUPS), key=lambda f: f.time)
+        feats = sorted(
+            (f for f in f_rec.values() if f.group in POSITION_GROUPS), key=lambda f: f.time
+        )
         last = [None, None]
         per_raster: dict = {}
         for f in feats:
@@ -475,8 +558,12 @@ class ScannerMap:
             if f.group.startswith("raster.") and f.conditions.get("particle", "") != "":
                 j = int(f.conditions["particle"])
             else:
-                guess = true_point - np.array([self._current(config, last, 0, f.time),
-                                               self._current(config, last, 1, f.time)])
+                guess = true_point - np.array(
+                    [
+                        self._current(config, last, 0, f.time),
+                        self._current(config, last, 1, f.time),
+                    ]
+                )
                 j = int(np.argmin(np.hypot(*(anchors - guess).T)))
             item["anchor"] = j
             self.items[f.key] = item
@@ -489,8 +576,13 @@ class ScannerMap:
             self.obs[axis].append((f.time, value, [f.key]))
             last[axis] = value
         for (_, axis), values in per_raster.items():
-            self.obs[axis].append((float(np.mean([v[0] for v in values])), float(np.mean([v[1] for v in values])),
-                                   [v[2] for v in values]))
+            self.obs[axis].append(
+                (
+                    float(np.mean([v[0] for v in values])),
+                    float(np.mean([v[1] for v in values])),
+                    [v[2] for v in values],
+                )
+            )
 
     def refined(self, f_rec: dict, f_ref: dict) -> list:
         """Stage B: the observations corrected by what the imaged reference at their drift
@@ -505,7 +597,9 @@ class ScannerMap:
                         gain = self.sensitivity([key], [np.zeros(2)])[0, axis]
                         if abs(gain) > 0.2:
                             corrections.append((f_rec[key].value - f_ref[key].value) / gain)
-                out[axis].append((t, value + (float(np.mean(corrections)) if corrections else 0.0), keys))
+                out[axis].append(
+                    (t, value + (float(np.mean(corrections)) if corrections else 0.0), keys)
+                )
         return out
 
     @staticmethod
@@ -533,14 +627,18 @@ class ScannerMap:
     def _raster_grid(drive_calls, request):
         """Commanded and true positions of a raster's trace samples, (lines, pixels) each."""
         from afm_core.sim.instrument import LINES_PER_CHUNK
+
         if not drive_calls or request is None:
             return None
         n_lines, n_fast = request.lines, request.pixels_per_line
-        calls = drive_calls[-int(math.ceil(n_lines / LINES_PER_CHUNK)):]
+        calls = drive_calls[-int(math.ceil(n_lines / LINES_PER_CHUNK)) :]
         cx = np.concatenate([c[1] for c in calls])
         if cx.size != n_lines * 2 * n_fast or n_lines < 3 or n_fast < 3:
             return None
-        arrays = [np.concatenate([c[k] for c in calls]).reshape(n_lines, 2 * n_fast)[:, :n_fast] for k in (1, 2, 3, 4)]
+        arrays = [
+            np.concatenate([c[k] for c in calls]).reshape(n_lines, 2 * n_fast)[:, :n_fast]
+            for k in (1, 2, 3, 4)
+        ]
         return arrays
 
     @staticmethod
@@ -550,10 +648,14 @@ class ScannerMap:
             out = []
             for c, tx, ty, cx, cy, axis_u in item["paths"]:
                 q = point @ axis_u
-                out.append([np.interp(q, c, tx - cx) + point[0], np.interp(q, c, ty - cy) + point[1]])
+                out.append(
+                    [np.interp(q, c, tx - cx) + point[0], np.interp(q, c, ty - cy) + point[1]]
+                )
             return np.mean(out, axis=0)
         cx, cy, tx, ty = item["grid"]
-        k, j = np.unravel_index(int(np.argmin((cx - point[0]) ** 2 + (cy - point[1]) ** 2)), cx.shape)
+        k, j = np.unravel_index(
+            int(np.argmin((cx - point[0]) ** 2 + (cy - point[1]) ** 2)), cx.shape
+        )
         return point + np.array([tx[k, j] - cx[k, j], ty[k, j] - cy[k, j]])
 
     @staticmethod
@@ -562,7 +664,7 @@ class ScannerMap:
         c, tx, ty, _, _, _ = path
         tangent = np.array([tx[-1] - tx[0], ty[-1] - ty[0]])
         tangent /= max(float(np.hypot(*tangent)), 1e-30)
-        f = (tx - q[0]) * tangent[0] + (ty - q[1]) * tangent[1]        # increasing along c
+        f = (tx - q[0]) * tangent[0] + (ty - q[1]) * tangent[1]  # increasing along c
         slope = (f[-1] - f[0]) / (c[-1] - c[0])
         if f[0] > 0:
             return float(c[0] - f[0] / slope)
@@ -577,10 +679,22 @@ class ScannerMap:
         k, j = np.unravel_index(int(np.argmin((tx - q[0]) ** 2 + (ty - q[1]) ** 2)), cx.shape)
         j0, j1 = max(0, j - 1), min(n_fast - 1, j + 1)
         k0, k1 = max(0, k - 1), min(n_lines - 1, k + 1)
-        C = np.array([[cx[k, j1] - cx[k, j0], cx[k1, j] - cx[k0, j]], [cy[k, j1] - cy[k, j0], cy[k1, j] - cy[k0, j]]])
-        T = np.array([[tx[k, j1] - tx[k, j0], tx[k1, j] - tx[k0, j]], [ty[k, j1] - ty[k, j0], ty[k1, j] - ty[k0, j]]])
+        C = np.array(
+            [
+                [cx[k, j1] - cx[k, j0], cx[k1, j] - cx[k0, j]],
+                [cy[k, j1] - cy[k, j0], cy[k1, j] - cy[k0, j]],
+            ]
+        )
+        T = np.array(
+            [
+                [tx[k, j1] - tx[k, j0], tx[k1, j] - tx[k0, j]],
+                [ty[k, j1] - ty[k, j0], ty[k1, j] - ty[k0, j]],
+            ]
+        )
         G = T @ np.linalg.inv(C)
-        return np.array([cx[k, j], cy[k, j]]) + np.linalg.solve(G, q - np.array([tx[k, j], ty[k, j]]))
+        return np.array([cx[k, j], cy[k, j]]) + np.linalg.solve(
+            G, q - np.array([tx[k, j], ty[k, j]])
+        )
 
     def predict(self, key, offset) -> float:
         """The feature's predicted value (commanded coordinate, m) for a drift offset (2,)."""
@@ -591,7 +705,9 @@ class ScannerMap:
         return float(self._raster_predict(item["grid"], q)[item["axis"]])
 
     def predict_all(self, keys, offsets) -> np.ndarray:
-        return np.array([self.predict(k, d) if k in self.items else np.nan for k, d in zip(keys, offsets)])
+        return np.array(
+            [self.predict(k, d) if k in self.items else np.nan for k, d in zip(keys, offsets)]
+        )
 
     def sensitivity(self, keys, offsets, eps: float = 1e-9) -> np.ndarray:
         """(N, 2): d feature / d drift offset (NaN rows for features without a map)."""
@@ -604,7 +720,9 @@ class ScannerMap:
         return np.stack(out, axis=1)
 
 
-def drift_trajectory(obs, config: SimConfig, t_end: float, moves=(), step: float = 0.5) -> TrajectoryDrift:
+def drift_trajectory(
+    obs, config: SimConfig, t_end: float, moves=(), step: float = 0.5
+) -> TrajectoryDrift:
     """D(t) per axis, on a grid of `step` s: a cubic in time fitted to the observations (the
     smooth drift) plus the residual of the observation expected to be closest to D(t): the one
     with the least positioning-walk variance (moves) between, plus the drift's wander over the
@@ -614,12 +732,15 @@ def drift_trajectory(obs, config: SimConfig, t_end: float, moves=(), step: float
     s = config.scanner
     if moves and s.positioning_noise_enabled:
         move_t = np.array([m[0] for m in moves])
-        var = s.positioning_noise_slope * np.array([m[1] for m in moves]) + s.positioning_noise_offset
+        var = (
+            s.positioning_noise_slope * np.array([m[1] for m in moves])
+            + s.positioning_noise_offset
+        )
         order = np.argsort(move_t)
         move_t, cum = move_t[order], np.concatenate([[0.0], np.cumsum(var[order])])
-        walk = lambda t: cum[np.searchsorted(move_t, t, side="right")]        # noqa: E731
+        walk = lambda t: cum[np.searchsorted(move_t, t, side="right")]  # noqa: E731
     else:
-        walk = lambda t: np.zeros(np.shape(t))                                # noqa: E731
+        walk = lambda t: np.zeros(np.shape(t))  # noqa: E731
     wander = (0.1e-9) ** 2
     choice = np.full((grid.size, 2), -1)
     mismatch = np.full((grid.size, 2), np.inf)
@@ -633,13 +754,16 @@ def drift_trajectory(obs, config: SimConfig, t_end: float, moves=(), step: float
         degree = int(min(3, max(0, np.unique(np.round(t)).size - 1)))
         scale = max(float(np.ptp(t)), 1.0)
         coef = np.polyfit((t - t[0]) / scale, d, degree) if degree > 0 else np.array([d.mean()])
-        smooth = lambda x: np.polyval(coef, (np.clip(x, t[0], t[-1]) - t[0]) / scale)   # noqa: E731
+        smooth = lambda x: np.polyval(coef, (np.clip(x, t[0], t[-1]) - t[0]) / scale)  # noqa: E731
         resid = d - smooth(t)
-        cost = np.abs(walk(grid)[:, None] - walk(t)[None, :]) + wander * (grid[:, None] - t[None, :]) ** 2
+        cost = (
+            np.abs(walk(grid)[:, None] - walk(t)[None, :])
+            + wander * (grid[:, None] - t[None, :]) ** 2
+        )
         best = np.argmin(cost, axis=1)
         out[:, axis] = smooth(grid) + resid[best]
-        choice[:, axis] = np.searchsorted(np.sort(t), t[best])    # an id of the observation used
-        mismatch[:, axis] = cost[np.arange(grid.size), best] + POSITION_PRECISION ** 2
+        choice[:, axis] = np.searchsorted(np.sort(t), t[best])  # an id of the observation used
+        mismatch[:, axis] = cost[np.arange(grid.size), best] + POSITION_PRECISION**2
     trajectory = TrajectoryDrift(grid, out)
     trajectory.choice, trajectory.mismatch = choice, mismatch
     return trajectory
@@ -648,19 +772,33 @@ def drift_trajectory(obs, config: SimConfig, t_end: float, moves=(), step: float
 def geometry_mismatch(trajectory: TrajectoryDrift, t: np.ndarray):
     """Per time and axis: (id of the observation the trajectory follows there, variance of how
     far the true offset may be from it)."""
-    k = np.clip(np.round(np.asarray(t, float) / (trajectory.times[1] - trajectory.times[0])).astype(int), 0,
-                trajectory.times.size - 1)
+    k = np.clip(
+        np.round(np.asarray(t, float) / (trajectory.times[1] - trajectory.times[0])).astype(int),
+        0,
+        trajectory.times.size - 1,
+    )
     return trajectory.choice[k], trajectory.mismatch[k]
 
 
 # -- the analysis ---------------------------------------------------------------------------
 
+
 def _fold_blocks(table: Table, ops, n_blocks: int) -> np.ndarray:
     """Block number per feature: per family of operations (scan lines, small rasters, large
     rasters, pushes), the operations that gave features are split in time order into n_blocks
     chunks, so every family has data in every fold."""
-    family = np.array(["push" if g.startswith("push") else "bow" if g in BOW_GROUPS else
-                       "raster" if g.startswith("raster") else "line" for g in table.groups])
+    family = np.array(
+        [
+            "push"
+            if g.startswith("push")
+            else "bow"
+            if g in BOW_GROUPS
+            else "raster"
+            if g.startswith("raster")
+            else "line"
+            for g in table.groups
+        ]
+    )
     op_time = {op.index: op.start_time for op in ops}
     blocks = np.zeros(len(table.keys), int)
     for fam in np.unique(family):
@@ -675,13 +813,27 @@ class _Session:
     """Everything the fits re-use: the recording, the reference, the drift trajectory, the
     scanner map, and re-simulation of a parameter set."""
 
-    def __init__(self, ops, config, keys, f_rec, anchors, drift, J, bias, reference, table, scanner_map, mapped,
-                 noise_seeds=()):
+    def __init__(
+        self,
+        ops,
+        config,
+        keys,
+        f_rec,
+        anchors,
+        drift,
+        J,
+        bias,
+        reference,
+        table,
+        scanner_map,
+        mapped,
+        noise_seeds=(),
+    ):
         self.ops, self.config, self.keys = ops, config, keys
         self.base = deterministic(config)
         self.noise_seeds = list(noise_seeds)
         self._noise_runs: dict = {}
-        self.noise_reference: dict = {}     # the sensor-noise overrides the reference was made with
+        self.noise_reference: dict = {}  # the sensor-noise overrides the reference was made with
         self.f_rec, self.anchors, self.drift, self.J = f_rec, anchors, drift, J
         self.bias, self.reference, self.table = bias, reference, table
         self.map, self.mapped = scanner_map, mapped
@@ -695,9 +847,11 @@ class _Session:
         self.noisy = np.isin(table.groups, NOISE_GROUPS)
         self.replays = 0
         self.set_reference(reference, bias, {})
-        self.r_before = self.r          # against the nominal model (a fitted noise level changes self.r)
+        self.r_before = self.r  # against the nominal model (a fitted noise level changes self.r)
 
-    def set_reference(self, reference: np.ndarray, bias: np.ndarray, noise_overrides: dict) -> None:
+    def set_reference(
+        self, reference: np.ndarray, bias: np.ndarray, noise_overrides: dict
+    ) -> None:
         """Judge the fits against another reference (replicas with a fitted noise level); the
         noise statistics against their own replicas (`noise_features`)."""
         self.noise_reference = noise_overrides
@@ -714,8 +868,11 @@ class _Session:
         linear = np.einsum("ij,ij->i", self.J, self.d_rec - target)
         if not self.mapped.any():
             return linear
-        at_target = self.geo_model if extra is None else self.map.predict_all(
-            self.keys, np.where(self.mapped[:, None], target, 0.0))
+        at_target = (
+            self.geo_model
+            if extra is None
+            else self.map.predict_all(self.keys, np.where(self.mapped[:, None], target, 0.0))
+        )
         exact = self.geo_rec - np.where(self.mapped, at_target, np.nan)
         return np.where(self.mapped, exact, linear)
 
@@ -724,7 +881,9 @@ class _Session:
         model's drift; 0 elsewhere), from its scanner map: no imaging, no pixel rounding."""
         offsets = np.where(self.mapped[:, None], self.d_nom, 0.0)
         self.replays += 1
-        moved = ScannerMap(self.ops, self.f_rec, config, self.anchors).predict_all(self.keys, offsets)
+        moved = ScannerMap(self.ops, self.f_rec, config, self.anchors).predict_all(
+            self.keys, offsets
+        )
         return np.where(self.mapped, np.nan_to_num(moved - self.geo_model), 0.0)
 
     def features(self, config, imaging=True) -> np.ndarray:
@@ -739,10 +898,15 @@ class _Session:
         statistics need, at a third of the cost, with the model's positioning noise)."""
         memo = (repr(overrides), rasters_only)
         if memo not in self._noise_runs:
-            config = merge(self._statistics_config() if rasters_only else deterministic(self.config, sensor_noise=True),
-                           overrides)
-            self._noise_runs[memo] = np.array([self._noisy_run(config, seed, rasters_only)
-                                               for seed in self.noise_seeds])
+            config = merge(
+                self._statistics_config()
+                if rasters_only
+                else deterministic(self.config, sensor_noise=True),
+                overrides,
+            )
+            self._noise_runs[memo] = np.array(
+                [self._noisy_run(config, seed, rasters_only) for seed in self.noise_seeds]
+            )
         return self._noise_runs[memo]
 
     def _statistics_config(self) -> SimConfig:
@@ -752,13 +916,24 @@ class _Session:
         the recording, with 1/f noise 40 times under the model's, showed 0.036, and a 1/f level
         of 0.077 nm was fitted for it. (The other features' replicas leave it out: their
         positioning walk is analytic.)"""
-        return merge(deterministic(self.config, sensor_noise=True),
-                     {"scanner": {"positioning_noise_enabled": self.config.scanner.positioning_noise_enabled}})
+        return merge(
+            deterministic(self.config, sensor_noise=True),
+            {
+                "scanner": {
+                    "positioning_noise_enabled": self.config.scanner.positioning_noise_enabled
+                }
+            },
+        )
 
     def _noisy_run(self, config, noise_seed: int, rasters_only: bool) -> np.ndarray:
         self.replays += 1
-        rep = replay(self.ops, config, noise_seed=noise_seed, drift=self.drift,
-                     imaging="rasters" if rasters_only else True)
+        rep = replay(
+            self.ops,
+            config,
+            noise_seed=noise_seed,
+            drift=self.drift,
+            imaging="rasters" if rasters_only else True,
+        )
         return _values(_by_key(extract_features(rep.operations, self.anchors)), self.keys)
 
     def realization_offsets(self, realizations: int, overrides: dict) -> np.ndarray:
@@ -770,14 +945,21 @@ class _Session:
         if memo not in self._noise_runs:
             config = merge(self._statistics_config(), overrides)
             mean = self.noise_features(overrides)
-            offsets = [self._noisy_run(merge(config, {"seed": int(config.seed) + 1 + k}), REALIZATION_NOISE_SEED + k,
-                                       True) - mean for k in range(realizations)]
+            offsets = [
+                self._noisy_run(
+                    merge(config, {"seed": int(config.seed) + 1 + k}),
+                    REALIZATION_NOISE_SEED + k,
+                    True,
+                )
+                - mean
+                for k in range(realizations)
+            ]
             self._noise_runs[memo] = np.where(self.noisy, np.nan_to_num(np.array(offsets)), 0.0)
         return self._noise_runs[memo]
 
     def noise_features(self, overrides: dict) -> np.ndarray:
         """Mean noise statistics of the raster-only `noise_replicas`."""
-        return np.mean(self.noise_replicas(overrides, rasters_only=True), axis=0)     # (lines: NaN)
+        return np.mean(self.noise_replicas(overrides, rasters_only=True), axis=0)  # (lines: NaN)
 
     def noise_features_along(self, cand: Candidate, levels) -> np.ndarray:
         """(len(levels), N): the noise statistics of `noise_features` (NaN on the other features)
@@ -789,14 +971,29 @@ class _Session:
         memo = ("along", cand.name)
         if memo not in self._noise_runs:
             unit = max(float(cand.nominal(self.config)[0]), 1e-10)
-            self._noise_runs[memo] = (unit, [[self._rasters(merge(self._statistics_config(),
-                                                                   cand.overrides(self.config, [level])), seed)
-                                              for level in (0.0, unit)] for seed in self.noise_seeds])
+            self._noise_runs[memo] = (
+                unit,
+                [
+                    [
+                        self._rasters(
+                            merge(self._statistics_config(), cand.overrides(self.config, [level])),
+                            seed,
+                        )
+                        for level in (0.0, unit)
+                    ]
+                    for seed in self.noise_seeds
+                ],
+            )
         unit, runs = self._noise_runs[memo]
         out = np.empty((len(levels), len(self.keys)))
         for i, level in enumerate(levels):
-            out[i] = np.mean([self._noise_statistics_between(at_zero, at_unit, float(level) / unit)
-                              for at_zero, at_unit in runs], axis=0)
+            out[i] = np.mean(
+                [
+                    self._noise_statistics_between(at_zero, at_unit, float(level) / unit)
+                    for at_zero, at_unit in runs
+                ],
+                axis=0,
+            )
         return out
 
     def _rasters(self, config, noise_seed: int) -> list:
@@ -805,15 +1002,18 @@ class _Session:
         rep = replay(self.ops, config, noise_seed=noise_seed, drift=self.drift, imaging="rasters")
         return [op for op in rep.operations if op.kind == "raster" and op.data is not None]
 
-    def _noise_statistics_between(self, at_zero: list, at_unit: list, fraction: float) -> np.ndarray:
+    def _noise_statistics_between(
+        self, at_zero: list, at_unit: list, fraction: float
+    ) -> np.ndarray:
         """(N,): the noise statistics of the rasters at_zero + fraction (at_unit - at_zero) (only
         the heights move; NaN on every other feature)."""
         features = []
         for zero, unit in zip(at_zero, at_unit):
             low, high = zero.data.height.astype(float), unit.data.height.astype(float)
             height = (low + fraction * (high - low)).astype(zero.data.height.dtype)
-            features += raster_noise_statistics(dataclasses.replace(zero, data=dataclasses.replace(zero.data,
-                                                                                                    height=height)))
+            features += raster_noise_statistics(
+                dataclasses.replace(zero, data=dataclasses.replace(zero.data, height=height))
+            )
         return _values(_by_key(features), self.keys)
 
     def drift_extra(self, terms) -> np.ndarray | None:
@@ -826,7 +1026,7 @@ class _Session:
                 extra += (cand.clip(part) - theta0)[None, :] * t[:, None]
                 found = True
             elif cand.analytic == "drift_ramp":
-                extra += 0.5 * (cand.clip(part) - theta0)[None, :] * (t ** 2)[:, None]
+                extra += 0.5 * (cand.clip(part) - theta0)[None, :] * (t**2)[:, None]
                 found = True
         return extra if found else None
 
@@ -838,14 +1038,22 @@ class _Session:
         simulated = [(t, p) for t, p in pairs if not t[0].analytic]
         drifts = [(t, p) for t, p in pairs if t[0].analytic in ("drift_velocity", "drift_ramp")]
         noises = [(t, p) for t, p in pairs if t[0].analytic == "sensor_noise"]
-        linear = [(t, p) for t, p in pairs
-                  if t[0].analytic and t[0].analytic not in ("drift_velocity", "drift_ramp", "sensor_noise")]
+        linear = [
+            (t, p)
+            for t, p in pairs
+            if t[0].analytic
+            and t[0].analytic not in ("drift_velocity", "drift_ramp", "sensor_noise")
+        ]
         extra = self.drift_extra(drifts)
         r = self.r.copy()
         if extra is not None:
             # drift: exactly through the scanner map (positions are where the drift puts them)
             r = self.recorded - self.reference + self.shift(extra)
-            r = np.where(np.isfinite(r), r, self.r - sum(cols @ (cand.clip(p) - t0) for (cand, t0, cols), p in drifts))
+            r = np.where(
+                np.isfinite(r),
+                r,
+                self.r - sum(cols @ (cand.clip(p) - t0) for (cand, t0, cols), p in drifts),
+            )
         if simulated:
             overrides = {}
             for (cand, _, _), part in simulated:
@@ -872,9 +1080,18 @@ class _Session:
         return r
 
 
-def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candidates: list | None = None,
-             n_blocks: int = 6, refine_iterations: int = 2, heldout_resimulation: bool = True,
-             progress: Callable[[str], None] | None = None, replicas: int | None = None) -> Diagnosis:
+def diagnose(
+    recorded_ops,
+    config: SimConfig,
+    *,
+    sensor_replicas: int = 2,
+    candidates: list | None = None,
+    n_blocks: int = 6,
+    refine_iterations: int = 2,
+    heldout_resimulation: bool = True,
+    progress: Callable[[str], None] | None = None,
+    replicas: int | None = None,
+) -> Diagnosis:
     """The four answers for a recorded session (a list of Operations) against `config`.
     (`replicas` is accepted for compatibility and ignored: the noise is modelled at the recorded
     geometry from `sensor_replicas` re-simulations and the analytic drift and walk terms.)"""
@@ -892,9 +1109,13 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         raise NoFeaturesError("the session holds no commands the simulator can re-run")
     f_rec = _by_key(extractor.finish())
     if not f_rec:
-        raise NoFeaturesError("no scan line, raster or push in the recording gave a feature (no particle crossed?)")
+        raise NoFeaturesError(
+            "no scan line, raster or push in the recording gave a feature (no particle crossed?)"
+        )
     base = deterministic(config)
-    t_end = max(op.start_time + (op.duration if np.isfinite(op.duration) else 0.0) for op in ops) + 1.0
+    t_end = (
+        max(op.start_time + (op.duration if np.isfinite(op.duration) else 0.0) for op in ops) + 1.0
+    )
 
     say("drift trajectory of the recording")
     scanner_map = ScannerMap(ops, f_rec, config, anchors)
@@ -910,37 +1131,53 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     # a drift trajectory can put the config's particles under the recorded lines one at a time
     # (one sphere fitted, by jumps of micrometres, to where six were seen), but not into the
     # images of them all: the images must show as many particles as the recording's
-    seen_rec, seen_nom = (sum(seen.get(k, 0) for k in extractor.particles_seen)
-                          for seen in (extractor.particles_seen, nominal_seen))
+    seen_rec, seen_nom = (
+        sum(seen.get(k, 0) for k in extractor.particles_seen)
+        for seen in (extractor.particles_seen, nominal_seen)
+    )
     if min(seen_rec, seen_nom) < MIN_MATCHED_FRACTION * max(seen_rec, seen_nom):
         raise ConfigMismatchError(
             f"the configuration does not match the recording: the recording's {len(extractor.particles_seen)} images "
             f"show {seen_rec} particles, the simulation of the same images with this config {seen_nom} (each must be at "
             f"least {MIN_MATCHED_FRACTION:.0%} of the other). Check the sample (particle positions, seed) and the "
-            "scanner area in the config.")
+            "scanner area in the config."
+        )
     matched = [k for k in f_rec if k in f_nom]
     # whether the particles are where the config says (noise statistics are there on any sample)
     on_sample = {k for k, f in f_rec.items() if f.group not in NOISE_GROUPS}
     sim_on_sample = {k for k, f in f_nom.items() if f.group not in NOISE_GROUPS}
     both = on_sample & sim_on_sample
-    if len(both) < MIN_MATCHED_FRACTION * len(on_sample) or len(both) < MIN_MATCHED_FRACTION * len(sim_on_sample):
+    if len(both) < MIN_MATCHED_FRACTION * len(on_sample) or len(both) < MIN_MATCHED_FRACTION * len(
+        sim_on_sample
+    ):
         lost_rec = sorted({k[0] for k in on_sample if k not in f_nom})[:10]
         lost_sim = sorted({k[0] for k in sim_on_sample if k not in f_rec})[:10]
         raise ConfigMismatchError(
             f"the configuration does not match the recording: of {len(on_sample)} recorded features of the sample "
             f"only {len(both)} are reproduced by the simulation ({len(sim_on_sample)} simulated). Operations where the "
             f"recording saw a particle and the simulation did not: {lost_rec}; the reverse: {lost_sim}. "
-            "Check the sample (particle positions, seed) and the scanner area in the config.")
+            "Check the sample (particle positions, seed) and the scanner area in the config."
+        )
     say("drift sensitivities")
     shifted = []
     for axis in (0, 1):
         delta = np.zeros(2)
         delta[axis] = SHIFT
-        shifted.append(_by_key(extract_features(replay(ops, base, drift=drift.shifted(delta)).operations, anchors)))
+        shifted.append(
+            _by_key(
+                extract_features(replay(ops, base, drift=drift.shifted(delta)).operations, anchors)
+            )
+        )
     say(f"noise replicas ({sensor_replicas} sensor-only)")
     sensor_cfg = deterministic(config, sensor_noise=True)
-    reps_s = [_by_key(extract_features(replay(ops, sensor_cfg, noise_seed=1000 + k, drift=drift).operations,
-                                       anchors)) for k in range(sensor_replicas)]
+    reps_s = [
+        _by_key(
+            extract_features(
+                replay(ops, sensor_cfg, noise_seed=1000 + k, drift=drift).operations, anchors
+            )
+        )
+        for k in range(sensor_replicas)
+    ]
     keys = [k for k in matched if all(k in r for r in reps_s) and all(k in s for s in shifted)]
     timings["reference"] = _time.perf_counter() - t_start
 
@@ -950,7 +1187,9 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     J[np.abs(J) < 1e-3] = 0.0
     # positions: the scanner map's sensitivity (a replay's 10 nm shift also sees the pixel grid)
     d_rec = drift.offset(table.time)
-    mapped = np.array([k in scanner_map.items for k in keys]) & np.isin(table.groups, POSITION_GROUPS)
+    mapped = np.array([k in scanner_map.items for k in keys]) & np.isin(
+        table.groups, POSITION_GROUPS
+    )
     J_map = scanner_map.sensitivity(keys, d_rec)
     # how far the imaged positions depart from the scanner map's straight response over the
     # 10 nm shifts (the simulator renders coarse images on a fixed grid: a particle's centre
@@ -974,20 +1213,33 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     J[~np.isin(table.groups, POSITION_GROUPS)] = 0.0
     rep_s = np.array([_values(r, keys) for r in reps_s])
     bias = np.nan_to_num(np.nanmean(rep_s - nom, axis=0))
-    sess = _Session(ops, config, keys, f_rec, anchors, drift, J, bias, nom + bias, table, scanner_map, mapped,
-                    noise_seeds=[1000 + k for k in range(sensor_replicas)])
+    sess = _Session(
+        ops,
+        config,
+        keys,
+        f_rec,
+        anchors,
+        drift,
+        J,
+        bias,
+        nom + bias,
+        table,
+        scanner_map,
+        mapped,
+        noise_seeds=[1000 + k for k in range(sensor_replicas)],
+    )
     n = len(keys)
     blocks = _fold_blocks(table, ops, n_blocks)
     folds = [blocks % 2 == 0, blocks % 2 == 1]
     cands, missing = available(config, candidates)
-    m = max(1, len(cands) + 1)          # the library and the searched friction region
+    m = max(1, len(cands) + 1)  # the library and the searched friction region
 
     # the sensor noise first: only its terms move the noise statistics, and every other
     # feature's noise model depends on it, so a noise level found here is put into the
     # replicas the rest of the diagnosis is judged against
     t0 = _time.perf_counter()
     noise_design, noise_result, noise_config = None, None, config
-    noise_terms = []                      # (design triple, result, curve) of every sensor-noise term
+    noise_terms = []  # (design triple, result, curve) of every sensor-noise term
     noise_cands = [c for c in cands if c.analytic == "sensor_noise"]
     # a z gain scales the substrate's roughness, and with it the noise statistics (a gain of
     # 1.2 raised the pixel noise by 4 %, and white noise was named for it): the gain the
@@ -995,8 +1247,10 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     gain_cand = next((c for c in cands if c.analytic == "height_gain"), None)
     gain_on_noise = np.zeros(n)
     if noise_cands and not sess.noisy.any():
-        missing += [f"{c.name} (the recording has no image with {STREAK_MIN_LINES} lines or more)"
-                    for c in noise_cands]
+        missing += [
+            f"{c.name} (the recording has no image with {STREAK_MIN_LINES} lines or more)"
+            for c in noise_cands
+        ]
     elif noise_cands:
         gain = _height_gain(sess, gain_cand, rep_s, nom, m) if gain_cand is not None else None
         if gain is not None:
@@ -1012,7 +1266,9 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     # one noise level is fitted: the term the statistics favour (white noise raises the
     # line-offset noise a little too, so a grainier instrument can also pass the coloured
     # noise's test, with less evidence)
-    best = max([t for t in noise_terms if t[1].accepted], key=lambda t: t[1].bic_gain, default=None)
+    best = max(
+        [t for t in noise_terms if t[1].accepted], key=lambda t: t[1].bic_gain, default=None
+    )
     if best is not None:
         noise_design, noise_result, curve = best
         cand = noise_design[0]
@@ -1022,8 +1278,9 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         # 0 .. 5 nm, 1.58 on one through the level +-4 sigma: the truth was 1.5)
         level_residual = np.zeros(n)
         level_residual[sess.noisy] = curve.residual(sess, noise_result.estimate)[:, 0]
-        level_cov = _noise_statistics_covariance(sess, cand.overrides(config, noise_result.estimate), nom, [],
-                                                 residual=level_residual)
+        level_cov = _noise_statistics_covariance(
+            sess, cand.overrides(config, noise_result.estimate), nom, [], residual=level_residual
+        )
         level_white = Whitener(level_cov)
         level, sigma, _ = curve.zoom(sess, cand, level_white).profile(sess, level_white)
         noise_result.estimate, noise_result.sigma = np.array([level]), np.array([sigma])
@@ -1034,7 +1291,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         bias = np.nan_to_num(np.nanmean(rep_s - nom, axis=0))
         sess.set_reference(nom + bias, bias, fitted)
     else:
-        sess.r = sess.r + gain_on_noise       # the gain's term explains it, with the heights
+        sess.r = sess.r + gain_on_noise  # the gain's term explains it, with the heights
     for _, res, _ in noise_terms:
         if res.accepted and res is not noise_result:
             res.accepted = False
@@ -1042,27 +1299,40 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     cands = [c for c in cands if c.analytic != "sensor_noise"]
     timings["noise"] = _time.perf_counter() - t0
     r = sess.r
-    noise = build_noise_model(noise_config, table, rep_s, J, nominal.moves, reference=nom, J_shape=J_shape,
-                              mismatch=geometry_mismatch(drift, table.time), extra_white=nonlinear)
+    noise = build_noise_model(
+        noise_config,
+        table,
+        rep_s,
+        J,
+        nominal.moves,
+        reference=nom,
+        J_shape=J_shape,
+        mismatch=geometry_mismatch(drift, table.time),
+        extra_white=nonlinear,
+    )
     P = nuisance_columns(table, J)
 
     # sensitivities
     t0 = _time.perf_counter()
     design = {}
     height = np.isin(table.groups, HEIGHT_GROUPS + BOW_GROUPS)
-    white_model = Whitener(noise.cov)          # for choosing trial steps (before overdispersion)
+    white_model = Whitener(noise.cov)  # for choosing trial steps (before overdispersion)
     for cand in cands:
         theta0 = cand.nominal(config)
         if cand.analytic == "drift_velocity":
             cols = J * table.time[:, None]
         elif cand.analytic == "drift_ramp":
-            cols = J * 0.5 * (table.time ** 2)[:, None]
+            cols = J * 0.5 * (table.time**2)[:, None]
         elif cand.analytic == "height_gain":
             on_noise = _gain_on_noise_statistics(sess, cand, theta0 + cand.steps) / cand.steps[0]
-            cols = (np.where(height, (nom + bias) / max(theta0[0], 1e-12), 0.0) + on_noise)[:, None]
+            cols = (np.where(height, (nom + bias) / max(theta0[0], 1e-12), 0.0) + on_noise)[
+                :, None
+            ]
         elif cand.analytic == "bow":
             gain = config.noise.height_gain
-            cols = np.where(np.isin(table.groups, ("raster.bow_xx", "raster.bow_yy")), gain, 0.0)[:, None]
+            cols = np.where(np.isin(table.groups, ("raster.bow_xx", "raster.bow_yy")), gain, 0.0)[
+                :, None
+            ]
         else:
             say(f"sensitivity: {cand.name}")
             cols = _simulated_columns(sess, cand, theta0, base, nom, white_model, P)
@@ -1081,11 +1351,15 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         if cand.analytic or cand.search_range:
             continue
         coef, chi2, _ = gls(rw_model, np.hstack([pw_model, white_model(cols)]))
-        estimate = cand.clip(theta0 + coef[P.shape[1]:])
+        estimate = cand.clip(theta0 + coef[P.shape[1] :])
         beyond = np.abs(estimate - theta0) > LINEAR_REACH * np.asarray(cand.steps)
         if beyond.any() and chi2_model - chi2 > float(stats.chi2.isf(ALPHA / m, cand.complexity)):
             say(f"sensitivity: {cand.name} at its fit")
-            design[name] = (cand, theta0, _columns_at_estimate(sess, cand, theta0, base, nom, cols, estimate, beyond))
+            design[name] = (
+                cand,
+                theta0,
+                _columns_at_estimate(sess, cand, theta0, base, nom, cols, estimate, beyond),
+            )
     region, region_columns = _friction_region(design, config, table, sess.r, d_rec, noise)
     if region is not None:
         say(f"sensitivity: {region.name}")
@@ -1101,8 +1375,12 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     # direction differences, which the 10 nm sensitivities only partly tell) must not pass its
     # excess to a candidate; the factors are taken after the best single candidate's fit, so a
     # real effect is not mistaken for noise
-    group_factors = _group_overdispersion(r, P, [c[2] for c in design.values()], noise.cov, table.groups)
-    noise_model = dataclasses.replace(noise)        # before overdispersion: a second term's test takes its own
+    group_factors = _group_overdispersion(
+        r, P, [c[2] for c in design.values()], noise.cov, table.groups
+    )
+    noise_model = dataclasses.replace(
+        noise
+    )  # before overdispersion: a second term's test takes its own
     noise.overdispersed(group_factors, table.groups)
 
     # evidence
@@ -1115,7 +1393,7 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     def fit(cols_list):
         cols = np.hstack(cols_list) if cols_list else np.zeros((n, 0))
         coef, chi2, cov = gls(rw, np.hstack([pw, white(cols)]) if cols.size else pw)
-        return coef[P.shape[1]:], chi2, cov[P.shape[1]:, P.shape[1]:]
+        return coef[P.shape[1] :], chi2, cov[P.shape[1] :, P.shape[1] :]
 
     singles = {name: fit([cols]) for name, (cand, theta0, cols) in design.items()}
     best_chi2 = min([c[1] for c in singles.values()] + [chi2_0])
@@ -1126,23 +1404,33 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         coef, chi2, cov = singles[name]
         delta = (chi2_0 - chi2) / variance_factor
         threshold = float(stats.chi2.isf(ALPHA / m, cand.complexity))
-        res = CandidateResult(name, cand.words, cand.keys, cand.units, cand.size,
-                              estimate=theta0 + coef, sigma=np.sqrt(np.abs(np.diag(cov)) * variance_factor),
-                              delta_chi2=delta, statistic_threshold=threshold,
-                              bic_gain=delta - cand.complexity * math.log(n))
+        res = CandidateResult(
+            name,
+            cand.words,
+            cand.keys,
+            cand.units,
+            cand.size,
+            estimate=theta0 + coef,
+            sigma=np.sqrt(np.abs(np.diag(cov)) * variance_factor),
+            delta_chi2=delta,
+            statistic_threshold=threshold,
+            bic_gain=delta - cand.complexity * math.log(n),
+        )
         res.significant = delta > threshold and _can_act(cand, theta0, theta0 + coef)
         if delta > threshold and not res.significant:
             res.note = "its fit lies outside the term's physical range (e.g. a negative wear rate)"
         if res.significant:
             # a searched region is searched again on the training blocks alone
-            res.heldout_gain = _cv_gain_on(r, region_columns if cand is region else cols, P, folds, fold_whiteners)
+            res.heldout_gain = _cv_gain_on(
+                r, region_columns if cand is region else cols, P, folds, fold_whiteners
+            )
             res.accepted = res.heldout_gain > 0
             if not res.accepted:
                 res.note = "fits the session but does not predict held-out blocks"
         results.append(res)
     results.sort(key=lambda c: (not c.accepted, -c.bic_gain))
     accepted = [c for c in results if c.accepted]
-    if noise_terms:                        # a noise term is chosen before the others when accepted (see above)
+    if noise_terms:  # a noise term is chosen before the others when accepted (see above)
         results += [res for _, res, _ in noise_terms]
         results.sort(key=lambda c: (not c.accepted, c is not noise_result, -c.bic_gain))
 
@@ -1154,34 +1442,66 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     chosen, refined = [], {}
     t0 = _time.perf_counter()
     for res in accepted[:3]:
-        if accepted[0].bic_gain - res.bic_gain > 0.5 * max(accepted[0].bic_gain, 1.0) and res is not accepted[0]:
-            continue            # far behind the leader: not worth the re-simulations
+        if (
+            accepted[0].bic_gain - res.bic_gain > 0.5 * max(accepted[0].bic_gain, 1.0)
+            and res is not accepted[0]
+        ):
+            continue  # far behind the leader: not worth the re-simulations
         say(f"re-simulating the fit of {res.name}")
-        theta, cov, resid = _refine(sess, [design[res.name]], white, P, refine_iterations, variance_factor)
+        theta, cov, resid = _refine(
+            sess, [design[res.name]], white, P, refine_iterations, variance_factor
+        )
         refined[res.name] = (theta, resid, resim_chi2(resid), _sigma(cov))
         res.note = (res.note + f" re-simulated chi2 {refined[res.name][2]:.1f}").strip()
     if refined:
-        scores = {name: (chi2_0 - v[2]) / variance_factor - design[name][0].complexity * math.log(n)
-                  for name, v in refined.items()}
+        scores = {
+            name: (chi2_0 - v[2]) / variance_factor - design[name][0].complexity * math.log(n)
+            for name, v in refined.items()
+        }
         chosen = [max(scores, key=scores.get)]
         final_theta, final_r, _, final_sigma = refined[chosen[0]]
         leader = design[chosen[0]]
         final_sigma = _reported_sigma(white, P, leader[2], final_r, final_sigma, variance_factor)
         if leader[0].size == 1 and not leader[0].analytic:
             say(f"chi2 profile of {chosen[0]}")
-            final_sigma = _profile_sigma(sess, leader, final_theta, final_sigma, resim_chi2(final_r), resim_chi2,
-                                         variance_factor)
+            final_sigma = _profile_sigma(
+                sess,
+                leader,
+                final_theta,
+                final_sigma,
+                resim_chi2(final_r),
+                resim_chi2,
+                variance_factor,
+            )
         if leader[0] is region:
-            final_sigma = np.maximum(final_sigma, _region_jackknife_sigma(region_columns, sess.r, P, noise.cov, blocks))
+            final_sigma = np.maximum(
+                final_sigma, _region_jackknife_sigma(region_columns, sess.r, P, noise.cov, blocks)
+            )
     timings["compare"] = _time.perf_counter() - t0
 
     # a second term on top of the first, tested on the re-simulated residual of the first
-    checked = {}                       # chosen terms -> their held-out check, made for a second term
+    checked = {}  # chosen terms -> their held-out check, made for a second term
     if chosen:
         first = design[chosen[0]]
         theta1, r1, _, _ = refined[chosen[0]]
-        second, alone = _second_term(sess, design, results, first, theta1, r1, weighting, P, folds, region,
-                                     region_columns, refine_iterations, heldout_resimulation, dof0, variance_factor, say)
+        second, alone = _second_term(
+            sess,
+            design,
+            results,
+            first,
+            theta1,
+            r1,
+            weighting,
+            P,
+            folds,
+            region,
+            region_columns,
+            refine_iterations,
+            heldout_resimulation,
+            dof0,
+            variance_factor,
+            say,
+        )
         if alone is not None:
             checked[tuple(chosen)] = alone
         if second is None:
@@ -1194,14 +1514,32 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
             # half the held-out excess the first leaves (a 25 ms latency's pushes, released,
             # let x/y coupling take 23 % of it)
             others = [cols for name, (_, _, cols) in design.items() if name != chosen[0]]
-            factors = _group_overdispersion(r1, np.hstack([P, first[2]]), others, noise_model.cov, table.groups)
+            factors = _group_overdispersion(
+                r1, np.hstack([P, first[2]]), others, noise_model.cov, table.groups
+            )
             factors = {g: min(f, group_factors.get(g, f)) for g, f in factors.items()}
             if any(f < group_factors.get(g, 1.0) for g, f in factors.items()):
                 released = dataclasses.replace(noise_model)
                 released.overdispersed(factors, table.groups)
-                second, _ = _second_term(sess, design, results, first, theta1, r1, _Weighting.of(released, folds),
-                                         P, folds, region, region_columns, refine_iterations, heldout_resimulation,
-                                         dof0, None, say, released=True)
+                second, _ = _second_term(
+                    sess,
+                    design,
+                    results,
+                    first,
+                    theta1,
+                    r1,
+                    _Weighting.of(released, folds),
+                    P,
+                    folds,
+                    region,
+                    region_columns,
+                    refine_iterations,
+                    heldout_resimulation,
+                    dof0,
+                    None,
+                    say,
+                    released=True,
+                )
         if second is not None:
             chosen.append(second.name)
             final_theta, final_sigma = second.theta, second.sigma
@@ -1223,11 +1561,15 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         offset = 0
         for name in chosen:
             cand, theta0, _ = design[name]
-            part = theta[offset:offset + cand.size]
+            part = theta[offset : offset + cand.size]
             overrides = merge_overrides(overrides, cand.overrides(config, part))
             for j, key in enumerate(cand.keys):
-                parameters[key] = {"value": float(theta[offset + j]), "sigma": float(sigma[offset + j]),
-                                   "nominal": float(theta0[j]), "candidate": name}
+                parameters[key] = {
+                    "value": float(theta[offset + j]),
+                    "sigma": float(sigma[offset + j]),
+                    "nominal": float(theta0[j]),
+                    "candidate": name,
+                }
             offset += cand.size
     if noise_result is not None and noise_result.accepted:
         cand, theta0, _ = noise_design
@@ -1235,8 +1577,12 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
         chosen = [cand.name] + chosen
         overrides = merge_overrides(cand.overrides(config, noise_result.estimate), overrides)
         for j, key in enumerate(cand.keys):
-            parameters[key] = {"value": float(noise_result.estimate[j]), "sigma": float(noise_result.sigma[j]),
-                               "nominal": float(theta0[j]), "candidate": cand.name}
+            parameters[key] = {
+                "value": float(noise_result.estimate[j]),
+                "sigma": float(noise_result.sigma[j]),
+                "nominal": float(theta0[j]),
+                "candidate": cand.name,
+            }
     if chosen:
         updated = merge(config, overrides)
     timings["fit"] = _time.perf_counter() - t0
@@ -1246,59 +1592,114 @@ def diagnose(recorded_ops, config: SimConfig, *, sensor_replicas: int = 2, candi
     heldout = {}
     if chosen and heldout_resimulation:
         say("held-out check")
-        start = np.array([parameters[key]["value"] for name in chosen for key in design[name][0].keys])
-        heldout = checked.get(tuple(chosen)) or \
-            _heldout(sess, [design[c] for c in chosen], noise, P, folds[0], refine_iterations, start)
+        start = np.array(
+            [parameters[key]["value"] for name in chosen for key in design[name][0].keys]
+        )
+        heldout = checked.get(tuple(chosen)) or _heldout(
+            sess, [design[c] for c in chosen], noise, P, folds[0], refine_iterations, start
+        )
     elif not chosen:
         test = folds[1]
         w_te = Whitener(noise.cov[np.ix_(test, test)])
         _, chi2_te, _ = gls(w_te(r[test]), w_te(P[test]))
-        heldout = {"chi2_before": chi2_te, "chi2_after": chi2_te, "dof": int(test.sum() - P.shape[1]),
-                   "reduction": 0.0, "excess_reduction": 0.0}
+        heldout = {
+            "chi2_before": chi2_te,
+            "chi2_after": chi2_te,
+            "dof": int(test.sum() - P.shape[1]),
+            "reduction": 0.0,
+            "excess_reduction": 0.0,
+        }
     timings["heldout"] = _time.perf_counter() - t0
     timings["total"] = _time.perf_counter() - t_start
     timings["replays"] = float(sess.replays + 5 + sensor_replicas)
 
     return Diagnosis(
-        n_features=n, groups=group_stats,
-        overall={"chi2": chi2_0, "dof": dof0, "p": p_overall, "variance_factor": variance_factor,
-                 "group_factors": group_factors},
-        where=where, change_points=change_points, candidates=results, chosen=chosen, parameters=parameters,
-        overrides=overrides, updated_config=updated, heldout=heldout, missing_candidates=missing, timings=timings,
+        n_features=n,
+        groups=group_stats,
+        overall={
+            "chi2": chi2_0,
+            "dof": dof0,
+            "p": p_overall,
+            "variance_factor": variance_factor,
+            "group_factors": group_factors,
+        },
+        where=where,
+        change_points=change_points,
+        candidates=results,
+        chosen=chosen,
+        parameters=parameters,
+        overrides=overrides,
+        updated_config=updated,
+        heldout=heldout,
+        missing_candidates=missing,
+        timings=timings,
         not_considered=_left_out(candidates),
-        residuals={"table": table, "r": r_seen, "e": e, "sigma": np.sqrt(np.diag(noise.cov)), "folds": folds,
-                   "after": heldout.get("r_after")},
-        drift={"times": drift.times, "offsets": drift.offsets,
-               "nominal": nominal_drift(config, drift.times)},
+        residuals={
+            "table": table,
+            "r": r_seen,
+            "e": e,
+            "sigma": np.sqrt(np.diag(noise.cov)),
+            "folds": folds,
+            "after": heldout.get("r_after"),
+        },
+        drift={
+            "times": drift.times,
+            "offsets": drift.offsets,
+            "nominal": nominal_drift(config, drift.times),
+        },
     )
 
 
 class _Weighting(NamedTuple):
     """A noise model with its whitening of the whole session and of each fold's (train, test) blocks."""
+
     noise: NoiseModel
     white: Whitener
     folds: list
 
     @classmethod
-    def of(cls, noise: NoiseModel, folds: list) -> "_Weighting":
-        return cls(noise, Whitener(noise.cov),
-                   [(Whitener(noise.cov[np.ix_(tr, tr)]), Whitener(noise.cov[np.ix_(~tr, ~tr)])) for tr in folds])
+    def of(cls, noise: NoiseModel, folds: list) -> _Weighting:
+        return cls(
+            noise,
+            Whitener(noise.cov),
+            [
+                (Whitener(noise.cov[np.ix_(tr, tr)]), Whitener(noise.cov[np.ix_(~tr, ~tr)]))
+                for tr in folds
+            ],
+        )
 
 
 class _SecondTerm(NamedTuple):
     name: str
-    theta: np.ndarray                  # both terms' parameters
+    theta: np.ndarray  # both terms' parameters
     sigma: np.ndarray
-    heldout: dict | None               # the pair's held-out check
+    heldout: dict | None  # the pair's held-out check
 
 
-RELEASED_EXCESS_REDUCTION = 0.5        # of the first term's held-out excess, for a term named on released factors
+RELEASED_EXCESS_REDUCTION = (
+    0.5  # of the first term's held-out excess, for a term named on released factors
+)
 
 
-def _second_term(sess: _Session, design: dict, results: list, first: tuple, theta1: np.ndarray, r1: np.ndarray,
-                 weighting: _Weighting, P: np.ndarray, folds: list, region, region_columns, iterations: int,
-                 heldout_resimulation: bool, dof0: int, variance_factor: float | None, say: Callable[[str], None],
-                 released: bool = False):
+def _second_term(
+    sess: _Session,
+    design: dict,
+    results: list,
+    first: tuple,
+    theta1: np.ndarray,
+    r1: np.ndarray,
+    weighting: _Weighting,
+    P: np.ndarray,
+    folds: list,
+    region,
+    region_columns,
+    iterations: int,
+    heldout_resimulation: bool,
+    dof0: int,
+    variance_factor: float | None,
+    say: Callable[[str], None],
+    released: bool = False,
+):
     """The best second term on the first's re-simulated residual r1, judged with `weighting`:
     (_SecondTerm or None, the first term's held-out check alone or None). `released`: the noise's
     group factors were taken again under the first term; then any library term may be second
@@ -1316,16 +1717,26 @@ def _second_term(sess: _Session, design: dict, results: list, first: tuple, thet
     where = " (group overdispersion taken again under the first term)" if released else ""
     best = None
     for res in results:
-        if res.name == first_cand.name or res.name not in design or not (res.significant or released):
+        if (
+            res.name == first_cand.name
+            or res.name not in design
+            or not (res.significant or released)
+        ):
             continue
         cand, theta0, cols = design[res.name]
         coef_2, chi2_2, _ = gls(r1w, np.hstack([pw, white(first_cols), white(cols)]))
         delta = (chi2_1lin - chi2_2) / factor1
-        if delta > res.statistic_threshold and _can_act(cand, theta0, theta0 + coef_2[-cand.size:]):
-            both = (lambda train, c=first_cols: _with_region(c, region_columns(train))) if cand is region \
+        if delta > res.statistic_threshold and _can_act(
+            cand, theta0, theta0 + coef_2[-cand.size :]
+        ):
+            both = (
+                (lambda train, c=first_cols: _with_region(c, region_columns(train)))
+                if cand is region
                 else np.hstack([first_cols, cols])
-            gain = _cv_gain_on(r1, both, P, folds, fold_whiteners) - _cv_gain_on(r1, first_cols, P, folds,
-                                                                                fold_whiteners)
+            )
+            gain = _cv_gain_on(r1, both, P, folds, fold_whiteners) - _cv_gain_on(
+                r1, first_cols, P, folds, fold_whiteners
+            )
             score = delta - cand.complexity * math.log(n)
             if gain > 0 and (best is None or score > best[1]):
                 best = (res, score, delta)
@@ -1334,22 +1745,34 @@ def _second_term(sess: _Session, design: dict, results: list, first: tuple, thet
     second_res, _, delta = best
     second = design[second_res.name]
     say(f"refining {first_cand.name}, {second_res.name}{where}")
-    joint_theta, joint_cov, joint_r = _refine(sess, [first, second], white, P, iterations, variance_factor,
-                                              start=np.concatenate([theta1, second[1]]))
+    joint_theta, joint_cov, joint_r = _refine(
+        sess,
+        [first, second],
+        white,
+        P,
+        iterations,
+        variance_factor,
+        start=np.concatenate([theta1, second[1]]),
+    )
     # the test above is linear, on the first term's residual; a term whose joint re-simulated fit
     # lies within its threshold of the model only soaked up what the first term's refinement had
     # left. It is judged with the sigma it would be reported with (a z gain of 1.001 +- 0.0007 was
     # named on top of a hysteresis asymmetry: the model-based sigma, narrower where the features
     # scatter more than the noise model says, had passed it)
-    joint_sigma = _reported_sigma(white, P, np.hstack([first_cols, second[2]]), joint_r, _sigma(joint_cov),
-                                  variance_factor)
+    joint_sigma = _reported_sigma(
+        white, P, np.hstack([first_cols, second[2]]), joint_r, _sigma(joint_cov), variance_factor
+    )
     widen = joint_sigma / np.maximum(_sigma(joint_cov), 1e-300)
     part = slice(first_cand.size, None)
     change = joint_theta[part] - second[1]
-    wald = float(change @ np.linalg.pinv((joint_cov * np.outer(widen, widen))[part, part]) @ change)
+    wald = float(
+        change @ np.linalg.pinv((joint_cov * np.outer(widen, widen))[part, part]) @ change
+    )
     if wald <= second_res.statistic_threshold:
-        second_res.note += (f" second to {first_cand.name} in the linear test{where}, but its joint re-simulated "
-                            f"fit is within its threshold of the model (Wald chi2 {wald:.1f})")
+        second_res.note += (
+            f" second to {first_cand.name} in the linear test{where}, but its joint re-simulated "
+            f"fit is within its threshold of the model (Wald chi2 {wald:.1f})"
+        )
         return None, None
     pair = alone = None
     if heldout_resimulation:
@@ -1366,16 +1789,26 @@ def _second_term(sess: _Session, design: dict, results: list, first: tuple, thet
         # (a z gain of 0.9991 was named on top of a 3.8 ms latency that already fit them)
         misfit = alone["chi2_after"] > float(stats.chi2.isf(ALPHA, alone["dof"])) or not released
         if not (misfit and alone["chi2_after"] - pair["chi2_after"] > needed):
-            why = ("the held-out blocks fit worse with it" if pair["chi2_after"] >= alone["chi2_after"] else
-                   f"{first_cand.name} alone fits the held-out blocks within their noise" if not misfit else
-                   f"it takes too little of the held-out excess {first_cand.name} leaves")
-            second_res.note += (f" second to {first_cand.name}{where}, but {why} (chi2 {pair['chi2_after']:.1f} "
-                                f"with it, {alone['chi2_after']:.1f} without, {alone['dof']} dof)")
+            why = (
+                "the held-out blocks fit worse with it"
+                if pair["chi2_after"] >= alone["chi2_after"]
+                else f"{first_cand.name} alone fits the held-out blocks within their noise"
+                if not misfit
+                else f"it takes too little of the held-out excess {first_cand.name} leaves"
+            )
+            second_res.note += (
+                f" second to {first_cand.name}{where}, but {why} (chi2 {pair['chi2_after']:.1f} "
+                f"with it, {alone['chi2_after']:.1f} without, {alone['dof']} dof)"
+            )
             return None, None if released else alone
     if released or not second_res.accepted:
-        second_res.note += f" named second to {first_cand.name}{where}: delta chi2 {delta:.1f} on its residual"
+        second_res.note += (
+            f" named second to {first_cand.name}{where}: delta chi2 {delta:.1f} on its residual"
+        )
     second_res.accepted = True
-    return _SecondTerm(second_res.name, joint_theta, joint_sigma, pair), None if released else alone
+    return _SecondTerm(
+        second_res.name, joint_theta, joint_sigma, pair
+    ), None if released else alone
 
 
 def _can_act(cand: Candidate, theta0: np.ndarray, estimate: np.ndarray) -> bool:
@@ -1418,8 +1851,16 @@ def _group_overdispersion(r, P, columns, cov, groups, min_size: int = 5) -> dict
     return factors
 
 
-def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: np.ndarray | None = None,
-            start: np.ndarray | None = None):
+def _refine(
+    sess: _Session,
+    terms,
+    white,
+    P,
+    iterations,
+    variance_factor,
+    mask: np.ndarray | None = None,
+    start: np.ndarray | None = None,
+):
     """Gauss-Newton iterations theta += (J^T W J)^-1 J^T W r(theta), r by re-simulation, J the
     design columns (a one-parameter simulated term: the secant, below). Returns (theta, its
     covariance scaled by variance_factor, residual at theta)."""
@@ -1429,8 +1870,8 @@ def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: 
     theta0 = np.concatenate([t[1] for t in terms])
     xw = np.hstack([white(P[mask]) if P.size else np.zeros((mask.sum(), 0)), white(cols[mask])])
     coef, _, cov = gls(white(sess.r[mask]), xw)
-    cov_theta = np.nan_to_num(cov[P.shape[1]:, P.shape[1]:])
-    theta = _clip_all(terms, theta0 + coef[P.shape[1]:] if start is None else start)
+    cov_theta = np.nan_to_num(cov[P.shape[1] :, P.shape[1] :])
+    theta = _clip_all(terms, theta0 + coef[P.shape[1] :] if start is None else start)
     linear = all(t[0].analytic in ("height_gain", "bow") for t in terms)
     residual = sess.residual(terms, theta)
     # a one-parameter simulated term: its column is the secant through the two re-simulated
@@ -1452,11 +1893,11 @@ def _refine(sess: _Session, terms, white, P, iterations, variance_factor, mask: 
             other = min(points[:-1], key=lambda p: float(np.abs(p[0] - theta).sum()))
             if np.all(other[0] != theta):
                 secant = ((other[1] - residual) / float((theta - other[0])[0]))[:, None]
-                xw = np.hstack([xw[:, :P.shape[1]], white(np.nan_to_num(secant)[mask])])
+                xw = np.hstack([xw[:, : P.shape[1]], white(np.nan_to_num(secant)[mask])])
         step, _, step_cov = gls(white(residual[mask]), xw)
-        theta_new = _clip_all(terms, theta + step[P.shape[1]:])
-        if by_secant:     # the local slope sets the uncertainty
-            cov_theta = np.nan_to_num(step_cov[P.shape[1]:, P.shape[1]:])
+        theta_new = _clip_all(terms, theta + step[P.shape[1] :])
+        if by_secant:  # the local slope sets the uncertainty
+            cov_theta = np.nan_to_num(step_cov[P.shape[1] :, P.shape[1] :])
         if np.all(np.abs(theta_new - theta) <= 0.05 * np.maximum(_sigma(cov_theta), 1e-30)):
             break
         theta = theta_new
@@ -1484,15 +1925,25 @@ def _reported_sigma(white, P, cols, residual, sigma, variance_factor: float = 1.
         xw = xw - q @ (q.T @ xw)
         ew = ew - q @ (q.T @ ew)
     bread = np.linalg.pinv(xw.T @ xw)
-    robust = bread @ (xw.T @ (xw * (ew ** 2)[:, None])) @ bread
+    robust = bread @ (xw.T @ (xw * (ew**2)[:, None])) @ bread
     with np.errstate(invalid="ignore", divide="ignore"):
         widen = np.sqrt(np.where(np.diag(bread) > 0, np.diag(robust) / np.diag(bread), 1.0))
     widen = np.nan_to_num(widen, nan=1.0) / math.sqrt(max(variance_factor, 1.0))
     return np.asarray(sigma, float) * np.maximum(1.0, widen)
 
 
-def _profile_sigma(sess: _Session, term, theta: np.ndarray, sigma: np.ndarray, centre: float, chi2_of,
-                   variance_factor: float, target: float = 25.0, widen: float = 3.0, tries: int = 4) -> np.ndarray:
+def _profile_sigma(
+    sess: _Session,
+    term,
+    theta: np.ndarray,
+    sigma: np.ndarray,
+    centre: float,
+    chi2_of,
+    variance_factor: float,
+    target: float = 25.0,
+    widen: float = 3.0,
+    tries: int = 4,
+) -> np.ndarray:
     """A one-parameter simulated term's sigma from the re-simulated chi^2 over a bracket that
     the sigma so far says should raise it by `target` (5 sigma either side): its curvature
     there, the bracket widened while the chi^2 rises by less than half that. The secant's
@@ -1517,7 +1968,9 @@ def _profile_sigma(sess: _Session, term, theta: np.ndarray, sigma: np.ndarray, c
     return best
 
 
-def _region_jackknife_sigma(region_columns, r: np.ndarray, P: np.ndarray, cov: np.ndarray, blocks: np.ndarray):
+def _region_jackknife_sigma(
+    region_columns, r: np.ndarray, P: np.ndarray, cov: np.ndarray, blocks: np.ndarray
+):
     """The friction patch's factor's spread over the session with one time block left out at a
     time, the patch searched again each time (the delete-one jackknife). The factor's own
     sigma takes the patch's edges as known, but they are found in the same torsion: an edge a
@@ -1557,7 +2010,7 @@ def _cv_gain_on(r, cols, P, folds, fold_whiteners) -> float:
         if fold_cols is None:
             continue
         coef, _, _ = gls(w_tr(r[train]), np.hstack([w_tr(P[train]), w_tr(fold_cols[train])]))
-        theta = coef[P.shape[1]:]
+        theta = coef[P.shape[1] :]
         pte = w_te(P[test])
         _, before, _ = gls(w_te(r[test]), pte)
         _, after, _ = gls(w_te(r[test] - fold_cols[test] @ theta), pte)
@@ -1582,8 +2035,16 @@ def _feature_change(sess: _Session, cand: Candidate, base: SimConfig, nom: np.nd
     return col, lost
 
 
-def _columns_at_estimate(sess: _Session, cand: Candidate, theta0: np.ndarray, base: SimConfig, nom: np.ndarray,
-                         cols: np.ndarray, estimate: np.ndarray, beyond: np.ndarray) -> np.ndarray:
+def _columns_at_estimate(
+    sess: _Session,
+    cand: Candidate,
+    theta0: np.ndarray,
+    base: SimConfig,
+    nom: np.ndarray,
+    cols: np.ndarray,
+    estimate: np.ndarray,
+    beyond: np.ndarray,
+) -> np.ndarray:
     """The derivative columns `cols`, those of the parameters marked `beyond` (their estimate
     lies beyond LINEAR_REACH steps) replaced by the secants from the model's values to
     `estimate`, parameter by parameter (a feature the re-simulation there loses keeps its
@@ -1595,14 +2056,21 @@ def _columns_at_estimate(sess: _Session, cand: Candidate, theta0: np.ndarray, ba
         theta[j] = estimate[j]
         try:
             change, lost = _feature_change(sess, cand, base, nom, theta)
-        except ValueError:                  # the estimate is invalid for this config
+        except ValueError:  # the estimate is invalid for this config
             continue
         cols[:, j] = np.where(lost, cols[:, j], change / delta)
     return cols
 
 
-def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base: SimConfig, nom: np.ndarray,
-                       white: Whitener | None = None, P: np.ndarray | None = None):
+def _simulated_columns(
+    sess: _Session,
+    cand: Candidate,
+    theta0: np.ndarray,
+    base: SimConfig,
+    nom: np.ndarray,
+    white: Whitener | None = None,
+    P: np.ndarray | None = None,
+):
     """Design columns d features / d parameter by re-simulation at the recorded geometry
     (one replay per parameter, stepped by the candidate's step), or a message saying why not.
     A candidate with a search range gets the secant to the step in it that leaves the least
@@ -1627,8 +2095,16 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
         # imaging, a fraction of the cost), the chosen step then re-simulated in full
         on_map = cand.geometric and sess.mapped.any()
         step = _profile_minimum(
-            lambda s: sess.mapped_change(cand.apply(base, theta0 + s)) if on_map else change(theta0 + s)[0],
-            cand.search_range, sess.r, white, P)
+            lambda s: (
+                sess.mapped_change(cand.apply(base, theta0 + s))
+                if on_map
+                else change(theta0 + s)[0]
+            ),
+            cand.search_range,
+            sess.r,
+            white,
+            P,
+        )
         if step is None:
             return "not evaluated: the term's search range is invalid for this config"
         # a step too small to measure the bend by (a best fit at the model's value)
@@ -1638,13 +2114,13 @@ def _simulated_columns(sess: _Session, cand: Candidate, theta0: np.ndarray, base
     for j in range(cand.size):
         try:
             cols.append(secant(j, cand.steps[j]))
-        except ValueError as exc:          # the stepped value is invalid for this config
+        except ValueError as exc:  # the stepped value is invalid for this config
             return f"not evaluated: {exc}"
     return np.array(cols).T
 
 
-PROFILE_NODES = 9          # Chebyshev nodes of a searched term's interpolant
-PROFILE_POINTS = 201       # where the interpolated chi^2 profile is evaluated
+PROFILE_NODES = 9  # Chebyshev nodes of a searched term's interpolant
+PROFILE_POINTS = 201  # where the interpolated chi^2 profile is evaluated
 
 
 def _profile_minimum(change_at, search_range, r, white, P) -> float | None:
@@ -1660,27 +2136,27 @@ def _profile_minimum(change_at, search_range, r, white, P) -> float | None:
     the commands (interpolated and re-simulated chi^2 agreed within 1 % across +-0.4)."""
     lowest, highest = search_range
 
-    def step_at(node):                     # the Chebyshev variable in [-1, 1] -> the step
+    def step_at(node):  # the Chebyshev variable in [-1, 1] -> the step
         return lowest + (node + 1.0) * (highest - lowest) / 2.0
 
-    nodes = np.cos(np.pi * (np.arange(PROFILE_NODES) + 0.5) / PROFILE_NODES)       # in (-1, 1)
+    nodes = np.cos(np.pi * (np.arange(PROFILE_NODES) + 0.5) / PROFILE_NODES)  # in (-1, 1)
     valid, changes = [], []
     for node in nodes:
         try:
             changes.append(change_at(float(step_at(node))))
-        except ValueError:                 # this step leaves the parameter's valid range here
+        except ValueError:  # this step leaves the parameter's valid range here
             continue
         valid.append(node)
     if len(valid) < 3:
         return None
-    coef = chebyshev.chebfit(np.array(valid), np.array(changes), len(valid) - 1)    # (degree + 1, N)
-    fine = np.linspace(min(valid), max(valid), PROFILE_POINTS)       # never extrapolated
+    coef = chebyshev.chebfit(np.array(valid), np.array(changes), len(valid) - 1)  # (degree + 1, N)
+    fine = np.linspace(min(valid), max(valid), PROFILE_POINTS)  # never extrapolated
     # the whitening is linear: whiten the coefficients, then evaluate (N, PROFILE_POINTS)
     residuals = white(r)[:, None] - white(coef.T) @ chebyshev.chebvander(fine, len(valid) - 1).T
     if P is not None and P.size:
         q, _ = np.linalg.qr(white(P))
         residuals = residuals - q @ (q.T @ residuals)
-    best = int(np.argmin(np.sum(residuals ** 2, axis=0)))
+    best = int(np.argmin(np.sum(residuals**2, axis=0)))
     return float(step_at(fine[best]))
 
 
@@ -1692,12 +2168,17 @@ def _noise_columns(sess: _Session, cand: Candidate, theta0: np.ndarray) -> np.nd
         theta = theta0.copy()
         theta[j] += cand.steps[j]
         sim = sess.noise_features(cand.overrides(sess.config, theta))
-        cols.append(np.where(sess.noisy, np.nan_to_num((sim - sess.noise_features({})) / cand.steps[j]), 0.0))
+        cols.append(
+            np.where(
+                sess.noisy, np.nan_to_num((sim - sess.noise_features({})) / cand.steps[j]), 0.0
+            )
+        )
     return np.array(cols).T
 
 
-def _noise_statistics_covariance(sess: _Session, level: dict, nom: np.ndarray, columns: list,
-                                 residual: np.ndarray | None = None) -> np.ndarray:
+def _noise_statistics_covariance(
+    sess: _Session, level: dict, nom: np.ndarray, columns: list, residual: np.ndarray | None = None
+) -> np.ndarray:
     """Covariance of the noise statistics at the noise level `level` (overrides): their
     replicas' spread, times each group's overdispersion in `residual` (the session's by
     default) after the best single fit of `columns`, plus a part common to each group's
@@ -1718,23 +2199,30 @@ def _noise_statistics_covariance(sess: _Session, level: dict, nom: np.ndarray, c
     groups = sess.table.groups[noisy]
     variance, _ = _pooled_white(replicas[:, noisy], groups, 4.0, nom[noisy])
     residual = sess.r if residual is None else residual
-    factors = _group_overdispersion(residual[noisy], np.zeros((int(noisy.sum()), 0)), [c[noisy] for c in columns],
-                                    np.diag(variance), groups)
+    factors = _group_overdispersion(
+        residual[noisy],
+        np.zeros((int(noisy.sum()), 0)),
+        [c[noisy] for c in columns],
+        np.diag(variance),
+        groups,
+    )
     cov = np.diag(variance * np.array([factors.get(g, 1.0) for g in groups]))
     offsets = sess.realization_offsets(REALIZATIONS, level)[:, noisy]
     for group in np.unique(groups):
         sel = groups == group
         independent = float(np.mean(variance[sel])) / int(sel.sum())
-        cov[np.ix_(sel, sel)] += max(float(np.mean(np.mean(offsets[:, sel], axis=1) ** 2)) - independent, 0.0)
+        cov[np.ix_(sel, sel)] += max(
+            float(np.mean(np.mean(offsets[:, sel], axis=1) ** 2)) - independent, 0.0
+        )
     return cov
 
 
 class _SingleTermTest(NamedTuple):
     coef: np.ndarray
     cov: np.ndarray
-    delta: float          # chi^2 gain over no term, divided by the overdispersion after the fit
-    factor: float         # that overdispersion (>= 1)
-    threshold: float      # the Bonferroni threshold over the library's m terms
+    delta: float  # chi^2 gain over no term, divided by the overdispersion after the fit
+    factor: float  # that overdispersion (>= 1)
+    threshold: float  # the Bonferroni threshold over the library's m terms
 
 
 def _single_term_test(rw: np.ndarray, xw: np.ndarray, cand: Candidate, m: int) -> _SingleTermTest:
@@ -1742,9 +2230,16 @@ def _single_term_test(rw: np.ndarray, xw: np.ndarray, cand: Candidate, m: int) -
     the rest of the diagnosis does not fit: noise statistics, heights): its evidence against none."""
     _, chi2_0, _ = gls(rw, np.zeros((len(rw), 0)))
     coef, chi2, cov = gls(rw, xw)
-    factor = max(1.0, chi2 / max(1, len(rw) - cand.size))     # features noisier than their replicas say
-    return _SingleTermTest(coef, cov, (chi2_0 - chi2) / factor, factor,
-                           float(stats.chi2.isf(ALPHA / m, cand.complexity)))
+    factor = max(
+        1.0, chi2 / max(1, len(rw) - cand.size)
+    )  # features noisier than their replicas say
+    return _SingleTermTest(
+        coef,
+        cov,
+        (chi2_0 - chi2) / factor,
+        factor,
+        float(stats.chi2.isf(ALPHA / m, cand.complexity)),
+    )
 
 
 def _height_gain(sess: _Session, cand: Candidate, replicas: np.ndarray, nom: np.ndarray, m: int):
@@ -1756,16 +2251,24 @@ def _height_gain(sess: _Session, cand: Candidate, replicas: np.ndarray, nom: np.
     theta0 = cand.nominal(sess.config)
     variance, _ = _pooled_white(replicas[:, rows], sess.table.groups[rows], 4.0, nom[rows])
     white = Whitener(np.diag(variance))
-    test = _single_term_test(white(sess.r[rows]), white((sess.reference[rows] / max(theta0[0], 1e-12))[:, None]),
-                             cand, m)
+    test = _single_term_test(
+        white(sess.r[rows]),
+        white((sess.reference[rows] / max(theta0[0], 1e-12))[:, None]),
+        cand,
+        m,
+    )
     return cand.clip(theta0 + test.coef) if test.delta > test.threshold else None
 
 
 def _gain_on_noise_statistics(sess: _Session, cand: Candidate, gain: np.ndarray) -> np.ndarray:
     """How a z gain of `gain` changes the noise statistics (0 on other features), re-simulated
     with the noise replicas' seeds at the reference's noise level."""
-    at_gain = sess.noise_features(merge_overrides(sess.noise_reference, cand.overrides(sess.config, gain)))
-    return np.where(sess.noisy, np.nan_to_num(at_gain - sess.noise_features(sess.noise_reference)), 0.0)
+    at_gain = sess.noise_features(
+        merge_overrides(sess.noise_reference, cand.overrides(sess.config, gain))
+    )
+    return np.where(
+        sess.noisy, np.nan_to_num(at_gain - sess.noise_features(sess.noise_reference)), 0.0
+    )
 
 
 def _noise_term(sess: _Session, design: tuple, statistics_cov: np.ndarray, folds: list, m: int):
@@ -1781,15 +2284,25 @@ def _noise_term(sess: _Session, design: tuple, statistics_cov: np.ndarray, folds
     r = sess.r[noisy]
     test = _single_term_test(white(r), white(cols[noisy]), cand, m)
     factor = test.factor
-    res = CandidateResult(cand.name, cand.words, cand.keys, cand.units, cand.size, estimate=theta0 + test.coef,
-                          sigma=np.sqrt(np.abs(np.diag(test.cov)) * factor), delta_chi2=test.delta,
-                          statistic_threshold=test.threshold,
-                          bic_gain=test.delta - cand.complexity * math.log(max(len(r), 2)))
+    res = CandidateResult(
+        cand.name,
+        cand.words,
+        cand.keys,
+        cand.units,
+        cand.size,
+        estimate=theta0 + test.coef,
+        sigma=np.sqrt(np.abs(np.diag(test.cov)) * factor),
+        delta_chi2=test.delta,
+        statistic_threshold=test.threshold,
+        bic_gain=test.delta - cand.complexity * math.log(max(len(r), 2)),
+    )
     res.significant = test.delta > res.statistic_threshold
     if res.significant:
         sub_folds = [f[noisy] for f in folds]
-        whiteners = [(Whitener(statistics_cov[np.ix_(f, f)]), Whitener(statistics_cov[np.ix_(~f, ~f)]))
-                     for f in sub_folds]
+        whiteners = [
+            (Whitener(statistics_cov[np.ix_(f, f)]), Whitener(statistics_cov[np.ix_(~f, ~f)]))
+            for f in sub_folds
+        ]
         res.heldout_gain = _cv_gain_on(r, cols[noisy], none, sub_folds, whiteners)
         res.accepted = res.heldout_gain > 0
         if not res.accepted:
@@ -1799,9 +2312,13 @@ def _noise_term(sess: _Session, design: tuple, statistics_cov: np.ndarray, folds
     # the evidence is the fit's, not the derivative's: noise levels add in quadrature, so a line
     # through the model's value misses a large change (1/f noise 7.5 x the model's fitted to
     # chi^2 85 along it, 6.5 at its value) and a white noise, straighter there, passed for it
-    curve, (level, sigma, chi2_level) = _NoiseCurve.fit(sess, cand, float(cand.clip(res.estimate)[0]), white)
+    curve, (level, sigma, chi2_level) = _NoiseCurve.fit(
+        sess, cand, float(cand.clip(res.estimate)[0]), white
+    )
     res.estimate, res.sigma = np.array([level]), np.array([sigma])
-    res.delta_chi2 = (float(np.sum(white(r) ** 2)) - chi2_level) / max(1.0, chi2_level / max(1, len(r) - cand.size))
+    res.delta_chi2 = (float(np.sum(white(r) ** 2)) - chi2_level) / max(
+        1.0, chi2_level / max(1, len(r) - cand.size)
+    )
     res.bic_gain = res.delta_chi2 - cand.complexity * math.log(max(len(r), 2))
     return design, res, curve
 
@@ -1815,14 +2332,15 @@ class _NoiseCurve(NamedTuple):
     pixel noise bends 1.7 % away from it, hence `zoom`. The recording is compared with the
     curve, not with re-simulations one by one: their jitter had secant iterations wander
     between 0.03 and 0.06 nm around a flat minimum at 0.005."""
+
     low: float
     high: float
     a: np.ndarray
     b: np.ndarray
 
     @classmethod
-    def through(cls, sess: _Session, cand: Candidate, low: float, high: float) -> "_NoiseCurve":
-        levels = np.sqrt(np.linspace(low ** 2, high ** 2, NOISE_LEVELS))
+    def through(cls, sess: _Session, cand: Candidate, low: float, high: float) -> _NoiseCurve:
+        levels = np.sqrt(np.linspace(low**2, high**2, NOISE_LEVELS))
         stats = sess.noise_features_along(cand, levels)[:, sess.noisy]
         # per feature, least squares in the squares' relative error (the lowest levels as
         # closely as the highest)
@@ -1846,7 +2364,7 @@ class _NoiseCurve(NamedTuple):
             high = 1.5 * profile[0]
         return curve, profile
 
-    def zoom(self, sess: _Session, cand: Candidate, white: Whitener) -> "_NoiseCurve":
+    def zoom(self, sess: _Session, cand: Candidate, white: Whitener) -> _NoiseCurve:
         """The curve again through NOISE_ZOOM sigmas either side of its profile's minimum."""
         level, sigma, _ = self.profile(sess, white)
         half = max(NOISE_ZOOM * sigma, 1e-3 * level, 1e-15)
@@ -1856,13 +2374,19 @@ class _NoiseCurve(NamedTuple):
         """Where the profile is evaluated: from 0 to 4 x the top over a curve from 0, one width
         either side of a zoomed one."""
         width = self.high - self.low
-        low, high = (0.0, 4.0 * self.high) if self.low == 0.0 else (max(0.0, self.low - width), self.high + width)
+        low, high = (
+            (0.0, 4.0 * self.high)
+            if self.low == 0.0
+            else (max(0.0, self.low - width), self.high + width)
+        )
         return np.linspace(low, high, NOISE_PROFILE_POINTS)
 
     def statistics(self, levels) -> np.ndarray:
         """(len(levels), noisy features)."""
         levels = np.atleast_1d(np.asarray(levels, float))
-        return np.sqrt(np.maximum(self.a[None, :] + self.b[None, :] * (levels[:, None] / self.high) ** 2, 0.0))
+        return np.sqrt(
+            np.maximum(self.a[None, :] + self.b[None, :] * (levels[:, None] / self.high) ** 2, 0.0)
+        )
 
     def residual(self, sess: _Session, levels) -> np.ndarray:
         """(noisy features, len(levels)): the recording's statistics (less what a fitted z gain
@@ -1884,8 +2408,14 @@ class _NoiseCurve(NamedTuple):
         return float(grid[best]), 0.5 * float(high - low), float(chi2[best])
 
 
-def _friction_region(design: dict, config: SimConfig, table: Table, r: np.ndarray, d_rec: np.ndarray,
-                     noise: NoiseModel):
+def _friction_region(
+    design: dict,
+    config: SimConfig,
+    table: Table,
+    r: np.ndarray,
+    d_rec: np.ndarray,
+    noise: NoiseModel,
+):
     """The friction-region candidate at the rectangle where the slides' torsion residual
     follows the friction's effect best (sim2real.regions: searched between segment centres,
     then its edges moved continuously), or None; and the function the held-out check uses to
@@ -1896,23 +2426,39 @@ def _friction_region(design: dict, config: SimConfig, table: Table, r: np.ndarra
         return None, lambda train: None
     _, mu, friction_cols = design["friction"]
     torsion = table.groups == "push.torsion"
-    effect = np.where(torsion, mu[0] * friction_cols[:, 0], 0.0)       # d torsion / d (region's scale)
+    effect = np.where(torsion, mu[0] * friction_cols[:, 0], 0.0)  # d torsion / d (region's scale)
     points = regions.sample_points(table.xy, d_rec)
     axes = [c.get("axis", "x") for c in table.conditions]
     lengths = np.array([c.get("segment_length", SEGMENT) for c in table.conditions])
 
     def search(mask):
         sel = np.flatnonzero(torsion & mask)
-        found = regions.best_region(points[sel], effect[sel], r[sel], noise.cov[np.ix_(sel, sel)],
-                                    slides=table.op_index[sel])
+        found = regions.best_region(
+            points[sel],
+            effect[sel],
+            r[sel],
+            noise.cov[np.ix_(sel, sel)],
+            slides=table.op_index[sel],
+        )
         if found is None:
             return None
-        return regions.refine_region(points[sel], [axes[i] for i in sel], lengths[sel], effect[sel], r[sel],
-                                     noise.cov[np.ix_(sel, sel)], found[0])
+        return regions.refine_region(
+            points[sel],
+            [axes[i] for i in sel],
+            lengths[sel],
+            effect[sel],
+            r[sel],
+            noise.cov[np.ix_(sel, sel)],
+            found[0],
+        )
 
     def fold_column(train):
         found = search(train)
-        return None if found is None else (effect * regions.overlap(points, axes, lengths, found[0]))[:, None]
+        return (
+            None
+            if found is None
+            else (effect * regions.overlap(points, axes, lengths, found[0]))[:, None]
+        )
 
     found = search(np.ones(len(r), bool))
     if found is None:
@@ -1925,7 +2471,12 @@ def _friction_region(design: dict, config: SimConfig, table: Table, r: np.ndarra
 
 def _clip_all(terms, theta):
     sizes = [t[0].size for t in terms]
-    return np.concatenate([cand.clip(part) for (cand, _, _), part in zip(terms, np.split(theta, np.cumsum(sizes)[:-1]))])
+    return np.concatenate(
+        [
+            cand.clip(part)
+            for (cand, _, _), part in zip(terms, np.split(theta, np.cumsum(sizes)[:-1]))
+        ]
+    )
 
 
 def _heldout(sess: _Session, terms, noise, P, train, iterations, start):
@@ -1939,13 +2490,22 @@ def _heldout(sess: _Session, terms, noise, P, train, iterations, start):
     _, after, _ = gls(w_te(r_after[test]), pte)
     dof = int(test.sum() - P.shape[1])
     excess_before = before - dof
-    return {"chi2_before": before, "chi2_after": after, "dof": dof,
-            "reduction": 1 - after / before if before > 0 else 0.0,
-            "excess_reduction": (before - after) / excess_before if excess_before > 0 else float("nan"),
-            "train_theta": theta.tolist(), "r_after": r_after, "test": test}
+    return {
+        "chi2_before": before,
+        "chi2_after": after,
+        "dof": dof,
+        "reduction": 1 - after / before if before > 0 else 0.0,
+        "excess_reduction": (before - after) / excess_before
+        if excess_before > 0
+        else float("nan"),
+        "train_theta": theta.tolist(),
+        "r_after": r_after,
+        "test": test,
+    }
 
 
 # -- where ----------------------------------------------------------------------------------------
+
 
 def _bins(table: Table):
     """(label, mask) of condition bins per group."""
@@ -1968,18 +2528,44 @@ def _bins(table: Table):
                     sel = g & (values.astype(str) == v)
                     if 3 <= sel.sum() < g.sum():
                         out.append((f"{group} | {label} = {v}", sel))
+
         add("axis", [c.get("axis") for c in conds])
         add("scan direction", [c.get("scan_sign") for c in conds])
         add("dwell after move (s)", [c.get("dwell", np.nan) for c in conds], [0, 1, 5, 20, np.inf])
-        add("last move (um)", [c.get("move_distance", np.nan) * 1e6 for c in conds], [0, 1, 2, np.inf])
-        add("contact slid before (um)", [c.get("contact_slid", np.nan) * 1e6 for c in conds], [0, 0.5, 4, 8, np.inf])
+        add(
+            "last move (um)",
+            [c.get("move_distance", np.nan) * 1e6 for c in conds],
+            [0, 1, 2, np.inf],
+        )
+        add(
+            "contact slid before (um)",
+            [c.get("contact_slid", np.nan) * 1e6 for c in conds],
+            [0, 0.5, 4, 8, np.inf],
+        )
         add("raster angle", [c.get("angle") for c in conds])
         add("frame up", [c.get("up") for c in conds])
         add("particle", [c.get("particle") for c in conds])
-        add("time (s)", table.time, np.round(np.quantile(table.time[g], [0, 0.25, 0.5, 0.75, 1]) + [0, 0, 0, 0, 1e-6], 1)
-            if g.any() else None)
-        add("x (um)", table.xy[:, 0] * 1e6, np.round(np.quantile(table.xy[g, 0] * 1e6, [0, 0.33, 0.67, 1]) + [0, 0, 0, 1e-9], 3) if g.any() else None)
-        add("y (um)", table.xy[:, 1] * 1e6, np.round(np.quantile(table.xy[g, 1] * 1e6, [0, 0.33, 0.67, 1]) + [0, 0, 0, 1e-9], 3) if g.any() else None)
+        add(
+            "time (s)",
+            table.time,
+            np.round(np.quantile(table.time[g], [0, 0.25, 0.5, 0.75, 1]) + [0, 0, 0, 0, 1e-6], 1)
+            if g.any()
+            else None,
+        )
+        add(
+            "x (um)",
+            table.xy[:, 0] * 1e6,
+            np.round(np.quantile(table.xy[g, 0] * 1e6, [0, 0.33, 0.67, 1]) + [0, 0, 0, 1e-9], 3)
+            if g.any()
+            else None,
+        )
+        add(
+            "y (um)",
+            table.xy[:, 1] * 1e6,
+            np.round(np.quantile(table.xy[g, 1] * 1e6, [0, 0.33, 0.67, 1]) + [0, 0, 0, 1e-9], 3)
+            if g.any()
+            else None,
+        )
     return out
 
 
@@ -1996,14 +2582,26 @@ def _where(table: Table, e: np.ndarray, cov: np.ndarray, variance_factor: float 
             chi2 = float(e[idx] @ np.linalg.solve(c, e[idx]))
         except np.linalg.LinAlgError:
             chi2 = float("nan")
-        row = {"where": label, "n": int(idx.size), "mean": mean, "sd": sd, "z": mean / sd,
-               "chi2": chi2, "p_chi2": float(stats.chi2.sf(chi2, idx.size)),
-               "p_mean": float(2 * stats.norm.sf(abs(mean / sd)))}
+        row = {
+            "where": label,
+            "n": int(idx.size),
+            "mean": mean,
+            "sd": sd,
+            "z": mean / sd,
+            "chi2": chi2,
+            "p_chi2": float(stats.chi2.sf(chi2, idx.size)),
+            "p_mean": float(2 * stats.norm.sf(abs(mean / sd))),
+        }
         rows.append(row)
         if "|" not in label:
-            group_stats[label] = {"n": int(idx.size), "chi2": chi2, "dof": int(idx.size), "p": row["p_chi2"],
-                                  "rms_residual": float(np.sqrt(np.mean(e[idx] ** 2))),
-                                  "noise_sigma": float(np.sqrt(np.mean(np.diag(c))))}
+            group_stats[label] = {
+                "n": int(idx.size),
+                "chi2": chi2,
+                "dof": int(idx.size),
+                "p": row["p_chi2"],
+                "rms_residual": float(np.sqrt(np.mean(e[idx] ** 2))),
+                "noise_sigma": float(np.sqrt(np.mean(np.diag(c)))),
+            }
     m = max(1, len(rows))
     for row in rows:
         row["p_mean_bonferroni"] = min(1.0, row["p_mean"] * m)
@@ -2021,35 +2619,62 @@ def _where(table: Table, e: np.ndarray, cov: np.ndarray, variance_factor: float 
         k = int(np.argmax(np.abs(cusum[:-1])))
         stat = float(abs(cusum[k]))
         # Kolmogorov limit of the Brownian bridge maximum
-        p = float(min(1.0, 2 * sum((-1) ** (j - 1) * math.exp(-2 * j * j * stat * stat) for j in range(1, 50))))
-        change.append({"group": group, "time": float(table.time[idx[k]]), "statistic": stat, "p": p,
-                       "mean_before": float(e[idx[:k + 1]].mean()), "mean_after": float(e[idx[k + 1:]].mean())})
+        p = float(
+            min(
+                1.0,
+                2
+                * sum((-1) ** (j - 1) * math.exp(-2 * j * j * stat * stat) for j in range(1, 50)),
+            )
+        )
+        change.append(
+            {
+                "group": group,
+                "time": float(table.time[idx[k]]),
+                "statistic": stat,
+                "p": p,
+                "mean_before": float(e[idx[: k + 1]].mean()),
+                "mean_after": float(e[idx[k + 1 :]].mean()),
+            }
+        )
     change.sort(key=lambda c: c["p"])
     return rows, change, group_stats
 
 
 # -- entry point ------------------------------------------------------------------------------------
 
-def run_sim2real(recording_path, config_path, report_dir, progress=None, missing_data: str = "error",
-                 effects=None, **kw) -> Diagnosis:
+
+def run_sim2real(
+    recording_path,
+    config_path,
+    report_dir,
+    progress=None,
+    missing_data: str = "error",
+    effects=None,
+    **kw,
+) -> Diagnosis:
     """Read a recording (MCAP), diagnose it against the simulator config, write the report and
     the updated config into report_dir. Raises ValueError subclasses with clear messages.
     missing_data="skip" leaves out commands whose measurement is not in the file (a snapshot
     of a recording still being written ends mid-operation); "error" refuses them. `effects`:
     names of library terms to consider (candidates.select), None or empty: all of them."""
     from afm_core.sim2real.report import write_report
+
     recording_path = Path(recording_path)
     if not recording_path.is_file():
         raise FileNotFoundError(f"recording {str(recording_path)!r} does not exist")
-    candidates = select(effects)          # before the reading: a misspelt effect costs nothing
+    candidates = select(effects)  # before the reading: a misspelt effect costs nothing
     config = load_config(config_path) if config_path is not None else load_config()
     try:
         from afm_core.sim2real.session import read_operations
-    except ImportError as exc:            # pragma: no cover - the session reader is part of the package
-        raise RuntimeError(f"the recording reader (afm_core.sim2real.session) is not available: {exc}") from exc
+    except ImportError as exc:  # pragma: no cover - the session reader is part of the package
+        raise RuntimeError(
+            f"the recording reader (afm_core.sim2real.session) is not available: {exc}"
+        ) from exc
     with read_operations(recording_path, missing_data=missing_data) as operations:
         try:
-            diagnosis = diagnose(operations, config, progress=progress, candidates=candidates, **kw)
+            diagnosis = diagnose(
+                operations, config, progress=progress, candidates=candidates, **kw
+            )
         except NoFeaturesError as exc:
             raise NoFeaturesError(f"recording {str(recording_path)!r}: {exc}") from exc
     write_report(diagnosis, Path(report_dir), config=config, recording=str(recording_path))

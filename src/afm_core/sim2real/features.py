@@ -36,6 +36,7 @@ Conditions per feature: time (s), position (m), measured direction u (position f
 scan direction sign, dwell since the last free move, that move's distance and direction,
 contact distance slid before, the particle.
 """
+
 from __future__ import annotations
 
 import math
@@ -49,30 +50,32 @@ from afm_core.localization.observation import find_crossings
 
 POSITION_GROUPS = ("line.pos", "line.mid", "raster.x", "raster.y")
 EDGE_FRACTION = 0.1
-MIN_PEAK = 20e-9                # m, a line whose peak is lower saw no particle
-MAX_LANDMARK_PIXEL = 60e-9      # m, coarser images give no particle features
-MAX_SHAPE_PIXEL = 20e-9         # m, coarser images give positions only (a particle's apparent height and
-                                #   width depend on where the pixel grid falls on it)
-BOW_MIN_SIZE = 10e-6            # m, images at least this large give the background curvature
-SEGMENT = 250e-9                # m of path per torsion feature
-MATCH_RADIUS = 200e-9           # m, a landmark belongs to an anchor this close (after translation)
-SAME_POINT = 1e-12              # m
-CENTRE_LEVEL = 5e-9             # m above the substrate: a raster particle's centre weighs what rises above
-STREAK_MIN_LINES = 64           # images with fewer lines (or pixels per line) give no line-offset noise
-STREAK_BLOCK = 48               # lines per line-offset noise feature
-PARTICLE_LEVEL = 5e-9           # m above a line's median: a particle, not substrate (pixel noise leaves it out)
-PARTICLE_MARGIN = 3             # pixels either side of a particle also left out (the foot of its flanks)
+MIN_PEAK = 20e-9  # m, a line whose peak is lower saw no particle
+MAX_LANDMARK_PIXEL = 60e-9  # m, coarser images give no particle features
+MAX_SHAPE_PIXEL = 20e-9  # m, coarser images give positions only (a particle's apparent height and
+#   width depend on where the pixel grid falls on it)
+BOW_MIN_SIZE = 10e-6  # m, images at least this large give the background curvature
+SEGMENT = 250e-9  # m of path per torsion feature
+MATCH_RADIUS = 200e-9  # m, a landmark belongs to an anchor this close (after translation)
+SAME_POINT = 1e-12  # m
+CENTRE_LEVEL = 5e-9  # m above the substrate: a raster particle's centre weighs what rises above
+STREAK_MIN_LINES = 64  # images with fewer lines (or pixels per line) give no line-offset noise
+STREAK_BLOCK = 48  # lines per line-offset noise feature
+PARTICLE_LEVEL = (
+    5e-9  # m above a line's median: a particle, not substrate (pixel noise leaves it out)
+)
+PARTICLE_MARGIN = 3  # pixels either side of a particle also left out (the foot of its flanks)
 
 
 @dataclass
 class Feature:
-    key: tuple                 # (operation index, name): the same in recorded and simulated sessions
+    key: tuple  # (operation index, name): the same in recorded and simulated sessions
     group: str
     value: float
-    time: float                # s, instrument clock
-    x: float                   # m, where on the sample (commanded)
+    time: float  # s, instrument clock
+    x: float  # m, where on the sample (commanded)
     y: float
-    u: tuple = (0.0, 0.0)      # measured direction (position features), else (0, 0)
+    u: tuple = (0.0, 0.0)  # measured direction (position features), else (0, 0)
     conditions: dict = field(default_factory=dict)
 
 
@@ -93,7 +96,7 @@ def _profile_features(h: np.ndarray, s: np.ndarray):
             return None
         levels[fraction] = pairs[0]
     idx = np.arange(n)
-    at = lambda i: float(np.interp(i, idx, s))          # noqa: E731
+    at = lambda i: float(np.interp(i, idx, s))  # noqa: E731
     rise, fall = levels[0.5]
     out["mid"] = 0.5 * (at(rise) + at(fall))
     out["width"] = at(fall) - at(rise)
@@ -141,18 +144,30 @@ def line_profile(data):
     f = _profile_features(h, (x - x[0]) * u[0] + (y - y[0]) * u[1])
     if f is None:
         return u, None, math.nan, (math.nan, math.nan)
-    t = float(data.start_time + np.interp(f["mid_index"], np.arange(h.size), np.asarray(data.times, float)))
+    t = float(
+        data.start_time
+        + np.interp(f["mid_index"], np.arange(h.size), np.asarray(data.times, float))
+    )
     return u, f, t, (x[0] + f["mid"] * u[0], y[0] + f["mid"] * u[1])
 
 
 def _same_segment(a, b) -> bool:
     """Two scan lines over the same segment (either direction)."""
     ra, rb = a.request, b.request
-    pa = np.array([ra.start_x, ra.start_y, ra.end_x, ra.end_y]) if ra is not None else \
-        np.array([*a.start, *a.end], float)
-    pb = np.array([rb.start_x, rb.start_y, rb.end_x, rb.end_y]) if rb is not None else \
-        np.array([*b.start, *b.end], float)
-    return bool(np.all(np.abs(pa - pb) <= SAME_POINT) or np.all(np.abs(pa - pb[[2, 3, 0, 1]]) <= SAME_POINT))
+    pa = (
+        np.array([ra.start_x, ra.start_y, ra.end_x, ra.end_y])
+        if ra is not None
+        else np.array([*a.start, *a.end], float)
+    )
+    pb = (
+        np.array([rb.start_x, rb.start_y, rb.end_x, rb.end_y])
+        if rb is not None
+        else np.array([*b.start, *b.end], float)
+    )
+    return bool(
+        np.all(np.abs(pa - pb) <= SAME_POINT)
+        or np.all(np.abs(pa - pb[[2, 3, 0, 1]]) <= SAME_POINT)
+    )
 
 
 class FeatureExtractor:
@@ -165,11 +180,11 @@ class FeatureExtractor:
         self.anchors = anchors
         self.features: list[Feature] = []
         self._last_move_end_time = 0.0
-        self._last_move = (0.0, 0.0, 0.0)       # distance, direction x, y
+        self._last_move = (0.0, 0.0, 0.0)  # distance, direction x, y
         self._slid = 0.0
         self._run: list = []
         self._run_common: dict = {}
-        self.particles_seen: dict = {}          # raster's op index -> how many particles it shows
+        self.particles_seen: dict = {}  # raster's op index -> how many particles it shows
 
     def add(self, op) -> None:
         if op.kind == "scan_line" and self._run and _same_segment(self._run[0], op):
@@ -185,10 +200,17 @@ class FeatureExtractor:
             if kind == "push" and op.data is not None:
                 self.features += _push_features(op, self._slid)
                 self._slid += float(np.hypot(*(end - start)))
-            self._last_move_end_time = op.start_time + (op.duration if np.isfinite(op.duration) else 0.0)
+            self._last_move_end_time = op.start_time + (
+                op.duration if np.isfinite(op.duration) else 0.0
+            )
             return
-        common = {"dwell": max(0.0, op.start_time - self._last_move_end_time), "move_distance": self._last_move[0],
-                  "move_dx": self._last_move[1], "move_dy": self._last_move[2], "contact_slid": self._slid}
+        common = {
+            "dwell": max(0.0, op.start_time - self._last_move_end_time),
+            "move_distance": self._last_move[0],
+            "move_dx": self._last_move[1],
+            "move_dy": self._last_move[2],
+            "contact_slid": self._slid,
+        }
         if kind == "scan_line":
             self._run, self._run_common = [op], common
         elif kind == "raster" and op.data is not None:
@@ -204,7 +226,9 @@ class FeatureExtractor:
         return self.features
 
 
-def extract_features(operations, anchors=None, particles_seen: dict | None = None) -> list[Feature]:
+def extract_features(
+    operations, anchors=None, particles_seen: dict | None = None
+) -> list[Feature]:
     """Features of every operation (see the module docstring and FeatureExtractor);
     particles_seen, if given, gets FeatureExtractor.particles_seen."""
     extractor = FeatureExtractor(anchors)
@@ -222,13 +246,17 @@ def _run_features(run, common) -> list[Feature]:
     if profiles[0][1] is None:
         return []
     u0 = profiles[0][1][0]
-    axis_u = np.abs(u0)                                     # positions are measured along +axis
+    axis_u = np.abs(u0)  # positions are measured along +axis
     axis = "x" if abs(u0[0]) >= abs(u0[1]) else "y"
     out = []
 
     def cond(sign, extra=None):
-        c = dict(common, axis=axis, scan_sign=float(sign), speed=float(first.speed) if first.speed == first.speed
-                 else math.nan)
+        c = dict(
+            common,
+            axis=axis,
+            scan_sign=float(sign),
+            speed=float(first.speed) if first.speed == first.speed else math.nan,
+        )
         if extra:
             c.update(extra)
         return c
@@ -242,15 +270,29 @@ def _run_features(run, common) -> list[Feature]:
         sign = float(np.sign(u @ axis_u)) or 1.0
         data = op.data
         coord = np.asarray(data.x, float) * axis_u[0] + np.asarray(data.y, float) * axis_u[1]
-        lines.append({"op": op, "sign": sign, "pos": float(axis_u @ np.array([px, py])), "t": t, "px": px,
-                      "py": py, "width": f["width"], "peak": f["peak"],
-                      "asym": sign * (f["trail"] - f["lead"]), "coord": coord,
-                      "height": np.asarray(data.height, float)})
+        lines.append(
+            {
+                "op": op,
+                "sign": sign,
+                "pos": float(axis_u @ np.array([px, py])),
+                "t": t,
+                "px": px,
+                "py": py,
+                "width": f["width"],
+                "peak": f["peak"],
+                "asym": sign * (f["trail"] - f["lead"]),
+                "coord": coord,
+                "height": np.asarray(data.height, float),
+            }
+        )
     # pairs: consecutive opposite lines of the run, greedily from its start (by command only)
     k = 0
     paired = set()
-    signs = [float(np.sign(np.asarray([op.end[0] - op.start[0], op.end[1] - op.start[1]]) @ axis_u)) or 1.0
-             for op in run]
+    signs = [
+        float(np.sign(np.asarray([op.end[0] - op.start[0], op.end[1] - op.start[1]]) @ axis_u))
+        or 1.0
+        for op in run
+    ]
     while k + 1 < len(run):
         if signs[k] != signs[k + 1]:
             paired.update((k, k + 1))
@@ -260,27 +302,69 @@ def _run_features(run, common) -> list[Feature]:
                 t = 0.5 * (a["t"] + b["t"])
                 px, py = 0.5 * (a["px"] + b["px"]), 0.5 * (a["py"] + b["py"])
                 key_op = run[k].index
-                out.append(Feature((key_op, "line.pos"), "line.pos", 0.5 * (a["pos"] + b["pos"]), t, px, py,
-                                   tuple(float(v) for v in axis_u), cond(0.0, {"pair": True})))
+                out.append(
+                    Feature(
+                        (key_op, "line.pos"),
+                        "line.pos",
+                        0.5 * (a["pos"] + b["pos"]),
+                        t,
+                        px,
+                        py,
+                        tuple(float(v) for v in axis_u),
+                        cond(0.0, {"pair": True}),
+                    )
+                )
                 shift = _profile_shift(plus, minus)
                 if shift is not None:
-                    out.append(Feature((key_op, "line.dir"), "line.dir", 0.5 * shift, t, px, py, (0.0, 0.0),
-                                       cond(0.0, {"pair": True})))
+                    out.append(
+                        Feature(
+                            (key_op, "line.dir"),
+                            "line.dir",
+                            0.5 * shift,
+                            t,
+                            px,
+                            py,
+                            (0.0, 0.0),
+                            cond(0.0, {"pair": True}),
+                        )
+                    )
             k += 2
         else:
             k += 1
     for k, line in enumerate(lines):
         if k in paired or line is None:
             continue
-        out.append(Feature((run[k].index, "line.mid"), "line.mid", line["pos"], line["t"], line["px"], line["py"],
-                           tuple(float(v) for v in axis_u), cond(line["sign"])))
+        out.append(
+            Feature(
+                (run[k].index, "line.mid"),
+                "line.mid",
+                line["pos"],
+                line["t"],
+                line["px"],
+                line["py"],
+                tuple(float(v) for v in axis_u),
+                cond(line["sign"]),
+            )
+        )
     if all(line is not None for line in lines):
         t = float(np.mean([line["t"] for line in lines]))
-        px, py = float(np.mean([line["px"] for line in lines])), float(np.mean([line["py"] for line in lines]))
+        px, py = (
+            float(np.mean([line["px"] for line in lines])),
+            float(np.mean([line["py"] for line in lines])),
+        )
         for name in ("width", "peak", "asym"):
-            out.append(Feature((first.index, f"line.{name}"), f"line.{name}",
-                               float(np.mean([line[name] for line in lines])), t, px, py, (0.0, 0.0),
-                               cond(0.0, {"lines": len(lines)})))
+            out.append(
+                Feature(
+                    (first.index, f"line.{name}"),
+                    f"line.{name}",
+                    float(np.mean([line[name] for line in lines])),
+                    t,
+                    px,
+                    py,
+                    (0.0, 0.0),
+                    cond(0.0, {"lines": len(lines)}),
+                )
+            )
     return out
 
 
@@ -291,12 +375,14 @@ def _profile_shift(plus: dict, minus: dict, reach: float = 30e-9, step: float = 
     particle's shape that both lines share (tip, geometry) does not. Searched within `reach`
     of the shift between the two lines' half-height midpoints (a lag of 25 ms shifts the lines
     by more than any fixed window around zero)."""
+
     def prepared(line):
         c, h = line["coord"], line["height"]
         order = np.argsort(c)
         c, h = c[order], h[order]
         edge = max(3, int(EDGE_FRACTION * h.size))
         return c, h - float(np.median(np.concatenate([h[:edge], h[-edge:]])))
+
     cp, hp = prepared(plus)
     cm, hm = prepared(minus)
     peak = float(np.max(hp))
@@ -317,7 +403,10 @@ def _profile_shift(plus: dict, minus: dict, reach: float = 30e-9, step: float = 
 def match_anchors(points: np.ndarray, anchors: np.ndarray, radius: float = MATCH_RADIUS) -> dict:
     """{point index: anchor index} after the common translation that matches the most points
     (ties: the smallest mean distance); each anchor at most once."""
-    points, anchors = np.asarray(points, float).reshape(-1, 2), np.asarray(anchors, float).reshape(-1, 2)
+    points, anchors = (
+        np.asarray(points, float).reshape(-1, 2),
+        np.asarray(anchors, float).reshape(-1, 2),
+    )
     if not len(points) or not len(anchors):
         return {}
     best, best_score = {}, (0, 0.0)
@@ -332,14 +421,20 @@ def match_anchors(points: np.ndarray, anchors: np.ndarray, radius: float = MATCH
                 if d[i, j] <= radius and j not in used:
                     match[int(i)] = j
                     used.add(j)
-            score = (len(match), -float(np.mean([d[i, j] for i, j in match.items()])) if match else 0.0)
+            score = (
+                len(match),
+                -float(np.mean([d[i, j] for i, j in match.items()])) if match else 0.0,
+            )
             if score > best_score:
                 best, best_score = match, score
     return best
 
 
-def _raster_features(op, common, anchors=None, particles_seen: dict | None = None) -> list[Feature]:
+def _raster_features(
+    op, common, anchors=None, particles_seen: dict | None = None
+) -> list[Feature]:
     from afm_core.imaging.landmarks import extract_landmarks
+
     data = op.data
     h = np.asarray(data.height, float)
     if not np.isfinite(h).all():
@@ -352,8 +447,14 @@ def _raster_features(op, common, anchors=None, particles_seen: dict | None = Non
     cy = data.origin_y + 0.5 * size_y
     if max(data.pixel_size_x, data.pixel_size_y) <= MAX_LANDMARK_PIXEL:
         try:
-            marks = extract_landmarks(h, data.pixel_size_x, data.pixel_size_y, data.origin_x, data.origin_y,
-                                      min_height=20e-9)
+            marks = extract_landmarks(
+                h,
+                data.pixel_size_x,
+                data.pixel_size_y,
+                data.origin_x,
+                data.origin_y,
+                min_height=20e-9,
+            )
         except ValueError:
             marks = []
         if particles_seen is not None:
@@ -361,7 +462,9 @@ def _raster_features(op, common, anchors=None, particles_seen: dict | None = Non
         if anchors is not None and len(anchors) > 1 and len(marks) > 1:
             # (one particle alone matches any anchor under some translation: keyed as the central one)
             match = match_anchors(np.array([(m.x, m.y) for m in marks]), anchors)
-            chosen = [(f"{j}", marks[i]) for i, j in sorted(match.items(), key=lambda item: item[1])]
+            chosen = [
+                (f"{j}", marks[i]) for i, j in sorted(match.items(), key=lambda item: item[1])
+            ]
         elif marks:
             # the particle nearest the image centre: the one the image was centred on
             chosen = [("", min(marks, key=lambda lm: math.hypot(lm.x - cx, lm.y - cy)))]
@@ -371,25 +474,57 @@ def _raster_features(op, common, anchors=None, particles_seen: dict | None = Non
         for tag, m in chosen:
             mx, my = _weighted_centre(h, data, m, level)
             # the time the scan passed the particle
-            row = (m.y - data.origin_y) / data.pixel_size_y if data.scan_angle_deg == 0.0 else \
-                (m.x - data.origin_x) / data.pixel_size_x
+            row = (
+                (m.y - data.origin_y) / data.pixel_size_y
+                if data.scan_angle_deg == 0.0
+                else (m.x - data.origin_x) / data.pixel_size_x
+            )
             starts = np.asarray(data.line_start_times, float)
             line = int(np.clip(round(row - 0.5), 0, len(starts) - 1))
-            tm = float(data.start_time + (starts[line] if np.isfinite(starts[line]) else 0.0) + 0.25 * data.line_period)
+            tm = float(
+                data.start_time
+                + (starts[line] if np.isfinite(starts[line]) else 0.0)
+                + 0.25 * data.line_period
+            )
             names = [("x", mx, (1.0, 0.0)), ("y", my, (0.0, 1.0))]
             if max(data.pixel_size_x, data.pixel_size_y) <= MAX_SHAPE_PIXEL:
-                names += [("height", m.height, (0.0, 0.0)), ("half_width", m.half_width, (0.0, 0.0))]
+                names += [
+                    ("height", m.height, (0.0, 0.0)),
+                    ("half_width", m.half_width, (0.0, 0.0)),
+                ]
             for name, value, u in names:
-                out.append(Feature((op.index, f"raster.{name}{tag}"), f"raster.{name}", float(value), tm, float(m.x),
-                                   float(m.y), u, dict(cond, particle=tag)))
+                out.append(
+                    Feature(
+                        (op.index, f"raster.{name}{tag}"),
+                        f"raster.{name}",
+                        float(value),
+                        tm,
+                        float(m.x),
+                        float(m.y),
+                        u,
+                        dict(cond, particle=tag),
+                    )
+                )
     out += _streak_features(op, h, cond)
     if min(size_x, size_y) >= BOW_MIN_SIZE:
         quad = _quad_background(h, data.pixel_size_x, data.pixel_size_y)
         if quad is not None:
             for name, value in quad.items():
-                out.append(Feature((op.index, f"raster.bow_{name}"), f"raster.bow_{name}", float(value), t, cx, cy,
-                                   (0.0, 0.0), dict(cond, image=(h.shape[0], h.shape[1], data.pixel_size_x,
-                                                                 data.pixel_size_y))))
+                out.append(
+                    Feature(
+                        (op.index, f"raster.bow_{name}"),
+                        f"raster.bow_{name}",
+                        float(value),
+                        t,
+                        cx,
+                        cy,
+                        (0.0, 0.0),
+                        dict(
+                            cond,
+                            image=(h.shape[0], h.shape[1], data.pixel_size_x, data.pixel_size_y),
+                        ),
+                    )
+                )
     return out
 
 
@@ -434,23 +569,41 @@ def _streak_features(op, h: np.ndarray, cond: dict) -> list[Feature]:
     makes the streaks an image shows. `raster.pixel_noise`: how much the height jumps from
     pixel to pixel along a line; white noise makes it, 1/f noise has little power that fast."""
     data = op.data
-    lines = h if data.scan_angle_deg == 0.0 else h.T        # rows: one scan line each
+    lines = h if data.scan_angle_deg == 0.0 else h.T  # rows: one scan line each
     if lines.shape[0] < STREAK_MIN_LINES or lines.shape[1] < STREAK_MIN_LINES:
         return []
     offsets = np.median(lines, axis=1)
     starts = np.asarray(data.line_start_times, float)
     out = []
-    for b, block in enumerate(np.array_split(np.arange(lines.shape[0]), lines.shape[0] // STREAK_BLOCK)):
+    for b, block in enumerate(
+        np.array_split(np.arange(lines.shape[0]), lines.shape[0] // STREAK_BLOCK)
+    ):
         # where: the block's middle across the lines, the lines' middle along them
         across, along = (block[0] + block[-1] + 1) / 2, lines.shape[1] / 2
         col, row = (along, across) if data.scan_angle_deg == 0.0 else (across, along)
         x, y = data.origin_x + col * data.pixel_size_x, data.origin_y + row * data.pixel_size_y
-        t = float(data.start_time + np.nanmean(starts[block]) + 0.5 * data.line_period) \
-            if np.isfinite(starts[block]).any() else float(data.start_time)
+        t = (
+            float(data.start_time + np.nanmean(starts[block]) + 0.5 * data.line_period)
+            if np.isfinite(starts[block]).any()
+            else float(data.start_time)
+        )
         where = dict(cond, lines=int(block.size), line_period=float(data.line_period))
-        for group, value in (("raster.streak", line_offset_noise(offsets[block])),
-                             ("raster.pixel_noise", pixel_noise(lines[block], offsets[block]))):
-            out.append(Feature((op.index, f"{group}{b}"), group, value, t, float(x), float(y), (0.0, 0.0), where))
+        for group, value in (
+            ("raster.streak", line_offset_noise(offsets[block])),
+            ("raster.pixel_noise", pixel_noise(lines[block], offsets[block])),
+        ):
+            out.append(
+                Feature(
+                    (op.index, f"{group}{b}"),
+                    group,
+                    value,
+                    t,
+                    float(x),
+                    float(y),
+                    (0.0, 0.0),
+                    where,
+                )
+            )
     return out
 
 
@@ -463,15 +616,23 @@ def _weighted_centre(h: np.ndarray, data, mark, level: float) -> tuple[float, fl
     col = (mark.x - data.origin_x) / px - 0.5
     row = (mark.y - data.origin_y) / py - 0.5
     reach = 2.5 * max(mark.half_width, 2 * max(px, py)) + 2 * max(px, py)
-    r0, r1 = int(max(0, math.floor(row - reach / py))), int(min(h.shape[0], math.ceil(row + reach / py) + 1))
-    c0, c1 = int(max(0, math.floor(col - reach / px))), int(min(h.shape[1], math.ceil(col + reach / px) + 1))
+    r0, r1 = (
+        int(max(0, math.floor(row - reach / py))),
+        int(min(h.shape[0], math.ceil(row + reach / py) + 1)),
+    )
+    c0, c1 = (
+        int(max(0, math.floor(col - reach / px))),
+        int(min(h.shape[1], math.ceil(col + reach / px) + 1)),
+    )
     window = h[r0:r1, c0:c1]
     w = np.clip(window - (level + CENTRE_LEVEL), 0.0, None)
     if not window.size or w.sum() <= 0:
         return float(mark.x), float(mark.y)
     rows, cols = np.mgrid[r0:r1, c0:c1]
-    return (float(data.origin_x + (np.sum(w * cols) / w.sum() + 0.5) * px),
-            float(data.origin_y + (np.sum(w * rows) / w.sum() + 0.5) * py))
+    return (
+        float(data.origin_x + (np.sum(w * cols) / w.sum() + 0.5) * px),
+        float(data.origin_y + (np.sum(w * rows) / w.sum() + 0.5) * py),
+    )
 
 
 def _push_features(op, slid_before) -> list[Feature]:
@@ -491,12 +652,26 @@ def _push_features(op, slid_before) -> list[Feature]:
     tm, xm, ym, tor, sm = times[moving], cx[moving], cy[moving], torsion[moving], travelled[moving]
     t = float(data.start_time + np.mean(tm))
     axis = "x" if abs(direction[0]) >= abs(direction[1]) else "y"
-    cond = {"contact_slid": slid_before, "push_phase": "sliding", "axis": axis,
-            "scan_sign": float(np.sign(direction[0] if axis == "x" else direction[1]))}
+    cond = {
+        "contact_slid": slid_before,
+        "push_phase": "sliding",
+        "axis": axis,
+        "scan_sign": float(np.sign(direction[0] if axis == "x" else direction[1])),
+    }
     out = []
     trend = np.polyval(np.polyfit(np.arange(tor.size), tor, 1), np.arange(tor.size))
-    out.append(Feature((op.index, "push.fluct"), "push.fluct", float(np.std(tor - trend)), t, float(np.mean(xm)),
-                       float(np.mean(ym)), (0.0, 0.0), cond))
+    out.append(
+        Feature(
+            (op.index, "push.fluct"),
+            "push.fluct",
+            float(np.std(tor - trend)),
+            t,
+            float(np.mean(xm)),
+            float(np.mean(ym)),
+            (0.0, 0.0),
+            cond,
+        )
+    )
     n_seg = max(1, int(round(length / SEGMENT)))
     edges = np.linspace(0.0, length, n_seg + 1)
     segment = np.clip(np.searchsorted(edges, sm, side="right") - 1, 0, n_seg - 1)
@@ -504,9 +679,21 @@ def _push_features(op, slid_before) -> list[Feature]:
         part = segment == q
         if part.sum() < 3:
             continue
-        out.append(Feature((op.index, f"push.torsion{q}"), "push.torsion", float(np.mean(tor[part])),
-                           float(data.start_time + np.mean(tm[part])), float(np.mean(xm[part])),
-                           float(np.mean(ym[part])), (0.0, 0.0),
-                           dict(cond, segment=q, segment_length=float(edges[q + 1] - edges[q]),
-                                contact_slid=slid_before + float(edges[q]))))
+        out.append(
+            Feature(
+                (op.index, f"push.torsion{q}"),
+                "push.torsion",
+                float(np.mean(tor[part])),
+                float(data.start_time + np.mean(tm[part])),
+                float(np.mean(xm[part])),
+                float(np.mean(ym[part])),
+                (0.0, 0.0),
+                dict(
+                    cond,
+                    segment=q,
+                    segment_length=float(edges[q + 1] - edges[q]),
+                    contact_slid=slid_before + float(edges[q]),
+                ),
+            )
+        )
     return out

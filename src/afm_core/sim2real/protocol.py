@@ -33,21 +33,28 @@ re-seeded, with a given drift trajectory instead of the configured drift, or wit
 (only the force traces are needed), and logs each free move (time, distance) for the
 positioning-noise covariance.
 """
+
 from __future__ import annotations
 
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 
-from afm_core.instrument import LineRequest, ScanLineData, ScanRequest
+from afm_core.instrument import LineRequest, ScanRequest
 from afm_core.sim.config import SimConfig, merge
 
 # Spheres of the diagnostic sample (m): spread around the scanner centre (55 um, 55 um).
-SESSION_SPHERES = [(55.0e-6, 55.0e-6), (56.6e-6, 55.3e-6), (53.5e-6, 54.7e-6), (55.4e-6, 56.7e-6),
-                   (54.6e-6, 53.3e-6), (56.4e-6, 53.7e-6)]
+SESSION_SPHERES = [
+    (55.0e-6, 55.0e-6),
+    (56.6e-6, 55.3e-6),
+    (53.5e-6, 54.7e-6),
+    (55.4e-6, 56.7e-6),
+    (54.6e-6, 53.3e-6),
+    (56.4e-6, 53.7e-6),
+]
 # Bare substrate among the spheres (sample frame, m): contact slides along x on these rows from
 # SLIDE_X[0] to SLIDE_X[1], along y on these columns from SLIDE_Y[0] to SLIDE_Y[1].
 SLIDE_ROWS = (54.15e-6, 54.45e-6, 54.25e-6, 54.35e-6)
@@ -56,32 +63,37 @@ SLIDE_COLUMNS = (55.4e-6, 56.0e-6, 55.6e-6, 55.8e-6)
 SLIDE_Y = (53.9e-6, 54.7e-6)
 SLIDE_SPEED = 2e-6
 INDENT_SPOT = (57.3e-6, 54.3e-6)
-SLIDE_AREA = (55.9e-6, 54.3e-6)        # centre of the slide grid (kept for callers)
+SLIDE_AREA = (55.9e-6, 54.3e-6)  # centre of the slide grid (kept for callers)
 LINE_HALF_LENGTH = 400e-9
-LONG_HALF_LENGTH = 700e-9              # the first visit after an excursion: hysteresis may have moved it
-LOCATE_SIZE, LOCATE_PIXELS, LOCATE_LINE_RATE = 2.0e-6, 96, 4.0   # a lost particle: a small image finds it
-SAMPLES_PER_M = 1 / 5e-9                # 5 nm between line samples (the tip grid the simulator images with)
+LONG_HALF_LENGTH = 700e-9  # the first visit after an excursion: hysteresis may have moved it
+LOCATE_SIZE, LOCATE_PIXELS, LOCATE_LINE_RATE = (
+    2.0e-6,
+    96,
+    4.0,
+)  # a lost particle: a small image finds it
+SAMPLES_PER_M = 1 / 5e-9  # 5 nm between line samples (the tip grid the simulator images with)
 LINE_SPEED = 1e-6
 MOVE_SPEED = 10e-6
-DWELLS = (0.5, 2.0, 6.0, 15.0, 40.0)   # s after the move to a particle
-HOLDS = (5.0, 12.0, 25.0)              # s between the two line pairs of the first axis
-EXCURSION = 5e-6                       # m
+DWELLS = (0.5, 2.0, 6.0, 15.0, 40.0)  # s after the move to a particle
+HOLDS = (5.0, 12.0, 25.0)  # s between the two line pairs of the first axis
+EXCURSION = 5e-6  # m
 BOW_SIZE, BOW_PIXELS, BOW_LINE_RATE = 24e-6, 32, 1.0
-CLUSTER_SIZE, CLUSTER_PIXELS, CLUSTER_LINE_RATE = 4.4e-6, 192, 4.0     # 23 nm pixels
+CLUSTER_SIZE, CLUSTER_PIXELS, CLUSTER_LINE_RATE = 4.4e-6, 192, 4.0  # 23 nm pixels
 
 
 @dataclass
 class Operation:
     """One command of a session and what it returned (fields as in sim2real.session)."""
+
     index: int
-    kind: str                       # move | push | scan_line | raster | indent
-    start_time: float               # s, instrument clock when the command was issued
-    start: tuple                    # m, commanded position before
-    end: tuple                      # m, commanded target
-    speed: float = math.nan         # m/s (moves, pushes, lines)
-    duration: float = math.nan      # s
-    request: Any = None             # ScanRequest / LineRequest / dict
-    data: Any = None                # RasterScanData / ScanLineData / ForceTraceData / None
+    kind: str  # move | push | scan_line | raster | indent
+    start_time: float  # s, instrument clock when the command was issued
+    start: tuple  # m, commanded position before
+    end: tuple  # m, commanded target
+    speed: float = math.nan  # m/s (moves, pushes, lines)
+    duration: float = math.nan  # s
+    request: Any = None  # ScanRequest / LineRequest / dict
+    data: Any = None  # RasterScanData / ScanLineData / ForceTraceData / None
     landmark_id: int = -1
     pair_id: int = -1
 
@@ -89,6 +101,7 @@ class Operation:
 def session_config(base: SimConfig | None = None) -> SimConfig:
     """The diagnostic sample (spheres at SESSION_SPHERES) on `base` (default: the default config)."""
     from afm_core.sim.config import load_config
+
     base = base if base is not None else load_config()
     spheres = [{"x": x, "y": y, "radius": 100e-9} for x, y in SESSION_SPHERES]
     return merge(base, {"sample": {"spheres": spheres, "random_spheres": 0}})
@@ -109,8 +122,15 @@ class OperationLog:
         return self.instrument.time
 
     def _log(self, kind, start_time, start, end, **kw):
-        op = Operation(index=len(self.operations), kind=kind, start_time=start_time, start=start, end=end,
-                       duration=self.instrument.time - start_time, **kw)
+        op = Operation(
+            index=len(self.operations),
+            kind=kind,
+            start_time=start_time,
+            start=start,
+            end=end,
+            duration=self.instrument.time - start_time,
+            **kw,
+        )
         self.operations.append(op)
         return op
 
@@ -123,20 +143,32 @@ class OperationLog:
     def local_scan(self, request, should_stop=None, landmark_id=-1):
         t0, p0 = self.instrument.time, self.instrument.commanded_position()
         data = self.instrument.local_scan(request, should_stop=should_stop)
-        self._log("scan_line", t0, p0, (request.end_x, request.end_y), speed=request.speed, request=request,
-                  data=data, landmark_id=landmark_id)
+        self._log(
+            "scan_line",
+            t0,
+            p0,
+            (request.end_x, request.end_y),
+            speed=request.speed,
+            request=request,
+            data=data,
+            landmark_id=landmark_id,
+        )
         return data
 
     def raster_scan(self, request, on_line=None, should_stop=None):
         t0, p0 = self.instrument.time, self.instrument.commanded_position()
         data = self.instrument.raster_scan(request, on_line=on_line, should_stop=should_stop)
-        self._log("raster", t0, p0, (request.origin_x, request.origin_y), request=request, data=data)
+        self._log(
+            "raster", t0, p0, (request.origin_x, request.origin_y), request=request, data=data
+        )
         return data
 
     def indent(self, x, y, force, dwell, should_stop=None):
         t0, p0 = self.instrument.time, self.instrument.commanded_position()
         result = self.instrument.indent(x, y, force, dwell, should_stop=should_stop)
-        self._log("indent", t0, p0, (x, y), request={"force": force, "dwell": dwell}, data=result.trace)
+        self._log(
+            "indent", t0, p0, (x, y), request={"force": force, "dwell": dwell}, data=result.trace
+        )
         return result
 
 
@@ -148,10 +180,11 @@ def _hold(instrument, seconds: float) -> None:
         hold(seconds)
 
 
-def line_mid(data) -> Optional[float]:
+def line_mid(data) -> float | None:
     """Where a scan line crossed a particle (m along its commanded direction from its start:
     the midpoint of the half-height crossings), or None when it saw none."""
     from afm_core.sim2real.features import line_profile
+
     profile = line_profile(data) if data is not None else None
     return None if profile is None or profile[1] is None else float(profile[1]["mid"])
 
@@ -165,12 +198,12 @@ class Tracker:
     axes are off moves particles apart or together): offset = d + v (t - t_last) + g . (p - c),
     fitted over the last minutes; d from the latest measurement."""
 
-    WINDOW = 300.0      # s of measurements the drift velocity and the affine term are fitted over
+    WINDOW = 300.0  # s of measurements the drift velocity and the affine term are fitted over
 
     def __init__(self, design):
         self.design = np.asarray(design, float)
         self.centre = self.design.mean(axis=0)
-        self.obs: list[list] = [[], []]          # per axis: (time, particle, offset)
+        self.obs: list[list] = [[], []]  # per axis: (time, particle, offset)
 
     def _fit(self, axis: int):
         """(latest time, latest common offset, velocity, gain vector)."""
@@ -215,15 +248,21 @@ class Tracker:
 
     def to_scanner(self, point, t: float) -> tuple[float, float]:
         """A sample-frame point (design coordinates) where the scanner finds it now."""
-        return float(point[0] + self.offset_at(0, t, point)), float(point[1] + self.offset_at(1, t, point))
+        return float(point[0] + self.offset_at(0, t, point)), float(
+            point[1] + self.offset_at(1, t, point)
+        )
 
 
 def _line_pair(axis: int, centre, half: float, sign: int):
     ux, uy = (sign, 0) if axis == 0 else (0, sign)
     cx, cy = centre
     samples = max(20, int(round(2 * half * SAMPLES_PER_M)))
-    forward = LineRequest(cx - ux * half, cy - uy * half, cx + ux * half, cy + uy * half, samples, LINE_SPEED)
-    back = LineRequest(forward.end_x, forward.end_y, forward.start_x, forward.start_y, samples, LINE_SPEED)
+    forward = LineRequest(
+        cx - ux * half, cy - uy * half, cx + ux * half, cy + uy * half, samples, LINE_SPEED
+    )
+    back = LineRequest(
+        forward.end_x, forward.end_y, forward.start_x, forward.start_y, samples, LINE_SPEED
+    )
     return forward, back
 
 
@@ -244,15 +283,31 @@ def _scan(instrument, tracker: Tracker, particle: int, axis: int, requests) -> i
 def _locate(instrument, tracker: Tracker, particle: int) -> bool:
     """A small raster around the particle's predicted place; the tracker learns where it is."""
     from afm_core.imaging.landmarks import extract_landmarks
+
     cx, cy = tracker.predict(particle, instrument.time)
     half = 0.5 * LOCATE_SIZE
-    data = instrument.raster_scan(ScanRequest(cx - half, cy - half, LOCATE_SIZE, LOCATE_SIZE, LOCATE_PIXELS,
-                                              LOCATE_PIXELS, line_rate=LOCATE_LINE_RATE))
+    data = instrument.raster_scan(
+        ScanRequest(
+            cx - half,
+            cy - half,
+            LOCATE_SIZE,
+            LOCATE_SIZE,
+            LOCATE_PIXELS,
+            LOCATE_PIXELS,
+            line_rate=LOCATE_LINE_RATE,
+        )
+    )
     if data is None or not np.isfinite(np.asarray(data.height, float)).all():
         return False
     try:
-        marks = extract_landmarks(np.asarray(data.height, float), data.pixel_size_x, data.pixel_size_y,
-                                  data.origin_x, data.origin_y, min_height=20e-9)
+        marks = extract_landmarks(
+            np.asarray(data.height, float),
+            data.pixel_size_x,
+            data.pixel_size_y,
+            data.origin_x,
+            data.origin_y,
+            min_height=20e-9,
+        )
     except ValueError:
         return False
     if not marks:
@@ -264,8 +319,17 @@ def _locate(instrument, tracker: Tracker, particle: int) -> bool:
     return True
 
 
-def run_protocol(instrument, seed: int = 0, blocks: int = 4, spheres=SESSION_SPHERES, rasters: bool = True,
-                 slides: bool = True, bow: bool = True, excursions: bool = True, holds: bool = True) -> None:
+def run_protocol(
+    instrument,
+    seed: int = 0,
+    blocks: int = 4,
+    spheres=SESSION_SPHERES,
+    rasters: bool = True,
+    slides: bool = True,
+    bow: bool = True,
+    excursions: bool = True,
+    holds: bool = True,
+) -> None:
     """Run the diagnostic session on any Instrument (wrap it in OperationLog or a recorder).
     The choices (order, scan directions, dwells, holds) come from `seed`; see the module
     docstring. The first command starts at the instrument's current time (the recording's t0)."""
@@ -274,7 +338,9 @@ def run_protocol(instrument, seed: int = 0, blocks: int = 4, spheres=SESSION_SPH
     tracker = Tracker(spheres)
     centre = spheres.mean(axis=0)
     limits = getattr(instrument, "limits", None)
-    scanner_centre = (55e-6, 55e-6) if limits is None else (0.5 * limits.range_x, 0.5 * limits.range_y)
+    scanner_centre = (
+        (55e-6, 55e-6) if limits is None else (0.5 * limits.range_x, 0.5 * limits.range_y)
+    )
     directions = [(0, 1), (1, 1), (0, -1), (1, -1)]
     for block in range(blocks):
         excursion_axis = directions[block % 4][0]
@@ -312,11 +378,24 @@ def run_protocol(instrument, seed: int = 0, blocks: int = 4, spheres=SESSION_SPH
             angle = 0.0 if block % 2 == 0 else 90.0
             up = (block // 2) % 2 == 0
             cx, cy = tracker.to_scanner(centre, instrument.time)
-            instrument.raster_scan(ScanRequest(cx - CLUSTER_SIZE / 2, cy - CLUSTER_SIZE / 2, CLUSTER_SIZE,
-                                               CLUSTER_SIZE, CLUSTER_PIXELS, CLUSTER_PIXELS, scan_angle_deg=angle,
-                                               slow_scan_up=up, line_rate=CLUSTER_LINE_RATE))
+            instrument.raster_scan(
+                ScanRequest(
+                    cx - CLUSTER_SIZE / 2,
+                    cy - CLUSTER_SIZE / 2,
+                    CLUSTER_SIZE,
+                    CLUSTER_SIZE,
+                    CLUSTER_PIXELS,
+                    CLUSTER_PIXELS,
+                    scan_angle_deg=angle,
+                    slow_scan_up=up,
+                    line_rate=CLUSTER_LINE_RATE,
+                )
+            )
         if slides:
-            row, column = SLIDE_ROWS[block % len(SLIDE_ROWS)], SLIDE_COLUMNS[block % len(SLIDE_COLUMNS)]
+            row, column = (
+                SLIDE_ROWS[block % len(SLIDE_ROWS)],
+                SLIDE_COLUMNS[block % len(SLIDE_COLUMNS)],
+            )
             xs = SLIDE_X if block % 2 == 0 else SLIDE_X[::-1]
             ys = SLIDE_Y if (block // 2) % 2 == 0 else SLIDE_Y[::-1]
             for a, b in (((xs[0], row), (xs[1], row)), ((column, ys[0]), (column, ys[1]))):
@@ -330,13 +409,27 @@ def run_protocol(instrument, seed: int = 0, blocks: int = 4, spheres=SESSION_SPH
         # the bare substrate around the range centre, twice (the curvature is the scanner's)
         origin = (scanner_centre[0] - BOW_SIZE / 2, scanner_centre[1] - BOW_SIZE / 2)
         for angle, up in ((0.0, True), (90.0, False)):
-            instrument.raster_scan(ScanRequest(origin[0], origin[1], BOW_SIZE, BOW_SIZE, BOW_PIXELS, BOW_PIXELS,
-                                               scan_angle_deg=angle, slow_scan_up=up, line_rate=BOW_LINE_RATE))
+            instrument.raster_scan(
+                ScanRequest(
+                    origin[0],
+                    origin[1],
+                    BOW_SIZE,
+                    BOW_SIZE,
+                    BOW_PIXELS,
+                    BOW_PIXELS,
+                    scan_angle_deg=angle,
+                    slow_scan_up=up,
+                    line_rate=BOW_LINE_RATE,
+                )
+            )
 
 
-def make_session(config: SimConfig, protocol_seed: int = 0, blocks: int = 4, **kw) -> list[Operation]:
+def make_session(
+    config: SimConfig, protocol_seed: int = 0, blocks: int = 4, **kw
+) -> list[Operation]:
     """Run the protocol on SimulatedAfm(config) in memory; the operations."""
     from afm_core.sim.instrument import SimulatedAfm
+
     log = OperationLog(SimulatedAfm(config))
     run_protocol(log, seed=protocol_seed, blocks=blocks, **kw)
     return log.operations
@@ -347,6 +440,7 @@ def record_session(config: SimConfig, path, protocol_seed: int = 0, blocks: int 
     driver would write, ground truth included); the recording's path."""
     from afm_core.sim.instrument import SimulatedAfm
     from afm_core.sim2real.session import RecordingInstrument
+
     recorder = RecordingInstrument(SimulatedAfm(config), path, epoch_ns=1_700_000_000_000_000_000)
     try:
         run_protocol(recorder, seed=protocol_seed, blocks=blocks, **kw)
@@ -357,13 +451,20 @@ def record_session(config: SimConfig, path, protocol_seed: int = 0, blocks: int 
 
 # -- deterministic and re-seeded replays -------------------------------------------------------
 
+
 def deterministic(config: SimConfig, sensor_noise: bool = False) -> SimConfig:
     """The config with its random parts off: drift wander (sigma 0, mean kept), positioning
     noise; sensor noise too unless sensor_noise."""
-    overrides: dict = {"drift": {"sigma_velocity_x": 0.0, "sigma_velocity_y": 0.0},
-                       "scanner": {"positioning_noise_enabled": False}}
+    overrides: dict = {
+        "drift": {"sigma_velocity_x": 0.0, "sigma_velocity_y": 0.0},
+        "scanner": {"positioning_noise_enabled": False},
+    }
     if not sensor_noise:
-        overrides["noise"] = {"height_white_sigma": 0.0, "height_flicker_sigma": 0.0, "deflection_sigma": 0.0}
+        overrides["noise"] = {
+            "height_white_sigma": 0.0,
+            "height_flicker_sigma": 0.0,
+            "deflection_sigma": 0.0,
+        }
     return merge(config, overrides)
 
 
@@ -389,14 +490,16 @@ class TrajectoryDrift:
         inside = (t >= self.times[0]) & (t <= self.times[-1])
         return np.where(inside[..., None], slope[k], 0.0)
 
-    def shifted(self, delta) -> "TrajectoryDrift":
+    def shifted(self, delta) -> TrajectoryDrift:
         return TrajectoryDrift(self.times, self.offsets + np.asarray(delta, float)[None, :])
 
 
 @dataclass
 class Replay:
-    operations: list            # simulated Operations, one per recorded one (same index)
-    moves: list = field(default_factory=list)   # (time at the end of the move, distance m) of every free move
+    operations: list  # simulated Operations, one per recorded one (same index)
+    moves: list = field(
+        default_factory=list
+    )  # (time at the end of the move, distance m) of every free move
 
 
 def _drive_only(sim, rasters: bool = True):
@@ -411,12 +514,16 @@ def _drive_only(sim, rasters: bool = True):
         self.move_tip(request.start_x, request.start_y, self.limits.max_speed / 10)
         s = np.linspace(0.0, 1.0, request.samples)
         dt = request.length / request.speed / (request.samples - 1)
-        self._drive(request.start_x + s * (request.end_x - request.start_x),
-                    request.start_y + s * (request.end_y - request.start_y), dt)
+        self._drive(
+            request.start_x + s * (request.end_x - request.start_x),
+            request.start_y + s * (request.end_y - request.start_y),
+            dt,
+        )
         return None
 
     def raster_scan(self, request, on_line=None, should_stop=None):
         from afm_core.sim.instrument import LINES_PER_CHUNK, RasterPath
+
         request.validate(self.limits)
         path = RasterPath(request)
         self.move_tip(*path.first, self.limits.max_speed / 10)
@@ -431,8 +538,14 @@ def _drive_only(sim, rasters: bool = True):
         sim.raster_scan = types.MethodType(raster_scan, sim)
 
 
-def replay(operations, config: SimConfig, noise_seed: Optional[int] = None, drift=None,
-           imaging: bool | str = True, drives: Optional[dict] = None) -> Replay:
+def replay(
+    operations,
+    config: SimConfig,
+    noise_seed: int | None = None,
+    drift=None,
+    imaging: bool | str = True,
+    drives: dict | None = None,
+) -> Replay:
     """Re-run `operations` on SimulatedAfm(config) at their recorded start times (the clock is
     held up to each start). noise_seed: re-seed the random parts (sensor noise, drift wander,
     positioning noise) while keeping the sample (its seed is config.seed). drift: an object with
@@ -443,11 +556,14 @@ def replay(operations, config: SimConfig, noise_seed: Optional[int] = None, drif
     drive calls during it: (times, commanded x, y, true scanner x, y) arrays."""
     from afm_core.sim.drift import ThermalDrift
     from afm_core.sim.instrument import SimulatedAfm
+
     sim = SimulatedAfm(config)
     if noise_seed is not None:
         streams = np.random.SeedSequence([int(noise_seed), 7919]).spawn(3)
         sim.noise_rng = np.random.default_rng(streams[0])
-        sim.drift = ThermalDrift(config.drift, seed=int(np.random.default_rng(streams[1]).integers(2**31)))
+        sim.drift = ThermalDrift(
+            config.drift, seed=int(np.random.default_rng(streams[1]).integers(2**31))
+        )
         sim.positioning_rng = np.random.default_rng(streams[2])
     if drift is not None:
         sim.drift = drift
@@ -461,8 +577,9 @@ def replay(operations, config: SimConfig, noise_seed: Optional[int] = None, drif
 
         def recorded_drive(cmd_x, cmd_y, dt, position_error=None):
             times, tx, ty = original_drive(cmd_x, cmd_y, dt, position_error)
-            drives.setdefault(current[0], []).append((times, np.asarray(cmd_x, float).copy(),
-                                                      np.asarray(cmd_y, float).copy(), tx, ty))
+            drives.setdefault(current[0], []).append(
+                (times, np.asarray(cmd_x, float).copy(), np.asarray(cmd_y, float).copy(), tx, ty)
+            )
             return times, tx, ty
 
         sim._drive = recorded_drive
@@ -481,7 +598,7 @@ def replay(operations, config: SimConfig, noise_seed: Optional[int] = None, drif
     offset = 0.0 if first >= 0 else -first
     for op in operations:
         target = op.start_time + offset
-        current[0] = -1                 # the wait belongs to no operation
+        current[0] = -1  # the wait belongs to no operation
         if target > sim.time + 1e-9:
             sim.hold(target - sim.time)
         kind = op.kind
@@ -494,8 +611,16 @@ def replay(operations, config: SimConfig, noise_seed: Optional[int] = None, drif
             log.raster_scan(_copy(op.request))
         elif kind == "indent":
             request = op.request or {}
-            force = float(request.get("force", 1e-7)) if isinstance(request, dict) else float(request.force)
-            dwell = float(request.get("dwell", 0.0)) if isinstance(request, dict) else float(request.dwell)
+            force = (
+                float(request.get("force", 1e-7))
+                if isinstance(request, dict)
+                else float(request.force)
+            )
+            dwell = (
+                float(request.get("dwell", 0.0))
+                if isinstance(request, dict)
+                else float(request.dwell)
+            )
             log.indent(op.end[0], op.end[1], force, dwell)
         else:
             raise ValueError(f"operation {op.index}: unknown kind {kind!r}")

@@ -23,12 +23,13 @@ column cannot tell apart from the mirror factor 1 + |s - 1|. It counts the four 
 parameters (complexity) and checks the choice on held-out blocks by searching on the
 training blocks only.
 """
+
 from __future__ import annotations
 
 import numpy as np
 from scipy import linalg, optimize
 
-MERGE = 50e-9           # m: segment centres closer than this along an axis share an edge position
+MERGE = 50e-9  # m: segment centres closer than this along an axis share an edge position
 
 
 def sample_points(commanded_xy: np.ndarray, drift_offset: np.ndarray) -> np.ndarray:
@@ -53,8 +54,16 @@ def _edges(values: np.ndarray) -> np.ndarray:
     return np.concatenate([[centres[0] - 0.5 * gaps[0]], inner, [centres[-1] + 0.5 * gaps[-1]]])
 
 
-def best_region(points: np.ndarray, effect: np.ndarray, residual: np.ndarray, cov: np.ndarray,
-                slides=None, min_inside: int = 3, min_outside: int = 3, min_slides: int = 2):
+def best_region(
+    points: np.ndarray,
+    effect: np.ndarray,
+    residual: np.ndarray,
+    cov: np.ndarray,
+    slides=None,
+    min_inside: int = 3,
+    min_outside: int = 3,
+    min_slides: int = 2,
+):
     """The rectangle R maximising the GLS chi^2 improvement of the column effect * [point in R]
     on `residual` with covariance `cov` (all restricted to the segments). `slides`: which
     slide (operation) each segment belongs to; a patch of the sample is crossed by at least
@@ -64,16 +73,23 @@ def best_region(points: np.ndarray, effect: np.ndarray, residual: np.ndarray, co
     points = np.asarray(points, float)
     effect = np.asarray(effect, float)
     residual = np.asarray(residual, float)
-    usable = np.isfinite(effect) & (effect != 0) & np.isfinite(residual) & np.all(np.isfinite(points), axis=1)
+    usable = (
+        np.isfinite(effect)
+        & (effect != 0)
+        & np.isfinite(residual)
+        & np.all(np.isfinite(points), axis=1)
+    )
     if usable.sum() < min_inside + min_outside:
         return None
     idx = np.flatnonzero(usable)
     p, a, e = points[idx], effect[idx], residual[idx]
-    slide_ids = np.unique(np.arange(len(points)) if slides is None else np.asarray(slides), return_inverse=True)[1]
-    member = np.eye(slide_ids.max() + 1)[slide_ids[idx]]       # segment x slide
+    slide_ids = np.unique(
+        np.arange(len(points)) if slides is None else np.asarray(slides), return_inverse=True
+    )[1]
+    member = np.eye(slide_ids.max() + 1)[slide_ids[idx]]  # segment x slide
     factor = linalg.cho_factor(np.asarray(cov, float)[np.ix_(idx, idx)], lower=True)
-    g = a * linalg.cho_solve(factor, e)                     # c . g = a_c^T C^-1 e
-    A = a[:, None] * linalg.cho_solve(factor, np.diag(a))   # c^T A c = a_c^T C^-1 a_c
+    g = a * linalg.cho_solve(factor, e)  # c . g = a_c^T C^-1 e
+    A = a[:, None] * linalg.cho_solve(factor, np.diag(a))  # c^T A c = a_c^T C^-1 a_c
     ex, ey = _edges(p[:, 0]), _edges(p[:, 1])
     # every y interval at once: rows = intervals, columns = segments
     lo, hi = np.triu_indices(ey.size, 1)
@@ -87,18 +103,25 @@ def best_region(points: np.ndarray, effect: np.ndarray, residual: np.ndarray, co
             inside = in_x[None, :] & in_y
             count = inside.sum(axis=1)
             crossing = ((inside.astype(float) @ member) > 0).sum(axis=1)
-            ok = (count >= min_inside) & (idx.size - count >= min_outside) & (crossing >= min_slides)
+            ok = (
+                (count >= min_inside)
+                & (idx.size - count >= min_outside)
+                & (crossing >= min_slides)
+            )
             if not ok.any():
                 continue
             c = inside[ok].astype(float)
             num = c @ g
             den = np.einsum("ki,ij,kj->k", c, A, c)
-            gain = np.where(den > 0, num ** 2 / np.maximum(den, 1e-300), 0.0)
+            gain = np.where(den > 0, num**2 / np.maximum(den, 1e-300), 0.0)
             k = int(np.argmax(gain))
             if best is None or gain[k] > best[1]:
                 rows = np.flatnonzero(ok)
-                best = ((float(ex[i]), float(ey[lo[rows[k]]]), float(ex[j]), float(ey[hi[rows[k]]])), float(gain[k]),
-                        c[k].astype(bool))
+                best = (
+                    (float(ex[i]), float(ey[lo[rows[k]]]), float(ex[j]), float(ey[hi[rows[k]]])),
+                    float(gain[k]),
+                    c[k].astype(bool),
+                )
     if best is None:
         return None
     mask = np.zeros(points.shape[0], bool)
@@ -118,12 +141,23 @@ def overlap(points: np.ndarray, axes, lengths: np.ndarray, bounds) -> np.ndarray
     across = np.where(along_x, points[:, 1], points[:, 0])
     lo, hi = np.where(along_x, x0, y0), np.where(along_x, x1, y1)
     lo_across, hi_across = np.where(along_x, y0, x0), np.where(along_x, y1, x1)
-    covered = np.clip(np.minimum(hi, centre_along + half) - np.maximum(lo, centre_along - half), 0.0, None)
-    return np.where((across > lo_across) & (across < hi_across), covered / np.maximum(2 * half, 1e-30), 0.0)
+    covered = np.clip(
+        np.minimum(hi, centre_along + half) - np.maximum(lo, centre_along - half), 0.0, None
+    )
+    return np.where(
+        (across > lo_across) & (across < hi_across), covered / np.maximum(2 * half, 1e-30), 0.0
+    )
 
 
-def refine_region(points: np.ndarray, axes, lengths: np.ndarray, effect: np.ndarray, residual: np.ndarray,
-                  cov: np.ndarray, bounds):
+def refine_region(
+    points: np.ndarray,
+    axes,
+    lengths: np.ndarray,
+    effect: np.ndarray,
+    residual: np.ndarray,
+    cov: np.ndarray,
+    bounds,
+):
     """The rectangle's edges moved continuously from `bounds` (best_region's, between segment
     centres) to where the GLS gain of the column effect x overlap is largest: an edge inside a
     segment makes that segment's torsion a partial step. Returns (bounds, gain, coefficient of
@@ -131,7 +165,7 @@ def refine_region(points: np.ndarray, axes, lengths: np.ndarray, effect: np.ndar
     a = np.asarray(effect, float)
     factor = linalg.cho_factor(np.asarray(cov, float), lower=True)
     g = linalg.cho_solve(factor, np.asarray(residual, float))
-    scale = 1e-6                       # optimise in um: a well-scaled simplex
+    scale = 1e-6  # optimise in um: a well-scaled simplex
 
     def fit(edges_um):
         """(GLS gain, coefficient) of the column at these edges."""
@@ -141,12 +175,19 @@ def refine_region(points: np.ndarray, axes, lengths: np.ndarray, effect: np.ndar
         column = a * overlap(points, axes, lengths, (x0, y0, x1, y1))
         den = float(column @ linalg.cho_solve(factor, column))
         num = float(column @ g)
-        return (num ** 2 / den, num / den) if den > 0 else (0.0, 0.0)
+        return (num**2 / den, num / den) if den > 0 else (0.0, 0.0)
 
     start = np.asarray(bounds, float) / scale
-    result = optimize.minimize(lambda e: -fit(e)[0], start, method="Nelder-Mead",
-                               options={"xatol": 1e-3, "fatol": 1e-6, "initial_simplex": start + np.vstack(
-                                   [np.zeros(4), 0.1 * np.eye(4)])})
+    result = optimize.minimize(
+        lambda e: -fit(e)[0],
+        start,
+        method="Nelder-Mead",
+        options={
+            "xatol": 1e-3,
+            "fatol": 1e-6,
+            "initial_simplex": start + np.vstack([np.zeros(4), 0.1 * np.eye(4)]),
+        },
+    )
     best = result.x if -result.fun >= fit(start)[0] else start
     gain, coefficient = fit(best)
     return tuple(float(v) * scale for v in best), gain, coefficient

@@ -1,4 +1,5 @@
 """The sim-to-real report a lab can read: Markdown + PNG figures + the updated simulator config."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,10 +10,18 @@ import yaml
 from afm_core.sim.config import dump_config
 from afm_core.sim2real.diagnose import UNRESOLVED, unresolved
 
-GROUP_UNITS = {"line.mid": (1e9, "nm"), "raster.x": (1e9, "nm"), "raster.y": (1e9, "nm"),
-               "line.flank_diff": (1e9, "nm"), "raster.height": (1e9, "nm"), "raster.half_width": (1e9, "nm"),
-               "push.torsion_segment": (1e6, "urad"), "push.fluct": (1e6, "urad"), "raster.streak": (1e9, "nm"),
-               "raster.pixel_noise": (1e9, "nm")}
+GROUP_UNITS = {
+    "line.mid": (1e9, "nm"),
+    "raster.x": (1e9, "nm"),
+    "raster.y": (1e9, "nm"),
+    "line.flank_diff": (1e9, "nm"),
+    "raster.height": (1e9, "nm"),
+    "raster.half_width": (1e9, "nm"),
+    "push.torsion_segment": (1e6, "urad"),
+    "push.fluct": (1e6, "urad"),
+    "raster.streak": (1e9, "nm"),
+    "raster.pixel_noise": (1e9, "nm"),
+}
 
 
 def _fmt(value, unit_scale=1.0):
@@ -21,10 +30,12 @@ def _fmt(value, unit_scale=1.0):
 
 def _figures(diagnosis, out: Path) -> list[str]:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     res = diagnosis.residuals
-    if not res:                    # nothing was compared: nothing to plot
+    if not res:  # nothing was compared: nothing to plot
         return []
     table, r, sigma = res["table"], res["r"], res["sigma"]
     after = res.get("after")
@@ -38,13 +49,22 @@ def _figures(diagnosis, out: Path) -> list[str]:
         t = table.time[sel]
         order = np.argsort(t)
         band = 2 * sigma[sel][order] * scale
-        ax.fill_between(t[order], -band, band, color="0.9", label="+-2 sigma noise model (marginal)")
+        ax.fill_between(
+            t[order], -band, band, color="0.9", label="+-2 sigma noise model (marginal)"
+        )
         ax.plot(t, r[sel] * scale, "o", ms=3, label="recorded - nominal")
         if after is not None:
             ax.plot(t, after[sel] * scale, "x", ms=4, label="recorded - updated model")
             if test is not None:
-                ax.plot(t[test[sel]], after[sel][test[sel]] * scale, "s", mfc="none", ms=6, color="k",
-                        label="held-out")
+                ax.plot(
+                    t[test[sel]],
+                    after[sel][test[sel]] * scale,
+                    "s",
+                    mfc="none",
+                    ms=6,
+                    color="k",
+                    label="held-out",
+                )
         ax.set_ylabel(f"{group} ({unit})")
         ax.axhline(0, color="0.5", lw=0.5)
     axes[-1, 0].set_xlabel("time (s)")
@@ -58,8 +78,14 @@ def _figures(diagnosis, out: Path) -> list[str]:
     if cands:
         fig, ax = plt.subplots(figsize=(8, 0.35 * len(cands) + 1))
         y = np.arange(len(cands))
-        ax.barh(y, [max(c.delta_chi2, 1e-3) for c in cands], color=["C2" if c.accepted else "C7" for c in cands])
-        ax.plot([c.statistic_threshold for c in cands], y, "k|", ms=12, label="Bonferroni threshold")
+        ax.barh(
+            y,
+            [max(c.delta_chi2, 1e-3) for c in cands],
+            color=["C2" if c.accepted else "C7" for c in cands],
+        )
+        ax.plot(
+            [c.statistic_threshold for c in cands], y, "k|", ms=12, label="Bonferroni threshold"
+        )
         ax.set_yticks(y, [c.name for c in cands])
         ax.set_xscale("log")
         ax.invert_yaxis()
@@ -80,46 +106,77 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
     figures = []
     try:
         figures = _figures(diagnosis, out)
-    except ImportError:           # pragma: no cover - matplotlib is a project dependency
+    except ImportError:  # pragma: no cover - matplotlib is a project dependency
         pass
     lines = ["# Simulation vs recording", ""]
     if recording:
         lines += [f"Recording: `{recording}`", ""]
     lines += ["## Verdict", "", diagnosis.summary(), ""]
     o = diagnosis.overall
-    lines += [f"{diagnosis.n_features} features; residual against the nominal model: chi2 = {o['chi2']:.1f} for "
-              f"{o['dof']} degrees of freedom (p = {o['p']:.3g}); noise variance factor {o['variance_factor']:.2f}.", ""]
+    lines += [
+        f"{diagnosis.n_features} features; residual against the nominal model: chi2 = {o['chi2']:.1f} for "
+        f"{o['dof']} degrees of freedom (p = {o['p']:.3g}); noise variance factor {o['variance_factor']:.2f}.",
+        "",
+    ]
 
-    lines += ["## 1. Where the recording deviates", "",
-              "Mean residual (recorded - nominal, after the per-axis offset) per signal and condition; z = mean / its "
-              "standard deviation under the noise model; p values Bonferroni-corrected over all rows.", "",
-              "| where | n | mean | z | p (mean) | chi2/n | p (chi2) |", "|---|---|---|---|---|---|---|"]
+    lines += [
+        "## 1. Where the recording deviates",
+        "",
+        "Mean residual (recorded - nominal, after the per-axis offset) per signal and condition; z = mean / its "
+        "standard deviation under the noise model; p values Bonferroni-corrected over all rows.",
+        "",
+        "| where | n | mean | z | p (mean) | chi2/n | p (chi2) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for row in diagnosis.where[:15]:
         group = row["where"].split(" |")[0]
         scale, unit = GROUP_UNITS.get(group, (1.0, ""))
-        lines.append(f"| {row['where']} | {row['n']} | {row['mean'] * scale:.3g} {unit} | {row['z']:.2f} | "
-                     f"{row['p_mean_bonferroni']:.2g} | {row['chi2'] / row['n']:.2f} | {row['p_chi2_bonferroni']:.2g} |")
-    lines += ["", "Change points (CUSUM of the standardised residual, in time):", "",
-              "| signal | time (s) | statistic | p | mean before | mean after |", "|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {row['where']} | {row['n']} | {row['mean'] * scale:.3g} {unit} | {row['z']:.2f} | "
+            f"{row['p_mean_bonferroni']:.2g} | {row['chi2'] / row['n']:.2f} | {row['p_chi2_bonferroni']:.2g} |"
+        )
+    lines += [
+        "",
+        "Change points (CUSUM of the standardised residual, in time):",
+        "",
+        "| signal | time (s) | statistic | p | mean before | mean after |",
+        "|---|---|---|---|---|---|",
+    ]
     for c in diagnosis.change_points[:6]:
         scale, unit = GROUP_UNITS.get(c["group"], (1.0, ""))
-        lines.append(f"| {c['group']} | {c['time']:.1f} | {c['statistic']:.2f} | {c['p']:.2g} | "
-                     f"{c['mean_before'] * scale:.3g} {unit} | {c['mean_after'] * scale:.3g} {unit} |")
+        lines.append(
+            f"| {c['group']} | {c['time']:.1f} | {c['statistic']:.2f} | {c['p']:.2g} | "
+            f"{c['mean_before'] * scale:.3g} {unit} | {c['mean_after'] * scale:.3g} {unit} |"
+        )
 
-    lines += ["", "## 2. What physics is missing", "",
-              "Each candidate term is a simulator config key; its evidence is the GLS chi2 improvement "
-              "(threshold: chi2 quantile at 5 % / number of candidates), ranked by BIC, and it must also "
-              "improve chi2 on held-out time blocks.", "",
-              "| candidate | effect | estimate | delta chi2 | threshold | BIC gain | held-out gain | accepted |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## 2. What physics is missing",
+        "",
+        "Each candidate term is a simulator config key; its evidence is the GLS chi2 improvement "
+        "(threshold: chi2 quantile at 5 % / number of candidates), ranked by BIC, and it must also "
+        "improve chi2 on held-out time blocks.",
+        "",
+        "| candidate | effect | estimate | delta chi2 | threshold | BIC gain | held-out gain | accepted |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for c in diagnosis.candidates:
         est = ", ".join(f"{v:.4g} +- {s:.2g}" for v, s in zip(c.estimate, c.sigma))
-        lines.append(f"| {c.name} | {c.words} | {est} | {c.delta_chi2:.1f} | {c.statistic_threshold:.1f} | "
-                     f"{c.bic_gain:.1f} | {c.heldout_gain:.1f} | {'yes' if c.accepted else 'no'} {c.note} |")
+        lines.append(
+            f"| {c.name} | {c.words} | {est} | {c.delta_chi2:.1f} | {c.statistic_threshold:.1f} | "
+            f"{c.bic_gain:.1f} | {c.heldout_gain:.1f} | {'yes' if c.accepted else 'no'} {c.note} |"
+        )
     if diagnosis.missing_candidates:
-        lines += ["", "Not available in this simulator configuration: " + ", ".join(diagnosis.missing_candidates)]
+        lines += [
+            "",
+            "Not available in this simulator configuration: "
+            + ", ".join(diagnosis.missing_candidates),
+        ]
     if diagnosis.not_considered:
-        lines += ["", "Not considered (left out by the request): " + ", ".join(diagnosis.not_considered)]
+        lines += [
+            "",
+            "Not considered (left out by the request): " + ", ".join(diagnosis.not_considered),
+        ]
     if "candidates.png" in figures:
         lines += ["", "![candidates](candidates.png)"]
 
@@ -128,8 +185,13 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
         lines += ["| config key | fitted | +- | model had |", "|---|---|---|---|"]
         for key, p in diagnosis.parameters.items():
             note = f" ({UNRESOLVED})" if unresolved(p) else ""
-            lines.append(f"| `{key}` | {p['value']:.5g} | {p['sigma']:.2g}{note} | {p['nominal']:.5g} |")
-        lines += ["", "Updated configuration: `updated_config.yaml` (only the changed keys: `overrides.yaml`)."]
+            lines.append(
+                f"| `{key}` | {p['value']:.5g} | {p['sigma']:.2g}{note} | {p['nominal']:.5g} |"
+            )
+        lines += [
+            "",
+            "Updated configuration: `updated_config.yaml` (only the changed keys: `overrides.yaml`).",
+        ]
         (out / "updated_config.yaml").write_text(dump_config(diagnosis.updated_config))
     else:
         lines += ["Nothing to add: the configuration is left as it is."]
@@ -138,13 +200,21 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
     h = diagnosis.heldout
     lines += ["", "## 4. Before and after, on held-out operations", ""]
     if h:
-        lines += [f"Fitted on the even time blocks only, re-simulated, compared on the odd blocks: chi2 "
-                  f"{h['chi2_before']:.1f} -> {h['chi2_after']:.1f} for {h['dof']} dof "
-                  f"(total reduction {100 * h['reduction']:.0f} %, reduction of the excess over the noise "
-                  f"{100 * h['excess_reduction']:.0f} %).", ""]
+        lines += [
+            f"Fitted on the even time blocks only, re-simulated, compared on the odd blocks: chi2 "
+            f"{h['chi2_before']:.1f} -> {h['chi2_after']:.1f} for {h['dof']} dof "
+            f"(total reduction {100 * h['reduction']:.0f} %, reduction of the excess over the noise "
+            f"{100 * h['excess_reduction']:.0f} %).",
+            "",
+        ]
     if "residuals_time.png" in figures:
         lines += ["![residuals](residuals_time.png)", ""]
-    lines += ["## Run time", "", ", ".join(f"{k} {v:.1f} s" for k, v in diagnosis.timings.items()), ""]
+    lines += [
+        "## Run time",
+        "",
+        ", ".join(f"{k} {v:.1f} s" for k, v in diagnosis.timings.items()),
+        "",
+    ]
     path = out / "report.md"
     path.write_text("\n".join(lines))
     return path

@@ -17,13 +17,14 @@ quantizes cannot come back to the bit: an idle gap is known to the stamps' 1 ns,
 indentation's force only as well as its noisy deflection tells it (see
 test/test_sim2real_session.py for the bounds).
 """
+
 from __future__ import annotations
 
 import copy
 import dataclasses
 import math
 import os
-from typing import Iterable, Iterator, Optional
+from collections.abc import Iterable, Iterator
 
 from afm_core.instrument import LineRequest, ScannerLimits, ScanRequest
 from afm_core.sim.config import SimConfig, load_config, merge
@@ -32,18 +33,18 @@ from afm_core.sim2real.session import Operation, operation_from_call
 
 # Gaps between a recorded and a simulated start time below this are the stamps' rounding,
 # not time to let pass: the driver's stamps resolve ~0.24 us (a float epoch + time), ours 1 ns.
-TIME_RESOLUTION = 1e-6           # s
+TIME_RESOLUTION = 1e-6  # s
 # A pixel below this is no AFM's (a picometre: a hundredth of an atom); above the scanner
 # range it cannot be scanned: either means a broken recording or the wrong units.
-MIN_PIXEL_SIZE = 1e-12           # m
-START_TOLERANCE = 1e-12          # m: the simulator already is at the first command's start
+MIN_PIXEL_SIZE = 1e-12  # m
+START_TOLERANCE = 1e-12  # m: the simulator already is at the first command's start
 
 
-def load_sim_config(config, seed: Optional[int] = None) -> SimConfig:
+def load_sim_config(config, seed: int | None = None) -> SimConfig:
     """A SimConfig from a SimConfig, a YAML path (any subset of keys over the defaults), or a
     dict of overrides; `seed` replaces the configured seed when given."""
     if isinstance(config, SimConfig):
-        loaded = copy.deepcopy(config)      # the simulator keeps it: no aliasing with the caller's
+        loaded = copy.deepcopy(config)  # the simulator keeps it: no aliasing with the caller's
     elif isinstance(config, (str, os.PathLike)):
         loaded = load_config(config)
     elif isinstance(config, dict):
@@ -51,7 +52,9 @@ def load_sim_config(config, seed: Optional[int] = None) -> SimConfig:
     elif config is None:
         loaded = load_config()
     else:
-        raise ValueError(f"config={config!r}: expected a SimConfig, a YAML path or a dict of overrides")
+        raise ValueError(
+            f"config={config!r}: expected a SimConfig, a YAML path or a dict of overrides"
+        )
     return loaded if seed is None else dataclasses.replace(loaded, seed=int(seed))
 
 
@@ -67,14 +70,18 @@ def _check_point(op: Operation, name: str, x: float, y: float, limits: ScannerLi
         if not math.isfinite(value):
             raise ValueError(f"{_where(op)}: {name}.{axis}={value}: not finite")
         if not 0.0 <= value <= limit:
-            raise ValueError(f"{_where(op)}: {name}.{axis}={value:.4e} m is outside the configured scanner "
-                             f"range limits.range_{axis}=[0, {limit:.4e}] m")
+            raise ValueError(
+                f"{_where(op)}: {name}.{axis}={value:.4e} m is outside the configured scanner "
+                f"range limits.range_{axis}=[0, {limit:.4e}] m"
+            )
 
 
 def _check_pixel(op: Operation, name: str, size: float, limit: float) -> None:
     if not (math.isfinite(size) and MIN_PIXEL_SIZE <= size <= limit):
-        raise ValueError(f"{_where(op)}: {name}={size:.4e} m is absurd: a pixel must be within "
-                         f"[{MIN_PIXEL_SIZE:.0e} m, the scanner range {limit:.4e} m]")
+        raise ValueError(
+            f"{_where(op)}: {name}={size:.4e} m is absurd: a pixel must be within "
+            f"[{MIN_PIXEL_SIZE:.0e} m, the scanner range {limit:.4e} m]"
+        )
 
 
 def check_operation(op: Operation, limits: ScannerLimits) -> None:
@@ -86,37 +93,56 @@ def check_operation(op: Operation, limits: ScannerLimits) -> None:
     if op.kind in ("move", "push", "scan_line"):
         speed = request.speed if isinstance(request, LineRequest) else float(request["speed"])
         if not (math.isfinite(speed) and 0 < speed <= limits.max_speed):
-            raise ValueError(f"{_where(op)}: speed={speed:.4e} m/s is above the configured slew limit "
-                             f"limits.max_speed={limits.max_speed:.4e} m/s (or not > 0)")
+            raise ValueError(
+                f"{_where(op)}: speed={speed:.4e} m/s is above the configured slew limit "
+                f"limits.max_speed={limits.max_speed:.4e} m/s (or not > 0)"
+            )
     if op.kind == "raster":
         data = op.data
-        for axis, size, pixels, limit in (("x", request.size_x, request.pixels_x, limits.range_x),
-                                          ("y", request.size_y, request.pixels_y, limits.range_y)):
+        for axis, size, pixels, limit in (
+            ("x", request.size_x, request.pixels_x, limits.range_x),
+            ("y", request.size_y, request.pixels_y, limits.range_y),
+        ):
             if not 2 <= pixels <= limits.max_pixels:
-                raise ValueError(f"{_where(op)}: pixels_{axis}={pixels} is outside [2, limits.max_pixels="
-                                 f"{limits.max_pixels}]")
+                raise ValueError(
+                    f"{_where(op)}: pixels_{axis}={pixels} is outside [2, limits.max_pixels="
+                    f"{limits.max_pixels}]"
+                )
             _check_pixel(op, f"pixel_size_{axis}", size / pixels, limit)
             if data is not None:
                 _check_pixel(op, f"pixel_size_{axis}", getattr(data, f"pixel_size_{axis}"), limit)
         _check_point(op, "origin", request.origin_x, request.origin_y, limits)
-        _check_point(op, "origin + size", request.origin_x + request.size_x, request.origin_y + request.size_y,
-                     limits)
+        _check_point(
+            op,
+            "origin + size",
+            request.origin_x + request.size_x,
+            request.origin_y + request.size_y,
+            limits,
+        )
         if not (0 < request.line_rate <= limits.max_line_rate):
-            raise ValueError(f"{_where(op)}: line_rate={request.line_rate} Hz (1 / line_period) is outside "
-                             f"(0, limits.max_line_rate={limits.max_line_rate}] Hz")
+            raise ValueError(
+                f"{_where(op)}: line_rate={request.line_rate} Hz (1 / line_period) is outside "
+                f"(0, limits.max_line_rate={limits.max_line_rate}] Hz"
+            )
     elif op.kind == "scan_line":
         if not 2 <= request.samples <= limits.max_line_samples:
-            raise ValueError(f"{_where(op)}: samples={request.samples} is outside [2, limits.max_line_samples="
-                             f"{limits.max_line_samples}]")
+            raise ValueError(
+                f"{_where(op)}: samples={request.samples} is outside [2, limits.max_line_samples="
+                f"{limits.max_line_samples}]"
+            )
     elif op.kind == "indent":
         if not 0 < request["force"] <= limits.max_indent_force:
-            raise ValueError(f"{_where(op)}: force={request['force']:.4e} N is outside (0, "
-                             f"limits.max_indent_force={limits.max_indent_force:.4e}] N")
+            raise ValueError(
+                f"{_where(op)}: force={request['force']:.4e} N is outside (0, "
+                f"limits.max_indent_force={limits.max_indent_force:.4e}] N"
+            )
         if not 0 <= request["dwell"] <= limits.max_dwell:
-            raise ValueError(f"{_where(op)}: dwell={request['dwell']} s is outside [0, limits.max_dwell="
-                             f"{limits.max_dwell}] s")
+            raise ValueError(
+                f"{_where(op)}: dwell={request['dwell']} s is outside [0, limits.max_dwell="
+                f"{limits.max_dwell}] s"
+            )
     if isinstance(request, (ScanRequest, LineRequest)):
-        try:                        # whatever else the instrument itself refuses
+        try:  # whatever else the instrument itself refuses
             request.validate(limits)
         except ValueError as exc:
             raise ValueError(f"{_where(op)}: {exc} (simulator config limits)") from exc
@@ -148,15 +174,22 @@ class Resimulation:
     their recorded time because its previous operation took longer than the recorded one.
     """
 
-    def __init__(self, operations: Iterable[Operation], config, seed: Optional[int] = None, *,
-                 move_to_start: bool = True, settle_time: float = 10.0):
+    def __init__(
+        self,
+        operations: Iterable[Operation],
+        config,
+        seed: int | None = None,
+        *,
+        move_to_start: bool = True,
+        settle_time: float = 10.0,
+    ):
         if not (math.isfinite(settle_time) and settle_time >= 0):
             raise ValueError(f"settle_time={settle_time}: must be finite and >= 0 s")
         self.config = load_sim_config(config, seed)
         self.instrument = SimulatedAfm(self.config)
         self.move_to_start = move_to_start
         self.settle_time = float(settle_time)
-        self.origin: Optional[float] = None
+        self.origin: float | None = None
         self.late_operations = 0
         self.max_lag = 0.0
         self.total_lag = 0.0
@@ -198,7 +231,7 @@ class Resimulation:
             lag = self._wait_until(self.origin + recorded.start_time)
             simulated = self._execute(recorded)
             simulated.lag = lag
-            simulated.truth = copy.deepcopy(sim.truth())   # its objects are the live ones: move on
+            simulated.truth = copy.deepcopy(sim.truth())  # its objects are the live ones: move on
             self.count += 1
             yield recorded, simulated
 
@@ -236,24 +269,39 @@ class Resimulation:
         elif kind == "scan_line":
             data = sim.local_scan(request)
         elif kind in ("move", "push"):
-            move = sim.move_tip(request["x"], request["y"], request["speed"], contact=kind == "push")
+            move = sim.move_tip(
+                request["x"], request["y"], request["speed"], contact=kind == "push"
+            )
             data, end_position = move.trace, (move.end_x, move.end_y)
         elif kind == "indent":
             result = sim.indent(request["x"], request["y"], request["force"], request["dwell"])
             data = result.trace
         else:
             raise ValueError(f"{_where(recorded)}: kind={kind!r} cannot be simulated")
-        if data is not None:         # on the recording's clock, as the recorded data are
+        if data is not None:  # on the recording's clock, as the recorded data are
             data = dataclasses.replace(data, start_time=data.start_time - self.origin)
         return operation_from_call(
-            recorded.index, kind, request, data, start_time=start_time - self.origin,
-            end_time=sim.time - self.origin, start_position=start_position,
+            recorded.index,
+            kind,
+            request,
+            data,
+            start_time=start_time - self.origin,
+            end_time=sim.time - self.origin,
+            start_position=start_position,
             end_position=sim.commanded_position() if end_position is None else end_position,
-            landmark_id=recorded.landmark_id, pair_id=recorded.pair_id)
+            landmark_id=recorded.landmark_id,
+            pair_id=recorded.pair_id,
+        )
 
 
-def resimulate(operations: Iterable[Operation], config, seed: Optional[int] = None, *,
-               move_to_start: bool = True, settle_time: float = 10.0) -> Resimulation:
+def resimulate(
+    operations: Iterable[Operation],
+    config,
+    seed: int | None = None,
+    *,
+    move_to_start: bool = True,
+    settle_time: float = 10.0,
+) -> Resimulation:
     """Re-execute recorded operations on SimulatedAfm(config) at their recorded times.
 
     operations: Operations in command order (e.g. read_operations(path); streamed, one at a
@@ -267,4 +315,6 @@ def resimulate(operations: Iterable[Operation], config, seed: Optional[int] = No
     Every operation is checked against the configuration first (check_operation): ValueError
     naming the field and the limit. Yields (recorded, simulated) pairs.
     """
-    return Resimulation(operations, config, seed, move_to_start=move_to_start, settle_time=settle_time)
+    return Resimulation(
+        operations, config, seed, move_to_start=move_to_start, settle_time=settle_time
+    )

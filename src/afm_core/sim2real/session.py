@@ -17,21 +17,30 @@ a RasterScan on /afm/scan, a ScanLine on /afm/scan_line or a ForceTrace on /afm/
 Units are SI throughout (m, s, N, m/s). Times of read operations are seconds since the first
 command of the recording, on the recording's instrument clock.
 """
+
 from __future__ import annotations
 
 import math
 import os
 import time as wall_time
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Optional, Union
+from typing import Union
 
 import numpy as np
 from mcap_ros2._dynamic import serialize_dynamic
 
-from afm_core.instrument import (ForceTraceData, IndentResult, LineRequest, MoveResult, RasterScanData,
-                                 ScanLineData, ScanRequest)
+from afm_core.instrument import (
+    ForceTraceData,
+    IndentResult,
+    LineRequest,
+    MoveResult,
+    RasterScanData,
+    ScanLineData,
+    ScanRequest,
+)
 from afm_core.recording import QosDescription, RecordingError, RecordingReader, RecordingWriter
 from afm_core.recording.definitions import full_message_definition
 from afm_core.recording.qos import RMW_DURATION_INFINITE_NS
@@ -52,15 +61,22 @@ TYPES = {
     GROUND_TRUTH: "afm_msgs/msg/GroundTruth",
 }
 
+
 # The QoS the driver offers (afm_bringup.qos_profiles), in the form our recorder stores what it
 # discovers (history and depth are not sent over the wire: "unknown", 0; durations infinite),
 # so a replay republishes each topic as the driver did: commands and scans reliable and
 # latched, streams best effort (sensor data), truth reliable and latched.
 def _offered(reliability: str, durability: str) -> QosDescription:
-    return QosDescription(history="unknown", depth=0, reliability=reliability, durability=durability,
-                          liveliness="automatic", deadline_ns=RMW_DURATION_INFINITE_NS,
-                          lifespan_ns=RMW_DURATION_INFINITE_NS,
-                          liveliness_lease_duration_ns=RMW_DURATION_INFINITE_NS)
+    return QosDescription(
+        history="unknown",
+        depth=0,
+        reliability=reliability,
+        durability=durability,
+        liveliness="automatic",
+        deadline_ns=RMW_DURATION_INFINITE_NS,
+        lifespan_ns=RMW_DURATION_INFINITE_NS,
+        liveliness_lease_duration_ns=RMW_DURATION_INFINITE_NS,
+    )
 
 
 OFFERED_QOS = {
@@ -77,7 +93,7 @@ KIND_CODES = {name: code for code, name in KIND_NAMES.items()}
 # where each kind's measurement is published, and the ForceTrace.task it carries
 DATA_TOPIC = {"scan_line": SCAN_LINE, "raster": SCAN, "push": FORCE_TRACE, "indent": FORCE_TRACE}
 TRACE_TASK = {"push": "push", "indent": "indent"}
-OBJECT_KINDS = {"sphere": 0, "tube": 1, "rod": 2, "pit": 3, "electrode": 4}   # ObjectState.kind
+OBJECT_KINDS = {"sphere": 0, "tube": 1, "rod": 2, "pit": 3, "electrode": 4}  # ObjectState.kind
 
 FRAME_SCANNER = "afm_scanner"
 FRAME_TASK = "afm_task"
@@ -85,15 +101,15 @@ FRAME_TASK = "afm_task"
 # Matching a data message to its command. Geometry as the ReplayInstrument matches requests
 # (1 nm); time: the driver stamps epoch + instrument time as a float, which on a wall-clock
 # epoch (~1.7e9 s) resolves ~0.24 us, so a data stamp may fall that far outside its command.
-MATCH_TOLERANCE = 1e-9          # m
-TIME_SLACK_NS = 1_000           # ns
+MATCH_TOLERANCE = 1e-9  # m
+TIME_SLACK_NS = 1_000  # ns
 # A command's measurement is published right after it, before the next command starts (the
 # driver runs one motion at a time). Topics may still arrive out of order in a recording
 # (different QoS, different subscriptions), so a measurement is awaited until this many later
 # commands have arrived; then it is missing. This is also what bounds the memory held.
 LOOKAHEAD_COMMANDS = 4
-MAX_UNMATCHED_DATA = 8          # data messages held while their command has not arrived
-TIME_QUANTUM = 1e-9             # s, the stamps' resolution; reconstructed dwells are rounded to it
+MAX_UNMATCHED_DATA = 8  # data messages held while their command has not arrived
+TIME_QUANTUM = 1e-9  # s, the stamps' resolution; reconstructed dwells are rounded to it
 
 Request = Union[ScanRequest, LineRequest, dict]
 Data = Union[RasterScanData, ScanLineData, ForceTraceData, None]
@@ -124,6 +140,7 @@ class Operation:
     lag: s, simulated operations only: how much later than recorded the simulator could start it.
     truth: simulated operations only: the simulator's ground truth after the operation.
     """
+
     index: int
     kind: str
     start_time: float
@@ -136,16 +153,26 @@ class Operation:
     landmark_id: int = -1
     pair_id: str = ""
     lag: float = 0.0
-    truth: Optional[dict] = field(default=None, repr=False)
+    truth: dict | None = field(default=None, repr=False)
 
     @property
     def end_time(self) -> float:
         return self.start_time + self.duration
 
 
-def operation_from_call(index: int, kind: str, request: Request, data: Data, *, start_time: float,
-                        end_time: float, start_position: tuple[float, float],
-                        end_position: tuple[float, float], landmark_id: int = -1, pair_id: str = "") -> Operation:
+def operation_from_call(
+    index: int,
+    kind: str,
+    request: Request,
+    data: Data,
+    *,
+    start_time: float,
+    end_time: float,
+    start_position: tuple[float, float],
+    end_position: tuple[float, float],
+    landmark_id: int = -1,
+    pair_id: str = "",
+) -> Operation:
     """The Operation (= the TipCommand fields) for one instrument call, filled as the driver
     fills its TipCommand: start/end are where the scanner was commanded before and after,
     except a scan line (its commanded ends) and an indent (its position); the speed is the
@@ -155,19 +182,35 @@ def operation_from_call(index: int, kind: str, request: Request, data: Data, *, 
     if kind in ("move", "push"):
         speed = float(request["speed"])
     elif kind == "scan_line":
-        start, end, speed = (request.start_x, request.start_y), (request.end_x, request.end_y), request.speed
+        start, end, speed = (
+            (request.start_x, request.start_y),
+            (request.end_x, request.end_y),
+            request.speed,
+        )
     elif kind == "raster":
         fast_size = request.size_x if request.scan_angle_deg == 0.0 else request.size_y
-        path_length = 2 * fast_size * request.lines + math.dist(start, (request.origin_x, request.origin_y))
+        path_length = 2 * fast_size * request.lines + math.dist(
+            start, (request.origin_x, request.origin_y)
+        )
         speed = path_length / duration if duration > 0 else 0.0
     elif kind == "indent":
         start = end = (float(request["x"]), float(request["y"]))
         speed = 0.0
     else:
         raise ValueError(f"kind={kind!r}: expected one of {sorted(KIND_CODES)}")
-    return Operation(index=index, kind=kind, start_time=float(start_time), start=start, end=end,
-                     speed=float(speed), duration=float(duration), request=request, data=data,
-                     landmark_id=int(landmark_id), pair_id=str(pair_id))
+    return Operation(
+        index=index,
+        kind=kind,
+        start_time=float(start_time),
+        start=start,
+        end=end,
+        speed=float(speed),
+        duration=float(duration),
+        request=request,
+        data=data,
+        landmark_id=int(landmark_id),
+        pair_id=str(pair_id),
+    )
 
 
 # ------------------------------------------------------------------------------------------
@@ -191,22 +234,34 @@ class SessionWriter:
     is `path.part` until `close()` names it `path`; an existing `path` is refused.
     """
 
-    def __init__(self, path: str | os.PathLike, *, epoch_ns: Optional[int] = None, truth: bool = True,
-                 compression: str = "zstd", chunk_size: int = 4 * 1024 * 1024):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        epoch_ns: int | None = None,
+        truth: bool = True,
+        compression: str = "zstd",
+        chunk_size: int = 4 * 1024 * 1024,
+    ):
         self.epoch_ns = wall_time.time_ns() if epoch_ns is None else int(epoch_ns)
         topics = [t for t in TYPES if truth or t != GROUND_TRUTH]
         # schemas first: a workspace without afm_msgs fails here, before any file exists
         definitions = {topic: full_message_definition(TYPES[topic]) for topic in topics}
-        self._encoders = {topic: serialize_dynamic(TYPES[topic], definitions[topic])[TYPES[topic]]
-                          for topic in topics}
+        self._encoders = {
+            topic: serialize_dynamic(TYPES[topic], definitions[topic])[TYPES[topic]]
+            for topic in topics
+        }
         try:
             self._writer = RecordingWriter(path, compression=compression, chunk_size=chunk_size)
         except RecordingError as exc:
             raise SessionError(str(exc)) from exc
         self.path = self._writer.path
-        self._channels = {topic: self._writer.add_channel(topic, TYPES[topic], [OFFERED_QOS[topic]],
-                                                          definition=definitions[topic])
-                          for topic in topics}
+        self._channels = {
+            topic: self._writer.add_channel(
+                topic, TYPES[topic], [OFFERED_QOS[topic]], definition=definitions[topic]
+            )
+            for topic in topics
+        }
         self._last_log_ns = 0
         self.scan_count = 0
 
@@ -228,21 +283,35 @@ class SessionWriter:
         """The TipCommand, then the measurement if the operation has one (the driver publishes
         no measurement for a cancelled scan, line or indent: pass data=None then)."""
         if op.kind not in KIND_CODES:
-            raise SessionError(f"{self.path}: operation {op.index}: kind={op.kind!r}, expected one of "
-                               f"{sorted(KIND_CODES)}")
+            raise SessionError(
+                f"{self.path}: operation {op.index}: kind={op.kind!r}, expected one of "
+                f"{sorted(KIND_CODES)}"
+            )
         published = op.start_time + op.duration
         nan3 = [math.nan] * 3
-        self._write(TIP_COMMAND, {
-            "header": self._header(op.start_time), "kind": KIND_CODES[op.kind],
-            "start": _point(*op.start), "end": _point(*op.end), "speed": float(op.speed),
-            "duration": float(op.duration), "start_voltage": nan3, "end_voltage": nan3}, published)
+        self._write(
+            TIP_COMMAND,
+            {
+                "header": self._header(op.start_time),
+                "kind": KIND_CODES[op.kind],
+                "start": _point(*op.start),
+                "end": _point(*op.end),
+                "speed": float(op.speed),
+                "duration": float(op.duration),
+                "start_voltage": nan3,
+                "end_voltage": nan3,
+            },
+            published,
+        )
         if op.data is None:
             return
         if op.kind == "raster":
             self.scan_count += 1
             self._write(SCAN, self.raster_message(op.data, self.scan_count, op.pair_id), published)
         elif op.kind == "scan_line":
-            self._write(SCAN_LINE, self.line_message(op.data, op.start, op.end, op.landmark_id), published)
+            self._write(
+                SCAN_LINE, self.line_message(op.data, op.start, op.end, op.landmark_id), published
+            )
         elif op.kind in ("push", "indent"):
             self._write(FORCE_TRACE, self.trace_message(op.data), published)
 
@@ -251,33 +320,64 @@ class SessionWriter:
         header = self._header(scan.start_time)
         height = np.ascontiguousarray(scan.height, dtype="<f4")
         rows, columns = height.shape
-        image = {"header": header, "height": rows, "width": columns, "encoding": "32FC1", "is_bigendian": 0,
-                 "step": 4 * columns, "data": height.tobytes()}
-        return {"header": header, "height": image,
-                "pixel_size_x": float(scan.pixel_size_x), "pixel_size_y": float(scan.pixel_size_y),
-                "origin": _point(scan.origin_x, scan.origin_y),
-                "size_x": float(scan.pixel_size_x * columns), "size_y": float(scan.pixel_size_y * rows),
-                "scan_angle_deg": float(scan.scan_angle_deg), "slow_scan_up": bool(scan.slow_scan_up),
-                "line_period": float(scan.line_period), "line_start_times": _floats(scan.line_start_times),
-                "mode": scan.mode, "scan_id": int(scan_id), "pair_id": str(pair_id)}
+        image = {
+            "header": header,
+            "height": rows,
+            "width": columns,
+            "encoding": "32FC1",
+            "is_bigendian": 0,
+            "step": 4 * columns,
+            "data": height.tobytes(),
+        }
+        return {
+            "header": header,
+            "height": image,
+            "pixel_size_x": float(scan.pixel_size_x),
+            "pixel_size_y": float(scan.pixel_size_y),
+            "origin": _point(scan.origin_x, scan.origin_y),
+            "size_x": float(scan.pixel_size_x * columns),
+            "size_y": float(scan.pixel_size_y * rows),
+            "scan_angle_deg": float(scan.scan_angle_deg),
+            "slow_scan_up": bool(scan.slow_scan_up),
+            "line_period": float(scan.line_period),
+            "line_start_times": _floats(scan.line_start_times),
+            "mode": scan.mode,
+            "scan_id": int(scan_id),
+            "pair_id": str(pair_id),
+        }
 
     def line_message(self, line: ScanLineData, start, end, landmark_id: int = -1) -> dict:
         """afm_bringup.conversions.scan_line_to_msg, without rclpy."""
-        return {"header": self._header(line.start_time), "commanded_start": _point(*start),
-                "commanded_end": _point(*end), "times": _floats(line.times), "x": _floats(line.x),
-                "y": _floats(line.y), "height": _floats(line.height), "deflection": _floats(line.deflection),
-                "amplitude": _floats(line.amplitude), "mode": line.mode, "landmark_id": int(landmark_id)}
+        return {
+            "header": self._header(line.start_time),
+            "commanded_start": _point(*start),
+            "commanded_end": _point(*end),
+            "times": _floats(line.times),
+            "x": _floats(line.x),
+            "y": _floats(line.y),
+            "height": _floats(line.height),
+            "deflection": _floats(line.deflection),
+            "amplitude": _floats(line.amplitude),
+            "mode": line.mode,
+            "landmark_id": int(landmark_id),
+        }
 
     def trace_message(self, trace: ForceTraceData) -> dict:
         """afm_bringup.conversions.force_trace_to_msg, without rclpy."""
-        return {"header": self._header(trace.start_time), "times": _floats(trace.times),
-                "commanded_x": _floats(trace.commanded_x), "commanded_y": _floats(trace.commanded_y),
-                "commanded_z": _floats(trace.commanded_z),
-                "vertical_deflection": _floats(trace.vertical_deflection),
-                "lateral_torsion": _floats(trace.lateral_torsion),
-                "normal_spring_constant": float(trace.normal_spring_constant),
-                "lateral_spring_constant": float(trace.lateral_spring_constant),
-                "sample_rate": float(trace.sample_rate), "task": trace.task, "object_id": int(trace.object_id)}
+        return {
+            "header": self._header(trace.start_time),
+            "times": _floats(trace.times),
+            "commanded_x": _floats(trace.commanded_x),
+            "commanded_y": _floats(trace.commanded_y),
+            "commanded_z": _floats(trace.commanded_z),
+            "vertical_deflection": _floats(trace.vertical_deflection),
+            "lateral_torsion": _floats(trace.lateral_torsion),
+            "normal_spring_constant": float(trace.normal_spring_constant),
+            "lateral_spring_constant": float(trace.lateral_spring_constant),
+            "sample_rate": float(trace.sample_rate),
+            "task": trace.task,
+            "object_id": int(trace.object_id),
+        }
 
     def write_truth(self, truth: dict) -> None:
         """A GroundTruth (afm_bringup.conversions.truth_to_msg) stamped and logged at truth['time']."""
@@ -287,22 +387,43 @@ class SessionWriter:
         for obj in truth["objects"]:
             state = {"id": int(obj.id), "kind": OBJECT_KINDS[obj.kind]}
             if obj.kind == "electrode":
-                state.update(position={"x": 0.5 * (obj.x0 + obj.x1), "y": 0.5 * (obj.y0 + obj.y1),
-                                       "z": float(obj.thickness)},
-                             length=float(obj.x1 - obj.x0), radius=float(0.5 * (obj.y1 - obj.y0)), orientation=0.0)
+                state.update(
+                    position={
+                        "x": 0.5 * (obj.x0 + obj.x1),
+                        "y": 0.5 * (obj.y0 + obj.y1),
+                        "z": float(obj.thickness),
+                    },
+                    length=float(obj.x1 - obj.x0),
+                    radius=float(0.5 * (obj.y1 - obj.y0)),
+                    orientation=0.0,
+                )
             else:
-                state.update(position={"x": float(obj.x), "y": float(obj.y),
-                                       "z": float(-obj.depth if obj.kind == "pit" else obj.radius)},
-                             radius=float(obj.radius), length=float(getattr(obj, "length", 0.0)),
-                             orientation=float(getattr(obj, "angle", 0.0)))
+                state.update(
+                    position={
+                        "x": float(obj.x),
+                        "y": float(obj.y),
+                        "z": float(-obj.depth if obj.kind == "pit" else obj.radius),
+                    },
+                    radius=float(obj.radius),
+                    length=float(getattr(obj, "length", 0.0)),
+                    orientation=float(getattr(obj, "angle", 0.0)),
+                )
             objects.append(state)
         seconds = float(truth["time"])
-        vector = lambda v: {"x": float(v[0]), "y": float(v[1]), "z": 0.0}   # noqa: E731
-        self._write(GROUND_TRUTH, {
-            "header": self._header(seconds, FRAME_TASK), "tip_position": _point(*truth["tip_position"]),
-            "commanded_position": _point(*truth["commanded_position"]),
-            "drift_offset": vector(truth["drift_offset"]), "drift_velocity": vector(truth["drift_velocity"]),
-            "tip_apex_radius": float(truth["tip_apex_radius"]), "objects": objects}, seconds)
+        vector = lambda v: {"x": float(v[0]), "y": float(v[1]), "z": 0.0}  # noqa: E731
+        self._write(
+            GROUND_TRUTH,
+            {
+                "header": self._header(seconds, FRAME_TASK),
+                "tip_position": _point(*truth["tip_position"]),
+                "commanded_position": _point(*truth["commanded_position"]),
+                "drift_offset": vector(truth["drift_offset"]),
+                "drift_velocity": vector(truth["drift_velocity"]),
+                "tip_apex_radius": float(truth["tip_apex_radius"]),
+                "objects": objects,
+            },
+            seconds,
+        )
 
     # -- closing ----------------------------------------------------------------------------
     @property
@@ -338,20 +459,36 @@ class RecordingInstrument:
 
     _OWN = frozenset({"_instrument", "_writer", "_truth", "_commands"})
 
-    def __init__(self, instrument, path: str | os.PathLike, truth: bool = True, *,
-                 epoch_ns: Optional[int] = None, compression: str = "zstd",
-                 chunk_size: int = 4 * 1024 * 1024):
+    def __init__(
+        self,
+        instrument,
+        path: str | os.PathLike,
+        truth: bool = True,
+        *,
+        epoch_ns: int | None = None,
+        compression: str = "zstd",
+        chunk_size: int = 4 * 1024 * 1024,
+    ):
         first_truth = None
         if truth and callable(getattr(instrument, "truth", None)):
-            try:                # the driver publishes the truth at start-up: so do we, first
+            try:  # the driver publishes the truth at start-up: so do we, first
                 first_truth = instrument.truth()
-            except (ValueError, NotImplementedError):     # e.g. a replayed session has none
+            except (ValueError, NotImplementedError):  # e.g. a replayed session has none
                 first_truth = None
         object.__setattr__(self, "_instrument", instrument)
         object.__setattr__(self, "_commands", 0)
         object.__setattr__(self, "_truth", first_truth is not None)
-        object.__setattr__(self, "_writer", SessionWriter(path, epoch_ns=epoch_ns, truth=self._truth,
-                                                          compression=compression, chunk_size=chunk_size))
+        object.__setattr__(
+            self,
+            "_writer",
+            SessionWriter(
+                path,
+                epoch_ns=epoch_ns,
+                truth=self._truth,
+                compression=compression,
+                chunk_size=chunk_size,
+            ),
+        )
         if first_truth is not None:
             self._writer.write_truth(first_truth)
 
@@ -365,7 +502,7 @@ class RecordingInstrument:
     def __setattr__(self, name, value):
         if name in RecordingInstrument._OWN:
             object.__setattr__(self, name, value)
-        else:   # e.g. feed_forward_enabled: it must reach the instrument, not shadow it here
+        else:  # e.g. feed_forward_enabled: it must reach the instrument, not shadow it here
             setattr(self._instrument, name, value)
 
     @property
@@ -382,11 +519,21 @@ class RecordingInstrument:
         self._instrument.hold(seconds)
 
     # -- recorded calls -----------------------------------------------------------------------
-    def _record(self, kind, request, data, start_time, start_position, end_position=None, **ids) -> None:
+    def _record(
+        self, kind, request, data, start_time, start_position, end_position=None, **ids
+    ) -> None:
         end = self._instrument.commanded_position() if end_position is None else end_position
-        op = operation_from_call(self._commands, kind, request, data, start_time=start_time,
-                                 end_time=self._instrument.time, start_position=start_position,
-                                 end_position=end, **ids)
+        op = operation_from_call(
+            self._commands,
+            kind,
+            request,
+            data,
+            start_time=start_time,
+            end_time=self._instrument.time,
+            start_position=start_position,
+            end_position=end,
+            **ids,
+        )
         self._writer.write_operation(op)
         self._commands += 1
         self._write_truth()
@@ -402,31 +549,51 @@ class RecordingInstrument:
             raise SessionError(f"{self._writer.path}: the recording is closed")
         return self._instrument.time, self._instrument.commanded_position()
 
-    def raster_scan(self, request: ScanRequest, on_line=None, should_stop=None, *,
-                    pair_id: str = "") -> RasterScanData:
+    def raster_scan(
+        self, request: ScanRequest, on_line=None, should_stop=None, *, pair_id: str = ""
+    ) -> RasterScanData:
         t0, p0 = self._before()
         scan = self._instrument.raster_scan(request, on_line=on_line, should_stop=should_stop)
         self._record("raster", request, scan if scan.complete else None, t0, p0, pair_id=pair_id)
         return scan
 
-    def local_scan(self, request: LineRequest, should_stop=None, *, landmark_id: int = -1) -> ScanLineData:
+    def local_scan(
+        self, request: LineRequest, should_stop=None, *, landmark_id: int = -1
+    ) -> ScanLineData:
         t0, p0 = self._before()
         line = self._instrument.local_scan(request, should_stop=should_stop)
-        self._record("scan_line", request, line if line.complete else None, t0, p0, landmark_id=landmark_id)
+        self._record(
+            "scan_line", request, line if line.complete else None, t0, p0, landmark_id=landmark_id
+        )
         return line
 
-    def move_tip(self, x: float, y: float, speed: float, contact: bool = False, should_stop=None) -> MoveResult:
+    def move_tip(
+        self, x: float, y: float, speed: float, contact: bool = False, should_stop=None
+    ) -> MoveResult:
         t0, p0 = self._before()
         move = self._instrument.move_tip(x, y, speed, contact, should_stop=should_stop)
         request = {"x": float(x), "y": float(y), "speed": float(speed), "contact": bool(contact)}
-        self._record("push" if contact else "move", request, move.trace if contact else None, t0, p0,
-                     end_position=(move.end_x, move.end_y))
+        self._record(
+            "push" if contact else "move",
+            request,
+            move.trace if contact else None,
+            t0,
+            p0,
+            end_position=(move.end_x, move.end_y),
+        )
         return move
 
-    def indent(self, x: float, y: float, force: float, dwell: float, should_stop=None) -> IndentResult:
+    def indent(
+        self, x: float, y: float, force: float, dwell: float, should_stop=None
+    ) -> IndentResult:
         t0, p0 = self._before()
         result = self._instrument.indent(x, y, force, dwell, should_stop=should_stop)
-        request = {"x": float(result.x), "y": float(result.y), "force": float(force), "dwell": float(dwell)}
+        request = {
+            "x": float(result.x),
+            "y": float(result.y),
+            "force": float(force),
+            "dwell": float(dwell),
+        }
         self._record("indent", request, result.trace if result.completed else None, t0, p0)
         return result
 
@@ -480,7 +647,9 @@ def indent_request_from_trace(trace: ForceTraceData) -> dict:
     z = np.asarray(trace.commanded_z, float)
     k = float(trace.normal_spring_constant)
     if len(t) < 2:
-        raise ValueError(f"indentation trace of {len(t)} samples: too short to tell force and dwell")
+        raise ValueError(
+            f"indentation trace of {len(t)} samples: too short to tell force and dwell"
+        )
     duration = float(t[-1] - t[0])
     z_max = float(np.max(z)) if len(z) == len(t) else 0.0
     if z_max > 0 and np.all(np.isfinite(z)):
@@ -490,11 +659,11 @@ def indent_request_from_trace(trace: ForceTraceData) -> dict:
         rising = [i for i in range(1, peak) if 0.0 < shape[i] < 1.0]
         falling = [i for i in range(last_peak + 1, len(t) - 1) if 0.0 < shape[i] < 1.0]
         if rising and falling:
-            i, j = rising[-1], falling[0]               # the samples nearest full load: least rounding
+            i, j = rising[-1], falling[0]  # the samples nearest full load: least rounding
             approach = (t[i] - t[0]) / shape[i]
             retract = (t[-1] - t[j]) / shape[j]
             dwell = duration - approach - retract
-        else:                                           # ramps shorter than a sample spacing
+        else:  # ramps shorter than a sample spacing
             dwell = float(t[last_peak] - t[peak])
         level = float(np.dot(d, shape) / np.dot(shape, shape))
     else:
@@ -514,7 +683,7 @@ class _Command:
     stamp_ns: int
     duration_ns: int
     message: object
-    data: object = None           # the decoded data message, once matched
+    data: object = None  # the decoded data message, once matched
     data_topic: str = ""
 
     @property
@@ -522,7 +691,11 @@ class _Command:
         return self.kind != "move"
 
     def window_contains(self, stamp_ns: int) -> bool:
-        return self.stamp_ns - TIME_SLACK_NS <= stamp_ns <= self.stamp_ns + self.duration_ns + TIME_SLACK_NS
+        return (
+            self.stamp_ns - TIME_SLACK_NS
+            <= stamp_ns
+            <= self.stamp_ns + self.duration_ns + TIME_SLACK_NS
+        )
 
 
 def _geometry_matches(command: _Command, topic: str, msg) -> bool:
@@ -531,19 +704,25 @@ def _geometry_matches(command: _Command, topic: str, msg) -> bool:
     if DATA_TOPIC.get(command.kind) != topic:
         return False
     if command.kind == "scan_line":
-        return (_close(msg.commanded_start.x, cmd.start.x) and _close(msg.commanded_start.y, cmd.start.y)
-                and _close(msg.commanded_end.x, cmd.end.x) and _close(msg.commanded_end.y, cmd.end.y))
+        return (
+            _close(msg.commanded_start.x, cmd.start.x)
+            and _close(msg.commanded_start.y, cmd.start.y)
+            and _close(msg.commanded_end.x, cmd.end.x)
+            and _close(msg.commanded_end.y, cmd.end.y)
+        )
     if command.kind == "raster":
         # the scan ends with the tip on its last line, inside the area (a pixel of margin)
         margin_x = abs(msg.pixel_size_x) + MATCH_TOLERANCE
         margin_y = abs(msg.pixel_size_y) + MATCH_TOLERANCE
-        return (msg.origin.x - margin_x <= cmd.end.x <= msg.origin.x + msg.size_x + margin_x
-                and msg.origin.y - margin_y <= cmd.end.y <= msg.origin.y + msg.size_y + margin_y)
+        return (
+            msg.origin.x - margin_x <= cmd.end.x <= msg.origin.x + msg.size_x + margin_x
+            and msg.origin.y - margin_y <= cmd.end.y <= msg.origin.y + msg.size_y + margin_y
+        )
     if msg.task != TRACE_TASK[command.kind]:
         return False
     if not len(msg.commanded_x):
         return True
-    if command.kind == "push":      # the contact path ends where the command ended
+    if command.kind == "push":  # the contact path ends where the command ended
         return _close(msg.commanded_x[-1], cmd.end.x) and _close(msg.commanded_y[-1], cmd.end.y)
     return _close(msg.commanded_x[0], cmd.start.x) and _close(msg.commanded_y[0], cmd.start.y)
 
@@ -566,14 +745,23 @@ class OperationStream:
         try:
             recorded = self._reader.topics()
             if TIP_COMMAND not in recorded:
-                raise SessionError(f"{self.path}: no {TIP_COMMAND} topic, so the commands cannot be told; "
-                                   f"recorded: {sorted(recorded)}")
+                raise SessionError(
+                    f"{self.path}: no {TIP_COMMAND} topic, so the commands cannot be told; "
+                    f"recorded: {sorted(recorded)}"
+                )
             for topic, info in recorded.items():
-                if topic in TYPES and info.type not in (TYPES[topic], TYPES[topic].replace("/msg/", "/")):
-                    raise SessionError(f"{self.path}: topic {topic} has type {info.type!r}, expected {TYPES[topic]!r}")
+                if topic in TYPES and info.type not in (
+                    TYPES[topic],
+                    TYPES[topic].replace("/msg/", "/"),
+                ):
+                    raise SessionError(
+                        f"{self.path}: topic {topic} has type {info.type!r}, expected {TYPES[topic]!r}"
+                    )
                 if topic in TYPES and info.schema_encoding != "ros2msg":
-                    raise SessionError(f"{self.path}: topic {topic} has schema encoding {info.schema_encoding!r}, "
-                                       "expected 'ros2msg' (as rosbag2 writes)")
+                    raise SessionError(
+                        f"{self.path}: topic {topic} has schema encoding {info.schema_encoding!r}, "
+                        "expected 'ros2msg' (as rosbag2 writes)"
+                    )
         except Exception:
             self._reader.close()
             raise
@@ -613,17 +801,19 @@ class OperationStream:
                 return
             except RecordingError as exc:
                 raise SessionError(f"{exc} (reading {', '.join(self.topics)})") from exc
-            except Exception as exc:     # noqa: BLE001 - mcap / CDR decoding of a corrupt record
-                raise SessionError(f"{self.path}: cannot decode a message on one of {self.topics}: "
-                                   f"{type(exc).__name__}: {exc}") from exc
+            except Exception as exc:  # noqa: BLE001 - mcap / CDR decoding of a corrupt record
+                raise SessionError(
+                    f"{self.path}: cannot decode a message on one of {self.topics}: "
+                    f"{type(exc).__name__}: {exc}"
+                ) from exc
             yield topic, message
 
     def _operations(self) -> Iterator[Operation]:
-        pending: deque[_Command] = deque()     # commands not yet emitted, in command order
-        unmatched: deque[tuple[str, int, object]] = deque()   # data whose command has not arrived
-        first_ns = None                        # the first command's stamp: the session's t = 0
+        pending: deque[_Command] = deque()  # commands not yet emitted, in command order
+        unmatched: deque[tuple[str, int, object]] = deque()  # data whose command has not arrived
+        first_ns = None  # the first command's stamp: the session's t = 0
         count = 0
-        floor_ns = None                        # end of the last emitted command: no open window before it
+        floor_ns = None  # end of the last emitted command: no open window before it
         try:
             for topic, msg in self._messages():
                 if topic == TIP_COMMAND:
@@ -631,18 +821,27 @@ class OperationStream:
                     count += 1
                     first_ns = command.stamp_ns if first_ns is None else first_ns
                     pending.append(command)
-                    for i, (data_topic, stamp, data) in enumerate(unmatched):   # its measurement may
-                        if self._try_attach(command, data_topic, data, stamp):       # have been logged first
+                    for i, (data_topic, stamp, data) in enumerate(
+                        unmatched
+                    ):  # its measurement may
+                        if self._try_attach(
+                            command, data_topic, data, stamp
+                        ):  # have been logged first
                             del unmatched[i]
                             break
                 else:
                     stamp = _stamp_ns(msg.header)
-                    if not any(c.data is None and c.needs_data and self._try_attach(c, topic, msg, stamp)
-                               for c in pending):
+                    if not any(
+                        c.data is None and c.needs_data and self._try_attach(c, topic, msg, stamp)
+                        for c in pending
+                    ):
                         unmatched.append((topic, stamp, msg))
                 # emit what is complete; a measurement not in after LOOKAHEAD later commands is missing
-                while pending and (pending[0].data is not None or not pending[0].needs_data
-                                   or len(pending) > LOOKAHEAD_COMMANDS):
+                while pending and (
+                    pending[0].data is not None
+                    or not pending[0].needs_data
+                    or len(pending) > LOOKAHEAD_COMMANDS
+                ):
                     command = pending.popleft()
                     floor_ns = command.stamp_ns + command.duration_ns
                     operation = self._finish(command, first_ns)
@@ -657,17 +856,24 @@ class OperationStream:
         finally:
             self._reader.close()
 
-    def _command(self, index: int, msg, first_ns: Optional[int]) -> _Command:
+    def _command(self, index: int, msg, first_ns: int | None) -> _Command:
         stamp = _stamp_ns(msg.header)
-        when = f"{(stamp - first_ns) * 1e-9:.6f} s after the first command" if first_ns is not None \
+        when = (
+            f"{(stamp - first_ns) * 1e-9:.6f} s after the first command"
+            if first_ns is not None
             else "the first command"
+        )
         kind = KIND_NAMES.get(int(msg.kind))
         if kind is None:
-            raise SessionError(f"{self.path}: {TIP_COMMAND} message {index} ({when}) has kind={msg.kind}, "
-                               f"which is none of {KIND_NAMES}")
+            raise SessionError(
+                f"{self.path}: {TIP_COMMAND} message {index} ({when}) has kind={msg.kind}, "
+                f"which is none of {KIND_NAMES}"
+            )
         if not (math.isfinite(msg.duration) and msg.duration >= 0):
-            raise SessionError(f"{self.path}: {TIP_COMMAND} message {index} ({when}): duration={msg.duration} s, "
-                               "must be finite and >= 0")
+            raise SessionError(
+                f"{self.path}: {TIP_COMMAND} message {index} ({when}): duration={msg.duration} s, "
+                "must be finite and >= 0"
+            )
         return _Command(index, kind, stamp, int(round(msg.duration * 1e9)), msg)
 
     @staticmethod
@@ -677,7 +883,9 @@ class OperationStream:
             return True
         return False
 
-    def _drop_unclaimable(self, unmatched, pending, floor_ns, first_ns, at_end: bool = False) -> None:
+    def _drop_unclaimable(
+        self, unmatched, pending, floor_ns, first_ns, at_end: bool = False
+    ) -> None:
         """Data messages no command can claim any more: stamped before every window still open
         (commands come in time order, so no later command can claim them), the oldest when too
         many wait, or all at the end. An error, unless missing_data='skip'."""
@@ -690,14 +898,18 @@ class OperationStream:
             unmatched.popleft()
             if self.missing_data == "skip":
                 continue
-            when = f"{(stamp - first_ns) * 1e-9:.6f} s after the first command" if first_ns is not None \
+            when = (
+                f"{(stamp - first_ns) * 1e-9:.6f} s after the first command"
+                if first_ns is not None
                 else f"{stamp * 1e-9:.9f} s (no command recorded)"
+            )
             raise SessionError(
                 f"{self.path}: a {topic} message stamped {when} matches no {TIP_COMMAND} (no command of its "
                 "kind whose time window and geometry contain it); read_operations(..., missing_data='skip') "
-                "ignores such messages")
+                "ignores such messages"
+            )
 
-    def _finish(self, command: _Command, first_ns: int) -> Optional[Operation]:
+    def _finish(self, command: _Command, first_ns: int) -> Operation | None:
         """The Operation of a command whose measurement is in (or a move); None when the
         measurement is missing and missing_data='skip'."""
         start_time = (command.stamp_ns - first_ns) * 1e-9
@@ -706,19 +918,35 @@ class OperationStream:
             if self.missing_data == "skip":
                 return None
             topic = DATA_TOPIC[command.kind]
-            what = f"a ForceTrace with task {TRACE_TASK[command.kind]!r}" if topic == FORCE_TRACE else "a message"
+            what = (
+                f"a ForceTrace with task {TRACE_TASK[command.kind]!r}"
+                if topic == FORCE_TRACE
+                else "a message"
+            )
             raise SessionError(
                 f"{self.path}: command {command.index} ({command.kind}) at {start_time:.6f} s after the first "
                 f"command has no measurement: expected {what} on {topic} stamped within "
                 f"[{start_time:.6f}, {start_time + cmd.duration:.6f}] s and matching its geometry "
                 f"(start {cmd.start.x:.4e}, {cmd.start.y:.4e} m, end {cmd.end.x:.4e}, {cmd.end.y:.4e} m). "
-                "Cancelled, or not recorded? read_operations(..., missing_data='skip') drops such commands")
+                "Cancelled, or not recorded? read_operations(..., missing_data='skip') drops such commands"
+            )
         msg = command.data
-        common = dict(index=command.index, kind=command.kind, start_time=start_time,
-                      start=(float(cmd.start.x), float(cmd.start.y)), end=(float(cmd.end.x), float(cmd.end.y)),
-                      speed=float(cmd.speed), duration=float(cmd.duration))
+        common = dict(
+            index=command.index,
+            kind=command.kind,
+            start_time=start_time,
+            start=(float(cmd.start.x), float(cmd.start.y)),
+            end=(float(cmd.end.x), float(cmd.end.y)),
+            speed=float(cmd.speed),
+            duration=float(cmd.duration),
+        )
         if command.kind == "move":
-            request = {"x": float(cmd.end.x), "y": float(cmd.end.y), "speed": float(cmd.speed), "contact": False}
+            request = {
+                "x": float(cmd.end.x),
+                "y": float(cmd.end.y),
+                "speed": float(cmd.speed),
+                "contact": False,
+            }
             return Operation(request=request, data=None, **common)
         data_start = (_stamp_ns(msg.header) - first_ns) * 1e-9
         try:
@@ -726,31 +954,58 @@ class OperationStream:
                 data, request = self._raster(msg, data_start)
                 return Operation(request=request, data=data, pair_id=str(msg.pair_id), **common)
             if command.kind == "scan_line":
-                data = ScanLineData(times=np.asarray(msg.times, float), x=np.asarray(msg.x, float),
-                                    y=np.asarray(msg.y, float), height=np.asarray(msg.height, float),
-                                    deflection=np.asarray(msg.deflection, float),
-                                    amplitude=np.asarray(msg.amplitude, float), start_time=data_start, mode=msg.mode)
-                request = LineRequest(cmd.start.x, cmd.start.y, cmd.end.x, cmd.end.y, samples=len(data.times),
-                                      speed=float(cmd.speed), mode=msg.mode or "tapping")
-                return Operation(request=request, data=data, landmark_id=int(msg.landmark_id), **common)
-            data = ForceTraceData(times=np.asarray(msg.times, float), commanded_x=np.asarray(msg.commanded_x, float),
-                                  commanded_y=np.asarray(msg.commanded_y, float),
-                                  commanded_z=np.asarray(msg.commanded_z, float),
-                                  vertical_deflection=np.asarray(msg.vertical_deflection, float),
-                                  lateral_torsion=np.asarray(msg.lateral_torsion, float),
-                                  normal_spring_constant=float(msg.normal_spring_constant),
-                                  lateral_spring_constant=float(msg.lateral_spring_constant),
-                                  sample_rate=float(msg.sample_rate), start_time=data_start, task=msg.task,
-                                  object_id=int(msg.object_id))
+                data = ScanLineData(
+                    times=np.asarray(msg.times, float),
+                    x=np.asarray(msg.x, float),
+                    y=np.asarray(msg.y, float),
+                    height=np.asarray(msg.height, float),
+                    deflection=np.asarray(msg.deflection, float),
+                    amplitude=np.asarray(msg.amplitude, float),
+                    start_time=data_start,
+                    mode=msg.mode,
+                )
+                request = LineRequest(
+                    cmd.start.x,
+                    cmd.start.y,
+                    cmd.end.x,
+                    cmd.end.y,
+                    samples=len(data.times),
+                    speed=float(cmd.speed),
+                    mode=msg.mode or "tapping",
+                )
+                return Operation(
+                    request=request, data=data, landmark_id=int(msg.landmark_id), **common
+                )
+            data = ForceTraceData(
+                times=np.asarray(msg.times, float),
+                commanded_x=np.asarray(msg.commanded_x, float),
+                commanded_y=np.asarray(msg.commanded_y, float),
+                commanded_z=np.asarray(msg.commanded_z, float),
+                vertical_deflection=np.asarray(msg.vertical_deflection, float),
+                lateral_torsion=np.asarray(msg.lateral_torsion, float),
+                normal_spring_constant=float(msg.normal_spring_constant),
+                lateral_spring_constant=float(msg.lateral_spring_constant),
+                sample_rate=float(msg.sample_rate),
+                start_time=data_start,
+                task=msg.task,
+                object_id=int(msg.object_id),
+            )
             if command.kind == "push":
-                request = {"x": float(cmd.end.x), "y": float(cmd.end.y), "speed": float(cmd.speed), "contact": True}
+                request = {
+                    "x": float(cmd.end.x),
+                    "y": float(cmd.end.y),
+                    "speed": float(cmd.speed),
+                    "contact": True,
+                }
             else:
                 request = indent_request_from_trace(data)
                 request["x"], request["y"] = float(cmd.start.x), float(cmd.start.y)
             return Operation(request=request, data=data, **common)
         except (ValueError, RecordingError) as exc:
-            raise SessionError(f"{self.path}: {command.data_topic} message of command {command.index} "
-                               f"({command.kind}) at {start_time:.6f} s: {exc}") from exc
+            raise SessionError(
+                f"{self.path}: {command.data_topic} message of command {command.index} "
+                f"({command.kind}) at {start_time:.6f} s: {exc}"
+            ) from exc
 
     @staticmethod
     def _raster(msg, data_start: float) -> tuple[RasterScanData, ScanRequest]:
@@ -758,20 +1013,37 @@ class OperationStream:
         rows, columns = height.shape
         lines = rows if msg.scan_angle_deg == 0 else columns
         if len(msg.line_start_times) != lines:
-            raise ValueError(f"line_start_times has {len(msg.line_start_times)} entries, the image has {lines} lines")
-        data = RasterScanData(height=height, pixel_size_x=float(msg.pixel_size_x), pixel_size_y=float(msg.pixel_size_y),
-                              origin_x=float(msg.origin.x), origin_y=float(msg.origin.y),
-                              scan_angle_deg=float(msg.scan_angle_deg), slow_scan_up=bool(msg.slow_scan_up),
-                              line_period=float(msg.line_period),
-                              line_start_times=np.asarray(msg.line_start_times, float),
-                              start_time=data_start, mode=msg.mode)
+            raise ValueError(
+                f"line_start_times has {len(msg.line_start_times)} entries, the image has {lines} lines"
+            )
+        data = RasterScanData(
+            height=height,
+            pixel_size_x=float(msg.pixel_size_x),
+            pixel_size_y=float(msg.pixel_size_y),
+            origin_x=float(msg.origin.x),
+            origin_y=float(msg.origin.y),
+            scan_angle_deg=float(msg.scan_angle_deg),
+            slow_scan_up=bool(msg.slow_scan_up),
+            line_period=float(msg.line_period),
+            line_start_times=np.asarray(msg.line_start_times, float),
+            start_time=data_start,
+            mode=msg.mode,
+        )
         # size from the pixels, as the driver computes it; checks of absurd values are the
         # resimulation's business (check_config_matches), not the reader's
         line_rate = 1.0 / msg.line_period if msg.line_period > 0 else math.inf
-        request = ScanRequest(origin_x=data.origin_x, origin_y=data.origin_y,
-                              size_x=float(msg.pixel_size_x * columns), size_y=float(msg.pixel_size_y * rows),
-                              pixels_x=columns, pixels_y=rows, scan_angle_deg=data.scan_angle_deg,
-                              slow_scan_up=data.slow_scan_up, line_rate=line_rate, mode=msg.mode or "tapping")
+        request = ScanRequest(
+            origin_x=data.origin_x,
+            origin_y=data.origin_y,
+            size_x=float(msg.pixel_size_x * columns),
+            size_y=float(msg.pixel_size_y * rows),
+            pixels_x=columns,
+            pixels_y=rows,
+            scan_angle_deg=data.scan_angle_deg,
+            slow_scan_up=data.slow_scan_up,
+            line_rate=line_rate,
+            mode=msg.mode or "tapping",
+        )
         return data, request
 
 
