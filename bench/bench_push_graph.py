@@ -44,10 +44,10 @@ from machine import cpu_model  # noqa: E402
 from afm_bringup.commander import AfmCommander  # noqa: E402
 from afm_bringup.demo import peak_rss_bytes  # noqa: E402
 from afm_bringup.launcher import Graph  # noqa: E402
-from afm_bringup.qos_profiles import LATCHED  # noqa: E402
 from afm_core.evaluation import image_frame_matrix  # noqa: E402
 from afm_msgs.action import PushParticle  # noqa: E402
 from afm_msgs.msg import GroundTruth, LandmarkArray  # noqa: E402
+from afm_ros.qos_profiles import LATCHED  # noqa: E402
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 NM = 1e-9

@@ -140,8 +140,8 @@ def make_scans(payload: Payload, seed: int = 1) -> list[bytes]:
     """Scans of a few samples; within one sample the tip pushes particles and the scanner drifts."""
     from rclpy.serialization import serialize_message
 
-    from afm_bringup.conversions import array_to_image
     from afm_msgs.msg import RasterScan
+    from afm_ros.conversions import array_to_image
 
     rng = np.random.default_rng(seed)
     out = []

@@ -3,8 +3,8 @@
 import numpy as np
 from rclpy.serialization import serialize_message
 
-from afm_bringup.conversions import array_to_image
 from afm_msgs.msg import ForceTrace, Landmark, LandmarkArray, RasterScan
+from afm_ros.conversions import array_to_image
 
 
 def raster_scan(i: int) -> RasterScan:

@@ -9,10 +9,10 @@ from geometry_msgs.msg import PointStamped
 from rosgraph_msgs.msg import Clock
 
 from afm_bringup.commander import AfmCommander
-from afm_bringup.conversions import image_msg_to_array
-from afm_bringup.qos_profiles import LATCHED
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_msgs.msg import GroundTruth
+from afm_ros.conversions import image_msg_to_array
+from afm_ros.qos_profiles import LATCHED
 
 pytestmark = pytest.mark.ros
 
@@ -222,8 +222,8 @@ def test_replay_backend_serves_a_recorded_session(tmp_path, nodes):
 def test_the_driver_as_a_core_instrument_through_its_actions(driver, ros_node):
     """ActionInstrument: what the localizer and nano-hand call; results carry the executed
     command, so the instrument clock and the commanded position follow the driver."""
-    from afm_bringup.ros_instrument import ActionInstrument
     from afm_core.instrument import LineRequest, ScanRequest
+    from afm_ros.action_instrument import ActionInstrument
 
     instrument = ActionInstrument(ros_node, server_timeout=30)
     move = instrument.move_tip(54.7e-6, 55.0e-6, 10e-6)

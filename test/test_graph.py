@@ -10,9 +10,9 @@ import pytest
 from conftest import wait_for
 
 from afm_bringup.commander import AfmCommander, AfmError
-from afm_bringup.conversions import image_msg_to_array
 from afm_bringup.units import parse_length
 from afm_core.recording import RecordingReader
+from afm_ros.conversions import image_msg_to_array
 
 pytestmark = pytest.mark.ros
 

@@ -6,12 +6,12 @@ from conftest import wait_for
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from afm_bringup.conversions import FRAME_SCANNER, raster_scan_to_msg
-from afm_bringup.qos_profiles import LATCHED
 from afm_core.instrument import ScanRequest
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 from afm_msgs.msg import LandmarkArray, RasterScan, TipShape
+from afm_ros.conversions import FRAME_SCANNER, raster_scan_to_msg
+from afm_ros.qos_profiles import LATCHED
 
 pytestmark = pytest.mark.ros
 

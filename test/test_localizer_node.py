@@ -9,11 +9,11 @@ from sim_calibration import oracle_calibration
 from std_msgs.msg import Header
 
 from afm_bringup.commander import AfmCommander
-from afm_bringup.conversions import FRAME_TASK, landmarks_to_msg, pose_to_mean_cov
-from afm_bringup.qos_profiles import LATCHED
 from afm_core.imaging.landmarks import Landmark
 from afm_msgs.action import MoveTip
 from afm_msgs.msg import GroundTruth, LandmarkArray
+from afm_ros.conversions import FRAME_TASK, landmarks_to_msg, pose_to_mean_cov
+from afm_ros.qos_profiles import LATCHED
 
 pytestmark = pytest.mark.ros
 

@@ -6,13 +6,13 @@ from conftest import wait_for
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
-from afm_bringup.conversions import FRAME_TASK, landmarks_to_msg, mean_cov_to_pose
-from afm_bringup.qos_profiles import LATCHED
 from afm_core.imaging.landmarks import Landmark
 from afm_core.planning import exact_order, order_cost
 from afm_core.planning.book_table_6_5 import TABLE_6_5_UM
 from afm_msgs.msg import LandmarkArray
 from afm_msgs.srv import PlanObservation, PlanPath, PlanSequence
+from afm_ros.conversions import FRAME_TASK, landmarks_to_msg, mean_cov_to_pose
+from afm_ros.qos_profiles import LATCHED
 
 pytestmark = pytest.mark.ros
 

@@ -12,8 +12,8 @@ from conftest import wait_for
 from sim_calibration import oracle_calibration
 
 from afm_bringup.commander import AfmCommander
-from afm_bringup.qos_profiles import LATCHED
 from afm_msgs.msg import GroundTruth, LandmarkArray
+from afm_ros.qos_profiles import LATCHED
 
 pytestmark = pytest.mark.ros
 

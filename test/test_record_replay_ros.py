@@ -13,9 +13,9 @@ from rclpy.qos import qos_profile_sensor_data
 from rosgraph_msgs.msg import Clock
 from sample_messages import force_trace, landmarks, raster_scan
 
-from afm_bringup.qos_profiles import LATCHED
 from afm_core.recording import RecordingReader
 from afm_msgs.msg import ForceTrace, LandmarkArray, RasterScan
+from afm_ros.qos_profiles import LATCHED
 
 pytestmark = pytest.mark.ros
 

@@ -77,7 +77,7 @@ def test_offline_reader_returns_numpy_arrays(tmp_path):
         scans = reader.arrays("/afm/scan")
         traces = reader.arrays("/afm/force_trace")
         marks = reader.arrays("/afm/landmarks")
-    from afm_bringup.conversions import image_msg_to_array
+    from afm_ros.conversions import image_msg_to_array
 
     expected = np.stack([image_msg_to_array(m.height) for m in originals["/afm/scan"]])
     np.testing.assert_array_equal(scans["height"], expected)

@@ -255,15 +255,15 @@ def test_messages_are_those_the_driver_publishes_byte_for_byte(session):
     from rclpy.serialization import serialize_message
     from std_msgs.msg import Header
 
-    from afm_bringup import qos_profiles
-    from afm_bringup.conversions import (
+    from afm_msgs.msg import TipCommand
+    from afm_ros import qos_profiles
+    from afm_ros.conversions import (
         force_trace_to_msg,
         raster_scan_to_msg,
         scan_line_to_msg,
         truth_to_msg,
     )
-    from afm_bringup.ros_types import describe_qos
-    from afm_msgs.msg import TipCommand
+    from afm_ros.message_types import describe_qos
 
     def header(seconds, frame="afm_scanner"):
         sec, nanosec = divmod(EPOCH_NS + int(round(seconds * 1e9)), 1_000_000_000)

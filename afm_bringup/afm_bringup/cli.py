@@ -66,8 +66,8 @@ def wait_for_recorder(graph):
     """Tell the user 'ready' only once the recorder hears every topic that has a publisher."""
     import time
 
-    from afm_bringup import topics
     from afm_bringup.commander import AfmCommander, AfmError
+    from afm_ros import topics
 
     with AfmCommander("afm_launch_probe") as probe:
         time.sleep(1.0)  # let the nodes create their publishers
@@ -139,7 +139,7 @@ def cmd_scan(args):
     import numpy as np
 
     from afm_bringup.commander import AfmCommander, AfmError
-    from afm_bringup.conversions import image_msg_to_array
+    from afm_ros.conversions import image_msg_to_array
 
     with AfmCommander() as afm:
         try:

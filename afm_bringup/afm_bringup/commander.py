@@ -20,9 +20,6 @@ from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 
-from afm_bringup import topics
-from afm_bringup.action_client import SafeActionClient
-from afm_bringup.qos_profiles import FEEDBACK
 from afm_msgs.action import (
     Assemble,
     Indent,
@@ -33,6 +30,9 @@ from afm_msgs.action import (
     ScanImage,
     Sim2Real,
 )
+from afm_ros import topics
+from afm_ros.action_client import SafeActionClient
+from afm_ros.qos_profiles import FEEDBACK
 
 
 class AfmError(RuntimeError):

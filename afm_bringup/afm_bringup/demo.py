@@ -27,11 +27,8 @@ import numpy as np
 from rclpy.qos import QoSProfile
 from std_msgs.msg import Header
 
-from afm_bringup import topics
 from afm_bringup.commander import AfmCommander
-from afm_bringup.conversions import FRAME_TASK, mean_cov_to_pose, msg_to_landmarks
 from afm_bringup.launcher import GRAPH, Graph
-from afm_bringup.qos_profiles import LATCHED
 from afm_bringup.units import nm
 from afm_core.evaluation import (
     compare_payloads,
@@ -44,6 +41,9 @@ from afm_core.recording import RecordingReader
 from afm_core.report import save_height_maps, save_push_figure, table, write_html
 from afm_msgs.msg import LandmarkArray, RasterScan
 from afm_msgs.srv import PlanPath
+from afm_ros import topics
+from afm_ros.conversions import FRAME_TASK, mean_cov_to_pose, msg_to_landmarks
+from afm_ros.qos_profiles import LATCHED
 
 SCAN_ORIGIN = (54.3e-6, 54.3e-6)  # m: the simulated sample's particles lie around (55 um, 55 um)
 SCAN_SIZE = (1.8e-6, 1.8e-6)

@@ -11,10 +11,10 @@ import sys
 
 from rclpy.node import Node
 
-from afm_bringup import params, topics
-from afm_bringup.node_main import run
-from afm_bringup.ros_types import describe_qos, import_message_type, subscription_qos_for
 from afm_core.recording import DefinitionNotFound, RecordingError, RecordingWriter
+from afm_ros import params, topics
+from afm_ros.message_types import describe_qos, import_message_type, subscription_qos_for
+from afm_ros.node_main import run
 
 PARAMETERS = [
     ("output", "", "Path of the new .mcap file (required; never overwritten)."),

@@ -17,10 +17,10 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
-from afm_bringup import params
-from afm_bringup.node_main import run
-from afm_bringup.ros_types import import_message_type, publisher_qos_for
 from afm_core.recording import RecordingError, RecordingReader
+from afm_ros import params
+from afm_ros.message_types import import_message_type, publisher_qos_for
+from afm_ros.node_main import run
 
 PARAMETERS = [
     ("input", "", "Path of the .mcap recording to replay (required)."),

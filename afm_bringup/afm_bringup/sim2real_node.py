@@ -19,10 +19,10 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
-from afm_bringup import topics
-from afm_bringup.node_main import run
-from afm_bringup.params import declare
 from afm_msgs.action import Sim2Real
+from afm_ros import topics
+from afm_ros.node_main import run
+from afm_ros.params import declare
 
 PARAMETERS = [
     (

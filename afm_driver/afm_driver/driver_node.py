@@ -20,8 +20,12 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
-from afm_bringup import params, topics
-from afm_bringup.conversions import (
+from afm_core.backends import open_instrument
+from afm_core.instrument import LineRequest, ScanRequest
+from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
+from afm_msgs.msg import ForceTrace, GroundTruth, RasterScan, ScanLine, TipCommand
+from afm_ros import params, topics
+from afm_ros.conversions import (
     FRAME_SCANNER,
     FRAME_TASK,
     force_trace_to_msg,
@@ -30,12 +34,8 @@ from afm_bringup.conversions import (
     seconds_to_time,
     truth_to_msg,
 )
-from afm_bringup.node_main import run
-from afm_bringup.qos_profiles import EVENTS, FEEDBACK, LATCHED, SCANS, STREAM
-from afm_core.backends import open_instrument
-from afm_core.instrument import LineRequest, ScanRequest
-from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
-from afm_msgs.msg import ForceTrace, GroundTruth, RasterScan, ScanLine, TipCommand
+from afm_ros.node_main import run
+from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED, SCANS, STREAM
 
 PARAMETERS = [
     (

@@ -21,8 +21,10 @@ from rclpy.qos import QoSProfile
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from afm_bringup import params, topics
-from afm_bringup.conversions import (
+from afm_core.imaging.landmarks import MapErrorModel, extract_landmarks
+from afm_msgs.msg import LandmarkArray, RasterScan, TipShape
+from afm_ros import params, topics
+from afm_ros.conversions import (
     FRAME_IMAGE,
     FRAME_TASK,
     array_to_image,
@@ -30,10 +32,8 @@ from afm_bringup.conversions import (
     msg_to_raster_scan,
     raster_scan_to_msg,
 )
-from afm_bringup.node_main import run
-from afm_bringup.qos_profiles import LATCHED
-from afm_core.imaging.landmarks import MapErrorModel, extract_landmarks
-from afm_msgs.msg import LandmarkArray, RasterScan, TipShape
+from afm_ros.node_main import run
+from afm_ros.qos_profiles import LATCHED
 
 LOCAL_CHECK_PREFIX = "local"  # pair_id of scans that check an area (e.g. a push's verification)
 

@@ -5,7 +5,7 @@ The algorithms are afm_core.localization (`Localizer`: motion model + filterpy K
 this node feeds it every command the driver executes (/afm/tip_command, from any client),
 publishes the estimate on /afm/tip_pose (afm_task) at a steady rate and after every update,
 and serves the Localize action, which runs the local scan lines through the driver's actions
-(afm_bringup.ros_instrument.ActionInstrument) and updates the estimate.
+(afm_ros.action_instrument.ActionInstrument) and updates the estimate.
 
 The task frame is the scanner frame at the first command the node hears, to within
 `initial_sigma`; maps and landmarks are in the same frame.
@@ -26,8 +26,14 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
-from afm_bringup import params, topics
-from afm_bringup.conversions import (
+from afm_core.instrument import ScannerLimits
+from afm_core.localization import GATE_CHI2_1DOF_999, Localizer, MapLandmark
+from afm_core.localization.calibration import Calibration, load_calibration
+from afm_msgs.action import Localize
+from afm_msgs.msg import LandmarkArray, TipCommand
+from afm_ros import params, topics
+from afm_ros.action_instrument import ActionInstrument, DriverUnavailable, stamp_seconds
+from afm_ros.conversions import (
     FRAME_TASK,
     mean_cov_to_pose,
     msg_to_landmarks,
@@ -37,14 +43,8 @@ from afm_bringup.conversions import (
     wait_for_landmarks,
     wait_until,
 )
-from afm_bringup.node_main import run
-from afm_bringup.qos_profiles import EVENTS, LATCHED
-from afm_bringup.ros_instrument import ActionInstrument, DriverUnavailable, stamp_seconds
-from afm_core.instrument import ScannerLimits
-from afm_core.localization import GATE_CHI2_1DOF_999, Localizer, MapLandmark
-from afm_core.localization.calibration import Calibration, load_calibration
-from afm_msgs.action import Localize
-from afm_msgs.msg import LandmarkArray, TipCommand
+from afm_ros.node_main import run
+from afm_ros.qos_profiles import EVENTS, LATCHED
 
 PARAMETERS = [
     (

@@ -32,21 +32,6 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.node import Node
 from std_msgs.msg import Header
 
-from afm_bringup import params, topics
-from afm_bringup.action_client import SafeActionClient
-from afm_bringup.conversions import (
-    FRAME_TASK,
-    landmarks_to_msg,
-    msg_to_landmarks,
-    newer_landmarks,
-    pose_to_mean_cov,
-    seconds_to_time,
-    stamp_of,
-    wait_for_landmarks,
-)
-from afm_bringup.node_main import run
-from afm_bringup.qos_profiles import EVENTS, FEEDBACK, LATCHED
-from afm_bringup.ros_instrument import ActionInstrument, DriverUnavailable, call_action
 from afm_core.instrument import ScannerLimits, ScanRequest, check_in_range
 from afm_core.localization.calibration import Calibration, load_calibration
 from afm_core.manipulation import (
@@ -64,6 +49,21 @@ from afm_core.manipulation.execute import pushed_object_after
 from afm_msgs.action import Assemble, Localize, PushParticle
 from afm_msgs.msg import LandmarkArray, PlannedPath, TipCommand
 from afm_msgs.srv import PlanSequence
+from afm_ros import params, topics
+from afm_ros.action_client import SafeActionClient
+from afm_ros.action_instrument import ActionInstrument, DriverUnavailable, call_action
+from afm_ros.conversions import (
+    FRAME_TASK,
+    landmarks_to_msg,
+    msg_to_landmarks,
+    newer_landmarks,
+    pose_to_mean_cov,
+    seconds_to_time,
+    stamp_of,
+    wait_for_landmarks,
+)
+from afm_ros.node_main import run
+from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED
 
 PARAMETERS = [
     (

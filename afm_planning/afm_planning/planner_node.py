@@ -20,17 +20,6 @@ from rclpy.node import Node
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from afm_bringup import params, topics
-from afm_bringup.conversions import (
-    FRAME_TASK,
-    msg_to_landmarks,
-    newer_landmarks,
-    pose_to_mean_cov,
-    stamp_of,
-    wait_until,
-)
-from afm_bringup.node_main import run
-from afm_bringup.qos_profiles import EVENTS, LATCHED
 from afm_core.instrument import ScannerLimits, check_in_range
 from afm_core.localization.calibration import Calibration, load_calibration
 from afm_core.planning import (
@@ -46,6 +35,17 @@ from afm_core.planning import (
 )
 from afm_msgs.msg import LandmarkArray, PlannedPath
 from afm_msgs.srv import PlanObservation, PlanPath, PlanSequence
+from afm_ros import params, topics
+from afm_ros.conversions import (
+    FRAME_TASK,
+    msg_to_landmarks,
+    newer_landmarks,
+    pose_to_mean_cov,
+    stamp_of,
+    wait_until,
+)
+from afm_ros.node_main import run
+from afm_ros.qos_profiles import EVENTS, LATCHED
 
 PARAMETERS = [
     (

@@ -62,7 +62,7 @@ TYPES = {
 }
 
 
-# The QoS the driver offers (afm_bringup.qos_profiles), in the form our recorder stores what it
+# The QoS the driver offers (afm_ros.qos_profiles), in the form our recorder stores what it
 # discovers (history and depth are not sent over the wire: "unknown", 0; durations infinite),
 # so a replay republishes each topic as the driver did: commands and scans reliable and
 # latched, streams best effort (sensor data), truth reliable and latched.
@@ -316,7 +316,7 @@ class SessionWriter:
             self._write(FORCE_TRACE, self.trace_message(op.data), published)
 
     def raster_message(self, scan: RasterScanData, scan_id: int, pair_id: str = "") -> dict:
-        """afm_bringup.conversions.raster_scan_to_msg, without rclpy."""
+        """afm_ros.conversions.raster_scan_to_msg, without rclpy."""
         header = self._header(scan.start_time)
         height = np.ascontiguousarray(scan.height, dtype="<f4")
         rows, columns = height.shape
@@ -347,7 +347,7 @@ class SessionWriter:
         }
 
     def line_message(self, line: ScanLineData, start, end, landmark_id: int = -1) -> dict:
-        """afm_bringup.conversions.scan_line_to_msg, without rclpy."""
+        """afm_ros.conversions.scan_line_to_msg, without rclpy."""
         return {
             "header": self._header(line.start_time),
             "commanded_start": _point(*start),
@@ -363,7 +363,7 @@ class SessionWriter:
         }
 
     def trace_message(self, trace: ForceTraceData) -> dict:
-        """afm_bringup.conversions.force_trace_to_msg, without rclpy."""
+        """afm_ros.conversions.force_trace_to_msg, without rclpy."""
         return {
             "header": self._header(trace.start_time),
             "times": _floats(trace.times),
@@ -380,7 +380,7 @@ class SessionWriter:
         }
 
     def write_truth(self, truth: dict) -> None:
-        """A GroundTruth (afm_bringup.conversions.truth_to_msg) stamped and logged at truth['time']."""
+        """A GroundTruth (afm_ros.conversions.truth_to_msg) stamped and logged at truth['time']."""
         if GROUND_TRUTH not in self._channels:
             raise SessionError(f"{self.path}: opened with truth=False; no {GROUND_TRUTH} channel")
         objects = []

@@ -19,10 +19,6 @@ from collections.abc import Callable
 import numpy as np
 from rclpy.callback_groups import ReentrantCallbackGroup
 
-from afm_bringup import topics
-from afm_bringup.action_client import SafeActionClient
-from afm_bringup.conversions import FRAME_SCANNER, msg_to_raster_scan
-from afm_bringup.qos_profiles import FEEDBACK
 from afm_core.instrument import (
     ForceTraceData,
     IndentResult,
@@ -36,6 +32,10 @@ from afm_core.instrument import (
     validate_move,
 )
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
+from afm_ros import topics
+from afm_ros.action_client import SafeActionClient
+from afm_ros.conversions import FRAME_SCANNER, msg_to_raster_scan
+from afm_ros.qos_profiles import FEEDBACK
 
 
 class DriverUnavailable(RuntimeError):
