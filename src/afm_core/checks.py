@@ -1,0 +1,94 @@
+"""Input checks shared by every interface of the core, the nodes and the CLI.
+
+Each takes the field's name first and the value second, returns the value converted, and
+raises ValueError with a message that names the field, the value, its unit and the limit it
+broke, so a user knows what to change. A node's parameters, an action goal's fields and a
+core function's arguments are checked by the same words.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def _unit(unit: str) -> str:
+    return f" {unit}" if unit else ""
+
+
+def finite(name: str, value, unit: str = "") -> float:
+    """A finite number."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}={value!r}: must be a number{_unit(unit)}") from exc
+    if not math.isfinite(number):
+        raise ValueError(f"{name}={value}: must be finite{_unit(unit)}")
+    return number
+
+
+def positive(name: str, value, unit: str = "", *, upper: float | None = None) -> float:
+    """A finite number > 0, at most `upper` when given."""
+    number = finite(name, value, unit)
+    if not number > 0:
+        raise ValueError(f"{name}={number}: must be finite and > 0{_unit(unit)}")
+    if upper is not None and number > upper:
+        raise ValueError(
+            f"{name}={number:.4g}{_unit(unit)}: above the limit {upper:.4g}{_unit(unit)}"
+        )
+    return number
+
+
+def non_negative(name: str, value, unit: str = "", *, upper: float | None = None) -> float:
+    """A finite number >= 0, at most `upper` when given."""
+    number = finite(name, value, unit)
+    if not number >= 0:
+        raise ValueError(f"{name}={number}: must be finite and >= 0{_unit(unit)}")
+    if upper is not None and number > upper:
+        raise ValueError(
+            f"{name}={number:.4g}{_unit(unit)}: above the limit {upper:.4g}{_unit(unit)}"
+        )
+    return number
+
+
+def within(name: str, value, low: float, high: float, unit: str = "") -> float:
+    """A finite number in the closed interval [low, high]."""
+    number = finite(name, value, unit)
+    if not low <= number <= high:
+        raise ValueError(
+            f"{name}={number:.4g}{_unit(unit)}: outside [{low:.4g}, {high:.4g}]{_unit(unit)}"
+        )
+    return number
+
+
+def count(name: str, value, minimum: int = 0, maximum: int | None = None) -> int:
+    """A whole number in [minimum, maximum] (no maximum when None)."""
+    try:
+        whole = int(value)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ValueError(f"{name}={value!r}: must be a whole number") from exc
+    if whole != value or whole < minimum or (maximum is not None and whole > maximum):
+        limit = f"[{minimum}, {maximum}]" if maximum is not None else f">= {minimum}"
+        raise ValueError(f"{name}={value}: need a whole number {limit}")
+    return whole
+
+
+def point(name: str, value, unit: str = "m") -> np.ndarray:
+    """A finite point (x, y)."""
+    try:
+        xy = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}={value!r}: must be a point (x, y){_unit(unit)}") from exc
+    if xy.size != 2:
+        raise ValueError(f"{name}={value!r}: must be a point (x, y){_unit(unit)}")
+    if not np.all(np.isfinite(xy)):
+        raise ValueError(f"{name}={tuple(xy)}: must be finite{_unit(unit)}")
+    return xy
+
+
+def one_of(name: str, value, choices) -> object:
+    """One of a fixed set of choices."""
+    if value not in choices:
+        raise ValueError(f"{name}={value!r}: must be one of {list(choices)}")
+    return value
