@@ -64,34 +64,3 @@ def test_landmark_kinds_are_distinct_constants():
         messages.Landmark.PIT,
     }
     assert len(kinds) == 4
-
-
-@pytest.mark.parametrize(
-    "name", sorted(__import__("afm_bringup.launcher", fromlist=["NODES"]).NODES)
-)
-def test_each_nodes_params_file_documents_exactly_its_parameters_with_their_defaults(name):
-    """The commented YAML shipped with a node is the reference a lab edits: it must name every
-    parameter the node declares, with the node's default, and nothing it does not know."""
-    import importlib
-
-    import yaml
-
-    from afm_bringup.launcher import NODES
-
-    spec = NODES[name]
-    module = importlib.import_module(spec.module)
-    table = getattr(module, "PARAMETERS", [])
-    path = ROOT / spec.package / "config" / spec.params_file
-    data = yaml.safe_load(path.read_text())
-    ((node_name, section),) = data.items()
-    documented = section["ros__parameters"] or {}
-    declared = {entry[0]: entry[1] for entry in table}
-    assert set(documented) == set(declared), (
-        f"{path.name}: documented {sorted(documented)} vs declared {sorted(declared)}"
-    )
-    for key, default in declared.items():
-        assert (
-            documented[key] == pytest.approx(default)
-            if isinstance(default, float)
-            else documented[key] == default
-        ), f"{path.name}: {key} = {documented[key]!r}, node default {default!r}"

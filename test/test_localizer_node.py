@@ -109,3 +109,41 @@ def test_localize_through_the_action_with_lost_gated_and_unknown_landmarks(
         wait_for(lambda: len(truths) > 1, 5)
         true_tip = np.array([truths[-1].tip_position.x, truths[-1].tip_position.y])
         assert np.all(np.abs(mean - true_tip) < 4 * np.sqrt(np.diag(cov)))
+
+
+def set_parameter(client, name, value):
+    from rclpy.parameter import Parameter as RosParameter
+
+    future = client.set_parameters([RosParameter(name, value=value)])
+    wait_for(future.done, 10, what=f"an answer to setting {name}")
+    return future.result().results[0]
+
+
+def test_a_parameter_set_at_run_time_is_applied_or_refused_with_the_reason(
+    tmp_path, nodes, ros_node
+):
+    from rclpy.parameter_client import AsyncParameterClient
+
+    calibration = oracle_calibration(tmp_path / "calibration.yaml")
+    nodes("driver", seed=3, real_time_factor=0.0)
+    nodes("localizer", calibration_file=str(calibration))
+    ros_node.create_publisher(LandmarkArray, "/afm/landmarks", LATCHED).publish(
+        landmarks_to_msg([landmark(0, *SPHERE)], Header(frame_id=FRAME_TASK))
+    )
+    client = AsyncParameterClient(ros_node, "afm_localizer")
+    assert client.wait_for_services(timeout_sec=20)
+    with AfmCommander(server_timeout=30) as afm:
+        move(afm, 54.7e-6, 54.75e-6)
+        # a gate no innovation passes: the running filter takes it, the same line is rejected
+        assert set_parameter(client, "gate", 1e-12).successful
+        gated = afm.localize(landmark_id=0)
+        assert not gated.success and gated.gated_out, gated.message
+        restored = set_parameter(client, "gate", 10.827566170662733)
+        assert restored.successful
+        assert afm.localize(landmark_id=0).success
+
+        refused = set_parameter(client, "gate", -1.0)
+        assert not refused.successful and "parameter gate=-1.0: must be > 0" in refused.reason
+        read_only = set_parameter(client, "calibration_file", "other.yaml")
+        assert not read_only.successful and "read-only" in read_only.reason
+        assert afm.localize(landmark_id=0).success  # the refusals changed nothing

@@ -265,7 +265,6 @@ def test_null_session_reports_no_missing_physics(null_diagnosis, tmp_path):
     d = null_diagnosis
     assert d.chosen == [], d.summary()
     assert "no missing physics" in d.summary()
-    assert d.timings["total"] < 120
     from afm_core.sim2real.report import write_report
 
     path = write_report(d, tmp_path)

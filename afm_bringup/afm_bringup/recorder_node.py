@@ -11,36 +11,53 @@ import sys
 
 from rclpy.node import Node
 
+from afm_core.parameters import Parameter, ParameterTable
 from afm_core.recording import DefinitionNotFound, RecordingError, RecordingWriter
 from afm_ros import params, topics
 from afm_ros.message_types import describe_qos, import_message_type, subscription_qos_for
 from afm_ros.node_main import run
 
-PARAMETERS = [
-    ("output", "", "Path of the new .mcap file (required; never overwritten)."),
-    (
+PARAMETERS = ParameterTable(
+    Parameter("output", "", "Path of the new .mcap file (required; never overwritten)."),
+    Parameter(
         "topics",
         topics.RECORDED_BY_DEFAULT,
         "Topics to record; subscribed when a publisher appears.",
     ),
-    (
+    Parameter(
         "all_topics",
         False,
         "Record every topic that appears (except /rosout and /parameter_events).",
     ),
-    ("discovery_period", 0.5, "s between checks of the ROS graph for new publishers."),
-    ("compression", "zstd", "Chunk compression: zstd, lz4 or none."),
-    (
+    Parameter(
+        "discovery_period",
+        0.5,
+        "Time between checks of the ROS graph for new publishers.",
+        unit="s",
+        minimum=0.0,
+        above_minimum=True,
+    ),
+    Parameter(
+        "compression",
+        "zstd",
+        "Chunk compression: zstd, lz4 or none.",
+        choices=("zstd", "lz4", "none"),
+    ),
+    Parameter(
         "chunk_size",
         4 * 1024 * 1024,
         "Bytes of messages per MCAP chunk before it is compressed and written.",
+        unit="B",
+        minimum=1,
     ),
-    (
+    Parameter(
         "min_free_bytes",
         64 * 1024 * 1024,
         "Stop and close the recording when the disk has less free space.",
+        unit="B",
+        minimum=0,
     ),
-]
+)
 IGNORED_WITH_ALL = {"/rosout", "/parameter_events"}
 DRAIN_SECONDS = 5.0  # at most, after SIGINT/SIGTERM, writing what had already arrived
 
@@ -137,7 +154,7 @@ def main(args=None):
         RecorderNode,
         "afm recorder",
         args,
-        config_errors=(RecordingError,),
+        config_errors=(RecordingError, ValueError),
         on_shutdown=close_recording,
         drain_seconds=DRAIN_SECONDS,
     )

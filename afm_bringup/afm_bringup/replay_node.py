@@ -17,33 +17,61 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
+from afm_core.parameters import Parameter, ParameterTable
 from afm_core.recording import RecordingError, RecordingReader
 from afm_ros import params
 from afm_ros.message_types import import_message_type, publisher_qos_for
 from afm_ros.node_main import run
 
-PARAMETERS = [
-    ("input", "", "Path of the .mcap recording to replay (required)."),
-    ("rate", 1.0, "Playback speed factor (2.0 = twice as fast); must be > 0."),
-    ("topics", [""], "Topics to replay; empty = every recorded topic."),
-    ("loop", False, "Start again from the beginning after the last message."),
-    ("publish_clock", True, "Publish the recording's time on /clock (for use_sim_time)."),
-    ("clock_frequency", 100.0, "Hz of /clock messages (recording time), when publish_clock."),
-    ("start_delay", 1.0, "s to wait before the first message so subscribers can connect."),
-    (
+PARAMETERS = ParameterTable(
+    Parameter("input", "", "Path of the .mcap recording to replay (required)."),
+    Parameter(
+        "rate",
+        1.0,
+        "Playback speed factor (2.0 = twice as fast).",
+        minimum=0.0,
+        above_minimum=True,
+    ),
+    Parameter("topics", [""], "Topics to replay; empty = every recorded topic."),
+    Parameter("loop", False, "Start again from the beginning after the last message."),
+    Parameter("publish_clock", True, "Publish the recording's time on /clock (for use_sim_time)."),
+    Parameter(
+        "clock_frequency",
+        100.0,
+        "Rate of /clock messages (recording time), when publish_clock.",
+        unit="Hz",
+        minimum=0.0,
+        above_minimum=True,
+    ),
+    Parameter(
+        "start_delay",
+        1.0,
+        "Wait before the first message so subscribers can connect.",
+        unit="s",
+        minimum=0.0,
+    ),
+    Parameter(
         "wait_for_subscribers",
         0,
         "Before playing, wait until every replayed topic has at least this many "
         "subscribers (0: do not wait); an evaluation pipeline then misses nothing.",
+        minimum=0,
     ),
-    ("wait_timeout", 30.0, "s to wait for those subscribers before giving up with an error."),
-    (
+    Parameter(
+        "wait_timeout",
+        30.0,
+        "Wait for those subscribers at most this long, then give up with an error.",
+        unit="s",
+        minimum=0.0,
+    ),
+    Parameter(
         "queue_depth",
         100,
         "Messages each publisher keeps for subscribers that fall behind or match late "
         "(at least the recorded depth); latched topics hold this many for late joiners.",
+        minimum=1,
     ),
-]
+)
 # A subscriber that has not acknowledged within this is stalled or gone; the replay goes on.
 ACKNOWLEDGE_TIMEOUT_S = 10.0
 
@@ -54,16 +82,6 @@ class ReplayNode(Node):
         self.config = params.declare(self, PARAMETERS)
         if not self.config["input"]:
             raise RecordingError("parameter input: required (path of the .mcap recording)")
-        if not self.config["rate"] > 0:
-            raise RecordingError(f"parameter rate={self.config['rate']}: must be > 0")
-        if not self.config["queue_depth"] >= 1:
-            raise RecordingError(
-                f"parameter queue_depth={self.config['queue_depth']}: must be >= 1"
-            )
-        if not self.config["clock_frequency"] > 0:
-            raise RecordingError(
-                f"parameter clock_frequency={self.config['clock_frequency']}: must be > 0"
-            )
         self.reader = RecordingReader(self.config["input"])
         recorded = self.reader.topics()
         selected = [t for t in self.config["topics"] if t]
@@ -199,7 +217,13 @@ def finish(node: ReplayNode):
 
 
 def main(args=None):
-    return run(ReplayNode, "afm replay", args, config_errors=(RecordingError,), on_shutdown=finish)
+    return run(
+        ReplayNode,
+        "afm replay",
+        args,
+        config_errors=(RecordingError, ValueError),
+        on_shutdown=finish,
+    )
 
 
 if __name__ == "__main__":

@@ -19,29 +19,34 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
+from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.action import Sim2Real
 from afm_ros import topics
 from afm_ros.node_main import run
 from afm_ros.params import declare
 
-PARAMETERS = [
-    (
+PARAMETERS = ParameterTable(
+    Parameter(
         "model",
         "",
-        "simulator configuration YAML the recording is compared with ('' = the simulator's defaults)",
+        "Simulator configuration YAML the recording is compared with ('' = the simulator's "
+        "defaults); a goal's `model` overrides it.",
+        runtime=True,
     ),
-    (
+    Parameter(
         "live_recording",
         "",
-        "the graph recorder's output file (its `output` parameter); a goal with an empty "
-        "`recording` diagnoses a snapshot of it",
+        "The graph recorder's output file (its `output` parameter); a goal with an empty "
+        "`recording` diagnoses a snapshot of it.",
+        runtime=True,
     ),
-    (
+    Parameter(
         "report_root",
         "sim2real_reports",
-        "folder under which a goal without `report_dir` gets a new report folder",
+        "Folder under which a goal without `report_dir` gets a new report folder.",
+        runtime=True,
     ),
-]
+)
 
 
 class Cancelled(Exception):

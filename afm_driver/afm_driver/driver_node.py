@@ -22,6 +22,7 @@ from std_msgs.msg import Header
 
 from afm_core.backends import open_instrument
 from afm_core.instrument import LineRequest, ScanRequest
+from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_msgs.msg import ForceTrace, GroundTruth, RasterScan, ScanLine, TipCommand
 from afm_ros import params, topics
@@ -37,42 +38,53 @@ from afm_ros.conversions import (
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED, SCANS, STREAM
 
-PARAMETERS = [
-    (
+PARAMETERS = ParameterTable(
+    Parameter(
         "backend",
         "sim",
         "Instrument: 'sim' (simulated AFM), 'daq' (NI DAQ card), 'replay' (a recorded session).",
+        choices=("sim", "daq", "replay"),
     ),
-    (
+    Parameter(
         "sim_config",
         "",
         "YAML file of simulator parameters (any subset; defaults: afm_core/sim/default_config.yaml).",
     ),
-    ("seed", -1, "Simulator random seed; -1 keeps the config file's seed."),
-    (
+    Parameter("seed", -1, "Simulator random seed; -1 keeps the config file's seed.", minimum=-1),
+    Parameter(
         "real_time_factor",
         0.0,
         "Simulated seconds per wall second (1.0 = real time); 0 = as fast as possible.",
+        minimum=0.0,
     ),
-    (
+    Parameter(
         "publish_clock",
         True,
         "Publish the instrument's time on /clock (sim and replay) for use_sim_time nodes.",
     ),
-    ("clock_frequency", 20.0, "Hz (wall) of /clock messages while idle."),
-    ("max_queued_goals", 8, "Goals that may wait while one runs; more are rejected."),
-    ("daq_device", "Dev1", "NI-DAQmx device name (daq backend)."),
-    (
+    Parameter(
+        "clock_frequency",
+        20.0,
+        "Rate (wall time) of /clock messages while idle.",
+        unit="Hz",
+        minimum=0.0,
+        above_minimum=True,
+    ),
+    Parameter(
+        "max_queued_goals", 8, "Goals that may wait while one runs; more are rejected.", minimum=0
+    ),
+    Parameter("daq_device", "Dev1", "NI-DAQmx device name (daq backend)."),
+    Parameter(
         "daq_calibration",
         "",
         "YAML file of the DAQ calibration (daq backend; defaults: afm_core.daq.DaqCalibration).",
     ),
-    (
+    Parameter(
         "replay_input",
         "",
         "Recording (.mcap) whose scans, lines and force traces the replay backend serves.",
     ),
-]
+)
 
 
 def make_instrument(config: dict):
@@ -137,14 +149,6 @@ class DriverNode(Node):
     def __init__(self):
         super().__init__("afm_driver")
         self.config = params.declare(self, PARAMETERS)
-        for name in ("real_time_factor", "clock_frequency"):
-            if not self.config[name] >= 0 or (
-                name == "clock_frequency" and self.config[name] == 0
-            ):
-                raise ValueError(
-                    f"parameter {name}={self.config[name]}: must be > 0"
-                    + (" (or 0 for as fast as possible)" if name == "real_time_factor" else "")
-                )
         self.instrument = make_instrument(self.config)
         self.is_sim = self.config["backend"] == "sim"
         self.epoch = time.time()  # instrument time 0 <-> wall time at start

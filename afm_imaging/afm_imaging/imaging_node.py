@@ -21,7 +21,9 @@ from rclpy.qos import QoSProfile
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
+from afm_core import checks
 from afm_core.imaging.landmarks import MapErrorModel, extract_landmarks
+from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.msg import LandmarkArray, RasterScan, TipShape
 from afm_ros import params, topics
 from afm_ros.conversions import (
@@ -37,44 +39,82 @@ from afm_ros.qos_profiles import LATCHED
 
 LOCAL_CHECK_PREFIX = "local"  # pair_id of scans that check an area (e.g. a push's verification)
 
-PARAMETERS = [
-    (
+
+def _odd(size: int) -> int:
+    if size % 2 == 0:
+        raise ValueError("must be odd")
+    return size
+
+
+def _auto_or_metres(text: str) -> str:
+    if text != "auto":
+        try:
+            metres = float(text)
+        except ValueError:
+            raise ValueError("'auto' or a threshold in metres") from None
+        checks.non_negative("tip_threshold", metres, "m")
+    return text
+
+
+PARAMETERS = ParameterTable(
+    Parameter(
         "min_landmark_height",
         10e-9,
-        "m; features lower than this above the substrate are not landmarks.",
+        "Features lower than this above the substrate are not landmarks.",
+        unit="m",
+        minimum=0.0,
+        runtime=True,
     ),
-    (
+    Parameter(
         "map_sigma_x",
         5.0e-9,
-        "m, map error (1 sigma) along x added to every landmark's covariance (book Fig. 7.10).",
+        "Map error (1 sigma) along x added to every landmark's covariance (book Fig. 7.10).",
+        unit="m",
+        minimum=0.0,
     ),
-    ("map_sigma_y", 4.5e-9, "m, map error along y (book Fig. 7.10)."),
-    ("drift_order", 1, "Offset-vector order of the 0/90 drift compensation: 1 (book) or 2."),
-    ("tip_size", 21, "Pixels (odd) of the blind-estimated tip's window."),
-    ("tip_threshold", "auto", "Denoising threshold of the blind tip estimate: 'auto' or metres."),
-    (
+    Parameter(
+        "map_sigma_y",
+        4.5e-9,
+        "Map error along y (book Fig. 7.10).",
+        unit="m",
+        minimum=0.0,
+    ),
+    Parameter(
+        "drift_order",
+        1,
+        "Offset-vector order of the 0/90 drift compensation: 1 (book) or 2.",
+        minimum=1,
+        maximum=2,
+        runtime=True,
+    ),
+    Parameter(
+        "tip_size",
+        21,
+        "Pixels (odd) of the blind-estimated tip's window.",
+        minimum=3,
+        check=_odd,
+        runtime=True,
+    ),
+    Parameter(
+        "tip_threshold",
+        "auto",
+        "Denoising threshold of the blind tip estimate: 'auto' or metres.",
+        check=_auto_or_metres,
+        runtime=True,
+    ),
+    Parameter(
         "estimate_tip_on_scan",
         False,
         "Re-estimate the tip after every new map (seconds of work each time).",
+        runtime=True,
     ),
-]
+)
 
 
 class ImagingNode(Node):
     def __init__(self):
         super().__init__("afm_imaging")
         self.config = params.declare(self, PARAMETERS)
-        if self.config["drift_order"] not in (1, 2):
-            raise ValueError(f"parameter drift_order={self.config['drift_order']}: must be 1 or 2")
-        if self.config["tip_size"] < 3 or self.config["tip_size"] % 2 == 0:
-            raise ValueError(f"parameter tip_size={self.config['tip_size']}: must be odd and >= 3")
-        if self.config["tip_threshold"] != "auto":
-            try:
-                float(self.config["tip_threshold"])
-            except ValueError:
-                raise ValueError(
-                    f"parameter tip_threshold={self.config['tip_threshold']!r}: 'auto' or metres"
-                ) from None
         self.error_model = MapErrorModel(self.config["map_sigma_x"], self.config["map_sigma_y"])
         self.pending_0: dict[str, object] = {}
         self.pending_90: dict[str, object] = {}

@@ -27,8 +27,10 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
 from afm_core.instrument import ScannerLimits
-from afm_core.localization import GATE_CHI2_1DOF_999, Localizer, MapLandmark
+from afm_core.localization import Localizer, MapLandmark
 from afm_core.localization.calibration import Calibration, load_calibration
+from afm_core.localization.localizer import LOCALIZER_PARAMETERS
+from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.action import Localize
 from afm_msgs.msg import LandmarkArray, TipCommand
 from afm_ros import params, topics
@@ -46,54 +48,57 @@ from afm_ros.conversions import (
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, LATCHED
 
-PARAMETERS = [
-    (
+PARAMETERS = ParameterTable(
+    Parameter(
         "calibration_file",
         "",
         "Calibration YAML written by `afm calibrate`; empty: the book's figures (uncalibrated).",
     ),
-    (
+    Parameter(
         "initial_sigma",
         50e-9,
-        "m, 1-sigma of the tip position at the first command heard (the task frame's origin).",
+        "1-sigma of the tip position at the first command heard (the task frame's origin).",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
     ),
-    ("publish_rate", 10.0, "Hz, steady publication of the (predicted) estimate on /afm/tip_pose."),
-    (
-        "gate",
-        GATE_CHI2_1DOF_999,
-        "Mahalanobis gate: squared distance above which an observation is rejected "
-        "(chi-square, 1 dof; 10.83 = 99.9 %, 6.63 = 99 %).",
+    Parameter(
+        "publish_rate",
+        10.0,
+        "Steady publication rate of the (predicted) estimate on /afm/tip_pose.",
+        unit="Hz",
+        minimum=0.0,
+        above_minimum=True,
     ),
-    ("line_speed", 1e-6, "m/s along a local scan line."),
-    ("move_speed", 2e-6, "m/s of the free moves to a line's start."),
-    ("sample_spacing", 1e-9, "m between samples of a local scan line."),
-    (
-        "threshold_fraction",
-        0.5,
-        "Height threshold for the crossings, as a fraction of the landmark's height.",
-    ),
-    (
-        "margin",
-        50e-9,
-        "m of substrate a line covers beyond 3 sigma and the landmark's extent, each side.",
-    ),
-    (
+    *LOCALIZER_PARAMETERS,
+    Parameter(
         "match_radius",
         300e-9,
-        "m: a Localize goal by position observes the nearest landmark within this.",
+        "A Localize goal by position observes the nearest landmark within this.",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+        runtime=True,
     ),
-    (
+    Parameter(
         "raster_sigma",
         30e-9,
-        "m, 1-sigma per axis added after a raster image: the motion model predicts a raster "
-        "by its net displacement, not the hysteresis residue its back-and-forth path leaves.",
+        "1-sigma per axis added after a raster image: the motion model predicts a raster by its "
+        "net displacement, not the hysteresis residue its back-and-forth path leaves.",
+        unit="m",
+        minimum=0.0,
+        runtime=True,
     ),
-    (
-        "history_seconds",
-        120.0,
-        "s of filter history kept to re-apply an out-of-order observation.",
-    ),
-]
+)
+# Where a run-time change of a Localizer parameter goes on the running estimator.
+APPLY = {
+    "gate": lambda loc, v: setattr(loc.filter, "gate", v),
+    "history_seconds": lambda loc, v: setattr(loc.filter, "history_seconds", v),
+    **{
+        name: (lambda loc, v, name=name: setattr(loc, name, v))
+        for name in ("line_speed", "move_speed", "sample_spacing", "threshold_fraction", "margin")
+    },
+}
 KINDS = {
     TipCommand.SCAN_LINE: "line",
     TipCommand.INDENT: "indent",
@@ -103,26 +108,12 @@ KINDS = {
 class LocalizerNode(Node):
     def __init__(self):
         super().__init__("afm_localizer")
-        self.config = params.declare(self, PARAMETERS)
-        for name in (
-            "initial_sigma",
-            "publish_rate",
-            "gate",
-            "line_speed",
-            "move_speed",
-            "sample_spacing",
-            "match_radius",
-            "history_seconds",
-            "raster_sigma",
-        ):
-            value = self.config[name]
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"parameter {name}={value}: must be finite and > 0")
+        self.lock = threading.Lock()  # the Localizer is not thread-safe
+        self.localizer: Localizer | None = None
+        self.config = params.declare(self, PARAMETERS, apply=self.apply_parameter)
         path = self.config["calibration_file"]
         self.calibration = load_calibration(path) if path else Calibration()
         self.instrument = ActionInstrument(self, ScannerLimits())
-        self.localizer: Localizer | None = None
-        self.lock = threading.Lock()  # the Localizer is not thread-safe
         self.pending: collections.deque = collections.deque()
         self.landmarks: dict[int, object] = {}
         self.landmarks_stamp: float | None = None
@@ -151,6 +142,12 @@ class LocalizerNode(Node):
                 "no calibration_file: using the book's figures; run `afm calibrate` for "
                 "this instrument"
             )
+
+    def apply_parameter(self, name: str, value) -> None:
+        """A run-time change reaches the running estimator (read at use time otherwise)."""
+        with self.lock:
+            if self.localizer is not None and name in APPLY:
+                APPLY[name](self.localizer, value)
 
     # -- inputs ------------------------------------------------------------------------------
     def on_command(self, msg: TipCommand) -> None:

@@ -46,6 +46,7 @@ from afm_core.manipulation import (
     verify_push,
 )
 from afm_core.manipulation.execute import pushed_object_after
+from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.action import Assemble, Localize, PushParticle
 from afm_msgs.msg import LandmarkArray, PlannedPath, TipCommand
 from afm_msgs.srv import PlanSequence
@@ -65,51 +66,113 @@ from afm_ros.conversions import (
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED
 
-PARAMETERS = [
-    (
+PARAMETERS = ParameterTable(
+    Parameter(
         "calibration_file",
         "",
         "Calibration YAML (afm calibrate): its scanner matrix maps task-frame strokes to "
         "commands; empty: identity.",
     ),
-    (
+    Parameter(
         "tip_radius",
         50e-9,
-        "m, effective contact radius of the tip (R_T; book's simulation: 50 nm).",
+        "Effective contact radius of the tip (R_T; book's simulation: 50 nm).",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+        runtime=True,
     ),
-    (
+    Parameter(
         "default_tolerance",
         20e-9,
-        "m, success radius around the goal when a goal's tolerance is 0.",
+        "Success radius around the goal when a goal's tolerance is 0.",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+        runtime=True,
     ),
-    ("push_speed", 0.5e-6, "m/s of the tip in contact."),
-    ("rescan_margin", 300e-9, "m around the particle and the goal in the before/after rescans."),
-    ("rescan_pixel", 8e-9, "m, pixel size of the before/after rescans."),
-    ("rescan_line_rate", 4.0, "Hz, line rate of the before/after rescans."),
-    (
+    Parameter(
+        "push_speed",
+        0.5e-6,
+        "Speed of the tip in contact.",
+        unit="m/s",
+        minimum=0.0,
+        above_minimum=True,
+        maximum=ScannerLimits().max_speed,
+        runtime=True,
+    ),
+    Parameter(
+        "rescan_margin",
+        300e-9,
+        "Margin around the particle and the goal in the before/after rescans.",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+        runtime=True,
+    ),
+    Parameter(
+        "rescan_pixel",
+        8e-9,
+        "Pixel size of the before/after rescans.",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+        runtime=True,
+    ),
+    Parameter(
+        "rescan_line_rate",
+        4.0,
+        "Line rate of the before/after rescans.",
+        unit="Hz",
+        minimum=0.0,
+        above_minimum=True,
+        maximum=ScannerLimits().max_line_rate,
+        runtime=True,
+    ),
+    Parameter(
         "match_radius",
         300e-9,
-        "m: a particle given by position is the nearest landmark within this.",
+        "A particle given by position is the nearest landmark within this.",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+        runtime=True,
     ),
-    (
+    Parameter(
         "control_pits",
         2,
         "Indentation pits punched in the rescan's corners before a push: control points that "
         "tie the after image to the before image (book 7.3); 0: none.",
+        minimum=0,
+        maximum=4,
+        runtime=True,
     ),
-    (
+    Parameter(
         "pit_force",
         0.5e-6,
-        "N, indentation force of the control pits (a ~10 nm deep pit on the default sample).",
+        "Indentation force of the control pits (a ~10 nm deep pit on the default sample).",
+        unit="N",
+        minimum=0.0,
+        above_minimum=True,
+        maximum=ScannerLimits().max_indent_force,
+        runtime=True,
     ),
-    (
+    Parameter(
         "localize_first",
         True,
         "Localize the tip on the particle before planning (book 7.3); false: trust the "
         "current estimate.",
+        runtime=True,
     ),
-    ("action_timeout", 600.0, "s to wait for any one driver, localizer or planner answer."),
-]
+    Parameter(
+        "action_timeout",
+        600.0,
+        "Longest wait for any one driver, localizer or planner answer.",
+        unit="s",
+        minimum=0.0,
+        above_minimum=True,
+    ),
+)
 STRATEGIES = ("nano_hand", "center", "centre", "rod_hand")
 
 
@@ -121,21 +184,6 @@ class NanoHandNode(Node):
     def __init__(self):
         super().__init__("afm_nano_hand")
         self.config = params.declare(self, PARAMETERS)
-        for name in (
-            "tip_radius",
-            "default_tolerance",
-            "push_speed",
-            "rescan_margin",
-            "rescan_pixel",
-            "rescan_line_rate",
-            "match_radius",
-            "action_timeout",
-            "pit_force",
-        ):
-            if not (math.isfinite(self.config[name]) and self.config[name] > 0):
-                raise ValueError(f"parameter {name}={self.config[name]}: must be finite and > 0")
-        if self.config["control_pits"] < 0:
-            raise ValueError(f"parameter control_pits={self.config['control_pits']}: must be >= 0")
         path = self.config["calibration_file"]
         self.calibration = load_calibration(path) if path else Calibration()
         self.limits = ScannerLimits()

@@ -22,6 +22,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from afm_core.instrument import ScannerLimits, check_in_range
 from afm_core.localization.calibration import Calibration, load_calibration
+from afm_core.parameters import Parameter, ParameterTable
 from afm_core.planning import (
     SPOTS,
     ant_colony_order,
@@ -47,25 +48,37 @@ from afm_ros.conversions import (
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, LATCHED
 
-PARAMETERS = [
-    (
+PARAMETERS = ParameterTable(
+    Parameter(
         "calibration_file",
         "",
         "Localization calibration YAML (afm calibrate); empty: the book's figures.",
     ),
-    (
+    Parameter(
         "tip_radius",
         50e-9,
-        "m, tip radius R_T kept clear of a particle while observing it (book 6.1).",
+        "Tip radius R_T kept clear of a particle while observing it (book 6.1).",
+        unit="m",
+        minimum=0.0,
+        runtime=True,
     ),
-    ("range_x", 110e-6, "m, scanner x range: targets outside [0, range_x] are refused."),
-    ("range_y", 110e-6, "m, scanner y range."),
-    (
+    Parameter(
+        "range_x",
+        110e-6,
+        "Scanner x range: targets outside [0, range_x] are refused.",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+    ),
+    Parameter("range_y", 110e-6, "Scanner y range.", unit="m", minimum=0.0, above_minimum=True),
+    Parameter(
         "sequence_seed",
         0,
         "Seed of the heuristic and ant-colony sequencers (results are reproducible).",
+        minimum=0,
+        runtime=True,
     ),
-]
+)
 SEQUENCERS = {
     "best": best_order,
     "exact": exact_order,
@@ -81,10 +94,6 @@ class PlannerNode(Node):
         path = self.config["calibration_file"]
         self.calibration = load_calibration(path) if path else Calibration()
         self.noise = self.calibration.motion_noise()
-        if not (self.config["tip_radius"] >= 0 and math.isfinite(self.config["tip_radius"])):
-            raise ValueError(
-                f"parameter tip_radius={self.config['tip_radius']}: must be finite and >= 0 (m)"
-            )
         self.limits = ScannerLimits(range_x=self.config["range_x"], range_y=self.config["range_y"])
         self.lock = threading.Lock()
         self.landmarks: list = []

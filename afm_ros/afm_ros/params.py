@@ -1,12 +1,62 @@
-"""Declare a node's parameters from one table of (name, default, meaning)."""
+"""Declare a node's parameters from its table (afm_core.parameters) and keep them valid.
 
-from rcl_interfaces.msg import ParameterDescriptor
+At start every value (default, YAML file or `-p` override) is validated; a bad one stops the
+node with the parameter's name and limit (node_main exits 2). At run time `ros2 param set`
+is validated by the same rule and refused with the reason; a parameter the node cannot
+apply while running is declared read-only, so ROS refuses it with "read-only"; an accepted
+value is written into the node's config dict and handed to `apply`, if given.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+
+from afm_core.parameters import ParameterTable
 
 
-def declare(node, table):
-    """Declare every (name, default, description) and return {name: value}."""
+def describe(parameter) -> ParameterDescriptor:
+    unit = f"[{parameter.unit}] " if parameter.unit else ""
+    return ParameterDescriptor(
+        description=f"{unit}{parameter.description}",
+        additional_constraints=parameter.constraints(),
+        read_only=not parameter.runtime,
+    )
+
+
+def declare(node, table: ParameterTable, apply: Callable[[str, object], None] | None = None):
+    """Declare every parameter of `table` on `node`; return {name: validated value}, a dict
+    the node reads at use time and that accepted run-time changes update."""
     values = {}
-    for name, default, description in table:
-        node.declare_parameter(name, default, ParameterDescriptor(description=description))
-        values[name] = node.get_parameter(name).value
+    for parameter in table:
+        try:
+            node.declare_parameter(parameter.name, parameter.default, describe(parameter))
+        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+            expected = type(parameter.default).__name__
+            raise ValueError(
+                f"{parameter.label}: the value given is not a {expected} ({exc}); "
+                f"default {parameter.default!r}"
+            ) from exc
+        values[parameter.name] = parameter.validate(node.get_parameter(parameter.name).value)
+
+    def validate(changes) -> SetParametersResult:
+        for change in changes:
+            if change.name in table:
+                try:
+                    table[change.name].validate(change.value)
+                except ValueError as exc:
+                    return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def store(changes) -> None:
+        for change in changes:
+            if change.name in table:
+                values[change.name] = table[change.name].validate(change.value)
+                if apply is not None:
+                    apply(change.name, values[change.name])
+
+    node.add_on_set_parameters_callback(validate)
+    node.add_post_set_parameters_callback(store)
     return values

@@ -55,6 +55,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from afm_core.localization.observation import check_covariance
+from afm_core.parameters import Parameter
 
 DRIFT_CORRELATION_TIME = (
     1800.0  # s, how long a drift velocity stays about the same (the simulator's default)
@@ -62,7 +63,23 @@ DRIFT_CORRELATION_TIME = (
 
 GATE_CHI2_1DOF_99 = 6.634896601021214  # scipy.stats.chi2.ppf(0.99, 1)
 GATE_CHI2_1DOF_999 = 10.827566170662733  # scipy.stats.chi2.ppf(0.999, 1): the default gate
-DEFAULT_HISTORY_SECONDS = 120.0
+GATE = Parameter(
+    "gate",
+    GATE_CHI2_1DOF_999,
+    "Mahalanobis gate: squared distance above which an observation is rejected (chi-square, "
+    "1 dof; 10.83 = 99.9 %, 6.63 = 99 %).",
+    minimum=0.0,
+    above_minimum=True,
+    runtime=True,
+)
+HISTORY_SECONDS = Parameter(
+    "history_seconds",
+    120.0,
+    "Filter history kept to re-apply an out-of-order observation.",
+    unit="s",
+    minimum=0.0,
+    runtime=True,
+)
 AXES = {"x": (1.0, 0.0), "y": (0.0, 1.0), 0: (1.0, 0.0), 1: (0.0, 1.0)}
 
 Extrapolate = Callable[
@@ -123,8 +140,8 @@ class TipFilter:
         mean,
         covariance,
         time: float = 0.0,
-        gate: float = GATE_CHI2_1DOF_999,
-        history_seconds: float = DEFAULT_HISTORY_SECONDS,
+        gate: float = GATE.default,
+        history_seconds: float = HISTORY_SECONDS.default,
         extrapolate: Extrapolate | None = None,
         drift_sigma=(0.0, 0.0),
         drift_correlation_time: float = DRIFT_CORRELATION_TIME,
@@ -135,10 +152,6 @@ class TipFilter:
         p = check_covariance("initial_cov", covariance)
         if not (math.isfinite(time)):
             raise ValueError(f"time={time}: must be finite")
-        if not (math.isfinite(gate) and gate > 0):
-            raise ValueError(f"gate={gate}: must be a finite squared Mahalanobis distance > 0")
-        if not (math.isfinite(history_seconds) and history_seconds >= 0):
-            raise ValueError(f"history_seconds={history_seconds}: must be finite and >= 0")
         sigma_w = np.asarray(drift_sigma, dtype=float)
         if sigma_w.shape != (2,) or not (np.isfinite(sigma_w).all() and (sigma_w >= 0).all()):
             raise ValueError(f"drift_sigma={drift_sigma}: need two finite values >= 0 (m/s)")
@@ -146,8 +159,8 @@ class TipFilter:
             raise ValueError(
                 f"drift_correlation_time={drift_correlation_time}: must be finite and > 0 s"
             )
-        self.gate = float(gate)
-        self.history_seconds = float(history_seconds)
+        self.gate = GATE.validate(gate)
+        self.history_seconds = HISTORY_SECONDS.validate(history_seconds)
         self.extrapolate = extrapolate
         self.drift_sigma, self.drift_correlation_time = sigma_w, float(drift_correlation_time)
         self._kf = KalmanFilter(dim_x=6, dim_z=1)

@@ -24,14 +24,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from afm_core.instrument import Instrument, LineRequest, check_in_range
-from afm_core.localization.calibration import Calibration
-from afm_core.localization.filter import (
-    DEFAULT_HISTORY_SECONDS,
-    GATE_CHI2_1DOF_999,
-    TipFilter,
-    UpdateResult,
+from afm_core.instrument import (
+    Instrument,
+    LineRequest,
+    ScannerLimits,
+    check_in_range,
+    check_speed,
 )
+from afm_core.localization.calibration import Calibration
+from afm_core.localization.filter import GATE, HISTORY_SECONDS, TipFilter, UpdateResult
 from afm_core.localization.motion import MotionModel, MotionStep
 from afm_core.localization.observation import (
     DEFAULT_THRESHOLD_FRACTION,
@@ -40,11 +41,61 @@ from afm_core.localization.observation import (
     as_map_landmark,
     observe_line,
 )
+from afm_core.parameters import Parameter, ParameterTable
 
-DEFAULT_LINE_SPEED = 1e-6  # m/s along a local scan line
-DEFAULT_MOVE_SPEED = 2e-6  # m/s, free moves
-DEFAULT_SAMPLE_SPACING = 1e-9  # m between line samples
-DEFAULT_MARGIN = 50e-9  # m of substrate beyond the landmark's extent and 3 sigma at each line end
+LINE_SPEED = Parameter(
+    "line_speed",
+    1e-6,
+    "Tip speed along a local scan line.",
+    unit="m/s",
+    minimum=0.0,
+    above_minimum=True,
+    maximum=ScannerLimits().max_speed,
+    runtime=True,
+)
+MOVE_SPEED = Parameter(
+    "move_speed",
+    2e-6,
+    "Tip speed of the free moves to a line's start.",
+    unit="m/s",
+    minimum=0.0,
+    above_minimum=True,
+    maximum=ScannerLimits().max_speed,
+    runtime=True,
+)
+SAMPLE_SPACING = Parameter(
+    "sample_spacing",
+    1e-9,
+    "Distance between samples of a local scan line.",
+    unit="m",
+    minimum=0.0,
+    above_minimum=True,
+    runtime=True,
+)
+THRESHOLD_FRACTION = Parameter(
+    "threshold_fraction",
+    DEFAULT_THRESHOLD_FRACTION,
+    "Height threshold of a line's crossings, as a fraction of the landmark's height (book eq. "
+    "5.10).",
+    minimum=0.0,
+    maximum=1.0,
+    above_minimum=True,
+    below_maximum=True,
+    runtime=True,
+)
+MARGIN = Parameter(
+    "margin",
+    50e-9,
+    "Substrate a line covers beyond 3 sigma and the landmark's extent, each side.",
+    unit="m",
+    minimum=0.0,
+    runtime=True,
+)
+# What a Localizer takes besides its instrument, calibration and initial estimate; the
+# localizer node declares these as its parameters.
+LOCALIZER_PARAMETERS = ParameterTable(
+    GATE, LINE_SPEED, MOVE_SPEED, SAMPLE_SPACING, THRESHOLD_FRACTION, MARGIN, HISTORY_SECONDS
+)
 DEFAULT_TIP_ALLOWANCE = (
     30e-9  # m, lateral tip broadening when the landmark's apparent half-width is unknown
 )
@@ -134,34 +185,25 @@ class Localizer:
         initial_mean,
         initial_cov,
         *,
-        gate: float = GATE_CHI2_1DOF_999,
-        line_speed: float = DEFAULT_LINE_SPEED,
-        move_speed: float = DEFAULT_MOVE_SPEED,
-        sample_spacing: float = DEFAULT_SAMPLE_SPACING,
-        threshold_fraction: float = DEFAULT_THRESHOLD_FRACTION,
-        margin: float = DEFAULT_MARGIN,
-        history_seconds: float = DEFAULT_HISTORY_SECONDS,
+        gate: float = GATE.default,
+        line_speed: float = LINE_SPEED.default,
+        move_speed: float = MOVE_SPEED.default,
+        sample_spacing: float = SAMPLE_SPACING.default,
+        threshold_fraction: float = THRESHOLD_FRACTION.default,
+        margin: float = MARGIN.default,
+        history_seconds: float = HISTORY_SECONDS.default,
     ):
         """initial_mean / initial_cov: the tip's position (task frame, m) and covariance (m^2)
         now, with the instrument at rest at its current command (creep settled)."""
-        for name, value in (("line_speed", line_speed), ("move_speed", move_speed)):
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name}={value}: must be finite and > 0 m/s")
-            if value > instrument.limits.max_speed:
-                raise ValueError(
-                    f"{name}={value:.3e} m/s: above the slew limit {instrument.limits.max_speed:.3e} m/s"
-                )
-        if not (math.isfinite(sample_spacing) and sample_spacing > 0):
-            raise ValueError(f"sample_spacing={sample_spacing}: must be finite and > 0 m")
-        if not (math.isfinite(margin) and margin >= 0):
-            raise ValueError(f"margin={margin}: must be finite and >= 0 m")
-        if not (math.isfinite(threshold_fraction) and 0 < threshold_fraction < 1):
-            raise ValueError(f"threshold_fraction={threshold_fraction}: must be in (0, 1)")
+        self.line_speed = LINE_SPEED.validate(line_speed)
+        self.move_speed = MOVE_SPEED.validate(move_speed)
+        for name, value in (("line_speed", self.line_speed), ("move_speed", self.move_speed)):
+            check_speed(name, value, instrument.limits)
+        self.sample_spacing = SAMPLE_SPACING.validate(sample_spacing)
+        self.margin = MARGIN.validate(margin)
+        self.threshold_fraction = THRESHOLD_FRACTION.validate(threshold_fraction)
         self.instrument = instrument
         self.calibration = calibration
-        self.line_speed, self.move_speed = float(line_speed), float(move_speed)
-        self.sample_spacing, self.margin = float(sample_spacing), float(margin)
-        self.threshold_fraction = float(threshold_fraction)
         self.model = MotionModel(calibration, instrument.commanded_position(), instrument.time)
         self.filter = TipFilter(
             initial_mean,
