@@ -224,9 +224,9 @@ def sim_oracle_calibration() -> Calibration:
     region = measure_scan_region_sigma(matrix, "sphere")
     fractions = list(scanner.creep_fractions) if scanner.creep_enabled else []
     return Calibration(
-        source=f"sim-derived oracle (bench_localization.py, {datetime.now(timezone.utc).date()}): matrix measured "
-        "on a noise-free simulator, other parameters from the simulator's default config; not a calibration "
-        "experiment",
+        source=f"sim-derived oracle (bench_localization.py, {datetime.now(timezone.utc).date()}): "
+        "matrix measured on a noise-free simulator, other parameters from the simulator's default "
+        "config; not a calibration experiment",
         scanner_matrix=matrix.tolist(),
         creep_time_constants=list(scanner.creep_time_constants) if fractions else [],
         creep_fractions_x=fractions,
@@ -364,7 +364,7 @@ def run_71_72(calibration: Calibration, trials: int, seed0: int = 0) -> dict:
     return out
 
 
-# -- experiment 2: Table 7.3 -----------------------------------------------------------------------
+# -- experiment 2: Table 7.3 ----------------------------------------------------------------------
 def table_73_trial(seed: int, calibration: Calibration, line_ends_at_pit: bool) -> dict:
     """`calibration` already holds the high-resolution map's sigma (see run_73)."""
     rng = np.random.default_rng(20_000 + seed)
@@ -458,22 +458,134 @@ def _fmt(v) -> str:
 def print_71_72(title: str, block: dict) -> None:
     print(f"\n{title}")
     print(
-        "  mode                     trials  true-error sigma x,y nm  mean x,y nm     filter sigma x,y nm  mean NEES (95% band)"
+        "  mode                     trials  true-error sigma x,y nm  mean x,y nm     filter sigma "
+        "x,y nm  mean NEES (95% band)"
     )
     for mode, data in block.items():
         s = data["summary"]
         lo, hi = s["nees_band_95"]
         print(
-            f"  {mode:24s} {s['trials']:6d}  {_fmt(s['true_error_sigma_nm']):23s}  {_fmt(s['true_error_mean_nm']):14s} "
+            f"  {mode:24s} {s['trials']:6d}  {_fmt(s['true_error_sigma_nm']):23s}  "
+            f"{_fmt(s['true_error_mean_nm']):14s} "
             f"{_fmt(s['reported_sigma_mean_nm']):20s} {s['mean_nees']:.2f} [{lo:.2f}, {hi:.2f}]"
             f"{'' if s['nees_consistent'] else '  OUTSIDE'}  {s['line_statuses'] or ''}"
         )
         for k, b in enumerate(s["blocks"]):
             print(
-                f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: {_fmt(b['true_error_sigma_nm'])} nm, NEES "
+                f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: {_fmt(b['true_error_sigma_nm'])} "
+                "nm, NEES "
                 f"{b['mean_nees']:.2f} [{b['nees_band_95'][0]:.2f}, {b['nees_band_95'][1]:.2f}]"
                 f"{'' if b['nees_consistent'] else '  OUTSIDE'}"
             )
+
+
+def markdown_report(report: dict, command: str) -> str:
+    """bench/results/localization*.md: the results' tables, headed with date, machine, command."""
+    m = report["machine"]
+
+    def pair(values) -> str:
+        return ", ".join(f"{x:.1f}" for x in values)
+
+    lines = [
+        "# Tip localization experiments (book 7.2.3-7.2.4) on the simulated AFM",
+        "",
+        f"Measured {report['date']} on {m['cpu_count']} CPUs ({m['cpu_model']}; "
+        f"{m.get('cpus_usable', m['cpu_count'])} usable), Python {m['python']}, load "
+        f"{m['load_average_at_start'][0]:.2f} at start; {report['wall_seconds']:.0f} s wall, "
+        f"peak memory {report['peak_rss_kib'] / 1024:.0f} MiB.",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"Calibration: {report['calibration']}",
+    ]
+    blocks_7_1 = [
+        (
+            "tables_7_1_7_2",
+            "Tables 7.1 / 7.2: x0 -> x8 (book: direct ~20 nm, via landmark ~10 nm)",
+        ),
+        (
+            "tables_7_1_7_2_book_default_calibration",
+            "Tables 7.1 / 7.2 with the book-default calibration (identity matrix, no creep)",
+        ),
+    ]
+    for key, title in blocks_7_1:
+        if key not in report:
+            continue
+        lines += [
+            "",
+            f"## {title}",
+            "",
+            "| route | trials | true error sigma x, y (nm) | true error mean x, y (nm) "
+            "| filter sigma x, y (nm) | mean NEES [95 % band] | lines |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for mode, data in report[key].items():
+            s = data["summary"]
+            lo, hi = s["nees_band_95"]
+            flag = "" if s["nees_consistent"] else " **outside**"
+            statuses = ", ".join(f"{k} {v}" for k, v in s["line_statuses"].items()) or "-"
+            lines.append(
+                f"| {mode} | {s['trials']} | {pair(s['true_error_sigma_nm'])} | "
+                f"{pair(s['true_error_mean_nm'])} | {pair(s['reported_sigma_mean_nm'])} | "
+                f"{s['mean_nees']:.2f} [{lo:.2f}, {hi:.2f}]{flag} | {statuses} |"
+            )
+        block_rows = [
+            f"| {mode} | {k * BLOCK}-{(k + 1) * BLOCK - 1} | {pair(b['true_error_sigma_nm'])} | "
+            f"{b['mean_nees']:.2f} [{b['nees_band_95'][0]:.2f}, {b['nees_band_95'][1]:.2f}]"
+            f"{'' if b['nees_consistent'] else ' **outside**'} |"
+            for mode, data in report[key].items()
+            for k, b in enumerate(data["summary"].get("blocks", []))
+        ]
+        if block_rows:
+            lines += [
+                "",
+                f"Blocks of {BLOCK} trials (seeds):",
+                "",
+                "| route | seeds | true error sigma x, y (nm) | mean NEES [95 % band] |",
+                "|---|---|---|---|",
+                *block_rows,
+            ]
+    if "table_7_3" in report:
+        t = report["table_7_3"]
+        lines += [
+            "",
+            "## Table 7.3: a pit 130 nm below a nanotube (book: 129.6 nm, sigma 1.5 nm)",
+            "",
+            f"Map sigma {HIRES_MAP_SIGMA / NM:.1f} nm, scan-region sigma "
+            f"{t['scan_region_sigma_nm']:.2f} nm.",
+            "",
+            "| flow | trials | distance mean (nm) | distance sigma (nm) | filter sigma (nm) "
+            "| mean NEES, 1 dof [95 % band] | every line accepted |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        block_rows = []
+        for variant in ("book", "line_ends_at_pit"):
+            s = t[variant]["summary"]
+            lo, hi = s["nees_band_95"]
+            lines.append(
+                f"| {variant} | {s['trials']} | {s['distance_mean_nm']:.2f} | "
+                f"{s['distance_sigma_nm']:.2f} | {s['reported_sigma_mean_nm']:.2f} | "
+                f"{s['mean_nees_1dof']:.2f} [{lo:.2f}, {hi:.2f}]"
+                f"{'' if s['nees_consistent'] else ' **outside**'} | "
+                f"{'yes' if s['all_lines_accepted'] else 'no'} |"
+            )
+            block_rows += [
+                f"| {variant} | {k * BLOCK}-{(k + 1) * BLOCK - 1} | {b['distance_sigma_nm']:.2f} "
+                "| "
+                f"{b['mean_nees_1dof']:.2f} [{b['nees_band_95'][0]:.2f}, "
+                f"{b['nees_band_95'][1]:.2f}]{'' if b['nees_consistent'] else ' **outside**'} |"
+                for k, b in enumerate(s.get("blocks", []))
+            ]
+        if block_rows:
+            lines += [
+                "",
+                f"Blocks of {BLOCK} trials (seeds):",
+                "",
+                "| flow | seeds | distance sigma (nm) | mean NEES, 1 dof [95 % band] |",
+                "|---|---|---|---|",
+                *block_rows,
+            ]
+    return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
@@ -529,7 +641,8 @@ def main(argv=None) -> int:
             Calibration(), book_trials, seed0=500
         )
         print_71_72(
-            f"Same with the book-default calibration (identity matrix, no creep; {book_trials} trials)",
+            f"Same with the book-default calibration (identity matrix, no creep; {book_trials} "
+            "trials)",
             report["tables_7_1_7_2_book_default_calibration"],
         )
     report["peak_rss_kib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -538,8 +651,18 @@ def main(argv=None) -> int:
     stem = "localization" + ("-quick" if args.quick else "") + (f"-{args.tag}" if args.tag else "")
     path = RESULTS_DIR / f"{stem}.json"
     path.write_text(json.dumps(report, indent=2, default=float) + "\n")
+    path.with_suffix(".md").write_text(
+        markdown_report(
+            report,
+            " ".join(
+                ["scripts/with_env.sh python bench/bench_localization.py"]
+                + (sys.argv[1:] if argv is None else list(argv))
+            ),
+        )
+    )
     print(
-        f"\npeak RSS {report['peak_rss_kib'] / 1024:.0f} MiB; wall {report['wall_seconds']:.0f} s; wrote {path}"
+        f"\npeak RSS {report['peak_rss_kib'] / 1024:.0f} MiB; wall {report['wall_seconds']:.0f} "
+        f"s; wrote {path}"
     )
     return 0
 
@@ -551,22 +674,27 @@ def run_table_73(report: dict, calibration: Calibration, trials: int, oracle: bo
     report["table_7_3"] = run_73(calibration, trials, scan_region_sigma=tube_region)
     print(
         f"\nTable 7.3: pit 130 nm below a nanotube (book: 129.6 nm, sigma 1.5 nm); map sigma "
-        f"{HIRES_MAP_SIGMA / NM:.1f} nm, scan-region sigma {report['table_7_3']['scan_region_sigma_nm']:.2f} nm"
+        f"{HIRES_MAP_SIGMA / NM:.1f} nm, scan-region sigma "
+        f"{report['table_7_3']['scan_region_sigma_nm']:.2f} nm"
     )
     for variant, data in report["table_7_3"].items():
         if variant == "scan_region_sigma_nm":
             continue
         s = data["summary"]
         print(
-            f"  {variant:17s} trials {s['trials']}: distance {s['distance_mean_nm']:.2f} nm, sigma "
-            f"{s['distance_sigma_nm']:.2f} nm; filter sigma {s['reported_sigma_mean_nm']:.2f} nm; mean NEES(1 dof) "
+            f"  {variant:17s} trials {s['trials']}: distance {s['distance_mean_nm']:.2f} nm, "
+            "sigma "
+            f"{s['distance_sigma_nm']:.2f} nm; filter sigma {s['reported_sigma_mean_nm']:.2f} nm; "
+            "mean NEES(1 dof) "
             f"{s['mean_nees_1dof']:.2f} [{s['nees_band_95'][0]:.2f}, {s['nees_band_95'][1]:.2f}]; "
             f"all lines accepted: {s['all_lines_accepted']}"
         )
         for k, b in enumerate(s["blocks"]):
             print(
-                f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: sigma {b['distance_sigma_nm']:.2f} nm, NEES "
-                f"{b['mean_nees_1dof']:.2f} [{b['nees_band_95'][0]:.2f}, {b['nees_band_95'][1]:.2f}]"
+                f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: sigma "
+                f"{b['distance_sigma_nm']:.2f} nm, NEES "
+                f"{b['mean_nees_1dof']:.2f} [{b['nees_band_95'][0]:.2f}, "
+                f"{b['nees_band_95'][1]:.2f}]"
                 f"{'' if b['nees_consistent'] else '  OUTSIDE'}"
             )
 

@@ -4,7 +4,8 @@ What is measured
 ----------------
 (a) Monte Carlo stochastic pushing model (book 6.4.3, Fig. 6.18): 500 draws of the particle
     centre, sigma 10 nm, pushed by 6 strokes of the same rhythm (156 nm push, 120 nm back):
-    - centre: straight pushes through the estimated centre (afm_core.manipulation.centre_push_plan);
+    - centre: straight pushes through the estimated centre
+      (afm_core.manipulation.centre_push_plan);
     - nano-hand: the Table 7.6 zigzag (nano_hand_plan, aim=False), goal = where it takes a
       particle that sits exactly at the estimate;
     - nano-hand aimed: the planner's aimed zigzag to a goal 300 nm away (last push and last path
@@ -163,6 +164,68 @@ def summarize_runs(runs: list[dict]) -> dict:
     }
 
 
+def markdown_report(report: dict, command: str) -> str:
+    """bench/results/pushing.md: the Monte Carlo and simulated-AFM tables, headed with date,
+    machine and command."""
+    m, st = report["machine"], report["settings"]
+    lines = [
+        "# Virtual nano-hand vs centre pushing: the Monte Carlo model and the simulated AFM",
+        "",
+        f"Measured {report['date']} on {m['cpu_count']} CPUs ({m['cpu_model']}; "
+        f"{m['cpus_usable']} usable), Python {m['python']}, load "
+        f"{m['load_average_at_start'][0]:.2f} at start; {report['wall_seconds']:.0f} s wall, "
+        f"peak memory {report['process_peak_rss_kib'] / 1024:.0f} MiB.",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"## Monte Carlo model: {st['mc_samples']} draws, sigma {st['mc_sigma_nm']} nm, "
+        f"{st['mc_pushes']} pushes (156/120 nm rhythm), success within {st['tolerance_nm']} nm",
+        "",
+        "| strategy | goal along (nm) | lateral sigma (nm) | along sigma (nm) | split (left / "
+        "right) "
+        "| bimodal | between paths | success | s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, s in report["monte_carlo"].items():
+        if name == "table_7_6_13_steps":
+            continue
+        between = "-" if s["between_paths"] is None else f"{s['between_paths']:.2f}"
+        lines.append(
+            f"| {name} | {s['goal_along_nm']:.0f} | {s['sigma_lateral_nm']:.1f} | "
+            f"{s['sigma_along_nm']:.1f} | {s['split_fraction']:.2f} ({s['share_left']:.2f} / "
+            f"{s['share_right']:.2f}) | {'yes' if s['bimodal'] else 'no'} | {between} | "
+            f"{s['success_probability']:.2f} | {s['seconds']:.1f} |"
+        )
+    b = report["monte_carlo"]["table_7_6_13_steps"]
+    lines += [
+        "",
+        f"Table 7.6, 13 steps, in the model: {b['model_nominal_along_nm']:.1f} nm along, "
+        f"{b['model_nominal_sideways_nm']:.1f} nm sideways (book: 507 nm simulated, 530 / 20 nm "
+        f"measured); Monte Carlo sigma along {b['mc_sigma_along_nm']:.1f} nm, lateral "
+        f"{b['mc_sigma_lateral_nm']:.1f} nm, between paths {b['between_paths']:.2f}, "
+        f"{b['seconds']:.1f} s for 500 x 13 strokes.",
+        "",
+        f"## SimulatedAfm, default physics, {st['sim_seeds']} seeds, estimate = truth + "
+        f"N(0, {st['sim_estimate_sigma_nm']} nm), goal {st['sim_goal_nm']} nm",
+        "",
+        "Table 7.6 runs with the estimate exact; its error is against the model's prediction for "
+        "that plan.",
+        "",
+        "| strategy | success <= 20 nm | <= 40 nm | median error (nm) | along (nm) "
+        "| sideways (nm) | max sideways (nm) | simulated s per run |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, data in report["simulated_afm"].items():
+        s = data["summary"]
+        lines.append(
+            f"| {name} | {s['success_rate']:.2f} | {s['success_rate_40nm']:.2f} | "
+            f"{s['error_nm_median']:.0f} | {s['along_nm_mean']:.0f} +- {s['along_nm_sd']:.0f} | "
+            f"{s['sideways_nm_mean']:.0f} +- {s['sideways_nm_sd']:.0f} | "
+            f"{s['sideways_abs_nm_max']:.0f} | {s['sim_seconds_per_run']:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def main() -> int:
     started, t0 = datetime.now(timezone.utc), time.perf_counter()
     print("(a) Monte Carlo, 500 draws, sigma 10 nm, after 6 pushes", flush=True)
@@ -171,16 +234,20 @@ def main() -> int:
         if name == "table_7_6_13_steps":
             continue
         print(
-            f"  {name:22s} lateral sigma {s['sigma_lateral_nm']:6.1f} nm  along sigma {s['sigma_along_nm']:5.1f} nm  "
-            f"split {s['split_fraction']:.3f} (L {s['share_left']:.3f} / R {s['share_right']:.3f})  "
+            f"  {name:22s} lateral sigma {s['sigma_lateral_nm']:6.1f} nm  along sigma "
+            f"{s['sigma_along_nm']:5.1f} nm  "
+            f"split {s['split_fraction']:.3f} (L {s['share_left']:.3f} / R "
+            f"{s['share_right']:.3f})  "
             f"between paths {s['between_paths'] if s['between_paths'] is not None else '-'}  "
             f"success(20 nm) {s['success_probability']:.3f}  {s['seconds']:.1f} s",
             flush=True,
         )
     b = mc["table_7_6_13_steps"]
     print(
-        f"  Table 7.6, 13 steps in the model: along {b['model_nominal_along_nm']:.1f} nm, sideways "
-        f"{b['model_nominal_sideways_nm']:.1f} nm (MC sigma along {b['mc_sigma_along_nm']:.1f}, lateral "
+        f"  Table 7.6, 13 steps in the model: along {b['model_nominal_along_nm']:.1f} nm, "
+        "sideways "
+        f"{b['model_nominal_sideways_nm']:.1f} nm (MC sigma along {b['mc_sigma_along_nm']:.1f}, "
+        "lateral "
         f"{b['mc_sigma_lateral_nm']:.1f} nm, {b['seconds']:.1f} s for 500 x 13 strokes)",
         flush=True,
     )
@@ -200,8 +267,10 @@ def main() -> int:
         sims[strategy] = {"summary": summarize_runs(runs), "runs": runs}
         s = sims[strategy]["summary"]
         print(
-            f"  {strategy:14s} success {s['success_rate']:.2f} (40 nm: {s['success_rate_40nm']:.2f})  median error {s['error_nm_median']:6.1f} nm  "
-            f"along {s['along_nm_mean']:6.1f} +- {s['along_nm_sd']:4.1f} nm  sideways {s['sideways_nm_mean']:6.1f} "
+            f"  {strategy:14s} success {s['success_rate']:.2f} (40 nm: "
+            f"{s['success_rate_40nm']:.2f})  median error {s['error_nm_median']:6.1f} nm  "
+            f"along {s['along_nm_mean']:6.1f} +- {s['along_nm_sd']:4.1f} nm  sideways "
+            f"{s['sideways_nm_mean']:6.1f} "
             f"+- {s['sideways_nm_sd']:4.1f} nm (max |.| {s['sideways_abs_nm_max']:.1f})  "
             f"{s['wall_seconds_per_run']:.2f} s/run",
             flush=True,
@@ -229,6 +298,9 @@ def main() -> int:
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     path = RESULTS_DIR / "pushing.json"
     path.write_text(json.dumps(report, indent=2) + "\n")
+    path.with_suffix(".md").write_text(
+        markdown_report(report, "scripts/with_env.sh python bench/bench_pushing.py")
+    )
     print(f"peak RSS {peak / 1024:.0f} MiB; wall time {wall:.0f} s; wrote {path}")
     return 0
 

@@ -112,12 +112,66 @@ def run_case(n: int, seed: int, quick: bool) -> dict:
         },
     }
     print(
-        f"n={n:4d} seed={seed}: aco {aco.cost * 1e6:8.4f} um ({aco_s:6.2f} s, gap {row['aco']['gap']:6.2%}) | "
-        f"ours[{ours.method}] {ours.cost * 1e6:8.4f} um ({ours_s:6.2f} s, gap {row['ours']['gap']:6.2%}) | "
+        f"n={n:4d} seed={seed}: aco {aco.cost * 1e6:8.4f} um ({aco_s:6.2f} s, gap "
+        f"{row['aco']['gap']:6.2%}) | "
+        f"ours[{ours.method}] {ours.cost * 1e6:8.4f} um ({ours_s:6.2f} s, gap "
+        f"{row['ours']['gap']:6.2%}) | "
         f"best {best * 1e6:8.4f} um ({how}, {ref_s:.1f} s)",
         flush=True,
     )
     return row
+
+
+def markdown_report(result: dict, command: str) -> str:
+    """bench/results/sequencing*.md: per size and per instance, headed with date, machine and
+    command."""
+    m, aco = result["machine"], result["settings"]["aco"]
+
+    def span(values, unit="") -> str:
+        low, high = min(values), max(values)
+        return f"{low:.2f}{unit}" if low == high else f"{low:.2f}-{high:.2f}{unit}"
+
+    lines = [
+        "# Particle sequencing: the book's ant colony against our solver",
+        "",
+        f"Measured {result['measured']} on {m['cpus']} CPUs ({m['cpu']}), Python {m['python']}, "
+        f"load {m['loadavg_start'][0]:.2f} at start; peak memory {result['peak_rss_mib']:.0f} "
+        "MiB, "
+        f"{result['wall_seconds']:.0f} s in all.",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"Points uniform in a {result['settings']['square_m'] * 1e6:.0f} um square, Euclidean "
+        f"distances, open path. ACO: Ant System, {aco['iterations']} iterations, one ant per "
+        f"particle, alpha {aco['alpha']:g}, beta {aco['beta']:g}, rho {aco['evaporation']:g}. "
+        f"Ours: exact up to {result['settings']['exact_limit']} particles, heuristic above. "
+        "Gap = cost / best known - 1.",
+        "",
+        "| n | instances | ACO gap | ACO time (s) | ours | ours gap | ours time (s) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for n in sorted({c["n"] for c in result["cases"]}):
+        cs = [c for c in result["cases"] if c["n"] == n]
+        lines.append(
+            f"| {n} | {len(cs)} | {span([c['aco']['gap'] * 100 for c in cs], ' %')} | "
+            f"{span([c['aco']['seconds'] for c in cs])} | {cs[0]['ours']['method']} | "
+            f"{span([c['ours']['gap'] * 100 for c in cs], ' %')} | "
+            f"{span([c['ours']['seconds'] for c in cs])} |"
+        )
+    lines += [
+        "",
+        "| n | instance | ACO cost (um) | ACO time (s) | ours cost (um) | ours time (s) "
+        "| best known (um) | how |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for c in result["cases"]:
+        lines.append(
+            f"| {c['n']} | {c['instance_seed']} | {c['aco']['cost_m'] * 1e6:.4f} | "
+            f"{c['aco']['seconds']:.2f} | {c['ours']['cost_m'] * 1e6:.4f} | "
+            f"{c['ours']['seconds']:.2f} | {c['best_known']['cost_m'] * 1e6:.4f} | "
+            f"{c['best_known']['how']} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def main() -> None:
@@ -157,22 +211,34 @@ def main() -> None:
     RESULTS.mkdir(exist_ok=True)
     name = "sequencing-quick" if args.quick else "sequencing"
     (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2))
+    (RESULTS / f"{name}.md").write_text(
+        markdown_report(
+            result,
+            "scripts/with_env.sh python bench/bench_sequencing.py"
+            + (" --quick" if args.quick else ""),
+        )
+    )
     lines = [
         "",
         f"Sequencing, measured {result['measured']} on {result['machine']['cpus']} CPUs "
         f"({result['machine']['cpu']}), Python {result['machine']['python']}, "
-        f"load {result['machine']['loadavg_start'][0]:.2f}; peak memory {result['peak_rss_mib']:.0f} MiB; "
+        f"load {result['machine']['loadavg_start'][0]:.2f}; peak memory "
+        f"{result['peak_rss_mib']:.0f} MiB; "
         f"{result['wall_seconds']:.0f} s in all.",
         "",
-        "| n | instance | ACO cost (um) | ACO gap | ACO time (s) | ours | ours cost (um) | ours gap | "
+        "| n | instance | ACO cost (um) | ACO gap | ACO time (s) | ours | ours cost (um) | ours "
+        "gap | "
         "ours time (s) | best known (um) | how |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for c in result["cases"]:
         lines.append(
-            f"| {c['n']} | {c['instance_seed']} | {c['aco']['cost_m'] * 1e6:.4f} | {c['aco']['gap']:.2%} | "
-            f"{c['aco']['seconds']:.2f} | {c['ours']['method']} | {c['ours']['cost_m'] * 1e6:.4f} | "
-            f"{c['ours']['gap']:.2%} | {c['ours']['seconds']:.2f} | {c['best_known']['cost_m'] * 1e6:.4f} | "
+            f"| {c['n']} | {c['instance_seed']} | {c['aco']['cost_m'] * 1e6:.4f} | "
+            f"{c['aco']['gap']:.2%} | "
+            f"{c['aco']['seconds']:.2f} | {c['ours']['method']} | {c['ours']['cost_m'] * 1e6:.4f} "
+            "| "
+            f"{c['ours']['gap']:.2%} | {c['ours']['seconds']:.2f} | "
+            f"{c['best_known']['cost_m'] * 1e6:.4f} | "
             f"{c['best_known']['how']} |"
         )
     print("\n".join(lines))
