@@ -74,7 +74,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 from machine import cpu_model  # noqa: E402
 
-from afm_core.sim.imaging import dilate as sim_dilate  # noqa: E402
+from afm_core.physics.tip_morphology import dilate, erode  # noqa: E402
 from afm_core.sim.tip import paraboloid_cone_tip  # noqa: E402
 
 BENCH = Path(__file__).resolve().parent
@@ -222,7 +222,7 @@ def standin_characterizer(
         cx, cy = rng.uniform(0, n * pixel, 2)
         h = rng.uniform(25e-9, 60e-9)
         surface = np.maximum(surface, h - np.hypot(xx - cx, yy - cy) / np.tan(np.radians(4.0)))
-    image = sim_dilate(surface, tip) + rng.normal(0.0, noise, surface.shape)
+    image = dilate(surface, tip) + rng.normal(0.0, noise, surface.shape)
     return image, surface, tip
 
 
@@ -251,13 +251,9 @@ def import_ours():
             "bench_tip: afm_core.imaging.tip_estimation is missing ("
             + str(exc)
             + "); it must provide "
-            "estimate_tip, tip_error, erode, dilate. Run with --gwyddion-only to measure Gwyddion alone."
+            "estimate_tip, tip_error. Run with --gwyddion-only to measure Gwyddion alone."
         )
-    missing = [
-        name
-        for name in ("estimate_tip", "tip_error", "erode", "dilate")
-        if not hasattr(tip_estimation, name)
-    ]
+    missing = [name for name in ("estimate_tip", "tip_error") if not hasattr(tip_estimation, name)]
     if missing:
         sys.exit(f"bench_tip: afm_core.imaging.tip_estimation lacks {', '.join(missing)}")
     return tip_estimation
@@ -322,7 +318,7 @@ def check_conventions() -> dict:
             ("asymmetric 21x21", asymmetric_tip(pixel, 10, 40e-9)),
         ):
             assert_asymmetric(tip, 1e-9)
-            ours = sim_dilate(surface, tip)
+            ours = dilate(surface, tip)
             theirs, _ = gwy.morph("dilate", ours_to_gwyddion(tip))
             rel = float(np.abs(theirs - ours).max() / np.abs(ours).max())
             wrong = {
@@ -359,26 +355,10 @@ def check_conventions() -> dict:
             )
             report[f"dilation_rel_err[{name}]"] = rel
             report[f"erosion_rel_err[{name}]"] = rel_e
-            try:
-                from afm_core.imaging import tip_estimation as te
-            except ImportError:
-                te = None
-            if te is not None and hasattr(te, "dilate") and hasattr(te, "erode"):
-                rel_d = float(
-                    np.abs(np.asarray(te.dilate(surface, tip)) - ours).max() / np.abs(ours).max()
-                )
-                rel_o = float(
-                    np.abs(np.asarray(te.erode(ours, tip)) - eroded).max() / np.abs(eroded).max()
-                )
-                print(
-                    f"          afm_core.imaging.tip_estimation: dilate vs Gwyddion {rel_d:.2e}, "
-                    f"erode vs Gwyddion {rel_o:.2e}"
-                )
-                report[f"tip_estimation_dilate_rel_err[{name}]"] = rel_d
-                report[f"tip_estimation_erode_rel_err[{name}]"] = rel_o
-                assert rel_d <= 1e-12 and rel_o <= 1e-12, (
-                    "afm_core.imaging.tip_estimation dilate/erode disagree"
-                )
+            rel_o = float(np.abs(erode(ours, tip) - eroded).max() / np.abs(eroded).max())
+            print(f"          afm_core.physics.tip_morphology: erode vs Gwyddion {rel_o:.2e}")
+            report[f"tip_morphology_erode_rel_err[{name}]"] = rel_o
+            assert rel_o <= 1e-12, "afm_core.physics.tip_morphology erode disagrees with Gwyddion"
 
         # 2. blind estimate: sharp spikes imaged (no noise) by an asymmetric tip, threshold 0;
         # the estimate must be the true tip up to Gwyddion's height quantisation.
@@ -387,7 +367,7 @@ def check_conventions() -> dict:
         spikes = np.zeros((150, 190))
         for _ in range(30):
             spikes[rng.integers(10, 140), rng.integers(10, 180)] = 40e-9
-        image = sim_dilate(spikes, tip)
+        image = dilate(spikes, tip)
         gwy = Gwyddion(image, pixel, tmp)
         raw, info = gwy.estimate_full(tip.shape[0], 0)
         mapped = gwyddion_estimate_to_ours(raw)
@@ -471,9 +451,9 @@ def measure_morphology(te, image, surface, true_tip, pixel, tmp: Path, reps: int
         ge = gwy_image.morph("erode", ours_to_gwyddion(tip41))
         times["gwyddion_erode_s"].append(ge[1]["seconds"])
         if te is not None:
-            seconds, dil = median_time(lambda: te.dilate(surface, tip41), 1)
+            seconds, dil = median_time(lambda: dilate(surface, tip41), 1)
             times["ours_dilate_s"].append(seconds)
-            seconds, ero = median_time(lambda: te.erode(image, tip41), 1)
+            seconds, ero = median_time(lambda: erode(image, tip41), 1)
             times["ours_erode_s"].append(seconds)
     morph = {
         "tip": [41, 41],
@@ -902,7 +882,11 @@ def source_hashes() -> dict:
     import importlib.util
 
     out = {}
-    for name in ("afm_core.imaging.tip_estimation", "afm_core.sim.characterizer"):
+    for name in (
+        "afm_core.imaging.tip_estimation",
+        "afm_core.physics.tip_morphology",
+        "afm_core.sim.characterizer",
+    ):
         spec = importlib.util.find_spec(name)
         if spec is not None and spec.origin:
             out[name] = hashlib.sha256(Path(spec.origin).read_bytes()).hexdigest()[:12]

@@ -12,10 +12,11 @@ import pytest
 from scipy import signal
 
 from afm_core.instrument import LineRequest, ScanRequest
+from afm_core.physics.contact import ContactParams
+from afm_core.physics.pushing import push_along_path
+from afm_core.physics.sample import Rod, Sample
 from afm_core.sim.config import SimConfig, config_from_dict, dump_config, load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
-from afm_core.sim.pushing import ContactParams, push_along_path
-from afm_core.sim.sample import Rod, Sample
 
 QUIET = {
     "noise": {"height_white_sigma": 0.0, "height_flicker_sigma": 0.0, "deflection_sigma": 0.0},

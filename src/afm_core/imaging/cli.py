@@ -100,7 +100,7 @@ def cmd_tip(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    from afm_core.imaging.tip_estimation import erode
+    from afm_core.physics.tip_morphology import erode
 
     image = load_height_map(args.image, args.channel, args.pixel_size)
     tip = load_height_map(args.tip)

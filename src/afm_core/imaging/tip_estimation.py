@@ -1,15 +1,10 @@
 """Blind tip estimation and image reconstruction (book ch. 4, SPEC 2; Villarrubia 1994/1997).
 
-Conventions (the project's): a tip is a square odd-sized grid t(u) <= 0 with its apex at the
-centre pixel, t(0) = 0, u = (row, column) offset from the apex. Imaging is grey dilation
-
-    i(x) = max_u [ s(x + u) + t(u) ]                       (afm_core.sim.imaging.dilate)
-
-and reconstruction is its adjoint erosion, the tightest surface under the tip everywhere:
-
-    r(y) = min_u [ i(y - u) - t(u) ]                       (erode)
-
-so that erode(dilate(s, t), t) >= s, with equality wherever the tip touches s.
+Conventions (the project's; afm_core.physics.tip_morphology): a tip is a square odd-sized grid
+t(u) <= 0 with its apex at the centre pixel, t(0) = 0, u = (row, column) offset from the apex.
+Imaging is grey dilation i(x) = max_u [ s(x + u) + t(u) ] (`dilate`), reconstruction its
+adjoint erosion r(y) = min_u [ i(y - u) - t(u) ] (`erode`), the tightest surface under the
+tip everywhere, so that erode(dilate(s, t), t) >= s, with equality wherever the tip touches s.
 (Villarrubia's and Gwyddion's P is the reflected tip: P(d) = t(-d), i = s (+) P.)
 
 Blind estimation (Villarrubia 1997; book eqs. 4.32-4.38) in this convention. With the apex
@@ -81,27 +76,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from afm_core.sim.imaging import dilate as _sim_dilate
+from afm_core.physics.tip_morphology import erode
 
 _REL_EPS = 1e-9  # relative (to the image's height range) tolerance for "no change"
-
-
-def dilate(surface: np.ndarray, tip: np.ndarray) -> np.ndarray:
-    """Image of `surface` by `tip`: i(x) = max_u s(x+u) + t(u) (edges clamped)."""
-    return _sim_dilate(surface, tip)
-
-
-def erode(image: np.ndarray, tip: np.ndarray) -> np.ndarray:
-    """Reconstruction r(y) = min_u i(y-u) - t(u) (edges clamped), the adjoint of `dilate`.
-
-    scipy's grey_erosion computes min_v f(y+v) - b(v); with v = -u the structure is the
-    reflected tip."""
-    return ndimage.grey_erosion(image, structure=tip[::-1, ::-1], mode="nearest")
-
-
-def opening(image: np.ndarray, tip: np.ndarray) -> np.ndarray:
-    """dilate(erode(image, tip), tip): the part of the image a tip of this shape can trace."""
-    return dilate(erode(image, tip), tip)
 
 
 @dataclass

@@ -32,12 +32,13 @@ from afm_core.instrument import (
     validate_indent,
     validate_move,
 )
+from afm_core.physics.contact import StickSlipState
+from afm_core.physics.pushing import push_along_path
+from afm_core.physics.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
 from afm_core.pzt import LateralScanner, PrandtlIshlinskii
 from afm_core.sim.config import SimConfig, load_config
 from afm_core.sim.drift import ThermalDrift
 from afm_core.sim.imaging import DilatedField, dilated_heights_at, pink_noise
-from afm_core.sim.pushing import StickSlipState, push_along_path
-from afm_core.sim.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
 from afm_core.sim.tip import Tip
 
 LINES_PER_CHUNK = 16  # raster lines simulated at once (progress and cancel granularity)
