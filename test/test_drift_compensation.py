@@ -21,20 +21,16 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from afm_core.imaging.drift import (
-    BSplineImage,
-    DriftCorrection,
-    band_offset_vectors,
-    band_partition,
-    compensate_pair,
-    offset_displacement,
-    pixel_times,
-    recentre,
+from afm_core.imaging.drift_compensation import DriftCorrection, compensate_pair
+from afm_core.imaging.drift_fit import band_offset_vectors, band_partition
+from afm_core.imaging.frame_up_down import (
     sampled_velocity,
     up_down_observations,
     up_down_velocity,
     velocity_from_up_down,
 )
+from afm_core.imaging.offset_vector import BSplineImage, offset_displacement, recentre
+from afm_core.imaging.scan_timing import pixel_times
 from afm_core.instrument import RasterScanData, ScanRequest
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm

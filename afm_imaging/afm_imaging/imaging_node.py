@@ -131,7 +131,7 @@ class ImagingNode(Node):
         if scan0.scan_angle_deg != 0.0 or scan90.scan_angle_deg != 90.0:
             self.get_logger().error(f"pair {msg.pair_id!r}: needs one 0 deg and one 90 deg scan")
             return
-        from afm_core.imaging.drift import compensate_pair
+        from afm_core.imaging.drift_compensation import compensate_pair
 
         try:
             correction = compensate_pair(scan0, scan90, order=self.config["drift_order"])

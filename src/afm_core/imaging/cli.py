@@ -44,7 +44,7 @@ def _scan(
 
 
 def cmd_drift(args) -> int:
-    from afm_core.imaging.drift import compensate_pair
+    from afm_core.imaging.drift_compensation import compensate_pair
 
     if not args.line_rate > 0:
         raise ValueError(f"--line-rate={args.line_rate}: must be > 0 Hz")
