@@ -884,6 +884,7 @@ def source_hashes() -> dict:
     out = {}
     for name in (
         "afm_core.imaging.tip_estimation",
+        "afm_core.imaging.tip_refinement",
         "afm_core.physics.tip_morphology",
         "afm_core.sim.characterizer",
     ):

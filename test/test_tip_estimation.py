@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from afm_core.imaging import tip_estimation as te
+from afm_core.imaging import tip_refinement as tr
 from afm_core.physics.tip_morphology import dilate, erode
 from afm_core.sim.characterizer import characterizer_image, default_tip
 from afm_core.sim.tip import paraboloid_cone_tip
@@ -113,7 +114,7 @@ def test_dilate_and_erode_match_their_definitions_for_an_asymmetric_tip(asym_tip
         )
         # the float32 valid-region versions used by the candidate test agree on the interior
         h = tip.shape[0] // 2
-        e32 = te._erode_valid(surface.astype(np.float32), tip.astype(np.float32))
+        e32 = tr._erode_valid(surface.astype(np.float32), tip.astype(np.float32))
         np.testing.assert_allclose(e32, brute_erode(surface, tip)[h:-h, h:-h], rtol=0, atol=1e-14)
 
 
@@ -172,19 +173,19 @@ def test_characterizer_is_the_dilated_spike_field_plus_noise():
     axis_ends = np.array([window[20, 0], window[20, -1], window[0, 20], window[-1, 20]])
     assert np.all((axis_ends < -35 * NM) & (axis_ends > -60 * NM))  # the 41 window: top ~40-60 nm
     assert window[20, -1] > window[20, 0] + 5 * NM  # blunt +x flank
-    assert abs(te.estimate_noise(image) - 0.3 * NM) < 0.05 * NM
+    assert abs(tr.estimate_noise(image) - 0.3 * NM) < 0.05 * NM
 
 
 def test_feature_points_are_the_spike_tops():
     image, surface, tip = characterizer_image(n=256, noise=0.3 * NM, seed=1)
-    pts = te.feature_points(image, 21)
+    pts = tr.feature_points(image, 21)
     assert len(pts) >= 10
     # each feature is a spike top, up to the noise-flat apex (within 3 pixels of a spike)
     from scipy import ndimage
 
     near_spike = ndimage.maximum_filter(surface, size=7) > 15 * NM
     assert near_spike[pts[:, 0], pts[:, 1]].all()
-    kept = te.douglas_peucker(np.array([0, 0.1, 0, 5, 10, 5, 0, -0.1, 0]), 1.0)
+    kept = tr.douglas_peucker(np.array([0, 0.1, 0, 5, 10, 5, 0, -0.1, 0]), 1.0)
     assert 4 in kept and 3 not in kept and 1 not in kept
 
 
