@@ -86,7 +86,8 @@ def random_spheres(rng, n: int, r_min=50e-9, r_max=100e-9, separation=420e-9, ed
 
 
 def simulator(drift: dict, seed: int, spheres: list) -> SimulatedAfm:
-    """Drift only: the scanner's hysteresis, creep, coupling, line deflection and positioning noise are off."""
+    """Drift only: the scanner's hysteresis, creep, coupling, line deflection and positioning
+    noise are off."""
     config = merge(
         load_config(),
         {
@@ -281,8 +282,9 @@ def test_velocity_from_frame_up_and_frame_down(vx, vy, angle):
 
 
 def test_frame_up_down_with_two_particles_is_the_books_formula():
-    """Two particles, constant drift: the apparent vertical separation is d V / (V - v) frame up and
-    d V / (V + v) frame down (V: line pitch / line period), so v = V (d_up - d_down) / (d_up + d_down)."""
+    """Two particles, constant drift: the apparent vertical separation is d V / (V - v) frame up
+    and d V / (V + v) frame down (V: line pitch / line period), so
+    v = V (d_up - d_down) / (d_up + d_down)."""
     spheres = [
         {"x": ORIGIN + 0.7e-6, "y": ORIGIN + 0.6e-6, "radius": 80e-9},
         {"x": ORIGIN + 1.3e-6, "y": ORIGIN + 1.4e-6, "radius": 80e-9},

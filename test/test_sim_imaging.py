@@ -38,7 +38,8 @@ def test_tip_is_a_paraboloid_at_the_apex_and_a_cone_further_out():
     assert tip[c, c] == 0.0 and tip.max() == 0.0
     r = 3 * pixel
     assert tip[c, c + 3] == pytest.approx(-(r**2) / (2 * radius))
-    # cone wall: slope 1/tan(angle) between two points outside the tangent radius R/tan(angle) = 55 nm
+    # cone wall: slope 1/tan(angle) between two points outside the tangent radius
+    # R/tan(angle) = 55 nm
     z1, z2 = tip[c, c + 200], tip[c, c + 300]
     assert (z1 - z2) / (100 * pixel) == pytest.approx(1 / np.tan(np.radians(angle)), rel=1e-9)
 

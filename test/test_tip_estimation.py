@@ -225,7 +225,8 @@ def test_noiseless_estimate_is_an_upper_bound_that_converges_to_the_true_top():
         assert np.all(est.tip >= true - 1e-15)
         err = te.tip_error(est, tip, 20 * NM)
         print(
-            f"\nnoiseless {size}x{size}: top-20 nm RMS error {err / NM:.2e} nm in {est.seconds:.2f} s"
+            f"\nnoiseless {size}x{size}: top-20 nm RMS error {err / NM:.2e} nm in "
+            f"{est.seconds:.2f} s"
         )
         assert err < 0.05 * NM
     auto = te.estimate_tip(image, 41, "auto")  # no noise: ~ the exact algorithm
@@ -276,10 +277,10 @@ def test_noise_threshold_zero_is_too_sharp_huge_is_blunt_and_auto_is_near_the_be
     zero = te.estimate_tip(image, size, 0.0)
     huge = te.estimate_tip(image, size, 1e-6)
     print(
-        f"\n{size}x{size} on 512x512, 0.3 nm noise: auto {auto.threshold / NM:.2f} nm -> {auto_err / NM:.3f} nm "
-        f"in {auto_seconds:.1f} s; best fixed {best_th / NM:.2f} nm -> {errors[best_th] / NM:.3f} nm; "
-        f"N_TH=0 -> {te.tip_error(zero, tip, 20 * NM) / NM:.2f} nm; huge -> "
-        f"{te.tip_error(huge, tip, 20 * NM) / NM:.2f} nm"
+        f"\n{size}x{size} on 512x512, 0.3 nm noise: auto {auto.threshold / NM:.2f} nm -> "
+        f"{auto_err / NM:.3f} nm in {auto_seconds:.1f} s; best fixed {best_th / NM:.2f} nm -> "
+        f"{errors[best_th] / NM:.3f} nm; N_TH=0 -> {te.tip_error(zero, tip, 20 * NM) / NM:.2f} "
+        f"nm; huge -> {te.tip_error(huge, tip, 20 * NM) / NM:.2f} nm"
     )
     assert te.tip_error(zero, tip, 20 * NM) > 3 * errors[best_th]
     assert zero.tip.mean() < crop(tip, size).mean() - 3 * NM  # needle-sharp
@@ -299,7 +300,8 @@ def test_speed_ups_give_the_plain_result_faster():
         t2 = time.perf_counter()
         bare = te.estimate_tip(image, 11, th, use_features=False, limit_radius=False)
         print(
-            f"\nnoise {noise / NM:.1f} nm, N_TH {th / NM:.1f} nm: plain {t1 - t0:.2f} s, fast {t2 - t1:.2f} s"
+            f"\nnoise {noise / NM:.1f} nm, N_TH {th / NM:.1f} nm: plain {t1 - t0:.2f} s, fast "
+            f"{t2 - t1:.2f} s"
         )
         tol = 2e-6 * np.ptp(image)
         np.testing.assert_allclose(fast.tip, plain.tip, rtol=0, atol=tol)
@@ -313,7 +315,8 @@ def test_speed_on_the_512_characterizer(noisy512):
         est = te.estimate_tip(image, size, 4.5 * NM)
         print(
             f"\n{size}x{size} at N_TH 4.5 nm: {est.seconds:.2f} s, {est.iterations} passes, "
-            f"{est.feature_points} feature points, error {te.tip_error(est, tip, 20 * NM) / NM:.3f} nm"
+            f"{est.feature_points} feature points, error "
+            f"{te.tip_error(est, tip, 20 * NM) / NM:.3f} nm"
         )
         assert est.seconds < limit
 

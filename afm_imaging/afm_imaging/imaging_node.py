@@ -201,8 +201,9 @@ class ImagingNode(Node):
         shape.height = array_to_image(estimate.tip.astype(np.float32), shape.header)
         self.tip_pub.publish(shape)
         return (
-            f"tip {self.config['tip_size']}x{self.config['tip_size']} estimated in {estimate.seconds:.2f} s, "
-            f"threshold {estimate.threshold * 1e9:.3f} nm, apex radius {shape.apex_radius * 1e9:.1f} nm"
+            f"tip {self.config['tip_size']}x{self.config['tip_size']} estimated in "
+            f"{estimate.seconds:.2f} s, threshold {estimate.threshold * 1e9:.3f} nm, apex radius "
+            f"{shape.apex_radius * 1e9:.1f} nm"
         )
 
     def on_estimate_tip(self, _request, response):
