@@ -20,7 +20,7 @@ too); map and scan-region errors are the instrument's, shown next to the book's 
 The drift statistics are sample statistics: with n pairs the mean has a sampling error of
 about sigma / sqrt(n), which for x (mean -0.004, sigma 0.027 nm/s) is larger than the mean.
 `drift_against_truth` regresses each pair's measured velocity on the velocity the pair
-samples from the simulator's drift (`afm_core.imaging.drift.sampled_velocity` at the
+samples from the simulator's drift (`afm_core.imaging.frame_up_down.sampled_velocity` at the
 particles' imaging moments): the slope is the frames' velocity scale (about 1/1.040 on x,
 1/1.059 on y with the 10 % feed-forward model error, see the calibrate module doc). Against
 the mean velocity over the pair's whole span instead, the slope also carries the errors-in-
@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 from machine import cpu_model
 
-from afm_core.imaging.drift import sampled_velocity
+from afm_core.imaging.frame_up_down import sampled_velocity
 from afm_core.localization import calibrate
 from afm_core.localization.calibration import save_calibration
 from afm_core.sim.config import load_config, merge

@@ -1,7 +1,8 @@
 """Blind tip estimation: ours (afm_core.imaging.tip_estimation) against Gwyddion's, on the
 same raw image in the same run.
 
-Run: `scripts/with_env.sh python bench/bench_tip.py [--quick | --check-conventions | --gwyddion-only]`.
+Run: `scripts/with_env.sh python bench/bench_tip.py [--quick | --check-conventions |
+--gwyddion-only]`.
 Needs the C harness bench/gwyddion/tip_harness (built here by bench/gwyddion/build.sh, which
 apt-installs Debian's libgwyddion20-dev when it is missing). Writes bench/results/tip.json and
 tip.md (the quick run too; "quick" in the JSON says which run it was).
@@ -74,7 +75,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 from machine import cpu_model  # noqa: E402
 
-from afm_core.sim.imaging import dilate as sim_dilate  # noqa: E402
+from afm_core.physics.tip_morphology import dilate, erode  # noqa: E402
 from afm_core.sim.tip import paraboloid_cone_tip  # noqa: E402
 
 BENCH = Path(__file__).resolve().parent
@@ -89,7 +90,7 @@ GWY_EDGES = True  # Gwyddion 2.62 GUI default ("Use boundaries")
 HARNESS_ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 
 
-# --- conventions ---------------------------------------------------------------------------
+# --- conventions ---------------------------------------------------------------------------------
 
 
 def ours_to_gwyddion(tip: np.ndarray) -> np.ndarray:
@@ -122,7 +123,7 @@ def gwyddion_estimate_to_ours(estimate: np.ndarray) -> np.ndarray:
     return reflected - reflected[c, c]
 
 
-# --- the Gwyddion harness ---------------------------------------------------------------------
+# --- the Gwyddion harness ------------------------------------------------------------------------
 
 
 def build_harness() -> None:
@@ -184,7 +185,7 @@ class Gwyddion:
         return np.fromfile(out, "<f8").reshape(self.ny, self.nx), info
 
 
-# --- test tips and images -----------------------------------------------------------------------
+# --- test tips and images ------------------------------------------------------------------------
 
 
 def asymmetric_tip(pixel: float, half: int, depth: float, apex_radius: float = 6e-9) -> np.ndarray:
@@ -222,7 +223,7 @@ def standin_characterizer(
         cx, cy = rng.uniform(0, n * pixel, 2)
         h = rng.uniform(25e-9, 60e-9)
         surface = np.maximum(surface, h - np.hypot(xx - cx, yy - cy) / np.tan(np.radians(4.0)))
-    image = sim_dilate(surface, tip) + rng.normal(0.0, noise, surface.shape)
+    image = dilate(surface, tip) + rng.normal(0.0, noise, surface.shape)
     return image, surface, tip
 
 
@@ -240,7 +241,7 @@ def rms_top_error(estimate: np.ndarray, true_tip: np.ndarray, depth: float = DEP
     return float(np.sqrt(np.mean((e[top] - t[top]) ** 2)))
 
 
-# --- our implementation -----------------------------------------------------------------------------
+# --- our implementation --------------------------------------------------------------------------
 
 
 def import_ours():
@@ -251,13 +252,9 @@ def import_ours():
             "bench_tip: afm_core.imaging.tip_estimation is missing ("
             + str(exc)
             + "); it must provide "
-            "estimate_tip, tip_error, erode, dilate. Run with --gwyddion-only to measure Gwyddion alone."
+            "estimate_tip, tip_error. Run with --gwyddion-only to measure Gwyddion alone."
         )
-    missing = [
-        name
-        for name in ("estimate_tip", "tip_error", "erode", "dilate")
-        if not hasattr(tip_estimation, name)
-    ]
+    missing = [name for name in ("estimate_tip", "tip_error") if not hasattr(tip_estimation, name)]
     if missing:
         sys.exit(f"bench_tip: afm_core.imaging.tip_estimation lacks {', '.join(missing)}")
     return tip_estimation
@@ -280,13 +277,15 @@ def import_characterizer(required: bool):
     except ImportError as exc:
         if required:
             sys.exit(
-                f"bench_tip: afm_core.sim.characterizer is missing ({exc}); it must provide characterizer_image"
+                f"bench_tip: afm_core.sim.characterizer is missing ({exc}); it must provide "
+                "characterizer_image"
             )
         return None
 
 
 def make_image(characterizer_image):
-    """(image, surface, true tip, pixel, source) for the 512x512 characteriser with 0.3 nm noise."""
+    """(image, surface, true tip, pixel, source) for the 512x512 characteriser with 0.3 nm
+    noise."""
     if characterizer_image is None:
         image, surface, tip = standin_characterizer()
         return image, surface, tip, 2e-9, "stand-in (bench_tip.standin_characterizer)"
@@ -301,18 +300,20 @@ def make_image(characterizer_image):
     )
 
 
-# --- check conventions -------------------------------------------------------------------------------
+# --- check conventions ---------------------------------------------------------------------------
 
 
 def check_conventions() -> dict:
-    """Asserts the mappings with asymmetric tips on non-square images; returns the measured errors."""
+    """Asserts the mappings with asymmetric tips on non-square images; returns the measured
+    errors."""
     build_harness()
     rng = np.random.default_rng(7)
     pixel = 2e-9
     report = {}
     with tempfile.TemporaryDirectory(prefix="bench_tip_") as tmp:
         tmp = Path(tmp)
-        # 1. dilation and erosion: random surface, random tip (no symmetry at all) and a structured one.
+        # 1. dilation and erosion: random surface, random tip (no symmetry at all) and a
+        # structured one.
         surface = rng.normal(size=(90, 130)) * 5e-9
         random_tip = -rng.uniform(0, 10e-9, size=(11, 11))
         random_tip[5, 5] = 0.0
@@ -322,7 +323,7 @@ def check_conventions() -> dict:
             ("asymmetric 21x21", asymmetric_tip(pixel, 10, 40e-9)),
         ):
             assert_asymmetric(tip, 1e-9)
-            ours = sim_dilate(surface, tip)
+            ours = dilate(surface, tip)
             theirs, _ = gwy.morph("dilate", ours_to_gwyddion(tip))
             rel = float(np.abs(theirs - ours).max() / np.abs(ours).max())
             wrong = {
@@ -344,7 +345,8 @@ def check_conventions() -> dict:
             assert min(wrong.values()) > 1e-3, (
                 "a flipped tip also agrees: the test does not discriminate"
             )
-            # erosion: r(x) = min_u i(x-u) - t(u), the reverse of our dilation, with nearest-edge padding
+            # erosion: r(x) = min_u i(x-u) - t(u), the reverse of our dilation, with nearest-edge
+            # padding
             from scipy import ndimage
 
             reference = ndimage.grey_erosion(ours, structure=tip[::-1, ::-1], mode="nearest")
@@ -359,26 +361,10 @@ def check_conventions() -> dict:
             )
             report[f"dilation_rel_err[{name}]"] = rel
             report[f"erosion_rel_err[{name}]"] = rel_e
-            try:
-                from afm_core.imaging import tip_estimation as te
-            except ImportError:
-                te = None
-            if te is not None and hasattr(te, "dilate") and hasattr(te, "erode"):
-                rel_d = float(
-                    np.abs(np.asarray(te.dilate(surface, tip)) - ours).max() / np.abs(ours).max()
-                )
-                rel_o = float(
-                    np.abs(np.asarray(te.erode(ours, tip)) - eroded).max() / np.abs(eroded).max()
-                )
-                print(
-                    f"          afm_core.imaging.tip_estimation: dilate vs Gwyddion {rel_d:.2e}, "
-                    f"erode vs Gwyddion {rel_o:.2e}"
-                )
-                report[f"tip_estimation_dilate_rel_err[{name}]"] = rel_d
-                report[f"tip_estimation_erode_rel_err[{name}]"] = rel_o
-                assert rel_d <= 1e-12 and rel_o <= 1e-12, (
-                    "afm_core.imaging.tip_estimation dilate/erode disagree"
-                )
+            rel_o = float(np.abs(erode(ours, tip) - eroded).max() / np.abs(eroded).max())
+            print(f"          afm_core.physics.tip_morphology: erode vs Gwyddion {rel_o:.2e}")
+            report[f"tip_morphology_erode_rel_err[{name}]"] = rel_o
+            assert rel_o <= 1e-12, "afm_core.physics.tip_morphology erode disagrees with Gwyddion"
 
         # 2. blind estimate: sharp spikes imaged (no noise) by an asymmetric tip, threshold 0;
         # the estimate must be the true tip up to Gwyddion's height quantisation.
@@ -387,7 +373,7 @@ def check_conventions() -> dict:
         spikes = np.zeros((150, 190))
         for _ in range(30):
             spikes[rng.integers(10, 140), rng.integers(10, 180)] = 40e-9
-        image = sim_dilate(spikes, tip)
+        image = dilate(spikes, tip)
         gwy = Gwyddion(image, pixel, tmp)
         raw, info = gwy.estimate_full(tip.shape[0], 0)
         mapped = gwyddion_estimate_to_ours(raw)
@@ -401,8 +387,8 @@ def check_conventions() -> dict:
             )
         }
         print(
-            f"estimate: max |gwyddion_estimate_to_ours(estimate) - true tip| = {err * 1e12:.2f} pm "
-            f"(Gwyddion's height step {gwy.step * 1e12:.2f} pm, count {info['count']}); "
+            f"estimate: max |gwyddion_estimate_to_ours(estimate) - true tip| = {err * 1e12:.2f} "
+            f"pm (Gwyddion's height step {gwy.step * 1e12:.2f} pm, count {info['count']}); "
             + ", ".join(f"{k}: {v * 1e9:.2f} nm" for k, v in alternatives.items())
         )
         assert err <= 1.01 * gwy.step, "Gwyddion's estimate is not the point-reflected tip"
@@ -420,7 +406,7 @@ def check_conventions() -> dict:
     return report
 
 
-# --- sweeps --------------------------------------------------------------------------------------------
+# --- sweeps --------------------------------------------------------------------------------------
 
 
 def sweep(evaluate, coarse: list[int], refine_rounds: int) -> dict[int, dict]:
@@ -471,9 +457,9 @@ def measure_morphology(te, image, surface, true_tip, pixel, tmp: Path, reps: int
         ge = gwy_image.morph("erode", ours_to_gwyddion(tip41))
         times["gwyddion_erode_s"].append(ge[1]["seconds"])
         if te is not None:
-            seconds, dil = median_time(lambda: te.dilate(surface, tip41), 1)
+            seconds, dil = median_time(lambda: dilate(surface, tip41), 1)
             times["ours_dilate_s"].append(seconds)
-            seconds, ero = median_time(lambda: te.erode(image, tip41), 1)
+            seconds, ero = median_time(lambda: erode(image, tip41), 1)
             times["ours_erode_s"].append(seconds)
     morph = {
         "tip": [41, 41],
@@ -499,7 +485,8 @@ def remeasure_morphology() -> None:
     result = json.loads((RESULTS / "tip.json").read_text())
     if not result.get("complete"):
         sys.exit(
-            "bench_tip: --morphology-only needs a complete bench/results/tip.json; run the bench first"
+            "bench_tip: --morphology-only needs a complete bench/results/tip.json; run the bench "
+            "first"
         )
     te = import_ours()
     image, surface, true_tip, pixel, _ = make_image(import_characterizer(required=True))
@@ -519,7 +506,7 @@ def remeasure_morphology() -> None:
     print(render_markdown(result))
 
 
-# --- main -----------------------------------------------------------------------------------------------
+# --- main ----------------------------------------------------------------------------------------
 
 
 def main() -> None:
@@ -535,7 +522,8 @@ def main() -> None:
     parser.add_argument(
         "--gwyddion-only",
         action="store_true",
-        help="measure Gwyddion alone (uses a stand-in image if afm_core.sim.characterizer is missing)",
+        help="measure Gwyddion alone (uses a stand-in image if afm_core.sim.characterizer is "
+        "missing)",
     )
     parser.add_argument(
         "--gwy41",
@@ -573,7 +561,8 @@ def main() -> None:
         metric = "bench_tip.rms_top_error (fallback)"
     print(
         f"image {image.shape[1]}x{image.shape[0]}, pixel {pixel * 1e9:.3g} nm, range "
-        f"{(image.max() - image.min()) * 1e9:.2f} nm, true tip {true_tip.shape[0]}x{true_tip.shape[1]}; {source}",
+        f"{(image.max() - image.min()) * 1e9:.2f} nm, true tip "
+        f"{true_tip.shape[0]}x{true_tip.shape[1]}; {source}",
         flush=True,
     )
 
@@ -618,8 +607,8 @@ def main() -> None:
         coarse_sigmas = [2, 4, 8, 16, 32] if args.quick else [0, 1, 2, 4, 6, 8, 12, 16, 24, 32]
         coarse = sorted({int(round(s * sigma_steps)) for s in coarse_sigmas})
         print(
-            f"Gwyddion step (image range / 10000) = {step * 1e12:.2f} pm; noise = {sigma_steps:.1f} steps; "
-            f"coarse thresholds (steps) {coarse}",
+            f"Gwyddion step (image range / 10000) = {step * 1e12:.2f} pm; noise = "
+            f"{sigma_steps:.1f} steps; coarse thresholds (steps) {coarse}",
             flush=True,
         )
 
@@ -667,8 +656,8 @@ def main() -> None:
                     seconds = time.perf_counter() - t0
                     err = error(np.asarray(est.tip))
                     print(
-                        f"  ours {tip_n}x{tip_n} threshold {k} steps ({k * step * 1e9:.3f} nm): {seconds:.2f} s, "
-                        f"error {err * 1e9:.3f} nm, {est.iterations} iterations",
+                        f"  ours {tip_n}x{tip_n} threshold {k} steps ({k * step * 1e9:.3f} nm): "
+                        f"{seconds:.2f} s, error {err * 1e9:.3f} nm, {est.iterations} iterations",
                         flush=True,
                     )
                     return {
@@ -689,8 +678,8 @@ def main() -> None:
                     "reported_seconds": float(auto.seconds),
                 }
                 print(
-                    f"  ours {tip_n}x{tip_n} auto: threshold {auto.threshold * 1e9:.3f} nm, {seconds:.2f} s, "
-                    f"error {auto_row['error_m'] * 1e9:.3f} nm",
+                    f"  ours {tip_n}x{tip_n} auto: threshold {auto.threshold * 1e9:.3f} nm, "
+                    f"{seconds:.2f} s, error {auto_row['error_m'] * 1e9:.3f} nm",
                     flush=True,
                 )
                 fixed_coarse = sorted(set(coarse) | {int(round(auto.threshold / step))})
@@ -752,15 +741,17 @@ def summarise(result: dict) -> dict:
                 v["seconds"] for v in result["gwyddion"][n].values()
             )
             entry["gwyddion_sweep_runs"] = len(result["gwyddion"][n])
-            # the estimators on equal terms: each at its best threshold (both picked knowing the true
-            # tip); the automatic threshold is judged against our best fixed one (auto_within_10pct)
+            # the estimators on equal terms: each at its best threshold (both picked knowing the
+            # true tip); the automatic threshold is judged against our best fixed one
+            # (auto_within_10pct)
             entry["best_fixed_no_worse_than_gwyddion"] = best_fixed["error_m"] <= g["error_m"]
             entry["time_ratio_best_fixed_over_gwyddion"] = best_fixed["seconds"] / g["seconds"]
             entry["time_target_met"] = (
                 entry["time_ratio_best_fixed_over_gwyddion"] <= 0.1
                 and entry["best_fixed_no_worse_than_gwyddion"]
             )
-            # informative: our automatic threshold (chosen without the truth) against Gwyddion's best
+            # informative: our automatic threshold (chosen without the truth) against Gwyddion's
+            # best
             entry["error_no_worse_than_gwyddion"] = auto["error_m"] <= g["error_m"]
             entry["time_ratio_auto_over_gwyddion"] = auto["seconds"] / g["seconds"]
         s[f"ours_{n}"] = entry
@@ -778,16 +769,17 @@ def render_markdown(result: dict) -> str:
     lines = [
         f"# {title}",
         "",
-        f"Measured {result['measured']} on {result['machine']['cpus']} CPUs ({result['machine']['cpu']}), "
-        f"Python {result['machine']['python']}, Gwyddion {result['machine']['gwyddion']}, single-threaded"
-        + load_note(result["machine"])
-        + ".",
+        f"Measured {result['measured']} on {result['machine']['cpus']} CPUs "
+        f"({result['machine']['cpu']}), Python {result['machine']['python']}, Gwyddion "
+        f"{result['machine']['gwyddion']}, single-threaded" + load_note(result["machine"]) + ".",
         "",
-        f"Image: {size}, pixel {img['pixel_m'] * 1e9:.3g} nm, noise {img['noise_m'] * 1e9:.2g} nm, range "
-        f"{img['range_m'] * 1e9:.2f} nm, true tip {img['true_tip'][0]}x{img['true_tip'][1]}; {img['source']}. "
-        f"Error: {result['error_metric']} (RMS over the top {result['depth_m'] * 1e9:.0f} nm of the true tip), "
-        f"Gwyddion's estimate converted by gwyddion_estimate_to_ours (180-degree rotation). Gwyddion thresholds "
-        f"are whole steps of (image range)/10000 = {result['gwyddion_step_m'] * 1e12:.2f} pm; "
+        f"Image: {size}, pixel {img['pixel_m'] * 1e9:.3g} nm, noise {img['noise_m'] * 1e9:.2g} "
+        f"nm, range {img['range_m'] * 1e9:.2f} nm, true tip "
+        f"{img['true_tip'][0]}x{img['true_tip'][1]}; {img['source']}. Error: "
+        f"{result['error_metric']} (RMS over the top {result['depth_m'] * 1e9:.0f} nm of the true "
+        "tip), Gwyddion's estimate converted by gwyddion_estimate_to_ours (180-degree rotation). "
+        "Gwyddion thresholds are whole steps of (image range)/10000 = "
+        f"{result['gwyddion_step_m'] * 1e12:.2f} pm; "
         f"use_edges={'TRUE' if result['gwyddion_use_edges'] else 'FALSE'} (its GUI default).",
         "",
         "| image | tip | method | threshold (nm) | seconds | error (nm) |",
@@ -798,21 +790,23 @@ def render_markdown(result: dict) -> str:
         for k, row in sorted(rows.items(), key=lambda kv: int(kv[0])):
             tag = " **(best)**" if int(k) == best else ""
             lines.append(
-                f"| {size} | {n}x{n} | Gwyddion full estimate{tag} | {row['threshold_m'] * 1e9:.3f} | "
-                f"{row['seconds']:.2f} | {row['error_m'] * 1e9:.3f} |"
+                f"| {size} | {n}x{n} | Gwyddion full estimate{tag} | "
+                f"{row['threshold_m'] * 1e9:.3f} | {row['seconds']:.2f} | "
+                f"{row['error_m'] * 1e9:.3f} |"
             )
     for n, ours in result["ours"].items():
         a = ours["auto"]
         lines.append(
-            f"| {size} | {n}x{n} | ours, auto threshold | {a['threshold_m'] * 1e9:.3f} | {a['seconds']:.2f} | "
-            f"{a['error_m'] * 1e9:.3f} |"
+            f"| {size} | {n}x{n} | ours, auto threshold | {a['threshold_m'] * 1e9:.3f} | "
+            f"{a['seconds']:.2f} | {a['error_m'] * 1e9:.3f} |"
         )
         best = best_of({int(k): v for k, v in ours["fixed"].items()})[0]
         for k, row in sorted(ours["fixed"].items(), key=lambda kv: int(kv[0])):
             tag = " **(best fixed)**" if int(k) == best else ""
             lines.append(
-                f"| {size} | {n}x{n} | ours, fixed threshold{tag} | {row['threshold_m'] * 1e9:.3f} | "
-                f"{row['seconds']:.2f} | {row['error_m'] * 1e9:.3f} |"
+                f"| {size} | {n}x{n} | ours, fixed threshold{tag} | "
+                f"{row['threshold_m'] * 1e9:.3f} | {row['seconds']:.2f} | "
+                f"{row['error_m'] * 1e9:.3f} |"
             )
     m = result["morphology"]
     if m:
@@ -823,13 +817,14 @@ def render_markdown(result: dict) -> str:
                 else ""
             )
             lines.append(
-                f"| {size} | 41x41 | Gwyddion gwy_tip_{'dilation' if op == 'dilate' else 'erosion'} "
-                f"(median of {m['repetitions']}{when}) | | {m[f'gwyddion_{op}_s']:.3f} | |"
+                f"| {size} | 41x41 | Gwyddion "
+                f"gwy_tip_{'dilation' if op == 'dilate' else 'erosion'} (median of "
+                f"{m['repetitions']}{when}) | | {m[f'gwyddion_{op}_s']:.3f} | |"
             )
             if f"ours_{op}_s" in m:
                 lines.append(
-                    f"| {size} | 41x41 | ours {op} (median of {m['repetitions']}; max rel. diff to "
-                    f"Gwyddion {m[f'{op}_max_rel_diff']:.1e}) | | {m[f'ours_{op}_s']:.3f} | |"
+                    f"| {size} | 41x41 | ours {op} (median of {m['repetitions']}; max rel. diff "
+                    f"to Gwyddion {m[f'{op}_max_rel_diff']:.1e}) | | {m[f'ours_{op}_s']:.3f} | |"
                 )
     s = result.get("summary", {})
     lines += ["", "| ratio | value | target |", "|---|---|---|"]
@@ -838,28 +833,31 @@ def render_markdown(result: dict) -> str:
         if not o:
             continue
         lines.append(
-            f"| {n}x{n}: auto / best fixed threshold error | {o['auto_over_best_fixed_error']:.3f} "
-            f"({o['auto_error_m'] * 1e9:.3f} vs {o['best_fixed_error_m'] * 1e9:.3f} nm) | <= 1.1 |"
+            f"| {n}x{n}: auto / best fixed threshold error | "
+            f"{o['auto_over_best_fixed_error']:.3f} ({o['auto_error_m'] * 1e9:.3f} vs "
+            f"{o['best_fixed_error_m'] * 1e9:.3f} nm) | <= 1.1 |"
         )
         if "gwyddion_best_error_m" in o:
             lines.append(
-                f"| {n}x{n}: error at the best threshold, ours vs Gwyddion (both picked knowing the true tip) "
-                f"| {o['best_fixed_error_m'] * 1e9:.3f} vs {o['gwyddion_best_error_m'] * 1e9:.3f} nm "
+                f"| {n}x{n}: error at the best threshold, ours vs Gwyddion (both picked knowing "
+                f"the true tip) | {o['best_fixed_error_m'] * 1e9:.3f} vs "
+                f"{o['gwyddion_best_error_m'] * 1e9:.3f} nm "
                 f"({'no worse' if o['best_fixed_no_worse_than_gwyddion'] else 'WORSE'}) | <= |"
             )
             lines.append(
                 f"| {n}x{n}: time at the best threshold, ours / Gwyddion | "
-                f"{o['time_ratio_best_fixed_over_gwyddion']:.4f} ({o['best_fixed_seconds']:.2f} vs "
-                f"{o['gwyddion_best_seconds']:.1f} s) | <= 0.1 at equal or better error |"
+                f"{o['time_ratio_best_fixed_over_gwyddion']:.4f} ({o['best_fixed_seconds']:.2f} "
+                f"vs {o['gwyddion_best_seconds']:.1f} s) | <= 0.1 at equal or better error |"
             )
             lines.append(
                 f"| {n}x{n}: ours with the auto threshold vs Gwyddion at its best | "
                 f"{o['auto_error_m'] * 1e9:.3f} vs {o['gwyddion_best_error_m'] * 1e9:.3f} nm "
                 f"({'no worse' if o['error_no_worse_than_gwyddion'] else 'worse'}), time ratio "
                 f"{o['time_ratio_auto_over_gwyddion']:.4f} ({o['auto_seconds']:.2f} vs "
-                f"{o['gwyddion_best_seconds']:.1f} s; Gwyddion's {o['gwyddion_sweep_runs']}-threshold sweep "
-                f"that found its best: {o['gwyddion_sweep_seconds']:.0f} s) | (informative: Gwyddion has no "
-                f"automatic threshold) |"
+                f"{o['gwyddion_best_seconds']:.1f} s; Gwyddion's "
+                f"{o['gwyddion_sweep_runs']}-threshold sweep that found its best: "
+                f"{o['gwyddion_sweep_seconds']:.0f} s) | (informative: Gwyddion has no automatic "
+                "threshold) |"
             )
     if "dilate_time_ratio" in s:
         lines.append(
@@ -878,7 +876,8 @@ def render_markdown(result: dict) -> str:
 
 
 def load_note(machine: dict) -> str:
-    """The 1-minute load average at start and end: other work on a shared machine slows both sides."""
+    """The 1-minute load average at start and end: other work on a shared machine slows both
+    sides."""
     if "loadavg_start" not in machine:
         return ""
     end = machine.get("loadavg_end")
@@ -897,12 +896,18 @@ def write_results(result: dict) -> None:
 
 
 def source_hashes() -> dict:
-    """sha256 (first 12 hex digits) of the measured modules, to tell runs of changing code apart."""
+    """sha256 (first 12 hex digits) of the measured modules, to tell runs of changing code
+    apart."""
     import hashlib
     import importlib.util
 
     out = {}
-    for name in ("afm_core.imaging.tip_estimation", "afm_core.sim.characterizer"):
+    for name in (
+        "afm_core.imaging.tip_estimation",
+        "afm_core.imaging.tip_refinement",
+        "afm_core.physics.tip_morphology",
+        "afm_core.sim.characterizer",
+    ):
         spec = importlib.util.find_spec(name)
         if spec is not None and spec.origin:
             out[name] = hashlib.sha256(Path(spec.origin).read_bytes()).hexdigest()[:12]

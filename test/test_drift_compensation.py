@@ -21,20 +21,16 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from afm_core.imaging.drift import (
-    BSplineImage,
-    DriftCorrection,
-    band_offset_vectors,
-    band_partition,
-    compensate_pair,
-    offset_displacement,
-    pixel_times,
-    recentre,
+from afm_core.imaging.drift_compensation import DriftCorrection, compensate_pair
+from afm_core.imaging.drift_fit import band_offset_vectors, band_partition
+from afm_core.imaging.frame_up_down import (
     sampled_velocity,
     up_down_observations,
     up_down_velocity,
     velocity_from_up_down,
 )
+from afm_core.imaging.offset_vector import BSplineImage, offset_displacement, recentre
+from afm_core.imaging.scan_timing import pixel_times
 from afm_core.instrument import RasterScanData, ScanRequest
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
@@ -90,7 +86,8 @@ def random_spheres(rng, n: int, r_min=50e-9, r_max=100e-9, separation=420e-9, ed
 
 
 def simulator(drift: dict, seed: int, spheres: list) -> SimulatedAfm:
-    """Drift only: the scanner's hysteresis, creep, coupling, line deflection and positioning noise are off."""
+    """Drift only: the scanner's hysteresis, creep, coupling, line deflection and positioning
+    noise are off."""
     config = merge(
         load_config(),
         {
@@ -285,8 +282,9 @@ def test_velocity_from_frame_up_and_frame_down(vx, vy, angle):
 
 
 def test_frame_up_down_with_two_particles_is_the_books_formula():
-    """Two particles, constant drift: the apparent vertical separation is d V / (V - v) frame up and
-    d V / (V + v) frame down (V: line pitch / line period), so v = V (d_up - d_down) / (d_up + d_down)."""
+    """Two particles, constant drift: the apparent vertical separation is d V / (V - v) frame up
+    and d V / (V + v) frame down (V: line pitch / line period), so
+    v = V (d_up - d_down) / (d_up + d_down)."""
     spheres = [
         {"x": ORIGIN + 0.7e-6, "y": ORIGIN + 0.6e-6, "radius": 80e-9},
         {"x": ORIGIN + 1.3e-6, "y": ORIGIN + 1.4e-6, "radius": 80e-9},

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from afm_core.imaging.files import HeightMap, load_height_map, save_height_map
-from afm_core.imaging.tip_estimation import erode
 from afm_core.instrument import ScanRequest
+from afm_core.physics.tip_morphology import erode
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 from afm_core.sim.tip import paraboloid_cone_tip

@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq, minimize, minimize_scalar
 
-from afm_core.sim.pushing import ContactParams, push_along_path, rod_end_twists
-from afm_core.sim.sample import Electrode, Rod, Sample, Sphere
+from afm_core.physics.contact import ContactParams
+from afm_core.physics.pushing import push_along_path
+from afm_core.physics.rod_pushing import rod_end_twists
+from afm_core.physics.sample import Electrode, Rod, Sample, Sphere
 
 nm = 1e-9
 R_T = 50 * nm  # the book's effective tip contact radius

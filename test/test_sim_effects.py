@@ -12,10 +12,11 @@ import pytest
 from scipy import signal
 
 from afm_core.instrument import LineRequest, ScanRequest
+from afm_core.physics.contact import ContactParams
+from afm_core.physics.pushing import push_along_path
+from afm_core.physics.sample import Rod, Sample
 from afm_core.sim.config import SimConfig, config_from_dict, dump_config, load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
-from afm_core.sim.pushing import ContactParams, push_along_path
-from afm_core.sim.sample import Rod, Sample
 
 QUIET = {
     "noise": {"height_white_sigma": 0.0, "height_flicker_sigma": 0.0, "deflection_sigma": 0.0},
@@ -164,7 +165,7 @@ def test_scanner_bow_is_the_configured_paraboloid_about_the_range_centre():
     assert sim.truth()["objects"] == []  # the sample itself is untouched
 
 
-# ---------------------------------------------------------------------------- 3. sensor gain and latency
+# -------------------------------------------------------------------- 3. sensor gain and latency
 
 
 def test_height_gain_scales_every_measured_height_about_the_substrate_plane():
@@ -220,7 +221,7 @@ def test_latency_shifts_image_features_along_the_fast_axis_by_trace_speed_times_
 def test_latency_delays_force_trace_and_indentation_signals():
     sphere = {"sample": {"spheres": [{"x": 5e-6, "y": 5e-6, "radius": 100e-9}]}}
     traces, latency = [], 0.0
-    for lag in ("none", "three samples"):
+    for _lag in ("none", "three samples"):
         sim = SimulatedAfm(ideal(sphere, {"noise": {"sensor_latency": latency}}))
         sim.move_tip(4.7e-6, 5e-6, 10e-6)
         traces.append(
@@ -482,7 +483,7 @@ def test_flicker_noise_is_one_over_f_along_the_acquisition_sequence():
     ) == pytest.approx(0.0, abs=0.1)  # the fit tells white from pink
 
 
-# ---------------------------------------------------------------------------- defaults: nothing changes
+# --------------------------------------------------------------------- defaults: nothing changes
 
 NEW_KEYS_AT_DEFAULT = {
     "drift": {"acceleration_x": 0.0, "acceleration_y": 0.0},

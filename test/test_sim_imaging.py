@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from afm_core.instrument import ScanRequest
-from afm_core.sim.imaging import dilate
+from afm_core.physics.tip_morphology import dilate
 from afm_core.sim.instrument import SimulatedAfm
 from afm_core.sim.tip import paraboloid_cone_tip
 
@@ -38,7 +38,8 @@ def test_tip_is_a_paraboloid_at_the_apex_and_a_cone_further_out():
     assert tip[c, c] == 0.0 and tip.max() == 0.0
     r = 3 * pixel
     assert tip[c, c + 3] == pytest.approx(-(r**2) / (2 * radius))
-    # cone wall: slope 1/tan(angle) between two points outside the tangent radius R/tan(angle) = 55 nm
+    # cone wall: slope 1/tan(angle) between two points outside the tangent radius
+    # R/tan(angle) = 55 nm
     z1, z2 = tip[c, c + 200], tip[c, c + 300]
     assert (z1 - z2) / (100 * pixel) == pytest.approx(1 / np.tan(np.radians(angle)), rel=1e-9)
 
@@ -61,8 +62,8 @@ def test_line_times_follow_the_slow_scan_direction():
 
 
 def test_dilated_field_and_pointwise_dilation_agree():
+    from afm_core.physics.sample import Pit, Roughness, Sample, Sphere
     from afm_core.sim.imaging import DilatedField, dilated_heights_at
-    from afm_core.sim.sample import Pit, Roughness, Sample, Sphere
 
     sample = Sample(
         spheres=[Sphere(0, 100e-9, 100e-9, 50e-9)],
@@ -82,8 +83,8 @@ def test_pointwise_dilation_tries_only_offsets_that_can_win_and_equals_the_defin
     """Particles, a rod and an electrode on a rough, pitted substrate, seen along lines by a
     blunt asymmetric tip and a sharp one: the heights equal max over every tip offset of
     s(q+u) + t(u), though only the offsets that can win are tried."""
+    from afm_core.physics.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
     from afm_core.sim.imaging import dilated_heights_at
-    from afm_core.sim.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
 
     sample = Sample(
         spheres=[Sphere(0, 120e-9, 100e-9, 15e-9), Sphere(1, 160e-9, 110e-9, 5e-9)],

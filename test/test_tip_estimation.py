@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from afm_core.imaging import tip_estimation as te
+from afm_core.imaging import tip_refinement as tr
+from afm_core.physics.tip_morphology import dilate, erode
 from afm_core.sim.characterizer import characterizer_image, default_tip
 from afm_core.sim.tip import paraboloid_cone_tip
 
@@ -105,27 +107,27 @@ def test_dilate_and_erode_match_their_definitions_for_an_asymmetric_tip(asym_tip
     random_tip[3, 3] = 0.0
     for tip in (asym_tip, random_tip):
         np.testing.assert_allclose(
-            te.dilate(surface, tip), brute_dilate(surface, tip), rtol=0, atol=1e-20
+            dilate(surface, tip), brute_dilate(surface, tip), rtol=0, atol=1e-20
         )
         np.testing.assert_allclose(
-            te.erode(surface, tip), brute_erode(surface, tip), rtol=0, atol=1e-20
+            erode(surface, tip), brute_erode(surface, tip), rtol=0, atol=1e-20
         )
         # the float32 valid-region versions used by the candidate test agree on the interior
         h = tip.shape[0] // 2
-        e32 = te._erode_valid(surface.astype(np.float32), tip.astype(np.float32))
+        e32 = tr._erode_valid(surface.astype(np.float32), tip.astype(np.float32))
         np.testing.assert_allclose(e32, brute_erode(surface, tip)[h:-h, h:-h], rtol=0, atol=1e-14)
 
 
 def test_erosion_is_the_adjoint_of_imaging(asym_tip):
     rng = np.random.default_rng(5)
     rough = rng.normal(scale=3 * NM, size=(60, 60))
-    recon = te.erode(te.dilate(rough, asym_tip), asym_tip)
+    recon = erode(dilate(rough, asym_tip), asym_tip)
     assert np.all(recon >= rough - 1e-18)  # never below the surface
     assert np.any(recon > rough + 1 * NM)  # narrow pits are not reached
     # a smooth surface whose curvature is far below the tip's is touched everywhere: exact
     y, x = np.mgrid[0:80, 0:80] * 1.6 * NM
     smooth = 1 * NM * np.sin(2 * np.pi * x / (200 * NM)) * np.cos(2 * np.pi * y / (250 * NM))
-    recon = te.erode(te.dilate(smooth, asym_tip), asym_tip)
+    recon = erode(dilate(smooth, asym_tip), asym_tip)
     np.testing.assert_allclose(recon[5:-5, 5:-5], smooth[5:-5, 5:-5], rtol=0, atol=1e-21)
 
 
@@ -134,7 +136,7 @@ def test_erosion_speed_512_with_41_tip():
     image = rng.normal(scale=NM, size=(512, 512))
     tip = crop(default_tip(1.6 * NM, depth=100 * NM), 41)
     t0 = time.perf_counter()
-    te.erode(image, tip)
+    erode(image, tip)
     seconds = time.perf_counter() - t0
     print(f"\nerode 512x512 by 41x41: {seconds:.2f} s (Gwyddion ~0.56 s)")
     assert seconds < 3.0
@@ -143,7 +145,7 @@ def test_erosion_speed_512_with_41_tip():
 def test_certainty_map_marks_points_the_reconstruction_gets_right():
     image, surface, tip = characterizer_image(n=300, noise=0.0, seed=2)
     certain = te.certainty_map(image, tip)
-    recon = te.erode(image, tip)
+    recon = erode(image, tip)
     assert np.all(recon >= surface - 1e-15)
     inner = (slice(80, -80), slice(80, -80))
     assert certain[inner].mean() > 0.5  # the flat substrate and the spike tops
@@ -164,26 +166,26 @@ def test_certainty_map_marks_points_the_reconstruction_gets_right():
 def test_characterizer_is_the_dilated_spike_field_plus_noise():
     image, surface, tip = characterizer_image(n=256, noise=0.3 * NM, seed=1)
     assert tip[tip.shape[0] // 2, tip.shape[0] // 2] == 0 and tip.max() == 0
-    noise = image - te.dilate(surface, tip)
+    noise = image - dilate(surface, tip)
     assert abs(noise.std() - 0.3 * NM) < 0.02 * NM and abs(noise.mean()) < 0.02 * NM
     assert 15 * NM < surface.max() <= 80 * NM and np.median(surface) == 0
     window = crop(tip, 41)
     axis_ends = np.array([window[20, 0], window[20, -1], window[0, 20], window[-1, 20]])
     assert np.all((axis_ends < -35 * NM) & (axis_ends > -60 * NM))  # the 41 window: top ~40-60 nm
     assert window[20, -1] > window[20, 0] + 5 * NM  # blunt +x flank
-    assert abs(te.estimate_noise(image) - 0.3 * NM) < 0.05 * NM
+    assert abs(tr.estimate_noise(image) - 0.3 * NM) < 0.05 * NM
 
 
 def test_feature_points_are_the_spike_tops():
     image, surface, tip = characterizer_image(n=256, noise=0.3 * NM, seed=1)
-    pts = te.feature_points(image, 21)
+    pts = tr.feature_points(image, 21)
     assert len(pts) >= 10
     # each feature is a spike top, up to the noise-flat apex (within 3 pixels of a spike)
     from scipy import ndimage
 
     near_spike = ndimage.maximum_filter(surface, size=7) > 15 * NM
     assert near_spike[pts[:, 0], pts[:, 1]].all()
-    kept = te.douglas_peucker(np.array([0, 0.1, 0, 5, 10, 5, 0, -0.1, 0]), 1.0)
+    kept = tr.douglas_peucker(np.array([0, 0.1, 0, 5, 10, 5, 0, -0.1, 0]), 1.0)
     assert 4 in kept and 3 not in kept and 1 not in kept
 
 
@@ -205,7 +207,7 @@ def test_refinement_matches_the_brute_force_definition():
         ],
         float,
     )
-    image = te.dilate(surface, true_tip) + rng.normal(scale=0.05, size=surface.shape)
+    image = dilate(surface, true_tip) + rng.normal(scale=0.05, size=surface.shape)
     for th in (0.0, 0.1):
         brute = brute_blind(image, 5, th)
         plain = te.estimate_tip_plain(image, 5, th).tip
@@ -223,7 +225,8 @@ def test_noiseless_estimate_is_an_upper_bound_that_converges_to_the_true_top():
         assert np.all(est.tip >= true - 1e-15)
         err = te.tip_error(est, tip, 20 * NM)
         print(
-            f"\nnoiseless {size}x{size}: top-20 nm RMS error {err / NM:.2e} nm in {est.seconds:.2f} s"
+            f"\nnoiseless {size}x{size}: top-20 nm RMS error {err / NM:.2e} nm in "
+            f"{est.seconds:.2f} s"
         )
         assert err < 0.05 * NM
     auto = te.estimate_tip(image, 41, "auto")  # no noise: ~ the exact algorithm
@@ -274,10 +277,10 @@ def test_noise_threshold_zero_is_too_sharp_huge_is_blunt_and_auto_is_near_the_be
     zero = te.estimate_tip(image, size, 0.0)
     huge = te.estimate_tip(image, size, 1e-6)
     print(
-        f"\n{size}x{size} on 512x512, 0.3 nm noise: auto {auto.threshold / NM:.2f} nm -> {auto_err / NM:.3f} nm "
-        f"in {auto_seconds:.1f} s; best fixed {best_th / NM:.2f} nm -> {errors[best_th] / NM:.3f} nm; "
-        f"N_TH=0 -> {te.tip_error(zero, tip, 20 * NM) / NM:.2f} nm; huge -> "
-        f"{te.tip_error(huge, tip, 20 * NM) / NM:.2f} nm"
+        f"\n{size}x{size} on 512x512, 0.3 nm noise: auto {auto.threshold / NM:.2f} nm -> "
+        f"{auto_err / NM:.3f} nm in {auto_seconds:.1f} s; best fixed {best_th / NM:.2f} nm -> "
+        f"{errors[best_th] / NM:.3f} nm; N_TH=0 -> {te.tip_error(zero, tip, 20 * NM) / NM:.2f} "
+        f"nm; huge -> {te.tip_error(huge, tip, 20 * NM) / NM:.2f} nm"
     )
     assert te.tip_error(zero, tip, 20 * NM) > 3 * errors[best_th]
     assert zero.tip.mean() < crop(tip, size).mean() - 3 * NM  # needle-sharp
@@ -297,7 +300,8 @@ def test_speed_ups_give_the_plain_result_faster():
         t2 = time.perf_counter()
         bare = te.estimate_tip(image, 11, th, use_features=False, limit_radius=False)
         print(
-            f"\nnoise {noise / NM:.1f} nm, N_TH {th / NM:.1f} nm: plain {t1 - t0:.2f} s, fast {t2 - t1:.2f} s"
+            f"\nnoise {noise / NM:.1f} nm, N_TH {th / NM:.1f} nm: plain {t1 - t0:.2f} s, fast "
+            f"{t2 - t1:.2f} s"
         )
         tol = 2e-6 * np.ptp(image)
         np.testing.assert_allclose(fast.tip, plain.tip, rtol=0, atol=tol)
@@ -311,7 +315,8 @@ def test_speed_on_the_512_characterizer(noisy512):
         est = te.estimate_tip(image, size, 4.5 * NM)
         print(
             f"\n{size}x{size} at N_TH 4.5 nm: {est.seconds:.2f} s, {est.iterations} passes, "
-            f"{est.feature_points} feature points, error {te.tip_error(est, tip, 20 * NM) / NM:.3f} nm"
+            f"{est.feature_points} feature points, error "
+            f"{te.tip_error(est, tip, 20 * NM) / NM:.3f} nm"
         )
         assert est.seconds < limit
 

@@ -171,7 +171,7 @@ class ImagingNode(Node):
         if scan0.scan_angle_deg != 0.0 or scan90.scan_angle_deg != 90.0:
             self.get_logger().error(f"pair {msg.pair_id!r}: needs one 0 deg and one 90 deg scan")
             return
-        from afm_core.imaging.drift import compensate_pair
+        from afm_core.imaging.drift_compensation import compensate_pair
 
         try:
             correction = compensate_pair(scan0, scan90, order=self.config["drift_order"])
@@ -241,8 +241,9 @@ class ImagingNode(Node):
         shape.height = array_to_image(estimate.tip.astype(np.float32), shape.header)
         self.tip_pub.publish(shape)
         return (
-            f"tip {self.config['tip_size']}x{self.config['tip_size']} estimated in {estimate.seconds:.2f} s, "
-            f"threshold {estimate.threshold * 1e9:.3f} nm, apex radius {shape.apex_radius * 1e9:.1f} nm"
+            f"tip {self.config['tip_size']}x{self.config['tip_size']} estimated in "
+            f"{estimate.seconds:.2f} s, threshold {estimate.threshold * 1e9:.3f} nm, apex radius "
+            f"{shape.apex_radius * 1e9:.1f} nm"
         )
 
     def on_estimate_tip(self, _request, response):

@@ -44,7 +44,7 @@ def _scan(
 
 
 def cmd_drift(args) -> int:
-    from afm_core.imaging.drift import compensate_pair
+    from afm_core.imaging.drift_compensation import compensate_pair
 
     if not args.line_rate > 0:
         raise ValueError(f"--line-rate={args.line_rate}: must be > 0 Hz")
@@ -70,8 +70,8 @@ def cmd_drift(args) -> int:
     )
     vx, vy = result.velocity
     print(
-        f"drift velocity ({vx * 1e9:.4f}, {vy * 1e9:.4f}) nm/s; {len(result.feature_offsets)} feature regions; "
-        f"{result.seconds:.2f} s; wrote {args.output}"
+        f"drift velocity ({vx * 1e9:.4f}, {vy * 1e9:.4f}) nm/s; {len(result.feature_offsets)} "
+        f"feature regions; {result.seconds:.2f} s; wrote {args.output}"
     )
     return 0
 
@@ -100,7 +100,7 @@ def cmd_tip(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    from afm_core.imaging.tip_estimation import erode
+    from afm_core.physics.tip_morphology import erode
 
     image = load_height_map(args.image, args.channel, args.pixel_size)
     tip = load_height_map(args.tip)
@@ -123,8 +123,8 @@ def cmd_reconstruct(args) -> int:
         ),
     )
     print(
-        f"eroded by the {tip.height.shape[0]}x{tip.height.shape[1]} tip in {time.perf_counter() - started:.2f} s; "
-        f"wrote {args.output}"
+        f"eroded by the {tip.height.shape[0]}x{tip.height.shape[1]} tip in "
+        f"{time.perf_counter() - started:.2f} s; wrote {args.output}"
     )
     return 0
 
@@ -145,8 +145,8 @@ def cmd_landmarks(args) -> int:
     for m in marks:
         sx, sy = np.sqrt(np.diag(m.covariance))
         print(
-            f"  {m.id:3d} {m.kind:6s} at ({m.x * 1e9:10.1f}, {m.y * 1e9:10.1f}) nm  sigma ({sx * 1e9:.1f}, "
-            f"{sy * 1e9:.1f}) nm  height {m.height * 1e9:.1f} nm"
+            f"  {m.id:3d} {m.kind:6s} at ({m.x * 1e9:10.1f}, {m.y * 1e9:10.1f}) nm  sigma "
+            f"({sx * 1e9:.1f}, {sy * 1e9:.1f}) nm  height {m.height * 1e9:.1f} nm"
         )
     if args.json:
         rows = [
@@ -180,7 +180,9 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     p = sub.add_parser(
         "drift",
         help="correct thermal drift from a 0 deg / 90 deg scan pair",
-        description="Thermal-drift compensation from a 0/90 deg pair of the same area (book ch. 3).",
+        description=(
+            "Thermal-drift compensation from a 0/90 deg pair of the same area (book ch. 3)."
+        ),
     )
     p.add_argument("scan0", help="0 deg scan (rows = fast lines)")
     p.add_argument("scan90", help="90 deg scan of the same area (columns = fast lines)")

@@ -41,7 +41,7 @@ How a map becomes landmarks (`extract_landmarks`):
 Regions touching the image border are skipped: part of the particle is outside the image,
 so the centre of gravity of what is inside is biased towards the image's interior.
 
-The map should be drift-corrected first (afm_core.imaging.drift) when it is to be a
+The map should be drift-corrected first (afm_core.imaging.drift_compensation) when it is to be a
 localization map: this module measures the image as it is.
 """
 

@@ -64,7 +64,7 @@ from datetime import datetime, timezone
 import numpy as np
 from scipy import linalg, optimize
 
-from afm_core.imaging.drift import up_down_observations, up_down_velocity
+from afm_core.imaging.frame_up_down import up_down_observations, up_down_velocity
 from afm_core.imaging.landmarks import extract_landmarks
 from afm_core.instrument import LineRequest, RasterScanData, ScanRequest, check_in_range
 from afm_core.localization.calibration import Calibration, HysteresisFit
@@ -1311,12 +1311,12 @@ def measure_drift(
     image pairs of an area with at least two particles on different lines, a pair starting
     every `interval` s (the drift velocity wanders slowly; samples closer than its
     correlation time are not independent, so the mean and sigma of a few close pairs say
-    little). Each pair gives one velocity (afm_core.imaging.drift.velocity_from_up_down,
+    little). Each pair gives one velocity (afm_core.imaging.frame_up_down.velocity_from_up_down,
     eq. 5.35-5.36), timed at the pair's middle; it averages the velocity over the stretches of
     the two frames where the particles are imaged (about a minute each, ~280 s before and
     after the middle with the defaults), not over the whole pair, and the moments are kept per pair
     (data["particle_times"]: [t_up, t_down] lists) so it can be compared with a known drift
-    (afm_core.imaging.drift.sampled_velocity). Its scale is the frames' image scale (module
+    (afm_core.imaging.frame_up_down.sampled_velocity). Its scale is the frames' image scale (module
     doc: the compensated scanner's small-move gain).
 
     Before each pair a quick `search`-wide image finds the particles again (the sample

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from afm_core.imaging.drift import pixel_times
+from afm_core.imaging.scan_timing import pixel_times
 from afm_core.instrument import RasterScanData
 
 NOISE_SIGMAS = 6.0  # detection threshold in robust sigmas of the depth noise

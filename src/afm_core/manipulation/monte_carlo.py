@@ -139,8 +139,8 @@ def monte_carlo_push(
     if not (math.isfinite(threshold) and threshold >= 0):
         raise ValueError(f"split_threshold={split_threshold}: must be finite and >= 0 m")
 
-    from afm_core.sim.pushing import push_along_path
-    from afm_core.sim.sample import Sample, Sphere
+    from afm_core.physics.pushing import push_along_path
+    from afm_core.physics.sample import Sample, Sphere
 
     cp = _contact_params(contact_params, plan.tip_radius)
     rng = np.random.default_rng(seed)

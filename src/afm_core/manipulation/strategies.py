@@ -373,7 +373,7 @@ def check_plan_limits(plan: PushPlan, limits: ScannerLimits, margin: float = 0.0
 
 
 def _contact_params(contact_params, tip_radius: float):
-    from afm_core.sim.pushing import ContactParams
+    from afm_core.physics.contact import ContactParams
 
     if contact_params is None:
         return ContactParams(tip_radius=tip_radius)
@@ -385,7 +385,7 @@ def simulate_strokes(
 ) -> list:
     """Apply the contact strokes to a sim Sample in place with afm_core.sim.pushing (lifted
     strokes move nothing). Returns the tracked object's (x, y[, angle]) after each stroke."""
-    from afm_core.sim.pushing import push_along_path
+    from afm_core.physics.pushing import push_along_path
 
     track = []
     objs = {o.id: o for o in sample.movable}
@@ -407,7 +407,7 @@ def simulate_strokes(
 def predict_particle(plan: PushPlan, contact_params=None, start=None) -> list[np.ndarray]:
     """The particle's centre after each stroke of `plan` in the pushing model, starting at
     `start` (default: the plan's estimate)."""
-    from afm_core.sim.sample import Sample, Sphere
+    from afm_core.physics.sample import Sample, Sphere
 
     c0 = plan.particle if start is None else _point("start", start)
     sample = Sample(spheres=[Sphere(0, float(c0[0]), float(c0[1]), plan.particle_radius)])
@@ -781,7 +781,7 @@ def rod_hand_plan(
     also pushes an end cap along the axis when that error is the largest: on a thin tube that push
     is as unstable as centre pushing a sphere (a tip a few nm off the axis slides off the cap and
     turns the tube), so it is off by default; plan goals across the axis plus a rotation."""
-    from afm_core.sim.sample import Electrode, Rod, Sample
+    from afm_core.physics.sample import Electrode, Rod, Sample
 
     for name in ("x", "y", "angle", "length", "radius"):
         if not hasattr(rod, name):
@@ -924,7 +924,7 @@ def arc_hand_plan(
     index -> slot (x, y)."""
     from scipy.optimize import linear_sum_assignment
 
-    from afm_core.sim.sample import Sample, Sphere
+    from afm_core.physics.sample import Sample, Sphere
 
     ests = [_particle(p, None) for p in particles]
     if not ests:

@@ -5,7 +5,7 @@ the tip has imaged. The characterizer is therefore a flat substrate carrying a r
 of very sharp, narrow cones ("spikes", 20-80 nm high, half-angle a few degrees), far sharper
 than the tip being characterised: each spike images (a reflected copy of) the tip's top down
 to the spike's height. The image is the grey dilation of the sampled surface by the tip
-(`afm_core.sim.imaging.dilate`) plus white noise. Heights are in metres.
+(`afm_core.physics.tip_morphology.dilate`) plus white noise. Heights are in metres.
 
 With the default tip (apex radius 10 nm, half-angle 25 deg, asymmetry 0.2) and pixel
 (1.6 nm), a 41x41 tip window covers the tip's top ~40-50 nm (a 21x21 window the top ~13 nm).
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from afm_core.sim.imaging import dilate
+from afm_core.physics.tip_morphology import dilate
 from afm_core.sim.tip import paraboloid_cone_tip
 
 DEFAULT_PIXEL = 1.6e-9  # m

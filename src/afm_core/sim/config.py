@@ -16,9 +16,9 @@ from pathlib import Path
 import yaml
 
 from afm_core.instrument import ScannerLimits
+from afm_core.physics.contact import ContactParams
 from afm_core.pzt import ScannerParams
 from afm_core.sim.drift import DriftParams
-from afm_core.sim.pushing import ContactParams
 from afm_core.sim.tip import TipParams
 
 DEFAULT_CONFIG_FILE = Path(__file__).with_name("default_config.yaml")

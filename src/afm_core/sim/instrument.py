@@ -32,12 +32,13 @@ from afm_core.instrument import (
     validate_indent,
     validate_move,
 )
+from afm_core.physics.contact import StickSlipState
+from afm_core.physics.pushing import push_along_path
+from afm_core.physics.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
 from afm_core.pzt import LateralScanner, PrandtlIshlinskii
 from afm_core.sim.config import SimConfig, load_config
 from afm_core.sim.drift import ThermalDrift
 from afm_core.sim.imaging import DilatedField, dilated_heights_at, pink_noise
-from afm_core.sim.pushing import StickSlipState, push_along_path
-from afm_core.sim.sample import Electrode, Pit, Rod, Roughness, Sample, Sphere
 from afm_core.sim.tip import Tip
 
 LINES_PER_CHUNK = 16  # raster lines simulated at once (progress and cancel granularity)
@@ -203,9 +204,9 @@ class SimulatedAfm:
         asymmetry = scanner.hysteresis_asymmetry - controller.asymmetry_error
         if not (math.isfinite(asymmetry) and asymmetry * asymmetry < 2.0 / 3.0):
             raise ValueError(
-                f"controller.asymmetry_error={controller.asymmetry_error}: the controller's asymmetry "
-                f"(scanner.hysteresis_asymmetry minus it) is {asymmetry}; need a finite value with "
-                "square < 2/3"
+                f"controller.asymmetry_error={controller.asymmetry_error}: the controller's "
+                f"asymmetry (scanner.hysteresis_asymmetry minus it) is {asymmetry}; need a finite "
+                "value with square < 2/3"
             )
         models = [
             PrandtlIshlinskii.from_fraction(
@@ -248,11 +249,13 @@ class SimulatedAfm:
         if not enabled:
             drive, models = [], self._controller_models()
             for axis, (inverse, model) in enumerate(zip(self.feed_forward, models)):
-                # re-applying the last command leaves a play operator where it is: the current drive
+                # re-applying the last command leaves a play operator where it is: the current
+                # drive
                 drive.append(
                     float(centre[axis] + inverse.apply([self._commanded[axis] - centre[axis]])[-1])
                 )
-                # inverse states z'_i = W_i z_i + sum_{j>i} w_j z_j (InversePrandtlIshlinskii): solve for z
+                # inverse states z'_i = W_i z_i + sum_{j>i} w_j z_j (InversePrandtlIshlinskii):
+                # solve for z
                 w = model.weights
                 coupling = np.triu(np.tile(w, (w.size, 1)), 1) + np.diag(np.cumsum(w))
                 model.state = np.linalg.solve(coupling, inverse.state)
@@ -531,7 +534,8 @@ class SimulatedAfm:
         completed = True
         stick_slip, last_x, last_y = None, 0.0, 0.0
         if contact:
-            # the tip lands where it is: the slid distance (wear) and the stick-slip spring start here
+            # the tip lands where it is: the slid distance (wear) and the stick-slip spring start
+            # here
             here = self.sample_frame(
                 np.array([self._true_scanner[0]]),
                 np.array([self._true_scanner[1]]),

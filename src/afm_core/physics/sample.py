@@ -1,7 +1,7 @@
 """The sample world: a rough substrate and the objects on it, as a height function.
 
 Objects live in the sample-fixed task frame (afm_task). Spheres and rods/tubes move when
-pushed (afm_core.sim.pushing mutates their poses); electrodes never move; pits are dents
+pushed (afm_core.physics.pushing mutates their poses); electrodes never move; pits are dents
 the tip punched. Heights in metres above the mean substrate plane.
 """
 
