@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from afm_core.imaging.landmarks import Landmark
-from afm_core.localization.calibration import Calibration
+from afm_core.localization.calibration.model import Calibration
 from afm_core.localization.motion_noise import MotionNoise
 from afm_core.planning import (
     cheapest_chain,
