@@ -99,13 +99,6 @@ class ObservationPlan:
     success_probability: float  # P(initial across error within the union of the bands)
     covered: tuple[float, float]  # m, the union of the bands (initial across error)
 
-    @property
-    def total_length(self) -> float:
-        """Travel if the particle is found on the last line (or not at all)."""
-        return (
-            self.approach_length + sum(self.step_lengths) + sum(line.length for line in self.lines)
-        )
-
 
 @dataclass(frozen=True)
 class _Slopes:
