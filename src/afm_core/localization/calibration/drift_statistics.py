@@ -47,8 +47,8 @@ def measure_drift(
     the two frames where the particles are imaged (about a minute each, ~280 s before and
     after the middle with the defaults), not over the whole pair, and the moments are kept per pair
     (data["particle_times"]: [t_up, t_down] lists) so it can be compared with a known drift
-    (afm_core.imaging.drift.sampled_velocity). Its scale is the frames' image scale (module
-    doc: the compensated scanner's small-move gain).
+    (afm_core.imaging.drift.sampled_velocity). Its scale is the frames' image scale (the
+    package doc, "The image frame": the compensated scanner's small-move gain).
 
     Before each pair a quick `search`-wide image finds the particles again (the sample
     drifts micrometres over hours), the frames are centred on them and the tip rests
