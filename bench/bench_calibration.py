@@ -3,29 +3,30 @@ configured values, time and memory.
 
 What is run
 -----------
-`afm_core.localization.calibrate.run_calibration` on `SimulatedAfm(load_config())` (seed 0,
-every imperfection on: hysteresis with a 10 % feed-forward model error, creep, coupling,
-rotation, positioning noise, OU drift: the instrument `make demo` drives), all experiments at their default sizes except the
-drift statistics, whose pair count is an option (--pairs): each pair is two 256 s frames and
-the pairs start an hour apart (the drift velocity's correlation time is 30 min), so 100
-pairs are ~100 h of instrument time.
+`afm_core.localization.calibration.procedure.run_calibration` on `SimulatedAfm(load_config())`
+(seed 0, every imperfection on: hysteresis with a 10 % feed-forward model error, creep,
+coupling, rotation, positioning noise, OU drift: the instrument `make demo` drives), all
+experiments at their default sizes except the drift statistics, whose pair count is an option
+(--pairs): each pair is two 256 s frames and the pairs start an hour apart (the drift
+velocity's correlation time is 30 min), so 100 pairs are ~100 h of instrument time.
 
 How to read it
 --------------
 One row per quantity: recovered, configured ("true"), relative error. Rows without a true
 value have none to compare with in the simulator (see
-`calibrate.compare_with_simulator`): the scanner matrix and the line deflection are measured
-against the image frame, where the tube's coupling and rotation cancel (every image has them
-too); map and scan-region errors are the instrument's, shown next to the book's figures.
+`simulator_comparison.compare_with_simulator`): the scanner matrix and the line deflection are
+measured against the image frame, where the tube's coupling and rotation cancel (every image
+has them too); map and scan-region errors are the instrument's, shown next to the book's
+figures.
 The drift statistics are sample statistics: with n pairs the mean has a sampling error of
 about sigma / sqrt(n), which for x (mean -0.004, sigma 0.027 nm/s) is larger than the mean.
 `drift_against_truth` regresses each pair's measured velocity on the velocity the pair
 samples from the simulator's drift (`afm_core.imaging.frame_up_down.sampled_velocity` at the
 particles' imaging moments): the slope is the frames' velocity scale (about 1/1.040 on x,
-1/1.059 on y with the 10 % feed-forward model error, see the calibrate module doc). Against
-the mean velocity over the pair's whole span instead, the slope also carries the errors-in-
-variables attenuation of that proxy (the pair samples ~1 min stretches ~280 s either side
-of its middle, and the OU velocity wanders in between).
+1/1.059 on y with the 10 % feed-forward model error, see the afm_core.localization.calibration
+package doc). Against the mean velocity over the pair's whole span instead, the slope also
+carries the errors-in-variables attenuation of that proxy (the pair samples ~1 min stretches
+~280 s either side of its middle, and the OU velocity wanders in between).
 
 Run: `scripts/with_env.sh python bench/bench_calibration.py [--pairs N] [--quick]`.
 Writes bench/results/calibration.json, calibration.md and the calibration file
@@ -47,8 +48,9 @@ import numpy as np
 from machine import cpu_model
 
 from afm_core.imaging.frame_up_down import sampled_velocity
-from afm_core.localization import calibrate
-from afm_core.localization.calibration import save_calibration
+from afm_core.localization.calibration.model import save_calibration
+from afm_core.localization.calibration.procedure import run_calibration
+from afm_core.localization.calibration.simulator_comparison import compare_with_simulator
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 
@@ -84,8 +86,8 @@ def table(rows: list[dict]) -> list[str]:
     for row in rows:
         error = "-" if row["relative_error"] is None else f"{100 * row['relative_error']:+.1f} %"
         lines.append(
-            f"| {row['name']} | {formatted(row['recovered'])} | {formatted(row['true'])} | {error} "
-            f"| {row['note']} |"
+            f"| {row['name']} | {formatted(row['recovered'])} | {formatted(row['true'])} "
+            f"| {error} | {row['note']} |"
         )
     return lines
 
@@ -123,9 +125,9 @@ def main() -> None:
     started = datetime.now(timezone.utc)
     clock = time.perf_counter()
     source = f"bench_calibration.py, SimulatedAfm seed {config.seed}, {started.date().isoformat()}"
-    calibration, report = calibrate.run_calibration(afm, source=source, **options)
+    calibration, report = run_calibration(afm, source=source, **options)
     wall = time.perf_counter() - clock
-    rows = calibrate.compare_with_simulator(calibration, report, config)
+    rows = compare_with_simulator(calibration, report, config)
     drift_data = report["drift"]["data"]
     measured = np.asarray(drift_data["velocity"])
     sampled = np.array(
@@ -159,7 +161,8 @@ def main() -> None:
                     "recovered": float(recovered),
                     "true": float(realised),
                     "relative_error": (recovered - realised) / abs(realised),
-                    "note": "m/s; against the simulator's drift sampled at the pairs' particle moments",
+                    "note": "m/s; against the simulator's drift sampled at the pairs' particle "
+                    "moments",
                 }
             )
         rows.append(
@@ -168,7 +171,8 @@ def main() -> None:
                 "recovered": against_truth[name]["slope"],
                 "true": 1.0,
                 "relative_error": against_truth[name]["slope"] - 1.0,
-                "note": "slope of measured on sampled per-pair velocity: the small frames' image scale",
+                "note": "slope of measured on sampled per-pair velocity: the small frames' image "
+                "scale",
             }
         )
     RESULTS.mkdir(exist_ok=True)
@@ -194,8 +198,9 @@ def main() -> None:
         "",
         f"Measured {result['date']} on {result['machine']['cpus_usable']} CPUs "
         f"({result['machine']['cpu_model']}), "
-        f"Python {result['machine']['python']}: {wall:.0f} s wall for {report['instrument_seconds'] / 3600:.1f} h "
-        f"of instrument time, peak resident memory {result['peak_rss_mib']:.0f} MiB; {pairs} drift pairs.",
+        f"Python {result['machine']['python']}: {wall:.0f} s wall for "
+        f"{report['instrument_seconds'] / 3600:.1f} h of instrument time, peak resident memory "
+        f"{result['peak_rss_mib']:.0f} MiB; {pairs} drift pairs.",
         "",
     ]
     lines += table(rows)

@@ -43,9 +43,9 @@ raster scan + extract_landmarks would carry the scanner's own errors the same wa
 every trial would need a raster scan (~1 s of compute each) and the hysteresis state after
 a raster scan differs from the one the calibration describes; not done here.
 
-Calibration: `--calibration FILE` (e.g. the one afm_core.localization.calibrate produced);
-without it, a SIM-DERIVED ORACLE calibration (`sim_oracle_calibration`): scanner matrix
-measured on a noise-free, drift-free, creep-free copy of the simulator (residual hysteresis
+Calibration: `--calibration FILE` (e.g. the one afm_core.localization.calibration.procedure
+produced); without it, a SIM-DERIVED ORACLE calibration (`sim_oracle_calibration`): scanner
+matrix measured on a noise-free, drift-free, creep-free copy of the simulator (residual hysteresis
 gain, coupling and rotation in the +-2 um band around the centre where all moves here stay),
 creep, positioning-noise and drift parameters copied from the simulator's config
 (cross-axis slope = slope: the simulator's noise is isotropic), line-deflection sigma 0 (the
@@ -78,7 +78,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from afm_core.localization import Localizer, MapLandmark
-from afm_core.localization.calibration import Calibration, load_calibration
+from afm_core.localization.calibration.model import Calibration, load_calibration
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 
@@ -159,7 +159,7 @@ def measure_scan_region_sigma(
     on the noise-free-positioning simulator (sensor noise on): the true tip position at the
     crossing time is known exactly from the command (linear scanner, no creep, no drift)."""
     from afm_core.instrument import LineRequest
-    from afm_core.localization.observation import observe_line
+    from afm_core.localization.landmark_observation import observe_line
 
     rng = np.random.default_rng(seed)
     centre = CENTRE + np.array([0.3e-6, 0.2e-6])
@@ -458,8 +458,8 @@ def _fmt(v) -> str:
 def print_71_72(title: str, block: dict) -> None:
     print(f"\n{title}")
     print(
-        "  mode                     trials  true-error sigma x,y nm  mean x,y nm     filter sigma "
-        "x,y nm  mean NEES (95% band)"
+        "  mode                     trials  true-error sigma x,y nm  mean x,y nm     "
+        "filter sigma x,y nm  mean NEES (95% band)"
     )
     for mode, data in block.items():
         s = data["summary"]
@@ -472,8 +472,8 @@ def print_71_72(title: str, block: dict) -> None:
         )
         for k, b in enumerate(s["blocks"]):
             print(
-                f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: {_fmt(b['true_error_sigma_nm'])} "
-                "nm, NEES "
+                f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: "
+                f"{_fmt(b['true_error_sigma_nm'])} nm, NEES "
                 f"{b['mean_nees']:.2f} [{b['nees_band_95'][0]:.2f}, {b['nees_band_95'][1]:.2f}]"
                 f"{'' if b['nees_consistent'] else '  OUTSIDE'}"
             )
@@ -641,8 +641,8 @@ def main(argv=None) -> int:
             Calibration(), book_trials, seed0=500
         )
         print_71_72(
-            f"Same with the book-default calibration (identity matrix, no creep; {book_trials} "
-            "trials)",
+            "Same with the book-default calibration (identity matrix, no creep; "
+            f"{book_trials} trials)",
             report["tables_7_1_7_2_book_default_calibration"],
         )
     report["peak_rss_kib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -661,8 +661,8 @@ def main(argv=None) -> int:
         )
     )
     print(
-        f"\npeak RSS {report['peak_rss_kib'] / 1024:.0f} MiB; wall {report['wall_seconds']:.0f} "
-        f"s; wrote {path}"
+        f"\npeak RSS {report['peak_rss_kib'] / 1024:.0f} MiB; "
+        f"wall {report['wall_seconds']:.0f} s; wrote {path}"
     )
     return 0
 
@@ -683,18 +683,16 @@ def run_table_73(report: dict, calibration: Calibration, trials: int, oracle: bo
         s = data["summary"]
         print(
             f"  {variant:17s} trials {s['trials']}: distance {s['distance_mean_nm']:.2f} nm, "
-            "sigma "
-            f"{s['distance_sigma_nm']:.2f} nm; filter sigma {s['reported_sigma_mean_nm']:.2f} nm; "
-            "mean NEES(1 dof) "
+            f"sigma {s['distance_sigma_nm']:.2f} nm; filter sigma "
+            f"{s['reported_sigma_mean_nm']:.2f} nm; mean NEES(1 dof) "
             f"{s['mean_nees_1dof']:.2f} [{s['nees_band_95'][0]:.2f}, {s['nees_band_95'][1]:.2f}]; "
             f"all lines accepted: {s['all_lines_accepted']}"
         )
         for k, b in enumerate(s["blocks"]):
             print(
-                f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: sigma "
-                f"{b['distance_sigma_nm']:.2f} nm, NEES "
-                f"{b['mean_nees_1dof']:.2f} [{b['nees_band_95'][0]:.2f}, "
-                f"{b['nees_band_95'][1]:.2f}]"
+                f"    trials {k * BLOCK}-{(k + 1) * BLOCK - 1}: "
+                f"sigma {b['distance_sigma_nm']:.2f} nm, NEES {b['mean_nees_1dof']:.2f} "
+                f"[{b['nees_band_95'][0]:.2f}, {b['nees_band_95'][1]:.2f}]"
                 f"{'' if b['nees_consistent'] else '  OUTSIDE'}"
             )
 

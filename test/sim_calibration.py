@@ -10,7 +10,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench" / "bench_localization.py"
 def oracle_calibration(path):
     """What a perfect calibration of the default simulator finds: its parameters, with the
     scanner matrix measured on a noise-free copy."""
-    from afm_core.localization.calibration import Calibration, save_calibration
+    from afm_core.localization.calibration.model import Calibration, save_calibration
 
     spec = importlib.util.spec_from_file_location("bench_localization", BENCH)
     bench = importlib.util.module_from_spec(spec)

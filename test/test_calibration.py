@@ -24,9 +24,24 @@ import numpy as np
 import pytest
 
 from afm_core.instrument import ScanRequest
-from afm_core.localization import calibrate
-from afm_core.localization.calibration import load_calibration, save_calibration
-from afm_core.localization.pits import find_pits
+from afm_core.localization.calibration.creep import (
+    WALK_MEASUREMENT_RATIO,
+    creep_deficit,
+    fit_creep,
+    measure_creep,
+    walk_whitener,
+)
+from afm_core.localization.calibration.drift_statistics import measure_drift
+from afm_core.localization.calibration.experiment import Experiment
+from afm_core.localization.calibration.hysteresis import measure_hysteresis, refit_hysteresis
+from afm_core.localization.calibration.line_deflection import measure_line_deflection
+from afm_core.localization.calibration.matching import match_monotone
+from afm_core.localization.calibration.model import load_calibration, save_calibration
+from afm_core.localization.calibration.motion_error import measure_motion_noise
+from afm_core.localization.calibration.pits import find_pits
+from afm_core.localization.calibration.procedure import run_calibration
+from afm_core.localization.calibration.scanner_matrix import measure_scanner_matrix
+from afm_core.localization.calibration.simulator_comparison import compare_with_simulator
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 
@@ -42,10 +57,8 @@ QUICK = dict(
 def calibrated():
     config = load_config()
     afm = SimulatedAfm(config)
-    calibration, report = calibrate.run_calibration(afm, **QUICK)
-    rows = {
-        row["name"]: row for row in calibrate.compare_with_simulator(calibration, report, config)
-    }
+    calibration, report = run_calibration(afm, **QUICK)
+    rows = {row["name"]: row for row in compare_with_simulator(calibration, report, config)}
     return calibration, report, rows, config
 
 
@@ -76,7 +89,7 @@ def test_hysteresis_asymmetry_exact_on_an_ideal_scanner():
             "noise": {"height_white_sigma": 0.0, "height_flicker_sigma": 0.0},
         },
     )
-    experiment = calibrate.measure_hysteresis(SimulatedAfm(config), 1)
+    experiment = measure_hysteresis(SimulatedAfm(config), 1)
     assert experiment.parameters["asymmetry"] == pytest.approx(
         config.scanner.hysteresis_asymmetry, rel=0.01
     )
@@ -90,8 +103,8 @@ def test_hysteresis_fit_without_creep_model_is_biased(calibrated):
     creep term give a loop fraction biased upwards (the creep term matters, and the
     loop-fraction comparison can fail)."""
     _, report, _, config = calibrated
-    experiment = calibrate.Experiment(**report["hysteresis_x"])
-    without = calibrate.refit_hysteresis(experiment, creep=None)
+    experiment = Experiment(**report["hysteresis_x"])
+    without = refit_hysteresis(experiment, creep=None)
     with_creep = report["hysteresis_x"]["parameters"]["loop_fraction"]
     truth = config.scanner.hysteresis_fraction
     assert without["loop_fraction"] - truth > 0.02 * truth
@@ -100,10 +113,8 @@ def test_hysteresis_fit_without_creep_model_is_biased(calibrated):
 
 def test_walk_whitener_whitens_the_random_walk_covariance():
     moves = np.array([1, 2, 3, 5, 6, 9])
-    covariance = np.minimum.outer(moves, moves) + calibrate.WALK_MEASUREMENT_RATIO * np.eye(
-        moves.size
-    )
-    whitener = calibrate.walk_whitener(moves)
+    covariance = np.minimum.outer(moves, moves) + WALK_MEASUREMENT_RATIO * np.eye(moves.size)
+    whitener = walk_whitener(moves)
     assert np.allclose(whitener @ covariance @ whitener.T, np.eye(moves.size))
 
 
@@ -127,7 +138,7 @@ def test_fit_creep_shares_fractions_per_group_through_a_random_walk():
             + drift
             + walk
             + rng.normal(0.0, 1e-9, t.size)
-            - step * calibrate.creep_deficit(t, taus, ramp) @ truth[group]
+            - step * creep_deficit(t, taus, ramp) @ truth[group]
         )
         runs.append(
             {
@@ -139,7 +150,7 @@ def test_fit_creep_shares_fractions_per_group_through_a_random_walk():
                 "moves": np.arange(1, t.size + 1),
             }
         )
-    fit = calibrate.fit_creep(runs)
+    fit = fit_creep(runs)
     assert np.allclose(fit["time_constants"], taus, rtol=0.1)
     for fitted, group in zip(fit["fractions"], ("x", "y")):
         assert np.allclose(fitted, truth[group], rtol=0.1)
@@ -151,7 +162,7 @@ def test_match_monotone_skips_a_stray_pit_past_the_row_end():
     detected = np.r_[
         expected * 1.03 + 2e-6, expected[-1] * 1.03 + 2e-6 + 190e-9
     ]  # one pit of the next row
-    index = calibrate.match_monotone(expected, detected)
+    index = match_monotone(expected, detected)
     assert np.array_equal(index, np.arange(40))
 
 
@@ -218,7 +229,7 @@ def test_drift_statistics():
         },
     )
     afm = SimulatedAfm(config)
-    result = calibrate.measure_drift(afm, pairs=12, interval=2000.0)
+    result = measure_drift(afm, pairs=12, interval=2000.0)
     mean = result.parameters["mean_velocity"]
     assert mean[0] == pytest.approx(0.5e-9, rel=0.10)
     assert mean[1] == pytest.approx(0.8e-9, rel=0.10)
@@ -334,19 +345,19 @@ def test_bad_input_is_refused_before_anything_moves():
     afm = SimulatedAfm(load_config())
     start = (afm.time, afm.commanded_position(), len(afm.sample.pits))
     with pytest.raises(ValueError, match="step"):
-        calibrate.measure_creep(afm, step=float("nan"))
+        measure_creep(afm, step=float("nan"))
     with pytest.raises(ValueError, match="scanner range"):
-        calibrate.measure_creep(afm, step=50e-6, lane_offset=60e-6)
+        measure_creep(afm, step=50e-6, lane_offset=60e-6)
     with pytest.raises(ValueError, match="cycle_fraction"):
-        calibrate.measure_hysteresis(afm, 0, cycle_fraction=1.5)
+        measure_hysteresis(afm, 0, cycle_fraction=1.5)
     with pytest.raises(ValueError, match="axis"):
-        calibrate.measure_hysteresis(afm, 2)
+        measure_hysteresis(afm, 2)
     with pytest.raises(ValueError, match="distances"):
-        calibrate.measure_motion_noise(afm, distances=(1e-6, math.inf))
+        measure_motion_noise(afm, distances=(1e-6, math.inf))
     with pytest.raises(ValueError, match="scanner range"):
-        calibrate.measure_scanner_matrix(afm, site=(60e-6, 0.0))
+        measure_scanner_matrix(afm, site=(60e-6, 0.0))
     with pytest.raises(ValueError, match="pairs"):
-        calibrate.measure_drift(afm, pairs=1)
+        measure_drift(afm, pairs=1)
     with pytest.raises(ValueError, match="force"):
-        calibrate.measure_line_deflection(afm, force=1.0)
+        measure_line_deflection(afm, force=1.0)
     assert (afm.time, afm.commanded_position(), len(afm.sample.pits)) == start

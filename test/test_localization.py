@@ -21,7 +21,7 @@ from afm_core.localization import (
     observation_variance,
     observe_line,
 )
-from afm_core.localization.calibration import Calibration
+from afm_core.localization.calibration.model import Calibration
 from afm_core.sim.instrument import SimulatedAfm
 
 NM = 1e-9
@@ -193,7 +193,7 @@ def test_motion_model_state_is_copyable_and_restorable():
     assert abs(first[0]) > 1e-9  # creep was still going on
 
 
-# -- observation ------------------------------------------------------------------------------------
+# -- observation ----------------------------------------------------------------------------------
 def synthetic_line(
     centre: float,
     radius: float = 100 * NM,
@@ -235,9 +235,11 @@ def test_midpoint_of_threshold_crossings_is_the_particle_centre():
     # eq. 5.15: map error along the line + scan-region + deflection (sigma_theta x radius)
     expected = 25e-18 + calibration.scan_region_sigma**2 + (math.radians(0.393) * 100 * NM) ** 2
     assert obs.variance == pytest.approx(expected)
-    # a half-height threshold: the crossings are where a sphere is half as high, at +-r from the centre
+    # a half-height threshold: the crossings are where a sphere is half as high, at +-r from the
+    # centre
     assert (obs.crossings[1] - obs.crossings[0]) * 1 * NM == pytest.approx(200 * NM, abs=1 * NM)
-    # on the smooth part of the profile (3/4 height: +-sqrt(3)/2 r) the midpoint is exact to interpolation
+    # on the smooth part of the profile (3/4 height: +-sqrt(3)/2 r) the midpoint is exact to
+    # interpolation
     high = observe_line(
         synthetic_line(0.4217 * UM), landmark, calibration, (1.0, 0.0), threshold_fraction=0.75
     )
@@ -299,7 +301,7 @@ def test_a_line_across_a_tube_measures_the_position_across_its_axis():
     ) == pytest.approx(0.5e-18)
 
 
-# -- filter ------------------------------------------------------------------------------------------
+# -- filter ---------------------------------------------------------------------------------------
 def test_filter_one_axis_update_matches_the_closed_form():
     f = TipFilter([0.0, 0.0], np.diag([4.0, 9.0]), time=0.0, gate=100.0)
     result = f.update_axis(0.0, 1.0, 1.0, "x")
@@ -454,7 +456,7 @@ def test_predicted_covariance_between_steps_and_after_the_latest():
     np.testing.assert_allclose(cov, 4.0 * np.eye(2))
 
 
-# -- localizer on the simulator ---------------------------------------------------------------------
+# -- localizer on the simulator -------------------------------------------------------------------
 CENTRE = np.array([55 * UM, 55 * UM])
 PARTICLE = CENTRE + np.array([0.8 * UM, -0.7 * UM])
 
@@ -523,7 +525,8 @@ def test_toward_continues_the_last_line_to_the_target_and_leaves_a_shorter_free_
         loc.move_to(*below)
         outcomes[toward is None] += (np.sqrt(np.diag(loc.covariance)), truth(sim))
     mean, true_end, sigma, true_at_target = outcomes[False]
-    # the line ended where the model put the point's y (planned from the estimate before the update)
+    # the line ended where the model put the point's y (planned from the estimate before the
+    # update)
     assert abs(mean[1] - below[1]) < 60 * NM and abs(true_end[1] - below[1]) < 60 * NM
     assert np.all(np.abs(true_at_target - below) < 3 * sigma + 2 * NM)
     # the free move after the lines is ~800 nm shorter along y: less positioning noise on it
@@ -621,7 +624,7 @@ def test_instrument_error_is_reported_and_the_estimate_stays_consistent(bench, s
     assert np.all(np.abs(error) < 3 * np.sqrt(np.diag(loc.covariance)))
 
 
-# -- the book's experiment, fast ----------------------------------------------------------------------
+# -- the book's experiment, fast ------------------------------------------------------------------
 def test_tables_7_1_7_2_fast_landmark_beats_direct_and_filter_is_consistent(
     bench, sim_calibration
 ):

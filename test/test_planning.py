@@ -1,6 +1,7 @@
 """Landmark path planning (afm_core.planning, book chapter 6): observation planning (eq. 6.1-6.10),
 single-landmark routes (Guidelines 6.1 / 6.2, Tables 6.1 / 6.2), Dijkstra chains (Fig. 6.9, Tables
-6.3 / 6.4), landmark domains and dynamic configuration (eq. 6.13-6.15). Sequencing: test_sequencing.py."""
+6.3 / 6.4), landmark domains and dynamic configuration (eq. 6.13-6.15). Sequencing:
+test_sequencing.py."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 from afm_core.imaging.landmarks import Landmark
-from afm_core.localization.calibration import Calibration
+from afm_core.localization.calibration.model import Calibration
 from afm_core.localization.motion_noise import MotionNoise
 from afm_core.planning import (
     cheapest_chain,
@@ -23,7 +24,7 @@ from afm_core.planning import (
     plan_landmark_route,
     plan_observation,
 )
-from afm_core.planning.observation import THREE_SIGMA_MASS, line_end_distance
+from afm_core.planning.observation_plan import THREE_SIGMA_MASS, line_end_distance
 
 NM = 1e-9
 UM = 1e-6
@@ -47,7 +48,7 @@ def sigmas(cov):
     return np.sqrt(np.diag(cov))
 
 
-# -- observation planning (eq. 6.1-6.10) -----------------------------------------------------------
+# -- observation planning (eq. 6.1-6.10) ----------------------------------------------------------
 NOISE = MotionNoise.isotropic(0.3 * NM, cross_fraction=0.1)  # a drifty instrument: several lines
 TIP_START = np.array([-400 * NM, 40 * NM])
 
@@ -62,17 +63,18 @@ def wide_plan(direction="h", sigma=(30 * NM, 30 * NM), rho=0.0, **kwargs):
 def test_line_end_solves_eq_6_2():
     """l = 3 sqrt(sigma^2 + K (l1 + l)) + R_T + R_P, and l >= R_T + R_P."""
     var, k, l1, c = (12 * NM) ** 2, 0.3 * NM, 180 * NM, 70 * NM
-    l = line_end_distance(var, k, l1, c)
-    assert l == pytest.approx(3 * math.sqrt(var + k * (l1 + l)) + c, rel=1e-12)
-    assert l >= c
+    end = line_end_distance(var, k, l1, c)
+    assert end == pytest.approx(3 * math.sqrt(var + k * (l1 + end)) + c, rel=1e-12)
+    assert end >= c
 
 
 @pytest.mark.parametrize("direction", ["h", "v"])
 @pytest.mark.parametrize("rho", [0.0, 0.6])
 def test_line_probabilities_integrate_the_gaussian_over_the_ellipse(direction, rho):
-    """Every line's area is a strip of the 3-sigma ellipse: together (nothing dropped) they hold the
-    ellipse's whole mass, 1 - exp(-9/2) (closed form for a 2-D Gaussian), whatever the correlation;
-    normalised (eq. 6.9) they sum to 1. Each strip's mass is checked by direct sampling too."""
+    """Every line's area is a strip of the 3-sigma ellipse: together (nothing dropped) they hold
+    the ellipse's whole mass, 1 - exp(-9/2) (closed form for a 2-D Gaussian), whatever the
+    correlation; normalised (eq. 6.9) they sum to 1. Each strip's mass is checked by direct
+    sampling too."""
     plan = wide_plan(direction, rho=rho, min_line_probability=0.0)
     assert len(plan.lines) >= 3
     raw = np.array([line.raw_probability for line in plan.lines])
@@ -125,10 +127,11 @@ def _moves(plan):
 
 @pytest.mark.parametrize("direction", ["h", "v"])
 def test_a_particle_in_the_ellipse_is_always_crossed(direction):
-    """Monte Carlo over true tip errors: initial error sampled inside the 3-sigma ellipse of the plan's
-    reference Gaussian, every move adds Gaussian motion noise (MotionNoise), kept only where the added
-    error stays within 3 sigma (the book's 3-sigma principle the plan is built on). Some line must then
-    run within R_P of the particle's centre line at both of its ends (so all along it)."""
+    """Monte Carlo over true tip errors: initial error sampled inside the 3-sigma ellipse of the
+    plan's reference Gaussian, every move adds Gaussian motion noise (MotionNoise), kept only where
+    the added error stays within 3 sigma (the book's 3-sigma principle the plan is built on). Some
+    line must then run within R_P of the particle's centre line at both of its ends (so all along
+    it)."""
     plan = wide_plan(direction, sigma=(40 * NM, 40 * NM), min_line_probability=0.0)
     across = 1 if direction == "h" else 0
     rng = np.random.default_rng(1)
@@ -232,7 +235,7 @@ def test_motion_noise_rejects_negative_sigma():
         Calibration(drift_sigma_velocity=[-1.0, 0.0])
 
 
-# -- single landmark: Tables 6.1 / 6.2 -------------------------------------------------------------
+# -- single landmark: Tables 6.1 / 6.2 ------------------------------------------------------------
 R_P, R_T = 50 * NM, 10 * NM
 BOOK_STARTS = {  # Fig. 6.5 (a), (b), (c): start (m) and initial sigma (m), Table 6.1 row 1
     "6.5a": (np.array([-0.3, 0.3]) * UM, 5.0 * NM),
@@ -243,20 +246,21 @@ NATURAL = {"left": "vh", "right": "vh", "down": "hv", "up": "hv"}
 
 
 def test_book_tables_6_1_and_6_2_final_sigma_is_about_5_nm():
-    """The book's scenario, rebuilt from Fig. 6.5 / 6.6 and Tables 6.1 / 6.2 (chapter 6 prints no slopes
-    or radii, so):
+    """The book's scenario, rebuilt from Fig. 6.5 / 6.6 and Tables 6.1 / 6.2 (chapter 6 prints no
+    slopes or radii, so):
     - starts: Fig. 6.5a/b put the initial position near (-0.3, 0.3) um above-left of the particle
-      (their axes span x -0.4..0.2, y -0.1..0.4 um), Fig. 6.5c farther, near (-0.6, 0.5) um (axes to
-      -0.6 / 0.6 um); initial sigma 5, 10, 5 nm (Table 6.1, first row);
+      (their axes span x -0.4..0.2, y -0.1..0.4 um), Fig. 6.5c farther, near (-0.6, 0.5) um (axes
+      to -0.6 / 0.6 um); initial sigma 5, 10, 5 nm (Table 6.1, first row);
     - particle radius 50 nm (Fig. 6.3 draws the particle's diameter at ~0.1 um), tip radius 10 nm;
     - motion noise MotionNoise.book() (Fig. 7.20b, 0.0701 nm^2 per nm, 10 % cross-axis): the
-      chapter-6 simulation's slopes are not printed, and Table 6.1's own steps do not fit one linear
-      model (P2->P3 adds 40 nm^2 in y in every column, P3->P4 adds 7.1, 0.9 and 8.0 nm^2 in x);
+      chapter-6 simulation's slopes are not printed, and Table 6.1's own steps do not fit one
+      linear model (P2->P3 adds 40 nm^2 in y in every column, P3->P4 adds 7.1, 0.9 and 8.0 nm^2 in
+      x);
     - observation noise: the book's map error, 5.0 nm in x, 4.5 nm in y.
-    Table 6.2's four modes are the four localization spots (left, right, up, down), each reached with
-    the other axis scanned first (modes "vh" for left/right, "hv" for down/up). The book: sigma at
-    P5 is 4.0-5.0 nm in every case. Ours must be within 4-6 nm, consistent across the starts (spread
-    < 1.5 nm), and much smaller than before the observation."""
+    Table 6.2's four modes are the four localization spots (left, right, up, down), each reached
+    with the other axis scanned first (modes "vh" for left/right, "hv" for down/up). The book:
+    sigma at P5 is 4.0-5.0 nm in every case. Ours must be within 4-6 nm, consistent across the
+    starts (spread < 1.5 nm), and much smaller than before the observation."""
     finals = []
     for name, (start, sigma0) in BOOK_STARTS.items():
         for spot, mode in NATURAL.items():
@@ -281,9 +285,9 @@ def test_book_tables_6_1_and_6_2_final_sigma_is_about_5_nm():
 
 def test_detour_modes_end_close_to_5_nm_but_cost_more():
     """Modes "hh" / "vv" end on the first line's axis, so after both lines the tip goes round the
-    particle to the spot: an extra leg after the last observation, which the book's Table 6.2 has no
-    counterpart for. Their final sigma stays within 4-6.5 nm, and for the same spot they are never cheaper
-    (Guideline 6.2 picks the natural mode)."""
+    particle to the spot: an extra leg after the last observation, which the book's Table 6.2 has
+    no counterpart for. Their final sigma stays within 4-6.5 nm, and for the same spot they are
+    never cheaper (Guideline 6.2 picks the natural mode)."""
     start, sigma0 = BOOK_STARTS["6.5a"]
     for spot, detour in (("left", "hh"), ("right", "hh"), ("down", "vv"), ("up", "vv")):
         kwargs = dict(
@@ -329,9 +333,10 @@ def test_guideline_6_1_localizes_at_the_spot_nearest_the_task():
 
 
 def test_route_covariances_follow_the_motion_model_and_the_kalman_update():
-    """Closed form along the route: the first move is a pure prediction; the first observation (an h
-    line from x_s through the centre x_c to x_e) is var_x(x_s) + K_h1 |x_c - x_s| at the crossing, then
-    the scalar Kalman update v r^2 / (v + r^2), then + K_h1 |x_e - x_c| (no second settling offset)."""
+    """Closed form along the route: the first move is a pure prediction; the first observation (an
+    h line from x_s through the centre x_c to x_e) is var_x(x_s) + K_h1 |x_c - x_s| at the
+    crossing, then the scalar Kalman update v r^2 / (v + r^2), then + K_h1 |x_e - x_c| (no second
+    settling offset)."""
     noise = MotionNoise(0.08 * NM, 0.01 * NM, 0.1 * NM, 0.005 * NM, offset_x=1e-19, offset_y=2e-19)
     start, cov0 = np.array([-400 * NM, 100 * NM]), np.diag([(6 * NM) ** 2, (7 * NM) ** 2])
     route = plan_landmark_route(
@@ -390,7 +395,7 @@ def test_route_rejects_bad_input(kwargs, message):
         plan_landmark_route(**args)
 
 
-# -- many landmarks: Dijkstra (Fig. 6.9, Tables 6.3 / 6.4) ------------------------------------------
+# -- many landmarks: Dijkstra (Fig. 6.9, Tables 6.3 / 6.4) ----------------------------------------
 TABLE_6_3_UM = np.array(
     [
         [0.0000, 0.7697, 1.0054, 0.9678, 3.1106, 3.1856],
@@ -404,8 +409,8 @@ TABLE_6_3_UM = np.array(
 
 
 def test_dijkstra_on_table_6_3_picks_p1_p3_p6():
-    """Fig. 6.9: the nearest landmark to P1 is P2 (0.7697), but P1 -> P3 -> P6 is the cheapest chain,
-    2.0149 um (Table 6.4; via P2 3.8805, via P4 4.0305, via P5 3.8898)."""
+    """Fig. 6.9: the nearest landmark to P1 is P2 (0.7697), but P1 -> P3 -> P6 is the cheapest
+    chain, 2.0149 um (Table 6.4; via P2 3.8805, via P4 4.0305, via P5 3.8898)."""
     path, cost = cheapest_chain(TABLE_6_3_UM, 0, 5)
     assert path == [0, 2, 5]
     assert cost == pytest.approx(2.0149, abs=1e-9)
@@ -425,12 +430,12 @@ def test_cheapest_chain_unreachable_and_bad_nodes():
 
 
 def test_chain_of_near_landmarks_beats_the_nearest_one_to_the_task():
-    """A tip 5 nm sure of itself at the left end of a row of particles (R_P 35 nm) 0.3 um apart must
-    reach a task point 1.8 um away within 10 nm. Observing the particle next to the task straight away
-    follows a 1.65 um uncertain move: the 3-sigma ellipse is wider than the particle, so several scan
-    lines, and eq. 6.11 multiplies the expected travel by the number of scans. Hopping along the row
-    keeps every observation to one line, and Dijkstra finds such a chain; neither the particle nearest
-    the start nor a decoy behind it is worth observing."""
+    """A tip 5 nm sure of itself at the left end of a row of particles (R_P 35 nm) 0.3 um apart
+    must reach a task point 1.8 um away within 10 nm. Observing the particle next to the task
+    straight away follows a 1.65 um uncertain move: the 3-sigma ellipse is wider than the particle,
+    so several scan lines, and eq. 6.11 multiplies the expected travel by the number of scans.
+    Hopping along the row keeps every observation to one line, and Dijkstra finds such a chain;
+    neither the particle nearest the start nor a decoy behind it is worth observing."""
     noise = MotionNoise.isotropic(0.1 * NM, cross_fraction=1.0)
     row = [particle(lid=10 + k, x=k * 0.3 * UM, y=0.0, radius=35 * NM) for k in range(6)]
     decoy = particle(lid=99, x=-0.35 * UM, y=0.05 * UM, radius=35 * NM)
@@ -474,7 +479,7 @@ def test_chain_rejects_duplicate_ids_and_unreachable_tasks():
         )
 
 
-# -- landmark domain (eq. 6.13-6.15) ----------------------------------------------------------------
+# -- landmark domain (eq. 6.13-6.15) --------------------------------------------------------------
 def test_domain_with_isotropic_noise_is_a_box_around_each_spot():
     """No cross-axis growth: Var_x = k |dx|, Var_y = k |dy|, so around a spot the domain is the box
     |dx| <= (req_x - loc_x) / k, |dy| <= (req_y - loc_y) / k."""
@@ -506,9 +511,9 @@ def test_domain_with_full_cross_growth_is_a_diamond():
 
 
 def test_covering_landmarks_and_dynamic_configuration():
-    """Two particles far from the task point: none covers it, so push the one that needs the shortest
-    push, straight towards the task, just far enough: with the box domain of the test above the push
-    is distance - (R_P + R_T + 3 sigma_x) - reach_x, closed form."""
+    """Two particles far from the task point: none covers it, so push the one that needs the
+    shortest push, straight towards the task, just far enough: with the box domain of the test
+    above the push is distance - (R_P + R_T + 3 sigma_x) - reach_x, closed form."""
     k = 0.1 * NM
     noise = MotionNoise.isotropic(k)
     near = particle(lid=1, x=-1.5 * UM, y=0.0)

@@ -157,7 +157,8 @@ def cmd_scan(args):
     height = image_msg_to_array(scan.height)
     print(
         f"scan {scan.scan_id}: {height.shape[1]} x {height.shape[0]} px, "
-        f"{nm(scan.size_x)} x {nm(scan.size_y)}, heights {nm(float(height.min()))} .. {nm(float(height.max()))}"
+        f"{nm(scan.size_x)} x {nm(scan.size_y)}, heights {nm(float(height.min()))} .. "
+        f"{nm(float(height.max()))}"
     )
     if args.save:
         np.save(args.save, height)
@@ -172,7 +173,8 @@ def cmd_push(args):
         est = feedback.particle_estimate
         print(
             f"step {feedback.step}/{feedback.steps_total} [{feedback.phase}] particle at "
-            f"({nm(est.x)}, {nm(est.y)}), peak lateral force {feedback.peak_lateral_force * 1e9:.2f} nN"
+            f"({nm(est.x)}, {nm(est.y)}), peak lateral force "
+            f"{feedback.peak_lateral_force * 1e9:.2f} nN"
         )
 
     with AfmCommander() as afm:
@@ -205,8 +207,8 @@ def cmd_calibrate(args):
     import json
 
     from afm_core.backends import open_instrument
-    from afm_core.localization.calibrate import run_calibration
-    from afm_core.localization.calibration import save_calibration
+    from afm_core.localization.calibration.model import save_calibration
+    from afm_core.localization.calibration.procedure import run_calibration
 
     output = Path(args.output)
     if output.exists() and not args.overwrite:
@@ -216,8 +218,8 @@ def cmd_calibrate(args):
             args.backend, args.sim_config, args.seed, args.daq_device, args.daq_calibration
         )
         print(
-            f"calibrating the {args.backend} instrument (book 7.2.2: drift pairs, creep, hysteresis, scanner "
-            f"matrix, motion noise, line deflection); this takes minutes",
+            f"calibrating the {args.backend} instrument (book 7.2.2: drift pairs, creep, "
+            "hysteresis, scanner matrix, motion noise, line deflection); this takes minutes",
             flush=True,
         )
         calibration, report = run_calibration(
@@ -275,7 +277,8 @@ def cmd_sim2real(args):
     if diagnosis.chosen and diagnosis.heldout:
         held = diagnosis.heldout
         print(
-            f"held-out operations: chi2 {held['chi2_before']:.1f} -> {held['chi2_after']:.1f} for {held['dof']} dof"
+            f"held-out operations: chi2 {held['chi2_before']:.1f} -> {held['chi2_after']:.1f} "
+            f"for {held['dof']} dof"
         )
     print(
         f"report: {report / 'report.md'}"
@@ -298,7 +301,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="afm",
         description="Run, drive, record and replay the AFM nano-manipulation graph.",
-        epilog="Lengths accept units (500nm, 1.5um) or plain metres. Run `afm COMMAND --help` for details.",
+        epilog="Lengths accept units (500nm, 1.5um) or plain metres. "
+        "Run `afm COMMAND --help` for details.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 

@@ -28,7 +28,7 @@ from std_msgs.msg import Header
 
 from afm_core.instrument import ScannerLimits
 from afm_core.localization import Localizer, MapLandmark
-from afm_core.localization.calibration import Calibration, load_calibration
+from afm_core.localization.calibration.model import Calibration, load_calibration
 from afm_core.localization.localizer import LOCALIZER_PARAMETERS
 from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.action import Localize
@@ -249,7 +249,8 @@ class LocalizerNode(Node):
         if goal.landmark_id >= 0:
             if goal.landmark_id not in known:
                 raise ValueError(
-                    f"landmark_id={goal.landmark_id}: unknown (known ids: {sorted(known) or 'none yet'})"
+                    f"landmark_id={goal.landmark_id}: unknown "
+                    f"(known ids: {sorted(known) or 'none yet'})"
                 )
             return known[goal.landmark_id]
         point = np.array([goal.position.x, goal.position.y])
@@ -261,7 +262,8 @@ class LocalizerNode(Node):
         distance = math.hypot(nearest.x - point[0], nearest.y - point[1])
         if distance > self.config["match_radius"]:
             raise ValueError(
-                f"position: no landmark within match_radius={self.config['match_radius'] * 1e9:.0f} nm "
+                "position: no landmark within "
+                f"match_radius={self.config['match_radius'] * 1e9:.0f} nm "
                 f"(nearest, id {nearest.id}, is {distance * 1e9:.0f} nm away)"
             )
         return nearest

@@ -7,8 +7,9 @@ PushParticle: refuse what cannot work (unknown particle, goal off-range, another
 the way) -> punch control pits and scan the area ("before") -> localize the tip on the
 particle (the localizer's Localize action) -> plan the strokes -> execute them through the
 driver's actions, feedback per stroke -> rescan ("after") and verify the particle's position
-against the goal with the pits (and other particles) as control points -> result. Cancel stops after the stroke in progress, lifts the
-tip clear of the particle and reports where the tip and the particle are.
+against the goal with the pits (and other particles) as control points -> result. Cancel stops
+after the stroke in progress, lifts the tip clear of the particle and reports where the tip and
+the particle are.
 
 Assemble: many particles to many goals, in the planner's order (/afm/plan_sequence) unless
 keep_order, each pushed as above.
@@ -33,7 +34,7 @@ from rclpy.node import Node
 from std_msgs.msg import Header
 
 from afm_core.instrument import ScannerLimits, ScanRequest, check_in_range
-from afm_core.localization.calibration import Calibration, load_calibration
+from afm_core.localization.calibration.model import Calibration, load_calibration
 from afm_core.manipulation import (
     NanoHandParams,
     ParticleEstimate,
@@ -177,7 +178,8 @@ STRATEGIES = ("nano_hand", "center", "centre", "rod_hand")
 
 
 class PushFailed(Exception):
-    """A push that started could not finish; the message says what happened and where things are."""
+    """A push that started could not finish; the message says what happened and where things
+    are."""
 
 
 class NanoHandNode(Node):
@@ -280,7 +282,8 @@ class NanoHandNode(Node):
         if particle_id >= 0:
             if particle_id not in known:
                 raise ValueError(
-                    f"particle_id={particle_id}: unknown (known ids: {sorted(known) or 'none yet'})"
+                    f"particle_id={particle_id}: unknown "
+                    f"(known ids: {sorted(known) or 'none yet'})"
                 )
             return known[particle_id]
         point = np.array([position.x, position.y])
@@ -299,7 +302,8 @@ class NanoHandNode(Node):
     def check_goal(self, particle, goal: np.ndarray, strategy: str, tolerance: float) -> None:
         if strategy not in STRATEGIES:
             raise ValueError(
-                f"strategy={strategy!r}: must be one of {list(STRATEGIES)} (arc_hand: use Assemble)"
+                f"strategy={strategy!r}: must be one of {list(STRATEGIES)} "
+                "(arc_hand: use Assemble)"
             )
         if not np.all(np.isfinite(goal)):
             raise ValueError("goal: must be finite (m)")
@@ -308,11 +312,13 @@ class NanoHandNode(Node):
             raise ValueError(f"tolerance={tolerance}: must be finite and >= 0 (m)")
         if strategy == "rod_hand" and particle.kind not in ("tube", "rod"):
             raise ValueError(
-                f"strategy='rod_hand': landmark {particle.id} is a {particle.kind}, not a tube or rod"
+                f"strategy='rod_hand': landmark {particle.id} is a {particle.kind}, "
+                "not a tube or rod"
             )
         if strategy != "rod_hand" and particle.kind != "sphere":
             raise ValueError(
-                f"strategy={strategy!r}: landmark {particle.id} is a {particle.kind}; use 'rod_hand'"
+                f"strategy={strategy!r}: landmark {particle.id} is a {particle.kind}; "
+                "use 'rod_hand'"
             )
         start = np.array([particle.x, particle.y])
         with self.state_lock:
@@ -321,7 +327,8 @@ class NanoHandNode(Node):
         if blocker is not None:
             raise ValueError(
                 f"path blocked: landmark {blocker.id} at ({blocker.x * 1e9:.0f} nm, "
-                f"{blocker.y * 1e9:.0f} nm) lies in the way from particle {particle.id} to the goal"
+                f"{blocker.y * 1e9:.0f} nm) lies in the way from particle {particle.id} to the "
+                "goal"
             )
 
     # -- one push ----------------------------------------------------------------------------
@@ -447,7 +454,8 @@ class NanoHandNode(Node):
                 else start_xy
             )
             raise PushFailed(
-                f"cancelled after {execution.strokes_done} of {len(plan.strokes)} strokes; tip lifted "
+                f"cancelled after {execution.strokes_done} of {len(plan.strokes)} strokes; "
+                "tip lifted "
                 f"clear to ({lifted[0] * 1e9:.1f} nm, {lifted[1] * 1e9:.1f} nm) in afm_scanner; "
                 f"particle {particle.id} predicted at ({estimate[0] * 1e9:.1f} nm, "
                 f"{estimate[1] * 1e9:.1f} nm) in afm_task (not verified)"
@@ -462,7 +470,8 @@ class NanoHandNode(Node):
             tip_pose=pose,
         )
         # the rescan sees the particle in scan coordinates; its position before the push in the
-        # same scan ties the scan to the map (task frame), control points remove drift between scans
+        # same scan ties the scan to the map (task frame), control points remove drift between
+        # scans
         before_particle = nearest_particle(before, start_xy)
         map_to_scan = before_particle - start_xy
         # the particle may end far from the plan (a centre push slides it off): look for it
@@ -473,9 +482,10 @@ class NanoHandNode(Node):
         after = self.instrument.raster_scan(request, should_stop=should_stop)
         if should_stop() or not after.complete:
             raise PushFailed(
-                f"cancelled while verifying, after all {len(plan.strokes)} strokes; tip lifted off the "
-                f"particle for the rescan, which was stopped; particle {particle.id} predicted at "
-                f"({predicted[0] * 1e9:.1f} nm, {predicted[1] * 1e9:.1f} nm) in afm_task (not verified)"
+                f"cancelled while verifying, after all {len(plan.strokes)} strokes; tip lifted "
+                "off the particle for the rescan, which was stopped; particle "
+                f"{particle.id} predicted at ({predicted[0] * 1e9:.1f} nm, "
+                f"{predicted[1] * 1e9:.1f} nm) in afm_task (not verified)"
             )
         verification = verify_push(
             self.instrument,
@@ -528,7 +538,8 @@ class NanoHandNode(Node):
             raise PushFailed("cancelled while localizing; nothing was pushed")
         if not result.success:
             raise PushFailed(
-                f"localization on particle {particle.id} failed, nothing was pushed: {result.message}"
+                f"localization on particle {particle.id} failed, nothing was pushed: "
+                f"{result.message}"
             )
         return result.pose
 

@@ -21,7 +21,7 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from afm_core.instrument import ScannerLimits, check_in_range
-from afm_core.localization.calibration import Calibration, load_calibration
+from afm_core.localization.calibration.model import Calibration, load_calibration
 from afm_core.parameters import Parameter, ParameterTable
 from afm_core.planning import (
     SPOTS,
@@ -277,7 +277,8 @@ class PlannerNode(Node):
                 points = np.array([[p.x, p.y] for p in request.positions], float)
                 if len(points) == 0:
                     raise ValueError(
-                        "landmark_ids, positions and distance_matrix are all empty: nothing to order"
+                        "landmark_ids, positions and distance_matrix are all empty: "
+                        "nothing to order"
                     )
                 if not np.all(np.isfinite(points)):
                     raise ValueError("positions: must be finite (m)")
@@ -285,7 +286,8 @@ class PlannerNode(Node):
             expected = len(request.landmark_ids) or len(request.positions) or len(matrix)
             if len(matrix) != expected:
                 raise ValueError(
-                    f"distance_matrix is {len(matrix)} x {len(matrix)} but {expected} particles given"
+                    f"distance_matrix is {len(matrix)} x {len(matrix)} but {expected} "
+                    "particles given"
                 )
             result = (
                 SEQUENCERS[method](matrix, seed=self.config["sequence_seed"])

@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from afm_core.localization.observation import check_covariance
+from afm_core.localization.landmark_observation import check_covariance
 from afm_core.parameters import Parameter
 
 DRIFT_CORRELATION_TIME = (
@@ -266,7 +266,8 @@ class TipFilter:
         if not distance**2 <= self.gate:
             return UpdateResult(
                 False,
-                f"gated_out: squared Mahalanobis distance {distance**2:.3g} > gate {self.gate:.3g}",
+                f"gated_out: squared Mahalanobis distance {distance**2:.3g} > gate "
+                f"{self.gate:.3g}",
                 time,
                 innovation,
                 s,

@@ -31,16 +31,16 @@ from afm_core.instrument import (
     check_in_range,
     check_speed,
 )
-from afm_core.localization.calibration import Calibration
+from afm_core.localization.calibration.model import Calibration
 from afm_core.localization.filter import GATE, HISTORY_SECONDS, TipFilter, UpdateResult
-from afm_core.localization.motion import MotionModel, MotionStep
-from afm_core.localization.observation import (
+from afm_core.localization.landmark_observation import (
     DEFAULT_THRESHOLD_FRACTION,
     LineObservation,
     MapLandmark,
     as_map_landmark,
     observe_line,
 )
+from afm_core.localization.motion import MotionModel, MotionStep
 from afm_core.parameters import Parameter, ParameterTable
 
 LINE_SPEED = Parameter(
@@ -216,7 +216,7 @@ class Localizer:
         )
         self.steps: list[MotionStep] = []  # every motion predicted (for inspection)
 
-    # -- estimate ----------------------------------------------------------------------------------
+    # -- estimate ---------------------------------------------------------------------------------
     @property
     def mean(self) -> np.ndarray:
         return self.filter.mean
@@ -269,10 +269,11 @@ class Localizer:
         elsewhere, then the command itself ("line" along a scan line, "move" otherwise) over its
         duration. An "indent" is reported at its spot (start = end) with a duration that includes
         the lifted approach from wherever the tip was commanded: it is predicted as a move there
-        over that duration, never as a jump in no time. extra_variance (m^2, each axis): what the motion model cannot predict about
-        this command, e.g. the path-dependent hysteresis residue of a raster image, which the
-        model sees only as its net displacement. A command ending no later than the estimate's time is
-        already accounted for (our own, or reported twice): skipped, returns False."""
+        over that duration, never as a jump in no time. extra_variance (m^2, each axis): what the
+        motion model cannot predict about this command, e.g. the path-dependent hysteresis
+        residue of a raster image, which the model sees only as its net displacement. A command
+        ending no later than the estimate's time is already accounted for (our own, or reported
+        twice): skipped, returns False."""
         if kind not in ("move", "line", "indent"):
             raise ValueError(f"kind={kind!r}: must be 'move', 'line' or 'indent'")
         start, end = _vector("start", start), _vector("end", end)
@@ -280,7 +281,8 @@ class Localizer:
             start, kind = np.asarray(self.model.command, dtype=float), "move"
         if not (math.isfinite(start_time) and math.isfinite(end_time) and end_time >= start_time):
             raise ValueError(
-                f"start_time={start_time}, end_time={end_time}: need finite times, end >= start (s)"
+                f"start_time={start_time}, end_time={end_time}: need finite times, "
+                "end >= start (s)"
             )
         if end_time <= self.model.time:
             return False

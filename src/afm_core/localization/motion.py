@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afm_core.localization.calibration import Calibration
+from afm_core.localization.calibration.model import Calibration
 from afm_core.pzt import Creep
 
 DRIFT_SIGN = -1.0  # task-frame tip displacement per unit of calibrated (sample) drift
@@ -97,14 +97,16 @@ class MotionModel:
         self.matrix = np.array(calibration.scanner_matrix, dtype=float)
         if abs(np.linalg.det(self.matrix)) < 1e-6:
             raise ValueError(
-                f"calibration scanner_matrix={calibration.scanner_matrix}: singular, cannot be inverted"
+                f"calibration scanner_matrix={calibration.scanner_matrix}: singular, cannot be "
+                "inverted"
             )
         self.inverse_matrix = np.linalg.inv(self.matrix)
         self.noise = calibration.motion_noise()
         self.drift_velocity = DRIFT_SIGN * np.array(calibration.drift_mean_velocity, dtype=float)
         self.deflection_sigma = math.radians(calibration.line_deflection_sigma_deg)
         taus = np.array(calibration.creep_time_constants, dtype=float)
-        self._creep_params = []  # per axis: (inverse time constants, fractions, direct gain) or None
+        # per axis: (inverse time constants, fractions, direct gain) or None
+        self._creep_params = []
         for fractions in (calibration.creep_fractions_x, calibration.creep_fractions_y):
             f = np.array(fractions, dtype=float)
             self._creep_params.append(
@@ -240,7 +242,8 @@ class MotionModel:
 
     # -- planning helpers --------------------------------------------------------------------
     def line_direction(self, dx: float, dy: float) -> np.ndarray:
-        """Unit vector (task frame) of the true path of a commanded straight line along (dx, dy)."""
+        """Unit vector (task frame) of the true path of a commanded straight line along
+        (dx, dy)."""
         v = self.matrix @ np.array([dx, dy], dtype=float)
         norm = float(np.hypot(*v))
         if norm == 0.0:

@@ -1,8 +1,8 @@
 """Landmark path planning with probability regions (book chapter 6), ROS-free, numpy/scipy only.
 
 Entry points:
-- `plan_observation` (observation.py, eq. 6.1-6.10): the local scan lines L0, L1, ... that find
-  a particle anywhere in the tip's 3-sigma ellipse, their probabilities and expected cost.
+- `plan_observation` (observation_plan.py, eq. 6.1-6.10): the local scan lines L0, L1, ... that
+  find a particle anywhere in the tip's 3-sigma ellipse, their probabilities and expected cost.
 - `plan_landmark_route` (landmark_paths.py, Guidelines 6.1 / 6.2, Table 6.2): one landmark's
   localization (two lines, four spots, scan modes "hh" "hv" "vh" "vv") with the predicted
   covariance at every waypoint; `observation_distance_matrix` (eq. 6.11-6.12),
@@ -38,7 +38,7 @@ from .landmark_paths import (
     plan_landmark_chain,
     plan_landmark_route,
 )
-from .observation import ObservationPlan, ScanLine, plan_observation
+from .observation_plan import ObservationPlan, ScanLine, plan_observation
 from .sequencing import (
     EXACT_LIMIT,
     EXACT_MAX,

@@ -1,11 +1,13 @@
-"""Input checks shared by the planning modules: each raises ValueError naming the field and the limit."""
+"""Input checks of the planning modules beyond afm_core.checks: a point the plans keep, a
+covariance, a sigma pair, the motion noise and a line direction. Each takes the field's name
+first and the value second, and raises ValueError naming the field and the limit.
+"""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from afm_core import checks
 from afm_core.localization.motion_noise import MotionNoise
 
 PSD_TOLERANCE = (
@@ -13,21 +15,13 @@ PSD_TOLERANCE = (
 )
 
 
-def point(value, name: str) -> np.ndarray:
-    try:
-        p = np.array(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"{name}: must be an (x, y) pair of numbers in metres, got {value!r}"
-        ) from None
-    if p.shape != (2,):
-        raise ValueError(f"{name}: must be an (x, y) pair in metres, got {p.size} values")
-    if not np.isfinite(p).all():
-        raise ValueError(f"{name}: must be finite, got {p.tolist()}")
-    return p
+def point_copy(name: str, value) -> np.ndarray:
+    """A finite (x, y) point in metres (afm_core.checks.point), as a copy: the plans keep it,
+    and a caller's array changed afterwards must not change them."""
+    return checks.point(name, value).copy()
 
 
-def covariance(value, name: str) -> np.ndarray:
+def covariance_matrix(name: str, value) -> np.ndarray:
     try:
         c = np.array(value, dtype=float)
     except (TypeError, ValueError):
@@ -49,18 +43,7 @@ def covariance(value, name: str) -> np.ndarray:
     return c
 
 
-def positive(value, name: str, allow_zero: bool = False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
-        limit = ">= 0" if allow_zero else "> 0"
-        raise ValueError(f"{name}={value}: must be finite and {limit}")
-    return v
-
-
-def sigma_pair(value, name: str, allow_zero: bool = False) -> np.ndarray:
+def sigma_pair(name: str, value) -> np.ndarray:
     """A (sigma_x, sigma_y) pair or one number for both, in metres."""
     try:
         s = np.broadcast_to(np.array(value, dtype=float).reshape(-1), (2,)).copy()
@@ -70,11 +53,11 @@ def sigma_pair(value, name: str, allow_zero: bool = False) -> np.ndarray:
             f"got {value!r}"
         ) from None
     for axis, v in zip("xy", s):
-        positive(v, f"{name} ({axis})", allow_zero)
+        checks.positive(f"{name} ({axis})", v, "m")
     return s
 
 
-def motion_noise(value, name: str = "noise") -> MotionNoise:
+def noise_model(name: str, value) -> MotionNoise:
     if not isinstance(value, MotionNoise):
         raise ValueError(
             f"{name}: must be an afm_core.localization.MotionNoise, got {type(value).__name__}"
@@ -82,7 +65,7 @@ def motion_noise(value, name: str = "noise") -> MotionNoise:
     return value
 
 
-def direction(value, name: str = "direction") -> int:
+def line_axis(name: str, value) -> int:
     """'h' (a line along x) -> axis 0, 'v' (along y) -> axis 1."""
     if value not in ("h", "v"):
         raise ValueError(f"{name}={value!r}: must be 'h' (line along x) or 'v' (line along y)")

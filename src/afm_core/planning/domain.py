@@ -28,15 +28,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afm_core import checks
 from afm_core.localization.motion_noise import MotionNoise
-
-from . import _checks
-from .landmark_paths import SPOTS, landmark_site
+from afm_core.planning._checks import noise_model, point_copy, sigma_pair
+from afm_core.planning.landmark_paths import SPOTS, landmark_site
 
 
 @dataclass(frozen=True)
 class LandmarkDomain:
-    """Where a tip localized at one of the landmark's four spots can reach within the required variance."""
+    """Where a tip localized at one of the landmark's four spots can reach within the required
+    variance."""
 
     landmark_id: int
     center: np.ndarray  # (2,) m, landmark centre
@@ -91,17 +92,17 @@ class LandmarkConfiguration:
 
 
 def _variance_pair(sigma, name) -> np.ndarray:
-    return _checks.sigma_pair(sigma, name) ** 2
+    return sigma_pair(name, sigma) ** 2
 
 
 def landmark_domain(
     landmark, required_sigma, tip_radius: float, noise: MotionNoise, localized_sigma=None
 ) -> LandmarkDomain:
-    """Domain of one landmark (eq. 6.13-6.15). `localized_sigma`: sigma of a tip localized beside it
-    (default: the landmark's observation sigma, i.e. its map error, else the book's 5.0 / 4.5 nm);
-    `required_sigma`: sigma the task allows, one number or (x, y)."""
-    noise = _checks.motion_noise(noise)
-    tip_radius = _checks.positive(tip_radius, "tip_radius", allow_zero=True)
+    """Domain of one landmark (eq. 6.13-6.15). `localized_sigma`: sigma of a tip localized beside
+    it (default: the landmark's observation sigma, i.e. its map error, else the book's 5.0 /
+    4.5 nm); `required_sigma`: sigma the task allows, one number or (x, y)."""
+    noise = noise_model("noise", noise)
+    tip_radius = checks.non_negative("tip_radius", tip_radius)
     site = landmark_site(landmark, localized_sigma)
     required = _variance_pair(required_sigma, "required_sigma")
     return _domain(site, required, tip_radius, noise)
@@ -125,9 +126,9 @@ def covering_landmarks(
     localized_sigma=None,
 ) -> list[int]:
     """Ids of the landmarks whose domain holds the task point, best (largest slack) first."""
-    task = _checks.point(task_point, "task_point")
-    noise = _checks.motion_noise(noise)
-    tip_radius = _checks.positive(tip_radius, "tip_radius", allow_zero=True)
+    task = point_copy("task_point", task_point)
+    noise = noise_model("noise", noise)
+    tip_radius = checks.non_negative("tip_radius", tip_radius)
     required = _variance_pair(required_sigma, "required_sigma")
     slack = []
     for i, lm in enumerate(landmarks):
@@ -160,10 +161,10 @@ def plan_landmark_configuration(
     pushed (default: all). Raises ValueError when the required sigma is below what a
     localization gives (no domain can exist), for unknown movable ids, or when no push works.
     """
-    task = _checks.point(task_point, "task_point")
-    noise = _checks.motion_noise(noise)
-    tip_radius = _checks.positive(tip_radius, "tip_radius", allow_zero=True)
-    keep_clear = _checks.positive(keep_clear, "keep_clear", allow_zero=True)
+    task = point_copy("task_point", task_point)
+    noise = noise_model("noise", noise)
+    tip_radius = checks.non_negative("tip_radius", tip_radius)
+    keep_clear = checks.non_negative("keep_clear", keep_clear)
     required = _variance_pair(required_sigma, "required_sigma")
     if not (isinstance(resolution, int) and resolution >= 2):
         raise ValueError(f"resolution={resolution!r}: must be an integer >= 2")
@@ -181,7 +182,8 @@ def plan_landmark_configuration(
         if (s.observation_sigma**2 > required).any():
             raise ValueError(
                 f"required_sigma={np.sqrt(required).tolist()} m: below the localized sigma "
-                f"{s.observation_sigma.tolist()} m of landmark {s.id}; no landmark domain can hold it"
+                f"{s.observation_sigma.tolist()} m of landmark {s.id}; no landmark domain can "
+                "hold it"
             )
     covering = covering_landmarks(
         task, landmarks, np.sqrt(required), tip_radius, noise, localized_sigma

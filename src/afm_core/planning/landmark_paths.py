@@ -39,10 +39,10 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from afm_core import checks
 from afm_core.localization.motion_noise import MotionNoise
-
-from . import _checks
-from .observation import ObservationPlan, line_end_distance, plan_observation
+from afm_core.planning._checks import covariance_matrix, noise_model, point_copy, sigma_pair
+from afm_core.planning.observation_plan import ObservationPlan, line_end_distance, plan_observation
 
 BOOK_OBSERVATION_SIGMA = (5.0e-9, 4.5e-9)  # m, map error sigma x / y (Fig. 7.10)
 SPOTS = {"left": (0, -1.0), "right": (0, 1.0), "down": (1, -1.0), "up": (1, 1.0)}
@@ -122,14 +122,14 @@ def landmark_site(landmark, observation_sigma=None, name: str = "landmark") -> _
             f"{name}: needs id, x, y and radius (an afm_core.imaging.landmarks.Landmark), "
             f"got {landmark!r}"
         ) from None
-    center = _checks.point((x, y), f"{name} {lid} centre (x, y)")
-    r = _checks.positive(radius, f"{name} {lid} radius")
+    center = point_copy(f"{name} {lid} centre (x, y)", (x, y))
+    r = checks.positive(f"{name} {lid} radius", radius)
     if observation_sigma is not None:
-        sigma = _checks.sigma_pair(observation_sigma, "observation_sigma")
+        sigma = sigma_pair("observation_sigma", observation_sigma)
     elif getattr(landmark, "covariance", None) is not None:
-        cov = _checks.covariance(landmark.covariance, f"{name} {lid} covariance")
+        cov = covariance_matrix(f"{name} {lid} covariance", landmark.covariance)
         sigma = np.sqrt(np.diag(cov))
-        sigma = _checks.sigma_pair(sigma, f"{name} {lid} covariance diagonal sqrt")
+        sigma = sigma_pair(f"{name} {lid} covariance diagonal sqrt", sigma)
     else:
         sigma = np.array(BOOK_OBSERVATION_SIGMA)
     return _Site(lid, center, r, sigma)
@@ -143,7 +143,8 @@ def _kalman_axis_update(cov: np.ndarray, axis: int, sigma: float) -> np.ndarray:
 
 
 def _continue(noise: MotionNoise, cov: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Prediction for the rest of a move already under way: its settling offset was counted at its start."""
+    """Prediction for the rest of a move already under way: its settling offset was counted at
+    its start."""
     if not d.any():
         return cov
     added = noise.added_covariance(d[0], d[1]) - np.diag([noise.offset_x, noise.offset_y])
@@ -173,7 +174,8 @@ class _Builder:
         self.waypoints.append(Waypoint(self.position.copy(), self.cov.copy(), role, landmark_id))
 
     def observe(self, plan: ObservationPlan, site: _Site, tip_radius: float):
-        """Approach and scan the plan's first line (nominal: found there), updating at the crossing.
+        """Approach and scan the plan's first line (nominal: found there), updating at the
+        crossing.
 
         Once the particle is seen the along position is known to the observation sigma, so the
         line ends where 3 sigma (updated, grown to the end) + R_T + R_P clears the particle (eq.
@@ -218,7 +220,8 @@ def _localize(
     second_sign: float,
     tip_radius: float,
 ) -> list[ObservationPlan]:
-    """Two lines (first_axis, then the other) ending at `spot`; second_sign: side the second line starts on."""
+    """Two lines (first_axis, then the other) ending at `spot`; second_sign: side the second line
+    starts on."""
     noise = builder.noise
     spot_axis, spot_sign = SPOTS[spot]
     second_axis = 1 - first_axis
@@ -295,11 +298,11 @@ def nearest_spot(
     """Guideline 6.1: the localization spot (of `allowed`) nearest the point `toward`."""
     site = _Site(
         -1,
-        _checks.point(site_center, "site_center"),
-        _checks.positive(site_radius, "site_radius"),
-        _checks.sigma_pair(observation_sigma, "observation_sigma"),
+        point_copy("site_center", site_center),
+        checks.positive("site_radius", site_radius),
+        sigma_pair("observation_sigma", observation_sigma),
     )
-    toward = _checks.point(toward, "toward")
+    toward = point_copy("toward", toward)
     return min(
         allowed, key=lambda s: float(np.linalg.norm(_spot_point(site, s, tip_radius) - toward))
     )
@@ -332,12 +335,12 @@ def plan_landmark_route(
     Raises ValueError naming the argument for bad input or an unknown mode / spot, or when
     the observation cannot be planned (the tip is too uncertain for the particle).
     """
-    start = _checks.point(start_mean, "start_mean")
-    cov = _checks.covariance(start_covariance, "start_covariance")
-    tip_radius = _checks.positive(tip_radius, "tip_radius", allow_zero=True)
-    noise = _checks.motion_noise(noise)
+    start = point_copy("start_mean", start_mean)
+    cov = covariance_matrix("start_covariance", start_covariance)
+    tip_radius = checks.non_negative("tip_radius", tip_radius)
+    noise = noise_model("noise", noise)
     site = landmark_site(landmark, observation_sigma)
-    task = None if task_point is None else _checks.point(task_point, "task_point")
+    task = None if task_point is None else point_copy("task_point", task_point)
     if mode is not None and mode not in MODES:
         raise ValueError(f"mode={mode!r}: must be one of {sorted(MODES)}")
     if spot is not None and spot not in SPOTS:
@@ -390,9 +393,10 @@ def plan_landmark_route(
 
 # -- many landmarks ------------------------------------------------------------------------
 def _observation_cost(position, cov, site: _Site, tip_radius: float, noise: MotionNoise) -> float:
-    """Eq. 6.11: scan count x expected travel to observe `site` (the cheaper line direction); inf when
-    it cannot be planned. The book multiplies by the number of scans ("scantimes"), so an observation
-    that needs several lines costs more than its travel: the reason to hop between near landmarks."""
+    """Eq. 6.11: scan count x expected travel to observe `site` (the cheaper line direction); inf
+    when it cannot be planned. The book multiplies by the number of scans ("scantimes"), so an
+    observation that needs several lines costs more than its travel: the reason to hop between
+    near landmarks."""
     costs = []
     for direction in ("h", "v"):
         try:
@@ -413,10 +417,10 @@ ARRIVAL_SIGMA_FACTOR = (
 def _localized_covariance(
     site: _Site, spot: str, tip_radius: float, noise: MotionNoise
 ) -> np.ndarray:
-    """Covariance at `spot` after localizing at the site (both lines, the growth after each update and
-    the moves round the particle included), for a tip arriving from the opposite side with
-    ARRIVAL_SIGMA_FACTOR times the observation sigma (conservative: the Kalman posterior grows with
-    the prior, and a tip hopping between near landmarks arrives better than that)."""
+    """Covariance at `spot` after localizing at the site (both lines, the growth after each
+    update and the moves round the particle included), for a tip arriving from the opposite side
+    with ARRIVAL_SIGMA_FACTOR times the observation sigma (conservative: the Kalman posterior
+    grows with the prior, and a tip hopping between near landmarks arrives better than that)."""
     key = (
         site.id,
         spot,
@@ -459,8 +463,8 @@ def observation_distance(
     """Eq. 6.11: scan count x expected travel (m) to observe `to_landmark` from the spot of
     `from_landmark` nearest to it, with the covariance of a tip localized there (see
     _localized_covariance); inf when the observation cannot be planned."""
-    tip_radius = _checks.positive(tip_radius, "tip_radius", allow_zero=True)
-    noise = _checks.motion_noise(noise)
+    tip_radius = checks.non_negative("tip_radius", tip_radius)
+    noise = noise_model("noise", noise)
     a = landmark_site(from_landmark, observation_sigma, "from_landmark")
     b = landmark_site(to_landmark, observation_sigma, "to_landmark")
     return _pair_cost(a, b, tip_radius, noise)
@@ -494,8 +498,8 @@ def observation_distance_matrix(
 ) -> np.ndarray:
     """Eq. 6.12: W[i, j] = observation distance from landmark i to j (eq. 6.11), 0 on the diagonal,
     inf where the observation cannot be planned. `symmetric`: max(W, W^T), for sequencing."""
-    tip_radius = _checks.positive(tip_radius, "tip_radius", allow_zero=True)
-    noise = _checks.motion_noise(noise)
+    tip_radius = checks.non_negative("tip_radius", tip_radius)
+    noise = noise_model("noise", noise)
     sites = _sites(landmarks, observation_sigma)
     n = len(sites)
     w = np.zeros((n, n))
@@ -507,8 +511,9 @@ def observation_distance_matrix(
 
 
 def cheapest_chain(weights, source: int, target: int) -> tuple[list[int], float]:
-    """Cheapest path source -> target in a directed weight matrix (inf or NaN: no edge; weights >= 0),
-    by scipy.sparse.csgraph.dijkstra. Raises ValueError when the target cannot be reached."""
+    """Cheapest path source -> target in a directed weight matrix (inf or NaN: no edge;
+    weights >= 0), by scipy.sparse.csgraph.dijkstra. Raises ValueError when the target cannot be
+    reached."""
     w = np.array(weights, dtype=float)
     if w.ndim != 2 or w.shape[0] != w.shape[1]:
         raise ValueError(f"weights: must be a square matrix, got shape {w.shape}")
@@ -561,14 +566,12 @@ def plan_landmark_chain(
     spot nearest the task). Raises ValueError for bad input, duplicate or no landmarks, and when
     no chain reaches the task.
     """
-    start = _checks.point(start_mean, "start_mean")
-    cov = _checks.covariance(start_covariance, "start_covariance")
-    task = _checks.point(task_point, "task_point")
-    tip_radius = _checks.positive(tip_radius, "tip_radius", allow_zero=True)
-    noise = _checks.motion_noise(noise)
-    required = (
-        None if required_sigma is None else _checks.sigma_pair(required_sigma, "required_sigma")
-    )
+    start = point_copy("start_mean", start_mean)
+    cov = covariance_matrix("start_covariance", start_covariance)
+    task = point_copy("task_point", task_point)
+    tip_radius = checks.non_negative("tip_radius", tip_radius)
+    noise = noise_model("noise", noise)
+    required = None if required_sigma is None else sigma_pair("required_sigma", required_sigma)
     sites = _sites(landmarks, observation_sigma)
     n = len(sites)
     if n == 0:

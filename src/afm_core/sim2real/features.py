@@ -19,15 +19,16 @@ every session made of the same commands; a feature is absent where its measureme
     - per run: `line.width`, `line.peak` (means over its lines) and `line.asym` (mean of the
       +u-side flank width minus the -u-side one: a tip with one blunter flank).
 - Rasters (`raster.*`): per particle (extract_landmarks; pixels <= 60 nm) its centroid x and y
-  (position features), and with pixels <= 20 nm its apparent height and half-width. With `anchors` (the configured sphere
-  positions) every particle is keyed by the anchor it matches after the best common
-  translation, so several particles of one image are compared one by one; without, only the
-  particle nearest the image centre. Large images (>= 10 um) give the curvature of the
-  substrate background (`raster.bow_xx`, `bow_yy`: second derivative, 1/m; `bow_xy`). Images
-  with >= 64 lines give, per block of 48 lines, the line-offset noise (`raster.streak`, m: the
-  streaks coloured z noise draws; white noise averages out over a whole line) and the
-  pixel-to-pixel noise along the lines (`raster.pixel_noise`, m: white z noise, on top of the
-  substrate's roughness at the pixel scale, which the model's own sample gives it too).
+  (position features), and with pixels <= 20 nm its apparent height and half-width. With
+  `anchors` (the configured sphere positions) every particle is keyed by the anchor it matches
+  after the best common translation, so several particles of one image are compared one by
+  one; without, only the particle nearest the image centre. Large images (>= 10 um) give the
+  curvature of the substrate background (`raster.bow_xx`, `bow_yy`: second derivative, 1/m;
+  `bow_xy`). Images with >= 64 lines give, per block of 48 lines, the line-offset noise
+  (`raster.streak`, m: the streaks coloured z noise draws; white noise averages out over a
+  whole line) and the pixel-to-pixel noise along the lines (`raster.pixel_noise`, m: white z
+  noise, on top of the substrate's roughness at the pixel scale, which the model's own sample
+  gives it too).
 - Contact slides / pushes (`push.*`): the mean lateral torsion over each 250 nm segment of the
   path (friction and where it changes; the segment's commanded centre is its place) and the
   rms of the detrended torsion per push (stick-slip).
@@ -46,7 +47,7 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 from scipy.stats import median_abs_deviation
 
-from afm_core.localization.observation import find_crossings
+from afm_core.localization.landmark_observation import find_crossings
 
 POSITION_GROUPS = ("line.pos", "line.mid", "raster.x", "raster.y")
 EDGE_FRACTION = 0.1
@@ -460,7 +461,8 @@ def _raster_features(
         if particles_seen is not None:
             particles_seen[op.index] = len(marks)
         if anchors is not None and len(anchors) > 1 and len(marks) > 1:
-            # (one particle alone matches any anchor under some translation: keyed as the central one)
+            # (one particle alone matches any anchor under some translation: keyed as the central
+            # one)
             match = match_anchors(np.array([(m.x, m.y) for m in marks]), anchors)
             chosen = [
                 (f"{j}", marks[i]) for i, j in sorted(match.items(), key=lambda item: item[1])

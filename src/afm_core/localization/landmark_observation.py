@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from afm_core.instrument import ScanLineData
-from afm_core.localization.calibration import Calibration
+from afm_core.localization.calibration.model import Calibration
 
 DEFAULT_THRESHOLD_FRACTION = 0.5
 EDGE_FRACTION = 0.1  # of the samples at each end: the line's substrate level
@@ -235,8 +235,8 @@ def find_crossings(
     reaching = [(i, j) for i, j in merged if h[i:j].max() >= threshold + margin]
     if not reaching:
         return [], (
-            f"no run above the threshold reaches it + margin {margin:.3g}: the line missed the landmark "
-            "(what rises above the threshold is noise)"
+            f"no run above the threshold reaches it + margin {margin:.3g}: the line missed the "
+            "landmark (what rises above the threshold is noise)"
         )
     pairs = [
         (_crossing(h, threshold, i - 1), _crossing(h, threshold, j - 1))

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from afm_core import checks
 from afm_core.imaging.scan_timing import pixel_times
 from afm_core.instrument import RasterScanData
 
@@ -63,16 +64,13 @@ def _check(scan: RasterScanData, min_depth: float, max_radius: float) -> np.ndar
     bad = int(np.count_nonzero(~np.isfinite(height)))
     if bad:
         raise ValueError(
-            f"scan.height: {bad} NaN/inf pixels (incomplete scan?); pit detection needs a complete image"
+            f"scan.height: {bad} NaN/inf pixels (incomplete scan?); pit detection needs a "
+            "complete image"
         )
     for name in ("pixel_size_x", "pixel_size_y"):
-        value = getattr(scan, name)
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"scan.{name}={value}: must be finite and > 0 (m)")
-    if not (math.isfinite(min_depth) and min_depth >= 0):
-        raise ValueError(f"min_depth={min_depth}: must be finite and >= 0 (m)")
-    if not (math.isfinite(max_radius) and max_radius > 0):
-        raise ValueError(f"max_radius={max_radius}: must be finite and > 0 (m)")
+        checks.positive(f"scan.{name}", getattr(scan, name), "m")
+    checks.non_negative("min_depth", min_depth, "m")
+    checks.positive("max_radius", max_radius, "m")
     return height
 
 
@@ -92,7 +90,8 @@ def find_pits(
     scan: RasterScanData, min_depth: float = 5e-9, max_radius: float = 150e-9
 ) -> list[DetectedPit]:
     """Pits in `scan`, sorted by time of imaging. min_depth (m): shallower depressions are not
-    pits; max_radius (m): a larger apparent radius is not a pit (the closing window is twice it)."""
+    pits; max_radius (m): a larger apparent radius is not a pit (the closing window is twice
+    it)."""
     height = _check(scan, min_depth, max_radius)
     depth = depth_map(scan, max_radius)
     noise = 1.4826 * float(np.median(np.abs(depth - np.median(depth))))

@@ -1,6 +1,7 @@
 """The localizer's calibration: what the experiments of book 7.2.2 measured on this
-instrument, in one YAML file (SI units). `afm_core.localization.calibrate` runs the
-experiments and writes it; the motion model, the observation model and the planner read it.
+instrument, in one YAML file (SI units). `afm_core.localization.calibration.procedure` runs
+the experiments and writes it; the motion model, the observation model and the planner read
+it.
 
 Defaults are the book's figures, for an instrument nobody has calibrated yet.
 """
@@ -79,7 +80,8 @@ class Calibration:
             )
         if not all(math.isfinite(t) and t > 0 for t in self.creep_time_constants):
             raise ValueError(
-                f"calibration creep_time_constants={self.creep_time_constants}: need values > 0 (s)"
+                f"calibration creep_time_constants={self.creep_time_constants}: "
+                "need values > 0 (s)"
             )
         for name in ("drift_mean_velocity", "drift_sigma_velocity", "map_sigma"):
             value = getattr(self, name)
@@ -87,7 +89,8 @@ class Calibration:
                 raise ValueError(f"calibration {name}={value}: need two finite values (x, y)")
         if min(self.drift_sigma_velocity) < 0:
             raise ValueError(
-                f"calibration drift_sigma_velocity={self.drift_sigma_velocity}: need values >= 0 (m/s)"
+                f"calibration drift_sigma_velocity={self.drift_sigma_velocity}: "
+                "need values >= 0 (m/s)"
             )
         self.motion_noise()  # checks the noise fields
 
@@ -124,7 +127,8 @@ def save_calibration(calibration: Calibration, path: str | Path) -> None:
     path = Path(path)
     temporary = path.with_name(path.name + ".part")
     temporary.write_text(
-        "# afm localization calibration (SI units: m, s, m^2); see afm_core.localization.calibration\n"
+        "# afm localization calibration (SI units: m, s, m^2); "
+        "see afm_core.localization.calibration\n"
         + yaml.safe_dump(dataclasses.asdict(calibration), sort_keys=False)
     )
     temporary.replace(path)

@@ -1,0 +1,328 @@
+"""Creep of each axis (book 7.2.2, eq. 5.29-5.31, Fig. 7.7): a large step, then pits along the
+other axis over minutes, rescanned; time constants (shared by the axes) and fractions (per
+axis) by nonlinear least squares over repeated runs, whitened for the random walk of the
+moves between pits.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import linalg, optimize
+
+from afm_core import checks
+from afm_core.localization.calibration.experiment import (
+    Experiment,
+    check_box,
+    indent_force,
+    punch_at,
+    range_centre,
+    rescan,
+    wait,
+)
+from afm_core.localization.calibration.matching import match_monotone
+from afm_core.localization.calibration.pits import find_pits
+
+
+def creep_deficit(t, time_constants, ramp_time: float) -> np.ndarray:
+    """For a step applied as a ramp over [0, ramp_time]: how far each creep operator of eq.
+    5.29 still lags behind the settled value at t >= ramp_time, per unit step, shape
+    (len(t), len(time_constants)): (tau / T) (1 - e^{-T/tau}) e^{-(t - T)/tau} (-> e^{-t/tau}
+    for T -> 0). The position is then x_inf - S sum_i c_i deficit_i(t)."""
+    t = np.asarray(t, float)[:, None]
+    tau = np.asarray(time_constants, float)[None, :]
+    if ramp_time <= 0:
+        return np.exp(-t / tau)
+    return (tau / ramp_time) * -np.expm1(-ramp_time / tau) * np.exp(-(t - ramp_time) / tau)
+
+
+WALK_MEASUREMENT_RATIO = (
+    0.1  # a pit's own position noise (~1 nm)^2 over one move's walk step (~3 nm)^2
+)
+
+
+def walk_whitener(moves, pit_to_walk_ratio: float = WALK_MEASUREMENT_RATIO) -> np.ndarray:
+    """Lower-triangular L^-1 that whitens positions carrying a random walk: each move between
+    pits adds a persistent positioning error (book eq. 5.5's w, sigma^2 = a d + b per move), so
+    the pit after the k-th move carries the sum of k such errors, on top of its own
+    measurement noise; covariance (per walk variance) min(k_i, k_j) + ratio delta_ij, with
+    `moves` the k of each pit. Ordinary least squares on such data is unbiased but lets the
+    walk's slow wander pass for creep of the slow time constants; whitened, each residual
+    counts once (generalised least squares)."""
+    k = np.asarray(moves, float)
+    covariance = np.minimum.outer(k, k) + pit_to_walk_ratio * np.eye(k.size)
+    return linalg.solve_triangular(np.linalg.cholesky(covariance), np.eye(k.size), lower=True)
+
+
+def fit_creep(
+    runs: list[dict], n_constants: int = 3, guess=(1.0, 10.0, 100.0), drift_curvature: bool = False
+) -> dict:
+    """Nonlinear least squares (scipy.optimize.least_squares) over all runs at once: shared
+    time constants, per group of runs (an axis) the fractions c_i >= 0 (of the commanded step
+    S), per run the settled position x_inf and a drift velocity v:
+        x(t) = x_inf + v (t - t_mid) [+ q (t - t_mid)^2] - S sum_i c_i deficit_i(t).
+    The drift velocity wanders (it is not constant over minutes), which a straight line
+    leaves to the slowest creep term; drift_curvature adds the q term that takes it up;
+    repeated runs of one group average that wander out.
+    A run: {"t": s after the step started, "x": m along the step, "step": S (m, signed),
+    "ramp_time": s, optional "group" (default: each run its own), optional "moves": moves made
+    before each pit (then the residuals are whitened for the positioning random walk,
+    `walk_whitener`, starting from the ordinary fit, with a robust loss against a misread
+    pit)}. Positions are fitted in nm (a well-scaled problem). "fractions": per group, in
+    order of first appearance; "model": per run, the fitted curve at its pits (m)."""
+    if len(guess) != n_constants:
+        raise ValueError(f"guess={guess}: need {n_constants} time constants")
+    groups = list(dict.fromkeys(run.get("group", k) for k, run in enumerate(runs)))
+    prepared = _prepared_runs(runs, groups)
+
+    extra = 3 if drift_curvature else 2
+
+    def unpack(theta):
+        taus = np.exp(theta[:n_constants])
+        fractions = theta[n_constants : n_constants * (1 + len(groups))].reshape(
+            len(groups), n_constants
+        )
+        per_run = theta[n_constants * (1 + len(groups)) :].reshape(len(prepared), extra)
+        return taus, fractions, per_run
+
+    def residuals(theta, whiten=True):
+        taus, fractions, per_run = unpack(theta)
+        out = []
+        for (t, x, step, ramp, t_mid, whitener, group), p in zip(prepared, per_run):
+            model = (
+                p[0]
+                + p[1] * (t - t_mid)
+                + (p[2] * (t - t_mid) ** 2 if drift_curvature else 0.0)
+                - step * creep_deficit(t, taus, ramp) @ fractions[group]
+            )
+            out.append(whitener @ (model - x) if whiten else model - x)
+        return np.concatenate(out)
+
+    theta0 = list(np.log(guess)) + [0.005] * (n_constants * len(groups))
+    lower = [-np.inf] * n_constants + [0.0] * (n_constants * len(groups))
+    upper = [np.inf] * n_constants + [0.5] * (n_constants * len(groups))
+    for _, x, *_ in prepared:
+        theta0 += [x[-1]] + [0.0] * (extra - 1)
+        lower += [-np.inf] * extra
+        upper += [np.inf] * extra
+    fit = optimize.least_squares(
+        residuals,
+        theta0,
+        bounds=(lower, upper),
+        x_scale="jac",
+        method="trf",
+        kwargs={"whiten": False},
+    )
+    if any(run.get("moves") is not None for run in runs):
+        # started from the ordinary fit: the whitened cost alone has shallow valleys far off
+        fit = optimize.least_squares(
+            residuals,
+            np.clip(fit.x, lower, upper),
+            bounds=(lower, upper),
+            x_scale="jac",
+            method="trf",
+            loss="soft_l1",
+            f_scale=10.0,
+        )
+    taus, fractions, per_run = unpack(fit.x)
+    order = np.argsort(taus)
+    misfit = residuals(fit.x, whiten=False)
+    rms = float(np.sqrt(np.mean(misfit**2))) * 1e-9
+    ends = np.cumsum([len(t) for t, *_ in prepared])[:-1]
+    models = [(x + r) * 1e-9 for (_, x, *_), r in zip(prepared, np.split(misfit, ends))]
+    return {
+        "time_constants": taus[order].tolist(),
+        "fractions": [f[order].tolist() for f in fractions],
+        "settled": [float(p[0]) * 1e-9 for p in per_run],
+        "drift_velocity": [float(p[1]) * 1e-9 for p in per_run],
+        "model": [m.tolist() for m in models],
+        "rms_residual": rms,
+        "success": bool(fit.success),
+    }
+
+
+def _prepared_runs(runs: list[dict], groups: list) -> list[tuple]:
+    """Per run of `fit_creep`: (t, x in nm, step in nm, ramp time, mean t, whitener, index of
+    its group)."""
+    prepared = []
+    for k, run in enumerate(runs):
+        t, x = np.asarray(run["t"], float), np.asarray(run["x"], float) * 1e9
+        whitener = np.eye(t.size) if run.get("moves") is None else walk_whitener(run["moves"])
+        prepared.append(
+            (
+                t,
+                x,
+                float(run["step"]) * 1e9,
+                float(run["ramp_time"]),
+                float(np.mean(t)),
+                whitener,
+                groups.index(run.get("group", k)),
+            )
+        )
+    return prepared
+
+
+def measure_creep(
+    instrument,
+    *,
+    step: float = 50e-6,
+    duration: float = 300.0,
+    pits: int = 40,
+    fast_pits: int = 8,
+    repeats: int = 5,
+    pit_spacing: float = 150e-9,
+    settle: float = 300.0,
+    lane_offset: float = 15e-6,
+    pixel: float = 10e-9,
+    force: float | None = None,
+    guess=(1.0, 10.0, 100.0),
+) -> Experiment:
+    """Creep of each axis in normal (compensated) operation (book 7.2.2, Fig. 7.7).
+
+    Per axis, `repeats` runs: rest at centre - step/2 for `settle` s (earlier creep dies
+    out), step to centre + step/2 at full speed, then punch `pits` pits one `pit_spacing`
+    apart along the other axis at lane_offset from the centre (each further run shifted along
+    the step by what its rescan covers, so the rows stay apart): `fast_pits` back to back (the
+    0.5 s constant), the rest at log-spaced times up to `duration` s (the book samples 25 s;
+    the 50 s constant needs several of its own lengths to be told from drift, which is fitted
+    too). The moves along the other axis do not move this one, so each pit's coordinate
+    along the step is the creep curve at its moment. Each run is rescanned with the slow axis
+    along the step, approached from 50 um before so the pass is on a long monotone stretch of
+    the loop (uniform image gain). `fit_creep` then fits all runs at once, the fractions
+    shared by the runs of an axis: one run's drift wanders by tens of nm over minutes, as
+    much as the slowest creep term changes, and independent runs average it out."""
+    limits = instrument.limits
+    step = checks.positive("step", step, "m", upper=min(limits.range_x, limits.range_y) * 0.9)
+    duration = checks.positive("duration", duration, "s", upper=3600.0)
+    pits = checks.count("pits", pits, 8, 400)
+    fast_pits = checks.count("fast_pits", fast_pits, 1, pits - 4)
+    repeats = checks.count("repeats", repeats, 1, 20)
+    pit_spacing = checks.positive("pit_spacing", pit_spacing, "m", upper=5e-6)
+    force = indent_force(instrument, force)
+    plans = _planned_runs(instrument, step, pits, repeats, pit_spacing, lane_offset)
+    runs, data = [], {"x": [], "y": []}
+    for axis, start, end in plans:
+        name = "xy"[axis]
+        run, record = _creep_run(
+            instrument,
+            axis,
+            start,
+            end,
+            step=step,
+            schedule=(duration, pits, fast_pits, pit_spacing),
+            settle=settle,
+            pixel=pixel,
+            force=force,
+            label=f"creep ({name}, run {len(data[name])})",
+        )
+        runs.append(run)
+        data[name].append(record)
+    fit = fit_creep(runs, guess=guess)
+    for record, model in zip(data["x"] + data["y"], fit["model"]):
+        record["model"] = model
+    parameters = {
+        "time_constants": fit["time_constants"],
+        "fractions_x": fit["fractions"][0],
+        "fractions_y": fit["fractions"][1],
+        "drift_velocity": fit["drift_velocity"],
+        "rms_residual": fit["rms_residual"],
+        "success": fit["success"],
+    }
+    return Experiment(parameters, data)
+
+
+def _planned_runs(
+    instrument, step: float, pits: int, repeats: int, pit_spacing: float, lane_offset: float
+) -> list[tuple]:
+    """(axis, start, end) of every run, x runs first; each run's lane checked against the
+    scanner range before anything moves."""
+    centre = range_centre(instrument)
+    run_spacing = (
+        0.05 * step + 1.5e-6
+    )  # past the creep a rescan box reaches back (5 % of the step)
+    plans = []
+    for axis in (0, 1):
+        other = 1 - axis
+        for repeat in range(repeats):
+            start, end = centre.copy(), centre.copy()
+            start[axis] = centre[axis] - step / 2 + repeat * run_spacing
+            end[axis] = centre[axis] + step / 2 + repeat * run_spacing
+            start[other] = end[other] = centre[other] + lane_offset - pits * pit_spacing / 2
+            last = end.copy()
+            last[other] += (pits - 1) * pit_spacing
+            check_box(
+                f"creep lane ({'xy'[axis]}, run {repeat})",
+                instrument,
+                np.minimum(start, last),
+                np.maximum(end, last),
+            )
+            plans.append((axis, start, end))
+    return plans
+
+
+def _creep_run(
+    instrument, axis: int, start, end, *, step, schedule, settle, pixel, force, label: str
+) -> tuple[dict, dict]:
+    """One run: rest at `start`, step (by `step`) to `end`, punch the lane of pits on `schedule`
+    (duration, pits, fast_pits, pit_spacing), rescan and find them. Returns the run for
+    `fit_creep` and its record for the report."""
+    duration, pits, fast_pits, pit_spacing = schedule
+    limits = instrument.limits
+    other = 1 - axis
+    instrument.move_tip(float(start[0]), float(start[1]), 0.5 * limits.max_speed)
+    wait(instrument, settle)
+    t0 = float(instrument.time)
+    instrument.move_tip(float(end[0]), float(end[1]), limits.max_speed)
+    ramp_time = float(instrument.time) - t0
+    # log-spaced moments from just after the step; the early ones come faster than a pit can
+    # be punched, so those go back to back (fast_pits of them at least)
+    moments_planned = np.geomspace(ramp_time + 0.05, duration, pits)
+    moments_planned[:fast_pits] = 0.0
+    moments, lane = [], []
+    for k, when in enumerate(moments_planned):
+        wait(instrument, t0 + when - float(instrument.time))
+        target = end.copy()
+        target[other] += k * pit_spacing
+        moments.append(
+            punch_at(instrument, float(target[0]), float(target[1]), limits.max_speed, force) - t0
+        )
+        lane.append(float(target[other]))
+    reach = 0.05 * step + 0.5e-6  # creep is a few % of the step: the image covers up to 5 %
+    lo, hi = end.copy(), end.copy()
+    lo[axis] -= reach
+    hi[axis] += 0.5e-6
+    lo[other], hi[other] = lane[0] - 0.4e-6, lane[-1] + 0.4e-6
+    scan = rescan(instrument, lo, hi, pixel, slow_axis=axis, approach=50e-6)
+    detected = find_pits(scan)
+    found = np.array([[p.x, p.y][other] for p in detected])
+    index = match_monotone(lane, found) if len(found) else np.full(len(lane), -1)
+    ok = index >= 0
+    if ok.sum() < 8:
+        raise RuntimeError(f"{label}: only {int(ok.sum())} of {pits} pits found in the rescan")
+    positions = np.array([[detected[j].x, detected[j].y][axis] for j in index[ok]])
+    times = np.asarray(moments)[ok]
+    # pit k comes after k moves along the lane (the step itself is common to all: x_inf)
+    run = {
+        "t": times,
+        "x": positions,
+        "step": step,
+        "ramp_time": ramp_time,
+        "group": "xy"[axis],
+        "moves": np.flatnonzero(ok) + 1,
+    }
+    record = {
+        "t": times.tolist(),
+        "position": positions.tolist(),
+        "step": step,
+        "ramp_time": ramp_time,
+        "pits_punched": pits,
+        "pits_found": int(ok.sum()),
+    }
+    return run, record
+
+
+def creep_step_response(time_constants, fractions, t) -> np.ndarray:
+    """Creep part of the unit step response, sum_i c_i (1 - e^{-t/tau_i}) (eq. 5.29-5.31)."""
+    t = np.asarray(t, float)[:, None]
+    return (-np.expm1(-t / np.asarray(time_constants, float)[None, :])) @ np.asarray(
+        fractions, float
+    )

@@ -1,0 +1,201 @@
+"""Drift velocity statistics (book 5.3.3, 7.2.2, eq. 5.32-5.36, Fig. 7.9): frame-up /
+frame-down image pairs of a particle area, apart in time; each pair gives one drift velocity.
+The same frames give the map error and the scan-region error (map_errors.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from afm_core import checks
+from afm_core.imaging.frame_up_down import up_down_observations, up_down_velocity
+from afm_core.imaging.landmarks import extract_landmarks
+from afm_core.instrument import ScanRequest
+from afm_core.localization.calibration.experiment import (
+    MAX_LINE_RATE,
+    Experiment,
+    check_box,
+    wait,
+)
+
+
+def _particle_area(instrument, area) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = np.asarray(area[:2], float), np.asarray(area[:2], float) + np.asarray(area[2:], float)
+    check_box("drift area", instrument, lo, hi)
+    if not np.all(hi > lo):
+        raise ValueError(f"area={area}: width and height must be > 0")
+    return lo, hi
+
+
+def measure_drift(
+    instrument,
+    *,
+    area=(54.1e-6, 53.85e-6, 2.0e-6, 3.0e-6),
+    pairs: int = 20,
+    pixel: float = 15.625e-9,
+    frame_time: float = 256.0,
+    interval: float = 3600.0,
+    search: float = 6e-6,
+    settle: float = 300.0,
+) -> Experiment:
+    """Drift velocity statistics (book 5.3.3, 7.2.2, Fig. 7.9): `pairs` frame-up / frame-down
+    image pairs of an area with at least two particles on different lines, a pair starting
+    every `interval` s (the drift velocity wanders slowly; samples closer than its
+    correlation time are not independent, so the mean and sigma of a few close pairs say
+    little). Each pair gives one velocity (afm_core.imaging.frame_up_down.velocity_from_up_down,
+    eq. 5.35-5.36), timed at the pair's middle; it averages the velocity over the stretches of
+    the two frames where the particles are imaged (about a minute each, ~280 s before and
+    after the middle with the defaults), not over the whole pair, and the moments are kept per pair
+    (data["particle_times"]: [t_up, t_down] lists) so it can be compared with a known drift
+    (afm_core.imaging.frame_up_down.sampled_velocity). Its scale is the frames' image scale (the
+    package doc, "The image frame": the compensated scanner's small-move gain).
+
+    Before each pair a quick `search`-wide image finds the particles again (the sample
+    drifts micrometres over hours), the frames are centred on them and the tip rests
+    `settle` s at the frame's start: creep after a move of a few micrometres (2 % of it,
+    the slowest part with a 50 s time constant) would otherwise look like a drift of tenths
+    of nm/s. For the same reason the frame reaches well beyond the particles along the slow
+    axis (area's height): the slow axis' own creep lag settles while the margin is scanned.
+    The tip rests `settle` s before the frame down too (see there).
+    The frame time is a compromise: slow frames make the particles' time separation
+    T'_u + T'_d long, so the per-pair error (centroid noise / T') stays well below the
+    spread being measured, but a pair averages the velocity over its length, which lowers
+    the measured spread by about T_pair / (6 x correlation time) (5 % for 512 s pairs and
+    1800 s). The frames are kept for the map error and scan-region error (`map_errors`)."""
+    limits = instrument.limits
+    lo, hi = _particle_area(instrument, area)
+    pairs = checks.count("pairs", pairs, 2, 100000)
+    pixel = checks.positive("pixel", pixel, "m", upper=1e-6)
+    frame_time = checks.positive("frame_time", frame_time, "s", upper=86400.0)
+    interval = checks.positive("interval", interval, "s")
+    size = hi - lo
+    pixels, line_rate = _frame_raster(limits, size, pixel, frame_time)
+    centre = 0.5 * (lo + hi)
+    velocities, moments, frames, particle_times = [], [], [], []
+    for k in range(pairs):
+        start = float(instrument.time)
+        centre = _find_particle_cluster(instrument, centre, search, size)
+        lo = np.clip(centre - size / 2, 0.0, [limits.range_x - size[0], limits.range_y - size[1]])
+        up, down = _up_down_pair(instrument, lo, size, pixels, line_rate, settle)
+        observations = up_down_observations(up, down)
+        velocities.append(up_down_velocity(observations))
+        particle_times.append([observations.t_up.tolist(), observations.t_down.tolist()])
+        moments.append(0.5 * (up.start_time + float(instrument.time)))
+        frames.extend([up, down])
+        if k < pairs - 1:
+            wait(instrument, start + interval - float(instrument.time))
+    v = np.array(velocities)
+    parameters = {
+        "mean_velocity": v.mean(axis=0).tolist(),
+        "sigma_velocity": v.std(axis=0, ddof=1).tolist(),
+        "pairs": pairs,
+    }
+    return Experiment(
+        parameters,
+        {
+            "time": moments,
+            "velocity": v.tolist(),
+            "particle_times": particle_times,
+            "frames": frames,
+        },
+    )
+
+
+def _frame_raster(limits, size, pixel: float, frame_time: float) -> tuple[np.ndarray, float]:
+    """Pixels (x, y) and line rate (Hz) of a frame of `size` (m), or ValueError when the
+    instrument cannot scan it in `frame_time`."""
+    pixels = np.maximum(16, np.round(size / pixel)).astype(int)
+    if pixels.max() > limits.max_pixels:
+        raise ValueError(
+            f"pixel={pixel:.3g} m: the frame needs {pixels.max()} pixels, "
+            f"above max_pixels {limits.max_pixels}"
+        )
+    line_rate = pixels[1] / frame_time
+    if 2.0 * size[0] * line_rate > limits.max_speed or line_rate > limits.max_line_rate:
+        raise ValueError(
+            f"frame_time={frame_time} s: {pixels[1]} lines of {size[0]:.3g} m would exceed the "
+            f"slew limit {limits.max_speed} m/s or max_line_rate {limits.max_line_rate} Hz"
+        )
+    return pixels, line_rate
+
+
+def _up_down_pair(instrument, lo, size, pixels, line_rate, settle: float) -> tuple:
+    """A frame up and a frame down of the box at `lo`, each after resting `settle` s at its
+    first line."""
+    limits = instrument.limits
+    # rest at the middle of the first line: the fast axis then oscillates about where its
+    # creep has settled (resting at the line's start, the slow creep would follow the line
+    # mean for the first minutes of the frame and look like drift along x)
+    instrument.move_tip(
+        float(lo[0] + 0.5 * size[0]),
+        float(lo[1] + 0.5 * size[1] / pixels[1]),
+        0.1 * limits.max_speed,
+    )
+    wait(instrument, settle)
+    request = dict(
+        origin_x=float(lo[0]),
+        origin_y=float(lo[1]),
+        size_x=float(size[0]),
+        size_y=float(size[1]),
+        pixels_x=int(pixels[0]),
+        pixels_y=int(pixels[1]),
+        line_rate=float(line_rate),
+    )
+    up = instrument.raster_scan(ScanRequest(slow_scan_up=True, **request))
+    # rest again before the frame down: it then starts from a settled creep state as the
+    # frame up did, and the slow axis' creep lag builds up alike in both (mirror images),
+    # so its effect on the particles' separations is the same in both frames and cancels
+    # (reversing at once, the lag would swing from -L to +L during the frame down)
+    instrument.move_tip(
+        float(lo[0] + 0.5 * size[0]),
+        float(lo[1] + size[1] - 0.5 * size[1] / pixels[1]),
+        0.1 * limits.max_speed,
+    )
+    wait(instrument, settle)
+    down = instrument.raster_scan(ScanRequest(slow_scan_up=False, **request))
+    return up, down
+
+
+def _find_particle_cluster(instrument, centre, search: float, frame) -> np.ndarray:
+    """Centre of the particles in a quick search image around `centre` (the middle of their
+    bounding box); the search area doubles (three times at most) while none is found, and
+    `centre` itself is returned when still none is."""
+    limits = instrument.limits
+    for attempt in range(4):
+        reach = search * 2**attempt
+        size = np.array([min(reach, limits.range_x), min(reach, limits.range_y)])
+        lo = np.clip(
+            np.asarray(centre) - size / 2,
+            0.0,
+            [limits.range_x - size[0], limits.range_y - size[1]],
+        )
+        rate = min(MAX_LINE_RATE, limits.max_line_rate, 0.95 * limits.max_speed / (2.0 * size[0]))
+        pixels = int(min(limits.max_pixels, 128 * 2**attempt))
+        scan = instrument.raster_scan(
+            ScanRequest(
+                float(lo[0]),
+                float(lo[1]),
+                float(size[0]),
+                float(size[1]),
+                pixels,
+                pixels,
+                line_rate=rate,
+            )
+        )
+        marks = extract_landmarks(
+            np.asarray(scan.height, float),
+            scan.pixel_size_x,
+            scan.pixel_size_y,
+            scan.origin_x,
+            scan.origin_y,
+            min_height=30e-9,
+        )
+        if marks:
+            break
+    if not marks:
+        return np.asarray(centre, float)
+    points = np.array([[m.x, m.y] for m in marks])
+    # the cluster: the particles within a frame's reach of the one nearest the old centre
+    first = points[np.argmin(np.linalg.norm(points - centre, axis=1))]
+    near = points[np.all(np.abs(points - first) < np.asarray(frame) * 0.8, axis=1)]
+    return 0.5 * (near.min(axis=0) + near.max(axis=0))

@@ -1,0 +1,104 @@
+"""What every calibration experiment shares: the `Experiment` it returns, and the steps on
+the instrument its procedures are made of (wait with the command held, punch a pit, rescan a
+box with its slow axis along a row of pits), with the checks of a site against the scanner
+range.
+"""
+
+from __future__ import annotations
+
+import time as wallclock
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from afm_core import checks
+from afm_core.instrument import RasterScanData, ScanRequest, check_in_range
+
+MAX_LINE_RATE = 10.0  # Hz, rescans: slower than the slew limit allows keeps the tracking honest
+
+
+@dataclass
+class Experiment:
+    parameters: dict = field(default_factory=dict)  # fitted values, SI
+    data: dict = field(default_factory=dict)  # raw data for a plot, SI, lists
+
+
+def range_centre(instrument) -> np.ndarray:
+    """The centre of the scanner range (m): every experiment's sites are offsets from it."""
+    return 0.5 * np.array([instrument.limits.range_x, instrument.limits.range_y])
+
+
+def indent_force(instrument, force: float | None) -> float:
+    """The force of a pit (N): 1 uN (or the instrument's limit, if lower) unless given."""
+    limit = instrument.limits.max_indent_force
+    return min(1e-6, limit) if force is None else checks.positive("force", force, "N", upper=limit)
+
+
+def check_box(name: str, instrument, lo, hi) -> None:
+    """Every corner of the box [lo, hi] inside the scanner range (ValueError naming `name`)."""
+    check_in_range(f"{name} (lower corner)", float(lo[0]), float(lo[1]), instrument.limits)
+    check_in_range(f"{name} (upper corner)", float(hi[0]), float(hi[1]), instrument.limits)
+
+
+def wait(instrument, seconds: float) -> None:
+    """Let time pass with the command held: the instrument's hold() when it has one (the
+    simulator), else the wall clock (hardware holds its last output by itself)."""
+    if seconds <= 0:
+        return
+    hold = getattr(instrument, "hold", None)
+    if hold is not None:
+        hold(seconds)
+    else:
+        wallclock.sleep(seconds)
+
+
+def punch_at(instrument, x: float, y: float, speed: float, force: float) -> float:
+    """Move to (x, y) and punch a pit there; returns the moment it is punched (instrument
+    clock)."""
+    instrument.move_tip(x, y, speed)
+    moment = float(instrument.time)
+    instrument.indent(x, y, force, 0.0)
+    return moment
+
+
+def rescan(
+    instrument, lo, hi, pixel: float, slow_axis: int, slow_up: bool = True, approach: float = 0.0
+) -> RasterScanData:
+    """A raster image of the box [lo, hi] (m) with square pixels of about `pixel` and its slow
+    axis along `slow_axis` (0 = x: 90 deg scan; 1 = y: 0 deg). The slow axis moves once,
+    monotonically, so a row of pits along it is imaged on one branch of the (compensated)
+    scanner with no fast-axis loop in between. approach > 0: the tip first goes that far
+    before the start along the slow axis, so the pass is on a long monotone stretch of the
+    scanner's loop (small moves after a reversal have a different gain)."""
+    limits = instrument.limits
+    lo = np.maximum(np.asarray(lo, float), 0.0)
+    hi = np.minimum(np.asarray(hi, float), [limits.range_x, limits.range_y])
+    size = hi - lo
+    pixels = np.maximum(16, np.ceil(size / pixel)).astype(int)
+    if pixels.max() > limits.max_pixels:
+        raise ValueError(
+            f"pixel={pixel:.3g} m: the rescan of {size[0]:.3g} x {size[1]:.3g} m would need "
+            f"{pixels.max()} pixels, above max_pixels {limits.max_pixels}"
+        )
+    fast = 1 - slow_axis
+    rate = min(MAX_LINE_RATE, limits.max_line_rate, 0.95 * limits.max_speed / (2.0 * size[fast]))
+    if approach > 0:
+        start = lo.copy() if slow_up else hi.copy()
+        start[slow_axis] = (
+            max(0.0, start[slow_axis] - approach)
+            if slow_up
+            else min(start[slow_axis] + approach, [limits.range_x, limits.range_y][slow_axis])
+        )
+        instrument.move_tip(float(start[0]), float(start[1]), 0.5 * limits.max_speed)
+    request = ScanRequest(
+        float(lo[0]),
+        float(lo[1]),
+        float(size[0]),
+        float(size[1]),
+        int(pixels[0]),
+        int(pixels[1]),
+        scan_angle_deg=90.0 if slow_axis == 0 else 0.0,
+        slow_scan_up=slow_up,
+        line_rate=rate,
+    )
+    return instrument.raster_scan(request)

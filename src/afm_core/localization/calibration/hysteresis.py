@@ -1,0 +1,537 @@
+"""Hysteresis of each axis driven open loop (book 7.2.2, eq. 5.22-5.23, Fig. 7.6a): with the
+feed-forward off, a full-range voltage cycle with a pit every few steps on the descending and
+the ascending sweep; with it back on, the rows are rescanned. Prandtl-Ishlinskii weights for
+fixed thresholds by non-negative least squares, the input asymmetry by a 1-D search; the
+measured creep is part of the model.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import optimize
+
+from afm_core import checks
+from afm_core.localization.calibration.experiment import (
+    Experiment,
+    check_box,
+    indent_force,
+    range_centre,
+    rescan,
+    wait,
+)
+from afm_core.localization.calibration.matching import match_monotone
+from afm_core.localization.calibration.model import HysteresisFit
+from afm_core.localization.calibration.pits import DetectedPit, find_pits
+from afm_core.pzt import Creep, PlayOperatorBank, PrandtlIshlinskii
+
+MODEL_DT = 2e-3  # s, time step of the drive reconstruction in the hysteresis fit
+
+
+def asymmetric_polynomial(alpha: float, half: float) -> tuple[float, float, float]:
+    """The input function of PrandtlIshlinskii.from_fraction: p(xi) = (1 - a^2) xi + a xi^2 +
+    a^2 xi^3 in xi = x / half, as coefficients of x."""
+    return (1.0 - alpha * alpha, alpha / half, alpha * alpha / half**2)
+
+
+def major_loop(
+    model: PrandtlIshlinskii, half: float, samples: int = 2001
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x, ascending, descending) branches of the major loop of a full-span triangle cycle
+    [-half, half], after a first sweep has wiped the memory."""
+    x = np.linspace(-half, half, samples)
+    cycle = np.concatenate([x, x[::-1][1:], x[1:]])
+    model.reset(0.0)
+    y = model.apply(cycle)
+    descending = y[samples - 1 : 2 * samples - 1][::-1]
+    ascending = y[2 * samples - 2 :]
+    return x, ascending, descending
+
+
+def loop_measures(model: PrandtlIshlinskii, half: float) -> tuple[float, float]:
+    """(loop fraction, tip-to-tip gain) exactly as PrandtlIshlinskii.from_fraction defines the
+    fraction: the largest vertical distance between the branches of the full-span major loop,
+    divided by the output's tip-to-tip span (from_fraction makes that span equal the input's,
+    so this is width / span there, and stays a pure shape measure when the gain is not 1)."""
+    x, ascending, descending = major_loop(model, half)
+    span = ascending[-1] - ascending[0]
+    return float(np.max(descending - ascending) / span), float(span / (2 * half))
+
+
+def _operator_design(
+    times: np.ndarray,
+    drive: np.ndarray,
+    centre: float,
+    thresholds: np.ndarray,
+    alpha: float,
+    half: float,
+    creep: tuple | None,
+    pit_times: np.ndarray,
+) -> np.ndarray:
+    """Columns: each play operator's output on p(drive - centre), through the creep operator
+    (linear, DC gain 1, so creep of the weighted sum = weighted sum of the creeps), at the pit
+    moments."""
+    poly = asymmetric_polynomial(alpha, half)
+    u = drive - centre
+    v = ((poly[2] * u + poly[1]) * u + poly[0]) * u
+    bank = PlayOperatorBank(thresholds)
+    bank.reset(v[0])
+    outputs = bank.apply(v)
+    if creep is not None:
+        time_constants, fractions = creep
+        dt = float(times[1] - times[0])
+        for k in range(outputs.shape[1]):
+            operator = Creep(
+                1.0 / np.asarray(time_constants),
+                np.asarray(fractions),
+                1.0 - float(np.sum(fractions)),
+            )
+            operator.reset(outputs[0, k])
+            outputs[:, k] = operator.apply(outputs[:, k], dt)
+    return np.stack(
+        [np.interp(pit_times, times, outputs[:, k]) for k in range(outputs.shape[1])], axis=1
+    )
+
+
+def fit_hysteresis(
+    times,
+    drive,
+    centre: float,
+    half: float,
+    pit_times,
+    positions,
+    thresholds,
+    creep: tuple | None = None,
+    alpha_bound: float = 0.3,
+) -> dict:
+    """Least-squares PI fit (book 7.2.2): for fixed thresholds the model is linear in the
+    weights, position = offset + sum_i w_i (C F_{r_i}[p_alpha(drive - centre)])(t_pit), so
+    the weights come from a bounded linear least squares (w_i >= 0: every branch slope
+    positive, the model invertible; the offset free: where the rescan put the origin); the
+    input asymmetry alpha (from_fraction's) by a bounded 1-D search around it. Positions in
+    um inside (a well-scaled problem)."""
+    times, drive = np.asarray(times, float), np.asarray(drive, float)
+    pit_times, positions = np.asarray(pit_times, float), np.asarray(positions, float)
+    thresholds = np.asarray(thresholds, float)
+    target = positions * 1e6
+
+    def solve(alpha):
+        design = (
+            _operator_design(times, drive, centre, thresholds, alpha, half, creep, pit_times) * 1e6
+        )
+        design = np.hstack([design, np.ones((len(pit_times), 1))])
+        lower = np.r_[np.full(thresholds.size, 0.0), -np.inf]
+        upper = np.r_[np.full(thresholds.size, np.inf), np.inf]
+        lower[0] = 1e-6  # w_0 > 0: the model must stay invertible
+        result = optimize.lsq_linear(design, target, bounds=(lower, upper), method="bvls")
+        return result, design
+
+    search = optimize.minimize_scalar(
+        lambda a: float(np.sum(solve(a)[0].fun ** 2)),
+        bounds=(-alpha_bound, alpha_bound),
+        method="bounded",
+        options={"xatol": 1e-5},
+    )
+    alpha = float(search.x)
+    result, design = solve(alpha)
+    weights, offset = result.x[:-1], result.x[-1]
+    model = PrandtlIshlinskii(thresholds, weights, asymmetric_polynomial(alpha, half))
+    fraction, gain = loop_measures(model, half)
+    return {
+        "thresholds": thresholds.tolist(),
+        "weights": weights.tolist(),
+        "polynomial": list(asymmetric_polynomial(alpha, half)),
+        "asymmetry": alpha,
+        "loop_fraction": fraction,
+        "gain": gain,
+        "offset": float(offset) * 1e-6,
+        "predicted": (design @ result.x * 1e-6).tolist(),
+        "rms_residual": float(np.sqrt(np.mean(result.fun**2))) * 1e-6,
+    }
+
+
+FIT_PARAMETERS = (
+    "thresholds",
+    "weights",
+    "polynomial",
+    "asymmetry",
+    "loop_fraction",
+    "gain",
+    "offset",
+    "rms_residual",
+)  # the parts of fit_hysteresis's result that are the experiment's parameters
+
+
+def measure_hysteresis(
+    instrument,
+    axis: int,
+    *,
+    creep: tuple | None = None,
+    cycle_fraction: float = 0.9,
+    steps_per_sweep: int = 128,
+    pit_every: int = 4,
+    operators: int = 12,
+    lane_offset: float = -8e-6,
+    branch_gap: float = 3e-6,
+    speed: float = 20e-6,
+    settle: float = 300.0,
+    pixel: float = 30e-9,
+    rescans=("up", "down"),
+    force: float | None = None,
+    ignore=None,
+) -> Experiment:
+    """PI hysteresis of one axis (0 = x, 1 = y) driven open loop (book 7.2.2, Fig. 7.6a).
+
+    Feed-forward off; from the range centre the drive rises to the upper bound of the cycle
+    (cycle_fraction of the half range), falls to the lower bound, rises again, in steps of
+    2 * bound / steps_per_sweep, with a pit every `pit_every` steps on the last two sweeps
+    (the descending sweep on one lane, the ascending one `branch_gap` (raw drive) beside it,
+    so the two rows of pits never mix; `ignore`: image positions of pits already on the
+    sample, e.g. the other axis' cycle, which crosses this one's lane). Feed-forward back
+    on, the pits are rescanned with the slow axis along the cycle: one monotone pass over the
+    whole row, so the image has no fast-axis loop along it and its residual distortion is
+    that of one branch of the compensated scanner (a smooth bulge of about model error x loop
+    width / 2); `rescans` ("up", "down") images the row on the ascending and on the
+    descending compensated branch and averages the pit positions, which cancels the even
+    part of that bulge and the drift. The fit (`fit_hysteresis`) uses thresholds
+    r_k = k A / (2 operators) (A: cycle amplitude; the first rise of A wipes out the memory of
+    every such operator, so the unknown state before the cycle does not matter) and the
+    measured creep (time constants, fractions) when given. Derived loop_fraction and
+    asymmetry are defined as in PrandtlIshlinskii.from_fraction."""
+    limits = instrument.limits
+    steps_per_sweep, pit_every, operators, speed, branch_gap = _checked_options(
+        limits, axis, cycle_fraction, steps_per_sweep, pit_every, operators, speed, branch_gap
+    )
+    if not set(rescans) <= {"up", "down"} or not rescans:
+        raise ValueError(f"rescans={rescans!r}: need 'up' and/or 'down'")
+    force = indent_force(instrument, force)
+    centre = range_centre(instrument)
+    half = [limits.range_x, limits.range_y][axis] / 2
+    amplitude = cycle_fraction * half
+    lane = centre[1 - axis] + lane_offset
+    lo, hi = _box(axis, centre, amplitude, (lane, lane + branch_gap), 3e-6)
+    check_box(f"hysteresis cycle ({'xy'[axis]})", instrument, lo, hi)
+    step = 2 * amplitude / steps_per_sweep
+    timeline, pits = _drive_cycle(
+        instrument,
+        axis,
+        (centre[axis], lane),
+        amplitude,
+        step,
+        steps_per_sweep=steps_per_sweep,
+        pit_every=pit_every,
+        branch_gap=branch_gap,
+        speed=speed,
+        settle=settle,
+        force=force,
+    )
+    box = _rescan_box(axis, centre, amplitude, half, (lane, lane + branch_gap))
+    branches = np.array([p[0] for p in pits])
+    drives = np.array([p[1] for p in pits])
+    moments = np.array([p[2] for p in pits])
+    measured, all_detected = _imaged_rows(
+        instrument, axis, box, pixel, rescans, branches, drives, 0.3 * pit_every * step, ignore
+    )
+    found = np.all(np.isfinite(measured), axis=0)
+    if found.sum() < 2 * operators:
+        raise RuntimeError(
+            f"hysteresis ({'xy'[axis]}): only {int(found.sum())} of {len(pits)} pits found in "
+            f"every rescan; need {2 * operators}"
+        )
+    positions = measured[:, found].mean(axis=0)
+    times, drive = timeline.sampled(axis, MODEL_DT)
+    thresholds = np.arange(operators) * amplitude / (2 * operators)
+    fit = fit_hysteresis(
+        times, drive, centre[axis], half, moments[found], positions, thresholds, creep
+    )
+    parameters = {key: fit[key] for key in FIT_PARAMETERS}
+    data = {
+        "branch": branches[found].tolist(),
+        "drive": drives[found].tolist(),
+        "time": moments[found].tolist(),
+        "position": positions.tolist(),
+        "position_per_rescan": measured[:, found].tolist(),
+        "predicted": fit["predicted"],
+        "pits_punched": len(pits),
+        "pits_found": int(found.sum()),
+        "all_detected": all_detected[0],
+        **_drive_record(timeline, axis, centre[axis], half),
+    }
+    return Experiment(parameters, data)
+
+
+def _checked_options(
+    limits, axis, cycle_fraction, steps_per_sweep, pit_every, operators, speed, branch_gap
+) -> tuple:
+    """measure_hysteresis's options checked (ValueError naming the first bad one) and converted:
+    (steps_per_sweep, pit_every, operators, speed, branch_gap)."""
+    if axis not in (0, 1):
+        raise ValueError(f"axis={axis}: must be 0 (x) or 1 (y)")
+    if not (math.isfinite(cycle_fraction) and 0.2 <= cycle_fraction <= 0.9):
+        raise ValueError(
+            f"cycle_fraction={cycle_fraction}: must be within [0.2, 0.9] of the half range (the "
+            "rescan needs the outer 10 % clear, see measure_hysteresis)"
+        )
+    steps_per_sweep = checks.count("steps_per_sweep", steps_per_sweep, 8, 4096)
+    return (
+        steps_per_sweep,
+        checks.count("pit_every", pit_every, 1, steps_per_sweep // 4),
+        checks.count("operators", operators, 2, 64),
+        checks.positive("speed", speed, "m/s", upper=limits.max_speed),
+        checks.positive("branch_gap", branch_gap, "m", upper=10e-6),
+    )
+
+
+def _box(
+    axis: int, centre, amplitude: float, lanes, reach: float, margin: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper corner) of the box around the cycle: `amplitude` + `margin` either side of
+    the centre along the cycled axis, from `reach` before the first of the `lanes` to `reach`
+    after the second across it."""
+    other = 1 - axis
+    lo, hi = centre.copy(), centre.copy()
+    lo[axis], hi[axis] = centre[axis] - amplitude, centre[axis] + amplitude
+    lo[other], hi[other] = lanes[0] - reach, lanes[1] + reach
+    lo[axis] -= margin
+    hi[axis] += margin
+    return lo, hi
+
+
+def _rescan_box(axis: int, centre, amplitude: float, half: float, lanes) -> tuple:
+    """The box the rows of pits are rescanned in. It covers where the pits can land: an
+    asymmetric loop lifts or lowers the row's ends by up to ~asymmetry x half range. It must
+    stay clear of the range ends: the loop's tips lie inside the range, so a compensated
+    command there needs a drive past the range, which the amplifier clamps; the controller's
+    inverse then runs ahead of the scanner and misplaces the pits over the following tens of
+    um of the pass (with cycle_fraction 0.95 and a fixed 1.5 um margin this biased the fitted
+    asymmetry by -4 % on a noise-free scanner)."""
+    return _box(axis, centre, amplitude, lanes, 2e-6, margin=0.05 * half)
+
+
+def _on_axis(axis: int, along: float, across: float) -> tuple[float, float]:
+    """(x, y) of the point `along` the cycled axis and `across` on the other."""
+    p = np.empty(2)
+    p[axis], p[1 - axis] = along, across
+    return float(p[0]), float(p[1])
+
+
+def _drive_cycle(
+    instrument,
+    axis: int,
+    start,
+    amplitude: float,
+    step: float,
+    *,
+    steps_per_sweep: int,
+    pit_every: int,
+    branch_gap: float,
+    speed: float,
+    settle: float,
+    force: float,
+) -> tuple[_Timeline, list[tuple]]:
+    """The open-loop cycle about start = (range centre of the cycled axis, lane): feed-forward
+    off, rise to +amplitude, then the descending sweep and (`branch_gap` beside it) the
+    ascending one in steps of `step`, a pit every `pit_every` steps; feed-forward back on.
+    Returns the drive as issued and the pits as (branch, drive, moment)."""
+    limits = instrument.limits
+    middle, lane = start
+    other = 1 - axis
+    instrument.move_tip(*_on_axis(axis, middle, lane), 0.5 * limits.max_speed)
+    _set_feed_forward(instrument, False)
+    try:
+        # Open loop a raw drive is up to half a loop width (several um) from where the
+        # compensated command puts the tip: keep the other axis' drive where the switch left it
+        # (the tip stays on the lane) and move only the cycled axis, to the raw centre.
+        lane_drive = float(instrument.commanded_position()[other])
+        instrument.move_tip(*_on_axis(axis, middle, lane_drive), speed)
+        wait(instrument, settle)
+        timeline = _Timeline(instrument)
+        for k in range(1, steps_per_sweep // 2 + 1):
+            timeline.move(*_on_axis(axis, middle + k * step, lane_drive), speed)
+        pits = []  # (branch, drive, moment)
+        top, bottom = middle + amplitude, middle - amplitude
+        for branch, first, sign, b in (
+            ("descending", top, -1.0, lane_drive),
+            ("ascending", bottom, 1.0, lane_drive + branch_gap),
+        ):
+            if branch == "ascending":
+                # to the second lane, along the other axis only
+                timeline.move(*_on_axis(axis, bottom, b), speed)
+            for k in range(steps_per_sweep + 1):
+                drive = first + sign * k * step
+                if k:
+                    timeline.move(*_on_axis(axis, drive, b), speed)
+                if k % pit_every == 0:
+                    pits.append((branch, drive, timeline.punch(force)))
+    finally:
+        _set_feed_forward(instrument, True)
+    return timeline, pits
+
+
+def _imaged_rows(
+    instrument, axis: int, box, pixel, rescans, branches, drives, end_tolerance: float, ignore
+) -> tuple[np.ndarray, list]:
+    """The pits' positions along the cycled axis in each rescan of `box` (rows: rescans,
+    columns: pits, NaN where not found) and each rescan's detections (less the `ignore`d);
+    `end_tolerance` (m) as in `match_monotone`, for where the loop's tips land."""
+    other = 1 - axis
+    measured = np.full((len(rescans), len(branches)), np.nan)
+    all_detected = []
+    for row, direction in enumerate(rescans):
+        scan = rescan(
+            instrument, box[0], box[1], pixel, slow_axis=axis, slow_up=(direction == "up")
+        )
+        detected = find_pits(scan)
+        if len(detected) < 8:
+            raise RuntimeError(
+                f"hysteresis ({'xy'[axis]}): only {len(detected)} pits found in the {direction} "
+                "rescan"
+            )
+        if ignore is not None and len(ignore):
+            # another image put them there: up to ~1 um off along this rescan's slow axis (the
+            # compensation residual of a full-range pass), well within 0.3 um across it
+            known = np.asarray(ignore, float).reshape(-1, 2)
+            detected = _without_known(detected, known, axis)
+        all_detected.append([[p.x, p.y] for p in detected])
+        along = np.array([[p.x, p.y][axis] for p in detected])
+        across = np.array([[p.x, p.y][other] for p in detected])
+        keep, offset = _split_rows(along, across)
+        for branch, sign in (("descending", -1.0), ("ascending", 1.0)):
+            in_row = np.flatnonzero(keep & (np.sign(offset) == sign))
+            wanted = np.flatnonzero(branches == branch)
+            index = match_monotone(drives[wanted], along[in_row], end_tolerance=end_tolerance)
+            for i, j in zip(wanted, index):
+                if j >= 0:
+                    measured[row, i] = along[in_row[j]]
+    return measured, all_detected
+
+
+def _split_rows(along: np.ndarray, across: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The two rows of pits (descending, ascending) are about parallel (the coupling tilts both
+    alike) but wander by the moves' random error (~0.1 um over a cycle); their middle line,
+    fitted robustly, splits them (offset < 0: the descending row), and pits far off both rows
+    (another experiment's) are left out (keep False)."""
+    keep = np.ones(len(along), dtype=bool)
+    for _ in range(5):
+        line = np.polyfit(along[keep], across[keep], 1)
+        offset = across - np.polyval(line, along)
+        typical = np.median(np.abs(offset[keep]))
+        keep = (np.abs(offset) < 2.0 * typical) & (np.abs(offset) > 0.25 * typical)
+    return keep, offset
+
+
+def _drive_record(timeline: _Timeline, axis: int, centre: float, half: float) -> dict:
+    """The drive of `axis` as `refit_hysteresis` needs it, with the centre it cycled about and
+    the half range."""
+    return {
+        # the drive as issued (piecewise linear between these knots), to refit or plot
+        "drive_knots": {
+            "time": list(timeline.times),
+            "drive": [c[axis] for c in timeline.commands],
+        },
+        "centre": float(centre),
+        "half_range": half,
+    }
+
+
+def _without_known(
+    detected: list[DetectedPit], known: np.ndarray, slow_axis: int
+) -> list[DetectedPit]:
+    """`detected` less the pits that are `known` from another image. That image placed them up
+    to ~1 um differently along this one's slow axis (the compensation residual of a
+    full-range pass differs between the two), the same to ~0.3 um across it: the shift is
+    the median over the candidate pairs, and each known pit removes at most the one detection
+    nearest to where the shift puts it (a pit of this experiment close by stays)."""
+    if not detected or not len(known):
+        return detected
+    fast = 1 - slow_axis
+    points = np.array([[p.x, p.y] for p in detected])
+    delta = points[None, :, :] - known[:, None, :]
+    candidate = (np.abs(delta[..., slow_axis]) < 1.0e-6) & (np.abs(delta[..., fast]) < 0.3e-6)
+    if not candidate.any():
+        return detected
+    shift = np.zeros(2)
+    shift[slow_axis] = np.median(delta[..., slow_axis][candidate])
+    distance = np.linalg.norm(points[None, :, :] - (known + shift)[:, None, :], axis=2)
+    drop = {int(np.argmin(row)) for row in distance if row.min() < 0.3e-6}
+    return [p for j, p in enumerate(detected) if j not in drop]
+
+
+def refit_hysteresis(
+    experiment: Experiment, creep: tuple | None = None, operators: int | None = None
+) -> dict:
+    """`fit_hysteresis` again on a measure_hysteresis experiment's data (another creep model,
+    another number of operators)."""
+    data = experiment.data
+    knots = data["drive_knots"]
+    times = np.arange(knots["time"][0], knots["time"][-1] + MODEL_DT, MODEL_DT)
+    drive = np.interp(times, knots["time"], knots["drive"])
+    thresholds = np.asarray(experiment.parameters["thresholds"])
+    if operators is not None:
+        thresholds = np.arange(operators) * (thresholds[1] * thresholds.size) / operators
+    return fit_hysteresis(
+        times,
+        drive,
+        data["centre"],
+        data["half_range"],
+        data["time"],
+        data["position"],
+        thresholds,
+        creep,
+    )
+
+
+def hysteresis_fit_of(experiment: Experiment) -> HysteresisFit:
+    p = experiment.parameters
+    return HysteresisFit(
+        thresholds=list(p["thresholds"]),
+        weights=list(p["weights"]),
+        polynomial=list(p["polynomial"]),
+        loop_fraction=float(p["loop_fraction"]),
+        asymmetry=float(p["asymmetry"]),
+    )
+
+
+class _Timeline:
+    """The commanded position against the instrument clock, as issued: the command is held
+    between calls and ramps linearly during a move, so the drive is piecewise linear in time."""
+
+    def __init__(self, instrument):
+        self.instrument = instrument
+        self.times: list[float] = []
+        self.commands: list[tuple[float, float]] = []
+        self.mark()
+
+    def mark(self) -> None:
+        self.times.append(float(self.instrument.time))
+        self.commands.append(tuple(float(c) for c in self.instrument.commanded_position()))
+
+    def move(self, x: float, y: float, speed: float) -> None:
+        self.mark()
+        self.instrument.move_tip(x, y, speed)
+        self.mark()
+
+    def punch(self, force: float) -> float:
+        """A pit where the tip is; returns the moment it is punched (instrument clock)."""
+        self.mark()
+        x, y = self.instrument.commanded_position()
+        moment = float(self.instrument.time)
+        self.instrument.indent(x, y, force, 0.0)
+        self.mark()
+        return moment
+
+    def sampled(self, axis: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        times = np.asarray(self.times)
+        values = np.asarray(self.commands)[:, axis]
+        grid = np.arange(times[0], times[-1] + dt, dt)
+        return grid, np.interp(grid, times, values)
+
+
+def _set_feed_forward(instrument, enabled: bool) -> None:
+    if not hasattr(instrument, "feed_forward_enabled"):
+        raise ValueError(
+            "instrument: has no feed_forward_enabled switch; the hysteresis experiment drives the "
+            "piezos open loop (raw voltages) and needs it"
+        )
+    instrument.feed_forward_enabled = enabled

@@ -1,0 +1,113 @@
+"""Which detected pit is which punch: the calibration experiments punch pits at known commands
+and find them again in a rescan (afm_core.localization.calibration.pits), shifted, with some
+missing and some extra (another experiment's, noise).
+
+- `match_points`: a 2-D pattern (a grid, the ends of scan lines): the common shift that
+  brings most pits within a gate, then mutual nearest neighbours.
+- `match_monotone`: a row of pits whose positions are a monotone, smooth function of the
+  commands (a hysteresis sweep, a creep lane): the gaps between detections say how many
+  punches each spans, the run is placed where a cubic fits best.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def match_points(expected, detected, gate: float) -> np.ndarray:
+    """For each expected point (n, 2) the index of its detected pit (m, 2), -1 if none: first
+    the common shift that brings most points within `gate` (every expected-detected offset is
+    a candidate), then mutual nearest neighbours after the median shift of those."""
+    expected, detected = (
+        np.asarray(expected, float).reshape(-1, 2),
+        np.asarray(detected, float).reshape(-1, 2),
+    )
+    result = np.full(len(expected), -1)
+    if not len(expected) or not len(detected):
+        return result
+    anchors = expected[np.linspace(0, len(expected) - 1, min(len(expected), 12)).astype(int)]
+    candidates = (detected[None, :, :] - anchors[:, None, :]).reshape(-1, 2)
+    best, best_count = np.zeros(2), -1
+    for shift in candidates:
+        d = np.linalg.norm(expected[:, None, :] + shift - detected[None, :, :], axis=2)
+        count = int((d.min(axis=1) < gate).sum())
+        if count > best_count:
+            best, best_count = shift, count
+    for _ in range(2):
+        d = np.linalg.norm(expected[:, None, :] + best - detected[None, :, :], axis=2)
+        nearest = d.argmin(axis=1)
+        inliers = d[np.arange(len(expected)), nearest] < gate
+        if inliers.any():
+            best = np.median(detected[nearest[inliers]] - expected[inliers], axis=0)
+    d = np.linalg.norm(expected[:, None, :] + best - detected[None, :, :], axis=2)
+    nearest, back = d.argmin(axis=1), d.argmin(axis=0)
+    for i, j in enumerate(nearest):
+        if back[j] == i and d[i, j] < gate:
+            result[i] = j
+    return result
+
+
+def match_monotone(expected, detected, end_tolerance: float | None = None) -> np.ndarray:
+    """Pits along a line whose positions are a monotone, smooth (not necessarily linear)
+    function of the expected values (e.g. the drive of a hysteresis sweep, the commanded
+    positions along a lane): index into `detected` per expected value, -1 if none.
+
+    Robust to missing and extra pits: the gaps between neighbouring detections, against the
+    local typical gap (median of the nearby ones), say how many expected steps each spans
+    (a missing pit leaves a double gap; of two detections much closer than typical the
+    later is dropped); the run of indices is then placed where a cubic through
+    (expected, detected) fits best. A smooth curve cannot tell a run shifted by one step
+    when an end pit is missing; `end_tolerance` (m) settles it where the ends are known to
+    land near their expected value (the tips of a hysteresis loop): placements whose first
+    or last match is farther off lose."""
+    expected, detected = np.asarray(expected, float), np.asarray(detected, float)
+    result = np.full(len(expected), -1)
+    if len(detected) < 4 or len(expected) < 4:
+        return result
+    order_e, order_d = np.argsort(expected), np.argsort(detected)
+    e_sorted, d_sorted = expected[order_e], detected[order_d]
+    kept = np.arange(len(d_sorted))
+    for _ in range(3):
+        gaps = np.diff(d_sorted[kept])
+        typical = np.array([np.median(gaps[max(0, i - 3) : i + 4]) for i in range(len(gaps))])
+        close = np.flatnonzero(gaps < 0.5 * typical)
+        if not close.size:
+            break
+        kept = np.delete(kept, close[0] + 1)
+    gaps = np.diff(d_sorted[kept])
+    typical = np.array([np.median(gaps[max(0, i - 3) : i + 4]) for i in range(len(gaps))])
+    # the expected values are about uniformly spaced (sweeps, lanes): a gap spans
+    # round(gap / typical) of their steps
+    ratio = gaps / typical
+    steps = np.maximum(1, np.round(ratio)).astype(int)
+    while steps.sum() > len(e_sorted) - 1 and len(kept) > 4:
+        # more steps than expected pits: the least convincing double gap was a wide single one;
+        # with none left, the end detection farther from its neighbour is not of this row
+        multiple = np.flatnonzero(steps > 1)
+        if multiple.size:
+            steps[multiple[np.argmin(ratio[multiple] - steps[multiple])]] -= 1
+        elif ratio[0] > ratio[-1]:
+            kept, ratio, steps = kept[1:], ratio[1:], steps[1:]
+        else:
+            kept, ratio, steps = kept[:-1], ratio[:-1], steps[:-1]
+    index = np.concatenate([[0], np.cumsum(steps)])
+    best, best_offset = np.inf, None
+    for offset in range(0, len(e_sorted) - index[-1]):
+        x = e_sorted[index + offset]
+        if len(x) >= 5:
+            coefficients = np.polyfit(x, d_sorted[kept], 3)
+            misfit = float(np.sum((np.polyval(coefficients, x) - d_sorted[kept]) ** 2))
+        else:
+            misfit = float(np.sum((x - x.mean() - (d_sorted[kept] - d_sorted[kept].mean())) ** 2))
+        if end_tolerance is not None:
+            ends = np.abs(d_sorted[kept][[0, -1]] - x[[0, -1]])
+            misfit += (
+                1e6 * float(np.sum(np.maximum(ends - end_tolerance, 0.0) ** 2)) * (1 + misfit)
+            )
+        if misfit < best:
+            best, best_offset = misfit, offset
+    if best_offset is None:
+        return result
+    for position, i in zip(kept, index + best_offset):
+        result[order_e[i]] = order_d[position]
+    return result

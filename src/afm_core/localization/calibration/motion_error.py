@@ -1,0 +1,203 @@
+"""Motion error against distance moved (book 7.2.2, Fig. 7.6e; Fig. 7.20b sigma^2 = a d + b):
+repeated moves of several lengths, a pit before and after each; the variance of the
+separations about their mean against the distance. What it measures is the noise model of
+afm_core.localization.motion_noise (MotionNoise).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from afm_core import checks
+from afm_core.localization.calibration.experiment import (
+    Experiment,
+    check_box,
+    indent_force,
+    punch_at,
+    range_centre,
+    rescan,
+    wait,
+)
+from afm_core.localization.calibration.pits import DetectedPit, find_pits
+
+
+def fit_variance_line(distances, variances, counts) -> tuple[float, float]:
+    """sigma^2 = a d + b by weighted least squares: a sample variance from n values has a
+    standard deviation of about sigma^2 sqrt(2 / (n - 1)), so the weights are (n - 1) / 2 / v^2,
+    iterated with the fitted line in place of the noisy v."""
+    d, v, n = (np.asarray(a, float) for a in (distances, variances, counts))
+    expected = np.maximum(v, 1e-30)
+    for _ in range(5):
+        w = np.sqrt((n - 1) / 2) / expected
+        (a, b), *_ = np.linalg.lstsq(
+            np.stack([d, np.ones_like(d)], axis=1) * w[:, None], v * w, rcond=None
+        )
+        expected = np.maximum(a * d + b, 0.1 * np.maximum(v, 1e-30))
+    return float(a), float(b)
+
+
+def measure_motion_noise(
+    instrument,
+    *,
+    distances=(0.25e-6, 0.5e-6, 1e-6, 2e-6, 4e-6),
+    trials: int = 40,
+    row_spacing: float = 200e-9,
+    site=(-45e-6, -45e-6),
+    speed: float = 10e-6,
+    settle: float = 300.0,
+    pixel: float = 15e-9,
+    force: float | None = None,
+) -> Experiment:
+    """Motion error variance against distance (book Fig. 7.6e; Fig. 7.20b sigma^2 = a d + b).
+
+    For each axis and each distance d: `trials` trials, each a pit A, one move of d along the
+    axis, a pit B; trial k is row k of a lane (row_spacing apart across the axis), so every
+    trial after the first has the same history (the same moves at the same speeds before it)
+    and the deterministic part of B - A (gain, compensation residual, creep, drift over a
+    trial) is the same in every trial: it is removed as the mean (and a linear trend over the
+    trials, for anything slow). The spread left is the random error of that one move, along
+    the axis (slope_x / slope_y) and across it (the cross slope), plus the pit-position noise
+    (part of the intercept b). Rescan with the fast axis along the moves: A and B of a trial
+    are on one line, measured by the same trace."""
+    limits = instrument.limits
+    distances = [checks.positive("distances[]", d, "m", upper=20e-6) for d in distances]
+    if len(distances) < 2:
+        raise ValueError(f"distances={distances}: need at least two distances for a line")
+    trials = checks.count("trials", trials, 5, 400)
+    row_spacing = checks.positive("row_spacing", row_spacing, "m", upper=5e-6)
+    speed = checks.positive("speed", speed, "m/s", upper=limits.max_speed)
+    force = indent_force(instrument, force)
+    origin = range_centre(instrument) + np.asarray(site, float)
+    lanes = _lanes(instrument, origin, distances, (trials - 1) * row_spacing)
+    data, samples = {"x": [], "y": []}, []
+    for axis, d, start in lanes:
+        instrument.move_tip(float(start[0]), float(start[1]), 0.5 * limits.max_speed)
+        wait(instrument, settle)
+        detected = _punched_lane(
+            instrument, axis, d, start, trials, row_spacing, speed, force, pixel
+        )
+        separations, row_index = _trial_separations(detected, axis, d, row_spacing)
+        keep = row_index > 0  # the first trial has another history
+        separations, row_index = separations[keep], row_index[keep]
+        if len(separations) < 5:
+            raise RuntimeError(
+                f"motion noise ({'xy'[axis]}, d={d:.3g} m): only {len(separations)} trials "
+                "measured"
+            )
+        residual = []
+        for component in (0, 1):
+            trend = np.polyfit(row_index, separations[:, component], 1)
+            residual.append(separations[:, component] - np.polyval(trend, row_index))
+        n = len(separations)
+        var_along = float(np.sum(residual[0] ** 2) / (n - 2))
+        var_across = float(np.sum(residual[1] ** 2) / (n - 2))
+        samples.append((axis, d, n - 1, var_along, var_across))
+        data["xy"[axis]].append(
+            {
+                "distance": d,
+                "trials": n,
+                "mean_separation": float(separations[:, 0].mean()),
+                "variance_along": var_along,
+                "variance_across": var_across,
+            }
+        )
+    return Experiment(_fitted_slopes(samples), data)
+
+
+def _lanes(instrument, origin, distances, extent: float) -> list[tuple]:
+    """(axis, distance, start) of every lane, checked against the scanner range. Lanes side by
+    side, 1 um apart: the x lanes (rows stacked along y, `extent` tall) in a band along x, the
+    y lanes (columns stacked along x) in a band along y above them."""
+    lanes, cursor = [], 0.0
+    for d in distances:
+        lanes.append((0, d, origin + np.array([cursor, 0.0])))
+        cursor += 1.3 * d + 1e-6
+    cursor = extent + 1e-6
+    for d in distances:
+        lanes.append((1, d, origin + np.array([0.0, cursor])))
+        cursor += 1.3 * d + 1e-6
+    for axis, d, start in lanes:
+        end = start.copy()
+        end[axis] += d
+        end[1 - axis] += extent
+        check_box(
+            f"motion-noise lane ({'xy'[axis]}, d={d:.3g} m)",
+            instrument,
+            start - 0.5e-6,
+            end + 0.5e-6,
+        )
+    return lanes
+
+
+def _punched_lane(
+    instrument, axis, d, start, trials, row_spacing, speed, force, pixel
+) -> list[DetectedPit]:
+    """The trials of one lane (pit A, a move of d along `axis`, pit B; trial k on row k), then
+    the rescan of the lane and the pits found in it."""
+    other = 1 - axis
+    for k in range(trials):
+        a = start.copy()
+        a[other] += k * row_spacing
+        b = a.copy()
+        b[axis] += d
+        punch_at(instrument, float(a[0]), float(a[1]), speed, force)
+        punch_at(instrument, float(b[0]), float(b[1]), speed, force)
+    hi = start.copy()
+    hi[axis] += d
+    hi[other] += (trials - 1) * row_spacing
+    # the compensated gain of a move depends on the scanner's history (up to ~10 % off here)
+    reach = np.full(2, 0.4e-6)
+    reach[axis] += 0.15 * d
+    scan = rescan(instrument, start - reach, hi + reach, pixel, slow_axis=other)
+    return find_pits(scan)
+
+
+def _trial_separations(
+    detected: list[DetectedPit], axis: int, d: float, row_spacing: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """B - A (along, across) of every row holding exactly two pits about d apart, and the
+    row's index (trial number)."""
+    other = 1 - axis
+    along = np.array([[p.x, p.y][axis] for p in detected])
+    across = np.array([[p.x, p.y][other] for p in detected])
+    # rows: pits closer than a third of the row spacing across the axis belong together
+    order = np.argsort(across)
+    separations = []
+    row_index = []
+    group = [order[0]] if len(order) else []
+    for i in list(order[1:]) + [None]:
+        if i is not None and across[i] - across[group[-1]] < row_spacing / 3:
+            group.append(i)
+            continue
+        if len(group) == 2:
+            left, right = sorted(group, key=lambda j: along[j])
+            if abs(along[right] - along[left] - d) < 0.3 * d + 100e-9:
+                separations.append((along[right] - along[left], across[right] - across[left]))
+                row_index.append(round((across[left] - across[order[0]]) / row_spacing))
+        group = [i] if i is not None else []
+    return np.array(separations).reshape(-1, 2), np.array(row_index)
+
+
+def _fitted_slopes(samples: list[tuple]) -> dict:
+    """sigma^2 = a d + b per axis (along), across (the cross slope) and pooled, from the
+    samples (axis, d, trials - 1, variance along, variance across)."""
+    parameters = {}
+    for axis in (0, 1):
+        rows = [s for s in samples if s[0] == axis]
+        a, b = fit_variance_line(
+            [r[1] for r in rows], [r[3] for r in rows], [r[2] + 1 for r in rows]
+        )
+        parameters[f"slope_{'xy'[axis]}"], parameters[f"offset_{'xy'[axis]}"] = a, b
+    cross_a, cross_b = fit_variance_line(
+        [r[1] for r in samples], [r[4] for r in samples], [r[2] + 1 for r in samples]
+    )
+    parameters["cross_slope"], parameters["cross_offset"] = cross_a, cross_b
+    # one slope from every component (along and across, both axes): the best estimate when
+    # the noise is isotropic, as the simulator's is; compare the per-axis ones with it
+    pooled_a, pooled_b = fit_variance_line(
+        [r[1] for r in samples] * 2,
+        [r[3] for r in samples] + [r[4] for r in samples],
+        [r[2] + 1 for r in samples] * 2,
+    )
+    parameters["pooled_slope"], parameters["pooled_offset"] = pooled_a, pooled_b
+    return parameters

@@ -1,0 +1,86 @@
+"""The scanner matrix (book 7.2.2): a grid of pits at commanded offsets, rescanned; the affine
+map commanded -> imaged displacement, in normal (compensated) operation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from afm_core import checks
+from afm_core.localization.calibration.experiment import (
+    Experiment,
+    check_box,
+    indent_force,
+    punch_at,
+    range_centre,
+    rescan,
+)
+from afm_core.localization.calibration.matching import match_points
+from afm_core.localization.calibration.pits import find_pits
+
+
+def measure_scanner_matrix(
+    instrument,
+    *,
+    site=(-20e-6, 20e-6),
+    grid: int = 5,
+    spacing: float = 1e-6,
+    pixel: float = 10e-9,
+    force: float | None = None,
+) -> Experiment:
+    """Imaged displacement per commanded displacement in normal (compensated) operation: a
+    grid x grid pattern of pits `spacing` apart, punched row by row (serpentine, moves as
+    short as the localizer's), rescanned; the affine fit image = M command + b gives M.
+
+    What M can show: a rescan uses the same scanner, so a coupling or rotation common to all
+    motion (the tube's x/y coupling, its rotation against the sample) is in the image as well
+    and cancels; M measures the motion against the image frame, the frame the localizer's maps
+    are in (gain differences between moves and raster lines, e.g. the compensation residual
+    of short moves). The absolute coupling and rotation need an external reference (a
+    calibration grating of known orientation)."""
+    limits = instrument.limits
+    grid = checks.count("grid", grid, 2, 20)
+    spacing = checks.positive("spacing", spacing, "m", upper=10e-6)
+    force = indent_force(instrument, force)
+    origin = range_centre(instrument) + np.asarray(site, float)
+    commands = np.array(
+        [
+            origin + spacing * np.array([i if j % 2 == 0 else grid - 1 - i, j])
+            for j in range(grid)
+            for i in range(grid)
+        ]
+    )
+    check_box(
+        "scanner-matrix grid",
+        instrument,
+        commands.min(axis=0) - 0.5e-6,
+        commands.max(axis=0) + 5e-6,
+    )
+    # Come from beyond the far corner, so every move of the pattern is a short move after a
+    # reversal, as in manipulation (the compensated gain of a short move after a reversal
+    # differs from that of a long monotone run by the model error of the feed-forward).
+    beyond = commands.max(axis=0) + 4e-6
+    instrument.move_tip(float(beyond[0]), float(beyond[1]), 0.5 * limits.max_speed)
+    for x, y in commands:
+        punch_at(instrument, float(x), float(y), 0.1 * limits.max_speed, force)
+    scan = rescan(
+        instrument,
+        commands.min(axis=0) - 0.5e-6,
+        commands.max(axis=0) + 0.5e-6,
+        pixel,
+        slow_axis=1,
+    )
+    detected = find_pits(scan)
+    found = np.array([[p.x, p.y] for p in detected]).reshape(-1, 2)
+    index = match_points(commands, found, 0.3 * spacing)
+    ok = index >= 0
+    if ok.sum() < 4:
+        raise RuntimeError(f"scanner matrix: only {int(ok.sum())} of {len(commands)} pits found")
+    design = np.hstack([commands[ok] - origin, np.ones((int(ok.sum()), 1))])
+    solution, *_ = np.linalg.lstsq(design, found[index[ok]] - origin, rcond=None)
+    matrix = solution[:2].T
+    residual = found[index[ok]] - origin - design @ solution
+    return Experiment(
+        {"scanner_matrix": matrix.tolist(), "rms_residual": float(np.sqrt(np.mean(residual**2)))},
+        {"commanded": commands[ok].tolist(), "imaged": found[index[ok]].tolist()},
+    )

@@ -1,0 +1,197 @@
+"""Calibration results against the configuration of a simulated instrument (tests, bench):
+what each experiment recovered next to the value the simulator was configured with.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from afm_core.localization.calibration.creep import creep_step_response
+from afm_core.localization.calibration.hysteresis import major_loop
+from afm_core.localization.calibration.model import Calibration, HysteresisFit
+from afm_core.pzt import PrandtlIshlinskii
+
+
+def branch_error(fit: HysteresisFit, true_model: PrandtlIshlinskii, half: float) -> float:
+    """Largest distance between the fitted and the true major-loop branches (both, full span),
+    after the best common shift (the fit's offset is where the rescan put the origin), as a
+    fraction of the true loop width: how far the fitted model would misplace the tip, in
+    units of what hysteresis does at most."""
+    fitted = PrandtlIshlinskii(fit.thresholds, fit.weights, fit.polynomial)
+    _, fa, fd = major_loop(fitted, half)
+    _, ta, td = major_loop(true_model, half)
+    difference = np.concatenate([fa - ta, fd - td])
+    shift = 0.5 * (difference.max() + difference.min())
+    return float(np.max(np.abs(difference - shift)) / np.max(td - ta))
+
+
+def compare_with_simulator(calibration: Calibration, report: dict, config) -> list[dict]:
+    """Recovered against configured values of a simulated instrument (afm_core.sim.config
+    SimConfig), one row per quantity: name, recovered, true, relative error (None where the
+    true value is 0 or there is none to compare with), and what is compared."""
+    return (
+        _hysteresis_rows(calibration, report, config.scanner)
+        + _creep_rows(calibration, config.scanner)
+        + _drift_and_noise_rows(calibration, report, config)
+        + _image_frame_rows(calibration, config.scanner)
+    )
+
+
+def _row(name: str, recovered, true, note: str = "") -> dict:
+    relative = None if true in (None, 0) else (recovered - true) / abs(true)
+    return {
+        "name": name,
+        "recovered": recovered,
+        "true": true,
+        "relative_error": relative,
+        "note": note,
+    }
+
+
+def _measure_row(name: str, value, note: str) -> dict:
+    """A row with nothing configured to compare with: the value is its own relative error (a
+    misfit already relative to the true value)."""
+    row = _row(name, value, None, note)
+    row["relative_error"] = row["recovered"]
+    return row
+
+
+def _hysteresis_rows(calibration: Calibration, report: dict, scanner) -> list[dict]:
+    rows = []
+    for axis, fit, span in (
+        ("x", calibration.hysteresis_x, scanner.range_x),
+        ("y", calibration.hysteresis_y, scanner.range_y),
+    ):
+        true_model = PrandtlIshlinskii.from_fraction(
+            span,
+            scanner.hysteresis_fraction,
+            int(scanner.hysteresis_operators),
+            scanner.hysteresis_asymmetry,
+        )
+        rows.append(
+            _row(
+                f"hysteresis_{axis}.loop_fraction",
+                fit.loop_fraction,
+                scanner.hysteresis_fraction,
+                "loop width / tip-to-tip span of the full-range major loop",
+            )
+        )
+        rows.append(
+            _row(
+                f"hysteresis_{axis}.asymmetry",
+                fit.asymmetry,
+                scanner.hysteresis_asymmetry,
+                "alpha of from_fraction",
+            )
+        )
+        rows.append(
+            _measure_row(
+                f"hysteresis_{axis}.branch_error",
+                branch_error(fit, true_model, span / 2),
+                "max branch misfit / true loop width (relative_error = the value)",
+            )
+        )
+        gain = report[f"hysteresis_{axis}"]["parameters"]["gain"]
+        rows.append(_row(f"hysteresis_{axis}.gain", gain, 1.0, "tip-to-tip output / input span"))
+    return rows
+
+
+def _creep_rows(calibration: Calibration, scanner) -> list[dict]:
+    rows = []
+    taus, true_taus = calibration.creep_time_constants, list(scanner.creep_time_constants)
+    for i, (tau, true_tau) in enumerate(zip(taus, sorted(true_taus))):
+        rows.append(_row(f"creep.time_constant[{i}]", tau, true_tau, "s"))
+    order = np.argsort(true_taus)
+    true_fractions = np.asarray(scanner.creep_fractions)[order]
+    t = np.linspace(0.0, 25.0, 501)
+    true_curve = creep_step_response(np.sort(true_taus), true_fractions, t)
+    for axis, fractions in (
+        ("x", calibration.creep_fractions_x),
+        ("y", calibration.creep_fractions_y),
+    ):
+        for i, (c, true_c) in enumerate(zip(fractions, true_fractions)):
+            rows.append(_row(f"creep.fractions_{axis}[{i}]", c, float(true_c)))
+        curve = creep_step_response(taus, fractions, t)
+        rows.append(
+            _measure_row(
+                f"creep.step_response_{axis}",
+                float(np.max(np.abs(curve - true_curve)) / true_curve[-1]),
+                "max |fitted - true| creep over 0-25 s / true creep at 25 s "
+                "(relative_error = the value)",
+            )
+        )
+    return rows
+
+
+def _drift_and_noise_rows(calibration: Calibration, report: dict, config) -> list[dict]:
+    scanner, drift = config.scanner, config.drift
+    rows = [
+        _row(
+            "drift.mean_velocity_x",
+            calibration.drift_mean_velocity[0],
+            drift.mean_velocity_x,
+            "m/s",
+        ),
+        _row(
+            "drift.mean_velocity_y",
+            calibration.drift_mean_velocity[1],
+            drift.mean_velocity_y,
+            "m/s",
+        ),
+        _row(
+            "drift.sigma_velocity_x",
+            calibration.drift_sigma_velocity[0],
+            drift.sigma_velocity_x,
+            "m/s",
+        ),
+        _row(
+            "drift.sigma_velocity_y",
+            calibration.drift_sigma_velocity[1],
+            drift.sigma_velocity_y,
+            "m/s",
+        ),
+    ]
+    noise = report["motion_noise"]["parameters"]
+    for name in ("pooled_slope", "slope_x", "slope_y", "cross_slope"):
+        rows.append(
+            _row(
+                f"motion_noise.{name}",
+                noise[name],
+                scanner.positioning_noise_slope,
+                "m^2/m (the simulator's noise is isotropic: every slope is the configured one)",
+            )
+        )
+    rows.append(
+        _row(
+            "motion_noise.offset",
+            calibration.motion_noise_offset,
+            scanner.positioning_noise_offset,
+            "m^2 (includes the pit-position noise of two pits)",
+        )
+    )
+    return rows
+
+
+def _image_frame_rows(calibration: Calibration, scanner) -> list[dict]:
+    """What is measured against the image frame, with no configured value to compare with."""
+    matrix = np.asarray(calibration.scanner_matrix)
+    return [
+        _row(
+            "scanner_matrix - I (max abs)",
+            float(np.max(np.abs(matrix - np.eye(2)))),
+            None,
+            "against the image frame: coupling and rotation cancel; configured coupling "
+            f"{scanner.coupling_x_to_y}, rotation {scanner.deflection_deg} deg (absolute)",
+        ),
+        _row(
+            "line_deflection_mean_deg",
+            calibration.line_deflection_mean_deg,
+            None,
+            "against the image frame; configured absolute rotation "
+            f"{scanner.deflection_deg} deg cancels",
+        ),
+        _row("line_deflection_sigma_deg", calibration.line_deflection_sigma_deg, None, ""),
+        _row("map_sigma_x", calibration.map_sigma[0], None, "book Fig. 7.10: 5.0 nm"),
+        _row("map_sigma_y", calibration.map_sigma[1], None, "book Fig. 7.10: 4.5 nm"),
+        _row("scan_region_sigma", calibration.scan_region_sigma, None, "book Fig. 7.11: 4.7 nm"),
+    ]
