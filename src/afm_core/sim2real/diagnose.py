@@ -44,6 +44,7 @@ from afm_core.sim2real.refinement import compare_leaders
 from afm_core.sim2real.report import write_report
 from afm_core.sim2real.results import Diagnosis
 from afm_core.sim2real.second_term import add_second_term
+from afm_core.sim2real.session_reader import read_operations
 
 
 def diagnose(
@@ -218,12 +219,6 @@ def run_sim2real(
         raise FileNotFoundError(f"recording {str(recording_path)!r} does not exist")
     candidates = select(effects)  # before the reading: a misspelt effect costs nothing
     config = load_config(config_path) if config_path is not None else load_config()
-    try:
-        from afm_core.sim2real.session import read_operations
-    except ImportError as exc:  # pragma: no cover - the session reader is part of the package
-        raise RuntimeError(
-            f"the recording reader (afm_core.sim2real.session) is not available: {exc}"
-        ) from exc
     with read_operations(recording_path, missing_data=missing_data) as operations:
         try:
             diagnosis = diagnose(

@@ -168,11 +168,8 @@ def compare_leaders(
     their re-simulated BIC gain; the winner's reported sigma. None when none was accepted."""
     white, P, pw = evidence.weighting.white, evidence.P, evidence.pw
     terms, region, region_columns = design
-    chi2_0, variance_factor, accepted = (
-        evidence.chi2_0,
-        evidence.variance_factor,
-        evidence.accepted,
-    )
+    chi2_0, variance_factor = evidence.chi2_0, evidence.variance_factor
+    accepted = evidence.accepted
     n = len(sess.keys)
 
     def resim_chi2(residual):
