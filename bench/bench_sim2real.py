@@ -35,7 +35,8 @@ largest over the term's parameters; the truth is the configured value, so a drif
 must cover the session's own draw of the wandering drift velocity).
 Targets (issue 8): >= 90 %, <= 5 %, <= 20 %, >= 50 %, <= 2 min.
 
-Run: `scripts/with_env.sh python bench/bench_sim2real.py [--quick] [--beyond] [--workers 2] [--cases name,...]`.
+Run: `scripts/with_env.sh python bench/bench_sim2real.py [--quick] [--beyond] [--workers 2]
+[--cases name,...]`.
 Results: bench/results/sim2real.json and .md (sim2real-quick.* with --quick or --cases;
 sim2real-beyond.* with --beyond: larger magnitudes, the other direction and noise levels the
 suite does not draw). Two workers share the machine's two cores, so each recording's time is
@@ -257,7 +258,8 @@ def suite(model) -> list[Case]:
         add(f"coloured_noise-{k}", "small", 276 + k, "coloured_noise", coloured)
 
         def white(rng):
-            # more white z noise than modelled (a noisier detector, a faster scan's bandwidth) or less
+            # more white z noise than modelled (a noisier detector, a faster scan's bandwidth) or
+            # less
             return {
                 "noise.height_white_sigma": rng.uniform(0.45e-9, 0.9e-9)
                 if rng.random() < 0.5
@@ -430,8 +432,9 @@ def run_case(case: Case, workdir: str) -> dict:
     from afm_core.sim.config import dump_config, load_config, merge
     from afm_core.sim.instrument import SimulatedAfm
     from afm_core.sim2real import RecordingInstrument
-    from afm_core.sim2real.diagnose import run_sim2real, unresolved
+    from afm_core.sim2real.diagnose import run_sim2real
     from afm_core.sim2real.protocol import run_protocol, session_config
+    from afm_core.sim2real.results import unresolved
 
     folder = Path(workdir) / case.name
     folder.mkdir(parents=True, exist_ok=True)
@@ -590,28 +593,33 @@ def markdown(report: dict) -> str:
     lines = [
         f"# Sim-to-real diagnosis on {report.get('suite', 'the concealed-effect suite')}",
         "",
-        f"Measured {report['measured']} on {report['machine']['cpus']} CPUs ({report['machine']['cpu']}), "
+        f"Measured {report['measured']} on {report['machine']['cpus']} CPUs "
+        f"({report['machine']['cpu']}), "
         f"{report['workers']} workers, {report['wall_seconds']:.0f} s wall.",
         "",
         "| metric | value | target |",
         "|---|---|---|",
-        f"| recordings (positive / null) | {s['recordings']} ({s['positives']} / {s['nulls']}) | >= 30 |",
+        f"| recordings (positive / null) | {s['recordings']} ({s['positives']} / {s['nulls']}) "
+        "| >= 30 |",
         f"| top-1 identification accuracy | {s['top1_accuracy']:.0%} | >= 90 % |",
         f"| false 'missing physics' on nulls | {s['false_positive_rate']:.0%} | <= 5 % |",
-        f"| parameter error, median / max (cases within 20 %) | {s['parameter_error_median']:.0%} / "
+        "| parameter error, median / max (cases within 20 %) | "
+        f"{s['parameter_error_median']:.0%} / "
         f"{s['parameter_error_max']:.0%} ({s['parameter_error_within_20pct']:.0%}) | <= 20 % |",
         f"| the same over the values the report states (not marked 'this session cannot tell') | "
         f"{s['parameter_error_stated_median']:.0%} / {s['parameter_error_stated_max']:.0%} "
         f"({s['parameter_error_stated_within_20pct']:.0%}) | <= 20 % |",
         f"| named alone (no second term on top of the right one) | {s['named_alone']:.0%} | |",
         f"| fits within 3 reported sigmas of the truth | {s['within_3_sigma']:.0%} | |",
-        f"| held-out excess residual removed, median / min | {s['heldout_reduction_median']:.0%} / "
+        "| held-out excess residual removed, median / min | "
+        f"{s['heldout_reduction_median']:.0%} / "
         f"{s['heldout_reduction_min']:.0%} | >= 50 % |",
-        f"| run time per recording, median / max | {s['seconds_median']:.0f} s / {s['seconds_max']:.0f} s | <= 120 s |",
+        f"| run time per recording, median / max | {s['seconds_median']:.0f} s / "
+        f"{s['seconds_max']:.0f} s | <= 120 s |",
         f"| peak memory of a worker | {s['peak_rss_mib_max']:.0f} MiB | |",
         "",
-        "| case | category | injected | chosen | correct | parameter error | error / sigma | held-out reduction "
-        "| s |",
+        "| case | category | injected | chosen | correct | parameter error | error / sigma "
+        "| held-out reduction | s |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in report["cases"]:
@@ -627,7 +635,8 @@ def markdown(report: dict) -> str:
         injected = " + ".join(_expected_list(r["expected"])) if r["expected"] else "-"
         lines.append(
             f"| {r['name']} | {r['category']} | {injected} | {chosen} | "
-            f"{'yes' if r['correct'] else '**no**'} | {error} | {in_sigmas} | {reduction} | {r['seconds']:.0f} |"
+            f"{'yes' if r['correct'] else '**no**'} | {error} | {in_sigmas} | {reduction} | "
+            f"{r['seconds']:.0f} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -686,9 +695,11 @@ def main(argv=None) -> int:
                 }
             rows.append(row)
             print(
-                f"{row['name']:24s} {row['category']:11s} expected {str(row['expected']):22s} chosen "
+                f"{row['name']:24s} {row['category']:11s} expected "
+                f"{str(row['expected']):22s} chosen "
                 f"{','.join(row['chosen']) or 'none':30s} {'ok' if row['correct'] else 'WRONG'} "
-                f"{row.get('parameter_error', math.nan):6.2f} {row.get('heldout_reduction', math.nan):6.2f} "
+                f"{row.get('parameter_error', math.nan):6.2f} "
+                f"{row.get('heldout_reduction', math.nan):6.2f} "
                 f"{row['seconds']:6.1f} s {row.get('error', '')}",
                 flush=True,
             )

@@ -13,16 +13,16 @@ import yaml
 from afm_core.sim.config import load_config, merge
 from afm_core.sim2real import regions
 from afm_core.sim2real.candidates import FrictionRegion, available, library, select
-from afm_core.sim2real.diagnose import (
-    ConfigMismatchError,
+from afm_core.sim2real.diagnose import diagnose
+from afm_core.sim2real.features import _profile_shift, _same_segment
+from afm_core.sim2real.noise_model import (
     NoiseModel,
-    diagnose,
     drift_covariance,
     gls,
     positioning_covariance,
 )
-from afm_core.sim2real.features import _profile_shift, _same_segment
 from afm_core.sim2real.protocol import make_session, session_config
+from afm_core.sim2real.reference import ConfigMismatchError
 
 
 def _nominal(seed):
@@ -58,7 +58,8 @@ def test_reported_sigma_widens_to_what_the_informative_features_scatter_by():
     where those 40 scatter 5 x the model, its sigma is ~5 x the model's (sandwich estimate);
     where everything scatters as modelled, it stays within the estimate's sampling error; a
     residual smaller than modelled never narrows it; a variance factor already applied counts."""
-    from afm_core.sim2real.diagnose import Whitener, _reported_sigma
+    from afm_core.sim2real.noise_model import Whitener
+    from afm_core.sim2real.refinement import reported_sigma
 
     rng = np.random.default_rng(9)
     n = 400
@@ -69,13 +70,13 @@ def test_reported_sigma_widens_to_what_the_informative_features_scatter_by():
     model = 1.0 / np.sqrt(40 * (1 - 40 / n))  # GLS sigma of x with the offset fitted
     loud = rng.normal(0.0, 1.0, n)
     loud[:40] *= 5.0
-    assert _reported_sigma(white, P, x, loud, [model])[0] == pytest.approx(5 * model, rel=0.25)
-    assert _reported_sigma(white, P, x, loud, [2 * model], variance_factor=4.0)[
-        0
-    ] == pytest.approx(5 * model, rel=0.25)
+    assert reported_sigma(white, P, x, loud, [model])[0] == pytest.approx(5 * model, rel=0.25)
+    assert reported_sigma(white, P, x, loud, [2 * model], variance_factor=4.0)[0] == pytest.approx(
+        5 * model, rel=0.25
+    )
     quiet = rng.normal(0.0, 1.0, n)
-    assert model <= _reported_sigma(white, P, x, quiet, [model])[0] < 1.3 * model
-    assert _reported_sigma(white, P, x, 0.1 * quiet, [model])[0] == model
+    assert model <= reported_sigma(white, P, x, quiet, [model])[0] < 1.3 * model
+    assert reported_sigma(white, P, x, 0.1 * quiet, [model])[0] == model
 
 
 def test_positioning_covariance_is_a_random_walk():
@@ -446,12 +447,13 @@ def test_pixel_noise_is_the_white_noise_whatever_the_streaks_and_a_few_particles
 
 def test_background_curvature_noise_follows_the_sensor_noise_model():
     """The variance of a bare image's fitted curvature that white and 1/f sensor noise give
-    (diagnose._bow_sensor_variance) against the curvature of 400 noise images made as the
+    (noise_model._bow_sensor_variance) against the curvature of 400 noise images made as the
     simulator makes them (one 1/f sequence over the lines in scan order)."""
     from afm_core.sim.config import NoiseParams
     from afm_core.sim.imaging import pink_noise
-    from afm_core.sim2real.diagnose import Table, _bow_sensor_variance
+    from afm_core.sim2real.feature_table import Table
     from afm_core.sim2real.features import _quad_background
+    from afm_core.sim2real.noise_model import _bow_sensor_variance
 
     n, pixel = 32, 0.75e-6
     noise = NoiseParams(height_white_sigma=0.3e-9, height_flicker_sigma=0.4e-9)
@@ -824,7 +826,7 @@ def test_asymmetric_tip_is_fitted_to_within_its_reported_uncertainty():
 
 
 def test_a_residual_beyond_the_noise_that_no_candidate_explains_is_not_called_consistent():
-    from afm_core.sim2real.diagnose import UNEXPLAINED_P, Diagnosis
+    from afm_core.sim2real.results import UNEXPLAINED_P, Diagnosis
 
     d = Diagnosis(
         n_features=10,
@@ -851,8 +853,8 @@ def test_a_residual_beyond_the_noise_that_no_candidate_explains_is_not_called_co
 def test_a_parameter_within_two_sigma_of_the_model_is_marked_as_unresolved(tmp_path):
     """A drift named from its clear x component: the y component, 1.5 sigma from the model, is
     marked in the summary and the report as one the session cannot tell; x (10 sigma) is not."""
-    from afm_core.sim2real.diagnose import UNRESOLVED, CandidateResult, Diagnosis
     from afm_core.sim2real.report import write_report
+    from afm_core.sim2real.results import UNRESOLVED, CandidateResult, Diagnosis
 
     words = "thermal drift: the constant drift velocity differs from the model"
     candidate = CandidateResult(
@@ -909,13 +911,13 @@ def test_a_fit_outside_the_physical_range_cannot_name_a_term():
     """A negative wear rate (a tip sharpening while it slides) or a static/kinetic friction ratio
     below 1 is held to its bound, which is the model without the term: such a fit names
     nothing. An unbounded term with a tiny value (a drift ramp in m/s^2) still acts."""
-    from afm_core.sim2real.diagnose import _can_act
+    from afm_core.sim2real.evidence import can_act
 
     lib = {c.name: c for c in library()}
-    assert not _can_act(lib["tip_wear"], np.array([0.0]), np.array([-3e-4]))
-    assert _can_act(lib["tip_wear"], np.array([0.0]), np.array([3e-4]))
-    assert not _can_act(lib["stick_slip"], np.array([1.0]), np.array([0.8]))
-    assert _can_act(lib["drift_ramp"], np.zeros(2), np.array([2e-13, 0.0]))
+    assert not can_act(lib["tip_wear"], np.array([0.0]), np.array([-3e-4]))
+    assert can_act(lib["tip_wear"], np.array([0.0]), np.array([3e-4]))
+    assert not can_act(lib["stick_slip"], np.array([1.0]), np.array([0.8]))
+    assert can_act(lib["drift_ramp"], np.zeros(2), np.array([2e-13, 0.0]))
 
 
 def test_effects_select_library_terms_by_name_and_refuse_unknown_ones():

@@ -8,16 +8,13 @@ from afm_core.sim2real.resimulate import (
     load_sim_config,
     resimulate,
 )
-from afm_core.sim2real.session import (
-    Operation,
+from afm_core.sim2real.session import Operation, SessionError, operation_from_call
+from afm_core.sim2real.session_reader import (
     OperationStream,
-    RecordingInstrument,
-    SessionError,
-    SessionWriter,
     indent_request_from_trace,
-    operation_from_call,
     read_operations,
 )
+from afm_core.sim2real.session_writer import RecordingInstrument, SessionWriter
 
 __all__ = [
     "Operation",

@@ -99,7 +99,8 @@ class Operation:
 
 
 def session_config(base: SimConfig | None = None) -> SimConfig:
-    """The diagnostic sample (spheres at SESSION_SPHERES) on `base` (default: the default config)."""
+    """The diagnostic sample (spheres at SESSION_SPHERES) on `base` (default: the default
+    config)."""
     from afm_core.sim.config import load_config
 
     base = base if base is not None else load_config()
@@ -439,7 +440,7 @@ def record_session(config: SimConfig, path, protocol_seed: int = 0, blocks: int 
     """Run the protocol on SimulatedAfm(config) through a RecordingInstrument (the MCAP the
     driver would write, ground truth included); the recording's path."""
     from afm_core.sim.instrument import SimulatedAfm
-    from afm_core.sim2real.session import RecordingInstrument
+    from afm_core.sim2real.session_writer import RecordingInstrument
 
     recorder = RecordingInstrument(SimulatedAfm(config), path, epoch_ns=1_700_000_000_000_000_000)
     try:

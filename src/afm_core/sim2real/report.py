@@ -8,7 +8,7 @@ import numpy as np
 import yaml
 
 from afm_core.sim.config import dump_config
-from afm_core.sim2real.diagnose import UNRESOLVED, unresolved
+from afm_core.sim2real.results import UNRESOLVED, unresolved
 
 GROUP_UNITS = {
     "line.mid": (1e9, "nm"),
@@ -114,16 +114,33 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
     lines += ["## Verdict", "", diagnosis.summary(), ""]
     o = diagnosis.overall
     lines += [
-        f"{diagnosis.n_features} features; residual against the nominal model: chi2 = {o['chi2']:.1f} for "
-        f"{o['dof']} degrees of freedom (p = {o['p']:.3g}); noise variance factor {o['variance_factor']:.2f}.",
+        f"{diagnosis.n_features} features; residual against the nominal model: "
+        f"chi2 = {o['chi2']:.1f} for {o['dof']} degrees of freedom (p = {o['p']:.3g}); "
+        f"noise variance factor {o['variance_factor']:.2f}.",
         "",
     ]
-
+    lines += _where_section(diagnosis)
+    lines += _candidates_section(diagnosis, figures)
+    lines += _update_section(diagnosis, out)
+    lines += _heldout_section(diagnosis, figures)
     lines += [
+        "## Run time",
+        "",
+        ", ".join(f"{k} {v:.1f} s" for k, v in diagnosis.timings.items()),
+        "",
+    ]
+    path = out / "report.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def _where_section(diagnosis) -> list[str]:
+    lines = [
         "## 1. Where the recording deviates",
         "",
-        "Mean residual (recorded - nominal, after the per-axis offset) per signal and condition; z = mean / its "
-        "standard deviation under the noise model; p values Bonferroni-corrected over all rows.",
+        "Mean residual (recorded - nominal, after the per-axis offset) per signal and condition; "
+        "z = mean / its standard deviation under the noise model; p values Bonferroni-corrected "
+        "over all rows.",
         "",
         "| where | n | mean | z | p (mean) | chi2/n | p (chi2) |",
         "|---|---|---|---|---|---|---|",
@@ -133,7 +150,8 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
         scale, unit = GROUP_UNITS.get(group, (1.0, ""))
         lines.append(
             f"| {row['where']} | {row['n']} | {row['mean'] * scale:.3g} {unit} | {row['z']:.2f} | "
-            f"{row['p_mean_bonferroni']:.2g} | {row['chi2'] / row['n']:.2f} | {row['p_chi2_bonferroni']:.2g} |"
+            f"{row['p_mean_bonferroni']:.2g} | {row['chi2'] / row['n']:.2f} | "
+            f"{row['p_chi2_bonferroni']:.2g} |"
         )
     lines += [
         "",
@@ -148,16 +166,20 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
             f"| {c['group']} | {c['time']:.1f} | {c['statistic']:.2f} | {c['p']:.2g} | "
             f"{c['mean_before'] * scale:.3g} {unit} | {c['mean_after'] * scale:.3g} {unit} |"
         )
+    return lines
 
-    lines += [
+
+def _candidates_section(diagnosis, figures: list[str]) -> list[str]:
+    lines = [
         "",
         "## 2. What physics is missing",
         "",
         "Each candidate term is a simulator config key; its evidence is the GLS chi2 improvement "
-        "(threshold: chi2 quantile at 5 % / number of candidates), ranked by BIC, and it must also "
-        "improve chi2 on held-out time blocks.",
+        "(threshold: chi2 quantile at 5 % / number of candidates), ranked by BIC, and it must "
+        "also improve chi2 on held-out time blocks.",
         "",
-        "| candidate | effect | estimate | delta chi2 | threshold | BIC gain | held-out gain | accepted |",
+        "| candidate | effect | estimate | delta chi2 | threshold | BIC gain | held-out gain "
+        "| accepted |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for c in diagnosis.candidates:
@@ -179,8 +201,12 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
         ]
     if "candidates.png" in figures:
         lines += ["", "![candidates](candidates.png)"]
+    return lines
 
-    lines += ["", "## 3. The model update", ""]
+
+def _update_section(diagnosis, out: Path) -> list[str]:
+    """The fitted parameters; writes the updated config and its overrides beside the report."""
+    lines = ["", "## 3. The model update", ""]
     if diagnosis.chosen:
         lines += ["| config key | fitted | +- | model had |", "|---|---|---|---|"]
         for key, p in diagnosis.parameters.items():
@@ -190,31 +216,27 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
             )
         lines += [
             "",
-            "Updated configuration: `updated_config.yaml` (only the changed keys: `overrides.yaml`).",
+            "Updated configuration: `updated_config.yaml` (only the changed keys: "
+            "`overrides.yaml`).",
         ]
         (out / "updated_config.yaml").write_text(dump_config(diagnosis.updated_config))
     else:
         lines += ["Nothing to add: the configuration is left as it is."]
     (out / "overrides.yaml").write_text(yaml.safe_dump(diagnosis.overrides or {}, sort_keys=False))
+    return lines
 
+
+def _heldout_section(diagnosis, figures: list[str]) -> list[str]:
     h = diagnosis.heldout
-    lines += ["", "## 4. Before and after, on held-out operations", ""]
+    lines = ["", "## 4. Before and after, on held-out operations", ""]
     if h:
         lines += [
             f"Fitted on the even time blocks only, re-simulated, compared on the odd blocks: chi2 "
             f"{h['chi2_before']:.1f} -> {h['chi2_after']:.1f} for {h['dof']} dof "
-            f"(total reduction {100 * h['reduction']:.0f} %, reduction of the excess over the noise "
-            f"{100 * h['excess_reduction']:.0f} %).",
+            f"(total reduction {100 * h['reduction']:.0f} %, reduction of the excess over the "
+            f"noise {100 * h['excess_reduction']:.0f} %).",
             "",
         ]
     if "residuals_time.png" in figures:
         lines += ["![residuals](residuals_time.png)", ""]
-    lines += [
-        "## Run time",
-        "",
-        ", ".join(f"{k} {v:.1f} s" for k, v in diagnosis.timings.items()),
-        "",
-    ]
-    path = out / "report.md"
-    path.write_text("\n".join(lines))
-    return path
+    return lines
