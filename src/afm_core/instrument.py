@@ -30,6 +30,11 @@ class ScannerLimits:
     max_dwell: float = 600.0  # s
 
 
+class InstrumentUnavailable(RuntimeError):
+    """A backend could not carry out a request it accepted (no answer, busy, lost): the
+    procedures on an Instrument report it as a failure of what they were doing."""
+
+
 def _finite(name: str, value: float) -> None:
     if not math.isfinite(value):
         raise ValueError(f"{name}={value}: must be finite")
@@ -52,7 +57,8 @@ def check_speed(name: str, speed: float, limits: ScannerLimits) -> None:
     _finite(name, speed)
     if not 0.0 < speed <= limits.max_speed:
         raise ValueError(
-            f"{name}={speed:.4e} m/s: must be > 0 and at most the slew limit {limits.max_speed:.4e} m/s"
+            f"{name}={speed:.4e} m/s: must be > 0 and at most the slew limit "
+            f"{limits.max_speed:.4e} m/s"
         )
 
 
