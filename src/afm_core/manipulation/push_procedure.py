@@ -4,7 +4,7 @@
 
 1. refuse what cannot work, before anything moves (`PushRefused`): unknown particle, goal
    off-range or not finite, unknown strategy or one that does not fit the particle's kind,
-   negative tolerance, another particle in the way;
+   negative or non-finite tolerance, another particle in the way;
 2. punch control pits in the rescan's corners and scan the area ("before"): pits and image
    first, since moving the tip there after localizing would spend the localization (a raster
    leaves the tip tens of nm from where the model says);
@@ -234,8 +234,9 @@ class PushProcedure:
     landmarks() -> {id: Landmark}: the current map (task frame; the graph's /afm/landmarks).
     scanner_matrix: the calibration's (true displacement per commanded one, 2x2): it maps
         task-frame strokes to commands and image displacements to true ones (default: identity).
-    settings: values of PUSH_PARAMETERS (the rest their defaults); `settings` is read at use
-        time, so a change reaches the next step that uses it.
+    settings: values of PUSH_PARAMETERS, validated (the rest their defaults), kept in
+        `self.settings`, which each step reads when it needs a value: a change there (a
+        node's run-time parameter) reaches the next step that uses it.
     tip_estimate() -> TipEstimate | None: the newest estimate from elsewhere (the graph's
         /afm/tip_pose), used when localize_first is false and reported while pushing.
     on_moved(landmark): a pushed particle, where the rescan found it (e.g. publish the map).
