@@ -23,6 +23,15 @@ What is measured
     Plus the book's experiment: Table 7.6, 13 steps, estimate = truth: along / sideways
     displacement (book: 530 / 20 nm measured, 507 nm simulated); its "success" and "error" are
     against the model's prediction for that plan (503 nm along, 14 nm right).
+(c) The whole push of book 7.3 (afm_core.manipulation.PushProcedure, what the nano-hand node
+    runs) on the same 20 simulators, ROS-free: the sample is mapped from a raster image
+    (extract_landmarks), the core Localizer localizes the tip on the particle (calibration of the
+    simulated instrument, the graph's: afm_localization/config/sim_calibration.yaml); control
+    pits, before image, nano-hand zigzag chosen from the uncertainties, after image,
+    verification. The particle of (b), 500 nm along +y from its mapped position. Success: the
+    true displacement within 20 nm of the planned one, compared in the frame of the images (as
+    bench_push_graph does: afm_core.evaluation.image_frame_matrix); also the procedure's own
+    verdict (its verified error).
 
 Run: `scripts/with_env.sh python bench/bench_pushing.py` (~1 min on one core).
 Results: bench/results/pushing.json.
@@ -46,13 +55,31 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import cpu_model  # noqa: E402
 
-from afm_core.manipulation import centre_push_plan, execute_plan, monte_carlo_push, nano_hand_plan  # noqa: E402
+from afm_core.evaluation import image_frame_matrix  # noqa: E402
+from afm_core.imaging.landmarks import extract_landmarks  # noqa: E402
+from afm_core.instrument import ScanRequest  # noqa: E402
+from afm_core.localization import Localizer  # noqa: E402
+from afm_core.localization.calibration.model import load_calibration  # noqa: E402
+from afm_core.manipulation import (  # noqa: E402
+    PushFailed,
+    PushProcedure,
+    PushRefused,
+    centre_push_plan,
+    execute_plan,
+    localize_with,
+    monte_carlo_push,
+    nano_hand_plan,
+)
 from afm_core.sim.config import load_config, merge  # noqa: E402
 from afm_core.sim.instrument import SimulatedAfm  # noqa: E402
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 NM = 1e-9
 TOL = 20 * NM
+CALIBRATION = (
+    Path(__file__).resolve().parents[1] / "afm_localization" / "config" / "sim_calibration.yaml"
+)
+MAP_SCAN = ScanRequest(54.2e-6, 54.5e-6, 2.0e-6, 2.0e-6, 256, 256, line_rate=4.0)  # (c)
 
 
 def machine_info() -> dict:
@@ -139,6 +166,77 @@ def sim_run(seed: int, strategy: str, estimate_sigma: float) -> dict:
         "estimate_error_nm": [float(v) for v in err / NM],
         "sim_seconds": result.duration,
         "wall_seconds": wall,
+    }
+
+
+def procedure_run(seed: int, calibration, image_frame: np.ndarray) -> dict:
+    """(c): the whole push on a fresh simulator of this seed (module docstring)."""
+    sim = SimulatedAfm(merge(load_config(), {"seed": seed}))
+    sphere = sim.sample.spheres[0]
+    truth0 = np.array([sphere.x, sphere.y])
+    scan = sim.raster_scan(MAP_SCAN)
+    marks = {
+        m.id: m
+        for m in extract_landmarks(
+            scan.height, scan.pixel_size_x, scan.pixel_size_y, scan.origin_x, scan.origin_y
+        )
+    }
+    mark = min(marks.values(), key=lambda m: np.hypot(m.x - sphere.x, m.y - sphere.y))
+    start = np.array([mark.x, mark.y])
+    goal = start + [0.0, 500 * NM]
+    localizer = Localizer(
+        sim, calibration, np.array(sim.commanded_position()), np.diag([(50 * NM) ** 2] * 2)
+    )
+    procedure = PushProcedure(
+        sim,
+        localize_with(localizer),
+        lambda: marks,
+        scanner_matrix=calibration.scanner_matrix,
+        on_moved=lambda moved: marks.__setitem__(moved.id, moved),
+    )
+    t0, sim_t0 = time.perf_counter(), sim.time
+    try:
+        result, failure = procedure.push(mark.id, goal), ""
+    except (PushFailed, PushRefused) as exc:
+        result, failure = None, str(exc)
+    wall = time.perf_counter() - t0
+    moved = np.linalg.solve(image_frame, np.array([sphere.x, sphere.y]) - truth0)
+    error = float(np.hypot(*(moved - (goal - start))))
+    return {
+        "seed": seed,
+        "ran": result is not None,
+        "message": result.message if result is not None else failure,
+        "error_nm": error / NM,
+        "success": bool(result is not None and error <= TOL),
+        "verified_error_nm": result.error / NM if result is not None else None,
+        "verified_success": bool(result is not None and result.success),
+        "steps": result.steps if result is not None else 0,
+        "along_nm": float(moved[1] / NM),
+        "sideways_nm": float(moved[0] / NM),  # + = right of the +y axis
+        "sim_seconds": sim.time - sim_t0,
+        "wall_seconds": wall,
+    }
+
+
+def summarize_procedure(runs: list[dict]) -> dict:
+    ran = [r for r in runs if r["ran"]]
+    errs = [r["error_nm"] for r in ran]
+    return {
+        "runs": len(runs),
+        "ran": len(ran),
+        "success_rate": sum(r["success"] for r in runs) / len(runs),
+        "verified_success_rate": sum(r["verified_success"] for r in runs) / len(runs),
+        "error_nm_median": statistics.median(errs) if errs else None,
+        "error_nm_max": max(errs, default=None),
+        "verified_error_nm_median": (
+            statistics.median(r["verified_error_nm"] for r in ran) if ran else None
+        ),
+        "along_nm_mean": statistics.fmean(r["along_nm"] for r in ran) if ran else None,
+        "along_nm_sd": statistics.pstdev(r["along_nm"] for r in ran) if ran else None,
+        "sideways_nm_mean": statistics.fmean(r["sideways_nm"] for r in ran) if ran else None,
+        "sideways_abs_nm_max": max((abs(r["sideways_nm"]) for r in ran), default=None),
+        "wall_seconds_per_run": statistics.fmean(r["wall_seconds"] for r in runs),
+        "sim_seconds_per_run": statistics.fmean(r["sim_seconds"] for r in runs),
     }
 
 
@@ -235,9 +333,8 @@ def main() -> int:
             continue
         print(
             f"  {name:22s} lateral sigma {s['sigma_lateral_nm']:6.1f} nm  along sigma "
-            f"{s['sigma_along_nm']:5.1f} nm  "
-            f"split {s['split_fraction']:.3f} (L {s['share_left']:.3f} / R "
-            f"{s['share_right']:.3f})  "
+            f"{s['sigma_along_nm']:5.1f} nm  split {s['split_fraction']:.3f} "
+            f"(L {s['share_left']:.3f} / R {s['share_right']:.3f})  "
             f"between paths {s['between_paths'] if s['between_paths'] is not None else '-'}  "
             f"success(20 nm) {s['success_probability']:.3f}  {s['seconds']:.1f} s",
             flush=True,
@@ -245,9 +342,8 @@ def main() -> int:
     b = mc["table_7_6_13_steps"]
     print(
         f"  Table 7.6, 13 steps in the model: along {b['model_nominal_along_nm']:.1f} nm, "
-        "sideways "
-        f"{b['model_nominal_sideways_nm']:.1f} nm (MC sigma along {b['mc_sigma_along_nm']:.1f}, "
-        "lateral "
+        f"sideways {b['model_nominal_sideways_nm']:.1f} nm (MC sigma along "
+        f"{b['mc_sigma_along_nm']:.1f}, lateral "
         f"{b['mc_sigma_lateral_nm']:.1f} nm, {b['seconds']:.1f} s for 500 x 13 strokes)",
         flush=True,
     )
@@ -275,6 +371,24 @@ def main() -> int:
             f"{s['wall_seconds_per_run']:.2f} s/run",
             flush=True,
         )
+    print(
+        "(c) PushProcedure (the node's whole push) on the same 20 simulators, no ROS: map, core "
+        "Localizer, pits, zigzag, rescan, verification; 500 nm",
+        flush=True,
+    )
+    calibration, image_frame = load_calibration(CALIBRATION), image_frame_matrix()
+    runs = [procedure_run(seed, calibration, image_frame) for seed in range(20)]
+    procedure = {"summary": summarize_procedure(runs), "runs": runs}
+    s = procedure["summary"]
+    print(
+        f"  nano_hand      success {s['success_rate']:.2f} (verified "
+        f"{s['verified_success_rate']:.2f}, "
+        f"{s['ran']}/{s['runs']} ran)  median error {s['error_nm_median']:6.1f} nm (verified "
+        f"{s['verified_error_nm_median']:5.1f})  along {s['along_nm_mean']:6.1f} +- "
+        f"{s['along_nm_sd']:4.1f} nm  sideways {s['sideways_nm_mean']:6.1f} nm (max |.| "
+        f"{s['sideways_abs_nm_max']:.1f})  {s['wall_seconds_per_run']:.2f} s/run",
+        flush=True,
+    )
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     report = {
@@ -289,9 +403,11 @@ def main() -> int:
             "sim_estimate_sigma_nm": 10,
             "sim_goal_nm": 500,
             "push_speed_m_per_s": 0.5e-6,
+            "procedure_calibration": str(CALIBRATION.relative_to(CALIBRATION.parents[2])),
         },
         "monte_carlo": mc,
         "simulated_afm": sims,
+        "procedure": procedure,
         "process_peak_rss_kib": peak,
         "wall_seconds": wall,
     }

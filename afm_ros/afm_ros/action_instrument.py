@@ -22,6 +22,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from afm_core.instrument import (
     ForceTraceData,
     IndentResult,
+    InstrumentUnavailable,
     LineRequest,
     MoveResult,
     RasterScanData,
@@ -38,7 +39,7 @@ from afm_ros.conversions import FRAME_SCANNER, msg_to_raster_scan
 from afm_ros.qos_profiles import FEEDBACK
 
 
-class DriverUnavailable(RuntimeError):
+class DriverUnavailable(InstrumentUnavailable):
     """An action server (the driver, the localizer) did not answer: not running, goal rejected,
     or no result within the timeout."""
 

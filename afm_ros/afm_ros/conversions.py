@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from sensor_msgs.msg import Image
+from std_msgs.msg import Header
 
 from afm_core.instrument import ForceTraceData, RasterScanData, ScanLineData
 from afm_core.recording.reader import image_to_array
+
+if TYPE_CHECKING:  # the manipulation package is heavy to import for the nodes without it
+    from afm_core.manipulation import Progress, TipEstimate
 
 FRAME_SCANNER = "afm_scanner"
 FRAME_TASK = "afm_task"
@@ -70,7 +76,8 @@ def msg_to_raster_scan(msg) -> RasterScanData:
     lines = height.shape[0] if msg.scan_angle_deg == 0 else height.shape[1]
     if len(msg.line_start_times) != lines:
         raise ValueError(
-            f"line_start_times has {len(msg.line_start_times)} entries, the image has {lines} lines"
+            f"line_start_times has {len(msg.line_start_times)} entries, the image has {lines} "
+            "lines"
         )
     if not (msg.pixel_size_x > 0 and msg.pixel_size_y > 0):
         raise ValueError(
@@ -214,7 +221,8 @@ def wait_for_landmarks(current, timeout: float = 5.0) -> dict:
 
 
 def msg_to_landmarks(array) -> list:
-    """LandmarkArray -> core landmarks; ValueError naming the landmark and field when not finite."""
+    """LandmarkArray -> core landmarks; ValueError naming the landmark and field when not
+    finite."""
     from afm_core.imaging.landmarks import Landmark
 
     kinds = {v: k for k, v in LANDMARK_KINDS.items()}
@@ -265,3 +273,96 @@ def mean_cov_to_pose(mean, covariance, header, z_variance: float = 0.0):
     cov[21] = cov[28] = cov[35] = 1e6
     msg.pose.covariance = cov
     return msg
+
+
+def xy_to_point(xy):
+    """(x, y) -> geometry_msgs/Point (z = 0)."""
+    from geometry_msgs.msg import Point
+
+    return Point(x=float(xy[0]), y=float(xy[1]))
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """A tip estimate (the fields of afm_core.manipulation.TipEstimate) that keeps the pose
+    message it came from: converted back, it is that message, exact to the nanosecond of its
+    stamp (float seconds of a wall-clock stamp are not)."""
+
+    mean: np.ndarray  # (2,) m
+    covariance: np.ndarray  # (2, 2) m^2
+    time: float  # s, the stamp
+    message: object
+
+
+def pose_to_tip_estimate(pose_msg) -> PoseEstimate:
+    """PoseWithCovarianceStamped -> the core's tip estimate (mean, 2x2 covariance, stamp in s)."""
+    mean, covariance = pose_to_mean_cov(pose_msg)
+    return PoseEstimate(mean, covariance, stamp_of(pose_msg.header), pose_msg)
+
+
+def tip_estimate_to_pose(estimate: TipEstimate):
+    """The core's tip estimate -> PoseWithCovarianceStamped in the task frame (the message it
+    came from, if it came from one)."""
+    if isinstance(estimate, PoseEstimate):
+        return estimate.message
+    header = Header(stamp=seconds_to_time(estimate.time), frame_id=FRAME_TASK)
+    return mean_cov_to_pose(estimate.mean, estimate.covariance, header)
+
+
+def push_plan_to_msg(plan, tip_cov, particle_id: int, time: float):
+    """A push plan (afm_core.manipulation.PushPlan) as a PlannedPath: each stroke's start reached
+    lifted ("lift"), its end in contact ("push") or lifted; the tip's covariance at the start on
+    every waypoint."""
+    from geometry_msgs.msg import PoseStamped
+
+    from afm_msgs.msg import PlannedPath
+
+    header = Header(stamp=seconds_to_time(time), frame_id=FRAME_TASK)
+    out = PlannedPath()
+    out.path.header = header
+    for stroke in plan.strokes:
+        for xy, role in (
+            (stroke.start, "lift"),
+            (stroke.end, "push" if stroke.contact else "lift"),
+        ):
+            pose = PoseStamped(header=header)
+            pose.pose.position.x, pose.pose.position.y = float(xy[0]), float(xy[1])
+            pose.pose.orientation.w = 1.0
+            out.path.poses.append(pose)
+            out.covariance_xx.append(float(tip_cov[0, 0]))
+            out.covariance_xy.append(float(tip_cov[0, 1]))
+            out.covariance_yy.append(float(tip_cov[1, 1]))
+            out.waypoint_role.append(role)
+            out.landmark_id.append(int(particle_id))
+    return out
+
+
+def progress_to_push_feedback(progress: Progress):
+    """A push's progress report (afm_core.manipulation.Progress) -> PushParticle feedback."""
+    from afm_msgs.action import PushParticle
+
+    feedback = PushParticle.Feedback(
+        step=progress.step,
+        steps_total=progress.steps_total,
+        phase=progress.phase,
+        particle_estimate=xy_to_point(progress.particle_estimate),
+        particle_covariance=list(progress.particle_covariance.ravel()),
+        peak_lateral_force=progress.peak_lateral_force,
+        peak_normal_force=progress.peak_normal_force,
+    )
+    if progress.tip is not None:
+        feedback.tip_pose = tip_estimate_to_pose(progress.tip)
+    return feedback
+
+
+def progress_to_assemble_feedback(progress: Progress):
+    """An assembly's progress report -> Assemble feedback."""
+    from afm_msgs.action import Assemble
+
+    return Assemble.Feedback(
+        index=progress.index,
+        particle_id=progress.particle_id,
+        step=progress.step,
+        phase=progress.phase,
+        particle_estimate=xy_to_point(progress.particle_estimate),
+    )

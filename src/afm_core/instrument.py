@@ -14,6 +14,8 @@ from typing import Protocol
 
 import numpy as np
 
+from afm_core import checks
+
 
 @dataclass(frozen=True)
 class ScannerLimits:
@@ -30,14 +32,14 @@ class ScannerLimits:
     max_dwell: float = 600.0  # s
 
 
-def _finite(name: str, value: float) -> None:
-    if not math.isfinite(value):
-        raise ValueError(f"{name}={value}: must be finite")
+class InstrumentUnavailable(RuntimeError):
+    """A backend could not carry out a request it accepted (no answer, busy, lost): the
+    procedures on an Instrument report it as a failure of what they were doing."""
 
 
 def check_in_range(name: str, x: float, y: float, limits: ScannerLimits) -> None:
-    _finite(f"{name}.x", x)
-    _finite(f"{name}.y", y)
+    checks.finite(f"{name}.x", x)
+    checks.finite(f"{name}.y", y)
     if not 0.0 <= x <= limits.range_x:
         raise ValueError(
             f"{name}.x={x:.4e} m: outside the scanner range [0, {limits.range_x:.4e}] m"
@@ -49,10 +51,11 @@ def check_in_range(name: str, x: float, y: float, limits: ScannerLimits) -> None
 
 
 def check_speed(name: str, speed: float, limits: ScannerLimits) -> None:
-    _finite(name, speed)
+    checks.finite(name, speed)
     if not 0.0 < speed <= limits.max_speed:
         raise ValueError(
-            f"{name}={speed:.4e} m/s: must be > 0 and at most the slew limit {limits.max_speed:.4e} m/s"
+            f"{name}={speed:.4e} m/s: must be > 0 and at most the slew limit "
+            f"{limits.max_speed:.4e} m/s"
         )
 
 
@@ -73,7 +76,7 @@ class ScanRequest:
 
     def validate(self, limits: ScannerLimits = ScannerLimits()) -> None:
         for name in ("origin_x", "origin_y", "size_x", "size_y", "line_rate", "scan_angle_deg"):
-            _finite(name, getattr(self, name))
+            checks.finite(name, getattr(self, name))
         for name in ("size_x", "size_y"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}={getattr(self, name)}: must be > 0")
@@ -241,8 +244,8 @@ class Instrument(Protocol):
 
 def validate_indent(x: float, y: float, force: float, dwell: float, limits: ScannerLimits) -> None:
     check_in_range("position", x, y, limits)
-    _finite("force", force)
-    _finite("dwell", dwell)
+    checks.finite("force", force)
+    checks.finite("dwell", dwell)
     if not 0 < force <= limits.max_indent_force:
         raise ValueError(
             f"force={force:.3e} N: must be within (0, {limits.max_indent_force:.3e}] N"

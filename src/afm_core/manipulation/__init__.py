@@ -3,25 +3,39 @@
 Entry points
 ------------
 Plans (afm_core.manipulation.strategies): lists of tip strokes in the afm_task frame.
-- centre_push_plan(particle, goal, ...)      baseline: straight pushes through the estimated centre
-- nano_hand_plan(particle, goal, params)     the virtual nano-hand zigzag (left/right pushes along
-                                             the edges of the uncertainty region); NanoHandParams.book()
-                                             is Table 7.6
-- choose_nano_hand_params(particle_sigma, particle_radius, tip_radius, ...)   the zigzag for the
-                                             current uncertainties
-- rod_hand_plan(rod, goal_pose)              rod-like hand: translate/rotate a rod or tube
-- arc_hand_plan(particles, centre, radius)   arc-shaped hand: gather particles onto a ring (hexagon)
+- centre_push_plan(particle, goal, ...)     baseline: straight pushes through the estimated
+                                            centre
+- nano_hand_plan(particle, goal, params)    the virtual nano-hand zigzag (left/right pushes
+                                            along the edges of the uncertainty region);
+                                            NanoHandParams.book() is Table 7.6
+- choose_nano_hand_params(particle_sigma, particle_radius, tip_radius, ...)   the zigzag for
+                                            the current uncertainties
+- rod_hand_plan(rod, goal_pose)             rod-like hand: translate/rotate a rod or tube
+- arc_hand_plan(particles, centre, radius)  arc-shaped hand: gather particles onto a ring
+                                            (hexagon)
 
 Evaluation (afm_core.manipulation.monte_carlo):
-- monte_carlo_push(plan, samples=500, sigma=10e-9, seed=0)   the stochastic pushing model (Fig. 6.18)
+- monte_carlo_push(plan, samples=500, sigma=10e-9, seed=0)   the stochastic pushing model
+                                            (Fig. 6.18)
 
-On an instrument (afm_core.manipulation.execute, .verify): through the afm_core.instrument.Instrument
-protocol only (simulator, hardware driver, replay):
-- execute_plan(instrument, plan, on_step=..., should_stop=...)   lifted between strokes, cancel after
-                                             the current stroke and lift clear, limits checked first
-- verify_push(instrument, request, goal, before=...)   rescan, find the particle, remove the drift
-                                             between the scans with pits / static landmarks as
-                                             control points
+On an instrument (afm_core.manipulation.execute, .verify): through the
+afm_core.instrument.Instrument protocol only (simulator, hardware driver, replay):
+- execute_plan(instrument, plan, on_step=..., should_stop=...)   lifted between strokes,
+                                            cancel after the current stroke and lift clear,
+                                            limits checked first
+- verify_push(instrument, request, goal, before=...)   rescan, find the particle, remove the
+                                            drift between the scans with pits / static
+                                            landmarks as control points
+
+The whole push of book 7.3 (afm_core.manipulation.push_procedure; its steps as functions in
+.push_steps): control pits and the before image, localization on the particle, the strokes run
+one by one, the after image and verification with control points, on any Instrument:
+- PushProcedure(instrument, localize, landmarks, scanner_matrix=..., settings=...)
+                                            .push(...) / .assemble(...) -> PushResult /
+                                            AssemblyResult; PushRefused before anything moved,
+                                            PushFailed after; Progress reports;
+                                            PUSH_PARAMETERS its settings
+- localize_with(localizer)                  the localization callable over a core Localizer
 
 The pushing physics is afm_core.sim.pushing (the planners use it as their model; nothing here
 writes another one).
@@ -29,6 +43,21 @@ writes another one).
 
 from afm_core.manipulation.execute import ExecutionResult, StepReport, execute_plan, force_summary
 from afm_core.manipulation.monte_carlo import MonteCarloResult, monte_carlo_push
+from afm_core.manipulation.push_procedure import (
+    PUSH_PARAMETERS,
+    AssemblyResult,
+    Progress,
+    PushFailed,
+    PushProcedure,
+    PushRefused,
+    PushResult,
+)
+from afm_core.manipulation.push_steps import (
+    Localization,
+    TipEstimate,
+    ZigzagOverrides,
+    localize_with,
+)
 from afm_core.manipulation.strategies import (
     NanoHandParams,
     ParticleEstimate,
@@ -75,4 +104,15 @@ __all__ = [
     "find_particles",
     "find_pits",
     "verify_push",
+    "PUSH_PARAMETERS",
+    "AssemblyResult",
+    "Localization",
+    "Progress",
+    "PushFailed",
+    "PushProcedure",
+    "PushRefused",
+    "PushResult",
+    "TipEstimate",
+    "ZigzagOverrides",
+    "localize_with",
 ]

@@ -1,0 +1,620 @@
+"""The whole push of book 7.3 on any Instrument, ROS-free: what the nano-hand node runs.
+
+`PushProcedure.push` strings the manipulation algorithms together for one particle:
+
+1. refuse what cannot work, before anything moves (`PushRefused`): unknown particle, goal
+   off-range or not finite, unknown strategy or one that does not fit the particle's kind,
+   negative or non-finite tolerance, another particle in the way;
+2. punch control pits in the rescan's corners and scan the area ("before"): pits and image
+   first, since moving the tip there after localizing would spend the localization (a raster
+   leaves the tip tens of nm from where the model says);
+3. localize the tip on the particle (the `localize` callable: in the graph the localizer's
+   Localize action, ROS-free `localize_with(Localizer)`), or trust the current estimate;
+4. plan the strokes (nano-hand zigzag chosen from the particle's and the tip's uncertainty,
+   centre pushing, or the rod hand) and execute them stroke by stroke, commands linearised
+   about the localized tip through the calibrated scanner matrix;
+5. rescan ("after") and verify the particle's position against the goal with the pits (and
+   the other particles) as control points; the particle's displacement between the images,
+   in commanded scanner coordinates, becomes a true one through the scanner matrix.
+
+Progress goes to a callback (`Progress`: phase, step, the particle's and the tip's estimates,
+peak forces, the planned strokes once); `should_stop` is polled during the pits and scans,
+after localizing and before every stroke. A push that started and could not finish, or was
+cancelled, raises `PushFailed` saying what happened and where the tip and the particle are;
+a cancelled one lifts the tip clear of the particle first.
+
+`PushProcedure.assemble` pushes many particles to many goals, in the order a callable gives
+(the planner's sequencing) or as given, each as above; a failure stops the assembly and the
+result says which particles reached their goals.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from afm_core.imaging.landmarks import Landmark
+from afm_core.instrument import (
+    Instrument,
+    InstrumentUnavailable,
+    RasterScanData,
+    ScannerLimits,
+    ScanRequest,
+    check_in_range,
+)
+from afm_core.manipulation.execute import ExecutionResult, execute_plan, pushed_object_after
+from afm_core.manipulation.push_steps import (
+    Localization,
+    TipEstimate,
+    ZigzagOverrides,
+    control_pit_sites,
+    find_particle,
+    nearest_particle,
+    plan_push,
+    rescan_request,
+    task_to_command,
+)
+from afm_core.manipulation.strategies import PushPlan, path_blocker
+from afm_core.manipulation.verify import VerificationResult, verify_push
+from afm_core.parameters import Parameter, ParameterTable
+
+PUSH_PARAMETERS = ParameterTable(
+    Parameter(
+        "tip_radius",
+        50e-9,
+        "Effective contact radius of the tip (R_T; book's simulation: 50 nm).",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+        runtime=True,
+    ),
+    Parameter(
+        "default_tolerance",
+        20e-9,
+        "Success radius around the goal when a goal's tolerance is 0.",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+        runtime=True,
+    ),
+    Parameter(
+        "push_speed",
+        0.5e-6,
+        "Speed of the tip in contact.",
+        unit="m/s",
+        minimum=0.0,
+        above_minimum=True,
+        maximum=ScannerLimits().max_speed,
+        runtime=True,
+    ),
+    Parameter(
+        "rescan_margin",
+        300e-9,
+        "Margin around the particle and the goal in the before/after rescans.",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+        runtime=True,
+    ),
+    Parameter(
+        "rescan_pixel",
+        8e-9,
+        "Pixel size of the before/after rescans.",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+        runtime=True,
+    ),
+    Parameter(
+        "rescan_line_rate",
+        4.0,
+        "Line rate of the before/after rescans.",
+        unit="Hz",
+        minimum=0.0,
+        above_minimum=True,
+        maximum=ScannerLimits().max_line_rate,
+        runtime=True,
+    ),
+    Parameter(
+        "match_radius",
+        300e-9,
+        "A particle given by position is the nearest landmark within this.",
+        unit="m",
+        minimum=0.0,
+        above_minimum=True,
+        runtime=True,
+    ),
+    Parameter(
+        "control_pits",
+        2,
+        "Indentation pits punched in the rescan's corners before a push: control points that "
+        "tie the after image to the before image (book 7.3); 0: none.",
+        minimum=0,
+        maximum=4,
+        runtime=True,
+    ),
+    Parameter(
+        "pit_force",
+        0.5e-6,
+        "Indentation force of the control pits (a ~10 nm deep pit on the default sample).",
+        unit="N",
+        minimum=0.0,
+        above_minimum=True,
+        maximum=ScannerLimits().max_indent_force,
+        runtime=True,
+    ),
+    Parameter(
+        "localize_first",
+        True,
+        "Localize the tip on the particle before planning (book 7.3); false: trust the "
+        "current estimate.",
+        runtime=True,
+    ),
+)
+STRATEGIES = ("nano_hand", "center", "centre", "rod_hand")
+PIT_DWELL = 0.1  # s
+
+
+class PushRefused(Exception):
+    """A push (or an assembly) refused before anything moved; the message says why."""
+
+
+class PushFailed(Exception):
+    """A push that started could not finish, or was cancelled; the message says what happened
+    and where things are. `execution`: the strokes run, when the failure came after them."""
+
+    def __init__(self, message: str, execution: ExecutionResult | None = None):
+        super().__init__(message)
+        self.execution = execution
+
+
+@dataclass(frozen=True)
+class Progress:
+    """One progress report. phase: "scanning" (control pits, before image), "localizing",
+    "pushing" (step 0 before the first stroke, then after each), "verifying"."""
+
+    phase: str
+    particle_id: int
+    particle_estimate: np.ndarray  # (2,) task frame, m
+    particle_covariance: np.ndarray  # (2, 2) m^2, the map's
+    time: float  # s, instrument clock
+    step: int = 0
+    steps_total: int = 0
+    tip: TipEstimate | None = None
+    peak_lateral_force: float = 0.0  # N, this stroke
+    peak_normal_force: float = 0.0  # N
+    plan: PushPlan | None = None  # on the report before the first stroke: the strokes planned
+    index: int = 0  # position in an assembly's order
+
+
+@dataclass
+class PushResult:
+    particle_id: int
+    goal: np.ndarray  # (2,) task frame
+    achieved: np.ndarray  # (2,) verified position after the rescan, task frame
+    error: float  # m, |achieved - goal|
+    tolerance: float  # m
+    steps: int  # strokes in contact
+    message: str
+    plan: PushPlan
+    execution: ExecutionResult
+    verification: VerificationResult
+
+    @property
+    def success(self) -> bool:
+        return self.error <= self.tolerance
+
+
+@dataclass
+class AssemblyResult:
+    particle_ids: list[int]  # as given
+    order: list[int]  # as pushed (or planned, when a push failed)
+    achieved: list[np.ndarray]  # per particle_ids: verified position, or the map's if not pushed
+    errors: list[float]  # per particle_ids, m (NaN: not pushed)
+    success: bool
+    message: str
+    pushes: list[PushResult] = field(default_factory=list)
+
+
+def _never() -> bool:
+    return False
+
+
+def _ignore(_progress: Progress) -> None:
+    return None
+
+
+class PushProcedure:
+    """Pushes on `instrument` (module docstring).
+
+    localize(particle, should_stop) -> Localization: observe the tip on the particle.
+    landmarks() -> {id: Landmark}: the current map (task frame; the graph's /afm/landmarks).
+    scanner_matrix: the calibration's (true displacement per commanded one, 2x2): it maps
+        task-frame strokes to commands and image displacements to true ones (default: identity).
+    settings: values of PUSH_PARAMETERS, validated (the rest their defaults), kept in
+        `self.settings`, which each step reads when it needs a value: a change there (a
+        node's run-time parameter) reaches the next step that uses it.
+    tip_estimate() -> TipEstimate | None: the newest estimate from elsewhere (the graph's
+        /afm/tip_pose), used when localize_first is false and reported while pushing.
+    on_moved(landmark): a pushed particle, where the rescan found it (e.g. publish the map).
+    """
+
+    def __init__(
+        self,
+        instrument: Instrument,
+        localize: Callable[[Landmark, Callable[[], bool]], Localization],
+        landmarks: Callable[[], Mapping[int, Landmark]],
+        *,
+        scanner_matrix=None,
+        settings: Mapping | None = None,
+        tip_estimate: Callable[[], TipEstimate | None] = lambda: None,
+        on_moved: Callable[[Landmark], None] = lambda _landmark: None,
+    ):
+        self.instrument = instrument
+        self.localize = localize
+        self.landmarks = landmarks
+        identity = [[1.0, 0.0], [0.0, 1.0]]
+        self.scanner_matrix = np.array(identity if scanner_matrix is None else scanner_matrix)
+        self.settings = {
+            **PUSH_PARAMETERS.defaults(),
+            **PUSH_PARAMETERS.validate(dict(settings or {})),
+        }
+        self.tip_estimate = tip_estimate
+        self.on_moved = on_moved
+
+    # -- refusals ----------------------------------------------------------------------------
+    def particle(self, particle_id: int, position=None) -> Landmark:
+        return find_particle(
+            dict(self.landmarks()), particle_id, position, self.settings["match_radius"]
+        )
+
+    def check_goal(self, particle: Landmark, goal, strategy: str, tolerance: float) -> None:
+        """ValueError when the push cannot work (module docstring, step 1)."""
+        if strategy not in STRATEGIES:
+            raise ValueError(
+                f"strategy={strategy!r}: must be one of {list(STRATEGIES)} "
+                "(arc_hand: use Assemble)"
+            )
+        if not np.all(np.isfinite(goal)):
+            raise ValueError("goal: must be finite (m)")
+        check_in_range("goal", goal[0], goal[1], self.instrument.limits)
+        if not (math.isfinite(tolerance) and tolerance >= 0):
+            raise ValueError(f"tolerance={tolerance}: must be finite and >= 0 (m)")
+        if strategy == "rod_hand" and particle.kind not in ("tube", "rod"):
+            raise ValueError(
+                f"strategy='rod_hand': landmark {particle.id} is a {particle.kind}, "
+                "not a tube or rod"
+            )
+        if strategy != "rod_hand" and particle.kind != "sphere":
+            raise ValueError(
+                f"strategy={strategy!r}: landmark {particle.id} is a {particle.kind}; "
+                "use 'rod_hand'"
+            )
+        start = np.array([particle.x, particle.y])
+        others = [m for m in self.landmarks().values() if m.id != particle.id]
+        blocker = path_blocker(start, goal, particle.radius, self.settings["tip_radius"], others)
+        if blocker is not None:
+            raise ValueError(
+                f"path blocked: landmark {blocker.id} at ({blocker.x * 1e9:.0f} nm, "
+                f"{blocker.y * 1e9:.0f} nm) lies in the way from particle {particle.id} to the "
+                "goal"
+            )
+
+    # -- one push ----------------------------------------------------------------------------
+    def push(
+        self,
+        particle_id: int,
+        goal,
+        *,
+        position=None,
+        strategy: str = "",
+        tolerance: float = 0.0,
+        overrides: ZigzagOverrides = ZigzagOverrides(),
+        progress: Callable[[Progress], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> PushResult:
+        """Push landmark `particle_id` (-1: the one nearest `position`) to `goal` (task frame,
+        m). strategy "" is the nano-hand; tolerance 0 is default_tolerance. PushRefused before
+        anything moved, PushFailed after (module docstring)."""
+        try:
+            particle = self.particle(particle_id, position)
+            target = np.array([goal[0], goal[1]], dtype=float)
+            strategy = strategy or "nano_hand"
+            tolerance = tolerance or self.settings["default_tolerance"]
+            self.check_goal(particle, target, strategy, tolerance)
+        except ValueError as exc:
+            raise PushRefused(str(exc)) from exc
+        return self.run(
+            particle,
+            target,
+            strategy,
+            tolerance,
+            overrides,
+            progress or _ignore,
+            should_stop or _never,
+        )
+
+    def run(
+        self,
+        particle: Landmark,
+        target: np.ndarray,
+        strategy: str,
+        tolerance: float,
+        overrides: ZigzagOverrides,
+        progress: Callable[[Progress], None],
+        should_stop: Callable[[], bool],
+    ) -> PushResult:
+        """The push of a checked goal: scan, localize, plan, execute, rescan, verify."""
+        try:
+            start_xy = np.array([particle.x, particle.y])
+            self._report(progress, "scanning", particle, start_xy)
+            request, before = self._scan_before(start_xy, target, should_stop)
+            tip = self._localized(particle, start_xy, progress, should_stop)
+            plan, execution = self._execute(
+                particle, target, strategy, tip, overrides, progress, should_stop
+            )
+            verification, achieved = self._verify(
+                particle, target, plan, execution, tip, request, before, progress, should_stop
+            )
+        except (ValueError, InstrumentUnavailable) as exc:
+            raise PushFailed(str(exc)) from exc
+        error = float(np.hypot(*(achieved - target)))
+        self.on_moved(replace(particle, x=float(achieved[0]), y=float(achieved[1])))
+        used = sum(1 for c in verification.control_points if c.used)
+        message = (
+            f"{strategy}: particle {particle.id} at ({achieved[0] * 1e9:.1f} nm, "
+            f"{achieved[1] * 1e9:.1f} nm), {error * 1e9:.1f} nm from the goal "
+            f"(tolerance {tolerance * 1e9:.1f} nm; {used} control point(s))"
+        )
+        return PushResult(
+            particle.id,
+            target,
+            achieved,
+            error,
+            tolerance,
+            sum(1 for s in plan.strokes if s.contact),
+            message,
+            plan,
+            execution,
+            verification,
+        )
+
+    def _report(self, progress, phase: str, particle: Landmark, estimate, **fields) -> None:
+        progress(
+            Progress(
+                phase, particle.id, estimate, particle.covariance, self.instrument.time, **fields
+            )
+        )
+
+    def _scan_before(self, start_xy, target, should_stop) -> tuple[ScanRequest, RasterScanData]:
+        """The control pits, then the before image (module docstring, step 2)."""
+        s = self.settings
+        request = rescan_request(
+            start_xy,
+            target,
+            s["rescan_margin"],
+            s["rescan_pixel"],
+            s["rescan_line_rate"],
+            self.instrument.limits,
+        )
+        for pit in control_pit_sites(request, start_xy, target, s["control_pits"]):
+            self.instrument.indent(
+                pit[0], pit[1], s["pit_force"], PIT_DWELL, should_stop=should_stop
+            )
+        before = self.instrument.raster_scan(request, should_stop=should_stop)
+        if should_stop() or not before.complete:
+            raise PushFailed("cancelled before pushing; nothing was pushed")
+        return request, before
+
+    def _localized(self, particle, start_xy, progress, should_stop) -> TipEstimate:
+        self._report(progress, "localizing", particle, start_xy)
+        if not self.settings["localize_first"]:
+            tip = self.tip_estimate()
+            if tip is None:
+                raise PushFailed("no tip estimate on /afm/tip_pose; is the localizer running?")
+            return tip
+        localization = self.localize(particle, should_stop)
+        if should_stop():
+            raise PushFailed("cancelled while localizing; nothing was pushed")
+        if not localization.success:
+            raise PushFailed(
+                f"localization on particle {particle.id} failed, nothing was pushed: "
+                f"{localization.message}"
+            )
+        return localization.estimate
+
+    def _execute(
+        self, particle, target, strategy, tip: TipEstimate, overrides, progress, should_stop
+    ) -> tuple[PushPlan, ExecutionResult]:
+        """Plan the strokes and run them, commands linearised about the localized tip."""
+        start_xy = np.array([particle.x, particle.y])
+        commanded = np.array(self.instrument.commanded_position())
+        to_instrument = task_to_command(tip.mean, commanded, self.scanner_matrix)
+        plan = plan_push(
+            particle,
+            target,
+            strategy,
+            tip.covariance,
+            overrides,
+            self.settings["tip_radius"],
+            self.instrument.limits,
+        )
+        total = len(plan.strokes)
+        self._report(
+            progress, "pushing", particle, start_xy, steps_total=total, tip=tip, plan=plan
+        )
+
+        def on_step(report):
+            estimate, _, _ = pushed_object_after(plan, report.index + 1)
+            current = self.tip_estimate()
+            self._report(
+                progress,
+                "pushing",
+                particle,
+                estimate,
+                step=report.index + 1,
+                steps_total=report.total,
+                tip=current if current is not None else tip,
+                peak_lateral_force=float(report.peak_lateral_force),
+                peak_normal_force=float(report.peak_normal_force),
+            )
+
+        execution = execute_plan(
+            self.instrument,
+            plan,
+            speed=self.settings["push_speed"],
+            on_step=on_step,
+            should_stop=should_stop,
+            to_instrument=to_instrument,
+        )
+        if execution.cancelled:
+            lifted = execution.lift_position
+            estimate = (
+                execution.predicted_particle
+                if execution.predicted_particle is not None
+                else start_xy
+            )
+            raise PushFailed(
+                f"cancelled after {execution.strokes_done} of {total} strokes; tip lifted "
+                f"clear to ({lifted[0] * 1e9:.1f} nm, {lifted[1] * 1e9:.1f} nm) in afm_scanner; "
+                f"particle {particle.id} predicted at ({estimate[0] * 1e9:.1f} nm, "
+                f"{estimate[1] * 1e9:.1f} nm) in afm_task (not verified)",
+                execution,
+            )
+        return plan, execution
+
+    def _verify(
+        self, particle, target, plan, execution, tip, request, before, progress, should_stop
+    ) -> tuple[VerificationResult, np.ndarray]:
+        """The after image, the particle's position by control points, and its true
+        displacement through the scanner matrix (module docstring, step 5)."""
+        start_xy = np.array([particle.x, particle.y])
+        total = len(plan.strokes)
+        predicted = plan.predicted if plan.predicted is not None else target
+        self._report(
+            progress, "verifying", particle, predicted, step=total, steps_total=total, tip=tip
+        )
+        # the rescan sees the particle in scan coordinates; its position before the push in the
+        # same scan ties the scan to the map (task frame), control points remove drift between
+        # scans
+        before_particle = nearest_particle(before, start_xy)
+        if before_particle is None:
+            raise PushFailed("before scan: no particle found; nothing was pushed")
+        map_to_scan = before_particle - start_xy
+        # the particle may end far from the plan (a centre push slides it off): look for it
+        # anywhere it could have gone
+        reach = float(np.hypot(*(target - start_xy))) + 2 * particle.radius + 100e-9
+        # a cancel is honoured until the result is sent: the strokes can be done before a cancel
+        # sent on their first report arrives, and the rescan takes longer than all of them
+        after = self.instrument.raster_scan(request, should_stop=should_stop)
+        if should_stop() or not after.complete:
+            raise PushFailed(
+                f"cancelled while verifying, after all {total} strokes; tip lifted off the "
+                f"particle for the rescan, which was stopped; particle {particle.id} predicted at "
+                f"({predicted[0] * 1e9:.1f} nm, {predicted[1] * 1e9:.1f} nm) in afm_task "
+                "(not verified)",
+                execution,
+            )
+        verification = verify_push(
+            self.instrument,
+            request,
+            target + map_to_scan,
+            after=after,
+            expected=predicted + map_to_scan,
+            start=before_particle,
+            before=before,
+            particle_radius=particle.radius,
+            particle_match_radius=reach,
+        )
+        # images are in commanded scanner coordinates: the particle's displacement between the
+        # before and after images becomes a true one through the calibrated scanner matrix
+        image_displacement = np.asarray(verification.achieved) - before_particle
+        achieved = start_xy + self.scanner_matrix @ image_displacement
+        return verification, achieved
+
+    # -- many pushes -------------------------------------------------------------------------
+    def assemble(
+        self,
+        particle_ids: Sequence[int],
+        goals: Sequence,
+        *,
+        strategy: str = "",
+        tolerance: float = 0.0,
+        order: Callable[[list[int]], list[int]] | None = None,
+        progress: Callable[[Progress], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> AssemblyResult:
+        """Push each particle to its goal (one per particle), in the order `order(ids)` gives
+        (None: as given); each push as `push` with the planner's zigzag. PushRefused before
+        anything moved; a push that fails or is refused ends the assembly (the result says
+        which particles got where)."""
+        progress, should_stop = progress or _ignore, should_stop or _never
+        ids = [int(pid) for pid in particle_ids]
+        strategy = strategy or "nano_hand"
+        tolerance = tolerance or self.settings["default_tolerance"]
+        try:
+            targets, particles = self._check_assembly(ids, goals, strategy)
+            sequence = list(ids) if order is None else [int(pid) for pid in order(ids)]
+        except (ValueError, InstrumentUnavailable) as exc:
+            raise PushRefused(str(exc)) from exc
+        pushes: dict[int, PushResult] = {}
+        messages = []
+        for index, pid in enumerate(sequence):
+
+            def report(p: Progress, index=index) -> None:
+                progress(replace(p, index=index))
+
+            try:
+                particle = self.particle(pid)  # where the last pushes left it
+                self.check_goal(particle, targets[pid], strategy, tolerance)
+                # no per-push overrides: the planner chooses the zigzag
+                pushes[pid] = self.run(
+                    particle,
+                    targets[pid],
+                    strategy,
+                    tolerance,
+                    ZigzagOverrides(),
+                    report,
+                    should_stop,
+                )
+            except (ValueError, PushFailed) as exc:
+                messages.append(f"particle {pid}: {exc}")
+                break
+            messages.append(pushes[pid].message)
+        return AssemblyResult(
+            ids,
+            sequence,
+            [
+                pushes[pid].achieved if pid in pushes else np.array([p.x, p.y])
+                for pid, p in particles.items()
+            ],
+            [pushes[pid].error if pid in pushes else math.nan for pid in ids],
+            len(pushes) == len(sequence) and all(p.success for p in pushes.values()),
+            "; ".join(messages),
+            [pushes[pid] for pid in sequence if pid in pushes],
+        )
+
+    def _check_assembly(self, ids: list[int], goals, strategy: str):
+        """The goals by particle id and the particles as mapped now; ValueError naming what
+        cannot work."""
+        if len(ids) != len(goals) or not ids:
+            raise ValueError(
+                f"particle_ids ({len(ids)}) and goals ({len(goals)}): "
+                "need one goal per particle, at least one"
+            )
+        if len(set(ids)) != len(ids):
+            raise ValueError("particle_ids: each particle once")
+        targets = {pid: np.array([g[0], g[1]]) for pid, g in zip(ids, goals)}
+        particles = {pid: self.particle(pid) for pid in ids}
+        for pid in ids:
+            if not (math.isfinite(targets[pid][0]) and math.isfinite(targets[pid][1])):
+                raise ValueError(f"goal of particle {pid}: must be finite (m)")
+            check_in_range(
+                f"goal of particle {pid}", targets[pid][0], targets[pid][1], self.instrument.limits
+            )
+            if strategy not in STRATEGIES:
+                raise ValueError(f"strategy={strategy!r}: must be one of {list(STRATEGIES)}")
+        return targets, particles

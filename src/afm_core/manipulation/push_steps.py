@@ -1,0 +1,202 @@
+"""The steps of a push (book 7.3) as functions, for `afm_core.manipulation.push_procedure`:
+which landmark a goal means, where the control pits go, the rescan's area, task-frame points as
+scanner commands about the localized tip, the particle in an image, the strokes for a strategy,
+and the localization callable over a core Localizer.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
+
+from afm_core.imaging.landmarks import Landmark
+from afm_core.instrument import RasterScanData, ScannerLimits, ScanRequest
+from afm_core.manipulation.strategies import (
+    NanoHandParams,
+    ParticleEstimate,
+    PushPlan,
+    centre_push_plan,
+    choose_nano_hand_params,
+    nano_hand_plan,
+    rod_hand_plan,
+)
+from afm_core.manipulation.verify import find_particles
+
+
+@dataclass(frozen=True)
+class TipEstimate:
+    mean: np.ndarray  # (2,) task frame, m
+    covariance: np.ndarray  # (2, 2) m^2
+    time: float  # s, instrument clock of the estimate
+
+
+@dataclass(frozen=True)
+class Localization:
+    """What a localization callable returns: the estimate after observing the particle, and
+    whether the observation was accepted (the message says why not)."""
+
+    success: bool
+    estimate: TipEstimate | None
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class ZigzagOverrides:
+    """Lengths of the nano-hand zigzag a goal may fix (m; 0: the planner chooses)."""
+
+    push_length: float = 0.0
+    back_length: float = 0.0
+    lateral_offset: float = 0.0  # half-distance between the left and right push paths
+    step_length: float = 0.0  # advance per step
+    max_steps: int = 0
+
+
+def find_particle(
+    known: Mapping[int, Landmark], particle_id: int, position, match_radius: float
+) -> Landmark:
+    """The landmark `particle_id`, or (particle_id < 0) the one nearest `position` within
+    `match_radius`; ValueError saying which is missing."""
+    if particle_id >= 0 or position is None:
+        if particle_id not in known:
+            raise ValueError(
+                f"particle_id={particle_id}: unknown (known ids: {sorted(known) or 'none yet'})"
+            )
+        return known[particle_id]
+    point = np.array([position[0], position[1]])
+    if not np.all(np.isfinite(point)):
+        raise ValueError("particle_position: must be finite (m)")
+    if not known:
+        raise ValueError("no landmark known yet (nothing on /afm/landmarks)")
+    nearest = min(known.values(), key=lambda m: math.hypot(m.x - point[0], m.y - point[1]))
+    if math.hypot(nearest.x - point[0], nearest.y - point[1]) > match_radius:
+        raise ValueError(
+            f"particle_position: no particle within match_radius={match_radius * 1e9:.0f} nm"
+        )
+    return nearest
+
+
+def control_pit_sites(request: ScanRequest, start, goal, count: int) -> list:
+    """Up to `count` indentation sites in the rescan's corners, inset by a quarter of the
+    margin, farthest from the push's way: control points the before and after images share
+    (book 7.3), away from what is pushed."""
+    lo = np.array([request.origin_x, request.origin_y])
+    inset = 0.15 * request.size_x
+    corners = [
+        lo + np.array([dx, dy])
+        for dx in (inset, request.size_x - inset)
+        for dy in (inset, request.size_y - inset)
+    ]
+    axis = goal - start
+    length = float(np.hypot(*axis)) or 1.0
+
+    def clearance(p):
+        t = np.clip((p - start) @ axis / length**2, 0.0, 1.0)
+        return float(np.hypot(*(p - (start + t * axis))))
+
+    return sorted(corners, key=clearance, reverse=True)[: max(0, int(count))]
+
+
+def rescan_request(a, b, margin: float, pixel: float, line_rate: float, limits) -> ScanRequest:
+    """The square image around a and b with `margin` (square, so the 0 deg scan's pixels are
+    square), in commanded scanner coordinates: the map is an image in them."""
+    lo, hi = np.minimum(a, b) - margin, np.maximum(a, b) + margin
+    size = float(max(hi - lo))
+    pixels = int(min(limits.max_pixels, math.ceil(size / pixel)))
+    request = ScanRequest(
+        float(lo[0]), float(lo[1]), size, size, pixels, pixels, line_rate=line_rate
+    )
+    request.validate(limits)
+    return request
+
+
+def task_to_command(tip_mean, commanded, scanner_matrix):
+    """Task-frame point -> scanner command, linearised about the localized tip: the command that
+    moves the tip from where it is estimated by the wanted displacement."""
+    inverse = np.linalg.inv(scanner_matrix)
+
+    def to_instrument(xy):
+        return commanded + inverse @ (np.asarray(xy, float) - tip_mean)
+
+    return to_instrument
+
+
+def nearest_particle(scan: RasterScanData, near) -> np.ndarray | None:
+    """The particle of `scan` nearest `near` (None: the scan shows none)."""
+    found = find_particles(scan)
+    if not found:
+        return None
+    best = min(found, key=lambda m: math.hypot(m.x - near[0], m.y - near[1]))
+    return np.array([best.x, best.y])
+
+
+def plan_push(
+    particle: Landmark,
+    target: np.ndarray,
+    strategy: str,
+    tip_cov: np.ndarray,
+    overrides: ZigzagOverrides,
+    tip_radius: float,
+    limits: ScannerLimits,
+) -> PushPlan:
+    """The strokes for `strategy`; the nano-hand's zigzag is chosen from the particle's (map)
+    and the tip's (localization) uncertainty unless `overrides` fix its lengths."""
+    sigma = float(math.sqrt(max(np.max(np.diag(particle.covariance)), 0.0)))
+    tip_sigma = float(math.sqrt(max(np.max(np.diag(tip_cov)), 0.0)))
+    estimate = ParticleEstimate(
+        particle.x, particle.y, particle.radius, math.hypot(sigma, tip_sigma)
+    )
+    if strategy in ("center", "centre"):
+        return centre_push_plan(estimate, target, tip_radius=tip_radius, limits=limits)
+    if strategy == "rod_hand":
+        rod = SimpleNamespace(
+            x=particle.x,
+            y=particle.y,
+            angle=particle.orientation,
+            length=particle.length,
+            radius=particle.radius,
+        )
+        return rod_hand_plan(
+            rod, (target[0], target[1], particle.orientation), tip_radius=tip_radius, limits=limits
+        )
+    chosen = choose_nano_hand_params(sigma, particle.radius, tip_radius, tip_sigma=tip_sigma)
+    o = overrides
+    push = o.push_length or chosen.left_push
+    back = o.back_length or (push - o.step_length if o.step_length else chosen.left_back)
+    params = NanoHandParams(
+        push,
+        push,
+        back,
+        back,
+        chosen.initial_h,
+        2 * o.lateral_offset if o.lateral_offset else chosen.h,
+        push - back,
+    )
+    return nano_hand_plan(
+        estimate,
+        target,
+        params,
+        tip_radius=tip_radius,
+        limits=limits,
+        steps=int(o.max_steps) or None,
+    )
+
+
+def localize_with(localizer) -> Callable[[Landmark, Callable[[], bool]], Localization]:
+    """The localization callable over a core `afm_core.localization.Localizer` on the same
+    instrument: local scan lines through the particle (what the graph's Localize action runs)."""
+    from afm_core.localization import MapLandmark
+
+    def localize(particle: Landmark, should_stop: Callable[[], bool]) -> Localization:
+        observation = localizer.observe_landmark(MapLandmark.from_landmark(particle))
+        lines = "; ".join(
+            f"{line.axis} line {line.status}" + (f" ({line.reason})" if line.reason else "")
+            for line in observation.lines
+        )
+        estimate = TipEstimate(observation.mean, observation.covariance, observation.time)
+        return Localization(observation.all_accepted, estimate, lines or "no line run")
+
+    return localize

@@ -1,0 +1,183 @@
+"""The whole push of book 7.3 on the simulated AFM, no ROS (afm_core.manipulation.PushProcedure).
+
+A seeded simulator with its default physics (positioning noise, hysteresis residue, creep,
+drift) and three spheres (r = 100 nm) 0.8 um apart in a row, the row of bench_push_graph; the
+particles are mapped from a raster image by the imaging functions (extract_landmarks), the tip is
+localized by the core Localizer with the calibration of the simulated instrument
+(sim_calibration.oracle_calibration). Ground truth: the simulator's object and tip positions.
+The task frame is metric (the calibrated scanner matrix maps it to commands), so true
+displacements compare with planned ones directly.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from sim_calibration import oracle_calibration
+
+from afm_core.imaging.landmarks import extract_landmarks
+from afm_core.instrument import ScanRequest
+from afm_core.localization import Localizer
+from afm_core.localization.calibration.model import load_calibration
+from afm_core.manipulation import PushFailed, PushProcedure, PushRefused, localize_with
+from afm_core.sim.config import load_config, merge
+from afm_core.sim.instrument import SimulatedAfm
+
+NM = 1e-9
+SEED = 4
+SPHERES = ((54.2e-6, 55.0e-6), (55.0e-6, 55.0e-6), (55.8e-6, 55.0e-6))
+MAP_SCAN = ScanRequest(53.8e-6, 53.9e-6, 2.4e-6, 2.4e-6, 256, 256, line_rate=4.0)
+# the 20 nm tolerance of the push plus what the verification itself may be off (<= 10 nm below)
+TRUE_TOLERANCE = 25 * NM
+VERIFICATION_ERROR = 10 * NM
+
+
+@pytest.fixture(scope="module")
+def calibration(tmp_path_factory):
+    return load_calibration(oracle_calibration(tmp_path_factory.mktemp("cal") / "sim.yaml"))
+
+
+class Session:
+    """The simulator, its map (landmarks by id, kept up to date by the procedure's on_moved),
+    a Localizer started at the first command, and the procedure on them."""
+
+    def __init__(self, calibration, seed=SEED):
+        spheres = [{"x": x, "y": y, "radius": 100 * NM} for x, y in SPHERES]
+        self.sim = SimulatedAfm(
+            merge(load_config(), {"seed": seed, "sample": {"spheres": spheres}})
+        )
+        scan = self.sim.raster_scan(MAP_SCAN)
+        marks = extract_landmarks(
+            scan.height, scan.pixel_size_x, scan.pixel_size_y, scan.origin_x, scan.origin_y
+        )
+        assert len(marks) == 3
+        self.map = {mark.id: mark for mark in marks}
+        self.row = sorted(marks, key=lambda m: m.x)  # left, middle, right
+        localizer = Localizer(
+            self.sim,
+            calibration,
+            np.array(self.sim.commanded_position()),
+            np.diag([(50 * NM) ** 2] * 2),
+        )
+        self.reports = []
+        self.procedure = PushProcedure(
+            self.sim,
+            localize_with(localizer),
+            lambda: self.map,
+            scanner_matrix=calibration.scanner_matrix,
+            on_moved=lambda mark: self.map.__setitem__(mark.id, mark),
+        )
+
+    def true_sphere(self, near) -> np.ndarray:
+        spheres = [np.array([o.x, o.y]) for o in self.sim.truth()["objects"] if o.kind == "sphere"]
+        return min(spheres, key=lambda p: math.hypot(*(p - near)))
+
+
+def test_a_push_reaches_its_goal_by_the_simulators_truth(calibration):
+    s = Session(calibration)
+    mark = s.row[1]
+    start = np.array([mark.x, mark.y])
+    goal = start + [0.0, -400 * NM]
+    truth_before = s.true_sphere(start)
+
+    result = s.procedure.push(mark.id, goal, progress=s.reports.append)
+
+    moved = s.true_sphere(truth_before) - truth_before
+    true_error = math.hypot(*(moved - (goal - start)))
+    assert true_error <= TRUE_TOLERANCE, f"true error {true_error / NM:.1f} nm"
+    # the verified position (rescan, control points, scanner matrix) is where the particle is
+    assert math.hypot(*((result.achieved - start) - moved)) <= VERIFICATION_ERROR
+    assert abs(result.error - true_error) <= VERIFICATION_ERROR
+    assert result.success and result.error <= 20 * NM
+    assert result.steps == sum(stroke.contact for stroke in result.plan.strokes) > 0
+    assert sum(c.used for c in result.verification.control_points) >= 2  # the two pits at least
+    assert result.verification.drift_corrected
+    assert f"{result.error / NM:.1f} nm from the goal" in result.message
+    np.testing.assert_allclose([s.map[mark.id].x, s.map[mark.id].y], result.achieved)
+
+    phases = [r.phase for r in s.reports]
+    total = len(result.plan.strokes)
+    assert phases == ["scanning", "localizing"] + ["pushing"] * (total + 1) + ["verifying"]
+    pushing = [r for r in s.reports if r.phase == "pushing"]
+    assert [r.step for r in pushing] == list(range(total + 1))
+    assert all(r.steps_total == total for r in pushing)
+    assert pushing[0].plan is result.plan and all(r.plan is None for r in pushing[1:])
+    assert all(r.tip is not None for r in pushing) and s.reports[0].tip is None
+    contact = [r for r, stroke in zip(pushing[1:], result.plan.strokes) if stroke.contact]
+    assert all(r.peak_normal_force > 0 for r in contact)
+    assert max(r.peak_lateral_force for r in contact) > 0
+    assert all(r.particle_id == mark.id for r in s.reports)
+
+
+def test_an_assembly_pushes_two_particles_in_the_given_order(calibration):
+    s = Session(calibration)
+    left, middle, right = s.row
+    goals = [(left.x, left.y - 300 * NM), (right.x, right.y - 300 * NM)]
+    before = {m.id: s.true_sphere((m.x, m.y)) for m in s.row}
+
+    result = s.procedure.assemble(
+        [left.id, right.id], goals, order=lambda ids: ids[::-1], progress=s.reports.append
+    )
+
+    assert result.order == [right.id, left.id]
+    assert result.success, result.message
+    for mark, goal, achieved, error in zip((left, right), goals, result.achieved, result.errors):
+        moved = s.true_sphere(before[mark.id]) - before[mark.id]
+        wanted = np.array(goal) - (mark.x, mark.y)
+        assert math.hypot(*(moved - wanted)) <= TRUE_TOLERANCE
+        assert math.hypot(*((np.asarray(achieved) - (mark.x, mark.y)) - moved)) <= 10 * NM
+        assert error <= 20 * NM
+    assert np.allclose(s.true_sphere(before[middle.id]), before[middle.id])  # left alone
+    assert [(r.index, r.particle_id) for r in s.reports if r.phase == "scanning"] == [
+        (0, right.id),
+        (1, left.id),
+    ]
+    assert [p.particle_id for p in result.pushes] == [right.id, left.id]
+
+
+def test_a_cancel_lifts_the_tip_clear_and_says_where_the_tip_and_the_particle_are(calibration):
+    s = Session(calibration)
+    mark = s.row[1]
+    start = np.array([mark.x, mark.y])
+    truth_before = s.true_sphere(start)
+
+    with pytest.raises(PushFailed) as failed:
+        s.procedure.push(
+            mark.id,
+            start + [0.0, -400 * NM],
+            progress=s.reports.append,
+            should_stop=lambda: any(r.step >= 3 for r in s.reports),
+        )
+
+    execution = failed.value.execution
+    assert execution.cancelled and execution.strokes_done == 3
+    lifted = s.sim.commanded_position()
+    assert execution.lift_position == lifted
+    predicted = execution.predicted_particle
+    assert str(failed.value).startswith(
+        f"cancelled after 3 of {len(s.reports[2].plan.strokes)} strokes; tip lifted clear to "
+        f"({lifted[0] * 1e9:.1f} nm, {lifted[1] * 1e9:.1f} nm) in afm_scanner; particle "
+        f"{mark.id} predicted at ({predicted[0] * 1e9:.1f} nm, {predicted[1] * 1e9:.1f} nm)"
+    )
+    particle = s.true_sphere(truth_before)
+    assert np.hypot(*(particle - truth_before)) > 50 * NM  # it was pushing
+    # where the model says the particle is, it is; the tip is off it (R_P + R_T = 150 nm)
+    assert math.hypot(*((predicted - start) - (particle - truth_before))) <= 10 * NM
+    assert math.hypot(*(np.array(s.sim.truth()["tip_position"]) - particle)) > 150 * NM
+    assert "verifying" not in [r.phase for r in s.reports]
+    assert (s.map[mark.id].x, s.map[mark.id].y) == (mark.x, mark.y)  # nothing verified
+
+
+def test_refusals_come_before_anything_moves(calibration):
+    s = Session(calibration)
+    left, middle, right = s.row
+    time, command = s.sim.time, s.sim.commanded_position()
+    with pytest.raises(PushRefused, match="particle_id=99: unknown"):
+        s.procedure.push(99, (left.x, left.y))
+    with pytest.raises(PushRefused, match=f"path blocked: landmark {middle.id} "):
+        s.procedure.push(left.id, (right.x + 400 * NM, right.y), progress=s.reports.append)
+    with pytest.raises(PushRefused, match="rod_hand"):
+        s.procedure.push(left.id, (left.x, left.y - 300 * NM), strategy="rod_hand")
+    with pytest.raises(PushRefused, match="each particle once"):
+        s.procedure.assemble([left.id, left.id], [(left.x, left.y)] * 2)
+    assert (s.sim.time, s.sim.commanded_position(), s.reports) == (time, command, [])
