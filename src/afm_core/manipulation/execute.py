@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from afm_core.instrument import Instrument, check_in_range, check_speed
-from afm_core.manipulation.strategies import PushPlan, predict_particle
+from afm_core.manipulation.plans import PushPlan, predict_particle
 
 
 @dataclass

@@ -3,8 +3,8 @@
 The particle's true centre is uncertain: draw `samples` centres (default 500) from a normal
 distribution about the plan's estimate (sigma 10 nm per axis by default, or a full 2x2
 covariance), push every one of them with the plan's strokes through the project's pushing
-physics (afm_core.sim.pushing.push_along_path, one single-sphere Sample per draw, moved in
-place), and describe where they end:
+physics (afm_core.physics.pushing.push_along_path, one single-sphere
+afm_core.physics.sample.Sample per draw, moved in place), and describe where they end:
 
 - mean, sigma across the push axis (lateral) and along it;
 - share_left / share_right: fraction that ended more than `split_threshold` (default 3 sigma)
@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afm_core.manipulation.strategies import PushPlan, _contact_params
+from afm_core.manipulation.plans import PushPlan, model_contact_params
 
 
 @dataclass
@@ -142,7 +142,7 @@ def monte_carlo_push(
     from afm_core.physics.pushing import push_along_path
     from afm_core.physics.sample import Sample, Sphere
 
-    cp = _contact_params(contact_params, plan.tip_radius)
+    cp = model_contact_params(contact_params, plan.tip_radius)
     rng = np.random.default_rng(seed)
     initial = (
         rng.multivariate_normal(plan.particle, cov, size=samples, method="cholesky")

@@ -46,6 +46,7 @@ from afm_core.instrument import (
     check_in_range,
 )
 from afm_core.manipulation.execute import ExecutionResult, execute_plan, pushed_object_after
+from afm_core.manipulation.plans import PushPlan, path_blocker
 from afm_core.manipulation.push_steps import (
     Localization,
     TipEstimate,
@@ -57,7 +58,6 @@ from afm_core.manipulation.push_steps import (
     rescan_request,
     task_to_command,
 )
-from afm_core.manipulation.strategies import PushPlan, path_blocker
 from afm_core.manipulation.verify import VerificationResult, verify_push
 from afm_core.parameters import Parameter, ParameterTable
 

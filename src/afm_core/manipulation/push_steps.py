@@ -15,15 +15,10 @@ import numpy as np
 
 from afm_core.imaging.landmarks import Landmark
 from afm_core.instrument import RasterScanData, ScannerLimits, ScanRequest
-from afm_core.manipulation.strategies import (
-    NanoHandParams,
-    ParticleEstimate,
-    PushPlan,
-    centre_push_plan,
-    choose_nano_hand_params,
-    nano_hand_plan,
-    rod_hand_plan,
-)
+from afm_core.manipulation.centre_push import centre_push_plan
+from afm_core.manipulation.nano_hand import NanoHandParams, choose_nano_hand_params, nano_hand_plan
+from afm_core.manipulation.plans import ParticleEstimate, PushPlan
+from afm_core.manipulation.rod_hand import rod_hand_plan
 from afm_core.manipulation.verify import find_particles
 
 

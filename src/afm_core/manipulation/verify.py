@@ -65,12 +65,6 @@ class VerificationResult:
     offset_spread: float = 0.0  # m, rms of the used control points' displacements about the offset
     after: RasterScanData | None = None
 
-    def along_lateral(self, start, axis) -> tuple[float, float]:
-        """Achieved displacement from `start` along `axis` and sideways (+ left)."""
-        u = np.asarray(axis, float) / np.hypot(*axis)
-        d = self.achieved - np.asarray(start, float)
-        return float(d @ u), float(d @ np.array([-u[1], u[0]]))
-
 
 def _image_args(scan: RasterScanData) -> dict:
     return dict(
