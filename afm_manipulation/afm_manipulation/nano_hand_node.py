@@ -40,12 +40,13 @@ from afm_msgs.msg import LandmarkArray, PlannedPath, TipCommand
 from afm_msgs.srv import PlanSequence
 from afm_ros import params, topics
 from afm_ros.action_client import SafeActionClient
-from afm_ros.action_instrument import ActionInstrument, DriverUnavailable, call_action
+from afm_ros.action_instrument import ActionInstrument, call_action, call_service
 from afm_ros.conversions import (
     FRAME_TASK,
     landmarks_to_msg,
     msg_to_landmarks,
     newer_landmarks,
+    outcome_to_result,
     pose_to_tip_estimate,
     progress_to_assemble_feedback,
     progress_to_push_feedback,
@@ -53,7 +54,6 @@ from afm_ros.conversions import (
     seconds_to_time,
     stamp_of,
     wait_for_landmarks,
-    xy_to_point,
 )
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED
@@ -188,19 +188,11 @@ class NanoHandNode(Node):
         return Localization(result.success, pose_to_tip_estimate(result.pose), result.message)
 
     def order(self, particle_ids) -> list[int]:
-        if not self.sequence_client.wait_for_service(timeout_sec=10.0):
-            raise DriverUnavailable(
-                f"planner service {topics.SERVICE_PLAN_SEQUENCE} not available; is the planner "
-                "running? (or set keep_order)"
-            )
-        future = self.sequence_client.call_async(
-            PlanSequence.Request(landmark_ids=[int(i) for i in particle_ids])
+        request = PlanSequence.Request(landmark_ids=[int(i) for i in particle_ids])
+        hint = "; is the planner running? (or set keep_order)"
+        response = call_service(
+            self.sequence_client, request, 10.0, self.config["action_timeout"], hint
         )
-        done = threading.Event()
-        future.add_done_callback(lambda _f: done.set())
-        if not done.wait(self.config["action_timeout"]):
-            raise DriverUnavailable("planner: no answer to the sequencing request")
-        response = future.result()
         if not response.success:
             raise ValueError(f"planner: {response.message}")
         return [int(particle_ids[i]) for i in response.order]
@@ -227,59 +219,60 @@ class NanoHandNode(Node):
 
     # -- the actions -------------------------------------------------------------------------
     def execute_push(self, goal_handle) -> PushParticle.Result:
-        goal, result = goal_handle.request, PushParticle.Result()
-
-        with self.busy:
-            try:
-                outcome = self.procedure.push(
-                    goal.particle_id,
-                    (goal.goal.x, goal.goal.y),
-                    position=(goal.particle_position.x, goal.particle_position.y),
-                    strategy=goal.strategy,
-                    tolerance=goal.tolerance,
-                    overrides=ZigzagOverrides(**{f: getattr(goal, f) for f in ZIGZAG_FIELDS}),
-                    progress=self.reporter(goal_handle, progress_to_push_feedback),
-                    should_stop=lambda: goal_handle.is_cancel_requested,
-                )
-            except PushRefused as exc:
-                goal_handle.abort()
-                result.success, result.message = False, f"refused: {exc}"
-                return result
-            except PushFailed as exc:
-                (goal_handle.canceled if goal_handle.is_cancel_requested else goal_handle.abort)()
-                result.success, result.message = False, str(exc)
-                return result
-        result.achieved = xy_to_point(outcome.achieved)
-        result.error, result.steps = outcome.error, outcome.steps
-        result.success, result.message = outcome.success, outcome.message
-        if result.success:
-            goal_handle.succeed()
-        else:
-            goal_handle.abort()
-        return result
+        goal = goal_handle.request
+        overrides = ZigzagOverrides(**{f: getattr(goal, f) for f in ZIGZAG_FIELDS})
+        return self.run_goal(
+            goal_handle,
+            PushParticle.Result(),
+            lambda progress, should_stop: self.procedure.push(
+                goal.particle_id,
+                (goal.goal.x, goal.goal.y),
+                position=(goal.particle_position.x, goal.particle_position.y),
+                strategy=goal.strategy,
+                tolerance=goal.tolerance,
+                overrides=overrides,
+                progress=progress,
+                should_stop=should_stop,
+            ),
+            progress_to_push_feedback,
+        )
 
     def execute_assemble(self, goal_handle) -> Assemble.Result:
-        goal, result = goal_handle.request, Assemble.Result()
+        goal = goal_handle.request
+        return self.run_goal(
+            goal_handle,
+            Assemble.Result(),
+            lambda progress, should_stop: self.procedure.assemble(
+                goal.particle_ids,
+                [(g.x, g.y) for g in goal.goals],
+                strategy=goal.strategy,
+                tolerance=goal.tolerance,
+                order=None if goal.keep_order else self.order,
+                progress=progress,
+                should_stop=should_stop,
+            ),
+            progress_to_assemble_feedback,
+        )
 
+    def run_goal(self, goal_handle, result, procedure, to_feedback):
+        """One manipulation at a time: refused before anything moved, failed or cancelled after
+        it started, or its outcome; the goal ends accordingly."""
         with self.busy:
             try:
-                outcome = self.procedure.assemble(
-                    goal.particle_ids,
-                    [(g.x, g.y) for g in goal.goals],
-                    strategy=goal.strategy,
-                    tolerance=goal.tolerance,
-                    order=None if goal.keep_order else self.order,
-                    progress=self.reporter(goal_handle, progress_to_assemble_feedback),
-                    should_stop=lambda: goal_handle.is_cancel_requested,
+                outcome = procedure(
+                    self.reporter(goal_handle, to_feedback),
+                    lambda: goal_handle.is_cancel_requested,
                 )
             except PushRefused as exc:
-                goal_handle.abort()
                 result.success, result.message = False, f"refused: {exc}"
+                goal_handle.abort()
                 return result
-        result.order, result.errors = outcome.order, [float(e) for e in outcome.errors]
-        result.achieved = [xy_to_point(xy) for xy in outcome.achieved]
-        result.success, result.message = outcome.success, outcome.message
-        if goal_handle.is_cancel_requested:
+            except PushFailed as exc:
+                result.success, result.message = False, str(exc)
+                (goal_handle.canceled if goal_handle.is_cancel_requested else goal_handle.abort)()
+                return result
+        outcome_to_result(outcome, result)
+        if isinstance(result, Assemble.Result) and goal_handle.is_cancel_requested:
             goal_handle.canceled()
         elif result.success:
             goal_handle.succeed()

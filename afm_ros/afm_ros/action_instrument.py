@@ -118,6 +118,20 @@ def call_action(
     return result_future.result().result
 
 
+def call_service(client, request, server_timeout: float, result_timeout: float, hint: str = ""):
+    """Call a service and block until its response (from a thread that is not spinning the
+    node). DriverUnavailable when the service is missing or gives no response in time."""
+    name = client.srv_name
+    if not client.wait_for_service(timeout_sec=server_timeout):
+        raise DriverUnavailable(f"service {name} not available{hint}")
+    done = threading.Event()
+    future = client.call_async(request)
+    future.add_done_callback(lambda _f: done.set())
+    if not done.wait(result_timeout):
+        raise DriverUnavailable(f"{name}: no answer within {result_timeout} s")
+    return future.result()
+
+
 class ActionInstrument:
     """Instrument protocol over the driver's actions. Refusals come back as ValueError with
     the driver's message (which names the field and the limit); cancellation of the caller

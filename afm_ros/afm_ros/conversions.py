@@ -366,3 +366,15 @@ def progress_to_assemble_feedback(progress: Progress):
         phase=progress.phase,
         particle_estimate=xy_to_point(progress.particle_estimate),
     )
+
+
+def outcome_to_result(outcome, result):
+    """A PushResult into a PushParticle result, an AssemblyResult into an Assemble result."""
+    if hasattr(result, "order"):
+        result.order, result.errors = outcome.order, [float(e) for e in outcome.errors]
+        result.achieved = [xy_to_point(xy) for xy in outcome.achieved]
+    else:
+        result.achieved = xy_to_point(outcome.achieved)
+        result.error, result.steps = outcome.error, outcome.steps
+    result.success, result.message = outcome.success, outcome.message
+    return result
