@@ -100,7 +100,8 @@ def validated_distances(matrix, tolerance: float = SYMMETRY_TOLERANCE) -> np.nda
 
 
 def order_cost(matrix, order: Sequence[int]) -> float:
-    """Sum of the distances between consecutive particles of `order` (inf if it uses an unknown one)."""
+    """Sum of the distances between consecutive particles of `order` (inf if it uses an unknown
+    one)."""
     d = np.asarray(matrix, dtype=float)
     idx = np.asarray(order, dtype=int)
     if idx.size < 2:
