@@ -40,7 +40,10 @@ def naive_pi(x, thresholds, weights, poly, state):
 def naive_creep(u, dt, lam, c, a, x0, u_prev):
     x, out = list(x0), []
     for uk in u:
-        x = [math.exp(-l * dt) * xi + (1 - math.exp(-l * dt)) * u_prev for l, xi in zip(lam, x)]
+        x = [
+            math.exp(-rate * dt) * xi + (1 - math.exp(-rate * dt)) * u_prev
+            for rate, xi in zip(lam, x)
+        ]
         out.append(sum(ci * xi for ci, xi in zip(c, x)) + a * uk)
         u_prev = uk
     return np.array(out)

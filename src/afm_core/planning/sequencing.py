@@ -119,7 +119,7 @@ def _result(d: np.ndarray, order, method: str, optimal: bool) -> SequencingResul
             + (
                 " (none exists)"
                 if optimal
-                else " (one may still exist; try the exact solver for n <= %d)" % EXACT_MAX
+                else f" (one may still exist; try the exact solver for n <= {EXACT_MAX:d})"
             )
         )
     return SequencingResult(tuple(int(i) for i in order), cost, method, optimal)
