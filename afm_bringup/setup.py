@@ -17,7 +17,8 @@ setup(
     zip_safe=True,
     maintainer="AFM nano-manipulation maintainers",
     maintainer_email="maintainers@afm-nanorobotics.org",
-    description="Graph launcher, MCAP recorder and replay, the afm CLI and a Python API for scripts.",
+    description="Graph launcher, MCAP recorder and replay, the afm CLI "
+    "and a Python API for scripts.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

@@ -17,7 +17,8 @@ setup(
     zip_safe=True,
     maintainer="AFM nano-manipulation maintainers",
     maintainer_email="maintainers@afm-nanorobotics.org",
-    description="The AFM instrument: simulated, DAQ hardware or replayed; raster scans, scan lines, tip moves, indentation.",
+    description="The AFM instrument: simulated, DAQ hardware or replayed; "
+    "raster scans, scan lines, tip moves, indentation.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

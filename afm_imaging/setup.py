@@ -17,7 +17,8 @@ setup(
     zip_safe=True,
     maintainer="AFM nano-manipulation maintainers",
     maintainer_email="maintainers@afm-nanorobotics.org",
-    description="Image reconstruction: thermal-drift compensation, blind tip estimation, landmark extraction.",
+    description="Image reconstruction: thermal-drift compensation, blind tip estimation, "
+    "landmark extraction.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

@@ -120,7 +120,8 @@ def scan_heights(
     particles: np.ndarray,
     drift_px: tuple[int, int],
 ) -> np.ndarray:
-    """One scan of a surface: drifted substrate, gaussian particles, 0.2 nm noise; ~1e-9..2e-7 m."""
+    """One scan of a surface: drifted substrate, gaussian particles, 0.2 nm noise;
+    ~1e-9..2e-7 m."""
     n = substrate.shape[0]
     height = np.roll(substrate, drift_px, axis=(0, 1))
     yy, xx = np.mgrid[0:n, 0:n]
@@ -137,7 +138,8 @@ def stamp(ns: int):
 
 
 def make_scans(payload: Payload, seed: int = 1) -> list[bytes]:
-    """Scans of a few samples; within one sample the tip pushes particles and the scanner drifts."""
+    """Scans of a few samples; within one sample the tip pushes particles and the scanner
+    drifts."""
     from rclpy.serialization import serialize_message
 
     from afm_msgs.msg import RasterScan
@@ -249,7 +251,8 @@ def prepare_payloads(counts: dict[str, int], workdir: Path) -> list[Payload]:
         ready.append(Payload(**{**asdict(spec), "file": str(file), "total_bytes": total}))
         print(
             f"payload {spec.name}: {spec.count} messages, {total / MIB:.1f} MiB "
-            f"({total / spec.count / 1024:.1f} KiB each), built in {time.perf_counter() - t0:.1f} s",
+            f"({total / spec.count / 1024:.1f} KiB each), "
+            f"built in {time.perf_counter() - t0:.1f} s",
             flush=True,
         )
     return ready
@@ -295,7 +298,8 @@ def write_plain(path: str, payload: Payload, messages: list[bytes]) -> float:
 
 
 def max_rss_kib() -> int:
-    """ru_maxrss (KiB). In a spawned child it starts at the parent's RSS: fork copies it, exec keeps it."""
+    """ru_maxrss (KiB). In a spawned child it starts at the parent's RSS: fork copies it, exec
+    keeps it."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
 
@@ -329,7 +333,8 @@ def run_case(case: Case) -> dict:
         count = reader.message_count
     if count != len(messages):
         raise RuntimeError(
-            f"{case.writer}/{case.payload.name}: file holds {count} messages, wrote {len(messages)}"
+            f"{case.writer}/{case.payload.name}: file holds {count} messages, "
+            f"wrote {len(messages)}"
         )
     file_bytes = os.path.getsize(case.output)
     os.unlink(case.output)
@@ -365,7 +370,8 @@ def pair_order(rep: int) -> tuple[str, str]:
 
 
 def run_all(payloads: list[Payload], repetitions: int, warmups: int, workdir: Path) -> list[dict]:
-    """Repetitions numbered from -warmups; runs with rep < 0 are warm-ups, left out of the summary."""
+    """Repetitions numbered from -warmups; runs with rep < 0 are warm-ups, left out of the
+    summary."""
     results = []
     for payload in payloads:
         for rep in range(-warmups, repetitions):
@@ -447,10 +453,12 @@ def table(summary: dict) -> list[str]:
         for writer in WRITERS:
             s = entry[writer]
             lines.append(
-                f"| {name} | {writer} | {s['messages']} | {s['payload_bytes'] / MB:.1f} | {s['seconds']:.2f} "
+                f"| {name} | {writer} | {s['messages']} | {s['payload_bytes'] / MB:.1f} "
+                f"| {s['seconds']:.2f} "
                 f"({s['min_seconds']:.2f}-{s['max_seconds']:.2f}) | {s['close_seconds']:.3f} "
                 f"| {s['messages_per_s']:.0f} | {s['mb_per_s']:.1f} | {s['file_bytes'] / MB:.1f} "
-                f"| {s['compression_ratio']:.2f} | {s['peak_rss_kib'] / 1024:.0f} | {s['writer_rss_kib'] / 1024:.0f} |"
+                f"| {s['compression_ratio']:.2f} | {s['peak_rss_kib'] / 1024:.0f} "
+                f"| {s['writer_rss_kib'] / 1024:.0f} |"
             )
     return lines
 
@@ -466,15 +474,18 @@ def ratio_lines(summary: dict) -> list[str]:
 
 def notes(settings: dict) -> list[str]:
     return [
-        f"Writers: zstd, {CHUNK_SIZE // MIB} MiB chunks; {settings['repetitions']} repetitions each "
-        f"after {settings['warmups']} discarded warm-up pair(s), interleaved (ours, plain, then plain, ours, ...), "
-        "each case in a fresh spawned process, os.sync() before each case (untimed).",
-        "Time = writer creation through close()/finish(); ours includes flush + fsync + link at close, "
-        "plain has no fsync (its data may still be in the page cache). 'close s' = close()/finish() alone.",
+        f"Writers: zstd, {CHUNK_SIZE // MIB} MiB chunks; {settings['repetitions']} repetitions "
+        f"each after {settings['warmups']} discarded warm-up pair(s), interleaved (ours, plain, "
+        "then plain, ours, ...), each case in a fresh spawned process, os.sync() before each "
+        "case (untimed).",
+        "Time = writer creation through close()/finish(); ours includes flush + fsync + link at "
+        "close, plain has no fsync (its data may still be in the page cache). 'close s' = "
+        "close()/finish() alone.",
         "MB = 1e6 bytes of serialized CDR payload. compr. = payload bytes / file bytes. "
         "Peak RSS = peak of the case's own process (VmHWM), payload held in memory included; "
-        "writer +RSS = peak during the timed write minus RSS just before it (the writer's own memory). "
-        "(A spawned child's ru_maxrss starts at the parent's RSS, so it is kept in the JSON only.)",
+        "writer +RSS = peak during the timed write minus RSS just before it (the writer's own "
+        "memory). (A spawned child's ru_maxrss starts at the parent's RSS, so it is kept in the "
+        "JSON only.)",
         "ratio = median over pairs of (ours msg/s / plain msg/s); < 1 means ours is slower. "
         "'without close()/finish()' compares the time before close, i.e. leaves out ours' fsync.",
     ]
@@ -488,15 +499,17 @@ def write_reports(report: dict, stem: str) -> tuple[Path, Path]:
     md = [
         f"# Recording throughput ({'quick' if report['settings']['quick'] else 'default'} run)",
         "",
-        f"Measured {report['date']} on {m['cpu_count']} CPUs ({m['cpu_model']}), Python {m['python']}, "
-        f"{m['platform']}; load average at start {', '.join(f'{x:.2f}' for x in m['load_average_at_start'])}.",
+        f"Measured {report['date']} on {m['cpu_count']} CPUs ({m['cpu_model']}), "
+        f"Python {m['python']}, {m['platform']}; load average at start "
+        f"{', '.join(f'{x:.2f}' for x in m['load_average_at_start'])}.",
         "",
         *table(report["summary"]),
         "",
         *ratio_lines(report["summary"]),
         "",
         *(f"- {n}" for n in notes(report["settings"])),
-        f"- Benchmark process peak RSS (payload building): {report['process_peak_rss_kib'] / 1024:.0f} MiB; "
+        "- Benchmark process peak RSS (payload building): "
+        f"{report['process_peak_rss_kib'] / 1024:.0f} MiB; "
         f"total wall time {report['wall_seconds']:.0f} s.",
         "",
     ]

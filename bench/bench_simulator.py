@@ -128,14 +128,17 @@ def main() -> None:
     lines = [
         f"# Simulator speed{' (quick)' if args.quick else ''}",
         "",
-        f"Measured {result['measured']} on {result['machine']['cpus']} CPUs, Python {result['machine']['python']}.",
+        f"Measured {result['measured']} on {result['machine']['cpus']} CPUs, "
+        f"Python {result['machine']['python']}.",
         "",
         "| figure | value | target |",
         "|---|---|---|",
-        f"| 512x512 scan, {scan['tip_pixels'][0]}x{scan['tip_pixels'][1]}-pixel tip, drift + hysteresis + creep "
-        f"(median of {scan['repetitions']}) | {scan['wall_s_median']:.2f} s (min {scan['wall_s_min']:.2f}, "
+        f"| 512x512 scan, {scan['tip_pixels'][0]}x{scan['tip_pixels'][1]}-pixel tip, "
+        f"drift + hysteresis + creep (median of {scan['repetitions']}) "
+        f"| {scan['wall_s_median']:.2f} s (min {scan['wall_s_min']:.2f}, "
         f"max {scan['wall_s_max']:.2f}) | <= 2 s |",
-        f"| push session: simulated / wall time | {session['ratio']:.0f}x ({session['sim_s']:.0f} s simulated in "
+        f"| push session: simulated / wall time | {session['ratio']:.0f}x "
+        f"({session['sim_s']:.0f} s simulated in "
         f"{session['wall_s']:.1f} s, {session['cycles']} push cycles) | >= 100x |",
         f"| peak resident memory | {result['peak_rss_mib']:.0f} MiB | |",
     ]

@@ -1,4 +1,5 @@
-"""DAQ backend against FakeDaq: calibration, clamps, feed-forward, images, timing, cancel, refusals."""
+"""DAQ backend against FakeDaq: calibration, clamps, feed-forward, images, timing, cancel,
+refusals."""
 
 from __future__ import annotations
 
@@ -121,7 +122,8 @@ def test_feed_forward_is_applied_to_every_commanded_sample():
 
 
 class RecordingInverse:
-    """A stateful feed-forward whose output depends on its history, as a hysteresis model's does."""
+    """A stateful feed-forward whose output depends on its history, as a hysteresis model's
+    does."""
 
     def __init__(self):
         self.calls: list[np.ndarray] = []

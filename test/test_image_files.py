@@ -295,7 +295,8 @@ def test_bad_maps_and_archives_are_rejected_by_name(tmp_path):
 
 
 def test_landmarks_are_where_they_were_after_a_gwy_round_trip(tmp_path):
-    """The frame survives the file: a particle near the top of the area stays at the same (x, y)."""
+    """The frame survives the file: a particle near the top of the area stays at the same
+    (x, y)."""
     px = 4e-9
     rows, cols = np.indices((80, 100))
     x, y = 5e-6 + (cols + 0.5) * px, 7e-6 + (rows + 0.5) * px

@@ -3,8 +3,6 @@
 import re
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 

@@ -92,7 +92,8 @@ def test_a_tube_gets_its_orientation_length_and_width(scene):
     assert lm.height == pytest.approx(2 * TUBE["radius"], rel=0.08)
     assert lm.radius == pytest.approx(TUBE["radius"], rel=0.08)
     # The image is broadened by the tip (~ the tip's width at that depth) at both ends and sides:
-    # end to end at half height it is longer than the tube by 2 * half_width, and wider than it is high.
+    # end to end at half height it is longer than the tube by 2 * half_width, and wider than it
+    # is high.
     assert lm.half_width > TUBE["radius"]
     apparent = lm.length + 2 * lm.half_width
     assert apparent > TUBE["length"] + 2 * TUBE["radius"]

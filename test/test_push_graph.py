@@ -84,7 +84,8 @@ def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
         )
         moved_true = true_sphere(truths, 0) - start_true
         moved_verified = np.array([result.achieved.x, result.achieved.y]) - start_map
-        # the rescan's verdict agrees with the truth (displacements: the map's frame is not the sim's)
+        # the rescan's verdict agrees with the truth (displacements: the map's frame is not the
+        # sim's)
         assert np.linalg.norm(moved_verified - moved_true) < 25e-9, (moved_verified, moved_true)
         assert abs(moved_true[1] + 300e-9) < 60e-9 and abs(moved_true[0]) < 40e-9, moved_true
         assert result.error == pytest.approx(

@@ -40,7 +40,10 @@ def naive_pi(x, thresholds, weights, poly, state):
 def naive_creep(u, dt, lam, c, a, x0, u_prev):
     x, out = list(x0), []
     for uk in u:
-        x = [math.exp(-l * dt) * xi + (1 - math.exp(-l * dt)) * u_prev for l, xi in zip(lam, x)]
+        x = [
+            math.exp(-rate * dt) * xi + (1 - math.exp(-rate * dt)) * u_prev
+            for rate, xi in zip(lam, x)
+        ]
         out.append(sum(ci * xi for ci, xi in zip(c, x)) + a * uk)
         u_prev = uk
     return np.array(out)
@@ -256,7 +259,8 @@ def test_inverse_composes_to_the_identity_in_both_orders(make, seed):
 
 @pytest.mark.parametrize("asymmetry", [1e-12, 1e-8, 1e-4, 0.03, -0.5])
 def test_inverse_is_exact_in_metres_for_any_asymmetry(asymmetry):
-    # tiny asymmetries make the cubic's closed-form root cancel badly: the Newton polish must fix it
+    # tiny asymmetries make the cubic's closed-form root cancel badly: the Newton polish must
+    # fix it
     forward = PrandtlIshlinskii.from_fraction(110e-6, 0.12, asymmetry=asymmetry)
     inverse = forward.inverse()
     target = piecewise_linear(np.random.default_rng(2), 200, 40e-6)
@@ -510,7 +514,7 @@ def test_scanner_params_name_the_bad_field(field, value):
         ScannerParams(**{field: value})
 
 
-# -- speed ------------------------------------------------------------------------------------------
+# -- speed ----------------------------------------------------------------------------------------
 
 
 def test_half_a_million_samples_through_an_8_operator_pi_is_fast():

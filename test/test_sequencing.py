@@ -1,5 +1,6 @@
 """Particle sequencing (afm_core.planning.sequencing): the book's Table 6.5 / 6.6, exactness of the
-Held-Karp solver against brute force, the heuristic and the ant colony, unknown entries, validation."""
+Held-Karp solver against brute force, the heuristic and the ant colony, unknown entries,
+validation."""
 
 from __future__ import annotations
 
@@ -78,7 +79,9 @@ def test_exact_order_equals_brute_force(n):
     for trial in range(3):
         if trial < 2:
             d = euclidean(rng.uniform(0, 3e-6, (n, 2)))
-        else:  # not metric: arbitrary symmetric weights, where greedy and local search are easily fooled
+        else:
+            # not metric: arbitrary symmetric weights, where greedy and local search are easily
+            # fooled
             d = rng.uniform(0.1, 10.0, (n, n))
             d = np.triu(d, 1) + np.triu(d, 1).T
         result = exact_order(d)
@@ -128,7 +131,7 @@ def test_heuristic_on_points_on_a_line_finds_the_obvious_order():
     assert result.cost == pytest.approx(1.0, abs=1e-12)
 
 
-# -- unknown entries --------------------------------------------------------------------------------
+# -- unknown entries ------------------------------------------------------------------------------
 def test_unknown_edges_are_avoided():
     d = euclidean(np.random.default_rng(4).uniform(0, 1, (9, 2)))
     d[0, 1] = d[1, 0] = np.nan  # the shortest edges become unusable ...
@@ -156,7 +159,7 @@ def test_no_order_exists_raises():
         ant_colony_order(d, parameters=AntColonyParameters(iterations=5))
 
 
-# -- validation ------------------------------------------------------------------------------------
+# -- validation -----------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     "matrix, message",
     [

@@ -109,8 +109,8 @@ class AfmCommander:
         client = self.clients[action]
         if not client.wait_until_answering(self.server_timeout):
             raise AfmError(
-                f"no action server at {self.ACTIONS[action][1]} answered within {self.server_timeout} s; "
-                "is the graph running (`afm launch`)?"
+                f"no action server at {self.ACTIONS[action][1]} answered within "
+                f"{self.server_timeout} s; is the graph running (`afm launch`)?"
             )
         box: dict = {}
 

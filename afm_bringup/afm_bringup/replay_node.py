@@ -2,8 +2,8 @@
 
 Publishers offer the durability the recorded publishers offered (so latched scans stay
 latched), reliably and with a deep history, so that no subscriber that asks for reliability
-misses a message; /clock carries the recording's time for nodes running with use_sim_time. The recording is
-streamed chunk by chunk, never loaded whole.
+misses a message; /clock carries the recording's time for nodes running with use_sim_time. The
+recording is streamed chunk by chunk, never loaded whole.
 """
 
 from __future__ import annotations

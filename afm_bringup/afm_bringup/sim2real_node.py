@@ -92,7 +92,8 @@ class Sim2RealNode(Node):
             return live, ""
         if not part.is_file():
             raise ValueError(
-                f"live_recording={str(live)!r}: neither it nor {part.name} exists (is the recorder running?)"
+                f"live_recording={str(live)!r}: neither it nor {part.name} exists "
+                "(is the recorder running?)"
             )
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
         snapshot, count = recover_recording(
@@ -131,7 +132,8 @@ class Sim2RealNode(Node):
                 goal_handle.publish_feedback(Sim2Real.Feedback(phase=str(phase)))
 
             try:
-                # a snapshot ends wherever the recorder had got to: its last command may lack its data
+                # a snapshot ends wherever the recorder had got to: its last command may lack
+                # its data
                 diagnosis = run_sim2real(
                     recording,
                     model,

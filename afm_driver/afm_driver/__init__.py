@@ -1,1 +1,2 @@
-"""The AFM instrument: simulated, DAQ hardware or replayed; raster scans, scan lines, tip moves, indentation."""
+"""The AFM instrument: simulated, DAQ hardware or replayed; raster scans, scan lines, tip moves,
+indentation."""

@@ -48,7 +48,8 @@ PARAMETERS = ParameterTable(
     Parameter(
         "sim_config",
         "",
-        "YAML file of simulator parameters (any subset; defaults: afm_core/sim/default_config.yaml).",
+        "YAML file of simulator parameters "
+        "(any subset; defaults: afm_core/sim/default_config.yaml).",
     ),
     Parameter("seed", -1, "Simulator random seed; -1 keeps the config file's seed.", minimum=-1),
     Parameter(
@@ -284,7 +285,10 @@ class DriverNode(Node):
         else:
             goal_handle.canceled()
             result.success = False
-            result.message = f"{what} cancelled; tip held at ({x * 1e9:.1f} nm, {y * 1e9:.1f} nm) in afm_scanner"
+            result.message = (
+                f"{what} cancelled; tip held at ({x * 1e9:.1f} nm, {y * 1e9:.1f} nm) "
+                "in afm_scanner"
+            )
         return result
 
     # -- actions -----------------------------------------------------------------------------

@@ -57,7 +57,8 @@ def find_particles(
 def match_to_truth(
     found: list[ParticleView], truth_xy: np.ndarray, max_distance: float
 ) -> list[tuple]:
-    """Pair each true particle with the nearest found one within max_distance: (truth index, view, distance)."""
+    """Pair each true particle with the nearest found one within max_distance:
+    (truth index, view, distance)."""
     pairs = []
     for i, (tx, ty) in enumerate(np.asarray(truth_xy).reshape(-1, 2)):
         if not found:

@@ -109,7 +109,8 @@ class PlayOperatorBank:
         self._z = z.copy()
 
     def reset(self, x0=0.0) -> None:
-        """Demagnetised at x0: every operator centred on the input (a scalar or one per operator)."""
+        """Demagnetised at x0: every operator centred on the input (a scalar or one per
+        operator)."""
         self.state = np.broadcast_to(np.asarray(x0, dtype=float), self._z.shape)
 
     def apply(self, x) -> np.ndarray:
@@ -252,8 +253,8 @@ class PrandtlIshlinskii(_WeightedPlayBank):
         if (partial <= 0).any():
             i = int(np.argmax(partial <= 0))
             raise ValueError(
-                f"weights={weights!r}: partial sum w_0 + ... + w_{i} = {partial[i]:.4g} must be > 0 "
-                "(the model would not be strictly increasing and has no inverse)"
+                f"weights={weights!r}: partial sum w_0 + ... + w_{i} = {partial[i]:.4g} "
+                "must be > 0 (the model would not be strictly increasing and has no inverse)"
             )
         self._poly = _check_polynomial(polynomial)
         self._w = w.copy()
@@ -338,7 +339,8 @@ class InversePrandtlIshlinskii(_WeightedPlayBank):
         self._bank.state = partial * z + tail
 
     def reset(self, y0: float = 0.0) -> None:
-        """Demagnetised at output y0: matches the forward model's reset(x0) when y0 = sum(w) p(x0)."""
+        """Demagnetised at output y0: matches the forward model's reset(x0) when
+        y0 = sum(w) p(x0)."""
         self._bank.reset(float(y0))
 
     def apply(self, y) -> np.ndarray:
@@ -437,9 +439,10 @@ def _slew_end(x: np.ndarray, k: int, previous: float, step: float) -> int:
 
 
 def limit_slew(samples, dt: float, max_speed: float, start: float | None = None) -> np.ndarray:
-    """A copy of `samples` in which no step exceeds max_speed * dt (to rounding): y(k) = clip(x(k), y(k-1) - d,
-    y(k-1) + d), y(-1) = start (default: the first sample). Where x moves slower than the limit
-    the output is x itself; elsewhere it ramps at full speed until it catches up.
+    """A copy of `samples` in which no step exceeds max_speed * dt (to rounding):
+    y(k) = clip(x(k), y(k-1) - d, y(k-1) + d), y(-1) = start (default: the first sample). Where x
+    moves slower than the limit the output is x itself; elsewhere it ramps at full speed until it
+    catches up.
 
     Processed in runs (tracking runs end at the next too-fast step, ramps where they meet x),
     each vectorised, so the Python work is per run, not per sample."""

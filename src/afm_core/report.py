@@ -48,7 +48,8 @@ def write_html(path: Path, title: str, sections: list[tuple[str, str]]) -> Path:
     """sections: (heading, html body)."""
     style = (
         "body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
-        "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #bbb;padding:3px 8px;"
+        "table{border-collapse:collapse;margin:0.5em 0}"
+        "td,th{border:1px solid #bbb;padding:3px 8px;"
         "text-align:left}th{background:#eee}.ok{color:#070}.bad{color:#b00}"
     )
     parts = [

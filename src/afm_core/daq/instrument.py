@@ -389,8 +389,10 @@ class DaqInstrument:
         if n_half < pixels:
             name = "pixels_x" if fast_x else "pixels_y"
             raise ValueError(
-                f"{name}={pixels}: a trace at line_rate {request.line_rate} Hz has {n_half} samples at "
-                f"sample_rate {self.fs:g} Hz, fewer than one per pixel; lower line_rate to at most "
+                f"{name}={pixels}: a trace at line_rate {request.line_rate} Hz "
+                f"has {n_half} samples at "
+                f"sample_rate {self.fs:g} Hz, fewer than one per pixel; "
+                "lower line_rate to at most "
                 f"{self.fs / (2 * pixels):.4g} Hz"
             )
         self._check_plan(self._raster_steps(request))
@@ -448,7 +450,8 @@ class DaqInstrument:
         n = max(2, math.ceil(request.length / request.speed * self.fs - 1e-9))
         if n < request.samples:
             raise ValueError(
-                f"samples={request.samples}: the line takes {n / self.fs:.4g} s, only {n} DAQ samples at "
+                f"samples={request.samples}: the line takes {n / self.fs:.4g} s, "
+                f"only {n} DAQ samples at "
                 f"sample_rate {self.fs:g} Hz; request at most {n} samples or a lower speed"
             )
 
@@ -579,7 +582,8 @@ class DaqInstrument:
         depth = force / c.normal_spring_constant
         if depth > self.limits.range_z:
             raise ValueError(
-                f"force={force:.3e} N: needs {depth:.3e} m of z travel (force / normal_spring_constant), "
+                f"force={force:.3e} N: needs {depth:.3e} m of z travel "
+                "(force / normal_spring_constant), "
                 f"above range_z {self.limits.range_z:.3e} m"
             )
         z0 = self._z

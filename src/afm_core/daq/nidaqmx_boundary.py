@@ -26,7 +26,8 @@ def _driver_error(error: Exception) -> DaqUnavailable:
     if kind == "DaqNotFoundError" or isinstance(error, OSError):
         return DaqUnavailable(
             "NI-DAQmx driver/runtime not found: the 'nidaqmx' Python package is installed but the "
-            "NI-DAQmx driver is not (install it from NI; on Linux `python -m nidaqmx installdriver`). "
+            "NI-DAQmx driver is not "
+            "(install it from NI; on Linux `python -m nidaqmx installdriver`). "
             f"Driver said: {error}"
         )
     return DaqUnavailable(f"NI-DAQmx could not list the local devices: {kind}: {error}")

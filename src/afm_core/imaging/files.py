@@ -153,7 +153,8 @@ def save_height_map(path, hmap: HeightMap | Sequence[HeightMap]) -> None:
     maps = [hmap] if isinstance(hmap, HeightMap) else list(hmap)
     if not maps or not all(isinstance(m, HeightMap) for m in maps):
         raise ValueError(
-            f"hmap: expected a HeightMap or a non-empty sequence of them, got {type(hmap).__name__}"
+            "hmap: expected a HeightMap or a non-empty sequence of them, "
+            f"got {type(hmap).__name__}"
         )
     for number, m in enumerate(maps):
         m.validate(f"hmap[{number}]" if len(maps) > 1 else "hmap")
@@ -162,7 +163,8 @@ def save_height_map(path, hmap: HeightMap | Sequence[HeightMap]) -> None:
     if suffix == ".npz":
         if len(maps) != 1:
             raise ValueError(
-                f"{path}: a .npz holds one height map, got {len(maps)}; use .gwy for several channels"
+                f"{path}: a .npz holds one height map, got {len(maps)}; "
+                "use .gwy for several channels"
             )
         payload = _npz_bytes(maps[0])
     else:
@@ -264,7 +266,8 @@ def _npz_scalar(archive, name: str, path: Path) -> float:
     value = archive[name]
     if value.size != 1 or value.dtype.kind not in "iuf":
         raise ValueError(
-            f"{path}: '{name}' must be a single number (m), got {value.dtype} of shape {value.shape}"
+            f"{path}: '{name}' must be a single number (m), "
+            f"got {value.dtype} of shape {value.shape}"
         )
     return float(value.reshape(()))
 

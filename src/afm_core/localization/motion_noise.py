@@ -37,7 +37,8 @@ class MotionNoise:
     def isotropic(
         cls, slope: float, offset: float = 0.0, cross_fraction: float = 0.0
     ) -> MotionNoise:
-        """sigma^2 = slope d + offset on the moving axis; cross_fraction of the slope on the other."""
+        """sigma^2 = slope d + offset on the moving axis; cross_fraction of the slope on the
+        other."""
         return cls(slope, cross_fraction * slope, slope, cross_fraction * slope, offset, offset)
 
     @classmethod

@@ -4,10 +4,10 @@ Transcribed from the extracted text of the book (chapter 6.3.2), where the row l
 shifted: the labels P1..P7 come *after* their rows, so "P5 0.6563 ..." and "P6 0.5082 ..."
 read as if they labelled the rows that are really P6 and P7; from the table caption on,
 "P8".."P16" precede their rows. The row whose 0.0000 sits in column k is row Pk, and with that
-reading the matrix is exactly symmetric. Order costs from it (sum of consecutive distances): the book's
-ant colony order 2.4766 um (the book prints 2.499), random order A 3.5507 (3.6094), random
-order B 2.7610 (2.7704), Table 6.6. The book's totals are 0.3-1.7 % larger and the text does
-not say what they add; the ranking of the three orders is the same.
+reading the matrix is exactly symmetric. Order costs from it (sum of consecutive distances):
+the book's ant colony order 2.4766 um (the book prints 2.499), random order A 3.5507 (3.6094),
+random order B 2.7610 (2.7704), Table 6.6. The book's totals are 0.3-1.7 % larger and the text
+does not say what they add; the ranking of the three orders is the same.
 """
 
 import numpy as np

@@ -100,7 +100,8 @@ def validated_distances(matrix, tolerance: float = SYMMETRY_TOLERANCE) -> np.nda
 
 
 def order_cost(matrix, order: Sequence[int]) -> float:
-    """Sum of the distances between consecutive particles of `order` (inf if it uses an unknown one)."""
+    """Sum of the distances between consecutive particles of `order` (inf if it uses an unknown
+    one)."""
     d = np.asarray(matrix, dtype=float)
     idx = np.asarray(order, dtype=int)
     if idx.size < 2:
@@ -118,7 +119,7 @@ def _result(d: np.ndarray, order, method: str, optimal: bool) -> SequencingResul
             + (
                 " (none exists)"
                 if optimal
-                else " (one may still exist; try the exact solver for n <= %d)" % EXACT_MAX
+                else f" (one may still exist; try the exact solver for n <= {EXACT_MAX:d})"
             )
         )
     return SequencingResult(tuple(int(i) for i in order), cost, method, optimal)

@@ -47,7 +47,8 @@ def image_to_array(image) -> np.ndarray:
     """sensor_msgs/Image (decoded) -> 2-D array, honouring encoding, step and endianness."""
     if image.encoding not in IMAGE_DTYPES:
         raise RecordingError(
-            f"image encoding {image.encoding!r} not supported; expected one of {sorted(IMAGE_DTYPES)}"
+            f"image encoding {image.encoding!r} not supported; "
+            f"expected one of {sorted(IMAGE_DTYPES)}"
         )
     dtype = np.dtype(IMAGE_DTYPES[image.encoding]).newbyteorder(">" if image.is_bigendian else "<")
     raw = np.frombuffer(bytes(image.data), dtype=np.uint8)

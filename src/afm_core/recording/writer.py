@@ -46,8 +46,8 @@ def check_output_path(path: str | os.PathLike) -> Path:
         )
     if part_path(path).exists():
         raise RecordingError(
-            f"output {str(path)!r}: an unfinished recording {part_path(path).name!r} is in the way; "
-            f"run `afm recover {part_path(path)}` or remove it"
+            f"output {str(path)!r}: an unfinished recording {part_path(path).name!r} "
+            f"is in the way; run `afm recover {part_path(path)}` or remove it"
         )
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():

@@ -69,7 +69,8 @@ def paraboloid_cone_tip(
     sphere = apex_shape == "sphere"
 
     def tangent(slope):
-        """(r, z) where the apex's slope equals the cone's: r/R (paraboloid), r/sqrt(R^2-r^2) (sphere)."""
+        """(r, z) where the apex's slope equals the cone's: r/R (paraboloid), r/sqrt(R^2-r^2)
+        (sphere)."""
         if sphere:
             r = apex_radius * slope / np.sqrt(1 + slope**2)
             return r, -(apex_radius - np.sqrt(apex_radius**2 - r**2))
