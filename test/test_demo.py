@@ -5,7 +5,8 @@ import json
 
 import pytest
 
-from afm_bringup.demo import PUSH_DISTANCE, run_demo
+from afm_bringup.demo import run_demo
+from afm_bringup.demo_evaluation import PUSH_DISTANCE
 
 pytestmark = pytest.mark.ros
 

@@ -297,15 +297,7 @@ def cmd_demo(args):
     return run_demo(Path(args.output))
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="afm",
-        description="Run, drive, record and replay the AFM nano-manipulation graph.",
-        epilog="Lengths accept units (500nm, 1.5um) or plain metres. "
-        "Run `afm COMMAND --help` for details.",
-    )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
+def _add_run(sub) -> None:
     p = sub.add_parser(
         "run",
         help="run one node in the foreground (like `ros2 run`)",
@@ -323,6 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_run)
 
+
+def _add_launch(sub) -> None:
     p = sub.add_parser(
         "launch",
         help="start the whole graph as separate processes; Ctrl-C stops all",
@@ -346,6 +340,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_launch)
 
+
+def _add_record(sub) -> None:
     p = sub.add_parser(
         "record",
         help="record topics to a new MCAP file (Ctrl-C to finish)",
@@ -363,6 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--compression", default="zstd", choices=["zstd", "lz4", "none"])
     p.set_defaults(func=cmd_record)
 
+
+def _add_replay(sub) -> None:
     p = sub.add_parser(
         "replay",
         help="republish a recording with its original timing",
@@ -383,12 +381,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_replay)
 
+
+def _add_info(sub) -> None:
     p = sub.add_parser(
         "info", help="topics, types, counts and duration of a recording (no ROS needed)"
     )
     p.add_argument("recording")
     p.set_defaults(func=cmd_info)
 
+
+def _add_recover(sub) -> None:
     p = sub.add_parser(
         "recover", help="save the complete part of an unfinished (.part) or truncated recording"
     )
@@ -396,6 +398,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="new file (default: NAME.recovered.mcap)")
     p.set_defaults(func=cmd_recover)
 
+
+def _add_scan(sub) -> None:
     p = sub.add_parser(
         "scan",
         help="acquire one raster image through the driver",
@@ -413,6 +417,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--save", metavar="FILE.npy", help="save the height image (metres)")
     p.set_defaults(func=cmd_scan)
 
+
+def _add_push(sub) -> None:
     p = sub.add_parser(
         "push",
         help="push a particle to a goal and print feedback (Ctrl-C cancels)",
@@ -429,6 +435,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=None, help="s to wait for the result")
     p.set_defaults(func=cmd_push)
 
+
+def _add_image(sub) -> None:
     p = sub.add_parser(
         "image",
         help="drift compensation, tip estimation, reconstruction, landmarks on files",
@@ -440,6 +448,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_subcommands(p, _length("length"))
     p.set_defaults(func=run_image)
 
+
+def _add_calibrate(sub) -> None:
     p = sub.add_parser(
         "calibrate",
         help="run the calibration experiments on an instrument, write the file the "
@@ -473,6 +483,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_calibrate)
 
+
+def _add_sim2real(sub) -> None:
     p = sub.add_parser(
         "sim2real",
         help="where a recording and the simulator differ, which physics is missing, "
@@ -503,6 +515,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--verbose", "-v", action="store_true", help="print each analysis step")
     p.set_defaults(func=cmd_sim2real)
 
+
+def _add_demo(sub) -> None:
     p = sub.add_parser(
         "demo",
         help="the main job: run the graph end to end and write a report",
@@ -513,6 +527,32 @@ def build_parser() -> argparse.ArgumentParser:
         "--output", default="demo_output", help="folder for runs (each run gets a new subfolder)"
     )
     p.set_defaults(func=cmd_demo)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="afm",
+        description="Run, drive, record and replay the AFM nano-manipulation graph.",
+        epilog="Lengths accept units (500nm, 1.5um) or plain metres. "
+        "Run `afm COMMAND --help` for details.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    # one parser per subcommand, in the order `afm --help` lists them
+    for add in (
+        _add_run,
+        _add_launch,
+        _add_record,
+        _add_replay,
+        _add_info,
+        _add_recover,
+        _add_scan,
+        _add_push,
+        _add_image,
+        _add_calibrate,
+        _add_sim2real,
+        _add_demo,
+    ):
+        add(sub)
     return parser
 
 

@@ -10,7 +10,6 @@ does not have (an older simulator) is left out, and the report says so.
 from __future__ import annotations
 
 import copy
-import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,9 +38,9 @@ class Candidate:
     # analytic: the columns follow in closed form from the reference ("drift_velocity",
     #   "drift_ramp": positions move by J t, J t^2 / 2; "height_gain": heights scale; "bow":
     #   the background curvature adds the curvature);
-    # sensor_noise: it changes only the noise, so only noise statistics (line-offset and pixel noise) move;
-    #   its columns and fits come from re-simulations with sensor noise on, with the noise
-    #   replicas' seeds (only the noise level differs between them);
+    # sensor_noise: it changes only the noise, so only noise statistics (line-offset and pixel
+    #   noise) move; its columns and fits come from re-simulations with sensor noise on, with
+    #   the noise replicas' seeds (only the noise level differs between them);
     # imaging=False: only force traces change (a replay without imaging suffices).
     geometric: bool = False
     analytic: str = ""
@@ -128,9 +127,9 @@ class FrictionRegion(Candidate):
     def at(cls, bounds, step: float = 0.3) -> FrictionRegion:
         x0, y0, x1, y1 = (float(b) for b in bounds)
         words = (
-            f"friction changes in one region of the sample: the tip-substrate friction differs inside "
-            f"x {x0 * 1e6:.2f}-{x1 * 1e6:.2f} um, y {y0 * 1e6:.2f}-{y1 * 1e6:.2f} um (a patch of contamination "
-            "or of another material)"
+            "friction changes in one region of the sample: the tip-substrate friction differs "
+            f"inside x {x0 * 1e6:.2f}-{x1 * 1e6:.2f} um, y {y0 * 1e6:.2f}-{y1 * 1e6:.2f} um "
+            "(a patch of contamination or of another material)"
         )
         return cls(
             "friction_region",
@@ -205,228 +204,254 @@ NM_S = (1e9, "nm/s")
 ASYMMETRY_SEARCH = (-0.45, 0.45)
 
 
+# The library: one definition per candidate, grouped by the part of the instrument it describes;
+# library() lists the groups in this order (the order `select` keeps and the report shows).
+
+DRIFT = (
+    Candidate(
+        name="drift_velocity",
+        words="thermal drift: the constant drift velocity differs from the model",
+        keys=["drift.mean_velocity_x", "drift.mean_velocity_y"],
+        steps=[5e-11, 5e-11],
+        units=["m/s", "m/s"],
+        display=[NM_S, NM_S],
+        geometric=True,
+        analytic="drift_velocity",
+    ),
+    Candidate(
+        name="drift_ramp",
+        words="drift ramp: the drift speeds up steadily (temperature still settling)",
+        keys=["drift.acceleration_x", "drift.acceleration_y"],
+        steps=[1e-13, 1e-13],
+        units=["m/s^2", "m/s^2"],
+        display=[(1e9, "nm/s^2"), (1e9, "nm/s^2")],
+        geometric=True,
+        analytic="drift_ramp",
+    ),
+)
+
+CREEP = (
+    Candidate(
+        name="creep_amplitude",
+        words="piezo creep: more (or less) creep after each move than modelled",
+        keys=["scanner.creep_fractions"],
+        steps=[0.5],
+        units=["x nominal fractions"],
+        scale=True,
+        lower=[0.0],
+        geometric=True,
+        requires={"scanner.creep_enabled": True},
+    ),
+    Candidate(
+        name="creep_time",
+        words="piezo creep: the creep time constants differ (faster/slower settling)",
+        keys=["scanner.creep_time_constants"],
+        steps=[0.4],
+        units=["x nominal time constants"],
+        scale=True,
+        lower=[0.05],
+        geometric=True,
+        requires={"scanner.creep_enabled": True},
+    ),
+)
+
+HYSTERESIS = (
+    Candidate(
+        name="hysteresis_residual",
+        words="hysteresis: the controller's feed-forward leaves more (or less) of the "
+        "loop than modelled (its calibrated loop width is off)",
+        keys=["controller.model_error"],
+        steps=[0.05],
+        units=["relative loop-width error"],
+        lower=[-0.9],
+        upper=[2.0],
+        geometric=True,
+        requires={
+            "controller.hysteresis_compensation": True,
+            "scanner.hysteresis_enabled": True,
+        },
+    ),
+    Candidate(
+        name="hysteresis_asymmetry",
+        words="hysteresis: ascending and descending branches differ more (or less) "
+        "than the controller's feed-forward assumes (its calibrated asymmetry is off)",
+        keys=["controller.asymmetry_error"],
+        steps=[0.03],
+        units=[""],
+        lower=[-0.8],
+        upper=[0.8],
+        geometric=True,
+        search_range=ASYMMETRY_SEARCH,
+        requires={
+            "controller.hysteresis_compensation": True,
+            "scanner.hysteresis_enabled": True,
+        },
+    ),
+    Candidate(
+        name="hysteresis_asymmetry_open_loop",
+        words="hysteresis: ascending and descending branches differ "
+        "(asymmetry, scanner driven open loop)",
+        keys=["scanner.hysteresis_asymmetry"],
+        steps=[0.05],
+        units=[""],
+        lower=[-0.8],
+        upper=[0.8],
+        geometric=True,
+        search_range=ASYMMETRY_SEARCH,
+        requires={
+            "controller.hysteresis_compensation": False,
+            "scanner.hysteresis_enabled": True,
+        },
+    ),
+    Candidate(
+        name="hysteresis_width",
+        words="hysteresis: the loop is wider/narrower than calibrated",
+        keys=["scanner.hysteresis_fraction"],
+        steps=[0.01],
+        units=["of range"],
+        lower=[0.0],
+        upper=[0.33],
+        geometric=True,
+        requires={"scanner.hysteresis_enabled": True},
+    ),
+)
+
+SCANNER_GEOMETRY = (
+    Candidate(
+        name="coupling",
+        words="x/y cross-coupling of the scanner tube",
+        keys=["scanner.coupling_x_to_y", "scanner.coupling_y_to_x"],
+        steps=[0.005, 0.005],
+        units=["", ""],
+        enable={"scanner.coupling_enabled": True},
+        lower=[-0.5, -0.5],
+        upper=[0.5, 0.5],
+        geometric=True,
+    ),
+    Candidate(
+        name="rotation",
+        words="scan-line rotation (the scan axes are rotated)",
+        keys=["scanner.deflection_deg"],
+        steps=[0.3],
+        units=["deg"],
+        enable={"scanner.deflection_enabled": True},
+        geometric=True,
+    ),
+    Candidate(
+        name="bow",
+        words="scanner bow (the image background is curved)",
+        keys=["scanner.bow_curvature"],
+        steps=[5.0],
+        units=["1/m"],
+        lower=[-300.0],
+        upper=[300.0],
+        analytic="bow",
+    ),
+)
+
+TIP = (
+    Candidate(
+        name="tip_radius",
+        words="tip radius: the tip is blunter/sharper than modelled",
+        keys=["tip.apex_radius"],
+        steps=[4e-9],
+        units=["m"],
+        lower=[1e-9],
+        display=[NM],
+    ),
+    Candidate(
+        name="tip_wear",
+        words="tip wear: the tip blunts while sliding in contact",
+        keys=["tip.wear_rate"],
+        steps=[5e-4],
+        units=["m per m slid"],
+        enable={"tip.wear_enabled": True},
+        lower=[0.0],
+    ),
+    Candidate(
+        name="tip_asymmetry",
+        words="tip asymmetry: one flank of the tip is blunter",
+        keys=["tip.asymmetry"],
+        steps=[0.15],
+        units=[""],
+        lower=[-0.9],
+        upper=[0.9],
+    ),
+)
+
+CONTACT = (
+    Candidate(
+        name="friction",
+        words="tip-substrate friction coefficient differs",
+        keys=["contact.mu_tip_substrate"],
+        steps=[0.02],
+        units=[""],
+        lower=[0.0],
+        imaging=False,
+    ),
+    Candidate(
+        name="stick_slip",
+        words="stick-slip: the tip sticks and slips while sliding",
+        keys=["contact.static_friction_ratio"],
+        steps=[0.3],
+        units=["static/kinetic"],
+        enable={"contact.stick_slip_enabled": True},
+        lower=[1.0],
+        imaging=False,
+    ),
+)
+
+SENSOR = (
+    Candidate(
+        name="height_gain",
+        words="z-sensor gain: heights are scaled (z calibration off)",
+        keys=["noise.height_gain"],
+        steps=[0.02],
+        units=[""],
+        lower=[0.1],
+        upper=[10.0],
+        analytic="height_gain",
+    ),
+    Candidate(
+        name="white_noise",
+        words="white z noise: the height signal is noisier (or quieter) from pixel to pixel "
+        "than modelled (grainy images; a sample rougher at the pixel scale than modelled "
+        "looks alike)",
+        keys=["noise.height_white_sigma"],
+        steps=[0.1e-9],
+        units=["m"],
+        lower=[0.0],
+        display=[NM],
+        analytic="sensor_noise",
+    ),
+    Candidate(
+        name="coloured_noise",
+        words="coloured (1/f) z noise: the height signal wanders more (or less) than "
+        "modelled (whole scan lines offset from their neighbours: streaks in images)",
+        keys=["noise.height_flicker_sigma"],
+        steps=[0.1e-9],
+        units=["m"],
+        lower=[0.0],
+        display=[NM],
+        analytic="sensor_noise",
+    ),
+    Candidate(
+        name="latency",
+        words="sensor latency: signals lag the scan position",
+        keys=["noise.sensor_latency"],
+        steps=[3e-3],
+        units=["s"],
+        lower=[0.0],
+        upper=[1.0],
+        display=[(1e3, "ms")],
+    ),
+)
+
+
 def library() -> list[Candidate]:
-    """Every candidate term the tool knows (filtered by `available`)."""
-    return [
-        Candidate(
-            "drift_velocity",
-            "thermal drift: the constant drift velocity differs from the model",
-            ["drift.mean_velocity_x", "drift.mean_velocity_y"],
-            [5e-11, 5e-11],
-            ["m/s", "m/s"],
-            display=[NM_S, NM_S],
-            geometric=True,
-            analytic="drift_velocity",
-        ),
-        Candidate(
-            "drift_ramp",
-            "drift ramp: the drift speeds up steadily (temperature still settling)",
-            ["drift.acceleration_x", "drift.acceleration_y"],
-            [1e-13, 1e-13],
-            ["m/s^2", "m/s^2"],
-            display=[(1e9, "nm/s^2"), (1e9, "nm/s^2")],
-            geometric=True,
-            analytic="drift_ramp",
-        ),
-        Candidate(
-            "creep_amplitude",
-            "piezo creep: more (or less) creep after each move than modelled",
-            ["scanner.creep_fractions"],
-            [0.5],
-            ["x nominal fractions"],
-            scale=True,
-            lower=[0.0],
-            geometric=True,
-            requires={"scanner.creep_enabled": True},
-        ),
-        Candidate(
-            "creep_time",
-            "piezo creep: the creep time constants differ (faster/slower settling)",
-            ["scanner.creep_time_constants"],
-            [0.4],
-            ["x nominal time constants"],
-            scale=True,
-            lower=[0.05],
-            geometric=True,
-            requires={"scanner.creep_enabled": True},
-        ),
-        Candidate(
-            "hysteresis_residual",
-            "hysteresis: the controller's feed-forward leaves more (or less) of the "
-            "loop than modelled (its calibrated loop width is off)",
-            ["controller.model_error"],
-            [0.05],
-            ["relative loop-width error"],
-            lower=[-0.9],
-            upper=[2.0],
-            geometric=True,
-            requires={
-                "controller.hysteresis_compensation": True,
-                "scanner.hysteresis_enabled": True,
-            },
-        ),
-        Candidate(
-            "hysteresis_asymmetry",
-            "hysteresis: ascending and descending branches differ more (or less) "
-            "than the controller's feed-forward assumes (its calibrated asymmetry is off)",
-            ["controller.asymmetry_error"],
-            [0.03],
-            [""],
-            lower=[-0.8],
-            upper=[0.8],
-            geometric=True,
-            search_range=ASYMMETRY_SEARCH,
-            requires={
-                "controller.hysteresis_compensation": True,
-                "scanner.hysteresis_enabled": True,
-            },
-        ),
-        Candidate(
-            "hysteresis_asymmetry_open_loop",
-            "hysteresis: ascending and descending branches differ "
-            "(asymmetry, scanner driven open loop)",
-            ["scanner.hysteresis_asymmetry"],
-            [0.05],
-            [""],
-            lower=[-0.8],
-            upper=[0.8],
-            geometric=True,
-            search_range=ASYMMETRY_SEARCH,
-            requires={
-                "controller.hysteresis_compensation": False,
-                "scanner.hysteresis_enabled": True,
-            },
-        ),
-        Candidate(
-            "hysteresis_width",
-            "hysteresis: the loop is wider/narrower than calibrated",
-            ["scanner.hysteresis_fraction"],
-            [0.01],
-            ["of range"],
-            lower=[0.0],
-            upper=[0.33],
-            geometric=True,
-            requires={"scanner.hysteresis_enabled": True},
-        ),
-        Candidate(
-            "coupling",
-            "x/y cross-coupling of the scanner tube",
-            ["scanner.coupling_x_to_y", "scanner.coupling_y_to_x"],
-            [0.005, 0.005],
-            ["", ""],
-            enable={"scanner.coupling_enabled": True},
-            lower=[-0.5, -0.5],
-            upper=[0.5, 0.5],
-            geometric=True,
-        ),
-        Candidate(
-            "rotation",
-            "scan-line rotation (the scan axes are rotated)",
-            ["scanner.deflection_deg"],
-            [0.3],
-            ["deg"],
-            enable={"scanner.deflection_enabled": True},
-            geometric=True,
-        ),
-        Candidate(
-            "bow",
-            "scanner bow (the image background is curved)",
-            ["scanner.bow_curvature"],
-            [5.0],
-            ["1/m"],
-            lower=[-300.0],
-            upper=[300.0],
-            analytic="bow",
-        ),
-        Candidate(
-            "tip_radius",
-            "tip radius: the tip is blunter/sharper than modelled",
-            ["tip.apex_radius"],
-            [4e-9],
-            ["m"],
-            lower=[1e-9],
-            display=[NM],
-        ),
-        Candidate(
-            "tip_wear",
-            "tip wear: the tip blunts while sliding in contact",
-            ["tip.wear_rate"],
-            [5e-4],
-            ["m per m slid"],
-            enable={"tip.wear_enabled": True},
-            lower=[0.0],
-        ),
-        Candidate(
-            "tip_asymmetry",
-            "tip asymmetry: one flank of the tip is blunter",
-            ["tip.asymmetry"],
-            [0.15],
-            [""],
-            lower=[-0.9],
-            upper=[0.9],
-        ),
-        Candidate(
-            "friction",
-            "tip-substrate friction coefficient differs",
-            ["contact.mu_tip_substrate"],
-            [0.02],
-            [""],
-            lower=[0.0],
-            imaging=False,
-        ),
-        Candidate(
-            "stick_slip",
-            "stick-slip: the tip sticks and slips while sliding",
-            ["contact.static_friction_ratio"],
-            [0.3],
-            ["static/kinetic"],
-            enable={"contact.stick_slip_enabled": True},
-            lower=[1.0],
-            imaging=False,
-        ),
-        Candidate(
-            "height_gain",
-            "z-sensor gain: heights are scaled (z calibration off)",
-            ["noise.height_gain"],
-            [0.02],
-            [""],
-            lower=[0.1],
-            upper=[10.0],
-            analytic="height_gain",
-        ),
-        Candidate(
-            "white_noise",
-            "white z noise: the height signal is noisier (or quieter) from pixel to pixel "
-            "than modelled (grainy images; a sample rougher at the pixel scale than modelled looks alike)",
-            ["noise.height_white_sigma"],
-            [0.1e-9],
-            ["m"],
-            lower=[0.0],
-            display=[NM],
-            analytic="sensor_noise",
-        ),
-        Candidate(
-            "coloured_noise",
-            "coloured (1/f) z noise: the height signal wanders more (or less) than "
-            "modelled (whole scan lines offset from their neighbours: streaks in images)",
-            ["noise.height_flicker_sigma"],
-            [0.1e-9],
-            ["m"],
-            lower=[0.0],
-            display=[NM],
-            analytic="sensor_noise",
-        ),
-        Candidate(
-            "latency",
-            "sensor latency: signals lag the scan position",
-            ["noise.sensor_latency"],
-            [3e-3],
-            ["s"],
-            lower=[0.0],
-            upper=[1.0],
-            display=[(1e3, "ms")],
-        ),
-    ]
+    """Every candidate term the tool knows (filtered by `available`). Copies: a candidate's
+    lists and dicts are mutable, and a caller's change must not reach the next diagnosis."""
+    return copy.deepcopy([*DRIFT, *CREEP, *HYSTERESIS, *SCANNER_GEOMETRY, *TIP, *CONTACT, *SENSOR])
 
 
 def select(effects=None) -> list[Candidate]:
@@ -464,7 +489,3 @@ def available(config: SimConfig, candidates=None) -> tuple[list[Candidate], list
         else:
             ok.append(candidate)
     return ok, missing
-
-
-def config_dict(config: SimConfig) -> dict:
-    return dataclasses.asdict(config)

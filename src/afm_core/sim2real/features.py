@@ -242,131 +242,146 @@ def extract_features(
 
 
 def _run_features(run, common) -> list[Feature]:
+    """Features of a run of scan lines over one segment: pairs' positions and direction
+    shifts, unpaired lines' midpoints, and the run's mean shape (when every line saw the
+    particle)."""
     profiles = [(op, line_profile(op.data)) if op.data is not None else (op, None) for op in run]
-    first = run[0]
     if profiles[0][1] is None:
         return []
     u0 = profiles[0][1][0]
     axis_u = np.abs(u0)  # positions are measured along +axis
     axis = "x" if abs(u0[0]) >= abs(u0[1]) else "y"
-    out = []
+    first = run[0]
+    speed = float(first.speed) if first.speed == first.speed else math.nan
 
     def cond(sign, extra=None):
-        c = dict(
-            common,
-            axis=axis,
-            scan_sign=float(sign),
-            speed=float(first.speed) if first.speed == first.speed else math.nan,
-        )
+        c = dict(common, axis=axis, scan_sign=float(sign), speed=speed)
         if extra:
             c.update(extra)
         return c
 
-    lines = []
-    for op, prof in profiles:
-        if prof is None or prof[1] is None:
-            lines.append(None)
-            continue
-        u, f, t, (px, py) = prof
-        sign = float(np.sign(u @ axis_u)) or 1.0
-        data = op.data
-        coord = np.asarray(data.x, float) * axis_u[0] + np.asarray(data.y, float) * axis_u[1]
-        lines.append(
-            {
-                "op": op,
-                "sign": sign,
-                "pos": float(axis_u @ np.array([px, py])),
-                "t": t,
-                "px": px,
-                "py": py,
-                "width": f["width"],
-                "peak": f["peak"],
-                "asym": sign * (f["trail"] - f["lead"]),
-                "coord": coord,
-                "height": np.asarray(data.height, float),
-            }
-        )
-    # pairs: consecutive opposite lines of the run, greedily from its start (by command only)
-    k = 0
+    lines = [_line_measurement(op, prof, axis_u) for op, prof in profiles]
+    out, paired = _pair_features(run, lines, axis_u, cond)
+    out += _unpaired_features(run, lines, paired, axis_u, cond)
+    if all(line is not None for line in lines):
+        out += _run_shape_features(first.index, lines, cond)
+    return out
+
+
+def _line_measurement(op, prof, axis_u) -> dict | None:
+    """What one line of a run measured along the run's axis; None if it saw no particle."""
+    if prof is None or prof[1] is None:
+        return None
+    u, f, t, (px, py) = prof
+    sign = float(np.sign(u @ axis_u)) or 1.0
+    data = op.data
+    coord = np.asarray(data.x, float) * axis_u[0] + np.asarray(data.y, float) * axis_u[1]
+    return {
+        "op": op,
+        "sign": sign,
+        "pos": float(axis_u @ np.array([px, py])),
+        "t": t,
+        "px": px,
+        "py": py,
+        "width": f["width"],
+        "peak": f["peak"],
+        "asym": sign * (f["trail"] - f["lead"]),
+        "coord": coord,
+        "height": np.asarray(data.height, float),
+    }
+
+
+def _pair_features(run, lines, axis_u, cond) -> tuple[list[Feature], set]:
+    """`line.pos` and `line.dir` of the run's pairs: consecutive opposite lines, greedily from
+    the run's start (by command only, so a pair is one whether or not its lines saw the
+    particle). Returns (features, indices of the paired lines)."""
+    out = []
     paired = set()
     signs = [
         float(np.sign(np.asarray([op.end[0] - op.start[0], op.end[1] - op.start[1]]) @ axis_u))
         or 1.0
         for op in run
     ]
+    k = 0
     while k + 1 < len(run):
-        if signs[k] != signs[k + 1]:
-            paired.update((k, k + 1))
-            a, b = lines[k], lines[k + 1]
-            if a is not None and b is not None:
-                plus, minus = (a, b) if a["sign"] > 0 else (b, a)
-                t = 0.5 * (a["t"] + b["t"])
-                px, py = 0.5 * (a["px"] + b["px"]), 0.5 * (a["py"] + b["py"])
-                key_op = run[k].index
-                out.append(
-                    Feature(
-                        (key_op, "line.pos"),
-                        "line.pos",
-                        0.5 * (a["pos"] + b["pos"]),
-                        t,
-                        px,
-                        py,
-                        tuple(float(v) for v in axis_u),
-                        cond(0.0, {"pair": True}),
-                    )
-                )
-                shift = _profile_shift(plus, minus)
-                if shift is not None:
-                    out.append(
-                        Feature(
-                            (key_op, "line.dir"),
-                            "line.dir",
-                            0.5 * shift,
-                            t,
-                            px,
-                            py,
-                            (0.0, 0.0),
-                            cond(0.0, {"pair": True}),
-                        )
-                    )
-            k += 2
-        else:
+        if signs[k] == signs[k + 1]:
             k += 1
-    for k, line in enumerate(lines):
-        if k in paired or line is None:
             continue
-        out.append(
-            Feature(
-                (run[k].index, "line.mid"),
-                "line.mid",
-                line["pos"],
-                line["t"],
-                line["px"],
-                line["py"],
-                tuple(float(v) for v in axis_u),
-                cond(line["sign"]),
-            )
-        )
-    if all(line is not None for line in lines):
-        t = float(np.mean([line["t"] for line in lines]))
-        px, py = (
-            float(np.mean([line["px"] for line in lines])),
-            float(np.mean([line["py"] for line in lines])),
-        )
-        for name in ("width", "peak", "asym"):
+        paired.update((k, k + 1))
+        a, b = lines[k], lines[k + 1]
+        if a is not None and b is not None:
+            plus, minus = (a, b) if a["sign"] > 0 else (b, a)
+            t = 0.5 * (a["t"] + b["t"])
+            px, py = 0.5 * (a["px"] + b["px"]), 0.5 * (a["py"] + b["py"])
+            key_op = run[k].index
             out.append(
                 Feature(
-                    (first.index, f"line.{name}"),
-                    f"line.{name}",
-                    float(np.mean([line[name] for line in lines])),
+                    (key_op, "line.pos"),
+                    "line.pos",
+                    0.5 * (a["pos"] + b["pos"]),
                     t,
                     px,
                     py,
-                    (0.0, 0.0),
-                    cond(0.0, {"lines": len(lines)}),
+                    tuple(float(v) for v in axis_u),
+                    cond(0.0, {"pair": True}),
                 )
             )
-    return out
+            shift = _profile_shift(plus, minus)
+            if shift is not None:
+                out.append(
+                    Feature(
+                        (key_op, "line.dir"),
+                        "line.dir",
+                        0.5 * shift,
+                        t,
+                        px,
+                        py,
+                        (0.0, 0.0),
+                        cond(0.0, {"pair": True}),
+                    )
+                )
+        k += 2
+    return out, paired
+
+
+def _unpaired_features(run, lines, paired, axis_u, cond) -> list[Feature]:
+    """`line.mid` of every line that saw the particle and has no partner."""
+    return [
+        Feature(
+            (run[k].index, "line.mid"),
+            "line.mid",
+            line["pos"],
+            line["t"],
+            line["px"],
+            line["py"],
+            tuple(float(v) for v in axis_u),
+            cond(line["sign"]),
+        )
+        for k, line in enumerate(lines)
+        if k not in paired and line is not None
+    ]
+
+
+def _run_shape_features(key_op, lines, cond) -> list[Feature]:
+    """`line.width`, `line.peak`, `line.asym`: means over the run's lines."""
+    t = float(np.mean([line["t"] for line in lines]))
+    px, py = (
+        float(np.mean([line["px"] for line in lines])),
+        float(np.mean([line["py"] for line in lines])),
+    )
+    return [
+        Feature(
+            (key_op, f"line.{name}"),
+            f"line.{name}",
+            float(np.mean([line[name] for line in lines])),
+            t,
+            px,
+            py,
+            (0.0, 0.0),
+            cond(0.0, {"lines": len(lines)}),
+        )
+        for name in ("width", "peak", "asym")
+    ]
 
 
 def _profile_shift(plus: dict, minus: dict, reach: float = 30e-9, step: float = 0.5e-9):

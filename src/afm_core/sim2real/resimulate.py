@@ -169,7 +169,8 @@ class Resimulation:
 
     instrument: the SimulatedAfm (its truth() after the run, its time);
     origin: simulator time (s) of the recording's t = 0 (the first operation given starts at
-        once; simulated operations carry times on the recording's clock, = simulator time - origin);
+        once; simulated operations carry times on the recording's clock, = simulator time -
+        origin);
     late_operations, max_lag (s), total_lag (s): operations the simulator could not start at
     their recorded time because its previous operation took longer than the recorded one.
     """
@@ -247,7 +248,8 @@ class Resimulation:
         sim.hold(self.settle_time)
 
     def _wait_until(self, target: float) -> float:
-        """Hold until the simulator's clock reaches `target`; the lag (s) when it is already past."""
+        """Hold until the simulator's clock reaches `target`; the lag (s) when it is already
+        past."""
         sim = self.instrument
         gap = target - sim.time
         if gap > TIME_RESOLUTION:

@@ -1,0 +1,266 @@
+"""The demo's evaluation against the simulator's ground truth, offline from the replayed
+recording: particles in every scan, the landmark map, the tip estimate, the push, the replay
+check; and the targets a run is judged by (`judge_run`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from afm_core.evaluation import (
+    compare_payloads,
+    find_particles,
+    image_frame_matrix,
+    match_to_truth,
+)
+from afm_core.recording import RecordingReader
+
+MEMORY_LIMIT = 2 * 2**30  # bytes, the whole graph's peak resident memory
+# m: images are in commanded scanner coordinates, which hysteresis residue, creep, coupling,
+# line deflection and drift put tens of nm off the truth; a particle this close is the same one
+MATCH_DISTANCE = 300e-9
+PUSH_DISTANCE = 300e-9  # m, from the particle's mapped centre to the goal
+PUSH_TOLERANCE = 20e-9  # m
+# true displacement per commanded (= map) displacement of the simulated instrument, for the
+# evaluation against truth only (afm_core.evaluation.image_frame_matrix)
+IMAGE_FRAME = image_frame_matrix()
+
+
+def evaluate(run_dir: Path) -> dict:
+    """Offline, from the replayed copy of the session: scans against ground truth, the tip
+    estimate against the true tip, the push; and the replayed copy against the original."""
+    recording = run_dir / "replayed.mcap"
+    with RecordingReader(run_dir / "session.mcap") as reader:
+        recorded_topics = {t: i.message_count for t, i in reader.topics().items()}
+        duration = reader.duration_s
+    scans, truth, poses, paths, marks = _read_replayed(recording)
+    replay = _replay_check(run_dir / "session.mcap", recording, recorded_topics)
+    final_truth = _truth_xy(truth, len(truth["log_time"]) - 1)
+    return {
+        "topics": recorded_topics,
+        "duration_s": duration,
+        "scans": _scan_views(scans, truth),
+        "replay": replay,
+        "landmarks": _landmarks_against_truth(marks, final_truth),
+        "truth_xy": _truth_xy(truth, 0).tolist(),
+        "final_truth_xy": final_truth.tolist(),
+        "truth_radius": [o["radius"] for o in truth["objects"][-1]],
+        "scan_arrays": scans,
+        "tip": _tip_against_truth(poses, truth) if poses else {},
+        "strokes": _planned_strokes(paths),
+        "truth_objects": [_truth_xy(truth, i) for i in range(len(truth["log_time"]))],
+    }
+
+
+def _read_replayed(recording: Path) -> tuple:
+    """(scans, ground truth, tip poses, planned paths, landmark maps) of a recording; the last
+    three empty when it has none."""
+    with RecordingReader(recording) as reader:
+        scans = reader.arrays("/afm/scan")
+        truth = reader.arrays("/afm/ground_truth")
+        poses = reader.arrays("/afm/tip_pose") if "/afm/tip_pose" in reader.topics() else {}
+        paths = (
+            reader.arrays("/afm/planned_path") if "/afm/planned_path" in reader.topics() else {}
+        )
+        marks = (
+            reader.arrays("/afm/landmarks")["landmarks"]
+            if "/afm/landmarks" in reader.topics()
+            else []
+        )
+    return scans, truth, poses, paths, marks
+
+
+def _truth_at(truth: dict, t: float) -> int:
+    """Index of the last ground truth published before t (the one the scan saw)."""
+    return max(0, int(np.searchsorted(truth["log_time"], t, side="right")) - 1)
+
+
+def _truth_xy(truth: dict, index: int) -> np.ndarray:
+    return np.array([[o["position.x"], o["position.y"]] for o in truth["objects"][index]])
+
+
+def _scan_views(scans: dict, truth: dict) -> list[dict]:
+    """Per scan: the particles found in it, matched to the true centres at its time."""
+    views = []
+    for i in range(len(scans["scan_id"])):
+        found = find_particles(
+            scans["height"][i],
+            scans["pixel_size_x"][i],
+            scans["pixel_size_y"][i],
+            scans["origin.x"][i],
+            scans["origin.y"][i],
+        )
+        pairs = match_to_truth(
+            found,
+            _truth_xy(truth, _truth_at(truth, scans["log_time"][i])),
+            max_distance=MATCH_DISTANCE,
+        )
+        views.append(
+            {
+                "scan_id": int(scans["scan_id"][i]),
+                "angle": float(scans["scan_angle_deg"][i]),
+                "frame_up": bool(scans["slow_scan_up"][i]),
+                "pair_id": str(scans["pair_id"][i]),
+                "found": len(found),
+                "matched": len(pairs),
+                "centre_error_rms": float(np.sqrt(np.mean([d**2 for _, _, d in pairs])))
+                if pairs
+                else float("nan"),
+                "peak_height_mean": float(np.mean([v.height for _, v, _ in pairs]))
+                if pairs
+                else float("nan"),
+                "apparent_radius_mean": float(np.mean([v.apparent_radius for _, v, _ in pairs]))
+                if pairs
+                else float("nan"),
+            }
+        )
+    return views
+
+
+def _replay_check(original: Path, replayed: Path, recorded_topics: dict) -> dict:
+    """Per topic: the original's and the replayed copy's payloads compared (the copy's topics
+    that the original has)."""
+    with RecordingReader(original) as a, RecordingReader(replayed) as b:
+        return compare_payloads(
+            ((c.topic, m.data) for _, c, m in a.raw_messages()),
+            (
+                (c.topic, m.data)
+                for _, c, m in b.raw_messages([t for t in b.topics() if t in recorded_topics])
+            ),
+        )
+
+
+def _landmarks_against_truth(marks, final_truth: np.ndarray) -> list[dict]:
+    """The last landmark map, each landmark with its distance to the nearest true centre."""
+    landmarks = []
+    for mark in marks[-1] if len(marks) else []:
+        distance = float(
+            np.min(
+                np.hypot(
+                    final_truth[:, 0] - mark["position.x"], final_truth[:, 1] - mark["position.y"]
+                )
+            )
+        )
+        landmarks.append(
+            {
+                "id": int(mark["id"]),
+                "x": float(mark["position.x"]),
+                "y": float(mark["position.y"]),
+                "sigma_x": float(np.sqrt(mark["covariance"][0])),
+                "sigma_y": float(np.sqrt(mark["covariance"][3])),
+                "height": float(mark["height"]),
+                "nearest_truth": distance,
+            }
+        )
+    return landmarks
+
+
+def _tip_against_truth(poses: dict, truth: dict) -> dict:
+    """The localizer's tip estimates against the true tip: error, NEES, the final sigma."""
+    means = np.stack([poses["pose.pose.position.x"], poses["pose.pose.position.y"]], axis=1)
+    cov = np.asarray(poses["pose.covariance"])[:, [0, 1, 6, 7]].reshape(-1, 2, 2)
+    # the estimate is in the maps' (commanded) frame, the truth metric: bring the truth into
+    # the maps' frame about where the session started (at rest, commanded = true)
+    metric = np.stack([truth["tip_position.x"], truth["tip_position.y"]], axis=1)
+    start_commanded = np.array(
+        [truth["commanded_position.x"][0], truth["commanded_position.y"][0]]
+    )
+    true_tip = start_commanded + (metric - metric[0]) @ np.linalg.inv(IMAGE_FRAME).T
+    # the localizer publishes its estimate as each command ends, the driver its truth: compare
+    # the pairs with the same stamp (error and NEES). A command DDS delivers late (a reliable
+    # sample repaired after a loss) is predicted after hold poses already went out with its
+    # end stamp, so stamps are not in order: take the last pose published with each stamp.
+    # (a stamp summed from a start and a duration in float seconds since 1970 is good to
+    # ~0.3 us)
+    origin = int(truth["header.stamp.sec"][0])
+    stamps = (poses["header.stamp.sec"] - origin) + poses["header.stamp.nanosec"] * 1e-9
+    truth_stamps = (truth["header.stamp.sec"] - origin) + truth["header.stamp.nanosec"] * 1e-9
+    same = np.abs(stamps[None, :] - truth_stamps[:, None]) < 5e-6
+    ok = same.any(axis=1)
+    k = len(stamps) - 1 - np.argmax(same[:, ::-1], axis=1)  # the last published with that stamp
+    errors = true_tip[ok] - means[k[ok]]
+    nees = [float(e @ np.linalg.solve(c, e)) for e, c in zip(errors, cov[k[ok]])]
+    return {
+        "means": means,
+        "covariances": cov,
+        "true_tip": true_tip,
+        "error_rms": float(np.sqrt(np.mean(np.sum(errors**2, axis=1))))
+        if len(errors)
+        else float("nan"),
+        "mean_nees": float(np.mean(nees)) if nees else float("nan"),
+        "compared": int(len(errors)),
+        "final_sigma": np.sqrt(np.diag(cov[-1])).tolist(),
+    }
+
+
+def _planned_strokes(paths: dict) -> list:
+    """The nano-hand's strokes of its last push path, (start, end, in contact) each; the
+    planner's paths have no pushes."""
+    pushes = [k for k, roles in enumerate(paths.get("waypoint_role", [])) if "push" in list(roles)]
+    if not pushes:
+        return []
+    roles, poses_k = list(paths["waypoint_role"][pushes[-1]]), paths["path.poses"][pushes[-1]]
+    points = [(p["pose.position.x"], p["pose.position.y"]) for p in poses_k]
+    return [
+        (points[i], points[i + 1], roles[i + 1] == "push") for i in range(0, len(points) - 1, 2)
+    ]
+
+
+def push_truth(result: dict, push: dict) -> dict:
+    """The push against ground truth: the pushed object is the true particle nearest the
+    mapped start at the first truth; its true displacement, brought into the maps' frame,
+    against the planned one (absolute positions differ by the instrument's positioning
+    errors; displacements do not)."""
+    if not push.get("ran"):
+        return {}
+    first = np.asarray(result["truth_objects"][0])
+    index = int(np.argmin(np.hypot(*(first - np.asarray(push["start"])).T)))
+    track = np.array([objects[index] for objects in result["truth_objects"]])
+    moved = np.linalg.solve(IMAGE_FRAME, track[-1] - track[0])  # in the maps' frame
+    wanted = np.asarray(push["goal"]) - np.asarray(push["start"])
+    axis = wanted / np.linalg.norm(wanted)
+    return {
+        "track": track,
+        "true_displacement": moved.tolist(),
+        "true_error": float(np.linalg.norm(moved - wanted)),
+        "along": float(moved @ axis),
+        "sideways": float(moved @ np.array([-axis[1], axis[0]])),
+        "verified_displacement": (
+            np.asarray(push["achieved"]) - np.asarray(push["start"])
+        ).tolist(),
+    }
+
+
+def judge_run(codes: dict, memory: dict, result: dict, push: dict, truth: dict) -> list[str]:
+    """What went wrong in a run (empty: the demo passed): a process failed, the replay differs,
+    the graph used too much memory, a scan or the map misses particles, the push did not run or
+    left the particle off its goal by more than 3x the tolerance."""
+    failures = []
+    if any(code != 0 for code in codes.values()):
+        failures.append(f"processes exited with errors: {codes}")
+    differing = {
+        t: f"{v['count_a']} recorded, {v['count_b']} replayed"
+        for t, v in result["replay"].items()
+        if not v["identical"]
+    }
+    if differing:
+        failures.append(f"the replayed recording differs from the original: {differing}")
+    if sum(memory.values()) > MEMORY_LIMIT:
+        failures.append(f"graph peak memory {sum(memory.values()) / 2**20:.0f} MiB exceeds 2 GiB")
+    if any(v["matched"] == 0 for v in result["scans"]):
+        failures.append("a scan shows none of the true particles")
+    if len(result["landmarks"]) != len(result["truth_xy"]):
+        failures.append(
+            f"the imaging node found {len(result['landmarks'])} landmarks, the sample has "
+            f"{len(result['truth_xy'])} particles"
+        )
+    if not push.get("ran"):
+        failures.append(f"the push did not run: {push.get('message', 'no result')}")
+    elif truth["true_error"] > 3 * PUSH_TOLERANCE:
+        failures.append(
+            f"the particle ended {truth['true_error'] * 1e9:.0f} nm from where it should have "
+            f"(more than 3x the {PUSH_TOLERANCE * 1e9:.0f} nm tolerance)"
+        )
+    return failures
