@@ -122,7 +122,8 @@ def test_zigzag_geometry_follows_our_reading_of_fig_7_24():
     plan = nano_hand_plan(c0, c0 + [0.0, 600 * nm], steps=13, aim=False)
     assert len(plan) == 13 and [s.label for s in plan[:3]] == ["left", "right", "left"]
     s0 = plan[0]
-    # push along +y: left is -x; first push starts L_initial_h before the nominal contact at offset 60 nm
+    # push along +y: left is -x; the first push starts L_initial_h before the nominal contact at
+    # offset 60 nm
     assert plan.lateral(s0.start) == pytest.approx(60 * nm) and plan.lateral(
         plan[1].start
     ) == pytest.approx(-60 * nm)
@@ -162,8 +163,8 @@ def test_monte_carlo_centre_pushing_splits_while_the_nano_hand_keeps_it_between_
     # nano-hand: one narrow distribution, between the two paths (120 nm apart)
     assert mc_hand.sigma_lateral < 0.3 * mc_centre.sigma_lateral
     assert mc_hand.sigma_lateral < 1.5 * 10 * nm  # about the start's 10 nm: kept, not spread
-    # ~1 % escape: draws > ~2.5 sigma on the far side of the first (left) path, hit at > 85 nm offset,
-    # slide past the right path; the rest stay between the paths
+    # ~1 % escape: draws > ~2.5 sigma on the far side of the first (left) path, hit at > 85 nm
+    # offset, slide past the right path; the rest stay between the paths
     assert (
         mc_hand.between_paths >= 0.98 and mc_hand.split_fraction < 0.1 * mc_centre.split_fraction
     )
