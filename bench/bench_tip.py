@@ -103,12 +103,6 @@ def ours_to_gwyddion(tip: np.ndarray) -> np.ndarray:
     return tip - tip.min()
 
 
-def gwyddion_to_ours(tip: np.ndarray) -> np.ndarray:
-    """Inverse of ours_to_gwyddion for a tip in dilation form: apex (maximum) to 0."""
-    tip = np.asarray(tip, dtype=float)
-    return tip - tip.max()
-
-
 def gwyddion_estimate_to_ours(estimate: np.ndarray) -> np.ndarray:
     """Gwyddion's blind estimate (apex = maximum, minimum 0) in our convention.
 

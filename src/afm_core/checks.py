@@ -52,16 +52,6 @@ def non_negative(name: str, value, unit: str = "", *, upper: float | None = None
     return number
 
 
-def within(name: str, value, low: float, high: float, unit: str = "") -> float:
-    """A finite number in the closed interval [low, high]."""
-    number = finite(name, value, unit)
-    if not low <= number <= high:
-        raise ValueError(
-            f"{name}={number:.4g}{_unit(unit)}: outside [{low:.4g}, {high:.4g}]{_unit(unit)}"
-        )
-    return number
-
-
 def count(name: str, value, minimum: int = 0, maximum: int | None = None) -> int:
     """A whole number in [minimum, maximum] (no maximum when None)."""
     try:

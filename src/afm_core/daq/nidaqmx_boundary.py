@@ -168,13 +168,3 @@ class NidaqmxBoundary:
 
     def close(self) -> None:
         self._close_tasks()
-
-
-def available_devices() -> list[str] | None:
-    """Device names NI-DAQmx sees, or None when the package or driver is missing (diagnostics)."""
-    try:
-        import nidaqmx.system
-
-        return list(nidaqmx.system.System.local().devices.device_names)
-    except Exception:
-        return None

@@ -100,10 +100,6 @@ class UpdateResult:
     def gated_out(self) -> bool:
         return self.reason.startswith("gated_out")
 
-    @property
-    def mahalanobis_squared(self) -> float:
-        return self.mahalanobis**2
-
 
 @dataclass
 class _Entry:

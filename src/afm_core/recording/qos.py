@@ -7,7 +7,7 @@ whose `rosbag2` metadata record carries no serialized bag metadata, as ours does
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import yaml
 
@@ -106,9 +106,6 @@ class QosDescription:
                 node.get("avoid_ros_namespace_conventions", False)
             ),
         )
-
-    def as_dict(self) -> dict:
-        return asdict(self)
 
 
 def dump_profiles(profiles: list[QosDescription]) -> str:

@@ -436,20 +436,6 @@ def make_session(
     return log.operations
 
 
-def record_session(config: SimConfig, path, protocol_seed: int = 0, blocks: int = 4, **kw):
-    """Run the protocol on SimulatedAfm(config) through a RecordingInstrument (the MCAP the
-    driver would write, ground truth included); the recording's path."""
-    from afm_core.sim.instrument import SimulatedAfm
-    from afm_core.sim2real.session_writer import RecordingInstrument
-
-    recorder = RecordingInstrument(SimulatedAfm(config), path, epoch_ns=1_700_000_000_000_000_000)
-    try:
-        run_protocol(recorder, seed=protocol_seed, blocks=blocks, **kw)
-    finally:
-        recorder.close()
-    return recorder.path
-
-
 # -- deterministic and re-seeded replays -------------------------------------------------------
 
 
