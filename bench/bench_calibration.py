@@ -45,7 +45,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
-from machine import cpu_model
+from machine import command_line, cpu_model
 
 from afm_core.imaging.frame_up_down import sampled_velocity
 from afm_core.localization.calibration.model import save_calibration
@@ -87,7 +87,7 @@ def table(rows: list[dict]) -> list[str]:
         error = "-" if row["relative_error"] is None else f"{100 * row['relative_error']:+.1f} %"
         lines.append(
             f"| {row['name']} | {formatted(row['recovered'])} | {formatted(row['true'])} "
-            f"| {error} | {row['note']} |"
+            f"| {error} | {row['note'].replace('|', chr(92) + '|')} |"
         )
     return lines
 
@@ -201,6 +201,8 @@ def main() -> None:
         f"Python {result['machine']['python']}: {wall:.0f} s wall for "
         f"{report['instrument_seconds'] / 3600:.1f} h of instrument time, peak resident memory "
         f"{result['peak_rss_mib']:.0f} MiB; {pairs} drift pairs.",
+        "",
+        f"Command: `{command_line()}`",
         "",
     ]
     lines += table(rows)

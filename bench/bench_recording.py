@@ -58,7 +58,7 @@ from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
-from machine import cpu_model
+from machine import command_line, cpu_model
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 CHUNK_SIZE = 4 * 1024 * 1024
@@ -502,6 +502,8 @@ def write_reports(report: dict, stem: str) -> tuple[Path, Path]:
         f"Measured {report['date']} on {m['cpu_count']} CPUs ({m['cpu_model']}), "
         f"Python {m['python']}, {m['platform']}; load average at start "
         f"{', '.join(f'{x:.2f}' for x in m['load_average_at_start'])}.",
+        "",
+        f"Command: `{command_line()}`",
         "",
         *table(report["summary"]),
         "",

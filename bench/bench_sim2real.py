@@ -65,7 +65,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import cpu_model  # noqa: E402
+from machine import command_line, cpu_model  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -597,6 +597,8 @@ def markdown(report: dict) -> str:
         f"({report['machine']['cpu']}), "
         f"{report['workers']} workers, {report['wall_seconds']:.0f} s wall.",
         "",
+        f"Command: `{report.get('command') or command_line()}`",
+        "",
         "| metric | value | target |",
         "|---|---|---|",
         f"| recordings (positive / null) | {s['recordings']} ({s['positives']} / {s['nulls']}) "
@@ -705,6 +707,7 @@ def main(argv=None) -> int:
             )
     report = {
         "measured": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "command": command_line(),
         "machine": {"cpus": os.cpu_count(), "cpu": cpu_model()},
         "workers": args.workers,
         "wall_seconds": time.perf_counter() - started,

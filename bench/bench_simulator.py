@@ -14,6 +14,7 @@ import argparse
 import json
 import platform
 import statistics
+import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -23,6 +24,9 @@ import numpy as np
 from afm_core.instrument import LineRequest, ScanRequest
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import command_line  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TIP_PIXELS = 41
@@ -130,6 +134,8 @@ def main() -> None:
         "",
         f"Measured {result['measured']} on {result['machine']['cpus']} CPUs, "
         f"Python {result['machine']['python']}.",
+        "",
+        f"Command: `{command_line()}`",
         "",
         "| figure | value | target |",
         "|---|---|---|",

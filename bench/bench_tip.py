@@ -73,7 +73,7 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
-from machine import cpu_model  # noqa: E402
+from machine import command_line, cpu_model  # noqa: E402
 
 from afm_core.physics.tip_morphology import dilate, erode  # noqa: E402
 from afm_core.sim.tip import paraboloid_cone_tip  # noqa: E402
@@ -460,6 +460,7 @@ def measure_morphology(te, image, surface, true_tip, pixel, tmp: Path, reps: int
         "repetitions": reps,
         "interleaved": True,
         "measured": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "command": command_line(),
         **{key: statistics.median(v) for key, v in times.items() if v},
     }
     if te is not None:
@@ -562,6 +563,7 @@ def main() -> None:
 
     result = {
         "measured": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "command": command_line(),
         "machine": {
             "cpus": os.cpu_count(),
             "cpu": cpu_model(),
@@ -766,6 +768,8 @@ def render_markdown(result: dict) -> str:
         f"Measured {result['measured']} on {result['machine']['cpus']} CPUs "
         f"({result['machine']['cpu']}), Python {result['machine']['python']}, Gwyddion "
         f"{result['machine']['gwyddion']}, single-threaded" + load_note(result["machine"]) + ".",
+        "",
+        f"Command: `{result.get('command') or command_line()}`",
         "",
         f"Image: {size}, pixel {img['pixel_m'] * 1e9:.3g} nm, noise {img['noise_m'] * 1e9:.2g} "
         f"nm, range {img['range_m'] * 1e9:.2f} nm, true tip "

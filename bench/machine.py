@@ -12,3 +12,16 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or "unknown"
+
+
+def command_line() -> str:
+    """The command that ran this benchmark, as a user types it from the repository root."""
+    import shlex
+    import sys
+
+    script = Path(sys.argv[0])
+    try:
+        script = script.resolve().relative_to(Path(__file__).resolve().parents[1])
+    except ValueError:
+        pass
+    return shlex.join(["scripts/with_env.sh", "python", str(script), *sys.argv[1:]])
