@@ -38,13 +38,10 @@ from afm_ros.action_instrument import ActionInstrument, DriverUnavailable, stamp
 from afm_ros.conversions import (
     FRAME_TASK,
     mean_cov_to_pose,
-    msg_to_landmarks,
-    newer_landmarks,
     seconds_to_time,
-    stamp_of,
-    wait_for_landmarks,
     wait_until,
 )
+from afm_ros.landmark_map import NewestLandmarkMap
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, LATCHED
 
@@ -115,15 +112,14 @@ class LocalizerNode(Node):
         self.calibration = load_calibration(path) if path else Calibration()
         self.instrument = ActionInstrument(self, ScannerLimits())
         self.pending: collections.deque = collections.deque()
-        self.landmarks: dict[int, object] = {}
-        self.landmarks_stamp: float | None = None
+        self.landmarks = NewestLandmarkMap(self.get_logger())
         self.latest_clock: float | None = None
         inputs = MutuallyExclusiveCallbackGroup()
         self.create_subscription(
             TipCommand, topics.TIP_COMMAND, self.on_command, EVENTS, callback_group=inputs
         )
         self.create_subscription(
-            LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED, callback_group=inputs
+            LandmarkArray, topics.LANDMARKS, self.landmarks.take, LATCHED, callback_group=inputs
         )
         self.create_subscription(Clock, "/clock", self.on_clock, 10, callback_group=inputs)
         self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, topics.TIP_POSE, 10)
@@ -152,15 +148,6 @@ class LocalizerNode(Node):
     # -- inputs ------------------------------------------------------------------------------
     def on_command(self, msg: TipCommand) -> None:
         self.pending.append(msg)
-
-    def on_landmarks(self, msg: LandmarkArray) -> None:
-        if not newer_landmarks(msg, self.landmarks_stamp):
-            return
-        try:
-            self.landmarks = {mark.id: mark for mark in msg_to_landmarks(msg)}
-            self.landmarks_stamp = stamp_of(msg.header)
-        except ValueError as exc:
-            self.get_logger().error(f"landmarks ignored: {exc}")
 
     def on_clock(self, msg: Clock) -> None:
         self.latest_clock = stamp_seconds(msg.clock)
@@ -245,7 +232,7 @@ class LocalizerNode(Node):
 
     # -- the Localize action -----------------------------------------------------------------
     def landmark_for(self, goal):
-        known = wait_for_landmarks(lambda: self.landmarks)
+        known = self.landmarks.wait()
         if goal.landmark_id >= 0:
             if goal.landmark_id not in known:
                 raise ValueError(

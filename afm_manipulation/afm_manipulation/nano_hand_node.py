@@ -21,7 +21,6 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
-from std_msgs.msg import Header
 
 from afm_core.instrument import ScannerLimits
 from afm_core.localization.calibration.model import Calibration, load_calibration
@@ -42,19 +41,13 @@ from afm_ros import params, topics
 from afm_ros.action_client import SafeActionClient
 from afm_ros.action_instrument import ActionInstrument, call_action, call_service
 from afm_ros.conversions import (
-    FRAME_TASK,
-    landmarks_to_msg,
-    msg_to_landmarks,
-    newer_landmarks,
     outcome_to_result,
     pose_to_tip_estimate,
     progress_to_assemble_feedback,
     progress_to_push_feedback,
     push_plan_to_msg,
-    seconds_to_time,
-    stamp_of,
-    wait_for_landmarks,
 )
+from afm_ros.landmark_map import NewestLandmarkMap
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED
 
@@ -92,21 +85,22 @@ class NanoHandNode(Node):
         )
         self.busy = threading.Lock()  # one manipulation at a time
         self.state_lock = threading.Lock()
-        self.landmarks: dict[int, object] = {}
-        self.landmarks_stamp: float | None = None
+        self.landmarks = NewestLandmarkMap(self.get_logger())
         self.tip_pose: PoseWithCovarianceStamped | None = None
         self.procedure = PushProcedure(
             self.instrument,
             self.localize,
-            lambda: wait_for_landmarks(self.current_landmarks),
+            self.landmarks.wait,
             scanner_matrix=(load_calibration(path) if path else Calibration()).scanner_matrix,
             settings={name: self.config[name] for name in PUSH_PARAMETERS.names()},
             tip_estimate=self.current_tip,
-            on_moved=self.publish_moved,
+            on_moved=lambda moved: self.landmark_pub.publish(
+                self.landmarks.moved(moved, self.instrument.time)
+            ),
         )
         inputs = MutuallyExclusiveCallbackGroup()
         for msg_type, topic, callback, qos in (
-            (LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED),
+            (LandmarkArray, topics.LANDMARKS, self.landmarks.take, LATCHED),
             (PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10),
             (TipCommand, topics.TIP_COMMAND, self.instrument.observe_command, EVENTS),
         ):
@@ -146,24 +140,9 @@ class NanoHandNode(Node):
             self.procedure.settings[name] = value
 
     # -- inputs ------------------------------------------------------------------------------
-    def on_landmarks(self, msg: LandmarkArray) -> None:
-        if not newer_landmarks(msg, self.landmarks_stamp):
-            return
-        try:
-            marks = {mark.id: mark for mark in msg_to_landmarks(msg)}
-        except ValueError as exc:
-            self.get_logger().error(f"landmarks ignored: {exc}")
-            return
-        with self.state_lock:
-            self.landmarks, self.landmarks_stamp = marks, stamp_of(msg.header)
-
     def on_tip_pose(self, msg: PoseWithCovarianceStamped) -> None:
         with self.state_lock:
             self.tip_pose = msg
-
-    def current_landmarks(self) -> dict:
-        with self.state_lock:
-            return self.landmarks
 
     def current_tip(self):
         with self.state_lock:
@@ -196,15 +175,6 @@ class NanoHandNode(Node):
         if not response.success:
             raise ValueError(f"planner: {response.message}")
         return [int(particle_ids[i]) for i in response.order]
-
-    def publish_moved(self, moved) -> None:
-        with self.state_lock:
-            marks = {**self.landmarks, moved.id: moved}
-            self.landmarks = marks
-            stamp = max(self.instrument.time, (self.landmarks_stamp or 0) + 1e-6)
-            header = Header(stamp=seconds_to_time(stamp), frame_id=FRAME_TASK)
-            self.landmarks_stamp = stamp_of(header)
-        self.landmark_pub.publish(landmarks_to_msg(list(marks.values()), header))
 
     def reporter(self, goal_handle, to_feedback):
         """Progress as feedback; the planned strokes on /afm/planned_path when they come."""

@@ -39,12 +39,9 @@ from afm_msgs.srv import PlanObservation, PlanPath, PlanSequence
 from afm_ros import params, topics
 from afm_ros.conversions import (
     FRAME_TASK,
-    msg_to_landmarks,
-    newer_landmarks,
     pose_to_mean_cov,
-    stamp_of,
-    wait_until,
 )
+from afm_ros.landmark_map import NewestLandmarkMap
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, LATCHED
 
@@ -96,12 +93,11 @@ class PlannerNode(Node):
         self.noise = self.calibration.motion_noise()
         self.limits = ScannerLimits(range_x=self.config["range_x"], range_y=self.config["range_y"])
         self.lock = threading.Lock()
-        self.landmarks: list = []
-        self.landmarks_stamp: float | None = None
+        self.landmarks = NewestLandmarkMap(self.get_logger())
         self.tip_pose: PoseWithCovarianceStamped | None = None
         inputs, services = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
         self.create_subscription(
-            LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED, callback_group=inputs
+            LandmarkArray, topics.LANDMARKS, self.landmarks.take, LATCHED, callback_group=inputs
         )
         self.create_subscription(
             PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10, callback_group=inputs
@@ -126,17 +122,6 @@ class PlannerNode(Node):
         self.get_logger().info(f"planning with {self.calibration.source!r} calibration")
 
     # -- inputs ------------------------------------------------------------------------------
-    def on_landmarks(self, msg: LandmarkArray) -> None:
-        if not newer_landmarks(msg, self.landmarks_stamp):
-            return
-        try:
-            marks = msg_to_landmarks(msg)
-        except ValueError as exc:
-            self.get_logger().error(f"landmarks ignored: {exc}")
-            return
-        with self.lock:
-            self.landmarks, self.landmarks_stamp = marks, stamp_of(msg.header)
-
     def on_tip_pose(self, msg: PoseWithCovarianceStamped) -> None:
         with self.lock:
             self.tip_pose = msg
@@ -158,9 +143,7 @@ class PlannerNode(Node):
 
     def known_landmarks(self) -> list:
         """The landmarks, waiting a moment for the first map (it reaches us late under load)."""
-        wait_until(lambda: self.landmarks, 5.0)
-        with self.lock:
-            return list(self.landmarks)
+        return list(self.landmarks.wait().values())
 
     def landmark(self, landmark_id: int):
         marks = self.known_landmarks()
