@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from afm_core import checks
 from afm_core.instrument import (
     Instrument,
     LineRequest,
@@ -168,15 +169,6 @@ class MoveOutcome:
     completed: bool
 
 
-def _vector(name: str, value) -> np.ndarray:
-    v = np.asarray(value, dtype=float)
-    if v.shape != (2,):
-        raise ValueError(f"{name}: need two values (x, y), got shape {v.shape}")
-    if not np.isfinite(v).all():
-        raise ValueError(f"{name}={v.tolist()}: must be finite")
-    return v
-
-
 class Localizer:
     def __init__(
         self,
@@ -276,7 +268,7 @@ class Localizer:
         twice): skipped, returns False."""
         if kind not in ("move", "line", "indent"):
             raise ValueError(f"kind={kind!r}: must be 'move', 'line' or 'indent'")
-        start, end = _vector("start", start), _vector("end", end)
+        start, end = checks.point("start", start), checks.point("end", end)
         if kind == "indent":
             start, kind = np.asarray(self.model.command, dtype=float), "move"
         if not (math.isfinite(start_time) and math.isfinite(end_time) and end_time >= start_time):
@@ -309,7 +301,7 @@ class Localizer:
 
     def command_for(self, x: float, y: float, speed: float | None = None) -> tuple[float, float]:
         """The command that brings the tip (as estimated now) to task-frame (x, y)."""
-        target = _vector("target", (x, y))
+        target = checks.point("target", (x, y))
         command = self.model.command_for(target - self.mean, self._speed(speed))
         check_in_range("target command", command[0], command[1], self.instrument.limits)
         return command
@@ -317,7 +309,7 @@ class Localizer:
     def move_command(self, x: float, y: float, speed: float | None = None) -> MoveOutcome:
         """Command the scanner to (x, y) (scanner frame) and predict the move."""
         speed = self._speed(speed)
-        _vector("command", (x, y))
+        checks.point("command", (x, y))
         check_in_range("command", x, y, self.instrument.limits)
         self.sync()
         try:

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afm_core import checks
 from afm_core.localization.calibration.model import Calibration
 from afm_core.pzt import Creep
 
@@ -80,13 +81,6 @@ class MotionStep:
         return self.end_time - self.start_time
 
 
-def _finite(name: str, value: float) -> float:
-    value = float(value)
-    if not math.isfinite(value):
-        raise ValueError(f"{name}={value}: must be finite")
-    return value
-
-
 class MotionModel:
     """Predicts the tip's true displacement (and the covariance it adds) for each command."""
 
@@ -118,8 +112,8 @@ class MotionModel:
     # -- state ---------------------------------------------------------------------------------
     def reset(self, command, time: float) -> None:
         """At rest at `command` (m) at `time` (s): creep settled."""
-        cx, cy = (_finite("command.x", command[0]), _finite("command.y", command[1]))
-        self._time = _finite("time", time)
+        cx, cy = (checks.finite("command.x", command[0]), checks.finite("command.y", command[1]))
+        self._time = checks.finite("time", time)
         self._command = np.array([cx, cy])
         for creep, c in zip(self._creep, self._command):
             if creep is not None:
@@ -200,8 +194,8 @@ class MotionModel:
         (deflection noise across the line, no positioning noise); "hold" requires no motion."""
         if kind not in KINDS:
             raise ValueError(f"kind={kind!r}: must be one of {KINDS}")
-        target = np.array([_finite("x", x), _finite("y", y)])
-        duration = _finite("duration", duration)
+        target = np.array([checks.finite("x", x), checks.finite("y", y)])
+        duration = checks.finite("duration", duration)
         if duration < 0:
             raise ValueError(f"duration={duration}: must be >= 0 s")
         start_command, start_time = self._command.copy(), self._time

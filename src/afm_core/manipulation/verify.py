@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from afm_core import checks
 from afm_core.imaging.landmarks import Landmark, extract_landmarks
 from afm_core.instrument import Instrument, RasterScanData, ScanRequest
 
@@ -110,13 +111,6 @@ def _nearest(points: np.ndarray, target: np.ndarray) -> tuple[int, float]:
     return k, float(d[k])
 
 
-def _point(name, value) -> np.ndarray:
-    p = np.asarray(value, float).reshape(-1)
-    if p.size != 2 or not np.all(np.isfinite(p)):
-        raise ValueError(f"{name}={value!r}: must be a finite point (x, y) in m")
-    return p
-
-
 def verify_push(
     instrument: Instrument,
     request: ScanRequest,
@@ -140,8 +134,8 @@ def verify_push(
     the reference frame (leaves the pushed particle out of the landmark control points; default:
     none left out except the one matched as the particle). after: an already taken after-scan
     (then nothing is scanned)."""
-    g = _point("goal", goal)
-    exp = g if expected is None else _point("expected", expected)
+    g = checks.point("goal", goal)
+    exp = g if expected is None else checks.point("expected", expected)
     if not (math.isfinite(particle_radius) and particle_radius > 0):
         raise ValueError(f"particle_radius={particle_radius}: must be finite and > 0 m")
     for name, value in (
@@ -166,11 +160,13 @@ def verify_push(
     ref_pits: list[np.ndarray] = []
     ref_landmarks: list[np.ndarray] = []
     if reference_points is not None:
-        ref_pits = [_point(f"reference_points[{i}]", p) for i, p in enumerate(reference_points)]
+        ref_pits = [
+            checks.point(f"reference_points[{i}]", p) for i, p in enumerate(reference_points)
+        ]
     elif before is not None:
         ref_pits = [_xy(p) for p in find_pits(before, pit_depth)]
         if use_landmarks:
-            st = None if start is None else _point("start", start)
+            st = None if start is None else checks.point("start", start)
             for lm in find_particles(before, min_height):
                 xy = _xy(lm)
                 if st is not None and np.hypot(*(xy - st)) < p_radius:
@@ -179,7 +175,7 @@ def verify_push(
 
     # first offset guess: median nearest-neighbour displacement of the pits
     if offset_guess is not None:
-        guess = _point("offset_guess", offset_guess)
+        guess = checks.point("offset_guess", offset_guess)
     elif ref_pits and len(pa):
         disp = [pa[_nearest(pa, r)[0]] - r for r in ref_pits]
         guess = np.median(np.array(disp), axis=0)
