@@ -46,6 +46,8 @@ from afm_ros.conversions import (
     progress_to_assemble_feedback,
     progress_to_push_feedback,
     push_plan_to_msg,
+    stamp_of,
+    wait_until,
 )
 from afm_ros.landmark_map import NewestLandmarkMap
 from afm_ros.node_main import run
@@ -164,6 +166,14 @@ class NanoHandNode(Node):
             self.config["action_timeout"],
             should_stop,
         )
+        # The driver's record of the localizer's lines reaches this node on /afm/tip_command, on
+        # a path of its own: the strokes are mapped from the commanded position after them, so
+        # wait for it (a stale one shifts every stroke by the lines' length, and they miss).
+        lines_end = stamp_of(result.pose.header) - 1e-6
+        if result.success and not wait_until(lambda: self.instrument.time >= lines_end, 5.0):
+            return Localization(
+                False, None, f"the localizer's lines did not reach {topics.TIP_COMMAND} in 5 s"
+            )
         return Localization(result.success, pose_to_tip_estimate(result.pose), result.message)
 
     def order(self, particle_ids) -> list[int]:

@@ -1,0 +1,62 @@
+"""The nano-hand node's localization: the strokes are mapped from the commanded position after
+the localizer's lines, which reaches the node on /afm/tip_command on a path of its own."""
+
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from std_msgs.msg import Header
+
+from afm_msgs.action import Localize
+from afm_msgs.msg import TipCommand
+from afm_ros.conversions import FRAME_TASK, mean_cov_to_pose, seconds_to_time
+
+pytestmark = pytest.mark.ros
+
+LINES_END = 1000.0  # s, instrument time at the end of the localizer's last line
+
+
+@pytest.fixture
+def nano_hand(monkeypatch):
+    import rclpy
+
+    import afm_manipulation.nano_hand_node as module
+
+    def localize_action(*_args, **_kwargs):
+        result = Localize.Result(success=True, message="accepted")
+        header = Header(stamp=seconds_to_time(LINES_END), frame_id=FRAME_TASK)
+        result.pose = mean_cov_to_pose(np.array([55e-6, 55e-6]), np.eye(2) * 1e-18, header)
+        return result
+
+    monkeypatch.setattr(module, "call_action", localize_action)
+    rclpy.init()
+    node = module.NanoHandNode()
+    node.instrument.rest_at((54e-6, 54e-6), 900.0)  # before the lines
+    yield node
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def line_command(end_xy, end_time) -> TipCommand:
+    command = TipCommand(kind=TipCommand.SCAN_LINE, duration=1.0)
+    command.header.stamp = seconds_to_time(end_time - 1.0)
+    command.end.x, command.end.y = end_xy
+    return command
+
+
+def test_localization_waits_for_the_lines_to_be_heard(nano_hand):
+    late = threading.Timer(
+        0.3, nano_hand.instrument.observe_command, [line_command((55.2e-6, 55e-6), LINES_END)]
+    )
+    late.start()
+    localization = nano_hand.localize(SimpleNamespace(id=0), lambda: False)
+    late.join()
+    assert localization.success, localization.message
+    # what the strokes are mapped from: where the lines left the scanner, not where it was before
+    assert nano_hand.instrument.commanded_position() == (55.2e-6, 55e-6)
+
+
+def test_localization_fails_when_the_lines_never_arrive(nano_hand):
+    localization = nano_hand.localize(SimpleNamespace(id=0), lambda: False)
+    assert not localization.success and "/afm/tip_command" in localization.message
