@@ -111,6 +111,22 @@ def _nearest(points: np.ndarray, target: np.ndarray) -> tuple[int, float]:
     return k, float(d[k])
 
 
+def _fit_offset(controls: list[ControlPoint], inlier_radius: float) -> tuple[np.ndarray, float]:
+    """The drift offset as the mean displacement of the control points within inlier_radius of
+    their median (at least the one nearest to it), and the rms spread about it; marks each
+    control point used or not."""
+    if not controls:
+        return np.zeros(2), 0.0
+    disp = np.array([c.displacement for c in controls])
+    distance = np.hypot(*(disp - np.median(disp, axis=0)).T)
+    inliers = distance <= max(inlier_radius, float(distance.min()))
+    for control, used in zip(controls, inliers):
+        control.used = bool(used)
+    offset = disp[inliers].mean(axis=0)
+    spread = float(np.sqrt(np.mean(np.sum((disp[inliers] - offset) ** 2, axis=1))))
+    return offset, spread
+
+
 def verify_push(
     instrument: Instrument,
     request: ScanRequest,
@@ -136,15 +152,13 @@ def verify_push(
     (then nothing is scanned)."""
     g = checks.point("goal", goal)
     exp = g if expected is None else checks.point("expected", expected)
-    if not (math.isfinite(particle_radius) and particle_radius > 0):
-        raise ValueError(f"particle_radius={particle_radius}: must be finite and > 0 m")
+    checks.positive("particle_radius", particle_radius, "m")
     for name, value in (
         ("match_radius", match_radius),
         ("inlier_radius", inlier_radius),
         ("pit_depth", pit_depth),
     ):
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{name}={value}: must be finite and > 0 m")
+        checks.positive(name, value, "m")
     p_radius = (
         2 * particle_radius + 100e-9 if particle_match_radius is None else particle_match_radius
     )
@@ -197,24 +211,14 @@ def verify_push(
             taken_l.add(k)
             controls.append(ControlPoint("landmark", r, la[k].copy()))
 
-    if controls:
-        disp = np.array([c.displacement for c in controls])
-        med = np.median(disp, axis=0)
-        inl = np.hypot(*(disp - med).T) <= inlier_radius
-        if not inl.any():
-            inl = np.hypot(*(disp - med).T) <= np.min(np.hypot(*(disp - med).T))
-        for c, ok in zip(controls, inl):
-            c.used = bool(ok)
-        offset = disp[inl].mean(axis=0)
-        spread = float(np.sqrt(np.mean(np.sum((disp[inl] - offset) ** 2, axis=1))))
-    else:
-        offset, spread = np.zeros(2), 0.0
+    offset, spread = _fit_offset(controls, inlier_radius)
 
     k, d = _nearest(la, exp + offset)
     if k < 0 or d > p_radius:
         raise ValueError(
             f"particle: no landmark within particle_match_radius={p_radius:.4e} m of the expected "
-            f"position {tuple(exp)} (+ offset {tuple(offset)}) in the after scan"
+            f"position ({exp[0]:.6e}, {exp[1]:.6e}) m (+ offset ({offset[0]:.3e}, "
+            f"{offset[1]:.3e}) m) in the after scan"
         )
     raw = la[k].copy()
     achieved = raw - offset
