@@ -273,12 +273,15 @@ def cmd_sim2real(args):
         )
     except (ValueError, OSError, RuntimeError) as exc:
         sys.exit(f"afm sim2real: {exc}")
+    print(f"verdict: {diagnosis.verdict}")
     print(diagnosis.summary())
-    if diagnosis.chosen and diagnosis.heldout:
-        held = diagnosis.heldout
+    held = diagnosis.heldout
+    if held.get("terms"):  # a term was tried: its held-out demonstration, named or not
         print(
-            f"held-out operations: chi2 {held['chi2_before']:.1f} -> {held['chi2_after']:.1f} "
-            f"for {held['dof']} dof"
+            f"held-out operations ({', '.join(held['terms'])}"
+            f"{'' if diagnosis.chosen else ', not named'}): chi2 {held['chi2_before']:.1f} -> "
+            f"{held['chi2_after']:.1f} for {held['dof']} dof, "
+            f"{100 * held['excess_reduction']:.0f} % of the excess over the noise removed"
         )
     print(
         f"report: {report / 'report.md'}"
