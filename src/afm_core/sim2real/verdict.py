@@ -15,9 +15,16 @@ session re-simulated, heldout.heldout_check):
 
 A term that passes and leaves the held-out blocks within their noise (chi^2 below the 1 - ALPHA
 quantile) is "named"; one that leaves them beyond it is "partly explained", with where the
-excess remains. The terms are tried as a set (a sensor-noise term first, the leader, a second
-term); a set that fails is tried without its last library term (the leader alone: its held-out
-check is usually made already for the second term), and an accepted noise term last alone.
+excess remains: the signals and conditions (deviations.where_by_condition on the held-out
+residual after the fit) beyond their noise at Bonferroni ALPHA. When the excess lives in none of
+them, the term is named: the full-covariance chi^2 also counts how the residual departs from the
+modelled correlations between features (the drift's shared part), and a fit of a large effect
+leaves some of that (a loop 1.3 x wider, fitted to 0.2 %, left 729 for 215 dof, its groups'
+own chi^2 summing to 182); an effect the term leaves shows in the signals it acts on.
+
+The terms are tried as a set (a sensor-noise term first, the leader, a second term); a set
+that fails is tried without its last library term (the leader alone: its held-out check is
+usually made already for the second term), and an accepted noise term last alone.
 When none passes, nothing is named and no updated configuration is written: "not explained by
 the library" when the residual exceeds the noise model, else "no missing physics".
 """
@@ -120,6 +127,8 @@ def decide(
         heldout["terms"] = list(names)
         if verdict is not None:
             remaining = where_remaining(sess, evidence, heldout) if verdict != NAMED else []
+            if not remaining:  # beyond the noise in no signal or condition (module docstring)
+                verdict = NAMED
             return Decision(verdict, names, parameters, overrides, heldout, remaining, "")
         notes.append(f"{', '.join(names)} not named: {why}")
         for name in names:
