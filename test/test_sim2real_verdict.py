@@ -222,3 +222,24 @@ def test_a_refusal_names_the_scanner_term_that_would_reproduce_the_recording():
     other = merge(nominal, {"sample": {"spheres": [{"x": 50e-6, "y": 50e-6, "radius": 100e-9}]}})
     with pytest.raises(ConfigMismatchError, match="No scanner term of the library reproduces"):
         diagnose(make_session(nominal, protocol_seed=seed, blocks=1), other, candidates=[])
+
+
+def test_the_runner_up_is_fitted_only_when_the_leader_failed_on_a_held_out_excess():
+    """A leader whose held-out check gets worse, with an excess there: the runner-up is fitted
+    and named when it passes. A leader with no held-out excess to remove: nothing else can
+    pass, and the runner-up is not even fitted (its re-simulations are saved)."""
+    config = _nominal(3)
+    names = ["tip_radius", "height_gain"]
+    calls = []
+
+    def runner_up():
+        calls.append(1)
+        return ["height_gain"], np.array([0.99]), np.array([0.001])
+
+    tried = [(names[:1], np.array([26e-9]), np.array([1e-9])), runner_up]
+    checked = {("tip_radius",): _check(900.0, 950.0, 211), ("height_gain",): _check(900, 215, 211)}
+    decision, _ = _decide(config, names, tried, checked)
+    assert decision.verdict == NAMED and decision.chosen == ["height_gain"] and calls == [1]
+    checked[("tip_radius",)] = _check(172.0, 168.0, 211)
+    decision, _ = _decide(config, names, tried, checked, p_overall=0.3)
+    assert decision.verdict == NO_MISSING_PHYSICS and decision.chosen == [] and calls == [1]

@@ -47,7 +47,7 @@ from afm_core.sim2real.report import write_report
 from afm_core.sim2real.results import Diagnosis
 from afm_core.sim2real.second_term import add_second_term
 from afm_core.sim2real.session_reader import read_operations
-from afm_core.sim2real.verdict import decide
+from afm_core.sim2real.verdict import decide, runner_up
 
 
 def diagnose(
@@ -92,6 +92,8 @@ def diagnose(
         tried = [(chosen, theta, sigma)]
         if len(chosen) > 1:  # the leader alone, should the pair not be named
             tried.append((chosen[:1], leader.theta, leader.sigma))
+        # the runner-up, fitted only should the leader not be named either
+        tried.append(runner_up(sess, design, evidence, leader.name, refine_iterations, say))
     deviations = nominal_deviations(sess, evidence)
     with timed("heldout"):
         decision = decide(

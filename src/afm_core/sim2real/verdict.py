@@ -44,6 +44,7 @@ from afm_core.sim2real.feature_table import Table
 from afm_core.sim2real.heldout import heldout_check
 from afm_core.sim2real.noise_model import Whitener, gls
 from afm_core.sim2real.reference import ReferenceSession
+from afm_core.sim2real.refinement import refine, reported_sigma, sigma_of
 from afm_core.sim2real.results import (
     NAMED,
     NO_MISSING_PHYSICS,
@@ -100,24 +101,26 @@ def decide(
     if noise_terms and all(unresolved(p) for p in noise_params.values()):
         notes.append(f"{noise_terms[0]}: {_CANNOT_TELL}")
         noise_terms, noise_params, noise_overrides = [], {}, {}
-    sets = []
-    for names, theta, sigma in tried:
+    # last, alone: a noise level is tested on its own statistics
+    sets = list(tried) + ([([], None, None)] if noise_terms else [])
+    heldout = {}
+    for entry in sets:
+        if callable(entry):  # a set made only when reached (a runner-up's re-simulated fit)
+            # only when a term failed on its own merits: with no held-out excess to remove, or
+            # no re-simulation, nothing else can pass either
+            failed = heldout.get("chi2_before", 0.0) > heldout.get("limit", np.inf)
+            entry = entry() if resimulate and failed else None
+            if entry is None:
+                continue
+        names, theta, sigma = entry
         parameters, overrides = _parameters(config, terms, names, theta, sigma)
         vague = [n for n in names if _cannot_tell(parameters, n)]
         if vague:
             notes.append(f"{', '.join(vague)}: {_CANNOT_TELL}")
             continue
-        sets.append(
-            (
-                noise_terms + list(names),
-                {**noise_params, **parameters},
-                merge_overrides(noise_overrides, overrides),
-            )
-        )
-    if noise_terms:  # last, alone: a noise level is tested on its own statistics
-        sets.append((noise_terms, noise_params, noise_overrides))
-    heldout = {}
-    for names, parameters, overrides in sets:
+        names = noise_terms + list(names)
+        parameters = {**noise_params, **parameters}
+        overrides = merge_overrides(noise_overrides, overrides)
         if not resimulate:
             return Decision(NAMED, names, parameters, overrides, {}, [], "")
         heldout = _demonstration(
@@ -135,7 +138,7 @@ def decide(
             for res in evidence.results:
                 if res.name == name:
                     res.note = f"{res.note} not named: {why}".strip()
-    if not sets:
+    if "chi2_after" not in heldout:  # nothing was tried
         heldout = _as_it_is(sess, evidence)
     beyond = evidence.overall()["p"] < UNEXPLAINED_P
     return Decision(
@@ -231,6 +234,8 @@ def _cannot_tell(parameters: dict, name: str) -> bool:
 def _parameters(config, terms: dict, names, theta, sigma) -> tuple[dict, dict]:
     """(key -> {value, sigma, nominal, candidate}, nested config overrides) of library terms."""
     parameters, overrides = {}, {}
+    if not names:
+        return parameters, overrides
     offset = 0
     for name in names:
         cand, theta0, _ = terms[name]
@@ -265,3 +270,21 @@ def _noise_term(config, terms: dict, noise_first) -> tuple[list, dict, dict]:
         for j, key in enumerate(cand.keys)
     }
     return [cand.name], parameters, cand.overrides(config, result.estimate)
+
+
+def runner_up(sess, design, evidence: Evidence, leader: str, iterations: int, say):
+    """A set to try should the leader not be named: the best other accepted single term, fitted
+    by re-simulation ([name], theta, its reported sigma), or None when there is none."""
+
+    def make():
+        others = [res for res in evidence.accepted if res.name != leader]
+        if not others or others[0].name not in design.terms:
+            return None
+        term = design.terms[others[0].name]
+        say(f"re-simulating the fit of {others[0].name} (the leader was not named)")
+        white, P = evidence.weighting.white, evidence.P
+        theta, cov, resid = refine(sess, [term], white, P, iterations, evidence.variance_factor)
+        sigma = reported_sigma(white, P, term[2], resid, sigma_of(cov), evidence.variance_factor)
+        return [others[0].name], theta, sigma
+
+    return make
