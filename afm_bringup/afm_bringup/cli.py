@@ -494,9 +494,10 @@ def _add_sim2real(sub) -> None:
         "the fitted term and its held-out improvement",
         description="Re-run a recording's commands in the simulator (--model), compare every "
         "measurement against the noise model, rank candidate physics the model lacks "
-        "by held-out evidence, fit the chosen term and write report.md, plots and "
-        "updated_config.yaml into --report. Our recorder's files and rosbag2 MCAP both "
-        "work; no ROS needed.",
+        "by held-out evidence, fit the chosen term and write report.md, plots and (when a "
+        "term is named) updated_config.yaml into --report. The verdict: named, partly "
+        "explained, not explained by the library, or no missing physics. Our recorder's "
+        "files and rosbag2 MCAP both work; no ROS needed.",
     )
     p.add_argument(
         "recording", help="MCAP recording (needs /afm/tip_command and the measurements)"
