@@ -13,6 +13,7 @@ sample or the area, saying what was tried."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -58,17 +59,33 @@ def trial_values(cand: Candidate, nominal: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def agreement(particles_seen: dict, sim_seen: dict, f_rec: dict, f_sim: dict) -> tuple:
-    """(how many particles the recording's images show, the simulation's, the smaller over the
-    larger; recorded features of the sample, simulated ones, reproduced ones, the smaller
-    share of the two reproduced)."""
+class Agreement(NamedTuple):
+    """How a re-simulation agrees with the recording (the configuration check's two counts)."""
+
+    seen_rec: int  # particles the recording's images show
+    seen_sim: int  # the simulation's
+    seen_ratio: float  # the smaller over the larger
+    n_rec: int  # recorded features of the sample (noise statistics are on any sample)
+    n_sim: int  # simulated ones
+    n_both: int  # reproduced ones
+    feature_ratio: float  # the smaller share of the two reproduced
+    images: int  # the recording's images
+
+    @property
+    def score(self) -> float:
+        """The worse of the two agreements."""
+        return min(self.seen_ratio, self.feature_ratio)
+
+
+def agreement(particles_seen: dict, sim_seen: dict, f_rec: dict, f_sim: dict) -> Agreement:
+    """The recording (its particles seen per image, its features) against a simulation's."""
     seen_rec, seen_sim = (
         sum(seen.get(k, 0) for k in particles_seen) for seen in (particles_seen, sim_seen)
     )
     on_sample = {k for k, f in f_rec.items() if f.group not in NOISE_GROUPS}
     sim_on_sample = {k for k, f in f_sim.items() if f.group not in NOISE_GROUPS}
     both = on_sample & sim_on_sample
-    return (
+    return Agreement(
         seen_rec,
         seen_sim,
         min(seen_rec, seen_sim) / max(seen_rec, seen_sim, 1),
@@ -76,12 +93,8 @@ def agreement(particles_seen: dict, sim_seen: dict, f_rec: dict, f_sim: dict) ->
         len(sim_on_sample),
         len(both),
         min(len(both) / max(len(on_sample), 1), len(both) / max(len(sim_on_sample), 1)),
+        len(particles_seen),
     )
-
-
-def score(agree: tuple) -> float:
-    """The worse of the two agreements (particles seen, features reproduced)."""
-    return min(agree[2], agree[6])
 
 
 def agreement_with(ops, f_rec: dict, particles_seen: dict, config: SimConfig, anchors, t_end):
@@ -107,7 +120,7 @@ def likely_scanner_causes(
     say: Callable[[str], None] = lambda message: None,
 ) -> tuple[list, list]:
     """([(term, value array, its agreement, the model's values)] of the scanner terms at which
-    the re-simulation reproduces the recording (`score` at least `fraction` and above the
+    the re-simulation reproduces the recording (its score at least `fraction` and above the
     configuration's `nominal_score`), best first; [names of the terms tried])."""
     found, tried = [], []
     for cand in scanner_terms(config):
@@ -123,14 +136,14 @@ def likely_scanner_causes(
             except (ValueError, RuntimeError, np.linalg.LinAlgError):
                 continue  # a value the scanner cannot drive (out of range, say): not a cause
             if (
-                score(agree) >= fraction
-                and score(agree) > nominal_score
-                and (best is None or score(agree) > score(best[2]))
+                agree.score >= fraction
+                and agree.score > nominal_score
+                and (best is None or agree.score > best[2].score)
             ):
                 best = (cand, value, agree, nominal)
         if best is not None:
             found.append(best)
-    found.sort(key=lambda f: -score(f[2]))
+    found.sort(key=lambda f: -f[2].score)
     return found, tried
 
 
@@ -150,8 +163,8 @@ def cause_words(found: list, tried: list) -> str:
             for key, v, n in zip(cand.keys, value, nominal)
         )
         parts.append(
-            f"{cand.words}: {shown}, whose images show {agree[1]} particles and which "
-            f"reproduces {agree[5]} of the {agree[3]} recorded features of the sample"
+            f"{cand.words}: {shown}, whose images show {agree.seen_sim} particles and which "
+            f"reproduces {agree.n_both} of the {agree.n_rec} recorded features of the sample"
         )
     effects = ",".join(c.name for c, _, _, _ in found)
     return (

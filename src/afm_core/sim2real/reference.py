@@ -36,7 +36,12 @@ from afm_core.sim2real.features import (
     extract_features,
     raster_noise_statistics,
 )
-from afm_core.sim2real.mismatch import agreement, cause_words, likely_scanner_causes
+from afm_core.sim2real.mismatch import (
+    Agreement,
+    agreement,
+    cause_words,
+    likely_scanner_causes,
+)
 from afm_core.sim2real.protocol import deterministic, replay
 
 MIN_MATCHED_FRACTION = 0.7  # of the recorded features the reference simulation must reproduce
@@ -443,34 +448,33 @@ def _read(recorded_ops, anchors: np.ndarray):
     return extractor, ops, f_rec
 
 
-def _check_config_matches(agree: tuple, lost_rec: set, lost_sim: set, explain=None):
+def _check_config_matches(agree: Agreement, lost_rec: set, lost_sim: set, explain=None):
     """ConfigMismatchError unless the reference at the recorded geometry shows the recording's
     particles and reproduces most of its features (`agree`: mismatch.agreement; lost_rec,
     lost_sim: operations with a feature of the sample only in the recording, only in the
-    simulation). explain(the configuration's mismatch.score): the message's likely cause
+    simulation). explain(the configuration's agreement score): the message's likely cause
     (mismatch.py: the scanner terms that would reproduce the recording), None: the sample."""
-    seen_rec, seen_nom, seen_ratio, n_rec, n_sim, n_both, feature_ratio = agree
     # a drift trajectory can put the config's particles under the recorded lines one at a time
     # (one sphere fitted, by jumps of micrometres, to where six were seen), but not into the
     # images of them all: the images must show as many particles as the recording's
-    if seen_ratio < MIN_MATCHED_FRACTION:
+    if agree.seen_ratio < MIN_MATCHED_FRACTION:
         what = (
-            f"the recording's images show {seen_rec} particles, the simulation of the same "
-            f"images with this config {seen_nom} (each must be at least "
-            f"{MIN_MATCHED_FRACTION:.0%} of the other)."
+            f"the recording's {agree.images} images show {agree.seen_rec} particles, the "
+            f"simulation of the same images with this config {agree.seen_sim} (each must be at "
+            f"least {MIN_MATCHED_FRACTION:.0%} of the other)."
         )
     # whether the particles are where the config says (noise statistics are there on any sample)
-    elif feature_ratio < MIN_MATCHED_FRACTION:
+    elif agree.feature_ratio < MIN_MATCHED_FRACTION:
         what = (
-            f"of {n_rec} recorded features of the sample only {n_both} are reproduced by the "
-            f"simulation ({n_sim} simulated). Operations where the recording saw a particle and "
-            f"the simulation did not: {sorted(lost_rec)[:10]}; the reverse: "
-            f"{sorted(lost_sim)[:10]}."
+            f"of {agree.n_rec} recorded features of the sample only {agree.n_both} are "
+            f"reproduced by the simulation ({agree.n_sim} simulated). Operations where the "
+            f"recording saw a particle and the simulation did not: {sorted(lost_rec)[:10]}; the "
+            f"reverse: {sorted(lost_sim)[:10]}."
         )
     else:
         return
     cause = (
-        explain(min(seen_ratio, feature_ratio))
+        explain(agree.score)
         if explain is not None
         else " Check the sample (particle positions, seed) and the scanner area in the config."
     )

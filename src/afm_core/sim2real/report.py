@@ -233,13 +233,12 @@ def _update_section(diagnosis, out: Path) -> list[str]:
 
 
 def _remaining_section(diagnosis) -> list[str]:
-    """Partly explained: where the held-out excess remains after the named terms; not named:
-    what was tried and why."""
+    """Partly explained: where the held-out excess remains after the named terms."""
     lines = []
     if diagnosis.remaining:
         lines += [
             "What the named terms leave on the held-out operations, beyond the noise "
-            "(Bonferroni p < 5 %):",
+            f"(Bonferroni p < {100 * ALPHA:.0f} %):",
             "",
             "| where | n | mean | chi2/n |",
             "|---|---|---|---|",
@@ -267,8 +266,8 @@ def _heldout_section(diagnosis, figures: list[str]) -> list[str]:
             f"Noise alone gives the held-out chi2 its {h['dof']} dof on average, and more than "
             f"{h['limit']:.1f} in {100 * ALPHA:.0f} % of sessions; a term is named when there is "
             f"an excess beyond that, it removes at least {100 * EXCESS_SHARE:.0f} % of the excess "
-            "over the dof and leaves the held-out chi2 below that quantile (beyond it: partly "
-            "explained).",
+            "over the dof and leaves the held-out chi2 below that quantile (beyond it, in some "
+            "signal or condition: partly explained).",
             "",
         ]
     if h:
