@@ -134,10 +134,9 @@ def decide(
                 verdict = NAMED
             return Decision(verdict, names, parameters, overrides, heldout, remaining, "")
         notes.append(f"{', '.join(names)} not named: {why}")
-        for name in names:
-            for res in evidence.results:
-                if res.name == name:
-                    res.note = f"{res.note} not named: {why}".strip()
+        for res in evidence.results:  # the term the next set goes without
+            if res.name == names[-1]:
+                res.note = f"{res.note} not named: {why}".strip()
     if "chi2_after" not in heldout:  # nothing was tried
         heldout = _as_it_is(sess, evidence)
     beyond = evidence.overall()["p"] < UNEXPLAINED_P
