@@ -276,11 +276,10 @@ def cmd_sim2real(args):
     print(f"verdict: {diagnosis.verdict}")
     print(diagnosis.summary())
     held = diagnosis.heldout
-    if held.get("terms"):  # a term was tried: its held-out demonstration, named or not
+    if held.get("terms") and not diagnosis.chosen:  # a named term's are in the summary
         print(
-            f"held-out operations ({', '.join(held['terms'])}"
-            f"{'' if diagnosis.chosen else ', not named'}): chi2 {held['chi2_before']:.1f} -> "
-            f"{held['chi2_after']:.1f} for {held['dof']} dof, "
+            f"held-out operations ({', '.join(held['terms'])}, not named): chi2 "
+            f"{held['chi2_before']:.1f} -> {held['chi2_after']:.1f} for {held['dof']} dof, "
             f"{100 * held['excess_reduction']:.0f} % of the excess over the noise removed"
         )
     print(

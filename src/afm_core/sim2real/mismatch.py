@@ -152,14 +152,16 @@ def cause_words(found: list, tried: list) -> str:
     recording's particles, or that none of those tried did."""
     if not found:
         return (
-            f" No scanner term of the library reproduces them either (tried, each at "
+            f" No scanner term of the library reproduces the recording either (tried, each at "
             f"{len(RANGE_POINTS)} values across its range: {', '.join(tried) or 'none'}). "
             "Check the sample (particle positions, seed) and the scanner area in the config."
         )
     parts = []
     for cand, value, agree, nominal in found:
         shown = ", ".join(
-            f"{key} {'x' if cand.scale else 'about'} {v:.3g} (the config has {n:.3g})"
+            f"{key} {v:.3g} x the config's"
+            if cand.scale
+            else f"{key} about {v:.3g} (the config has {n:.3g})"
             for key, v, n in zip(cand.keys, value, nominal)
         )
         parts.append(
