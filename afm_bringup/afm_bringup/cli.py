@@ -273,12 +273,14 @@ def cmd_sim2real(args):
         )
     except (ValueError, OSError, RuntimeError) as exc:
         sys.exit(f"afm sim2real: {exc}")
+    print(f"verdict: {diagnosis.verdict}")
     print(diagnosis.summary())
-    if diagnosis.chosen and diagnosis.heldout:
-        held = diagnosis.heldout
+    held = diagnosis.heldout
+    if held.get("terms") and not diagnosis.chosen:  # a named term's are in the summary
         print(
-            f"held-out operations: chi2 {held['chi2_before']:.1f} -> {held['chi2_after']:.1f} "
-            f"for {held['dof']} dof"
+            f"held-out operations ({', '.join(held['terms'])}, not named): chi2 "
+            f"{held['chi2_before']:.1f} -> {held['chi2_after']:.1f} for {held['dof']} dof, "
+            f"{100 * held['excess_reduction']:.0f} % of the excess over the noise removed"
         )
     print(
         f"report: {report / 'report.md'}"
@@ -491,9 +493,10 @@ def _add_sim2real(sub) -> None:
         "the fitted term and its held-out improvement",
         description="Re-run a recording's commands in the simulator (--model), compare every "
         "measurement against the noise model, rank candidate physics the model lacks "
-        "by held-out evidence, fit the chosen term and write report.md, plots and "
-        "updated_config.yaml into --report. Our recorder's files and rosbag2 MCAP both "
-        "work; no ROS needed.",
+        "by held-out evidence, fit the chosen term and write report.md, plots and (when a "
+        "term is named) updated_config.yaml into --report. The verdict: named, partly "
+        "explained, not explained by the library, or no missing physics. Our recorder's "
+        "files and rosbag2 MCAP both work; no ROS needed.",
     )
     p.add_argument(
         "recording", help="MCAP recording (needs /afm/tip_command and the measurements)"

@@ -162,7 +162,11 @@ class Sim2RealNode(Node):
             result.updated_config = str(updated) if updated.is_file() else ""
             reduction = diagnosis.heldout.get("excess_reduction") if diagnosis.chosen else None
             result.heldout_reduction = float(reduction) if reduction is not None else math.nan
-            result.message = "; ".join(part for part in (note, f"report in {report_dir}") if part)
+            result.message = "; ".join(
+                part
+                for part in (f"verdict: {diagnosis.verdict}", note, f"report in {report_dir}")
+                if part
+            )
             goal_handle.succeed()
             return result
         finally:

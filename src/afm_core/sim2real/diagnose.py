@@ -18,7 +18,9 @@ The stages, in the order `diagnose` runs them (all SI; each module's docstring s
 5. Where the nominal model deviates, by condition (deviations.py); the chosen terms' values,
    sigmas and the updated configuration.
 6. Held-out demonstration (heldout.py): fit on one fold only, re-simulate the whole session
-   with that fit, residuals on the other fold before and after.
+   with that fit, residuals on the other fold before and after; the naming rule and the
+   verdict on it (verdict.py: named, partly explained, not explained by the library, no
+   missing physics).
 """
 
 from __future__ import annotations
@@ -31,20 +33,21 @@ from pathlib import Path
 import numpy as np
 
 from afm_core.sim.config import SimConfig, load_config, merge
-from afm_core.sim2real.candidates import available, library, merge_overrides, select
+from afm_core.sim2real.candidates import available, library, select
 from afm_core.sim2real.design_columns import design_columns
 from afm_core.sim2real.deviations import nominal_deviations
 from afm_core.sim2real.drift_trajectory import nominal_drift
 from afm_core.sim2real.evidence import weigh_candidates
-from afm_core.sim2real.heldout import fold_blocks, heldout_demonstration
+from afm_core.sim2real.heldout import fold_blocks
 from afm_core.sim2real.noise_model import nuisance_columns, session_noise_model
-from afm_core.sim2real.noise_term import NoiseFirst, sensor_noise_first
+from afm_core.sim2real.noise_term import sensor_noise_first
 from afm_core.sim2real.reference import NoFeaturesError, build_reference
 from afm_core.sim2real.refinement import compare_leaders
 from afm_core.sim2real.report import write_report
 from afm_core.sim2real.results import Diagnosis
 from afm_core.sim2real.second_term import add_second_term
 from afm_core.sim2real.session_reader import read_operations
+from afm_core.sim2real.verdict import decide, runner_up
 
 
 def diagnose(
@@ -81,29 +84,34 @@ def diagnose(
     )
     with timed("compare"):
         leader = compare_leaders(sess, design, evidence, refine_iterations, blocks, say)
-    chosen, theta, sigma, checked = [], None, None, {}
+    tried, checked = [], {}
     if leader is not None:
         chosen, theta, sigma, checked = add_second_term(
             sess, design, evidence, leader, refine_iterations, heldout_resimulation, say
         )
+        tried = [(chosen, theta, sigma)]
+        if len(chosen) > 1:  # the leader alone, should the pair not be named
+            tried.append((chosen[:1], leader.theta, leader.sigma))
+        # the runner-up, fitted only should the leader not be named either
+        tried.append(runner_up(sess, design, evidence, leader.name, refine_iterations, say))
     deviations = nominal_deviations(sess, evidence)
-    with timed("fit"):
-        chosen, parameters, overrides = _fitted_terms(
-            config, design.terms, chosen, theta, sigma, noise_first
-        )
-        updated = merge(config, overrides) if chosen else None
     with timed("heldout"):
-        heldout = heldout_demonstration(
+        decision = decide(
             sess,
             evidence,
+            config,
             design.terms,
-            chosen,
-            parameters,
+            noise_first,
+            tried,
             checked,
             refine_iterations,
             heldout_resimulation,
             say,
         )
+    chosen, parameters, overrides = decision.chosen, decision.parameters, decision.overrides
+    heldout = decision.heldout
+    # a term not named (its held-out check got worse, say) updates no configuration
+    updated = merge(config, overrides) if chosen else None
     timings = timed.finish(replays=float(sess.replays + 5 + sensor_replicas))
     return Diagnosis(
         n_features=len(sess.keys),
@@ -120,12 +128,15 @@ def diagnose(
         missing_candidates=missing,
         timings=timings,
         not_considered=_left_out(candidates),
-        residuals=_residual_arrays(sess, deviations, noise, folds, heldout),
+        residuals=_residual_arrays(sess, deviations, noise, folds, heldout if chosen else {}),
         drift={
             "times": sess.drift.times,
             "offsets": sess.drift.offsets,
             "nominal": nominal_drift(config, sess.drift.times),
         },
+        verdict=decision.verdict,
+        remaining=decision.remaining,
+        verdict_note=decision.note,
     )
 
 
@@ -158,40 +169,6 @@ def _residual_arrays(sess, deviations, noise, folds: list, heldout: dict) -> dic
         "folds": folds,
         "after": heldout.get("r_after"),
     }
-
-
-def _fitted_terms(config, design: dict, chosen: list, theta, sigma, noise_first: NoiseFirst):
-    """(the chosen terms' names, the noise term's first; key -> {value, sigma, nominal,
-    candidate}; the nested config overrides of their values). The noise term's design joins
-    `design`."""
-    parameters, overrides = {}, {}
-    offset = 0
-    for name in chosen:
-        cand, theta0, _ = design[name]
-        part = theta[offset : offset + cand.size]
-        overrides = merge_overrides(overrides, cand.overrides(config, part))
-        for j, key in enumerate(cand.keys):
-            parameters[key] = {
-                "value": float(theta[offset + j]),
-                "sigma": float(sigma[offset + j]),
-                "nominal": float(theta0[j]),
-                "candidate": name,
-            }
-        offset += cand.size
-    noise_result = noise_first.result
-    if noise_result is not None and noise_result.accepted:
-        cand, theta0, _ = noise_first.design
-        design[cand.name] = noise_first.design
-        chosen = [cand.name] + chosen
-        overrides = merge_overrides(cand.overrides(config, noise_result.estimate), overrides)
-        for j, key in enumerate(cand.keys):
-            parameters[key] = {
-                "value": float(noise_result.estimate[j]),
-                "sigma": float(noise_result.sigma[j]),
-                "nominal": float(theta0[j]),
-                "candidate": cand.name,
-            }
-    return chosen, parameters, overrides
 
 
 def _left_out(candidates) -> list[str]:

@@ -4,11 +4,8 @@ session, and the other fold's residuals are compared before and after (`heldout_
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
-from afm_core.sim2real.evidence import Evidence
 from afm_core.sim2real.feature_table import BOW_GROUPS, Table
 from afm_core.sim2real.noise_model import NoiseModel, Whitener, gls
 from afm_core.sim2real.reference import ReferenceSession
@@ -74,42 +71,4 @@ def heldout_check(
         "train_theta": theta.tolist(),
         "r_after": r_after,
         "test": test,
-    }
-
-
-def heldout_demonstration(
-    sess: ReferenceSession,
-    evidence: Evidence,
-    terms: dict,
-    chosen: list,
-    parameters: dict,
-    checked: dict,
-    iterations: int,
-    resimulate: bool,
-    say: Callable[[str], None],
-) -> dict:
-    """The chosen terms fitted on the first fold, re-simulated, compared on the second (the
-    check made for a second term when it was of these terms: `checked`); no term: the second
-    fold's chi^2 as it is. {} when the terms are not to be re-simulated. `terms`: name ->
-    design triple."""
-    noise, P, folds = evidence.weighting.noise, evidence.P, evidence.folds
-    if chosen and resimulate:
-        say("held-out check")
-        start = np.array(
-            [parameters[key]["value"] for name in chosen for key in terms[name][0].keys]
-        )
-        return checked.get(tuple(chosen)) or heldout_check(
-            sess, [terms[c] for c in chosen], noise, P, folds[0], iterations, start
-        )
-    if chosen:
-        return {}
-    test = folds[1]
-    w_te = Whitener(noise.cov[np.ix_(test, test)])
-    _, chi2_te, _ = gls(w_te(sess.r[test]), w_te(P[test]))
-    return {
-        "chi2_before": chi2_te,
-        "chi2_after": chi2_te,
-        "dof": int(test.sum() - P.shape[1]),
-        "reduction": 0.0,
-        "excess_reduction": 0.0,
     }

@@ -36,6 +36,12 @@ from afm_core.sim2real.features import (
     extract_features,
     raster_noise_statistics,
 )
+from afm_core.sim2real.mismatch import (
+    Agreement,
+    agreement,
+    cause_words,
+    likely_scanner_causes,
+)
 from afm_core.sim2real.protocol import deterministic, replay
 
 MIN_MATCHED_FRACTION = 0.7  # of the recorded features the reference simulation must reproduce
@@ -359,7 +365,25 @@ def build_reference(
     nominal = replay(ops, base, drift=drift)
     nominal_seen: dict = {}
     f_nom = by_key(extract_features(nominal.operations, anchors, nominal_seen))
-    _check_config_matches(extractor.particles_seen, nominal_seen, f_rec, f_nom)
+    _check_config_matches(
+        agreement(extractor.particles_seen, nominal_seen, f_rec, f_nom),
+        {k[0] for k in f_rec if k not in f_nom and f_rec[k].group not in NOISE_GROUPS},
+        {k[0] for k, f in f_nom.items() if k not in f_rec and f.group not in NOISE_GROUPS},
+        # only when the check fails: which scanner term would reproduce the recording
+        explain=lambda nominal_score: cause_words(
+            *likely_scanner_causes(
+                ops,
+                f_rec,
+                extractor.particles_seen,
+                config,
+                anchors,
+                t_end,
+                nominal_score,
+                MIN_MATCHED_FRACTION,
+                say,
+            )
+        ),
+    )
     matched = [k for k in f_rec if k in f_nom]
     say("drift sensitivities")
     shifted = []
@@ -424,39 +448,37 @@ def _read(recorded_ops, anchors: np.ndarray):
     return extractor, ops, f_rec
 
 
-def _check_config_matches(particles_seen: dict, nominal_seen: dict, f_rec: dict, f_nom: dict):
+def _check_config_matches(agree: Agreement, lost_rec: set, lost_sim: set, explain=None):
     """ConfigMismatchError unless the reference at the recorded geometry shows the recording's
-    particles and reproduces most of its features."""
+    particles and reproduces most of its features (`agree`: mismatch.agreement; lost_rec,
+    lost_sim: operations with a feature of the sample only in the recording, only in the
+    simulation). explain(the configuration's agreement score): the message's likely cause
+    (mismatch.py: the scanner terms that would reproduce the recording), None: the sample."""
     # a drift trajectory can put the config's particles under the recorded lines one at a time
     # (one sphere fitted, by jumps of micrometres, to where six were seen), but not into the
     # images of them all: the images must show as many particles as the recording's
-    seen_rec, seen_nom = (
-        sum(seen.get(k, 0) for k in particles_seen) for seen in (particles_seen, nominal_seen)
-    )
-    if min(seen_rec, seen_nom) < MIN_MATCHED_FRACTION * max(seen_rec, seen_nom):
-        raise ConfigMismatchError(
-            "the configuration does not match the recording: the recording's "
-            f"{len(particles_seen)} images show {seen_rec} particles, the simulation of the same "
-            f"images with this config {seen_nom} (each must be at least "
-            f"{MIN_MATCHED_FRACTION:.0%} of the other). Check the sample (particle positions, "
-            "seed) and the scanner area in the config."
+    if agree.seen_ratio < MIN_MATCHED_FRACTION:
+        what = (
+            f"the recording's {agree.images} images show {agree.seen_rec} particles, the "
+            f"simulation of the same images with this config {agree.seen_sim} (each must be at "
+            f"least {MIN_MATCHED_FRACTION:.0%} of the other)."
         )
     # whether the particles are where the config says (noise statistics are there on any sample)
-    on_sample = {k for k, f in f_rec.items() if f.group not in NOISE_GROUPS}
-    sim_on_sample = {k for k, f in f_nom.items() if f.group not in NOISE_GROUPS}
-    both = on_sample & sim_on_sample
-    if len(both) < MIN_MATCHED_FRACTION * len(on_sample) or len(both) < MIN_MATCHED_FRACTION * len(
-        sim_on_sample
-    ):
-        lost_rec = sorted({k[0] for k in on_sample if k not in f_nom})[:10]
-        lost_sim = sorted({k[0] for k in sim_on_sample if k not in f_rec})[:10]
-        raise ConfigMismatchError(
-            "the configuration does not match the recording: of "
-            f"{len(on_sample)} recorded features of the sample only {len(both)} are reproduced by "
-            f"the simulation ({len(sim_on_sample)} simulated). Operations where the recording saw "
-            f"a particle and the simulation did not: {lost_rec}; the reverse: {lost_sim}. Check "
-            "the sample (particle positions, seed) and the scanner area in the config."
+    elif agree.feature_ratio < MIN_MATCHED_FRACTION:
+        what = (
+            f"of {agree.n_rec} recorded features of the sample only {agree.n_both} are "
+            f"reproduced by the simulation ({agree.n_sim} simulated). Operations where the "
+            f"recording saw a particle and the simulation did not: {sorted(lost_rec)[:10]}; the "
+            f"reverse: {sorted(lost_sim)[:10]}."
         )
+    else:
+        return
+    cause = (
+        explain(agree.score)
+        if explain is not None
+        else " Check the sample (particle positions, seed) and the scanner area in the config."
+    )
+    raise ConfigMismatchError(f"the configuration does not match the recording: {what}{cause}")
 
 
 def _sensitivities(table, nom: np.ndarray, shifted: list, drift, scanner_map: ScannerMap):

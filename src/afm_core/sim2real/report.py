@@ -8,7 +8,9 @@ import numpy as np
 import yaml
 
 from afm_core.sim.config import dump_config
-from afm_core.sim2real.results import UNRESOLVED, unresolved
+from afm_core.sim2real.evidence import ALPHA
+from afm_core.sim2real.results import NAMED, PARTLY_EXPLAINED, UNRESOLVED, unresolved
+from afm_core.sim2real.verdict import EXCESS_SHARE
 
 GROUP_UNITS = {
     "line.mid": (1e9, "nm"),
@@ -111,7 +113,8 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
     lines = ["# Simulation vs recording", ""]
     if recording:
         lines += [f"Recording: `{recording}`", ""]
-    lines += ["## Verdict", "", diagnosis.summary(), ""]
+    lines += ["## Verdict", "", f"**{diagnosis.verdict}**", "", diagnosis.summary(), ""]
+    lines += _remaining_section(diagnosis)
     o = diagnosis.overall
     lines += [
         f"{diagnosis.n_features} features; residual against the nominal model: "
@@ -207,7 +210,7 @@ def _candidates_section(diagnosis, figures: list[str]) -> list[str]:
 def _update_section(diagnosis, out: Path) -> list[str]:
     """The fitted parameters; writes the updated config and its overrides beside the report."""
     lines = ["", "## 3. The model update", ""]
-    if diagnosis.chosen:
+    if diagnosis.chosen and diagnosis.verdict in (NAMED, PARTLY_EXPLAINED):
         lines += ["| config key | fitted | +- | model had |", "|---|---|---|---|"]
         for key, p in diagnosis.parameters.items():
             note = f" ({UNRESOLVED})" if unresolved(p) else ""
@@ -220,15 +223,53 @@ def _update_section(diagnosis, out: Path) -> list[str]:
             "`overrides.yaml`).",
         ]
         (out / "updated_config.yaml").write_text(dump_config(diagnosis.updated_config))
+        overrides = diagnosis.overrides or {}
     else:
+        # no term named (a term whose held-out check got worse, say): no updated configuration
         lines += ["Nothing to add: the configuration is left as it is."]
-    (out / "overrides.yaml").write_text(yaml.safe_dump(diagnosis.overrides or {}, sort_keys=False))
+        overrides = {}
+    (out / "overrides.yaml").write_text(yaml.safe_dump(overrides, sort_keys=False))
+    return lines
+
+
+def _remaining_section(diagnosis) -> list[str]:
+    """Partly explained: where the held-out excess remains after the named terms."""
+    lines = []
+    if diagnosis.remaining:
+        lines += [
+            "What the named terms leave on the held-out operations, beyond the noise "
+            f"(Bonferroni p < {100 * ALPHA:.0f} %):",
+            "",
+            "| where | n | mean | chi2/n |",
+            "|---|---|---|---|",
+        ]
+        for row in diagnosis.remaining:
+            scale, unit = GROUP_UNITS.get(row["where"].split(" |")[0], (1.0, ""))
+            lines.append(
+                f"| {row['where']} | {row['n']} | {row['mean'] * scale:.3g} {unit} | "
+                f"{row['chi2'] / row['n']:.2f} |"
+            )
+        lines.append("")
     return lines
 
 
 def _heldout_section(diagnosis, figures: list[str]) -> list[str]:
     h = diagnosis.heldout
     lines = ["", "## 4. Before and after, on held-out operations", ""]
+    if h and h.get("terms") and not diagnosis.chosen:
+        lines += [
+            f"Tried and not named: {', '.join(h['terms'])} ({diagnosis.verdict_note}).",
+            "",
+        ]
+    if h and "limit" in h:
+        lines += [
+            f"Noise alone gives the held-out chi2 its {h['dof']} dof on average, and more than "
+            f"{h['limit']:.1f} in {100 * ALPHA:.0f} % of sessions; a term is named when there is "
+            f"an excess beyond that, it removes at least {100 * EXCESS_SHARE:.0f} % of the excess "
+            "over the dof and leaves the held-out chi2 below that quantile (beyond it, in some "
+            "signal or condition: partly explained).",
+            "",
+        ]
     if h:
         lines += [
             f"Fitted on the even time blocks only, re-simulated, compared on the odd blocks: chi2 "

@@ -13,6 +13,12 @@ from afm_core.sim.config import SimConfig
 # overall chi^2 p below which a residual no term explains is not called noise
 UNEXPLAINED_P = 1e-3
 
+# the verdicts (verdict.py says when each is given)
+NAMED = "named"  # the terms' fit leaves the held-out blocks within their noise
+PARTLY_EXPLAINED = "partly explained"  # the terms remove most of the held-out excess, not all
+NOT_EXPLAINED = "not explained by the library"  # beyond the noise, no term qualifies
+NO_MISSING_PHYSICS = "no missing physics"  # residuals consistent with the noise model
+
 
 @dataclass
 class CandidateResult:
@@ -40,7 +46,7 @@ class Diagnosis:
     where: list  # deviations by condition, most significant first
     change_points: list
     candidates: list  # CandidateResult, best first
-    chosen: list  # names of the chosen terms ([] = no missing physics)
+    chosen: list  # names of the named terms (named or partly explained; else [])
     parameters: dict  # key -> {value, sigma, nominal}
     overrides: dict  # nested config overrides of the fitted terms
     updated_config: SimConfig | None
@@ -51,12 +57,30 @@ class Diagnosis:
     message: str = ""
     drift: dict = field(default_factory=dict)  # the recorded drift trajectory (times, offsets)
     not_considered: list = field(default_factory=list)  # library terms left out by the caller
+    # NAMED, PARTLY_EXPLAINED, NOT_EXPLAINED or NO_MISSING_PHYSICS ("": from `chosen` and the
+    # overall p, for a Diagnosis made by hand)
+    verdict: str = ""
+    remaining: list = field(default_factory=list)  # partly explained: where the excess remains
+    verdict_note: str = ""  # what was tried and why it was not named
+
+    def __post_init__(self):
+        if not self.verdict:
+            self.verdict = (
+                NAMED
+                if self.chosen
+                else NOT_EXPLAINED
+                if self.overall.get("p", 1.0) < UNEXPLAINED_P
+                else NO_MISSING_PHYSICS
+            )
 
     @property
     def missing_physics(self) -> bool:
-        return bool(self.chosen)
+        """Whether the recording shows physics the model lacks (named, partly explained or not
+        explained by the library)."""
+        return self.verdict != NO_MISSING_PHYSICS
 
     def summary(self) -> str:
+        tried = f" ({self.verdict_note})" if self.verdict_note else ""
         if not self.chosen:
             fit = (
                 f"chi2 {self.overall['chi2']:.1f} for {self.overall['dof']} dof, "
@@ -69,11 +93,11 @@ class Diagnosis:
                     else "in the library"
                 )
                 return (
-                    f"no candidate {among} explains the residual, which exceeds the noise model "
-                    f"({fit}): physics the library lacks or a noise model too optimistic (see "
-                    "where it deviates)"
+                    f"{NOT_EXPLAINED}: no candidate {among} explains the residual, which "
+                    f"exceeds the noise model ({fit}): physics the library lacks or a noise "
+                    f"model too optimistic (see where it deviates){tried}"
                 )
-            return f"no missing physics: residuals consistent with the noise model ({fit})"
+            return f"no missing physics: residuals consistent with the noise model ({fit}){tried}"
         parts = []
         for name in self.chosen:
             c = next(c for c in self.candidates if c.name == name)
@@ -85,7 +109,24 @@ class Diagnosis:
                 if v.get("candidate") == name
             )
             parts.append(f"{c.words}: {values}")
-        return "missing physics: " + "; ".join(parts)
+        text = "; ".join(parts) + self._heldout_words()
+        if self.verdict == PARTLY_EXPLAINED:
+            where = "; ".join(
+                f"{row['where']} (chi2 {row['chi2']:.1f} for {row['n']})" for row in self.remaining
+            )
+            where = f", most in {where}" if where else ""
+            return f"{PARTLY_EXPLAINED}: {text}; the held-out blocks stay beyond the noise{where}"
+        return f"{NAMED} (missing physics): {text}"
+
+    def _heldout_words(self) -> str:
+        h = self.heldout
+        if not h or "chi2_after" not in h:
+            return ""
+        share = h.get("excess_reduction", float("nan"))
+        return (
+            f" (held-out chi2 {h['chi2_before']:.1f} -> {h['chi2_after']:.1f} for {h['dof']} "
+            f"dof, {100 * share:.0f} % of the excess over the noise removed)"
+        )
 
 
 UNRESOLVED = "within 2 sigma of the model: this session cannot tell"
