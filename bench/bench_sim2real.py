@@ -36,7 +36,10 @@ must cover the session's own draw of the wandering drift velocity).
 Targets (issue 8): >= 90 %, <= 5 %, <= 20 %, >= 50 %, <= 2 min.
 
 Run: `scripts/with_env.sh python bench/bench_sim2real.py [--quick] [--beyond] [--workers 2]
-[--cases name,...]`.
+[--cases name,...] [--family NAME[,NAME] [--name RESULTS_NAME]]`.
+Families (issue 29): "protocol" (this suite) and "beyond" (--beyond) as above; null_protocol,
+null_work, work_effects and out_of_library are in sim2real_families.py, each scored with its
+own figures in bench/results/<name>.md (default sim2real-families).
 Results: bench/results/sim2real.json and .md (sim2real-quick.* with --quick or --cases;
 sim2real-beyond.* with --beyond: larger magnitudes, the other direction and noise levels the
 suite does not draw). Two workers share the machine's two cores, so each recording's time is
@@ -654,7 +657,45 @@ def main(argv=None) -> int:
         action="store_true",
         help="effects and magnitudes the suite does not draw (sim2real-beyond.*)",
     )
+    parser.add_argument(
+        "--family",
+        default="",
+        help="comma-separated families: protocol (the suite), beyond (= --beyond), "
+        "null_protocol, null_work, work_effects, out_of_library (sim2real_families.py)",
+    )
+    parser.add_argument(
+        "--name", default="sim2real-families", help="results name of the new families"
+    )
     args = parser.parse_args(argv)
+    if args.family:
+        return run_families(args)
+    return run_suite(args)
+
+
+def run_families(args) -> int:
+    """--family: the original families through run_suite, the new ones through
+    sim2real_families (each written to its own results)."""
+    import sim2real_families
+
+    families = [f for f in args.family.split(",") if f]
+    known = ("protocol", "beyond", *sim2real_families.FAMILIES)
+    unknown = [f for f in families if f not in known]
+    if unknown:
+        raise SystemExit(f"--family {','.join(unknown)}: expected names among {list(known)}")
+    for old in ("protocol", "beyond"):
+        if old in families:
+            args.beyond = old == "beyond"
+            run_suite(args)
+    new = [f for f in families if f in sim2real_families.FAMILIES]
+    if new:
+        only = [c for c in args.cases.split(",") if c]
+        return sim2real_families.run(
+            new, args.workers, args.name, args.keep, command_line(), RESULTS, only
+        )
+    return 0
+
+
+def run_suite(args) -> int:
     from afm_core.sim.config import load_config
     from afm_core.sim2real.protocol import session_config
 
