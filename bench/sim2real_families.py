@@ -319,9 +319,12 @@ def score(case: FamilyCase, diagnosis, model, report_dir: Path) -> dict:
         keywords = injections.SIGNATURES[case.injection].keywords
         row.update(scoring.signature_of(diagnosis, keywords))
         row["generic_share"] = scoring.generic_share(diagnosis)
-        # right: no library term named with a confident fit, and (when a describer exists) the
-        # right kind of signature
-        row["correct"] = verdict != scoring.NAMED and row["described"] is not False
+        # right: a verdict that says the library does not (wholly) explain it, never a library
+        # term named with a confident fit nor "no missing physics", and (when a describer
+        # exists) the right kind of signature
+        row["correct"] = (
+            verdict in (scoring.UNEXPLAINED, scoring.PARTLY) and row["described"] is not False
+        )
     return row
 
 
