@@ -39,7 +39,7 @@ class Signature:
     form: its form in a microscopist's words (periodic in time, a step in time, ...).
     keywords: accepted words, grouped: a description matches when, for every group, it
         contains at least one of the group's words (case-insensitive). The first group is the
-        signal, the second the form.
+        signal, the second the form, a third (where the form exists both ways) time or space.
     """
 
     signals: tuple
@@ -231,14 +231,18 @@ def fringes_in_x(amplitude: float, period: float, phase: float) -> Callable:
 
 
 # -- the catalogue --------------------------------------------------------------------------------
-HEIGHT = ("height", "topograph", "z ")
+# Accepted words. A describer is free in its wording; what must come through is the signal,
+# the form and, where a form exists in both, whether it lives in time or in space.
+HEIGHT = ("height", "topograph", "z ", "z-", "z sensor")
 TORSION = ("torsion", "lateral force", "friction signal", "lateral signal")
 POSITION = ("position", "lateral", "x ", "along the scan", "fast axis", "shift")
+IN_TIME = ("time", "hz", "frequency", "temporal", "clock")
+IN_SPACE = ("along x", "in x", "space", "spatial", "position", "wavelength", "across the sample")
 SIGNATURES = {
     "mains_pickup": Signature(
         ("height",),
         "periodic in time (50 Hz), in every height measurement alike",
-        (HEIGHT, ("periodic", "oscillat", "sinus", "hz", "frequency")),
+        (HEIGHT, ("periodic", "oscillat", "sinus", "hz", "frequency"), IN_TIME),
     ),
     "thermal_bending": Signature(
         ("height",),
@@ -254,7 +258,7 @@ SIGNATURES = {
     "interference_fringes": Signature(
         ("height",),
         "periodic along x in space (fixed to the scanner frame), not in time",
-        (HEIGHT, ("periodic", "fringe", "sinus", "wavelength")),
+        (HEIGHT, ("periodic", "fringe", "sinus", "wavelength"), IN_SPACE),
     ),
     "torsion_crosstalk": Signature(
         ("torsion",),
@@ -276,7 +280,7 @@ SIGNATURES = {
         ("lateral position",),
         "periodic displacement along x with position in x (the scanner's x sensitivity "
         "ripples), the same in every image",
-        (POSITION, ("periodic", "nonlinear", "sinus", "ripple", "distort")),
+        (POSITION, ("periodic", "nonlinear", "sinus", "ripple", "distort"), IN_SPACE),
     ),
     "particle_heights": Signature(
         ("height",),

@@ -294,3 +294,21 @@ def test_the_rewrite_keeps_a_recording_exactly_and_injects_only_what_it_says(tmp
     dz = inj.sine_in_time(effect.parameters["amplitude"], 50.0, effect.parameters["phase"])
     _expect_heights(raw[:2], mains[:2], dz)
     np.testing.assert_array_equal(mains[3].data.lateral_torsion, raw[3].data.lateral_torsion)
+
+
+def test_the_signature_truths_tell_a_description_in_time_from_one_in_space():
+    import sim2real_scoring as scoring
+
+    class Described:  # a diagnosis with a describer's output
+        def __init__(self, signature):
+            self.signature = signature
+
+    in_time = Described({"signal": "height", "form": "periodic in time, 50 Hz"})
+    in_space = Described({"signal": "height", "form": "periodic along x, wavelength 1.8 um"})
+    mains = inj.SIGNATURES["mains_pickup"].keywords
+    fringes = inj.SIGNATURES["interference_fringes"].keywords
+    assert scoring.signature_of(in_time, mains)["described"] is True
+    assert scoring.signature_of(in_space, mains)["described"] is False
+    assert scoring.signature_of(in_space, fringes)["described"] is True
+    assert scoring.signature_of(in_time, fringes)["described"] is False
+    assert scoring.signature_of(object(), mains)["described"] is None  # no describer
