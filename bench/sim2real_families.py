@@ -6,9 +6,9 @@ original suite and its `--beyond`):
 - null_protocol: the diagnostic protocol with nothing missing, on other sample layouts
   (particle counts, placements and radii drawn per seed, clear of the protocol's slides) and
   substrates (roughness and its correlation length), each model describing its own sample;
-- null_work: normal-work sessions (sim2real_work.py: scan pair, local image, localization,
-  pushes with their pits, images and rescans) with nothing missing, on other layouts and
-  substrates;
+- null_work: normal-work sessions (afm_core.sim2real.work_session: scan pair, local image,
+  localization, pushes with their pits, images and rescans) with nothing missing, on other
+  layouts and substrates;
 - work_effects: normal-work sessions with one in-library effect a session of that kind can
   inform (scanner coupling, the feed-forward's loop width, tip radius, drift velocity,
   scan-line rotation);
@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 import sim2real_injections as injections
 import sim2real_scoring as scoring
-import sim2real_work as work
 
 FAMILIES = ("null_protocol", "null_work", "work_effects", "out_of_library")
 # the protocol's slides and indents (protocol.SLIDE_*, INDENT_SPOT) with 250 nm clearance: a
@@ -244,7 +243,10 @@ def record_case(case: FamilyCase, folder: Path, model) -> tuple[Path, dict]:
         run_protocol(recording, seed=case.seed, spheres=case.layout)
         recording.close()
     else:
-        info["recorder"] = work.record(raw, truth_config, seed=case.seed, spheres=case.layout)
+        from afm_core.sim2real.work_session import record_work_session
+
+        summary = record_work_session(raw, truth_config, seed=case.seed, spheres=case.layout)
+        info["work"] = {"operations": summary.operations, "pushes": summary.pushes}
     if effect is not None:
         info["injected"] = {k: v for k, v in effect.parameters.items()}
         info["signature_truth"] = effect.signature.form
