@@ -318,8 +318,7 @@ def score(case: FamilyCase, diagnosis, model, report_dir: Path) -> dict:
                 errors.append(abs(fitted - true) / abs(true - nominal))
             row["parameter_error"] = float(np.max(errors)) if errors else math.nan
     else:
-        keywords = injections.SIGNATURES[case.injection].keywords
-        row.update(scoring.signature_of(diagnosis, keywords))
+        row.update(scoring.signature_of(diagnosis, injections.SIGNATURES[case.injection]))
         row["generic_share"] = scoring.generic_share(diagnosis)
         # right: a verdict that says the library does not (wholly) explain it, never a library
         # term named with a confident fit nor "no missing physics", and (when a describer

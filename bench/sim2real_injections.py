@@ -45,6 +45,16 @@ class Signature:
     signals: tuple
     form: str
     keywords: tuple
+    accepts: tuple = ()
+
+
+# `accepts`: the same truth in the terms of a structured describer (a signature with `kind` z |
+# lateral | torsion | noise, a form in `time` and across the sample in `space`, per-particle
+# agreement in `particles`, `relations` to covariates), any one alternative sufficing:
+# {"kind": kinds, "time": forms (optional), "space": forms (optional), "particles_differ": True
+# (optional), "relation": a covariate's name part (optional)}. A signal faster than any
+# feature's sampling (50 Hz in z) reaches the features as extra noise: "noise" is its kind there.
+CHANGING_IN_TIME = ("linear trend", "random walk", "step")
 
 
 @dataclass
@@ -243,50 +253,62 @@ SIGNATURES = {
         ("height",),
         "periodic in time (50 Hz), in every height measurement alike",
         (HEIGHT, ("periodic", "oscillat", "sinus", "hz", "frequency"), IN_TIME),
+        ({"kind": ("z",), "time": ("periodic",)}, {"kind": ("noise",)}),
     ),
     "thermal_bending": Signature(
         ("height",),
         "the substrate's absolute level moves slowly in time (exponential settling), the same "
         "everywhere on the sample",
         (HEIGHT, ("slow", "trend", "settl", "exponential", "level", "offset", "drift in z")),
+        ({"kind": ("z",), "time": CHANGING_IN_TIME},),
     ),
     "debris_step": Signature(
         ("height",),
         "a step in time in the absolute height of every measurement (the tip picked up debris)",
         (HEIGHT, ("step", "jump", "sudden", "change point")),
+        ({"kind": ("z",), "time": ("step",)},),
     ),
     "interference_fringes": Signature(
         ("height",),
         "periodic along x in space (fixed to the scanner frame), not in time",
         (HEIGHT, ("periodic", "fringe", "sinus", "wavelength"), IN_SPACE),
+        ({"kind": ("z",), "space": ("periodic in x",)},),
     ),
     "torsion_crosstalk": Signature(
         ("torsion",),
         "an offset proportional to the vertical deflection at the same moment, whatever the "
         "sliding direction",
         (TORSION, ("deflection", "proportional", "correlat", "crosstalk", "offset")),
+        (
+            {"kind": ("torsion",), "time": ("constant",)},
+            {"kind": ("torsion",), "relation": "deflection"},
+        ),
     ),
     "torsion_drift": Signature(
         ("torsion",),
         "an offset growing linearly in time, whatever the sliding direction",
         (TORSION, ("linear", "trend", "grow", "drift", "time")),
+        ({"kind": ("torsion",), "time": ("linear trend",)},),
     ),
     "line_jitter": Signature(
         ("lateral position",),
         "random shift of each line along its fast axis, independent from line to line",
         (POSITION + HEIGHT, ("random", "jitter", "per line", "each line", "line to line")),
+        ({"kind": ("lateral",), "time": ("none", "random walk")}, {"kind": ("noise",)}),
     ),
     "x_nonlinearity": Signature(
         ("lateral position",),
         "periodic displacement along x with position in x (the scanner's x sensitivity "
         "ripples), the same in every image",
         (POSITION, ("periodic", "nonlinear", "sinus", "ripple", "distort"), IN_SPACE),
+        ({"kind": ("lateral",), "space": ("periodic in x",)},),
     ),
     "particle_heights": Signature(
         ("height",),
         "each particle's apparent height differs from the model's by its own amount, constant "
         "in time; the substrate unchanged",
         (HEIGHT + ("particle",), ("particle", "per particle", "each particle", "object")),
+        ({"kind": ("z",), "particles_differ": True},),
     ),
 }
 NAMES = tuple(SIGNATURES)

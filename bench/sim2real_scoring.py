@@ -8,11 +8,11 @@ land:
   named term; "no candidate in the library explains" when the overall p < UNEXPLAINED_P; "no
   missing physics"); classed as named / partly explained / not explained / no missing physics /
   cannot tell (a session too thin to diagnose) / refused (run_sim2real raised);
-- signature: `Diagnosis.signature` read as text (its fields, or str), matched against the
-  injected effect's accepted words (sim2real_injections.Signature.keywords); absent: "no
-  describer";
+- signature: `Diagnosis.signature` judged by its fields when it has them (kind, form in time
+  and across the sample, particles, relations: sim2real_injections.Signature.accepts), else by
+  its words (Signature.keywords); no such attribute: "no describer";
 - generic: the share of the held-out excess a generic fit removed, from `Diagnosis.generic`
-  (an attribute or key excess_reduction / heldout_reduction / share), when present.
+  (its held-out check's excess_reduction), when the diagnosis has generic fits.
 
 Rates carry their 95 % Clopper-Pearson interval: 0 of 6 false alarms is still compatible with
 a true rate of 46 %.
@@ -73,24 +73,73 @@ def _text(value) -> str:
     return str(value)
 
 
-def signature_of(diagnosis, keywords) -> dict:
-    """{described: bool | None (no describer), text}."""
-    signature = getattr(diagnosis, "signature", None)
-    if signature is None:
+def _structured(signature, accepts) -> bool | None:
+    """Whether a structured signature (kind, time, space, particles, relations) matches one of
+    the truth's alternatives; None when it has no `kind` to judge by."""
+    kind = getattr(signature, "kind", None)
+    if not isinstance(kind, str) or not accepts:
+        return None
+    time_form = (getattr(signature, "time", None) or {}).get("form")
+    space_form = (getattr(signature, "space", None) or {}).get("form")
+    particles = getattr(signature, "particles", None) or {}
+    relations = _text(getattr(signature, "relations", None)).lower()
+    for alt in accepts:
+        if kind not in alt["kind"]:
+            continue
+        if "time" in alt and time_form not in alt["time"]:
+            continue
+        if "space" in alt and space_form not in alt["space"]:
+            continue
+        if alt.get("particles_differ") and not any(
+            isinstance(g, dict) and g.get("alike") is False for g in particles.values()
+        ):
+            continue
+        if "relation" in alt and alt["relation"] not in relations:
+            continue
+        return True
+    return False
+
+
+def said(signature) -> str:
+    """What a signature says: its sentences (`text()`), else its fields' text."""
+    text = getattr(signature, "text", None)
+    return str(text()) if callable(text) else _text(signature)
+
+
+def signature_of(diagnosis, truth) -> dict:
+    """{described: True/False, None when the diagnosis has no describer; signature: what it
+    said}. `truth`: sim2real_injections.Signature. A structured signature is judged by its
+    fields (`truth.accepts`), else its words (`truth.keywords`): the words alone would match
+    the names of the forms a describer tried and rejected."""
+    if not hasattr(diagnosis, "signature"):
         return {"described": None, "signature": "no describer"}
-    text = _text(signature).lower()
-    match = all(any(word in text for word in group) for group in keywords)
-    return {"described": bool(match), "signature": _text(signature)[:400]}
+    signature = diagnosis.signature
+    if signature is None:
+        return {"described": False, "signature": "nothing described"}
+    structured = _structured(signature, truth.accepts)
+    text = said(signature)
+    if structured is None:
+        lower = text.lower()
+        structured = all(any(word in lower for word in group) for group in truth.keywords)
+    return {"described": bool(structured), "signature": text[:400]}
 
 
-def generic_share(diagnosis) -> float:
-    generic = getattr(diagnosis, "generic", None)
-    if generic is None:
+def generic_share(diagnosis) -> float | None:
+    """The generic fit's share of the held-out excess removed; None without generic fits, NaN
+    when none was fitted on this recording."""
+    if not hasattr(diagnosis, "generic"):
+        return None
+    generic = diagnosis.generic
+    if not generic:
         return math.nan
-    for key in ("excess_reduction", "heldout_reduction", "share"):
-        value = generic.get(key) if isinstance(generic, dict) else getattr(generic, key, None)
-        if value is not None:
-            return float(value)
+    heldout = (
+        generic.get("heldout") if isinstance(generic, dict) else getattr(generic, "heldout", None)
+    )
+    for holder in (heldout, generic):
+        for key in ("excess_reduction", "heldout_reduction", "share"):
+            value = holder.get(key) if isinstance(holder, dict) else getattr(holder, key, None)
+            if value is not None:
+                return float(value)
     return math.nan
 
 
@@ -153,11 +202,13 @@ def summarize_family(rows: list[dict]) -> dict:
         out["right_signature"] = (
             rate(sum(bool(r["described"]) for r in described), len(rows)) if described else None
         )
-        shares = [r.get("generic_share", math.nan) for r in rows]
-        finite = [s for s in shares if math.isfinite(s)]
-        out["generic_fit"] = bool(finite)
+        # a recording without a generic fit counts as one that removed nothing
+        shares = [r.get("generic_share") for r in rows]
+        capable = any(s is not None for s in shares)
+        finite = [s for s in shares if s is not None and math.isfinite(s)]
+        out["generic_fit"] = capable
         out["generic_share_median"] = _median(finite)
         out["generic_removes_half"] = (
-            rate(sum(s >= GENERIC_TARGET for s in finite), len(rows)) if finite else None
+            rate(sum(s >= GENERIC_TARGET for s in finite), len(rows)) if capable else None
         )
     return out

@@ -305,10 +305,50 @@ def test_the_signature_truths_tell_a_description_in_time_from_one_in_space():
 
     in_time = Described({"signal": "height", "form": "periodic in time, 50 Hz"})
     in_space = Described({"signal": "height", "form": "periodic along x, wavelength 1.8 um"})
-    mains = inj.SIGNATURES["mains_pickup"].keywords
-    fringes = inj.SIGNATURES["interference_fringes"].keywords
+    mains = inj.SIGNATURES["mains_pickup"]
+    fringes = inj.SIGNATURES["interference_fringes"]
     assert scoring.signature_of(in_time, mains)["described"] is True
     assert scoring.signature_of(in_space, mains)["described"] is False
     assert scoring.signature_of(in_space, fringes)["described"] is True
     assert scoring.signature_of(in_time, fringes)["described"] is False
     assert scoring.signature_of(object(), mains)["described"] is None  # no describer
+
+
+def test_a_structured_signature_is_judged_by_its_fields_not_by_the_forms_it_rejected():
+    from types import SimpleNamespace
+
+    import sim2real_scoring as scoring
+
+    def described(kind, time_form, space_form, particles=None):
+        signature = SimpleNamespace(
+            kind=kind,
+            time={"form": time_form},
+            space={"form": space_form},
+            particles=particles or {},
+            relations=[],
+            # its sentences name the forms it weighed, the rejected ones too
+            text=lambda: "periodic in x weighed against periodic in time, step, linear trend",
+        )
+        return SimpleNamespace(signature=signature)
+
+    truth = inj.SIGNATURES
+    periodic_in_time = described("z", "periodic", "uniform")
+    assert scoring.signature_of(periodic_in_time, truth["mains_pickup"])["described"] is True
+    assert scoring.signature_of(periodic_in_time, truth["interference_fringes"])["described"] is (
+        False
+    )
+    assert scoring.signature_of(periodic_in_time, truth["debris_step"])["described"] is False
+    fringes = described("z", "none", "periodic in x")
+    assert scoring.signature_of(fringes, truth["interference_fringes"])["described"] is True
+    assert scoring.signature_of(fringes, truth["x_nonlinearity"])["described"] is False  # z
+    unlike = described("z", "constant", "uniform", {"raster.height": {"alike": False}})
+    assert scoring.signature_of(unlike, truth["particle_heights"])["described"] is True
+    alike = described("z", "constant", "uniform", {"raster.height": {"alike": True}})
+    assert scoring.signature_of(alike, truth["particle_heights"])["described"] is False
+    nothing = SimpleNamespace(signature=None)  # a describer that found nothing to describe
+    assert scoring.signature_of(nothing, truth["mains_pickup"])["described"] is False
+    # the generic fit's share: its held-out check's; none fitted on this recording: NaN
+    held = SimpleNamespace(generic={"heldout": {"excess_reduction": 0.7}})
+    assert scoring.generic_share(held) == 0.7
+    assert math.isnan(scoring.generic_share(SimpleNamespace(generic={})))
+    assert scoring.generic_share(object()) is None
