@@ -178,9 +178,9 @@ def _sign(rng) -> float:
 
 
 # post-processed effects also injected into normal-work sessions (the images' absolute level,
-# the pushes' torsion), with the seed of the session. record_work_session's localization
-# refused 8 of 20 pushes over seeds 820-829 on the nominal instrument; these two seeds' sessions
-# ran all their pushes, so the torsion the crosstalk lives in is there
+# the pushes' torsion), with the seed of the session. record_work_session's localization (at
+# s2r-session 3ff2e15) refused 8 of 20 pushes over seeds 820-829 on the nominal instrument;
+# these two seeds' sessions ran all their pushes, so the torsion the crosstalk lives in is there
 WORK_INJECTIONS = (("thermal_bending", 820), ("torsion_crosstalk", 827))
 
 
@@ -302,7 +302,11 @@ def run_family_case(case: FamilyCase, workdir: str) -> dict:
         diagnosis = run_sim2real(session, folder / "model.yaml", folder / "report")
     except Exception as exc:  # noqa: BLE001 - a refusal is a result (the issue's "check the sample")
         diagnosis = None
-        row.update(chosen=[], verdict=scoring.REFUSED, verdict_words=str(exc)[:400])
+        # a session too thin to diagnose (session_scope.TooLittleError, once merged) is told so,
+        # with the protocol suggested: "this session cannot tell", not a refusal of the config
+        too_little = "TooLittle" in type(exc).__name__
+        verdict = scoring.CANNOT_TELL if too_little else scoring.REFUSED
+        row.update(chosen=[], verdict=verdict, verdict_words=str(exc)[:400])
     row["cpu_seconds"] = time.process_time() - cpu
     row["seconds"] = time.perf_counter() - wall
     row["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -323,6 +327,9 @@ def score(case: FamilyCase, diagnosis, model, report_dir: Path) -> dict:
         "config_written": (report_dir / "updated_config.yaml").exists(),
         "heldout_chi2": [held.get("chi2_before"), held.get("chi2_after"), held.get("dof")],
         "heldout_reduction": float(held.get("excess_reduction", math.nan)),
+        # what an ordinary session cannot tell or leaves out (once the diagnosis reports it)
+        "cannot_tell": [str(x)[:80] for x in getattr(diagnosis, "cannot_tell", None) or []],
+        "excluded": len(getattr(diagnosis, "excluded", None) or []),
     }
     if case.kind == "null":
         row["correct"] = verdict not in scoring.MISSING_PHYSICS
@@ -411,8 +418,9 @@ def markdown(report: dict) -> str:
         kind = summary.pop("_kind")
         lines += [f"## {family}", "", "| metric | value |", "|---|---|"]
         lines.append(
-            f"| cases (diagnosed / refused / crashed) | {summary['cases']} "
-            f"({summary['diagnosed']} / {summary['refused']} / {summary['crashed']}) |"
+            f"| cases (diagnosed / refused / too little to diagnose / crashed) | "
+            f"{summary['cases']} ({summary['diagnosed']} / {summary['refused']} / "
+            f"{summary.get('too_little', 0)} / {summary['crashed']}) |"
         )
         for words, key, form in FAMILY_LINES.get(kind, []):
             lines.append(f"| {words} | {form(summary.get(key))} |")
@@ -443,9 +451,13 @@ def markdown(report: dict) -> str:
             f"{'yes' if r.get('correct') else '**no**'} | {held} | {signature} | "
             f"{r.get('cpu_seconds', math.nan):.0f} |"
         )
-    refusals = [r for r in report["cases"] if r.get("verdict") == scoring.REFUSED or "error" in r]
+    refusals = [
+        r
+        for r in report["cases"]
+        if r.get("verdict") in (scoring.REFUSED, scoring.CANNOT_TELL) or "error" in r
+    ]
     if refusals:
-        lines += ["", "Refusals and crashes:", ""]
+        lines += ["", "Refusals, sessions too thin to diagnose, crashes:", ""]
         lines += [f"- {r['name']}: {r.get('verdict_words') or r.get('error')}" for r in refusals]
     return "\n".join(lines) + "\n"
 

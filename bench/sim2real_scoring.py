@@ -167,11 +167,12 @@ def _median(values) -> float:
 def summarize_family(rows: list[dict]) -> dict:
     """The family's figures (each family has one kind of truth: null, library term or
     out-of-library effect)."""
-    done = [r for r in rows if r["verdict"] != REFUSED and "error" not in r]
+    done = [r for r in rows if r["verdict"] not in (REFUSED, CANNOT_TELL) and "error" not in r]
     out = {
         "cases": len(rows),
         "diagnosed": len(done),
-        "refused": sum(r["verdict"] == REFUSED for r in rows),
+        "refused": sum(r["verdict"] == REFUSED and "error" not in r for r in rows),
+        "too_little": sum(r["verdict"] == CANNOT_TELL for r in rows),
         "crashed": sum("error" in r for r in rows),
         "cpu_seconds_median": _median(r.get("cpu_seconds") for r in rows),
         "cpu_seconds_max": max((r.get("cpu_seconds", 0.0) for r in rows), default=math.nan),
