@@ -352,3 +352,35 @@ def test_a_structured_signature_is_judged_by_its_fields_not_by_the_forms_it_reje
     assert scoring.generic_share(held) == 0.7
     assert math.isnan(scoring.generic_share(SimpleNamespace(generic={})))
     assert scoring.generic_share(object()) is None
+
+
+def test_the_families_hold_what_the_issue_asks_and_their_layouts_keep_clear():
+    import sim2real_families as families
+
+    from afm_core.sim.config import load_config
+
+    cases = families.family_cases(list(families.FAMILIES), load_config())
+    kinds = [c.kind for c in cases]
+    assert kinds.count("null") >= 10 and kinds.count("out_of_library") >= 8
+    assert sum(c.kind == "library" and c.session == "work" for c in cases) >= 4
+    assert len({c.name for c in cases}) == len(cases) and len({c.seed for c in cases}) == len(
+        cases
+    )
+    assert {c.injection for c in cases if c.injection} == set(inj.NAMES)
+    for case in cases:
+        points = np.asarray(case.layout)
+        gaps = [np.hypot(*(p - q)) for i, p in enumerate(points) for q in points[i + 1 :]]
+        spacing = (
+            families.PROTOCOL_SPACING if case.session == "protocol" else families.WORK_SPACING
+        )
+        assert min(gaps) >= spacing  # the protocol's own sample too (1.6 um at the closest)
+        if case.name.startswith("null-protocol") and case.name != "null-protocol-0":
+            for x0, x1, y0, y1 in families.SLIDE_KEEP_OUT:  # off the protocol's slides
+                assert not np.any(
+                    (points[:, 0] >= x0)
+                    & (points[:, 0] <= x1)
+                    & (points[:, 1] >= y0)
+                    & (points[:, 1] <= y1)
+                )
+    with pytest.raises(ValueError, match="null_protocol"):
+        families.family_cases(["nulls"], load_config())
