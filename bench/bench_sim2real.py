@@ -36,7 +36,10 @@ must cover the session's own draw of the wandering drift velocity).
 Targets (issue 8): >= 90 %, <= 5 %, <= 20 %, >= 50 %, <= 2 min.
 
 Run: `scripts/with_env.sh python bench/bench_sim2real.py [--quick] [--beyond] [--workers 2]
-[--cases name,...]`.
+[--cases name,...] [--family NAME[,NAME] [--name RESULTS_NAME]]`.
+Families (issue 29): "protocol" (this suite) and "beyond" (--beyond) as above; null_protocol,
+null_work, work_effects and out_of_library are in sim2real_families.py, each scored with its
+own figures in bench/results/<name>.md (default sim2real-families).
 Results: bench/results/sim2real.json and .md (sim2real-quick.* with --quick or --cases;
 sim2real-beyond.* with --beyond: larger magnitudes, the other direction and noise levels the
 suite does not draw). Two workers share the machine's two cores, so each recording's time is
@@ -444,9 +447,10 @@ def run_case(case: Case, workdir: str) -> dict:
     recording = RecordingInstrument(SimulatedAfm(truth_config), folder / "session.mcap")
     run_protocol(recording, seed=case.seed)
     recording.close()
-    started = time.perf_counter()
+    started, cpu = time.perf_counter(), time.process_time()
     diagnosis = run_sim2real(folder / "session.mcap", folder / "model.yaml", folder / "report")
     seconds = time.perf_counter() - started
+    cpu_seconds = time.process_time() - cpu
     chosen = list(diagnosis.chosen)
     row = {
         "name": case.name,
@@ -454,6 +458,7 @@ def run_case(case: Case, workdir: str) -> dict:
         "expected": case.expected,
         "chosen": chosen,
         "seconds": seconds,
+        "cpu_seconds": cpu_seconds,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "summary": diagnosis.summary(),
     }
@@ -544,6 +549,7 @@ def summarize(rows: list[dict]) -> dict:
         if math.isfinite(r.get("heldout_reduction", math.nan))
     ]
     seconds = [r["seconds"] for r in rows]
+    cpu = [r["cpu_seconds"] for r in rows if math.isfinite(r.get("cpu_seconds", math.nan))]
     by_category = {}
     for r in rows:
         c = by_category.setdefault(r["category"], {"cases": 0, "correct": 0})
@@ -583,6 +589,8 @@ def summarize(rows: list[dict]) -> dict:
         "heldout_reduction_min": float(np.min(reductions)) if reductions else math.nan,
         "seconds_median": float(np.median(seconds)),
         "seconds_max": float(np.max(seconds)),
+        "cpu_seconds_median": float(np.median(cpu)) if cpu else math.nan,
+        "cpu_seconds_max": float(np.max(cpu)) if cpu else math.nan,
         "peak_rss_mib_max": float(max(r["peak_rss_mib"] for r in rows)),
         "by_category": by_category,
     }
@@ -618,6 +626,8 @@ def markdown(report: dict) -> str:
         f"{s['heldout_reduction_min']:.0%} | >= 50 % |",
         f"| run time per recording, median / max | {s['seconds_median']:.0f} s / "
         f"{s['seconds_max']:.0f} s | <= 120 s |",
+        f"| CPU time per diagnosis, median / max | {s['cpu_seconds_median']:.0f} s / "
+        f"{s['cpu_seconds_max']:.0f} s | <= 60 s (median, issue 29) |",
         f"| peak memory of a worker | {s['peak_rss_mib_max']:.0f} MiB | |",
         "",
         "| case | category | injected | chosen | correct | parameter error | error / sigma "
@@ -654,7 +664,45 @@ def main(argv=None) -> int:
         action="store_true",
         help="effects and magnitudes the suite does not draw (sim2real-beyond.*)",
     )
+    parser.add_argument(
+        "--family",
+        default="",
+        help="comma-separated families: protocol (the suite), beyond (= --beyond), "
+        "null_protocol, null_work, work_effects, out_of_library (sim2real_families.py)",
+    )
+    parser.add_argument(
+        "--name", default="sim2real-families", help="results name of the new families"
+    )
     args = parser.parse_args(argv)
+    if args.family:
+        return run_families(args)
+    return run_suite(args)
+
+
+def run_families(args) -> int:
+    """--family: the original families through run_suite, the new ones through
+    sim2real_families (each written to its own results)."""
+    import sim2real_families
+
+    families = [f for f in args.family.split(",") if f]
+    known = ("protocol", "beyond", *sim2real_families.FAMILIES)
+    unknown = [f for f in families if f not in known]
+    if unknown:
+        raise SystemExit(f"--family {','.join(unknown)}: expected names among {list(known)}")
+    for old in ("protocol", "beyond"):
+        if old in families:
+            args.beyond = old == "beyond"
+            run_suite(args)
+    new = [f for f in families if f in sim2real_families.FAMILIES]
+    if new:
+        only = [c for c in args.cases.split(",") if c]
+        return sim2real_families.run(
+            new, args.workers, args.name, args.keep, command_line(), RESULTS, only
+        )
+    return 0
+
+
+def run_suite(args) -> int:
     from afm_core.sim.config import load_config
     from afm_core.sim2real.protocol import session_config
 
