@@ -22,6 +22,7 @@ import numpy as np
 from afm_core.sim.config import SimConfig, merge
 from afm_core.sim2real.candidates import Candidate, merge_overrides
 from afm_core.sim2real.drift_trajectory import ScannerMap, drift_trajectory, nominal_drift
+from afm_core.sim2real.exclusions import Exclusions, ordinary_exclusions
 from afm_core.sim2real.feature_table import (
     NOISE_GROUPS,
     PUSH_GROUPS,
@@ -100,6 +101,7 @@ class ReferenceSession:
         self.push = np.isin(table.groups, PUSH_GROUPS)
         self.noisy = np.isin(table.groups, NOISE_GROUPS)
         self.replays = 0
+        self.exclusions = Exclusions()  # what build_reference left out of the recording
         self.set_reference(reference, bias, {})
         self.r_before = self.r  # against the nominal model (a fitted noise level changes self.r)
 
@@ -343,6 +345,15 @@ def build_reference(
     recording, the drift sensitivities and the sensor-noise replicas."""
     anchors = np.array([(s["x"], s["y"]) for s in config.sample.spheres], float).reshape(-1, 2)
     extractor, ops, f_rec = _read(recorded_ops, anchors)
+    # what the re-simulation cannot reproduce (pushed particles' contact history) is left out
+    # before anything is fitted to the recording, the drift trajectory first (exclusions.py)
+    exclusions = ordinary_exclusions(ops, f_rec, config)
+    f_rec = exclusions.apply(f_rec)
+    if not f_rec:
+        raise NoFeaturesError(
+            "every feature of the recording is one the re-simulation cannot reproduce "
+            f"({'; '.join(row['what'] for row in exclusions.rows)})"
+        )
     base = deterministic(config)
     t_end = (
         max(op.start_time + (op.duration if np.isfinite(op.duration) else 0.0) for op in ops) + 1.0
@@ -359,7 +370,7 @@ def build_reference(
     nominal = replay(ops, base, drift=drift)
     nominal_seen: dict = {}
     f_nom = by_key(extract_features(nominal.operations, anchors, nominal_seen))
-    _check_config_matches(extractor.particles_seen, nominal_seen, f_rec, f_nom)
+    _check_config_matches(extractor.particles_seen, nominal_seen, f_rec, exclusions.apply(f_nom))
     matched = [k for k in f_rec if k in f_nom]
     say("drift sensitivities")
     shifted = []
@@ -386,7 +397,7 @@ def build_reference(
     table = make_table(keys, f_rec)
     nom = values_at(f_nom, keys)
     J, J_shape, mapped, rounding_variance = _sensitivities(table, nom, shifted, drift, scanner_map)
-    return ReferenceSession(
+    sess = ReferenceSession(
         ops,
         config,
         keys,
@@ -404,6 +415,8 @@ def build_reference(
         moves=nominal.moves,
         noise_seeds=[1000 + k for k in range(sensor_replicas)],
     )
+    sess.exclusions = exclusions
+    return sess
 
 
 def _read(recorded_ops, anchors: np.ndarray):

@@ -9,6 +9,7 @@ import yaml
 
 from afm_core.sim.config import dump_config
 from afm_core.sim2real.results import UNRESOLVED, unresolved
+from afm_core.sim2real.session_scope import scope_section
 
 GROUP_UNITS = {
     "line.mid": (1e9, "nm"),
@@ -120,6 +121,7 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
         "",
     ]
     lines += _where_section(diagnosis)
+    lines += scope_section(diagnosis)
     lines += _candidates_section(diagnosis, figures)
     lines += _update_section(diagnosis, out)
     lines += _heldout_section(diagnosis, figures)

@@ -51,6 +51,10 @@ class Diagnosis:
     message: str = ""
     drift: dict = field(default_factory=dict)  # the recorded drift trajectory (times, offsets)
     not_considered: list = field(default_factory=list)  # library terms left out by the caller
+    # features the re-simulation cannot reproduce, left out: {what, count, reason}
+    excluded: list = field(default_factory=list)
+    # terms this session cannot inform: {term, reason} (session_scope.py)
+    cannot_tell: list = field(default_factory=list)
 
     @property
     def missing_physics(self) -> bool:
