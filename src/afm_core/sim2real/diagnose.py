@@ -242,6 +242,6 @@ def run_sim2real(
                 operations, config, progress=progress, candidates=candidates, **kw
             )
         except NoFeaturesError as exc:
-            raise NoFeaturesError(f"recording {str(recording_path)!r}: {exc}") from exc
+            raise type(exc)(f"recording {str(recording_path)!r}: {exc}") from exc
     write_report(diagnosis, Path(report_dir), config=config, recording=str(recording_path))
     return diagnosis
