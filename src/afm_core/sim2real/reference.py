@@ -42,6 +42,11 @@ from afm_core.sim2real.protocol import deterministic, replay
 MIN_MATCHED_FRACTION = 0.7  # of the recorded features the reference simulation must reproduce
 SHIFT = 10e-9  # m, drift shift of the sensitivity replays
 REALIZATION_NOISE_SEED = 3000  # their first noise seed (the replicas' are 1000, 1001, ...)
+# image shapes whose response to the pixel phase is a staircase: their noise is drawn with the
+# walk on (`_walk_staircase_variance`), WALK_REPLICAS replays from WALK_NOISE_SEED
+STAIRCASE_GROUPS = ("raster.height", "raster.half_width")
+WALK_REPLICAS = 2
+WALK_NOISE_SEED = 2000
 
 
 class ConfigMismatchError(ValueError):
@@ -397,6 +402,9 @@ def build_reference(
     table = make_table(keys, f_rec)
     nom = values_at(f_nom, keys)
     J, J_shape, mapped, rounding_variance = _sensitivities(table, nom, shifted, drift, scanner_map)
+    rounding_variance = np.maximum(
+        rounding_variance, _walk_staircase_variance(ops, config, drift, anchors, keys, table, nom)
+    )
     sess = ReferenceSession(
         ops,
         config,
@@ -417,6 +425,49 @@ def build_reference(
     )
     sess.exclusions = exclusions
     return sess
+
+
+def _walk_staircase_variance(ops, config, drift, anchors, keys, table, nom) -> np.ndarray:
+    """Per feature: the variance the positioning walk gives an image's particle height and
+    half-width (0 on every other feature, and when the session has none).
+
+    An image's half-width is the square root of a pixel count (extract_landmarks), a staircase
+    in where the particle falls on the pixel grid; the walk before each image decides that to a
+    few nm, and no derivative carries a staircase (the reference's geometry term is linear).
+    So their noise is drawn: WALK_REPLICAS replays with the model's walk and sensor noise at the
+    recorded drift, the mean squared departure from the reference pooled per group (two draws
+    per feature are too few alone). Only images with pixels fine enough for shapes (PushProcedure's
+    8 nm rescans) have these features; the protocol's images do not, and pay nothing."""
+    staircase = np.isin(table.groups, STAIRCASE_GROUPS)
+    out = np.zeros(len(keys))
+    if not staircase.any():
+        return out
+    walking = merge(
+        deterministic(config, sensor_noise=True),
+        {"scanner": {"positioning_noise_enabled": config.scanner.positioning_noise_enabled}},
+    )
+    runs = np.array(
+        [
+            values_at(
+                by_key(
+                    extract_features(
+                        replay(
+                            ops, walking, noise_seed=WALK_NOISE_SEED + k, drift=drift
+                        ).operations,
+                        anchors,
+                    )
+                ),
+                keys,
+            )
+            for k in range(WALK_REPLICAS)
+        ]
+    )
+    departure = (runs - nom[None, :]) ** 2
+    for group in STAIRCASE_GROUPS:
+        sel = staircase & (table.groups == group)
+        if sel.any() and np.isfinite(departure[:, sel]).any():
+            out[sel] = float(np.nanmean(departure[:, sel]))
+    return out
 
 
 def _read(recorded_ops, anchors: np.ndarray):
