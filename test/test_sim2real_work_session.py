@@ -3,6 +3,7 @@
 import pytest
 
 from afm_core.sim.config import merge
+from afm_core.sim2real.results import UNEXPLAINED_P
 from afm_core.sim2real.session_reader import read_operations
 from afm_core.sim2real.work_session import record_work_session, work_config
 
@@ -65,6 +66,9 @@ def test_a_null_work_session_names_nothing_and_lists_what_it_left_out(tmp_path):
 
     assert diagnosis.chosen == [] and diagnosis.updated_config is None
     assert not (case / "report" / "updated_config.yaml").exists()
+    # and the residual is the noise model's (with the pushed particles' features in, this
+    # session's was not: chi^2 305 for 132, p 1e-15, "no candidate explains")
+    assert diagnosis.overall["p"] >= UNEXPLAINED_P
     # the pushed particles' contact history is left out, each kind with its reason
     left_out = {row["what"]: row for row in diagnosis.excluded}
     assert left_out["push torsion"]["count"] > 0
