@@ -5,7 +5,7 @@ import pytest
 from afm_core.sim.config import merge
 from afm_core.sim2real.results import UNEXPLAINED_P
 from afm_core.sim2real.session_reader import read_operations
-from afm_core.sim2real.work_session import record_work_session, work_config
+from afm_core.sim2real.work_session import WORK_SPHERES, record_work_session, work_config
 
 
 def test_a_work_session_records_what_the_graph_does_and_reads_back(tmp_path):
@@ -104,7 +104,6 @@ def test_a_session_of_one_small_image_is_too_little_and_the_protocol_is_suggeste
     from afm_core.sim2real.diagnose import run_sim2real
     from afm_core.sim2real.session_scope import TooLittleError
     from afm_core.sim2real.session_writer import RecordingInstrument
-    from afm_core.sim2real.work_session import WORK_SPHERES
 
     model = work_config()
     (tmp_path / "model.yaml").write_text(dump_config(model))
@@ -115,3 +114,45 @@ def test_a_session_of_one_small_image_is_too_little_and_the_protocol_is_suggeste
     with pytest.raises(TooLittleError, match="too little to diagnose") as caught:
         run_sim2real(tmp_path / "one.mcap", tmp_path / "model.yaml", tmp_path / "report")
     assert "diagnostic protocol" in str(caught.value)
+
+
+def test_exclusions_leave_out_strokes_on_particles_and_what_they_moved_not_bare_slides():
+    """The rule on hand-made commands: a stroke through a particle is left out, a slide 1 um
+    from every particle is kept, and the particle's image features after the push are left out
+    while another particle's are kept."""
+    from afm_core.sim2real.exclusions import ordinary_exclusions
+    from afm_core.sim2real.features import Feature
+    from afm_core.sim2real.protocol import Operation
+
+    config = work_config()
+    (x0, y0), (x1, y1) = WORK_SPHERES[:2]
+
+    def op(index, kind, start, end, t):
+        return Operation(index=index, kind=kind, start_time=t, start=start, end=end)
+
+    ops = [
+        op(0, "push", (x0 - 0.3e-6, y0), (x0 + 0.2e-6, y0), 10.0),  # through particle 0
+        op(1, "push", (x0, y0 - 1.0e-6), (x0 + 0.5e-6, y0 - 1.0e-6), 11.0),  # bare substrate
+        op(2, "raster", (x0, y0), (x0, y0), 12.0),
+    ]
+
+    def feature(key, group, x, y, t):
+        return Feature(key, group, 0.0, t, x, y)
+
+    features = {
+        f.key: f
+        for f in [
+            feature((0, "push.torsion0"), "push.torsion", x0, y0, 10.0),
+            feature((1, "push.torsion0"), "push.torsion", x0, y0 - 1e-6, 11.0),
+            feature((2, "raster.x0"), "raster.x", x0 + 0.32e-6, y0, 20.0),  # pushed along
+            feature((2, "raster.x1"), "raster.x", x1, y1, 20.0),
+        ]
+    }
+    excluded = ordinary_exclusions(ops, features, config)
+
+    assert excluded.keys == {(0, "push.torsion0"), (2, "raster.x0")}
+    assert excluded.strokes == 1
+    assert {row["what"] for row in excluded.rows} == {
+        "push torsion",
+        "moved particles' features",
+    }
