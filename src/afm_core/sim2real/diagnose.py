@@ -88,7 +88,8 @@ def diagnose(
         design = design_columns(sess, cands, noise, P, m, missing, say)
     # a term the session cannot tell is reported so, never weighed (session_scope.py)
     untold = cannot_tell(design.terms, noise, P)
-    check_something_to_tell(design.terms, untold)
+    if noise_first.result is None or not noise_first.result.accepted:
+        check_something_to_tell(design.terms, untold)  # (a named noise level is something)
     for row in untold:
         design.terms.pop(row["term"], None)
     evidence = weigh_candidates(
