@@ -5,13 +5,17 @@ The stages, in the order `diagnose` runs them (all SI; each module's docstring s
 
 1. Features of every operation (features.py), recorded and re-simulated, compared key by key
    (feature_table.py).
-2. The reference at the recorded geometry (reference.py): the drift trajectory that puts the
+2. The reference at the recorded geometry (reference.py), without the features the
+   re-simulation cannot reproduce in an ordinary session (exclusions.py: pushed particles'
+   contact history, single lines' chords): the drift trajectory that puts the
    particles where the recording saw them (drift_trajectory.py), the deterministic
    re-simulation with it, each feature's drift sensitivity J, the sensor-noise replicas.
 3. Sensor noise first (noise_term.py): the noise terms tested on the noise statistics alone;
    a named noise level redraws the replicas. Then the noise model and GLS (noise_model.py).
 4. Candidates (candidates.py: config keys): design columns by re-simulation
-   (design_columns.py; the friction patch from the data: region_candidate.py), the evidence
+   (design_columns.py; the friction patch from the data: region_candidate.py); the terms the
+   session cannot tell are set aside, and a session that can tell none, or has too few
+   features, is refused with the protocol suggested (session_scope.py); the evidence
    of each alone (evidence.py: Bonferroni, BIC, held-out blocks), the leaders compared
    re-simulated at their refined values (refinement.py), a second term on top of the first
    (second_term.py).
@@ -47,6 +51,11 @@ from afm_core.sim2real.report import write_report
 from afm_core.sim2real.results import Diagnosis
 from afm_core.sim2real.second_term import add_second_term
 from afm_core.sim2real.session_reader import read_operations
+from afm_core.sim2real.session_scope import (
+    cannot_tell,
+    check_enough_features,
+    check_something_to_tell,
+)
 from afm_core.sim2real.verdict import decide, runner_up
 
 
@@ -68,6 +77,7 @@ def diagnose(
     timed = _Timings()
     with timed("reference"):
         sess = build_reference(recorded_ops, config, sensor_replicas, say)
+    check_enough_features(sess)
     blocks = fold_blocks(sess.table, sess.ops, n_blocks)
     folds = [blocks % 2 == 0, blocks % 2 == 1]
     cands, missing = available(config, candidates)
@@ -79,6 +89,12 @@ def diagnose(
     P = nuisance_columns(sess.table, sess.J)
     with timed("sensitivities"):
         design = design_columns(sess, cands, noise, P, m, missing, say)
+    # a term the session cannot tell is reported so, never weighed (session_scope.py)
+    untold = cannot_tell(design.terms, noise, P)
+    if noise_first.result is None or not noise_first.result.accepted:
+        check_something_to_tell(design.terms, untold)  # (a named noise level is something)
+    for row in untold:
+        design.terms.pop(row["term"], None)
     evidence = weigh_candidates(
         sess, design, noise, P, folds, m, noise_first.terms, noise_first.result
     )
@@ -137,6 +153,8 @@ def diagnose(
         verdict=decision.verdict,
         remaining=decision.remaining,
         verdict_note=decision.note,
+        excluded=list(sess.exclusions.rows),
+        cannot_tell=untold,
     )
 
 
@@ -202,6 +220,6 @@ def run_sim2real(
                 operations, config, progress=progress, candidates=candidates, **kw
             )
         except NoFeaturesError as exc:
-            raise NoFeaturesError(f"recording {str(recording_path)!r}: {exc}") from exc
+            raise type(exc)(f"recording {str(recording_path)!r}: {exc}") from exc
     write_report(diagnosis, Path(report_dir), config=config, recording=str(recording_path))
     return diagnosis

@@ -22,6 +22,7 @@ import numpy as np
 from afm_core.sim.config import SimConfig, merge
 from afm_core.sim2real.candidates import Candidate, merge_overrides
 from afm_core.sim2real.drift_trajectory import ScannerMap, drift_trajectory, nominal_drift
+from afm_core.sim2real.exclusions import Exclusions, ordinary_exclusions
 from afm_core.sim2real.feature_table import (
     NOISE_GROUPS,
     PUSH_GROUPS,
@@ -47,6 +48,11 @@ from afm_core.sim2real.protocol import deterministic, replay
 MIN_MATCHED_FRACTION = 0.7  # of the recorded features the reference simulation must reproduce
 SHIFT = 10e-9  # m, drift shift of the sensitivity replays
 REALIZATION_NOISE_SEED = 3000  # their first noise seed (the replicas' are 1000, 1001, ...)
+# image shapes whose response to the pixel phase is a staircase: their noise is drawn with the
+# walk on (`_walk_staircase_variance`), WALK_REPLICAS replays from WALK_NOISE_SEED
+STAIRCASE_GROUPS = ("raster.height", "raster.half_width")
+WALK_REPLICAS = 2
+WALK_NOISE_SEED = 2000
 
 
 class ConfigMismatchError(ValueError):
@@ -106,6 +112,7 @@ class ReferenceSession:
         self.push = np.isin(table.groups, PUSH_GROUPS)
         self.noisy = np.isin(table.groups, NOISE_GROUPS)
         self.replays = 0
+        self.exclusions = Exclusions()  # what build_reference left out of the recording
         self.set_reference(reference, bias, {})
         self.r_before = self.r  # against the nominal model (a fitted noise level changes self.r)
 
@@ -349,6 +356,15 @@ def build_reference(
     recording, the drift sensitivities and the sensor-noise replicas."""
     anchors = np.array([(s["x"], s["y"]) for s in config.sample.spheres], float).reshape(-1, 2)
     extractor, ops, f_rec = _read(recorded_ops, anchors)
+    # what the re-simulation cannot reproduce (pushed particles' contact history) is left out
+    # before anything is fitted to the recording, the drift trajectory first (exclusions.py)
+    exclusions = ordinary_exclusions(ops, f_rec, config)
+    f_rec = exclusions.apply(f_rec)
+    if not f_rec:
+        raise NoFeaturesError(
+            "every feature of the recording is one the re-simulation cannot reproduce "
+            f"({'; '.join(row['what'] for row in exclusions.rows)})"
+        )
     base = deterministic(config)
     t_end = (
         max(op.start_time + (op.duration if np.isfinite(op.duration) else 0.0) for op in ops) + 1.0
@@ -365,10 +381,11 @@ def build_reference(
     nominal = replay(ops, base, drift=drift)
     nominal_seen: dict = {}
     f_nom = by_key(extract_features(nominal.operations, anchors, nominal_seen))
+    f_nom_kept = exclusions.apply(f_nom)
     _check_config_matches(
-        agreement(extractor.particles_seen, nominal_seen, f_rec, f_nom),
+        agreement(extractor.particles_seen, nominal_seen, f_rec, f_nom_kept),
         {k[0] for k in f_rec if k not in f_nom and f_rec[k].group not in NOISE_GROUPS},
-        {k[0] for k, f in f_nom.items() if k not in f_rec and f.group not in NOISE_GROUPS},
+        {k[0] for k, f in f_nom_kept.items() if k not in f_rec and f.group not in NOISE_GROUPS},
         # only when the check fails: which scanner term would reproduce the recording
         explain=lambda nominal_score: cause_words(
             *likely_scanner_causes(
@@ -410,7 +427,10 @@ def build_reference(
     table = make_table(keys, f_rec)
     nom = values_at(f_nom, keys)
     J, J_shape, mapped, rounding_variance = _sensitivities(table, nom, shifted, drift, scanner_map)
-    return ReferenceSession(
+    rounding_variance = np.maximum(
+        rounding_variance, _walk_staircase_variance(ops, config, drift, anchors, keys, table, nom)
+    )
+    sess = ReferenceSession(
         ops,
         config,
         keys,
@@ -428,6 +448,51 @@ def build_reference(
         moves=nominal.moves,
         noise_seeds=[1000 + k for k in range(sensor_replicas)],
     )
+    sess.exclusions = exclusions
+    return sess
+
+
+def _walk_staircase_variance(ops, config, drift, anchors, keys, table, nom) -> np.ndarray:
+    """Per feature: the variance the positioning walk gives an image's particle height and
+    half-width (0 on every other feature, and when the session has none).
+
+    An image's half-width is the square root of a pixel count (extract_landmarks), a staircase
+    in where the particle falls on the pixel grid; the walk before each image decides that to a
+    few nm, and no derivative carries a staircase (the reference's geometry term is linear).
+    So their noise is drawn: WALK_REPLICAS replays with the model's walk and sensor noise at the
+    recorded drift, the mean squared departure from the reference pooled per group (two draws
+    per feature are too few alone). Only images with pixels fine enough for shapes (PushProcedure's
+    8 nm rescans) have these features; the protocol's images do not, and pay nothing."""
+    staircase = np.isin(table.groups, STAIRCASE_GROUPS)
+    out = np.zeros(len(keys))
+    if not staircase.any():
+        return out
+    walking = merge(
+        deterministic(config, sensor_noise=True),
+        {"scanner": {"positioning_noise_enabled": config.scanner.positioning_noise_enabled}},
+    )
+    runs = np.array(
+        [
+            values_at(
+                by_key(
+                    extract_features(
+                        replay(
+                            ops, walking, noise_seed=WALK_NOISE_SEED + k, drift=drift
+                        ).operations,
+                        anchors,
+                    )
+                ),
+                keys,
+            )
+            for k in range(WALK_REPLICAS)
+        ]
+    )
+    departure = (runs - nom[None, :]) ** 2
+    for group in STAIRCASE_GROUPS:
+        sel = staircase & (table.groups == group)
+        if sel.any() and np.isfinite(departure[:, sel]).any():
+            out[sel] = float(np.nanmean(departure[:, sel]))
+    return out
 
 
 def _read(recorded_ops, anchors: np.ndarray):

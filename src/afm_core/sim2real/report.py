@@ -10,6 +10,7 @@ import yaml
 from afm_core.sim.config import dump_config
 from afm_core.sim2real.evidence import ALPHA
 from afm_core.sim2real.results import NAMED, PARTLY_EXPLAINED, UNRESOLVED, unresolved
+from afm_core.sim2real.session_scope import scope_section
 from afm_core.sim2real.verdict import EXCESS_SHARE
 
 GROUP_UNITS = {
@@ -123,6 +124,7 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
         "",
     ]
     lines += _where_section(diagnosis)
+    lines += scope_section(diagnosis)
     lines += _candidates_section(diagnosis, figures)
     lines += _update_section(diagnosis, out)
     lines += _heldout_section(diagnosis, figures)

@@ -73,6 +73,11 @@ class Diagnosis:
                 else NO_MISSING_PHYSICS
             )
 
+    # features the re-simulation cannot reproduce, left out: {what, count, reason}
+    excluded: list = field(default_factory=list)
+    # terms this session cannot inform: {term, reason} (session_scope.py)
+    cannot_tell: list = field(default_factory=list)
+
     @property
     def missing_physics(self) -> bool:
         """Whether the recording shows physics the model lacks (named, partly explained or not

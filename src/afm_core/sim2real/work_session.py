@@ -49,6 +49,7 @@ LOCAL_SIZE, LOCAL_PIXELS, LOCAL_LINE_RATE = 1.0e-6, 64, 4.0
 PUSH_DISTANCE = 300e-9  # m
 CLEARANCE = 350e-9  # m: a goal this close to another particle's centre is not chosen
 MAX_PUSHES = 10
+INITIAL_SIGMA = 50e-9  # m: the tip's uncertainty when a localization starts (the map's)
 DIRECTIONS = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
 
 
@@ -188,6 +189,25 @@ def _local_image(recording, mark) -> None:
     )
 
 
+def _fresh_localizer(recording, calibration):
+    """The localization callable, each call on a Localizer started at the current command with
+    the map's 50 nm uncertainty (as bench_pushing's procedure runs start one per push): a
+    Localizer carried across the area images' long moves gates out its next lines."""
+    from afm_core.localization import Localizer
+    from afm_core.manipulation import localize_with
+
+    def localize(particle, should_stop):
+        localizer = Localizer(
+            recording,
+            calibration,
+            np.array(recording.commanded_position()),
+            np.diag([INITIAL_SIGMA**2] * 2),
+        )
+        return localize_with(localizer)(particle, should_stop)
+
+    return localize
+
+
 def _push_all(recording, procedure, marks: dict, rng, pushes: int, distance: float) -> list:
     from afm_core.manipulation import PushFailed, PushRefused
 
@@ -222,8 +242,7 @@ def record_work_session(
     file `path`. seed: the choices (which particles, which directions); the instrument's own
     randomness is config.seed. spheres: where the area is (m; default: config's spheres). The
     summary says what ran."""
-    from afm_core.localization import Localizer
-    from afm_core.manipulation import PushProcedure, localize_with
+    from afm_core.manipulation import PushProcedure
     from afm_core.sim.instrument import SimulatedAfm
     from afm_core.sim2real.session_writer import RecordingInstrument
 
@@ -246,13 +265,7 @@ def record_work_session(
         if marks:
             first = marks[list(marks)[int(rng.integers(len(marks)))]]
             _local_image(recording, first)
-            localizer = Localizer(
-                recording,
-                calibration,
-                np.array(recording.commanded_position()),
-                np.diag([(50e-9) ** 2] * 2),
-            )
-            localize = localize_with(localizer)
+            localize = _fresh_localizer(recording, calibration)
             localize(first, lambda: False)
             procedure = PushProcedure(
                 recording,
