@@ -19,6 +19,8 @@ The stages, in the order `diagnose` runs them (all SI; each module's docstring s
    sigmas and the updated configuration.
 6. Held-out demonstration (heldout.py): fit on one fold only, re-simulate the whole session
    with that fit, residuals on the other fold before and after.
+7. What no library term explains (generic_fit.py): its signature (signature.py) and a generic
+   simulator term of that form, fitted and checked on held-out blocks the same way.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from afm_core.sim2real.design_columns import design_columns
 from afm_core.sim2real.deviations import nominal_deviations
 from afm_core.sim2real.drift_trajectory import nominal_drift
 from afm_core.sim2real.evidence import weigh_candidates
+from afm_core.sim2real.generic_fit import describe_unexplained
 from afm_core.sim2real.heldout import fold_blocks, heldout_demonstration
 from afm_core.sim2real.noise_model import nuisance_columns, session_noise_model
 from afm_core.sim2real.noise_term import NoiseFirst, sensor_noise_first
@@ -104,6 +107,10 @@ def diagnose(
             heldout_resimulation,
             say,
         )
+    with timed("generic"):
+        signature, generic = describe_unexplained(
+            sess, evidence, deviations, design.terms, chosen, parameters, heldout, say
+        )
     timings = timed.finish(replays=float(sess.replays + 5 + sensor_replicas))
     return Diagnosis(
         n_features=len(sess.keys),
@@ -126,6 +133,8 @@ def diagnose(
             "offsets": sess.drift.offsets,
             "nominal": nominal_drift(config, sess.drift.times),
         },
+        signature=signature,
+        generic=generic,
     )
 
 

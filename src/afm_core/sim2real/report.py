@@ -8,6 +8,7 @@ import numpy as np
 import yaml
 
 from afm_core.sim.config import dump_config
+from afm_core.sim2real.generic_fit import generic_section
 from afm_core.sim2real.results import UNRESOLVED, unresolved
 
 GROUP_UNITS = {
@@ -123,6 +124,7 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
     lines += _candidates_section(diagnosis, figures)
     lines += _update_section(diagnosis, out)
     lines += _heldout_section(diagnosis, figures)
+    lines += generic_section(diagnosis, out)
     lines += [
         "## Run time",
         "",

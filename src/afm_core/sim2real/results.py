@@ -51,6 +51,8 @@ class Diagnosis:
     message: str = ""
     drift: dict = field(default_factory=dict)  # the recorded drift trajectory (times, offsets)
     not_considered: list = field(default_factory=list)  # library terms left out by the caller
+    signature: object = None  # signature.Signature of what no term explains (None: nothing left)
+    generic: dict = field(default_factory=dict)  # generic_fit.generic_fit: the generic term
 
     @property
     def missing_physics(self) -> bool:
