@@ -16,6 +16,7 @@ from afm_core.sim.instrument import SimulatedAfm
 from afm_core.sim2real.candidates import select
 from afm_core.sim2real.diagnose import diagnose
 from afm_core.sim2real.feature_table import Table
+from afm_core.sim2real.generic_fit import basis_for
 from afm_core.sim2real.protocol import make_session, session_config
 from afm_core.sim2real.signature import describe, structure_p
 
@@ -105,6 +106,10 @@ def test_a_residual_periodic_across_the_sample_is_described_there_not_in_time():
     sig = describe(table, r, np.full(120, 0.2e-9))
     assert sig.primary == "space" and sig.space["form"] == "periodic in x", sig.space["bic"]
     assert sig.space["params"]["period"] == pytest.approx(0.5e-6, rel=0.1)
+    # the generic model takes that form: a sinusoid in x (two phases) of that period
+    form, basis = basis_for(sig, 0.0, (55e-6, 55e-6))
+    assert [b.form for b in basis] == ["x_sine", "x_sine"] and form == "periodic in x"
+    assert basis[0].param("period") == pytest.approx(0.5e-6, rel=0.1)
 
 
 def test_noise_only_and_noise_a_constant_factor_too_large_describe_nothing():

@@ -52,16 +52,22 @@ def needs_description(overall: dict, chosen: list, heldout: dict) -> bool:
     return heldout["chi2_after"] > stats.chi2.ppf(HELDOUT_QUANTILE, max(heldout["dof"], 1))
 
 
-def basis_for(sig: Signature, t_first: float) -> tuple[str, list[GenericTerm]]:
+def basis_for(sig: Signature, t_first: float, centre=(0.0, 0.0)) -> tuple[str, list[GenericTerm]]:
     """(the form chosen, the basis terms at unit amplitude) of the signature's simplest form:
     the time form, or the form across the sample where it has the smaller BIC. A random walk
-    has no deterministic basis: its best deterministic time form stands in."""
+    has no deterministic basis: the best deterministic form in time or across the sample
+    (both fitted on the same residual then) stands in."""
     signal = SIGNALS[sig.kind]
     time_bic = {k: v for k, v in sig.time["bic"].items() if k not in ("none", "random walk")}
     time_form = min(time_bic, key=time_bic.get)
     space_form = sig.space["form"]
-    if sig.primary == "space" and space_form != "uniform":
-        p = sig.space["params"]
+    use_space = sig.primary == "space"
+    if sig.time["form"] == "random walk":
+        space_bic = {k: v for k, v in sig.space["bic"].items() if k != "uniform"}
+        space_form = min(space_bic, key=space_bic.get)
+        use_space = space_bic[space_form] < time_bic[time_form]
+    if use_space and space_form != "uniform":
+        p = sig.space["all"][space_form]
         axis = space_form.split()[-1]
         if space_form.startswith("periodic"):
             key = f"{axis}0"
@@ -72,11 +78,12 @@ def basis_for(sig: Signature, t_first: float) -> tuple[str, list[GenericTerm]]:
             ]
         elif space_form == "linear in x and y":
             terms = [
-                GenericTerm(signal, "x_linear", 1.0, (("x0", 0.0),)),
-                GenericTerm(signal, "y_linear", 1.0, (("y0", 0.0),)),
+                GenericTerm(signal, "x_linear", 1.0, (("x0", centre[0]),)),
+                GenericTerm(signal, "y_linear", 1.0, (("y0", centre[1]),)),
             ]
         else:
-            terms = [GenericTerm(signal, f"{axis}_linear", 1.0, ((f"{axis}0", 0.0),))]
+            origin = centre[0] if axis == "x" else centre[1]
+            terms = [GenericTerm(signal, f"{axis}_linear", 1.0, ((f"{axis}0", origin),))]
         return space_form, terms + _constant(signal)
     params = sig.time["all"][time_form]
     if time_form == "linear trend":
@@ -132,7 +139,8 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
     check. {"fitted": False, "reason": ...} when the signature's signal has no generic term."""
     if sig.kind not in SIGNALS or not sig.time or not sig.space:
         return {"fitted": False, "reason": f"no generic term acts on a {sig.kind or 'no'} signal"}
-    form, basis = basis_for(sig, float(np.min(sess.table.time)))
+    centre = tuple(float(v) for v in np.mean(sess.table.xy, axis=0))
+    form, basis = basis_for(sig, float(np.min(sess.table.time)), centre)
     if not basis:
         return {"fitted": False, "reason": f"no generic basis for the form {form!r}"}
     say(f"generic term: {form} on the {SIGNALS[sig.kind]} signal ({len(basis)} re-simulations)")
