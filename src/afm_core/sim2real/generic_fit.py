@@ -35,6 +35,9 @@ from afm_core.sim2real.results import UNEXPLAINED_P
 from afm_core.sim2real.signature import Signature, describe
 
 HELDOUT_QUANTILE = 0.95  # held-out chi^2 above this quantile of chi^2(dof): beyond the noise
+# a group the generic term moves by less than this share of its noise sigma keeps its
+# overdispersion factor: the term's fit cannot have inflated that factor
+ACTS = 0.1
 SIGNALS = {"z": "height", "torsion": "torsion"}  # signature kind -> the generic term's signal
 DESCRIPTION = (
     "generic description fitted by the sim2real diagnosis where no library term explains the "
@@ -150,7 +153,9 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
         [np.nan_to_num(_change(sess, [_scaled(term, a)])) / a for term, a in zip(basis, steps)],
         1,
     )
-    acts = np.abs(cols).sum(axis=1) > 0
+    # where the term at the residual's size moves a feature by a tenth of its noise or more
+    sigma = np.sqrt(np.diag(evidence.unscaled.cov))
+    acts = np.abs(cols * np.array(steps)[None, :]).max(axis=1) >= ACTS * sigma
     noise = dataclasses.replace(evidence.unscaled)
     acted = set(np.unique(sess.table.groups[acts]).tolist())
     factors = {g: f for g, f in evidence.group_factors.items() if g not in acted}
