@@ -10,8 +10,9 @@ table's conditions), `describe` says:
 - its form in time: none, constant, linear trend, step at a time, periodic, random walk, the
   smallest BIC (-2 log L + k ln n, Gaussian with the noise sigma; the random walk by its
   Kalman likelihood, its step variance the parameter);
-- across the sample: linear in x, y, or periodic in x or y (same BIC), and whether it is
-  localized (its mean in a 3 x 3 grid of the features' places differs beyond the noise);
+- across the sample: linear in x, y, or periodic in x or y (same BIC), and whether what its
+  form leaves is localized (its mean in a 3 x 3 grid of the features' places differs beyond
+  the noise);
 - along the scan: linear in the fast-axis coordinate;
 - its relation to what was measured at the same operation (the particle's height, the scan
   speed, the dwell, the distance slid): weighted correlations, Bonferroni over the covariates;
@@ -456,6 +457,8 @@ def describe(table, r, sigma, recorded=None, factors=None) -> Signature:
         sig.time, sig.space = _forms(t, xy, y, s)
         primary = sig.time if sig.primary == "time" else sig.space
         rest = y - primary["fitted"] if primary["fitted"] is not None else y
+        # a region that departs from what the form says, not the form's own peaks
+        sig.space["localized"] = _localized(xy, rest, s)
         sig.conditions = _conditions(table, sel, rest, s)
         sig.along_scan = _along_scan(table, sel, rest, s)
         sig.relations = _relations(table, sel, rest, s, recorded)

@@ -120,7 +120,7 @@ def _space_sentence(space: dict, scale: float, unit: str, alpha: float) -> str:
     if loc["p"] < alpha and loc["where"] is not None:
         x, y = loc["where"]
         text += (
-            f"; it is localized near ({x * 1e6:.2f}, {y * 1e6:.2f}) um "
+            f"; beyond its form it departs most near ({x * 1e6:.2f}, {y * 1e6:.2f}) um "
             f"({loc['mean_there'] * scale:+.3g} {unit} there)"
         )
     return text + "."
