@@ -116,7 +116,10 @@ def _scaled(term: GenericTerm, amplitude: float) -> GenericTerm:
 
 
 def _config_with(sess, terms: list[GenericTerm]):
-    return merge(sess.base, {"generic_terms": [term.as_dict() for term in terms]})
+    """The reference's config with `terms` added to the generic terms it already has (a model
+    that carries an earlier diagnosis' description keeps it)."""
+    earlier = list(sess.base.generic_terms)
+    return merge(sess.base, {"generic_terms": earlier + [term.as_dict() for term in terms]})
 
 
 def _step(term: GenericTerm, sess, size: float) -> float:
