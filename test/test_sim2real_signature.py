@@ -60,6 +60,22 @@ def test_the_generic_height_term_adds_its_offset_to_every_measured_height():
     assert np.ptp(diff) > 10 * 1e-12
 
 
+def test_the_generic_torsion_term_adds_its_offset_to_the_push_trace():
+    """A torsion offset linear in the commanded x: the trace with it minus the one without is
+    that offset at each sample's commanded position (closed form)."""
+    base = load_config()
+    term = {"signal": "torsion", "form": "x_linear", "amplitude": 50.0, "x0": 55e-6}
+    traces = []
+    for config in (base, merge(base, {"generic_terms": [term]})):
+        sim = SimulatedAfm(config)
+        sim.move_tip(54.5e-6, 54.2e-6, 1e-5)
+        traces.append(sim.move_tip(55.5e-6, 54.2e-6, 1e-6, contact=True).trace)
+    x = np.asarray(traces[1].commanded_x)
+    diff = np.asarray(traces[1].lateral_torsion) - np.asarray(traces[0].lateral_torsion)
+    assert np.allclose(diff, 50.0 * (x - 55e-6), rtol=1e-9, atol=1e-15)
+    assert np.ptp(diff) > 1e-5  # rad: the term acted
+
+
 def _table(n, rng, times=None):
     t = np.sort(rng.uniform(0, 1000, n)) if times is None else times
     xy = np.column_stack([rng.uniform(54e-6, 56e-6, n), rng.uniform(54e-6, 56e-6, n)])
@@ -110,6 +126,21 @@ def test_a_residual_periodic_across_the_sample_is_described_there_not_in_time():
     form, basis = basis_for(sig, 0.0, (55e-6, 55e-6))
     assert [b.form for b in basis] == ["x_sine", "x_sine"] and form == "periodic in x"
     assert basis[0].param("period") == pytest.approx(0.5e-6, rel=0.1)
+
+
+def test_a_torsion_trend_is_a_torsion_signal_and_its_generic_basis_has_a_constant():
+    """The torsion's absolute level is measured, so its generic model carries a constant."""
+    rng = np.random.default_rng(7)
+    table = _table(60, rng)
+    table.groups = np.array(["push.torsion"] * 60)
+    r = 2e-7 * table.time + rng.normal(0, 1e-5, 60)
+    sig = describe(table, r, np.full(60, 1e-5))
+    assert sig.kind == "torsion" and sig.time["form"] == "linear trend", sig.time["bic"]
+    _, basis = basis_for(sig, 0.0)
+    assert [(b.signal, b.form) for b in basis] == [
+        ("torsion", "time_linear"),
+        ("torsion", "constant"),
+    ]
 
 
 def test_noise_only_and_noise_a_constant_factor_too_large_describe_nothing():
