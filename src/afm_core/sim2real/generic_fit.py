@@ -45,11 +45,19 @@ DESCRIPTION = (
 )
 
 
-def needs_description(overall: dict, chosen: list, heldout: dict) -> bool:
+def needs_description(overall: dict, chosen: list, heldout: dict, groups=None) -> bool:
     """Whether the residual is left unexplained: nothing named while the residual exceeds the
-    noise model, or a named term leaving the held-out blocks beyond their noise."""
+    noise model — as a whole, or in one group whose noise the diagnosis took as modelled (no
+    overdispersion factor) at UNEXPLAINED_P over the groups (an effect in a few dozen features
+    is diluted in the chi^2 of several hundred) —, or a named term leaving the held-out blocks
+    beyond their noise. groups: group -> {chi2, dof, p} (deviations.group_stats)."""
     if not chosen:
-        return overall["p"] < UNEXPLAINED_P
+        factors = overall.get("group_factors", {})
+        limit = UNEXPLAINED_P / max(len(groups or {}), 1)
+        alone = any(
+            row["p"] < limit and factors.get(g, 1.0) <= 1.0 for g, row in (groups or {}).items()
+        )
+        return overall["p"] < UNEXPLAINED_P or alone
     if "chi2_after" not in heldout:
         return False
     return heldout["chi2_after"] > stats.chi2.ppf(HELDOUT_QUANTILE, max(heldout["dof"], 1))
@@ -229,7 +237,7 @@ def describe_unexplained(
     """(Signature, generic fit dict) of what the library leaves unexplained, or (None, {}) when
     it leaves nothing (`needs_description`). The residual is the named terms' at their fitted
     values (re-simulated: ReferenceSession.residual), the nominal model's when none is named."""
-    if not needs_description(evidence.overall(), chosen, heldout):
+    if not needs_description(evidence.overall(), chosen, heldout, deviations.group_stats):
         return None, {}
     say("describing the unexplained residual")
     if chosen:

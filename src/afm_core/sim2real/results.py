@@ -64,7 +64,7 @@ class Diagnosis:
                 f"chi2 {self.overall['chi2']:.1f} for {self.overall['dof']} dof, "
                 f"p = {self.overall['p']:.3g}"
             )
-            if self.overall["p"] < UNEXPLAINED_P:
+            if self.overall["p"] < UNEXPLAINED_P or self.signature is not None:
                 among = (
                     f"of those considered ({len(self.not_considered)} library terms left out)"
                     if self.not_considered
