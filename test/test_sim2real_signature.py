@@ -16,7 +16,7 @@ from afm_core.sim.instrument import SimulatedAfm
 from afm_core.sim2real.candidates import select
 from afm_core.sim2real.diagnose import diagnose
 from afm_core.sim2real.feature_table import Table
-from afm_core.sim2real.generic_fit import basis_for
+from afm_core.sim2real.generic_fit import basis_for, needs_description
 from afm_core.sim2real.protocol import make_session, session_config
 from afm_core.sim2real.signature import describe, structure_p
 
@@ -219,3 +219,18 @@ def test_an_invented_z_effect_is_described_and_its_generic_fit_removes_the_heldo
     assert not (tmp_path / "updated_config.yaml").exists() or not yaml.safe_load(
         (tmp_path / "updated_config.yaml").read_text()
     ).get("generic_terms")
+
+
+def test_the_description_runs_when_the_library_leaves_the_residual_beyond_its_noise():
+    quiet = {"p": 0.5, "group_factors": {"line.dir": 3.0}}
+    groups = {"line.level": {"p": 1e-9}, "line.dir": {"p": 1e-9}, "line.pos": {"p": 0.4}}
+    assert not needs_description(quiet, [], {}, {"line.pos": {"p": 0.4}})
+    assert needs_description({"p": 1e-5}, [], {}, {})
+    # a group alone, with no overdispersion factor: diluted in the overall chi^2 but beyond
+    assert needs_description(quiet, [], {}, groups)
+    # the same excess in a group the diagnosis gave a factor: taken as noise
+    assert not needs_description(quiet, [], {}, {"line.dir": {"p": 1e-9}})
+    # a named term: by the held-out blocks after its fit (95 % quantile of chi^2(200): 233.99)
+    assert needs_description(quiet, ["tip_radius"], {"chi2_after": 240.0, "dof": 200})
+    assert not needs_description(quiet, ["tip_radius"], {"chi2_after": 230.0, "dof": 200})
+    assert not needs_description(quiet, ["tip_radius"], {})
