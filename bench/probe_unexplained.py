@@ -4,6 +4,7 @@ signals, form in time and across the sample), the generic fit's form and the sha
 held-out excess it removes, and the diagnosis' CPU time.
 
     scripts/with_env.sh python bench/probe_unexplained.py --seeds 11 5 --cases null bend jump
+    (--whole-library: every library term instead of height_gain, bow, tip_radius, friction)
 """
 
 from __future__ import annotations
@@ -48,6 +49,11 @@ CASES = {
         {},
         "z: periodic in x, 1 nm, 2 um",
     ),
+    "pickup-small": (
+        lambda ops: invented.add_to_heights(ops, invented.z_pickup_with_x(0.5e-9, 2e-6)),
+        {},
+        "z: periodic in x, 0.5 nm, 2 um",
+    ),
     "torsion": (
         lambda ops: invented.add_to_torsion(ops, invented.torsion_drift(2e-7)),
         {},
@@ -68,12 +74,12 @@ def _cpu() -> float:
     return self.ru_utime + self.ru_stime + children.ru_utime + children.ru_stime
 
 
-def run(case: str, seed: int) -> str:
+def run(case: str, seed: int, whole_library: bool = False) -> str:
     inject, truth_overrides, words = CASES[case]
     model = merge(session_config(), {"seed": seed})
     ops = inject(make_session(merge(model, truth_overrides), protocol_seed=seed))
     c0, w0 = _cpu(), time.perf_counter()
-    d = diagnose(ops, model, candidates=select(CANDIDATES))
+    d = diagnose(ops, model, candidates=None if whole_library else select(CANDIDATES))
     cpu, wall = _cpu() - c0, time.perf_counter() - w0
     sig, g = d.signature, d.generic or {}
     described = "-"
@@ -103,12 +109,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[11])
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    parser.add_argument("--whole-library", action="store_true", help="every library term")
     args = parser.parse_args()
     print("| case | seed | truth | named | signature | generic fit | CPU / wall s |")
     print("|---|---|---|---|---|---|---|")
     for seed in args.seeds:
         for case in args.cases:
-            print(run(case, seed), flush=True)
+            print(run(case, seed, args.whole_library), flush=True)
 
 
 if __name__ == "__main__":
