@@ -265,9 +265,11 @@ def structure_p(order_by: np.ndarray, z: np.ndarray) -> float:
 def _significant_groups(table, r, sigma, factors: dict) -> list:
     """The groups whose residual exceeds the noise model (chi^2(n) at ALPHA over the groups),
     and, where the diagnosis scaled the group's noise by an overdispersion factor, still
-    exceeds it so scaled or shows structure in time or across the sample (structure_p at
-    ALPHA over the groups, in either order): a factor stands for noise the model lacks, which
-    has no structure."""
+    exceeds it so scaled (the factor stands for noise the model lacks). Each row reports
+    whether its excess has structure in time or across the sample (structure_p, the smaller
+    of the two orders, doubled) but that does not decide: the forward/backward shifts of a
+    null session (seed 3) show structure beyond their factor of 4.4, the reference geometry's
+    mismatch following the drift's wander."""
     groups = table.groups
     rows = []
     names = [str(g) for g in np.unique(groups)]
@@ -285,7 +287,7 @@ def _significant_groups(table, r, sigma, factors: dict) -> list:
             structure_p(table.xy[sel, 0] + 1e-3 * table.xy[sel, 1], z),
         )
         beyond = stats.chi2.sf(chi2, n) < limit and chi2 > n
-        if not beyond or (stats.chi2.sf(chi2 / factor, n) >= limit and structure >= limit):
+        if not beyond or stats.chi2.sf(chi2 / factor, n) >= limit:
             continue
         words, kind = WORDS.get(g, (g, "other"))
         rows.append(
