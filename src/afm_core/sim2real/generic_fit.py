@@ -68,18 +68,13 @@ def needs_description(overall: dict, chosen: list, heldout: dict, groups=None) -
 
 def basis_for(sig: Signature, t_first: float, centre=(0.0, 0.0)) -> tuple[str, list[GenericTerm]]:
     """(the form chosen, the basis terms at unit amplitude) of the signature's simplest form:
-    the time form, or the form across the sample where it has the smaller BIC. A random walk
-    has no deterministic basis: the best deterministic form in time or across the sample
-    (both fitted on the same residual then) stands in."""
+    the family fitted first (signature._forms), its best deterministic form (a random walk
+    has no basis)."""
     signal = SIGNALS[sig.kind]
     time_bic = {k: v for k, v in sig.time["bic"].items() if k not in ("none", "random walk")}
     time_form = min(time_bic, key=time_bic.get)
     space_form = sig.space["form"]
     use_space = sig.primary == "space"
-    if sig.time["form"] == "random walk":
-        space_bic = {k: v for k, v in sig.space["bic"].items() if k != "uniform"}
-        space_form = min(space_bic, key=space_bic.get)
-        use_space = space_bic[space_form] < time_bic[time_form]
     if use_space and space_form != "uniform":
         p = sig.space["all"][space_form]
         axis = space_form.split()[-1]

@@ -173,17 +173,25 @@ def _best(out: dict, order=None) -> dict:
     """The form of least BIC among `out` (form -> (BIC, params, fitted in `order`)); its
     fitted values back in the callers' order (None for a random walk)."""
     form = min(out, key=lambda k: out[k][0])
-    fitted = out[form][2]
-    if fitted is not None and order is not None:
-        back = np.empty_like(fitted)
-        back[order] = fitted
-        fitted = back
+
+    def back(fitted):
+        if fitted is None or order is None:
+            return fitted
+        unsorted = np.empty_like(fitted)
+        unsorted[order] = fitted
+        return unsorted
+
+    deterministic = {k: v for k, v in out.items() if v[2] is not None}
+    steady = min(deterministic, key=lambda k: deterministic[k][0])
     return {
         "form": form,
         "bic": {k: v[0] for k, v in out.items()},
         "params": out[form][1],
-        "fitted": fitted,
+        "fitted": back(out[form][2]),
         "all": {k: v[1] for k, v in out.items()},
+        # the best form with fitted values (a random walk has none): what the other family
+        # is fitted after
+        "deterministic_fit": back(deterministic[steady][2]),
     }
 
 
@@ -458,7 +466,7 @@ def describe(table, r, sigma, recorded=None, factors=None) -> Signature:
     if sel.sum() >= MIN_FEATURES:
         sig.time, sig.space = _forms(t, xy, y, s)
         primary = sig.time if sig.primary == "time" else sig.space
-        rest = y - primary["fitted"] if primary["fitted"] is not None else y
+        rest = y - primary["deterministic_fit"]
         # a region that departs from what the form says, not the form's own peaks
         sig.space["localized"] = _localized(xy, rest, s)
         sig.conditions = _conditions(table, sel, rest, s)
@@ -477,12 +485,16 @@ def describe(table, r, sigma, recorded=None, factors=None) -> Signature:
 
 
 def _forms(t, xy, y, s) -> tuple[dict, dict]:
-    """(form in time, form across the sample): the one with the smaller BIC fitted on the
-    residual, the other on what the first leaves (in a session that moves and waits, time
-    and place go together; the second says what the first does not)."""
+    """(form in time, form across the sample): the family whose best deterministic form has
+    the smaller BIC fitted on the residual, the other on what that form leaves (in a session
+    that moves and waits, time and place go together; the second says what the first does
+    not)."""
     time, space = time_form(t, y, s), space_form(xy, y, s)
-    if min(time["bic"].values()) <= min(space["bic"].values()):
-        rest = y - time["fitted"] if time["fitted"] is not None else y
+    # a random walk describes but models nothing: the families compete by their best
+    # deterministic forms
+    steady = min(v for k, v in time["bic"].items() if k != "random walk")
+    if steady <= min(space["bic"].values()):
+        rest = y - time["deterministic_fit"]
         return dict(time, primary=True), dict(space_form(xy, rest, s), primary=False)
     return dict(time_form(t, y - space["fitted"], s), primary=False), dict(space, primary=True)
 
