@@ -19,6 +19,7 @@ from afm_core.instrument import ScannerLimits
 from afm_core.physics.contact import ContactParams
 from afm_core.pzt import ScannerParams
 from afm_core.sim.drift import DriftParams
+from afm_core.sim.generic_terms import parse_generic_terms
 from afm_core.sim.tip import TipParams
 
 DEFAULT_CONFIG_FILE = Path(__file__).with_name("default_config.yaml")
@@ -108,6 +109,12 @@ class SimConfig:
     noise: NoiseParams = field(default_factory=NoiseParams)
     sample: SampleParams = field(default_factory=SampleParams)
     indentation: IndentParams = field(default_factory=IndentParams)
+    # generic offsets a sim-to-real diagnosis fitted where no library term explains
+    # (sim/generic_terms.py)
+    generic_terms: list = field(default_factory=list)
+
+    def __post_init__(self):
+        parse_generic_terms(self.generic_terms)  # a bad entry is an error naming its field
 
 
 def dataclass_from_dict(cls, data, path: str = ""):

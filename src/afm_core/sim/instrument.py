@@ -38,6 +38,7 @@ from afm_core.physics.sample import Electrode, Pit, Rod, Roughness, Sample, Sphe
 from afm_core.pzt import LateralScanner, PrandtlIshlinskii
 from afm_core.sim.config import SimConfig, load_config
 from afm_core.sim.drift import ThermalDrift
+from afm_core.sim.generic_terms import parse_generic_terms, total_offset
 from afm_core.sim.imaging import DilatedField, dilated_heights_at, pink_noise
 from afm_core.sim.tip import Tip
 
@@ -178,6 +179,7 @@ class SimulatedAfm:
         self.positioning_rng = np.random.default_rng(streams[4])
         self._position_error = np.zeros(2)  # m, accumulated random error of the moves so far
         self.feed_forward = self._controller_feed_forward()
+        self._generic = parse_generic_terms(self.config.generic_terms)
         self._open_loop_models = None  # the controller's forward models while feed-forward is off
         self.time = 0.0
         self._commanded = tuple(float(c) for c in self.scanner.centre)  # at rest at power-on
@@ -327,6 +329,14 @@ class SimulatedAfm:
             height = height + self._bow(true_x, true_y)
         return self._height_gain(height)
 
+    def _generic_offset(self, signal, at_t, at_x, at_y, values) -> np.ndarray:
+        """The generic terms' offset on a raster chunk's trace pixels (values: their heights,
+        rows of the chunk; at_t, at_x, at_y: the chunk's trace and retrace samples)."""
+        rows, n_fast = values.shape
+        trace = [a.reshape(rows, 2 * n_fast)[:, :n_fast] for a in (at_t, at_x, at_y)]
+        extra = total_offset(self._generic, signal, *trace, values)
+        return np.zeros_like(values) if extra is None else extra
+
     def _has_bow(self) -> bool:
         return self.config.scanner.bow_curvature != 0.0
 
@@ -407,6 +417,8 @@ class SimulatedAfm:
                     a.reshape(len(chunk), 2 * n_fast)[:, :n_fast] for a in (at_x, at_y)
                 )
                 values = self._measured_height(values, trace_x, trace_y)
+            if self._generic:
+                values = values + self._generic_offset("height", at_t, at_x, at_y, values)
             values = values + self.noise_rng.normal(
                 0.0, self.config.noise.height_white_sigma, values.shape
             )
@@ -500,6 +512,8 @@ class SimulatedAfm:
             0, noise.deflection_sigma, len(s)
         )
         height = self._height_gain(height)
+        if self._generic:
+            height = height + total_offset(self._generic, "height", at_t, at_x, at_y, height)
         height = height + self.noise_rng.normal(0, noise.height_white_sigma, len(s))
         height = height + pink_noise(len(s), noise.height_flicker_sigma, self.noise_rng)
         amplitude = (
@@ -601,6 +615,9 @@ class SimulatedAfm:
         deflection = deflection + self.noise_rng.normal(
             0, self.config.noise.deflection_sigma, len(deflection)
         )
+        if self._generic:
+            extra = total_offset(self._generic, "torsion", times + start, cx, cy)
+            torsion = torsion if extra is None else torsion + extra
         moved = sorted({i for p in pieces for i in p[3].moved_ids})
         return ForceTraceData(
             times=times,

@@ -25,6 +25,8 @@ The stages, in the order `diagnose` runs them (all SI; each module's docstring s
    with that fit, residuals on the other fold before and after; the naming rule and the
    verdict on it (verdict.py: named, partly explained, not explained by the library, no
    missing physics).
+7. What no library term explains (generic_fit.py): its signature (signature.py) and a generic
+   simulator term of that form, fitted and checked on held-out blocks the same way.
 """
 
 from __future__ import annotations
@@ -42,13 +44,14 @@ from afm_core.sim2real.design_columns import design_columns
 from afm_core.sim2real.deviations import nominal_deviations
 from afm_core.sim2real.drift_trajectory import nominal_drift
 from afm_core.sim2real.evidence import weigh_candidates
+from afm_core.sim2real.generic_fit import describe_unexplained
 from afm_core.sim2real.heldout import fold_blocks
 from afm_core.sim2real.noise_model import nuisance_columns, session_noise_model
 from afm_core.sim2real.noise_term import sensor_noise_first
 from afm_core.sim2real.reference import NoFeaturesError, build_reference
 from afm_core.sim2real.refinement import compare_leaders
 from afm_core.sim2real.report import write_report
-from afm_core.sim2real.results import Diagnosis
+from afm_core.sim2real.results import NO_MISSING_PHYSICS, NOT_EXPLAINED, Diagnosis
 from afm_core.sim2real.second_term import add_second_term
 from afm_core.sim2real.session_reader import read_operations
 from afm_core.sim2real.session_scope import (
@@ -128,6 +131,14 @@ def diagnose(
     heldout = decision.heldout
     # a term not named (its held-out check got worse, say) updates no configuration
     updated = merge(config, overrides) if chosen else None
+    with timed("generic"):
+        signature, generic = describe_unexplained(
+            sess, evidence, deviations, design.terms, chosen, parameters, heldout, say
+        )
+    verdict = decision.verdict
+    if verdict == NO_MISSING_PHYSICS and signature is not None:
+        # one group beyond its own noise although the whole residual is not: still unexplained
+        verdict = NOT_EXPLAINED
     timings = timed.finish(replays=float(sess.replays + 5 + sensor_replicas))
     return Diagnosis(
         n_features=len(sess.keys),
@@ -150,11 +161,13 @@ def diagnose(
             "offsets": sess.drift.offsets,
             "nominal": nominal_drift(config, sess.drift.times),
         },
-        verdict=decision.verdict,
+        verdict=verdict,
         remaining=decision.remaining,
         verdict_note=decision.note,
         excluded=list(sess.exclusions.rows),
         cannot_tell=untold,
+        signature=signature,
+        generic=generic,
     )
 
 

@@ -21,6 +21,7 @@ import numpy as np
 from scipy import stats
 
 from afm_core.sim2real.candidates import Candidate
+from afm_core.sim2real.features_absolute import LEVEL_GROUPS
 from afm_core.sim2real.noise_model import NoiseModel, Weighting, gls, group_overdispersion
 from afm_core.sim2real.reference import ReferenceSession
 from afm_core.sim2real.results import CandidateResult
@@ -106,6 +107,9 @@ def weigh_candidates(
     group_factors = group_overdispersion(
         r, P, [c[2] for c in terms.values()], noise.cov, table.groups
     )
+    # not the absolute levels: their noise is modelled whole (replicas, roughness), and what
+    # moves the whole z signal shows nowhere else, so a factor would hide exactly that
+    group_factors = {g: f for g, f in group_factors.items() if g not in LEVEL_GROUPS}
     # before overdispersion: a second term's test takes its own
     unscaled = dataclasses.replace(noise)
     noise.overdispersed(group_factors, table.groups)

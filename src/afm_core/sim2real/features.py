@@ -48,6 +48,7 @@ from scipy.ndimage import binary_dilation
 from scipy.stats import median_abs_deviation
 
 from afm_core.localization.landmark_observation import find_crossings
+from afm_core.sim2real.features_absolute import AbsoluteLevels
 
 POSITION_GROUPS = ("line.pos", "line.mid", "raster.x", "raster.y")
 EDGE_FRACTION = 0.1
@@ -186,6 +187,7 @@ class FeatureExtractor:
         self._run: list = []
         self._run_common: dict = {}
         self.particles_seen: dict = {}  # raster's op index -> how many particles it shows
+        self.levels = AbsoluteLevels(Feature, EDGE_FRACTION, STREAK_BLOCK, STREAK_MIN_LINES)
 
     def add(self, op) -> None:
         if op.kind == "scan_line" and self._run and _same_segment(self._run[0], op):
@@ -216,10 +218,12 @@ class FeatureExtractor:
             self._run, self._run_common = [op], common
         elif kind == "raster" and op.data is not None:
             self.features += _raster_features(op, common, self.anchors, self.particles_seen)
+            self.features += self.levels.raster(op, common)
 
     def _flush(self) -> None:
         if self._run:
             self.features += _run_features(self._run, self._run_common)
+            self.features += self.levels.run(self._run, self._run_common)
             self._run = []
 
     def finish(self) -> list[Feature]:

@@ -26,6 +26,7 @@ from afm_core.sim.imaging import pink_noise
 from afm_core.sim2real.drift_trajectory import geometry_mismatch
 from afm_core.sim2real.feature_table import BOW_GROUPS, Table
 from afm_core.sim2real.features import POSITION_GROUPS
+from afm_core.sim2real.features_absolute import LEVEL_GROUPS, level_variance
 from afm_core.sim2real.reference import ReferenceSession
 
 COLLINEAR = 1e-9  # |R_jj| of a unit-norm column below which it repeats the others
@@ -230,11 +231,13 @@ def build_noise_model(
 
 def nuisance_columns(table: Table, J: np.ndarray | None = None) -> np.ndarray:
     """A constant offset per axis (what the drift, the walk and the start position add to every
-    position alike), through each feature's sensitivity J (default: its direction u)."""
+    position alike), through each feature's sensitivity J (default: its direction u); and one on
+    the absolute levels (the noise of the session's first level, which they are relative to)."""
     cols = np.array(J if J is not None else table.u, float).copy()
     if J is None:
         cols[~np.isin(table.groups, POSITION_GROUPS)] = 0.0
-    return cols[:, np.abs(cols).sum(axis=0) > 0]
+    levels = np.isin(table.groups, LEVEL_GROUPS).astype(float)[:, None]
+    return np.hstack([cols, levels])[:, np.abs(np.hstack([cols, levels])).sum(axis=0) > 0]
 
 
 class Whitener:
@@ -335,5 +338,5 @@ def session_noise_model(
         reference=sess.nominal,
         J_shape=sess.J_shape,
         mismatch=geometry_mismatch(sess.drift, sess.table.time),
-        extra_white=sess.rounding_variance,
+        extra_white=sess.rounding_variance + level_variance(sess.table, config),
     )

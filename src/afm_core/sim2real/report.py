@@ -9,6 +9,7 @@ import yaml
 
 from afm_core.sim.config import dump_config
 from afm_core.sim2real.evidence import ALPHA
+from afm_core.sim2real.generic_fit import generic_section
 from afm_core.sim2real.results import NAMED, PARTLY_EXPLAINED, UNRESOLVED, unresolved
 from afm_core.sim2real.session_scope import scope_section
 from afm_core.sim2real.verdict import EXCESS_SHARE
@@ -128,6 +129,7 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
     lines += _candidates_section(diagnosis, figures)
     lines += _update_section(diagnosis, out)
     lines += _heldout_section(diagnosis, figures)
+    lines += generic_section(diagnosis, out)
     lines += [
         "## Run time",
         "",

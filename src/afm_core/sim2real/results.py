@@ -77,6 +77,8 @@ class Diagnosis:
     excluded: list = field(default_factory=list)
     # terms this session cannot inform: {term, reason} (session_scope.py)
     cannot_tell: list = field(default_factory=list)
+    signature: object = None  # signature.Signature of what no term explains (None: nothing left)
+    generic: dict = field(default_factory=dict)  # generic_fit.generic_fit: the generic term
 
     @property
     def missing_physics(self) -> bool:
@@ -91,7 +93,7 @@ class Diagnosis:
                 f"chi2 {self.overall['chi2']:.1f} for {self.overall['dof']} dof, "
                 f"p = {self.overall['p']:.3g}"
             )
-            if self.overall["p"] < UNEXPLAINED_P:
+            if self.verdict == NOT_EXPLAINED:
                 among = (
                     f"of those considered ({len(self.not_considered)} library terms left out)"
                     if self.not_considered
@@ -101,6 +103,7 @@ class Diagnosis:
                     f"{NOT_EXPLAINED}: no candidate {among} explains the residual, which "
                     f"exceeds the noise model ({fit}): physics the library lacks or a noise "
                     f"model too optimistic (see where it deviates){tried}"
+                    f"{self._signature_words()}"
                 )
             return f"no missing physics: residuals consistent with the noise model ({fit}){tried}"
         parts = []
@@ -120,8 +123,25 @@ class Diagnosis:
                 f"{row['where']} (chi2 {row['chi2']:.1f} for {row['n']})" for row in self.remaining
             )
             where = f", most in {where}" if where else ""
-            return f"{PARTLY_EXPLAINED}: {text}; the held-out blocks stay beyond the noise{where}"
+            return (
+                f"{PARTLY_EXPLAINED}: {text}; the held-out blocks stay beyond the noise{where}"
+                f"{self._signature_words()}"
+            )
         return f"{NAMED} (missing physics): {text}"
+
+    def _signature_words(self) -> str:
+        """What the residual looks like and how much a generic term of that form explains."""
+        if self.signature is None:
+            return ""
+        text = ". What remains: " + " ".join(self.signature.sentences[:2])
+        generic = self.generic or {}
+        if generic.get("fitted"):
+            share = generic["heldout"]["excess_reduction"]
+            text += (
+                f" A generic {generic['form']} on the {generic['signal']} signal removes "
+                f"{100 * share:.0f} % of the held-out excess (generic_terms.yaml)"
+            )
+        return text
 
     def _heldout_words(self) -> str:
         h = self.heldout

@@ -1,0 +1,147 @@
+"""Generic simulator terms: an additive offset on one measured signal, shaped by a small basis.
+
+A diagnosis that finds physics no library term has describes its residual (which signal, its
+form in time, across the sample, along the scan) and fits the simplest generic model of that
+form. The simulator takes such a model from its configuration (`generic_terms: [...]`, default
+none), so the fitted description can be re-simulated and kept, without pretending it is a
+named physical effect. Each entry:
+
+    {signal: height | torsion, form: <form>, amplitude: <SI>, ...form parameters}
+
+`height` adds to every measured height (rasters and scan lines; m), `torsion` to the push
+traces' lateral torsion (rad). Forms, with t the instrument clock (s) and x, y the scanner's
+true position (m):
+
+- constant: amplitude
+- time_linear: amplitude * (t - t0)                    (amplitude per s; t0 default 0)
+- time_step: amplitude * (t >= t0)
+- time_sine: amplitude * sin(2 pi (t - t0) / period)   (t0 as a phase)
+- x_linear, y_linear: amplitude * (x - x0) or (y - y0) (amplitude per m; x0, y0 default 0)
+- x_sine, y_sine: amplitude * sin(2 pi (x - x0) / period)
+- height_proportional: amplitude * (true height about the substrate)  (height signal only)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+SIGNALS = ("height", "torsion")
+FORMS = {
+    # form -> its parameters besides amplitude (defaults None: required)
+    "constant": {},
+    "time_linear": {"t0": 0.0},
+    "time_step": {"t0": None},
+    "time_sine": {"period": None, "t0": 0.0},
+    "x_linear": {"x0": 0.0},
+    "y_linear": {"y0": 0.0},
+    "x_sine": {"period": None, "x0": 0.0},
+    "y_sine": {"period": None, "y0": 0.0},
+    "height_proportional": {},
+}
+MAX_OFFSET = 1e-5  # m or rad: a generic term larger than the z range describes no instrument
+
+
+@dataclass(frozen=True)
+class GenericTerm:
+    signal: str
+    form: str
+    amplitude: float
+    params: tuple = ()  # ((name, value), ...) in FORMS[form]'s order
+
+    def param(self, name: str) -> float:
+        return dict(self.params)[name]
+
+    def offset(self, t, x, y, height=None) -> np.ndarray:
+        """The term's additive offset at times t (s) and scanner positions x, y (m);
+        `height`: the true height there (for height_proportional)."""
+        t, x, y = (np.asarray(a, float) for a in (t, x, y))
+        a, form = self.amplitude, self.form
+        shape = np.broadcast(t, x, y).shape
+        if form == "constant":
+            return np.full(shape, a)
+        if form == "time_linear":
+            return np.broadcast_to(a * (t - self.param("t0")), shape).copy()
+        if form == "time_step":
+            return np.broadcast_to(a * (t >= self.param("t0")), shape).astype(float)
+        if form == "time_sine":
+            phase = 2 * math.pi * (t - self.param("t0")) / self.param("period")
+            return np.broadcast_to(a * np.sin(phase), shape).copy()
+        if form in ("x_linear", "y_linear"):
+            coord, origin = (x, "x0") if form[0] == "x" else (y, "y0")
+            return np.broadcast_to(a * (coord - self.param(origin)), shape).copy()
+        if form in ("x_sine", "y_sine"):
+            coord, origin = (x, "x0") if form[0] == "x" else (y, "y0")
+            phase = 2 * math.pi * (coord - self.param(origin)) / self.param("period")
+            return np.broadcast_to(a * np.sin(phase), shape).copy()
+        # height_proportional
+        if height is None:
+            return np.zeros(shape)
+        return a * np.asarray(height, float)
+
+    def as_dict(self) -> dict:
+        return {"signal": self.signal, "form": self.form, "amplitude": self.amplitude} | dict(
+            self.params
+        )
+
+
+def parse_generic_terms(entries) -> list[GenericTerm]:
+    """GenericTerms from the configuration's `generic_terms` list; errors name the entry, the
+    field and the limit."""
+    if entries is None:
+        return []
+    if not isinstance(entries, (list, tuple)):
+        raise ValueError(f"generic_terms={entries!r}: expected a list of mappings")
+    return [_parse_one(k, entry) for k, entry in enumerate(entries)]
+
+
+def _number(where: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{where}={value!r}: expected a finite number (SI units)")
+    return float(value)
+
+
+def _parse_one(k: int, entry) -> GenericTerm:
+    if isinstance(entry, GenericTerm):
+        return entry
+    where = f"generic_terms[{k}]"
+    if not isinstance(entry, dict):
+        raise ValueError(f"{where}={entry!r}: expected a mapping")
+    signal, form = entry.get("signal"), entry.get("form")
+    if signal not in SIGNALS:
+        raise ValueError(f"{where}.signal={signal!r}: must be one of {list(SIGNALS)}")
+    if form not in FORMS:
+        raise ValueError(f"{where}.form={form!r}: must be one of {sorted(FORMS)}")
+    if form == "height_proportional" and signal != "height":
+        raise ValueError(f"{where}.form=height_proportional: only on the height signal")
+    known = {"signal", "form", "amplitude", "description"} | set(FORMS[form])
+    unknown = sorted(set(entry) - known)
+    if unknown:
+        raise ValueError(
+            f"{where}: unknown key(s) {unknown} for form {form}; known: {sorted(known)}"
+        )
+    amplitude = _number(f"{where}.amplitude", entry.get("amplitude", 0.0))
+    params = []
+    for name, default in FORMS[form].items():
+        if name not in entry and default is None:
+            raise ValueError(f"{where}.{name}: required by form {form}")
+        value = _number(f"{where}.{name}", entry.get(name, default))
+        if name == "period" and value <= 0:
+            raise ValueError(f"{where}.period={value}: must be > 0")
+        params.append((name, value))
+    term = GenericTerm(signal, form, amplitude, tuple(params))
+    if form in ("constant", "time_step", "time_sine", "x_sine", "y_sine") and abs(amplitude) > (
+        MAX_OFFSET
+    ):
+        raise ValueError(f"{where}.amplitude={amplitude}: |amplitude| must be <= {MAX_OFFSET}")
+    return term
+
+
+def total_offset(terms, signal: str, t, x, y, height=None):
+    """The sum of the terms on `signal` at (t, x, y); None when none acts on it."""
+    acting = [term for term in terms if term.signal == signal]
+    if not acting:
+        return None
+    return sum(term.offset(t, x, y, height) for term in acting)

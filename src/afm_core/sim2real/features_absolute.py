@@ -1,0 +1,159 @@
+"""Absolute substrate levels: what moves the whole z signal, which relative features cannot see.
+
+Every other height feature is taken relative to its own line's or image's substrate (a peak
+above the line's edges, a particle above the image's median), so an offset of the whole z
+signal (a cantilever bending slowly with temperature, a pickup on the z sensor) leaves them
+alone. These features keep it:
+
+- `line.level`: per run of scan lines over one segment, the mean over its lines of each
+  line's substrate (the median of its first and last EDGE_FRACTION of samples, as the crossing
+  features take it);
+- `raster.level`: per block of lines of an image as the line-offset noise takes them (else per
+  image), the median height of its pixels (particles are few).
+
+Both relative to the session's first level (the first run's or image's, whichever came first),
+so the z sensor's arbitrary zero cancels; that first level is not a feature itself. Their noise:
+the sensor noise through the replicas like every feature, plus the substrate's roughness
+averaged over the measured stretch (`level_variance`): the recording's sample and the model's
+are two realizations, and the tip's random positioning puts the lines on other stretches.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+LEVEL_GROUPS = ("line.level", "raster.level")
+
+
+class AbsoluteLevels:
+    """The level features of a session fed in command order (one per FeatureExtractor, which
+    hands over its Feature type and its constants: features.py imports this module)."""
+
+    def __init__(self, feature_type, edge_fraction: float, block: int, min_lines: int):
+        self.feature_type, self.edge_fraction = feature_type, edge_fraction
+        self.block, self.min_lines = block, min_lines
+        self.reference: tuple | None = None  # (level m, roughness support: ("length"|"area", m^k))
+
+    def _relative(self, level: float, support: tuple):
+        if self.reference is None:
+            self.reference = (level, support)
+            return None
+        return level - self.reference[0]
+
+    def run(self, run, common: dict) -> list:
+        """`line.level` of a run of scan lines over one segment (ops with data)."""
+        levels, times, xs, ys, length = [], [], [], [], 0.0
+        for op in run:
+            data = op.data
+            if data is None:
+                continue
+            h = np.asarray(data.height, float)
+            if h.size < 10 or not np.isfinite(h).all():
+                continue
+            edge = max(3, int(self.edge_fraction * h.size))
+            levels.append(float(np.median(np.concatenate([h[:edge], h[-edge:]]))))
+            t = np.asarray(data.times, float)
+            times.append(float(data.start_time + 0.5 * (t[0] + t[-1])))
+            x, y = np.asarray(data.x, float), np.asarray(data.y, float)
+            xs.append(0.5 * (x[0] + x[-1]))
+            ys.append(0.5 * (y[0] + y[-1]))
+            length += 2 * edge / h.size * float(np.hypot(x[-1] - x[0], y[-1] - y[0]))
+        if not levels:
+            return []
+        support = ("length", length)
+        value = self._relative(float(np.mean(levels)), support)
+        if value is None:
+            return []
+        first = run[0]
+        d = np.array([first.end[0] - first.start[0], first.end[1] - first.start[1]], float)
+        axis = "x" if abs(d[0]) >= abs(d[1]) else "y"
+        cond = dict(common, axis=axis, lines=len(levels), substrate=support)
+        cond["reference_substrate"] = self.reference[1]
+        return [
+            self.feature_type(
+                (first.index, "line.level"),
+                "line.level",
+                value,
+                float(np.mean(times)),
+                float(np.mean(xs)),
+                float(np.mean(ys)),
+                (0.0, 0.0),
+                cond,
+            )
+        ]
+
+    def raster(self, op, common: dict) -> list:
+        """`raster.level` per block of lines of a raster (op with data)."""
+        data = op.data
+        h = np.asarray(data.height, float)
+        if not np.isfinite(h).all():
+            return []
+        lines = h if data.scan_angle_deg == 0.0 else h.T  # rows: one scan line each
+        n = lines.shape[0]
+        parts = (
+            np.array_split(np.arange(n), n // self.block)
+            if n >= self.min_lines and lines.shape[1] >= self.min_lines
+            else [np.arange(n)]
+        )
+        starts = np.asarray(data.line_start_times, float)
+        cond = dict(common, angle=float(data.scan_angle_deg), up=bool(data.slow_scan_up))
+        pixel_area = data.pixel_size_x * data.pixel_size_y
+        out = []
+        for b, block in enumerate(parts):
+            support = ("area", block.size * lines.shape[1] * pixel_area)
+            value = self._relative(float(np.median(lines[block])), support)
+            if value is None:
+                continue
+            across, along = (block[0] + block[-1] + 1) / 2, lines.shape[1] / 2
+            col, row = (along, across) if data.scan_angle_deg == 0.0 else (across, along)
+            x = data.origin_x + col * data.pixel_size_x
+            y = data.origin_y + row * data.pixel_size_y
+            t = (
+                float(data.start_time + np.nanmean(starts[block]) + 0.5 * data.line_period)
+                if np.isfinite(starts[block]).any()
+                else float(data.start_time)
+            )
+            where = dict(cond, lines=int(block.size), substrate=support)
+            where["reference_substrate"] = self.reference[1]
+            out.append(
+                self.feature_type(
+                    (op.index, f"raster.level{b}"),
+                    "raster.level",
+                    value,
+                    t,
+                    float(x),
+                    float(y),
+                    (0.0, 0.0),
+                    where,
+                )
+            )
+        return out
+
+
+def _roughness_mean_variance(support, sigma: float, correlation: float) -> float:
+    """Variance of the roughness (rms sigma, Gaussian correlation length `correlation`)
+    averaged over a stretch of the given length or an area: sigma^2 times the share of one
+    correlation cell in it (at most 1)."""
+    if support is None:
+        return 0.0
+    kind, size = support
+    if size <= 0:
+        return sigma**2
+    cell = math.sqrt(math.pi) * correlation if kind == "length" else math.pi * correlation**2
+    return sigma**2 * min(1.0, cell / size)
+
+
+def level_variance(table, config) -> np.ndarray:
+    """Per feature (N): the roughness part of a level feature's variance (0 elsewhere): its own
+    stretch and the reference level's, each in two realizations (the recording's sample and the
+    model's)."""
+    out = np.zeros(len(table.keys))
+    sigma, corr = config.sample.roughness_sigma, config.sample.roughness_correlation
+    for i, (group, cond) in enumerate(zip(table.groups, table.conditions)):
+        if group in LEVEL_GROUPS:
+            own = _roughness_mean_variance(cond.get("substrate"), sigma, corr)
+            ref = _roughness_mean_variance(cond.get("reference_substrate"), sigma, corr)
+            out[i] = 2.0 * (own + ref)
+    return out
