@@ -76,6 +76,19 @@ def test_the_generic_torsion_term_adds_its_offset_to_the_push_trace():
     assert np.ptp(diff) > 1e-5  # rad: the term acted
 
 
+
+def test_a_torsion_only_generic_term_leaves_the_scan_lines_heights_alone():
+    """A generic term on the torsion alone (the re-simulation of a torsion effect adds one to
+    a session with local scan lines): the lines' heights are those of the model without it."""
+    base = load_config()
+    term = {"signal": "torsion", "form": "x_linear", "amplitude": 50.0, "x0": 55e-6}
+    request = LineRequest(54.6e-6, 55.0e-6, 55.4e-6, 55.0e-6, samples=200, speed=2e-6)
+    heights = []
+    for config in (base, merge(base, {"generic_terms": [term]})):
+        sim = SimulatedAfm(config)  # the same seed: the same noise draws
+        heights.append(np.asarray(sim.local_scan(request).height))
+    assert np.array_equal(heights[0], heights[1])
+
 def _table(n, rng, times=None):
     t = np.sort(rng.uniform(0, 1000, n)) if times is None else times
     xy = np.column_stack([rng.uniform(54e-6, 56e-6, n), rng.uniform(54e-6, 56e-6, n)])

@@ -512,8 +512,9 @@ class SimulatedAfm:
             0, noise.deflection_sigma, len(s)
         )
         height = self._height_gain(height)
-        if self._generic:
-            height = height + total_offset(self._generic, "height", at_t, at_x, at_y, height)
+        extra = total_offset(self._generic, "height", at_t, at_x, at_y, height)
+        if extra is not None:  # None: no generic term on the height (a torsion one, say)
+            height = height + extra
         height = height + self.noise_rng.normal(0, noise.height_white_sigma, len(s))
         height = height + pink_noise(len(s), noise.height_flicker_sigma, self.noise_rng)
         amplitude = (
