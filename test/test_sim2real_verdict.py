@@ -240,3 +240,22 @@ def test_the_runner_up_is_fitted_only_when_the_leader_failed_on_a_held_out_exces
     checked[("tip_radius",)] = _check(172.0, 168.0, 211)
     decision, _ = _decide(config, names, tried, checked, p_overall=0.3)
     assert decision.verdict == NO_MISSING_PHYSICS and decision.chosen == [] and calls == [1]
+
+
+def _row(p_mean_bonferroni):
+    return {"where": "line.dir | dwell", "p_mean_bonferroni": p_mean_bonferroni}
+
+
+def test_an_excess_without_structure_is_noise_not_missing_physics():
+    """An overall excess is missing physics only with a structure: a signal the signature
+    describes, or a signal and condition whose mean departs beyond the Bonferroni level."""
+    from afm_core.sim2real.diagnose import _structured
+    from afm_core.sim2real.evidence import ALPHA
+    from afm_core.sim2real.signature import Signature
+
+    nothing = Signature()
+    described = Signature(signals=[{"group": "line.level", "kind": "z"}])
+    assert not _structured(nothing, [_row(0.063), _row(1.0)])
+    assert not _structured(None, [])
+    assert _structured(nothing, [_row(0.5 * ALPHA)])
+    assert _structured(described, [_row(1.0)])

@@ -43,7 +43,7 @@ from afm_core.sim2real.candidates import available, library, select
 from afm_core.sim2real.design_columns import design_columns
 from afm_core.sim2real.deviations import nominal_deviations
 from afm_core.sim2real.drift_trajectory import nominal_drift
-from afm_core.sim2real.evidence import weigh_candidates
+from afm_core.sim2real.evidence import ALPHA, weigh_candidates
 from afm_core.sim2real.generic_fit import describe_unexplained
 from afm_core.sim2real.heldout import fold_blocks
 from afm_core.sim2real.noise_model import nuisance_columns, session_noise_model
@@ -135,10 +135,13 @@ def diagnose(
         signature, generic = describe_unexplained(
             sess, evidence, deviations, design.terms, chosen, parameters, heldout, say
         )
-    verdict = decision.verdict
-    if verdict == NO_MISSING_PHYSICS and signature is not None:
+    verdict, note = decision.verdict, decision.note
+    if verdict == NO_MISSING_PHYSICS and signature is not None and signature.signals:
         # one group beyond its own noise although the whole residual is not: still unexplained
         verdict = NOT_EXPLAINED
+    elif verdict == NOT_EXPLAINED and not chosen and not _structured(signature, deviations.rows):
+        verdict = NO_MISSING_PHYSICS
+        note = _unstructured_note(evidence.overall(), note)
     timings = timed.finish(replays=float(sess.replays + 5 + sensor_replicas))
     return Diagnosis(
         n_features=len(sess.keys),
@@ -163,12 +166,34 @@ def diagnose(
         },
         verdict=verdict,
         remaining=decision.remaining,
-        verdict_note=decision.note,
+        verdict_note=note,
         excluded=list(sess.exclusions.rows),
         cannot_tell=untold,
         signature=signature,
         generic=generic,
     )
+
+
+def _structured(signature, where_rows: list) -> bool:
+    """Whether an excess over the noise model has a structure physics would give it: a signal
+    the signature describes, or a signal and condition whose mean departs (Bonferroni p < ALPHA
+    over the rows of "where"). An excess spread evenly, with no mean and no form anywhere, is a
+    noise model too optimistic for the recording (a rougher substrate than the replicas', say),
+    not a term the library lacks; calling it missing physics was the false alarm on nulls."""
+    if signature is not None and signature.signals:
+        return True
+    return any(row["p_mean_bonferroni"] < ALPHA for row in where_rows)
+
+
+def _unstructured_note(overall: dict, note: str) -> str:
+    words = (
+        f"the residual exceeds the noise model (chi2 {overall['chi2']:.1f} for {overall['dof']} "
+        f"dof, variance factor {overall['variance_factor']:.2f}) without structure: no signal "
+        f"or condition departs in its mean (Bonferroni p < {ALPHA:g}) and no form in time or "
+        "across the sample is described; the noise model is too optimistic for this recording, "
+        "not a term missing"
+    )
+    return f"{note}; {words}" if note else words
 
 
 class _Timings:

@@ -105,7 +105,10 @@ class Diagnosis:
                     f"model too optimistic (see where it deviates){tried}"
                     f"{self._signature_words()}"
                 )
-            return f"no missing physics: residuals consistent with the noise model ({fit}){tried}"
+            if self.overall["p"] < UNEXPLAINED_P:  # an excess without structure (diagnose.py)
+                return f"{NO_MISSING_PHYSICS} ({fit}){tried}"
+            consistent = "residuals consistent with the noise model"
+            return f"{NO_MISSING_PHYSICS}: {consistent} ({fit}){tried}"
         parts = []
         for name in self.chosen:
             c = next(c for c in self.candidates if c.name == name)
