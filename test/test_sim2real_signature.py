@@ -76,7 +76,6 @@ def test_the_generic_torsion_term_adds_its_offset_to_the_push_trace():
     assert np.ptp(diff) > 1e-5  # rad: the term acted
 
 
-
 def test_a_torsion_only_generic_term_leaves_the_scan_lines_heights_alone():
     """A generic term on the torsion alone (the re-simulation of a torsion effect adds one to
     a session with local scan lines): the lines' heights are those of the model without it."""
@@ -88,6 +87,7 @@ def test_a_torsion_only_generic_term_leaves_the_scan_lines_heights_alone():
         sim = SimulatedAfm(config)  # the same seed: the same noise draws
         heights.append(np.asarray(sim.local_scan(request).height))
     assert np.array_equal(heights[0], heights[1])
+
 
 def _table(n, rng, times=None):
     t = np.sort(rng.uniform(0, 1000, n)) if times is None else times

@@ -106,19 +106,25 @@ def test_the_held_out_rule_in_closed_form():
     partly explained; within it: named."""
     dof = 211
     limit = stats.chi2.isf(0.05, dof)
-    assert judge(_check(172.0, 168.0, dof))[0] is None
-    assert "nothing to remove" in judge(_check(172.0, 168.0, dof))[1]
-    verdict, why = judge(_check(653.0, 718.0, 600))
+    one = {"n_parameters": 1, "n_candidates": 20}  # one parameter, out of the library's 20
+    assert judge(_check(172.0, 168.0, dof), **one)[0] is None
+    assert "nothing to remove" in judge(_check(172.0, 168.0, dof), **one)[1]
+    # within the noise's spread, but a gain far beyond what noise gives: a small real effect
+    gain = stats.chi2.isf(0.05 / 20, 2)
+    two = {"n_parameters": 2, "n_candidates": 20}
+    assert judge(_check(235.0, 235.0 - 1.01 * gain, dof), **two)[0] == NAMED
+    assert judge(_check(235.0, 235.0 - 0.99 * gain, dof), **two)[0] is None
+    verdict, why = judge(_check(653.0, 718.0, 600), **one)
     assert verdict is None and "worse" in why
     excess = 800.0 - dof
-    assert judge(_check(800.0, 800.0 - 0.04 * excess, dof))[0] is None
+    assert judge(_check(800.0, 800.0 - 0.04 * excess, dof), **one)[0] is None
     just_under = 800.0 - (EXCESS_SHARE - 0.01) * excess
-    assert judge(_check(800.0, just_under, dof))[0] is None
-    assert judge(_check(800.0, 800.0 - (EXCESS_SHARE + 0.01) * excess, dof))[0] == (
+    assert judge(_check(800.0, just_under, dof), **one)[0] is None
+    assert judge(_check(800.0, 800.0 - (EXCESS_SHARE + 0.01) * excess, dof), **one)[0] == (
         PARTLY_EXPLAINED
     )
-    assert judge(_check(800.0, limit + 1.0, dof))[0] == PARTLY_EXPLAINED
-    assert judge(_check(800.0, limit - 1.0, dof))[0] == NAMED
+    assert judge(_check(800.0, limit + 1.0, dof), **one)[0] == PARTLY_EXPLAINED
+    assert judge(_check(800.0, limit - 1.0, dof), **one)[0] == NAMED
 
 
 def test_a_term_the_session_cannot_tell_from_the_model_is_never_named():
