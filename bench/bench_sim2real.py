@@ -461,9 +461,11 @@ def run_case(case: Case, workdir: str) -> dict:
         "cpu_seconds": cpu_seconds,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "summary": diagnosis.summary(),
+        "verdict": diagnosis.verdict,
     }
     if case.expected is None:
-        row["correct"] = not chosen
+        # a false alarm is any "missing physics" verdict, a term named or not
+        row["correct"] = not diagnosis.missing_physics
         return row
     row["correct"] = bool(chosen) and (
         chosen[0] == case.expected

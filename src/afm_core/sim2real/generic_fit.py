@@ -261,7 +261,10 @@ def describe_unexplained(
             f"No generic term acts on a {sig.kind} signal; the generic model is fitted to its "
             f"{fitted.kind} part: " + " ".join(fitted.sentences[:3])
         )
-    generic = generic_fit(sess, evidence, r0, fitted, say)
+    try:
+        generic = generic_fit(sess, evidence, r0, fitted, say)
+    except ValueError as exc:  # a fitted amplitude beyond what the simulator takes, say
+        generic = {"fitted": False, "reason": f"the generic model cannot be simulated: {exc}"}
     lead = sig.signals[0]["group"] if sig.signals else None
     if (
         fitted is not sig
