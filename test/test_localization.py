@@ -22,6 +22,7 @@ from afm_core.localization import (
     observe_line,
 )
 from afm_core.localization.calibration.model import Calibration
+from afm_core.localization.calibration.simulator_comparison import simulator_calibration
 from afm_core.sim.instrument import SimulatedAfm
 
 NM = 1e-9
@@ -45,20 +46,10 @@ def bench():
 def sim_calibration(bench):
     """The simulator's parameters with the scanner matrix measured on a noise-free copy
     (what a perfect calibration finds); scan-region sigma set rather than measured (speed)."""
-    config = bench.load_config()
-    s, d = config.scanner, config.drift
-    return Calibration(
-        source="test: sim oracle",
-        scanner_matrix=bench.measure_scanner_matrix().tolist(),
-        creep_time_constants=list(s.creep_time_constants),
-        creep_fractions_x=list(s.creep_fractions),
-        creep_fractions_y=list(s.creep_fractions),
-        motion_noise_slope_x=s.positioning_noise_slope,
-        motion_noise_slope_y=s.positioning_noise_slope,
-        motion_noise_cross_slope=s.positioning_noise_slope,
-        motion_noise_offset=s.positioning_noise_offset,
-        drift_mean_velocity=[d.mean_velocity_x, d.mean_velocity_y],
-        drift_sigma_velocity=[d.sigma_velocity_x, d.sigma_velocity_y],
+    return simulator_calibration(
+        bench.load_config(),
+        bench.measure_scanner_matrix(),
+        "test: sim oracle",
         scan_region_sigma=0.3e-9,
         line_deflection_sigma_deg=0.0,
     )

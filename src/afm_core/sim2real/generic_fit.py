@@ -30,6 +30,7 @@ from scipy import stats
 
 from afm_core.sim.config import merge
 from afm_core.sim.generic_terms import GenericTerm
+from afm_core.sim2real.heldout import heldout_chi2
 from afm_core.sim2real.noise_model import Whitener, gls
 from afm_core.sim2real.results import UNEXPLAINED_P
 from afm_core.sim2real.signature import Signature, describe
@@ -212,18 +213,12 @@ def _heldout(sess, noise, P, train, r0, cols, basis) -> dict:
     fitted = [_scaled(term, a) for term, a in zip(basis, theta) if a != 0]
     change = _change(sess, fitted) if fitted else np.zeros_like(r0)
     r_after = np.where(np.isfinite(change), r0 - change, r0 - cols @ theta)
-    w_te = Whitener(noise.cov[np.ix_(test, test)])
-    pte = w_te(P[test])
-    _, before, _ = gls(w_te(r0[test]), pte)
-    _, after, _ = gls(w_te(r_after[test]), pte)
-    dof = int(test.sum() - P.shape[1])
-    excess = before - dof
+    check = heldout_chi2(noise, P, test, r0, r_after)
     return {
-        "chi2_before": before,
-        "chi2_after": after,
-        "dof": dof,
-        "excess_reduction": (before - after) / excess if excess > 0 else float("nan"),
-        "within_noise": bool(after <= stats.chi2.ppf(HELDOUT_QUANTILE, max(dof, 1))),
+        **check,
+        "within_noise": bool(
+            check["chi2_after"] <= stats.chi2.ppf(HELDOUT_QUANTILE, max(check["dof"], 1))
+        ),
         "train_amplitudes": theta.tolist(),
         "r_after": r_after,
     }

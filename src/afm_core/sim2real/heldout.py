@@ -54,21 +54,29 @@ def heldout_check(
     w_tr = Whitener(noise.cov[np.ix_(train, train)])
     # fit on the training blocks only (their own whitening), re-simulate the whole session
     theta, _, r_after = refine(sess, terms, w_tr, P, iterations, 1.0, mask=train, start=start)
+    check = heldout_chi2(noise, P, test, sess.r_before, r_after)
+    before = check["chi2_before"]
+    return {
+        **check,
+        "reduction": 1 - check["chi2_after"] / before if before > 0 else 0.0,
+        "train_theta": theta.tolist(),
+        "r_after": r_after,
+        "test": test,
+    }
+
+
+def heldout_chi2(noise: NoiseModel, P: np.ndarray, test: np.ndarray, r_before, r_after) -> dict:
+    """chi^2 of the `test` blocks before and after a fit (the nuisance refitted on them, in
+    their own whitening), their dof and the share of the excess over the dof removed."""
     w_te = Whitener(noise.cov[np.ix_(test, test)])
     pte = w_te(P[test])
-    _, before, _ = gls(w_te(sess.r_before[test]), pte)
+    _, before, _ = gls(w_te(r_before[test]), pte)
     _, after, _ = gls(w_te(r_after[test]), pte)
     dof = int(test.sum() - P.shape[1])
-    excess_before = before - dof
+    excess = before - dof
     return {
         "chi2_before": before,
         "chi2_after": after,
         "dof": dof,
-        "reduction": 1 - after / before if before > 0 else 0.0,
-        "excess_reduction": (before - after) / excess_before
-        if excess_before > 0
-        else float("nan"),
-        "train_theta": theta.tolist(),
-        "r_after": r_after,
-        "test": test,
+        "excess_reduction": (before - after) / excess if excess > 0 else float("nan"),
     }

@@ -30,7 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from afm_core import checks
+from afm_core.evaluation import image_frame_matrix
 from afm_core.instrument import ScanRequest
+from afm_core.localization.calibration.simulator_comparison import simulator_calibration
 from afm_core.sim.config import SimConfig, merge
 
 # Spheres of the work sample (m): a loose cluster around the scanner centre, 0.9-1.5 um apart,
@@ -71,47 +73,6 @@ def work_config(base: SimConfig | None = None) -> SimConfig:
     base = base if base is not None else load_config()
     spheres = [{"x": x, "y": y, "radius": 100e-9} for x, y in WORK_SPHERES]
     return merge(base, {"sample": {"spheres": spheres, "random_spheres": 0}})
-
-
-def measured_scanner_matrix(config: SimConfig, step: float = 1e-6) -> np.ndarray:
-    """True displacement per commanded displacement on a quiet copy of `config` (what a
-    calibration of this instrument finds: gain, coupling, rotation, hysteresis residue)."""
-    from afm_core.sim.instrument import SimulatedAfm
-
-    quiet = merge(
-        config,
-        {
-            "drift": {"enabled": False},
-            "scanner": {"creep_enabled": False, "positioning_noise_enabled": False},
-        },
-    )
-    columns = []
-    for d in (np.array([step, 0.0]), np.array([0.0, step])):
-        sim = SimulatedAfm(quiet)
-        before = np.array(sim.truth()["tip_position"])
-        x, y = np.array(sim.commanded_position()) + d
-        sim.move_tip(x, y, 1e-5)
-        columns.append((np.array(sim.truth()["tip_position"]) - before) / step)
-    return np.array(columns).T
-
-
-def _calibration(config: SimConfig, matrix: np.ndarray):
-    from afm_core.localization.calibration.model import Calibration
-
-    s, d = config.scanner, config.drift
-    return Calibration(
-        source="work session: measured on a quiet copy of the instrument's config",
-        scanner_matrix=np.asarray(matrix, float).tolist(),
-        creep_time_constants=list(s.creep_time_constants),
-        creep_fractions_x=list(s.creep_fractions),
-        creep_fractions_y=list(s.creep_fractions),
-        motion_noise_slope_x=s.positioning_noise_slope,
-        motion_noise_slope_y=s.positioning_noise_slope,
-        motion_noise_cross_slope=s.positioning_noise_slope,
-        motion_noise_offset=s.positioning_noise_offset,
-        drift_mean_velocity=[d.mean_velocity_x, d.mean_velocity_y],
-        drift_sigma_velocity=[d.sigma_velocity_x, d.sigma_velocity_y],
-    )
 
 
 def _area_request(spheres, limits, angle: float) -> ScanRequest:
@@ -255,7 +216,11 @@ def record_work_session(
     if not spheres:
         raise ValueError("spheres=[]: the work area needs at least one particle (m)")
     rng = np.random.default_rng([seed, 3571])
-    calibration = _calibration(config, measured_scanner_matrix(config))
+    calibration = simulator_calibration(
+        config,
+        image_frame_matrix(config),
+        "work session: measured on a quiet copy of the instrument's config",
+    )
     recording = RecordingInstrument(SimulatedAfm(config), path, truth=truth)
     summary = WorkSummary(path=Path(path))
     try:

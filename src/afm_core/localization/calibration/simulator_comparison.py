@@ -12,6 +12,28 @@ from afm_core.localization.calibration.model import Calibration, HysteresisFit
 from afm_core.pzt import PrandtlIshlinskii
 
 
+def simulator_calibration(config, scanner_matrix, source: str, **fields) -> Calibration:
+    """What a perfect calibration of a simulated instrument (afm_core.sim.config SimConfig)
+    finds: its configured creep, positioning noise and drift statistics, with `scanner_matrix`
+    (measured on a quiet copy: afm_core.evaluation.image_frame_matrix); `fields` set the rest
+    (scan_region_sigma, ...)."""
+    s, d = config.scanner, config.drift
+    return Calibration(
+        source=source,
+        scanner_matrix=np.asarray(scanner_matrix, float).tolist(),
+        creep_time_constants=list(s.creep_time_constants),
+        creep_fractions_x=list(s.creep_fractions),
+        creep_fractions_y=list(s.creep_fractions),
+        motion_noise_slope_x=s.positioning_noise_slope,
+        motion_noise_slope_y=s.positioning_noise_slope,
+        motion_noise_cross_slope=s.positioning_noise_slope,
+        motion_noise_offset=s.positioning_noise_offset,
+        drift_mean_velocity=[d.mean_velocity_x, d.mean_velocity_y],
+        drift_sigma_velocity=[d.sigma_velocity_x, d.sigma_velocity_y],
+        **fields,
+    )
+
+
 def branch_error(fit: HysteresisFit, true_model: PrandtlIshlinskii, half: float) -> float:
     """Largest distance between the fitted and the true major-loop branches (both, full span),
     after the best common shift (the fit's offset is where the rescan put the origin), as a
