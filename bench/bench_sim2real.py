@@ -63,6 +63,7 @@ import time  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from datetime import datetime, timezone  # noqa: E402
+from operator import attrgetter  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -277,7 +278,7 @@ def _case(model, name, category, seed, expected, truth: dict, switches=None) -> 
     """A case whose truth is the model with `truth` ({dotted key: value}; a scaled key's value
     is the factor on the model's list) and `switches` set."""
     dotted = {
-        key: [x * value for x in _nominal_of(model, key)] if key in SCALED_KEYS else value
+        key: [x * value for x in attrgetter(key)(model)] if key in SCALED_KEYS else value
         for key, value in truth.items()
     }
     overrides: dict = {}
@@ -423,13 +424,6 @@ def beyond(model) -> list[Case]:
     return cases
 
 
-def _nominal_of(model, key: str):
-    node = model
-    for part in key.split("."):
-        node = getattr(node, part)
-    return node
-
-
 def run_case(case: Case, workdir: str) -> dict:
     """Record the case, diagnose it through the MCAP file, score it."""
     from afm_core.sim.config import dump_config, load_config, merge
@@ -479,7 +473,7 @@ def run_case(case: Case, workdir: str) -> dict:
             fitted = named.get("value", math.nan)
             sigma_vec.append(named.get("sigma", math.nan))
             nominal = (
-                1.0 if key in SCALED_KEYS + (REGION_SCALE_KEY,) else float(_nominal_of(model, key))
+                1.0 if key in SCALED_KEYS + (REGION_SCALE_KEY,) else float(attrgetter(key)(model))
             )
             if key == "tip.wear_rate" and not model.tip.wear_enabled:
                 nominal = 0.0

@@ -29,6 +29,7 @@ import resource
 import shutil
 import time
 from dataclasses import dataclass, field
+from operator import attrgetter
 from pathlib import Path
 
 import numpy as np
@@ -342,7 +343,7 @@ def score(case: FamilyCase, diagnosis, model, report_dir: Path) -> dict:
             errors = []
             for key, true in case.truth.items():
                 fitted = diagnosis.parameters.get(key, {}).get("value", math.nan)
-                nominal = float(_nominal_of(model, key))
+                nominal = float(attrgetter(key)(model))
                 errors.append(abs(fitted - true) / abs(true - nominal))
             row["parameter_error"] = float(np.max(errors)) if errors else math.nan
     else:
@@ -355,13 +356,6 @@ def score(case: FamilyCase, diagnosis, model, report_dir: Path) -> dict:
             verdict in (scoring.UNEXPLAINED, scoring.PARTLY) and row["described"] is not False
         )
     return row
-
-
-def _nominal_of(model, key: str):
-    node = model
-    for part in key.split("."):
-        node = getattr(node, part)
-    return node
 
 
 # -- report ---------------------------------------------------------------------------------------
