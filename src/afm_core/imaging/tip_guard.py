@@ -10,11 +10,12 @@ Unconstrained tip pixels (`tip_constraint`). Two kinds of pixel carry no informa
 the tip's shape:
   * still at the flat start 0: no image point bounded them. The apex is 0 by convention, and
     the pixels around it that stay at 0 because their data bound lies within N_TH of 0 (the
-    apex plateau) ARE constrained: the plateau is the set of 0-pixels in the apex band (the
-    pixels within N_TH + 3 sigma of 0, 8-connected to the apex: the estimate's resolution); it
-    counts as constrained when ringed by lowered pixels, else only within the
-    distance of the nearest lowered pixel (where the data did reach around the apex). Other
-    0-pixels are unconstrained: in a reconstruction each acts as a second apex.
+    apex plateau) ARE constrained. The two are told apart by where the data did reach: a
+    0-pixel is unconstrained if it lies farther from the apex than every pixel the data
+    lowered to within the estimate's resolution (N_TH + 3 sigma) of 0, or if it lies behind
+    a drop: some pixel between it and the apex is lower than that resolution (a tip does
+    not rise moving outward from its apex, so the data would have bounded it too, had any
+    feature reached it). In a reconstruction each such pixel acts as a second apex.
   * at the floor: bounded only by the image's full height range, t(w) <= -(range) + N_TH
     (+ noise), i.e. the image says only "the tip is below the tallest feature" there. The
     flank of a tip window deeper than the tallest feature lies there; its true height can be
@@ -55,6 +56,12 @@ FLOOR_NOISE_K = 2 * NOISE_K
 # refuse an automatic estimate when not even the apex's 8 neighbours are all constrained:
 # the result would be a needle (or a flat plate) the data did not produce
 MIN_SUPPORTED_RADIUS = 1  # px
+# a reconstruction pixel is flagged when its uncertain removal exceeds this share of the
+# height of the feature it belongs to: the uncertainty is then comparable to the tip
+# broadening the reconstruction exists to remove (the book's 20 nm nanotube: 49 nm imaged,
+# ~29 nm reconstructed), so its heights and widths are no longer measured, only bounded
+UNCERTAIN_SHARE = 0.25
+FEATURE_NOISE_K = 2 * NOISE_K  # sigmas a feature's peak must stand above the background
 
 
 class TipGuardWarning(UserWarning):
@@ -95,6 +102,20 @@ def _distance(k: int) -> np.ndarray:
     return np.hypot(a, b)
 
 
+def _inward_minimum(tip: np.ndarray) -> np.ndarray:
+    """Per pixel w: the lowest tip height on the segment from the apex to w, w excluded
+    (sampled at h + 1 points, nearest pixel)."""
+    k = tip.shape[0]
+    h = k // 2
+    a, b = np.mgrid[-h : h + 1, -h : h + 1]
+    steps = np.arange(h + 1) / (h + 1)  # 0 (the apex) .. < 1
+    rows = np.rint(a[..., None] * steps).astype(int)
+    cols = np.rint(b[..., None] * steps).astype(int)
+    values = tip[rows + h, cols + h]
+    values[(rows == a[..., None]) & (cols == b[..., None])] = np.inf  # w itself
+    return values.min(axis=-1)
+
+
 def unconstrained_pixels(
     tip: np.ndarray, threshold: float = 0.0, noise: float = 0.0, height_range: float = np.inf
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -106,24 +127,19 @@ def unconstrained_pixels(
     scale = max(float(np.abs(tip).max()), float(height_range) if np.isfinite(height_range) else 0)
     eps = 1e-9 * max(scale, np.finfo(float).tiny)
     zero = tip >= -eps
+    zero[h, h] = False  # the apex is 0 by convention
     floor_level = -(height_range - threshold) + FLOOR_NOISE_K * noise
-    floor = (tip <= floor_level) & ~zero if floor_level < 0 else ~zero
-    lowered = ~zero & ~floor
-    # the apex band: pixels within the estimate's resolution (threshold + 3 sigma) of 0,
-    # 8-connected to the apex; 0-pixels in it are the apex plateau
-    band = tip >= -(threshold + NOISE_K * noise) - eps
-    labels, _ = ndimage.label(band, structure=np.ones((3, 3)))
-    region = labels == labels[h, h]
+    if floor_level >= 0:  # the threshold swallows the image's whole height range
+        floor = np.ones(tip.shape, bool)
+        floor[h, h] = False
+        return floor, np.zeros(tip.shape, bool), floor
+    floor = tip <= floor_level
+    band = threshold + NOISE_K * noise  # the estimate's resolution
     dist = _distance(k)
-    rim = np.zeros_like(region)
-    rim[0, :] = rim[-1, :] = rim[:, 0] = rim[:, -1] = True
-    if (region & rim).any() or (ndimage.binary_dilation(region) & floor).any():
-        # not ringed by lowered pixels: trust it only as far as the data reached the apex
-        reach = float(dist[lowered].min()) if lowered.any() else 0.0
-        region &= dist < reach
-    plateau = zero & region
-    plateau[h, h] = True
-    at_start = zero & ~plateau
+    near = (tip < -eps) & (tip >= -band - eps)  # lowered, but to within the band of 0
+    reach = float(dist[near].max()) if near.any() else 0.0
+    behind_drop = _inward_minimum(tip) < -band - eps
+    at_start = zero & ((dist > reach) | behind_drop)
     return at_start | floor, at_start, floor
 
 
@@ -160,7 +176,7 @@ def tip_constraint(
     d_min = float(dist[unconstrained].min()) if unconstrained.any() else np.inf
     radius = h if d_min > h else int(np.ceil(d_min)) - 1
     ring = np.rint(dist) == radius
-    depth = float(-tip[ring].max()) if radius > 0 else 0.0
+    depth = max(0.0, float(-tip[ring].max())) if radius > 0 else 0.0
     count = int(unconstrained.sum())
     out = TipConstraint(
         unconstrained,
@@ -186,6 +202,15 @@ def tip_constraint(
             f"pixels unconstrained, {int(at_start.sum())} at the flat start 0, "
             f"{int(floor.sum())} bounded only by the image's height range); a reconstruction "
             "with this tip may cut into objects there"
+        )
+    band = float(threshold) + NOISE_K * float(noise)
+    if radius > 0 and depth <= band:
+        out.warnings.append(
+            f"the estimate is flat to within its resolution (threshold + 3 sigma = "
+            f"{band * 1e9:.2f} nm) out to {radius} px from the apex (it drops only "
+            f"{depth * 1e9:.2f} nm there): the image at this threshold resolves no tip shape "
+            f"(tip_size={k}); a reconstruction with it removes little of the broadening and "
+            "may cut into objects"
         )
     return out
 
@@ -234,14 +259,38 @@ class ReconstructionCheck:
     upper: np.ndarray  # r_upper = erode(image, tip - uncertainty), m: >= the surface
     uncertain_removal: np.ndarray  # r_upper - r >= 0, m: how far r may lie below the surface
     unconstrained_removal: np.ndarray  # the part of it made only by unconstrained tip pixels
-    flagged: np.ndarray  # bool: unconstrained_removal > tolerance
-    tolerance: float  # m: NOISE_K x noise
+    feature_height: np.ndarray  # m: per pixel, the peak of its feature in r_upper (0 off them)
+    flagged: np.ndarray  # bool: by_unconstrained | too_uncertain
+    by_unconstrained: np.ndarray  # bool: unconstrained_removal > NOISE_K sigma
+    too_uncertain: np.ndarray  # bool: uncertain_removal > max(NOISE_K sigma, share x feature)
     noise: float  # m: the image noise sigma used
+    background: float  # m: median of r_upper, the level feature heights are measured from
     max_removal: float  # m: largest uncertain_removal over the flagged pixels (0 if none)
     location: tuple | None  # (row, col) of it
-    feature_height: float  # m: r_upper there above the background (median of r)
-    flagged_share: float  # flagged feature pixels / feature pixels (r_upper > bg + tolerance)
+    height_there: float  # m: the feature height at that location
+    flagged_share: float  # flagged feature pixels / feature pixels
     warnings: list = field(default_factory=list)
+
+
+def _features(upper: np.ndarray, background: float, sigma: float) -> np.ndarray:
+    """Per pixel, the peak height (above background) of the feature it belongs to: the
+    8-connected regions of upper > background + 3 sigma whose peak stands FEATURE_NOISE_K
+    sigma above it (a pure-noise pixel does so with probability ~1e-9); 0 elsewhere."""
+    above = upper - background
+    labels, count = ndimage.label(above > NOISE_K * sigma, structure=np.ones((3, 3)))
+    if count == 0:
+        return np.zeros(upper.shape)
+    peaks = np.asarray(ndimage.maximum(above, labels, index=np.arange(1, count + 1)), float)
+    peaks[peaks <= FEATURE_NOISE_K * sigma] = 0.0
+    return np.concatenate([[0.0], peaks])[labels]
+
+
+def _sharpest(tip: np.ndarray, unc: np.ndarray, image: np.ndarray):
+    """(tip with unconstrained pixels excluded, sharpest plausible tip): excluded pixels are
+    set so low that i(y - u) - t(u) > max(i) >= r(y), i.e. they never touch."""
+    far = float(tip.min()) - 2.0 * float(np.ptp(image)) - 1.0
+    known = np.isfinite(unc)
+    return np.where(known, tip, far), np.where(known, tip - np.where(known, unc, 0.0), far)
 
 
 def check_reconstruction(
@@ -253,8 +302,8 @@ def check_reconstruction(
     pixel_size: float | None = None,
     origin: tuple[float, float] = (0.0, 0.0),
 ) -> ReconstructionCheck:
-    """Reconstruct `image` (m) with `tip` and flag where it removes more than the tip's
-    uncertainty allows (module notes). uncertainty: per-pixel (m; inf = unconstrained, e.g.
+    """Reconstruct `image` (m) with `tip` and flag where the tip's uncertainty leaves the
+    result open (module notes). uncertainty: per-pixel (m; inf = unconstrained, e.g.
     TipEstimate.uncertainty); None: derived from the tip alone (`tip_constraint` without
     threshold or floor test, 3 sigma of this image on the constrained pixels), which a warning
     says. noise: the image noise sigma (default `estimate_noise(image)`). pixel_size, origin
@@ -268,59 +317,78 @@ def check_reconstruction(
     if uncertainty is None:
         uncertainty = tip_constraint(tip, 0.0, sigma).uncertainty
         notes.append(
-            "the tip carries no uncertainty: unconstrained pixels taken as those left at 0 "
-            "outside the apex plateau, the rest as known to 3 sigma of the image noise "
-            f"({NOISE_K * sigma * 1e9:.2f} nm); write the tip with `afm image tip -o tip.npz` "
-            "to keep the estimator's"
+            "the tip carries no uncertainty (a .gwy tip, or not from `afm image tip`): its "
+            "unconstrained pixels are taken as those left at 0 away from the apex, the rest as "
+            f"known to 3 sigma of this image's noise ({NOISE_K * sigma * 1e9:.2f} nm); write the "
+            "tip as .npz to keep the estimator's"
         )
     unc = np.asarray(uncertainty, float)
     if unc.shape != tip.shape:
         raise ValueError(f"uncertainty: shape {unc.shape}, expected the tip's {tip.shape}")
-    # unconstrained pixels out of the erosion: so low that i(y - u) - t(u) > max(i) >= r(y)
-    far = float(tip.min()) - 2.0 * float(np.ptp(image)) - 1.0
-    known = np.isfinite(unc)
+    if np.any(unc < 0):
+        raise ValueError("uncertainty: must be >= 0 (m; inf where unconstrained)")
+    known_tip, sharp_tip = _sharpest(tip, unc, image)
     r = erode(image, tip)
-    r_known = erode(image, np.where(known, tip, far))
-    upper = erode(image, np.where(known, tip - np.where(known, unc, 0.0), far))
+    upper = erode(image, sharp_tip)
     removal = upper - r
-    from_unknown = r_known - r
+    from_unknown = erode(image, known_tip) - r
     tol = NOISE_K * sigma
-    flagged = from_unknown > tol
-    background = float(np.median(r))
-    features = (upper - background > tol) | flagged
+    background = float(np.median(upper))
+    height = _features(upper, background, sigma)
+    by_unknown = from_unknown > tol
+    too_uncertain = (height > 0) & (removal > np.maximum(tol, UNCERTAIN_SHARE * height))
+    flagged = by_unknown | too_uncertain
     out = ReconstructionCheck(
         r,
         upper,
         removal,
         from_unknown,
+        height,
         flagged,
-        tol,
+        by_unknown,
+        too_uncertain,
         sigma,
+        background,
         0.0,
         None,
         0.0,
-        float(flagged.sum() / max(int(features.sum()), 1)),
+        float(flagged.sum() / max(int(((height > 0) | flagged).sum()), 1)),
         notes,
     )
     if flagged.any():
-        idx = np.unravel_index(int(np.argmax(np.where(flagged, removal, -np.inf))), r.shape)
-        out.max_removal = float(removal[idx])
-        out.location = (int(idx[0]), int(idx[1]))
-        out.feature_height = float(upper[idx] - background)
-        where = f"pixel (row {idx[0]}, col {idx[1]})"
-        if pixel_size:
-            x = origin[0] + (idx[1] + 0.5) * pixel_size
-            y = origin[1] + (idx[0] + 0.5) * pixel_size
-            where = f"({x * 1e9:.1f}, {y * 1e9:.1f}) nm, {where}"
-        out.warnings.append(
-            f"the tip is uncertain where it removes up to {out.max_removal * 1e9:.1f} nm of a "
-            f"{out.feature_height * 1e9:.1f} nm feature at {where}: tip pixels the image "
-            f"never constrained cut {int(flagged.sum())} pixels "
-            f"({100 * out.flagged_share:.1f} % of the feature pixels) by more than 3 sigma "
-            f"({tol * 1e9:.2f} nm); heights and widths there may lie up to that much below "
-            "the surface (`upper` bounds it); use a smaller tip window or a tip estimated "
-            "from sharper or taller features"
-        )
+        _describe(out, pixel_size, origin)
     for text in out.warnings:
         warnings.warn(text, TipGuardWarning, stacklevel=2)
     return out
+
+
+def _describe(out: ReconstructionCheck, pixel_size, origin) -> None:
+    """The largest flagged removal, where, and a warning naming the numbers."""
+    removal = out.uncertain_removal
+    idx = np.unravel_index(int(np.argmax(np.where(out.flagged, removal, -np.inf))), removal.shape)
+    out.max_removal = float(removal[idx])
+    out.location = (int(idx[0]), int(idx[1]))
+    out.height_there = float(out.feature_height[idx])
+    where = f"pixel (row {idx[0]}, col {idx[1]})"
+    if pixel_size:
+        x = origin[0] + (idx[1] + 0.5) * pixel_size
+        y = origin[1] + (idx[0] + 0.5) * pixel_size
+        where = f"({x * 1e9:.1f}, {y * 1e9:.1f}) nm, {where}"
+    causes = []
+    if out.by_unconstrained.any():
+        causes.append(
+            f"tip pixels the image never constrained cut {int(out.by_unconstrained.sum())} "
+            f"pixels by more than 3 sigma ({NOISE_K * out.noise * 1e9:.2f} nm)"
+        )
+    if out.too_uncertain.any():
+        causes.append(
+            f"at {int(out.too_uncertain.sum())} pixels the tip's uncertainty leaves more than "
+            f"{UNCERTAIN_SHARE:.0%} of the feature's height open"
+        )
+    out.warnings.append(
+        f"the tip is uncertain where it removes up to {out.max_removal * 1e9:.1f} nm of a "
+        f"{out.height_there * 1e9:.1f} nm feature at {where}: {'; '.join(causes)} "
+        f"({100 * out.flagged_share:.1f} % of the feature pixels); heights and widths there "
+        "may lie up to that much below the surface (`upper` bounds it from above); use a "
+        "smaller tip window or a tip estimated from sharper, taller features"
+    )
