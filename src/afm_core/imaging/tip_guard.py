@@ -21,11 +21,15 @@ the tip's shape:
     flank of a tip window deeper than the tallest feature lies there; its true height can be
     anything lower. (The window speed-up of refine_tip leaves the outer part at the feature
     pre-estimate, which is a data bound like any other, so it is judged by the same rules.)
-Per-pixel uncertainty (m, how far the true tip may lie below the estimate): infinite on
-unconstrained pixels, 0 at the apex, and on constrained pixels `TipEstimate.uncertainty` if
-the estimator filled it, else N_TH + 3 sigma (the refinement leaves each pixel up to N_TH
-above its data bound, and the bound is a difference of image heights that moves with the
-noise sigma: 3 sigma is a one-sided 0.13 % excursion of one height).
+Per-pixel uncertainty (m, how far the true tip may lie below the estimate): 0 at the apex;
+infinite on unconstrained pixels and, when some lie within the window's inscribed circle, on
+every pixel farther out than the nearest of them (the rules above see only the flat start and
+the image-wide floor; a pixel bounded through the image of a neighbouring feature looks like
+a measured one, and on the characteriser all such pixels lay beyond that radius); on the
+other pixels `TipEstimate.uncertainty` if the estimator filled it, else N_TH + 3 sigma (the
+refinement leaves each pixel up to N_TH above its data bound, and the bound is a difference
+of image heights that moves with the noise sigma: 3 sigma is a one-sided 0.13 % excursion
+of one height).
 
 Reconstruction check (`check_reconstruction`). r = erode(i, t); r_upper = erode(i, t - U)
 with the sharpest plausible tip (U = uncertainty; unconstrained pixels excluded, i.e. set far
@@ -71,7 +75,7 @@ class TipGuardWarning(UserWarning):
 @dataclass
 class TipConstraint:
     unconstrained: np.ndarray  # (k, k) bool: tip pixels the image did not constrain
-    uncertainty: np.ndarray  # (k, k) m: inf where unconstrained, 0 at the apex
+    uncertainty: np.ndarray  # (k, k) m: inf where unconstrained or beyond radius, 0 at apex
     count: int  # unconstrained pixels
     share: float  # of the k*k window
     at_start: int  # of them, still at the flat start 0 (outside the apex plateau)
@@ -171,10 +175,15 @@ def tip_constraint(
             raise ValueError(f"uncertainty: shape {unc.shape}, expected {tip.shape}")
         source = "estimator"
     unc[unconstrained] = np.inf
-    unc[h, h] = 0.0
     dist = _distance(k)
     d_min = float(dist[unconstrained].min()) if unconstrained.any() else np.inf
     radius = h if d_min > h else int(np.ceil(d_min)) - 1
+    if radius < h:
+        # beyond the first unconstrained pixel a pixel may be bounded only through another
+        # feature's image (the characteriser shows such pixels, estimated 10-35 nm too high,
+        # all outside this radius): no uncertainty is claimed there
+        unc[dist > radius] = np.inf
+    unc[h, h] = 0.0
     ring = np.rint(dist) == radius
     depth = max(0.0, float(-tip[ring].max())) if radius > 0 else 0.0
     count = int(unconstrained.sum())
