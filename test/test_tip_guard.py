@@ -105,7 +105,7 @@ def test_flat_start_pixels_are_told_from_the_apex_plateau():
     # an estimate flat within its resolution: constrained (bounded) but shapeless
     shallow = np.where(d <= 10, -0.5 * band * d / 10, -0.5 * band)
     c = tg.tip_constraint(shallow, THRESHOLD, NOISE)
-    assert c.count == 0 and "flat to within its resolution" in c.warnings[0]
+    assert c.count == 0 and "no more than its resolution" in c.warnings[0]
 
 
 def test_an_automatic_estimate_that_constrains_nothing_is_refused_a_fixed_one_warns():

@@ -123,7 +123,13 @@ def cmd_tip(args) -> int:
         f"{estimate.iterations} iterations, {estimate.seconds:.2f} s; wrote {args.output}"
     )
     print(estimate.constraint.summary(image.pixel_size_x))
-    _warn("tip", estimate.warnings)
+    notes = list(estimate.warnings)
+    if Path(args.output).suffix.lower() == ".gwy":
+        notes.append(
+            "a .gwy tip keeps no uncertainty or unconstrained mask; `afm image reconstruct` "
+            "will fall back to judging the tip alone (write .npz to keep them)"
+        )
+    _warn("tip", notes)
     return 0
 
 

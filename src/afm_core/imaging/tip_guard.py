@@ -215,10 +215,10 @@ def tip_constraint(
     band = float(threshold) + NOISE_K * float(noise)
     if radius > 0 and depth <= band:
         out.warnings.append(
-            f"the estimate is flat to within its resolution (threshold + 3 sigma = "
-            f"{band * 1e9:.2f} nm) out to {radius} px from the apex (it drops only "
-            f"{depth * 1e9:.2f} nm there): the image at this threshold resolves no tip shape "
-            f"(tip_size={k}); a reconstruction with it removes little of the broadening and "
+            f"the estimate drops only {depth * 1e9:.2f} nm out to {radius} px from the apex, "
+            f"no more than its resolution (threshold + 3 sigma = {band * 1e9:.2f} nm): the "
+            f"tip's shape is not resolved at this threshold (tip_size={k}); a reconstruction "
+            "with it removes little of the broadening and "
             "may cut into objects"
         )
     return out
