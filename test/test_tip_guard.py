@@ -99,9 +99,13 @@ def test_flat_start_pixels_are_told_from_the_apex_plateau():
     for good in (tip, np.where(tip >= -THRESHOLD, 0.0, tip)):
         c = tg.tip_constraint(good, THRESHOLD, NOISE)
         assert c.count == 0 and c.radius == 10 and c.warnings == []
-    # a flat plate: nothing but the apex is known
-    flat = tg.tip_constraint(np.zeros((21, 21)), THRESHOLD, NOISE)
+    # a flat plate: bounded within its resolution by an image taller than the threshold, but
+    # shapeless; nothing but the apex is known when the threshold swallows the image's range
+    plate = tg.tip_constraint(np.zeros((21, 21)), THRESHOLD, NOISE, height_range=50 * NM)
+    assert plate.count == 0 and "no more than its resolution" in plate.warnings[0]
+    flat = tg.tip_constraint(np.zeros((21, 21)), THRESHOLD, NOISE, height_range=THRESHOLD)
     assert flat.count == 21 * 21 - 1 and flat.radius == 0 and "nowhere" in flat.warnings[0]
+    assert flat.at_floor == flat.count
     # an estimate flat within its resolution: constrained (bounded) but shapeless
     shallow = np.where(d <= 10, -0.5 * band * d / 10, -0.5 * band)
     c = tg.tip_constraint(shallow, THRESHOLD, NOISE)

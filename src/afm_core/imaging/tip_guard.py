@@ -15,7 +15,9 @@ the tip's shape:
     lowered to within the estimate's resolution (N_TH + 3 sigma) of 0, or if it lies behind
     a drop: some pixel between it and the apex is lower than that resolution (a tip does
     not rise moving outward from its apex, so the data would have bounded it too, had any
-    feature reached it). In a reconstruction each such pixel acts as a second apex.
+    feature reached it). In a reconstruction each such pixel acts as a second apex. An
+    estimate left entirely at 0 (below the floor test's limit) is a plate within its
+    resolution: constrained, but warned about as resolving no shape.
   * at the floor: bounded only by the image's full height range, t(w) <= -(range) + N_TH
     (+ noise), i.e. the image says only "the tip is below the tallest feature" there. The
     flank of a tip window deeper than the tallest feature lies there; its true height can be
@@ -38,8 +40,15 @@ r_upper >= r_true >= s: r_upper is an upper bound of the surface, and r_upper - 
 how far r may have cut into the object. It splits into the part the constrained uncertainty
 allows (r_upper - r_c, r_c = erode with the unconstrained pixels excluded but the constrained
 ones as estimated) and the part made only by unconstrained pixels, r_c - r. A pixel is
-flagged when the latter exceeds 3 sigma of the image noise: the reconstruction removed more
-there than the tip's uncertainty allows, by more than noise explains.
+flagged when
+  * r_c - r exceeds 3 sigma of the image noise: the reconstruction removed more there than
+    the tip's uncertainty allows, by more than noise explains; or
+  * r_upper - r exceeds both 3 sigma and UNCERTAIN_SHARE (25 %) of the height of the feature
+    the pixel belongs to (the 8-connected region of r_upper more than 3 sigma above its
+    median, counted only if its peak stands 6 sigma above): the uncertainty the tip does
+    state is then too large for the feature. This catches an estimate at a threshold near
+    the image's height range, a plate whose constrained uncertainty allows anything.
+Both are warnings with the numbers; the reconstruction is still returned (and written).
 """
 
 from __future__ import annotations
@@ -141,7 +150,10 @@ def unconstrained_pixels(
     band = threshold + NOISE_K * noise  # the estimate's resolution
     dist = _distance(k)
     near = (tip < -eps) & (tip >= -band - eps)  # lowered, but to within the band of 0
-    reach = float(dist[near].max()) if near.any() else 0.0
+    if not (tip < -eps).any():
+        reach = np.inf  # a plate: the whole window within the resolution (warned about)
+    else:
+        reach = float(dist[near].max()) if near.any() else 0.0
     behind_drop = _inward_minimum(tip) < -band - eps
     at_start = zero & ((dist > reach) | behind_drop)
     return at_start | floor, at_start, floor
@@ -240,7 +252,7 @@ def guard_estimate(estimate, image: np.ndarray, refuse: bool) -> None:
         estimate.uncertainty,
     )
     k = estimate.tip.shape[0]
-    if refuse and c.radius < MIN_SUPPORTED_RADIUS:
+    if refuse and c.radius < min(MIN_SUPPORTED_RADIUS, k // 2):
         raise ValueError(
             f"tip_size={k}: the image constrains no ring of tip pixels around the apex at the "
             f"chosen threshold {estimate.threshold * 1e9:.2f} nm (constrained radius "
@@ -321,6 +333,8 @@ def check_reconstruction(
     tip = np.asarray(tip, float)
     if image.ndim != 2:
         raise ValueError(f"image: shape {image.shape}, expected a 2-D height map")
+    if tip.ndim != 2 or tip.shape[0] != tip.shape[1] or tip.shape[0] % 2 == 0:
+        raise ValueError(f"tip: shape {tip.shape}, expected a square odd-sized grid")
     sigma = estimate_noise(image) if noise is None else float(noise)
     notes = []
     if uncertainty is None:
