@@ -230,8 +230,7 @@ def tip_constraint(
             f"the estimate drops only {depth * 1e9:.2f} nm out to {radius} px from the apex, "
             f"no more than its resolution (threshold + 3 sigma = {band * 1e9:.2f} nm): the "
             f"tip's shape is not resolved at this threshold (tip_size={k}); a reconstruction "
-            "with it removes little of the broadening and "
-            "may cut into objects"
+            "with it erodes by a near-flat plate and cuts into objects narrower than that"
         )
     return out
 
