@@ -232,6 +232,8 @@ class ImagingNode(Node):
             threshold="auto" if threshold == "auto" else float(threshold),
             pixel_size=pixel,
         )
+        for text in estimate.warnings:  # afm_core.imaging.tip_guard: what the image supports
+            self.get_logger().warning(f"tip estimate: {text}")
         shape = TipShape(
             header=Header(stamp=header.stamp, frame_id=FRAME_IMAGE),
             pixel_size=float(pixel),

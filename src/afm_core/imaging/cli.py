@@ -14,6 +14,8 @@ import argparse
 import json
 import sys
 import time
+import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -76,6 +78,21 @@ def cmd_drift(args) -> int:
     return 0
 
 
+def _quietly(function, *args, **kwargs):
+    """Call with the guard's Python warnings silenced: the commands print the result's own
+    warnings list to stderr instead (once each)."""
+    from afm_core.imaging.tip_guard import TipGuardWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TipGuardWarning)
+        return function(*args, **kwargs)
+
+
+def _warn(command: str, texts) -> None:
+    for text in texts:
+        print(f"afm image {command}: warning: {text}", file=sys.stderr)
+
+
 def cmd_tip(args) -> int:
     from afm_core.imaging.tip_estimation import estimate_tip
 
@@ -86,22 +103,43 @@ def cmd_tip(args) -> int:
             f"({image.pixel_size_x:.3e} x {image.pixel_size_y:.3e} m)"
         )
     threshold = args.threshold if args.threshold == "auto" else float(args.threshold)
-    estimate = estimate_tip(
-        image.height, args.tip_size, threshold=threshold, pixel_size=image.pixel_size_x
+    estimate = _quietly(
+        estimate_tip,
+        image.height,
+        args.tip_size,
+        threshold=threshold,
+        pixel_size=image.pixel_size_x,
     )
+    # reconstruct reads these back from a .npz (a .gwy drops them: it then falls back)
+    layers = {"uncertainty": estimate.uncertainty, "unconstrained": estimate.unconstrained}
     save_height_map(
-        args.output, HeightMap(estimate.tip, image.pixel_size_x, image.pixel_size_y, title="tip")
+        args.output,
+        HeightMap(
+            estimate.tip, image.pixel_size_x, image.pixel_size_y, title="tip", layers=layers
+        ),
     )
     print(
         f"tip {args.tip_size}x{args.tip_size}: threshold {estimate.threshold * 1e9:.3f} nm, "
         f"{estimate.iterations} iterations, {estimate.seconds:.2f} s; wrote {args.output}"
     )
+    print(estimate.constraint.summary(image.pixel_size_x))
+    notes = list(estimate.warnings)
+    if Path(args.output).suffix.lower() == ".gwy":
+        notes.append(
+            "a .gwy tip keeps no uncertainty or unconstrained mask; `afm image reconstruct` "
+            "will fall back to judging the tip alone (write .npz to keep them)"
+        )
+    _warn("tip", notes)
     return 0
 
 
 def cmd_reconstruct(args) -> int:
-    from afm_core.physics.tip_morphology import erode
+    from afm_core.imaging.tip_guard import check_reconstruction
 
+    if Path(args.output).exists():  # before the work, and before judging the tip
+        raise FileExistsError(
+            f"{args.output}: already exists; not overwriting it (choose another name or remove it)"
+        )
     image = load_height_map(args.image, args.channel, args.pixel_size)
     tip = load_height_map(args.tip)
     if not np.isclose(tip.pixel_size_x, image.pixel_size_x, rtol=1e-6):
@@ -110,7 +148,15 @@ def cmd_reconstruct(args) -> int:
             f"{image.pixel_size_x:.4e} m"
         )
     started = time.perf_counter()
-    surface = erode(image.height, tip.height)
+    check = _quietly(
+        check_reconstruction,
+        image.height,
+        tip.height,
+        tip.layers.get("uncertainty"),
+        pixel_size=image.pixel_size_x,
+        origin=(image.origin_x, image.origin_y),
+    )
+    surface = check.reconstruction
     save_height_map(
         args.output,
         HeightMap(
@@ -126,6 +172,7 @@ def cmd_reconstruct(args) -> int:
         f"eroded by the {tip.height.shape[0]}x{tip.height.shape[1]} tip in "
         f"{time.perf_counter() - started:.2f} s; wrote {args.output}"
     )
+    _warn("reconstruct", check.warnings)
     return 0
 
 

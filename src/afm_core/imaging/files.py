@@ -3,7 +3,9 @@
 Formats, chosen by the file name's suffix (case-insensitive):
 
 - `.npz` (native): numpy archive with `height` (2-D, metres, rows = y), `pixel_size_x`,
-  `pixel_size_y`, `origin_x`, `origin_y` (metres) and `title`. Loaded without pickle.
+  `pixel_size_y`, `origin_x`, `origin_y` (metres) and `title`; optional per-pixel `layer_NAME`
+  arrays of the height's shape (`HeightMap.layers`, e.g. a tip's uncertainty and
+  unconstrained mask). Loaded without pickle.
 - `.npy` (read only): a plain 2-D height array in metres; it carries no pixel size, so the
   caller gives `pixel_size` (square pixels, origin 0).
 - `.gwy`: Gwyddion's native format, through the `gwyfile` package (pure Python; install
@@ -36,7 +38,7 @@ import io
 import math
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +84,8 @@ class HeightMap:
     origin_x: float = 0.0  # m, lower-left corner of the area (pixel (0, 0)'s outer corner)
     origin_y: float = 0.0  # m
     title: str = ""
+    # per-pixel arrays of the height's shape carried along (.npz only; .gwy drops them)
+    layers: dict = field(default_factory=dict)
 
     @property
     def size_x(self) -> float:
@@ -114,6 +118,13 @@ class HeightMap:
                 raise ValueError(f"{where}: {name}={value!r} must be a finite number (m)")
         if not isinstance(self.title, str):
             raise ValueError(f"{where}: title={self.title!r} must be a string")
+        for name, layer in self.layers.items():
+            if not (isinstance(name, str) and name.isidentifier()):
+                raise ValueError(f"{where}: layer name {name!r} must be an identifier")
+            if np.shape(layer) != h.shape:
+                raise ValueError(
+                    f"{where}: layer {name!r} has shape {np.shape(layer)}, expected {h.shape}"
+                )
 
 
 def load_height_map(path, channel: int | str = 0, pixel_size: float | None = None) -> HeightMap:
@@ -234,6 +245,7 @@ def _load_npz(path: Path, channel, pixel_size) -> HeightMap:
             for name in missing:
                 values[name] = float(pixel_size)
         height = _heights(archive["height"], path)
+        layers = {n[6:]: archive[n] for n in archive.files if n.startswith("layer_")}
     return HeightMap(
         height,
         values["pixel_size_x"],
@@ -241,6 +253,7 @@ def _load_npz(path: Path, channel, pixel_size) -> HeightMap:
         values.get("origin_x", 0.0),
         values.get("origin_y", 0.0),
         title,
+        layers,
     )
 
 
@@ -282,6 +295,7 @@ def _npz_bytes(m: HeightMap) -> bytes:
         origin_x=np.float64(m.origin_x),
         origin_y=np.float64(m.origin_y),
         title=np.str_(m.title),
+        **{f"layer_{name}": np.asarray(layer) for name, layer in m.layers.items()},
     )
     return buffer.getvalue()
 

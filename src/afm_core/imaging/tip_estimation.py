@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from afm_core.imaging.tip_guard import guard_estimate
 from afm_core.imaging.tip_refinement import (
     TipRefiner,
     estimate_noise,
@@ -62,6 +63,13 @@ class TipEstimate:
     window: int = 0  # tip window the full passes worked on (speed-up b)
     # auto: threshold -> RMS difference from the consensus tip
     scores: dict = field(default_factory=dict)
+    # afm_core.imaging.tip_guard: pixels the image did not constrain, per-pixel uncertainty
+    # (m, how far the true tip may lie below; inf where unconstrained; the estimator's own if
+    # it fills it before the guard runs, else threshold + 3 sigma), warnings for people
+    unconstrained: np.ndarray | None = None
+    uncertainty: np.ndarray | None = None
+    warnings: list = field(default_factory=list)
+    constraint: object = None  # tip_guard.TipConstraint: counts, supported radius and depth
 
 
 # --------------------------------------------------------------------------------------------
@@ -328,6 +336,8 @@ def estimate_tip(
             )
     out.feature_points, out.window = 0 if features is None else len(features), window
     out.seconds = time.perf_counter() - t_start
+    # what the image constrained; refuses only an automatic choice that constrains nothing
+    guard_estimate(out, image, refuse=isinstance(threshold, str))
     return out
 
 
