@@ -229,9 +229,10 @@ def check_timing(fits, scan0: RasterScanData, scan90: RasterScanData, keep=None)
     spacing = KNOT_LINES * period
     if float(v90 @ np.linalg.pinv(v90_cov) @ v90) < VELOCITY_CHI2_2DOF:
         speed = math.hypot(*result.velocity) * 1e9
+        spread = math.hypot(*result.velocity_error) * 1e9
         result.notes.append(
-            f"cannot check the gap: drift too small ({speed:.3f} nm/s during the 90 deg scan, "
-            "not significantly different from zero)"
+            f"cannot check the gap: drift too small ({speed:.3f} +- {spread:.2g} nm/s during "
+            f"the 90 deg scan from {len(obs)} feature regions, not significantly non-zero)"
         )
         spline = TimeSpline(min(t0.min(), t90.min()), max(t0.max(), t90.max()), spacing)
         _, result.chi2_assumed, used = _Profile(obs, spline).fit(0.0, count=True)
