@@ -213,7 +213,8 @@ def compensate_pair(
     """Reconstruct the 0 deg image free of thermal drift from a 0 deg / 90 deg pair of the same
     area (book ch. 3). `order`: 1 (6-parameter offset vector, the book's choice) or 2 (12
     parameters, eq. 3.17). `method`: "time" (drift as a smooth function of time, see the module
-    doc) or "book" (eq. 3.23-3.27 literally)."""
+    doc) or "book" (eq. 3.23-3.27 literally). The result's `timing` says whether the images
+    agree with the scans' times (the gap between them, the line period; drift_timing)."""
     started = _time.perf_counter()
     _check_pair(scan0, scan90, order, method)
     h0 = np.asarray(scan0.height, float)
