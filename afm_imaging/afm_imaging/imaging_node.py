@@ -178,6 +178,9 @@ class ImagingNode(Node):
         except ValueError as exc:
             self.get_logger().error(f"pair {msg.pair_id!r}: drift compensation refused: {exc}")
             return
+        for text in correction.timing.warnings if correction.timing else []:
+            # the driver's times are true ones: a disagreement means the pair is not one drift
+            self.get_logger().warning(f"pair {msg.pair_id!r}: scan timing: {text}")
         vx, vy = correction.velocity
         self.get_logger().info(
             f"pair {msg.pair_id!r}: drift ({vx * 1e9:.3f}, {vy * 1e9:.3f}) nm/s corrected in "

@@ -45,6 +45,34 @@ def _scan(
     )
 
 
+def _gap(text: str):
+    """--gap: seconds, or "auto" (the gap the images imply)."""
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: seconds or 'auto'") from None
+
+
+def _report_timing(timing, gap_given: bool) -> None:
+    """The timing check's findings on stderr (the corrected map is written regardless)."""
+    for text in timing.notes:
+        print(f"afm image drift: note: {text}", file=sys.stderr)
+    for text in timing.warnings:
+        if not gap_given:
+            # the default gap is a count of line periods, so a wrong --line-rate cannot cause
+            # this (every time scales alike): the scan did not start right after
+            text = (
+                f"--gap: {timing.gap_assumed:.4g} s assumed (the 90 deg scan right after the 0 "
+                f"deg one), the images imply {timing.gap_implied:.4g} +- {timing.gap_error:.2g}"
+                " s; the drift fitted with the assumed gap is biased (give --gap, or --gap auto)"
+            )
+        else:
+            text = f"--gap / --line-rate: {text}"
+        print(f"afm image drift: warning: {text}", file=sys.stderr)
+
+
 def cmd_drift(args) -> int:
     from afm_core.imaging.drift_compensation import compensate_pair
 
@@ -53,12 +81,34 @@ def cmd_drift(args) -> int:
     first = load_height_map(args.scan0, args.channel, args.pixel_size)
     second = load_height_map(args.scan90, args.channel, args.pixel_size)
     lines0 = first.height.shape[0]
-    gap = args.gap if args.gap is not None else lines0 / args.line_rate
-    result = compensate_pair(
-        _scan(first, 0.0, not args.down0, args.line_rate, 0.0),
-        _scan(second, 90.0, not args.down90, args.line_rate, gap),
-        order=args.order,
-    )
+    given = isinstance(args.gap, float)
+    gap = args.gap if given else lines0 / args.line_rate
+
+    def compensate(gap: float):
+        return compensate_pair(
+            _scan(first, 0.0, not args.down0, args.line_rate, 0.0),
+            _scan(second, 90.0, not args.down90, args.line_rate, gap),
+            order=args.order,
+        )
+
+    result = compensate(gap)
+    if args.gap == "auto":
+        if result.timing.checked:
+            # the check's implied gap hardly depends on the assumed one: one refit suffices
+            gap = result.timing.gap_implied
+            print(
+                f"afm image drift: --gap auto: {gap:.4g} +- {result.timing.gap_error:.2g} s "
+                "implied by the images",
+                file=sys.stderr,
+            )
+            result = compensate(gap)
+        else:
+            print(
+                "afm image drift: --gap auto: the images cannot tell the gap; used right "
+                "after the 0 deg scan",
+                file=sys.stderr,
+            )
+    _report_timing(result.timing, given)
     save_height_map(
         args.output,
         HeightMap(
@@ -73,7 +123,7 @@ def cmd_drift(args) -> int:
     vx, vy = result.velocity
     print(
         f"drift velocity ({vx * 1e9:.4f}, {vy * 1e9:.4f}) nm/s; {len(result.feature_offsets)} "
-        f"feature regions; {result.seconds:.2f} s; wrote {args.output}"
+        f"feature regions; gap {gap:.4g} s; {result.seconds:.2f} s; wrote {args.output}"
     )
     return 0
 
@@ -240,8 +290,11 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     p.add_argument("--down90", action="store_true", help="the 90 deg scan was frame-down")
     p.add_argument(
         "--gap",
-        type=float,
-        help="s from the start of the 0 deg scan to the 90 deg one (default: right after it)",
+        type=_gap,
+        help=(
+            "s from the start of the 0 deg scan to the 90 deg one (default: right after it), "
+            "or auto: the gap the images imply"
+        ),
     )
     p.add_argument(
         "--order", type=int, default=1, choices=[1, 2], help="offset-vector order (book: 1)"

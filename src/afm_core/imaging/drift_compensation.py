@@ -82,6 +82,7 @@ import numpy as np
 from scipy import ndimage
 
 from afm_core.imaging.drift_fit import book_line_offsets, fit_time_drift
+from afm_core.imaging.drift_timing import TimingCheck, check_timing
 from afm_core.imaging.offset_vector import BSplineImage, fit_region, offset_displacement, to_si
 from afm_core.imaging.particle_matching import (
     feature_windows,
@@ -112,6 +113,8 @@ class DriftCorrection:
     t_ref: float = 0.0  # s, instrument clock: the corrected map is the sample as at this moment
     # False where the map extends the data
     valid: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), bool))
+    # the gap and line rate the images imply, and warnings where the assumed ones disagree
+    timing: TimingCheck | None = None
 
 
 def _check_pair(scan0: RasterScanData, scan90: RasterScanData, order, method) -> None:
@@ -210,7 +213,8 @@ def compensate_pair(
     """Reconstruct the 0 deg image free of thermal drift from a 0 deg / 90 deg pair of the same
     area (book ch. 3). `order`: 1 (6-parameter offset vector, the book's choice) or 2 (12
     parameters, eq. 3.17). `method`: "time" (drift as a smooth function of time, see the module
-    doc) or "book" (eq. 3.23-3.27 literally)."""
+    doc) or "book" (eq. 3.23-3.27 literally). The result's `timing` says whether the images
+    agree with the scans' times (the gap between them, the line period; drift_timing)."""
     started = _time.perf_counter()
     _check_pair(scan0, scan90, order, method)
     h0 = np.asarray(scan0.height, float)
@@ -230,6 +234,8 @@ def compensate_pair(
 
     if method == "time":
         tspline, coeffs, keep = fit_time_drift(fits, scan0, scan90, t_ref)
+        # all features: the fit's outlier rejection trusted the timing this checks
+        timing = check_timing(fits, scan0, scan90)
         feature_offsets = [entry for entry, used in zip(feature_offsets, keep) if used]  # outliers
 
         def displacement(rows, cols):
@@ -238,6 +244,7 @@ def compensate_pair(
 
         offsets = tspline(coeffs, row_times)
     else:
+        timing = check_timing(fits, scan0, scan90)
         offsets = book_line_offsets(fits, (ny, nx), ref_line) * np.array([px, py])
 
         def displacement(rows, cols):
@@ -256,6 +263,7 @@ def compensate_pair(
         seconds=_time.perf_counter() - started,
         t_ref=t_ref,
         valid=valid,
+        timing=timing,
     )
 
 

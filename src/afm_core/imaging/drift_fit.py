@@ -75,7 +75,7 @@ def band_offset_vectors(centres, ps, bands) -> list:
     return out
 
 
-class _TimeSpline:
+class TimeSpline:
     """Cubic B-spline in time with uniform knots: D(t) = sum_k c_k B_k(t)."""
 
     def __init__(self, t_start: float, t_end: float, spacing: float):
@@ -104,6 +104,49 @@ class _TimeSpline:
         return sum(w[..., a, None] * coeffs[i - 1 + a] for a in range(4))
 
 
+_NM = 1e9  # the drift is solved in nm: well-scaled normal equations
+
+
+def whitened_blocks(obs: list, spline: TimeSpline, shift: float = 0.0) -> list:
+    """Per feature, (whitened design, whitened data) of its (p0 .. p5) against the spline's
+    coefficients (2n: Dx then Dy, in nm): the model is projection @ (D(t90 + shift) - D(t0)),
+    z in nm and dimensionless gradients, whitened with the covariance's Cholesky factor."""
+    unit = np.array([_NM, _NM, 1, 1, 1, 1])
+    blocks = []
+    for o in obs:
+        psi = spline.rows(o.t90 + shift) - spline.rows(o.t0)  # (N, n), sparse
+        half = o.projection.shape[1] // 2
+        design = np.hstack(
+            [(psi.T @ o.projection[:, :half].T).T, (psi.T @ o.projection[:, half:].T).T]
+        )  # (6, 2n)
+        design = design * unit[:, None] / _NM  # per nm of coefficient
+        white = whitening(o.cov * np.outer(unit, unit))
+        blocks.append((white @ design, white @ (o.z * unit)))
+    return blocks
+
+
+def whitening(cov: np.ndarray) -> np.ndarray:
+    """W with W cov W^T = I (the inverse Cholesky factor; the diagonal alone if cov is not
+    positive definite)."""
+    try:
+        return np.linalg.inv(np.linalg.cholesky(cov))
+    except np.linalg.LinAlgError:
+        return np.diag(1.0 / np.sqrt(np.clip(np.diag(cov), 1e-300, None)))
+
+
+def velocity_prior(spline: TimeSpline) -> np.ndarray:
+    """Whitened prior rows on the coefficients (nm): a random walk of the drift velocity, the
+    second differences of the coefficients with the spread of the drift statistics (Fig. 7.9)."""
+    n, spacing = spline.n, spline.h
+    sigma_pen = _NM * math.sqrt(
+        2.0 * DRIFT_SIGMA_VELOCITY**2 * spacing**3 / DRIFT_CORRELATION_TIME
+    )
+    pen = np.zeros((n - 2, n))
+    idx = np.arange(n - 2)
+    pen[idx, idx], pen[idx, idx + 1], pen[idx, idx + 2] = 1.0, -2.0, 1.0
+    return np.kron(np.eye(2), pen) / sigma_pen
+
+
 @dataclass
 class _FeatureObs:
     z: np.ndarray  # (p0 .. p5) in SI
@@ -126,29 +169,11 @@ def _fit_drift(obs: list, t_ref: float, t_start: float, t_end: float, spacing: f
     Residuals are whitened with the Newton fit's covariance plus a model-error floor (round
     particles hardly fix the rotation part of p: p3 - p4 alone is uncertain, p3 + p4 is not);
     the feature with the largest chi-square is dropped while it is an outlier."""
-    spline = _TimeSpline(t_start, t_end, spacing)
+    spline = TimeSpline(t_start, t_end, spacing)
     n = spline.n
-    nm = 1e9  # solve in nm: well-scaled normal equations
-    sigma_pen = nm * math.sqrt(2.0 * DRIFT_SIGMA_VELOCITY**2 * spacing**3 / DRIFT_CORRELATION_TIME)
-    unit = np.array([nm, nm, 1, 1, 1, 1])  # z in nm and dimensionless gradients
-    blocks = []
-    for o in obs:
-        psi = spline.rows(o.t90) - spline.rows(o.t0)  # (N, n), sparse
-        half = o.projection.shape[1] // 2
-        design = np.hstack(
-            [(psi.T @ o.projection[:, :half].T).T, (psi.T @ o.projection[:, half:].T).T]
-        )  # (6, 2n)
-        design = design * unit[:, None] / nm  # per nm of coefficient
-        cov = o.cov * np.outer(unit, unit)
-        try:
-            white = np.linalg.inv(np.linalg.cholesky(cov))
-        except np.linalg.LinAlgError:
-            white = np.diag(1.0 / np.sqrt(np.clip(np.diag(cov), 1e-300, None)))
-        blocks.append((white @ design, white @ (o.z * unit)))
-    pen = np.zeros((n - 2, n))
-    idx = np.arange(n - 2)
-    pen[idx, idx], pen[idx, idx + 1], pen[idx, idx + 2] = 1.0, -2.0, 1.0
-    pen = np.kron(np.eye(2), pen) / sigma_pen
+    nm = _NM
+    blocks = whitened_blocks(obs, spline)
+    pen = velocity_prior(spline)
     anchor = np.kron(np.eye(2), spline.rows(t_ref).toarray())
     keep = np.ones(len(obs), bool)
     while True:
@@ -174,7 +199,7 @@ def _fit_drift(obs: list, t_ref: float, t_start: float, t_end: float, spacing: f
     return spline, coeffs, keep
 
 
-def _feature_observations(fits, scan0: RasterScanData, scan90: RasterScanData) -> list:
+def feature_observations(fits, scan0: RasterScanData, scan90: RasterScanData) -> list:
     """Each fitted feature's (p0 .. p5) in SI with its covariance (the fit's plus a model-error
     floor), its projection of per-pixel displacements (m) and its pixels' times in both scans."""
     px, py = scan0.pixel_size_x, scan0.pixel_size_y
@@ -204,7 +229,7 @@ def fit_time_drift(fits, scan0: RasterScanData, scan90: RasterScanData, t_ref: f
     """The time model: D(t) fitted to the features' offset vectors (`_fit_drift`) over the
     span of both scans, knots every KNOT_LINES line periods. fits: (blob, centre, RegionFit,
     rows, cols) per feature. Returns (spline, coefficients (m), which features were kept)."""
-    obs = _feature_observations(fits, scan0, scan90)
+    obs = feature_observations(fits, scan0, scan90)
     t_all = np.concatenate(
         [
             [
