@@ -47,11 +47,13 @@ def _odd(size: int) -> int:
 
 
 def _auto_or_metres(text: str) -> str:
-    if text != "auto":
+    from afm_core.imaging.tip_thresholds import RULES
+
+    if text not in RULES:
         try:
             metres = float(text)
         except ValueError:
-            raise ValueError("'auto' or a threshold in metres") from None
+            raise ValueError(f"one of {', '.join(RULES)} or a threshold in metres") from None
         checks.non_negative("tip_threshold", metres, "m")
     return text
 
@@ -98,7 +100,7 @@ PARAMETERS = ParameterTable(
     Parameter(
         "tip_threshold",
         "auto",
-        "Denoising threshold of the blind tip estimate: 'auto' or metres.",
+        "Denoising threshold of the blind tip estimate: 'auto', 'consensus', 'book' or metres.",
         check=_auto_or_metres,
         runtime=True,
     ),
@@ -222,6 +224,7 @@ class ImagingNode(Node):
     # -- the tip -----------------------------------------------------------------------------
     def estimate_tip(self) -> str:
         from afm_core.imaging.tip_estimation import estimate_tip
+        from afm_core.imaging.tip_thresholds import RULES
 
         with self.lock:
             latest = self.latest_map
@@ -232,7 +235,7 @@ class ImagingNode(Node):
         estimate = estimate_tip(
             np.asarray(height, float),
             self.config["tip_size"],
-            threshold="auto" if threshold == "auto" else float(threshold),
+            threshold=threshold if threshold in RULES else float(threshold),
             pixel_size=pixel,
         )
         for text in estimate.warnings:  # afm_core.imaging.tip_guard: what the image supports

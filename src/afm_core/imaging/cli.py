@@ -1,7 +1,7 @@
 """`afm image ...`: the imaging algorithms on a lab's own files, no ROS needed.
 
     afm image drift SCAN0 SCAN90 --line-rate 1 -o corrected.npz
-    afm image tip IMAGE --tip-size 41 [--threshold auto|1e-9] -o tip.npz
+    afm image tip IMAGE --tip-size 41 [--threshold auto|consensus|book|1e-9] -o tip.npz
     afm image reconstruct IMAGE --tip tip.npz -o surface.npz
     afm image landmarks IMAGE [--min-height 10nm] [--json landmarks.json]
 
@@ -152,7 +152,18 @@ def cmd_tip(args) -> int:
             f"{args.image}: blind tip estimation needs square pixels "
             f"({image.pixel_size_x:.3e} x {image.pixel_size_y:.3e} m)"
         )
-    threshold = args.threshold if args.threshold == "auto" else float(args.threshold)
+    from afm_core.imaging.tip_thresholds import RULES
+
+    if args.threshold in RULES:
+        threshold = args.threshold
+    else:
+        try:
+            threshold = float(args.threshold)
+        except ValueError:
+            raise ValueError(
+                f"--threshold={args.threshold!r}: a threshold in metres or one of "
+                f"{', '.join(RULES)}"
+            ) from None
     estimate = _quietly(
         estimate_tip,
         image.height,
@@ -309,7 +320,10 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     p.add_argument("image")
     p.add_argument("--tip-size", type=int, default=21, help="tip window in pixels (odd)")
     p.add_argument(
-        "--threshold", default="auto", help="denoising threshold in metres, or auto (default)"
+        "--threshold",
+        default="auto",
+        help="denoising threshold in metres, or a rule: auto (default), consensus (for a "
+        "characteriser far sharper than the tip), book",
     )
     p.add_argument(
         "-o", "--output", required=True, help="tip (.npz or .gwy), apex 0 at the centre"

@@ -33,6 +33,7 @@ from afm_core.imaging.tip_refinement import (
     work_window,
 )
 from afm_core.imaging.tip_thresholds import (
+    RULES,
     ThresholdSweep,
     book_threshold,
     consensus_threshold,
@@ -136,10 +137,8 @@ def estimate_tip(
         tip, passes, _ = refine_tip(est, th, max_iterations, start, features, window)
         out = TipEstimate(tip, th, passes, 0.0, [])
     else:
-        if threshold not in ("auto", "consensus", "book"):
-            raise ValueError(
-                f"threshold={threshold!r}: a number (m), 'auto', 'consensus' or 'book'"
-            )
+        if threshold not in RULES:
+            raise ValueError(f"threshold={threshold!r}: a number (m) or one of {', '.join(RULES)}")
         sigma = estimate_noise(image) if noise is None else float(noise)
         features = feature_points(image, tip_size, sigma) if use_features else None
         window = work_window(est, features, 0.0) if limit_radius else est.k

@@ -35,6 +35,8 @@ from scipy import ndimage
 
 from afm_core.imaging.tip_refinement import TipRefiner, feature_points, refine_tip
 
+RULES = ("auto", "consensus", "book")  # the threshold= names estimate_tip accepts
+
 
 def feature_consensus_tip(image: np.ndarray, features: np.ndarray, tip_size: int) -> np.ndarray:
     """The median over the feature points x_j of their apex-contact bounds
