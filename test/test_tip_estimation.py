@@ -332,3 +332,25 @@ def test_tip_error_closed_form():
     assert (
         te.tip_error(tip, paraboloid_cone_tip(10 * NM, 25, 1.6 * NM, 60 * NM, 0.2), 5 * NM) < 1e-20
     )
+
+
+def test_candidate_morphology_in_parallel_row_bands_is_identical(monkeypatch):
+    from afm_core.imaging import tip_refinement as tr
+
+    rng = np.random.default_rng(4)
+    image = rng.normal(0.0, 1.0, (300, 190)).astype(np.float32)
+    tip = crop(default_tip(), 41).astype(np.float32)
+    single = [tr._erode_valid(image, tip), tr._dilate_valid(image, tip)]
+    pools = []
+
+    class CountingPool(tr.ThreadPoolExecutor):
+        def __init__(self, workers):
+            pools.append(workers)
+            super().__init__(workers)
+
+    monkeypatch.setattr(tr, "ThreadPoolExecutor", CountingPool)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    banded = [tr._in_bands(op, image, tip) for op in (tr._erode_valid, tr._dilate_valid)]
+    assert pools == [3, 3]  # the bands did run in parallel
+    for one, many in zip(single, banded):
+        assert np.array_equal(one, many)
