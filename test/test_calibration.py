@@ -18,6 +18,7 @@ What is compared, and why:
   at the same moments (see the test for why not of the configured sigma).
 """
 
+import json
 import math
 
 import numpy as np
@@ -39,7 +40,7 @@ from afm_core.localization.calibration.matching import match_monotone
 from afm_core.localization.calibration.model import load_calibration, save_calibration
 from afm_core.localization.calibration.motion_error import measure_motion_noise
 from afm_core.localization.calibration.pits import find_pits
-from afm_core.localization.calibration.procedure import run_calibration
+from afm_core.localization.calibration.procedure import report_json, run_calibration
 from afm_core.localization.calibration.scanner_matrix import measure_scanner_matrix
 from afm_core.localization.calibration.simulator_comparison import compare_with_simulator
 from afm_core.sim.config import load_config, merge
@@ -68,6 +69,22 @@ def test_hysteresis_loop_fraction_and_branches(calibrated, axis):
     assert abs(rows[f"hysteresis_{axis}.loop_fraction"]["relative_error"]) < 0.10
     assert rows[f"hysteresis_{axis}.branch_error"]["recovered"] < 0.10
     assert abs(rows[f"hysteresis_{axis}.asymmetry"]["relative_error"]) < 0.10
+
+
+def test_the_report_file_holds_every_experiments_fit_and_data(calibrated):
+    """`afm calibrate --report` wrote {} (issue 37): the report must carry each experiment's
+    parameters and raw data, equal to what the run returned."""
+    _, report, _, _ = calibrated
+    written = json.loads(report_json(report))
+    experiments = [name for name, value in report.items() if isinstance(value, dict)]
+    assert {"creep", "hysteresis_x", "hysteresis_y", "motion_noise"} <= set(experiments)
+    for name in experiments:
+        assert set(written[name]["parameters"]) == set(report[name]["parameters"]) != set()
+        assert set(written[name]["data"]) == set(report[name]["data"])
+    assert written["hysteresis_y"]["parameters"]["loop_fraction"] == pytest.approx(
+        report["hysteresis_y"]["parameters"]["loop_fraction"]
+    )
+    assert written["wall_seconds"] > 0
 
 
 def test_hysteresis_asymmetry_exact_on_an_ideal_scanner():

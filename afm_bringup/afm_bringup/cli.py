@@ -204,11 +204,9 @@ def cmd_push(args):
 
 
 def cmd_calibrate(args):
-    import json
-
     from afm_core.backends import open_instrument
     from afm_core.localization.calibration.model import save_calibration
-    from afm_core.localization.calibration.procedure import run_calibration
+    from afm_core.localization.calibration.procedure import report_json, run_calibration
 
     output = Path(args.output)
     if output.exists() and not args.overwrite:
@@ -231,14 +229,8 @@ def cmd_calibrate(args):
         sys.exit(f"afm calibrate: {exc}")
     save_calibration(calibration, output)
     if args.report:
-        summary = {
-            name: experiment.parameters
-            for name, experiment in report.items()
-            if hasattr(experiment, "parameters")
-        }
-        Path(args.report).write_text(
-            json.dumps(summary, indent=2, default=lambda v: getattr(v, "tolist", str)())
-        )
+        # every experiment's parameters and raw data (run_calibration returns plain dicts)
+        Path(args.report).write_text(report_json(report))
     noise = calibration.motion_noise()
     print(
         f"wrote {output}: hysteresis loop {calibration.hysteresis_x.loop_fraction:.3f} / "
@@ -481,7 +473,9 @@ def _add_calibrate(sub) -> None:
         help="frame-up/down pairs for the drift statistics, one an hour",
     )
     p.add_argument(
-        "--report", default="", help="also write every experiment's fitted parameters as JSON here"
+        "--report",
+        default="",
+        help="also write every experiment's fitted parameters and raw data as JSON here",
     )
     p.set_defaults(func=cmd_calibrate)
 

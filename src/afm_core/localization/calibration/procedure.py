@@ -31,6 +31,7 @@ Experiments (`run_calibration` runs the drift pairs first, then the others in th
 
 from __future__ import annotations
 
+import json
 import time as wallclock
 from datetime import datetime, timezone
 
@@ -111,3 +112,18 @@ def run_calibration(
     summary["instrument_seconds"] = float(instrument.time) - clock0
     summary["wall_seconds"] = wallclock.perf_counter() - started
     return calibration, summary
+
+
+def report_json(summary: dict) -> str:
+    """The report of `run_calibration` as JSON: every experiment's fitted parameters and raw
+    data (SI; arrays as lists), and the instrument and wall seconds. A person or a script can
+    check each fit against its data."""
+
+    def plain(value):
+        if hasattr(value, "tolist"):
+            return value.tolist()
+        if hasattr(value, "__dict__"):
+            return vars(value)
+        return str(value)
+
+    return json.dumps(summary, indent=2, default=plain)
