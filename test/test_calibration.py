@@ -87,6 +87,48 @@ def test_the_report_file_holds_every_experiments_fit_and_data(calibrated):
     assert written["wall_seconds"] > 0
 
 
+def test_a_failed_experiment_keeps_the_others_results(monkeypatch, tmp_path):
+    """One experiment that cannot measure (issue 37: "motion noise: only 0 trials measured")
+    must not lose the others: the file is written, the failed experiment's fields keep the
+    defaults and are listed as such, the others are measured."""
+    from afm_core.localization.calibration import procedure
+    from afm_core.localization.calibration.model import (
+        Calibration,
+        load_calibration,
+        save_calibration,
+    )
+
+    def cannot_measure(*args, **kwargs):
+        raise ValueError("motion noise (y, d=2.5e-07 m): only 0 trials measured")
+
+    monkeypatch.setattr(procedure, "measure_motion_noise", cannot_measure)
+    config = load_config()
+    calibration, report = run_calibration(SimulatedAfm(config), **QUICK)
+    assert report["motion_noise"] == {
+        "failed": "ValueError: motion noise (y, d=2.5e-07 m): only 0 trials measured"
+    }
+    assert calibration.defaults == sorted(
+        [
+            "motion_noise_slope_x",
+            "motion_noise_slope_y",
+            "motion_noise_cross_slope",
+            "motion_noise_offset",
+        ]
+    )
+    assert calibration.motion_noise_slope_x == Calibration().motion_noise_slope_x
+    path = tmp_path / "calibration.yaml"
+    save_calibration(calibration, path)
+    again = load_calibration(path)
+    assert again.defaults == calibration.defaults
+    assert again.hysteresis_y.loop_fraction == pytest.approx(
+        config.scanner.hysteresis_fraction, rel=0.10
+    )
+    rows = {row["name"]: row for row in compare_with_simulator(calibration, report, config)}
+    assert rows["motion_noise.slope_x"]["recovered"] is None
+    assert "not measured" in rows["motion_noise.slope_x"]["note"]
+    assert abs(rows["hysteresis_x.loop_fraction"]["relative_error"]) < 0.10
+
+
 def test_hysteresis_asymmetry_exact_on_an_ideal_scanner():
     """With drift, noise, creep, coupling and the controller's model error off, the rescan
     shows the pits where they are, so the fit must return the configured asymmetry: a

@@ -239,6 +239,17 @@ def cmd_calibrate(args):
         f"{noise.k_h1 * 1e9:.4f} nm^2/nm, drift {calibration.drift_mean_velocity[0] * 1e9:.3f}, "
         f"{calibration.drift_mean_velocity[1] * 1e9:.3f} nm/s"
     )
+    failed = {n: v["failed"] for n, v in report.items() if isinstance(v, dict) and "failed" in v}
+    for name, reason in failed.items():
+        print(f"afm calibrate: {name} could not measure: {reason}", file=sys.stderr)
+    if failed:
+        print(
+            f"afm calibrate: {output} keeps the book's defaults for "
+            f"{', '.join(calibration.defaults)} (listed under `defaults:` in the file); "
+            "repeat the calibration for them",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 

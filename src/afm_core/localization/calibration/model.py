@@ -60,6 +60,9 @@ class Calibration:
     scan_region_sigma: float = 4.7e-9  # m (Fig. 7.11)
     line_deflection_mean_deg: float = 0.746  # deg (Fig. 7.12)
     line_deflection_sigma_deg: float = 0.393  # deg
+    # the fields above that hold the book's defaults, not a measurement (an experiment that
+    # could not measure leaves its fields at the defaults; run_calibration lists them here)
+    defaults: list[str] = field(default_factory=list)
 
     def __post_init__(self):
         self.validate()

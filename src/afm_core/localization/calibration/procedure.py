@@ -31,9 +31,12 @@ Experiments (`run_calibration` runs the drift pairs first, then the others in th
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time as wallclock
 from datetime import datetime, timezone
+
+import numpy as np
 
 from afm_core.localization.calibration.creep import measure_creep
 from afm_core.localization.calibration.drift_statistics import measure_drift
@@ -43,6 +46,54 @@ from afm_core.localization.calibration.map_errors import map_errors
 from afm_core.localization.calibration.model import Calibration
 from afm_core.localization.calibration.motion_error import measure_motion_noise
 from afm_core.localization.calibration.scanner_matrix import measure_scanner_matrix
+
+# What an experiment that cannot measure raises (too few pits found, a fit that does not
+# converge, an instrument refusing a move); anything else is a bug and propagates.
+EXPERIMENT_FAILURES = (ValueError, RuntimeError, ArithmeticError, np.linalg.LinAlgError)
+
+
+def _attempt(report: dict, name: str, measure):
+    """Run one experiment; a failure is recorded with its reason and the run goes on."""
+    try:
+        report[name] = measure()
+    except EXPERIMENT_FAILURES as exc:
+        report[name] = None
+        report.setdefault("_failed", {})[name] = f"{type(exc).__name__}: {exc}"
+    return report[name]
+
+
+def _calibration_fields(report: dict) -> dict:
+    """The Calibration fields the successful experiments measured."""
+    fields: dict = {}
+    if report.get("drift") is not None:
+        drift = report["drift"].parameters
+        fields["drift_mean_velocity"] = list(drift["mean_velocity"])
+        fields["drift_sigma_velocity"] = list(drift["sigma_velocity"])
+    if report.get("map_errors") is not None:
+        errors = report["map_errors"].parameters
+        fields["map_sigma"] = list(errors["map_sigma"])
+        fields["scan_region_sigma"] = float(errors["scan_region_sigma"])
+    if report.get("creep") is not None:
+        creep = report["creep"].parameters
+        fields["creep_time_constants"] = list(creep["time_constants"])
+        fields["creep_fractions_x"] = list(creep["fractions_x"])
+        fields["creep_fractions_y"] = list(creep["fractions_y"])
+    for axis in ("x", "y"):
+        if report.get(f"hysteresis_{axis}") is not None:
+            fields[f"hysteresis_{axis}"] = hysteresis_fit_of(report[f"hysteresis_{axis}"])
+    if report.get("scanner_matrix") is not None:
+        fields["scanner_matrix"] = report["scanner_matrix"].parameters["scanner_matrix"]
+    if report.get("motion_noise") is not None:
+        noise = report["motion_noise"].parameters
+        fields["motion_noise_slope_x"] = max(0.0, noise["slope_x"])
+        fields["motion_noise_slope_y"] = max(0.0, noise["slope_y"])
+        fields["motion_noise_cross_slope"] = max(0.0, noise["cross_slope"])
+        fields["motion_noise_offset"] = max(0.0, 0.5 * (noise["offset_x"] + noise["offset_y"]))
+    if report.get("line_deflection") is not None:
+        deflection = report["line_deflection"].parameters
+        fields["line_deflection_mean_deg"] = float(deflection["mean_deg"])
+        fields["line_deflection_sigma_deg"] = float(deflection["sigma_deg"])
+    return fields
 
 
 def run_calibration(
@@ -60,53 +111,75 @@ def run_calibration(
     before hysteresis: the hysteresis fit includes it; drift, map and scan-region errors
     first, before there are pits). Each keyword is that experiment's options
     (see its function). Returns the Calibration and a report {experiment: {"parameters",
-    "data"}} (the drift frames are left out of the report; `map_errors` has used them)."""
+    "data"}} (the drift frames are left out of the report; `map_errors` has used them).
+
+    An experiment that cannot measure (EXPERIMENT_FAILURES) does not stop the others: its
+    report entry is {"failed": reason}, its Calibration fields keep the book's defaults and
+    are listed in `Calibration.defaults`, so the file still carries every result measured
+    (a hysteresis fit then goes without the creep term, the y sweep without the x sweep's pit
+    list)."""
     report: dict = {}
     started = wallclock.perf_counter()
     clock0 = float(instrument.time)
     # Drift first: it needs no pits, and on the simulator every image gets slower with every
     # pit on the sample (hundreds by the end), which matters for ~100 hours of frame pairs.
-    drift_result = measure_drift(instrument, **(drift or {}))
-    frames = drift_result.data.pop("frames")
-    report["drift"] = drift_result
-    report["map_errors"] = map_errors(frames)
-    del frames
-    result = measure_creep(instrument, **(creep or {}))
-    report["creep"] = result
-    creep_x = (result.parameters["time_constants"], result.parameters["fractions_x"])
-    creep_y = (result.parameters["time_constants"], result.parameters["fractions_y"])
+    drift_result = _attempt(report, "drift", lambda: measure_drift(instrument, **(drift or {})))
+    if drift_result is not None:
+        frames = drift_result.data.pop("frames")
+        _attempt(report, "map_errors", lambda: map_errors(frames))
+        del frames
+    else:
+        report["map_errors"] = None
+        report["_failed"]["map_errors"] = "no drift frames (the drift experiment failed)"
+    result = _attempt(report, "creep", lambda: measure_creep(instrument, **(creep or {})))
+    creep_axes = [None, None]
+    if result is not None:
+        taus = result.parameters["time_constants"]
+        creep_axes = [
+            (taus, result.parameters["fractions_x"]),
+            (taus, result.parameters["fractions_y"]),
+        ]
     options = dict(hysteresis or {})
-    report["hysteresis_x"] = measure_hysteresis(instrument, 0, creep=creep_x, **options)
-    report["hysteresis_y"] = measure_hysteresis(
-        instrument, 1, creep=creep_y, ignore=report["hysteresis_x"].data["all_detected"], **options
+    first = _attempt(
+        report,
+        "hysteresis_x",
+        lambda: measure_hysteresis(instrument, 0, creep=creep_axes[0], **options),
     )
-    report["scanner_matrix"] = measure_scanner_matrix(instrument, **(scanner_matrix or {}))
-    report["motion_noise"] = measure_motion_noise(instrument, **(motion_noise or {}))
-    report["line_deflection"] = measure_line_deflection(instrument, **(line_deflection or {}))
-    noise = report["motion_noise"].parameters
-    errors = report["map_errors"].parameters
+    ignore = first.data["all_detected"] if first is not None else None
+    _attempt(
+        report,
+        "hysteresis_y",
+        lambda: measure_hysteresis(instrument, 1, creep=creep_axes[1], ignore=ignore, **options),
+    )
+    _attempt(
+        report,
+        "scanner_matrix",
+        lambda: measure_scanner_matrix(instrument, **(scanner_matrix or {})),
+    )
+    _attempt(
+        report, "motion_noise", lambda: measure_motion_noise(instrument, **(motion_noise or {}))
+    )
+    _attempt(
+        report,
+        "line_deflection",
+        lambda: measure_line_deflection(instrument, **(line_deflection or {})),
+    )
+    failed = report.pop("_failed", {})
+    fields = _calibration_fields(report)
     stamp = datetime.now(timezone.utc).isoformat(timespec="seconds")
     calibration = Calibration(
         source=source or f"afm_core.localization.calibration.procedure.run_calibration, {stamp}",
-        scanner_matrix=report["scanner_matrix"].parameters["scanner_matrix"],
-        hysteresis_x=hysteresis_fit_of(report["hysteresis_x"]),
-        hysteresis_y=hysteresis_fit_of(report["hysteresis_y"]),
-        creep_time_constants=list(result.parameters["time_constants"]),
-        creep_fractions_x=list(result.parameters["fractions_x"]),
-        creep_fractions_y=list(result.parameters["fractions_y"]),
-        motion_noise_slope_x=max(0.0, noise["slope_x"]),
-        motion_noise_slope_y=max(0.0, noise["slope_y"]),
-        motion_noise_cross_slope=max(0.0, noise["cross_slope"]),
-        motion_noise_offset=max(0.0, 0.5 * (noise["offset_x"] + noise["offset_y"])),
-        drift_mean_velocity=list(drift_result.parameters["mean_velocity"]),
-        drift_sigma_velocity=list(drift_result.parameters["sigma_velocity"]),
-        map_sigma=list(errors["map_sigma"]),
-        scan_region_sigma=float(errors["scan_region_sigma"]),
-        line_deflection_mean_deg=float(report["line_deflection"].parameters["mean_deg"]),
-        line_deflection_sigma_deg=float(report["line_deflection"].parameters["sigma_deg"]),
+        **fields,
+    )
+    calibration.defaults = sorted(
+        f.name
+        for f in dataclasses.fields(Calibration)
+        if f.name not in fields and f.name not in ("source", "defaults")
     )
     summary = {
-        name: {"parameters": value.parameters, "data": value.data}
+        name: {"failed": failed[name]}
+        if value is None
+        else {"parameters": value.parameters, "data": value.data}
         for name, value in report.items()
     }
     summary["instrument_seconds"] = float(instrument.time) - clock0

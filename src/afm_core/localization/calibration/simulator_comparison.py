@@ -4,6 +4,8 @@ what each experiment recovered next to the value the simulator was configured wi
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from afm_core.localization.calibration.creep import creep_step_response
@@ -51,12 +53,18 @@ def compare_with_simulator(calibration: Calibration, report: dict, config) -> li
     """Recovered against configured values of a simulated instrument (afm_core.sim.config
     SimConfig), one row per quantity: name, recovered, true, relative error (None where the
     true value is 0 or there is none to compare with), and what is compared."""
-    return (
+    rows = (
         _hysteresis_rows(calibration, report, config.scanner)
         + _creep_rows(calibration, config.scanner)
         + _drift_and_noise_rows(calibration, report, config)
         + _image_frame_rows(calibration, config.scanner)
     )
+    for row in rows:  # an experiment that failed measured nothing: say so, compare nothing
+        experiment = report.get(row["name"].split(".")[0].split("[")[0], {})
+        if isinstance(experiment, dict) and "failed" in experiment:
+            reason = experiment["failed"]
+            row.update(recovered=None, relative_error=None, note=f"not measured: {reason}")
+    return rows
 
 
 def _row(name: str, recovered, true, note: str = "") -> dict:
@@ -113,7 +121,7 @@ def _hysteresis_rows(calibration: Calibration, report: dict, scanner) -> list[di
                 "max branch misfit / true loop width (relative_error = the value)",
             )
         )
-        gain = report[f"hysteresis_{axis}"]["parameters"]["gain"]
+        gain = report[f"hysteresis_{axis}"].get("parameters", {}).get("gain", math.nan)
         rows.append(_row(f"hysteresis_{axis}.gain", gain, 1.0, "tip-to-tip output / input span"))
     return rows
 
@@ -173,7 +181,9 @@ def _drift_and_noise_rows(calibration: Calibration, report: dict, config) -> lis
             "m/s",
         ),
     ]
-    noise = report["motion_noise"]["parameters"]
+    noise = report["motion_noise"].get("parameters") or dict.fromkeys(
+        ("pooled_slope", "slope_x", "slope_y", "cross_slope"), math.nan
+    )
     for name in ("pooled_slope", "slope_x", "slope_y", "cross_slope"):
         rows.append(
             _row(
