@@ -103,7 +103,14 @@ def test_a_failed_experiment_keeps_the_others_results(monkeypatch, tmp_path):
 
     monkeypatch.setattr(procedure, "measure_motion_noise", cannot_measure)
     config = load_config()
-    calibration, report = run_calibration(SimulatedAfm(config), **QUICK)
+    heard = []
+    calibration, report = run_calibration(SimulatedAfm(config), **QUICK, progress=heard.append)
+    assert heard[0] == "experiment 1 of 8: drift ..."
+    assert any(
+        text.startswith("experiment 7 of 8: motion_noise failed (ValueError: motion noise")
+        for text in heard
+    )
+    assert heard[-1].startswith("experiment 8 of 8: line_deflection done in ")
     assert report["motion_noise"] == {
         "failed": "ValueError: motion noise (y, d=2.5e-07 m): only 0 trials measured"
     }

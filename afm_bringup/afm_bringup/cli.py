@@ -224,6 +224,7 @@ def cmd_calibrate(args):
             instrument,
             drift={"pairs": args.pairs},
             source=f"afm calibrate --backend {args.backend}",
+            progress=lambda text: print(f"afm calibrate: {text}", flush=True),
         )
     except (ValueError, RuntimeError) as exc:
         sys.exit(f"afm calibrate: {exc}")

@@ -52,13 +52,41 @@ from afm_core.localization.calibration.scanner_matrix import measure_scanner_mat
 EXPERIMENT_FAILURES = (ValueError, RuntimeError, ArithmeticError, np.linalg.LinAlgError)
 
 
-def _attempt(report: dict, name: str, measure):
-    """Run one experiment; a failure is recorded with its reason and the run goes on."""
+# The experiments in the order run_calibration runs them (for progress: "k of n").
+EXPERIMENTS = (
+    "drift",
+    "map_errors",
+    "creep",
+    "hysteresis_x",
+    "hysteresis_y",
+    "scanner_matrix",
+    "motion_noise",
+    "line_deflection",
+)
+
+
+def _attempt(report: dict, name: str, measure, progress=None, instrument=None):
+    """Run one experiment; a failure is recorded with its reason and the run goes on.
+    `progress(text)`, if given, hears when it starts and how it ended (wall and instrument
+    seconds: on the real instrument the experiments take hours)."""
+    number = EXPERIMENTS.index(name) + 1
+    wall0 = wallclock.perf_counter()
+    clock0 = float(instrument.time) if instrument is not None else 0.0
+    if progress is not None:
+        progress(f"experiment {number} of {len(EXPERIMENTS)}: {name} ...")
     try:
         report[name] = measure()
+        outcome = "done"
     except EXPERIMENT_FAILURES as exc:
         report[name] = None
         report.setdefault("_failed", {})[name] = f"{type(exc).__name__}: {exc}"
+        outcome = f"failed ({type(exc).__name__}: {exc})"
+    if progress is not None:
+        spent = float(instrument.time) - clock0 if instrument is not None else 0.0
+        progress(
+            f"experiment {number} of {len(EXPERIMENTS)}: {name} {outcome} in "
+            f"{wallclock.perf_counter() - wall0:.0f} s ({spent:.0f} s of instrument time)"
+        )
     return report[name]
 
 
@@ -106,6 +134,7 @@ def run_calibration(
     line_deflection: dict | None = None,
     drift: dict | None = None,
     source: str | None = None,
+    progress=None,
 ) -> tuple[Calibration, dict]:
     """All experiments, in an order where each can use what the previous measured (creep
     before hysteresis: the hysteresis fit includes it; drift, map and scan-region errors
@@ -117,21 +146,25 @@ def run_calibration(
     report entry is {"failed": reason}, its Calibration fields keep the book's defaults and
     are listed in `Calibration.defaults`, so the file still carries every result measured
     (a hysteresis fit then goes without the creep term, the y sweep without the x sweep's pit
-    list)."""
+    list). `progress(text)`, if given, hears each experiment's start and end."""
     report: dict = {}
+
+    def attempt(name, measure):
+        return _attempt(report, name, measure, progress, instrument)
+
     started = wallclock.perf_counter()
     clock0 = float(instrument.time)
     # Drift first: it needs no pits, and on the simulator every image gets slower with every
     # pit on the sample (hundreds by the end), which matters for ~100 hours of frame pairs.
-    drift_result = _attempt(report, "drift", lambda: measure_drift(instrument, **(drift or {})))
+    drift_result = attempt("drift", lambda: measure_drift(instrument, **(drift or {})))
     if drift_result is not None:
         frames = drift_result.data.pop("frames")
-        _attempt(report, "map_errors", lambda: map_errors(frames))
+        attempt("map_errors", lambda: map_errors(frames))
         del frames
     else:
         report["map_errors"] = None
         report["_failed"]["map_errors"] = "no drift frames (the drift experiment failed)"
-    result = _attempt(report, "creep", lambda: measure_creep(instrument, **(creep or {})))
+    result = attempt("creep", lambda: measure_creep(instrument, **(creep or {})))
     creep_axes = [None, None]
     if result is not None:
         taus = result.parameters["time_constants"]
@@ -140,27 +173,21 @@ def run_calibration(
             (taus, result.parameters["fractions_y"]),
         ]
     options = dict(hysteresis or {})
-    first = _attempt(
-        report,
+    first = attempt(
         "hysteresis_x",
         lambda: measure_hysteresis(instrument, 0, creep=creep_axes[0], **options),
     )
     ignore = first.data["all_detected"] if first is not None else None
-    _attempt(
-        report,
+    attempt(
         "hysteresis_y",
         lambda: measure_hysteresis(instrument, 1, creep=creep_axes[1], ignore=ignore, **options),
     )
-    _attempt(
-        report,
+    attempt(
         "scanner_matrix",
         lambda: measure_scanner_matrix(instrument, **(scanner_matrix or {})),
     )
-    _attempt(
-        report, "motion_noise", lambda: measure_motion_noise(instrument, **(motion_noise or {}))
-    )
-    _attempt(
-        report,
+    attempt("motion_noise", lambda: measure_motion_noise(instrument, **(motion_noise or {})))
+    attempt(
         "line_deflection",
         lambda: measure_line_deflection(instrument, **(line_deflection or {})),
     )
