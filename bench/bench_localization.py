@@ -79,6 +79,7 @@ from scipy.stats import chi2
 
 from afm_core.localization import Localizer, MapLandmark
 from afm_core.localization.calibration.model import Calibration, load_calibration
+from afm_core.localization.calibration.simulator_comparison import simulator_calibration
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 
@@ -219,27 +220,16 @@ def measure_scan_region_sigma(
 def sim_oracle_calibration() -> Calibration:
     """See the module docstring: what a perfect calibration of the default simulator finds."""
     config = load_config()
-    scanner, drift = config.scanner, config.drift
     matrix = measure_scanner_matrix()
-    region = measure_scan_region_sigma(matrix, "sphere")
-    fractions = list(scanner.creep_fractions) if scanner.creep_enabled else []
-    return Calibration(
-        source=f"sim-derived oracle (bench_localization.py, {datetime.now(timezone.utc).date()}): "
+    return simulator_calibration(
+        config,
+        matrix,
+        f"sim-derived oracle (bench_localization.py, {datetime.now(timezone.utc).date()}): "
         "matrix measured on a noise-free simulator, other parameters from the simulator's default "
         "config; not a calibration experiment",
-        scanner_matrix=matrix.tolist(),
-        creep_time_constants=list(scanner.creep_time_constants) if fractions else [],
-        creep_fractions_x=fractions,
-        creep_fractions_y=list(fractions),
-        motion_noise_slope_x=scanner.positioning_noise_slope,
-        motion_noise_slope_y=scanner.positioning_noise_slope,
-        motion_noise_cross_slope=scanner.positioning_noise_slope,
-        motion_noise_offset=scanner.positioning_noise_offset,
-        drift_mean_velocity=[drift.mean_velocity_x, drift.mean_velocity_y],
-        drift_sigma_velocity=[drift.sigma_velocity_x, drift.sigma_velocity_y],
         map_sigma=[5.0e-9, 4.5e-9],
-        scan_region_sigma=region,
-        line_deflection_mean_deg=scanner.deflection_deg,
+        scan_region_sigma=measure_scan_region_sigma(matrix, "sphere"),
+        line_deflection_mean_deg=config.scanner.deflection_deg,
         line_deflection_sigma_deg=0.0,
     )
 

@@ -18,14 +18,15 @@ def simulator_calibration(config, scanner_matrix, source: str, **fields) -> Cali
     """What a perfect calibration of a simulated instrument (afm_core.sim.config SimConfig)
     finds: its configured creep, positioning noise and drift statistics, with `scanner_matrix`
     (measured on a quiet copy: afm_core.evaluation.image_frame_matrix); `fields` set the rest
-    (scan_region_sigma, ...)."""
+    (scan_region_sigma, ...). An instrument whose creep is off has no creep terms."""
     s, d = config.scanner, config.drift
+    fractions = list(s.creep_fractions) if s.creep_enabled else []
     return Calibration(
         source=source,
         scanner_matrix=np.asarray(scanner_matrix, float).tolist(),
-        creep_time_constants=list(s.creep_time_constants),
-        creep_fractions_x=list(s.creep_fractions),
-        creep_fractions_y=list(s.creep_fractions),
+        creep_time_constants=list(s.creep_time_constants) if fractions else [],
+        creep_fractions_x=fractions,
+        creep_fractions_y=list(fractions),
         motion_noise_slope_x=s.positioning_noise_slope,
         motion_noise_slope_y=s.positioning_noise_slope,
         motion_noise_cross_slope=s.positioning_noise_slope,
