@@ -46,7 +46,7 @@ def _odd(size: int) -> int:
     return size
 
 
-def _auto_or_metres(text: str) -> str:
+def _rule_or_metres(text: str) -> str:
     from afm_core.imaging.tip_thresholds import RULES
 
     if text not in RULES:
@@ -101,7 +101,7 @@ PARAMETERS = ParameterTable(
         "tip_threshold",
         "auto",
         "Denoising threshold of the blind tip estimate: 'auto', 'consensus', 'book' or metres.",
-        check=_auto_or_metres,
+        check=_rule_or_metres,
         runtime=True,
     ),
     Parameter(
