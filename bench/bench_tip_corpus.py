@@ -42,23 +42,18 @@ import numpy as np  # noqa: E402
 from machine import command_line, cpu_model  # noqa: E402
 
 from afm_core.imaging.tip_estimation import estimate_tip, tip_error  # noqa: E402
-from afm_core.imaging.tip_refinement import (  # noqa: E402
-    TipRefiner,
-    estimate_noise,
-    feature_points,
-    work_window,
-)
-from afm_core.imaging.tip_thresholds import ThresholdSweep  # noqa: E402
+from afm_core.imaging.tip_refinement import estimate_noise  # noqa: E402
 from afm_core.sim.characterizer import characterizer_image  # noqa: E402
-from afm_core.sim.tip_corpus import Case, TipModel, corpus_cases, make_case  # noqa: E402
+from afm_core.sim.tip_corpus import (  # noqa: E402
+    Case,
+    TipModel,
+    best_fixed_threshold,
+    corpus_cases,
+    make_case,
+    score_depth,
+)
 
 RESULTS = Path(__file__).resolve().parent / "results"
-DEPTH = 20e-9
-
-
-def score_depth(tip: np.ndarray) -> float:
-    h = tip.shape[0] // 2
-    return max(DEPTH, float(-tip[h - 1 : h + 2, h - 1 : h + 2].min()))
 
 
 def cases(n: int, tip_size: int, seeds) -> list[tuple[str, int, object, float]]:
@@ -77,24 +72,6 @@ def cases(n: int, tip_size: int, seeds) -> list[tuple[str, int, object, float]]:
                 )
             )
     return out
-
-
-def best_fixed(image, tip, k, sigma, depth) -> tuple[float, float]:
-    est = TipRefiner(image, k)
-    feats = feature_points(image, k, sigma)
-    sweep = ThresholdSweep(est, feats, work_window(est, feats, 0.0), 50)
-    errors = {}
-    for th in np.append(sigma * 64 / 2 ** (np.arange(49) / 6), 0.0):
-        errors[float(th)] = tip_error(sweep.run(th), tip, depth)
-    for _ in range(2):
-        keys = sorted(errors)
-        i = keys.index(min(keys, key=errors.get))
-        for j in (i - 1, i + 1):
-            if 0 <= j < len(keys):
-                mid = 0.5 * (keys[i] + keys[j])
-                errors[mid] = tip_error(sweep.run(mid), tip, depth)
-    th = min(errors, key=errors.get)
-    return th, errors[th]
 
 
 def chosen(image, k, rule, tip, depth) -> tuple[float, float]:
@@ -143,7 +120,7 @@ def run_corpus(args) -> list[dict]:
         tip = tip[c - h : c + h + 1, c - h : c + h + 1]
         sigma = estimate_noise(image)
         depth = score_depth(tip)
-        th_best, err_best = best_fixed(image, tip, k, sigma, depth)
+        th_best, err_best = best_fixed_threshold(image, tip, k, sigma)
         t0 = time.perf_counter()
         auto_th, auto_err = chosen(image, k, "auto", tip, depth)
         seconds = time.perf_counter() - t0

@@ -22,7 +22,8 @@ with vertical edges) and grains (a granular film: the upper envelope of random p
 grains).
 
 `corpus_cases()` lists a fixed design over tips, samples, pixel sizes (1-10 nm) and noise
-levels (0.1-1 nm); `make_case()` builds one image with its true tip.
+levels (0.1-1 nm); `make_case()` builds one image with its true tip. `score_depth` and
+`best_fixed_threshold` are how a case is scored (bench/bench_tip_corpus.py, the tests).
 """
 
 from __future__ import annotations
@@ -238,3 +239,43 @@ def corpus_cases(n: int = 256, tip_size: int = 21, seeds=(0,)) -> list[Case]:
                     Case(tip, sample, pixel, noise, n, tip_size, seed=100 * seed + 5 * i + j)
                 )
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# Scoring
+
+
+SCORE_DEPTH = 20e-9  # m: the error is the RMS over the top 20 nm of the true tip
+
+
+def score_depth(true_tip: np.ndarray) -> float:
+    """The depth the error is taken over: the top SCORE_DEPTH of the true tip, at least its
+    apex's 3x3 neighbours (so that coarse pixels score more than the apex)."""
+    h = true_tip.shape[0] // 2
+    return max(SCORE_DEPTH, float(-true_tip[h - 1 : h + 2, h - 1 : h + 2].min()))
+
+
+def best_fixed_threshold(image, true_tip, tip_size: int, noise: float, refine: int = 2):
+    """(threshold m, error m) of the fixed threshold a user who knew the true tip would pick:
+    a ladder 2^(1/6) apart from 64 to 1/4 `noise` sigmas and 0 (warm-started downwards,
+    exact), then the midpoints to the best's neighbours, `refine` times."""
+    from afm_core.imaging.tip_estimation import tip_error
+    from afm_core.imaging.tip_refinement import TipRefiner, feature_points, work_window
+    from afm_core.imaging.tip_thresholds import ThresholdSweep
+
+    depth = score_depth(true_tip)
+    est = TipRefiner(image, tip_size)
+    features = feature_points(image, tip_size, noise)
+    sweep = ThresholdSweep(est, features, work_window(est, features, 0.0), 50)
+    errors = {}
+    for th in np.append(noise * 64 / 2 ** (np.arange(49) / 6), 0.0):
+        errors[float(th)] = tip_error(sweep.run(th), true_tip, depth)
+    for _ in range(refine):
+        keys = sorted(errors)
+        i = keys.index(min(keys, key=errors.get))
+        for j in (i - 1, i + 1):
+            if 0 <= j < len(keys):
+                mid = 0.5 * (keys[i] + keys[j])
+                errors[mid] = tip_error(sweep.run(mid), true_tip, depth)
+    best = min(errors, key=errors.get)
+    return best, errors[best]
