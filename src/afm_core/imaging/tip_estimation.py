@@ -42,8 +42,6 @@ from afm_core.imaging.tip_thresholds import (
 )
 from afm_core.physics.tip_morphology import erode
 
-_REL_EPS = 1e-9  # relative (to the image's height range) tolerance for "no change"
-
 
 @dataclass
 class TipEstimate:
