@@ -460,8 +460,19 @@ class SimulatedAfm:
 
     def _field_for(self, request: ScanRequest) -> DilatedField:
         """Dilated surface over the scan area plus a margin for where hysteresis, creep and
-        drift may have put the tip."""
+        drift may have put the tip. Called with the tip at the image's first sample: the area
+        is shifted by where the tip truly is against its command there (in the sample frame),
+        which far from the range centre is up to ~1 um (the feed-forward's residual and the
+        coupling of a long move); a field about the commanded area alone imaged flat substrate
+        where the particles were."""
         pixel = min(request.size_x / request.pixels_x, request.size_y / request.pixels_y)
+        here = self.sample_frame(
+            np.array([self._true_scanner[0]]),
+            np.array([self._true_scanner[1]]),
+            np.array([self.time]),
+        )
+        shift_x = float(here[0][0]) - self._commanded[0]
+        shift_y = float(here[1][0]) - self._commanded[1]
         margin = (
             0.05 * max(request.size_x, request.size_y)
             + 20e-9
@@ -473,7 +484,7 @@ class SimulatedAfm:
                 )
             )
         )
-        x0, y0 = request.origin_x - margin, request.origin_y - margin
+        x0, y0 = request.origin_x + shift_x - margin, request.origin_y + shift_y - margin
         nx = int(math.ceil((request.size_x + 2 * margin) / pixel)) + 1
         ny = int(math.ceil((request.size_y + 2 * margin) / pixel)) + 1
         tip = self.tip.grid(pixel, self._imaging_depth())
