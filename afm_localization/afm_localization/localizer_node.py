@@ -99,6 +99,7 @@ APPLY = {
 KINDS = {
     TipCommand.SCAN_LINE: "line",
     TipCommand.INDENT: "indent",
+    TipCommand.RASTER: "raster",
 }  # the rest moves as a free move would
 
 
@@ -303,15 +304,13 @@ class LocalizerNode(Node):
         result.innovation = [
             float(line.innovation) for line in lines if math.isfinite(line.innovation)
         ]
-        summary = "; ".join(
-            f"{line.axis} line {line.status}" + (f" ({line.reason})" if line.reason else "")
-            for line in lines
-        )
+        summary = observation.summary() if observation is not None else ""
         result.success = observation is not None and observation.all_accepted and not failure
         if failure:
             result.message = f"driver failure: {failure}" + (f"; {summary}" if summary else "")
         else:
             result.message = summary or "no line run"
+        self.get_logger().info(f"localize on landmark {landmark.id}: {result.message}")
         if goal_handle.is_cancel_requested:
             goal_handle.canceled()
             result.message = "cancelled after the lines in progress: " + result.message

@@ -100,6 +100,15 @@ LOCALIZER_PARAMETERS = ParameterTable(
 DEFAULT_TIP_ALLOWANCE = (
     30e-9  # m, lateral tip broadening when the landmark's apparent half-width is unknown
 )
+# A line that misses its landmark is followed by a search (observe_landmark): parallel lines
+# offset across it by one apparent half-width (the landmark then lies within half a
+# half-width of one of them, where its profile still rises well above the threshold), out to
+# SEARCH_SIGMAS standard deviations of the tip's and the landmark's uncertainty across the
+# line, each SEARCH_LENGTH_FACTOR times as long as the first; at most MAX_SEARCH_LINES lines,
+# so a landmark that is not there costs a bounded time.
+SEARCH_SIGMAS = 3.0
+SEARCH_LENGTH_FACTOR = 2.0
+MAX_SEARCH_LINES = 8
 
 
 @dataclass
@@ -117,6 +126,11 @@ class LineResult:
     mahalanobis: float = math.nan
     mean_at_crossing: np.ndarray | None = None  # estimate at x_kp after the update (or prediction)
     covariance_at_crossing: np.ndarray | None = None
+    search: str = ""  # after a missed first try: the search lines run and what they found
+
+    def describe(self) -> str:
+        text = f"{self.axis} line {self.status}" + (f" ({self.reason})" if self.reason else "")
+        return text + (f" [{self.search}]" if self.search else "")
 
     @property
     def accepted(self) -> bool:
@@ -158,6 +172,10 @@ class ObservationResult:
     @property
     def lost(self) -> bool:
         return any(line.lost for line in self.lines)
+
+    def summary(self) -> str:
+        """One phrase per line: its axis, verdict, reason and any search."""
+        return "; ".join(line.describe() for line in self.lines)
 
 
 @dataclass
@@ -258,16 +276,17 @@ class Localizer:
     ) -> bool:
         """Predict a command someone else sent the instrument (a driver reports every one it
         executes): hold until it starts, a free move to its start if the tip was commanded
-        elsewhere, then the command itself ("line" along a scan line, "move" otherwise) over its
-        duration. An "indent" is reported at its spot (start = end) with a duration that includes
-        the lifted approach from wherever the tip was commanded: it is predicted as a move there
-        over that duration, never as a jump in no time. extra_variance (m^2, each axis): what the
-        motion model cannot predict about this command, e.g. the path-dependent hysteresis
-        residue of a raster image, which the model sees only as its net displacement. A command
+        elsewhere, then the command itself ("line" along a scan line, "raster" an image, "move"
+        otherwise) over its duration. An "indent" is reported at its spot (start = end) with a
+        duration that includes the lifted approach from wherever the tip was commanded: it is
+        predicted as a move there over that duration, never as a jump in no time.
+        extra_variance (m^2, each axis): what the motion model cannot predict about this
+        command, e.g. the path-dependent hysteresis residue of a raster image, which the model
+        sees only as its net displacement. A command
         ending no later than the estimate's time is already accounted for (our own, or reported
         twice): skipped, returns False."""
-        if kind not in ("move", "line", "indent"):
-            raise ValueError(f"kind={kind!r}: must be 'move', 'line' or 'indent'")
+        if kind not in ("move", "line", "indent", "raster"):
+            raise ValueError(f"kind={kind!r}: must be 'move', 'line', 'indent' or 'raster'")
         start, end = checks.point("start", start), checks.point("end", end)
         if kind == "indent":
             start, kind = np.asarray(self.model.command, dtype=float), "move"
@@ -352,12 +371,14 @@ class Localizer:
         sign: float = 1.0,
         before: float | None = None,
         after: float | None = None,
+        across: float = 0.0,
     ) -> tuple[LineRequest, np.ndarray, float]:
         """A line along task-frame axis `axis` ("x" or "y") through the landmark's map position,
         in the direction `sign`, long enough to start and end clear of it with 3 sigma of the
         tip's and the landmark's uncertainty: it starts `before` and ends `after` metres (task
         frame) from the landmark (default both: 3 sigma + the landmark's apparent half-width
-        + margin). Returns (request, true direction, default half length)."""
+        + margin), `across` metres beside it (a search line; + is the other axis's positive
+        direction). Returns (request, true direction, default half length)."""
         landmark = as_map_landmark(landmark)
         if axis not in ("x", "y"):
             raise ValueError(f"axis={axis!r}: must be 'x' or 'y'")
@@ -369,7 +390,10 @@ class Localizer:
         for name, value in (("before", before), ("after", after)):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}={value}: must be finite and > 0 m")
-        start_target = landmark.position - before * d
+        beside = float(checks.finite("across", across)) * (
+            np.array([0.0, 1.0]) if axis == "x" else np.array([1.0, 0.0])
+        )
+        start_target = landmark.position + beside - before * d
         start = self.model.command_for(start_target - self.mean, self.move_speed)
         # the end: where the model (creep still to come included) puts the tip (before + after) * d
         # further along, trying the approach move on a copy first
@@ -379,7 +403,7 @@ class Localizer:
         )
         start_predicted = self.mean + approach.mean
         end = trial.command_for(
-            landmark.position + after * d - start_predicted, self.line_speed, "line"
+            landmark.position + beside + after * d - start_predicted, self.line_speed, "line"
         )
         step = np.subtract(end, start)
         limits = self.instrument.limits
@@ -400,12 +424,13 @@ class Localizer:
         sign: float = 1.0,
         before: float | None = None,
         after: float | None = None,
+        across: float = 0.0,
     ) -> LineResult:
         """One local scan line across the landmark (see plan_line) and its update at the
         crossing point, carried to the line's end (eq. 5.9-5.21)."""
         landmark = as_map_landmark(landmark)
         self.sync()
-        request, direction, _ = self.plan_line(landmark, axis, sign, before, after)
+        request, direction, _ = self.plan_line(landmark, axis, sign, before, after, across)
         try:
             self.move_command(request.start_x, request.start_y, self.move_speed)
             data = self.instrument.local_scan(request)
@@ -475,6 +500,61 @@ class Localizer:
         )
         return (request.samples - 1) * along / true_length
 
+    def search_offsets(self, landmark: MapLandmark, axis: str) -> list[float]:
+        """Offsets across a missed `axis` line for the search lines, nearest first (see
+        SEARCH_SIGMAS): one apparent half-width apart out to SEARCH_SIGMAS sigma, the first
+        line's own track (offset 0) again but longer, at most MAX_SEARCH_LINES in all."""
+        across = np.array([0.0, 1.0]) if axis == "x" else np.array([1.0, 0.0])
+        sigma = math.sqrt(
+            max(0.0, float(across @ (self.covariance + landmark.covariance) @ across))
+        )
+        spacing = (
+            landmark.half_width
+            if landmark.half_width > 0
+            else landmark.radius + DEFAULT_TIP_ALLOWANCE
+        )
+        reach = max(SEARCH_SIGMAS * sigma, spacing)
+        offsets = [0.0]
+        k = 1
+        while k * spacing <= reach and len(offsets) < MAX_SEARCH_LINES:
+            offsets += [k * spacing, -k * spacing]
+            k += 1
+        return offsets[:MAX_SEARCH_LINES]
+
+    def _search(self, landmark: MapLandmark, missed: LineResult, sign: float, after) -> LineResult:
+        """A missed line's bounded search (SEARCH_SIGMAS): longer parallel lines beside its
+        track until one finds the landmark; that line (or the last miss) is the result, its
+        `search` field says what was run."""
+        d = np.array([1.0, 0.0]) if missed.axis == "x" else np.array([0.0, 1.0])
+        half = SEARCH_LENGTH_FACTOR * self._line_half_length(landmark, d)
+        offsets = self.search_offsets(landmark, missed.axis)
+        line, run = missed, 0
+        for offset in offsets:
+            try:
+                line = self.observe_line(
+                    landmark,
+                    missed.axis,
+                    sign,
+                    before=half,
+                    after=max(half, after or 0.0),
+                    across=offset,
+                )
+            except ValueError as exc:  # the search left the scanner range: stop there
+                line.search = f"search stopped after {run} line(s): {exc}"
+                return line
+            run += 1
+            if not line.lost:
+                break
+        where = f"{offset * 1e9:+.0f} nm across" if offset else "on its track"
+        line.search = (
+            f"first try missed ({missed.reason}); search line {run} of up to {len(offsets)}, "
+            f"{2 * half * 1e9:.0f} nm long, {where}: {line.status}"
+            if not line.lost
+            else f"first try missed; {run} search line(s) up to "
+            f"{max(abs(o) for o in offsets) * 1e9:.0f} nm across found nothing"
+        )
+        return line
+
     def plan_observation(
         self, landmark, both_axes: bool = True, toward=None
     ) -> list[tuple[str, float, float | None]]:
@@ -528,6 +608,11 @@ class Localizer:
                 line = self.observe_line(landmark, axis, sign, after=after)
             except ValueError as exc:  # the re-planned line left the scanner range
                 line = LineResult(axis, "not_run", f"line not run: {exc}")
+            # a search only looks for a landmark where the model says it may be: once a line
+            # found it and gated it out, the disagreement is beyond the model, not a miss
+            searchable = line.observation is not None and line.request is not None
+            if line.lost and searchable and not result.gated_out:
+                line = self._search(landmark, line, sign, after)
             result.lines.append(line)
             if line.status == "instrument_error":
                 result.instrument_error = line.reason

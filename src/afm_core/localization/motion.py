@@ -1,10 +1,19 @@
 """The calibrated tip motion model (book eq. 5.3-5.5).
 
-    x_{k+1} = x_k + M (c~_{k+1} - c~_k) - v_d dt + w,        w ~ N(0, R_k)
+    x_{k+1} = x_k + (c~_{k+1} - c~_k) + (r_{k+1} - r_k) - v_d dt + w,    w ~ N(0, R_k)
 
 - c: the commanded scanner position (m, per axis). The controller's hysteresis feed-forward
   is part of the instrument; what is left of it, the x/y coupling and the scan-line rotation
-  are the calibrated `scanner_matrix` M (true displacement per commanded displacement).
+  are the calibrated `scanner_matrix` M (true displacement per commanded displacement, in the
+  frame of the images, measured on short moves after a reversal).
+- M's departure from the identity is the residual hysteresis of short moves (the images'
+  raster shares the coupling and rotation, which cancel), and a hysteresis offset is bounded:
+  the model carries it as a residual r (task frame minus command, per axis) that grows by
+  (M - I) dc along a move and saturates at |M - I| times the span M was measured over
+  (`Calibration.scanner_matrix_span`). A raster resets r: the image it makes is the frame the
+  map is in. Extrapolating M over a 40 um move put the estimate 0.5 um from where the map and
+  the tip agree (the simulated default scanner, y gain 1.014), and the first line missed.
+  So the mean displacement is dc~ + dr, which is M dc~ for moves within the span.
 - c~: the command seen through the calibrated creep operators (book eq. 5.29-5.31,
   `afm_core.pzt.Creep`, one per axis): c~ = a c + sum_i f_i x_i with a = 1 - sum_i f_i, so
   a step is followed by sum_i f_i of it over the creep time constants and a settled tip is
@@ -44,7 +53,7 @@ RAMP_SAMPLE_TIME = 0.01  # s, creep operators sample a commanded ramp at least t
 RAMP_MIN_SAMPLES = 8
 RAMP_MAX_SAMPLES = 2000
 
-KINDS = ("move", "line", "hold")
+KINDS = ("move", "line", "hold", "raster")
 
 
 @dataclass
@@ -54,12 +63,14 @@ class MotionState:
     time: float  # s, instrument clock
     command: np.ndarray  # (2,) m, last commanded scanner position
     creep: tuple  # per axis: Creep.state array, or None without creep
+    residual: np.ndarray  # (2,) m, the feed-forward's residual hysteresis offset r
 
     def copy(self) -> MotionState:
         return MotionState(
             self.time,
             self.command.copy(),
             tuple(None if s is None else np.array(s, dtype=float) for s in self.creep),
+            self.residual.copy(),
         )
 
 
@@ -95,6 +106,10 @@ class MotionModel:
                 "inverted"
             )
         self.inverse_matrix = np.linalg.inv(self.matrix)
+        self.residual_gain = self.matrix - np.eye(2)
+        self.residual_bound = np.abs(self.residual_gain).sum(axis=1) * float(
+            calibration.scanner_matrix_span
+        )
         self.noise = calibration.motion_noise()
         self.drift_velocity = DRIFT_SIGN * np.array(calibration.drift_mean_velocity, dtype=float)
         self.deflection_sigma = math.radians(calibration.line_deflection_sigma_deg)
@@ -115,6 +130,7 @@ class MotionModel:
         cx, cy = (checks.finite("command.x", command[0]), checks.finite("command.y", command[1]))
         self._time = checks.finite("time", time)
         self._command = np.array([cx, cy])
+        self._residual = np.zeros(2)
         for creep, c in zip(self._creep, self._command):
             if creep is not None:
                 creep.reset(c)
@@ -125,11 +141,13 @@ class MotionModel:
             self._time,
             self._command.copy(),
             tuple(None if c is None else c.state for c in self._creep),
+            self._residual.copy(),
         )
 
     def set_state(self, state: MotionState) -> None:
         self._time = float(state.time)
         self._command = np.array(state.command, dtype=float)
+        self._residual = np.array(state.residual, dtype=float)
         for creep, s in zip(self._creep, state.creep):
             if creep is not None:
                 creep.state = s
@@ -148,6 +166,15 @@ class MotionModel:
     @property
     def command(self) -> tuple[float, float]:
         return float(self._command[0]), float(self._command[1])
+
+    @property
+    def has_creep(self) -> bool:
+        return any(c is not None for c in self._creep)
+
+    def creep_to_come(self) -> np.ndarray:
+        """(2,) m: the creep displacement still to come if the command is held from now on
+        (command minus c~ per axis; zero once settled), before the scanner matrix."""
+        return self._command - self._creep_output()
 
     # -- prediction ----------------------------------------------------------------------------
     def _creep_output(self) -> np.ndarray:
@@ -191,7 +218,9 @@ class MotionModel:
         """Ramp the command linearly from the last command to (x, y) over `duration` s.
 
         kind "move": a free move (positioning noise a d + b); "line": along a local scan line
-        (deflection noise across the line, no positioning noise); "hold" requires no motion."""
+        (deflection noise across the line, no positioning noise); "raster": an image's net
+        motion, a free move that leaves the residual r at zero (the image is the map's frame);
+        "hold" requires no motion."""
         if kind not in KINDS:
             raise ValueError(f"kind={kind!r}: must be one of {KINDS}")
         target = np.array([checks.finite("x", x), checks.finite("y", y)])
@@ -207,9 +236,18 @@ class MotionModel:
         distance = float(np.hypot(*step))
         if kind == "hold" and distance > 0:
             raise ValueError(f"kind='hold' with a commanded step of {distance:.3e} m")
-        mean = self.matrix @ (after - before) + self.drift_velocity * duration
+        if kind == "raster":
+            residual = np.zeros(2)
+        else:
+            residual = np.clip(
+                self._residual + self.residual_gain @ step,
+                -self.residual_bound,
+                self.residual_bound,
+            )
+        mean = (after - before) + (residual - self._residual) + self.drift_velocity * duration
+        self._residual = residual
         true_step = self.matrix @ step
-        if kind == "move":
+        if kind in ("move", "raster"):
             covariance = self.noise.added_covariance(true_step[0], true_step[1])
         else:
             covariance = np.zeros((2, 2))

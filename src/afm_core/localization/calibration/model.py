@@ -37,6 +37,11 @@ class Calibration:
     # true displacement per commanded displacement in normal (compensated) operation:
     # gain, x/y coupling and scan-line rotation together; rows: true x, true y.
     scanner_matrix: list[list[float]] = field(default_factory=lambda: [[1.0, 0.0], [0.0, 1.0]])
+    # m: the longest commanded move the scanner matrix was measured over (its experiment's pit
+    # grid). Its departure from the identity is the feed-forward's residual hysteresis of
+    # short moves, which is bounded (a hysteresis offset saturates); the motion model lets it
+    # grow over at most this much of a move instead of extrapolating it to long moves.
+    scanner_matrix_span: float = 4.0e-6
     hysteresis_x: HysteresisFit = field(default_factory=HysteresisFit)
     hysteresis_y: HysteresisFit = field(default_factory=HysteresisFit)
     creep_time_constants: list[float] = field(default_factory=list)  # s
@@ -75,6 +80,10 @@ class Calibration:
             or not all(math.isfinite(v) for row in matrix for v in row)
         ):
             raise ValueError(f"calibration scanner_matrix={matrix}: need a finite 2x2 matrix")
+        if not (math.isfinite(self.scanner_matrix_span) and self.scanner_matrix_span > 0):
+            raise ValueError(
+                f"calibration scanner_matrix_span={self.scanner_matrix_span}: need a value > 0 (m)"
+            )
         if len(self.creep_fractions_x) != len(self.creep_time_constants) or len(
             self.creep_fractions_y
         ) != len(self.creep_time_constants):

@@ -111,6 +111,8 @@ def _calibration_fields(report: dict) -> dict:
             fields[f"hysteresis_{axis}"] = hysteresis_fit_of(report[f"hysteresis_{axis}"])
     if report.get("scanner_matrix") is not None:
         fields["scanner_matrix"] = report["scanner_matrix"].parameters["scanner_matrix"]
+        if "span" in report["scanner_matrix"].parameters:
+            fields["scanner_matrix_span"] = report["scanner_matrix"].parameters["span"]
     if report.get("motion_noise") is not None:
         noise = report["motion_noise"].parameters
         fields["motion_noise_slope_x"] = max(0.0, noise["slope_x"])

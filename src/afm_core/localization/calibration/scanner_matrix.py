@@ -81,6 +81,11 @@ def measure_scanner_matrix(
     matrix = solution[:2].T
     residual = found[index[ok]] - origin - design @ solution
     return Experiment(
-        {"scanner_matrix": matrix.tolist(), "rms_residual": float(np.sqrt(np.mean(residual**2)))},
+        {
+            "scanner_matrix": matrix.tolist(),
+            "rms_residual": float(np.sqrt(np.mean(residual**2))),
+            # the longest commanded displacement the fit covers (MotionModel: M's reach)
+            "span": float(np.max(np.ptp(commands[ok], axis=0))),
+        },
         {"commanded": commands[ok].tolist(), "imaged": found[index[ok]].tolist()},
     )
