@@ -4,7 +4,10 @@ Backends: `sim` (afm_core.sim, publishes ground truth and /clock), `daq` (a scan
 through an NI DAQ card, afm_core.daq), `replay` (answers the actions with a recorded
 session's data, afm_core.replay_instrument). One motion at a time: goals wait in a FIFO
 queue of at most `max_queued_goals`; cancel stops a running motion where the tip is, or
-removes a waiting goal.
+removes a waiting goal. With a `calibration_file`, ScanImage first approaches the image's
+first sample and waits there as long as the calibrated creep model says the creep still to
+come exceeds `creep_settle_tolerance` (afm_core.localization.creep_settle), and its result
+message says how long and why.
 """
 
 from __future__ import annotations
@@ -22,6 +25,13 @@ from std_msgs.msg import Header
 
 from afm_core.backends import open_instrument
 from afm_core.instrument import LineRequest, ScanRequest
+from afm_core.localization.calibration.model import load_calibration
+from afm_core.localization.creep_settle import (
+    CREEP_SETTLE_TOLERANCE,
+    MAX_CREEP_WAIT,
+    CreepSettler,
+    settle_before,
+)
 from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_msgs.msg import ForceTrace, GroundTruth, RasterScan, ScanLine, TipCommand
@@ -80,6 +90,14 @@ PARAMETERS = ParameterTable(
         "",
         "YAML file of the DAQ calibration (daq backend; defaults: afm_core.daq.DaqCalibration).",
     ),
+    Parameter(
+        "calibration_file",
+        "",
+        "Calibration YAML written by `afm calibrate` (the localizer's): its creep model sets the "
+        "wait before an image after a long move; empty: no wait.",
+    ),
+    CREEP_SETTLE_TOLERANCE,
+    MAX_CREEP_WAIT,
     Parameter(
         "replay_input",
         "",
@@ -155,6 +173,7 @@ class DriverNode(Node):
         self.epoch = time.time()  # instrument time 0 <-> wall time at start
         self.gate = FifoGate(self.config["max_queued_goals"])
         self.pacing_origin = (time.monotonic(), self.instrument.time)
+        self.settler = self._settler()
         self.scan_pub = self.create_publisher(RasterScan, topics.SCAN, SCANS)
         self.line_pub = self.create_publisher(ScanLine, topics.SCAN_LINE, STREAM)
         self.trace_pub = self.create_publisher(ForceTrace, topics.FORCE_TRACE, STREAM)
@@ -189,6 +208,20 @@ class DriverNode(Node):
         if self.clock_pub is not None:
             self.create_timer(1.0 / self.config["clock_frequency"], self.publish_clock)
         self.publish_truth()
+
+    def _settler(self) -> CreepSettler | None:
+        """The creep model that times the wait before an image (none without a calibration,
+        or on an instrument that cannot hold: the replay backend serves what was recorded)."""
+        if not self.config["calibration_file"] or not hasattr(self.instrument, "hold"):
+            return None
+        try:
+            calibration = load_calibration(self.config["calibration_file"])
+        except ValueError as exc:
+            raise ValueError(f"parameter calibration_file: {exc}") from exc
+        settler = CreepSettler(
+            calibration, self.instrument.commanded_position(), self.instrument.time
+        )
+        return settler if settler.enabled else None
 
     # -- plumbing ----------------------------------------------------------------------------
     def accept_goal(self, _goal):
@@ -270,6 +303,8 @@ class DriverNode(Node):
         msg.end.x, msg.end.y = map(float, end)
         msg.start_voltage = msg.end_voltage = [float("nan")] * 3
         self.command_pub.publish(msg)
+        if self.settler is not None:
+            self.settler.observe(start, end, start_time, start_time + duration)
         return msg
 
     def refuse(self, goal_handle, result, exc):
@@ -315,10 +350,15 @@ class DriverNode(Node):
             goal_handle.publish_feedback(ScanImage.Feedback(lines_done=done, lines_total=total))
             self.pace()
 
+        should_stop = self.stop_check(goal_handle)
+        settled = self.settle_before_scan(request, should_stop)
+        if settled:
+            self.get_logger().info(
+                f"scan at ({request.origin_x * 1e6:.2f}, "
+                f"{request.origin_y * 1e6:.2f}) um: {settled}"
+            )
         start_time, start = self.instrument.time, self.instrument.commanded_position()
-        scan = self.instrument.raster_scan(
-            request, on_line=on_line, should_stop=self.stop_check(goal_handle)
-        )
+        scan = self.instrument.raster_scan(request, on_line=on_line, should_stop=should_stop)
         duration = self.instrument.time - start_time
         fast_size = request.size_x if request.scan_angle_deg == 0.0 else request.size_y
         path_length = 2 * fast_size * request.lines + math.dist(
@@ -338,7 +378,39 @@ class DriverNode(Node):
         if scan.complete:
             self.scan_pub.publish(msg)
         result.scan = msg
-        return self.finish(goal_handle, result, scan.complete, "scan")
+        result = self.finish(goal_handle, result, scan.complete, "scan")
+        if settled:
+            result.message = f"{result.message}; {settled}"
+        return result
+
+    def settle_before_scan(self, request: ScanRequest, should_stop) -> str:
+        """Approach the image's first sample and wait there for creep (afm_core creep_settle);
+        what was done, in words ("" when no wait was needed)."""
+        if self.settler is None:
+            return ""
+
+        def on_move(start, end, start_time, duration):
+            self.command(
+                TipCommand.MOVE,
+                start_time,
+                start,
+                end,
+                duration,
+                math.dist(start, end) / duration if duration > 0 else 0.0,
+            )
+
+        approach = self.instrument.limits.max_speed / 10  # the scan's own approach speed
+        settling = settle_before(
+            self.instrument,
+            self.settler,
+            *request.first_point(),
+            approach,
+            self.config["creep_settle_tolerance"],
+            self.config["max_creep_wait"],
+            on_move=on_move,
+            should_stop=should_stop,
+        )
+        return settling.describe()
 
     def _next_scan_id(self) -> int:
         self._scan_count = getattr(self, "_scan_count", 0) + 1

@@ -112,6 +112,18 @@ class ScanRequest:
     def pixels_per_line(self) -> int:
         return self.pixels_x if self.scan_angle_deg == 0.0 else self.pixels_y
 
+    def first_point(self) -> tuple[float, float]:
+        """Where the image's first sample is commanded (m, scanner frame): the first pixel
+        centre of the first line in slow-scan order; the scan's approach ends here."""
+        half_x, half_y = 0.5 * self.size_x / self.pixels_x, 0.5 * self.size_y / self.pixels_y
+        x, y = self.origin_x + half_x, self.origin_y + half_y
+        if not self.slow_scan_up:  # the first line is the last row (0 deg) or column (90 deg)
+            if self.scan_angle_deg == 0.0:
+                y = self.origin_y + self.size_y - half_y
+            else:
+                x = self.origin_x + self.size_x - half_x
+        return float(x), float(y)
+
 
 @dataclass
 class RasterScanData:

@@ -242,6 +242,12 @@ class DaqInstrument:
     def commanded_position(self) -> tuple[float, float]:
         return self._pos
 
+    def hold(self, duration: float) -> None:
+        """Wait `duration` s with the outputs held (the last static voltages stay written):
+        what a creep settle before an image asks of a real scanner."""
+        if duration > 0:
+            time.sleep(duration)
+
     def close(self) -> None:
         self.boundary.close()
 
