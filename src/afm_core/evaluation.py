@@ -91,11 +91,13 @@ def compare_payloads(messages_a, messages_b) -> dict:
     }
 
 
-def image_frame_matrix(config=None, step: float = 1e-6) -> np.ndarray:
+def image_frame_matrix(config=None, step: float = 1e-6, at=None) -> np.ndarray:
     """Evaluation only (simulator truth): true displacement per commanded displacement for a
-    short move about the scanner centre, on a noise-, drift- and creep-free copy of the
-    simulated instrument. Images and calibrated maps are in commanded coordinates (the frame
-    the calibration experiments measure in); the simulator's truth is metric. With the default
+    short move about the scanner centre (or about `at`, m, reached by a move from the centre:
+    the scanner's gain depends on where in its range it works), on a noise-, drift- and
+    creep-free copy of the simulated instrument. Images and calibrated maps are in commanded
+    coordinates (the frame the calibration experiments measure in); the simulator's truth is
+    metric. With the default
     scanner the two differ by ~6 % in scale (the residual hysteresis of short sweeps), so true
     displacements are brought into the image frame with the inverse of this matrix before they
     are compared with what the graph planned or estimated."""
@@ -114,6 +116,8 @@ def image_frame_matrix(config=None, step: float = 1e-6) -> np.ndarray:
     columns = []
     for d in (np.array([step, 0.0]), np.array([0.0, step])):
         sim = SimulatedAfm(quiet)
+        if at is not None:
+            sim.move_tip(float(at[0]), float(at[1]), 1e-5)
         before = np.array(sim.truth()["tip_position"])
         x, y = np.array(sim.commanded_position()) + d
         sim.move_tip(x, y, 1e-5)
