@@ -1,0 +1,127 @@
+"""Vendor scan files (imaging.vendor_files through files.load_height_map): files written byte
+by byte from each format's documented structure (vendor_writers.py) come back in metres,
+with rows along +y, the pixel size and position the header states, and damaged or
+unsupported files are refused naming the file and the problem."""
+
+import numpy as np
+import pytest
+from vendor_writers import write_ibw, write_sxm, write_wsxm
+
+from afm_core.imaging.files import list_channels, load_height_map
+
+ROWS, COLS = 12, 16
+
+
+def _image(seed: int) -> np.ndarray:
+    """Heights (m, float32-exact) with a corner that tells up from down and left from right."""
+    rng = np.random.default_rng(seed)
+    z = np.round(rng.normal(0.0, 100.0, (ROWS, COLS))).astype(np.float32) * np.float32(1e-10)
+    z[0, 0] = np.float32(50e-9)  # bottom-left corner (row 0 = lowest y, col 0 = lowest x)
+    return z.astype(np.float64)
+
+
+def test_ibw_reads_channels_in_metres_with_rows_along_y(tmp_path):
+    trace, retrace = _image(1), _image(2)
+    layers = np.stack([trace.T, retrace.T], axis=2)  # Igor: (x, y, channel)
+    dx, dy, x0, y0 = 2e-9, 3e-9, 1e-6, -2e-6
+    note = f"ScanSize: {COLS * dx}\rFastScanSize: {COLS * dx}\rSlowScanSize: {ROWS * dy}\r"
+    path = tmp_path / "scan.ibw"
+    write_ibw(path, layers, (dx, dy), (x0, y0), ["HeightTrace", "HeightRetrace"], note)
+    assert list_channels(path) == ["HeightTrace", "HeightRetrace"]
+    hmap = load_height_map(path, "HeightRetrace")
+    np.testing.assert_array_equal(hmap.height, retrace)
+    assert hmap.height[0, 0] == load_height_map(path).height[0, 0] == trace[0, 0]
+    assert (hmap.pixel_size_x, hmap.pixel_size_y) == (dx, dy)
+    # Igor's point positions are pixel centres: the area starts half a pixel before
+    assert (hmap.origin_x, hmap.origin_y) == (x0 - dx / 2, y0 - dy / 2)
+    assert hmap.title == "HeightRetrace"
+
+
+def test_ibw_units_are_converted_and_checked(tmp_path):
+    z = _image(3)
+    path = tmp_path / "nm.ibw"
+    write_ibw(path, z.T[:, :, None] * 1e9, (2.0, 2.0), (0.0, 0.0), ["Height"], "",
+              data_units="nm", dim_units="nm")  # fmt: skip
+    hmap = load_height_map(path)
+    np.testing.assert_allclose(hmap.height, z, rtol=1e-6)
+    assert hmap.pixel_size_x == pytest.approx(2e-9)
+    write_ibw(tmp_path / "volts.ibw", z.T[:, :, None], (1e-9, 1e-9), (0, 0), ["Phase"],
+              data_units="V")  # fmt: skip
+    with pytest.raises(ValueError, match=r"volts.ibw channel 'Phase' \(data units\).*'V'"):
+        load_height_map(tmp_path / "volts.ibw")
+    write_ibw(tmp_path / "note.ibw", z.T[:, :, None], (1e-9, 1e-9), (0, 0), ["Height"],
+              f"FastScanSize: {2 * COLS * 1e-9}\r")  # fmt: skip
+    with pytest.raises(ValueError, match="FastScanSize.*disagrees"):
+        load_height_map(tmp_path / "note.ibw")
+    with pytest.raises(ValueError, match="channel 'Amplitude' does not exist.*0: 'Height'"):
+        load_height_map(path.with_name("note.ibw"), "Amplitude")
+    (tmp_path / "cut.ibw").write_bytes((tmp_path / "nm.ibw").read_bytes()[:200])
+    with pytest.raises(ValueError, match="cut.ibw: not a readable Igor binary wave"):
+        load_height_map(tmp_path / "cut.ibw")
+
+
+@pytest.mark.parametrize("direction", ["up", "down"])
+def test_sxm_reads_both_directions_and_scan_orders(tmp_path, direction):
+    forward, backward = _image(4), _image(5)
+    current = _image(6) * 1e-3
+    path = tmp_path / f"{direction}.sxm"
+    size, centre = (COLS * 2e-9, ROWS * 2.5e-9), (3e-7, -1e-7)
+    write_sxm(path, [("Z", "m", forward, backward), ("Current", "A", current, None)], size,
+              centre, direction)  # fmt: skip
+    assert list_channels(path) == ["Z", "Z backward", "Current"]
+    z = load_height_map(path)
+    np.testing.assert_array_equal(z.height, forward)
+    np.testing.assert_array_equal(load_height_map(path, "Z backward").height, backward)
+    assert (z.pixel_size_x, z.pixel_size_y) == pytest.approx((2e-9, 2.5e-9), rel=1e-6)
+    # SCAN_OFFSET is the frame's centre
+    assert (z.origin_x, z.origin_y) == pytest.approx((3e-7 - size[0] / 2, -1e-7 - size[1] / 2))
+    with pytest.raises(ValueError, match=r"channel 'Current'.*unit 'A' is not a length"):
+        load_height_map(path, "Current")
+
+
+def test_sxm_damaged_and_unsupported_files_are_refused_by_name(tmp_path):
+    z = _image(7)
+    write_sxm(tmp_path / "cut.sxm", [("Z", "m", z, None)], (1e-7, 1e-7), (0, 0), truncate=9)
+    with pytest.raises(ValueError, match=r"cut.sxm: truncated: \d+ data bytes"):
+        load_height_map(tmp_path / "cut.sxm")
+    write_sxm(tmp_path / "turned.sxm", [("Z", "m", z, None)], (1e-7, 1e-7), (0, 0), angle=30)
+    with pytest.raises(ValueError, match="turned.sxm: SCAN_ANGLE 30.0 deg"):
+        load_height_map(tmp_path / "turned.sxm")
+    stopped = z.copy()
+    stopped[-3:] = np.nan  # Nanonis leaves the lines of an interrupted scan NaN
+    write_sxm(tmp_path / "stopped.sxm", [("Z", "m", stopped, None)], (1e-7, 1e-7), (0, 0))
+    with pytest.raises(ValueError, match="stopped.sxm channel 'Z': 3 line"):
+        load_height_map(tmp_path / "stopped.sxm")
+    (tmp_path / "other.sxm").write_bytes(b"not a scan")
+    with pytest.raises(ValueError, match="other.sxm: not a Nanonis .sxm file"):
+        load_height_map(tmp_path / "other.sxm")
+
+
+@pytest.mark.parametrize("suffix, data_type", [(".stp", "double"), (".top", "integer")])
+def test_wsxm_reads_heights_scaled_to_z_amplitude(tmp_path, suffix, data_type):
+    raw = np.round(np.random.default_rng(8).normal(0, 300, (ROWS, COLS)))
+    raw[0, 0] = 2000  # bottom-left corner of the picture
+    quantum = 0.05  # nm per stored unit
+    stored = raw[:, ::-1]  # WSxM stores columns right to left, the bottom row first
+    path = tmp_path / f"scan{suffix}"
+    z_amplitude = f"{float(raw.max() - raw.min()) * quantum!r} nm"
+    write_wsxm(path, stored, (COLS * 2, ROWS * 3), z_amplitude, data_type)
+    hmap = load_height_map(path)
+    np.testing.assert_allclose(hmap.height, raw * quantum * 1e-9, rtol=1e-12, atol=1e-22)
+    assert hmap.height[0, 0] == hmap.height.max()
+    assert (hmap.pixel_size_x, hmap.pixel_size_y) == pytest.approx((2e-9, 3e-9))
+    assert list_channels(path) == ["Topography"]
+    data = path.read_bytes()
+    (tmp_path / f"cut{suffix}").write_bytes(data[: data.index(b"[Header end]")])
+    with pytest.raises(ValueError, match=f"cut{suffix}: WSxM header without"):
+        load_height_map(tmp_path / f"cut{suffix}")
+    (tmp_path / f"short{suffix}").write_bytes(data[:-10])
+    with pytest.raises(ValueError, match=f"short{suffix}: truncated"):
+        load_height_map(tmp_path / f"short{suffix}")
+
+
+def test_vendor_formats_are_read_only(tmp_path):
+    from afm_core.imaging.files import HeightMap, save_height_map
+
+    with pytest.raises(ValueError, match="supported for writing"):
+        save_height_map(tmp_path / "x.sxm", HeightMap(np.zeros((2, 2)), 1e-9, 1e-9))

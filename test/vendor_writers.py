@@ -1,0 +1,89 @@
+"""Minimal vendor scan files written byte by byte from the formats' documented structure,
+for the reader tests (none of these formats has a writer we could use)."""
+
+import struct
+
+import numpy as np
+
+
+def write_ibw(path, layers, spacing, first, labels, note="", data_units="m", dim_units="m"):
+    """An Igor binary wave version 5 (Igor Technical Note 003), little endian, float32:
+    `layers` (x, y, channel); `spacing`, `first` = sfA, sfB of dimensions 0 and 1."""
+    data = np.asarray(layers, dtype="<f4")
+    nx, ny, nch = data.shape
+    payload = data.tobytes(order="F")  # Igor stores dimension 0 fastest
+    note_bytes = note.encode("latin-1")
+    label_bytes = b"".join(n.encode().ljust(32, b"\0") for n in [""] + list(labels))
+    wave_header = struct.pack(
+        "<IIIihh6sh32slI4i4d4d4s16shhddI4I4II16ihhhccIihhII",
+        0, 0, 0, nx * ny * nch, 2, 0, b"", 1, b"scan", 0, 0,
+        nx, ny, nch, 0,
+        spacing[0], spacing[1], 1.0, 1.0,
+        first[0], first[1], 0.0, 0.0,
+        data_units.encode().ljust(4, b"\0"),
+        dim_units.encode().ljust(4, b"\0") * 2 + b"\0" * 8,
+        0, 0, 0.0, 0.0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
+        *[0] * 16, 0, 0, 0, b"\0", b"\0", 0, 0, 0, 0, 0, 0,
+    )  # fmt: skip
+    assert len(wave_header) == 320
+    bin_header = struct.pack(
+        "<hhllll4l4llll",
+        5, 0, 320 + len(payload), 0, len(note_bytes), 0, 0, 0, 0, 0,
+        0, 0, len(label_bytes), 0, 0, 0, 0,
+    )  # fmt: skip
+    assert len(bin_header) == 64
+    words = np.frombuffer(bin_header + wave_header, dtype="<i2")
+    checksum = (-int(words.astype(np.int64).sum())) % 65536  # the header words sum to 0
+    bin_header = bin_header[:2] + struct.pack("<H", checksum) + bin_header[4:]
+    with open(path, "xb") as f:
+        f.write(bin_header + wave_header + payload + note_bytes + label_bytes)
+
+
+def write_sxm(path, channels, size, centre, direction="up", angle=0.0, truncate=0):
+    """A Nanonis .sxm: `channels` = [(name, unit, forward, backward or None)], each image with
+    rows along +y as the map should read; stored as scanned (big-endian float32)."""
+    lines, columns = np.shape(channels[0][2])
+    table = "\tChannel\tName\tUnit\tDirection\tCalibration\tOffset\n"
+    blocks = []
+    for number, (name, unit, forward, backward) in enumerate(channels):
+        both = backward is not None
+        table += f"\t{number}\t{name}\t{unit}\t{'both' if both else 'forward'}\t1.0E+0\t0.0E+0\n"
+        for image, mirrored in ((forward, False), (backward, True)):
+            if image is None:
+                continue
+            stored = np.asarray(image)[:, ::-1] if mirrored else np.asarray(image)
+            stored = stored[::-1] if direction == "down" else stored
+            blocks.append(stored.astype(">f4").tobytes())
+    header = (
+        ":NANONIS_VERSION:\n2\n"
+        ":SCANIT_TYPE:\n              FLOAT            MSBFIRST\n"
+        f":SCAN_PIXELS:\n       {columns}       {lines}\n"
+        f":SCAN_RANGE:\n           {size[0]:.6E}           {size[1]:.6E}\n"
+        f":SCAN_OFFSET:\n           {centre[0]:.6E}         {centre[1]:.6E}\n"
+        f":SCAN_ANGLE:\n            {angle:.3E}\n"
+        f":SCAN_DIR:\n{direction}\n"
+        f":DATA_INFO:\n{table}\n"
+        ":SCANIT_END:\n\n\n"
+    )
+    data = header.encode("latin-1") + b"\x1a\x04" + b"".join(blocks)
+    with open(path, "xb") as f:
+        f.write(data[: len(data) - truncate])
+
+
+def write_wsxm(path, stored, size_nm, z_amplitude, data_type="double", channel="Topography"):
+    """A WSxM image file as Gwyddion exports one: `stored` already in file order."""
+    rows, columns = np.shape(stored)
+    text = (
+        "WSxM file copyright UAM\r\nSxM Image file\r\nImage header size: 99999\r\n\r\n"
+        "[Control]\r\n\r\n"
+        f"    X Amplitude: {size_nm[0]} nm\r\n    Y Amplitude: {size_nm[1]} nm\r\n\r\n"
+        "[General Info]\r\n\r\n"
+        f"    Image Data Type: {data_type}\r\n    Acquisition channel: {channel}\r\n"
+        f"    Number of columns: {columns}\r\n    Number of rows: {rows}\r\n"
+        f"    Z Amplitude: {z_amplitude}\r\n\r\n"
+        "[Header end]\r\n"
+    )
+    text = text.replace("99999", f"{len(text):5d}")
+    dtype = {"double": "<f8", "float": "<f4", "integer": "<i2"}[data_type]
+    with open(path, "xb") as f:
+        f.write(text.encode("latin-1") + np.asarray(stored).astype(dtype).tobytes())
