@@ -125,3 +125,49 @@ def test_vendor_formats_are_read_only(tmp_path):
 
     with pytest.raises(ValueError, match="supported for writing"):
         save_height_map(tmp_path / "x.sxm", HeightMap(np.zeros((2, 2)), 1e-9, 1e-9))
+
+
+def _tilted_scan_with_a_particle(centre_xy, origin, pixel):
+    """A 10 nm tilt across the map, noise, and a 20 nm round particle at centre_xy (m)."""
+    rows, cols = 64, 64
+    rng = np.random.default_rng(9)
+    y = origin[1] + (np.arange(rows) + 0.5) * pixel
+    x = origin[0] + (np.arange(cols) + 0.5) * pixel
+    xx, yy = np.meshgrid(x, y)
+    r2 = (xx - centre_xy[0]) ** 2 + (yy - centre_xy[1]) ** 2
+    particle = np.sqrt(np.clip((10e-9) ** 2 - r2, 0, None)) * 2.0  # 20 nm high cap
+    tilt = 10e-9 * (xx - origin[0]) / (cols * pixel) + 4e-9 * (yy - origin[1]) / (rows * pixel)
+    return particle, particle + tilt + rng.normal(0.0, 0.1e-9, xx.shape)
+
+
+def test_cli_levels_and_finds_a_particle_where_a_down_scan_put_it(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    pixel, origin, centre = 2e-9, (1.0e-6, 2.0e-6), (1.0e-6 + 40e-9, 2.0e-6 + 90e-9)
+    particle, raw = _tilted_scan_with_a_particle(centre, origin, pixel)
+    size = (64 * pixel, 64 * pixel)
+    scan = tmp_path / "lab.sxm"
+    write_sxm(scan, [("Z", "m", raw, None)], size,
+              (origin[0] + size[0] / 2, origin[1] + size[1] / 2), "down")  # fmt: skip
+
+    def afm(*args):
+        command = [sys.executable, "-m", "afm_bringup.cli", "image", *map(str, args)]
+        return subprocess.run(command, capture_output=True, text=True, timeout=300)
+
+    listed = afm("channels", scan)
+    assert listed.returncode == 0 and listed.stdout.strip() == "0: Z", listed.stderr
+    levelled = afm("level", scan, "--method", "plane", "-o", tmp_path / "flat.npz")
+    assert levelled.returncode == 0, levelled.stderr
+    flat = load_height_map(tmp_path / "flat.npz")
+    # the particle stands on a levelled background (noise 0.1 nm, fit error far below it)
+    assert np.max(np.abs(flat.height - particle)) < 0.6e-9
+    marks = afm("landmarks", scan, "--level", "plane", "--json", tmp_path / "marks.json")
+    assert marks.returncode == 0, marks.stderr
+    found = json.loads((tmp_path / "marks.json").read_text())
+    assert len(found) == 1
+    # where the scan put it, in the file's own coordinates, to a fraction of a pixel
+    assert (
+        abs(found[0]["x"] - centre[0]) < pixel / 2 and abs(found[0]["y"] - centre[1]) < pixel / 2
+    )

@@ -446,7 +446,10 @@ def _add_image(sub) -> None:
     p = sub.add_parser(
         "image",
         help="drift compensation, tip estimation, reconstruction, landmarks on files",
-        description="Run the imaging algorithms on image files (.npz, .gwy, .npy); no ROS needed.",
+        description=(
+            "Run the imaging algorithms on image files (.npz, .gwy, .npy, and vendors' "
+            ".ibw, .sxm, .stp, .top); no ROS needed."
+        ),
     )
     from afm_core.imaging.cli import add_subcommands
     from afm_core.imaging.cli import run as run_image
