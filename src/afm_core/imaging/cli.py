@@ -38,9 +38,16 @@ def _load(args, path) -> HeightMap:
     return hmap
 
 
-def _scan(
-    hmap: HeightMap, angle: float, frame_up: bool, line_rate: float, start: float
+def raster_scan_of(
+    hmap: HeightMap,
+    angle: float = 0.0,
+    frame_up: bool = True,
+    line_rate: float = 1.0,
+    start: float = 0.0,
+    mode: str = "tapping",
 ) -> RasterScanData:
+    """A height map as the driver's scan record (`afm map publish`, `afm image drift`): lines
+    `1 / line_rate` s apart, in frame order, from `start`."""
     lines = hmap.height.shape[0] if angle == 0.0 else hmap.height.shape[1]
     order = np.arange(lines) if frame_up else np.arange(lines)[::-1]
     starts = np.empty(lines)
@@ -56,7 +63,7 @@ def _scan(
         line_period=1.0 / line_rate,
         line_start_times=starts,
         start_time=start,
-        mode="tapping",
+        mode=mode,
     )
 
 
@@ -101,8 +108,8 @@ def cmd_drift(args) -> int:
 
     def compensate(gap: float):
         return compensate_pair(
-            _scan(first, 0.0, not args.down0, args.line_rate, 0.0),
-            _scan(second, 90.0, not args.down90, args.line_rate, gap),
+            raster_scan_of(first, 0.0, not args.down0, args.line_rate, 0.0),
+            raster_scan_of(second, 90.0, not args.down90, args.line_rate, gap),
             order=args.order,
         )
 
