@@ -5,7 +5,7 @@ unsupported files are refused naming the file and the problem."""
 
 import numpy as np
 import pytest
-from vendor_writers import write_ibw, write_sxm, write_wsxm
+from vendor_writers import write_ibw, write_jpk, write_sxm, write_wsxm
 
 from afm_core.imaging.files import list_channels, load_height_map
 
@@ -171,3 +171,37 @@ def test_cli_levels_and_finds_a_particle_where_a_down_scan_put_it(tmp_path):
     assert (
         abs(found[0]["x"] - centre[0]) < pixel / 2 and abs(found[0]["y"] - centre[1]) < pixel / 2
     )
+
+
+def test_jpk_reads_the_default_calibration_in_metres(tmp_path):
+    rng = np.random.default_rng(10)
+    trace = rng.integers(-(2**30), 2**30, (ROWS, COLS))
+    trace[0, 0] = 2**31 - 1  # bottom-left: the first stored row is the bottom line
+    retrace = rng.integers(-(2**30), 2**30, (ROWS, COLS))
+    multiplier, offset = -1.1577e-15, 2.486e-6  # m per count and m, as a NanoWizard writes
+    path = tmp_path / "scan.jpk"
+    write_jpk(path, [("height", False, trace, multiplier, offset),
+                     ("height", True, retrace, multiplier, offset)],
+              (COLS * 5e-9, ROWS * 4e-9), (2.5e-6, 1.6e-6))  # fmt: skip
+    assert list_channels(path) == ["height_trace", "height_retrace"]
+    hmap = load_height_map(path, "height_retrace")
+    np.testing.assert_allclose(hmap.height, retrace * multiplier + offset, rtol=1e-15)
+    trace_map = load_height_map(path)
+    assert trace_map.height[0, 0] == trace_map.height.min()  # the negative multiplier
+    assert (hmap.pixel_size_x, hmap.pixel_size_y) == pytest.approx((5e-9, 4e-9))
+    assert (hmap.origin_x, hmap.origin_y) == (2.5e-6, 1.6e-6)
+
+
+def test_jpk_refuses_rotated_grids_and_non_lengths(tmp_path):
+    raw = np.zeros((ROWS, COLS), dtype=np.int32)
+    write_jpk(tmp_path / "turned.jpk", [("height", False, raw, 1e-15, 0.0)], (1e-7, 1e-7),
+              (0.0, 0.0), theta=np.pi / 2)  # fmt: skip
+    with pytest.raises(ValueError, match="turned.jpk: Grid-Theta 90 deg"):
+        load_height_map(tmp_path / "turned.jpk")
+    write_jpk(tmp_path / "volts.jpk", [("error", False, raw, 1e-9, 0.0)], (1e-7, 1e-7),
+              (0.0, 0.0), slot_unit="V")  # fmt: skip
+    with pytest.raises(ValueError, match=r"volts.jpk channel 'error_trace' \(slot unit\)"):
+        load_height_map(tmp_path / "volts.jpk")
+    (tmp_path / "bad.jpk").write_bytes(b"not a TIFF at all")
+    with pytest.raises(ValueError, match="bad.jpk: not a readable JPK TIFF"):
+        load_height_map(tmp_path / "bad.jpk")

@@ -87,3 +87,30 @@ def write_wsxm(path, stored, size_nm, z_amplitude, data_type="double", channel="
     dtype = {"double": "<f8", "float": "<f4", "integer": "<i2"}[data_type]
     with open(path, "xb") as f:
         f.write(text.encode("latin-1") + np.asarray(stored).astype(dtype).tobytes())
+
+
+def write_jpk(path, channels, size, corner, theta=0.0, slot_unit="m"):
+    """A JPK image TIFF (JPKImageSpec 2.0 tags, as in the instrument's files): a thumbnail page
+    with the grid, then one int32 page per channel [(name, retrace, raw, multiplier,
+    offset)], each with a raw slot and a default 'calibrated' LinearScaling slot."""
+    import tifffile
+
+    lines, columns = np.shape(channels[0][2])
+    grid = [
+        (32832, "d", 1, corner[0], True), (32833, "d", 1, corner[1], True),
+        (32834, "d", 1, size[0], True), (32835, "d", 1, size[1], True),
+        (32836, "d", 1, theta, True), (32838, "I", 1, columns, True),
+        (32839, "I", 1, lines, True), (32848, "s", 0, "thumbnail", True),
+    ]  # fmt: skip
+    with tifffile.TiffWriter(path) as tif:
+        tif.write(np.zeros((4, 4), np.uint8), extratags=grid)
+        for name, retrace, raw, multiplier, offset in channels:
+            slots = [
+                (32848, "s", 0, name, True), (32849, "I", 1, int(retrace), True),
+                (32896, "I", 1, 2, True), (32897, "s", 0, "calibrated", True),
+                (32912, "s", 0, "raw", True), (32931, "s", 0, "NullScaling", True),
+                (32960, "s", 0, "calibrated", True), (32978, "s", 0, slot_unit, True),
+                (32979, "s", 0, "LinearScaling", True), (32980, "d", 1, multiplier, True),
+                (32981, "d", 1, offset, True),
+            ]  # fmt: skip
+            tif.write(np.asarray(raw, dtype=np.int32), extratags=slots)

@@ -8,6 +8,12 @@ bottom of the area, as `HeightMap`), for `files.load_height_map`.
   sfA * e + sfB, taken as the pixel centre), units from its dimension and data units (a
   length: m with an SI prefix); Asylum's note (FastScanSize, SlowScanSize) must agree with
   the scaling.
+- `.jpk` (JPK / Bruker JPK): a TIFF read through `tifffile` (BSD-3, numpy only); page 0
+  holds the grid (Grid-x0, -y0: the area's corner; Grid-uLength, -vLength: its size in m;
+  Grid-iLength, -jLength: pixels; Grid-Theta: only 0 is read), each further page one
+  channel (name_trace / name_retrace) of raw integers; heights are raw * multiplier +
+  offset of the page's default calibration slot, in that slot's unit (a length). The first
+  stored row is the bottom line, as AFMReader and Gwyddion read it.
 - `.sxm` (Nanonis): a text header of `:TAG:` blocks up to `:SCANIT_END:`, then 0x1A 0x04 and
   big-endian float32 blocks, one per channel and direction (forward, then backward when
   DATA_INFO says both), lines in the order scanned. SCAN_PIXELS (columns, lines),
@@ -37,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-VENDOR_SUFFIXES = (".ibw", ".sxm", ".stp", ".top")
+VENDOR_SUFFIXES = (".ibw", ".jpk", ".sxm", ".stp", ".top")
 _PREFIX = {
     "": 1.0,
     "k": 1e3,
@@ -71,6 +77,8 @@ def read_vendor(path: Path, channel: int | str = 0) -> VendorImage:
         return _ibw(path, channel)
     if suffix == ".sxm":
         return _sxm(path, channel)
+    if suffix == ".jpk":
+        return _jpk(path, channel)
     if suffix in (".stp", ".top"):
         return _wsxm(path, channel)
     raise ValueError(f"{path}: {path.suffix!r} is not a vendor format read here")
@@ -82,6 +90,9 @@ def vendor_channels(path: Path) -> list[str]:
         return _ibw_names(_ibw_wave(path), path)
     if suffix == ".sxm":
         return [name for name, *_ in _sxm_layout(_sxm_header(path)[0], path)]
+    if suffix == ".jpk":
+        with _jpk_open(path) as tif:
+            return _jpk_names(tif, path)
     return [_wsxm_title(_wsxm_header(path)[0], path)]
 
 
@@ -229,6 +240,117 @@ def _ibw(path: Path, channel) -> VendorImage:
         step[1],
         first[0] - step[0] / 2,  # point positions are pixel centres
         first[1] - step[1] / 2,
+        names[index],
+    )
+
+
+# -- JPK .jpk (tifffile) ----------------------------------------------------------------------
+
+# JPK's private TIFF tags (JPKImageSpec 2.0, as AFMReader and Gwyddion read them)
+_JPK_GRID = {
+    "x0": 32832,
+    "y0": 32833,
+    "u": 32834,
+    "v": 32835,
+    "theta": 32836,
+    "i": 32838,
+    "j": 32839,
+}
+_JPK_CHANNEL, _JPK_RETRACE, _JPK_SLOTS, _JPK_DEFAULT_SLOT = 32848, 32849, 32896, 32897
+_JPK_SLOT_BASE, _JPK_SLOT_SIZE = 32912, 48  # slot k's tags start at base + size * k
+_JPK_SLOT_UNIT, _JPK_SLOT_SCALING, _JPK_SLOT_MULTIPLIER, _JPK_SLOT_OFFSET = 18, 19, 20, 21
+
+
+def _jpk_open(path: Path):
+    try:
+        import tifffile
+    except ImportError as exc:
+        raise ImportError(
+            "reading JPK .jpk files needs the 'tifffile' package: pip install tifffile"
+        ) from exc
+    try:
+        return tifffile.TiffFile(path)
+    except Exception as exc:  # not a TIFF, truncated
+        raise ValueError(f"{path}: not a readable JPK TIFF ({type(exc).__name__}: {exc})") from exc
+
+
+def _jpk_tag(page, code: int, path: Path, what: str):
+    tag = page.tags.get(code)
+    if tag is None:
+        raise ValueError(f"{path}: the JPK file has no {what} (TIFF tag {code})")
+    return tag.value
+
+
+def _jpk_names(tif, path: Path) -> list[str]:
+    names = []
+    for page in tif.pages[1:]:
+        name = _jpk_tag(page, _JPK_CHANNEL, path, "channel name")
+        retrace = page.tags.get(_JPK_RETRACE)
+        names.append(f"{name}_{'retrace' if retrace is not None and retrace.value else 'trace'}")
+    if not names:
+        raise ValueError(f"{path}: the JPK file holds no channel page (only the thumbnail)")
+    return names
+
+
+def _jpk_scaling(page, path: Path, where: str) -> tuple[float, float, str]:
+    """(multiplier, offset, unit) of the page's default calibration slot."""
+    default = _jpk_tag(page, _JPK_DEFAULT_SLOT, path, "default calibration slot")
+    slots = int(_jpk_tag(page, _JPK_SLOTS, path, "number of calibration slots"))
+    for k in range(slots):
+        base = _JPK_SLOT_BASE + _JPK_SLOT_SIZE * k
+        name = page.tags.get(base)
+        if name is None or name.value != default:
+            continue
+        kind = _jpk_tag(page, base + _JPK_SLOT_SCALING, path, f"slot {default!r} scaling")
+        if kind != "LinearScaling":
+            raise ValueError(f"{where}: calibration slot {default!r} is {kind}, not a length")
+        return (
+            float(
+                _jpk_tag(page, base + _JPK_SLOT_MULTIPLIER, path, f"slot {default!r} multiplier")
+            ),
+            float(_jpk_tag(page, base + _JPK_SLOT_OFFSET, path, f"slot {default!r} offset")),
+            str(_jpk_tag(page, base + _JPK_SLOT_UNIT, path, f"slot {default!r} unit")),
+        )
+    raise ValueError(f"{where}: the default calibration slot {default!r} is not among its slots")
+
+
+def _jpk(path: Path, channel) -> VendorImage:
+    with _jpk_open(path) as tif:
+        names = _jpk_names(tif, path)
+        index = _choose(path, names, channel)
+        where = f"{path} channel {names[index]!r}"
+        grid = {
+            key: float(_jpk_tag(tif.pages[0], code, path, f"Grid-{key}"))
+            for key, code in _JPK_GRID.items()
+        }
+        if grid["theta"] != 0.0:
+            raise ValueError(
+                f"{path}: Grid-Theta {math.degrees(grid['theta']):.4g} deg: a rotated scan grid "
+                "is not read (the map's axes are the scanner's); export it unrotated"
+            )
+        page = tif.pages[index + 1]
+        try:
+            raw = np.asarray(page.asarray(), dtype=np.float64)
+        except Exception as exc:  # truncated strips
+            raise ValueError(f"{where}: unreadable image data ({exc})") from exc
+        multiplier, offset, unit = _jpk_scaling(page, path, where)
+    columns, lines = int(grid["i"]), int(grid["j"])
+    if raw.shape != (lines, columns):
+        raise ValueError(
+            f"{where}: image of {raw.shape[1]} x {raw.shape[0]} px, the grid says "
+            f"{columns} x {lines} (Grid-iLength x Grid-jLength)"
+        )
+    if not (grid["u"] > 0 and grid["v"] > 0):
+        raise ValueError(
+            f"{path}: Grid-uLength, -vLength must be > 0 m, got {grid['u']}, {grid['v']}"
+        )
+    height = (raw * multiplier + offset) * length_scale(unit, f"{where} (slot unit)")
+    return VendorImage(
+        _finite(height, where),
+        grid["u"] / columns,
+        grid["v"] / lines,
+        grid["x0"],
+        grid["y0"],
         names[index],
     )
 
@@ -391,6 +513,12 @@ def _wsxm(path: Path, channel) -> VendorImage:
         raise ValueError(
             f"{path}: General Info / Number of columns and Number of rows must be integers"
         ) from None
+    angle = _wsxm_quantity(fields, "Control::Angle", path)[0] if "Control::Angle" in fields else 0
+    if angle != 0.0:
+        raise ValueError(
+            f"{path}: Control / Angle {angle} deg: a rotated frame is not read (the map's axes "
+            "are the scanner's)"
+        )
     kind = fields.get("General Info::Image Data Type", "integer")
     if kind not in _WSXM_TYPES:
         raise ValueError(f"{path}: Image Data Type {kind!r}: expected one of {list(_WSXM_TYPES)}")
