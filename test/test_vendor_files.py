@@ -5,7 +5,7 @@ unsupported files are refused naming the file and the problem."""
 
 import numpy as np
 import pytest
-from vendor_writers import write_ibw, write_jpk, write_sxm, write_wsxm
+from vendor_writers import write_ibw, write_jpk, write_spm, write_sxm, write_wsxm
 
 from afm_core.imaging.files import list_channels, load_height_map
 
@@ -205,3 +205,44 @@ def test_jpk_refuses_rotated_grids_and_non_lengths(tmp_path):
     (tmp_path / "bad.jpk").write_bytes(b"not a TIFF at all")
     with pytest.raises(ValueError, match="bad.jpk: not a readable JPK TIFF"):
         load_height_map(tmp_path / "bad.jpk")
+
+
+@pytest.mark.parametrize("bpp", [2, 4])
+def test_spm_heights_from_the_scale_and_sensitivity(tmp_path, bpp):
+    rng = np.random.default_rng(11)
+    top = 2 ** (8 * bpp - 2)
+    trace = rng.integers(-top, top, (ROWS, COLS))
+    trace[0, 0] = 2 * top - 1  # the first stored row is the bottom line
+    retrace = rng.integers(-top, top, (ROWS, COLS))
+    path = tmp_path / "scan.spm"
+    write_spm(path, [("Height", trace, False), ("Height", retrace, True),
+                     ("Deflection", trace, False)], (1.6, 1.2), bpp=bpp)  # fmt: skip
+    assert list_channels(path) == ["Height", "Height retrace", "Deflection"]
+    metres_per_count = 439.9866 / 2 ** (8 * bpp) * 15.068e-9
+    hmap = load_height_map(path)
+    np.testing.assert_allclose(hmap.height, trace * metres_per_count, rtol=1e-12)
+    assert hmap.height[0, 0] == hmap.height.max()
+    np.testing.assert_allclose(
+        load_height_map(path, "Height retrace").height, retrace * metres_per_count, rtol=1e-12
+    )
+    assert (hmap.pixel_size_x, hmap.pixel_size_y) == pytest.approx((1.6e-6 / COLS, 1.2e-6 / ROWS))
+    with pytest.raises(ValueError, match=r"channel 'Deflection'.*Sens. Deflection"):
+        load_height_map(path, "Deflection")
+
+
+def test_spm_damaged_and_rotated_files_are_refused_by_name(tmp_path):
+    raw = np.zeros((ROWS, COLS), dtype=np.int16)
+    write_spm(tmp_path / "turned.spm", [("Height", raw, False)], (1, 1), rotate=30.0)
+    with pytest.raises(ValueError, match="turned.spm: Rotate Ang. 30.0 deg"):
+        load_height_map(tmp_path / "turned.spm")
+    write_spm(tmp_path / "whole.spm", [("Height", raw, False)], (1, 1))
+    data = (tmp_path / "whole.spm").read_bytes()
+    (tmp_path / "cut.spm").write_bytes(data[:-2])
+    with pytest.raises(ValueError, match="cut.spm: truncated"):
+        load_height_map(tmp_path / "cut.spm")
+    (tmp_path / "header.spm").write_bytes(data[:200])
+    with pytest.raises(ValueError, match="header.spm: NanoScope header without"):
+        load_height_map(tmp_path / "header.spm")
+    (tmp_path / "other.spm").write_bytes(b"PK\x03\x04 not a scan")
+    with pytest.raises(ValueError, match="other.spm: not a Bruker NanoScope file"):
+        load_height_map(tmp_path / "other.spm")

@@ -114,3 +114,34 @@ def write_jpk(path, channels, size, corner, theta=0.0, slot_unit="m"):
                 (32981, "d", 1, offset, True),
             ]  # fmt: skip
             tif.write(np.asarray(raw, dtype=np.int32), extratags=slots)
+
+
+def write_spm(path, images, size_um, sens=15.068, full_scale=439.9866, bpp=2, rotate=0.0):
+    """A Bruker NanoScope (v5.31) file: `images` = [(name, raw integers rows x columns,
+    retrace)], stored as they are (the first row is the bottom line); heights are raw x
+    full_scale / 2^(8 bpp) x `sens` nm/V for a channel scaled by 'Sens. Zscan'."""
+    header_size = 8192
+    text = [
+        "\\*File list", "\\Version: 0x05310001", f"\\Data length: {header_size}",
+        "\\*Scanner list", f"\\@Sens. Zscan: V {sens} nm/V", "\\@Sens. Deflection: V 1.000000 ",
+        "\\*Ciao scan list", f"\\Scan size: {size_um[0] * 1000} nm", f"\\Rotate Ang.: {rotate}",
+    ]  # fmt: skip
+    offset, blocks = header_size, []
+    for name, raw, retrace in images:
+        raw = np.asarray(raw, dtype=f"<i{bpp}")
+        sensitivity = "Zscan" if name == "Height" else name
+        text += [
+            "\\*Ciao image list", f"\\Data offset: {offset}",
+            f"\\Data length: {raw.size * bpp}", f"\\Bytes/pixel: {bpp}",
+            f"\\Samps/line: {raw.shape[1]}", f"\\Number of lines: {raw.shape[0]}",
+            f"\\Scan Size: {size_um[0]} {size_um[1]} ~m",
+            f"\\Line Direction: {'Retrace' if retrace else 'Trace'}",
+            f'\\@2:Image Data: S [{name}] "{name}"',
+            f"\\@2:Z scale: V [Sens. {sensitivity}] ({full_scale / 2 ** (8 * bpp):.9g} V/LSB) "
+            f"{full_scale} V",
+        ]  # fmt: skip
+        offset += raw.size * bpp
+        blocks.append(raw.tobytes())
+    header = ("\r\n".join(text) + "\r\n\\*File list end\r\n").encode("latin-1")
+    with open(path, "xb") as f:
+        f.write(header.ljust(header_size, b"\0") + b"".join(blocks))

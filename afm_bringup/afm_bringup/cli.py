@@ -448,7 +448,7 @@ def _add_image(sub) -> None:
         help="drift compensation, tip estimation, reconstruction, landmarks on files",
         description=(
             "Run the imaging algorithms on image files (.npz, .gwy, .npy, and vendors' "
-            ".ibw, .jpk, .sxm, .stp, .top); no ROS needed."
+            ".ibw, .jpk, .spm, .sxm, .stp, .top); no ROS needed."
         ),
     )
     from afm_core.imaging.cli import add_subcommands
@@ -576,10 +576,10 @@ def _add_map(sub) -> None:
         "publish",
         help="publish a scan file as the map (the imaging node finds its landmarks)",
         description=(
-            "Publish a scan file (.npz, .gwy, .npy, .ibw, .jpk, .sxm, .stp, .top) on the driver's "
-            "scan topic, as a 0 deg scan in scanner coordinates: the imaging node publishes "
-            "it as /afm/map with its landmarks, which the localizer, planner and nano-hand "
-            "use. Waits until the imaging node has done so."
+            "Publish a scan file (.npz, .gwy, .npy, .ibw, .jpk, .spm, .sxm, .stp, .top) on the "
+            "driver's scan topic, as a 0 deg scan in scanner coordinates: the imaging node "
+            "publishes it as /afm/map with its landmarks, which the localizer, planner and "
+            "nano-hand use. Waits until the imaging node has done so."
         ),
     )
     p.add_argument("file")

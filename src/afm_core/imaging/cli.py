@@ -8,9 +8,9 @@
     afm image channels FILE
 
 Files: .npz (ours), .gwy (Gwyddion), .npy (give --pixel-size), and vendors' scans read only:
-.ibw (Asylum), .jpk (JPK), .sxm (Nanonis), .stp/.top (WSxM). Every step takes --level METHOD
-to level its input first (a raw scan's tilt and line offsets would otherwise look like
-features).
+.ibw (Asylum), .jpk (JPK), .spm (Bruker), .sxm (Nanonis), .stp/.top (WSxM). Every step takes
+--level METHOD to level its input first (a raw scan's tilt and line offsets would otherwise
+look like features).
 Output never overwrites.
 """
 

@@ -15,8 +15,8 @@ Formats, chosen by the file name's suffix (case-insensitive):
   by its units (m with an SI prefix: nm, um/µm, pm, ..., or Å).
 
 - Vendors' scans (read only), by `vendor_files`: Asylum/Igor `.ibw` (through igor2), JPK
-  `.jpk` (through tifffile), Nanonis `.sxm`, WSxM `.stp`/`.top`; channels by index or title
-  as for .gwy (`list_channels`).
+  `.jpk` (through tifffile), Bruker NanoScope `.spm`, Nanonis `.sxm`, WSxM `.stp`/`.top`;
+  channels by index or title as for .gwy (`list_channels`).
 
 Which way rows go. A `HeightMap` has rows along +y: row 0 is the bottom of the area
 (pixel (row, col) centre at origin_x + (col + 0.5) * pixel_size_x, origin_y + (row + 0.5) *
@@ -135,8 +135,8 @@ class HeightMap:
 
 
 def load_height_map(path, channel: int | str = 0, pixel_size: float | None = None) -> HeightMap:
-    """The height map in `path` (.npz, .npy, .gwy or a vendor's file: .ibw, .jpk, .sxm, .stp,
-    .top), heights in metres, rows along +y.
+    """The height map in `path` (.npz, .npy, .gwy or a vendor's file: .ibw, .jpk, .spm, .sxm,
+    .stp, .top), heights in metres, rows along +y.
 
     `channel`: for .gwy and vendor files, the position in `list_channels(path)` or the
     channel's title; a
