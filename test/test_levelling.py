@@ -106,9 +106,31 @@ def test_feature_mask_false_alarms_follow_the_stated_rate():
     assert abs(np.count_nonzero(mask) - expected) < 5 * np.sqrt(expected)
 
 
+def test_median_plane_median_removes_a_tilt_and_line_offsets():
+    rng = np.random.default_rng(6)
+    sigma = 0.2e-9
+    truth, footprint = _features()
+    noise = rng.normal(0.0, sigma, truth.shape)
+    offsets = rng.normal(0.0, 3e-9, ROWS)[:, None]
+    raw = truth + noise + _plane() + offsets
+    # the order matters: the first median takes the line offsets out so they cannot tilt the
+    # plane fit through the unevenly masked rows; the last takes out what the plane left
+    levelled, mask = level(raw, "median+plane+median")
+    assert mask[footprint].all()
+    residual = levelled - truth - noise  # constant per row: that row's median of noise
+    n = np.count_nonzero(~mask, axis=1)[:, None]
+    # the median of n Gaussian samples has standard deviation 1.2533 sigma / sqrt(n)
+    assert np.all(np.abs(residual - np.median(residual)) < 5 * 1.2533 * sigma / np.sqrt(n))
+    # the plane alone leaves the line offsets
+    plane_only, _ = level(raw, "plane")
+    assert np.std(plane_only[~footprint] - noise[~footprint]) > 1e-9
+
+
 def test_bad_input_names_the_problem():
     with pytest.raises(ValueError, match="method="):
         level(np.zeros((4, 4)), "cubic")
+    with pytest.raises(ValueError, match=r"method='plane\+'"):
+        level(np.zeros((4, 4)), "plane+")
     with pytest.raises(ValueError, match="mask: expected a boolean array"):
         level_plane(np.zeros((4, 4)), mask=np.zeros((3, 4), dtype=bool))
     with pytest.raises(ValueError, match="background pixel"):

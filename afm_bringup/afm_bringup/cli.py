@@ -564,7 +564,7 @@ def cmd_map_publish(args):
 
 
 def _add_map(sub) -> None:
-    from afm_core.imaging.levelling import METHODS
+    from afm_core.imaging.cli import level_method
 
     p = sub.add_parser(
         "map",
@@ -587,9 +587,10 @@ def _add_map(sub) -> None:
     p.add_argument("--pixel-size", type=_length("pixel-size"), help="for .npy files (e.g. 2nm)")
     p.add_argument(
         "--level",
-        choices=("none",) + METHODS,
+        type=level_method,
         default="plane",
-        help="level the scan first, features masked (default plane; none: as stored)",
+        help="level the scan first, features masked: plane (default), median, poly2, a chain "
+        "such as median+plane+median, or none (as stored)",
     )
     p.add_argument(
         "--line-rate", type=float, default=1.0, help="lines per second of the scan (Hz, default 1)"

@@ -26,8 +26,19 @@ from pathlib import Path
 import numpy as np
 
 from afm_core.imaging.files import HeightMap, list_channels, load_height_map, save_height_map
-from afm_core.imaging.levelling import METHODS, level
+from afm_core.imaging.levelling import level, parse_method
 from afm_core.instrument import RasterScanData
+
+
+def level_method(text: str) -> str:
+    """argparse type of --level / --method: none, plane, median, poly2 or a chain a+b."""
+    if text == "none":
+        return text
+    try:
+        parse_method(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
 
 
 def _load(args, path) -> HeightMap:
@@ -345,10 +356,10 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
         common(p)
         p.add_argument(
             "--level",
-            choices=("none",) + METHODS,
+            type=level_method,
             default="none",
-            help="level the input first: plane, median (line offsets), poly2 (line bows); "
-            "default none",
+            help="level the input first: plane, median (line offsets), poly2 (line bows), or "
+            "several in order joined by + (median+plane+median); default none",
         )
         p.add_argument(
             "--level-mask",
@@ -429,7 +440,12 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
         ),
     )
     p.add_argument("image")
-    p.add_argument("--method", choices=METHODS, default="plane", help="default plane")
+    p.add_argument(
+        "--method",
+        type=level_method,
+        default="plane",
+        help="plane, median, poly2, or several in order joined by + (default plane)",
+    )
     p.add_argument(
         "--mask",
         choices=("auto", "none"),

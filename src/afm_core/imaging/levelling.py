@@ -15,8 +15,8 @@ heights keep their unit (metres).
 - `feature_mask(height, rows)`: pixels that stand out of a levelled map's background (or of
   their row's) by more than a Gaussian false-alarm rate allows (noise from the median
   absolute deviation).
-- `level(height, method, mask="auto")`: one of the above; "auto" alternates levelling and
-  `feature_mask` until the mask settles.
+- `level(height, method, mask="auto")`: one of the above, or several in order
+  ("median+plane+median"); "auto" alternates levelling and `feature_mask` until the mask settles.
 """
 
 from __future__ import annotations
@@ -103,17 +103,36 @@ def feature_mask(levelled, grow: int = MASK_GROW_PIXELS, rows: bool = False) -> 
 
 
 def level(height, method: str = "plane", mask="auto") -> tuple[np.ndarray, np.ndarray]:
-    """(levelled heights, mask used). `method`: plane, median or poly2; `mask`: "auto"
-    (`feature_mask`, refined until it settles), None (fit every pixel) or a boolean array of
-    the height's shape (True = feature, left out of the fit)."""
-    if method not in METHODS:
-        raise ValueError(f"method={method!r}: expected one of {', '.join(METHODS)}")
+    """(levelled heights, mask used). `method`: plane, median or poly2, or several joined by
+    "+" and applied in that order (e.g. "median+plane+median": line offsets, tilt, what is left);
+    `mask`: "auto" (`feature_mask`, refined until it settles; each step finds its own), None
+    (fit every pixel) or a boolean array of the height's shape (True = feature, left out of
+    every fit). The mask returned is the last step's."""
+    steps = parse_method(method)
+    z, _ = _checked(height, None)
+    used = np.zeros(z.shape, dtype=bool)
+    for step in steps:
+        z, used = _level_one(z, step, mask)
+    return z, used
+
+
+def parse_method(method) -> list[str]:
+    """The steps of a method name ("plane", "median+plane", ...); ValueError naming it."""
+    steps = method.split("+") if isinstance(method, str) else []
+    if not steps or any(step not in METHODS for step in steps):
+        raise ValueError(
+            f"method={method!r}: expected one of {', '.join(METHODS)}, or several joined by "
+            "'+' (e.g. median+plane+median)"
+        )
+    return steps
+
+
+def _level_one(z: np.ndarray, method: str, mask) -> tuple[np.ndarray, np.ndarray]:
     function = {
         "plane": level_plane,
         "median": level_median_rows,
         "poly2": lambda z, m: level_poly_rows(z, 2, m),
     }[method]
-    z, _ = _checked(height, None)
     if mask is None:
         return function(z, None), np.zeros(z.shape, dtype=bool)
     if not (isinstance(mask, str) and mask == "auto"):
