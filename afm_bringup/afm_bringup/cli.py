@@ -446,7 +446,10 @@ def _add_image(sub) -> None:
     p = sub.add_parser(
         "image",
         help="drift compensation, tip estimation, reconstruction, landmarks on files",
-        description="Run the imaging algorithms on image files (.npz, .gwy, .npy); no ROS needed.",
+        description=(
+            "Run the imaging algorithms on image files (.npz, .gwy, .npy, and vendors' "
+            ".ibw, .jpk, .spm, .sxm, .stp, .top); no ROS needed."
+        ),
     )
     from afm_core.imaging.cli import add_subcommands
     from afm_core.imaging.cli import run as run_image
@@ -525,6 +528,81 @@ def _add_sim2real(sub) -> None:
     p.set_defaults(func=cmd_sim2real)
 
 
+def cmd_map_publish(args):
+    from afm_bringup.commander import AfmCommander, AfmError
+    from afm_core.imaging.cli import raster_scan_of
+    from afm_core.imaging.files import load_height_map
+    from afm_core.imaging.levelling import level
+
+    channel = int(args.channel) if str(args.channel).isdigit() else args.channel
+    try:
+        hmap = load_height_map(args.file, channel, args.pixel_size)
+        if args.level != "none":
+            hmap.height, _ = level(hmap.height, args.level, "auto")
+    except (ValueError, ImportError) as exc:
+        sys.exit(f"afm map publish: {exc}")
+    if not args.line_rate > 0:
+        sys.exit(f"afm map publish: --line-rate={args.line_rate}: must be > 0 Hz")
+    scan = raster_scan_of(hmap, line_rate=args.line_rate, mode=args.mode)
+    with AfmCommander("afm_map_publisher") as afm:
+        try:
+            _, marks = afm.publish_scan(scan, scan_id=args.scan_id, timeout=args.timeout)
+        except AfmError as exc:
+            sys.exit(f"afm map publish: {exc}")
+    print(
+        f"published {args.file} ({hmap.title or 'channel ' + str(channel)}, "
+        f"{hmap.height.shape[1]} x {hmap.height.shape[0]} px, {nm(hmap.size_x)} x "
+        f"{nm(hmap.size_y)} from ({nm(hmap.origin_x)}, {nm(hmap.origin_y)})) as the map: "
+        f"{len(marks.landmarks)} landmarks"
+    )
+    for mark in marks.landmarks:
+        print(
+            f"  {mark.id:3d} at ({nm(mark.position.x)}, {nm(mark.position.y)}), "
+            f"height {nm(mark.height)}"
+        )
+    return 0
+
+
+def _add_map(sub) -> None:
+    from afm_core.imaging.cli import level_method
+
+    p = sub.add_parser(
+        "map",
+        help="bring a lab's scan file into the running graph as its map",
+        description="Maps from files for the running graph (`afm launch`).",
+    )
+    maps = p.add_subparsers(dest="map_command", required=True, metavar="STEP")
+    p = maps.add_parser(
+        "publish",
+        help="publish a scan file as the map (the imaging node finds its landmarks)",
+        description=(
+            "Publish a scan file (.npz, .gwy, .npy, .ibw, .jpk, .spm, .sxm, .stp, .top) on the "
+            "driver's scan topic, as a 0 deg scan in scanner coordinates: the imaging node "
+            "publishes it as /afm/map with its landmarks, which the localizer, planner and "
+            "nano-hand use. Waits until the imaging node has done so."
+        ),
+    )
+    p.add_argument("file")
+    p.add_argument("--channel", default="0", help="channel index or title (default 0)")
+    p.add_argument("--pixel-size", type=_length("pixel-size"), help="for .npy files (e.g. 2nm)")
+    p.add_argument(
+        "--level",
+        type=level_method,
+        default="plane",
+        help="level the scan first, features masked: plane (default), median, poly2, a chain "
+        "such as median+plane+median, or none (as stored)",
+    )
+    p.add_argument(
+        "--line-rate", type=float, default=1.0, help="lines per second of the scan (Hz, default 1)"
+    )
+    p.add_argument("--mode", choices=("tapping", "contact"), default="tapping")
+    p.add_argument("--scan-id", type=int, default=0, help="scan_id of the message (default 0)")
+    p.add_argument(
+        "--timeout", type=float, default=30.0, help="s to wait for the imaging node (default 30)"
+    )
+    p.set_defaults(func=cmd_map_publish)
+
+
 def _add_demo(sub) -> None:
     p = sub.add_parser(
         "demo",
@@ -557,6 +635,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_scan,
         _add_push,
         _add_image,
+        _add_map,
         _add_calibrate,
         _add_sim2real,
         _add_demo,

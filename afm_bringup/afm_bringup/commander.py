@@ -19,6 +19,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
+from std_msgs.msg import Header
 
 from afm_msgs.action import (
     Assemble,
@@ -32,6 +33,7 @@ from afm_msgs.action import (
 )
 from afm_ros import topics
 from afm_ros.action_client import SafeActionClient
+from afm_ros.conversions import FRAME_SCANNER
 from afm_ros.qos_profiles import FEEDBACK
 
 
@@ -217,6 +219,51 @@ class AfmCommander:
                 float, particle_position[:2]
             )
         return self.send("push_particle", request, feedback=feedback, wait=wait, timeout=timeout)
+
+    # -- a lab's own scan --------------------------------------------------------------------
+    def publish_scan(self, scan, scan_id: int = 0, timeout: float = 30.0):
+        """Publish a core `RasterScanData` (e.g. a file's, `raster_scan_of`) on the driver's
+        scan topic, so the imaging node turns it into the map and its landmarks, which the
+        localizer, planner and nano-hand use. Blocks until the imaging node has published
+        both for this scan; returns (map RasterScan, LandmarkArray)."""
+        from afm_msgs.msg import LandmarkArray, RasterScan
+        from afm_ros.conversions import raster_scan_to_msg
+        from afm_ros.qos_profiles import LATCHED, SCANS
+
+        got: dict = {}
+        header = Header(stamp=self.node.get_clock().now().to_msg(), frame_id=FRAME_SCANNER)
+
+        def ours(msg) -> bool:  # the imaging node keeps the scan's stamp on both
+            return msg.header.stamp == header.stamp
+
+        subscriptions = [
+            self.node.create_subscription(
+                kind, topic, lambda m, k=key: got.setdefault(k, m) if ours(m) else None, LATCHED
+            )
+            for key, kind, topic in (
+                ("map", RasterScan, topics.CORRECTED_MAP),
+                ("landmarks", LandmarkArray, topics.LANDMARKS),
+            )
+        ]
+        publisher = self.node.create_publisher(RasterScan, topics.SCAN, SCANS)
+        try:
+            self.wait_until_subscribed([topics.SCAN], "afm_imaging", timeout=timeout)
+            publisher.publish(raster_scan_to_msg(scan, header, scan_id=scan_id))
+            deadline = time.monotonic() + timeout
+            while len(got) < 2 and time.monotonic() < deadline:
+                time.sleep(0.05)
+        except AfmError as exc:
+            raise AfmError(f"{exc}; is the imaging node running (`afm launch`)?") from None
+        finally:
+            for subscription in subscriptions:
+                self.node.destroy_subscription(subscription)
+            self.node.destroy_publisher(publisher)
+        if len(got) < 2:
+            raise AfmError(
+                f"the imaging node published no map and landmarks for the scan within "
+                f"{timeout} s (its log says why)"
+            )
+        return got["map"], got["landmarks"]
 
     # -- lifetime --------------------------------------------------------------------------
     def close(self):

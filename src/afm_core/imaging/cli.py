@@ -4,8 +4,14 @@
     afm image tip IMAGE --tip-size 41 [--threshold auto|consensus|book|1e-9] -o tip.npz
     afm image reconstruct IMAGE --tip tip.npz -o surface.npz
     afm image landmarks IMAGE [--min-height 10nm] [--json landmarks.json]
+    afm image level IMAGE [--method plane|median|poly2] [--mask auto|none] -o levelled.npz
+    afm image channels FILE
 
-Files: .npz (ours), .gwy (Gwyddion), .npy (give --pixel-size). Output never overwrites.
+Files: .npz (ours), .gwy (Gwyddion), .npy (give --pixel-size), and vendors' scans read only:
+.ibw (Asylum), .jpk (JPK), .spm (Bruker), .sxm (Nanonis), .stp/.top (WSxM). Every step takes
+--level METHOD to level its input first (a raw scan's tilt and line offsets would otherwise
+look like features).
+Output never overwrites.
 """
 
 from __future__ import annotations
@@ -19,13 +25,41 @@ from pathlib import Path
 
 import numpy as np
 
-from afm_core.imaging.files import HeightMap, load_height_map, save_height_map
+from afm_core.imaging.files import HeightMap, list_channels, load_height_map, save_height_map
+from afm_core.imaging.levelling import level, parse_method
 from afm_core.instrument import RasterScanData
 
 
-def _scan(
-    hmap: HeightMap, angle: float, frame_up: bool, line_rate: float, start: float
+def level_method(text: str) -> str:
+    """argparse type of --level / --method: none, plane, median, poly2 or a chain a+b."""
+    if text == "none":
+        return text
+    try:
+        parse_method(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def _load(args, path) -> HeightMap:
+    """The image at `path`, levelled by --level (with --level-mask) when asked."""
+    hmap = load_height_map(path, args.channel, args.pixel_size)
+    if args.level != "none":
+        mask = None if args.level_mask == "none" else "auto"
+        hmap.height, _ = level(hmap.height, args.level, mask)
+    return hmap
+
+
+def raster_scan_of(
+    hmap: HeightMap,
+    angle: float = 0.0,
+    frame_up: bool = True,
+    line_rate: float = 1.0,
+    start: float = 0.0,
+    mode: str = "tapping",
 ) -> RasterScanData:
+    """A height map as the driver's scan record (`afm map publish`, `afm image drift`): lines
+    `1 / line_rate` s apart, in frame order, from `start`."""
     lines = hmap.height.shape[0] if angle == 0.0 else hmap.height.shape[1]
     order = np.arange(lines) if frame_up else np.arange(lines)[::-1]
     starts = np.empty(lines)
@@ -41,7 +75,7 @@ def _scan(
         line_period=1.0 / line_rate,
         line_start_times=starts,
         start_time=start,
-        mode="tapping",
+        mode=mode,
     )
 
 
@@ -78,16 +112,16 @@ def cmd_drift(args) -> int:
 
     if not args.line_rate > 0:
         raise ValueError(f"--line-rate={args.line_rate}: must be > 0 Hz")
-    first = load_height_map(args.scan0, args.channel, args.pixel_size)
-    second = load_height_map(args.scan90, args.channel, args.pixel_size)
+    first = _load(args, args.scan0)
+    second = _load(args, args.scan90)
     lines0 = first.height.shape[0]
     given = isinstance(args.gap, float)
     gap = args.gap if given else lines0 / args.line_rate
 
     def compensate(gap: float):
         return compensate_pair(
-            _scan(first, 0.0, not args.down0, args.line_rate, 0.0),
-            _scan(second, 90.0, not args.down90, args.line_rate, gap),
+            raster_scan_of(first, 0.0, not args.down0, args.line_rate, 0.0),
+            raster_scan_of(second, 90.0, not args.down90, args.line_rate, gap),
             order=args.order,
         )
 
@@ -146,7 +180,7 @@ def _warn(command: str, texts) -> None:
 def cmd_tip(args) -> int:
     from afm_core.imaging.tip_estimation import estimate_tip
 
-    image = load_height_map(args.image, args.channel, args.pixel_size)
+    image = _load(args, args.image)
     if image.pixel_size_x != image.pixel_size_y:
         raise ValueError(
             f"{args.image}: blind tip estimation needs square pixels "
@@ -201,7 +235,7 @@ def cmd_reconstruct(args) -> int:
         raise FileExistsError(
             f"{args.output}: already exists; not overwriting it (choose another name or remove it)"
         )
-    image = load_height_map(args.image, args.channel, args.pixel_size)
+    image = _load(args, args.image)
     tip = load_height_map(args.tip)
     if not np.isclose(tip.pixel_size_x, image.pixel_size_x, rtol=1e-6):
         raise ValueError(
@@ -240,7 +274,7 @@ def cmd_reconstruct(args) -> int:
 def cmd_landmarks(args) -> int:
     from afm_core.imaging.landmarks import extract_landmarks
 
-    image = load_height_map(args.image, args.channel, args.pixel_size)
+    image = _load(args, args.image)
     marks = extract_landmarks(
         image.height,
         image.pixel_size_x,
@@ -277,13 +311,62 @@ def cmd_landmarks(args) -> int:
     return 0
 
 
+def cmd_level(args) -> int:
+    image = load_height_map(args.image, args.channel, args.pixel_size)
+    mask = None if args.mask == "none" else "auto"
+    levelled, used = level(image.height, args.method, mask)
+    layers = {"feature_mask": used.astype(np.uint8)} if Path(args.output).suffix == ".npz" else {}
+    save_height_map(
+        args.output,
+        HeightMap(
+            levelled,
+            image.pixel_size_x,
+            image.pixel_size_y,
+            image.origin_x,
+            image.origin_y,
+            title=f"{image.title} levelled ({args.method})".strip(),
+            layers=layers,
+        ),
+    )
+    background = levelled[~used] if (~used).any() else levelled
+    print(
+        f"levelled by {args.method}: {used.mean() * 100:.1f} % of the pixels masked as features; "
+        f"background rms {np.std(background) * 1e9:.3f} nm, range "
+        f"{np.ptp(levelled) * 1e9:.2f} nm; wrote {args.output}"
+    )
+    return 0
+
+
+def cmd_channels(args) -> int:
+    for number, title in enumerate(list_channels(args.image)):
+        print(f"{number}: {title}")
+    return 0
+
+
 def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
-    """Register `drift`, `tip`, `reconstruct`, `landmarks`; `length` parses '10nm'-style values."""
+    """Register `drift`, `tip`, `reconstruct`, `landmarks`, `level`, `channels`; `length` parses
+    '10nm'-style values."""
     sub = image_parser.add_subparsers(dest="image_command", required=True, metavar="STEP")
 
     def common(p):
         p.add_argument("--channel", default=0, help=".gwy channel: index or title (default 0)")
         p.add_argument("--pixel-size", type=length, help="for .npy files: pixel size (e.g. 2nm)")
+
+    def levelling(p):
+        common(p)
+        p.add_argument(
+            "--level",
+            type=level_method,
+            default="none",
+            help="level the input first: plane, median (line offsets), poly2 (line bows), or "
+            "several in order joined by + (median+plane+median); default none",
+        )
+        p.add_argument(
+            "--level-mask",
+            choices=("auto", "none"),
+            default="auto",
+            help="auto (default): leave features out of the levelling fit; none: fit all pixels",
+        )
 
     p = sub.add_parser(
         "drift",
@@ -311,7 +394,7 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
         "--order", type=int, default=1, choices=[1, 2], help="offset-vector order (book: 1)"
     )
     p.add_argument("-o", "--output", required=True, help="corrected map (.npz or .gwy)")
-    common(p)
+    levelling(p)
     p.set_defaults(image_func=cmd_drift)
 
     p = sub.add_parser(
@@ -328,14 +411,14 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     p.add_argument(
         "-o", "--output", required=True, help="tip (.npz or .gwy), apex 0 at the centre"
     )
-    common(p)
+    levelling(p)
     p.set_defaults(image_func=cmd_tip)
 
     p = sub.add_parser("reconstruct", help="erode an image by a tip (remove tip broadening)")
     p.add_argument("image")
     p.add_argument("--tip", required=True, help="tip file from `afm image tip`")
     p.add_argument("-o", "--output", required=True)
-    common(p)
+    levelling(p)
     p.set_defaults(image_func=cmd_reconstruct)
 
     p = sub.add_parser("landmarks", help="particles and tubes with centre and covariance")
@@ -344,8 +427,40 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
         "--min-height", type=length, default=10e-9, help="features lower than this are ignored"
     )
     p.add_argument("--json", help="also write the landmarks to this new JSON file")
-    common(p)
+    levelling(p)
     p.set_defaults(image_func=cmd_landmarks)
+
+    p = sub.add_parser(
+        "level",
+        help="level a raw scan: plane, median line alignment or polynomial rows",
+        description=(
+            "Level a scan as before any analysis: the plane (tilt), each line's median "
+            "(line-to-line offsets) or each line's quadratic (bow), fitted to the background "
+            "only (features found by a threshold at a 1e-3 false-alarm rate of the noise)."
+        ),
+    )
+    p.add_argument("image")
+    p.add_argument(
+        "--method",
+        type=level_method,
+        default="plane",
+        help="plane, median, poly2, or several in order joined by + (default plane)",
+    )
+    p.add_argument(
+        "--mask",
+        choices=("auto", "none"),
+        default="auto",
+        help="auto (default): leave features out of the fit; none: fit every pixel",
+    )
+    p.add_argument(
+        "-o", "--output", required=True, help="levelled map (.npz keeps the feature mask, .gwy)"
+    )
+    common(p)
+    p.set_defaults(image_func=cmd_level)
+
+    p = sub.add_parser("channels", help="list a file's channels (index: title)")
+    p.add_argument("image")
+    p.set_defaults(image_func=cmd_channels, channel=0)
 
 
 def run(args) -> int:

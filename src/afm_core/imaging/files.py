@@ -14,6 +14,10 @@ Formats, chosen by the file name's suffix (case-insensitive):
   read, chosen by its position in `list_channels` or by its title, and converted to metres
   by its units (m with an SI prefix: nm, um/µm, pm, ..., or Å).
 
+- Vendors' scans (read only), by `vendor_files`: Asylum/Igor `.ibw` (through igor2), JPK
+  `.jpk` (through tifffile), Bruker NanoScope `.spm`, Nanonis `.sxm`, WSxM `.stp`/`.top`;
+  channels by index or title as for .gwy (`list_channels`).
+
 Which way rows go. A `HeightMap` has rows along +y: row 0 is the bottom of the area
 (pixel (row, col) centre at origin_x + (col + 0.5) * pixel_size_x, origin_y + (row + 0.5) *
 pixel_size_y), as in the scanner frame and in `RasterScanData`. Gwyddion stores rows top to
@@ -43,7 +47,10 @@ from pathlib import Path
 
 import numpy as np
 
-SUFFIXES = (".npz", ".npy", ".gwy")
+from afm_core.imaging.vendor_files import VENDOR_SUFFIXES, read_vendor, vendor_channels
+
+SUFFIXES = (".npz", ".npy", ".gwy")  # read and written (.npy read only)
+READ_SUFFIXES = SUFFIXES + VENDOR_SUFFIXES
 _SI_PREFIX = {
     "": 1.0,
     "Y": 1e24,
@@ -128,9 +135,11 @@ class HeightMap:
 
 
 def load_height_map(path, channel: int | str = 0, pixel_size: float | None = None) -> HeightMap:
-    """The height map in `path` (.npz, .npy or .gwy), heights in metres, rows along +y.
+    """The height map in `path` (.npz, .npy, .gwy or a vendor's file: .ibw, .jpk, .spm, .sxm,
+    .stp, .top), heights in metres, rows along +y.
 
-    `channel`: for .gwy, the position in `list_channels(path)` or the channel's title; a
+    `channel`: for .gwy and vendor files, the position in `list_channels(path)` or the
+    channel's title; a
     .npz/.npy holds one map (channel 0, or its title). `pixel_size` (m, square pixels) is
     needed for .npy; for the other formats, which carry their own, it is only checked
     against the file's (ValueError if it disagrees)."""
@@ -143,8 +152,11 @@ def load_height_map(path, channel: int | str = 0, pixel_size: float | None = Non
         hmap = _load_npy(path, channel, pixel_size)
     elif suffix == ".npz":
         hmap = _load_npz(path, channel, pixel_size)
-    else:
+    elif suffix == ".gwy":
         hmap = _load_gwy(path, channel)
+    else:
+        v = read_vendor(path, channel)
+        hmap = HeightMap(v.height, v.pixel_size_x, v.pixel_size_y, v.origin_x, v.origin_y, v.title)
     if pixel_size is not None and suffix != ".npy":
         for name in ("pixel_size_x", "pixel_size_y"):
             if not math.isclose(getattr(hmap, name), pixel_size, rel_tol=1e-6):
@@ -152,7 +164,9 @@ def load_height_map(path, channel: int | str = 0, pixel_size: float | None = Non
                     f"{path}: pixel_size={pixel_size!r} m disagrees with the file's "
                     f"{name}={getattr(hmap, name)!r} m; leave pixel_size out for this format"
                 )
-    hmap.validate(str(path) + (f" channel {channel!r}" if suffix == ".gwy" else ""))
+    hmap.validate(
+        str(path) + (f" channel {channel!r}" if suffix in (".gwy",) + VENDOR_SUFFIXES else "")
+    )
     return hmap
 
 
@@ -194,13 +208,15 @@ def save_height_map(path, hmap: HeightMap | Sequence[HeightMap]) -> None:
 
 
 def list_channels(path) -> list[str]:
-    """Channel titles of a .gwy file, in channel-number order (the index `load_height_map`
+    """Channel titles of a .gwy or vendor file, in order (the index `load_height_map`
     takes). A .npz or .npy holds one map: its title (the file's stem for .npy)."""
     path, suffix = _checked_path(path, must_exist=True)
     if suffix == ".gwy":
         return [title for _, title, _ in _gwy_channels(_read_gwy(path), path)]
     if suffix == ".npz":
         return [_npz_title(path)]
+    if suffix in VENDOR_SUFFIXES:
+        return vendor_channels(path)
     return [path.stem]
 
 
@@ -464,9 +480,12 @@ def _checked_path(path, must_exist: bool) -> tuple[Path, str]:
         raise ValueError(f"path={path!r}: must be a str or pathlib.Path")
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix not in SUFFIXES:
+    known = READ_SUFFIXES if must_exist else SUFFIXES
+    if suffix not in known:
+        purpose = "" if must_exist else " for writing (vendor formats are read only)"
         raise ValueError(
-            f"{path}: unknown image file suffix {path.suffix!r}; supported: {', '.join(SUFFIXES)}"
+            f"{path}: unknown image file suffix {path.suffix!r}; supported{purpose}: "
+            f"{', '.join(known)}"
         )
     if must_exist and not path.is_file():
         raise ImageFileNotFound(2, f"{path}: no such image file", str(path))

@@ -1,5 +1,5 @@
 """Writes a session as the driver publishes it, from any core `Instrument`, without ROS
-(`RecordingInstrument`, `SessionWriter`): CDR is encoded by mcap_ros2 from the full ros2msg
+(`RecordingInstrument`, `SessionWriter`): CDR is encoded by recording.cdr from the full ros2msg
 schema text, the container is our `RecordingWriter` (`.part` until closed, never overwrites,
 rosbag2's metadata and QoS), so our RecordingReader, the ReplayInstrument, rosbag2 and
 Foxglove read it (session.py: the topics and messages)."""
@@ -12,7 +12,6 @@ import time as wall_time
 from pathlib import Path
 
 import numpy as np
-from mcap_ros2._dynamic import serialize_dynamic
 
 from afm_core.instrument import (
     ForceTraceData,
@@ -24,6 +23,7 @@ from afm_core.instrument import (
     ScanRequest,
 )
 from afm_core.recording import RecordingError, RecordingWriter
+from afm_core.recording.cdr import encoder
 from afm_core.recording.definitions import full_message_definition
 from afm_core.sim2real.session import (
     FORCE_TRACE,
@@ -44,7 +44,7 @@ from afm_core.sim2real.session import (
 
 
 def _floats(values) -> list:
-    """float64[] field value (mcap_ros2 encodes lists)."""
+    """float64[] field value (the encoder takes sequences)."""
     return np.asarray(values, dtype=np.float64).tolist()
 
 
@@ -74,10 +74,7 @@ class SessionWriter:
         topics = [t for t in TYPES if truth or t != GROUND_TRUTH]
         # schemas first: a workspace without afm_msgs fails here, before any file exists
         definitions = {topic: full_message_definition(TYPES[topic]) for topic in topics}
-        self._encoders = {
-            topic: serialize_dynamic(TYPES[topic], definitions[topic])[TYPES[topic]]
-            for topic in topics
-        }
+        self._encoders = {topic: encoder(TYPES[topic], definitions[topic]) for topic in topics}
         try:
             self._writer = RecordingWriter(path, compression=compression, chunk_size=chunk_size)
         except RecordingError as exc:

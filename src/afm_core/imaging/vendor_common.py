@@ -1,0 +1,64 @@
+"""What the vendor-file readers share (imaging.vendor_files describes the formats): the
+image record they return, length units, channel choice and the check for unscanned lines."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+_PREFIX = {
+    "": 1.0,
+    "k": 1e3,
+    "m": 1e-3,
+    "u": 1e-6,
+    "\u00b5": 1e-6,
+    "\u03bc": 1e-6,
+    "n": 1e-9,
+    "p": 1e-12,
+    "f": 1e-15,
+}
+_ANGSTROM = ("\u00c5", "\u212b", "angstrom")  # not "A": ampere in Nanonis tables
+
+
+@dataclass
+class VendorImage:
+    height: np.ndarray  # m, rows along +y
+    pixel_size_x: float  # m
+    pixel_size_y: float  # m
+    origin_x: float  # m, lower-left corner of the area
+    origin_y: float
+    title: str
+
+
+def length_scale(unit: str, where: str) -> float:
+    """Metres per `unit` (m with an SI prefix, or Angstrom); ValueError naming `where`."""
+    text = unit.strip()
+    if text in _ANGSTROM:
+        return 1e-10
+    if text.endswith("m") and text[:-1] in _PREFIX:
+        return _PREFIX[text[:-1]]
+    raise ValueError(f"{where}: unit {unit!r} is not a length; cannot convert it to metres")
+
+
+def choose_channel(path: Path, names: list[str], channel) -> int:
+    listing = ", ".join(f"{i}: {n!r}" for i, n in enumerate(names)) or "none"
+    if isinstance(channel, str):
+        if channel in names:
+            return names.index(channel)
+    elif isinstance(channel, (int, np.integer)) and not isinstance(channel, bool):
+        if 0 <= channel < len(names):
+            return int(channel)
+    else:
+        raise ValueError(f"channel={channel!r}: must be an index (int) or a title (str)")
+    raise ValueError(f"{path}: channel {channel!r} does not exist; channels: {listing}")
+
+
+def finite_height(height: np.ndarray, where: str) -> np.ndarray:
+    bad_rows = int(np.count_nonzero(~np.isfinite(height).all(axis=1)))
+    if bad_rows:
+        raise ValueError(
+            f"{where}: {bad_rows} line(s) hold NaN or infinite values (an interrupted scan?)"
+        )
+    return np.ascontiguousarray(height, dtype=np.float64)

@@ -1,0 +1,107 @@
+"""Instrument vendors' scan files, read into heights in metres with rows along +y (row 0 at the
+bottom of the area, as `HeightMap`), for `files.load_height_map`.
+
+- `.ibw` (Asylum Research / Igor Pro binary wave, version 5): through `igor2` (LGPL-3.0+,
+  numpy only, the reader AFMReader and the Igor community use). The wave is (x, y, channel);
+  a channel is a layer of dimension 2, named by its dimension label (HeightTrace, ...). Pixel
+  size and position come from the wave's scaling (sfA, sfB: the position of point e is
+  sfA * e + sfB, taken as the pixel centre), units from its dimension and data units (a
+  length: m with an SI prefix); Asylum's note (FastScanSize, SlowScanSize) must agree with
+  the scaling.
+- `.jpk` (JPK / Bruker JPK): a TIFF read through `tifffile` (BSD-3, numpy only); page 0
+  holds the grid (Grid-x0, -y0: the area's corner; Grid-uLength, -vLength: its size in m;
+  Grid-iLength, -jLength: pixels; Grid-Theta: only 0 is read), each further page one
+  channel (name_trace / name_retrace) of raw integers; heights are raw * multiplier +
+  offset of the page's default calibration slot, in that slot's unit (a length). The first
+  stored row is the bottom line, as AFMReader and Gwyddion read it.
+- `.spm` (Bruker / Veeco NanoScope, version 5 and later; rename an old numbered file such as
+  `scan.002` to `.spm`): a text header (`\\*Section` lines and `\\key: value` lines) up to
+  `\\*File list end`, then per `*Ciao image list` a block of little-endian 2- or 4-byte
+  integers at `Data offset`, `Number of lines` x `Samps/line`, the first stored row the bottom
+  line (as pySPM, AFMReader and Gwyddion read it). The channel is `@2:Image Data`'s quoted
+  name (" retrace" added for Line Direction Retrace). Heights are raw x (the `@2:Z scale`
+  full-scale value / 2^(8 bytes per pixel)) x the sensitivity it names in brackets
+  (`@Sens. Zscan: V 15.07 nm/V`), which must be a length per volt; the size is `Scan Size`
+  (x y unit, "~m" = um). Rotate Ang. other than 0 is refused; origin 0 (NanoScope gives
+  none).
+- `.sxm` (Nanonis): a text header of `:TAG:` blocks up to `:SCANIT_END:`, then 0x1A 0x04 and
+  big-endian float32 blocks, one per channel and direction (forward, then backward when
+  DATA_INFO says both), lines in the order scanned. SCAN_PIXELS (columns, lines),
+  SCAN_RANGE (m), SCAN_OFFSET (the frame's centre, m), SCAN_DIR (up: the first line is the
+  bottom one; down: the top one), SCAN_ANGLE (only 0 is read: a rotated frame does not fit
+  the map's axes). Backward lines were taken right to left and are mirrored back.
+- `.stp` / `.top` (WSxM): a text header ("Image header size", `[Section]`s, `Key: value`
+  lines) up to `[Header end]`, then little-endian values (General Info / Image Data Type:
+  double, float, or integer/short = int16, the default). The file holds the picture turned
+  by 180 degrees from its display with x mirrored back, so the first stored row is the
+  bottom line and columns run right to left (as Gwyddion reads and writes it). Heights are
+  scaled so their range is General Info / Z Amplitude (WSxM stores the range, not a scale;
+  without it the values are nm), lateral size from Control / X and Y Amplitude; WSxM gives
+  no position: origin 0.
+
+The readers live in vendor_libraries (.ibw, .jpk) and vendor_headers (.spm, .sxm, .stp/.top),
+their shared pieces in vendor_common. Each raises ValueError naming the file and the problem:
+a truncated or damaged file, a missing header field, a channel that does not exist (the
+message lists those that do), a unit that is not a length, a rotated frame (.spm Rotate Ang.,
+.sxm SCAN_ANGLE, .jpk Grid-Theta, WSxM Control / Angle other than 0), NaN lines of an
+interrupted scan.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from afm_core.imaging.vendor_common import VendorImage, length_scale
+from afm_core.imaging.vendor_headers import (
+    spm_header,
+    spm_image,
+    spm_images,
+    sxm_header,
+    sxm_image,
+    sxm_layout,
+    wsxm_header,
+    wsxm_image,
+    wsxm_title,
+)
+from afm_core.imaging.vendor_libraries import (
+    ibw_image,
+    ibw_names,
+    ibw_wave,
+    jpk_image,
+    jpk_names,
+    jpk_open,
+)
+
+__all__ = ["VENDOR_SUFFIXES", "VendorImage", "length_scale", "read_vendor", "vendor_channels"]
+
+VENDOR_SUFFIXES = (".ibw", ".jpk", ".spm", ".sxm", ".stp", ".top")
+
+
+def read_vendor(path: Path, channel: int | str = 0) -> VendorImage:
+    """The channel `channel` (index in `vendor_channels(path)` or its title) of a vendor file."""
+    suffix = path.suffix.lower()
+    if suffix == ".ibw":
+        return ibw_image(path, channel)
+    if suffix == ".sxm":
+        return sxm_image(path, channel)
+    if suffix == ".jpk":
+        return jpk_image(path, channel)
+    if suffix == ".spm":
+        return spm_image(path, channel)
+    if suffix in (".stp", ".top"):
+        return wsxm_image(path, channel)
+    raise ValueError(f"{path}: {path.suffix!r} is not a vendor format read here")
+
+
+def vendor_channels(path: Path) -> list[str]:
+    suffix = path.suffix.lower()
+    if suffix == ".ibw":
+        return ibw_names(ibw_wave(path), path)
+    if suffix == ".sxm":
+        return [name for name, *_ in sxm_layout(sxm_header(path)[0], path)]
+    if suffix == ".jpk":
+        with jpk_open(path) as tif:
+            return jpk_names(tif, path)
+    if suffix == ".spm":
+        return [name for name, _ in spm_images(spm_header(path)[0], path)]
+    return [wsxm_title(wsxm_header(path)[0], path)]

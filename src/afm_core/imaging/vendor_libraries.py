@@ -1,0 +1,242 @@
+"""Vendor scans read through libraries: Asylum/Igor .ibw (igor2) and JPK .jpk (tifffile).
+The formats' layout and conventions are described in imaging.vendor_files."""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+from afm_core.imaging.vendor_common import VendorImage, choose_channel, finite_height, length_scale
+
+# Asylum's note gives the scan size to a few digits; the wave's scaling is exact
+_NOTE_REL_TOL = 1e-3
+
+
+# -- Asylum .ibw (igor2) -----------------------------------------------------------------------
+
+
+def ibw_wave(path: Path) -> dict:
+    try:
+        from igor2 import binarywave
+    except ImportError as exc:
+        raise ImportError(
+            "reading Igor/Asylum .ibw files needs the 'igor2' package: pip install igor2"
+        ) from exc
+    try:
+        return binarywave.load(str(path))["wave"]
+    except Exception as exc:  # truncated or damaged: struct, assertion, value errors
+        raise ValueError(
+            f"{path}: not a readable Igor binary wave ({type(exc).__name__}: {exc})"
+        ) from exc
+
+
+def _text(value) -> str:
+    if isinstance(value, bytes):
+        return value.split(b"\x00")[0].decode("latin-1")
+    if isinstance(value, np.ndarray):
+        return b"".join(value.astype("S1").ravel().tolist()).split(b"\x00")[0].decode("latin-1")
+    return str(value)
+
+
+def ibw_names(wave: dict, path: Path) -> list[str]:
+    data = np.asarray(wave["wData"])
+    if data.ndim == 2:
+        return [_text(wave["wave_header"]["bname"]) or path.stem]
+    if data.ndim != 3:
+        raise ValueError(
+            f"{path}: the wave has shape {data.shape}, not an image (x, y[, channel])"
+        )
+    labels = wave.get("labels") or []
+    layer = [_text(x) for x in (labels[2] if len(labels) > 2 else [])][1:]  # [0]: the axis
+    return [
+        layer[k] if k < len(layer) and layer[k] else f"channel {k}" for k in range(data.shape[2])
+    ]
+
+
+def _ibw_units(wave: dict, header: dict) -> tuple[str, list[str]]:
+    data_unit = _text(wave.get("data_units") or b"") or _text(header["dataUnits"])
+    extended = wave.get("dimension_units") or b""
+    extended = [_text(u) for u in extended] if isinstance(extended, list) else []
+    dims = []
+    for d in range(2):
+        unit = extended[d] if d < len(extended) and extended[d] else ""
+        dims.append(unit or _text(np.asarray(header["dimUnits"])[d]))
+    return data_unit, dims
+
+
+def _asylum_note(wave: dict) -> dict[str, str]:
+    note = wave.get("note") or b""
+    text = note.decode("latin-1") if isinstance(note, bytes) else str(note)
+    pairs = {}
+    for line in re.split(r"[\r\n]+", text):
+        key, sep, value = line.partition(":")
+        if sep:
+            pairs[key.strip()] = value.strip()
+    return pairs
+
+
+def ibw_image(path: Path, channel) -> VendorImage:
+    wave = ibw_wave(path)
+    names = ibw_names(wave, path)
+    index = choose_channel(path, names, channel)
+    where = f"{path} channel {names[index]!r}"
+    header = wave["wave_header"]
+    data = np.asarray(wave["wData"], dtype=np.float64)
+    layer = data if data.ndim == 2 else data[:, :, index]
+    data_unit, dim_units = _ibw_units(wave, header)
+    z_scale = length_scale(data_unit, f"{where} (data units)")
+    lateral = [length_scale(u, f"{where} (dimension {d} units)") for d, u in enumerate(dim_units)]
+    step = [float(header["sfA"][d]) * lateral[d] for d in range(2)]
+    first = [float(header["sfB"][d]) * lateral[d] for d in range(2)]
+    if not all(math.isfinite(s) and s != 0 for s in step):
+        raise ValueError(f"{where}: point spacing (sfA) {step} must be finite and non-zero")
+    height = layer.T * z_scale  # Igor's dimension 0 is x: rows become y
+    if step[0] < 0:  # x decreasing with the index: mirror so columns run along +x
+        height, step[0], first[0] = (
+            height[:, ::-1],
+            -step[0],
+            first[0] + step[0] * (height.shape[1] - 1),
+        )
+    if step[1] < 0:
+        height, step[1], first[1] = (
+            height[::-1],
+            -step[1],
+            first[1] + step[1] * (height.shape[0] - 1),
+        )
+    note = _asylum_note(wave)
+    for key, size, pixels in (
+        ("FastScanSize", step[0], height.shape[1]),
+        ("SlowScanSize", step[1], height.shape[0]),
+    ):
+        if key in note:
+            try:
+                stated = float(note[key])
+            except ValueError:
+                continue
+            if not math.isclose(stated, size * pixels, rel_tol=_NOTE_REL_TOL):
+                raise ValueError(
+                    f"{where}: the note's {key}={stated!r} m disagrees with the wave's scaling "
+                    f"({pixels} x {size!r} m = {size * pixels!r} m)"
+                )
+    return VendorImage(
+        finite_height(height, where),
+        step[0],
+        step[1],
+        first[0] - step[0] / 2,  # point positions are pixel centres
+        first[1] - step[1] / 2,
+        names[index],
+    )
+
+
+# -- JPK .jpk (tifffile) ----------------------------------------------------------------------
+
+# JPK's private TIFF tags (JPKImageSpec 2.0, as AFMReader and Gwyddion read them)
+_JPK_GRID = {
+    "x0": 32832,
+    "y0": 32833,
+    "u": 32834,
+    "v": 32835,
+    "theta": 32836,
+    "i": 32838,
+    "j": 32839,
+}
+_JPK_CHANNEL, _JPK_RETRACE, _JPK_SLOTS, _JPK_DEFAULT_SLOT = 32848, 32849, 32896, 32897
+_JPK_SLOT_BASE, _JPK_SLOT_SIZE = 32912, 48  # slot k's tags start at base + size * k
+_JPK_SLOT_UNIT, _JPK_SLOT_SCALING, _JPK_SLOT_MULTIPLIER, _JPK_SLOT_OFFSET = 18, 19, 20, 21
+
+
+def jpk_open(path: Path):
+    try:
+        import tifffile
+    except ImportError as exc:
+        raise ImportError(
+            "reading JPK .jpk files needs the 'tifffile' package: pip install tifffile"
+        ) from exc
+    try:
+        return tifffile.TiffFile(path)
+    except Exception as exc:  # not a TIFF, truncated
+        raise ValueError(f"{path}: not a readable JPK TIFF ({type(exc).__name__}: {exc})") from exc
+
+
+def _jpk_tag(page, code: int, path: Path, what: str):
+    tag = page.tags.get(code)
+    if tag is None:
+        raise ValueError(f"{path}: the JPK file has no {what} (TIFF tag {code})")
+    return tag.value
+
+
+def jpk_names(tif, path: Path) -> list[str]:
+    names = []
+    for page in tif.pages[1:]:
+        name = _jpk_tag(page, _JPK_CHANNEL, path, "channel name")
+        retrace = page.tags.get(_JPK_RETRACE)
+        names.append(f"{name}_{'retrace' if retrace is not None and retrace.value else 'trace'}")
+    if not names:
+        raise ValueError(f"{path}: the JPK file holds no channel page (only the thumbnail)")
+    return names
+
+
+def _jpk_scaling(page, path: Path, where: str) -> tuple[float, float, str]:
+    """(multiplier, offset, unit) of the page's default calibration slot."""
+    default = _jpk_tag(page, _JPK_DEFAULT_SLOT, path, "default calibration slot")
+    slots = int(_jpk_tag(page, _JPK_SLOTS, path, "number of calibration slots"))
+    for k in range(slots):
+        base = _JPK_SLOT_BASE + _JPK_SLOT_SIZE * k
+        name = page.tags.get(base)
+        if name is None or name.value != default:
+            continue
+        kind = _jpk_tag(page, base + _JPK_SLOT_SCALING, path, f"slot {default!r} scaling")
+        if kind != "LinearScaling":
+            raise ValueError(f"{where}: calibration slot {default!r} is {kind}, not a length")
+        return (
+            float(
+                _jpk_tag(page, base + _JPK_SLOT_MULTIPLIER, path, f"slot {default!r} multiplier")
+            ),
+            float(_jpk_tag(page, base + _JPK_SLOT_OFFSET, path, f"slot {default!r} offset")),
+            str(_jpk_tag(page, base + _JPK_SLOT_UNIT, path, f"slot {default!r} unit")),
+        )
+    raise ValueError(f"{where}: the default calibration slot {default!r} is not among its slots")
+
+
+def jpk_image(path: Path, channel) -> VendorImage:
+    with jpk_open(path) as tif:
+        names = jpk_names(tif, path)
+        index = choose_channel(path, names, channel)
+        where = f"{path} channel {names[index]!r}"
+        grid = {
+            key: float(_jpk_tag(tif.pages[0], code, path, f"Grid-{key}"))
+            for key, code in _JPK_GRID.items()
+        }
+        if grid["theta"] != 0.0:
+            raise ValueError(
+                f"{path}: Grid-Theta {math.degrees(grid['theta']):.4g} deg: a rotated scan grid "
+                "is not read (the map's axes are the scanner's); export it unrotated"
+            )
+        page = tif.pages[index + 1]
+        try:
+            raw = np.asarray(page.asarray(), dtype=np.float64)
+        except Exception as exc:  # truncated strips
+            raise ValueError(f"{where}: unreadable image data ({exc})") from exc
+        multiplier, offset, unit = _jpk_scaling(page, path, where)
+    columns, lines = int(grid["i"]), int(grid["j"])
+    if raw.shape != (lines, columns):
+        raise ValueError(
+            f"{where}: image of {raw.shape[1]} x {raw.shape[0]} px, the grid says "
+            f"{columns} x {lines} (Grid-iLength x Grid-jLength)"
+        )
+    if not (grid["u"] > 0 and grid["v"] > 0):
+        raise ValueError(
+            f"{path}: Grid-uLength, -vLength must be > 0 m, got {grid['u']}, {grid['v']}"
+        )
+    height = (raw * multiplier + offset) * length_scale(unit, f"{where} (slot unit)")
+    return VendorImage(
+        finite_height(height, where),
+        grid["u"] / columns,
+        grid["v"] / lines,
+        grid["x0"],
+        grid["y0"],
+        names[index],
+    )
