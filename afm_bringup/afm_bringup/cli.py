@@ -195,7 +195,7 @@ def cmd_scan(args):
 
 
 def cmd_push(args):
-    from afm_bringup.commander import AfmCommander, AfmError
+    from afm_bringup.commander import AfmCommander, AfmError, ServerGone
 
     def show(feedback):
         est = feedback.particle_estimate
@@ -222,6 +222,8 @@ def cmd_push(args):
                 print("cancelling the push ...", file=sys.stderr)
                 job.cancel()
                 result = job.result(30.0)
+            except ServerGone:
+                raise  # nobody left to cancel
             except AfmError:
                 if not job.done():
                     try:  # a push we stop waiting for is stopped, not left running
@@ -361,8 +363,10 @@ def _add_launch(sub) -> None:
     p = sub.add_parser(
         "launch",
         help="start the whole graph as separate processes; Ctrl-C stops all",
-        description="Start the graph's nodes as separate processes. Ctrl-C (or any node dying) "
-        "stops them all, the recorder last.",
+        description="Start the graph's nodes as separate processes. Ctrl-C (or any node other "
+        "than the recorder dying) stops them all, the recorder last; a dead recorder is reported "
+        "and restarted on FILE.restartN.mcap (up to 3 times). The nodes die with the launcher, "
+        "even when it is killed.",
     )
     p.add_argument("--nodes", help=f"comma-separated subset (default: {','.join(GRAPH)})")
     p.add_argument(

@@ -39,6 +39,10 @@ class AfmError(RuntimeError):
     """The graph did not do what was asked; the message says what and why."""
 
 
+class ServerGone(AfmError):
+    """The action server stopped answering while we waited (its node died or hangs)."""
+
+
 class Job:
     """A sent goal: wait for its result, read its latest feedback, or cancel it. While waiting
     the server is probed (a heartbeat): one that stops answering (its node died) ends the
@@ -72,7 +76,7 @@ class Job:
                 if heartbeat is not None:
                     heartbeat.beat()
                     if heartbeat.gone():
-                        raise AfmError(
+                        raise ServerGone(
                             f"{self.name}: aborted: server gone ({self._client._action_name} "
                             f"has not answered for {heartbeat.silent_for():.1f} s; its node "
                             "died or hangs)"
