@@ -82,6 +82,22 @@ def test_a_flipped_bit_in_a_chunk_is_reported_and_recover_keeps_every_other_mess
     assert recovery.messages == len(written) - len(lost)
 
 
+def test_a_flipped_bit_in_the_summary_is_reported_and_recover_walks_the_chunks(tmp_path):
+    path = tmp_path / "s.mcap"
+    written = write_chunked(path)
+    with RecordingReader(path) as reader:
+        channel = next(iter(reader.summary.channels.values()))
+    data = path.read_bytes()
+    where = data.rindex(channel.topic.encode())  # the topic's name in the summary's channel
+    flip_bit(path, where + 5)
+    with pytest.raises(RecordingError, match="summary section CRC"):
+        RecordingReader(path)
+    recovery = recover(path)
+    assert recovery.messages == len(written) and not recovery.damaged
+    with RecordingReader(recovery.path) as reader:
+        assert set(reader.topics()) == set(TOPICS)
+
+
 def test_a_damaged_unfinished_file_is_recovered_around_the_damage(tmp_path):
     """A .part (no summary, no index): the walk in file order skips the damaged chunk."""
     path = tmp_path / "s.mcap"

@@ -14,6 +14,7 @@ from __future__ import annotations
 import io
 import os
 import struct
+import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, ChunkIndex, Message, Schema
 from mcap.stream_reader import breakup_chunk
@@ -153,6 +155,46 @@ def read_chunk_at(stream, chunk_index: ChunkIndex) -> list:
     return breakup_chunk(chunk, validate_crc=True)
 
 
+FOOTER_BYTES = 1 + 8 + 8 + 8 + 4  # opcode, length, summary_start, summary_offset_start, crc
+MAGIC_BYTES = 8
+MCAP0_MAGIC = b"\x89MCAP0\r\n"
+
+
+def summary_damage(stream) -> str:
+    """'' when the summary section's CRC (in the footer) matches or is not set, else what is
+    wrong. The mcap library does not check it; a flipped bit there would change topics,
+    types or counts silently. The CRC covers the summary and the footer up to the CRC.
+    Leaves the stream at its start."""
+    try:
+        return _summary_damage(stream)
+    finally:
+        stream.seek(0)
+
+
+def _summary_damage(stream) -> str:
+    end = stream.seek(0, io.SEEK_END)
+    footer_start = end - MAGIC_BYTES - FOOTER_BYTES
+    if footer_start < MAGIC_BYTES:
+        return ""
+    stream.seek(footer_start)
+    footer = stream.read(FOOTER_BYTES + MAGIC_BYTES)
+    opcode, length, summary_start, _offsets, expected = struct.unpack(
+        "<BQQQI", footer[:FOOTER_BYTES]
+    )
+    if footer[FOOTER_BYTES:] != MCAP0_MAGIC or opcode != Opcode.FOOTER or length != 20:
+        return ""  # no footer (an unfinished file): nothing to check here, the reader says why
+    if expected == 0 or summary_start == 0:
+        return ""
+    footer = footer[:FOOTER_BYTES]
+    if not MAGIC_BYTES <= summary_start <= footer_start:
+        return f"the footer points the summary at byte {summary_start}, outside the file"
+    stream.seek(summary_start)
+    actual = zlib.crc32(stream.read(footer_start - summary_start) + footer[:-4])
+    if actual != expected:
+        return f"summary section CRC {actual:#010x} != {expected:#010x} in the footer"
+    return ""
+
+
 def describe_damage(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}"[:200]
 
@@ -179,6 +221,13 @@ class RecordingReader:
                 f"recording {str(self.path)!r} is truncated or corrupt ({exc}); "
                 f"`afm recover {self.path}` saves the complete chunks"
             ) from exc
+        damage = summary_damage(self._stream) if validate_crcs else ""
+        if damage:
+            self._stream.close()
+            raise RecordingError(
+                f"recording {str(self.path)!r} is corrupt: {damage}; `afm recover {self.path}` "
+                "keeps every message of the undamaged chunks"
+            )
         if self.summary is None or self.summary.statistics is None:
             self._stream.close()
             raise RecordingError(

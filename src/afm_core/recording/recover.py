@@ -7,7 +7,8 @@ Two routes to the chunks, the better first:
   the stream ends or stops making sense; a chunk whose CRC fails is skipped and the walk
   goes on behind it.
 Every chunk's CRC is checked: a message is kept only from a chunk that passed. Schemas and
-channels come from the summary when there is one, else from the chunks as they pass.
+channels come from the summary when there is one and its CRC holds, else from the chunks as
+they pass.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from afm_core.recording.reader import (
     DamagedChunk,
     describe_damage,
     read_chunk_at,
+    summary_damage,
 )
 from afm_core.recording.writer import RecordingWriter
 
@@ -72,7 +74,11 @@ class _Copier:
 
 
 def _summary(stream):
+    """The summary when it is there and its CRC holds (a damaged one could send the walk to
+    the wrong offsets or name the wrong topics), else None."""
     try:
+        if summary_damage(stream):
+            return None
         summary = make_reader(stream).get_summary()
     except DAMAGE_ERRORS:
         return None
