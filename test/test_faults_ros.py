@@ -72,6 +72,33 @@ def test_a_killed_driver_ends_every_wait_for_it_within_seconds(nodes, ros_node):
     assert commander_s < NOTICE_S and helper_s < NOTICE_S, (commander_s, helper_s)
 
 
+def test_a_driver_with_a_full_queue_still_answers_the_heartbeat(nodes):
+    """Queued goals hold executor threads; the probe (a cancel) must still be served, or a
+    busy driver would be taken for a dead one."""
+    from test_driver import move_goal
+
+    nodes("driver", seed=2, real_time_factor=1.0, max_queued_goals=5)
+    with (
+        AfmCommander(server_timeout=30) as afm,
+        AfmCommander("second_commander", server_timeout=30) as other,
+    ):
+        scan = afm.send("scan_image", scan_goal(pixels=(64, 256), line_rate=1.0), wait=False)
+        moves = [
+            afm.send("move_tip", move_goal(20e-6, 20e-6 + i * 1e-6, speed=10e-6), wait=False)
+            for i in range(5)
+        ]
+        wait_for(lambda: scan.feedback is not None, 60, what="the scan started")
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        assert other.clients["move_tip"].wait_until_answering(SERVER_SILENCE_S)
+        answered_s = time.monotonic() - t0
+        with pytest.raises(AfmError, match="no result after"):
+            moves[-1].result(SERVER_SILENCE_S + 1.0)  # waited past the silence: not "gone"
+        for job in [*moves, scan]:
+            job.cancel()
+    print(f"full queue: the driver answered a probe in {answered_s:.3f} s")
+
+
 def fake_map(ros_node, position=(55e-6, 55e-6)):
     """One sphere where the simulator has one, as the imaging node would publish it."""
     mark = Landmark(

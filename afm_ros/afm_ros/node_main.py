@@ -8,6 +8,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import rclpy
 from rclpy.executors import (
@@ -52,11 +53,13 @@ def run(
     args=None,
     *,
     config_errors=(ValueError,),
-    threads: int = 1,
+    threads: int | Callable[[object], int] = 1,
     on_shutdown=None,
     drain_seconds: float = 0.0,
 ) -> int:
-    """Exit status: 0 after a clean stop, 2 when the node refused its configuration
+    """threads: executor threads, or a function of the built node giving them.
+
+    Exit status: 0 after a clean stop, 2 when the node refused its configuration
     (the message names the parameter), 1 when a callback asked to stop with an error.
 
     drain_seconds > 0: SIGINT/SIGTERM stop the spinning but not ROS, and the callbacks already
@@ -83,6 +86,8 @@ def run(
         print(f"{program}: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
+    if callable(threads):  # from the node's configuration (e.g. its queue length)
+        threads = threads(node)
     executor = (
         MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
     )
