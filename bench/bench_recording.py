@@ -10,11 +10,19 @@ writers write exactly the same bytes:
 - traces: afm_msgs/msg/ForceTrace, 0.1 s of 10 kHz samples (1000 per array, 6 float64
           arrays with noise), ~48 kB each; 10 messages = 1 s of 10 kHz data.
 
+- commands: afm_msgs/msg/TipCommand, ~200 B each at 50 Hz: the small messages of a session.
+
 Writers, same compression (zstd) and chunk size (4 MiB):
 
 - ours:  afm_core.recording.RecordingWriter with default settings: `.part` file created
          exclusively, free-space check every 8 MiB, QoS metadata per channel, a rosbag2
-         metadata record, flush + fsync at close and a link to the final name;
+         metadata record, flush + fsync at close and a link to the final name; its 1 s
+         flush_interval is on the wall clock, so writing faster than real time it hardly ever
+         closes a chunk early (a recorder catching up with a burst);
+- live:  the same, with the flush_interval (1 s) measured on the recording's clock, i.e. chunks
+         closed as a recorder closes them when the messages arrive at their recorded pace (a
+         scan every 10 s, a force trace every 0.1 s, a command every 20 ms): the price of
+         losing at most 1 s to a kill -9, in time and in file size, is live against ours;
 - plain: mcap.writer.Writer on a plain file, `finish()` and nothing else (no fsync: its data
          may still sit in the page cache when the clock stops).
 
@@ -22,16 +30,17 @@ Each case (payload x writer x repetition) runs in a fresh process ('spawn'), so 
 independent and the case's peak memory is that process's own (VmHWM from /proc; its
 ru_maxrss is not usable: a spawned child starts with the parent's). The clock (perf_counter)
 runs from writer creation through close()/finish(), fsync included for ours. Writers are
-interleaved in pairs, alternating who goes first (ours, plain, plain, ours, ours, plain, ...),
-after one discarded warm-up pair; os.sync() runs before each case, untimed, so no case pays
+interleaved, the order rotating each repetition (ours, plain, live, then plain, live, ours,
+...), after one discarded warm-up round; os.sync() runs before each case, untimed, so no case pays
 for the previous one's dirty pages. After every case the file is opened with RecordingReader
 and must hold exactly N messages, so a broken writer cannot look fast.
 
 How to read the ratio
 ---------------------
 ratio = ours throughput / plain throughput, the median of the per-pair ratios (a pair is the
-two adjacent runs of one repetition). 1.00 means no overhead; 0.80 means ours writes at 80 %
-of plain's speed, i.e. takes 1/0.80 = 1.25x as long. The same ratio "without close()/finish()"
+two runs of one repetition); live/ours likewise, and the file-size ratio live/ours. 1.00
+means no overhead; 0.80 means ours writes at 80 % of plain's speed, i.e. takes 1/0.80 =
+1.25x as long. The same ratio "without close()/finish()"
 leaves out ours' fsync; the "close s" column is the close()/finish() time alone.
 
 Run: `make bench` (default, < 3 min on 2 cores) or `... bench/bench_recording.py --quick`.
@@ -62,7 +71,7 @@ from machine import command_line, cpu_model
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 CHUNK_SIZE = 4 * 1024 * 1024
-WRITERS = ("ours", "plain")
+WRITERS = ("ours", "plain", "live")
 MB = 1e6
 MIB = 2**20
 
@@ -220,6 +229,28 @@ def make_traces(
     return out
 
 
+def make_commands(payload: Payload, seed: int = 3) -> list[bytes]:
+    """Tip commands of a push session: short contact moves between random points."""
+    from rclpy.serialization import serialize_message
+
+    from afm_msgs.msg import TipCommand
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(payload.count):
+        msg = TipCommand()
+        msg.header.stamp = stamp(i * payload.period_ns)
+        msg.header.frame_id = "afm_scanner"
+        msg.kind = int(rng.integers(0, 5))
+        msg.start.x, msg.start.y, msg.end.x, msg.end.y = rng.uniform(0, 100e-6, 4)
+        msg.speed = float(rng.uniform(0.1e-6, 5e-6))
+        msg.duration = payload.period_ns * 1e-9
+        msg.start_voltage = rng.uniform(-10, 10, 3).tolist()
+        msg.end_voltage = rng.uniform(-10, 10, 3).tolist()
+        out.append(bytes(serialize_message(msg)))
+    return out
+
+
 def save_payload(messages: list[bytes], path: Path) -> int:
     with open(path, "wb") as f:
         for data in messages:
@@ -241,8 +272,15 @@ def prepare_payloads(counts: dict[str, int], workdir: Path) -> list[Payload]:
     specs = [
         Payload("scans", "/afm/scan", "afm_msgs/msg/RasterScan", counts["scans"], 10 * 10**9),
         Payload("traces", "/afm/force_trace", "afm_msgs/msg/ForceTrace", counts["traces"], 10**8),
+        Payload(
+            "commands",
+            "/afm/tip_command",
+            "afm_msgs/msg/TipCommand",
+            counts["commands"],
+            2 * 10**7,
+        ),
     ]
-    makers = {"scans": make_scans, "traces": make_traces}
+    makers = {"scans": make_scans, "traces": make_traces, "commands": make_commands}
     ready = []
     for spec in specs:
         t0 = time.perf_counter()
@@ -259,17 +297,28 @@ def prepare_payloads(counts: dict[str, int], workdir: Path) -> list[Payload]:
 
 
 # -- the measured writers (child process) -----------------------------------------------------
-def write_ours(path: str, payload: Payload, messages: list[bytes]) -> float:
-    """Returns the time spent in close() (summary, metadata, flush, fsync, link)."""
+def write_ours(path: str, payload: Payload, messages: list[bytes], live: bool = False) -> float:
+    """Returns the time spent in close() (summary, metadata, flush, fsync, link). live: the
+    flush interval runs on the recording's clock, with the recorder's flush timer."""
     from afm_core.recording import QosDescription, RecordingWriter
 
-    rec = RecordingWriter(path)
+    now = [0.0]
+    rec = RecordingWriter(path, clock=(lambda: now[0]) if live else time.monotonic)
     channel = rec.add_channel(payload.topic, payload.type_name, [QosDescription()])
+    next_poll = 0.0
     for i, data in enumerate(messages):
+        now[0] = i * payload.period_ns * 1e-9
+        while live and next_poll <= now[0]:  # the recorder's timer, between messages
+            rec.flush_if_due()
+            next_poll += rec.poll_period
         rec.write(channel, i * payload.period_ns, data)
     t0 = time.perf_counter()
     rec.close()
     return time.perf_counter() - t0
+
+
+def write_live(path: str, payload: Payload, messages: list[bytes]) -> float:
+    return write_ours(path, payload, messages, live=True)
 
 
 def write_plain(path: str, payload: Payload, messages: list[bytes]) -> float:
@@ -320,7 +369,7 @@ def run_case(case: Case) -> dict:
     """Runs in a fresh process: load payload, time one writer, verify the file, delete it."""
     from afm_core.recording import RecordingReader
 
-    write = {"ours": write_ours, "plain": write_plain}[case.writer]
+    write = {"ours": write_ours, "plain": write_plain, "live": write_live}[case.writer]
     messages = load_payload(case.payload.file)
     peak_before = proc_status_kib("VmHWM")
     reset_peak_rss()
@@ -337,6 +386,8 @@ def run_case(case: Case) -> dict:
             f"wrote {len(messages)}"
         )
     file_bytes = os.path.getsize(case.output)
+    with RecordingReader(case.output) as reader:
+        chunks = len(reader.summary.chunk_indexes)
     os.unlink(case.output)
     return {
         "payload": case.payload.name,
@@ -347,6 +398,7 @@ def run_case(case: Case) -> dict:
         "seconds": seconds,
         "close_seconds": close_s,
         "file_bytes": file_bytes,
+        "chunks": chunks,
         "messages_per_s": len(messages) / seconds,
         "mb_per_s": case.payload.total_bytes / MB / seconds,
         "compression_ratio": case.payload.total_bytes / file_bytes,
@@ -364,9 +416,10 @@ def run_in_fresh_process(case: Case) -> dict:
 
 
 # -- running and reporting (parent) ----------------------------------------------------------
-def pair_order(rep: int) -> tuple[str, str]:
-    """ours, plain | plain, ours | ...: interleaved, and neither writer always goes first."""
-    return WRITERS if rep % 2 == 0 else WRITERS[::-1]
+def pair_order(rep: int) -> tuple[str, ...]:
+    """ours, plain, live | plain, live, ours | ...: interleaved, no writer always first."""
+    shift = rep % len(WRITERS)
+    return WRITERS[shift:] + WRITERS[:shift]
 
 
 def run_all(payloads: list[Payload], repetitions: int, warmups: int, workdir: Path) -> list[dict]:
@@ -412,6 +465,7 @@ def summarize(results: list[dict]) -> dict:
                 "min_seconds": min(r["seconds"] for r in runs),
                 "max_seconds": max(r["seconds"] for r in runs),
                 "file_bytes": med("file_bytes"),
+                "chunks": med("chunks"),
                 "compression_ratio": med("compression_ratio"),
                 "peak_rss_kib": max(r["peak_rss_kib"] for r in runs),
                 "writer_rss_kib": statistics.median(r["writer_rss_kib"] for r in runs),
@@ -422,11 +476,17 @@ def summarize(results: list[dict]) -> dict:
             (p["seconds"] - p["close_seconds"]) / (o["seconds"] - o["close_seconds"])
             for o, p in pairs
         ]
+        live_pairs = list(zip(rows["ours"], rows["live"]))
+        live_ratios = [o["seconds"] / v["seconds"] for o, v in live_pairs]
         summary[name] = {
             **per_writer,
             "ratio_ours_over_plain": statistics.median(ratios),
             "pair_ratios": ratios,
             "ratio_ours_over_plain_excluding_close": statistics.median(no_close),
+            "ratio_live_over_ours": statistics.median(live_ratios),
+            "live_pair_ratios": live_ratios,
+            "file_ratio_live_over_ours": per_writer["live"]["file_bytes"]
+            / per_writer["ours"]["file_bytes"],
         }
     return summary
 
@@ -446,7 +506,7 @@ def machine_info() -> dict:
 def table(summary: dict) -> list[str]:
     head = (
         "| payload | writer | msgs | payload MB | time s (median) | close s | msg/s | MB/s "
-        "| file MB | compr. | peak RSS MiB | writer +RSS MiB |"
+        "| file MB | chunks | compr. | peak RSS MiB | writer +RSS MiB |"
     )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for name, entry in summary.items():
@@ -457,8 +517,8 @@ def table(summary: dict) -> list[str]:
                 f"| {s['seconds']:.2f} "
                 f"({s['min_seconds']:.2f}-{s['max_seconds']:.2f}) | {s['close_seconds']:.3f} "
                 f"| {s['messages_per_s']:.0f} | {s['mb_per_s']:.1f} | {s['file_bytes'] / MB:.1f} "
-                f"| {s['compression_ratio']:.2f} | {s['peak_rss_kib'] / 1024:.0f} "
-                f"| {s['writer_rss_kib'] / 1024:.0f} |"
+                f"| {s['chunks']:.0f} | {s['compression_ratio']:.2f} "
+                f"| {s['peak_rss_kib'] / 1024:.0f} | {s['writer_rss_kib'] / 1024:.0f} |"
             )
     return lines
 
@@ -467,7 +527,11 @@ def ratio_lines(summary: dict) -> list[str]:
     return [
         f"- {name}: ours/plain throughput = **{e['ratio_ours_over_plain']:.3f}** "
         f"(per pair: {', '.join(f'{r:.3f}' for r in e['pair_ratios'])}); "
-        f"without close()/finish(): {e['ratio_ours_over_plain_excluding_close']:.3f}"
+        f"without close()/finish(): {e['ratio_ours_over_plain_excluding_close']:.3f}; "
+        f"live/ours (1 s flush at the recorded pace): throughput "
+        f"**{e['ratio_live_over_ours']:.3f}** "
+        f"(per pair: {', '.join(f'{r:.3f}' for r in e['live_pair_ratios'])}), "
+        f"file size **{e['file_ratio_live_over_ours']:.3f}**"
         for name, e in summary.items()
     ]
 
@@ -475,9 +539,10 @@ def ratio_lines(summary: dict) -> list[str]:
 def notes(settings: dict) -> list[str]:
     return [
         f"Writers: zstd, {CHUNK_SIZE // MIB} MiB chunks; {settings['repetitions']} repetitions "
-        f"each after {settings['warmups']} discarded warm-up pair(s), interleaved (ours, plain, "
-        "then plain, ours, ...), each case in a fresh spawned process, os.sync() before each "
-        "case (untimed).",
+        f"each after {settings['warmups']} discarded warm-up round(s), interleaved (ours, plain, "
+        "live, then plain, live, ours, ...); live closes a chunk once its oldest message is "
+        "0.75 s old on the recording's clock (the 1 s flush_interval); each case in a fresh "
+        "spawned process, os.sync() before each case (untimed).",
         "Time = writer creation through close()/finish(); ours includes flush + fsync + link at "
         "close, plain has no fsync (its data may still be in the page cache). 'close s' = "
         "close()/finish() alone.",
@@ -536,15 +601,20 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         type=int,
         help="force-trace messages per run (default 4000 = 400 s at 10 kHz, quick 200)",
     )
+    parser.add_argument(
+        "--commands",
+        type=int,
+        help="tip commands per run (default 20000 = 400 s at 50 Hz, quick 1000)",
+    )
     return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     defaults = (
-        {"repetitions": 2, "warmups": 0, "scans": 20, "traces": 200}
+        {"repetitions": 2, "warmups": 0, "scans": 20, "traces": 200, "commands": 1000}
         if args.quick
-        else {"repetitions": 5, "warmups": 1, "scans": 300, "traces": 4000}
+        else {"repetitions": 5, "warmups": 1, "scans": 300, "traces": 4000, "commands": 20000}
     )
     settings = {
         k: v if getattr(args, k) is None else getattr(args, k) for k, v in defaults.items()
@@ -557,7 +627,7 @@ def main(argv: list[str] | None = None) -> int:
     )  # same disk; git-ignored
     try:
         payloads = prepare_payloads(
-            {"scans": settings["scans"], "traces": settings["traces"]}, workdir
+            {k: settings[k] for k in ("scans", "traces", "commands")}, workdir
         )
         results = run_all(payloads, settings["repetitions"], settings["warmups"], workdir)
     finally:

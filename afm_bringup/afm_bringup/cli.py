@@ -31,6 +31,11 @@ def _param(text):
     return key, value
 
 
+# A push is a few scans, a localization and strokes: minutes on the simulator; an hour without
+# a result is a hung nano-hand, not a slow push.
+PUSH_TIMEOUT_S = 3600.0
+
+
 def cmd_run(args):
     command = node_command(args.node, args.params_file, dict(args.param or []))
     os.execv(command[0], command)
@@ -119,19 +124,42 @@ def cmd_info(args):
                 qos = info.offered_qos[0] if info.offered_qos else None
                 qos_text = f"{qos.reliability}, {qos.durability}" if qos else "no QoS recorded"
                 print(f"  {topic:<{width}}  {info.message_count:>7}  {info.type}  [{qos_text}]")
+            damaged = reader.damaged_chunks()
+            print(f"chunks:    {len(reader.summary.chunk_indexes)}, {len(damaged)} damaged (CRC)")
+            for chunk in damaged:
+                print(f"  {chunk}")
     except RecordingError as exc:
-        sys.exit(f"afm info: {exc}")
+        print(f"afm info: {exc}", file=sys.stderr)
+        return 2
+    if damaged:
+        print(
+            f"afm info: `afm recover {args.recording}` keeps the undamaged chunks", file=sys.stderr
+        )
+        return 1
     return 0
 
 
 def cmd_recover(args):
-    from afm_core.recording import RecordingError, recover_recording
+    from afm_core.recording import RecordingError, recover
 
     try:
-        path, count = recover_recording(args.recording, args.output)
+        recovery = recover(args.recording, args.output)
     except RecordingError as exc:
-        sys.exit(f"afm recover: {exc}")
-    print(f"recovered {count} messages into {path}")
+        print(f"afm recover: {exc}", file=sys.stderr)
+        return 2
+    for chunk in recovery.damaged:
+        where = "" if chunk.offset >= 0 else " (file order)"
+        print(f"skipped a damaged {chunk}{where}", file=sys.stderr)
+    if recovery.orphaned:
+        print(
+            f"skipped {recovery.orphaned} messages whose channel was defined in a damaged chunk",
+            file=sys.stderr,
+        )
+    if recovery.stopped:
+        print(
+            f"the file ends early or is unreadable after that: {recovery.stopped}", file=sys.stderr
+        )
+    print(f"recovered {recovery.messages} messages into {recovery.path}")
     return 0
 
 
@@ -167,7 +195,7 @@ def cmd_scan(args):
 
 
 def cmd_push(args):
-    from afm_bringup.commander import AfmCommander, AfmError
+    from afm_bringup.commander import AfmCommander, AfmError, ServerGone
 
     def show(feedback):
         est = feedback.particle_estimate
@@ -194,6 +222,15 @@ def cmd_push(args):
                 print("cancelling the push ...", file=sys.stderr)
                 job.cancel()
                 result = job.result(30.0)
+            except ServerGone:
+                raise  # nobody left to cancel
+            except AfmError:
+                if not job.done():
+                    try:  # a push we stop waiting for is stopped, not left running
+                        job.cancel()
+                    except AfmError:
+                        pass
+                raise
         except AfmError as exc:
             sys.exit(f"afm push: {exc}")
     print(
@@ -326,8 +363,10 @@ def _add_launch(sub) -> None:
     p = sub.add_parser(
         "launch",
         help="start the whole graph as separate processes; Ctrl-C stops all",
-        description="Start the graph's nodes as separate processes. Ctrl-C (or any node dying) "
-        "stops them all, the recorder last.",
+        description="Start the graph's nodes as separate processes. Ctrl-C (or any node other "
+        "than the recorder dying) stops them all, the recorder last; a dead recorder is reported "
+        "and restarted on FILE.restartN.mcap (up to 3 times). The nodes die with the launcher, "
+        "even when it is killed.",
     )
     p.add_argument("--nodes", help=f"comma-separated subset (default: {','.join(GRAPH)})")
     p.add_argument(
@@ -438,7 +477,13 @@ def _add_push(sub) -> None:
     p.add_argument("--goal", nargs=2, required=True, type=_length("goal"), metavar=("X", "Y"))
     p.add_argument("--strategy", default="nano_hand", choices=["nano_hand", "center", "rod_hand"])
     p.add_argument("--tolerance", type=_length("tolerance"), default=20e-9)
-    p.add_argument("--timeout", type=float, default=None, help="s to wait for the result")
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=PUSH_TIMEOUT_S,
+        help=f"s to wait for the result, then cancel (default {PUSH_TIMEOUT_S:.0f}); a "
+        "nano-hand that stops answering ends the wait within a few seconds anyway",
+    )
     p.set_defaults(func=cmd_push)
 
 

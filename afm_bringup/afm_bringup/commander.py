@@ -32,7 +32,7 @@ from afm_msgs.action import (
     Sim2Real,
 )
 from afm_ros import topics
-from afm_ros.action_client import SafeActionClient
+from afm_ros.action_client import CANCEL_ACK_TIMEOUT_S, Heartbeat, SafeActionClient
 from afm_ros.conversions import FRAME_SCANNER
 from afm_ros.qos_profiles import FEEDBACK
 
@@ -41,13 +41,20 @@ class AfmError(RuntimeError):
     """The graph did not do what was asked; the message says what and why."""
 
 
-class Job:
-    """A sent goal: wait for its result, read its latest feedback, or cancel it."""
+class ServerGone(AfmError):
+    """The action server stopped answering while we waited (its node died or hangs)."""
 
-    def __init__(self, name: str, goal_handle, feedback_box: dict):
+
+class Job:
+    """A sent goal: wait for its result, read its latest feedback, or cancel it. While waiting
+    the server is probed (a heartbeat): one that stops answering (its node died) ends the
+    wait within SERVER_SILENCE_S with an AfmError, instead of never."""
+
+    def __init__(self, name: str, goal_handle, feedback_box: dict, client=None):
         self.name = name
         self._handle = goal_handle
         self._feedback = feedback_box
+        self._client = client
         self._result_future = goal_handle.get_result_async()
 
     @property
@@ -58,15 +65,32 @@ class Job:
         return self._result_future.done()
 
     def result(self, timeout: float | None = None):
-        """The action's result message; AfmError if it did not finish in `timeout` s."""
+        """The action's result message; AfmError if it did not finish in `timeout` s (None:
+        as long as the server answers) or the server stopped answering."""
         event = threading.Event()
         self._result_future.add_done_callback(lambda _f: event.set())
-        if not event.wait(timeout):
-            raise AfmError(f"{self.name}: no result after {timeout} s")
+        heartbeat = Heartbeat(self._client) if self._client is not None else None
+        deadline = None if timeout is None else time.monotonic() + timeout
+        try:
+            while not event.wait(0.05):
+                if deadline is not None and time.monotonic() > deadline:
+                    raise AfmError(f"{self.name}: no result after {timeout} s")
+                if heartbeat is not None:
+                    heartbeat.beat()
+                    if heartbeat.gone():
+                        raise ServerGone(
+                            f"{self.name}: aborted: server gone ({self._client._action_name} "
+                            f"has not answered for {heartbeat.silent_for():.1f} s; its node "
+                            "died or hangs)"
+                        )
+        finally:
+            if heartbeat is not None:
+                heartbeat.forget()
         return self._result_future.result().result
 
-    def cancel(self, timeout: float = 10.0) -> bool:
-        """Ask the server to stop; True when it accepted the cancel."""
+    def cancel(self, timeout: float = CANCEL_ACK_TIMEOUT_S) -> bool:
+        """Ask the server to stop; True when it accepted the cancel. AfmError when it does not
+        acknowledge within `timeout` s."""
         future = self._handle.cancel_goal_async()
         event = threading.Event()
         future.add_done_callback(lambda _f: event.set())
@@ -129,7 +153,7 @@ class AfmCommander:
         handle = future.result()
         if not handle.accepted:
             raise AfmError(f"{action}: goal rejected by the server")
-        job = Job(action, handle, box)
+        job = Job(action, handle, box, client)
         return job.result(timeout) if wait else job
 
     def wait_until_subscribed(

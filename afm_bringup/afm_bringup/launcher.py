@@ -1,4 +1,11 @@
-"""Start graph nodes as separate processes and stop them cleanly (our `ros2 launch`)."""
+"""Start graph nodes as separate processes and stop them cleanly (our `ros2 launch`).
+
+Children die with the launcher: each runs in its own session (Ctrl-C in the terminal reaches
+only the launcher, which stops them in order) and asks the kernel for SIGTERM when the
+launcher dies, even by SIGKILL (PR_SET_PDEATHSIG, set by the child itself at start, see
+afm_ros.node_main.die_with_parent). A node that dies is reported; the recorder is restarted
+on a new file (its unfinished one stays for `afm recover`), any other death stops the graph.
+"""
 
 from __future__ import annotations
 
@@ -29,6 +36,17 @@ NODES = {
     "sim2real": NodeSpec("afm_bringup.sim2real_node", "afm_bringup", "sim2real.yaml"),
 }
 GRAPH = ["driver", "imaging", "localizer", "planner", "nano_hand", "sim2real"]
+# The recorder only listens: a new one loses nothing but the gap. More restarts than this in a
+# row mean it cannot run (a full disk, a bad path): the graph stops instead of looping.
+RESTARTABLE = {"recorder"}
+MAX_RESTARTS = 3
+PARENT_PID_ENV = "AFM_LAUNCHER_PID"  # read by afm_ros.node_main.die_with_parent in each child
+
+
+def restart_output(output: str, attempt: int) -> str:
+    """session.mcap -> session.restart1.mcap, ...: never the old name (its .part is kept)."""
+    path = Path(output)
+    return str(path.with_name(f"{path.stem}.restart{attempt}{path.suffix}"))
 
 
 def default_params_file(name: str) -> Path | None:
@@ -65,6 +83,9 @@ class Graph:
 
     def __init__(self, log_dir: str | os.PathLike | None = None):
         self.processes: dict[str, subprocess.Popen] = {}
+        self.specs: dict[str, tuple[str, dict[str, str], object]] = {}
+        self.restarts: dict[str, int] = {}
+        self.first_outputs: dict[str, str] = {}
         self.log_dir = Path(log_dir) if log_dir else None
         if self.log_dir:
             self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -79,14 +100,36 @@ class Graph:
         alias = alias or name
         if alias in self.processes:
             raise ValueError(f"{alias} is already running")
-        output = open(self.log_dir / f"{alias}.log", "wb") if self.log_dir else None
+        output = open(self.log_dir / f"{alias}.log", "ab") if self.log_dir else None
+        self.specs[alias] = (name, dict(overrides or {}), params_file)
         self.processes[alias] = subprocess.Popen(
             node_command(name, params_file, overrides),
             stdout=output,
             stderr=subprocess.STDOUT if output else None,
-            start_new_session=True,
-        )  # Ctrl-C in the terminal reaches us, and we stop them in order
+            start_new_session=True,  # Ctrl-C in the terminal reaches us; we stop them in order
+            env={**os.environ, PARENT_PID_ENV: str(os.getpid())},
+        )
         return self.processes[alias]
+
+    def restart(self, alias: str) -> subprocess.Popen | None:
+        """Start a dead restartable node again (a recorder on a new file); None when it may
+        not be (not restartable, or MAX_RESTARTS used)."""
+        name, overrides, params_file = self.specs[alias]
+        attempt = self.restarts.get(alias, 0) + 1
+        if name not in RESTARTABLE or attempt > MAX_RESTARTS:
+            return None
+        self.restarts[alias] = attempt
+        place = list(self.processes).index(alias)
+        self.processes.pop(alias)
+        first = self.first_outputs.setdefault(alias, overrides.get("output", ""))
+        if first:
+            overrides = {**overrides, "output": restart_output(first, attempt)}
+        process = self.start(name, overrides, alias, params_file)
+        # keep its place in the start order: a recorder started first is still stopped last
+        items = list(self.processes.items())
+        items.insert(place, items.pop())
+        self.processes = dict(items)
+        return process
 
     def dead(self) -> dict[str, int]:
         """Nodes that exited, with their exit codes."""
@@ -108,19 +151,30 @@ class Graph:
         return {name: self.stop(name, timeout) for name in reversed(list(self.processes))}
 
     def wait(self, poll: float = 0.2) -> dict[str, int]:
-        """Block until any node exits or we are interrupted; then stop the rest."""
+        """Block until a node that cannot be restarted exits, or we are interrupted; then stop
+        the rest. Every death is reported; a restartable node (the recorder) is started
+        again."""
         interrupted = []
         previous = {
             sig: signal.signal(sig, lambda s, _f: interrupted.append(s))
             for sig in (signal.SIGINT, signal.SIGTERM)
         }
+        died: dict[str, int] = {}
         try:
-            while not interrupted and not self.dead():
+            while not interrupted and not died:
                 time.sleep(poll)
+                for name, code in self.dead().items():
+                    print(f"afm: {name} exited with status {code}", file=sys.stderr)
+                    if self.restart(name) is not None:
+                        output = self.specs[name][1].get("output")
+                        print(
+                            f"afm: {name} restarted (restart {self.restarts[name]} of "
+                            f"{MAX_RESTARTS})" + (f", recording to {output}" if output else ""),
+                            file=sys.stderr,
+                        )
+                        continue
+                    died[name] = code
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
-        died = self.dead()
-        for name, code in died.items():
-            print(f"afm: {name} exited with status {code}", file=sys.stderr)
         return {**died, **self.stop_all()}

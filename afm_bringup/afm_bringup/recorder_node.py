@@ -51,6 +51,15 @@ PARAMETERS = ParameterTable(
         minimum=1,
     ),
     Parameter(
+        "flush_interval",
+        1.0,
+        "Longest time a received message waits in memory before its chunk is compressed and "
+        "written: what a killed recorder can lose (shorter: smaller chunks, less compression).",
+        unit="s",
+        minimum=0.0,
+        above_minimum=True,
+    ),
+    Parameter(
         "min_free_bytes",
         64 * 1024 * 1024,
         "Stop and close the recording when the disk has less free space.",
@@ -73,12 +82,14 @@ class RecorderNode(Node):
             compression=self.config["compression"],
             chunk_size=self.config["chunk_size"],
             min_free_bytes=self.config["min_free_bytes"],
+            flush_interval=self.config["flush_interval"],
         )
         self.wanted = set(self.config["topics"])
         self.recorded_topics = {}
         self._skipped = set()
         self.failure: str | None = None
         self.create_timer(self.config["discovery_period"], self.discover)
+        self.create_timer(self.writer.poll_period, self.flush_if_due)
         self.discover()
         self.get_logger().info(
             f"recording {sorted(self.wanted) if not self.config['all_topics'] else 'all topics'}"
@@ -132,6 +143,16 @@ class RecorderNode(Node):
                 raise SystemExit(1) from exc
 
         return write
+
+    def flush_if_due(self):
+        if self.writer.closed:
+            return
+        try:
+            self.writer.flush_if_due()
+        except RecordingError as exc:
+            self.failure = str(exc)
+            self.get_logger().error(self.failure)
+            raise SystemExit(1) from exc
 
     def close(self):
         path = self.writer.close()

@@ -20,6 +20,7 @@ from rosgraph_msgs.msg import Clock
 from afm_core.parameters import Parameter, ParameterTable
 from afm_core.recording import RecordingError, RecordingReader
 from afm_ros import params
+from afm_ros.action_client import STOPPING
 from afm_ros.message_types import import_message_type, publisher_qos_for
 from afm_ros.node_main import run
 
@@ -115,13 +116,15 @@ class ReplayNode(Node):
         try:
             self.wait_for_subscribers()
             self.play()
-        except TimeoutError as exc:
+        except (TimeoutError, RecordingError) as exc:
             self.failure = str(exc)
             rclpy.try_shutdown()
             return
-        except Exception:  # noqa: BLE001 - publishing races a SIGINT shutdown
+        except Exception as exc:  # noqa: BLE001 - publishing races a SIGINT shutdown
             if rclpy.ok():
-                raise
+                # anything else still ends the node with the reason, never a silent hang
+                self.failure = f"playback failed: {type(exc).__name__}: {exc}"
+                rclpy.try_shutdown()
             return
         self.wait_until_delivered(self.publishers_by_topic)
         rclpy.try_shutdown()
@@ -169,7 +172,7 @@ class ReplayNode(Node):
         clock_step_ns = int(1e9 / self.config["clock_frequency"])
         topics = list(self.publishers_by_topic)
         unacknowledged = dict.fromkeys(topics, 0)
-        while rclpy.ok():
+        while rclpy.ok() and not STOPPING.is_set():
             start_wall = time.monotonic()
             start_rec = self.reader.start_time_ns
             next_clock = start_rec
@@ -183,7 +186,7 @@ class ReplayNode(Node):
                         continue
                     break
                 self._sleep_until(start_wall + (message.log_time - start_rec) * 1e-9 / rate)
-                if not rclpy.ok():
+                if not rclpy.ok() or STOPPING.is_set():
                     return
                 if self.clock_publisher:
                     self._publish_clock(message.log_time)

@@ -528,7 +528,20 @@ class DriverNode(Node):
 
 
 def main(args=None):
-    return run(DriverNode, "afm driver", args, config_errors=(ValueError, RuntimeError), threads=4)
+    return run(
+        DriverNode,
+        "afm driver",
+        args,
+        config_errors=(ValueError, RuntimeError),
+        threads=driver_threads,
+    )
+
+
+def driver_threads(node: DriverNode) -> int:
+    """A queued goal holds an executor thread while it waits its turn; with fewer threads
+    than the running goal, the full queue and the services (goal, cancel, result: the
+    clients' heartbeat), a full queue would starve them and the driver would look dead."""
+    return 1 + node.config["max_queued_goals"] + 3
 
 
 if __name__ == "__main__":

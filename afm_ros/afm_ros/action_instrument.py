@@ -14,6 +14,7 @@ driver reported (its results carry the executed TipCommand).
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -34,7 +35,12 @@ from afm_core.instrument import (
 )
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_ros import topics
-from afm_ros.action_client import SafeActionClient
+from afm_ros.action_client import (
+    CANCEL_ACK_TIMEOUT_S,
+    STOPPING,
+    Heartbeat,
+    SafeActionClient,
+)
 from afm_ros.conversions import FRAME_SCANNER, msg_to_raster_scan
 from afm_ros.qos_profiles import FEEDBACK
 
@@ -78,6 +84,18 @@ def msg_to_force_trace(msg) -> ForceTraceData:
     )
 
 
+DRIVER_ACTIONS = {
+    topics.ACTION_SCAN_IMAGE,
+    topics.ACTION_LOCAL_SCAN,
+    topics.ACTION_MOVE_TIP,
+    topics.ACTION_INDENT,
+}
+
+
+def _who(action_name: str) -> str:
+    return "driver" if action_name in DRIVER_ACTIONS else f"server of {action_name}"
+
+
 def call_action(
     client,
     goal,
@@ -88,8 +106,13 @@ def call_action(
     """Send a goal and block until its result (from a thread that is not spinning the node).
     should_stop() is polled while waiting; when it turns true the goal is cancelled and its
     (cancelled) result still awaited. DriverUnavailable when the server is missing, rejects
-    the goal or gives no result within result_timeout s."""
+    the goal, gives no result within result_timeout s, does not acknowledge a cancel within
+    CANCEL_ACK_TIMEOUT_S, or stops answering (a heartbeat, SERVER_SILENCE_S): then the
+    message starts with "aborted: driver gone" ("aborted: server of NAME gone" for another
+    server)."""
     name = client._action_name
+    if STOPPING.is_set():
+        raise DriverUnavailable(f"{name}: not sent, this node is stopping")
     if not client.wait_until_answering(server_timeout):
         raise DriverUnavailable(
             f"action {name} did not answer within {server_timeout} s; is its node running?"
@@ -105,16 +128,33 @@ def call_action(
     finished = threading.Event()
     result_future = handle.get_result_async()
     result_future.add_done_callback(lambda _f: finished.set())
-    cancel_sent = False
-    waited = 0.0
-    while not finished.wait(0.05):
-        waited += 0.05
-        if should_stop is not None and not cancel_sent and should_stop():
-            handle.cancel_goal_async()
-            cancel_sent = True
-        if waited > result_timeout:
-            handle.cancel_goal_async()
-            raise DriverUnavailable(f"{name}: no result within {result_timeout} s")
+    heartbeat = Heartbeat(client)
+    cancel = None
+    started = time.monotonic()
+    try:
+        while not finished.wait(0.05):
+            heartbeat.beat()
+            if heartbeat.gone():
+                raise DriverUnavailable(
+                    f"aborted: {_who(name)} gone: {name} stopped answering (no reply for "
+                    f"{heartbeat.silent_for():.1f} s); its goal is abandoned"
+                )
+            if STOPPING.is_set():
+                handle.cancel_goal_async()
+                raise DriverUnavailable(f"{name}: abandoned, this node is stopping")
+            if cancel is None and should_stop is not None and should_stop():
+                cancel = (handle.cancel_goal_async(), time.monotonic())
+            if cancel is not None and not cancel[0].done():
+                if time.monotonic() - cancel[1] > CANCEL_ACK_TIMEOUT_S:
+                    raise DriverUnavailable(
+                        f"aborted: {_who(name)} gone: {name} did not acknowledge a cancel "
+                        f"within {CANCEL_ACK_TIMEOUT_S} s"
+                    )
+            if time.monotonic() - started > result_timeout:
+                handle.cancel_goal_async()
+                raise DriverUnavailable(f"{name}: no result within {result_timeout} s")
+    finally:
+        heartbeat.forget()
     return result_future.result().result
 
 
@@ -127,8 +167,12 @@ def call_service(client, request, server_timeout: float, result_timeout: float, 
     done = threading.Event()
     future = client.call_async(request)
     future.add_done_callback(lambda _f: done.set())
-    if not done.wait(result_timeout):
-        raise DriverUnavailable(f"{name}: no answer within {result_timeout} s")
+    started = time.monotonic()
+    while not done.wait(0.05):
+        if STOPPING.is_set():
+            raise DriverUnavailable(f"{name}: abandoned, this node is stopping")
+        if time.monotonic() - started > result_timeout:
+            raise DriverUnavailable(f"{name}: no answer within {result_timeout} s")
     return future.result()
 
 

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import ctypes
+import os
 import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import rclpy
 from rclpy.executors import (
@@ -16,7 +19,32 @@ from rclpy.executors import (
 )
 from rclpy.signals import SignalHandlerOptions
 
+from afm_ros.action_client import STOPPING
+
 DRAIN_IDLE = 0.01  # s without a ready callback: what had arrived is taken
+# After SIGINT/SIGTERM a callback in progress gets this long to end (waits for other servers
+# end at once through STOPPING); one that does not (a long computation) is abandoned and the
+# process exits anyway, so a stop takes at most about 2 s with the drain's share.
+STOP_GRACE_S = 1.0
+SPIN_SLICE_S = 0.1  # the main thread looks at the stop flag this often
+PARENT_PID_ENV = "AFM_LAUNCHER_PID"  # set by afm_bringup.launcher.Graph for its children
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def die_with_parent() -> None:
+    """A node the launcher started gets SIGTERM (a clean stop) when the launcher dies, however
+    it dies. Set here, in the child, rather than in a preexec_fn (not safe in a launcher with
+    threads); a launcher already gone before this point is caught by its pid."""
+    expected = os.environ.get(PARENT_PID_ENV)
+    if not expected or not sys.platform.startswith("linux"):
+        return
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0) != 0:
+        print(
+            f"warning: prctl(PR_SET_PDEATHSIG) failed: errno {ctypes.get_errno()}", file=sys.stderr
+        )
+    if os.getppid() != int(expected):
+        os.kill(os.getpid(), signal.SIGTERM)
 
 
 def run(
@@ -25,43 +53,52 @@ def run(
     args=None,
     *,
     config_errors=(ValueError,),
-    threads: int = 1,
+    threads: int | Callable[[object], int] = 1,
     on_shutdown=None,
     drain_seconds: float = 0.0,
 ) -> int:
-    """Exit status: 0 after a clean stop, 2 when the node refused its configuration
+    """threads: executor threads, or a function of the built node giving them.
+
+    Exit status: 0 after a clean stop, 2 when the node refused its configuration
     (the message names the parameter), 1 when a callback asked to stop with an error.
 
     drain_seconds > 0: SIGINT/SIGTERM stop the spinning but not ROS, and the callbacks already
     waiting (messages a reliable publisher counts as delivered) run until none is ready within
     DRAIN_IDLE, for at most drain_seconds (a publisher faster than that keeps it going to the
-    end), before on_shutdown. Only for nodes whose callbacks are short: a stop waits for the
-    callback in progress."""
+    end), before on_shutdown. Only for nodes whose callbacks are short.
+
+    SIGINT and SIGTERM set STOPPING (every wait for another server gives up), stop the
+    spinning, and the process exits within about STOP_GRACE_S even when a callback is still
+    busy (an action mid-way: its goal is abandoned with the process)."""
     stop = threading.Event()
-    if drain_seconds > 0:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
-    else:
-        rclpy.init(args=args)
+
+    def on_signal(*_):
+        stop.set()
+        STOPPING.set()
+
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+    die_with_parent()
     try:
         node = node_factory()
     except config_errors as exc:
         print(f"{program}: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
+    if callable(threads):  # from the node's configuration (e.g. its queue length)
+        threads = threads(node)
     executor = (
         MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
     )
     executor.add_node(node)
     status = 0
     try:
-        if drain_seconds > 0:
-            while not stop.is_set():
-                executor.spin_once(timeout_sec=0.2)
+        # spin in slices: a Python signal handler runs only between them
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=SPIN_SLICE_S)
+        if drain_seconds > 0 and rclpy.ok():
             _drain(executor, drain_seconds)
-        else:
-            executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except SystemExit as exc:
@@ -70,16 +107,35 @@ def run(
         if rclpy.ok():
             raise
     finally:
+        STOPPING.set()
         if on_shutdown is not None:
             try:
                 on_shutdown(node)
             except Exception as exc:  # noqa: BLE001 - report, still shut down
                 print(f"{program}: {exc}", file=sys.stderr)
                 status = status or 1
-        executor.shutdown()
+        executor.shutdown(timeout_sec=0)
+        if not _callbacks_finish(executor, STOP_GRACE_S):
+            # a callback is still busy; its thread would keep the interpreter from exiting
+            print(f"{program}: stopped with a callback still running", file=sys.stderr)
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(status)
         node.destroy_node()
         rclpy.try_shutdown()
     return status
+
+
+def _callbacks_finish(executor, timeout_s: float) -> bool:
+    """True once no callback runs. rclpy 7.1's Executor.shutdown(timeout_sec) does not wait
+    (it tests its shutdown flag after setting it) and its work tracker does not count tasks
+    (an action's execute callback), so wait on what the thread pool still runs."""
+    deadline = time.monotonic() + timeout_s
+    while any(not task.done() for task in list(getattr(executor, "_futures", []))):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
 
 
 def _drain(executor, seconds: float) -> None:

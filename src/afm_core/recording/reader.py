@@ -2,25 +2,51 @@
 
 Streams: messages are decoded one at a time from the chunks they live in; only what a
 caller asks for (e.g. one topic's arrays) is ever held in memory.
+
+Integrity: every chunk's CRC (of its uncompressed records, written by every MCAP writer
+that enables CRCs, ours included) is checked as the chunk is read, so a damaged chunk is a
+RecordingError naming it, never silently changed message contents; `damaged_chunks()`
+checks the whole file, and `afm recover` keeps every message of the undamaged chunks.
 """
 
 from __future__ import annotations
 
+import io
 import os
+import struct
+import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, ChunkIndex, Message, Schema
+from mcap.stream_reader import breakup_chunk
 from mcap_ros2.decoder import DecoderFactory
+from zstandard import ZstdError
 
 from afm_core.recording.errors import RecordingError
 from afm_core.recording.qos import QosDescription, load_profiles
-from afm_core.recording.writer import RecordingWriter
+
+# What damaged bytes raise inside the mcap library and its decompressors: a CRC mismatch
+# (CRCValidationError is a ValueError), a cut record (EOFError, struct.error), a length or id
+# that points nowhere (KeyError, IndexError), a corrupt zstd or lz4 frame (ZstdError,
+# RuntimeError), garbage where text belongs (UnicodeDecodeError is a ValueError).
+DAMAGE_ERRORS = (
+    McapError,
+    ValueError,
+    KeyError,
+    IndexError,
+    EOFError,
+    struct.error,
+    ZstdError,
+    RuntimeError,
+    MemoryError,
+)
 
 IMAGE_DTYPES = {
     "32FC1": np.float32,
@@ -105,23 +131,103 @@ def _stack(values: list):
     return np.asarray(values)
 
 
-class RecordingReader:
-    """Open an MCAP recording (ours or rosbag2's) for offline evaluation."""
+@dataclass(frozen=True)
+class DamagedChunk:
+    """A chunk whose records cannot be trusted: where it is, the log times it says it holds
+    (from its index, which may itself be damaged), and why."""
 
-    def __init__(self, path: str | os.PathLike):
+    offset: int
+    start_ns: int
+    end_ns: int
+    reason: str
+
+    def __str__(self) -> str:
+        return (
+            f"chunk at byte {self.offset} (log times {self.start_ns}..{self.end_ns} ns): "
+            f"{self.reason}"
+        )
+
+
+def read_chunk_at(stream, chunk_index: ChunkIndex) -> list:
+    """The records of one indexed chunk, its CRC checked; DAMAGE_ERRORS when damaged."""
+    stream.seek(chunk_index.chunk_start_offset + 1 + 8, io.SEEK_SET)  # opcode, length
+    chunk = Chunk.read(ReadDataStream(stream))
+    return breakup_chunk(chunk, validate_crc=True)
+
+
+FOOTER_BYTES = 1 + 8 + 8 + 8 + 4  # opcode, length, summary_start, summary_offset_start, crc
+MAGIC_BYTES = 8
+MCAP0_MAGIC = b"\x89MCAP0\r\n"
+
+
+def summary_damage(stream) -> str:
+    """'' when the summary section's CRC (in the footer) matches or is not set, else what is
+    wrong. The mcap library does not check it; a flipped bit there would change topics,
+    types or counts silently. The CRC covers the summary and the footer up to the CRC.
+    Leaves the stream at its start."""
+    try:
+        return _summary_damage(stream)
+    finally:
+        stream.seek(0)
+
+
+def _summary_damage(stream) -> str:
+    end = stream.seek(0, io.SEEK_END)
+    footer_start = end - MAGIC_BYTES - FOOTER_BYTES
+    if footer_start < MAGIC_BYTES:
+        return ""
+    stream.seek(footer_start)
+    footer = stream.read(FOOTER_BYTES + MAGIC_BYTES)
+    opcode, length, summary_start, _offsets, expected = struct.unpack(
+        "<BQQQI", footer[:FOOTER_BYTES]
+    )
+    if footer[FOOTER_BYTES:] != MCAP0_MAGIC or opcode != Opcode.FOOTER or length != 20:
+        return ""  # no footer (an unfinished file): nothing to check here, the reader says why
+    if expected == 0 or summary_start == 0:
+        return ""
+    footer = footer[:FOOTER_BYTES]
+    if not MAGIC_BYTES <= summary_start <= footer_start:
+        return f"the footer points the summary at byte {summary_start}, outside the file"
+    stream.seek(summary_start)
+    actual = zlib.crc32(stream.read(footer_start - summary_start) + footer[:-4])
+    if actual != expected:
+        return f"summary section CRC {actual:#010x} != {expected:#010x} in the footer"
+    return ""
+
+
+def describe_damage(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}"[:200]
+
+
+class RecordingReader:
+    """Open an MCAP recording (ours or rosbag2's) for offline evaluation.
+
+    validate_crcs (default True): each chunk's CRC is checked when it is read, and a
+    mismatch is a RecordingError naming the damaged chunks; False reads what is there."""
+
+    def __init__(self, path: str | os.PathLike, validate_crcs: bool = True):
         self.path = Path(path)
         if not self.path.is_file():
             raise RecordingError(f"recording {str(self.path)!r} does not exist")
         self._stream = open(self.path, "rb")
         try:
-            self._reader = make_reader(self._stream, decoder_factories=[DecoderFactory()])
+            self._reader = make_reader(
+                self._stream, validate_crcs=validate_crcs, decoder_factories=[DecoderFactory()]
+            )
             self.summary = self._reader.get_summary()
-        except (McapError, ValueError, EOFError, OSError) as exc:
+        except (*DAMAGE_ERRORS, OSError) as exc:
             self._stream.close()
             raise RecordingError(
                 f"recording {str(self.path)!r} is truncated or corrupt ({exc}); "
                 f"`afm recover {self.path}` saves the complete chunks"
             ) from exc
+        damage = summary_damage(self._stream) if validate_crcs else ""
+        if damage:
+            self._stream.close()
+            raise RecordingError(
+                f"recording {str(self.path)!r} is corrupt: {damage}; `afm recover {self.path}` "
+                "keeps every message of the undamaged chunks"
+            )
         if self.summary is None or self.summary.statistics is None:
             self._stream.close()
             raise RecordingError(
@@ -182,6 +288,40 @@ class RecordingReader:
             )
         return topics
 
+    # -- integrity -------------------------------------------------------------------------
+    def damaged_chunks(self) -> list[DamagedChunk]:
+        """Read every chunk the summary indexes and check its CRC: the damaged ones."""
+        damaged = []
+        for index in self.summary.chunk_indexes:
+            try:
+                read_chunk_at(self._stream, index)
+            except DAMAGE_ERRORS as exc:
+                damaged.append(
+                    DamagedChunk(
+                        index.chunk_start_offset,
+                        index.message_start_time,
+                        index.message_end_time,
+                        describe_damage(exc),
+                    )
+                )
+        return damaged
+
+    def _damage_error(self, exc: BaseException) -> RecordingError:
+        try:
+            damaged = self.damaged_chunks()
+        except (*DAMAGE_ERRORS, OSError):
+            damaged = []
+        where = (
+            f"{len(damaged)} of {len(self.summary.chunk_indexes)} chunks damaged, first "
+            f"{damaged[0]}"
+            if damaged
+            else describe_damage(exc)
+        )
+        return RecordingError(
+            f"recording {str(self.path)!r} is corrupt: {where}; `afm recover {self.path}` "
+            f"keeps every message of the undamaged chunks"
+        )
+
     # -- messages --------------------------------------------------------------------------
     def raw_messages(
         self,
@@ -197,8 +337,8 @@ class RecordingReader:
                 end_time=end_ns,
                 log_time_order=True,
             )
-        except McapError as exc:
-            raise RecordingError(f"{self.path}: corrupt data while reading ({exc})") from exc
+        except DAMAGE_ERRORS as exc:
+            raise self._damage_error(exc) from exc
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, object]]:
         """(topic, log_time_ns, decoded message) in log-time order."""
@@ -207,8 +347,8 @@ class RecordingReader:
                 topics=self._check_topics(topics), log_time_order=True
             ):
                 yield channel.topic, message.log_time, decoded
-        except McapError as exc:
-            raise RecordingError(f"{self.path}: corrupt data while reading ({exc})") from exc
+        except DAMAGE_ERRORS as exc:
+            raise self._damage_error(exc) from exc
 
     def arrays(self, topic: str) -> dict[str, object]:
         """All messages of one topic as arrays: {'log_time': s, 'field.sub': array, ...}.
@@ -222,48 +362,3 @@ class RecordingReader:
             for key, value in flatten(decoded).items():
                 columns.setdefault(key, []).append(value)
         return {key: _stack(values) for key, values in columns.items()}
-
-
-def recover_recording(
-    source: str | os.PathLike, output: str | os.PathLike | None = None
-) -> tuple[Path, int]:
-    """Copy every complete message of an unfinished or truncated file into a new recording.
-
-    Returns the new file and its message count. The source is never modified.
-    """
-    source = Path(source)
-    if output is None:
-        name = source.name[: -len(".part")] if source.name.endswith(".part") else source.name
-        stem = name[: -len(".mcap")] if name.endswith(".mcap") else name
-        output = source.with_name(stem + ".recovered.mcap")
-    if not source.is_file():
-        raise RecordingError(f"recording {str(source)!r} does not exist")
-    schemas: dict[int, Schema] = {}
-    channel_map: dict[int, int] = {}
-    with open(source, "rb") as stream, RecordingWriter(output) as writer:
-        try:
-            for record in StreamReader(stream).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = record
-                elif isinstance(record, Channel) and record.id not in channel_map:
-                    schema = schemas.get(record.schema_id)
-                    if schema is None:
-                        continue
-                    profiles = load_profiles(record.metadata.get("offered_qos_profiles", ""))
-                    channel_map[record.id] = writer.add_channel(
-                        record.topic, schema.name, profiles, definition=schema.data.decode()
-                    )
-                elif isinstance(record, Message) and record.channel_id in channel_map:
-                    writer.write(
-                        channel_map[record.channel_id],
-                        record.log_time,
-                        record.data,
-                        record.publish_time,
-                        record.sequence,
-                    )
-        except RecordingError:
-            raise
-        except Exception:  # noqa: BLE001 - the stream ends wherever the file was cut
-            pass
-        count = writer.message_count
-    return Path(output), count
