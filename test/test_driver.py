@@ -1,6 +1,7 @@
 """The driver node through its actions: results, feedback, cancel, queueing, bad input."""
 
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -248,3 +249,31 @@ def test_the_driver_as_a_core_instrument_through_its_actions(driver, ros_node):
         instrument.move_tip(200e-6, 55e-6, 1e-6)  # refused before sending: beyond the range
     with pytest.raises(ValueError, match="force"):
         instrument.indent(55e-6, 55e-6, 5e-6, 0.1)
+
+
+def test_with_a_calibration_a_scan_after_a_long_move_waits_for_creep_and_says_so(nodes):
+    """The shipped calibration's creep: after a 30 um move the scan waits (minutes of
+    instrument time, none of wall time at real_time_factor 0) and its result says how long
+    and why; the next scan, right after, does not."""
+    calibration = (
+        Path(__file__).resolve().parents[1]
+        / "afm_localization"
+        / "config"
+        / "sim_calibration.yaml"
+    )
+    nodes("driver", seed=2, real_time_factor=0.0, calibration_file=str(calibration))
+    with AfmCommander(server_timeout=30) as afm:
+        moved = afm.send("move_tip", move_goal(25e-6, 55e-6, speed=1e-5))
+        assert moved.success
+        origin = (25e-6, 55e-6)
+        first = afm.send("scan_image", scan_goal(origin=origin, pixels=(16, 16)))
+        assert first.success and "waited" in first.message and "creep" in first.message
+        seconds = float(first.message.split("waited ")[1].split(" s")[0])
+        assert 60 < seconds < 600  # the 50 s creep of a 30 um step, down to 5 nm
+        again = afm.send("scan_image", scan_goal(origin=origin, pixels=(16, 16)))
+        waited = (
+            float(again.message.split("waited ")[1].split(" s")[0])
+            if "waited" in again.message
+            else 0.0
+        )
+        assert again.success and waited < 0.25 * seconds  # only the 0.8 um approach's creep

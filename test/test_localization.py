@@ -21,6 +21,7 @@ from afm_core.localization import (
     observation_variance,
     observe_line,
 )
+from afm_core.localization import localizer as localizer_module
 from afm_core.localization.calibration.model import Calibration
 from afm_core.localization.calibration.simulator_comparison import simulator_calibration
 from afm_core.sim.instrument import SimulatedAfm
@@ -679,3 +680,26 @@ def test_a_reported_indentation_includes_its_approach_move(bench, sim_calibratio
     error, sigma = loc.mean - truth(sim), np.sqrt(np.diag(loc.covariance))
     assert np.all(np.abs(error) < 3 * sigma), (error, sigma)
     assert loc.time == pytest.approx(sim.time) and loc.model.command == pytest.approx(spot)
+
+
+@pytest.mark.parametrize("search", [True, False])
+def test_a_first_line_that_misses_is_followed_by_a_bounded_search(
+    bench, sim_calibration, search, monkeypatch
+):
+    """The tip believed 160 nm off in y (within its 3 sigma of 70 nm): the x line passes beside
+    the particle. The search's parallel lines find it and the estimate ends within 3 sigma of
+    the truth; without the search the line is lost."""
+    if not search:
+        monkeypatch.setattr(localizer_module, "MAX_SEARCH_LINES", 0)
+    sim = SimulatedAfm(bench.sim_config(13, spheres=[(*PARTICLE, 100 * NM)]))
+    cov = np.diag([15 * NM, 70 * NM]) ** 2
+    loc = Localizer(sim, sim_calibration, truth(sim) + [0.0, 160 * NM], cov, sample_spacing=2 * NM)
+    result = loc.observe_landmark(MapLandmark(*PARTICLE, np.diag([1e-18, 1e-18]), 100 * NM))
+    x_line = result.lines[0]
+    if not search:
+        assert x_line.lost and not x_line.search and not result.all_accepted
+        return
+    assert x_line.accepted and "first try missed" in x_line.search and "across" in x_line.search
+    assert result.all_accepted and "first try missed" in result.summary()
+    error = loc.mean - truth(sim)
+    assert np.all(np.abs(error) < 3 * np.sqrt(np.diag(loc.covariance))), error

@@ -528,7 +528,9 @@ class Localizer:
         d = np.array([1.0, 0.0]) if missed.axis == "x" else np.array([0.0, 1.0])
         half = SEARCH_LENGTH_FACTOR * self._line_half_length(landmark, d)
         offsets = self.search_offsets(landmark, missed.axis)
-        line, run = missed, 0
+        if not offsets:
+            return missed
+        line, run, offset = missed, 0, 0.0
         for offset in offsets:
             try:
                 line = self.observe_line(
