@@ -10,9 +10,10 @@ is evaluated offline against the simulator's ground truth into report.html: befo
 maps, the tip path with its covariance ellipses, the particle path, the achieved error and
 the timings.
 
-The localizer, planner and nano-hand use the calibration the calibration experiments
+The driver, localizer, planner and nano-hand use the calibration the calibration experiments
 produced on this simulated instrument (afm_localization/config/sim_calibration.yaml,
-regenerated with `afm calibrate --backend sim`).
+regenerated with `afm calibrate --backend sim`); the driver's use of it is the wait for creep
+before each image.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from afm_ros.qos_profiles import LATCHED
 SCAN_ORIGIN = (54.3e-6, 54.3e-6)  # m: the simulated sample's particles lie around (55 um, 55 um)
 SCAN_SIZE = (1.8e-6, 1.8e-6)
 SCAN_PIXELS = (256, 256)
-CALIBRATED_NODES = ("localizer", "planner", "nano_hand")
+CALIBRATED_NODES = ("driver", "localizer", "planner", "nano_hand")
 
 
 def calibration_file() -> str:

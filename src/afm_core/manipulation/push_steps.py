@@ -187,10 +187,7 @@ def localize_with(localizer) -> Callable[[Landmark, Callable[[], bool]], Localiz
 
     def localize(particle: Landmark, should_stop: Callable[[], bool]) -> Localization:
         observation = localizer.observe_landmark(MapLandmark.from_landmark(particle))
-        lines = "; ".join(
-            f"{line.axis} line {line.status}" + (f" ({line.reason})" if line.reason else "")
-            for line in observation.lines
-        )
+        lines = observation.summary()
         estimate = TipEstimate(observation.mean, observation.covariance, observation.time)
         return Localization(observation.all_accepted, estimate, lines or "no line run")
 
