@@ -33,7 +33,6 @@ CREEP_SETTLE_TOLERANCE = Parameter(
     "on both axes (the map's own error, book Fig. 7.10: 5 nm); 0 disables the wait.",
     unit="m",
     minimum=0.0,
-    runtime=True,
 )
 MAX_CREEP_WAIT = Parameter(
     "max_creep_wait",
@@ -41,7 +40,6 @@ MAX_CREEP_WAIT = Parameter(
     "Longest wait for creep before an image; a longer one is cut here and said so.",
     unit="s",
     minimum=0.0,
-    runtime=True,
 )
 HOLD_SLICE = 1.0  # s: a wait is held in slices this long, so a cancel is seen within one
 SEARCH_RESOLUTION = 0.5  # s: the wait is found to this resolution (bisection)
