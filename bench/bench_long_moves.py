@@ -230,6 +230,13 @@ def main() -> int:
             f"{s['rms_nm']:.0f} nm | {s['worst_nm']:.0f} nm | {s['worst_sigmas']:.1f} | "
             f"{s['wait_s']:.0f} s |"
         )
+    if any(s["mapped"] < s.get("of", 0) or not s["mapped"] for s in summary):
+        lines += [
+            "",
+            "Where a pair gave no map, the particle lay outside the 2.4 um images: far from the "
+            "range centre the tip is up to ~1 um from its command (the command frame is not the "
+            "sample's; docs/localization.md), in both set-ups.",
+        ]
     lines += [
         "",
         f"Growth of the RMS error with the move (least squares over the lengths): before "

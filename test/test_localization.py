@@ -686,13 +686,13 @@ def test_a_reported_indentation_includes_its_approach_move(bench, sim_calibratio
 def test_a_first_line_that_misses_is_followed_by_a_bounded_search(
     bench, sim_calibration, search, monkeypatch
 ):
-    """The tip believed 160 nm off in y (within its 3 sigma of 70 nm): the x line passes beside
-    the particle. The search's parallel lines find it and the estimate ends within 3 sigma of
-    the truth; without the search the line is lost."""
+    """The tip believed 160 nm off in y (within its 3 sigma of 70 nm, as in x): the first
+    line, along x, passes beside the particle. The search's parallel lines find it and the
+    estimate ends within 3 sigma of the truth; without the search the line is lost."""
     if not search:
         monkeypatch.setattr(localizer_module, "MAX_SEARCH_LINES", 0)
     sim = SimulatedAfm(bench.sim_config(13, spheres=[(*PARTICLE, 100 * NM)]))
-    cov = np.diag([15 * NM, 70 * NM]) ** 2
+    cov = np.diag([70 * NM, 70 * NM]) ** 2
     loc = Localizer(sim, sim_calibration, truth(sim) + [0.0, 160 * NM], cov, sample_spacing=2 * NM)
     result = loc.observe_landmark(MapLandmark(*PARTICLE, np.diag([1e-18, 1e-18]), 100 * NM))
     x_line = result.lines[0]
@@ -703,3 +703,18 @@ def test_a_first_line_that_misses_is_followed_by_a_bounded_search(
     assert result.all_accepted and "first try missed" in result.summary()
     error = loc.mean - truth(sim)
     assert np.all(np.abs(error) < 3 * np.sqrt(np.diag(loc.covariance))), error
+
+
+def test_the_first_line_runs_along_the_axis_whose_across_error_is_smaller(bench, sim_calibration):
+    """y known to 70 nm, x to 15 nm: a horizontal line would need y to within the landmark's
+    half-width (a 6 % risk of passing beside it), so the vertical line goes first (then the
+    horizontal, with y just measured); otherwise the book's order."""
+    sim = SimulatedAfm(bench.sim_config(14, spheres=[(*PARTICLE, 100 * NM)]))
+    landmark = MapLandmark(*PARTICLE, np.diag([1e-18, 1e-18]), 100 * NM)
+    for sigmas, first in (
+        ((15 * NM, 70 * NM), "y"),
+        ((70 * NM, 15 * NM), "x"),
+        ((30 * NM,) * 2, "x"),
+    ):
+        loc = Localizer(sim, sim_calibration, truth(sim), np.diag(sigmas) ** 2)
+        assert [axis for axis, _, _ in loc.plan_observation(landmark)][0] == first, sigmas

@@ -106,6 +106,10 @@ DEFAULT_TIP_ALLOWANCE = (
 # SEARCH_SIGMAS standard deviations of the tip's and the landmark's uncertainty across the
 # line, each SEARCH_LENGTH_FACTOR times as long as the first; at most MAX_SEARCH_LINES lines,
 # so a landmark that is not there costs a bounded time.
+# The book's order (horizontal line first, Fig. 5.11) is kept unless its first line risks
+# passing beside the landmark with more than this probability and the vertical-first order
+# risks less (after a long move the tip's y is often the worse known: drift is larger in y).
+FIRST_LINE_RISK = 0.01
 SEARCH_SIGMAS = 3.0
 SEARCH_LENGTH_FACTOR = 2.0
 MAX_SEARCH_LINES = 8
@@ -500,6 +504,21 @@ class Localizer:
         )
         return (request.samples - 1) * along / true_length
 
+    def _first_line_risk(self, landmark: MapLandmark, axis: str) -> float:
+        """Probability that a first line along `axis` passes beside the landmark: its error
+        across the line (tip and map, Gaussian) beyond the landmark's apparent half-width. The
+        second line's across-axis is the first one's measured axis, so only the first risks it."""
+        across = np.array([0.0, 1.0]) if axis == "x" else np.array([1.0, 0.0])
+        sigma = math.sqrt(
+            max(0.0, float(across @ (self.covariance + landmark.covariance) @ across))
+        )
+        extent = (
+            landmark.half_width
+            if landmark.half_width > 0
+            else landmark.radius + DEFAULT_TIP_ALLOWANCE
+        )
+        return math.erfc(extent / (sigma * math.sqrt(2.0))) if sigma > 0 else 0.0
+
     def search_offsets(self, landmark: MapLandmark, axis: str) -> list[float]:
         """Offsets across a missed `axis` line for the search lines, nearest first (see
         SEARCH_SIGMAS): one apparent half-width apart out to SEARCH_SIGMAS sigma, the first
@@ -563,7 +582,8 @@ class Localizer:
         """The lines observe_landmark runs, as (axis, sign, after) for observe_line, each checked
         against the scanner range from the estimate of now (ValueError naming the line).
 
-        Horizontal, then vertical local scan line through the landmark (Fig. 5.11). A tube or
+        Horizontal, then vertical local scan line through the landmark (Fig. 5.11); vertical
+        first when the horizontal line would risk passing beside it (FIRST_LINE_RISK). A tube or
         rod is observed by one line across it (the position along its axis is not
         observable); both_axes=False: the horizontal line only (sphere).
 
@@ -579,6 +599,10 @@ class Localizer:
             lines = [("y", 1.0, None)] if abs(normal[1]) >= abs(normal[0]) else [("x", 1.0, None)]
         else:
             lines = [("x", 1.0, None), ("y", -1.0, None)] if both_axes else [("x", 1.0, None)]
+            if both_axes and self._first_line_risk(landmark, "x") > max(
+                FIRST_LINE_RISK, self._first_line_risk(landmark, "y")
+            ):
+                lines.reverse()
         if toward is not None:
             toward = np.asarray(toward, dtype=float)
             if toward.shape != (2,) or not np.all(np.isfinite(toward)):
