@@ -31,6 +31,7 @@ import json
 import math
 import os
 import platform
+import random
 import re
 import sys
 import tempfile
@@ -326,6 +327,9 @@ def main() -> int:
     parser.add_argument("--name", default="push_range", help="results file stem")
     args = parser.parse_args()
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    # a domain of its own: another graph on the machine (a test run, say) would answer this
+    # one's goals and publish its truth on the same topics
+    os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(110, 200)))
     started = time.monotonic()
     load = os.getloadavg()
 
