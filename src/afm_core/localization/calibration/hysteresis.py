@@ -21,12 +21,22 @@ from afm_core.localization.calibration.experiment import (
     rescan,
     wait,
 )
-from afm_core.localization.calibration.matching import match_monotone
+from afm_core.localization.calibration.matching import monotone_placements
 from afm_core.localization.calibration.model import HysteresisFit
 from afm_core.localization.calibration.pits import DetectedPit, find_pits
 from afm_core.pzt import Creep, PlayOperatorBank, PrandtlIshlinskii
 
 MODEL_DT = 2e-3  # s, time step of the drive reconstruction in the hysteresis fit
+# The two rows share the loop's tips (the descending sweep starts and the ascending one ends at
+# the top of the cycle, they meet at its bottom): a placement of the rows one pit off moves a
+# tip by a whole pit spacing, a right one leaves them apart by creep, noise and the cubic's
+# extrapolation (tens of nm). Half a spacing is where a closure is nearer a slipped placement
+# than a right one, so beyond it the rows cannot be matched and the experiment says so.
+TIP_CLOSURE_LIMIT = 0.5  # of the pit spacing at the tip
+# Two rescans of the same row agree to the compensation residual between them (~0.5 um on a
+# full-range pass); a pit matched differently in the two is a whole spacing off. Beyond half a
+# spacing the pit is left out (nearer a slip than an agreement).
+RESCAN_AGREEMENT_LIMIT = 0.5  # of the pit spacing
 
 
 def asymmetric_polynomial(alpha: float, half: float) -> tuple[float, float, float]:
@@ -231,8 +241,10 @@ def measure_hysteresis(
     drives = np.array([p[1] for p in pits])
     moments = np.array([p[2] for p in pits])
     measured, all_detected = _imaged_rows(
-        instrument, axis, box, pixel, rescans, branches, drives, 0.3 * pit_every * step, ignore
+        instrument, axis, box, pixel, rescans, branches, drives, ignore
     )
+    disagreeing = _rescan_disagreements(measured, branches)
+    measured[:, disagreeing] = np.nan
     found = np.all(np.isfinite(measured), axis=0)
     if found.sum() < 2 * operators:
         raise RuntimeError(
@@ -255,6 +267,7 @@ def measure_hysteresis(
         "predicted": fit["predicted"],
         "pits_punched": len(pits),
         "pits_found": int(found.sum()),
+        "pits_rescans_disagree": int(disagreeing.sum()),
         "all_detected": all_detected[0],
         **_drive_record(timeline, axis, centre[axis], half),
     }
@@ -370,11 +383,11 @@ def _drive_cycle(
 
 
 def _imaged_rows(
-    instrument, axis: int, box, pixel, rescans, branches, drives, end_tolerance: float, ignore
+    instrument, axis: int, box, pixel, rescans, branches, drives, ignore
 ) -> tuple[np.ndarray, list]:
     """The pits' positions along the cycled axis in each rescan of `box` (rows: rescans,
-    columns: pits, NaN where not found) and each rescan's detections (less the `ignore`d);
-    `end_tolerance` (m) as in `match_monotone`, for where the loop's tips land."""
+    columns: pits, NaN where not found) and each rescan's detections (less the `ignore`d).
+    The two rows are placed together (`_placed_rows`): they must share the loop's tips."""
     other = 1 - axis
     measured = np.full((len(rescans), len(branches)), np.nan)
     all_detected = []
@@ -397,14 +410,89 @@ def _imaged_rows(
         along = np.array([[p.x, p.y][axis] for p in detected])
         across = np.array([[p.x, p.y][other] for p in detected])
         keep, offset = _split_rows(along, across)
+        rows = {}
         for branch, sign in (("descending", -1.0), ("ascending", 1.0)):
             in_row = np.flatnonzero(keep & (np.sign(offset) == sign))
-            wanted = np.flatnonzero(branches == branch)
-            index = match_monotone(drives[wanted], along[in_row], end_tolerance=end_tolerance)
-            for i, j in zip(wanted, index):
-                if j >= 0:
-                    measured[row, i] = along[in_row[j]]
+            rows[branch] = (np.flatnonzero(branches == branch), along[in_row])
+        for wanted, positions in _placed_rows(rows, drives, axis, direction).values():
+            measured[row, wanted] = positions
     return measured, all_detected
+
+
+def _placed_rows(rows: dict, drives: np.ndarray, axis: int, direction: str) -> dict:
+    """{branch: (pit indices, position per pit or NaN)}: the placement of each row's
+    detections along its drives (`monotone_placements`) chosen jointly so that the rows close
+    at the loop's tips (the descending row's first pit and the ascending row's last one are
+    both at the top of the cycle, the other two at its bottom). Where the loop is asymmetric
+    the tips land microns from their drive value, more than a pit spacing, so the drive alone
+    cannot say which pit an end detection is; the shared tips can, whatever the loop's shape.
+    RuntimeError when no placement closes within TIP_CLOSURE_LIMIT of the spacing."""
+    options = {}
+    for branch, (wanted, positions) in rows.items():
+        placements = monotone_placements(drives[wanted], positions)
+        if not placements:
+            raise RuntimeError(
+                f"hysteresis ({'xy'[axis]}): only {len(positions)} pits of the {branch} row found "
+                f"in the {direction} rescan"
+            )
+        options[branch] = [
+            (misfit, np.where(index >= 0, positions[np.maximum(index, 0)], np.nan))
+            for misfit, index in placements
+        ]
+    top, bottom = float(drives.max()), float(drives.min())
+    wanted_d, wanted_a = rows["descending"][0], rows["ascending"][0]
+    best = None
+    for misfit_d, pos_d in options["descending"]:
+        tips_d, spacing_d = _row_tips(drives[wanted_d], pos_d, (top, bottom))
+        for misfit_a, pos_a in options["ascending"]:
+            tips_a, spacing_a = _row_tips(drives[wanted_a], pos_a, (top, bottom))
+            closure = np.abs(tips_d - tips_a)
+            score = float(np.sum(closure**2)) + misfit_d + misfit_a
+            if best is None or score < best[0]:
+                best = (score, closure, np.minimum(spacing_d, spacing_a), pos_d, pos_a)
+    _, closure, spacing, pos_d, pos_a = best
+    if np.any(closure > TIP_CLOSURE_LIMIT * spacing):
+        raise RuntimeError(
+            f"hysteresis ({'xy'[axis]}): the rows of pits do not close at the loop's tips in the "
+            f"{direction} rescan (top {closure[0] * 1e9:.0f} nm, bottom {closure[1] * 1e9:.0f} nm "
+            f"apart; pit spacing {spacing.min() * 1e9:.0f} nm): cannot tell which pit is which; "
+            "repeat the experiment (afm calibrate --only hysteresis_"
+            f"{'xy'[axis]})"
+        )
+    return {"descending": (wanted_d, pos_d), "ascending": (wanted_a, pos_a)}
+
+
+def _row_tips(drive: np.ndarray, position: np.ndarray, ends) -> tuple[np.ndarray, np.ndarray]:
+    """Where a row's smooth curve (a cubic in the drive, a line with fewer than 6 pits) puts
+    the cycle's `ends` (top, bottom), and the pit spacing there (the curve's change over one
+    pit step)."""
+    found = np.isfinite(position)
+    x, y = drive[found], position[found]
+    coefficients = np.polyfit(x, y, 3 if found.sum() >= 6 else 1)
+    step = float(np.median(np.abs(np.diff(np.sort(drive)))))
+    ends = np.asarray(ends, float)
+    tips = np.polyval(coefficients, ends)
+    inward = ends - np.sign(ends - x.mean()) * step
+    return tips, np.abs(tips - np.polyval(coefficients, inward))
+
+
+def _rescan_disagreements(measured: np.ndarray, branches: np.ndarray) -> np.ndarray:
+    """Pits whose positions in the rescans differ by more than RESCAN_AGREEMENT_LIMIT of the
+    row's median pit spacing (matched to different pits): left out of the fit."""
+    disagree = np.zeros(measured.shape[1], dtype=bool)
+    if measured.shape[0] < 2:
+        return disagree
+    for branch in np.unique(branches):
+        columns = np.flatnonzero(branches == branch)
+        rows = measured[:, columns]
+        mean = np.nanmean(rows, axis=0)
+        finite = np.isfinite(mean)
+        if finite.sum() < 2:
+            continue
+        spacing = float(np.median(np.abs(np.diff(mean[finite]))))
+        spread = np.nanmax(rows, axis=0) - np.nanmin(rows, axis=0)
+        disagree[columns] = np.nan_to_num(spread, nan=0.0) > RESCAN_AGREEMENT_LIMIT * spacing
+    return disagree
 
 
 def _split_rows(along: np.ndarray, across: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -58,12 +58,34 @@ def match_monotone(expected, detected, end_tolerance: float | None = None) -> np
     later is dropped); the run of indices is then placed where a cubic through
     (expected, detected) fits best. A smooth curve cannot tell a run shifted by one step
     when an end pit is missing; `end_tolerance` (m) settles it where the ends are known to
-    land near their expected value (the tips of a hysteresis loop): placements whose first
-    or last match is farther off lose."""
+    land near their expected value: placements whose first or last match is farther off
+    lose. (The hysteresis rows do not use it: an asymmetric loop moves their ends by more
+    than a pit spacing; see `monotone_placements`.)"""
     expected, detected = np.asarray(expected, float), np.asarray(detected, float)
-    result = np.full(len(expected), -1)
+    best, best_result = np.inf, np.full(len(expected), -1)
+    for misfit, result in monotone_placements(expected, detected):
+        if end_tolerance is not None:
+            matched = result >= 0
+            x, d = expected[matched], detected[result[matched]]
+            order = np.argsort(x)
+            ends = np.abs(d[order][[0, -1]] - x[order][[0, -1]])
+            misfit += (
+                1e6 * float(np.sum(np.maximum(ends - end_tolerance, 0.0) ** 2)) * (1 + misfit)
+            )
+        if misfit < best:
+            best, best_result = misfit, result
+    return best_result
+
+
+def monotone_placements(expected, detected) -> list[tuple[float, np.ndarray]]:
+    """Every placement of the run of `detected` along the sorted `expected` values that
+    `match_monotone` considers (the gaps between detections fix the run's shape, only its
+    start is open): (misfit of a cubic through (expected, detected), index into `detected`
+    per expected value or -1). Empty when there are fewer than 4 of either. A caller that
+    knows more about the ends (e.g. that two rows share them) chooses among these."""
+    expected, detected = np.asarray(expected, float), np.asarray(detected, float)
     if len(detected) < 4 or len(expected) < 4:
-        return result
+        return []
     order_e, order_d = np.argsort(expected), np.argsort(detected)
     e_sorted, d_sorted = expected[order_e], detected[order_d]
     kept = np.arange(len(d_sorted))
@@ -91,7 +113,7 @@ def match_monotone(expected, detected, end_tolerance: float | None = None) -> np
         else:
             kept, ratio, steps = kept[:-1], ratio[:-1], steps[:-1]
     index = np.concatenate([[0], np.cumsum(steps)])
-    best, best_offset = np.inf, None
+    placements = []
     for offset in range(0, len(e_sorted) - index[-1]):
         x = e_sorted[index + offset]
         if len(x) >= 5:
@@ -99,15 +121,8 @@ def match_monotone(expected, detected, end_tolerance: float | None = None) -> np
             misfit = float(np.sum((np.polyval(coefficients, x) - d_sorted[kept]) ** 2))
         else:
             misfit = float(np.sum((x - x.mean() - (d_sorted[kept] - d_sorted[kept].mean())) ** 2))
-        if end_tolerance is not None:
-            ends = np.abs(d_sorted[kept][[0, -1]] - x[[0, -1]])
-            misfit += (
-                1e6 * float(np.sum(np.maximum(ends - end_tolerance, 0.0) ** 2)) * (1 + misfit)
-            )
-        if misfit < best:
-            best, best_offset = misfit, offset
-    if best_offset is None:
-        return result
-    for position, i in zip(kept, index + best_offset):
-        result[order_e[i]] = order_d[position]
-    return result
+        result = np.full(len(expected), -1)
+        for position, i in zip(kept, index + offset):
+            result[order_e[i]] = order_d[position]
+        placements.append((misfit, result))
+    return placements
