@@ -148,6 +148,9 @@ def fit_hysteresis(
     weights, offset = result.x[:-1], result.x[-1]
     model = PrandtlIshlinskii(thresholds, weights, asymmetric_polynomial(alpha, half))
     fraction, gain = loop_measures(model, half)
+    sigmas = _loop_sigmas(
+        lambda a: solve(a)[1] @ result.x, alpha, weights, thresholds, half, design, result.fun
+    )
     return {
         "thresholds": thresholds.tolist(),
         "weights": weights.tolist(),
@@ -158,7 +161,39 @@ def fit_hysteresis(
         "offset": float(offset) * 1e-6,
         "predicted": (design @ result.x * 1e-6).tolist(),
         "rms_residual": float(np.sqrt(np.mean(result.fun**2))) * 1e-6,
+        "loop_fraction_sigma": sigmas[0],
+        "asymmetry_sigma": sigmas[1],
     }
+
+
+def _loop_sigmas(predict, alpha, weights, thresholds, half, design, residual) -> tuple:
+    """(loop fraction, asymmetry) standard errors of a fit_hysteresis solution, linearised:
+    the covariance s^2 (J^T J)^-1 of (weights, offset, alpha) from the design columns and the
+    numerical derivative of the prediction in alpha, s^2 the residual variance per degree of
+    freedom, propagated to the loop fraction by its numerical gradient. The residuals along a
+    cycle are not independent (each move's error persists), so this is a lower bound; a
+    slipped or mis-modelled fit shows as a large residual and so as a large sigma."""
+    h = 1e-4
+    j_alpha = (predict(alpha + h) - predict(alpha - h)) / (2 * h)
+    jacobian = np.hstack([design, j_alpha[:, None]])
+    dof = max(1, len(residual) - jacobian.shape[1])
+    covariance = float(np.sum(residual**2)) / dof * np.linalg.pinv(jacobian.T @ jacobian)
+
+    def fraction_of(w, a):
+        return loop_measures(
+            PrandtlIshlinskii(thresholds, w, asymmetric_polynomial(a, half)), half
+        )[0]
+
+    base = fraction_of(weights, alpha)
+    gradient = np.zeros(jacobian.shape[1])
+    for k in range(len(weights)):
+        step = max(1e-3 * abs(weights[k]), 1e-6)
+        shifted = weights.copy()
+        shifted[k] += step
+        gradient[k] = (fraction_of(shifted, alpha) - base) / step
+    gradient[-1] = (fraction_of(weights, alpha + h) - base) / h
+    fraction_sigma = float(np.sqrt(max(0.0, gradient @ covariance @ gradient)))
+    return fraction_sigma, float(np.sqrt(max(0.0, covariance[-1, -1])))
 
 
 FIT_PARAMETERS = (
@@ -170,6 +205,8 @@ FIT_PARAMETERS = (
     "gain",
     "offset",
     "rms_residual",
+    "loop_fraction_sigma",
+    "asymmetry_sigma",
 )  # the parts of fit_hysteresis's result that are the experiment's parameters
 
 
@@ -462,18 +499,27 @@ def _placed_rows(rows: dict, drives: np.ndarray, axis: int, direction: str) -> d
     return {"descending": (wanted_d, pos_d), "ascending": (wanted_a, pos_a)}
 
 
+TIP_FIT_PITS = 4  # the pits nearest a tip that a local quadratic through them extrapolates
+
+
 def _row_tips(drive: np.ndarray, position: np.ndarray, ends) -> tuple[np.ndarray, np.ndarray]:
-    """Where a row's smooth curve (a cubic in the drive, a line with fewer than 6 pits) puts
-    the cycle's `ends` (top, bottom), and the pit spacing there (the curve's change over one
-    pit step)."""
+    """Where a row puts the cycle's `ends` (top, bottom), and the pit spacing there (the
+    change over one pit step): a quadratic in the drive through the TIP_FIT_PITS matched pits
+    nearest each end (a line through fewer), which is the end pit itself where it was
+    matched. Local, because near a reversal the branch bends more than a cubic over the whole
+    row follows (a wide loop's tips)."""
     found = np.isfinite(position)
     x, y = drive[found], position[found]
-    coefficients = np.polyfit(x, y, 3 if found.sum() >= 6 else 1)
     step = float(np.median(np.abs(np.diff(np.sort(drive)))))
-    ends = np.asarray(ends, float)
-    tips = np.polyval(coefficients, ends)
-    inward = ends - np.sign(ends - x.mean()) * step
-    return tips, np.abs(tips - np.polyval(coefficients, inward))
+    tips, spacings = [], []
+    for end in ends:
+        near = np.argsort(np.abs(x - end))[:TIP_FIT_PITS]
+        coefficients = np.polyfit(x[near], y[near], 2 if near.size >= 3 else 1)
+        inward = end - np.sign(end - x.mean()) * step
+        tip = float(np.polyval(coefficients, end))
+        tips.append(tip)
+        spacings.append(abs(tip - float(np.polyval(coefficients, inward))))
+    return np.array(tips), np.array(spacings)
 
 
 def _rescan_disagreements(measured: np.ndarray, branches: np.ndarray) -> np.ndarray:
@@ -485,13 +531,13 @@ def _rescan_disagreements(measured: np.ndarray, branches: np.ndarray) -> np.ndar
     for branch in np.unique(branches):
         columns = np.flatnonzero(branches == branch)
         rows = measured[:, columns]
-        mean = np.nanmean(rows, axis=0)
-        finite = np.isfinite(mean)
-        if finite.sum() < 2:
+        both = np.all(np.isfinite(rows), axis=0)  # a pit missing in a rescan is not used anyway
+        if both.sum() < 2:
             continue
-        spacing = float(np.median(np.abs(np.diff(mean[finite]))))
-        spread = np.nanmax(rows, axis=0) - np.nanmin(rows, axis=0)
-        disagree[columns] = np.nan_to_num(spread, nan=0.0) > RESCAN_AGREEMENT_LIMIT * spacing
+        mean = rows[:, both].mean(axis=0)
+        spacing = float(np.median(np.abs(np.diff(mean))))
+        spread = rows[:, both].max(axis=0) - rows[:, both].min(axis=0)
+        disagree[columns[both]] = spread > RESCAN_AGREEMENT_LIMIT * spacing
     return disagree
 
 
@@ -523,27 +569,30 @@ def _drive_record(timeline: _Timeline, axis: int, centre: float, half: float) ->
     }
 
 
+# Where another image put a known pit, as seen in this one: along this image's fast axis (the
+# other image's slow axis, where the compensation residual of a full-range pass differs
+# between the two by up to ~1 um) and along its slow axis (the same to the pit-position noise
+# and the drift between the images, ~0.3 um), with room for a pit's radius.
+KNOWN_REACH_FAST = 1.5e-6  # m
+KNOWN_REACH_SLOW = 1.0e-6  # m
+
+
 def _without_known(
     detected: list[DetectedPit], known: np.ndarray, slow_axis: int
 ) -> list[DetectedPit]:
-    """`detected` less the pits that are `known` from another image. That image placed them up
-    to ~1 um differently along this one's slow axis (the compensation residual of a
-    full-range pass differs between the two), the same to ~0.3 um across it: the shift is
-    the median over the candidate pairs, and each known pit removes at most the one detection
-    nearest to where the shift puts it (a pit of this experiment close by stays)."""
+    """`detected` less every detection that may be one of the `known` pits (another
+    experiment's, imaged elsewhere): within KNOWN_REACH_FAST across and KNOWN_REACH_SLOW along
+    this image's slow axis of one. All of them go, not the nearest only: a pit of this
+    experiment lost there leaves a gap the matching handles, a stray one kept can shift the
+    matching by a pit (issue 37: the x cycle's rows crossing the y lane)."""
     if not detected or not len(known):
         return detected
     fast = 1 - slow_axis
     points = np.array([[p.x, p.y] for p in detected])
-    delta = points[None, :, :] - known[:, None, :]
-    candidate = (np.abs(delta[..., slow_axis]) < 1.0e-6) & (np.abs(delta[..., fast]) < 0.3e-6)
-    if not candidate.any():
-        return detected
-    shift = np.zeros(2)
-    shift[slow_axis] = np.median(delta[..., slow_axis][candidate])
-    distance = np.linalg.norm(points[None, :, :] - (known + shift)[:, None, :], axis=2)
-    drop = {int(np.argmin(row)) for row in distance if row.min() < 0.3e-6}
-    return [p for j, p in enumerate(detected) if j not in drop]
+    delta = np.abs(points[None, :, :] - known[:, None, :])
+    near = (delta[..., fast] < KNOWN_REACH_FAST) & (delta[..., slow_axis] < KNOWN_REACH_SLOW)
+    drop = near.any(axis=0)
+    return [p for j, p in enumerate(detected) if not drop[j]]
 
 
 def refit_hysteresis(

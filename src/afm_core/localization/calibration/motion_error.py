@@ -25,15 +25,25 @@ def fit_variance_line(distances, variances, counts) -> tuple[float, float]:
     """sigma^2 = a d + b by weighted least squares: a sample variance from n values has a
     standard deviation of about sigma^2 sqrt(2 / (n - 1)), so the weights are (n - 1) / 2 / v^2,
     iterated with the fitted line in place of the noisy v."""
+    a, b, _ = variance_line(distances, variances, counts)
+    return a, b
+
+
+def variance_line(distances, variances, counts) -> tuple[float, float, float]:
+    """`fit_variance_line` and the standard error of its slope a: with the weights the
+    inverse standard deviations of the sample variances (from the fitted line, so not from
+    the data's own scatter), the covariance is (X^T W X)^-1."""
     d, v, n = (np.asarray(a, float) for a in (distances, variances, counts))
     expected = np.maximum(v, 1e-30)
     for _ in range(5):
         w = np.sqrt((n - 1) / 2) / expected
-        (a, b), *_ = np.linalg.lstsq(
-            np.stack([d, np.ones_like(d)], axis=1) * w[:, None], v * w, rcond=None
-        )
+        design = np.stack([d, np.ones_like(d)], axis=1) * w[:, None]
+        (a, b), *_ = np.linalg.lstsq(design, v * w, rcond=None)
         expected = np.maximum(a * d + b, 0.1 * np.maximum(v, 1e-30))
-    return float(a), float(b)
+    w = np.sqrt((n - 1) / 2) / expected
+    design = np.stack([d, np.ones_like(d)], axis=1) * w[:, None]
+    covariance = np.linalg.pinv(design.T @ design)
+    return float(a), float(b), float(np.sqrt(max(0.0, covariance[0, 0])))
 
 
 def measure_motion_noise(
@@ -180,24 +190,27 @@ def _trial_separations(
 
 def _fitted_slopes(samples: list[tuple]) -> dict:
     """sigma^2 = a d + b per axis (along), across (the cross slope) and pooled, from the
-    samples (axis, d, trials - 1, variance along, variance across)."""
+    samples (axis, d, trials - 1, variance along, variance across), each slope with its
+    standard error (`<name>_sigma`)."""
     parameters = {}
     for axis in (0, 1):
         rows = [s for s in samples if s[0] == axis]
-        a, b = fit_variance_line(
-            [r[1] for r in rows], [r[3] for r in rows], [r[2] + 1 for r in rows]
+        name = f"slope_{'xy'[axis]}"
+        parameters[name], parameters[f"offset_{'xy'[axis]}"], parameters[f"{name}_sigma"] = (
+            variance_line([r[1] for r in rows], [r[3] for r in rows], [r[2] + 1 for r in rows])
         )
-        parameters[f"slope_{'xy'[axis]}"], parameters[f"offset_{'xy'[axis]}"] = a, b
-    cross_a, cross_b = fit_variance_line(
-        [r[1] for r in samples], [r[4] for r in samples], [r[2] + 1 for r in samples]
+    parameters["cross_slope"], parameters["cross_offset"], parameters["cross_slope_sigma"] = (
+        variance_line(
+            [r[1] for r in samples], [r[4] for r in samples], [r[2] + 1 for r in samples]
+        )
     )
-    parameters["cross_slope"], parameters["cross_offset"] = cross_a, cross_b
     # one slope from every component (along and across, both axes): the best estimate when
     # the noise is isotropic, as the simulator's is; compare the per-axis ones with it
-    pooled_a, pooled_b = fit_variance_line(
-        [r[1] for r in samples] * 2,
-        [r[3] for r in samples] + [r[4] for r in samples],
-        [r[2] + 1 for r in samples] * 2,
+    parameters["pooled_slope"], parameters["pooled_offset"], parameters["pooled_slope_sigma"] = (
+        variance_line(
+            [r[1] for r in samples] * 2,
+            [r[3] for r in samples] + [r[4] for r in samples],
+            [r[2] + 1 for r in samples] * 2,
+        )
     )
-    parameters["pooled_slope"], parameters["pooled_offset"] = pooled_a, pooled_b
     return parameters

@@ -40,6 +40,7 @@ import numpy as np
 
 from afm_core.localization.calibration.creep import measure_creep
 from afm_core.localization.calibration.drift_statistics import measure_drift
+from afm_core.localization.calibration.fit_checks import calibration_checks
 from afm_core.localization.calibration.hysteresis import hysteresis_fit_of, measure_hysteresis
 from afm_core.localization.calibration.line_deflection import measure_line_deflection
 from afm_core.localization.calibration.map_errors import map_errors
@@ -209,6 +210,7 @@ def run_calibration(
         else {"parameters": value.parameters, "data": value.data}
         for name, value in report.items()
     }
+    summary["checks"] = calibration_checks(summary)
     summary["instrument_seconds"] = float(instrument.time) - clock0
     summary["wall_seconds"] = wallclock.perf_counter() - started
     return calibration, summary
