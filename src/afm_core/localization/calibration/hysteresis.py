@@ -305,10 +305,25 @@ def measure_hysteresis(
         "pits_punched": len(pits),
         "pits_found": int(found.sum()),
         "pits_rescans_disagree": int(disagreeing.sum()),
+        # the four pits at the loop's tips (each branch's highest and lowest drive), where the
+        # asymmetry shows most; outside the rescan box when the loop is strongly asymmetric
+        "tip_pits_found": int(sum(found[_tip_pits(branches, drives)])),
         "all_detected": all_detected[0],
         **_drive_record(timeline, axis, centre[axis], half),
     }
     return Experiment(parameters, data)
+
+
+def _tip_pits(branches: np.ndarray, drives: np.ndarray) -> list[int]:
+    """Indices of each branch's pits at the highest and the lowest drive."""
+    tips = []
+    for branch in ("descending", "ascending"):
+        members = np.flatnonzero(branches == branch)
+        tips += [
+            int(members[np.argmax(drives[members])]),
+            int(members[np.argmin(drives[members])]),
+        ]
+    return tips
 
 
 def _checked_options(
@@ -466,7 +481,7 @@ def _placed_rows(rows: dict, drives: np.ndarray, axis: int, direction: str) -> d
     RuntimeError when no placement closes within TIP_CLOSURE_LIMIT of the spacing."""
     options = {}
     for branch, (wanted, positions) in rows.items():
-        placements = monotone_placements(drives[wanted], positions)
+        placements = monotone_placements(drives[wanted], positions, smooth_spacing=True)
         if not placements:
             raise RuntimeError(
                 f"hysteresis ({'xy'[axis]}): only {len(positions)} pits of the {branch} row found "
