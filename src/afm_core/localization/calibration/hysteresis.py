@@ -584,29 +584,42 @@ def _drive_record(timeline: _Timeline, axis: int, centre: float, half: float) ->
     }
 
 
-# Where another image put a known pit, as seen in this one: along this image's fast axis (the
-# other image's slow axis, where the compensation residual of a full-range pass differs
-# between the two by up to ~1 um) and along its slow axis (the same to the pit-position noise
-# and the drift between the images, ~0.3 um), with room for a pit's radius.
-KNOWN_REACH_FAST = 1.5e-6  # m
-KNOWN_REACH_SLOW = 1.0e-6  # m
+# Another image placed a known pit up to ~1.5 um differently in each axis (the compensation
+# residual of a full-range pass against that of a short fast-axis stroke, up to ~10 % of half
+# a loop width of 0.25 of the range); within this reach a detection may be one of them.
+KNOWN_SEARCH = 3.0e-6  # m
+# Once the common shift is known, a detection this close to a shifted known pit is it: pits
+# land to ~50 nm, the shift varies by a few tens of nm over the few um the known pits span.
+KNOWN_GATE = 0.4e-6  # m
 
 
 def _without_known(
     detected: list[DetectedPit], known: np.ndarray, slow_axis: int
 ) -> list[DetectedPit]:
-    """`detected` less every detection that may be one of the `known` pits (another
-    experiment's, imaged elsewhere): within KNOWN_REACH_FAST across and KNOWN_REACH_SLOW along
-    this image's slow axis of one. All of them go, not the nearest only: a pit of this
-    experiment lost there leaves a gap the matching handles, a stray one kept can shift the
-    matching by a pit (issue 37: the x cycle's rows crossing the y lane)."""
+    """`detected` less the `known` pits (another experiment's, imaged elsewhere). The other
+    image placed them all by about the same shift (microns, issue 37: 1.0 um along y for the x
+    cycle's rows crossing the y lane): among the offsets from known pits to detections within
+    KNOWN_SEARCH, the one that brings the most known pits within KNOWN_GATE of a detection
+    is that shift (a pit of this experiment nearby agrees with at most one known pit), and
+    every detection within KNOWN_GATE of a shifted known pit goes."""
     if not detected or not len(known):
         return detected
-    fast = 1 - slow_axis
     points = np.array([[p.x, p.y] for p in detected])
-    delta = np.abs(points[None, :, :] - known[:, None, :])
-    near = (delta[..., fast] < KNOWN_REACH_FAST) & (delta[..., slow_axis] < KNOWN_REACH_SLOW)
-    drop = near.any(axis=0)
+    delta = points[None, :, :] - known[:, None, :]
+    near = np.all(np.abs(delta) < KNOWN_SEARCH, axis=2)
+    if not near.any():
+        return detected
+    relevant = known[near.any(axis=1)]
+    best, best_votes = None, 0
+    for shift in delta[near]:
+        distance = np.linalg.norm(points[None, :, :] - (relevant + shift)[:, None, :], axis=2)
+        votes = int(np.sum(distance.min(axis=1) < KNOWN_GATE))
+        if votes > best_votes or (
+            votes == best_votes and np.linalg.norm(shift) < np.linalg.norm(best)
+        ):
+            best, best_votes = shift, votes
+    distance = np.linalg.norm(points[None, :, :] - (relevant + best)[:, None, :], axis=2)
+    drop = np.any(distance < KNOWN_GATE, axis=0)
     return [p for j, p in enumerate(detected) if not drop[j]]
 
 

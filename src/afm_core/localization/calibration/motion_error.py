@@ -114,18 +114,25 @@ def measure_motion_noise(
     return Experiment(_fitted_slopes(samples), data)
 
 
+# Between neighbouring lanes: a lane's rescan reaches 0.4 um + 0.15 d past its pits, and
+# shows another lane's pits up to ~1.5 um from where that lane's own rescan put them (the
+# compensation residual of a slow pass against a fast stroke; issue 37: 0.75 um after a
+# full-range excursion, which with 1 um between lanes put an x-lane pair into a y-lane image).
+LANE_GAP = 3e-6  # m
+
+
 def _lanes(instrument, origin, distances, extent: float) -> list[tuple]:
     """(axis, distance, start) of every lane, checked against the scanner range. Lanes side by
-    side, 1 um apart: the x lanes (rows stacked along y, `extent` tall) in a band along x, the
-    y lanes (columns stacked along x) in a band along y above them."""
+    side, LANE_GAP apart: the x lanes (rows stacked along y, `extent` tall) in a band along x,
+    the y lanes (columns stacked along x) in a band along y above them."""
     lanes, cursor = [], 0.0
     for d in distances:
         lanes.append((0, d, origin + np.array([cursor, 0.0])))
-        cursor += 1.3 * d + 1e-6
-    cursor = extent + 1e-6
+        cursor += 1.3 * d + LANE_GAP
+    cursor = extent + LANE_GAP
     for d in distances:
         lanes.append((1, d, origin + np.array([0.0, cursor])))
-        cursor += 1.3 * d + 1e-6
+        cursor += 1.3 * d + LANE_GAP
     for axis, d, start in lanes:
         end = start.copy()
         end[axis] += d

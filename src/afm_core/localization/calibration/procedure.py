@@ -66,15 +66,70 @@ EXPERIMENTS = (
 )
 
 
+# Which experiment measures which Calibration field (for `measured`, `--only` and merging).
+FIELDS = {
+    "drift": ("drift_mean_velocity", "drift_sigma_velocity"),
+    "map_errors": ("map_sigma", "scan_region_sigma"),
+    "creep": ("creep_time_constants", "creep_fractions_x", "creep_fractions_y"),
+    "hysteresis_x": ("hysteresis_x",),
+    "hysteresis_y": ("hysteresis_y",),
+    "scanner_matrix": ("scanner_matrix",),
+    "motion_noise": (
+        "motion_noise_slope_x",
+        "motion_noise_slope_y",
+        "motion_noise_cross_slope",
+        "motion_noise_offset",
+    ),
+    "line_deflection": ("line_deflection_mean_deg", "line_deflection_sigma_deg"),
+}
+
+
+def checked_experiments(only) -> tuple[str, ...]:
+    """The experiments of `only` (names of EXPERIMENTS) in run order; ValueError naming the
+    bad choice and the valid ones. map_errors comes from the drift frames, so it needs drift."""
+    if only is None:
+        return EXPERIMENTS
+    chosen = [str(name) for name in only]
+    unknown = sorted(set(chosen) - set(EXPERIMENTS))
+    if unknown or not chosen:
+        raise ValueError(
+            f"only={chosen}: unknown experiment(s) {unknown}; choose from {', '.join(EXPERIMENTS)}"
+        )
+    if "map_errors" in chosen and "drift" not in chosen:
+        raise ValueError("only: map_errors is measured on the drift frames; add drift")
+    return tuple(name for name in EXPERIMENTS if name in chosen)
+
+
+def merge_calibration(previous: Calibration, new: Calibration, experiments) -> Calibration:
+    """`previous` with the fields the `experiments` of a rerun measured taken from `new`
+    (a field the rerun could not measure keeps the previous value and mark); `measured` and
+    `defaults` follow each field."""
+    values = {f.name: getattr(previous, f.name) for f in dataclasses.fields(Calibration)}
+    measured, defaults = dict(previous.measured), set(previous.defaults)
+    for experiment in experiments:
+        for name in FIELDS.get(experiment, ()):
+            if name in new.measured:
+                values[name] = getattr(new, name)
+                measured[name] = new.measured[name]
+                defaults.discard(name)
+    values.update(
+        source=f"{previous.source}; merged with {new.source} ({', '.join(experiments)})",
+        measured=measured,
+        defaults=sorted(defaults),
+    )
+    return Calibration(**values)
+
+
 def _attempt(report: dict, name: str, measure, progress=None, instrument=None):
     """Run one experiment; a failure is recorded with its reason and the run goes on.
     `progress(text)`, if given, hears when it starts and how it ended (wall and instrument
     seconds: on the real instrument the experiments take hours)."""
-    number = EXPERIMENTS.index(name) + 1
+    chosen = report.get("_chosen", EXPERIMENTS)
+    number, total = chosen.index(name) + 1, len(chosen)
     wall0 = wallclock.perf_counter()
     clock0 = float(instrument.time) if instrument is not None else 0.0
     if progress is not None:
-        progress(f"experiment {number} of {len(EXPERIMENTS)}: {name} ...")
+        progress(f"experiment {number} of {total}: {name} ...")
     try:
         report[name] = measure()
         outcome = "done"
@@ -85,7 +140,7 @@ def _attempt(report: dict, name: str, measure, progress=None, instrument=None):
     if progress is not None:
         spent = float(instrument.time) - clock0 if instrument is not None else 0.0
         progress(
-            f"experiment {number} of {len(EXPERIMENTS)}: {name} {outcome} in "
+            f"experiment {number} of {total}: {name} {outcome} in "
             f"{wallclock.perf_counter() - wall0:.0f} s ({spent:.0f} s of instrument time)"
         )
     return report[name]
@@ -136,22 +191,31 @@ def run_calibration(
     drift: dict | None = None,
     source: str | None = None,
     progress=None,
+    only=None,
+    previous: Calibration | None = None,
 ) -> tuple[Calibration, dict]:
     """All experiments, in an order where each can use what the previous measured (creep
     before hysteresis: the hysteresis fit includes it; drift, map and scan-region errors
     first, before there are pits). Each keyword is that experiment's options
     (see its function). Returns the Calibration and a report {experiment: {"parameters",
-    "data"}} (the drift frames are left out of the report; `map_errors` has used them).
+    "data"}} (the drift frames are left out of the report; `map_errors` has used them) with
+    the fit checks under "checks" (fit_checks.calibration_checks).
 
     An experiment that cannot measure (EXPERIMENT_FAILURES) does not stop the others: its
     report entry is {"failed": reason}, its Calibration fields keep the book's defaults and
     are listed in `Calibration.defaults`, so the file still carries every result measured
     (a hysteresis fit then goes without the creep term, the y sweep without the x sweep's pit
-    list). `progress(text)`, if given, hears each experiment's start and end."""
-    report: dict = {}
+    list). `progress(text)`, if given, hears each experiment's start and end.
+
+    only: run just these experiments (names of EXPERIMENTS; `checked_experiments`), e.g. to
+    repeat one a check flagged; `previous` (a Calibration) then supplies what they use from
+    the others (the creep model of the hysteresis fit); merge the result into it with
+    `merge_calibration`."""
+    chosen = checked_experiments(only)
+    report: dict = {"_chosen": chosen}
 
     def attempt(name, measure):
-        return _attempt(report, name, measure, progress, instrument)
+        return _attempt(report, name, measure, progress, instrument) if name in chosen else None
 
     started = wallclock.perf_counter()
     clock0 = float(instrument.time)
@@ -162,17 +226,11 @@ def run_calibration(
         frames = drift_result.data.pop("frames")
         attempt("map_errors", lambda: map_errors(frames))
         del frames
-    else:
+    elif "map_errors" in chosen:
         report["map_errors"] = None
         report["_failed"]["map_errors"] = "no drift frames (the drift experiment failed)"
     result = attempt("creep", lambda: measure_creep(instrument, **(creep or {})))
-    creep_axes = [None, None]
-    if result is not None:
-        taus = result.parameters["time_constants"]
-        creep_axes = [
-            (taus, result.parameters["fractions_x"]),
-            (taus, result.parameters["fractions_y"]),
-        ]
+    creep_axes = _creep_axes(result, previous)
     options = dict(hysteresis or {})
     first = attempt(
         "hysteresis_x",
@@ -192,6 +250,7 @@ def run_calibration(
         "line_deflection",
         lambda: measure_line_deflection(instrument, **(line_deflection or {})),
     )
+    report.pop("_chosen")
     failed = report.pop("_failed", {})
     fields = _calibration_fields(report)
     stamp = datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -199,10 +258,16 @@ def run_calibration(
         source=source or f"afm_core.localization.calibration.procedure.run_calibration, {stamp}",
         **fields,
     )
+    calibration.measured = {
+        name: f"{experiment}, {stamp}"
+        for experiment, names in FIELDS.items()
+        for name in names
+        if name in fields
+    }
     calibration.defaults = sorted(
         f.name
         for f in dataclasses.fields(Calibration)
-        if f.name not in fields and f.name not in ("source", "defaults")
+        if f.name not in fields and f.name not in ("source", "defaults", "measured")
     )
     summary = {
         name: {"failed": failed[name]}
@@ -214,6 +279,18 @@ def run_calibration(
     summary["instrument_seconds"] = float(instrument.time) - clock0
     summary["wall_seconds"] = wallclock.perf_counter() - started
     return calibration, summary
+
+
+def _creep_axes(result, previous: Calibration | None) -> list:
+    """The creep model (time constants, fractions) per axis for the hysteresis fit: this run's
+    creep experiment, else a previous calibration's measured creep, else none."""
+    if result is not None:
+        taus = result.parameters["time_constants"]
+        return [(taus, result.parameters["fractions_x"]), (taus, result.parameters["fractions_y"])]
+    if previous is not None and previous.creep_time_constants:
+        taus = previous.creep_time_constants
+        return [(taus, previous.creep_fractions_x), (taus, previous.creep_fractions_y)]
+    return [None, None]
 
 
 def report_json(summary: dict) -> str:
