@@ -12,6 +12,7 @@ from scipy import linalg, optimize
 from afm_core import checks
 from afm_core.localization.calibration.experiment import (
     Experiment,
+    StepProgress,
     check_box,
     indent_force,
     punch_at,
@@ -178,6 +179,7 @@ def measure_creep(
     pixel: float = 10e-9,
     force: float | None = None,
     guess=(1.0, 10.0, 100.0),
+    progress=None,
 ) -> Experiment:
     """Creep of each axis in normal (compensated) operation (book 7.2.2, Fig. 7.7).
 
@@ -203,7 +205,8 @@ def measure_creep(
     force = indent_force(instrument, force)
     plans = _planned_runs(instrument, step, pits, repeats, pit_spacing, lane_offset)
     runs, data = [], {"x": [], "y": []}
-    for axis, start, end in plans:
+    steps = StepProgress(progress, "creep", f"step run of {pits} pits", len(plans), instrument)
+    for number, (axis, start, end) in enumerate(plans, start=1):
         name = "xy"[axis]
         run, record = _creep_run(
             instrument,
@@ -219,6 +222,7 @@ def measure_creep(
         )
         runs.append(run)
         data[name].append(record)
+        steps.step(number)
     fit = fit_creep(runs, guess=guess)
     for record, model in zip(data["x"] + data["y"], fit["model"]):
         record["model"] = model

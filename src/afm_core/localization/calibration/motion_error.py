@@ -11,6 +11,7 @@ import numpy as np
 from afm_core import checks
 from afm_core.localization.calibration.experiment import (
     Experiment,
+    StepProgress,
     check_box,
     indent_force,
     punch_at,
@@ -57,6 +58,7 @@ def measure_motion_noise(
     settle: float = 300.0,
     pixel: float = 15e-9,
     force: float | None = None,
+    progress=None,
 ) -> Experiment:
     """Motion error variance against distance (book Fig. 7.6e; Fig. 7.20b sigma^2 = a d + b).
 
@@ -80,7 +82,10 @@ def measure_motion_noise(
     origin = range_centre(instrument) + np.asarray(site, float)
     lanes = _lanes(instrument, origin, distances, (trials - 1) * row_spacing)
     data, samples = {"x": [], "y": []}, []
-    for axis, d, start in lanes:
+    steps = StepProgress(
+        progress, "motion_noise", f"lane of {trials} trials", len(lanes), instrument
+    )
+    for number, (axis, d, start) in enumerate(lanes, start=1):
         instrument.move_tip(float(start[0]), float(start[1]), 0.5 * limits.max_speed)
         wait(instrument, settle)
         detected = _punched_lane(
@@ -102,6 +107,7 @@ def measure_motion_noise(
         var_along = float(np.sum(residual[0] ** 2) / (n - 2))
         var_across = float(np.sum(residual[1] ** 2) / (n - 2))
         samples.append((axis, d, n - 1, var_along, var_across))
+        steps.step(number)
         data["xy"[axis]].append(
             {
                 "distance": d,

@@ -221,7 +221,9 @@ def run_calibration(
     clock0 = float(instrument.time)
     # Drift first: it needs no pits, and on the simulator every image gets slower with every
     # pit on the sample (hundreds by the end), which matters for ~100 hours of frame pairs.
-    drift_result = attempt("drift", lambda: measure_drift(instrument, **(drift or {})))
+    drift_result = attempt(
+        "drift", lambda: measure_drift(instrument, progress=progress, **(drift or {}))
+    )
     if drift_result is not None:
         frames = drift_result.data.pop("frames")
         attempt("map_errors", lambda: map_errors(frames))
@@ -229,23 +231,32 @@ def run_calibration(
     elif "map_errors" in chosen:
         report["map_errors"] = None
         report["_failed"]["map_errors"] = "no drift frames (the drift experiment failed)"
-    result = attempt("creep", lambda: measure_creep(instrument, **(creep or {})))
+    result = attempt(
+        "creep", lambda: measure_creep(instrument, progress=progress, **(creep or {}))
+    )
     creep_axes = _creep_axes(result, previous)
     options = dict(hysteresis or {})
     first = attempt(
         "hysteresis_x",
-        lambda: measure_hysteresis(instrument, 0, creep=creep_axes[0], **options),
+        lambda: measure_hysteresis(
+            instrument, 0, creep=creep_axes[0], progress=progress, **options
+        ),
     )
     ignore = first.data["all_detected"] if first is not None else None
     attempt(
         "hysteresis_y",
-        lambda: measure_hysteresis(instrument, 1, creep=creep_axes[1], ignore=ignore, **options),
+        lambda: measure_hysteresis(
+            instrument, 1, creep=creep_axes[1], ignore=ignore, progress=progress, **options
+        ),
     )
     attempt(
         "scanner_matrix",
         lambda: measure_scanner_matrix(instrument, **(scanner_matrix or {})),
     )
-    attempt("motion_noise", lambda: measure_motion_noise(instrument, **(motion_noise or {})))
+    attempt(
+        "motion_noise",
+        lambda: measure_motion_noise(instrument, progress=progress, **(motion_noise or {})),
+    )
     attempt(
         "line_deflection",
         lambda: measure_line_deflection(instrument, **(line_deflection or {})),
