@@ -247,3 +247,53 @@ def test_progress_within_an_experiment():
     within = [line for line in lines if line.startswith("motion_noise: lane of 8 trials")]
     assert within[-1].startswith("motion_noise: lane of 8 trials 4 of 4, about 0 s left")
     assert lines[-1].startswith("experiment 1 of 1: motion_noise done in ")
+
+
+def test_cli_reruns_one_experiment_into_an_existing_file(tmp_path):
+    """`afm calibrate --only line_deflection --merge earlier.yaml`: the file written keeps the
+    earlier fields and marks, replaces the rerun's, and the report holds its fit and the
+    checks; a bad experiment name is refused naming the choices."""
+    import json
+    import subprocess
+    import sys
+
+    from afm_core.localization.calibration.model import load_calibration, save_calibration
+
+    earlier = tmp_path / "earlier.yaml"
+    save_calibration(
+        Calibration(
+            source="earlier",
+            motion_noise_slope_x=1e-10,
+            measured={"motion_noise_slope_x": "motion_noise, earlier"},
+            defaults=["line_deflection_mean_deg", "line_deflection_sigma_deg"],
+        ),
+        earlier,
+    )
+    afm = [sys.executable, "-m", "afm_bringup.cli", "calibrate"]
+    out, report = tmp_path / "out.yaml", tmp_path / "report.json"
+    done = subprocess.run(
+        afm
+        + ["--only", "line_deflection", "--merge", str(earlier), "-o", str(out)]
+        + ["--report", str(report)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "line_deflection: " in done.stdout or "experiment 1 of 1" in done.stdout
+    merged = load_calibration(out)
+    assert merged.motion_noise_slope_x == 1e-10
+    assert merged.measured["motion_noise_slope_x"] == "motion_noise, earlier"
+    assert merged.measured["line_deflection_mean_deg"].startswith("line_deflection, ")
+    assert merged.defaults == []
+    written = json.loads(report.read_text())
+    assert "parameters" in written["line_deflection"] and "checks" in written
+    refused = subprocess.run(
+        afm + ["--only", "hysteresis_z", "-o", str(tmp_path / "x.yaml")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert refused.returncode != 0
+    assert "hysteresis_z" in refused.stderr and "hysteresis_y" in refused.stderr
+    assert not (tmp_path / "x.yaml").exists()
