@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from afm_core.localization.calibration import hysteresis as hysteresis_module
+from afm_core.localization.calibration import hysteresis_rows
 from afm_core.localization.calibration.experiment import Experiment
 from afm_core.localization.calibration.fit_checks import calibration_checks
 from afm_core.localization.calibration.hysteresis import measure_hysteresis, refit_hysteresis
@@ -171,7 +172,7 @@ def test_rows_are_placed_by_their_shared_tips_not_by_the_drive():
         "descending": (np.arange(25), descending),
         "ascending": (np.arange(25, 50), ascending[:-1]),  # the top pit not found
     }
-    placed = hysteresis_module._placed_rows(rows, all_drives, 0, "up")
+    placed = hysteresis_rows.placed_rows(rows, all_drives, 0, "up")
     np.testing.assert_allclose(placed["descending"][1], descending)
     np.testing.assert_allclose(placed["ascending"][1][:-1], ascending[:-1])
     assert np.isnan(placed["ascending"][1][-1])
