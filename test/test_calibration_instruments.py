@@ -289,6 +289,8 @@ def test_cli_reruns_one_experiment_into_an_existing_file(tmp_path):
     assert merged.defaults == []
     written = json.loads(report.read_text())
     assert "parameters" in written["line_deflection"] and "checks" in written
+    readable = report.with_suffix(".md").read_text()
+    assert "| line_deflection | measured | mean_deg " in readable
     refused = subprocess.run(
         afm + ["--only", "hysteresis_z", "-o", str(tmp_path / "x.yaml")],
         capture_output=True,

@@ -210,6 +210,7 @@ def cmd_calibrate(args):
         checked_experiments,
         merge_calibration,
         report_json,
+        report_markdown,
         run_calibration,
     )
 
@@ -241,8 +242,10 @@ def cmd_calibrate(args):
         calibration = merge_calibration(previous, calibration, chosen)
     save_calibration(calibration, output)
     if args.report:
-        # every experiment's parameters, raw data and the fit checks
+        # every experiment's parameters, raw data and the fit checks; beside it the same for a
+        # person (headline parameters, outcome, checks)
         Path(args.report).write_text(report_json(report))
+        Path(args.report).with_suffix(".md").write_text(report_markdown(report))
     _print_calibration(output, calibration, report)
     failed = {n: v["failed"] for n, v in report.items() if isinstance(v, dict) and "failed" in v}
     for name, reason in failed.items():
@@ -259,15 +262,25 @@ def cmd_calibrate(args):
 
 
 def _print_calibration(output, calibration, report) -> None:
-    """The headline figures and every warning of the fit checks."""
-    noise = calibration.motion_noise()
-    print(
-        f"wrote {output}: hysteresis loop {calibration.hysteresis_x.loop_fraction:.3f} / "
-        f"{calibration.hysteresis_y.loop_fraction:.3f} of the range, creep time constants "
-        f"{', '.join(f'{t:.2f}' for t in calibration.creep_time_constants)} s, motion noise "
-        f"{noise.k_h1 * 1e9:.4f} nm^2/nm, drift {calibration.drift_mean_velocity[0] * 1e9:.3f}, "
-        f"{calibration.drift_mean_velocity[1] * 1e9:.3f} nm/s"
-    )
+    """The headline figures (those measured; the file's `defaults:` lists the rest) and every
+    warning of the fit checks."""
+    c, measured = calibration, set(calibration.measured)
+    parts = [
+        ("hysteresis_x", f"hysteresis loop x {c.hysteresis_x.loop_fraction:.3f} of the range"),
+        ("hysteresis_y", f"hysteresis loop y {c.hysteresis_y.loop_fraction:.3f} of the range"),
+        (
+            "creep_time_constants",
+            "creep time constants " + ", ".join(f"{t:.2f}" for t in c.creep_time_constants) + " s",
+        ),
+        ("motion_noise_slope_x", f"motion noise {c.motion_noise().k_h1 * 1e9:.4f} nm^2/nm"),
+        (
+            "drift_mean_velocity",
+            f"drift {c.drift_mean_velocity[0] * 1e9:.3f}, "
+            f"{c.drift_mean_velocity[1] * 1e9:.3f} nm/s",
+        ),
+    ]
+    shown = [text for field, text in parts if field in measured]
+    print(f"wrote {output}: " + ("; ".join(shown) if shown else "nothing measured"))
     warnings = [c for c in report.get("checks", []) if c["level"] == "warning"]
     for check in warnings:
         print(f"afm calibrate: WARNING {check['experiment']}: {check['message']}", file=sys.stderr)
@@ -508,7 +521,8 @@ def _add_calibrate(sub) -> None:
     p.add_argument(
         "--report",
         default="",
-        help="also write every experiment's fitted parameters, raw data and fit checks (JSON)",
+        help="also write every experiment's fitted parameters, raw data and fit checks (JSON), "
+        "and a summary a person reads beside it (same name, .md)",
     )
     p.add_argument(
         "--only",

@@ -317,3 +317,56 @@ def report_json(summary: dict) -> str:
         return str(value)
 
     return json.dumps(summary, indent=2, default=plain)
+
+
+# The fitted numbers a person reads first, per experiment (the rest is in the JSON report).
+HEADLINE = {
+    "drift": ("mean_velocity", "sigma_velocity", "pairs"),
+    "map_errors": ("map_sigma", "scan_region_sigma"),
+    "creep": ("time_constants", "fractions_x", "fractions_y", "step_response_25s", "rms_residual"),
+    "hysteresis_x": ("loop_fraction", "loop_fraction_sigma", "asymmetry", "gain", "rms_residual"),
+    "hysteresis_y": ("loop_fraction", "loop_fraction_sigma", "asymmetry", "gain", "rms_residual"),
+    "scanner_matrix": ("scanner_matrix", "rms_residual"),
+    "motion_noise": ("pooled_slope", "pooled_slope_sigma", "slope_x", "slope_y", "cross_slope"),
+    "line_deflection": ("mean_deg", "sigma_deg"),
+}
+
+
+def report_markdown(summary: dict) -> str:
+    """The report of `run_calibration` for a person: per experiment measured or failed (why),
+    its headline parameters (SI), then every check with its level, warnings first."""
+
+    def shown(value):
+        if isinstance(value, (list, tuple)):
+            return "[" + ", ".join(shown(v) for v in value) + "]"
+        return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+    lines = [
+        "# Calibration report",
+        "",
+        "| experiment | outcome | parameters (SI) |",
+        "|---|---|---|",
+    ]
+    for name in EXPERIMENTS:
+        entry = summary.get(name)
+        if not isinstance(entry, dict):
+            continue
+        if "failed" in entry:
+            lines.append(f"| {name} | failed | {entry['failed'].replace('|', '/')} |")
+            continue
+        parameters = entry["parameters"]
+        text = "; ".join(
+            f"{key} {shown(parameters[key])}" for key in HEADLINE[name] if key in parameters
+        )
+        lines.append(f"| {name} | measured | {text} |")
+    checks = sorted(
+        summary.get("checks", []), key=lambda c: ("error", "warning", "ok").index(c["level"])
+    )
+    lines += ["", "## Checks", ""]
+    lines += [f"- **{c['level']}** {c['experiment']}: {c['message']}" for c in checks]
+    lines += [
+        "",
+        f"Instrument time {summary.get('instrument_seconds', 0.0) / 3600:.2f} h, wall "
+        f"{summary.get('wall_seconds', 0.0):.0f} s. Raw data: the JSON report.",
+    ]
+    return "\n".join(lines) + "\n"
