@@ -278,6 +278,12 @@ def _print_calibration(output, calibration, report) -> None:
             f"drift {c.drift_mean_velocity[0] * 1e9:.3f}, "
             f"{c.drift_mean_velocity[1] * 1e9:.3f} nm/s",
         ),
+        (
+            "scanner_matrix",
+            "scanner matrix " + str([[round(v, 4) for v in row] for row in c.scanner_matrix]),
+        ),
+        ("map_sigma", f"map error {c.map_sigma[0] * 1e9:.1f}, {c.map_sigma[1] * 1e9:.1f} nm"),
+        ("line_deflection_mean_deg", f"line deflection {c.line_deflection_mean_deg:.3f} deg"),
     ]
     shown = [text for field, text in parts if field in measured]
     print(f"wrote {output}: " + ("; ".join(shown) if shown else "nothing measured"))
