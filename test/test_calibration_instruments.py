@@ -300,3 +300,28 @@ def test_cli_reruns_one_experiment_into_an_existing_file(tmp_path):
     assert refused.returncode != 0
     assert "hysteresis_z" in refused.stderr and "hysteresis_y" in refused.stderr
     assert not (tmp_path / "x.yaml").exists()
+
+
+def test_the_readable_report_lists_failures_and_warnings_first():
+    """report_markdown: a failed experiment with its reason, a measured one with its headline
+    numbers, and the checks with errors and warnings before the ok ones."""
+    from afm_core.localization.calibration.procedure import report_markdown
+
+    summary = {
+        "motion_noise": {"failed": "RuntimeError: only 0 trials measured"},
+        "creep": {
+            "parameters": {
+                "time_constants": [0.5, 5.0, 50.0],
+                "step_response_25s": [0.016, 0.0165],
+                "step_response_25s_sigma": [0.01, 0.0002],
+            },
+            "data": {},
+        },
+    }
+    summary["checks"] = calibration_checks(summary)
+    text = report_markdown(summary)
+    assert "| motion_noise | failed | RuntimeError: only 0 trials measured |" in text
+    assert "| creep | measured | time_constants [0.5, 5, 50]" in text
+    levels = [line.split("**")[1] for line in text.splitlines() if line.startswith("- **")]
+    assert levels[0] == "error" and levels[1] == "warning" and levels[-1] == "ok"
+    assert "--only creep" in text and "--only motion_noise" in text
