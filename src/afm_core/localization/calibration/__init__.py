@@ -3,12 +3,16 @@ the `Calibration` they produce.
 
 Modules, one per experiment and what they share:
 - model.py: the `Calibration` (what the experiments measured) and its YAML file;
-- procedure.py: `run_calibration`, every experiment in order, into one `Calibration`;
+- procedure.py: `run_calibration`, every experiment in order (or `only=` some of them, merged
+  into an earlier file with `merge_calibration`), into one `Calibration`;
+- fit_checks.py: `calibration_checks`, per fit its standard error, consistency between axes
+  and experiments, and a warning naming the experiment to repeat;
 - creep.py, hysteresis.py, scanner_matrix.py, motion_error.py, line_deflection.py,
   drift_statistics.py, map_errors.py: the experiments (`measure_*`) and their fits;
 - experiment.py: the `Experiment` each returns, and the steps on the instrument they share
   (wait, punch a pit, rescan);
 - pits.py: finding the punched pits in a rescan; matching.py: which pit is which punch;
+  hysteresis_rows.py: the same for the two rows of a hysteresis cycle;
 - simulator_comparison.py: the results against a simulated instrument's configuration.
 
 Where the pits go. Every experiment records the tip's position by punching a pit (book

@@ -12,6 +12,7 @@ from scipy import linalg, optimize
 from afm_core import checks
 from afm_core.localization.calibration.experiment import (
     Experiment,
+    StepProgress,
     check_box,
     indent_force,
     punch_at,
@@ -129,9 +130,12 @@ def fit_creep(
     rms = float(np.sqrt(np.mean(misfit**2))) * 1e-9
     ends = np.cumsum([len(t) for t, *_ in prepared])[:-1]
     models = [(x + r) * 1e-9 for (_, x, *_), r in zip(prepared, np.split(misfit, ends))]
+    response, response_sigma = _step_response_sigmas(fit, unpack, len(groups))
     return {
         "time_constants": taus[order].tolist(),
         "fractions": [f[order].tolist() for f in fractions],
+        "step_response_25s": response,
+        "step_response_25s_sigma": response_sigma,
         "settled": [float(p[0]) * 1e-9 for p in per_run],
         "drift_velocity": [float(p[1]) * 1e-9 for p in per_run],
         "model": [m.tolist() for m in models],
@@ -175,6 +179,7 @@ def measure_creep(
     pixel: float = 10e-9,
     force: float | None = None,
     guess=(1.0, 10.0, 100.0),
+    progress=None,
 ) -> Experiment:
     """Creep of each axis in normal (compensated) operation (book 7.2.2, Fig. 7.7).
 
@@ -200,7 +205,8 @@ def measure_creep(
     force = indent_force(instrument, force)
     plans = _planned_runs(instrument, step, pits, repeats, pit_spacing, lane_offset)
     runs, data = [], {"x": [], "y": []}
-    for axis, start, end in plans:
+    steps = StepProgress(progress, "creep", f"step run of {pits} pits", len(plans), instrument)
+    for number, (axis, start, end) in enumerate(plans, start=1):
         name = "xy"[axis]
         run, record = _creep_run(
             instrument,
@@ -216,6 +222,7 @@ def measure_creep(
         )
         runs.append(run)
         data[name].append(record)
+        steps.step(number)
     fit = fit_creep(runs, guess=guess)
     for record, model in zip(data["x"] + data["y"], fit["model"]):
         record["model"] = model
@@ -225,6 +232,8 @@ def measure_creep(
         "fractions_y": fit["fractions"][1],
         "drift_velocity": fit["drift_velocity"],
         "rms_residual": fit["rms_residual"],
+        "step_response_25s": fit["step_response_25s"],
+        "step_response_25s_sigma": fit["step_response_25s_sigma"],
         "success": fit["success"],
     }
     return Experiment(parameters, data)
@@ -318,6 +327,34 @@ def _creep_run(
         "pits_found": int(ok.sum()),
     }
     return run, record
+
+
+STEP_RESPONSE_TIME = 25.0  # s, the book's creep figure: what the motion model predicts
+
+
+def _step_response_sigmas(fit, unpack, groups: int) -> tuple[list, list]:
+    """Per group the creep step response at STEP_RESPONSE_TIME and its standard error,
+    linearised: covariance s^2 (J^T J)^-1 of the parameters at the solution (J and the cost as
+    least_squares leaves them, whitened where the fit was), propagated by the numerical
+    gradient of the response."""
+    jacobian = np.asarray(fit.jac, float)
+    dof = max(1, jacobian.shape[0] - jacobian.shape[1])
+    covariance = 2.0 * float(fit.cost) / dof * np.linalg.pinv(jacobian.T @ jacobian)
+    t = np.array([STEP_RESPONSE_TIME])
+
+    def responses(theta):
+        taus, fractions, _ = unpack(theta)
+        return np.array([creep_step_response(taus, fractions[g], t)[0] for g in range(groups)])
+
+    base = responses(fit.x)
+    gradient = np.zeros((groups, len(fit.x)))
+    for k in range(len(fit.x)):
+        step = 1e-6 * max(1.0, abs(fit.x[k]))
+        shifted = fit.x.copy()
+        shifted[k] += step
+        gradient[:, k] = (responses(shifted) - base) / step
+    variance = np.einsum("gi,ij,gj->g", gradient, covariance, gradient)
+    return base.tolist(), np.sqrt(np.maximum(variance, 0.0)).tolist()
 
 
 def creep_step_response(time_constants, fractions, t) -> np.ndarray:

@@ -14,6 +14,7 @@ from afm_core.instrument import ScanRequest
 from afm_core.localization.calibration.experiment import (
     MAX_LINE_RATE,
     Experiment,
+    StepProgress,
     check_box,
     wait,
 )
@@ -37,6 +38,7 @@ def measure_drift(
     interval: float = 3600.0,
     search: float = 6e-6,
     settle: float = 300.0,
+    progress=None,
 ) -> Experiment:
     """Drift velocity statistics (book 5.3.3, 7.2.2, Fig. 7.9): `pairs` frame-up / frame-down
     image pairs of an area with at least two particles on different lines, a pair starting
@@ -72,7 +74,10 @@ def measure_drift(
     pixels, line_rate = _frame_raster(limits, size, pixel, frame_time)
     centre = 0.5 * (lo + hi)
     velocities, moments, frames, particle_times = [], [], [], []
+    steps = StepProgress(progress, "drift", "frame pair", pairs, instrument)
     for k in range(pairs):
+        if k:  # pairs done so far (the wait for the next pair counts to the one before)
+            steps.step(k)
         start = float(instrument.time)
         centre = _find_particle_cluster(instrument, centre, search, size)
         lo = np.clip(centre - size / 2, 0.0, [limits.range_x - size[0], limits.range_y - size[1]])

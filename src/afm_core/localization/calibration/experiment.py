@@ -15,6 +15,9 @@ from afm_core import checks
 from afm_core.instrument import RasterScanData, ScanRequest, check_in_range
 
 MAX_LINE_RATE = 10.0  # Hz, rescans: slower than the slew limit allows keeps the tracking honest
+# Within an experiment a progress line at most this often (wall clock): readable in a log,
+# often enough that a run of hours never looks stuck.
+PROGRESS_INTERVAL = 10.0  # s
 
 
 @dataclass
@@ -102,3 +105,30 @@ def rescan(
         line_rate=rate,
     )
     return instrument.raster_scan(request)
+
+
+class StepProgress:
+    """Progress within one experiment (issue 37): "<experiment>: <what> k of n, about T s left
+    (S s of instrument time)", to `progress(text)` at most every PROGRESS_INTERVAL and at the
+    last step; the time left extrapolates the time per step so far. progress None: silent."""
+
+    def __init__(self, progress, experiment: str, what: str, total: int, instrument):
+        self.progress, self.experiment, self.what = progress, experiment, what
+        self.total, self.instrument = max(1, int(total)), instrument
+        self.wall0, self.clock0 = wallclock.perf_counter(), float(instrument.time)
+        self.last = -np.inf
+
+    def step(self, done: int) -> None:
+        if self.progress is None:
+            return
+        now = wallclock.perf_counter()
+        if done < self.total and now - self.last < PROGRESS_INTERVAL:
+            return
+        self.last = now
+        share = (self.total - done) / max(done, 1)
+        wall_left = (now - self.wall0) * share
+        clock_left = (float(self.instrument.time) - self.clock0) * share
+        self.progress(
+            f"{self.experiment}: {self.what} {done} of {self.total}, about {wall_left:.0f} s left "
+            f"({clock_left:.0f} s of instrument time)"
+        )

@@ -2,7 +2,7 @@
 feed-forward off, a full-range voltage cycle with a pit every few steps on the descending and
 the ascending sweep; with it back on, the rows are rescanned. Prandtl-Ishlinskii weights for
 fixed thresholds by non-negative least squares, the input asymmetry by a 1-D search; the
-measured creep is part of the model.
+measured creep is part of the model. Which detected pit is which punch: hysteresis_rows.py.
 """
 
 from __future__ import annotations
@@ -15,15 +15,14 @@ from scipy import optimize
 from afm_core import checks
 from afm_core.localization.calibration.experiment import (
     Experiment,
+    StepProgress,
     check_box,
     indent_force,
     range_centre,
-    rescan,
     wait,
 )
-from afm_core.localization.calibration.matching import match_monotone
+from afm_core.localization.calibration.hysteresis_rows import imaged_rows, rescan_disagreements
 from afm_core.localization.calibration.model import HysteresisFit
-from afm_core.localization.calibration.pits import DetectedPit, find_pits
 from afm_core.pzt import Creep, PlayOperatorBank, PrandtlIshlinskii
 
 MODEL_DT = 2e-3  # s, time step of the drive reconstruction in the hysteresis fit
@@ -138,6 +137,9 @@ def fit_hysteresis(
     weights, offset = result.x[:-1], result.x[-1]
     model = PrandtlIshlinskii(thresholds, weights, asymmetric_polynomial(alpha, half))
     fraction, gain = loop_measures(model, half)
+    sigmas = _loop_sigmas(
+        lambda a: solve(a)[1] @ result.x, alpha, weights, thresholds, half, design, result.fun
+    )
     return {
         "thresholds": thresholds.tolist(),
         "weights": weights.tolist(),
@@ -148,7 +150,39 @@ def fit_hysteresis(
         "offset": float(offset) * 1e-6,
         "predicted": (design @ result.x * 1e-6).tolist(),
         "rms_residual": float(np.sqrt(np.mean(result.fun**2))) * 1e-6,
+        "loop_fraction_sigma": sigmas[0],
+        "asymmetry_sigma": sigmas[1],
     }
+
+
+def _loop_sigmas(predict, alpha, weights, thresholds, half, design, residual) -> tuple:
+    """(loop fraction, asymmetry) standard errors of a fit_hysteresis solution, linearised:
+    the covariance s^2 (J^T J)^-1 of (weights, offset, alpha) from the design columns and the
+    numerical derivative of the prediction in alpha, s^2 the residual variance per degree of
+    freedom, propagated to the loop fraction by its numerical gradient. The residuals along a
+    cycle are not independent (each move's error persists), so this is a lower bound; a
+    slipped or mis-modelled fit shows as a large residual and so as a large sigma."""
+    h = 1e-4
+    j_alpha = (predict(alpha + h) - predict(alpha - h)) / (2 * h)
+    jacobian = np.hstack([design, j_alpha[:, None]])
+    dof = max(1, len(residual) - jacobian.shape[1])
+    covariance = float(np.sum(residual**2)) / dof * np.linalg.pinv(jacobian.T @ jacobian)
+
+    def fraction_of(w, a):
+        return loop_measures(
+            PrandtlIshlinskii(thresholds, w, asymmetric_polynomial(a, half)), half
+        )[0]
+
+    base = fraction_of(weights, alpha)
+    gradient = np.zeros(jacobian.shape[1])
+    for k in range(len(weights)):
+        step = max(1e-3 * abs(weights[k]), 1e-6)
+        shifted = weights.copy()
+        shifted[k] += step
+        gradient[k] = (fraction_of(shifted, alpha) - base) / step
+    gradient[-1] = (fraction_of(weights, alpha + h) - base) / h
+    fraction_sigma = float(np.sqrt(max(0.0, gradient @ covariance @ gradient)))
+    return fraction_sigma, float(np.sqrt(max(0.0, covariance[-1, -1])))
 
 
 FIT_PARAMETERS = (
@@ -160,6 +194,8 @@ FIT_PARAMETERS = (
     "gain",
     "offset",
     "rms_residual",
+    "loop_fraction_sigma",
+    "asymmetry_sigma",
 )  # the parts of fit_hysteresis's result that are the experiment's parameters
 
 
@@ -180,6 +216,7 @@ def measure_hysteresis(
     rescans=("up", "down"),
     force: float | None = None,
     ignore=None,
+    progress=None,
 ) -> Experiment:
     """PI hysteresis of one axis (0 = x, 1 = y) driven open loop (book 7.2.2, Fig. 7.6a).
 
@@ -225,14 +262,23 @@ def measure_hysteresis(
         speed=speed,
         settle=settle,
         force=force,
+        progress=StepProgress(
+            progress,
+            f"hysteresis_{'xy'[axis]}",
+            "pit",
+            2 * (steps_per_sweep // pit_every + 1),
+            instrument,
+        ),
     )
     box = _rescan_box(axis, centre, amplitude, half, (lane, lane + branch_gap))
     branches = np.array([p[0] for p in pits])
     drives = np.array([p[1] for p in pits])
     moments = np.array([p[2] for p in pits])
-    measured, all_detected = _imaged_rows(
-        instrument, axis, box, pixel, rescans, branches, drives, 0.3 * pit_every * step, ignore
+    measured, all_detected = imaged_rows(
+        instrument, axis, box, pixel, rescans, branches, drives, ignore
     )
+    disagreeing = rescan_disagreements(measured, branches)
+    measured[:, disagreeing] = np.nan
     found = np.all(np.isfinite(measured), axis=0)
     if found.sum() < 2 * operators:
         raise RuntimeError(
@@ -255,10 +301,26 @@ def measure_hysteresis(
         "predicted": fit["predicted"],
         "pits_punched": len(pits),
         "pits_found": int(found.sum()),
+        "pits_rescans_disagree": int(disagreeing.sum()),
+        # the four pits at the loop's tips (each branch's highest and lowest drive), where the
+        # asymmetry shows most; outside the rescan box when the loop is strongly asymmetric
+        "tip_pits_found": int(sum(found[_tip_pits(branches, drives)])),
         "all_detected": all_detected[0],
         **_drive_record(timeline, axis, centre[axis], half),
     }
     return Experiment(parameters, data)
+
+
+def _tip_pits(branches: np.ndarray, drives: np.ndarray) -> list[int]:
+    """Indices of each branch's pits at the highest and the lowest drive."""
+    tips = []
+    for branch in ("descending", "ascending"):
+        members = np.flatnonzero(branches == branch)
+        tips += [
+            int(members[np.argmax(drives[members])]),
+            int(members[np.argmin(drives[members])]),
+        ]
+    return tips
 
 
 def _checked_options(
@@ -329,6 +391,7 @@ def _drive_cycle(
     speed: float,
     settle: float,
     force: float,
+    progress: StepProgress,
 ) -> tuple[_Timeline, list[tuple]]:
     """The open-loop cycle about start = (range centre of the cycled axis, lane): feed-forward
     off, rise to +amplitude, then the descending sweep and (`branch_gap` beside it) the
@@ -364,61 +427,10 @@ def _drive_cycle(
                     timeline.move(*_on_axis(axis, drive, b), speed)
                 if k % pit_every == 0:
                     pits.append((branch, drive, timeline.punch(force)))
+                    progress.step(len(pits))
     finally:
         _set_feed_forward(instrument, True)
     return timeline, pits
-
-
-def _imaged_rows(
-    instrument, axis: int, box, pixel, rescans, branches, drives, end_tolerance: float, ignore
-) -> tuple[np.ndarray, list]:
-    """The pits' positions along the cycled axis in each rescan of `box` (rows: rescans,
-    columns: pits, NaN where not found) and each rescan's detections (less the `ignore`d);
-    `end_tolerance` (m) as in `match_monotone`, for where the loop's tips land."""
-    other = 1 - axis
-    measured = np.full((len(rescans), len(branches)), np.nan)
-    all_detected = []
-    for row, direction in enumerate(rescans):
-        scan = rescan(
-            instrument, box[0], box[1], pixel, slow_axis=axis, slow_up=(direction == "up")
-        )
-        detected = find_pits(scan)
-        if len(detected) < 8:
-            raise RuntimeError(
-                f"hysteresis ({'xy'[axis]}): only {len(detected)} pits found in the {direction} "
-                "rescan"
-            )
-        if ignore is not None and len(ignore):
-            # another image put them there: up to ~1 um off along this rescan's slow axis (the
-            # compensation residual of a full-range pass), well within 0.3 um across it
-            known = np.asarray(ignore, float).reshape(-1, 2)
-            detected = _without_known(detected, known, axis)
-        all_detected.append([[p.x, p.y] for p in detected])
-        along = np.array([[p.x, p.y][axis] for p in detected])
-        across = np.array([[p.x, p.y][other] for p in detected])
-        keep, offset = _split_rows(along, across)
-        for branch, sign in (("descending", -1.0), ("ascending", 1.0)):
-            in_row = np.flatnonzero(keep & (np.sign(offset) == sign))
-            wanted = np.flatnonzero(branches == branch)
-            index = match_monotone(drives[wanted], along[in_row], end_tolerance=end_tolerance)
-            for i, j in zip(wanted, index):
-                if j >= 0:
-                    measured[row, i] = along[in_row[j]]
-    return measured, all_detected
-
-
-def _split_rows(along: np.ndarray, across: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The two rows of pits (descending, ascending) are about parallel (the coupling tilts both
-    alike) but wander by the moves' random error (~0.1 um over a cycle); their middle line,
-    fitted robustly, splits them (offset < 0: the descending row), and pits far off both rows
-    (another experiment's) are left out (keep False)."""
-    keep = np.ones(len(along), dtype=bool)
-    for _ in range(5):
-        line = np.polyfit(along[keep], across[keep], 1)
-        offset = across - np.polyval(line, along)
-        typical = np.median(np.abs(offset[keep]))
-        keep = (np.abs(offset) < 2.0 * typical) & (np.abs(offset) > 0.25 * typical)
-    return keep, offset
 
 
 def _drive_record(timeline: _Timeline, axis: int, centre: float, half: float) -> dict:
@@ -433,29 +445,6 @@ def _drive_record(timeline: _Timeline, axis: int, centre: float, half: float) ->
         "centre": float(centre),
         "half_range": half,
     }
-
-
-def _without_known(
-    detected: list[DetectedPit], known: np.ndarray, slow_axis: int
-) -> list[DetectedPit]:
-    """`detected` less the pits that are `known` from another image. That image placed them up
-    to ~1 um differently along this one's slow axis (the compensation residual of a
-    full-range pass differs between the two), the same to ~0.3 um across it: the shift is
-    the median over the candidate pairs, and each known pit removes at most the one detection
-    nearest to where the shift puts it (a pit of this experiment close by stays)."""
-    if not detected or not len(known):
-        return detected
-    fast = 1 - slow_axis
-    points = np.array([[p.x, p.y] for p in detected])
-    delta = points[None, :, :] - known[:, None, :]
-    candidate = (np.abs(delta[..., slow_axis]) < 1.0e-6) & (np.abs(delta[..., fast]) < 0.3e-6)
-    if not candidate.any():
-        return detected
-    shift = np.zeros(2)
-    shift[slow_axis] = np.median(delta[..., slow_axis][candidate])
-    distance = np.linalg.norm(points[None, :, :] - (known + shift)[:, None, :], axis=2)
-    drop = {int(np.argmin(row)) for row in distance if row.min() < 0.3e-6}
-    return [p for j, p in enumerate(detected) if j not in drop]
 
 
 def refit_hysteresis(

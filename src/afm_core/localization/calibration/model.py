@@ -68,6 +68,9 @@ class Calibration:
     # the fields above that hold the book's defaults, not a measurement (an experiment that
     # could not measure leaves its fields at the defaults; run_calibration lists them here)
     defaults: list[str] = field(default_factory=list)
+    # the fields above that were measured: {field: "experiment, UTC time"} (run_calibration;
+    # a merge keeps each field's own entry, so a file says which run measured what)
+    measured: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self):
         self.validate()
@@ -105,6 +108,16 @@ class Calibration:
                 "need values >= 0 (m/s)"
             )
         self.motion_noise()  # checks the noise fields
+        names = {f.name for f in dataclasses.fields(self)} - {"source", "defaults", "measured"}
+        for label, listed in (("defaults", self.defaults), ("measured", self.measured)):
+            unknown = sorted(set(listed) - names)
+            if unknown:
+                raise ValueError(
+                    f"calibration {label}: unknown field(s) {unknown}; known: {sorted(names)}"
+                )
+        both = sorted(set(self.defaults) & set(self.measured))
+        if both:
+            raise ValueError(f"calibration: {both} listed both under defaults and measured")
 
     def motion_noise(self) -> MotionNoise:
         """The noise a free move adds."""

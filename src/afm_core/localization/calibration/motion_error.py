@@ -11,6 +11,7 @@ import numpy as np
 from afm_core import checks
 from afm_core.localization.calibration.experiment import (
     Experiment,
+    StepProgress,
     check_box,
     indent_force,
     punch_at,
@@ -25,15 +26,25 @@ def fit_variance_line(distances, variances, counts) -> tuple[float, float]:
     """sigma^2 = a d + b by weighted least squares: a sample variance from n values has a
     standard deviation of about sigma^2 sqrt(2 / (n - 1)), so the weights are (n - 1) / 2 / v^2,
     iterated with the fitted line in place of the noisy v."""
+    a, b, _ = variance_line(distances, variances, counts)
+    return a, b
+
+
+def variance_line(distances, variances, counts) -> tuple[float, float, float]:
+    """`fit_variance_line` and the standard error of its slope a: with the weights the
+    inverse standard deviations of the sample variances (from the fitted line, so not from
+    the data's own scatter), the covariance is (X^T W X)^-1."""
     d, v, n = (np.asarray(a, float) for a in (distances, variances, counts))
     expected = np.maximum(v, 1e-30)
     for _ in range(5):
         w = np.sqrt((n - 1) / 2) / expected
-        (a, b), *_ = np.linalg.lstsq(
-            np.stack([d, np.ones_like(d)], axis=1) * w[:, None], v * w, rcond=None
-        )
+        design = np.stack([d, np.ones_like(d)], axis=1) * w[:, None]
+        (a, b), *_ = np.linalg.lstsq(design, v * w, rcond=None)
         expected = np.maximum(a * d + b, 0.1 * np.maximum(v, 1e-30))
-    return float(a), float(b)
+    w = np.sqrt((n - 1) / 2) / expected
+    design = np.stack([d, np.ones_like(d)], axis=1) * w[:, None]
+    covariance = np.linalg.pinv(design.T @ design)
+    return float(a), float(b), float(np.sqrt(max(0.0, covariance[0, 0])))
 
 
 def measure_motion_noise(
@@ -47,6 +58,7 @@ def measure_motion_noise(
     settle: float = 300.0,
     pixel: float = 15e-9,
     force: float | None = None,
+    progress=None,
 ) -> Experiment:
     """Motion error variance against distance (book Fig. 7.6e; Fig. 7.20b sigma^2 = a d + b).
 
@@ -70,7 +82,10 @@ def measure_motion_noise(
     origin = range_centre(instrument) + np.asarray(site, float)
     lanes = _lanes(instrument, origin, distances, (trials - 1) * row_spacing)
     data, samples = {"x": [], "y": []}, []
-    for axis, d, start in lanes:
+    steps = StepProgress(
+        progress, "motion_noise", f"lane of {trials} trials", len(lanes), instrument
+    )
+    for number, (axis, d, start) in enumerate(lanes, start=1):
         instrument.move_tip(float(start[0]), float(start[1]), 0.5 * limits.max_speed)
         wait(instrument, settle)
         detected = _punched_lane(
@@ -92,6 +107,7 @@ def measure_motion_noise(
         var_along = float(np.sum(residual[0] ** 2) / (n - 2))
         var_across = float(np.sum(residual[1] ** 2) / (n - 2))
         samples.append((axis, d, n - 1, var_along, var_across))
+        steps.step(number)
         data["xy"[axis]].append(
             {
                 "distance": d,
@@ -104,18 +120,25 @@ def measure_motion_noise(
     return Experiment(_fitted_slopes(samples), data)
 
 
+# Between neighbouring lanes: a lane's rescan reaches 0.4 um + 0.15 d past its pits, and
+# shows another lane's pits up to ~1.5 um from where that lane's own rescan put them (the
+# compensation residual of a slow pass against a fast stroke; issue 37: 0.75 um after a
+# full-range excursion, which with 1 um between lanes put an x-lane pair into a y-lane image).
+LANE_GAP = 3e-6  # m
+
+
 def _lanes(instrument, origin, distances, extent: float) -> list[tuple]:
     """(axis, distance, start) of every lane, checked against the scanner range. Lanes side by
-    side, 1 um apart: the x lanes (rows stacked along y, `extent` tall) in a band along x, the
-    y lanes (columns stacked along x) in a band along y above them."""
+    side, LANE_GAP apart: the x lanes (rows stacked along y, `extent` tall) in a band along x,
+    the y lanes (columns stacked along x) in a band along y above them."""
     lanes, cursor = [], 0.0
     for d in distances:
         lanes.append((0, d, origin + np.array([cursor, 0.0])))
-        cursor += 1.3 * d + 1e-6
-    cursor = extent + 1e-6
+        cursor += 1.3 * d + LANE_GAP
+    cursor = extent + LANE_GAP
     for d in distances:
         lanes.append((1, d, origin + np.array([0.0, cursor])))
-        cursor += 1.3 * d + 1e-6
+        cursor += 1.3 * d + LANE_GAP
     for axis, d, start in lanes:
         end = start.copy()
         end[axis] += d
@@ -180,24 +203,27 @@ def _trial_separations(
 
 def _fitted_slopes(samples: list[tuple]) -> dict:
     """sigma^2 = a d + b per axis (along), across (the cross slope) and pooled, from the
-    samples (axis, d, trials - 1, variance along, variance across)."""
+    samples (axis, d, trials - 1, variance along, variance across), each slope with its
+    standard error (`<name>_sigma`)."""
     parameters = {}
     for axis in (0, 1):
         rows = [s for s in samples if s[0] == axis]
-        a, b = fit_variance_line(
-            [r[1] for r in rows], [r[3] for r in rows], [r[2] + 1 for r in rows]
+        name = f"slope_{'xy'[axis]}"
+        parameters[name], parameters[f"offset_{'xy'[axis]}"], parameters[f"{name}_sigma"] = (
+            variance_line([r[1] for r in rows], [r[3] for r in rows], [r[2] + 1 for r in rows])
         )
-        parameters[f"slope_{'xy'[axis]}"], parameters[f"offset_{'xy'[axis]}"] = a, b
-    cross_a, cross_b = fit_variance_line(
-        [r[1] for r in samples], [r[4] for r in samples], [r[2] + 1 for r in samples]
+    parameters["cross_slope"], parameters["cross_offset"], parameters["cross_slope_sigma"] = (
+        variance_line(
+            [r[1] for r in samples], [r[4] for r in samples], [r[2] + 1 for r in samples]
+        )
     )
-    parameters["cross_slope"], parameters["cross_offset"] = cross_a, cross_b
     # one slope from every component (along and across, both axes): the best estimate when
     # the noise is isotropic, as the simulator's is; compare the per-axis ones with it
-    pooled_a, pooled_b = fit_variance_line(
-        [r[1] for r in samples] * 2,
-        [r[3] for r in samples] + [r[4] for r in samples],
-        [r[2] + 1 for r in samples] * 2,
+    parameters["pooled_slope"], parameters["pooled_offset"], parameters["pooled_slope_sigma"] = (
+        variance_line(
+            [r[1] for r in samples] * 2,
+            [r[3] for r in samples] + [r[4] for r in samples],
+            [r[2] + 1 for r in samples] * 2,
+        )
     )
-    parameters["pooled_slope"], parameters["pooled_offset"] = pooled_a, pooled_b
     return parameters

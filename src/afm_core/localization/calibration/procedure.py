@@ -40,6 +40,7 @@ import numpy as np
 
 from afm_core.localization.calibration.creep import measure_creep
 from afm_core.localization.calibration.drift_statistics import measure_drift
+from afm_core.localization.calibration.fit_checks import calibration_checks
 from afm_core.localization.calibration.hysteresis import hysteresis_fit_of, measure_hysteresis
 from afm_core.localization.calibration.line_deflection import measure_line_deflection
 from afm_core.localization.calibration.map_errors import map_errors
@@ -65,15 +66,70 @@ EXPERIMENTS = (
 )
 
 
+# Which experiment measures which Calibration field (for `measured`, `--only` and merging).
+FIELDS = {
+    "drift": ("drift_mean_velocity", "drift_sigma_velocity"),
+    "map_errors": ("map_sigma", "scan_region_sigma"),
+    "creep": ("creep_time_constants", "creep_fractions_x", "creep_fractions_y"),
+    "hysteresis_x": ("hysteresis_x",),
+    "hysteresis_y": ("hysteresis_y",),
+    "scanner_matrix": ("scanner_matrix",),
+    "motion_noise": (
+        "motion_noise_slope_x",
+        "motion_noise_slope_y",
+        "motion_noise_cross_slope",
+        "motion_noise_offset",
+    ),
+    "line_deflection": ("line_deflection_mean_deg", "line_deflection_sigma_deg"),
+}
+
+
+def checked_experiments(only) -> tuple[str, ...]:
+    """The experiments of `only` (names of EXPERIMENTS) in run order; ValueError naming the
+    bad choice and the valid ones. map_errors comes from the drift frames, so it needs drift."""
+    if only is None:
+        return EXPERIMENTS
+    chosen = [str(name) for name in only]
+    unknown = sorted(set(chosen) - set(EXPERIMENTS))
+    if unknown or not chosen:
+        raise ValueError(
+            f"only={chosen}: unknown experiment(s) {unknown}; choose from {', '.join(EXPERIMENTS)}"
+        )
+    if "map_errors" in chosen and "drift" not in chosen:
+        raise ValueError("only: map_errors is measured on the drift frames; add drift")
+    return tuple(name for name in EXPERIMENTS if name in chosen)
+
+
+def merge_calibration(previous: Calibration, new: Calibration, experiments) -> Calibration:
+    """`previous` with the fields the `experiments` of a rerun measured taken from `new`
+    (a field the rerun could not measure keeps the previous value and mark); `measured` and
+    `defaults` follow each field."""
+    values = {f.name: getattr(previous, f.name) for f in dataclasses.fields(Calibration)}
+    measured, defaults = dict(previous.measured), set(previous.defaults)
+    for experiment in experiments:
+        for name in FIELDS.get(experiment, ()):
+            if name in new.measured:
+                values[name] = getattr(new, name)
+                measured[name] = new.measured[name]
+                defaults.discard(name)
+    values.update(
+        source=f"{previous.source}; merged with {new.source} ({', '.join(experiments)})",
+        measured=measured,
+        defaults=sorted(defaults),
+    )
+    return Calibration(**values)
+
+
 def _attempt(report: dict, name: str, measure, progress=None, instrument=None):
     """Run one experiment; a failure is recorded with its reason and the run goes on.
     `progress(text)`, if given, hears when it starts and how it ended (wall and instrument
     seconds: on the real instrument the experiments take hours)."""
-    number = EXPERIMENTS.index(name) + 1
+    chosen = report.get("_chosen", EXPERIMENTS)
+    number, total = chosen.index(name) + 1, len(chosen)
     wall0 = wallclock.perf_counter()
     clock0 = float(instrument.time) if instrument is not None else 0.0
     if progress is not None:
-        progress(f"experiment {number} of {len(EXPERIMENTS)}: {name} ...")
+        progress(f"experiment {number} of {total}: {name} ...")
     try:
         report[name] = measure()
         outcome = "done"
@@ -84,7 +140,7 @@ def _attempt(report: dict, name: str, measure, progress=None, instrument=None):
     if progress is not None:
         spent = float(instrument.time) - clock0 if instrument is not None else 0.0
         progress(
-            f"experiment {number} of {len(EXPERIMENTS)}: {name} {outcome} in "
+            f"experiment {number} of {total}: {name} {outcome} in "
             f"{wallclock.perf_counter() - wall0:.0f} s ({spent:.0f} s of instrument time)"
         )
     return report[name]
@@ -137,62 +193,77 @@ def run_calibration(
     drift: dict | None = None,
     source: str | None = None,
     progress=None,
+    only=None,
+    previous: Calibration | None = None,
 ) -> tuple[Calibration, dict]:
     """All experiments, in an order where each can use what the previous measured (creep
     before hysteresis: the hysteresis fit includes it; drift, map and scan-region errors
     first, before there are pits). Each keyword is that experiment's options
     (see its function). Returns the Calibration and a report {experiment: {"parameters",
-    "data"}} (the drift frames are left out of the report; `map_errors` has used them).
+    "data"}} (the drift frames are left out of the report; `map_errors` has used them) with
+    the fit checks under "checks" (fit_checks.calibration_checks).
 
     An experiment that cannot measure (EXPERIMENT_FAILURES) does not stop the others: its
     report entry is {"failed": reason}, its Calibration fields keep the book's defaults and
     are listed in `Calibration.defaults`, so the file still carries every result measured
     (a hysteresis fit then goes without the creep term, the y sweep without the x sweep's pit
-    list). `progress(text)`, if given, hears each experiment's start and end."""
-    report: dict = {}
+    list). `progress(text)`, if given, hears each experiment's start and end.
+
+    only: run just these experiments (names of EXPERIMENTS; `checked_experiments`), e.g. to
+    repeat one a check flagged; `previous` (a Calibration) then supplies what they use from
+    the others (the creep model of the hysteresis fit); merge the result into it with
+    `merge_calibration`."""
+    chosen = checked_experiments(only)
+    report: dict = {"_chosen": chosen}
 
     def attempt(name, measure):
-        return _attempt(report, name, measure, progress, instrument)
+        return _attempt(report, name, measure, progress, instrument) if name in chosen else None
 
     started = wallclock.perf_counter()
     clock0 = float(instrument.time)
     # Drift first: it needs no pits, and on the simulator every image gets slower with every
     # pit on the sample (hundreds by the end), which matters for ~100 hours of frame pairs.
-    drift_result = attempt("drift", lambda: measure_drift(instrument, **(drift or {})))
+    drift_result = attempt(
+        "drift", lambda: measure_drift(instrument, progress=progress, **(drift or {}))
+    )
     if drift_result is not None:
         frames = drift_result.data.pop("frames")
         attempt("map_errors", lambda: map_errors(frames))
         del frames
-    else:
+    elif "map_errors" in chosen:
         report["map_errors"] = None
         report["_failed"]["map_errors"] = "no drift frames (the drift experiment failed)"
-    result = attempt("creep", lambda: measure_creep(instrument, **(creep or {})))
-    creep_axes = [None, None]
-    if result is not None:
-        taus = result.parameters["time_constants"]
-        creep_axes = [
-            (taus, result.parameters["fractions_x"]),
-            (taus, result.parameters["fractions_y"]),
-        ]
+    result = attempt(
+        "creep", lambda: measure_creep(instrument, progress=progress, **(creep or {}))
+    )
+    creep_axes = _creep_axes(result, previous)
     options = dict(hysteresis or {})
     first = attempt(
         "hysteresis_x",
-        lambda: measure_hysteresis(instrument, 0, creep=creep_axes[0], **options),
+        lambda: measure_hysteresis(
+            instrument, 0, creep=creep_axes[0], progress=progress, **options
+        ),
     )
     ignore = first.data["all_detected"] if first is not None else None
     attempt(
         "hysteresis_y",
-        lambda: measure_hysteresis(instrument, 1, creep=creep_axes[1], ignore=ignore, **options),
+        lambda: measure_hysteresis(
+            instrument, 1, creep=creep_axes[1], ignore=ignore, progress=progress, **options
+        ),
     )
     attempt(
         "scanner_matrix",
         lambda: measure_scanner_matrix(instrument, **(scanner_matrix or {})),
     )
-    attempt("motion_noise", lambda: measure_motion_noise(instrument, **(motion_noise or {})))
+    attempt(
+        "motion_noise",
+        lambda: measure_motion_noise(instrument, progress=progress, **(motion_noise or {})),
+    )
     attempt(
         "line_deflection",
         lambda: measure_line_deflection(instrument, **(line_deflection or {})),
     )
+    report.pop("_chosen")
     failed = report.pop("_failed", {})
     fields = _calibration_fields(report)
     stamp = datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -200,10 +271,16 @@ def run_calibration(
         source=source or f"afm_core.localization.calibration.procedure.run_calibration, {stamp}",
         **fields,
     )
+    calibration.measured = {
+        name: f"{experiment}, {stamp}"
+        for experiment, names in FIELDS.items()
+        for name in names
+        if name in fields
+    }
     calibration.defaults = sorted(
         f.name
         for f in dataclasses.fields(Calibration)
-        if f.name not in fields and f.name not in ("source", "defaults")
+        if f.name not in fields and f.name not in ("source", "defaults", "measured")
     )
     summary = {
         name: {"failed": failed[name]}
@@ -211,9 +288,22 @@ def run_calibration(
         else {"parameters": value.parameters, "data": value.data}
         for name, value in report.items()
     }
+    summary["checks"] = calibration_checks(summary)
     summary["instrument_seconds"] = float(instrument.time) - clock0
     summary["wall_seconds"] = wallclock.perf_counter() - started
     return calibration, summary
+
+
+def _creep_axes(result, previous: Calibration | None) -> list:
+    """The creep model (time constants, fractions) per axis for the hysteresis fit: this run's
+    creep experiment, else a previous calibration's measured creep, else none."""
+    if result is not None:
+        taus = result.parameters["time_constants"]
+        return [(taus, result.parameters["fractions_x"]), (taus, result.parameters["fractions_y"])]
+    if previous is not None and previous.creep_time_constants:
+        taus = previous.creep_time_constants
+        return [(taus, previous.creep_fractions_x), (taus, previous.creep_fractions_y)]
+    return [None, None]
 
 
 def report_json(summary: dict) -> str:
@@ -229,3 +319,56 @@ def report_json(summary: dict) -> str:
         return str(value)
 
     return json.dumps(summary, indent=2, default=plain)
+
+
+# The fitted numbers a person reads first, per experiment (the rest is in the JSON report).
+HEADLINE = {
+    "drift": ("mean_velocity", "sigma_velocity", "pairs"),
+    "map_errors": ("map_sigma", "scan_region_sigma"),
+    "creep": ("time_constants", "fractions_x", "fractions_y", "step_response_25s", "rms_residual"),
+    "hysteresis_x": ("loop_fraction", "loop_fraction_sigma", "asymmetry", "gain", "rms_residual"),
+    "hysteresis_y": ("loop_fraction", "loop_fraction_sigma", "asymmetry", "gain", "rms_residual"),
+    "scanner_matrix": ("scanner_matrix", "rms_residual"),
+    "motion_noise": ("pooled_slope", "pooled_slope_sigma", "slope_x", "slope_y", "cross_slope"),
+    "line_deflection": ("mean_deg", "sigma_deg"),
+}
+
+
+def report_markdown(summary: dict) -> str:
+    """The report of `run_calibration` for a person: per experiment measured or failed (why),
+    its headline parameters (SI), then every check with its level, warnings first."""
+
+    def shown(value):
+        if isinstance(value, (list, tuple)):
+            return "[" + ", ".join(shown(v) for v in value) + "]"
+        return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+    lines = [
+        "# Calibration report",
+        "",
+        "| experiment | outcome | parameters (SI) |",
+        "|---|---|---|",
+    ]
+    for name in EXPERIMENTS:
+        entry = summary.get(name)
+        if not isinstance(entry, dict):
+            continue
+        if "failed" in entry:
+            lines.append(f"| {name} | failed | {entry['failed'].replace('|', '/')} |")
+            continue
+        parameters = entry["parameters"]
+        text = "; ".join(
+            f"{key} {shown(parameters[key])}" for key in HEADLINE[name] if key in parameters
+        )
+        lines.append(f"| {name} | measured | {text} |")
+    checks = sorted(
+        summary.get("checks", []), key=lambda c: ("error", "warning", "ok").index(c["level"])
+    )
+    lines += ["", "## Checks", ""]
+    lines += [f"- **{c['level']}** {c['experiment']}: {c['message']}" for c in checks]
+    lines += [
+        "",
+        f"Instrument time {summary.get('instrument_seconds', 0.0) / 3600:.2f} h, wall "
+        f"{summary.get('wall_seconds', 0.0):.0f} s. Raw data: the JSON report.",
+    ]
+    return "\n".join(lines) + "\n"

@@ -80,9 +80,15 @@ def measure_scanner_matrix(
     solution, *_ = np.linalg.lstsq(design, found[index[ok]] - origin, rcond=None)
     matrix = solution[:2].T
     residual = found[index[ok]] - origin - design @ solution
+    # standard errors of the matrix entries: per output axis s^2 (X^T X)^-1, s^2 the residual
+    # variance of that axis per degree of freedom (three parameters per axis)
+    dof = max(1, int(ok.sum()) - 3)
+    unscaled = np.diag(np.linalg.pinv(design.T @ design))[:2]
+    sigma = np.sqrt(np.outer(np.sum(residual**2, axis=0) / dof, unscaled))
     return Experiment(
         {
             "scanner_matrix": matrix.tolist(),
+            "scanner_matrix_sigma": sigma.tolist(),
             "rms_residual": float(np.sqrt(np.mean(residual**2))),
             # the longest commanded displacement the fit covers (MotionModel: M's reach)
             "span": float(np.max(np.ptp(commands[ok], axis=0))),

@@ -115,10 +115,12 @@ def _hysteresis_rows(calibration: Calibration, report: dict, scanner) -> list[di
                 "alpha of from_fraction",
             )
         )
+        # a default fit (the experiment failed) has no operators to compare
+        misfit = branch_error(fit, true_model, span / 2) if fit.thresholds else math.nan
         rows.append(
             _measure_row(
                 f"hysteresis_{axis}.branch_error",
-                branch_error(fit, true_model, span / 2),
+                misfit,
                 "max branch misfit / true loop width (relative_error = the value)",
             )
         )
