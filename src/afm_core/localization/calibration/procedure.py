@@ -73,7 +73,7 @@ FIELDS = {
     "creep": ("creep_time_constants", "creep_fractions_x", "creep_fractions_y"),
     "hysteresis_x": ("hysteresis_x",),
     "hysteresis_y": ("hysteresis_y",),
-    "scanner_matrix": ("scanner_matrix",),
+    "scanner_matrix": ("scanner_matrix", "scanner_matrix_span"),
     "motion_noise": (
         "motion_noise_slope_x",
         "motion_noise_slope_y",
@@ -328,7 +328,7 @@ HEADLINE = {
     "creep": ("time_constants", "fractions_x", "fractions_y", "step_response_25s", "rms_residual"),
     "hysteresis_x": ("loop_fraction", "loop_fraction_sigma", "asymmetry", "gain", "rms_residual"),
     "hysteresis_y": ("loop_fraction", "loop_fraction_sigma", "asymmetry", "gain", "rms_residual"),
-    "scanner_matrix": ("scanner_matrix", "rms_residual"),
+    "scanner_matrix": ("scanner_matrix", "span", "rms_residual"),
     "motion_noise": ("pooled_slope", "pooled_slope_sigma", "slope_x", "slope_y", "cross_slope"),
     "line_deflection": ("mean_deg", "sigma_deg"),
 }
