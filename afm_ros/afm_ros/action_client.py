@@ -66,7 +66,7 @@ class Heartbeat:
         self._next_probe = now + self.period_s
         future = self.client._cancel_goal_async(_nobodys_goal(self.client))
         future.add_done_callback(self._answered)
-        self._pending = [f for f in self._pending if not f.done()] + [future]
+        self._pending = [(f, t) for f, t in self._pending if not f.done()] + [(future, now)]
 
     def _answered(self, _future) -> None:
         self.last_answer = time.monotonic()
@@ -79,8 +79,12 @@ class Heartbeat:
         return self.silent_for() > self.silence_s
 
     def forget(self) -> None:
-        """Drop the probes still waiting for an answer that will never come."""
-        self.client._forget_requests(self._pending)
+        """Drop the probes still waiting for an answer that will never come: those unanswered
+        for silence_s. A live server answers the recent ones within milliseconds; dropping them
+        too made rclpy warn "Ignoring unexpected cancel response" after every goal."""
+        now = time.monotonic()
+        overdue = [f for f, t in self._pending if not f.done() and now - t > self.silence_s]
+        self.client._forget_requests(overdue)
         self._pending = []
 
 
