@@ -6,6 +6,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import rclpy
 from rclpy.executors import (
@@ -25,7 +26,7 @@ def run(
     args=None,
     *,
     config_errors=(ValueError,),
-    threads: int = 1,
+    threads: int | Callable[[object], int] = 1,
     on_shutdown=None,
     drain_seconds: float = 0.0,
 ) -> int:
@@ -50,6 +51,8 @@ def run(
         print(f"{program}: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
+    if callable(threads):  # a count that depends on the node's parameters
+        threads = threads(node)
     executor = (
         MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
     )
