@@ -120,7 +120,7 @@ def cmd_info(args):
                 qos_text = f"{qos.reliability}, {qos.durability}" if qos else "no QoS recorded"
                 print(f"  {topic:<{width}}  {info.message_count:>7}  {info.type}  [{qos_text}]")
     except RecordingError as exc:
-        sys.exit(f"afm info: {exc}")
+        return refuse("info", exc)
     return 0
 
 
@@ -226,7 +226,9 @@ def cmd_calibrate(args):
             source=f"afm calibrate --backend {args.backend}",
             progress=lambda text: print(f"afm calibrate: {text}", flush=True),
         )
-    except (ValueError, RuntimeError) as exc:
+    except ValueError as exc:  # a configuration or calibration file, a parameter
+        return refuse("calibrate", exc)
+    except RuntimeError as exc:
         sys.exit(f"afm calibrate: {exc}")
     save_calibration(calibration, output)
     if args.report:
@@ -275,7 +277,9 @@ def cmd_sim2real(args):
             progress=progress,
             effects=[e for e in args.effects.split(",") if e.strip()],
         )
-    except (ValueError, OSError, RuntimeError) as exc:
+    except (ValueError, OSError) as exc:  # the recording, the model or the folder
+        return refuse("sim2real", exc)
+    except RuntimeError as exc:
         sys.exit(f"afm sim2real: {exc}")
     print(f"verdict: {diagnosis.verdict}")
     print(diagnosis.summary())
@@ -565,9 +569,62 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# the subcommands that read files a user names; a damaged or wrong file is refused with one line
+# and exit status 2 (argparse's status for bad input), never a traceback
+FILE_COMMANDS = ("info", "recover", "image", "calibrate", "sim2real")
+INPUT_STATUS = 2
+
+
+def input_errors() -> tuple[type[BaseException], ...]:
+    """What the file readers (numpy, zipfile, gwyfile, yaml, mcap) may raise on damaged input
+    that the core's own checks have not turned into ValueError or RecordingError."""
+    import struct
+    import tokenize
+    import zipfile
+    import zlib
+
+    import yaml
+    from mcap.exceptions import McapError
+
+    from afm_core.recording import RecordingError
+
+    return (
+        ValueError,
+        OSError,
+        EOFError,
+        KeyError,
+        IndexError,
+        TypeError,
+        MemoryError,
+        OverflowError,
+        struct.error,
+        zlib.error,
+        zipfile.BadZipFile,
+        tokenize.TokenError,
+        yaml.YAMLError,  # a recording's QoS metadata
+        McapError,
+        RecordingError,
+    )
+
+
+def one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text if text else type(exc).__name__
+
+
+def refuse(command: str, exc: BaseException) -> int:
+    print(f"afm {command}: {one_line(exc)}", file=sys.stderr)
+    return INPUT_STATUS
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    return args.func(args) or 0
+    try:
+        return args.func(args) or 0
+    except Exception as exc:
+        if args.command in FILE_COMMANDS and isinstance(exc, input_errors()):
+            return refuse(args.command, exc)
+        raise
 
 
 if __name__ == "__main__":
