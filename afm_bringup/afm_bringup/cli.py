@@ -41,7 +41,7 @@ def cmd_launch(args):
     unknown = [n for n in nodes if n not in NODES]
     if unknown:
         sys.exit(f"afm launch: --nodes {unknown}: expected names from {sorted(NODES)}")
-    graph = Graph(args.log_dir)
+    graph = Graph(args.log_dir, dict(os.environ))  # main() set the DDS environment
     overrides: dict[str, dict[str, str]] = {}
     for key, value in args.param or []:
         node, _, name = key.partition(".")
@@ -334,6 +334,7 @@ def _add_launch(sub) -> None:
         "stops them all, the recorder last.",
     )
     p.add_argument("--nodes", help=f"comma-separated subset (default: {','.join(GRAPH)})")
+    _add_exposure(p)
     p.add_argument(
         "--record", metavar="FILE.mcap", help="also record the default topics to this new file"
     )
@@ -349,6 +350,24 @@ def _add_launch(sub) -> None:
         help="override a node parameter, e.g. -p driver.seed:=3",
     )
     p.set_defaults(func=cmd_launch)
+
+
+def _add_exposure(p) -> None:
+    p.add_argument(
+        "--domain-id",
+        type=int,
+        default=None,
+        metavar="N",
+        help="ROS domain id for the graph (0-101; default: $ROS_DOMAIN_ID, else 0); the "
+        "shells that talk to it need the same (export ROS_DOMAIN_ID=N)",
+    )
+    p.add_argument(
+        "--network",
+        choices=["localhost", "lab"],
+        default="localhost",
+        help="localhost (default): DDS on this machine only (loopback and shared memory); "
+        "lab: discoverable on the subnet, for a lab network (pick a --domain-id)",
+    )
 
 
 def _add_record(sub) -> None:
@@ -617,8 +636,24 @@ def refuse(command: str, exc: BaseException) -> int:
     return INPUT_STATUS
 
 
+# the subcommands that start ROS participants, here or in the processes they exec
+ROS_COMMANDS = ("run", "launch", "record", "replay", "scan", "push", "demo")
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command in ROS_COMMANDS:
+        from afm_bringup import exposure
+
+        try:
+            exposure.apply(
+                os.environ,
+                domain_id=getattr(args, "domain_id", None),
+                network=getattr(args, "network", "localhost"),
+            )
+        except ValueError as exc:
+            print(f"afm {args.command}: {exc}", file=sys.stderr)
+            return INPUT_STATUS
     try:
         return args.func(args) or 0
     except Exception as exc:
