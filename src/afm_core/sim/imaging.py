@@ -11,8 +11,11 @@ from scipy import ndimage
 
 from afm_core.physics.tip_morphology import dilate
 
-TILE = 256  # field pixels per tile side: a raster chunk's band is a row (or column) of tiles
-CACHE_BYTES = 64 * 2**20  # tiles kept: two bands of the widest field (4096 pixels + margin)
+# most grid lines per band across the slow axis: a band is dilated with a halo of the tip's
+# half width on its two long sides, so the work grows by (1 + 2 half / band); 512 keeps that
+# under 1.25 for tips up to 121 pixels wide, and a 4096-pixel scan's first band takes ~1 s
+BAND = 512
+CACHE_BYTES = 64 * 2**20  # bands kept: 3 of the widest field (4096 pixels + margin)
 
 
 class DilatedField:
@@ -20,12 +23,13 @@ class DilatedField:
 
     Dilating once per scan and then sampling at each pixel's true (hysteresis- and
     drift-displaced) position is exact up to the grid spacing, because the surface does not
-    change during a scan. The grid is dilated in tiles of TILE x TILE pixels (each with a halo
-    of the tip's half width, so a tile equals that part of the whole field's dilation to the
-    bit) when a sample first needs them, and at most CACHE_BYTES of them are kept (least
-    recently used go first): a scan starts at once and can be stopped within its first lines,
-    and its memory does not grow with the field (a 4096 x 4096 scan dilated whole took minutes
-    before its first line and about 2 GiB)."""
+    change during a scan. The grid is dilated in bands along the fast axis (`along_x`: rows,
+    for a 0 deg scan; else columns), at most BAND lines each, equal in size, each with a halo
+    of the tip's half width so that it equals that part of the whole field's dilation to the
+    bit, when a sample first needs them; at most CACHE_BYTES of them are kept (least recently
+    used go first). A scan starts at once and can be stopped within its first lines, and its
+    memory does not grow with the field (a 4096 x 4096 scan dilated whole took minutes before
+    its first line and about 2 GiB)."""
 
     def __init__(
         self,
@@ -36,49 +40,56 @@ class DilatedField:
         nx: int,
         ny: int,
         pixel: float,
+        along_x: bool = True,
     ):
         self.height_function, self.tip_grid = height_function, tip_grid
         self.half = tip_grid.shape[0] // 2
         self.x0, self.y0, self.pixel = x0, y0, pixel
-        self.nx, self.ny = nx, ny
-        self.tiles: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
-        self.max_tiles = max(4, CACHE_BYTES // (TILE * TILE * 8))
+        self.nx, self.ny, self.along_x = nx, ny, along_x
+        across = ny if along_x else nx
+        self.band = -(-across // -(-across // BAND))  # equal bands of at most BAND lines
+        self.bands: OrderedDict[int, np.ndarray] = OrderedDict()
+        band_bytes = self.band * (nx if along_x else ny) * 8
+        self.max_bands = max(2, CACHE_BYTES // band_bytes)
 
     @property
     def values(self) -> np.ndarray:
         """The whole dilated grid (ny, nx): for tests and small fields only."""
         return self._block(0, self.ny - 1, 0, self.nx - 1)
 
-    def _tile(self, row: int, col: int) -> np.ndarray:
-        key = (row, col)
-        if key in self.tiles:
-            self.tiles.move_to_end(key)
-            return self.tiles[key]
-        half = self.half
-        r0, c0 = row * TILE, col * TILE
-        rows, cols = min(TILE, self.ny - r0), min(TILE, self.nx - c0)
+    def _band(self, k: int) -> np.ndarray:
+        if k in self.bands:
+            self.bands.move_to_end(k)
+            return self.bands[k]
+        half, lo = self.half, k * self.band
+        if self.along_x:
+            rows, cols = (lo, min(lo + self.band, self.ny)), (0, self.nx)
+        else:
+            rows, cols = (0, self.ny), (lo, min(lo + self.band, self.nx))
         # the same float coordinates as one grid over the whole field: x0 + i * pixel
-        xs = self.x0 + np.arange(c0 - half, c0 + cols + half) * self.pixel
-        ys = self.y0 + np.arange(r0 - half, r0 + rows + half) * self.pixel
+        xs = self.x0 + np.arange(cols[0] - half, cols[1] + half) * self.pixel
+        ys = self.y0 + np.arange(rows[0] - half, rows[1] + half) * self.pixel
         surface = self.height_function(*np.meshgrid(xs, ys))
-        tile = dilate(surface, self.tip_grid)[half : half + rows, half : half + cols]
-        self.tiles[key] = tile
-        while len(self.tiles) > self.max_tiles:
-            self.tiles.popitem(last=False)
-        return tile
+        band = dilate(surface, self.tip_grid)[half : -half or None, half : -half or None]
+        self.bands[k] = band
+        while len(self.bands) > self.max_bands:
+            self.bands.popitem(last=False)
+        return band
 
     def _block(self, r_lo: int, r_hi: int, c_lo: int, c_hi: int) -> np.ndarray:
         """Rows r_lo..r_hi and columns c_lo..c_hi (inclusive) of the dilated grid."""
-        out = np.empty((r_hi - r_lo + 1, c_hi - c_lo + 1))
-        for row in range(r_lo // TILE, r_hi // TILE + 1):
-            for col in range(c_lo // TILE, c_hi // TILE + 1):
-                tile = self._tile(row, col)
-                a, b = max(r_lo, row * TILE), min(r_hi, row * TILE + tile.shape[0] - 1)
-                c, d = max(c_lo, col * TILE), min(c_hi, col * TILE + tile.shape[1] - 1)
-                out[a - r_lo : b - r_lo + 1, c - c_lo : d - c_lo + 1] = tile[
-                    a - row * TILE : b - row * TILE + 1, c - col * TILE : d - col * TILE + 1
-                ]
-        return out
+        lo, hi = (r_lo, r_hi) if self.along_x else (c_lo, c_hi)
+        parts = []
+        for k in range(lo // self.band, hi // self.band + 1):
+            band, start = self._band(k), k * self.band
+            a, b = max(lo, start) - start, min(hi, start + self.band - 1) - start
+            if self.along_x:
+                parts.append(band[a : b + 1, c_lo : c_hi + 1])
+            else:
+                parts.append(band[r_lo : r_hi + 1, a : b + 1])
+        return (
+            parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0 if self.along_x else 1)
+        )
 
     def at(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         shape = np.shape(xs)
