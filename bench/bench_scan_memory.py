@@ -82,7 +82,11 @@ def main() -> int:
         "wall | peak memory (process) |\n|---|---|---|---|---|---|---|\n"
         f"| {request.pixels_x} x {request.pixels_y} | {lines} | {result['first_line_s']} s | "
         f"{result['wall_per_line_s']} s | {result['cancel_latency_bound_s']} s | "
-        f"{result['scan_wall_s']} s | {result['peak_rss_mib']} MiB |\n"
+        f"{result['scan_wall_s']} s | {result['peak_rss_mib']} MiB |\n\n"
+        'A cancel is checked before every chunk of lines; "cancel lands within" is one chunk\'s '
+        "time. A chunk that enters a new band of the dilated field waits for that band first "
+        "(about the first line's wait, which is the first band's), so the longest wait for a "
+        "cancel is about the first line's time plus one chunk.\n"
     )
     print(json.dumps(result, indent=2))
     return 0
