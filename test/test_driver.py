@@ -9,7 +9,7 @@ from conftest import wait_for
 from geometry_msgs.msg import PointStamped
 from rosgraph_msgs.msg import Clock
 
-from afm_bringup.commander import AfmCommander
+from afm_bringup.commander import AfmCommander, AfmError
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_msgs.msg import GroundTruth
 from afm_ros.conversions import image_msg_to_array
@@ -39,6 +39,13 @@ def move_goal(x, y, speed=1e-6, contact=False, frame="afm_scanner"):
     target.header.frame_id = frame
     target.point.x, target.point.y = x, y
     return MoveTip.Goal(target=target, speed=speed, contact=contact)
+
+
+def line_goal(speed, start=(54.7e-6, 55e-6), end=(55.3e-6, 55e-6)):
+    goal = LocalScan.Goal(samples=200, speed=speed, landmark_id=-1)
+    goal.start.x, goal.start.y = start
+    goal.end.x, goal.end.y = end
+    return goal
 
 
 @pytest.fixture
@@ -103,6 +110,12 @@ def test_scan_line_move_push_and_indent_through_actions(driver, ros_node):
         ("move_tip", move_goal(1e-6, float("inf")), "target.y=inf"),
         ("move_tip", move_goal(1e-6, 1e-6, speed=1.0), "slew limit"),
         ("move_tip", move_goal(1e-6, 1e-6, frame="map"), "frame_id='map'"),
+        # a negative or NaN speed was run at the default speed (issue 30); 0 is the default
+        ("move_tip", move_goal(1e-6, 1e-6, speed=-1.0), "speed=-1.0000e+00 m/s: must be > 0"),
+        ("move_tip", move_goal(1e-6, 1e-6, speed=float("nan")), "speed=nan: must be finite"),
+        ("local_scan", line_goal(-1.0), "speed=-1.0000e+00 m/s: must be > 0"),
+        ("local_scan", line_goal(0.0), "speed=0.0000e+00 m/s: must be > 0"),
+        ("local_scan", line_goal(float("nan")), "speed=nan: must be finite"),
         ("indent", Indent.Goal(force=-1.0, dwell=0.1), "force=-1.000e+00 N"),
     ],
 )
@@ -136,6 +149,29 @@ def test_cancel_stops_a_scan_and_a_queued_goal_waits_its_turn(nodes):
         assert not waiting.success and "while waiting" in waiting.message
         done = afm.send("move_tip", move_goal(20e-6, 20e-6, speed=10e-6))
         assert done.success
+
+
+def test_the_queue_limit_holds_when_goals_arrive_at_once_and_cancel_still_answers(nodes):
+    # 8 accepted 12 (issue 30): goals accepted but not yet executing did not count, and each
+    # waiting goal held one of four threads, so a cancel went unanswered behind a full queue
+    nodes("driver", seed=2, real_time_factor=5.0, max_queued_goals=4)
+    with AfmCommander(server_timeout=30) as afm:
+        scan = afm.send("scan_image", scan_goal(pixels=(64, 512), line_rate=1.0), wait=False)
+        wait_for(lambda: scan.feedback is not None, 90, what="scan started")
+        waiting, refused = [], 0
+        for k in range(7):
+            try:
+                waiting.append(
+                    afm.send("move_tip", move_goal(20e-6 + k * 1e-6, 20e-6), wait=False)
+                )
+            except AfmError as exc:
+                assert "rejected" in str(exc), exc
+                refused += 1
+        assert (len(waiting), refused) == (4, 3)
+        assert scan.cancel()
+        assert not scan.result(30).success
+        assert all(job.result(60).success for job in waiting)
+        assert afm.send("move_tip", move_goal(10e-6, 10e-6)).success  # places freed
 
 
 def test_a_clients_readiness_probe_leaves_running_goals_alone(nodes):

@@ -105,3 +105,18 @@ def test_each_node_yaml_says_which_parameters_a_running_node_takes(module, yaml_
         assert said.split(", ") == runtime, yaml_file
     else:
         assert "Every parameter is read-only once the node runs" in text, yaml_file
+
+
+def test_a_path_must_lie_in_an_allowed_folder_after_links_and_dots(tmp_path):
+    from afm_core.checks import inside
+
+    root = tmp_path / "data"
+    (root / "sub").mkdir(parents=True)
+    (root / "escape").symlink_to(tmp_path)
+    assert inside("recording", root / "sub" / "a.mcap", [str(root)]) == root / "sub" / "a.mcap"
+    assert inside("report_dir", root, ["", str(root)]) == root
+    for path in (tmp_path / "a.mcap", root / ".." / "a.mcap", root / "escape" / "a.mcap"):
+        with pytest.raises(ValueError, match=r"recording='.*': outside the allowed folders"):
+            inside("recording", path, [str(root)], "see read_roots")
+    with pytest.raises(ValueError, match=r"allowed folders \(none\)"):
+        inside("recording", root / "a.mcap", [""])

@@ -12,6 +12,7 @@ from conftest import wait_for
 from sim_calibration import oracle_calibration
 
 from afm_bringup.commander import AfmCommander
+from afm_msgs.action import PushParticle
 from afm_msgs.msg import GroundTruth, LandmarkArray
 from afm_ros.qos_profiles import LATCHED
 
@@ -107,6 +108,21 @@ def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
         ) / np.linalg.norm(beyond - np.array([result.achieved.x, result.achieved.y]))
         refused = afm.push(beyond, particle_id=particle.id)
         assert not refused.success and "path blocked" in refused.message, refused.message
+        # the goal's own fields, refused before anything moves (issue 30: after up to 2 um of
+        # motion, with messages about internal quantities)
+        for fields, complaint in (
+            ({"push_length": -1.0}, "push_length=-1.0: must be finite and >= 0"),
+            ({"push_length": math.nan}, "push_length=nan"),
+            ({"max_steps": 4294967295}, "max_steps=4294967295"),
+            ({"lateral_offset": 1e-3}, "lateral_offset=1.0000e-03 m: must be <"),
+            ({"goal": (goal[0], goal[1] - 20e-6)}, "um from the particle; the before/after"),
+        ):
+            request = PushParticle.Goal(particle_id=int(particle.id))
+            request.goal.x, request.goal.y = map(float, fields.pop("goal", goal))
+            for name, value in fields.items():
+                setattr(request, name, value)
+            refused = afm.send("push_particle", request)
+            assert not refused.success and complaint in refused.message, refused.message
 
         pushing = threading.Event()
         job = afm.push(

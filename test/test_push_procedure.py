@@ -19,7 +19,13 @@ from afm_core.imaging.landmarks import extract_landmarks
 from afm_core.instrument import ScanRequest
 from afm_core.localization import Localizer
 from afm_core.localization.calibration.model import load_calibration
-from afm_core.manipulation import PushFailed, PushProcedure, PushRefused, localize_with
+from afm_core.manipulation import (
+    PushFailed,
+    PushProcedure,
+    PushRefused,
+    ZigzagOverrides,
+    localize_with,
+)
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 
@@ -180,4 +186,29 @@ def test_refusals_come_before_anything_moves(calibration):
         s.procedure.push(left.id, (left.x, left.y - 300 * NM), strategy="rod_hand")
     with pytest.raises(PushRefused, match="each particle once"):
         s.procedure.assemble([left.id, left.id], [(left.x, left.y)] * 2)
+    down = (middle.x, middle.y - 300 * NM)
+    for overrides, complaint in (
+        (ZigzagOverrides(push_length=-1.0), "push_length=-1.0: must be finite and >= 0"),
+        (ZigzagOverrides(push_length=math.nan), "push_length=nan: must be finite"),
+        (ZigzagOverrides(max_steps=4294967295), r"max_steps=4294967295: need .* \[0, 3056\]"),
+        (ZigzagOverrides(lateral_offset=1e-3), "lateral_offset=1.0000e-03 m: must be < the"),
+        (ZigzagOverrides(push_length=100 * NM, back_length=120 * NM), "must exceed back_length"),
+        (ZigzagOverrides(step_length=1e-3), "step_length=1.0000e-03 m: must be < push_length"),
+    ):
+        with pytest.raises(PushRefused, match=complaint):
+            s.procedure.push(middle.id, down, overrides=overrides, progress=s.reports.append)
+    with pytest.raises(PushRefused, match="tolerance=-1.0: must be finite and >= 0"):
+        s.procedure.push(middle.id, down, tolerance=-1.0)
+    # 20 um away: the rescan around both cannot be made at the rescan line rate; the message is
+    # about the distance and names the farthest goal
+    far = (middle.x, middle.y - 20e-6)
+    with pytest.raises(PushRefused, match=r"goal: 20.00 um from the particle.*at most 11.90 um"):
+        s.procedure.push(middle.id, far)
+    with pytest.raises(PushRefused, match=f"particle {right.id}: goal: 20.00 um"):
+        s.procedure.assemble([left.id, right.id], [down, (right.x, right.y - 20e-6)])
+    # the book's experiment (Table 7.6, 13 steps, 530 nm) is a valid set of fields
+    book = ZigzagOverrides(156 * NM, 120 * NM, 60 * NM, 36 * NM, 13)
+    s.procedure.check_overrides(
+        middle, np.array([middle.x, middle.y - 530 * NM]), "nano_hand", book
+    )
     assert (s.sim.time, s.sim.commanded_position(), s.reports) == (time, command, [])

@@ -4,6 +4,7 @@ recording, refusals that name what is missing, and a cancel that stops between s
 
 import math
 import shutil
+from pathlib import Path
 
 import pytest
 
@@ -49,7 +50,8 @@ def test_the_action_names_the_blunter_tip_and_refuses_what_it_cannot_do(session,
         "sim2real",
         model=str(session / "model.yaml"),
         live_recording=str(live),
-        report_root=str(session / "reports"),
+        read_roots=f"['{session}']",
+        report_root=str(session),
     )
     with AfmCommander("sim2real_test", server_timeout=30.0) as afm:
         phases = []
@@ -100,6 +102,25 @@ def test_the_action_names_the_blunter_tip_and_refuses_what_it_cannot_do(session,
             and "recording=" in result.message
             and "no such file" in result.message
         )
+        # a goal reads only under read_roots and writes only under report_root, symlinks
+        # followed (issue 30: any path was read, a report written anywhere)
+        (session / "escape.mcap").symlink_to("/etc/hostname")
+        for goal, field in (
+            (Sim2Real.Goal(recording="/etc/hostname"), "recording='/etc/hostname'"),
+            (Sim2Real.Goal(recording=str(session / "escape.mcap")), "recording="),
+            (
+                Sim2Real.Goal(recording=str(session / "session.mcap"), model="/etc/hostname"),
+                "model=",
+            ),
+            (
+                Sim2Real.Goal(recording=str(session / "session.mcap"), report_dir="/tmp/afm-out"),
+                "report_dir='/tmp/afm-out'",
+            ),
+        ):
+            result = afm.send("sim2real", goal, timeout=30.0)
+            assert not result.success and result.message.startswith(f"refused: {field}")
+            assert "outside the allowed folders" in result.message, result.message
+        assert not Path("/tmp/afm-out").exists()
         shutil.copy(session / "model.yaml", session / "broken.yaml")
         (session / "broken.yaml").write_text("scanner: {hysteresis_fraction: lots}\n")
         result = afm.send(

@@ -125,3 +125,38 @@ def test_raster_sensor_noise_is_linear_in_its_level(level_key):
     zero, unit, far = image(0.0), image(0.3e-9), image(1.1e-9)
     assert np.std(far - zero) > 0.5e-9  # the level moves the image
     np.testing.assert_allclose(far, zero + 1.1 / 0.3 * (unit - zero), rtol=0, atol=2e-13)
+
+
+def test_the_dilated_field_is_made_as_lines_need_it_and_equals_the_whole_fields_dilation():
+    """A 4096-line scan's field is dilated in bands along the lines asked for, not whole
+    before the first line (issue 30: a 2048 x 2048 scan could not be cancelled for minutes);
+    every value equals the whole grid's dilation to the bit, in either scan direction."""
+    from scipy import ndimage
+
+    from afm_core.physics.sample import Roughness, Sample, Sphere
+    from afm_core.physics.tip_morphology import dilate
+    from afm_core.sim.imaging import BAND, DilatedField
+
+    sample = Sample(
+        spheres=[Sphere(0, 60e-9, 50e-9, 20e-9)], roughness=Roughness(1e-9, 10e-9, seed=2)
+    )
+    tip = paraboloid_cone_tip(10e-9, 20.0, 2e-9, 40e-9)
+    big = DilatedField(sample.height, tip, 0.0, 0.0, 4400, 4400, 2e-9)
+    xs = np.linspace(0.0, 4399 * 2e-9, 4400)
+    big.at(xs, np.full_like(xs, 50e-9))
+    assert list(big.bands) == [0] and big.bands[0].shape == (big.band, 4400)
+    assert big.band <= BAND
+    half = tip.shape[0] // 2
+    grid = np.arange(-half, 300 + half) * 2e-9
+    surface = sample.height(*np.meshgrid(grid, grid[: 290 + 2 * half]))
+    whole = dilate(surface, tip)[half : half + 290, half : half + 300]
+    rng = np.random.default_rng(0)
+    qx, qy = rng.uniform(-10e-9, 610e-9, 500), rng.uniform(-10e-9, 590e-9, 500)
+    reference = ndimage.map_coordinates(
+        whole, np.stack([qy / 2e-9, qx / 2e-9]), order=1, mode="nearest"
+    )
+    for along_x in (True, False):
+        small = DilatedField(sample.height, tip, 0.0, 0.0, 300, 290, 2e-9, along_x)
+        small.band = 70  # several bands, the last one shorter
+        assert np.array_equal(small.at(qx, qy), reference)
+        assert np.array_equal(small.values, whole)

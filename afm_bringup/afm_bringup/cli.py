@@ -46,7 +46,7 @@ def cmd_launch(args):
     unknown = [n for n in nodes if n not in NODES]
     if unknown:
         sys.exit(f"afm launch: --nodes {unknown}: expected names from {sorted(NODES)}")
-    graph = Graph(args.log_dir)
+    graph = Graph(args.log_dir, dict(os.environ))  # main() set the DDS environment
     overrides: dict[str, dict[str, str]] = {}
     for key, value in args.param or []:
         node, _, name = key.partition(".")
@@ -129,8 +129,8 @@ def cmd_info(args):
             for chunk in damaged:
                 print(f"  {chunk}")
     except RecordingError as exc:
-        print(f"afm info: {exc}", file=sys.stderr)
-        return 2
+        print(f"afm info: {one_line(exc)}", file=sys.stderr)
+        return INPUT_STATUS
     if damaged:
         print(
             f"afm info: `afm recover {args.recording}` keeps the undamaged chunks", file=sys.stderr
@@ -273,7 +273,9 @@ def cmd_calibrate(args):
             only=args.only,
             previous=previous,
         )
-    except (ValueError, RuntimeError) as exc:
+    except ValueError as exc:  # a configuration or calibration file, a parameter
+        return refuse("calibrate", exc)
+    except RuntimeError as exc:
         sys.exit(f"afm calibrate: {exc}")
     if previous is not None:
         calibration = merge_calibration(previous, calibration, chosen)
@@ -352,7 +354,9 @@ def cmd_sim2real(args):
             progress=progress,
             effects=[e for e in args.effects.split(",") if e.strip()],
         )
-    except (ValueError, OSError, RuntimeError) as exc:
+    except (ValueError, OSError) as exc:  # the recording, the model or the folder
+        return refuse("sim2real", exc)
+    except RuntimeError as exc:
         sys.exit(f"afm sim2real: {exc}")
     print(f"verdict: {diagnosis.verdict}")
     print(diagnosis.summary())
@@ -409,6 +413,7 @@ def _add_launch(sub) -> None:
         "even when it is killed.",
     )
     p.add_argument("--nodes", help=f"comma-separated subset (default: {','.join(GRAPH)})")
+    _add_exposure(p)
     p.add_argument(
         "--record", metavar="FILE.mcap", help="also record the default topics to this new file"
     )
@@ -424,6 +429,24 @@ def _add_launch(sub) -> None:
         help="override a node parameter, e.g. -p driver.seed:=3",
     )
     p.set_defaults(func=cmd_launch)
+
+
+def _add_exposure(p) -> None:
+    p.add_argument(
+        "--domain-id",
+        type=int,
+        default=None,
+        metavar="N",
+        help="ROS domain id for the graph (0-101; default: $ROS_DOMAIN_ID, else 0); the "
+        "shells that talk to it need the same (export ROS_DOMAIN_ID=N)",
+    )
+    p.add_argument(
+        "--network",
+        choices=["localhost", "lab"],
+        default="localhost",
+        help="localhost (default): DDS on this machine only (loopback and shared memory); "
+        "lab: discoverable on the subnet, for a lab network (pick a --domain-id)",
+    )
 
 
 def _add_record(sub) -> None:
@@ -743,9 +766,78 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# the subcommands that read files a user names; a damaged or wrong file is refused with one line
+# and exit status 2 (argparse's status for bad input), never a traceback
+FILE_COMMANDS = ("info", "recover", "image", "calibrate", "sim2real")
+INPUT_STATUS = 2
+
+
+def input_errors() -> tuple[type[BaseException], ...]:
+    """What the file readers (numpy, zipfile, gwyfile, yaml, mcap) may raise on damaged input
+    that the core's own checks have not turned into ValueError or RecordingError."""
+    import struct
+    import tokenize
+    import zipfile
+    import zlib
+
+    import yaml
+    from mcap.exceptions import McapError
+
+    from afm_core.recording import RecordingError
+
+    return (
+        ValueError,
+        OSError,
+        EOFError,
+        KeyError,
+        IndexError,
+        TypeError,
+        MemoryError,
+        OverflowError,
+        struct.error,
+        zlib.error,
+        zipfile.BadZipFile,
+        tokenize.TokenError,
+        yaml.YAMLError,  # a recording's QoS metadata
+        McapError,
+        RecordingError,
+    )
+
+
+def one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text if text else type(exc).__name__
+
+
+def refuse(command: str, exc: BaseException) -> int:
+    print(f"afm {command}: {one_line(exc)}", file=sys.stderr)
+    return INPUT_STATUS
+
+
+# the subcommands that start ROS participants, here or in the processes they exec
+ROS_COMMANDS = ("run", "launch", "record", "replay", "scan", "push", "demo")
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    return args.func(args) or 0
+    if args.command in ROS_COMMANDS:
+        from afm_bringup import exposure
+
+        try:
+            exposure.apply(
+                os.environ,
+                domain_id=getattr(args, "domain_id", None),
+                network=getattr(args, "network", "localhost"),
+            )
+        except ValueError as exc:
+            print(f"afm {args.command}: {exc}", file=sys.stderr)
+            return INPUT_STATUS
+    try:
+        return args.func(args) or 0
+    except Exception as exc:
+        if args.command in FILE_COMMANDS and isinstance(exc, input_errors()):
+            return refuse(args.command, exc)
+        raise
 
 
 if __name__ == "__main__":

@@ -81,7 +81,9 @@ class Graph:
     """Processes of a running graph. Stops in reverse start order, so a recorder started
     first still hears everything the others say while they shut down."""
 
-    def __init__(self, log_dir: str | os.PathLike | None = None):
+    def __init__(self, log_dir: str | os.PathLike | None = None, environment: dict | None = None):
+        from afm_bringup import exposure
+
         self.processes: dict[str, subprocess.Popen] = {}
         self.specs: dict[str, tuple[str, dict[str, str], object]] = {}
         self.restarts: dict[str, int] = {}
@@ -89,6 +91,10 @@ class Graph:
         self.log_dir = Path(log_dir) if log_dir else None
         if self.log_dir:
             self.log_dir.mkdir(parents=True, exist_ok=True)
+        # localhost-only DDS unless the caller's environment says otherwise (exposure)
+        self.environment = (
+            environment if environment is not None else exposure.apply(dict(os.environ))
+        )
 
     def start(
         self,
@@ -107,7 +113,7 @@ class Graph:
             stdout=output,
             stderr=subprocess.STDOUT if output else None,
             start_new_session=True,  # Ctrl-C in the terminal reaches us; we stop them in order
-            env={**os.environ, PARENT_PID_ENV: str(os.getpid())},
+            env={**self.environment, PARENT_PID_ENV: str(os.getpid())},
         )
         return self.processes[alias]
 

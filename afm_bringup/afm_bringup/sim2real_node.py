@@ -5,7 +5,8 @@ A live recording is still `NAME.mcap.part` (the recorder renames it when it clos
 node copies its complete chunks into a snapshot (afm_core.recording.recover_recording) and
 diagnoses that, so the recorder is never disturbed. All the analysis is in the core
 library; this node only resolves paths, reports the phase as feedback and turns a cancel
-request into a clean stop between analysis steps.
+request into a clean stop between analysis steps. A goal reads only under the `read_roots`
+folders and writes only under `report_root` (a goal is anyone on the ROS network).
 """
 
 from __future__ import annotations
@@ -19,7 +20,9 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
+from afm_core.checks import inside
 from afm_core.parameters import Parameter, ParameterTable
+from afm_core.sim.config import check_config_file
 from afm_msgs.action import Sim2Real
 from afm_ros import topics
 from afm_ros.node_main import run
@@ -30,7 +33,16 @@ PARAMETERS = ParameterTable(
         "model",
         "",
         "Simulator configuration YAML the recording is compared with ('' = the simulator's "
-        "defaults); a goal's `model` overrides it.",
+        "defaults); a goal's `model` overrides it. A missing or broken file is refused.",
+        check=check_config_file,
+        runtime=True,
+    ),
+    Parameter(
+        "read_roots",
+        ["."],
+        "Folders a goal's `recording` and `model` must lie in (symlinks followed; relative to "
+        "the node's working folder); a path outside is refused. The parameters' own files "
+        "(model, live_recording) are the operator's and not limited.",
         runtime=True,
     ),
     Parameter(
@@ -43,10 +55,12 @@ PARAMETERS = ParameterTable(
     Parameter(
         "report_root",
         "sim2real_reports",
-        "Folder under which a goal without `report_dir` gets a new report folder.",
+        "Folder under which a goal without `report_dir` gets a new report folder; a goal's "
+        "`report_dir` must lie in it (symlinks followed).",
         runtime=True,
     ),
 )
+ROOTS_HINT = "a goal reads only under the node's read_roots and writes only under report_root"
 
 
 class Cancelled(Exception):
@@ -76,7 +90,7 @@ class Sim2RealNode(Node):
         from afm_core.recording import recover_recording
 
         if goal.recording:
-            path = Path(goal.recording)
+            path = inside("recording", goal.recording, self.config["read_roots"], ROOTS_HINT)
             if not path.is_file():
                 raise ValueError(f"recording={goal.recording!r}: no such file")
             return path, ""
@@ -101,6 +115,22 @@ class Sim2RealNode(Node):
         )
         return snapshot, f"snapshot of {part.name} ({count} messages)"
 
+    def paths_for(self, goal) -> tuple[Path | None, Path]:
+        """(model to compare with, report folder); a goal's own paths only under the roots."""
+        roots = self.config["read_roots"]
+        model = (
+            inside("model", goal.model, roots, ROOTS_HINT)
+            if goal.model
+            else (self.config["model"] or None)
+        )
+        root = self.config["report_root"]
+        report_dir = (
+            inside("report_dir", goal.report_dir, [root], ROOTS_HINT)
+            if goal.report_dir
+            else Path(root) / datetime.now().strftime("%Y%m%d-%H%M%S-%f")
+        )
+        return model, report_dir
+
     def execute(self, goal_handle) -> Sim2Real.Result:
         from afm_core.sim2real.diagnose import run_sim2real
 
@@ -113,18 +143,11 @@ class Sim2RealNode(Node):
         try:
             try:
                 recording, note = self.recording_for(goal)
+                model, report_dir = self.paths_for(goal)
             except ValueError as exc:
                 goal_handle.abort()
                 result.message = f"refused: {exc}"
                 return result
-            model = goal.model or self.config["model"] or None
-            report_dir = (
-                Path(goal.report_dir)
-                if goal.report_dir
-                else (
-                    Path(self.config["report_root"]) / datetime.now().strftime("%Y%m%d-%H%M%S-%f")
-                )
-            )
 
             def progress(phase: str) -> None:
                 if goal_handle.is_cancel_requested:
@@ -174,7 +197,7 @@ class Sim2RealNode(Node):
 
 
 def main(args=None):
-    return run(Sim2RealNode, "sim2real", args, threads=2)
+    return run(Sim2RealNode, "sim2real", args, threads=2)  # ValueError at start: exit 2
 
 
 if __name__ == "__main__":

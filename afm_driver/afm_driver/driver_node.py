@@ -24,7 +24,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 
 from afm_core.backends import open_instrument
-from afm_core.instrument import LineRequest, ScanRequest
+from afm_core.instrument import LineRequest, ScanRequest, move_speed, validate_move
 from afm_core.localization.calibration.model import load_calibration
 from afm_core.localization.creep_settle import (
     CREEP_SETTLE_TOLERANCE,
@@ -47,6 +47,11 @@ from afm_ros.conversions import (
 )
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED, SCANS, STREAM
+
+# each waiting goal holds one of the node's threads (the gate blocks it): the node runs this many
+# plus SERVICE_THREADS, so cancels and new goals are answered however full the queue is
+MAX_QUEUED_GOALS = 64
+SERVICE_THREADS = 3  # the running goal, goal/cancel requests, the clock timer
 
 PARAMETERS = ParameterTable(
     Parameter(
@@ -82,7 +87,11 @@ PARAMETERS = ParameterTable(
         above_minimum=True,
     ),
     Parameter(
-        "max_queued_goals", 8, "Goals that may wait while one runs; more are rejected.", minimum=0
+        "max_queued_goals",
+        8,
+        "Goals that may wait while one runs; more are rejected when they arrive.",
+        minimum=0,
+        maximum=MAX_QUEUED_GOALS,
     ),
     Parameter("daq_device", "Dev1", "NI-DAQmx device name (daq backend)."),
     Parameter(
@@ -121,7 +130,11 @@ def make_instrument(config: dict):
 
 
 class FifoGate:
-    """One holder at a time, served in arrival order; a waiter may give up (cancel)."""
+    """One holder at a time, served in arrival order; a waiter may give up (cancel).
+
+    `admit` reserves a place when a goal is accepted (one running, `capacity` waiting) and
+    `leave` frees it when the goal ends: goals accepted but not yet executing count, so the
+    limit holds however fast goals arrive."""
 
     def __init__(self, capacity: int):
         self.capacity = capacity
@@ -129,10 +142,18 @@ class FifoGate:
         self.next_ticket = 0
         self.serving = 0
         self.abandoned: set[int] = set()
+        self.admitted = 0
 
-    def full(self) -> bool:
+    def admit(self) -> bool:
         with self.condition:
-            return self.next_ticket - self.serving - len(self.abandoned) > self.capacity
+            if self.admitted > self.capacity:
+                return False
+            self.admitted += 1
+            return True
+
+    def leave(self) -> None:
+        with self.condition:
+            self.admitted = max(0, self.admitted - 1)
 
     def take(self) -> int:
         with self.condition:
@@ -225,7 +246,7 @@ class DriverNode(Node):
 
     # -- plumbing ----------------------------------------------------------------------------
     def accept_goal(self, _goal):
-        if self.gate.full():
+        if not self.gate.admit():
             self.get_logger().warning(
                 f"goal rejected: {self.config['max_queued_goals']} goals already wait "
                 "(max_queued_goals)"
@@ -237,6 +258,7 @@ class DriverNode(Node):
         def run_in_turn(goal_handle):
             ticket = self.gate.take()
             if not self.gate.wait(ticket, lambda: goal_handle.is_cancel_requested):
+                self.gate.leave()
                 goal_handle.canceled()
                 return action_type.Result(
                     success=False, message="cancelled while waiting for the instrument"
@@ -251,6 +273,7 @@ class DriverNode(Node):
                 return action_type.Result(success=False, message=f"driver error: {exc}")
             finally:
                 self.gate.release()
+                self.gate.leave()
                 self.publish_truth()
                 self.publish_clock()
 
@@ -418,7 +441,7 @@ class DriverNode(Node):
 
     def execute_line(self, goal_handle) -> LocalScan.Result:
         goal, result = goal_handle.request, LocalScan.Result()
-        speed = goal.speed if goal.speed > 0 else 1e-6
+        speed = goal.speed  # LineRequest.validate: finite, > 0, at most the slew limit
         request = LineRequest(
             goal.start.x,
             goal.start.y,
@@ -460,7 +483,6 @@ class DriverNode(Node):
 
     def execute_move(self, goal_handle) -> MoveTip.Result:
         goal, result = goal_handle.request, MoveTip.Result()
-        speed = goal.speed if goal.speed > 0 else self.instrument.limits.max_speed / 10
         start_time, start = self.instrument.time, self.instrument.commanded_position()
         try:
             if goal.target.header.frame_id not in ("", FRAME_SCANNER, FRAME_TASK):
@@ -468,6 +490,8 @@ class DriverNode(Node):
                     f"target.header.frame_id={goal.target.header.frame_id!r}: expected "
                     f"{FRAME_SCANNER!r} or {FRAME_TASK!r}"
                 )
+            speed = move_speed(goal.speed, self.instrument.limits)
+            validate_move(goal.target.point.x, goal.target.point.y, speed, self.instrument.limits)
             move = self.instrument.move_tip(
                 goal.target.point.x,
                 goal.target.point.y,
@@ -533,15 +557,8 @@ def main(args=None):
         "afm driver",
         args,
         config_errors=(ValueError, RuntimeError),
-        threads=driver_threads,
+        threads=lambda node: node.config["max_queued_goals"] + SERVICE_THREADS,
     )
-
-
-def driver_threads(node: DriverNode) -> int:
-    """A queued goal holds an executor thread while it waits its turn; with fewer threads
-    than the running goal, the full queue and the services (goal, cancel, result: the
-    clients' heartbeat), a full queue would starve them and the driver would look dead."""
-    return 1 + node.config["max_queued_goals"] + 3
 
 
 if __name__ == "__main__":

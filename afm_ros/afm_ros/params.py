@@ -26,17 +26,42 @@ def describe(parameter) -> ParameterDescriptor:
     )
 
 
+KINDS = {
+    bool: "true or false",
+    int: "a whole number",
+    float: "a number",
+    str: "a string",
+    list: "a list",
+}
+
+
+def _declare(node, parameter) -> None:
+    """A float parameter given as a whole number (`discovery_period:=-1`, which ROS reads as an
+    integer) is declared with dynamic typing, so the value reaches the table's rule and a bad
+    one is refused with its limit, not with a type name."""
+    try:
+        node.declare_parameter(parameter.name, parameter.default, describe(parameter))
+    except InvalidParameterTypeException:
+        if type(parameter.default) is not float:
+            raise
+        descriptor = describe(parameter)
+        descriptor.dynamic_typing = True
+        node.declare_parameter(parameter.name, parameter.default, descriptor)
+        if not isinstance(node.get_parameter(parameter.name).value, int | float):
+            raise
+
+
 def declare(node, table: ParameterTable, apply: Callable[[str, object], None] | None = None):
     """Declare every parameter of `table` on `node`; return {name: validated value}, a dict
     the node reads at use time and that accepted run-time changes update."""
     values = {}
     for parameter in table:
         try:
-            node.declare_parameter(parameter.name, parameter.default, describe(parameter))
+            _declare(node, parameter)
         except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
-            expected = type(parameter.default).__name__
+            expected = KINDS.get(type(parameter.default), type(parameter.default).__name__)
             raise ValueError(
-                f"{parameter.label}: the value given is not a {expected} ({exc}); "
+                f"{parameter.label}: the value given is not {expected} ({exc}); "
                 f"default {parameter.default!r}"
             ) from exc
         values[parameter.name] = parameter.validate(node.get_parameter(parameter.name).value)

@@ -30,9 +30,13 @@ def open_instrument(
 
         return open_daq_instrument(daq_device, daq_calibration or None)
     if backend == "replay":
+        from afm_core.recording import RecordingError
         from afm_core.replay_instrument import ReplayInstrument
 
         if not replay_input:
             raise ValueError("replay_input: required with backend 'replay' (a .mcap recording)")
-        return ReplayInstrument(replay_input)
+        try:
+            return ReplayInstrument(replay_input)
+        except RecordingError as exc:  # missing, not MCAP, damaged
+            raise ValueError(f"replay_input={replay_input!r}: {exc}") from exc
     raise ValueError(f"backend={backend!r}: expected one of {BACKENDS}")

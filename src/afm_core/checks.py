@@ -9,6 +9,7 @@ core function's arguments are checked by the same words.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -82,3 +83,19 @@ def one_of(name: str, value, choices) -> object:
     if value not in choices:
         raise ValueError(f"{name}={value!r}: must be one of {list(choices)}")
     return value
+
+
+def inside(name: str, path, roots, hint: str = "") -> Path:
+    """`path` resolved (symlinks followed, so a link cannot lead out), when it lies in one of
+    the folders `roots` (resolved the same way; empty entries ignored); else ValueError naming
+    the field, the path and the folders."""
+    resolved = Path(path).expanduser().resolve()
+    folders = [Path(root).expanduser().resolve() for root in roots if str(root)]
+    if any(resolved == folder or folder in resolved.parents for folder in folders):
+        return resolved
+    allowed = ", ".join(repr(str(folder)) for folder in folders) or "none"
+    raise ValueError(f"{name}={str(path)!r}: outside the allowed folders ({allowed}){_hint(hint)}")
+
+
+def _hint(hint: str) -> str:
+    return f"; {hint}" if hint else ""

@@ -59,6 +59,20 @@ def check_speed(name: str, speed: float, limits: ScannerLimits) -> None:
         )
 
 
+DEFAULT_MOVE_SPEED_SHARE = 0.1  # MoveTip speed 0: a tenth of the slew limit (the driver default)
+
+
+def move_speed(speed: float, limits: ScannerLimits) -> float:
+    """MoveTip's speed: 0 asks for the driver's default (DEFAULT_MOVE_SPEED_SHARE of the slew
+    limit); anything else must be finite, > 0 and at most the slew limit (ValueError naming
+    `speed` and the limit: a negative or NaN speed is refused, not run at the default)."""
+    checks.finite("speed", speed, "m/s")
+    if speed == 0.0:
+        return DEFAULT_MOVE_SPEED_SHARE * limits.max_speed
+    check_speed("speed", speed, limits)
+    return float(speed)
+
+
 @dataclass
 class ScanRequest:
     """A raster image: area (scanner frame), pixels, angle, direction, line rate."""

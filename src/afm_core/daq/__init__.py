@@ -34,7 +34,6 @@ def load_calibration(path=None) -> DaqCalibration:
     """DaqCalibration from a YAML file (any subset of its fields; tuples as 2-lists).
     `x_hysteresis` / `y_hysteresis` ({thresholds, weights, polynomial}: a fitted PI model in
     metres) install that model's inverse as the axis' feed-forward."""
-    import dataclasses
     from pathlib import Path
 
     import yaml
@@ -44,7 +43,20 @@ def load_calibration(path=None) -> DaqCalibration:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"parameter daq_calibration: {str(path)!r} does not exist")
-    data = yaml.safe_load(path.read_text()) or {}
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+        return _daq_calibration(data, path)
+    except (yaml.YAMLError, OSError, TypeError, KeyError, AttributeError, ValueError) as exc:
+        if str(path) in str(exc):
+            raise
+        raise ValueError(f"daq calibration {str(path)!r}: malformed ({exc})") from exc
+
+
+def _daq_calibration(data, path) -> DaqCalibration:
+    import dataclasses
+
+    if not isinstance(data, dict):
+        raise ValueError(f"daq calibration {str(path)!r}: expected a mapping of fields")
     fields = {f.name for f in dataclasses.fields(DaqCalibration)}
     values = {}
     for key, value in data.items():

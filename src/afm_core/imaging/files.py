@@ -41,12 +41,17 @@ from __future__ import annotations
 import io
 import math
 import re
+import struct
+import tokenize
+import zipfile
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from afm_core.imaging.gwy_structure import check_gwy_structure
 from afm_core.imaging.vendor_files import VENDOR_SUFFIXES, read_vendor, vendor_channels
 
 SUFFIXES = (".npz", ".npy", ".gwy")  # read and written (.npy read only)
@@ -153,7 +158,12 @@ def load_height_map(path, channel: int | str = 0, pixel_size: float | None = Non
     elif suffix == ".npz":
         hmap = _load_npz(path, channel, pixel_size)
     elif suffix == ".gwy":
-        hmap = _load_gwy(path, channel)
+        try:
+            hmap = _load_gwy(path, channel)
+        except (ValueError, ImportError):
+            raise
+        except (*DAMAGED, AttributeError) as exc:  # a damaged field's components
+            raise ValueError(f"{path}: malformed .gwy file ({type(exc).__name__}: {exc})") from exc
     else:
         v = read_vendor(path, channel)
         hmap = HeightMap(v.height, v.pixel_size_x, v.pixel_size_y, v.origin_x, v.origin_y, v.title)
@@ -231,16 +241,48 @@ def _load_npy(path: Path, channel, pixel_size) -> HeightMap:
     _single_channel(path, channel, path.stem)
     try:
         height = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise ValueError(f"{path}: not a readable .npy array ({exc})") from exc
+    except (ValueError, *DAMAGED) as exc:
+        raise ValueError(
+            f"{path}: not a readable .npy array ({type(exc).__name__}: {exc})"
+        ) from exc
     return HeightMap(_heights(height, path), float(pixel_size), float(pixel_size), title=path.stem)
+
+
+# what numpy's readers raise on a damaged file besides ValueError and OSError: a broken zip
+# directory or member, a truncated deflate stream, a header that does not parse, or a shape
+# too large to allocate
+DAMAGED = (
+    OSError,
+    EOFError,
+    KeyError,
+    IndexError,
+    TypeError,
+    SyntaxError,
+    MemoryError,
+    OverflowError,
+    struct.error,
+    zlib.error,
+    zipfile.BadZipFile,
+    NotImplementedError,
+    tokenize.TokenError,  # numpy parses an .npy header's dict with tokenize
+)
 
 
 def _load_npz(path: Path, channel, pixel_size) -> HeightMap:
     try:
-        archive = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
+        return _read_npz(path, channel, pixel_size)
+    except ValueError as exc:
+        if str(path) in str(exc) or str(exc).startswith("channel"):
+            raise
         raise ValueError(f"{path}: not a readable .npz archive ({exc})") from exc
+    except DAMAGED as exc:
+        raise ValueError(
+            f"{path}: not a readable .npz archive ({type(exc).__name__}: {exc})"
+        ) from exc
+
+
+def _read_npz(path: Path, channel, pixel_size) -> HeightMap:
+    archive = np.load(path, allow_pickle=False)
     with archive:
         if "height" not in archive.files:
             raise ValueError(
@@ -277,7 +319,7 @@ def _npz_title(path: Path) -> str:
     try:
         with np.load(path, allow_pickle=False) as archive:
             return _npz_string(archive, "title", path)
-    except (ValueError, OSError) as exc:
+    except (ValueError, *DAMAGED) as exc:
         raise ValueError(f"{path}: not a readable .npz archive ({exc})") from exc
 
 
@@ -350,6 +392,10 @@ def _read_gwy(path: Path):
             else ""
         )
         raise ValueError(f"{path}: not a Gwyddion .gwy file (no GWYP header){hint}")
+    try:
+        check_gwy_structure(data[4:])  # gwyfile may loop for ever on a damaged size or count
+    except ValueError as exc:
+        raise ValueError(f"{path}: malformed .gwy file ({exc})") from exc
     try:
         container = gwyfile.objects.GwyObject.frombuffer(data[4:])
     except Exception as exc:  # truncated or corrupt: struct/unicode/index errors

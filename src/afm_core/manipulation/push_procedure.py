@@ -271,8 +271,12 @@ class PushProcedure:
             dict(self.landmarks()), particle_id, position, self.settings["match_radius"]
         )
 
-    def check_goal(self, particle: Landmark, goal, strategy: str, tolerance: float) -> None:
-        """ValueError when the push cannot work (module docstring, step 1)."""
+    def check_goal(
+        self, particle: Landmark, goal, strategy: str, tolerance: float, *, blockers: bool = True
+    ) -> None:
+        """ValueError when the push cannot work (module docstring, step 1). blockers=False
+        leaves out the other particles (an assembly's first check: the pushes before this one
+        move them)."""
         if strategy not in STRATEGIES:
             raise ValueError(
                 f"strategy={strategy!r}: must be one of {list(STRATEGIES)} "
@@ -294,6 +298,17 @@ class PushProcedure:
                 "use 'rod_hand'"
             )
         start = np.array([particle.x, particle.y])
+        s = self.settings
+        rescan_request(
+            start,
+            goal,
+            s["rescan_margin"],
+            s["rescan_pixel"],
+            s["rescan_line_rate"],
+            self.instrument.limits,
+        )
+        if not blockers:
+            return
         others = [m for m in self.landmarks().values() if m.id != particle.id]
         blocker = path_blocker(start, goal, particle.radius, self.settings["tip_radius"], others)
         if blocker is not None:
@@ -302,6 +317,32 @@ class PushProcedure:
                 f"{blocker.y * 1e9:.0f} nm) lies in the way from particle {particle.id} to the "
                 "goal"
             )
+
+    def check_overrides(self, particle: Landmark, goal, strategy: str, overrides) -> None:
+        """ValueError naming the field when a goal's zigzag fields cannot work: each field's
+        limits, then (any field set) the plan they give for a perfectly localized tip must stay
+        in the scanner; before anything moves."""
+        if not overrides.any():
+            return
+        if strategy != "nano_hand":
+            raise ValueError(
+                f"push_length, back_length, lateral_offset, step_length, max_steps: only for "
+                f"strategy 'nano_hand', not {strategy!r} (leave them 0)"
+            )
+        sigma = float(math.sqrt(max(np.max(np.diag(particle.covariance)), 0.0)))
+        overrides.check(particle.radius, self.settings["tip_radius"], sigma)
+        try:
+            plan_push(
+                particle,
+                goal,
+                strategy,
+                np.zeros((2, 2)),
+                overrides,
+                self.settings["tip_radius"],
+                self.instrument.limits,
+            )
+        except ValueError as exc:
+            raise ValueError(f"the zigzag these fields give cannot be run: {exc}") from exc
 
     # -- one push ----------------------------------------------------------------------------
     def push(
@@ -325,6 +366,7 @@ class PushProcedure:
             strategy = strategy or "nano_hand"
             tolerance = tolerance or self.settings["default_tolerance"]
             self.check_goal(particle, target, strategy, tolerance)
+            self.check_overrides(particle, target, strategy, overrides)
         except ValueError as exc:
             raise PushRefused(str(exc)) from exc
         return self.run(
@@ -556,7 +598,7 @@ class PushProcedure:
         strategy = strategy or "nano_hand"
         tolerance = tolerance or self.settings["default_tolerance"]
         try:
-            targets, particles = self._check_assembly(ids, goals, strategy)
+            targets, particles = self._check_assembly(ids, goals, strategy, tolerance)
             sequence = list(ids) if order is None else [int(pid) for pid in order(ids)]
         except (ValueError, InstrumentUnavailable) as exc:
             raise PushRefused(str(exc)) from exc
@@ -597,7 +639,7 @@ class PushProcedure:
             [pushes[pid] for pid in sequence if pid in pushes],
         )
 
-    def _check_assembly(self, ids: list[int], goals, strategy: str):
+    def _check_assembly(self, ids: list[int], goals, strategy: str, tolerance: float):
         """The goals by particle id and the particles as mapped now; ValueError naming what
         cannot work."""
         if len(ids) != len(goals) or not ids:
@@ -617,4 +659,8 @@ class PushProcedure:
             )
             if strategy not in STRATEGIES:
                 raise ValueError(f"strategy={strategy!r}: must be one of {list(STRATEGIES)}")
+            try:
+                self.check_goal(particles[pid], targets[pid], strategy, tolerance, blockers=False)
+            except ValueError as exc:
+                raise ValueError(f"particle {pid}: {exc}") from exc
         return targets, particles

@@ -13,6 +13,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from afm_core import checks
 from afm_core.imaging.landmarks import Landmark
 from afm_core.instrument import RasterScanData, ScannerLimits, ScanRequest
 from afm_core.manipulation.centre_push import centre_push_plan
@@ -39,6 +40,12 @@ class Localization:
     message: str = ""
 
 
+# the most zigzag steps a goal may ask for: the book's smallest advance per step (Table 7.6,
+# 36 nm) across the whole scanner range; more steps would push the particle out of it
+MAX_PUSH_STEPS = math.ceil(ScannerLimits().range_x / NanoHandParams.book().step)
+ZIGZAG_LENGTHS = ("push_length", "back_length", "lateral_offset", "step_length")
+
+
 @dataclass(frozen=True)
 class ZigzagOverrides:
     """Lengths of the nano-hand zigzag a goal may fix (m; 0: the planner chooses)."""
@@ -48,6 +55,49 @@ class ZigzagOverrides:
     lateral_offset: float = 0.0  # half-distance between the left and right push paths
     step_length: float = 0.0  # advance per step
     max_steps: int = 0
+
+    def any(self) -> bool:
+        return any(getattr(self, name) != 0 for name in (*ZIGZAG_LENGTHS, "max_steps"))
+
+    def check(self, particle_radius: float, tip_radius: float, particle_sigma: float) -> None:
+        """ValueError naming the field and its limit when the zigzag these fields fix cannot
+        work on this particle (what can be known before the tip moves: the map's particle and
+        uncertainty, the tip radius; the planner's own choice, for a perfectly localized tip,
+        stands in for the fields left 0)."""
+        for name in ZIGZAG_LENGTHS:
+            checks.non_negative(name, getattr(self, name), "m (0: the planner chooses)")
+        checks.count("max_steps", self.max_steps, 0, MAX_PUSH_STEPS)
+        reach = particle_radius + tip_radius
+        if not self.lateral_offset < reach:
+            raise ValueError(
+                f"lateral_offset={self.lateral_offset:.4e} m: must be < the particle's radius + "
+                f"tip_radius = {reach:.4e} m, or the push paths never touch the particle"
+            )
+        chosen = choose_nano_hand_params(particle_sigma, particle_radius, tip_radius)
+        push = self.push_length or chosen.left_push
+        if self.back_length and self.step_length:
+            if abs(push - self.back_length - self.step_length) > 1e-12:
+                raise ValueError(
+                    f"step_length={self.step_length:.4e} m: must be push_length - back_length "
+                    f"= {push - self.back_length:.4e} m (or leave one of them 0)"
+                )
+        back = self.back_length or (push - self.step_length if self.step_length else None)
+        back = chosen.left_back if back is None else back
+        if not back > 0:
+            raise ValueError(
+                f"step_length={self.step_length:.4e} m: must be < push_length={push:.4e} m "
+                "(fields left 0 are the planner's), or the tip never backs off"
+            )
+        if not push > back:
+            raise ValueError(
+                f"push_length={push:.4e} m: must exceed back_length={back:.4e} m (fields left 0 "
+                "are the planner's), or the zigzag never advances"
+            )
+        if not push > chosen.initial_h:
+            raise ValueError(
+                f"push_length={push:.4e} m: must exceed the approach before first contact, "
+                f"{chosen.initial_h:.4e} m for this particle's uncertainty, or no push touches it"
+            )
 
 
 def find_particle(
@@ -97,9 +147,20 @@ def control_pit_sites(request: ScanRequest, start, goal, count: int) -> list:
 
 def rescan_request(a, b, margin: float, pixel: float, line_rate: float, limits) -> ScanRequest:
     """The square image around a and b with `margin` (square, so the 0 deg scan's pixels are
-    square), in commanded scanner coordinates: the map is an image in them."""
+    square), in commanded scanner coordinates: the map is an image in them. A way too long for
+    the image is a ValueError about the distance, naming the farthest goal that fits."""
     lo, hi = np.minimum(a, b) - margin, np.maximum(a, b) + margin
     size = float(max(hi - lo))
+    widest = limits.max_speed / (2.0 * line_rate)  # trace in half a line period at the slew limit
+    if size > widest:
+        raise ValueError(
+            f"goal: {float(np.hypot(*(np.asarray(b) - np.asarray(a)))) * 1e6:.2f} um from the "
+            f"particle; the before/after images around both ({size * 1e6:.2f} um square) can be "
+            f"at most {widest * 1e6:.2f} um at rescan_line_rate={line_rate:g} Hz (slew limit "
+            f"{limits.max_speed * 1e6:g} um/s), so the goal may be at most "
+            f"{(widest - 2 * margin) * 1e6:.2f} um along an axis (lower rescan_line_rate, or "
+            "push in shorter legs)"
+        )
     pixels = int(min(limits.max_pixels, math.ceil(size / pixel)))
     request = ScanRequest(
         float(lo[0]), float(lo[1]), size, size, pixels, pixels, line_rate=line_rate

@@ -173,9 +173,22 @@ def load_config(path: str | Path | None = None) -> SimConfig:
         raise ValueError(f"simulator config {str(path)!r} does not exist")
     try:
         user = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ValueError(f"simulator config {str(path)!r} is not valid YAML: {exc}") from exc
-    return merge(config, user)
+    except OSError as exc:
+        raise ValueError(f"simulator config {str(path)!r}: cannot be read ({exc})") from exc
+    try:
+        return merge(config, user)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"simulator config {str(path)!r}: {exc}") from exc
+
+
+def check_config_file(path: str) -> str:
+    """A parameter's rule for a simulator configuration file: "" (the defaults), or a file that
+    loads (ValueError saying why not), so a node refuses a missing or broken model at start."""
+    if path:
+        load_config(path)
+    return path
 
 
 def merge(config: SimConfig, overrides: dict) -> SimConfig:

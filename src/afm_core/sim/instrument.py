@@ -479,7 +479,9 @@ class SimulatedAfm:
         nx = int(math.ceil((request.size_x + 2 * margin) / pixel)) + 1 + 2 * round(grow / pixel)
         ny = int(math.ceil((request.size_y + 2 * margin) / pixel)) + 1 + 2 * round(grow / pixel)
         tip = self.tip.grid(pixel, self._imaging_depth())
-        return DilatedField(self.sample.height, tip, x0, y0, nx, ny, pixel)
+        return DilatedField(
+            self.sample.height, tip, x0, y0, nx, ny, pixel, request.scan_angle_deg == 0.0
+        )
 
     # -- local scan lines --------------------------------------------------------------------
     def local_scan(

@@ -141,9 +141,14 @@ def load_calibration(path: str | Path) -> Calibration:
         raise ValueError(f"calibration file {str(path)!r} does not exist")
     try:
         data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ValueError(f"calibration file {str(path)!r} is not valid YAML: {exc}") from exc
-    return calibration_from_dict(data)
+    except OSError as exc:
+        raise ValueError(f"calibration file {str(path)!r}: cannot be read ({exc})") from exc
+    try:
+        return calibration_from_dict(data)
+    except (ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise ValueError(f"calibration file {str(path)!r}: {exc}") from exc
 
 
 def save_calibration(calibration: Calibration, path: str | Path) -> None:

@@ -1,0 +1,126 @@
+"""Who can reach the graph: the DDS environment every process `afm` starts gets.
+
+By default ("localhost") the graph is reachable from this machine only: each node's Fast DDS
+participant uses a profile whose only transports are shared memory and UDP on 127.0.0.1, so
+discovery and data never leave the loopback (measured: every UDP socket of a node is bound to
+127.0.0.1, test_exposure). ROS_AUTOMATIC_DISCOVERY_RANGE is left unset there: with it set to
+LOCALHOST, rmw_fastrtps (Jazzy) adds output sockets on every interface even with the profile.
+A shell with `ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST` (scripts/env.sh) still talks to the
+graph. "lab" opens the graph to the subnet (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET, Fast DDS's
+own transports); pair it with a domain id the lab has agreed on (`--domain-id`), and prefer
+SROS2 (docker/README.md) on any network others share.
+
+What the user set wins: a ROS_DOMAIN_ID or FASTRTPS_DEFAULT_PROFILES_FILE already in the
+environment is kept unless an option names another. The profile is for rmw_fastrtps (the
+default middleware); another RMW ignores it, and then only the discovery range limits it.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import MutableMapping
+from pathlib import Path
+
+NETWORKS = ("localhost", "lab")
+# ROS 2's safe range on Linux: above 101 the participants' ports run into the ephemeral range
+# (ROS 2 documentation, "The ROS_DOMAIN_ID")
+MAX_DOMAIN_ID = 101
+PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+PROFILE_NAME = "afm_dds_localhost.xml"
+LOCALHOST_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<!-- afm: DDS for one machine. Shared memory and UDP on 127.0.0.1 only, nothing else: no node
+     binds or sends on another interface (afm_bringup.exposure). -->
+<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <profiles>
+    <transport_descriptors>
+      <transport_descriptor>
+        <transport_id>afm_loopback_udp</transport_id>
+        <type>UDPv4</type>
+        <interfaceWhiteList>
+          <address>127.0.0.1</address>
+        </interfaceWhiteList>
+      </transport_descriptor>
+      <transport_descriptor>
+        <transport_id>afm_shared_memory</transport_id>
+        <type>SHM</type>
+      </transport_descriptor>
+    </transport_descriptors>
+    <participant profile_name="afm_localhost" is_default_profile="true">
+      <rtps>
+        <userTransports>
+          <transport_id>afm_shared_memory</transport_id>
+          <transport_id>afm_loopback_udp</transport_id>
+        </userTransports>
+        <useBuiltinTransports>false</useBuiltinTransports>
+      </rtps>
+    </participant>
+  </profiles>
+</dds>
+"""
+
+
+def check_domain_id(value) -> int:
+    """A ROS domain id in [0, MAX_DOMAIN_ID]; ValueError naming the option and the limit."""
+    try:
+        domain = int(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"--domain-id={value!r}: must be a whole number") from exc
+    if not 0 <= domain <= MAX_DOMAIN_ID or str(domain) != str(value).strip():
+        raise ValueError(f"--domain-id={value!r}: must be a whole number in [0, {MAX_DOMAIN_ID}]")
+    return domain
+
+
+def private_folder() -> Path:
+    """This user's folder for the profile under the temporary directory, readable by this user
+    only, so no other user can swap the file before the nodes read it."""
+    folder = Path(tempfile.gettempdir()) / f"afm-dds-{os.getuid()}"
+    folder.mkdir(mode=0o700, exist_ok=True)
+    info = folder.lstat()
+    if folder.is_symlink() or info.st_uid != os.getuid() or info.st_mode & 0o077:
+        raise ValueError(f"{folder}: not a private folder of this user; remove it")
+    return folder
+
+
+def localhost_profile(folder: str | os.PathLike | None = None) -> Path:
+    """The localhost profile written into `folder` (default: private_folder())."""
+    folder = Path(folder) if folder else private_folder()
+    path = folder / PROFILE_NAME
+    if not path.is_file() or path.read_text() != LOCALHOST_PROFILE:
+        path.write_text(LOCALHOST_PROFILE)
+    return path
+
+
+def is_ours(path: str) -> bool:
+    return Path(path).name == PROFILE_NAME
+
+
+def apply(
+    environment: MutableMapping[str, str],
+    *,
+    domain_id: int | None = None,
+    network: str = "localhost",
+    folder: str | os.PathLike | None = None,
+) -> MutableMapping[str, str]:
+    """Set the DDS variables of `environment` (os.environ, or a child's copy) for `network`
+    (module docstring); returns it."""
+    if network not in NETWORKS:
+        raise ValueError(f"--network={network!r}: must be one of {list(NETWORKS)}")
+    if domain_id is not None:
+        environment["ROS_DOMAIN_ID"] = str(check_domain_id(domain_id))
+    own = [environment.get(name, "") for name in PROFILE_VARIABLES]
+    user_profile = any(value and not is_ours(value) for value in own)
+    if network == "lab":
+        for name in PROFILE_VARIABLES:
+            if is_ours(environment.get(name, "")):
+                del environment[name]
+        environment["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"
+        return environment
+    if user_profile:  # the user's own Fast DDS profile: keep it, and localhost discovery
+        environment.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        return environment
+    profile = next((value for value in own if value), "") or str(localhost_profile(folder))
+    for name in PROFILE_VARIABLES:
+        environment[name] = profile
+    environment.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
+    return environment

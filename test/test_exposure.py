@@ -1,0 +1,102 @@
+"""Exposure: the graph's DDS stays on this machine unless asked (afm_bringup.exposure).
+
+Issue 30: every node bound its DDS sockets on all interfaces (discovery was localhost-only
+only through scripts/env.sh), the domain id could not be chosen at launch.
+"""
+
+import ipaddress
+import os
+import socket
+import struct
+from pathlib import Path
+
+import pytest
+from conftest import wait_for
+
+from afm_bringup import exposure
+from afm_bringup.cli import main
+
+
+def test_the_default_is_the_localhost_profile_and_what_the_user_set_wins(tmp_path):
+    env = exposure.apply({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}, folder=tmp_path)
+    profile = Path(env["FASTRTPS_DEFAULT_PROFILES_FILE"])
+    assert profile.read_text() == exposure.LOCALHOST_PROFILE
+    assert "<address>127.0.0.1</address>" in exposure.LOCALHOST_PROFILE
+    assert "<useBuiltinTransports>false</useBuiltinTransports>" in exposure.LOCALHOST_PROFILE
+    # with the profile, LOCALHOST would make rmw_fastrtps open sockets on every interface
+    assert "ROS_AUTOMATIC_DISCOVERY_RANGE" not in env and "ROS_DOMAIN_ID" not in env
+    mine = {"FASTRTPS_DEFAULT_PROFILES_FILE": "/etc/lab/dds.xml", "ROS_DOMAIN_ID": "7"}
+    env = exposure.apply(dict(mine), folder=tmp_path)
+    assert env["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/etc/lab/dds.xml"
+    assert (env["ROS_DOMAIN_ID"], env["ROS_AUTOMATIC_DISCOVERY_RANGE"]) == ("7", "LOCALHOST")
+    env = exposure.apply(dict(mine), domain_id=42, folder=tmp_path)
+    assert env["ROS_DOMAIN_ID"] == "42"
+    lab = exposure.apply(exposure.apply({}, folder=tmp_path), network="lab", domain_id=3)
+    assert lab == {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET", "ROS_DOMAIN_ID": "3"}
+
+
+@pytest.mark.parametrize("value", [-1, 102, "abc", 1.5])
+def test_a_bad_domain_id_is_refused_with_the_limit(value):
+    with pytest.raises(ValueError, match=r"--domain-id=.*: must be a whole number"):
+        exposure.check_domain_id(value)
+
+
+def test_afm_launch_refuses_a_bad_domain_id_before_starting_anything(capsys):
+    assert main(["launch", "--domain-id", "300", "--nodes", "planner"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["afm launch: --domain-id=300: must be a whole number in [0, 101]"]
+
+
+def udp_sockets(pid: int) -> list[tuple[str, int]]:
+    """(address, port) of every IPv4/IPv6 UDP socket process `pid` holds, from /proc."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    found = []
+    for table, family in (("udp", socket.AF_INET), ("udp6", socket.AF_INET6)):
+        lines = Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]
+        for line in lines:
+            fields = line.split()
+            if fields[9] not in inodes:
+                continue
+            address, port = fields[1].split(":")
+            raw = bytes.fromhex(address)
+            if family == socket.AF_INET:
+                raw = struct.pack("<I", int(address, 16))
+            else:
+                raw = b"".join(struct.pack("<I", w) for w in struct.unpack(">4I", raw))
+            found.append((socket.inet_ntop(family, raw), int(port, 16)))
+    return found
+
+
+@pytest.mark.ros
+def test_a_launched_node_binds_only_the_loopback_and_still_answers(tmp_path):
+    from afm_bringup.commander import AfmCommander
+    from afm_bringup.launcher import Graph
+    from afm_msgs.action import MoveTip
+
+    graph = Graph(tmp_path / "logs")  # the default: exposure.apply on this environment
+    assert graph.environment["FASTRTPS_DEFAULT_PROFILES_FILE"].endswith(exposure.PROFILE_NAME)
+    process = graph.start("driver", {"seed": "1"})
+    try:
+        with AfmCommander("exposure_test", server_timeout=60) as afm:
+            goal = MoveTip.Goal(speed=10e-6)
+            goal.target.point.x, goal.target.point.y = 20e-6, 20e-6
+            assert afm.send("move_tip", goal).success  # a client in a LOCALHOST shell talks
+        sockets = wait_for(lambda: udp_sockets(process.pid), 10, what="the driver's sockets")
+        outside = [
+            (address, port)
+            for address, port in sockets
+            if not (
+                ipaddress.ip_address(address).is_loopback
+                or ipaddress.ip_address(address).is_multicast
+            )
+        ]
+        assert not outside, f"bound beyond the loopback: {outside} (all: {sockets})"
+    finally:
+        graph.stop_all()
