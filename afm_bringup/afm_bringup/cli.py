@@ -10,6 +10,8 @@ import os
 import sys
 from pathlib import Path
 
+from afm_bringup.cli_calibrate import _add_calibrate
+from afm_bringup.cli_errors import INPUT_STATUS, one_line, refuse
 from afm_bringup.launcher import GRAPH, NODES, Graph, node_command
 from afm_bringup.units import nm, parse_length
 
@@ -131,11 +133,11 @@ def cmd_info(args):
     except RecordingError as exc:
         print(f"afm info: {one_line(exc)}", file=sys.stderr)
         return INPUT_STATUS
-    if damaged:
+    if damaged:  # damaged input: exit 2 like every other file command, the report above kept
         print(
             f"afm info: `afm recover {args.recording}` keeps the undamaged chunks", file=sys.stderr
         )
-        return 1
+        return INPUT_STATUS
     return 0
 
 
@@ -238,99 +240,6 @@ def cmd_push(args):
         f"({nm(result.achieved.x)}, {nm(result.achieved.y)}), error {nm(result.error)}"
     )
     return 0 if result.success else 1
-
-
-def cmd_calibrate(args):
-    from afm_core.backends import open_instrument
-    from afm_core.localization.calibration.model import load_calibration, save_calibration
-    from afm_core.localization.calibration.procedure import (
-        checked_experiments,
-        merge_calibration,
-        report_json,
-        report_markdown,
-        run_calibration,
-    )
-
-    output = Path(args.output)
-    if output.exists() and not args.overwrite:
-        sys.exit(f"afm calibrate: {output} exists (use --overwrite to replace it)")
-    try:
-        chosen = checked_experiments(args.only)
-        previous = load_calibration(args.merge) if args.merge else None
-        instrument = open_instrument(
-            args.backend, args.sim_config, args.seed, args.daq_device, args.daq_calibration
-        )
-        print(
-            f"calibrating the {args.backend} instrument (book 7.2.2: {', '.join(chosen)}); on "
-            "the simulator this takes minutes, on an instrument hours (the drift pairs)",
-            flush=True,
-        )
-        calibration, report = run_calibration(
-            instrument,
-            drift={"pairs": args.pairs},
-            source=f"afm calibrate --backend {args.backend}",
-            progress=lambda text: print(f"afm calibrate: {text}", flush=True),
-            only=args.only,
-            previous=previous,
-        )
-    except ValueError as exc:  # a configuration or calibration file, a parameter
-        return refuse("calibrate", exc)
-    except RuntimeError as exc:
-        sys.exit(f"afm calibrate: {exc}")
-    if previous is not None:
-        calibration = merge_calibration(previous, calibration, chosen)
-    save_calibration(calibration, output)
-    if args.report:
-        # every experiment's parameters, raw data and the fit checks; beside it the same for a
-        # person (headline parameters, outcome, checks)
-        Path(args.report).write_text(report_json(report))
-        Path(args.report).with_suffix(".md").write_text(report_markdown(report))
-    _print_calibration(output, calibration, report)
-    failed = {n: v["failed"] for n, v in report.items() if isinstance(v, dict) and "failed" in v}
-    for name, reason in failed.items():
-        print(f"afm calibrate: {name} could not measure: {reason}", file=sys.stderr)
-    if failed:
-        print(
-            f"afm calibrate: {output} keeps the book's defaults for "
-            f"{', '.join(calibration.defaults)} (listed under `defaults:` in the file); "
-            f"repeat them: afm calibrate --only {' '.join(failed)} --merge {output}",
-            file=sys.stderr,
-        )
-        return 1
-    return 0
-
-
-def _print_calibration(output, calibration, report) -> None:
-    """The headline figures (those measured; the file's `defaults:` lists the rest) and every
-    warning of the fit checks."""
-    c, measured = calibration, set(calibration.measured)
-    parts = [
-        ("hysteresis_x", f"hysteresis loop x {c.hysteresis_x.loop_fraction:.3f} of the range"),
-        ("hysteresis_y", f"hysteresis loop y {c.hysteresis_y.loop_fraction:.3f} of the range"),
-        (
-            "creep_time_constants",
-            "creep time constants " + ", ".join(f"{t:.2f}" for t in c.creep_time_constants) + " s",
-        ),
-        ("motion_noise_slope_x", f"motion noise {c.motion_noise().k_h1 * 1e9:.4f} nm^2/nm"),
-        (
-            "drift_mean_velocity",
-            f"drift {c.drift_mean_velocity[0] * 1e9:.3f}, "
-            f"{c.drift_mean_velocity[1] * 1e9:.3f} nm/s",
-        ),
-        (
-            "scanner_matrix",
-            "scanner matrix " + str([[round(v, 4) for v in row] for row in c.scanner_matrix]),
-        ),
-        ("map_sigma", f"map error {c.map_sigma[0] * 1e9:.1f}, {c.map_sigma[1] * 1e9:.1f} nm"),
-        ("line_deflection_mean_deg", f"line deflection {c.line_deflection_mean_deg:.3f} deg"),
-    ]
-    shown = [text for field, text in parts if field in measured]
-    print(f"wrote {output}: " + ("; ".join(shown) if shown else "nothing measured"))
-    warnings = [c for c in report.get("checks", []) if c["level"] == "warning"]
-    for check in warnings:
-        print(f"afm calibrate: WARNING {check['experiment']}: {check['message']}", file=sys.stderr)
-    if not warnings:
-        print("afm calibrate: every fit check passed (see --report for each fit's residual)")
 
 
 def cmd_sim2real(args):
@@ -566,57 +475,6 @@ def _add_image(sub) -> None:
     p.set_defaults(func=run_image)
 
 
-def _add_calibrate(sub) -> None:
-    p = sub.add_parser(
-        "calibrate",
-        help="run the calibration experiments on an instrument, write the file the "
-        "localizer, planner and nano-hand load",
-        description="The book's calibration experiments (7.2.2) on the instrument itself (run it "
-        "while no driver node uses the instrument): drift statistics from frame-up/down "
-        "pairs, creep and hysteresis from indentation pits, scanner matrix, motion-noise "
-        "variance against distance, line deflection, map and scan-region errors.",
-    )
-    p.add_argument("--output", "-o", required=True, help="calibration YAML to write")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    p.add_argument("--backend", choices=["sim", "daq"], default="sim")
-    p.add_argument(
-        "--sim-config",
-        default="",
-        help="simulator configuration YAML (sim backend; default: defaults)",
-    )
-    p.add_argument(
-        "--seed", type=int, default=-1, help="simulator seed (sim backend; default: the config's)"
-    )
-    p.add_argument("--daq-device", default="Dev1", help="NI-DAQmx device name (daq backend)")
-    p.add_argument("--daq-calibration", default="", help="DAQ calibration YAML (daq backend)")
-    p.add_argument(
-        "--pairs",
-        type=int,
-        default=100,
-        help="frame-up/down pairs for the drift statistics, one an hour",
-    )
-    p.add_argument(
-        "--report",
-        default="",
-        help="also write every experiment's fitted parameters, raw data and fit checks (JSON), "
-        "and a summary a person reads beside it (same name, .md)",
-    )
-    p.add_argument(
-        "--only",
-        nargs="+",
-        metavar="EXPERIMENT",
-        help="run only these experiments (drift, map_errors, creep, hysteresis_x, "
-        "hysteresis_y, scanner_matrix, motion_noise, line_deflection), e.g. one a check flagged",
-    )
-    p.add_argument(
-        "--merge",
-        default="",
-        help="calibration YAML to update: the file written is this one with the fields the "
-        "experiments run now measured replaced (each field's `measured:` entry says when)",
-    )
-    p.set_defaults(func=cmd_calibrate)
-
-
 def _add_sim2real(sub) -> None:
     p = sub.add_parser(
         "sim2real",
@@ -769,7 +627,6 @@ def build_parser() -> argparse.ArgumentParser:
 # the subcommands that read files a user names; a damaged or wrong file is refused with one line
 # and exit status 2 (argparse's status for bad input), never a traceback
 FILE_COMMANDS = ("info", "recover", "image", "calibrate", "sim2real")
-INPUT_STATUS = 2
 
 
 def input_errors() -> tuple[type[BaseException], ...]:
@@ -802,16 +659,6 @@ def input_errors() -> tuple[type[BaseException], ...]:
         McapError,
         RecordingError,
     )
-
-
-def one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    return text if text else type(exc).__name__
-
-
-def refuse(command: str, exc: BaseException) -> int:
-    print(f"afm {command}: {one_line(exc)}", file=sys.stderr)
-    return INPUT_STATUS
 
 
 # the subcommands that start ROS participants, here or in the processes they exec
