@@ -68,7 +68,8 @@ PARAMETERS = ParameterTable(
     ),
 )
 IGNORED_WITH_ALL = {"/rosout", "/parameter_events"}
-DRAIN_SECONDS = 5.0  # at most, after SIGINT/SIGTERM, writing what had already arrived
+DRAIN_SECONDS = 1.0  # at most, after SIGINT/SIGTERM, writing what had already arrived (with
+# node_main.STOP_GRACE_S for a callback in progress, the stop stays within 2 s)
 
 
 class RecorderNode(Node):
