@@ -504,10 +504,9 @@ class Localizer:
         )
         return (request.samples - 1) * along / true_length
 
-    def _first_line_risk(self, landmark: MapLandmark, axis: str) -> float:
-        """Probability that a first line along `axis` passes beside the landmark: its error
-        across the line (tip and map, Gaussian) beyond the landmark's apparent half-width. The
-        second line's across-axis is the first one's measured axis, so only the first risks it."""
+    def _across(self, landmark: MapLandmark, axis: str) -> tuple[float, float]:
+        """For a line along `axis`: the sigma of the tip's and the map's error across it, and
+        the landmark's apparent half-width (the error across it up to which the line finds it)."""
         across = np.array([0.0, 1.0]) if axis == "x" else np.array([1.0, 0.0])
         sigma = math.sqrt(
             max(0.0, float(across @ (self.covariance + landmark.covariance) @ across))
@@ -517,21 +516,20 @@ class Localizer:
             if landmark.half_width > 0
             else landmark.radius + DEFAULT_TIP_ALLOWANCE
         )
+        return sigma, extent
+
+    def _first_line_risk(self, landmark: MapLandmark, axis: str) -> float:
+        """Probability that a first line along `axis` passes beside the landmark: its error
+        across the line (Gaussian) beyond the landmark's apparent half-width. The second line's
+        across-axis is the first one's measured axis, so only the first risks it."""
+        sigma, extent = self._across(landmark, axis)
         return math.erfc(extent / (sigma * math.sqrt(2.0))) if sigma > 0 else 0.0
 
     def search_offsets(self, landmark: MapLandmark, axis: str) -> list[float]:
         """Offsets across a missed `axis` line for the search lines, nearest first (see
         SEARCH_SIGMAS): one apparent half-width apart out to SEARCH_SIGMAS sigma, the first
         line's own track (offset 0) again but longer, at most MAX_SEARCH_LINES in all."""
-        across = np.array([0.0, 1.0]) if axis == "x" else np.array([1.0, 0.0])
-        sigma = math.sqrt(
-            max(0.0, float(across @ (self.covariance + landmark.covariance) @ across))
-        )
-        spacing = (
-            landmark.half_width
-            if landmark.half_width > 0
-            else landmark.radius + DEFAULT_TIP_ALLOWANCE
-        )
+        sigma, spacing = self._across(landmark, axis)
         reach = max(SEARCH_SIGMAS * sigma, spacing)
         offsets = [0.0]
         k = 1
