@@ -12,7 +12,14 @@ from pathlib import Path
 
 from afm_bringup.cli_calibrate import _add_calibrate
 from afm_bringup.cli_errors import INPUT_STATUS, one_line, refuse
-from afm_bringup.launcher import GRAPH, NODES, Graph, node_command
+from afm_bringup.launcher import (
+    GRAPH,
+    NODES,
+    Graph,
+    node_command,
+    sim_calibration_file,
+    with_sim_calibration,
+)
 from afm_bringup.units import nm, parse_length
 
 
@@ -55,6 +62,13 @@ def cmd_launch(args):
         if node not in nodes or not name:
             sys.exit(f"afm launch: -p {key}: expected NODE.PARAMETER with NODE in {nodes}")
         overrides.setdefault(node, {})[name] = value
+    given = with_sim_calibration(nodes, overrides, sim_calibration_file())
+    if given:
+        print(
+            f"afm launch: {', '.join(given)} use the simulator's calibration "
+            f"({sim_calibration_file()}); -p NODE.calibration_file:=FILE for another",
+            file=sys.stderr,
+        )
     if args.record:
         graph.start("recorder", {"output": args.record})
         if "sim2real" in nodes:

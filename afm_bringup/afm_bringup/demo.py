@@ -31,7 +31,7 @@ from std_msgs.msg import Header
 from afm_bringup.commander import AfmCommander
 from afm_bringup.demo_evaluation import PUSH_DISTANCE, PUSH_TOLERANCE, evaluate, judge_run
 from afm_bringup.demo_report import write_report
-from afm_bringup.launcher import GRAPH, Graph
+from afm_bringup.launcher import CALIBRATED_NODES, GRAPH, Graph, sim_calibration_file
 from afm_bringup.units import nm
 from afm_core.manipulation import path_blocker
 from afm_msgs.msg import LandmarkArray, RasterScan
@@ -43,15 +43,6 @@ from afm_ros.qos_profiles import LATCHED
 SCAN_ORIGIN = (54.3e-6, 54.3e-6)  # m: the simulated sample's particles lie around (55 um, 55 um)
 SCAN_SIZE = (1.8e-6, 1.8e-6)
 SCAN_PIXELS = (256, 256)
-CALIBRATED_NODES = ("driver", "localizer", "planner", "nano_hand")
-
-
-def calibration_file() -> str:
-    from ament_index_python.packages import get_package_share_directory
-
-    return str(
-        Path(get_package_share_directory("afm_localization")) / "config" / "sim_calibration.yaml"
-    )
 
 
 def peak_rss_bytes(pid: int) -> int:
@@ -174,7 +165,7 @@ def acquire(run_dir: Path, log) -> tuple[dict, dict, dict, dict]:
     memory per process, the push's outcome, timings)."""
     graph = Graph(run_dir / "logs")
     graph.start("recorder", {"output": str(run_dir / "session.mcap")})
-    calibration = calibration_file()
+    calibration = sim_calibration_file()
     for name in GRAPH:
         graph.start(name, {"calibration_file": calibration} if name in CALIBRATED_NODES else None)
     log(f"graph started: {', '.join(graph.processes)} (logs in {run_dir / 'logs'})")

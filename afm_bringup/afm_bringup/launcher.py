@@ -43,6 +43,34 @@ MAX_RESTARTS = 3
 PARENT_PID_ENV = "AFM_LAUNCHER_PID"  # read by afm_ros.node_main.die_with_parent in each child
 
 
+# The nodes that load the localization calibration (the driver for its wait for creep).
+CALIBRATED_NODES = ("driver", "localizer", "planner", "nano_hand")
+
+
+def sim_calibration_file() -> str:
+    """The calibration the experiments produced on the default simulated instrument."""
+    from ament_index_python.packages import get_package_share_directory
+
+    return str(
+        Path(get_package_share_directory("afm_localization")) / "config" / "sim_calibration.yaml"
+    )
+
+
+def with_sim_calibration(nodes, overrides: dict[str, dict[str, str]], calibration: str) -> list:
+    """On the simulator (the driver's backend left at 'sim'), give every calibrated node in
+    `nodes` the simulator's calibration unless the user set one: without it the localizer
+    runs on the book's figures and the driver does not wait for creep. Changes `overrides`;
+    returns the nodes it gave the file to."""
+    if overrides.get("driver", {}).get("backend", "sim") != "sim":
+        return []
+    given = []
+    for node in CALIBRATED_NODES:
+        if node in nodes and "calibration_file" not in overrides.get(node, {}):
+            overrides.setdefault(node, {})["calibration_file"] = calibration
+            given.append(node)
+    return given
+
+
 def restart_output(output: str, attempt: int) -> str:
     """session.mcap -> session.restart1.mcap, ...: never the old name (its .part is kept)."""
     path = Path(output)
