@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from afm_bringup.launcher import GRAPH, NODES
+from afm_bringup.launcher import CALIBRATED_NODES, GRAPH, NODES, sim_calibration_file
 
 LAUNCH_FILE = Path(__file__).resolve().parents[1] / "afm_bringup" / "launch" / "afm.launch.py"
 
@@ -65,6 +65,10 @@ def test_launch_file_starts_the_graph_with_config_files(monkeypatch):
         assert node["package"] == spec.package
         # the installed config file, as `afm launch` passes it
         assert node["parameters"] and Path(node["parameters"][0]).name == spec.params_file
+        # on the simulator, its calibration for the nodes that load one, as `afm launch` does
+        given = [p.get("calibration_file") for p in node["parameters"][1:] if isinstance(p, dict)]
+        wanted = [sim_calibration_file()] if node["executable"] in CALIBRATED_NODES else []
+        assert given == wanted, node
 
 
 def test_launch_file_record_starts_the_recorder_first(monkeypatch):

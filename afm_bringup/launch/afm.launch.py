@@ -5,7 +5,8 @@ The node list and each node's parameter file come from afm_bringup.launcher (NOD
 the table `afm launch` uses, so the two cannot drift apart. Each node runs its package's
 console script with the package's installed config/<node>.yaml. `record:=FILE` also starts
 the MCAP recorder (first, so it hears the others start) and tells the sim-to-real node where
-the live recording is, as `afm launch --record FILE` does.
+the live recording is, as `afm launch --record FILE` does; on the simulator the driver,
+localizer, planner and nano-hand get its calibration, as `afm launch` gives it.
 """
 
 from launch import LaunchDescription
@@ -13,7 +14,13 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from afm_bringup.launcher import GRAPH, NODES, default_params_file
+from afm_bringup.launcher import (
+    GRAPH,
+    NODES,
+    default_params_file,
+    sim_calibration_file,
+    with_sim_calibration,
+)
 
 
 def _node(name: str, overrides: dict) -> Node:
@@ -34,9 +41,11 @@ def _graph(context, *args, **kwargs):
             f"nodes:={chosen}: {unknown} unknown; expected names from {sorted(NODES)}"
         )
     actions = [_node("recorder", {"output": record})] if record else []
+    overrides: dict[str, dict] = {"sim2real": {"live_recording": record}} if record else {}
+    # on the simulator, its calibration for the calibrated nodes, as `afm launch` gives it
+    with_sim_calibration(nodes, overrides, sim_calibration_file())
     for name in nodes:
-        overrides = {"live_recording": record} if (record and name == "sim2real") else {}
-        actions.append(_node(name, overrides))
+        actions.append(_node(name, overrides.get(name, {})))
     return actions
 
 
