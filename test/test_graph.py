@@ -72,7 +72,9 @@ def test_launch_records_and_stops_cleanly(tmp_path):
     with RecordingReader(record) as reader:
         topics = reader.topics()
     assert topics["/afm/scan"].message_count == 1
-    assert topics["/afm/tip_command"].message_count == 1
+    # the approach to the image's first sample, where the driver waited for creep (afm launch
+    # gives it the simulator's calibration), then the raster
+    assert topics["/afm/tip_command"].message_count == 2
     assert topics["/afm/ground_truth"].message_count >= 1
 
 
