@@ -52,36 +52,11 @@ from pathlib import Path
 import numpy as np
 
 from afm_core.imaging.gwy_structure import check_gwy_structure
+from afm_core.imaging.vendor_common import length_scale
 from afm_core.imaging.vendor_files import VENDOR_SUFFIXES, read_vendor, vendor_channels
 
 SUFFIXES = (".npz", ".npy", ".gwy")  # read and written (.npy read only)
 READ_SUFFIXES = SUFFIXES + VENDOR_SUFFIXES
-_SI_PREFIX = {
-    "": 1.0,
-    "Y": 1e24,
-    "Z": 1e21,
-    "E": 1e18,
-    "P": 1e15,
-    "T": 1e12,
-    "G": 1e9,
-    "M": 1e6,
-    "k": 1e3,
-    "h": 1e2,
-    "da": 1e1,
-    "d": 1e-1,
-    "c": 1e-2,
-    "m": 1e-3,
-    "u": 1e-6,
-    "\u00b5": 1e-6,
-    "\u03bc": 1e-6,
-    "n": 1e-9,
-    "p": 1e-12,
-    "f": 1e-15,
-    "a": 1e-18,
-    "z": 1e-21,
-    "y": 1e-24,
-}
-_ANGSTROM = ("\u00c5", "\u212b", "angstrom", "Angstrom")
 
 
 class ImageFileNotFound(FileNotFoundError, ValueError):
@@ -510,12 +485,7 @@ def _unit_scale(unit, where: str, what: str) -> float:
     )
     if text is None or not str(text).strip():
         raise ValueError(f"{where}: no {what} unit; expected a length such as 'm' or 'nm'")
-    text = str(text).strip()
-    if text in _ANGSTROM:
-        return 1e-10
-    if text.endswith("m") and text[:-1] in _SI_PREFIX:
-        return _SI_PREFIX[text[:-1]]
-    raise ValueError(f"{where}: {what} unit {text!r} is not a length; cannot convert it to metres")
+    return length_scale(str(text), where, f"{what} unit")
 
 
 # -- common ---------------------------------------------------------------------------------

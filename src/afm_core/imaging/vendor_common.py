@@ -8,9 +8,22 @@ from pathlib import Path
 
 import numpy as np
 
-_PREFIX = {
+# SI prefixes of a length unit (Gwyddion's units and the vendors' headers); "A" is not
+# Angstrom: it is the ampere of Nanonis channel tables
+_SI_PREFIX = {
     "": 1.0,
+    "Y": 1e24,
+    "Z": 1e21,
+    "E": 1e18,
+    "P": 1e15,
+    "T": 1e12,
+    "G": 1e9,
+    "M": 1e6,
     "k": 1e3,
+    "h": 1e2,
+    "da": 1e1,
+    "d": 1e-1,
+    "c": 1e-2,
     "m": 1e-3,
     "u": 1e-6,
     "\u00b5": 1e-6,
@@ -18,8 +31,11 @@ _PREFIX = {
     "n": 1e-9,
     "p": 1e-12,
     "f": 1e-15,
+    "a": 1e-18,
+    "z": 1e-21,
+    "y": 1e-24,
 }
-_ANGSTROM = ("\u00c5", "\u212b", "angstrom")  # not "A": ampere in Nanonis tables
+_ANGSTROM = ("\u00c5", "\u212b", "angstrom", "Angstrom")
 
 
 @dataclass
@@ -32,14 +48,15 @@ class VendorImage:
     title: str
 
 
-def length_scale(unit: str, where: str) -> float:
-    """Metres per `unit` (m with an SI prefix, or Angstrom); ValueError naming `where`."""
+def length_scale(unit: str, where: str, what: str = "unit") -> float:
+    """Metres per `unit` (m with an SI prefix, or Angstrom); ValueError naming `where` and
+    `what` the unit is."""
     text = unit.strip()
     if text in _ANGSTROM:
         return 1e-10
-    if text.endswith("m") and text[:-1] in _PREFIX:
-        return _PREFIX[text[:-1]]
-    raise ValueError(f"{where}: unit {unit!r} is not a length; cannot convert it to metres")
+    if text.endswith("m") and text[:-1] in _SI_PREFIX:
+        return _SI_PREFIX[text[:-1]]
+    raise ValueError(f"{where}: {what} {text!r} is not a length; cannot convert it to metres")
 
 
 def choose_channel(path: Path, names: list[str], channel) -> int:
