@@ -141,6 +141,16 @@ class DamagedChunk:
     end_ns: int
     reason: str
 
+    @classmethod
+    def of(cls, index, exc: BaseException) -> DamagedChunk:
+        """The chunk a summary's chunk index names, damaged as `exc` says."""
+        return cls(
+            index.chunk_start_offset,
+            index.message_start_time,
+            index.message_end_time,
+            describe_damage(exc),
+        )
+
     def __str__(self) -> str:
         return (
             f"chunk at byte {self.offset} (log times {self.start_ns}..{self.end_ns} ns): "
@@ -296,14 +306,7 @@ class RecordingReader:
             try:
                 read_chunk_at(self._stream, index)
             except DAMAGE_ERRORS as exc:
-                damaged.append(
-                    DamagedChunk(
-                        index.chunk_start_offset,
-                        index.message_start_time,
-                        index.message_end_time,
-                        describe_damage(exc),
-                    )
-                )
+                damaged.append(DamagedChunk.of(index, exc))
         return damaged
 
     def _damage_error(self, exc: BaseException) -> RecordingError:

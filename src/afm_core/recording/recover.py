@@ -94,14 +94,7 @@ def _by_index(stream, summary, copier: _Copier, damaged: list) -> None:
         try:
             records = read_chunk_at(stream, index)
         except DAMAGE_ERRORS as exc:
-            damaged.append(
-                DamagedChunk(
-                    index.chunk_start_offset,
-                    index.message_start_time,
-                    index.message_end_time,
-                    describe_damage(exc),
-                )
-            )
+            damaged.append(DamagedChunk.of(index, exc))
             continue
         for record in records:
             copier.take(record)
