@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import sys
 import time
@@ -36,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import cpu_model  # noqa: E402
+from machine import command_line, machine_record  # noqa: E402
 
 from afm_core.evaluation import image_frame_matrix  # noqa: E402
 from afm_core.imaging.drift_compensation import compensate_pair  # noqa: E402
@@ -181,12 +180,7 @@ def main() -> int:
         slopes["now" if now else "before"] = float(np.polyfit(lengths, rms, 1)[0])
     result = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "machine": {
-            "cpu_count": os.cpu_count(),
-            "cpu_model": cpu_model(),
-            "python": platform.python_version(),
-            "load_average_at_start": load,
-        },
+        "machine": machine_record(load),
         "seed": args.seed,
         "summary": summary,
         "nm_per_um": slopes,
@@ -196,14 +190,13 @@ def main() -> int:
     }
     RESULTS_DIR.mkdir(exist_ok=True)
     (RESULTS_DIR / "long_moves.json").write_text(json.dumps(result, indent=2))
-    command = "scripts/with_env.sh python bench/bench_long_moves.py" + (
-        f" --seed {args.seed}" if args.seed != 1 else ""
-    )
+    command = command_line()
     lines = [
         "# The localizer's prediction error against the length of a move",
         "",
-        f"Measured {result['date']} on {os.cpu_count()} CPUs ({cpu_model()}), Python "
-        f"{platform.python_version()}, load {load[0]:.2f} at start; "
+        f"Measured {result['date']} on {result['machine']['cpu_count']} CPUs "
+        f"({result['machine']['cpu_model']}), Python {result['machine']['python']}, load "
+        f"{load[0]:.2f} at start; "
         f"{result['wall_seconds']:.0f} s wall, peak memory {result['peak_rss_mib']:.0f} MiB.",
         "",
         f"Command: `{command}`",

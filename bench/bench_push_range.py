@@ -30,7 +30,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import random
 import re
 import sys
@@ -43,7 +42,7 @@ import numpy as np
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import cpu_model  # noqa: E402
+from machine import command_line, machine_record  # noqa: E402
 
 from afm_bringup.commander import AfmCommander, AfmError  # noqa: E402
 from afm_bringup.demo import peak_rss_bytes  # noqa: E402
@@ -351,21 +350,14 @@ def main() -> int:
     peak = max((r["graph_peak_bytes"] for r in rows if "graph_peak_bytes" in r), default=0)
     result = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "machine": {
-            "cpu_count": os.cpu_count(),
-            "cpu_model": cpu_model(),
-            "python": platform.python_version(),
-            "load_average_at_start": load,
-        },
+        "machine": machine_record(load),
         "trials": args.trials,
         "summary": summary,
         "graph_peak_bytes": peak,
         "runs": rows,
         "wall_seconds": time.monotonic() - started,
     }
-    command = f"scripts/with_env.sh python bench/bench_push_range.py --trials {args.trials}" + (
-        f" --first-seed {args.first_seed}" if args.first_seed else ""
-    )
+    command = command_line()
     RESULTS_DIR.mkdir(exist_ok=True)
     (RESULTS_DIR / f"{args.name}.json").write_text(json.dumps(result, indent=2))
     (RESULTS_DIR / f"{args.name}.md").write_text(markdown_report(result, command))

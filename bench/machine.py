@@ -14,6 +14,19 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+def machine_record(load_average_at_start) -> dict:
+    """The machine block of a benchmark's results: CPUs, their model, Python, and the load
+    when the run started (timings on a loaded machine are not comparable)."""
+    import os
+
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpu_model": cpu_model(),
+        "python": platform.python_version(),
+        "load_average_at_start": load_average_at_start,
+    }
+
+
 def command_line() -> str:
     """The command that ran this benchmark, as a user types it from the repository root."""
     import shlex
