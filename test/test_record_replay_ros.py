@@ -100,11 +100,26 @@ def test_record_then_replay_round_trip(tmp_path, nodes, ros_node):
     )
     assert len(received["scan"]) == 1 and received["scan"][0][1].pair_id == raster_scan(7).pair_id
     assert received["landmarks"][0][1] == landmarks(2)
-    replay_gaps = np.diff([t for t, _ in received["trace"]])
-    # the recorded pacing, judged by the typical gap and by never running ahead of it (a shared
-    # machine can stall the replay once; it then catches up with the schedule, as rosbag2 does)
-    assert abs(np.median(replay_gaps) - np.median(gaps)) < 0.25 * np.median(gaps)
-    assert np.sum(replay_gaps) > 0.75 * np.sum(gaps)
+    # the recorded pacing: no trace goes out earlier after the first message than it was
+    # recorded after it (an unpaced replay sends all within milliseconds); a stall on a shared
+    # machine only delays, and the messages then due go out at once, as rosbag2 does
+    with RecordingReader(path) as reader:
+        recorded_at = {
+            (topic, i): message.log_time
+            for topic in ("/afm/scan", "/afm/landmarks")
+            for i, (_, _, message) in enumerate(reader.raw_messages([topic]))
+        }
+    first_rec = min(recorded_at.values())
+    first_sent = min(
+        t
+        for key, topic in (("scan", "/afm/scan"), ("landmarks", "/afm/landmarks"))
+        for i, (t, _) in enumerate(received[key])
+        if recorded_at[(topic, i)] == first_rec
+    )
+    replay_after_first = np.array([t for t, _ in received["trace"]]) - first_sent
+    recorded_after_first = (np.array(log_times) - first_rec) * 1e-9
+    assert np.all(replay_after_first > recorded_after_first - 0.002)
+    assert replay_after_first[-1] < recorded_after_first[-1] + 10.0
     clock_ns = [m.clock.sec * 10**9 + m.clock.nanosec for _, m in received["clock"]]
     with RecordingReader(path) as reader:
         assert reader.start_time_ns <= min(clock_ns) and max(clock_ns) <= reader.end_time_ns
@@ -141,7 +156,8 @@ def test_replay_rate_and_topic_filter(tmp_path, nodes, ros_node):
     ).wait(60)
     assert code == 0, output
     wait_for(lambda: len(arrivals) == 11, 5, what="11 traces")
-    assert 0.35 < arrivals[-1] - arrivals[0] < 0.8  # 2 s at 4x = 0.5 s
+    # 2 s at 4x is 0.5 s and never less; at 1x it would be 2 s (a shared machine can stall it)
+    assert 0.495 < arrivals[-1] - arrivals[0] < 1.5
     assert scans == []
 
 

@@ -168,24 +168,20 @@ class ReplayNode(Node):
     def play(self):
         """Publish every selected message at its recorded time (scaled by rate)."""
         time.sleep(self.config["start_delay"])
-        rate = self.config["rate"]
-        clock_step_ns = int(1e9 / self.config["clock_frequency"])
         topics = list(self.publishers_by_topic)
         unacknowledged = dict.fromkeys(topics, 0)
         while rclpy.ok() and not STOPPING.is_set():
-            start_wall = time.monotonic()
-            start_rec = self.reader.start_time_ns
-            next_clock = start_rec
+            schedule = _Schedule(self.reader.start_time_ns, self.config["rate"])
+            next_clock = self.reader.start_time_ns
+            clock_step_ns = int(1e9 / self.config["clock_frequency"])
             for _schema, channel, message in self.reader.raw_messages(topics):
-                while True:  # /clock ticks until this message is due
-                    due_rec = message.log_time
-                    if self.clock_publisher and next_clock < due_rec:
-                        self._sleep_until(start_wall + (next_clock - start_rec) * 1e-9 / rate)
-                        self._publish_clock(next_clock)
-                        next_clock += clock_step_ns
-                        continue
-                    break
-                self._sleep_until(start_wall + (message.log_time - start_rec) * 1e-9 / rate)
+                if schedule.start_wall is None:  # /clock starts with the first message played
+                    next_clock = max(next_clock, message.log_time)
+                while self.clock_publisher and next_clock < message.log_time:
+                    schedule.wait_for(next_clock)  # /clock ticks until this message is due
+                    self._publish_clock(next_clock)
+                    next_clock += clock_step_ns
+                schedule.wait_for(message.log_time)
                 if not rclpy.ok() or STOPPING.is_set():
                     return
                 if self.clock_publisher:
@@ -195,6 +191,7 @@ class ReplayNode(Node):
                     self.wait_until_delivered([channel.topic])
                     unacknowledged[channel.topic] = 0
                 publisher.publish(message.data)
+                schedule.published(message.log_time)
                 unacknowledged[channel.topic] += 1
                 self.published += 1
             if not self.config["loop"]:
@@ -206,11 +203,30 @@ class ReplayNode(Node):
         msg.clock.sec, msg.clock.nanosec = divmod(int(t_ns), 1_000_000_000)
         self.clock_publisher.publish(msg)
 
-    @staticmethod
-    def _sleep_until(wall):
-        delay = wall - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
+
+class _Schedule:
+    """Wall-clock times of recorded ones, anchored when the first message has gone out: the
+    first publish on a new topic can take a while on a loaded machine, and a schedule anchored
+    before it would then send the messages after it as a burst. A later stall is caught up
+    (the messages then due go out at once), as rosbag2 does."""
+
+    def __init__(self, start_rec_ns: int, rate: float):
+        self.start_rec_ns = start_rec_ns
+        self.rate = rate
+        self.start_wall: float | None = None
+
+    def wall_offset(self, rec_ns: int) -> float:
+        return (rec_ns - self.start_rec_ns) * 1e-9 / self.rate
+
+    def wait_for(self, rec_ns: int):
+        if self.start_wall is not None:
+            delay = self.start_wall + self.wall_offset(rec_ns) - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+
+    def published(self, rec_ns: int):
+        if self.start_wall is None:
+            self.start_wall = time.monotonic() - self.wall_offset(rec_ns)
 
 
 def finish(node: ReplayNode):
