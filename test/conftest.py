@@ -6,6 +6,7 @@ import os
 import random
 import signal
 import subprocess
+import tempfile
 import time
 
 import pytest
@@ -13,6 +14,7 @@ import pytest
 # Isolate this run's DDS traffic from anything else on the machine (other runs, demos).
 os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(110, 200)))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+LOG_TAIL_CHARS = 6000  # of each node's output, printed when a test fails
 
 
 def wait_for(predicate, timeout=10.0, interval=0.05, what="condition"):
@@ -26,34 +28,50 @@ def wait_for(predicate, timeout=10.0, interval=0.05, what="condition"):
 
 
 class NodeProcess:
+    """A node in its own process. Its output goes to a file, never to a pipe: nobody reads a
+    pipe while the test runs, and a node that has logged 64 KiB would block in its next log
+    call and stop answering; the file is also what a failed test shows."""
+
     def __init__(self, name, overrides=None):
         from afm_bringup.launcher import node_command
 
         self.name = name
+        self.log = tempfile.TemporaryFile()
         self.process = subprocess.Popen(
             node_command(name, None, overrides),
-            stdout=subprocess.PIPE,
+            stdout=self.log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
         )
+
+    def output(self) -> str:
+        self.log.seek(0)
+        return self.log.read().decode(errors="replace")
 
     def stop(self, sig=signal.SIGINT, timeout=15.0) -> tuple[int, str]:
         if self.process.poll() is None:
             self.process.send_signal(sig)
         try:
-            output, _ = self.process.communicate(timeout=timeout)
+            self.process.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
             self.process.kill()
-            output, _ = self.process.communicate()
-        return self.process.returncode, output.decode(errors="replace")
+            self.process.wait()
+        return self.process.returncode, self.output()
 
     def wait(self, timeout=30.0) -> tuple[int, str]:
-        output, _ = self.process.communicate(timeout=timeout)
-        return self.process.returncode, output.decode(errors="replace")
+        self.process.wait(timeout=timeout)
+        return self.process.returncode, self.output()
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item, call):
+    report = yield
+    setattr(item, f"report_{report.when}", report)
+    return report
 
 
 @pytest.fixture
-def nodes():
+def nodes(request):
     started: list[NodeProcess] = []
 
     def start(name, **overrides):
@@ -65,6 +83,13 @@ def nodes():
     for node in started:
         if node.process.poll() is None:
             node.stop(signal.SIGKILL)
+    report = getattr(request.node, "report_call", None)
+    if report is not None and report.failed:
+        for node in started:  # what each node said, for the failure's diagnosis
+            tail = node.output()[-LOG_TAIL_CHARS:]
+            print(f"\n----- {node.name} (exit {node.process.returncode}) -----\n{tail}")
+    for node in started:
+        node.log.close()
 
 
 @pytest.fixture

@@ -103,7 +103,12 @@ def test_a_push_reaches_its_goal_by_the_simulators_truth(calibration):
 
     phases = [r.phase for r in s.reports]
     total = len(result.plan.strokes)
-    assert phases == ["scanning", "localizing"] + ["pushing"] * (total + 1) + ["verifying"]
+    scanning = [r for r in s.reports if r.phase == "scanning"]
+    pits = s.procedure.settings["control_pits"]
+    assert [(r.step, r.steps_total) for r in scanning] == [(i, pits + 1) for i in range(pits + 1)]
+    assert phases == ["scanning"] * (pits + 1) + ["localizing"] + ["pushing"] * (total + 1) + [
+        "verifying"
+    ]
     pushing = [r for r in s.reports if r.phase == "pushing"]
     assert [r.step for r in pushing] == list(range(total + 1))
     assert all(r.steps_total == total for r in pushing)
@@ -134,10 +139,8 @@ def test_an_assembly_pushes_two_particles_in_the_given_order(calibration):
         assert math.hypot(*((np.asarray(achieved) - (mark.x, mark.y)) - moved)) <= 10 * NM
         assert error <= 20 * NM
     assert np.allclose(s.true_sphere(before[middle.id]), before[middle.id])  # left alone
-    assert [(r.index, r.particle_id) for r in s.reports if r.phase == "scanning"] == [
-        (0, right.id),
-        (1, left.id),
-    ]
+    started = [r for r in s.reports if r.phase == "scanning" and r.step == 0]
+    assert [(r.index, r.particle_id) for r in started] == [(0, right.id), (1, left.id)]
     assert [p.particle_id for p in result.pushes] == [right.id, left.id]
 
 
@@ -152,7 +155,7 @@ def test_a_cancel_lifts_the_tip_clear_and_says_where_the_tip_and_the_particle_ar
             mark.id,
             start + [0.0, -400 * NM],
             progress=s.reports.append,
-            should_stop=lambda: any(r.step >= 3 for r in s.reports),
+            should_stop=lambda: any(r.phase == "pushing" and r.step >= 3 for r in s.reports),
         )
 
     execution = failed.value.execution
@@ -160,8 +163,9 @@ def test_a_cancel_lifts_the_tip_clear_and_says_where_the_tip_and_the_particle_ar
     lifted = s.sim.commanded_position()
     assert execution.lift_position == lifted
     predicted = execution.predicted_particle
+    first_pushing = next(r for r in s.reports if r.phase == "pushing")
     assert str(failed.value).startswith(
-        f"cancelled after 3 of {len(s.reports[2].plan.strokes)} strokes; tip lifted clear to "
+        f"cancelled after 3 of {len(first_pushing.plan.strokes)} strokes; tip lifted clear to "
         f"({lifted[0] * 1e9:.1f} nm, {lifted[1] * 1e9:.1f} nm) in afm_scanner; particle "
         f"{mark.id} predicted at ({predicted[0] * 1e9:.1f} nm, {predicted[1] * 1e9:.1f} nm)"
     )

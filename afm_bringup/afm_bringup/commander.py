@@ -136,7 +136,8 @@ class AfmCommander:
         if not client.wait_until_answering(self.server_timeout):
             raise AfmError(
                 f"no action server at {self.ACTIONS[action][1]} answered within "
-                f"{self.server_timeout} s; is the graph running (`afm launch`)?"
+                f"{self.server_timeout} s ({client.not_answering}); is the graph running "
+                "(`afm launch`)?"
             )
         box: dict = {}
 

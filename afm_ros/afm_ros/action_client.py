@@ -92,6 +92,7 @@ class SafeActionClient(ActionClient):
     def __init__(self, *args, **kwargs):
         self._request_lock = threading.RLock()
         self._answered_at = -float("inf")  # when the server last answered us
+        self.not_answering = ""  # why wait_until_answering last gave up
         super().__init__(*args, **kwargs)
 
     def wait_until_answering(self, timeout_sec: float, probe_interval: float = 1.0) -> bool:
@@ -105,15 +106,20 @@ class SafeActionClient(ActionClient):
             return True  # it answered just now; an older answer proves nothing (it may be dead)
         deadline = time.monotonic() + timeout_sec
         if not self.wait_for_server(timeout_sec=timeout_sec):
+            self.not_answering = "the graph does not list its server"
             return False
+        probes = 0
         while (remaining := deadline - time.monotonic()) > 0:
             answered = threading.Event()
             self._cancel_goal_async(_nobodys_goal(self)).add_done_callback(
                 lambda _f: answered.set()
             )
+            probes += 1
             if answered.wait(min(probe_interval, remaining)):
                 self._answered_at = time.monotonic()
+                self.not_answering = ""
                 return True
+        self.not_answering = f"its server is listed but answered none of {probes} probes"
         return False
 
     def _forget_requests(self, futures) -> None:

@@ -173,8 +173,9 @@ class PushFailed(Exception):
 
 @dataclass(frozen=True)
 class Progress:
-    """One progress report. phase: "scanning" (control pits, before image), "localizing",
-    "pushing" (step 0 before the first stroke, then after each), "verifying"."""
+    """One progress report. phase: "scanning" (step: control pits made of steps_total, the
+    before image the last), "localizing", "pushing" (step 0 before the first stroke, then
+    after each), "verifying"."""
 
     phase: str
     particle_id: int
@@ -392,8 +393,7 @@ class PushProcedure:
         """The push of a checked goal: scan, localize, plan, execute, rescan, verify."""
         try:
             start_xy = np.array([particle.x, particle.y])
-            self._report(progress, "scanning", particle, start_xy)
-            request, before = self._scan_before(start_xy, target, should_stop)
+            request, before = self._scan_before(particle, start_xy, target, progress, should_stop)
             tip = self._localized(particle, start_xy, progress, should_stop)
             plan, execution = self._execute(
                 particle, target, strategy, tip, overrides, progress, should_stop
@@ -431,8 +431,11 @@ class PushProcedure:
             )
         )
 
-    def _scan_before(self, start_xy, target, should_stop) -> tuple[ScanRequest, RasterScanData]:
-        """The control pits, then the before image (module docstring, step 2)."""
+    def _scan_before(
+        self, particle, start_xy, target, progress, should_stop
+    ) -> tuple[ScanRequest, RasterScanData]:
+        """The control pits, then the before image (module docstring, step 2); a report
+        before each of them, so a listener that joined late still sees the phase."""
         s = self.settings
         request = rescan_request(
             start_xy,
@@ -442,10 +445,17 @@ class PushProcedure:
             s["rescan_line_rate"],
             self.instrument.limits,
         )
-        for pit in control_pit_sites(request, start_xy, target, s["control_pits"]):
+        pits = control_pit_sites(request, start_xy, target, s["control_pits"])
+        for done, pit in enumerate(pits):
+            self._report(
+                progress, "scanning", particle, start_xy, step=done, steps_total=len(pits) + 1
+            )
             self.instrument.indent(
                 pit[0], pit[1], s["pit_force"], PIT_DWELL, should_stop=should_stop
             )
+        self._report(
+            progress, "scanning", particle, start_xy, step=len(pits), steps_total=len(pits) + 1
+        )
         before = self.instrument.raster_scan(request, should_stop=should_stop)
         if should_stop() or not before.complete:
             raise PushFailed("cancelled before pushing; nothing was pushed")
