@@ -2,7 +2,13 @@
 
 from pathlib import Path
 
-from afm_bringup.launcher import CALIBRATED_NODES, sim_calibration_file, with_sim_calibration
+from afm_bringup.launcher import (
+    CALIBRATED_NODES,
+    latest_output,
+    restart_output,
+    sim_calibration_file,
+    with_sim_calibration,
+)
 from afm_core.localization.calibration.model import load_calibration
 
 
@@ -24,3 +30,17 @@ def test_on_a_real_instrument_nothing_is_given():
     overrides = {"driver": {"backend": "daq"}}
     assert with_sim_calibration(["driver", "localizer"], overrides, "x.yaml") == []
     assert overrides == {"driver": {"backend": "daq"}}
+
+
+def test_the_live_recording_follows_the_restarted_recorder(tmp_path):
+
+    output = tmp_path / "session.mcap"
+    assert latest_output(output) == output
+    (tmp_path / "session.mcap.part").write_bytes(b"")
+    assert latest_output(output) == output
+    first = Path(restart_output(str(output), 1))
+    first.with_name(first.name + ".part").write_bytes(b"")
+    assert latest_output(output) == first
+    second = Path(restart_output(str(output), 2))
+    second.write_bytes(b"")  # finished under its own name
+    assert latest_output(output) == second != first

@@ -77,6 +77,18 @@ def restart_output(output: str, attempt: int) -> str:
     return str(path.with_name(f"{path.stem}.restart{attempt}{path.suffix}"))
 
 
+def latest_output(output: str | os.PathLike) -> Path:
+    """The file the newest recorder of `output` writes (or wrote): the highest
+    restart_output(output, n) whose file or .part exists, else `output` itself."""
+    path = Path(output)
+    newest = path
+    for attempt in range(1, MAX_RESTARTS + 1):
+        candidate = Path(restart_output(str(path), attempt))
+        if candidate.exists() or candidate.with_name(candidate.name + ".part").exists():
+            newest = candidate
+    return newest
+
+
 def default_params_file(name: str) -> Path | None:
     from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 

@@ -20,6 +20,7 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
+from afm_bringup.launcher import latest_output
 from afm_core.checks import inside
 from afm_core.parameters import Parameter, ParameterTable
 from afm_core.sim.config import check_config_file
@@ -100,10 +101,13 @@ class Sim2RealNode(Node):
                 "recording is empty and the node's live_recording parameter is not set: "
                 "name a recording, or start the node with live_recording = the recorder's output"
             )
-        live = Path(live)
+        named = Path(live)
+        live = latest_output(named)  # a restarted recorder writes on under a new name
+        restarted = f" (the recorder restarted; {named.name} has what came before)"
+        restarted = restarted if live != named else ""
         part = live.with_name(live.name + ".part")
         if live.is_file():
-            return live, ""
+            return live, restarted.strip(" ()")
         if not part.is_file():
             raise ValueError(
                 f"live_recording={str(live)!r}: neither it nor {part.name} exists "
@@ -113,7 +117,7 @@ class Sim2RealNode(Node):
         snapshot, count = recover_recording(
             part, part.with_name(f"{live.stem}.snapshot-{stamp}.mcap")
         )
-        return snapshot, f"snapshot of {part.name} ({count} messages)"
+        return snapshot, f"snapshot of {part.name} ({count} messages){restarted}"
 
     def paths_for(self, goal) -> tuple[Path | None, Path]:
         """(model to compare with, report folder); a goal's own paths only under the roots."""
