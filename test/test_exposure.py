@@ -1,4 +1,4 @@
-"""Exposure: the graph's DDS stays on this machine unless asked (afm_bringup.exposure).
+"""Exposure: the graph's DDS stays on this machine unless asked (afm_ros.exposure).
 
 Issue 30: every node bound its DDS sockets on all interfaces (discovery was localhost-only
 only through scripts/env.sh), the domain id could not be chosen at launch.
@@ -8,13 +8,14 @@ import ipaddress
 import os
 import socket
 import struct
+import time
 from pathlib import Path
 
 import pytest
 from conftest import wait_for
 
-from afm_bringup import exposure
 from afm_bringup.cli import main
+from afm_ros import exposure
 
 
 def test_the_default_is_the_localhost_profile_and_what_the_user_set_wins(tmp_path):
@@ -89,14 +90,42 @@ def test_a_launched_node_binds_only_the_loopback_and_still_answers(tmp_path):
             goal.target.point.x, goal.target.point.y = 20e-6, 20e-6
             assert afm.send("move_tip", goal).success  # a client in a LOCALHOST shell talks
         sockets = wait_for(lambda: udp_sockets(process.pid), 10, what="the driver's sockets")
-        outside = [
-            (address, port)
-            for address, port in sockets
-            if not (
-                ipaddress.ip_address(address).is_loopback
-                or ipaddress.ip_address(address).is_multicast
-            )
-        ]
+        outside = outside_loopback(sockets)
         assert not outside, f"bound beyond the loopback: {outside} (all: {sockets})"
     finally:
         graph.stop_all()
+
+
+def test_a_node_on_its_own_takes_the_localhost_default_unless_told_wider(tmp_path):
+    env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}  # scripts/env.sh, or nothing at all
+    for start in (dict(env), {}):
+        applied = exposure.apply_node_default(start)
+        assert exposure.is_ours(applied["FASTRTPS_DEFAULT_PROFILES_FILE"])
+        assert "ROS_AUTOMATIC_DISCOVERY_RANGE" not in applied
+    for wider in (
+        {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"},
+        {"FASTDDS_DEFAULT_PROFILES_FILE": "/lab.xml"},
+    ):
+        assert exposure.apply_node_default(dict(wider)) == wider  # the lab's choice is kept
+
+
+def outside_loopback(sockets):
+    return [
+        (address, port)
+        for address, port in sockets
+        if not (
+            ipaddress.ip_address(address).is_loopback or ipaddress.ip_address(address).is_multicast
+        )
+    ]
+
+
+@pytest.mark.ros
+def test_a_node_started_as_ros2_run_would_binds_only_the_loopback(nodes):
+    """No `afm` in between (the test's environment has only ROS_AUTOMATIC_DISCOVERY_RANGE=
+    LOCALHOST, as scripts/env.sh sets): the node applies the localhost profile itself."""
+    assert not any(os.environ.get(name) for name in exposure.PROFILE_VARIABLES)
+    driver = nodes("driver", seed=1)
+    sockets = wait_for(lambda: udp_sockets(driver.process.pid), 20, what="the driver's sockets")
+    time.sleep(1.0)  # all its transports are open by now
+    sockets = udp_sockets(driver.process.pid)
+    assert not outside_loopback(sockets), f"bound beyond the loopback: {sockets}"

@@ -682,7 +682,7 @@ ROS_COMMANDS = ("run", "launch", "record", "replay", "scan", "push", "demo")
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.command in ROS_COMMANDS:
-        from afm_bringup import exposure
+        from afm_ros import exposure
 
         try:
             exposure.apply(

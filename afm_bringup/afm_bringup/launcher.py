@@ -122,7 +122,7 @@ class Graph:
     first still hears everything the others say while they shut down."""
 
     def __init__(self, log_dir: str | os.PathLike | None = None, environment: dict | None = None):
-        from afm_bringup import exposure
+        from afm_ros import exposure
 
         self.processes: dict[str, subprocess.Popen] = {}
         self.specs: dict[str, tuple[str, dict[str, str], object]] = {}

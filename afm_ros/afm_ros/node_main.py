@@ -19,6 +19,7 @@ from rclpy.executors import (
 )
 from rclpy.signals import SignalHandlerOptions
 
+from afm_ros import exposure
 from afm_ros.action_client import STOPPING
 
 DRAIN_IDLE = 0.01  # s without a ready callback: what had arrived is taken
@@ -76,6 +77,7 @@ def run(
         stop.set()
         STOPPING.set()
 
+    exposure.apply_node_default(os.environ)  # before ROS reads it: localhost unless told
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)

@@ -10,6 +10,9 @@ graph. "lab" opens the graph to the subnet (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET
 own transports); pair it with a domain id the lab has agreed on (`--domain-id`), and prefer
 SROS2 (docker/README.md) on any network others share.
 
+A node started on its own (`ros2 run`) applies the same default to itself (apply_node_default)
+unless its environment asks for a wider range or names a profile.
+
 What the user set wins: a ROS_DOMAIN_ID or FASTRTPS_DEFAULT_PROFILES_FILE already in the
 environment is kept unless an option names another. The profile is for rmw_fastrtps (the
 default middleware); another RMW ignores it, and then only the discovery range limits it.
@@ -30,7 +33,7 @@ PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES
 PROFILE_NAME = "afm_dds_localhost.xml"
 LOCALHOST_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
 <!-- afm: DDS for one machine. Shared memory and UDP on 127.0.0.1 only, nothing else: no node
-     binds or sends on another interface (afm_bringup.exposure). -->
+     binds or sends on another interface (afm_ros.exposure). -->
 <dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
   <profiles>
     <transport_descriptors>
@@ -87,12 +90,27 @@ def localhost_profile(folder: str | os.PathLike | None = None) -> Path:
     folder = Path(folder) if folder else private_folder()
     path = folder / PROFILE_NAME
     if not path.is_file() or path.read_text() != LOCALHOST_PROFILE:
-        path.write_text(LOCALHOST_PROFILE)
+        # whole or not at all: nodes starting at once write it together while others read it
+        fd, staged = tempfile.mkstemp(dir=folder, prefix=PROFILE_NAME, suffix=".tmp")
+        with os.fdopen(fd, "w") as file:
+            file.write(LOCALHOST_PROFILE)
+        os.replace(staged, path)
     return path
 
 
 def is_ours(path: str) -> bool:
     return Path(path).name == PROFILE_NAME
+
+
+def apply_node_default(environment: MutableMapping[str, str]) -> MutableMapping[str, str]:
+    """What a node started on its own (`ros2 run`, `python -m`) applies to its own environment
+    before it joins ROS: the localhost profile when the environment asks for nothing wider
+    (no profile, and a discovery range unset or LOCALHOST); a lab's SUBNET, OFF or own profile
+    is kept, so a node can be opened up exactly as any ROS node is."""
+    wider = environment.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST") != "LOCALHOST"
+    if wider or any(environment.get(name) for name in PROFILE_VARIABLES):
+        return environment
+    return apply(environment)
 
 
 def apply(
