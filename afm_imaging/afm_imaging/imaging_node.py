@@ -18,6 +18,7 @@ import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
+from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
@@ -34,6 +35,7 @@ from afm_ros.conversions import (
     msg_to_raster_scan,
     raster_scan_to_msg,
 )
+from afm_ros.height_image import height_image_msg
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import LATCHED
 
@@ -123,6 +125,7 @@ class ImagingNode(Node):
         self.latest_map = None
         self.lock = threading.Lock()
         self.map_pub = self.create_publisher(RasterScan, topics.CORRECTED_MAP, LATCHED)
+        self.map_image_pub = self.create_publisher(Image, topics.MAP_IMAGE, LATCHED)
         self.landmark_pub = self.create_publisher(LandmarkArray, topics.LANDMARKS, LATCHED)
         self.tip_pub = self.create_publisher(TipShape, topics.TIP_SHAPE, LATCHED)
         group = MutuallyExclusiveCallbackGroup()
@@ -197,6 +200,7 @@ class ImagingNode(Node):
         out = raster_scan_to_msg(scan, header, scan_id=msg.scan_id, pair_id=msg.pair_id)
         out.height = array_to_image(np.asarray(height, dtype=np.float32), header)
         self.map_pub.publish(out)
+        self.map_image_pub.publish(height_image_msg(height, header)[0])
         try:
             marks = extract_landmarks(
                 np.asarray(height, float),

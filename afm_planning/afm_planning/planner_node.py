@@ -41,6 +41,7 @@ from afm_ros.conversions import (
     FRAME_TASK,
     pose_to_mean_cov,
 )
+from afm_ros.instrument_clock import InstrumentClock
 from afm_ros.landmark_map import NewestLandmarkMap
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, LATCHED
@@ -102,6 +103,8 @@ class PlannerNode(Node):
         self.create_subscription(
             PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10, callback_group=inputs
         )
+        # plans and markers are stamped on the instrument's clock, as every other message
+        self.instrument_clock = InstrumentClock(self, callback_group=inputs)
         self.path_pub = self.create_publisher(PlannedPath, topics.PLANNED_PATH, EVENTS)
         self.marker_pub = self.create_publisher(MarkerArray, topics.MARKERS, LATCHED)
         self.create_service(
@@ -217,7 +220,7 @@ class PlannerNode(Node):
                 self.noise,
                 direction=request.direction or "h",
             )
-            header = Header(stamp=self.get_clock().now().to_msg(), frame_id=FRAME_TASK)
+            header = Header(stamp=self.instrument_clock.now(), frame_id=FRAME_TASK)
             out = PlannedPath()
             out.path.header = header
             for line in plan.lines:
@@ -291,7 +294,7 @@ class PlannerNode(Node):
 
     # -- outputs -----------------------------------------------------------------------------
     def route_to_msg(self, route) -> PlannedPath:
-        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=FRAME_TASK)
+        header = Header(stamp=self.instrument_clock.now(), frame_id=FRAME_TASK)
         out = PlannedPath()
         out.path.header = header
         for waypoint in route.waypoints:
