@@ -136,6 +136,17 @@ def test_a_recorded_session_shows_frames_images_markers_on_one_time_base(
             assert image.header.frame_id == scan.header.frame_id
             assert bytes(image.data) == height_to_rgb(height)[0].tobytes()
 
+    # the landmark map as markers: per landmark its 3-sigma ellipse (and a sphere)
+    (_, marks), (_, drawn) = by_topic[topics.LANDMARKS][-1], by_topic[topics.LANDMARK_MARKERS][-1]
+    assert len(marks.landmarks) >= 1 and stamp_of(drawn.markers[0]) == stamp_of(marks)
+    ellipses = {m.id: m for m in drawn.markers if m.ns == "afm_landmarks_sigma"}
+    assert sorted(ellipses) == sorted(lm.id for lm in marks.landmarks)
+    for lm in marks.landmarks:
+        axes = 6 * np.sqrt(np.linalg.eigvalsh(np.reshape(lm.covariance, (2, 2))))
+        ellipse = ellipses[lm.id]
+        np.testing.assert_allclose([ellipse.scale.y, ellipse.scale.x], axes, rtol=1e-12)
+        assert (ellipse.pose.position.x, ellipse.pose.position.y) == (lm.position.x, lm.position.y)
+
     # the markers are stamped on the instrument's clock: after the scan it followed ended
     raster = [m for _, m in by_topic[topics.TIP_COMMAND] if m.kind == TipCommand.RASTER][-1]
     raster_end = stamp_of(raster) + round(raster.duration * 1e9)

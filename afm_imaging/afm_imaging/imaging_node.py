@@ -21,6 +21,7 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 
 from afm_core import checks
 from afm_core.imaging.landmarks import MapErrorModel, extract_landmarks
@@ -36,6 +37,7 @@ from afm_ros.conversions import (
     raster_scan_to_msg,
 )
 from afm_ros.height_image import height_image_msg
+from afm_ros.markers import landmark_markers
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import LATCHED
 
@@ -127,6 +129,9 @@ class ImagingNode(Node):
         self.map_pub = self.create_publisher(RasterScan, topics.CORRECTED_MAP, LATCHED)
         self.map_image_pub = self.create_publisher(Image, topics.MAP_IMAGE, LATCHED)
         self.landmark_pub = self.create_publisher(LandmarkArray, topics.LANDMARKS, LATCHED)
+        self.landmark_marker_pub = self.create_publisher(
+            MarkerArray, topics.LANDMARK_MARKERS, LATCHED
+        )
         self.tip_pub = self.create_publisher(TipShape, topics.TIP_SHAPE, LATCHED)
         group = MutuallyExclusiveCallbackGroup()
         # latched like the publisher, but a queue: a 0/90 pair may arrive back to back
@@ -216,6 +221,7 @@ class ImagingNode(Node):
             return
         array = landmarks_to_msg(marks, header)
         self.landmark_pub.publish(array)
+        self.landmark_marker_pub.publish(landmark_markers(array))
         with self.lock:
             self.latest_map = (height, scan.pixel_size_x, header)
         self.get_logger().info(

@@ -15,6 +15,7 @@ MARKERS = "/afm/markers"  # visualization_msgs/MarkerArray
 # What viewers that know only standard messages show (Foxglove, RViz, rqt_image_view)
 SCAN_IMAGE = "/afm/scan/image"  # sensor_msgs/Image rgb8, each scan colour-mapped, latched
 MAP_IMAGE = "/afm/map/image"  # sensor_msgs/Image rgb8, each map colour-mapped, latched
+LANDMARK_MARKERS = "/afm/landmarks/markers"  # visualization_msgs/MarkerArray, latched
 TF = "/tf"  # tf2_msgs/TFMessage: afm_task -> afm_scanner as the localizer estimates it
 TF_STATIC = "/tf_static"  # tf2_msgs/TFMessage, latched: the fixed part of the frame tree
 
@@ -45,6 +46,7 @@ RECORDED_BY_DEFAULT = [
     MARKERS,
     SCAN_IMAGE,
     MAP_IMAGE,
+    LANDMARK_MARKERS,
     TF,
     TF_STATIC,
 ]
