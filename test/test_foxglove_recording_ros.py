@@ -60,17 +60,18 @@ def stamp_of(msg) -> int:
 
 
 def read(path):
+    """({topic: [(log time, decoded message)]}, [(topic, log time, stamp or None)])."""
     with RecordingReader(path) as reader:
         by_topic = {topic: [] for topic in reader.topics()}
         for topic, log_ns, msg in reader.messages():
             by_topic[topic].append((log_ns, msg))
-        raw = [
-            (channel.topic, message.log_time, stamp_ns(message.data, layouts[schema.name]))
-            for layouts in [{}]
-            for schema, channel, message in reader.raw_messages()
-            if layouts.setdefault(schema.name, stamp_layout(schema.name, schema.data.decode()))
-            or True
-        ]
+        layouts, raw = {}, []
+        for schema, channel, message in reader.raw_messages():
+            if schema.name not in layouts:
+                layouts[schema.name] = stamp_layout(schema.name, schema.data.decode())
+            raw.append(
+                (channel.topic, message.log_time, stamp_ns(message.data, layouts[schema.name]))
+            )
     return by_topic, raw
 
 
