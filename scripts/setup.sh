@@ -32,6 +32,12 @@ if [ "$(cat "$STAMPS/wheels" 2>/dev/null)" != "$wheels_print" ]; then
   echo "$wheels_print" > "$STAMPS/wheels"
 fi
 
+# The ROS wheels lack tf2_msgs (the recordings' /tf and /tf_static): vendor/tf2_msgs is the same
+# TFMessage, built only when the venv has none of its own (asked outside the workspace).
+if ! env -i PATH="$PATH" HOME="$HOME" "$PY" -c "import tf2_msgs" 2>/dev/null; then
+  ROS_PACKAGES="vendor/tf2_msgs $ROS_PACKAGES"
+fi
+
 # Everything colcon reads: a change here (new message, new entry point) needs a build.
 # Python sources are symlinked (--symlink-install), so editing them needs none.
 build_inputs=$(find $ROS_PACKAGES -type f \( -name '*.msg' -o -name '*.srv' -o -name '*.action' \

@@ -197,7 +197,11 @@ def test_afm_push_ends_soon_after_the_nano_hand_is_killed(nodes, ros_node):
 def test_a_killed_recorder_loses_at_most_about_a_second(tmp_path, nodes, ros_node):
     output = tmp_path / "r.mcap"
     recorder = nodes(
-        "recorder", output=str(output), topics="['/afm/tip_command']", discovery_period=0.1
+        "recorder",
+        output=str(output),
+        topics="['/afm/tip_command']",
+        discovery_period=0.1,
+        log_time="receive",  # the stamps below count messages (from 0, unset), not time
     )
     publisher = ros_node.create_publisher(TipCommand, topics.TIP_COMMAND, 100)
     wait_for(lambda: publisher.get_subscription_count() > 0, 30, what="the recorder")

@@ -35,7 +35,11 @@ def publish_session(node, n_traces=20, period=0.02):
 def test_record_then_replay_round_trip(tmp_path, nodes, ros_node):
     path = tmp_path / "session.mcap"
     scan_pub, marks_pub, trace_pub = publish_session(ros_node)
-    recorder = nodes("recorder", output=path, topics=TOPICS, discovery_period=0.1)
+    # arrival times: the replay is to reproduce the 20 ms pacing this test publishes with (the
+    # sample messages' stamps are 1 s apart)
+    recorder = nodes(
+        "recorder", output=path, topics=TOPICS, discovery_period=0.1, log_time="receive"
+    )
     wait_for(
         lambda: trace_pub.get_subscription_count() > 0 and scan_pub.get_subscription_count() > 0,
         15,

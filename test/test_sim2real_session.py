@@ -668,7 +668,7 @@ def test_late_operations_are_counted_and_a_first_command_elsewhere_is_reached_fi
 def test_a_session_recorded_from_the_driver_node_reads_and_resimulates_to_the_bit(tmp_path, nodes):
     """The real thing: the driver node (sim backend) and the recorder node, as on a lab machine.
     Its stamps are a wall-clock epoch + instrument time as a float (~0.24 us resolution) and the
-    recorder logs arrival times: the pairing and the timing hold all the same."""
+    recorder logs them as the log times: the pairing and the timing hold all the same."""
     from geometry_msgs.msg import PointStamped
 
     from afm_bringup.commander import AfmCommander

@@ -3,6 +3,12 @@
 Topics are subscribed as their publishers appear (checked every `discovery_period`), with a
 QoS that matches all of them; each channel stores the publishers' offered QoS. SIGINT and
 SIGTERM close the file properly (summary, indexes, final name).
+
+One time base: with `log_time` "header" (the default) a message's log time is the stamp it
+carries (afm_core.recording.stamps), which every node takes from the instrument's clock, so a
+viewer's timeline, its plots and `ros2 bag play` all run on the instrument's time; a message
+without a stamp gets the instrument's latest /clock (wall time when no driver publishes one).
+The wall time a message arrived is kept as its publish time. "receive" logs arrival times.
 """
 
 from __future__ import annotations
@@ -10,9 +16,16 @@ from __future__ import annotations
 import sys
 
 from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
 
 from afm_core.parameters import Parameter, ParameterTable
-from afm_core.recording import DefinitionNotFound, RecordingError, RecordingWriter
+from afm_core.recording import (
+    DefinitionNotFound,
+    RecordingError,
+    RecordingWriter,
+    full_message_definition,
+)
+from afm_core.recording.stamps import stamp_layout, stamp_ns
 from afm_ros import params, topics
 from afm_ros.message_types import describe_qos, import_message_type, subscription_qos_for
 from afm_ros.node_main import run
@@ -28,6 +41,13 @@ PARAMETERS = ParameterTable(
         "all_topics",
         False,
         "Record every topic that appears (except /rosout and /parameter_events).",
+    ),
+    Parameter(
+        "log_time",
+        "header",
+        "Log time of each message: 'header' (its stamp, the instrument's clock; unstamped "
+        "messages: the latest /clock) or 'receive' (wall time of arrival).",
+        choices=("header", "receive"),
     ),
     Parameter(
         "discovery_period",
@@ -86,6 +106,9 @@ class RecorderNode(Node):
             flush_interval=self.config["flush_interval"],
         )
         self.wanted = set(self.config["topics"])
+        self.latest_clock_ns: int | None = None
+        if self.config["log_time"] == "header":
+            self.create_subscription(Clock, "/clock", self._take_clock, 10)
         self.recorded_topics = {}
         self._skipped = set()
         self.failure: str | None = None
@@ -116,12 +139,13 @@ class RecorderNode(Node):
                 offers = [describe_qos(p.qos_profile) for p in publishers]
                 msg_type = import_message_type(type_name)
                 channel = self.writer.add_channel(topic, type_name, offers)
+                layout = stamp_layout(type_name, full_message_definition(type_name))
             except (DefinitionNotFound, ValueError) as exc:
                 self._skip(topic, str(exc))
                 continue
             qos = subscription_qos_for(offers)
             self.recorded_topics[topic] = self.create_subscription(
-                msg_type, topic, self._writer_callback(channel), qos, raw=True
+                msg_type, topic, self._writer_callback(channel, layout), qos, raw=True
             )
             self.get_logger().info(
                 f"recording {topic} ({type_name}, {qos.reliability.name.lower()}, "
@@ -132,12 +156,26 @@ class RecorderNode(Node):
         self._skipped.add(topic)
         self.get_logger().error(f"not recording {topic}: {reason}")
 
-    def _writer_callback(self, channel):
+    def _take_clock(self, msg: Clock) -> None:
+        self.latest_clock_ns = msg.clock.sec * 1_000_000_000 + msg.clock.nanosec
+
+    def log_time_ns(self, data: bytes, layout: str | None, received_ns: int) -> int:
+        if self.config["log_time"] == "receive":
+            return received_ns
+        stamp = stamp_ns(data, layout)
+        if stamp is not None:
+            return stamp
+        return received_ns if self.latest_clock_ns is None else self.latest_clock_ns
+
+    def _writer_callback(self, channel, layout: str | None):
         def write(data: bytes):
             if self.writer.closed:
                 return
+            received = self.get_clock().now().nanoseconds
             try:
-                self.writer.write(channel, self.get_clock().now().nanoseconds, data)
+                self.writer.write(
+                    channel, self.log_time_ns(data, layout, received), data, received
+                )
             except RecordingError as exc:
                 self.failure = str(exc)
                 self.get_logger().error(self.failure)

@@ -21,7 +21,9 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Image
 from std_msgs.msg import Header
+from tf2_msgs.msg import TFMessage
 
 from afm_core.backends import open_instrument
 from afm_core.instrument import LineRequest, ScanRequest, move_speed, validate_move
@@ -35,7 +37,7 @@ from afm_core.localization.creep_settle import (
 from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_msgs.msg import ForceTrace, GroundTruth, RasterScan, ScanLine, TipCommand
-from afm_ros import params, topics
+from afm_ros import frames, params, topics
 from afm_ros.conversions import (
     FRAME_SCANNER,
     FRAME_TASK,
@@ -45,6 +47,7 @@ from afm_ros.conversions import (
     seconds_to_time,
     truth_to_msg,
 )
+from afm_ros.height_image import height_image_msg
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED, SCANS, STREAM
 
@@ -196,6 +199,11 @@ class DriverNode(Node):
         self.pacing_origin = (time.monotonic(), self.instrument.time)
         self.settler = self._settler()
         self.scan_pub = self.create_publisher(RasterScan, topics.SCAN, SCANS)
+        self.scan_image_pub = self.create_publisher(Image, topics.SCAN_IMAGE, SCANS)
+        # the driver is in every graph, so it carries the tree's fixed part (stamped at the
+        # instrument's time 0, the start of the session)
+        self.tf_static_pub = self.create_publisher(TFMessage, topics.TF_STATIC, frames.STATIC_QOS)
+        self.tf_static_pub.publish(frames.static_tree(self.stamp(self.instrument.time)))
         self.line_pub = self.create_publisher(ScanLine, topics.SCAN_LINE, STREAM)
         self.trace_pub = self.create_publisher(ForceTrace, topics.FORCE_TRACE, STREAM)
         self.command_pub = self.create_publisher(TipCommand, topics.TIP_COMMAND, EVENTS)
@@ -400,6 +408,7 @@ class DriverNode(Node):
         )
         if scan.complete:
             self.scan_pub.publish(msg)
+            self.scan_image_pub.publish(height_image_msg(scan.height, msg.header)[0])
         result.scan = msg
         result = self.finish(goal_handle, result, scan.complete, "scan")
         if settled:

@@ -18,8 +18,10 @@ import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
+from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 
 from afm_core import checks
 from afm_core.imaging.landmarks import MapErrorModel, extract_landmarks
@@ -34,6 +36,8 @@ from afm_ros.conversions import (
     msg_to_raster_scan,
     raster_scan_to_msg,
 )
+from afm_ros.height_image import height_image_msg
+from afm_ros.markers import landmark_markers
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import LATCHED
 
@@ -123,7 +127,11 @@ class ImagingNode(Node):
         self.latest_map = None
         self.lock = threading.Lock()
         self.map_pub = self.create_publisher(RasterScan, topics.CORRECTED_MAP, LATCHED)
+        self.map_image_pub = self.create_publisher(Image, topics.MAP_IMAGE, LATCHED)
         self.landmark_pub = self.create_publisher(LandmarkArray, topics.LANDMARKS, LATCHED)
+        self.landmark_marker_pub = self.create_publisher(
+            MarkerArray, topics.LANDMARK_MARKERS, LATCHED
+        )
         self.tip_pub = self.create_publisher(TipShape, topics.TIP_SHAPE, LATCHED)
         group = MutuallyExclusiveCallbackGroup()
         # latched like the publisher, but a queue: a 0/90 pair may arrive back to back
@@ -197,6 +205,7 @@ class ImagingNode(Node):
         out = raster_scan_to_msg(scan, header, scan_id=msg.scan_id, pair_id=msg.pair_id)
         out.height = array_to_image(np.asarray(height, dtype=np.float32), header)
         self.map_pub.publish(out)
+        self.map_image_pub.publish(height_image_msg(height, header)[0])
         try:
             marks = extract_landmarks(
                 np.asarray(height, float),
@@ -212,6 +221,7 @@ class ImagingNode(Node):
             return
         array = landmarks_to_msg(marks, header)
         self.landmark_pub.publish(array)
+        self.landmark_marker_pub.publish(landmark_markers(array))
         with self.lock:
             self.latest_map = (height, scan.pixel_size_x, header)
         self.get_logger().info(

@@ -25,6 +25,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
+from tf2_msgs.msg import TFMessage
 
 from afm_core.instrument import ScannerLimits
 from afm_core.localization import Localizer, MapLandmark
@@ -33,7 +34,7 @@ from afm_core.localization.localizer import LOCALIZER_PARAMETERS
 from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.action import Localize
 from afm_msgs.msg import LandmarkArray, TipCommand
-from afm_ros import params, topics
+from afm_ros import frames, params, topics
 from afm_ros.action_instrument import ActionInstrument, DriverUnavailable, stamp_seconds
 from afm_ros.conversions import (
     FRAME_TASK,
@@ -124,6 +125,8 @@ class LocalizerNode(Node):
         )
         self.create_subscription(Clock, "/clock", self.on_clock, 10, callback_group=inputs)
         self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, topics.TIP_POSE, 10)
+        self.tf_pub = self.create_publisher(TFMessage, topics.TF, frames.DYNAMIC_QOS)
+        self.published_offset: tuple[float, float] | None = None
         self.create_timer(1.0 / self.config["publish_rate"], self.tick, callback_group=inputs)
         ActionServer(
             self,
@@ -229,7 +232,18 @@ class LocalizerNode(Node):
     def publish(self, time: float) -> PoseWithCovarianceStamped:
         msg = self.pose_msg(time)
         self.pose_pub.publish(msg)
+        self.publish_transform(msg)
         return msg
+
+    def publish_transform(self, pose: PoseWithCovarianceStamped) -> None:
+        """afm_task -> afm_scanner on /tf whenever the estimate moved it: the steady-rate pose
+        at rest would repeat the same transform at publish_rate and add nothing."""
+        estimate = (pose.pose.pose.position.x, pose.pose.pose.position.y)
+        commanded = self.instrument.commanded_position()
+        offset = (estimate[0] - commanded[0], estimate[1] - commanded[1])
+        if offset != self.published_offset:
+            self.tf_pub.publish(frames.scanner_in_task(pose.header.stamp, estimate, commanded))
+            self.published_offset = offset
 
     # -- the Localize action -----------------------------------------------------------------
     def landmark_for(self, goal):

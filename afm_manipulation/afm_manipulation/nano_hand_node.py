@@ -21,6 +21,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
+from visualization_msgs.msg import MarkerArray
 
 from afm_core.instrument import ScannerLimits
 from afm_core.localization.calibration.model import Calibration, load_calibration
@@ -50,6 +51,7 @@ from afm_ros.conversions import (
     wait_until,
 )
 from afm_ros.landmark_map import NewestLandmarkMap
+from afm_ros.markers import landmark_markers
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED
 
@@ -96,7 +98,7 @@ class NanoHandNode(Node):
             scanner_matrix=(load_calibration(path) if path else Calibration()).scanner_matrix,
             settings={name: self.config[name] for name in PUSH_PARAMETERS.names()},
             tip_estimate=self.current_tip,
-            on_moved=lambda moved: self.landmark_pub.publish(
+            on_moved=lambda moved: self.publish_landmarks(
                 self.landmarks.moved(moved, self.instrument.time)
             ),
         )
@@ -108,6 +110,9 @@ class NanoHandNode(Node):
         ):
             self.create_subscription(msg_type, topic, callback, qos, callback_group=inputs)
         self.landmark_pub = self.create_publisher(LandmarkArray, topics.LANDMARKS, LATCHED)
+        self.landmark_marker_pub = self.create_publisher(
+            MarkerArray, topics.LANDMARK_MARKERS, LATCHED
+        )
         self.path_pub = self.create_publisher(PlannedPath, topics.PLANNED_PATH, EVENTS)
         clients = ReentrantCallbackGroup()
         self.localize_client = SafeActionClient(
@@ -135,6 +140,11 @@ class NanoHandNode(Node):
                 cancel_callback=lambda _g: CancelResponse.ACCEPT,
                 feedback_pub_qos_profile=FEEDBACK,
             )
+
+    def publish_landmarks(self, array: LandmarkArray) -> None:
+        """The map with a moved landmark, and its markers for viewers."""
+        self.landmark_pub.publish(array)
+        self.landmark_marker_pub.publish(landmark_markers(array))
 
     def apply_parameter(self, name: str, value) -> None:
         """A run-time change reaches the procedure's next step that reads it."""

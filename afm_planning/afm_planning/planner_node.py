@@ -41,7 +41,9 @@ from afm_ros.conversions import (
     FRAME_TASK,
     pose_to_mean_cov,
 )
+from afm_ros.instrument_clock import InstrumentClock
 from afm_ros.landmark_map import NewestLandmarkMap
+from afm_ros.markers import sigma_ellipse
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, LATCHED
 
@@ -102,6 +104,8 @@ class PlannerNode(Node):
         self.create_subscription(
             PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10, callback_group=inputs
         )
+        # plans and markers are stamped on the instrument's clock, as every other message
+        self.instrument_clock = InstrumentClock(self, callback_group=inputs)
         self.path_pub = self.create_publisher(PlannedPath, topics.PLANNED_PATH, EVENTS)
         self.marker_pub = self.create_publisher(MarkerArray, topics.MARKERS, LATCHED)
         self.create_service(
@@ -217,7 +221,7 @@ class PlannerNode(Node):
                 self.noise,
                 direction=request.direction or "h",
             )
-            header = Header(stamp=self.get_clock().now().to_msg(), frame_id=FRAME_TASK)
+            header = Header(stamp=self.instrument_clock.now(), frame_id=FRAME_TASK)
             out = PlannedPath()
             out.path.header = header
             for line in plan.lines:
@@ -291,7 +295,7 @@ class PlannerNode(Node):
 
     # -- outputs -----------------------------------------------------------------------------
     def route_to_msg(self, route) -> PlannedPath:
-        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=FRAME_TASK)
+        header = Header(stamp=self.instrument_clock.now(), frame_id=FRAME_TASK)
         out = PlannedPath()
         out.path.header = header
         for waypoint in route.waypoints:
@@ -325,6 +329,9 @@ class PlannerNode(Node):
         self.marker_pub.publish(plan_markers(plan))
 
 
+PLAN_SIGMA = (0.9, 0.0, 0.2, 0.4)  # rgba of the waypoints' 3-sigma ellipses
+
+
 def plan_markers(plan: PlannedPath) -> MarkerArray:
     """The path as a line strip and each waypoint's 3-sigma ellipse as a flat cylinder."""
     header = plan.path.header
@@ -336,26 +343,13 @@ def plan_markers(plan: PlannedPath) -> MarkerArray:
     strip.points = [pose.pose.position for pose in plan.path.poses]
     markers.markers.append(strip)
     for k, pose in enumerate(plan.path.poses):
-        cov = np.array(
-            [
-                [plan.covariance_xx[k], plan.covariance_xy[k]],
-                [plan.covariance_xy[k], plan.covariance_yy[k]],
-            ]
+        cov = [
+            [plan.covariance_xx[k], plan.covariance_xy[k]],
+            [plan.covariance_xy[k], plan.covariance_yy[k]],
+        ]
+        markers.markers.append(
+            sigma_ellipse(header, "afm_plan_sigma", k + 1, pose.pose.position, cov, PLAN_SIGMA)
         )
-        values, vectors = np.linalg.eigh(cov)
-        angle = math.atan2(vectors[1, 1], vectors[0, 1])
-        ellipse = Marker(
-            header=header, ns="afm_plan_sigma", id=k + 1, type=Marker.CYLINDER, action=Marker.ADD
-        )
-        ellipse.pose.position = pose.pose.position
-        ellipse.pose.orientation.z, ellipse.pose.orientation.w = (
-            math.sin(angle / 2),
-            math.cos(angle / 2),
-        )
-        ellipse.scale.y, ellipse.scale.x = (6 * math.sqrt(max(v, 0.0)) for v in values)
-        ellipse.scale.z = 1e-9
-        ellipse.color.r, ellipse.color.b, ellipse.color.a = 0.9, 0.2, 0.4
-        markers.markers.append(ellipse)
     return markers
 
 

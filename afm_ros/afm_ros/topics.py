@@ -12,6 +12,12 @@ TIP_SHAPE = "/afm/tip_shape"  # afm_msgs/TipShape, latched
 PLANNED_PATH = "/afm/planned_path"  # afm_msgs/PlannedPath
 PUSH_GOAL = "/afm/push_goal"  # geometry_msgs/PointStamped, every accepted push goal
 MARKERS = "/afm/markers"  # visualization_msgs/MarkerArray
+# What viewers that know only standard messages show (Foxglove, RViz, rqt_image_view)
+SCAN_IMAGE = "/afm/scan/image"  # sensor_msgs/Image rgb8, each scan colour-mapped, latched
+MAP_IMAGE = "/afm/map/image"  # sensor_msgs/Image rgb8, each map colour-mapped, latched
+LANDMARK_MARKERS = "/afm/landmarks/markers"  # visualization_msgs/MarkerArray, latched
+TF = "/tf"  # tf2_msgs/TFMessage: afm_task -> afm_scanner as the localizer estimates it
+TF_STATIC = "/tf_static"  # tf2_msgs/TFMessage, latched: the fixed part of the frame tree
 
 ACTION_SCAN_IMAGE = "/afm/scan_image"
 ACTION_LOCAL_SCAN = "/afm/local_scan"
@@ -37,4 +43,10 @@ RECORDED_BY_DEFAULT = [
     TIP_SHAPE,
     PLANNED_PATH,
     PUSH_GOAL,
+    MARKERS,
+    SCAN_IMAGE,
+    MAP_IMAGE,
+    LANDMARK_MARKERS,
+    TF,
+    TF_STATIC,
 ]
