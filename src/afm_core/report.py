@@ -44,7 +44,7 @@ def save_height_maps(
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("x (nm)")
         ax.set_ylabel("y (nm)")
-        fig.colorbar(shown, ax=ax, label="height (nm)", shrink=0.85)
+        fig.colorbar(shown, ax=ax, label="height (nm)", fraction=0.046, pad=0.02)
     for ax in list(axes.flat)[len(images) :]:
         ax.set_visible(False)
     fig.savefig(path, dpi=DPI)
