@@ -137,6 +137,8 @@ class Feedback:
         return self._message
 
     def __getattr__(self, name):
+        if name.startswith("_"):  # not the message's (and no recursion before __init__ ran)
+            raise AttributeError(name)
         return getattr(self._message, name)
 
     def __str__(self) -> str:
