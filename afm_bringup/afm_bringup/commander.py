@@ -146,6 +146,8 @@ class AfmCommander:
         is updated with each and closed with the result."""
         client = self.clients[action]
         if not client.wait_until_answering(self.server_timeout):
+            if progress is not None:
+                progress[0].close()
             raise AfmError(
                 f"no action server at {self.ACTIONS[action][1]} answered within "
                 f"{self.server_timeout} s; is the graph running (`afm launch`)?"
