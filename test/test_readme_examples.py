@@ -332,3 +332,16 @@ def test_every_help_gives_defaults_and_length_units():
         ):
             missing.append(f"{command} {action.option_strings[-1]}: no unit in {text!r}")
     assert not missing, "\n".join(missing)
+
+
+def test_the_docker_readme_scans_where_the_default_sample_has_particles():
+    """docker/README.md's ScanImage goals (YAML after `send_goal ... ScanImage`) image a place
+    with particles, as the main README's scans must."""
+    text = (ROOT / "docker" / "README.md").read_text().replace("\\\n", " ")
+    goals = re.findall(r"send_goal \S+ afm_msgs/action/ScanImage\s+\"(\{.*?\})\"", text)
+    assert goals, "docker/README.md has no ScanImage example"
+    for goal in goals:
+        g = yaml.safe_load(goal)
+        # float(): PyYAML reads 1e-6 (no dot) as text, as ros2's parser would not
+        origin = (float(g["origin"]["x"]), float(g["origin"]["y"]))
+        check_scan_area(origin, (float(g["size_x"]), float(g["size_y"])))
