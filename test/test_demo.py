@@ -15,8 +15,14 @@ def test_demo_runs_end_to_end_and_reports(tmp_path):
     assert run_demo(tmp_path) == 0
     run = tmp_path / "latest"
     report = (run / "report.html").read_text()
-    assert report.count("<img") == 2 and (run / "scans.png").stat().st_size > 10_000
-    assert (run / "push.png").stat().st_size > 10_000
+    figures = ("push.png", "map.png", "forces.png", "localizer.png", "scans.png")
+    assert report.count("<img") == len(figures)
+    for name in figures:
+        assert f"src='{name}'" in report and (run / name).stat().st_size > 10_000, name
+    for block in ("Reproducibility", "simulator seed", "commit", "Open the recording in Foxglove"):
+        assert block in report, block
+    # the rescans were placed in the task frame by the push's own particle and control points
+    assert "could not be placed" not in report and "after by (" in report
     summary = json.loads((run / "summary.json").read_text())
     # the 0/90 pair and the frame-down map, then the nano-hand's before and after rescans
     map_scans = [v for v in summary["scans"] if not v["pair_id"].startswith("local")]

@@ -1,5 +1,6 @@
 """Reconstruction of a nanotube, and `afm image ...` on files a lab would have."""
 
+import re
 import subprocess
 import sys
 
@@ -152,3 +153,24 @@ def test_cli_refuses_bad_input_by_name(tmp_path):
     assert missing.returncode == 2 and "pixel_size" in missing.stderr.replace("-", "_")
     rate = run_cli("drift", scan0, scan0, "--line-rate", 0, "-o", tmp_path / "x.npz")
     assert rate.returncode == 2 and "--line-rate=0.0" in rate.stderr
+
+
+def test_cli_landmarks_are_reported_in_the_files_frame(tmp_path):
+    """A scan saved with its origin (as `afm scan --save F.npz` does) gives the particles
+    where the simulator put them, not relative to the image's corner."""
+    path = sim_map(tmp_path, "s0.npz")
+    hmap = load_height_map(path)
+    hmap.meta = {"frame_id": "afm_scanner"}
+    framed = tmp_path / "framed.npz"
+    save_height_map(framed, hmap)
+    marks = run_cli("landmarks", framed)
+    assert marks.returncode == 0, marks.stderr
+    assert "its frame afm_scanner" in marks.stdout and "from (54500.0, 54500.0) nm" in marks.stdout
+    found = [
+        (float(x), float(y))
+        for x, y in re.findall(r"at \(\s*([-\d.]+),\s*([-\d.]+)\) nm", marks.stdout)
+    ]
+    # the simulator's spheres at (55000, 55000) and (55500, 55400) nm; an ideal instrument's
+    # image puts them within a pixel (12 nm) or so
+    for true in ((55000.0, 55000.0), (55500.0, 55400.0)):
+        assert min(np.hypot(x - true[0], y - true[1]) for x, y in found) < 25.0, marks.stdout

@@ -316,3 +316,23 @@ def test_landmarks_are_where_they_were_after_a_gwy_round_trip(tmp_path):
         cy, abs=0.5e-9
     )
     assert (after[0].x, after[0].y) == pytest.approx((before[0].x, before[0].y), abs=1e-15)
+
+
+def test_how_the_scan_was_taken_survives_npz_and_gwy(tmp_path):
+    """`afm scan --save` keeps the angle, frame and time beside pixel size and origin."""
+    original = sample_map()
+    original.meta = {
+        "frame_id": "afm_scanner",
+        "stamp": 1764236400.123456,
+        "scan_angle_deg": 90.0,
+        "scan_id": 7,
+    }
+    for name in ("scan.npz", "scan.gwy"):
+        save_height_map(tmp_path / name, original)
+        back = load_height_map(tmp_path / name)
+        assert_same(back, original)
+        assert back.meta == original.meta, name  # numbers to the last bit, 7 as 7.0
+    bad = sample_map()
+    bad.meta = {"stamp": float("nan")}
+    with pytest.raises(ValueError, match="meta stamp"):
+        save_height_map(tmp_path / "bad.npz", bad)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from afm_bringup.cli_calibrate import _add_calibrate
 from afm_bringup.cli_errors import INPUT_STATUS, one_line, refuse
+from afm_bringup.cli_scan import _add_scan
 from afm_bringup.launcher import (
     GRAPH,
     NODES,
@@ -20,17 +21,9 @@ from afm_bringup.launcher import (
     sim_calibration_file,
     with_sim_calibration,
 )
-from afm_bringup.units import nm, parse_length
+from afm_bringup.units import length_type, nm
 
-
-def _length(name):
-    def convert(text):
-        try:
-            return parse_length(text, name)
-        except ValueError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from exc
-
-    return convert
+_length = length_type
 
 
 def _param(text):
@@ -179,49 +172,18 @@ def cmd_recover(args):
     return 0
 
 
-def cmd_scan(args):
-    import numpy as np
-
-    from afm_bringup.commander import AfmCommander, AfmError
-    from afm_ros.conversions import image_msg_to_array
-
-    with AfmCommander() as afm:
-        try:
-            scan = afm.scan(
-                origin=args.origin,
-                size=args.size,
-                pixels=args.pixels,
-                angle_deg=args.angle,
-                frame_up=not args.frame_down,
-                line_rate=args.line_rate,
-                mode=args.mode,
-            )
-        except AfmError as exc:
-            sys.exit(f"afm scan: {exc}")
-    height = image_msg_to_array(scan.height)
-    print(
-        f"scan {scan.scan_id}: {height.shape[1]} x {height.shape[0]} px, "
-        f"{nm(scan.size_x)} x {nm(scan.size_y)}, heights {nm(float(height.min()))} .. "
-        f"{nm(float(height.max()))}"
-    )
-    if args.save:
-        np.save(args.save, height)
-        print(f"saved heights (metres) to {args.save}")
-    return 0
-
-
 def cmd_push(args):
     from afm_bringup.commander import AfmCommander, AfmError, ServerGone
+    from afm_bringup.progress import Progress
 
-    def show(feedback):
-        est = feedback.particle_estimate
-        print(
-            f"step {feedback.step}/{feedback.steps_total} [{feedback.phase}] particle at "
-            f"({nm(est.x)}, {nm(est.y)}), peak lateral force "
-            f"{feedback.peak_lateral_force * 1e9:.2f} nN"
-        )
+    bar = Progress("push", "steps")
 
-    with AfmCommander() as afm:
+    def show(feedback):  # a bar of steps on a terminal; one line per step either way
+        if bar.interactive:
+            bar.update(feedback.step, feedback.steps_total, feedback.phase)
+        bar.note(str(feedback))
+
+    with AfmCommander() as afm, bar:
         try:
             job = afm.push(
                 goal=args.goal,
@@ -265,18 +227,27 @@ def cmd_sim2real(args):
             f"afm sim2real: --report {report} is not empty (use --overwrite to write into it)"
         )
 
-    def progress(phase):
-        if args.verbose:
-            print(f"  {phase}", file=sys.stderr, flush=True)
+    from afm_bringup.progress import Progress
+
+    bar = Progress("sim2real", "steps")
+    steps = [0]
+
+    def progress(phase):  # the step now running; in a log (or with -v) one line per step
+        steps[0] += 1
+        if bar.interactive:
+            bar.update(steps[0], None, phase[:60])
+        if args.verbose or not bar.interactive:
+            bar.note(f"  {phase}")
 
     try:
-        diagnosis = run_sim2real(
-            args.recording,
-            args.model or None,
-            report,
-            progress=progress,
-            effects=[e for e in args.effects.split(",") if e.strip()],
-        )
+        with bar:
+            diagnosis = run_sim2real(
+                args.recording,
+                args.model or None,
+                report,
+                progress=progress,
+                effects=[e for e in args.effects.split(",") if e.strip()],
+            )
     except (ValueError, OSError) as exc:  # the recording, the model or the folder
         return refuse("sim2real", exc)
     except RuntimeError as exc:
@@ -387,7 +358,12 @@ def _add_record(sub) -> None:
         "landmarks, goals, truth)",
     )
     p.add_argument("--all", action="store_true", help="record every topic that appears")
-    p.add_argument("--compression", default="zstd", choices=["zstd", "lz4", "none"])
+    p.add_argument(
+        "--compression",
+        default="zstd",
+        choices=["zstd", "lz4", "none"],
+        help="chunk compression (default zstd)",
+    )
     p.set_defaults(func=cmd_record)
 
 
@@ -430,25 +406,6 @@ def _add_recover(sub) -> None:
     p.set_defaults(func=cmd_recover)
 
 
-def _add_scan(sub) -> None:
-    p = sub.add_parser(
-        "scan",
-        help="acquire one raster image through the driver",
-        description="Acquire a raster image through the running driver (afm launch).",
-    )
-    p.add_argument("--origin", nargs=2, required=True, type=_length("origin"), metavar=("X", "Y"))
-    p.add_argument("--size", nargs=2, required=True, type=_length("size"), metavar=("W", "H"))
-    p.add_argument("--pixels", nargs=2, type=int, default=[256, 256], metavar=("NX", "NY"))
-    p.add_argument(
-        "--angle", type=float, default=0.0, choices=[0.0, 90.0], help="scan angle (deg)"
-    )
-    p.add_argument("--frame-down", action="store_true", help="slow axis downwards")
-    p.add_argument("--line-rate", type=float, default=1.0, help="lines per second (Hz)")
-    p.add_argument("--mode", default="tapping", choices=["tapping", "contact"])
-    p.add_argument("--save", metavar="FILE.npy", help="save the height image (metres)")
-    p.set_defaults(func=cmd_scan)
-
-
 def _add_push(sub) -> None:
     p = sub.add_parser(
         "push",
@@ -456,13 +413,37 @@ def _add_push(sub) -> None:
         description="Send a PushParticle goal to the nano-hand executor and print each step.",
     )
     target = p.add_mutually_exclusive_group(required=True)
-    target.add_argument("--particle", type=int, default=-1, help="landmark id of the particle")
     target.add_argument(
-        "--at", nargs=2, type=_length("at"), metavar=("X", "Y"), help="particle position"
+        "--particle", type=int, default=-1, help="landmark id of the particle (see /afm/landmarks)"
     )
-    p.add_argument("--goal", nargs=2, required=True, type=_length("goal"), metavar=("X", "Y"))
-    p.add_argument("--strategy", default="nano_hand", choices=["nano_hand", "center", "rod_hand"])
-    p.add_argument("--tolerance", type=_length("tolerance"), default=20e-9)
+    target.add_argument(
+        "--at",
+        nargs=2,
+        type=_length("at"),
+        metavar=("X", "Y"),
+        help="the particle nearest this position in afm_task (m, or with a unit: 55um), within "
+        "the nano-hand's match_radius (nano_hand.yaml)",
+    )
+    p.add_argument(
+        "--goal",
+        nargs=2,
+        required=True,
+        type=_length("goal"),
+        metavar=("X", "Y"),
+        help="where the particle should end, afm_task (m, or with a unit: 54.7um)",
+    )
+    p.add_argument(
+        "--strategy",
+        default="nano_hand",
+        choices=["nano_hand", "center", "rod_hand"],
+        help="how to push (default nano_hand, the virtual nano-hand's zigzag)",
+    )
+    p.add_argument(
+        "--tolerance",
+        type=_length("tolerance"),
+        default=20e-9,
+        help="success radius around the goal (m, or with a unit; default 20nm)",
+    )
     p.add_argument(
         "--timeout",
         type=float,
@@ -518,7 +499,13 @@ def _add_sim2real(sub) -> None:
         "fewer terms run faster)",
     )
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty report folder")
-    p.add_argument("--verbose", "-v", action="store_true", help="print each analysis step")
+    p.add_argument(
+        "--verbose",
+        "-v",
+        action="store_true",
+        help="print each analysis step on its own line also on a terminal (where a progress "
+        "bar shows the step now running; in a log every step gets a line anyway)",
+    )
     p.set_defaults(func=cmd_sim2real)
 
 
@@ -578,7 +565,11 @@ def _add_map(sub) -> None:
     )
     p.add_argument("file")
     p.add_argument("--channel", default="0", help="channel index or title (default 0)")
-    p.add_argument("--pixel-size", type=_length("pixel-size"), help="for .npy files (e.g. 2nm)")
+    p.add_argument(
+        "--pixel-size",
+        type=_length("pixel-size"),
+        help="for .npy files: pixel size (m, or with a unit: 2nm)",
+    )
     p.add_argument(
         "--level",
         type=level_method,
@@ -589,7 +580,9 @@ def _add_map(sub) -> None:
     p.add_argument(
         "--line-rate", type=float, default=1.0, help="lines per second of the scan (Hz, default 1)"
     )
-    p.add_argument("--mode", choices=("tapping", "contact"), default="tapping")
+    p.add_argument(
+        "--mode", choices=("tapping", "contact"), default="tapping", help="(default tapping)"
+    )
     p.add_argument("--scan-id", type=int, default=0, help="scan_id of the message (default 0)")
     p.add_argument(
         "--timeout", type=float, default=30.0, help="s to wait for the imaging node (default 30)"
@@ -605,7 +598,9 @@ def _add_demo(sub) -> None:
         "record to MCAP, replay, evaluate offline and write an HTML report.",
     )
     p.add_argument(
-        "--output", default="demo_output", help="folder for runs (each run gets a new subfolder)"
+        "--output",
+        default="demo_output",
+        help="folder for runs (default demo_output; each run gets a new subfolder)",
     )
     p.set_defaults(func=cmd_demo)
 

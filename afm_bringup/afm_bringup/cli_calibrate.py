@@ -3,10 +3,12 @@ fit checks, reruns of single experiments and a report (afm_core.localization.cal
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 
 from afm_bringup.cli_errors import refuse
+from afm_bringup.progress import Progress
 
 
 def cmd_calibrate(args):
@@ -34,14 +36,16 @@ def cmd_calibrate(args):
             "the simulator this takes minutes, on an instrument hours (the drift pairs)",
             flush=True,
         )
-        calibration, report = run_calibration(
-            instrument,
-            drift={"pairs": args.pairs},
-            source=f"afm calibrate --backend {args.backend}",
-            progress=lambda text: print(f"afm calibrate: {text}", flush=True),
-            only=args.only,
-            previous=previous,
-        )
+        # on stdout, with the results, as before the bar (scripts read the lines there)
+        with Progress("calibrate", "experiments", len(chosen), sys.stdout) as bar:
+            calibration, report = run_calibration(
+                instrument,
+                drift={"pairs": args.pairs},
+                source=f"afm calibrate --backend {args.backend}",
+                progress=lambda text: _experiment_progress(bar, text),
+                only=args.only,
+                previous=previous,
+            )
     except ValueError as exc:  # a configuration or calibration file, a parameter
         return refuse("calibrate", exc)
     except RuntimeError as exc:
@@ -67,6 +71,21 @@ def cmd_calibrate(args):
         )
         return 1
     return 0
+
+
+# run_calibration's progress texts: "experiment K of N: NAME ..." at the start and
+# "experiment K of N: NAME done in ..." (or "failed (...)") at the end of each experiment
+_EXPERIMENT = re.compile(r"experiment (\d+) of (\d+): (\w+) (done|failed|\.\.\.)")
+
+
+def _experiment_progress(bar, text: str) -> None:
+    """One line per progress text; on a terminal also the bar of experiments done."""
+    match = _EXPERIMENT.match(text)
+    if match and bar.interactive:
+        number, total, name, state = match.groups()
+        done = int(number) - (state == "...")
+        bar.update(done, int(total), name if state == "..." else "")
+    bar.note(f"afm calibrate: {text}")
 
 
 def _print_calibration(output, calibration, report) -> None:
@@ -114,7 +133,12 @@ def _add_calibrate(sub) -> None:
     )
     p.add_argument("--output", "-o", required=True, help="calibration YAML to write")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    p.add_argument("--backend", choices=["sim", "daq"], default="sim")
+    p.add_argument(
+        "--backend",
+        choices=["sim", "daq"],
+        default="sim",
+        help="the simulated instrument (default) or an NI DAQ card",
+    )
     p.add_argument(
         "--sim-config",
         default="",
@@ -123,13 +147,16 @@ def _add_calibrate(sub) -> None:
     p.add_argument(
         "--seed", type=int, default=-1, help="simulator seed (sim backend; default: the config's)"
     )
-    p.add_argument("--daq-device", default="Dev1", help="NI-DAQmx device name (daq backend)")
+    p.add_argument(
+        "--daq-device", default="Dev1", help="NI-DAQmx device name (daq backend; default Dev1)"
+    )
     p.add_argument("--daq-calibration", default="", help="DAQ calibration YAML (daq backend)")
     p.add_argument(
         "--pairs",
         type=int,
         default=100,
-        help="frame-up/down pairs for the drift statistics, one an hour",
+        help="frame-up/down pairs for the drift statistics, one an hour of instrument time "
+        "(default 100)",
     )
     p.add_argument(
         "--report",

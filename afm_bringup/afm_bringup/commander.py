@@ -2,8 +2,8 @@
 
     from afm_bringup.commander import AfmCommander
     with AfmCommander() as afm:
-        scan = afm.scan(origin=(4e-6, 4e-6), size=(2e-6, 2e-6), pixels=(256, 256))
-        job = afm.push(particle_id=1, goal=(5.5e-6, 5.0e-6), feedback=print, wait=False)
+        scan = afm.scan(origin=(54.2e-6, 54.5e-6), size=(2e-6, 2e-6), progress=True)
+        job = afm.push(particle_id=1, goal=(55e-6, 54.7e-6), feedback=print, wait=False)
         job.cancel()            # or: result = job.result(timeout=600)
 
 Everything is SI (metres, seconds). The commander spins its own node in a background
@@ -21,6 +21,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import Header
 
+from afm_bringup.progress import FEEDBACK_TEXTS, Feedback, Progress
 from afm_msgs.action import (
     Assemble,
     Indent,
@@ -50,12 +51,14 @@ class Job:
     the server is probed (a heartbeat): one that stops answering (its node died) ends the
     wait within SERVER_SILENCE_S with an AfmError, instead of never."""
 
-    def __init__(self, name: str, goal_handle, feedback_box: dict, client=None):
+    def __init__(self, name: str, goal_handle, feedback_box: dict, client=None, progress=None):
         self.name = name
         self._handle = goal_handle
         self._feedback = feedback_box
         self._client = client
         self._result_future = goal_handle.get_result_async()
+        if progress is not None:  # the bar ends with the action, whoever waits for it
+            self._result_future.add_done_callback(lambda _f: progress.close())
 
     @property
     def feedback(self):
@@ -129,11 +132,22 @@ class AfmCommander:
 
     # -- plumbing --------------------------------------------------------------------------
     def send(
-        self, action: str, goal, feedback=None, wait: bool = True, timeout: float | None = None
+        self,
+        action: str,
+        goal,
+        feedback=None,
+        wait: bool = True,
+        timeout: float | None = None,
+        progress=None,
     ):
-        """Send a goal; returns the result (wait=True) or a Job."""
+        """Send a goal; returns the result (wait=True) or a Job. `feedback(f)` hears each
+        feedback (str(f) is one readable line; its fields read as on the message);
+        `progress`, a `Progress` and a function of the feedback giving (done, total, status),
+        is updated with each and closed with the result."""
         client = self.clients[action]
         if not client.wait_until_answering(self.server_timeout):
+            if progress is not None:
+                progress[0].close()
             raise AfmError(
                 f"no action server at {self.ACTIONS[action][1]} answered within "
                 f"{self.server_timeout} s ({client.not_answering}); is the graph running "
@@ -141,20 +155,29 @@ class AfmCommander:
             )
         box: dict = {}
 
+        text = FEEDBACK_TEXTS.get(action, repr)
+
         def on_feedback(message):
             box["latest"] = message.feedback
+            if progress is not None:
+                progress[0].update(*progress[1](message.feedback))
             if feedback is not None:
-                feedback(message.feedback)
+                feedback(Feedback(message.feedback, text))
 
         future = client.send_goal_async(goal, feedback_callback=on_feedback)
         event = threading.Event()
         future.add_done_callback(lambda _f: event.set())
-        if not event.wait(self.server_timeout):
-            raise AfmError(f"{action}: goal not acknowledged within {self.server_timeout} s")
-        handle = future.result()
-        if not handle.accepted:
-            raise AfmError(f"{action}: goal rejected by the server")
-        job = Job(action, handle, box, client)
+        try:
+            if not event.wait(self.server_timeout):
+                raise AfmError(f"{action}: goal not acknowledged within {self.server_timeout} s")
+            handle = future.result()
+            if not handle.accepted:
+                raise AfmError(f"{action}: goal rejected by the server")
+        except AfmError:
+            if progress is not None:
+                progress[0].close()
+            raise
+        job = Job(action, handle, box, client, progress[0] if progress is not None else None)
         return job.result(timeout) if wait else job
 
     def wait_until_subscribed(
@@ -192,7 +215,12 @@ class AfmCommander:
         mode="tapping",
         pair_id="",
         timeout=None,
+        feedback=None,
+        progress=False,
     ):
+        """One raster image (the result's RasterScan); AfmError if it fails. `feedback(f)`
+        hears each line's feedback (str(f): "scan: line k of n"); `progress=True` shows the
+        lines done on stderr."""
         goal = ScanImage.Goal(
             size_x=float(size[0]),
             size_y=float(size[1]),
@@ -205,7 +233,13 @@ class AfmCommander:
             pair_id=pair_id,
         )
         goal.origin.x, goal.origin.y = float(origin[0]), float(origin[1])
-        result = self.send("scan_image", goal, timeout=timeout)
+        bar = None
+        if progress:
+            bar = (
+                Progress("scan", "lines", int(pixels[1] if angle_deg == 0 else pixels[0])),
+                lambda f: (f.lines_done, f.lines_total, ""),
+            )
+        result = self.send("scan_image", goal, feedback=feedback, timeout=timeout, progress=bar)
         if not result.success:
             raise AfmError(result.message)
         return result.scan
@@ -234,7 +268,11 @@ class AfmCommander:
         feedback=None,
         wait=True,
         timeout=None,
+        progress=False,
     ):
+        """Push a particle (by landmark id, or the one at `particle_position`) to `goal`.
+        `feedback(f)` hears each step (str(f) is one line: step, phase, the particle's and the
+        tip's estimates, peak forces); `progress=True` shows the steps done on stderr."""
         request = PushParticle.Goal(
             particle_id=int(particle_id), strategy=strategy, tolerance=float(tolerance)
         )
@@ -243,7 +281,20 @@ class AfmCommander:
             request.particle_position.x, request.particle_position.y = map(
                 float, particle_position[:2]
             )
-        return self.send("push_particle", request, feedback=feedback, wait=wait, timeout=timeout)
+        bar = None
+        if progress:
+            bar = (
+                Progress("push", "steps"),
+                lambda f: (f.step, f.steps_total, f.phase),
+            )
+        return self.send(
+            "push_particle",
+            request,
+            feedback=feedback,
+            wait=wait,
+            timeout=timeout,
+            progress=bar,
+        )
 
     # -- a lab's own scan --------------------------------------------------------------------
     def publish_scan(self, scan, scan_id: int = 0, timeout: float = 30.0):

@@ -15,6 +15,7 @@ from afm_core.evaluation import (
     image_frame_matrix,
     match_to_truth,
 )
+from afm_core.manipulation.execute import TIP_HEIGHT
 from afm_core.recording import RecordingReader
 
 MEMORY_LIMIT = 2 * 2**30  # bytes, the whole graph's peak resident memory
@@ -38,6 +39,10 @@ def evaluate(run_dir: Path) -> dict:
     scans, truth, poses, paths, marks = _read_replayed(recording)
     replay = _replay_check(run_dir / "session.mcap", recording, recorded_topics)
     final_truth = _truth_xy(truth, len(truth["log_time"]) - 1)
+    with RecordingReader(recording) as reader:
+        topics = reader.topics()
+        traces = reader.arrays("/afm/force_trace") if "/afm/force_trace" in topics else {}
+        maps = reader.arrays("/afm/map") if "/afm/map" in topics else {}
     return {
         "topics": recorded_topics,
         "duration_s": duration,
@@ -46,12 +51,80 @@ def evaluate(run_dir: Path) -> dict:
         "landmarks": _landmarks_against_truth(marks, final_truth),
         "truth_xy": _truth_xy(truth, 0).tolist(),
         "final_truth_xy": final_truth.tolist(),
+        "final_particles_xy": _truth_xy(
+            truth, len(truth["log_time"]) - 1, particles=True
+        ).tolist(),
         "truth_radius": [o["radius"] for o in truth["objects"][-1]],
         "scan_arrays": scans,
         "tip": _tip_against_truth(poses, truth) if poses else {},
         "strokes": _planned_strokes(paths),
         "truth_objects": [_truth_xy(truth, i) for i in range(len(truth["log_time"]))],
+        "truth_anchor": _truth_anchor(truth),
+        "force_strokes": _force_strokes(traces),
+        "map_image": _last_map(maps),
     }
+
+
+def _truth_anchor(truth: dict) -> dict:
+    """Where the session started, commanded (maps' frame) and true (metric): at rest there,
+    commanded = true, which ties the simulator's metric truth to the maps' frame
+    (`truth_in_maps`)."""
+    return {
+        "commanded": [truth["commanded_position.x"][0], truth["commanded_position.y"][0]],
+        "metric": [truth["tip_position.x"][0], truth["tip_position.y"][0]],
+    }
+
+
+def truth_in_maps(points, anchor: dict) -> np.ndarray:
+    """True (metric) positions as the maps' frame has them: about the start, scaled by the
+    simulated scanner's image frame (IMAGE_FRAME)."""
+    p = np.asarray(points, float).reshape(-1, 2)
+    return (
+        np.asarray(anchor["commanded"])
+        + (p - np.asarray(anchor["metric"])) @ np.linalg.inv(IMAGE_FRAME).T
+    )
+
+
+def _force_strokes(traces: dict) -> list:
+    """(label, distance along the stroke m, lateral force N, normal force N) of every push
+    stroke's force trace, in order; the lateral force as the nano-hand's own summary has it
+    (torsion x spring constant / the tip's lever arm, `execute.force_summary`)."""
+    strokes = []
+    for i, task in enumerate(traces.get("task", [])):
+        if str(task) != "push":
+            continue
+        x, y = np.asarray(traces["commanded_x"][i]), np.asarray(traces["commanded_y"][i])
+        distance = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+        strokes.append(
+            (
+                f"stroke {len(strokes) + 1}",
+                distance,
+                np.asarray(traces["lateral_torsion"][i])
+                * traces["lateral_spring_constant"][i]
+                / TIP_HEIGHT,
+                np.asarray(traces["vertical_deflection"][i]) * traces["normal_spring_constant"][i],
+            )
+        )
+    return strokes
+
+
+def _last_map(maps: dict):
+    """(title, height m, extent m) of the last drift-corrected map, or None."""
+    if not len(maps.get("height", [])):
+        return None
+    h = maps["height"][-1]
+    x0, y0 = maps["origin.x"][-1], maps["origin.y"][-1]
+    extent = (
+        x0,
+        x0 + h.shape[1] * maps["pixel_size_x"][-1],
+        y0,
+        y0 + h.shape[0] * maps["pixel_size_y"][-1],
+    )
+    return (
+        f"drift-corrected map ({maps['header.frame_id'][-1]}, {maps['pair_id'][-1]})",
+        h,
+        extent,
+    )
 
 
 def _read_replayed(recording: Path) -> tuple:
@@ -77,8 +150,19 @@ def _truth_at(truth: dict, t: float) -> int:
     return max(0, int(np.searchsorted(truth["log_time"], t, side="right")) - 1)
 
 
-def _truth_xy(truth: dict, index: int) -> np.ndarray:
-    return np.array([[o["position.x"], o["position.y"]] for o in truth["objects"][index]])
+# ObjectState.PIT: an indentation the nano-hand made, not a particle
+PIT = 3
+
+
+def _truth_xy(truth: dict, index: int, particles: bool = False) -> np.ndarray:
+    """The true object centres at truth `index` (m); `particles`: without the pits."""
+    return np.array(
+        [
+            [o["position.x"], o["position.y"]]
+            for o in truth["objects"][index]
+            if not (particles and int(o["kind"]) == PIT)
+        ]
+    ).reshape(-1, 2)
 
 
 def _scan_views(scans: dict, truth: dict) -> list[dict]:
@@ -151,6 +235,7 @@ def _landmarks_against_truth(marks, final_truth: np.ndarray) -> list[dict]:
                 "sigma_x": float(np.sqrt(mark["covariance"][0])),
                 "sigma_y": float(np.sqrt(mark["covariance"][3])),
                 "height": float(mark["height"]),
+                "covariance": [float(c) for c in mark["covariance"]],
                 "nearest_truth": distance,
             }
         )
@@ -182,7 +267,11 @@ def _tip_against_truth(poses: dict, truth: dict) -> dict:
     k = len(stamps) - 1 - np.argmax(same[:, ::-1], axis=1)  # the last published with that stamp
     errors = true_tip[ok] - means[k[ok]]
     nees = [float(e @ np.linalg.solve(c, e)) for e, c in zip(errors, cov[k[ok]])]
+    compared_cov = cov[k[ok]]
     return {
+        "times": truth_stamps[ok] - (truth_stamps[ok][0] if ok.any() else 0.0),
+        "errors": -errors,  # estimate minus truth
+        "sigmas": np.sqrt(np.stack([compared_cov[:, 0, 0], compared_cov[:, 1, 1]], axis=1)),
         "means": means,
         "covariances": cov,
         "true_tip": true_tip,

@@ -1,5 +1,7 @@
-"""The demo's report: report.html (summary, the push, tip localization, timings, scans,
-particles, landmarks, recorded topics, replay check, memory), its figures and summary.json.
+"""The demo's report: report.html (summary, the push zoomed in the task frame, the map with its
+landmarks, forces per stroke, the localizer's error, timings, scans, particles, landmarks,
+recorded topics, replay check, memory, how to reproduce the run and how to open the recording
+in Foxglove), its figures (each the page's width) and summary.json.
 """
 
 from __future__ import annotations
@@ -9,9 +11,24 @@ from pathlib import Path
 
 import numpy as np
 
-from afm_bringup.demo_evaluation import MEMORY_LIMIT, PUSH_DISTANCE, PUSH_TOLERANCE, push_truth
+from afm_bringup.demo_evaluation import (
+    MEMORY_LIMIT,
+    PUSH_DISTANCE,
+    PUSH_TOLERANCE,
+    push_truth,
+    truth_in_maps,
+)
+from afm_bringup.demo_reproduce import foxglove_section, reproducibility_section
 from afm_bringup.units import nm
-from afm_core.report import save_height_maps, save_push_figure, table, write_html
+from afm_core.evaluation import push_image_frames
+from afm_core.instrument import RasterScanData
+from afm_core.report import save_height_maps, table, write_html
+from afm_core.report_figures import (
+    save_force_figure,
+    save_localizer_figure,
+    save_map_figure,
+    save_push_figure,
+)
 
 
 def write_report(
@@ -27,15 +44,27 @@ def write_report(
     scan arrays out of `result`."""
     scans = result.pop("scan_arrays")
     images, local = _scan_images(scans)
-    save_height_maps(run_dir / "scans.png", images, markers=result["truth_xy"])
+    anchor = result["truth_anchor"]
+    save_height_maps(
+        run_dir / "scans.png",
+        images,
+        markers=truth_in_maps(result["truth_xy"], anchor),
+        marker_label="true centre at the start",
+    )
     truth = push_truth(result, push)
     tip = result.get("tip") or {}
-    if push.get("ran"):
-        _save_push_figure(run_dir / "push.png", local, result, push, tip, truth)
     sections = [_summary_section(result, memory, codes, elapsed, push)]
     if push.get("ran"):
-        sections.append(_push_section(push, truth))
+        frames_note = _save_push_figure(run_dir / "push.png", local, result, push, tip, truth)
+        sections.append(_push_section(push, truth, frames_note))
+    sections.append(_map_section(run_dir / "map.png", result, tip))
+    if result.get("force_strokes"):
+        save_force_figure(run_dir / "forces.png", result["force_strokes"])
+        sections.append(_force_section(result["force_strokes"]))
     if tip:
+        save_localizer_figure(
+            run_dir / "localizer.png", tip["times"], tip["errors"], tip["sigmas"]
+        )
         sections.append(_tip_section(tip))
     sections += [
         (
@@ -43,19 +72,24 @@ def write_report(
             table(["stage", "wall time"], [[k, f"{v:.1f} s"] for k, v in timings.items()]),
         ),
         (
-            "Scans (true particle centres at the start marked +)",
-            "<img src='scans.png' alt='height maps'>",
+            "Scans (commanded scanner coordinates, the maps' frame)",
+            "<img src='scans.png' alt='height maps'><p>+: the true particle centres at the "
+            "start, brought into the maps' frame (about where the session started, by the "
+            "simulated scanner's image scale).</p>",
         ),
         _particles_section(result),
         _landmarks_section(result),
         *_recording_sections(result, memory),
+        reproducibility_section(run_dir),
+        foxglove_section(run_dir),
     ]
     _write_summary(run_dir / "summary.json", result, memory, codes, elapsed, timings, push, truth)
     return write_html(run_dir / "report.html", "AFM nano-manipulation demo", sections)
 
 
 def _scan_images(scans: dict) -> tuple[list, list]:
-    """(title, height, extent) of every scan: (the graph's scans, the nano-hand's local ones)."""
+    """(title, height, extent) of every scan: (the graph's scans, the nano-hand's local ones,
+    these with their RasterScanData too)."""
     images, local = [], []
     for i in range(len(scans["scan_id"])):
         x0, y0 = scans["origin.x"][i], scans["origin.y"][i]
@@ -70,27 +104,120 @@ def _scan_images(scans: dict) -> tuple[list, list]:
             f"scan {scans['scan_id'][i]}: {scans['scan_angle_deg'][i]:.0f} deg, "
             f"frame-{'up' if scans['slow_scan_up'][i] else 'down'}"
         )
-        (local if str(scans["pair_id"][i]).startswith("local") else images).append(
-            (title, h, extent)
-        )
+        if str(scans["pair_id"][i]).startswith("local"):  # with its record, to place it
+            local.append((title, h, extent, _raster(scans, i)))
+        else:
+            images.append((title, h, extent))
     return images, local
 
 
+def _raster(scans: dict, i: int) -> RasterScanData:
+    return RasterScanData(
+        height=np.asarray(scans["height"][i], float),
+        pixel_size_x=float(scans["pixel_size_x"][i]),
+        pixel_size_y=float(scans["pixel_size_y"][i]),
+        origin_x=float(scans["origin.x"][i]),
+        origin_y=float(scans["origin.y"][i]),
+        scan_angle_deg=float(scans["scan_angle_deg"][i]),
+        slow_scan_up=bool(scans["slow_scan_up"][i]),
+        line_period=float(scans["line_period"][i]),
+        line_start_times=np.asarray(scans["line_start_times"][i], float),
+        start_time=0.0,
+        mode=str(scans["mode"][i]),
+    )
+
+
+def _shifted(panel, shift):
+    title, height, extent = panel
+    dx, dy = shift
+    return title, height, (extent[0] + dx, extent[1] + dx, extent[2] + dy, extent[3] + dy)
+
+
 def _save_push_figure(path: Path, local: list, result: dict, push: dict, tip: dict, truth: dict):
-    """The nano-hand's before and after rescans, and the tip and particle paths."""
-    before = (f"before the push ({local[0][0]})", *local[0][1:]) if local else None
-    after = (f"after the push ({local[-1][0]})", *local[-1][1:]) if len(local) > 1 else None
+    """The nano-hand's before and after rescans in the task frame, zoomed on the push, with
+    the strokes, goal, verified and true end, and the tip estimate near the push. Returns a
+    sentence on how the images were placed."""
+    before = (f"before ({local[0][0]})", *local[0][1:3]) if local else None
+    after = (f"after ({local[-1][0]})", *local[-1][1:3]) if len(local) > 1 else None
+    note = "the rescans placed in the task frame as the nano-hand's verification does"
+    try:
+        frames = push_image_frames(
+            local[0][3],
+            local[-1][3] if after is not None else None,
+            push["start"],
+            push["goal"],
+        )
+        before = _shifted(before, frames.before_shift)
+        if after is not None:
+            after = _shifted(after, frames.after_shift)
+        note += (
+            f": before shifted by ({nm(frames.before_shift[0])}, {nm(frames.before_shift[1])})"
+            + (
+                f", after by ({nm(frames.after_shift[0])}, {nm(frames.after_shift[1])}) with "
+                f"{frames.control_points} control point(s)"
+                if frames.after_shift is not None
+                else ""
+            )
+        )
+    except (ValueError, IndexError) as exc:  # no particle to tie them by: left as scanned
+        note = f"the rescans could not be placed in the task frame ({exc}); shown as scanned"
+    anchor = result["truth_anchor"]
+    track = np.asarray(truth.get("track", []), float).reshape(-1, 2)
+    # the truth's track in the maps' frame, started where the map has the particle
+    maps_track = (
+        np.asarray(push["start"]) + truth_in_maps(track, anchor) - truth_in_maps(track[:1], anchor)
+        if len(track)
+        else track
+    )
     save_push_figure(
         path,
         before,
         after,
-        tip.get("means", []),
-        tip.get("covariances", []),
-        tip.get("true_tip", []),
-        truth.get("track", []),
+        push["start"],
         push["goal"],
         push["achieved"],
-        result.get("strokes", []),
+        true_end=maps_track[-1] if len(maps_track) else None,
+        strokes=result.get("strokes", []),
+        tip_means=tip.get("means", []),
+        tip_covariances=tip.get("covariances", []),
+        true_tip=tip.get("true_tip", []),
+        particle_track=maps_track,
+    )
+    return note
+
+
+def _map_section(path: Path, result: dict, tip: dict):
+    landmarks = [
+        (m["id"], (m["x"], m["y"]), np.reshape(m["covariance"], (2, 2)))
+        for m in result["landmarks"]
+    ]
+    means = np.asarray(tip.get("means", []), float).reshape(-1, 2)
+    save_map_figure(
+        path,
+        result.get("map_image"),
+        landmarks,
+        truth=truth_in_maps(result["final_particles_xy"], result["truth_anchor"]),
+        tip_mean=means[-1] if len(means) else None,
+        tip_covariance=tip["covariances"][-1] if len(means) else None,
+        tip_means=means,
+    )
+    return (
+        "The map, its landmarks and the tip",
+        "<img src='map.png' alt='map'><p>Left: the imaging node's drift-corrected map (task "
+        "frame) with each landmark's 3-sigma ellipse (the pushed particle where the nano-hand's "
+        "rescan found it), the true centres at the end (maps' frame) and the localizer's last "
+        "tip estimate with its 3-sigma ellipse. Right: the tip's estimated way over the whole "
+        "session.</p>",
+    )
+
+
+def _force_section(strokes: list):
+    rows = [
+        [label, nm(float(d[-1])), f"{np.max(np.abs(f)) * 1e9:.2f} nN", f"{np.max(n) * 1e9:.2f} nN"]
+        for label, d, f, n in strokes
+    ]
+    return "Forces per stroke", "<img src='forces.png' alt='forces'>" + table(
+        ["stroke", "length", "peak |lateral force|", "peak normal force"], rows
     )
 
 
@@ -119,7 +246,7 @@ def _summary_section(result: dict, memory: dict, codes: dict, elapsed: float, pu
     return "Summary", table(["check", "value"], rows)
 
 
-def _push_section(push: dict, truth: dict):
+def _push_section(push: dict, truth: dict, frames_note: str):
     verification_error = float(
         np.linalg.norm(np.subtract(truth["verified_displacement"], truth["true_displacement"]))
     )
@@ -146,10 +273,12 @@ def _push_section(push: dict, truth: dict):
         ["planner", push["plan_message"]],
     ]
     caption = (
-        "<img src='push.png' alt='push'><p>Left and middle: the nano-hand's own before and "
-        "after rescans (scanner coordinates) with the goal (*) and the verified position (x). "
-        "Right: the localizer's tip estimate over the session with 3-sigma ellipses, the true "
-        "tip, the planned strokes (red: in contact) and the true particle track.</p>"
+        "<img src='push.png' alt='push'><p>Everything in the task frame, zoomed on the push. "
+        "Left and middle: the nano-hand's own before and after rescans with the mapped start "
+        "(o), the planned strokes (cyan: in contact), the goal (*), the verified position (x) "
+        "and the true end (+, the truth brought into the maps' frame); "
+        f"{frames_note}. Right: the localizer's tip estimates near the push with their "
+        "3-sigma ellipses, the true tip and the true particle track.</p>"
     )
     return "The push (virtual nano-hand, PushParticle action)", table(
         ["", "value"], rows
@@ -166,7 +295,11 @@ def _tip_section(tip: dict):
             f"{nm(tip['final_sigma'][0])} / {nm(tip['final_sigma'][1])}",
         ],
     ]
-    return "Tip localization against ground truth", table(["", "value"], rows)
+    return "Tip localization against ground truth", table(["", "value"], rows) + (
+        "<img src='localizer.png' alt='localizer error'><p>The localizer's estimate minus the "
+        "true tip (brought into the maps' frame) at each driver command, with the filter's "
+        "own 3-sigma band: a consistent filter keeps about 99 % of the points inside.</p>"
+    )
 
 
 def _particles_section(result: dict):
@@ -270,7 +403,8 @@ def _write_summary(
 ) -> None:
     """summary.json: the evaluation without its arrays, and the run's own numbers."""
     tip = result.get("tip") or {}
-    summary = {key: value for key, value in result.items() if key not in ("tip", "truth_objects")}
+    arrays = ("tip", "truth_objects", "force_strokes", "map_image")
+    summary = {key: value for key, value in result.items() if key not in arrays}
     summary.update(
         memory_bytes=memory,
         exit_codes=codes,
@@ -278,6 +412,10 @@ def _write_summary(
         timings=timings,
         push=push,
         push_truth={k: v for k, v in truth.items() if k != "track"},
-        tip={k: v for k, v in tip.items() if k not in ("means", "covariances", "true_tip")},
+        tip={
+            k: v
+            for k, v in tip.items()
+            if k not in ("means", "covariances", "true_tip", "times", "errors", "sigmas")
+        },
     )
     path.write_text(json.dumps(summary, indent=2, default=float))

@@ -1,5 +1,6 @@
 """Lengths typed by people: '500nm', '1.5um', '2e-6' (metres) -> metres."""
 
+import argparse
 import math
 import re
 
@@ -22,3 +23,15 @@ def parse_length(text: str, name: str = "length") -> float:
 
 def nm(metres: float) -> str:
     return f"{metres * 1e9:.1f} nm"
+
+
+def length_type(name: str):
+    """An argparse `type` for a length option: metres, or a number with a unit."""
+
+    def convert(text):
+        try:
+            return parse_length(text, name)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from exc
+
+    return convert

@@ -123,3 +123,49 @@ def image_frame_matrix(config=None, step: float = 1e-6, at=None) -> np.ndarray:
         sim.move_tip(x, y, 1e-5)
         columns.append((np.array(sim.truth()["tip_position"]) - before) / step)
     return np.array(columns).T
+
+
+@dataclass
+class PushImageFrames:
+    """Where the nano-hand's before and after rescans lie in the task frame: add
+    `before_shift` (after_shift) to a position in the before (after) image, m."""
+
+    before_shift: np.ndarray  # (2,)
+    after_shift: np.ndarray | None  # (2,), None without an after image
+    control_points: int  # matched control points behind the after image's drift offset
+
+
+def push_image_frames(
+    before, after, start, goal, particle_radius: float = 100e-9
+) -> PushImageFrames:
+    """The task-frame placement of a push's rescans, as the nano-hand ties them to the map
+    (`PushProcedure`'s verification): the before image by the pushed particle, seen in it near
+    its mapped `start` (task frame), the after image also by the drift offset the control
+    points (pits, particles that did not move) give between the two (`verify_push`, with the
+    particle looked for within its reach of `goal`). `before` and `after` are
+    `RasterScanData` (after may be None). ValueError if the before image shows no particle or
+    the after image not the pushed one. The scanner matrix's correction of the particle's own
+    displacement (about 1 % of it) is left out: a few nm over a 300 nm push."""
+    from afm_core.manipulation.push_steps import nearest_particle
+    from afm_core.manipulation.verify import verify_push
+
+    start, goal = np.asarray(start, float), np.asarray(goal, float)
+    seen = nearest_particle(before, start)
+    if seen is None:
+        raise ValueError("before image: no particle near the push's start")
+    before_shift = start - seen
+    if after is None:
+        return PushImageFrames(before_shift, None, 0)
+    result = verify_push(
+        None,
+        None,
+        goal - before_shift,
+        after=after,
+        start=seen,
+        before=before,
+        particle_radius=particle_radius,
+        # where the nano-hand looks for it: anywhere the push could have taken it
+        particle_match_radius=float(np.hypot(*(goal - start))) + 2 * particle_radius + 100e-9,
+    )
+    used = sum(1 for c in result.control_points if c.used)
+    return PushImageFrames(before_shift, before_shift - result.offset, used)

@@ -43,6 +43,11 @@ def level_method(text: str) -> str:
 
 def _load(args, path) -> HeightMap:
     """The image at `path`, levelled by --level (with --level-mask) when asked."""
+    if str(path).lower().endswith(".npy") and args.pixel_size is None:
+        raise ValueError(
+            f"{path}: a .npy holds only heights (origin 0); give --pixel-size (e.g. 2nm), or "
+            "save the scan as .npz or .gwy (afm scan --save F.npz keeps pixel size and origin)"
+        )
     hmap = load_height_map(path, args.channel, args.pixel_size)
     if args.level != "none":
         mask = None if args.level_mask == "none" else "auto"
@@ -283,7 +288,13 @@ def cmd_landmarks(args) -> int:
         image.origin_y,
         min_height=args.min_height,
     )
-    print(f"{len(marks)} landmarks in {args.image}")
+    frame = image.meta.get("frame_id", "")
+    print(
+        f"{len(marks)} landmarks in {args.image}; positions in "
+        + (f"its frame {frame}" if frame else "the file's coordinates")
+        + f" (the area from ({image.origin_x * 1e9:.1f}, {image.origin_y * 1e9:.1f}) nm, "
+        f"{image.size_x * 1e9:.1f} x {image.size_y * 1e9:.1f} nm)"
+    )
     for m in marks:
         sx, sy = np.sqrt(np.diag(m.covariance))
         print(
@@ -343,6 +354,10 @@ def cmd_channels(args) -> int:
     return 0
 
 
+MIN_HEIGHT_HELP = "features lower than this are ignored (m, or with a unit; default 10nm)"
+PIXEL_SIZE_HELP = "for .npy files: pixel size (m, or with a unit: 2nm); other formats carry theirs"
+
+
 def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     """Register `drift`, `tip`, `reconstruct`, `landmarks`, `level`, `channels`; `length` parses
     '10nm'-style values."""
@@ -350,7 +365,7 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
 
     def common(p):
         p.add_argument("--channel", default=0, help=".gwy channel: index or title (default 0)")
-        p.add_argument("--pixel-size", type=length, help="for .npy files: pixel size (e.g. 2nm)")
+        p.add_argument("--pixel-size", type=length, help=PIXEL_SIZE_HELP)
 
     def levelling(p):
         common(p)
@@ -391,7 +406,7 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
         ),
     )
     p.add_argument(
-        "--order", type=int, default=1, choices=[1, 2], help="offset-vector order (book: 1)"
+        "--order", type=int, default=1, choices=[1, 2], help="offset-vector order (default 1)"
     )
     p.add_argument("-o", "--output", required=True, help="corrected map (.npz or .gwy)")
     levelling(p)
@@ -401,7 +416,7 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
         "tip", help="blind tip estimation", description="Blind tip estimation (book ch. 4)."
     )
     p.add_argument("image")
-    p.add_argument("--tip-size", type=int, default=21, help="tip window in pixels (odd)")
+    p.add_argument("--tip-size", type=int, default=21, help="tip window, odd pixels (default 21)")
     p.add_argument(
         "--threshold",
         default="auto",
@@ -423,9 +438,7 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
 
     p = sub.add_parser("landmarks", help="particles and tubes with centre and covariance")
     p.add_argument("image")
-    p.add_argument(
-        "--min-height", type=length, default=10e-9, help="features lower than this are ignored"
-    )
+    p.add_argument("--min-height", type=length, default=10e-9, help=MIN_HEIGHT_HELP)
     p.add_argument("--json", help="also write the landmarks to this new JSON file")
     levelling(p)
     p.set_defaults(image_func=cmd_landmarks)

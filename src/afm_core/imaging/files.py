@@ -5,14 +5,16 @@ Formats, chosen by the file name's suffix (case-insensitive):
 - `.npz` (native): numpy archive with `height` (2-D, metres, rows = y), `pixel_size_x`,
   `pixel_size_y`, `origin_x`, `origin_y` (metres) and `title`; optional per-pixel `layer_NAME`
   arrays of the height's shape (`HeightMap.layers`, e.g. a tip's uncertainty and
-  unconstrained mask). Loaded without pickle.
+  unconstrained mask) and scalar `meta_NAME` entries (`HeightMap.meta`: how the scan was
+  taken, e.g. `scan_angle_deg`, `frame_id`, `stamp`). Loaded without pickle.
 - `.npy` (read only): a plain 2-D height array in metres; it carries no pixel size, so the
   caller gives `pixel_size` (square pixels, origin 0).
 - `.gwy`: Gwyddion's native format, through the `gwyfile` package (pure Python; install
   it with `pip install gwyfile`). A .gwy file holds channels (`/N/data` GwyDataField with
   xres, yres, xreal, yreal, xoff, yoff, si_unit_xy, si_unit_z and `/N/data/title`); one is
   read, chosen by its position in `list_channels` or by its title, and converted to metres
-  by its units (m with an SI prefix: nm, um/µm, pm, ..., or Å).
+  by its units (m with an SI prefix: nm, um/µm, pm, ..., or Å). `HeightMap.meta` is the
+  channel's metadata (`/N/meta`, text as Gwyddion shows it; numbers read back as floats).
 
 - Vendors' scans (read only), by `vendor_files`: Asylum/Igor `.ibw` (through igor2), JPK
   `.jpk` (through tifffile), Bruker NanoScope `.spm`, Nanonis `.sxm`, WSxM `.stp`/`.top`;
@@ -73,6 +75,9 @@ class HeightMap:
     title: str = ""
     # per-pixel arrays of the height's shape carried along (.npz only; .gwy drops them)
     layers: dict = field(default_factory=dict)
+    # how the scan was taken (scan_angle_deg, frame_id, stamp in s since the epoch, ...):
+    # numbers and strings, kept by .npz and .gwy
+    meta: dict = field(default_factory=dict)
 
     @property
     def size_x(self) -> float:
@@ -105,6 +110,13 @@ class HeightMap:
                 raise ValueError(f"{where}: {name}={value!r} must be a finite number (m)")
         if not isinstance(self.title, str):
             raise ValueError(f"{where}: title={self.title!r} must be a string")
+        for name, value in self.meta.items():
+            if not (isinstance(name, str) and name.isidentifier()):
+                raise ValueError(f"{where}: meta name {name!r} must be an identifier")
+            if not (isinstance(value, str) or (_is_number(value) and math.isfinite(value))):
+                raise ValueError(
+                    f"{where}: meta {name}={value!r} must be a string or a finite number"
+                )
         for name, layer in self.layers.items():
             if not (isinstance(name, str) and name.isidentifier()):
                 raise ValueError(f"{where}: layer name {name!r} must be an identifier")
@@ -279,6 +291,13 @@ def _read_npz(path: Path, channel, pixel_size) -> HeightMap:
                 values[name] = float(pixel_size)
         height = _heights(archive["height"], path)
         layers = {n[6:]: archive[n] for n in archive.files if n.startswith("layer_")}
+        meta = {
+            n[5:]: _npz_string(archive, n, path)
+            if archive[n].dtype.kind in "US"
+            else _npz_scalar(archive, n, path)
+            for n in archive.files
+            if n.startswith("meta_")
+        }
     return HeightMap(
         height,
         values["pixel_size_x"],
@@ -287,6 +306,7 @@ def _read_npz(path: Path, channel, pixel_size) -> HeightMap:
         values.get("origin_y", 0.0),
         title,
         layers,
+        meta,
     )
 
 
@@ -329,6 +349,10 @@ def _npz_bytes(m: HeightMap) -> bytes:
         origin_y=np.float64(m.origin_y),
         title=np.str_(m.title),
         **{f"layer_{name}": np.asarray(layer) for name, layer in m.layers.items()},
+        **{
+            f"meta_{name}": np.str_(value) if isinstance(value, str) else np.float64(value)
+            for name, value in m.meta.items()
+        },
     )
     return buffer.getvalue()
 
@@ -397,7 +421,8 @@ def _gwy_channels(container, path: Path) -> list[tuple[int, str, object]]:
 
 
 def _load_gwy(path: Path, channel) -> HeightMap:
-    channels = _gwy_channels(_read_gwy(path), path)
+    container = _read_gwy(path)
+    channels = _gwy_channels(container, path)
     available = ", ".join(f"{i}: {title!r}" for i, (_, title, _) in enumerate(channels)) or "none"
     if isinstance(channel, str):
         chosen = [c for c in channels if c[1] == channel]
@@ -413,6 +438,7 @@ def _load_gwy(path: Path, channel) -> HeightMap:
     if not chosen:
         raise ValueError(f"{path}: channel {channel!r} does not exist; channels: {available}")
     number, title, field = chosen[0]
+    container_meta = container.get(f"/{number}/meta")
     where = f"{path} channel {title!r}"
     try:
         xres, yres = int(field["xres"]), int(field["yres"])
@@ -448,7 +474,25 @@ def _load_gwy(path: Path, channel) -> HeightMap:
         offsets["xoff"],
         offsets["yoff"],
         title,
+        meta=_gwy_meta(container_meta),
     )
+
+
+def _gwy_meta(meta) -> dict:
+    """A channel's /N/meta container (text values) as numbers where they read as finite
+    numbers, else text; entries whose names are not identifiers are left out."""
+    out: dict = {}
+    for key, value in meta.items() if hasattr(meta, "items") else ():
+        if not (isinstance(key, str) and key.isidentifier()):
+            continue
+        text = value if isinstance(value, str) else str(value)
+        try:
+            number = float(text)
+        except ValueError:
+            out[key] = text
+            continue
+        out[key] = number if math.isfinite(number) else text
+    return out
 
 
 def _gwy_bytes(maps: list[HeightMap]) -> bytes:
@@ -473,6 +517,12 @@ def _gwy_bytes(maps: list[HeightMap]) -> bytes:
         container.typecodes[f"/{number}/data/title"] = (
             "s"  # gwyfile would guess 'c' for a 1-char title
         )
+        if m.meta:  # Gwyddion's Metadata browser shows text
+            meta = objects.GwyContainer()
+            for name, value in m.meta.items():
+                meta[name] = value if isinstance(value, str) else repr(float(value))
+                meta.typecodes[name] = "s"
+            container[f"/{number}/meta"] = meta
     buffer = io.BytesIO()
     container.tofile(buffer)
     return buffer.getvalue()

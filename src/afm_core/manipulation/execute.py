@@ -65,7 +65,11 @@ class ExecutionResult:
     duration: float = 0.0  # s of instrument time
 
 
-def force_summary(trace, tip_height: float = 10e-6) -> tuple[float, float]:
+# m, the lateral force's lever arm (module docstring) when none is given
+TIP_HEIGHT = 10e-6
+
+
+def force_summary(trace, tip_height: float = TIP_HEIGHT) -> tuple[float, float]:
     """(peak lateral force, peak normal force) in N of a ForceTraceData (0, 0 for None)."""
     if trace is None or len(trace.lateral_torsion) == 0:
         return 0.0, 0.0

@@ -1,0 +1,233 @@
+"""The figures of a session report, each at the page's width (FIGURE_WIDTH_IN at DPI: 1000
+px, inside the report's 1100 px column), everything in one frame per figure and in nm.
+
+- `save_push_figure`: the push zoomed in: the before and after rescans placed in the task
+  frame (`afm_core.evaluation.push_image_frames`) with colourbars, the strokes, the goal, the
+  verified and the true end; the tip estimate near the push with 3-sigma ellipses.
+- `save_map_figure`: the drift-corrected map with the landmarks' 3-sigma ellipses, the true
+  centres and the tip's last estimate; beside it the whole session's tip path.
+- `save_force_figure`: lateral and normal force along each stroke.
+- `save_localizer_figure`: the localizer's error against the truth over time, with its
+  3-sigma band.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from afm_core.report import DPI, FIGURE_WIDTH_IN, covariance_ellipse  # noqa: E402
+
+# nm around the push's start, goal and end in the zoomed panels: a particle's diameter and a
+# stroke's approach on each side
+PUSH_MARGIN = 250e-9
+
+
+def _nm(values) -> np.ndarray:
+    return np.asarray(values, float) * 1e9
+
+
+def _image(fig, ax, height, extent, title: str) -> None:
+    shown = ax.imshow(
+        _nm(height), origin="lower", cmap="afmhot", extent=list(_nm(extent)), interpolation="none"
+    )
+    fig.colorbar(shown, ax=ax, label="height (nm)", fraction=0.046, pad=0.02)
+    ax.set_title(title, fontsize=9)
+    ax.set_xlabel("x (nm)")
+    ax.set_ylabel("y (nm)")
+
+
+def push_box(points, margin: float = PUSH_MARGIN) -> tuple[float, float, float, float]:
+    """A square (x0, x1, y0, y1) in m around `points` with `margin`."""
+    p = np.asarray(points, float).reshape(-1, 2)
+    centre = (p.min(axis=0) + p.max(axis=0)) / 2
+    half = float(np.max(p.max(axis=0) - p.min(axis=0))) / 2 + margin
+    return centre[0] - half, centre[0] + half, centre[1] - half, centre[1] + half
+
+
+def _zoom(ax, box) -> None:
+    ax.set_xlim(box[0] * 1e9, box[1] * 1e9)
+    ax.set_ylim(box[2] * 1e9, box[3] * 1e9)
+
+
+def _strokes(ax, strokes, label: bool = True) -> None:
+    for k, (a, b, contact) in enumerate(strokes):
+        ax.plot(
+            _nm([a[0], b[0]]),
+            _nm([a[1], b[1]]),
+            "-" if contact else ":",
+            color="tab:cyan" if contact else "grey",
+            lw=1.0,
+            label="planned stroke" if (label and k == 0) else None,
+        )
+
+
+def save_push_figure(
+    path: Path,
+    before,
+    after,
+    start,
+    goal,
+    achieved,
+    true_end=None,
+    strokes=(),
+    tip_means=(),
+    tip_covariances=(),
+    true_tip=(),
+    particle_track=(),
+) -> Path:
+    """before/after: (title, height m, extent m) already in the task frame, or None; the rest
+    task-frame points in m (`true_end`, `true_tip`, `particle_track`: the truth brought into
+    the maps' frame). Panels zoomed on the push."""
+    box = push_box([start, goal] + ([achieved] if achieved is not None else []))
+    panels = [p for p in (before, after) if p is not None]
+    fig, axes = plt.subplots(
+        1, len(panels) + 1, figsize=(FIGURE_WIDTH_IN, 3.5), squeeze=False, layout="constrained"
+    )
+    for ax, (title, height, extent) in zip(axes[0], panels):
+        _image(fig, ax, height, extent, title)
+        _strokes(ax, strokes)
+        ax.plot(*_nm(start), "o", color="deepskyblue", mfc="none", ms=9, label="mapped start")
+        ax.plot(*_nm(goal), "g*", ms=12, label="goal")
+        if achieved is not None and ax is not axes[0][0]:
+            ax.plot(*_nm(achieved), "bx", ms=9, mew=2, label="verified")
+        if true_end is not None and ax is not axes[0][0]:
+            ax.plot(*_nm(true_end), "m+", ms=11, mew=2, label="true end")
+        _zoom(ax, box)
+    ax = axes[0][-1]
+    means = np.asarray(tip_means, float).reshape(-1, 2)
+    near = [
+        k for k, m in enumerate(means) if box[0] <= m[0] <= box[1] and box[2] <= m[1] <= box[3]
+    ]
+    if near:
+        ax.plot(*_nm(means[near].T), ".-", color="tab:blue", lw=0.6, ms=3, label="tip estimate")
+        for k in near:
+            outline = _nm(covariance_ellipse(means[k], tip_covariances[k]))
+            ax.plot(outline[:, 0], outline[:, 1], color="tab:blue", lw=0.4, alpha=0.5)
+    tip = np.asarray(true_tip, float).reshape(-1, 2)
+    if len(tip):
+        ax.plot(*_nm(tip.T), ".", color="tab:orange", ms=3, label="true tip")
+    _strokes(ax, strokes)
+    track = np.asarray(particle_track, float).reshape(-1, 2)
+    if len(track):
+        ax.plot(*_nm(track.T), "o-", color="tab:green", ms=3, label="true particle")
+    ax.plot(*_nm(goal), "g*", ms=12, label="goal")
+    _zoom(ax, box)
+    ax.set_aspect("equal")
+    ax.set_title("tip near the push (3-sigma)", fontsize=9)
+    ax.set_xlabel("x (nm)")
+    ax.set_ylabel("y (nm)")
+    labels: dict = {}  # one legend for the three panels, under them
+    for panel in axes[0]:
+        for handle, label in zip(*panel.get_legend_handles_labels()):
+            labels.setdefault(label, handle)
+    fig.legend(labels.values(), labels.keys(), loc="outside lower center", ncol=8, fontsize=7)
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+def save_map_figure(
+    path: Path,
+    map_image,
+    landmarks,
+    truth=(),
+    tip_mean=None,
+    tip_covariance=None,
+    tip_means=(),
+) -> Path:
+    """map_image: (title, height m, extent m) or None; landmarks: (id, (x, y), 2x2 covariance)
+    each; truth: true centres in the maps' frame; the tip's last estimate with its 3-sigma
+    ellipse; right: the whole session's tip path."""
+    fig, (ax, whole) = plt.subplots(
+        1, 2, figsize=(FIGURE_WIDTH_IN, 4.4), layout="constrained", width_ratios=(1.15, 1)
+    )
+    if map_image is not None:
+        _image(fig, ax, *map_image[1:], map_image[0])
+    for k, (number, xy, cov) in enumerate(landmarks):
+        outline = _nm(covariance_ellipse(xy, cov))
+        ax.plot(
+            outline[:, 0],
+            outline[:, 1],
+            "c-",
+            lw=1.2,
+            label="landmark 3-sigma" if k == 0 else None,
+        )
+        ax.annotate(str(number), _nm(xy), xytext=(6, 6), textcoords="offset points", color="c")
+    truth = np.asarray(truth, float).reshape(-1, 2)
+    if len(truth):
+        ax.plot(*_nm(truth.T), "g+", ms=10, mew=1.5, label="true centre")
+    if tip_mean is not None:
+        outline = _nm(covariance_ellipse(tip_mean, tip_covariance))
+        ax.plot(*_nm(tip_mean), "b.", ms=6, label="tip, last estimate")
+        ax.plot(outline[:, 0], outline[:, 1], "b-", lw=0.8)
+    ax.legend(fontsize=7, loc="upper right", framealpha=0.7)
+    means = np.asarray(tip_means, float).reshape(-1, 2)
+    if len(means):
+        whole.plot(*_nm(means.T), ".-", color="tab:blue", lw=0.6, ms=3, label="tip estimate")
+        whole.plot(*_nm(means[-1]), "bo", mfc="none", label="last")
+    if len(truth):
+        whole.plot(*_nm(truth.T), "g+", ms=10, mew=1.5, label="true centre")
+    whole.set_aspect("equal", adjustable="datalim")
+    whole.set_title("the tip's way over the session (estimate)", fontsize=9)
+    whole.set_xlabel("x (nm)")
+    whole.set_ylabel("y (nm)")
+    whole.legend(fontsize=7)
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+def save_force_figure(path: Path, strokes) -> Path:
+    """strokes: (label, distance along the stroke m, lateral force N, normal force N) each."""
+    fig, (lateral, normal) = plt.subplots(
+        1, 2, figsize=(FIGURE_WIDTH_IN, 3.2), layout="constrained", sharex=True
+    )
+    for label, distance, f_lat, f_norm in strokes:
+        lateral.plot(_nm(distance), _nm(f_lat), lw=0.9, label=label)
+        normal.plot(_nm(distance), _nm(f_norm), lw=0.9, label=label)
+    for ax, what in ((lateral, "lateral force (nN)"), (normal, "normal force (nN)")):
+        ax.set_xlabel("distance along the stroke (nm)")
+        ax.set_ylabel(what)
+        ax.grid(alpha=0.3)
+    lateral.set_title("lateral force per stroke (torsion x spring constant)", fontsize=9)
+    normal.set_title("normal force per stroke (deflection x spring constant)", fontsize=9)
+    if strokes:
+        normal.legend(fontsize=7, ncol=2)
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+def save_localizer_figure(path: Path, times, errors, sigmas) -> Path:
+    """times (s), errors (n, 2) estimate minus truth (m), sigmas (n, 2) the filter's 1-sigma."""
+    t = np.asarray(times, float)
+    e = np.asarray(errors, float).reshape(-1, 2)
+    s = np.asarray(sigmas, float).reshape(-1, 2)
+    fig, axes = plt.subplots(
+        1, 2, figsize=(FIGURE_WIDTH_IN, 3.0), layout="constrained", sharex=True
+    )
+    for axis, (ax, name) in enumerate(zip(axes, "xy")):
+        ax.fill_between(
+            t,
+            -3e9 * s[:, axis],
+            3e9 * s[:, axis],
+            color="tab:blue",
+            alpha=0.2,
+            label="3-sigma band",
+        )
+        ax.plot(t, _nm(e[:, axis]), "k.-", lw=0.6, ms=3, label="estimate - truth")
+        ax.axhline(0.0, color="grey", lw=0.5)
+        ax.set_xlabel("instrument time since the first estimate (s)")
+        ax.set_ylabel(f"{name} error (nm)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle("localizer error against the truth (maps' frame)", fontsize=9)
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
