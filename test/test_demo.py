@@ -1,7 +1,10 @@
 """`make demo` end to end: the graph maps, localizes, plans and pushes a particle with the
 virtual nano-hand, records everything, replays it, evaluates the replayed copy, reports."""
 
+import html
 import json
+import re
+from pathlib import Path
 
 import pytest
 
@@ -21,6 +24,8 @@ def test_demo_runs_end_to_end_and_reports(tmp_path):
         assert f"src='{name}'" in report and (run / name).stat().st_size > 10_000, name
     for block in ("Reproducibility", "simulator seed", "commit", "Open the recording in Foxglove"):
         assert block in report, block
+    layout = re.search(r"Import from file</b>: <code>([^<]+)</code>", report).group(1)
+    assert Path(html.unescape(layout)).is_file()  # the layout the report points to is there
     # the rescans were placed in the task frame by the push's own particle and control points
     assert "could not be placed" not in report and "after by (" in report
     summary = json.loads((run / "summary.json").read_text())

@@ -93,6 +93,30 @@ def test_offline_reader_returns_numpy_arrays(tmp_path):
     assert marks["landmarks"][0][2]["position.x"] == pytest.approx(2e-6)
 
 
+def test_the_viewers_colour_images_and_an_empty_image_read_as_arrays(tmp_path):
+    """What the graph records by default: the rgb8 scan image (rows x columns x 3), and a
+    message whose image is empty (a tip shape without its certainty map: encoding '')."""
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Header
+
+    from afm_core.recording import QosDescription
+    from afm_ros.height_image import height_image_msg
+
+    height = np.random.default_rng(3).normal(size=(5, 7)) * 1e-9
+    coloured, _scale = height_image_msg(height, Header(frame_id="afm_scanner"))
+    path = tmp_path / "images.mcap"
+    with RecordingWriter(path) as rec:
+        channel = rec.add_channel("/afm/scan/image", "sensor_msgs/msg/Image", [QosDescription()])
+        rec.write(channel, 1, cdr(coloured))
+        rec.write(channel, 2, cdr(Image()))
+    with RecordingReader(path) as reader:
+        images = reader.arrays("/afm/scan/image")["image"]
+    from afm_core.imaging.colour_map import height_to_rgb
+
+    np.testing.assert_array_equal(images[0], height_to_rgb(height)[0])
+    assert images[1].shape == (0, 0)
+
+
 def test_summary_holds_what_rosbag2_needs(tmp_path):
     path = tmp_path / "s.mcap"
     write_session(path, n=3)

@@ -108,14 +108,30 @@ def reproducibility_section(run_dir: Path):
 
 def foxglove_section(run_dir: Path):
     session = html.escape(str(Path(run_dir).resolve() / "session.mcap"))
+    layout = html.escape(str(foxglove_layout()))
     return (
         "Open the recording in Foxglove",
         "<ol><li>Open Foxglove (the desktop app, or the web app in Chrome) and choose "
         f"<b>Open local file</b>: <code>{session}</code> (or drag it into the window).</li>"
-        "<li>Add panels: <b>Plot</b> for <code>/afm/force_trace</code> (lateral_torsion, "
-        "vertical_deflection) and <code>/afm/tip_pose</code> (pose.pose.position.x/y); "
-        "<b>Raw Messages</b> for <code>/afm/landmarks</code>, <code>/afm/ground_truth</code>; "
-        "<b>3D</b> for the markers and images where the recording has them.</li>"
+        "<li>Layouts &gt; <b>Import from file</b>: "
+        f"<code>{layout}</code>: the map and scan images, the landmarks with their 3-sigma "
+        "ellipses, the planned path and the tip in <code>afm_task</code>, and plots of the tip "
+        "path, the strokes and each stroke's deflection and torsion. The timeline is the "
+        "instrument's clock.</li>"
         "<li>Or replay it into a running graph: <code>afm replay "
         f"{session}</code> (<code>--rate 2</code> for twice the speed).</li></ol>",
     )
+
+
+def foxglove_layout() -> Path:
+    """The installed layout (share/afm_bringup/foxglove), else the source tree's."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        installed = Path(get_package_share_directory("afm_bringup")) / "foxglove"
+    except (ImportError, LookupError):
+        installed = None
+    name = "afm_session.json"
+    if installed is not None and (installed / name).is_file():
+        return installed / name
+    return Path(__file__).resolve().parents[1] / "foxglove" / name

@@ -57,6 +57,8 @@ IMAGE_DTYPES = {
     "mono16": np.uint16,
     "32SC1": np.int32,
 }
+# 8-bit colour images (the viewers' /afm/scan/image and /afm/map/image): channels per pixel
+COLOUR_CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4}
 
 
 @dataclass
@@ -70,25 +72,25 @@ class TopicInfo:
 
 
 def image_to_array(image) -> np.ndarray:
-    """sensor_msgs/Image (decoded) -> 2-D array, honouring encoding, step and endianness."""
-    if image.encoding not in IMAGE_DTYPES:
+    """sensor_msgs/Image (decoded) -> 2-D array (rows x columns x channels for the colour
+    encodings), honouring encoding, step and endianness. An empty image (a message that
+    carries none, e.g. a tip shape without its certainty map) is a 0 x 0 array whatever its
+    encoding says."""
+    if image.height == 0 or image.width == 0:
+        return np.zeros((image.height, image.width))
+    channels = COLOUR_CHANNELS.get(image.encoding, 1)
+    name = "uint8" if image.encoding in COLOUR_CHANNELS else IMAGE_DTYPES.get(image.encoding)
+    if name is None:
         raise RecordingError(
             f"image encoding {image.encoding!r} not supported; "
-            f"expected one of {sorted(IMAGE_DTYPES)}"
+            f"expected one of {sorted([*IMAGE_DTYPES, *COLOUR_CHANNELS])}"
         )
-    dtype = np.dtype(IMAGE_DTYPES[image.encoding]).newbyteorder(">" if image.is_bigendian else "<")
+    dtype = np.dtype(name).newbyteorder(">" if image.is_bigendian else "<")
     raw = np.frombuffer(bytes(image.data), dtype=np.uint8)
-    if image.height == 0 or image.width == 0:
-        return np.zeros((image.height, image.width), dtype=dtype.newbyteorder("="))
     rows = raw[: image.height * image.step].reshape(image.height, image.step)
-    row_bytes = image.width * dtype.itemsize
-    return (
-        rows[:, :row_bytes]
-        .copy()
-        .view(dtype)
-        .reshape(image.height, image.width)
-        .astype(dtype.newbyteorder("="))
-    )
+    row_bytes = image.width * channels * dtype.itemsize
+    shape = (image.height, image.width) + ((channels,) if channels > 1 else ())
+    return rows[:, :row_bytes].copy().view(dtype).reshape(shape).astype(dtype.newbyteorder("="))
 
 
 def _is_image(value) -> bool:
@@ -97,8 +99,12 @@ def _is_image(value) -> bool:
 
 
 def flatten(message, prefix: str = "") -> dict:
-    """Decoded message -> {dotted.field: value}; images become arrays, numeric lists arrays."""
+    """Decoded message -> {dotted.field: value}; images become arrays, numeric lists arrays.
+    A message that is itself an image (sensor_msgs/Image) gives its array as 'image' beside
+    its header."""
     out = {}
+    if not prefix and _is_image(message):
+        return {"image": image_to_array(message), **flatten(message.header, "header.")}
     for name in getattr(message, "__slots__", ()):
         value = getattr(message, name)
         key = f"{prefix}{name}"
