@@ -1,0 +1,234 @@
+"""`afm batch` (afm_core.batch): many recordings on Dask, one row each, on an embedded cluster
+or on a scheduler and workers started as separate processes; a corrupt recording is a failed
+row; a re-run after an interrupt does only what is not done."""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from afm_core.batch import read_rows, run_batch
+
+# the columns that depend on where and when a row was computed, not on what it says
+RUN_COLUMNS = ("seconds", "worker")
+SEEDS = (1, 2, 3)
+
+
+def _tiny_session(path: Path, seed: int) -> dict:
+    """A raster of one particle, a push stroke through it, the raster again: the simulator's
+    truth of the pushed particle before and after (m)."""
+    from afm_core.instrument import ScanRequest
+    from afm_core.sim.config import merge
+    from afm_core.sim.instrument import SimulatedAfm
+    from afm_core.sim2real.session_writer import RecordingInstrument
+    from afm_core.sim2real.work_session import WORK_SPHERES, work_config
+
+    x, y = WORK_SPHERES[0]
+    scan = ScanRequest(x - 0.5e-6, y - 0.5e-6, 1e-6, 1e-6, 32, 32, line_rate=8.0)
+    with RecordingInstrument(SimulatedAfm(merge(work_config(), {"seed": seed})), path) as rec:
+        # the truth's objects are the simulator's own (moved in place): keep their numbers
+        before = (rec.truth()["objects"][0].x, rec.truth()["objects"][0].y)
+        rec.raster_scan(scan)
+        rec.move_tip(x - 0.3e-6, y + 20e-9 * (seed - 2), 1e-6)
+        rec.move_tip(x + 0.3e-6, y + 20e-9 * (seed - 2), 1e-7, contact=True)
+        after = (rec.truth()["objects"][0].x, rec.truth()["objects"][0].y)
+        rec.raster_scan(scan)
+    return {"moved": math.hypot(after[0] - before[0], after[1] - before[1])}
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory):
+    """Three tiny recordings, a corrupt one (the second half of a good one overwritten), and
+    the truth of each good one."""
+    folder = tmp_path_factory.mktemp("sessions")
+    truth = {}
+    for seed in SEEDS:
+        path = folder / f"session_{seed}.mcap"
+        truth[str(path)] = _tiny_session(path, seed)
+    corrupt = folder / "session_corrupt.mcap"
+    data = bytearray((folder / "session_1.mcap").read_bytes())
+    data[len(data) // 2 :] = b"\x5a" * (len(data) - len(data) // 2)
+    corrupt.write_bytes(bytes(data))
+    return folder, truth, corrupt
+
+
+@pytest.fixture(scope="module")
+def local_batch(sessions, tmp_path_factory):
+    folder, _truth, _corrupt = sessions
+    output = tmp_path_factory.mktemp("local")
+    lines = []
+    result = run_batch(
+        "evaluate", [folder], output, workers=2, progress=lambda s: lines.append(s.line())
+    )
+    return result, read_rows(output / "results.csv"), lines
+
+
+def _by_item(rows):
+    return {r["item"]: {k: v for k, v in r.items() if k not in RUN_COLUMNS} for r in rows}
+
+
+def test_a_local_cluster_batch_gives_one_row_per_recording_against_truth(sessions, local_batch):
+    folder, truth, corrupt = sessions
+    result, rows, lines = local_batch
+
+    assert sorted(r["item"] for r in rows) == sorted([*truth, str(corrupt)])
+    assert (result.total, result.computed, result.skipped) == (4, 4, 0)
+    for row in (r for r in rows if r["item"] in truth):
+        assert row["status"] == "ok" and row["error"] == ""
+        assert row["ground_truth"] == "True" and row["scans"] == "2"
+        # the one particle in view is found and matched in both scans
+        assert row["particles_matched"] == "2"
+        assert float(row["centre_error_rms_m"]) < 300e-9
+        # the push: one stroke moved one object, by what the simulator's truth says
+        assert row["push_strokes"] == "1" and row["objects_moved"] == "1"
+        assert float(row["push_displacement_max_m"]) == pytest.approx(
+            truth[row["item"]]["moved"], rel=1e-12
+        )
+    # progress: every item counted, with a rate
+    assert lines[-1].startswith("4/4 (3 ok, 1 failed, 0 done before)")
+    assert "recordings/min" in lines[-1]
+    assert "3 sessions evaluated" in result.summary.read_text()
+
+
+def test_a_corrupt_recording_is_a_failed_row_and_the_rest_finish(sessions, local_batch):
+    _folder, _truth, corrupt = sessions
+    result, rows, _lines = local_batch
+
+    failed = [r for r in rows if r["status"] == "failed"]
+    assert [r["item"] for r in failed] == [str(corrupt)]
+    assert "corrupt" in failed[0]["error"] and "\n" not in failed[0]["error"]
+    assert failed[0]["sha256"]  # the file was read and hashed; the evaluation refused it
+    assert result.ok == 3 and result.failed == 1
+
+
+def _dask_process(*args) -> subprocess.Popen:
+    command = [sys.executable, "-m", "distributed.cli.dask_" + args[0], *args[1:]]
+    return subprocess.Popen(
+        command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
+
+
+def test_a_scheduler_and_two_worker_processes_give_the_same_rows(sessions, local_batch, tmp_path):
+    from conftest import wait_for
+
+    folder, _truth, _corrupt = sessions
+    address_file = tmp_path / "scheduler.json"
+    scheduler = _dask_process(
+        "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+        "--scheduler-file", str(address_file),
+    )  # fmt: skip
+    workers = []
+    try:
+        wait_for(address_file.is_file, timeout=30.0, what="the scheduler's address file")
+        import json
+
+        address = wait_for(
+            lambda: json.loads(address_file.read_text() or "{}").get("address"), timeout=10.0
+        )
+        workers = [
+            _dask_process(
+                "worker", address, "--nthreads", "1", "--no-dashboard", "--nworkers", "1"
+            )
+            for _ in range(2)
+        ]
+        result = run_batch("evaluate", [folder], tmp_path / "out", scheduler=address, workers=2)
+    finally:
+        for process in [*workers, scheduler]:
+            process.terminate()
+        for process in [*workers, scheduler]:
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+    rows = read_rows(result.table)
+    assert _by_item(rows) == _by_item(local_batch[1])
+    # computed by the worker processes, not in this one
+    assert all(str(os.getpid()) not in r["worker"] and r["worker"] for r in rows)
+
+
+def test_an_interrupted_batch_is_resumed_without_redoing_finished_items(
+    sessions, local_batch, tmp_path
+):
+    folder, _truth, corrupt = sessions
+    _result, rows, _lines = local_batch
+    # the table an interrupt leaves after two finished rows, in the middle of the third
+    finished = [r for r in rows if r["status"] == "ok"][:2]
+    shutil.copytree(local_batch[0].table.parent, tmp_path / "out")
+    table = tmp_path / "out" / "results.csv"
+    header = table.read_text().splitlines()[0]
+    kept = [line for line in table.read_text().splitlines()[1:] if line.startswith(
+        tuple(r["item"] + "," for r in finished)
+    )]  # fmt: skip
+    table.write_text("\n".join([header, *kept]) + "\n" + rows[-1]["item"][:10])
+
+    resumed = run_batch("evaluate", [folder], tmp_path / "out", workers=1)
+
+    # only the two items without a finished row ran: the third good one and the corrupt one
+    assert (resumed.computed, resumed.skipped) == (2, 2)
+    after = read_rows(table)
+    assert sorted(r["item"] for r in after) == sorted(r["item"] for r in rows)
+    assert _by_item(after) == _by_item(rows)
+    # the finished rows were kept as written (the worker that computed them and its time)
+    assert [r for r in after if r["item"] in {f["item"] for f in finished}] == finished
+    # and again: everything good is done; the failed one is tried again (it may have been a
+    # lost worker), and fails again
+    again = run_batch("evaluate", [folder], tmp_path / "out", workers=1)
+    assert (again.computed, again.skipped, again.failed) == (1, 3, 1)
+    assert len(read_rows(table)) == 4
+
+
+def test_bad_input_is_refused_naming_it(tmp_path):
+    with pytest.raises(ValueError, match="nothing_here"):
+        run_batch("evaluate", [tmp_path / "nothing_here"], tmp_path / "out", workers=1)
+    with pytest.raises(ValueError, match="kind 'evaluat'"):
+        run_batch("evaluat", [tmp_path], tmp_path / "out", workers=1)
+    with pytest.raises(ValueError, match="tip_raduis"):
+        run_batch("sim2real", [tmp_path], tmp_path / "out", effects=["tip_raduis"])
+
+
+def test_the_sim2real_summary_counts_effects_by_date():
+    from afm_core.batch.sim2real import summarise, summary_markdown
+
+    def row(date, named, parameters, status="ok"):
+        return {
+            "status": status,
+            "recording_date": date,
+            "verdict": "named" if named else "no missing physics",
+            "named": named,
+            "parameters": parameters,
+        }
+
+    rows = [
+        row("2026-01-01", "tip_radius", "tip.radius=1e-08+-1e-09"),
+        row("2026-01-01", "", ""),
+        row("2026-01-02", "tip_radius;height_gain", "tip.radius=3e-08+-1e-09;noise.g=1.02+-0.01"),
+        row("2026-01-02", "", "", status="failed"),
+    ]
+    summary = summarise(rows)
+    assert summary["sessions"] == 3 and summary["failed"] == 1
+    assert summary["effects"] == {"tip_radius": 2, "height_gain": 1}
+    assert summary["by_date"]["2026-01-01"]["sessions"] == 2
+    assert summary["parameter_medians"][("2026-01-02", "tip.radius")] == 3e-08
+    text = summary_markdown(summary)
+    assert "| tip_radius | 2 | 67% |" in text and "2026-01-02" in text
+
+
+def test_a_sim2real_batch_reports_each_diagnosis_or_why_not(sessions, tmp_path):
+    """Through the batch, the diagnosis of a session too small to diagnose is a failed row
+    naming why (the diagnosis itself is tested in test_sim2real_*)."""
+    folder, _truth, _corrupt = sessions
+    result = run_batch(
+        "sim2real", [folder / "session_2.mcap"], tmp_path, workers=1, effects=["height_gain"]
+    )
+    (row,) = read_rows(result.table)
+    assert row["status"] == "failed" and "too little to diagnose" in row["error"]
+    assert np.isfinite(float(row["seconds"]))
