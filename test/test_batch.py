@@ -232,3 +232,95 @@ def test_a_sim2real_batch_reports_each_diagnosis_or_why_not(sessions, tmp_path):
     (row,) = read_rows(result.table)
     assert row["status"] == "failed" and "too little to diagnose" in row["error"]
     assert np.isfinite(float(row["seconds"]))
+
+
+def test_localization_error_and_nees_against_truth_are_the_closed_form(tmp_path):
+    """A recording of the truth (tip at rest) and four localizer estimates off it by known
+    errors, with known covariances: the row's error RMS and mean NEES are the closed form."""
+    from afm_core.batch import evaluate_recording
+    from afm_core.recording import RecordingWriter
+    from afm_core.recording.cdr import encoder
+    from afm_core.recording.definitions import full_message_definition
+
+    tip = {"x": 50e-6, "y": 51e-6, "z": 0.0}
+    errors = np.array([[10e-9, 0.0], [0.0, -20e-9], [30e-9, 40e-9], [-10e-9, -10e-9]])
+    sigma = np.array([10e-9, 20e-9])
+    types = {
+        "/afm/ground_truth": "afm_msgs/msg/GroundTruth",
+        "/afm/tip_pose": "geometry_msgs/msg/PoseWithCovarianceStamped",
+    }
+    path = tmp_path / "poses.mcap"
+    with RecordingWriter(path) as writer:
+        channels, encode = {}, {}
+        for topic, type_name in types.items():
+            definition = full_message_definition(type_name)
+            channels[topic] = writer.add_channel(topic, type_name, [], definition=definition)
+            encode[topic] = encoder(type_name, definition)
+        zero = {"x": 0.0, "y": 0.0, "z": 0.0}
+        for k, (ex, ey) in enumerate(errors):
+            header = {"stamp": {"sec": 1000 + k, "nanosec": 0}, "frame_id": "afm_task"}
+            truth = {
+                "header": header,
+                "tip_position": tip,
+                "commanded_position": tip,
+                "drift_offset": zero,
+                "drift_velocity": zero,
+                "tip_apex_radius": 10e-9,
+                "objects": [],
+            }
+            covariance = np.zeros(36)
+            covariance[[0, 7]] = sigma**2
+            pose = {
+                "header": header,
+                "pose": {
+                    "pose": {
+                        "position": {"x": tip["x"] + ex, "y": tip["y"] + ey, "z": 0.0},
+                        "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                    },
+                    "covariance": covariance.tolist(),
+                },
+            }
+            log_ns = (1000 + k) * 10**9
+            writer.write(channels["/afm/ground_truth"], log_ns, encode["/afm/ground_truth"](truth))
+            writer.write(channels["/afm/tip_pose"], log_ns + 1, encode["/afm/tip_pose"](pose))
+
+    row = evaluate_recording(path)
+
+    assert row["localization_compared"] == 4
+    # the estimate minus the truth, squared over its variance, summed over x and y
+    assert row["localization_mean_nees"] == pytest.approx(
+        np.mean(np.sum((errors / sigma) ** 2, axis=1)), rel=1e-9
+    )
+    assert row["localization_error_rms_m"] == pytest.approx(
+        np.sqrt(np.mean(np.sum(errors**2, axis=1))), rel=1e-9
+    )
+    assert "scans" not in row and "push_strokes" not in row  # neither was recorded
+
+
+def test_recordings_behind_a_url_are_listed_hashed_and_read_where_they_lie(sessions):
+    """fsspec's in-memory filesystem stands for a lab's object store: a folder URL lists its
+    recordings, each is hashed by streaming and read through a temporary local copy."""
+    import hashlib
+
+    import fsspec
+
+    from afm_core.batch import evaluate_recording, expand_items, file_sha256
+    from afm_core.batch.items import local_file
+
+    folder, _truth, _corrupt = sessions
+    memory = fsspec.filesystem("memory")
+    for name in ("session_1.mcap", "session_2.mcap"):
+        memory.pipe(f"/lab/day1/{name}", (folder / name).read_bytes())
+    memory.pipe("/lab/notes.txt", b"not a recording")
+
+    items = expand_items(["memory://lab"])
+    assert [i.rsplit("/", 1)[-1] for i in items] == ["session_1.mcap", "session_2.mcap"]
+    data = (folder / "session_1.mcap").read_bytes()
+    assert file_sha256(items[0]) == hashlib.sha256(data).hexdigest()
+    with local_file(items[0]) as path:
+        assert path.read_bytes() == data
+        row = evaluate_recording(path)
+    assert not path.exists()  # the copy is gone
+    assert row == evaluate_recording(folder / "session_1.mcap")
+    with pytest.raises(ValueError, match="memory://lab/none"):
+        expand_items(["memory://lab/none"])
