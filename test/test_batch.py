@@ -324,3 +324,36 @@ def test_recordings_behind_a_url_are_listed_hashed_and_read_where_they_lie(sessi
     assert row == evaluate_recording(folder / "session_1.mcap")
     with pytest.raises(ValueError, match="memory://lab/none"):
         expand_items(["memory://lab/none"])
+
+
+def test_a_sim2real_batch_names_a_changed_z_gain_with_its_value(tmp_path):
+    """One work session whose z gain is 3 % off the model, diagnosed through the batch with
+    the one library term that is the test's subject (small: the search is tested elsewhere):
+    the row names it, its value within 3 sigma of the truth, and the summary counts it."""
+    from afm_core.sim.config import dump_config, merge
+    from afm_core.sim2real.work_session import record_work_session, work_config
+
+    truth = 1.03
+    model = work_config()
+    (tmp_path / "model.yaml").write_text(dump_config(model))
+    changed = merge(model, {"seed": 11, "noise": {"height_gain": truth}})
+    (tmp_path / "sessions").mkdir()
+    record_work_session(tmp_path / "sessions" / "work.mcap", changed, seed=11, pushes=1)
+
+    result = run_batch(
+        "sim2real",
+        [tmp_path / "sessions"],
+        tmp_path / "out",
+        workers=1,
+        model=str(tmp_path / "model.yaml"),
+        effects=["height_gain"],
+    )
+
+    (row,) = read_rows(result.table)
+    assert row["status"] == "ok" and row["verdict"] == "named"
+    assert row["named"] == "height_gain"
+    key, value = row["parameters"].split("=")
+    fitted, sigma = (float(v) for v in value.split("+-"))
+    assert key == "noise.height_gain" and abs(fitted - truth) <= 3 * sigma
+    assert (Path(row["report"]) / "report.md").is_file()
+    assert "| height_gain | 1 | 100% |" in result.summary.read_text()
