@@ -7,6 +7,8 @@ import sys
 
 from afm_bringup.cli_errors import refuse
 
+INTERRUPTED = 130  # the shell's status for a command stopped by Ctrl-C (128 + SIGINT)
+
 
 def cmd_batch(args):
     from afm_core.batch import run_batch
@@ -32,6 +34,15 @@ def cmd_batch(args):
         )
     except (ValueError, OSError) as exc:  # an input that names nothing, a bad model or effect
         return refuse("batch", exc)
+    except KeyboardInterrupt:
+        # the rows written so far are in the table (each flushed as it came); the cluster was
+        # closed by the context managers on the way out
+        print(
+            f"afm batch: interrupted; the finished rows are in {args.output}/results.csv and "
+            "the same command goes on from there",
+            file=sys.stderr,
+        )
+        return INTERRUPTED
     print(
         f"afm batch: {result.total} items: {result.computed} run now in {result.seconds:.0f} s "
         f"({result.ok} ok, {result.failed} failed), {result.skipped} done before; "
