@@ -95,6 +95,8 @@ def test_a_local_cluster_batch_gives_one_row_per_recording_against_truth(session
     assert lines[-1].startswith("4/4 (3 ok, 1 failed, 0 done before)")
     assert "recordings/min" in lines[-1]
     assert "3 sessions evaluated" in result.summary.read_text()
+    assert "![errors_by_session.png]" in result.summary.read_text()
+    assert (result.summary.parent / "errors_by_session.png").stat().st_size > 0
 
 
 def test_a_corrupt_recording_is_a_failed_row_and_the_rest_finish(sessions, local_batch):
@@ -357,3 +359,4 @@ def test_a_sim2real_batch_names_a_changed_z_gain_with_its_value(tmp_path):
     assert key == "noise.height_gain" and abs(fitted - truth) <= 3 * sigma
     assert (Path(row["report"]) / "report.md").is_file()
     assert "| height_gain | 1 | 100% |" in result.summary.read_text()
+    assert (tmp_path / "out" / "effects_by_date.png").stat().st_size > 0

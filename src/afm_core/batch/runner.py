@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from afm_core.batch import evaluate, sim2real
+from afm_core.batch import evaluate, plots, sim2real
 from afm_core.batch.items import config_hash, expand_items, file_sha256, local_file
 from afm_core.batch.table import COMMON_COLUMNS, FAILED, OK, ResultsTable, read_rows
 
@@ -181,7 +181,9 @@ def run_batch(
             _run(client, kind, items, config, task_options, output, table, state, progress)
     rows = read_rows(output / "results.csv")
     summary = output / "summary.md"
-    summary.write_text(module.summary_markdown(module.summarise(rows)))
+    text = module.summary_markdown(module.summarise(rows))
+    figure = _figure(kind, rows, output)
+    summary.write_text(text + (f"\n![{figure}]({figure})\n" if figure else ""))
     return BatchResult(
         table=output / "results.csv",
         summary=summary,
@@ -192,6 +194,15 @@ def run_batch(
         skipped=state.skipped,
         seconds=time.perf_counter() - started,
     )
+
+
+def _figure(kind: str, rows: list[dict], output: Path) -> str | None:
+    try:
+        if kind == "sim2real":
+            return plots.effects_by_date(rows, output)
+        return plots.errors_by_session(rows, output)
+    except ImportError:  # pragma: no cover - matplotlib is a project dependency
+        return None
 
 
 def _run(client, kind, items, config, options, output, table, state, progress) -> None:
