@@ -32,9 +32,9 @@ def _local(item: str) -> Path:
 
 
 def expand_items(paths: Iterable[str | os.PathLike]) -> list[str]:
-    """Paths and URLs -> the recordings they name, in order, each once: a file as given, a
-    folder as every *.mcap below it (sorted). A name that matches nothing is an error naming
-    it (a typo must not make an empty batch)."""
+    """Paths and URLs -> the recordings they name, in order, each once: a file as given (a
+    local one made absolute), a folder as every *.mcap below it (sorted). A name that
+    matches nothing is an error naming it (a typo must not make an empty batch)."""
     items: list[str] = []
     for path in paths:
         text = os.fspath(path)
@@ -46,6 +46,8 @@ def expand_items(paths: Iterable[str | os.PathLike]) -> list[str]:
 
 
 def _expand_local(path: Path) -> list[str]:
+    # absolute: a worker of a lab's cluster does not run in this directory
+    path = path.absolute()
     if path.is_file():
         return [str(path)]
     if path.is_dir():

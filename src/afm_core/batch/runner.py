@@ -170,7 +170,7 @@ def run_batch(
     module = evaluate if kind == "evaluate" else sim2real
     config = config_hash(kind, module.ROW_FORMAT, hashed)
     items = expand_items(paths)
-    output = Path(output)
+    output = Path(output).absolute()  # the workers write the sim2real reports into it
     output.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     state = Progress(total=len(items), started=started)
