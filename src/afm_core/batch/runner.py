@@ -142,8 +142,11 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, memory
             n_workers=workers or os.cpu_count() or 1,
             threads_per_worker=1,
             processes=True,
+            host="127.0.0.1",  # the embedded cluster serves this machine, not its network
             memory_limit=memory_limit,
-            dashboard_address=None,
+            # an ephemeral port: the scheduler always serves HTTP (health, metrics), and the
+            # default 8787 would collide with another cluster on the machine; this machine only
+            dashboard_address="127.0.0.1:0",
         ) as cluster,
         Client(cluster) as client,
     ):
