@@ -362,3 +362,19 @@ def test_a_sim2real_batch_names_a_changed_z_gain_with_its_value(tmp_path):
     assert (Path(row["report"]) / "report.md").is_file()
     assert "| height_gain | 1 | 100% |" in result.summary.read_text()
     assert (tmp_path / "out" / "effects_by_date.png").stat().st_size > 0
+
+
+def test_the_command_shows_progress_and_says_by_its_status_whether_an_item_failed(
+    sessions, tmp_path, capsys
+):
+    from afm_bringup.cli import main
+
+    folder, _truth, corrupt = sessions
+    status = main(["batch", "evaluate", str(folder), "--output", str(tmp_path), "--workers", "1"])
+    out, err = capsys.readouterr()
+    assert status == 1  # the corrupt recording
+    assert "afm batch: 4/4 (3 ok, 1 failed, 0 done before)" in out
+    assert f"{corrupt} failed: RecordingError" in err
+    # nothing to run: refused with the input named, status 2, no cluster started
+    assert main(["batch", "evaluate", str(tmp_path / "none"), "--output", str(tmp_path)]) == 2
+    assert "none" in capsys.readouterr().err
