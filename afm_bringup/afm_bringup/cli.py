@@ -10,6 +10,7 @@ import os
 import sys
 from pathlib import Path
 
+from afm_bringup.cli_batch import _add_batch
 from afm_bringup.cli_calibrate import _add_calibrate
 from afm_bringup.cli_errors import INPUT_STATUS, one_line, refuse
 from afm_bringup.cli_scan import _add_scan
@@ -627,6 +628,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_map,
         _add_calibrate,
         _add_sim2real,
+        _add_batch,
         _add_demo,
     ):
         add(sub)

@@ -11,17 +11,16 @@ import numpy as np
 
 from afm_core.evaluation import (
     compare_payloads,
-    find_particles,
     image_frame_matrix,
-    match_to_truth,
+    scan_against_truth,
+    tip_against_truth,
+    truth_index_at,
+    truth_xy,
 )
 from afm_core.manipulation.execute import TIP_HEIGHT
 from afm_core.recording import RecordingReader
 
 MEMORY_LIMIT = 2 * 2**30  # bytes, the whole graph's peak resident memory
-# m: images are in commanded scanner coordinates, which hysteresis residue, creep, coupling,
-# line deflection and drift put tens of nm off the truth; a particle this close is the same one
-MATCH_DISTANCE = 300e-9
 PUSH_DISTANCE = 300e-9  # m, from the particle's mapped centre to the goal
 PUSH_TOLERANCE = 20e-9  # m
 # true displacement per commanded (= map) displacement of the simulated instrument, for the
@@ -38,7 +37,7 @@ def evaluate(run_dir: Path) -> dict:
         duration = reader.duration_s
     scans, truth, poses, paths, marks = _read_replayed(recording)
     replay = _replay_check(run_dir / "session.mcap", recording, recorded_topics)
-    final_truth = _truth_xy(truth, len(truth["log_time"]) - 1)
+    final_truth = truth_xy(truth, len(truth["log_time"]) - 1)
     with RecordingReader(recording) as reader:
         topics = reader.topics()
         traces = reader.arrays("/afm/force_trace") if "/afm/force_trace" in topics else {}
@@ -49,16 +48,14 @@ def evaluate(run_dir: Path) -> dict:
         "scans": _scan_views(scans, truth),
         "replay": replay,
         "landmarks": _landmarks_against_truth(marks, final_truth),
-        "truth_xy": _truth_xy(truth, 0).tolist(),
+        "truth_xy": truth_xy(truth, 0).tolist(),
         "final_truth_xy": final_truth.tolist(),
-        "final_particles_xy": _truth_xy(
-            truth, len(truth["log_time"]) - 1, particles=True
-        ).tolist(),
+        "final_particles_xy": truth_xy(truth, len(truth["log_time"]) - 1, particles=True).tolist(),
         "truth_radius": [o["radius"] for o in truth["objects"][-1]],
         "scan_arrays": scans,
         "tip": _tip_against_truth(poses, truth) if poses else {},
         "strokes": _planned_strokes(paths),
-        "truth_objects": [_truth_xy(truth, i) for i in range(len(truth["log_time"]))],
+        "truth_objects": [truth_xy(truth, i) for i in range(len(truth["log_time"]))],
         "truth_anchor": _truth_anchor(truth),
         "force_strokes": _force_strokes(traces),
         "map_image": _last_map(maps),
@@ -145,62 +142,23 @@ def _read_replayed(recording: Path) -> tuple:
     return scans, truth, poses, paths, marks
 
 
-def _truth_at(truth: dict, t: float) -> int:
-    """Index of the last ground truth published before t (the one the scan saw)."""
-    return max(0, int(np.searchsorted(truth["log_time"], t, side="right")) - 1)
-
-
-# ObjectState.PIT: an indentation the nano-hand made, not a particle
-PIT = 3
-
-
-def _truth_xy(truth: dict, index: int, particles: bool = False) -> np.ndarray:
-    """The true object centres at truth `index` (m); `particles`: without the pits."""
-    return np.array(
-        [
-            [o["position.x"], o["position.y"]]
-            for o in truth["objects"][index]
-            if not (particles and int(o["kind"]) == PIT)
-        ]
-    ).reshape(-1, 2)
-
-
 def _scan_views(scans: dict, truth: dict) -> list[dict]:
     """Per scan: the particles found in it, matched to the true centres at its time."""
-    views = []
-    for i in range(len(scans["scan_id"])):
-        found = find_particles(
-            scans["height"][i],
-            scans["pixel_size_x"][i],
-            scans["pixel_size_y"][i],
-            scans["origin.x"][i],
-            scans["origin.y"][i],
-        )
-        pairs = match_to_truth(
-            found,
-            _truth_xy(truth, _truth_at(truth, scans["log_time"][i])),
-            max_distance=MATCH_DISTANCE,
-        )
-        views.append(
-            {
-                "scan_id": int(scans["scan_id"][i]),
-                "angle": float(scans["scan_angle_deg"][i]),
-                "frame_up": bool(scans["slow_scan_up"][i]),
-                "pair_id": str(scans["pair_id"][i]),
-                "found": len(found),
-                "matched": len(pairs),
-                "centre_error_rms": float(np.sqrt(np.mean([d**2 for _, _, d in pairs])))
-                if pairs
-                else float("nan"),
-                "peak_height_mean": float(np.mean([v.height for _, v, _ in pairs]))
-                if pairs
-                else float("nan"),
-                "apparent_radius_mean": float(np.mean([v.apparent_radius for _, v, _ in pairs]))
-                if pairs
-                else float("nan"),
-            }
-        )
-    return views
+    return [
+        {
+            "scan_id": int(scans["scan_id"][i]),
+            "angle": float(scans["scan_angle_deg"][i]),
+            "frame_up": bool(scans["slow_scan_up"][i]),
+            "pair_id": str(scans["pair_id"][i]),
+            **scan_against_truth(
+                scans["height"][i],
+                (scans["pixel_size_x"][i], scans["pixel_size_y"][i]),
+                (scans["origin.x"][i], scans["origin.y"][i]),
+                truth_xy(truth, truth_index_at(truth, scans["log_time"][i])),
+            ),
+        }
+        for i in range(len(scans["scan_id"]))
+    ]
 
 
 def _replay_check(original: Path, replayed: Path, recorded_topics: dict) -> dict:
@@ -243,45 +201,7 @@ def _landmarks_against_truth(marks, final_truth: np.ndarray) -> list[dict]:
 
 
 def _tip_against_truth(poses: dict, truth: dict) -> dict:
-    """The localizer's tip estimates against the true tip: error, NEES, the final sigma."""
-    means = np.stack([poses["pose.pose.position.x"], poses["pose.pose.position.y"]], axis=1)
-    cov = np.asarray(poses["pose.covariance"])[:, [0, 1, 6, 7]].reshape(-1, 2, 2)
-    # the estimate is in the maps' (commanded) frame, the truth metric: bring the truth into
-    # the maps' frame about where the session started (at rest, commanded = true)
-    metric = np.stack([truth["tip_position.x"], truth["tip_position.y"]], axis=1)
-    start_commanded = np.array(
-        [truth["commanded_position.x"][0], truth["commanded_position.y"][0]]
-    )
-    true_tip = start_commanded + (metric - metric[0]) @ np.linalg.inv(IMAGE_FRAME).T
-    # the localizer publishes its estimate as each command ends, the driver its truth: compare
-    # the pairs with the same stamp (error and NEES). A command DDS delivers late (a reliable
-    # sample repaired after a loss) is predicted after hold poses already went out with its
-    # end stamp, so stamps are not in order: take the last pose published with each stamp.
-    # (a stamp summed from a start and a duration in float seconds since 1970 is good to
-    # ~0.3 us)
-    origin = int(truth["header.stamp.sec"][0])
-    stamps = (poses["header.stamp.sec"] - origin) + poses["header.stamp.nanosec"] * 1e-9
-    truth_stamps = (truth["header.stamp.sec"] - origin) + truth["header.stamp.nanosec"] * 1e-9
-    same = np.abs(stamps[None, :] - truth_stamps[:, None]) < 5e-6
-    ok = same.any(axis=1)
-    k = len(stamps) - 1 - np.argmax(same[:, ::-1], axis=1)  # the last published with that stamp
-    errors = true_tip[ok] - means[k[ok]]
-    nees = [float(e @ np.linalg.solve(c, e)) for e, c in zip(errors, cov[k[ok]])]
-    compared_cov = cov[k[ok]]
-    return {
-        "times": truth_stamps[ok] - (truth_stamps[ok][0] if ok.any() else 0.0),
-        "errors": -errors,  # estimate minus truth
-        "sigmas": np.sqrt(np.stack([compared_cov[:, 0, 0], compared_cov[:, 1, 1]], axis=1)),
-        "means": means,
-        "covariances": cov,
-        "true_tip": true_tip,
-        "error_rms": float(np.sqrt(np.mean(np.sum(errors**2, axis=1))))
-        if len(errors)
-        else float("nan"),
-        "mean_nees": float(np.mean(nees)) if nees else float("nan"),
-        "compared": int(len(errors)),
-        "final_sigma": np.sqrt(np.diag(cov[-1])).tolist(),
-    }
+    return tip_against_truth(poses, truth, IMAGE_FRAME)
 
 
 def _planned_strokes(paths: dict) -> list:

@@ -70,6 +70,100 @@ def match_to_truth(
     return pairs
 
 
+# m: images are in commanded scanner coordinates, which hysteresis residue, creep, coupling,
+# line deflection and drift put tens of nm off the truth; a particle this close is the same one
+MATCH_DISTANCE = 300e-9
+
+
+def truth_index_at(truth: dict, t: float) -> int:
+    """Index of the last ground truth logged before t (the one a scan logged at t saw);
+    truth: a recording's /afm/ground_truth arrays (RecordingReader.arrays)."""
+    return max(0, int(np.searchsorted(truth["log_time"], t, side="right")) - 1)
+
+
+# ObjectState.PIT: an indentation the nano-hand made, not a particle
+PIT = 3
+
+
+def truth_xy(truth: dict, index: int, particles: bool = False) -> np.ndarray:
+    """(n, 2) m: the true object centres of the index-th ground truth; `particles`: without
+    the pits."""
+    return np.array(
+        [
+            [o["position.x"], o["position.y"]]
+            for o in truth["objects"][index]
+            if not (particles and int(o["kind"]) == PIT)
+        ]
+    ).reshape(-1, 2)
+
+
+def scan_against_truth(
+    height: np.ndarray, pixel_size, origin, true_xy: np.ndarray, max_distance=MATCH_DISTANCE
+) -> dict:
+    """One raster image against the true centres at its time: particles found and matched,
+    the matched centres' RMS error (m), their mean peak height and apparent radius (m); NaN
+    where nothing matched."""
+    found = find_particles(height, pixel_size[0], pixel_size[1], origin[0], origin[1])
+    pairs = match_to_truth(found, true_xy, max_distance=max_distance)
+
+    def mean(values):
+        return float(np.mean(values)) if pairs else float("nan")
+
+    return {
+        "found": len(found),
+        "matched": len(pairs),
+        "centre_error_rms": float(np.sqrt(mean([d**2 for _, _, d in pairs]))),
+        "peak_height_mean": mean([v.height for _, v, _ in pairs]),
+        "apparent_radius_mean": mean([v.apparent_radius for _, v, _ in pairs]),
+    }
+
+
+def tip_against_truth(poses: dict, truth: dict, image_frame: np.ndarray) -> dict:
+    """The localizer's tip estimates (/afm/tip_pose arrays) against the true tip
+    (/afm/ground_truth arrays): error RMS (m), mean NEES (2 dof: 2 when consistent), the pairs
+    compared with their times (s from the first), errors (estimate minus truth) and sigmas, the
+    final sigma (m). image_frame: true displacement per commanded displacement
+    (image_frame_matrix), as the estimate is in the maps' (commanded) frame."""
+    means = np.stack([poses["pose.pose.position.x"], poses["pose.pose.position.y"]], axis=1)
+    cov = np.asarray(poses["pose.covariance"])[:, [0, 1, 6, 7]].reshape(-1, 2, 2)
+    # the truth is metric: bring it into the maps' frame about where the session started (at
+    # rest, commanded = true)
+    metric = np.stack([truth["tip_position.x"], truth["tip_position.y"]], axis=1)
+    start_commanded = np.array(
+        [truth["commanded_position.x"][0], truth["commanded_position.y"][0]]
+    )
+    true_tip = start_commanded + (metric - metric[0]) @ np.linalg.inv(image_frame).T
+    # the localizer publishes its estimate as each command ends, the driver its truth: compare
+    # the pairs with the same stamp (error and NEES). A command DDS delivers late (a reliable
+    # sample repaired after a loss) is predicted after hold poses already went out with its
+    # end stamp, so stamps are not in order: take the last pose published with each stamp.
+    # (a stamp summed from a start and a duration in float seconds since 1970 is good to
+    # ~0.3 us)
+    origin = int(truth["header.stamp.sec"][0])
+    stamps = (poses["header.stamp.sec"] - origin) + poses["header.stamp.nanosec"] * 1e-9
+    truth_stamps = (truth["header.stamp.sec"] - origin) + truth["header.stamp.nanosec"] * 1e-9
+    same = np.abs(stamps[None, :] - truth_stamps[:, None]) < 5e-6
+    ok = same.any(axis=1)
+    k = len(stamps) - 1 - np.argmax(same[:, ::-1], axis=1)  # the last published with that stamp
+    errors = true_tip[ok] - means[k[ok]]
+    nees = [float(e @ np.linalg.solve(c, e)) for e, c in zip(errors, cov[k[ok]])]
+    compared_cov = cov[k[ok]]
+    return {
+        "times": truth_stamps[ok] - (truth_stamps[ok][0] if ok.any() else 0.0),
+        "errors": -errors,  # estimate minus truth, per pair compared
+        "sigmas": np.sqrt(np.stack([compared_cov[:, 0, 0], compared_cov[:, 1, 1]], axis=1)),
+        "means": means,
+        "covariances": cov,
+        "true_tip": true_tip,
+        "error_rms": float(np.sqrt(np.mean(np.sum(errors**2, axis=1))))
+        if len(errors)
+        else float("nan"),
+        "mean_nees": float(np.mean(nees)) if nees else float("nan"),
+        "compared": int(len(errors)),
+        "final_sigma": np.sqrt(np.diag(cov[-1])).tolist(),
+    }
+
+
 def compare_payloads(messages_a, messages_b) -> dict:
     """Two streams of (topic, bytes): per topic, counts and whether the payloads are identical
     in order. Keeps digests, not payloads, so recordings of any size stream through."""

@@ -1,0 +1,95 @@
+"""The figures beside a batch's summary.md: for sim2real the effects named per recording date
+(how they come and go over days), for evaluate each session's localization error and NEES
+and its scans' centre error, by recording date."""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+EFFECTS_FIGURE = "effects_by_date.png"
+EVALUATION_FIGURE = "errors_by_session.png"
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def effects_by_date(rows: list[dict], folder: Path) -> str | None:
+    """Stacked bars: per date, the sessions naming each effect (and those naming none)."""
+    done = [r for r in rows if r.get("status") == "ok"]
+    if not done:
+        return None
+    dates = sorted({r.get("recording_date") or "unknown" for r in done})
+    counts = {d: Counter() for d in dates}
+    for row in done:
+        names = [n for n in row.get("named", "").split(";") if n] or ["(none named)"]
+        counts[row.get("recording_date") or "unknown"].update(names)
+    effects = sorted({e for c in counts.values() for e in c})
+    plt = _pyplot()
+    figure, axes = plt.subplots(figsize=(max(4.0, 0.8 * len(dates) + 2), 3.5))
+    bottom = [0] * len(dates)
+    for effect in effects:
+        heights = [counts[d][effect] for d in dates]
+        axes.bar(dates, heights, bottom=bottom, label=effect)
+        bottom = [b + h for b, h in zip(bottom, heights)]
+    axes.set_ylabel("sessions")
+    axes.set_title("effects named, by recording date", fontsize="medium")
+    axes.yaxis.get_major_locator().set_params(integer=True)
+    axes.legend(fontsize="small")
+    figure.autofmt_xdate()
+    figure.tight_layout()
+    figure.savefig(Path(folder) / EFFECTS_FIGURE, dpi=100)
+    plt.close(figure)
+    return EFFECTS_FIGURE
+
+
+def errors_by_session(rows: list[dict], folder: Path) -> str | None:
+    """Per session (in date order): localization error RMS and scans' centre error RMS (nm),
+    and the mean NEES against its consistent value 2."""
+    done = sorted(
+        (r for r in rows if r.get("status") == "ok"),
+        key=lambda r: (r.get("recording_date", ""), r["item"]),
+    )
+
+    def column(name, scale=1.0):
+        return [float(r[name]) * scale if r.get(name) not in (None, "") else None for r in done]
+
+    series = {
+        "localization error RMS (nm)": column("localization_error_rms_m", 1e9),
+        "scans' centre error RMS (nm)": column("centre_error_rms_m", 1e9),
+    }
+    nees = column("localization_mean_nees")
+    if not done or all(v is None for s in [*series.values(), nees] for v in s):
+        return None
+    plt = _pyplot()
+    with_nees = any(v is not None for v in nees)
+    figure, panels = plt.subplots(1, 2 if with_nees else 1, figsize=(9 if with_nees else 5, 3.5))
+    left, right = (panels[0], panels[1]) if with_nees else (panels, None)
+    index = range(len(done))
+    for label, values in series.items():
+        points = [(i, v) for i, v in zip(index, values) if v is not None]
+        if points:
+            left.plot(*zip(*points), "o", label=label)
+    left.set_xlabel("session (by recording date)")
+    left.set_ylabel("nm")
+    left.legend(fontsize="small")
+    if right is not None:
+        _nees_panel(right, [(i, v) for i, v in zip(index, nees) if v is not None])
+    figure.tight_layout()
+    figure.savefig(Path(folder) / EVALUATION_FIGURE, dpi=100)
+    plt.close(figure)
+    return EVALUATION_FIGURE
+
+
+def _nees_panel(right, points: list) -> None:
+    right.plot(*zip(*points), "o")
+    right.axhline(2.0, color="grey", linestyle="--", label="consistent (2 dof)")
+    right.set_xlabel("session (by recording date)")
+    right.set_ylabel("mean NEES")
+    right.legend(fontsize="small")
