@@ -35,6 +35,7 @@ import dataclasses
 import json
 import time as wallclock
 from datetime import datetime, timezone
+from pathlib import Path
 
 import numpy as np
 
@@ -334,9 +335,11 @@ HEADLINE = {
 }
 
 
-def report_markdown(summary: dict) -> str:
+def report_markdown(summary: dict, figures: dict | None = None) -> str:
     """The report of `run_calibration` for a person: per experiment measured or failed (why),
-    its headline parameters (SI), then every check with its level, warnings first."""
+    its headline parameters (SI), then every check with its level, warnings first, then the
+    `figures` ({experiment: path relative to the report}, figures.calibration_figures) of the
+    raw data and the fits."""
 
     def shown(value):
         if isinstance(value, (list, tuple)):
@@ -366,6 +369,9 @@ def report_markdown(summary: dict) -> str:
     )
     lines += ["", "## Checks", ""]
     lines += [f"- **{c['level']}** {c['experiment']}: {c['message']}" for c in checks]
+    if figures:
+        lines += ["", "## Raw data and fits", ""]
+        lines += [f"![{name}]({Path(path).as_posix()})" for name, path in figures.items()]
     lines += [
         "",
         f"Instrument time {summary.get('instrument_seconds', 0.0) / 3600:.2f} h, wall "
