@@ -71,7 +71,7 @@ def measure_drift(
     frame_time = checks.positive("frame_time", frame_time, "s", upper=86400.0)
     interval = checks.positive("interval", interval, "s")
     size = hi - lo
-    pixels, line_rate = _frame_raster(limits, size, pixel, frame_time)
+    _frame_raster(limits, size, pixel, frame_time)  # the frame without drift must fit
     centre = 0.5 * (lo + hi)
     velocities, moments, frames, particle_times = [], [], [], []
     steps = StepProgress(progress, "drift", "frame pair", pairs, instrument)
@@ -80,8 +80,16 @@ def measure_drift(
             steps.step(k)
         start = float(instrument.time)
         centre = _find_particle_cluster(instrument, centre, search, size)
-        lo = np.clip(centre - size / 2, 0.0, [limits.range_x - size[0], limits.range_y - size[1]])
-        up, down = _up_down_pair(instrument, lo, size, pixels, line_rate, settle)
+        if k == 0:
+            centre, estimate, spread = _first_drift_estimate(
+                instrument, centre, search, size, settle
+            )
+        else:
+            estimate = np.mean(velocities, axis=0)
+            spread = np.std(velocities, axis=0, ddof=1) if k > 1 else np.abs(estimate)
+        lo, frame = _drifting_frame(limits, centre, size, estimate, spread, settle, frame_time)
+        pixels, line_rate = _frame_raster(limits, frame, pixel, frame_time)
+        up, down = _up_down_pair(instrument, lo, frame, pixels, line_rate, settle)
         observations = up_down_observations(up, down)
         velocities.append(up_down_velocity(observations))
         particle_times.append([observations.t_up.tolist(), observations.t_down.tolist()])
@@ -104,6 +112,41 @@ def measure_drift(
             "frames": frames,
         },
     )
+
+
+# The particles move by the drift over a pair (two rests and two frames, ~1100 s with the
+# defaults: 1.1 um at 1 nm/s, half the frame's width; issue 37: "only 1 particle matches").
+# The frame is centred where they are at the pair's middle and widened by how far they go,
+# with the velocity as measured so far: the mean of the pairs before (it wanders by their
+# spread; DRIFT_Z of it, a 0.27 % chance per axis that the wander outruns the margin for a
+# Gaussian velocity), for the first pair two search images `settle` s apart.
+DRIFT_Z = 3.0
+
+
+def _first_drift_estimate(instrument, centre, search: float, size, settle: float) -> tuple:
+    """(centre, velocity, its error) from a second search image `settle` s after the first:
+    the cluster's move between them; the error is that of two centres (a search pixel each,
+    the cluster's bounding box) over the time."""
+    t0 = float(instrument.time)
+    wait(instrument, settle)
+    later = _find_particle_cluster(instrument, centre, search, size)
+    elapsed = max(float(instrument.time) - t0, 1.0)
+    velocity = (later - np.asarray(centre, float)) / elapsed
+    pixel = search / SEARCH_PIXELS
+    return later, velocity, np.full(2, np.sqrt(2.0) * pixel / elapsed)
+
+
+def _drifting_frame(limits, centre, size, velocity, spread, settle, frame_time) -> tuple:
+    """(lower corner, size) of a pair's frames: `size` widened by the particles' travel over
+    the pair (|velocity| + DRIFT_Z spread, per axis) and centred where the drift puts them at
+    the pair's middle, kept inside the range."""
+    pair_time = 2.0 * (settle + frame_time)
+    velocity, spread = np.asarray(velocity, float), np.asarray(spread, float)
+    frame = np.asarray(size, float) + (np.abs(velocity) + DRIFT_Z * spread) * pair_time
+    frame = np.minimum(frame, [limits.range_x, limits.range_y])
+    middle = np.asarray(centre, float) + velocity * (settle + frame_time)
+    lo = np.clip(middle - frame / 2, 0.0, [limits.range_x - frame[0], limits.range_y - frame[1]])
+    return lo, frame
 
 
 def _frame_raster(limits, size, pixel: float, frame_time: float) -> tuple[np.ndarray, float]:
@@ -161,6 +204,9 @@ def _up_down_pair(instrument, lo, size, pixels, line_rate, settle: float) -> tup
     return up, down
 
 
+SEARCH_PIXELS = 128  # per side of a search image (at its first, smallest size)
+
+
 def _find_particle_cluster(instrument, centre, search: float, frame) -> np.ndarray:
     """Centre of the particles in a quick search image around `centre` (the middle of their
     bounding box); the search area doubles (three times at most) while none is found, and
@@ -175,7 +221,7 @@ def _find_particle_cluster(instrument, centre, search: float, frame) -> np.ndarr
             [limits.range_x - size[0], limits.range_y - size[1]],
         )
         rate = min(MAX_LINE_RATE, limits.max_line_rate, 0.95 * limits.max_speed / (2.0 * size[0]))
-        pixels = int(min(limits.max_pixels, 128 * 2**attempt))
+        pixels = int(min(limits.max_pixels, SEARCH_PIXELS * 2**attempt))
         scan = instrument.raster_scan(
             ScanRequest(
                 float(lo[0]),
