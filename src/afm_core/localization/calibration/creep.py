@@ -209,48 +209,16 @@ def measure_creep(
     repeats = checks.count("repeats", repeats, 1, 20)
     pit_spacing = checks.positive("pit_spacing", pit_spacing, "m", upper=5e-6)
     force = indent_force(instrument, force)
-    # The rescan reaches back along the step by `reach`; the runs of an axis lie `reach` +
-    # RUN_CLEARANCE apart so one run's rescan never shows the run before. Both start from a
-    # creep of a few % of the step and grow with the lag a run measured (issue 37: creep 3x
-    # lags 3 um behind a 50 um step, past the 3 um box, and the missing early pits left the
-    # fast time constant free).
-    reach = INITIAL_CREEP_FRACTION * step + RESCAN_MARGIN
-    plans = _planned_runs(instrument, step, pits, repeats, pit_spacing, lane_offset, reach)
-    runs, data = [], {"x": [], "y": []}
-    steps = StepProgress(progress, "creep", f"step run of {pits} pits", len(plans), instrument)
-    for number in range(1, len(plans) + 1):
-        if plans[number - 1] is None:  # no room for this repeat at the lag measured
-            data.setdefault("runs_dropped", 0)
-            data["runs_dropped"] += 1
-            steps.step(number)
-            continue
-        axis, start, end = plans[number - 1]
-        name = "xy"[axis]
-        # a later run of an axis must not reach back to the run before it
-        room = np.inf if not data[name] else reach + RUN_CLEARANCE - RESCAN_MARGIN
-        run, record = _creep_run(
-            instrument,
-            axis,
-            start,
-            end,
-            step=step,
-            schedule=(duration, pits, fast_pits, pit_spacing),
-            settle=settle,
-            pixel=pixel,
-            force=force,
-            label=f"creep ({name}, run {len(data[name])})",
-            reach=(reach, min(room, MAX_CREEP_FRACTION * step)),
-        )
-        runs.append(run)
-        data[name].append(record)
-        needed = REACH_PER_LAG * record["lag"] + RESCAN_MARGIN
-        if needed > reach:
-            reach = needed
-            wider = _planned_runs(
-                instrument, step, pits, repeats, pit_spacing, lane_offset, reach, True
-            )
-            plans = plans[:number] + wider[number:]
-        steps.step(number)
+    runs, data, duration = _measured_runs(
+        instrument,
+        step,
+        (duration, pits, fast_pits, pit_spacing),
+        repeats,
+        lane_offset,
+        dict(settle=settle, pixel=pixel, force=force),
+        guess,
+        progress,
+    )
     fit = fit_creep(runs, guess=guess, longest=duration)
     for record, model in zip(data["x"] + data["y"], fit["model"]):
         record["model"] = model
@@ -265,6 +233,7 @@ def measure_creep(
         "success": fit["success"],
         # what the runs could resolve: a time constant at either end is not measured
         "time_constant_range": [float(min(r["t"][0] for r in runs)), duration],
+        "record_per_tau": RECORD_PER_TAU,
     }
     return Experiment(parameters, data)
 
@@ -279,6 +248,63 @@ MAX_CREEP_FRACTION = 0.25
 REACH_PER_LAG = 1.5
 RESCAN_MARGIN = 0.5e-6  # m, past the pits: the pit's own width and the compensation residual
 RUN_CLEARANCE = 1.0e-6  # m between one run's rescan box and the pits of the run before
+
+
+# The slowest creep term must decay within a run, or the drift line fitted with it takes it
+# up: a run lasts RECORD_PER_TAU of the slowest time constant (e^-4: 2 % of it left), found
+# from a fit of the first run when the given duration is shorter (issue 37: creep 3x, 150 s
+# against 300 s runs, fitted 111 s), up to MAX_DURATION.
+RECORD_PER_TAU = 4.0
+MAX_DURATION = 3600.0  # s
+
+
+def _measured_runs(instrument, step, schedule, repeats, lane_offset, options, guess, progress):
+    """Every run of measure_creep: (runs for fit_creep, records per axis, the run length the
+    later runs had). The rescan reaches back along the step by `reach`; the runs of an axis
+    lie `reach` + RUN_CLEARANCE apart so one run's rescan never shows the run before. Both
+    start from a creep of a few % of the step and grow with the lag a run measured (issue 37:
+    creep 3x lags 3 um behind a 50 um step, past the 3 um box, and the missing early pits
+    left the fast time constant free). After the first run the run length follows its
+    slowest time constant (RECORD_PER_TAU)."""
+    duration, pits, fast_pits, pit_spacing = schedule
+    reach = INITIAL_CREEP_FRACTION * step + RESCAN_MARGIN
+    plans = _planned_runs(instrument, step, pits, repeats, pit_spacing, lane_offset, reach)
+    runs, data = [], {"x": [], "y": []}
+    steps = StepProgress(progress, "creep", f"step run of {pits} pits", len(plans), instrument)
+    for number in range(1, len(plans) + 1):
+        if plans[number - 1] is None:  # no room for this repeat at the lag measured
+            data["runs_dropped"] = data.get("runs_dropped", 0) + 1
+            steps.step(number)
+            continue
+        axis, start, end = plans[number - 1]
+        name = "xy"[axis]
+        # a later run of an axis must not reach back to the run before it
+        room = np.inf if not data[name] else reach + RUN_CLEARANCE - RESCAN_MARGIN
+        run, record = _creep_run(
+            instrument,
+            axis,
+            start,
+            end,
+            step=step,
+            schedule=(duration, pits, fast_pits, pit_spacing),
+            label=f"creep ({name}, run {len(data[name])})",
+            reach=(reach, min(room, MAX_CREEP_FRACTION * step)),
+            **options,
+        )
+        runs.append(run)
+        data[name].append(record)
+        if len(runs) == 1:
+            slowest = max(fit_creep(runs, guess=guess, longest=duration)["time_constants"])
+            duration = max(duration, min(MAX_DURATION, RECORD_PER_TAU * slowest))
+        needed = REACH_PER_LAG * record["lag"] + RESCAN_MARGIN
+        if needed > reach:
+            reach = needed
+            wider = _planned_runs(
+                instrument, step, pits, repeats, pit_spacing, lane_offset, reach, True
+            )
+            plans = plans[:number] + wider[number:]
+        steps.step(number)
+    return runs, data, duration
 
 
 def _planned_runs(

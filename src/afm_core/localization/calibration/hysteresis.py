@@ -199,12 +199,22 @@ FIT_PARAMETERS = (
 )  # the parts of fit_hysteresis's result that are the experiment's parameters
 
 
+# The cycle's share of the half range H. An input asymmetry a moves the top tip of a cycle of
+# amplitude c H out to about (c + |a| c^2) H (from_fraction's p(xi) at xi = c); the rescan
+# reaches RESCAN_REACH H. At 0.9 the tips of loops with |a| > ~0.06 fell outside it (issue 37:
+# loop 0.25, asymmetry 0.1: the rows could not be matched; 0.05 / 0.1: two of four tips
+# missing); at 0.8 a loop with |a| up to 0.1 (the issue's range) keeps them 4 um inside,
+# and the PI fit still covers 80 % of the range (loop fraction within 2.5 % on the default
+# instrument, as at 0.9).
+CYCLE_FRACTION = 0.8
+
+
 def measure_hysteresis(
     instrument,
     axis: int,
     *,
     creep: tuple | None = None,
-    cycle_fraction: float = 0.9,
+    cycle_fraction: float = CYCLE_FRACTION,
     steps_per_sweep: int = 128,
     pit_every: int = 4,
     operators: int = 12,
@@ -360,6 +370,11 @@ def _box(
     return lo, hi
 
 
+# How far from the range centre the rescan reaches along the cycled axis, in half ranges: the
+# outer 5 % stays clear (see _rescan_box). A smaller cycle leaves its tips more room.
+RESCAN_REACH = 0.95
+
+
 def _rescan_box(axis: int, centre, amplitude: float, half: float, lanes) -> tuple:
     """The box the rows of pits are rescanned in. It covers where the pits can land: an
     asymmetric loop lifts or lowers the row's ends by up to ~asymmetry x half range. It must
@@ -368,7 +383,7 @@ def _rescan_box(axis: int, centre, amplitude: float, half: float, lanes) -> tupl
     inverse then runs ahead of the scanner and misplaces the pits over the following tens of
     um of the pass (with cycle_fraction 0.95 and a fixed 1.5 um margin this biased the fitted
     asymmetry by -4 % on a noise-free scanner)."""
-    return _box(axis, centre, amplitude, lanes, 2e-6, margin=0.05 * half)
+    return _box(axis, centre, amplitude, lanes, 2e-6, margin=RESCAN_REACH * half - amplitude)
 
 
 def _on_axis(axis: int, along: float, across: float) -> tuple[float, float]:
