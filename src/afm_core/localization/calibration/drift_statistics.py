@@ -80,17 +80,30 @@ def measure_drift(
             steps.step(k)
         start = float(instrument.time)
         centre = _find_particle_cluster(instrument, centre, search, size)
-        if k == 0:
-            centre, estimate, spread = _first_drift_estimate(
-                instrument, centre, search, size, settle
-            )
+        if k == 0:  # nothing measured yet: the frame as given, unless the particles leave it
+            estimate, spread = np.zeros(2), np.zeros(2)
         else:
+            # the next pair's velocity is off the mean so far by the pairs' spread (once three
+            # pairs show it)
             estimate = np.mean(velocities, axis=0)
-            spread = np.std(velocities, axis=0, ddof=1) if k > 1 else np.abs(estimate)
-        lo, frame = _drifting_frame(limits, centre, size, estimate, spread, settle, frame_time)
-        pixels, line_rate = _frame_raster(limits, frame, pixel, frame_time)
-        up, down = _up_down_pair(instrument, lo, frame, pixels, line_rate, settle)
-        observations = up_down_observations(up, down)
+            spread = np.std(velocities, axis=0, ddof=1) if k >= 3 else np.zeros(2)
+        try:
+            up, down, observations = _measured_pair(
+                instrument, centre, size, estimate, spread, (pixel, frame_time, settle)
+            )
+        except ValueError:
+            if k:
+                raise
+            # the first pair lost its particles: the drift over it, from where the search
+            # finds them now, frames the pair again
+            searched = float(instrument.time)
+            later = _find_particle_cluster(instrument, centre, search, size)
+            estimate = (later - centre) / max(searched - start, 1.0)
+            spread = np.full(2, np.sqrt(2.0) * search / SEARCH_PIXELS) / (searched - start)
+            centre = later
+            up, down, observations = _measured_pair(
+                instrument, centre, size, estimate, spread, (pixel, frame_time, settle)
+            )
         velocities.append(up_down_velocity(observations))
         particle_times.append([observations.t_up.tolist(), observations.t_down.tolist()])
         moments.append(0.5 * (up.start_time + float(instrument.time)))
@@ -119,21 +132,20 @@ def measure_drift(
 # The frame is centred where they are at the pair's middle and widened by how far they go,
 # with the velocity as measured so far: the mean of the pairs before (it wanders by their
 # spread; DRIFT_Z of it, a 0.27 % chance per axis that the wander outruns the margin for a
-# Gaussian velocity), for the first pair two search images `settle` s apart.
+# Gaussian velocity). The first pair has the frame as given; if its particles left it, the
+# pair is taken again, framed with the drift from two search images before and after it.
 DRIFT_Z = 3.0
 
 
-def _first_drift_estimate(instrument, centre, search: float, size, settle: float) -> tuple:
-    """(centre, velocity, its error) from a second search image `settle` s after the first:
-    the cluster's move between them; the error is that of two centres (a search pixel each,
-    the cluster's bounding box) over the time."""
-    t0 = float(instrument.time)
-    wait(instrument, settle)
-    later = _find_particle_cluster(instrument, centre, search, size)
-    elapsed = max(float(instrument.time) - t0, 1.0)
-    velocity = (later - np.asarray(centre, float)) / elapsed
-    pixel = search / SEARCH_PIXELS
-    return later, velocity, np.full(2, np.sqrt(2.0) * pixel / elapsed)
+def _measured_pair(instrument, centre, size, velocity, spread, raster) -> tuple:
+    """A frame-up / frame-down pair (`_up_down_pair`) framed for the drift (`_drifting_frame`)
+    and its matched particles; ValueError when fewer than two particles match."""
+    pixel, frame_time, settle = raster
+    limits = instrument.limits
+    lo, frame = _drifting_frame(limits, centre, size, velocity, spread, settle, frame_time)
+    pixels, line_rate = _frame_raster(limits, frame, pixel, frame_time)
+    up, down = _up_down_pair(instrument, lo, frame, pixels, line_rate, settle)
+    return up, down, up_down_observations(up, down)
 
 
 def _drifting_frame(limits, centre, size, velocity, spread, settle, frame_time) -> tuple:

@@ -30,6 +30,16 @@ TIP_CLOSURE_LIMIT = 0.5  # of the pit spacing at the tip
 RESCAN_AGREEMENT_LIMIT = 0.5  # of the pit spacing
 
 
+class RowsNotMatched(RuntimeError):
+    """The rows of pits could not be matched in a rescan (hysteresis_rows.placed_rows); the
+    detections of the rescans so far are attached (`detected`), so a repeat elsewhere can
+    ignore them."""
+
+    def __init__(self, message: str, detected=()):
+        super().__init__(message)
+        self.detected = list(detected)
+
+
 def imaged_rows(
     instrument, axis: int, box, pixel, rescans, branches, drives, ignore
 ) -> tuple[np.ndarray, list]:
@@ -62,7 +72,11 @@ def imaged_rows(
         for branch, sign in (("descending", -1.0), ("ascending", 1.0)):
             in_row = np.flatnonzero(keep & (np.sign(offset) == sign))
             rows[branch] = (np.flatnonzero(branches == branch), along[in_row])
-        for wanted, positions in placed_rows(rows, drives, axis, direction).values():
+        try:
+            placed = placed_rows(rows, drives, axis, direction)
+        except RuntimeError as exc:
+            raise RowsNotMatched(str(exc), [p for d in all_detected for p in d]) from exc
+        for wanted, positions in placed.values():
             measured[row, wanted] = positions
     return measured, all_detected
 
