@@ -216,7 +216,6 @@ def measure_creep(
         repeats,
         lane_offset,
         dict(settle=settle, pixel=pixel, force=force),
-        guess,
         progress,
     )
     fit = fit_creep(runs, guess=guess, longest=duration)
@@ -251,21 +250,20 @@ RUN_CLEARANCE = 1.0e-6  # m between one run's rescan box and the pits of the run
 
 
 # The slowest creep term must decay within a run, or the drift line fitted with it takes it
-# up: a run lasts RECORD_PER_TAU of the slowest time constant (e^-4: 2 % of it left), found
-# from a fit of the first run when the given duration is shorter (issue 37: creep 3x, 150 s
-# against 300 s runs, fitted 111 s), up to MAX_DURATION.
+# up: a run resolves a time constant up to 1 / RECORD_PER_TAU of its length (e^-4: 2 % of the
+# term left at the end); a slower one is flagged (fit_checks). Runs are not lengthened from a
+# first fit: at a drift of 1 nm/s a 1200 s run's pits drift apart by 8 pit spacings along
+# their lane and no longer match (issue 37's creep 3x, 150 s against 300 s runs: flagged).
 RECORD_PER_TAU = 4.0
-MAX_DURATION = 3600.0  # s
 
 
-def _measured_runs(instrument, step, schedule, repeats, lane_offset, options, guess, progress):
-    """Every run of measure_creep: (runs for fit_creep, records per axis, the run length the
-    later runs had). The rescan reaches back along the step by `reach`; the runs of an axis
-    lie `reach` + RUN_CLEARANCE apart so one run's rescan never shows the run before. Both
-    start from a creep of a few % of the step and grow with the lag a run measured (issue 37:
-    creep 3x lags 3 um behind a 50 um step, past the 3 um box, and the missing early pits
-    left the fast time constant free). After the first run the run length follows its
-    slowest time constant (RECORD_PER_TAU)."""
+def _measured_runs(instrument, step, schedule, repeats, lane_offset, options, progress):
+    """Every run of measure_creep: (runs for fit_creep, records per axis, the run length). The
+    rescan reaches back along the step by `reach`; the runs of an axis lie `reach` +
+    RUN_CLEARANCE apart so one run's rescan never shows the run before. Both start from a
+    creep of a few % of the step and grow with the lag a run measured (issue 37: creep 3x
+    lags 3 um behind a 50 um step, past the 3 um box, and the missing early pits left the
+    fast time constant free)."""
     duration, pits, fast_pits, pit_spacing = schedule
     reach = INITIAL_CREEP_FRACTION * step + RESCAN_MARGIN
     plans = _planned_runs(instrument, step, pits, repeats, pit_spacing, lane_offset, reach)
@@ -293,9 +291,6 @@ def _measured_runs(instrument, step, schedule, repeats, lane_offset, options, gu
         )
         runs.append(run)
         data[name].append(record)
-        if len(runs) == 1:
-            slowest = max(fit_creep(runs, guess=guess, longest=duration)["time_constants"])
-            duration = max(duration, min(MAX_DURATION, RECORD_PER_TAU * slowest))
         needed = REACH_PER_LAG * record["lag"] + RESCAN_MARGIN
         if needed > reach:
             reach = needed
