@@ -133,3 +133,22 @@ def test_a_figure_needs_only_the_report(tmp_path, name):
     drawn again): an entry without its data has no figure rather than an error."""
     summary = {name: {"parameters": _summary()[name]["parameters"]}}
     assert calibration_figures(summary, tmp_path) == {}
+
+
+def test_a_fit_the_calibration_refuses_keeps_the_others():
+    """A creep fit with a time constant of 0 s (a free fast constant run to exp(-655)) made
+    Calibration() raise after every experiment had run: the whole run was lost. Now that
+    experiment's fields keep the defaults, it is marked failed with the reason, the rest
+    stay."""
+    from afm_core.localization.calibration.procedure import _accepted_fields
+
+    fields = {
+        "creep_time_constants": [0.0, 1.6, 20.0],
+        "creep_fractions_x": [0.01, 0.01, 0.01],
+        "creep_fractions_y": [0.01, 0.01, 0.01],
+        "motion_noise_slope_x": 7e-11,
+    }
+    failed = {}
+    accepted = _accepted_fields(fields, failed)
+    assert accepted == {"motion_noise_slope_x": 7e-11}
+    assert "creep_time_constants" in failed["creep"] and set(failed) == {"creep"}

@@ -54,6 +54,12 @@ def walk_whitener(moves, pit_to_walk_ratio: float = WALK_MEASUREMENT_RATIO) -> n
     return linalg.solve_triangular(np.linalg.cholesky(covariance), np.eye(k.size), lower=True)
 
 
+# A term faster than this is part of the step, not creep (the fit ran a free fast constant to
+# exp(-655) = 0 s on creep 3x, which the Calibration refuses: the whole run was lost). At the
+# bound it is flagged (fit_checks: faster than the first pit).
+SHORTEST_TIME_CONSTANT = 1e-3  # s
+
+
 def fit_creep(
     runs: list[dict],
     n_constants: int = 3,
@@ -105,7 +111,9 @@ def fit_creep(
     # `longest`: the time constants are bounded by it (a term slower than the record is a
     # straight line there, the drift's; unbounded it ran off to 1e305 s on creep 3x)
     theta0 = list(np.log(np.minimum(guess, 0.5 * longest))) + [0.005] * (n_constants * len(groups))
-    lower = [-np.inf] * n_constants + [0.0] * (n_constants * len(groups))
+    lower = [float(np.log(SHORTEST_TIME_CONSTANT))] * n_constants + [0.0] * (
+        n_constants * len(groups)
+    )
     upper = [float(np.log(longest))] * n_constants + [0.5] * (n_constants * len(groups))
     for _, x, *_ in prepared:
         theta0 += [x[-1]] + [0.0] * (extra - 1)

@@ -266,7 +266,7 @@ def run_calibration(
     )
     report.pop("_chosen")
     failed = report.pop("_failed", {})
-    fields = _calibration_fields(report)
+    fields = _accepted_fields(_calibration_fields(report), failed)
     stamp = datetime.now(timezone.utc).isoformat(timespec="seconds")
     calibration = Calibration(
         source=source or f"afm_core.localization.calibration.procedure.run_calibration, {stamp}",
@@ -289,10 +289,31 @@ def run_calibration(
         else {"parameters": value.parameters, "data": value.data}
         for name, value in report.items()
     }
+    for name, reason in failed.items():  # measured, but refused by the Calibration's checks
+        if report.get(name) is not None:
+            summary[name]["failed"] = reason
     summary["checks"] = calibration_checks(summary)
     summary["instrument_seconds"] = float(instrument.time) - clock0
     summary["wall_seconds"] = wallclock.perf_counter() - started
     return calibration, summary
+
+
+def _accepted_fields(fields: dict, failed: dict) -> dict:
+    """`fields` less each experiment's whose values the Calibration refuses (a fit outside its
+    limits, e.g. a time constant of 0 s): those keep the defaults and the experiment is
+    marked failed with the reason, so the file is still written with the rest."""
+    accepted = dict(fields)
+    for experiment, names in FIELDS.items():
+        own = {name: fields[name] for name in names if name in fields}
+        if not own:
+            continue
+        try:
+            Calibration(**own)
+        except ValueError as exc:
+            failed[experiment] = f"fit refused by the calibration's checks: {exc}"
+            for name in own:
+                accepted.pop(name)
+    return accepted
 
 
 def _creep_axes(result, previous: Calibration | None) -> list:
