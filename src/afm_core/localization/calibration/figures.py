@@ -106,7 +106,7 @@ def _motion_noise(ax, entry: dict) -> None:
         d_line = d if d_line is None else np.union1d(d_line, d)
     if d_line is not None:
         grid = np.linspace(0.0, float(d_line.max()) * 1.05, 50)
-        offset = 0.5 * (p.get("offset_x", 0.0) + p.get("offset_y", 0.0))
+        offset = p.get("pooled_offset", 0.0)
         ax.plot(
             grid * NM,
             (p["pooled_slope"] * grid + offset) * NM**2,
