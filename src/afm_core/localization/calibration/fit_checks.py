@@ -21,6 +21,9 @@ The rules, and why:
   (correlated residuals), so significance alone flagged a 5 % x/y difference on a simulated
   tube whose axes are identical. The axes of a real tube may differ, so this is a warning to
   look, not an error.
+- A creep time constant the runs did not sample (slower than a quarter of a run, faster than
+  half the first pit's moment) is flagged, and a hysteresis cycle that had to be repeated
+  on a smaller cycle (a wide, strongly asymmetric loop) flags its asymmetry.
 - The open-loop gain of the hysteresis cycle and the image-frame gain of the scanner matrix
   measure the scanner at different histories (open loop against compensated); they differ by
   the feed-forward's model error, a few %. A difference beyond ACCURACY_TARGET is as large as
