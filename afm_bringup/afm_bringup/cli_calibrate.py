@@ -13,6 +13,7 @@ from afm_bringup.progress import Progress
 
 def cmd_calibrate(args):
     from afm_core.backends import open_instrument
+    from afm_core.localization.calibration.figures import calibration_figures
     from afm_core.localization.calibration.model import load_calibration, save_calibration
     from afm_core.localization.calibration.procedure import (
         checked_experiments,
@@ -55,9 +56,12 @@ def cmd_calibrate(args):
     save_calibration(calibration, output)
     if args.report:
         # every experiment's parameters, raw data and the fit checks; beside it the same for a
-        # person (headline parameters, outcome, checks)
-        Path(args.report).write_text(report_json(report))
-        Path(args.report).with_suffix(".md").write_text(report_markdown(report))
+        # person (headline parameters, outcome, checks) with a figure per experiment
+        report_path = Path(args.report)
+        report_path.write_text(report_json(report))
+        figures = calibration_figures(report, report_path.parent / f"{report_path.stem}_figures")
+        relative = {name: path.relative_to(report_path.parent) for name, path in figures.items()}
+        report_path.with_suffix(".md").write_text(report_markdown(report, relative))
     _print_calibration(output, calibration, report)
     failed = {n: v["failed"] for n, v in report.items() if isinstance(v, dict) and "failed" in v}
     for name, reason in failed.items():
@@ -162,7 +166,8 @@ def _add_calibrate(sub) -> None:
         "--report",
         default="",
         help="also write every experiment's fitted parameters, raw data and fit checks (JSON), "
-        "and a summary a person reads beside it (same name, .md)",
+        "and beside it a summary a person reads (same name, .md) with a figure of each "
+        "experiment's raw data and fit (PNGs in <name>_figures/)",
     )
     p.add_argument(
         "--only",

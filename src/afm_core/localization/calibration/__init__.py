@@ -13,7 +13,9 @@ Modules, one per experiment and what they share:
   (wait, punch a pit, rescan);
 - pits.py: finding the punched pits in a rescan; matching.py: which pit is which punch;
   hysteresis_rows.py: the same for the two rows of a hysteresis cycle;
-- simulator_comparison.py: the results against a simulated instrument's configuration.
+- simulator_comparison.py: the results against a simulated instrument's configuration;
+- figures.py: `calibration_figures`, a PNG of each experiment's raw data and fit from the
+  report (what `afm calibrate --report` puts beside its readable summary).
 
 Where the pits go. Every experiment records the tip's position by punching a pit (book
 Fig. 7.6a, 7.7a, 7.12a) and finds the pits again in a rescan (pits.py).

@@ -71,7 +71,7 @@ def measure_drift(
     frame_time = checks.positive("frame_time", frame_time, "s", upper=86400.0)
     interval = checks.positive("interval", interval, "s")
     size = hi - lo
-    pixels, line_rate = _frame_raster(limits, size, pixel, frame_time)
+    _frame_raster(limits, size, pixel, frame_time)  # the frame without drift must fit
     centre = 0.5 * (lo + hi)
     velocities, moments, frames, particle_times = [], [], [], []
     steps = StepProgress(progress, "drift", "frame pair", pairs, instrument)
@@ -80,9 +80,30 @@ def measure_drift(
             steps.step(k)
         start = float(instrument.time)
         centre = _find_particle_cluster(instrument, centre, search, size)
-        lo = np.clip(centre - size / 2, 0.0, [limits.range_x - size[0], limits.range_y - size[1]])
-        up, down = _up_down_pair(instrument, lo, size, pixels, line_rate, settle)
-        observations = up_down_observations(up, down)
+        if k == 0:  # nothing measured yet: the frame as given, unless the particles leave it
+            estimate, spread = np.zeros(2), np.zeros(2)
+        else:
+            # the next pair's velocity is off the mean so far by the pairs' spread (once three
+            # pairs show it)
+            estimate = np.mean(velocities, axis=0)
+            spread = np.std(velocities, axis=0, ddof=1) if k >= 3 else np.zeros(2)
+        try:
+            up, down, observations = _measured_pair(
+                instrument, centre, size, estimate, spread, (pixel, frame_time, settle)
+            )
+        except ValueError:
+            if k:
+                raise
+            # the first pair lost its particles: the drift over it, from where the search
+            # finds them now, frames the pair again
+            searched = float(instrument.time)
+            later = _find_particle_cluster(instrument, centre, search, size)
+            estimate = (later - centre) / max(searched - start, 1.0)
+            spread = np.full(2, np.sqrt(2.0) * search / SEARCH_PIXELS) / (searched - start)
+            centre = later
+            up, down, observations = _measured_pair(
+                instrument, centre, size, estimate, spread, (pixel, frame_time, settle)
+            )
         velocities.append(up_down_velocity(observations))
         particle_times.append([observations.t_up.tolist(), observations.t_down.tolist()])
         moments.append(0.5 * (up.start_time + float(instrument.time)))
@@ -104,6 +125,40 @@ def measure_drift(
             "frames": frames,
         },
     )
+
+
+# The particles move by the drift over a pair (two rests and two frames, ~1100 s with the
+# defaults: 1.1 um at 1 nm/s, half the frame's width; issue 37: "only 1 particle matches").
+# The frame is centred where they are at the pair's middle and widened by how far they go,
+# with the velocity as measured so far: the mean of the pairs before (it wanders by their
+# spread; DRIFT_Z of it, a 0.27 % chance per axis that the wander outruns the margin for a
+# Gaussian velocity). The first pair has the frame as given; if its particles left it, the
+# pair is taken again, framed with the drift from two search images before and after it.
+DRIFT_Z = 3.0
+
+
+def _measured_pair(instrument, centre, size, velocity, spread, raster) -> tuple:
+    """A frame-up / frame-down pair (`_up_down_pair`) framed for the drift (`_drifting_frame`)
+    and its matched particles; ValueError when fewer than two particles match."""
+    pixel, frame_time, settle = raster
+    limits = instrument.limits
+    lo, frame = _drifting_frame(limits, centre, size, velocity, spread, settle, frame_time)
+    pixels, line_rate = _frame_raster(limits, frame, pixel, frame_time)
+    up, down = _up_down_pair(instrument, lo, frame, pixels, line_rate, settle)
+    return up, down, up_down_observations(up, down)
+
+
+def _drifting_frame(limits, centre, size, velocity, spread, settle, frame_time) -> tuple:
+    """(lower corner, size) of a pair's frames: `size` widened by the particles' travel over
+    the pair (|velocity| + DRIFT_Z spread, per axis) and centred where the drift puts them at
+    the pair's middle, kept inside the range."""
+    pair_time = 2.0 * (settle + frame_time)
+    velocity, spread = np.asarray(velocity, float), np.asarray(spread, float)
+    frame = np.asarray(size, float) + (np.abs(velocity) + DRIFT_Z * spread) * pair_time
+    frame = np.minimum(frame, [limits.range_x, limits.range_y])
+    middle = np.asarray(centre, float) + velocity * (settle + frame_time)
+    lo = np.clip(middle - frame / 2, 0.0, [limits.range_x - frame[0], limits.range_y - frame[1]])
+    return lo, frame
 
 
 def _frame_raster(limits, size, pixel: float, frame_time: float) -> tuple[np.ndarray, float]:
@@ -161,6 +216,9 @@ def _up_down_pair(instrument, lo, size, pixels, line_rate, settle: float) -> tup
     return up, down
 
 
+SEARCH_PIXELS = 128  # per side of a search image (at its first, smallest size)
+
+
 def _find_particle_cluster(instrument, centre, search: float, frame) -> np.ndarray:
     """Centre of the particles in a quick search image around `centre` (the middle of their
     bounding box); the search area doubles (three times at most) while none is found, and
@@ -175,7 +233,7 @@ def _find_particle_cluster(instrument, centre, search: float, frame) -> np.ndarr
             [limits.range_x - size[0], limits.range_y - size[1]],
         )
         rate = min(MAX_LINE_RATE, limits.max_line_rate, 0.95 * limits.max_speed / (2.0 * size[0]))
-        pixels = int(min(limits.max_pixels, 128 * 2**attempt))
+        pixels = int(min(limits.max_pixels, SEARCH_PIXELS * 2**attempt))
         scan = instrument.raster_scan(
             ScanRequest(
                 float(lo[0]),

@@ -21,7 +21,11 @@ from afm_core.localization.calibration.experiment import (
     range_centre,
     wait,
 )
-from afm_core.localization.calibration.hysteresis_rows import imaged_rows, rescan_disagreements
+from afm_core.localization.calibration.hysteresis_rows import (
+    RowsNotMatched,
+    imaged_rows,
+    rescan_disagreements,
+)
 from afm_core.localization.calibration.model import HysteresisFit
 from afm_core.pzt import Creep, PlayOperatorBank, PrandtlIshlinskii
 
@@ -199,16 +203,56 @@ FIT_PARAMETERS = (
 )  # the parts of fit_hysteresis's result that are the experiment's parameters
 
 
-def measure_hysteresis(
+# The cycle's share of the half range H. An input asymmetry a moves the top tip of a cycle of
+# amplitude c H out to about (c + |a| c^2) H (from_fraction's p(xi) at xi = c); the rescan
+# reaches RESCAN_REACH H. At 0.9 the PI fit covers 90 % of the range (exact on an ideal
+# scanner), but the tips of a wide loop with |a| > ~0.06 may fall outside the rescan and the
+# rows cannot be matched (issue 37: loop 0.25, asymmetry 0.1); the experiment is then
+# repeated once at RETRY_CYCLE_FRACTION on a fresh lane, where |a| up to 0.1 (the issue's
+# range) keeps the tips ~4 um inside (the loop fraction then extrapolates from 80 % of the
+# range: -3 % on an ideal scanner).
+CYCLE_FRACTION = 0.9
+RETRY_CYCLE_FRACTION = 0.8
+# The retry's lane, across from the first: past the first's rescan box (2 um beyond its two
+# lanes, branch_gap apart) and its own, with 1 um between.
+RETRY_LANE_SHIFT = -11e-6  # m
+
+
+def measure_hysteresis(instrument, axis: int, **options) -> Experiment:
+    """`measure_hysteresis_once` (see there), repeated once at RETRY_CYCLE_FRACTION on a fresh
+    lane when the rows cannot be matched at the cycle asked for (the tips of a wide,
+    strongly asymmetric loop outside the rescan); the repeat ignores the first attempt's
+    pits, its data say it was a repeat ("retried": the first attempt's reason) and carry
+    both attempts' detections (all_detected, for the other axis' `ignore`)."""
+    cycle = options.get("cycle_fraction", CYCLE_FRACTION)
+    try:
+        return measure_hysteresis_once(instrument, axis, **options)
+    except RowsNotMatched as exc:
+        if cycle <= RETRY_CYCLE_FRACTION:
+            raise
+        first = exc
+    known = [] if options.get("ignore") is None else list(options["ignore"])
+    retry = dict(options, cycle_fraction=RETRY_CYCLE_FRACTION, ignore=known + first.detected)
+    retry["lane_offset"] = options.get("lane_offset", LANE_OFFSET) + RETRY_LANE_SHIFT
+    experiment = measure_hysteresis_once(instrument, axis, **retry)
+    experiment.data["retried"] = f"at cycle_fraction {cycle}: {first}"
+    experiment.data["all_detected"] = list(experiment.data["all_detected"]) + first.detected
+    return experiment
+
+
+LANE_OFFSET = -8e-6  # m, the cycle's lane from the range centre across the cycled axis
+
+
+def measure_hysteresis_once(
     instrument,
     axis: int,
     *,
     creep: tuple | None = None,
-    cycle_fraction: float = 0.9,
+    cycle_fraction: float = CYCLE_FRACTION,
     steps_per_sweep: int = 128,
     pit_every: int = 4,
     operators: int = 12,
-    lane_offset: float = -8e-6,
+    lane_offset: float = LANE_OFFSET,
     branch_gap: float = 3e-6,
     speed: float = 20e-6,
     settle: float = 300.0,
@@ -306,6 +350,7 @@ def measure_hysteresis(
         # asymmetry shows most; outside the rescan box when the loop is strongly asymmetric
         "tip_pits_found": int(sum(found[_tip_pits(branches, drives)])),
         "all_detected": all_detected[0],
+        "cycle_fraction": cycle_fraction,
         **_drive_record(timeline, axis, centre[axis], half),
     }
     return Experiment(parameters, data)
@@ -360,6 +405,11 @@ def _box(
     return lo, hi
 
 
+# How far from the range centre the rescan reaches along the cycled axis, in half ranges: the
+# outer 5 % stays clear (see _rescan_box). A smaller cycle leaves its tips more room.
+RESCAN_REACH = 0.95
+
+
 def _rescan_box(axis: int, centre, amplitude: float, half: float, lanes) -> tuple:
     """The box the rows of pits are rescanned in. It covers where the pits can land: an
     asymmetric loop lifts or lowers the row's ends by up to ~asymmetry x half range. It must
@@ -368,7 +418,7 @@ def _rescan_box(axis: int, centre, amplitude: float, half: float, lanes) -> tupl
     inverse then runs ahead of the scanner and misplaces the pits over the following tens of
     um of the pass (with cycle_fraction 0.95 and a fixed 1.5 um margin this biased the fitted
     asymmetry by -4 % on a noise-free scanner)."""
-    return _box(axis, centre, amplitude, lanes, 2e-6, margin=0.05 * half)
+    return _box(axis, centre, amplitude, lanes, 2e-6, margin=RESCAN_REACH * half - amplitude)
 
 
 def _on_axis(axis: int, along: float, across: float) -> tuple[float, float]:

@@ -30,6 +30,16 @@ TIP_CLOSURE_LIMIT = 0.5  # of the pit spacing at the tip
 RESCAN_AGREEMENT_LIMIT = 0.5  # of the pit spacing
 
 
+class RowsNotMatched(RuntimeError):
+    """The rows of pits could not be matched in a rescan (hysteresis_rows.placed_rows); the
+    detections of the rescans so far are attached (`detected`), so a repeat elsewhere can
+    ignore them."""
+
+    def __init__(self, message: str, detected=()):
+        super().__init__(message)
+        self.detected = list(detected)
+
+
 def imaged_rows(
     instrument, axis: int, box, pixel, rescans, branches, drives, ignore
 ) -> tuple[np.ndarray, list]:
@@ -62,7 +72,11 @@ def imaged_rows(
         for branch, sign in (("descending", -1.0), ("ascending", 1.0)):
             in_row = np.flatnonzero(keep & (np.sign(offset) == sign))
             rows[branch] = (np.flatnonzero(branches == branch), along[in_row])
-        for wanted, positions in placed_rows(rows, drives, axis, direction).values():
+        try:
+            placed = placed_rows(rows, drives, axis, direction)
+        except RuntimeError as exc:
+            raise RowsNotMatched(str(exc), [p for d in all_detected for p in d]) from exc
+        for wanted, positions in placed.values():
             measured[row, wanted] = positions
     return measured, all_detected
 
@@ -170,18 +184,39 @@ def rescan_disagreements(measured: np.ndarray, branches: np.ndarray) -> np.ndarr
     return disagree
 
 
+# A pit belongs to a row when it lies within ROW_SPREAD robust scales (median absolute
+# distance, ~0.67 sigma: ROW_SPREAD 5 is ~3.4 sigma, a 0.07 % false-rejection rate for
+# Gaussian wander) of the row's line and nearer it than half the gap to the other row.
+ROW_SPREAD = 5.0
+
+
 def _split_rows(along: np.ndarray, across: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The two rows of pits (descending, ascending) are about parallel (the coupling tilts both
-    alike) but wander by the moves' random error (~0.1 um over a cycle); their middle line,
-    fitted robustly, splits them (offset < 0: the descending row), and pits far off both rows
-    (another experiment's) are left out (keep False)."""
+    """The two rows of pits (descending, ascending) as two lines across-vs-along: they wander
+    by the moves' random error (~0.1 um over a cycle), and on a wide loop they are neither
+    parallel nor far apart (issue 37: loop 0.25, coupling 0.05: 0.55 um apart at one end,
+    0.15 um at the other, where the branch gap's small move after a reversal hardly moves
+    the scanner), so one middle line lost a row's end. Started from the least-squares line,
+    each pit goes to the nearer row line and each line is refitted on its own pits; pits far
+    off both (another experiment's) are left out (keep False). offset < 0: the descending
+    row; its size is the distance to the row's own line."""
+    # the least-squares line through all pits passes between the rows (as many pits each);
+    # a robust middle line locked onto one row when the rows converge (issue 37, loop 0.25)
     keep = np.ones(len(along), dtype=bool)
+    offset = across - np.polyval(np.polyfit(along, across, 1), along)
+    side = np.sign(offset)
     for _ in range(5):
-        line = np.polyfit(along[keep], across[keep], 1)
-        offset = across - np.polyval(line, along)
-        typical = np.median(np.abs(offset[keep]))
-        keep = (np.abs(offset) < 2.0 * typical) & (np.abs(offset) > 0.25 * typical)
-    return keep, offset
+        members = [keep & (side == sign) for sign in (-1.0, 1.0)]
+        if min(m.sum() for m in members) < 3:
+            break
+        lines = [np.polyfit(along[m], across[m], 1) for m in members]
+        distance = np.stack([across - np.polyval(line, along) for line in lines])
+        nearer = np.argmin(np.abs(distance), axis=0)
+        side = np.where(nearer == 0, -1.0, 1.0)
+        own = np.abs(distance[nearer, np.arange(len(along))])
+        gap = np.abs(distance[0] - distance[1])
+        scale = np.median(own[keep])
+        keep = (own < ROW_SPREAD * scale) & (own < 0.5 * gap)
+    return keep, side * np.maximum(np.abs(offset), 1e-15)
 
 
 # Another image placed a known pit up to ~1.5 um differently in each axis (the compensation

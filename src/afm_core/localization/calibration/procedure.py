@@ -35,6 +35,7 @@ import dataclasses
 import json
 import time as wallclock
 from datetime import datetime, timezone
+from pathlib import Path
 
 import numpy as np
 
@@ -265,7 +266,7 @@ def run_calibration(
     )
     report.pop("_chosen")
     failed = report.pop("_failed", {})
-    fields = _calibration_fields(report)
+    fields = _accepted_fields(_calibration_fields(report), failed)
     stamp = datetime.now(timezone.utc).isoformat(timespec="seconds")
     calibration = Calibration(
         source=source or f"afm_core.localization.calibration.procedure.run_calibration, {stamp}",
@@ -288,10 +289,31 @@ def run_calibration(
         else {"parameters": value.parameters, "data": value.data}
         for name, value in report.items()
     }
+    for name, reason in failed.items():  # measured, but refused by the Calibration's checks
+        if report.get(name) is not None:
+            summary[name]["failed"] = reason
     summary["checks"] = calibration_checks(summary)
     summary["instrument_seconds"] = float(instrument.time) - clock0
     summary["wall_seconds"] = wallclock.perf_counter() - started
     return calibration, summary
+
+
+def _accepted_fields(fields: dict, failed: dict) -> dict:
+    """`fields` less each experiment's whose values the Calibration refuses (a fit outside its
+    limits, e.g. a time constant of 0 s): those keep the defaults and the experiment is
+    marked failed with the reason, so the file is still written with the rest."""
+    accepted = dict(fields)
+    for experiment, names in FIELDS.items():
+        own = {name: fields[name] for name in names if name in fields}
+        if not own:
+            continue
+        try:
+            Calibration(**own)
+        except ValueError as exc:
+            failed[experiment] = f"fit refused by the calibration's checks: {exc}"
+            for name in own:
+                accepted.pop(name)
+    return accepted
 
 
 def _creep_axes(result, previous: Calibration | None) -> list:
@@ -334,9 +356,11 @@ HEADLINE = {
 }
 
 
-def report_markdown(summary: dict) -> str:
+def report_markdown(summary: dict, figures: dict | None = None) -> str:
     """The report of `run_calibration` for a person: per experiment measured or failed (why),
-    its headline parameters (SI), then every check with its level, warnings first."""
+    its headline parameters (SI), then every check with its level, warnings first, then the
+    `figures` ({experiment: path relative to the report}, figures.calibration_figures) of the
+    raw data and the fits."""
 
     def shown(value):
         if isinstance(value, (list, tuple)):
@@ -366,6 +390,9 @@ def report_markdown(summary: dict) -> str:
     )
     lines += ["", "## Checks", ""]
     lines += [f"- **{c['level']}** {c['experiment']}: {c['message']}" for c in checks]
+    if figures:
+        lines += ["", "## Raw data and fits", ""]
+        lines += [f"![{name}]({Path(path).as_posix()})" for name, path in figures.items()]
     lines += [
         "",
         f"Instrument time {summary.get('instrument_seconds', 0.0) / 3600:.2f} h, wall "

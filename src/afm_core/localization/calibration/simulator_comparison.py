@@ -124,7 +124,7 @@ def _hysteresis_rows(calibration: Calibration, report: dict, scanner) -> list[di
                 "max branch misfit / true loop width (relative_error = the value)",
             )
         )
-        gain = report[f"hysteresis_{axis}"].get("parameters", {}).get("gain", math.nan)
+        gain = (report.get(f"hysteresis_{axis}") or {}).get("parameters", {}).get("gain", math.nan)
         rows.append(_row(f"hysteresis_{axis}.gain", gain, 1.0, "tip-to-tip output / input span"))
     return rows
 
@@ -184,7 +184,7 @@ def _drift_and_noise_rows(calibration: Calibration, report: dict, config) -> lis
             "m/s",
         ),
     ]
-    noise = report["motion_noise"].get("parameters") or dict.fromkeys(
+    noise = (report.get("motion_noise") or {}).get("parameters") or dict.fromkeys(
         ("pooled_slope", "slope_x", "slope_y", "cross_slope"), math.nan
     )
     for name in ("pooled_slope", "slope_x", "slope_y", "cross_slope"):
