@@ -88,10 +88,11 @@ def contact_in_trace(trace) -> Contact | None:
     the particle); None when the trace is too short to tell."""
     if trace is None or len(trace.lateral_torsion) < 20:
         return None
-    f = np.abs(np.asarray(trace.lateral_torsion, float))
-    edge = max(3, int(FORCE_EDGE_FRACTION * f.size))
-    level = float(np.median(f[:edge]))
-    sigma = max(line_noise(f), 1e-30)
+    t = np.asarray(trace.lateral_torsion, float)
+    edge = max(3, int(FORCE_EDGE_FRACTION * t.size))
+    f = np.abs(t - float(np.median(t[:edge])))  # the rise above the substrate's level
+    level = 0.0
+    sigma = max(line_noise(t), 1e-30)
     threshold = level + float(norm.isf(CONTACT_FALSE_ALARM / (2 * f.size))) * sigma
     above = f > threshold
     made = bool(above.any())

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -75,13 +75,9 @@ class TipTrack:
         self.covariance = np.asarray(self.covariance, float).copy()
         aim = self.calibration.scanner_matrix if self.aim_matrix is None else self.aim_matrix
         self.aim_inverse = np.linalg.inv(np.asarray(aim, float))
-        # the track's own model leaves the scanner matrix out (identity): the observation chain
-        # has the same shape every time, so its hysteresis residue cancels between the chain
-        # run at the start and every later one, and the model's residual, growing with the
-        # commanded distance, would put the difference of two chains (the particle's
-        # displacement) off by (M - I) of it (1.4 % on the simulated scanner: 7 nm in 500 nm)
-        flat = replace(self.calibration, scanner_matrix=[[1.0, 0.0], [0.0, 1.0]])
-        self.model = MotionModel(flat, self.instrument.commanded_position(), self.instrument.time)
+        self.model = MotionModel(
+            self.calibration, self.instrument.commanded_position(), self.instrument.time
+        )
 
     @property
     def sigma(self) -> float:

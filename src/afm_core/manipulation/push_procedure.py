@@ -627,15 +627,19 @@ class PushProcedure:
                 )
             elif kind == "anchor":
                 a = f["anchor"]
-                seen = "missed it" if a is None else f"at ({a.x * 1e9:.1f} nm, {a.y * 1e9:.1f} nm)"
+                seen = (
+                    "no anchor: a line missed it"
+                    if a is None
+                    else f"anchor {a.id} at ({a.x * 1e9:.1f} nm, {a.y * 1e9:.1f} nm)"
+                )
                 self._report(
                     progress,
                     "observing",
                     particle,
                     np.array([particle.x, particle.y]),
                     tip=tip_now(),
-                    note=f"reference: the nearest static landmark, seen from the "
-                    f"localized tip: {seen}",
+                    note=f"reference for the observations: the nearest static landmark, "
+                    f"seen from the localized tip and the particle's start: {seen}",
                 )
             else:
                 o = f["observation"]
