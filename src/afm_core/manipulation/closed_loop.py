@@ -324,3 +324,43 @@ def closed_loop_push(
         if done or should_stop():
             return state
     return state
+
+
+def report_fields(kind: str, f: dict, particle: Landmark, current: Landmark):
+    """What a closed_loop_push report becomes as a `Progress`: (phase, the particle's estimate,
+    the other fields) for "plan", "stroke", "anchor" and "observed" (closed_loop_push)."""
+    if kind == "plan":
+        plan = f["plan"]
+        here = np.array([current.x, current.y])
+        return (
+            "pushing",
+            here,
+            dict(steps_total=len(plan.strokes), plan=plan, note=f"leg {f['leg'] + 1}"),
+        )
+    if kind == "stroke":
+        r = f["step"]
+        return (
+            "pushing",
+            pushed_object_after(f["plan"], r.index + 1)[0],
+            dict(
+                step=r.index + 1,
+                steps_total=r.total,
+                peak_lateral_force=float(r.peak_lateral_force),
+                peak_normal_force=float(r.peak_normal_force),
+                note=f["why"],
+            ),
+        )
+    if kind == "anchor":
+        a = f["anchor"]
+        seen = (
+            "no anchor: a line missed it"
+            if a is None
+            else f"anchor {a.id} at ({a.x * 1e9:.1f} nm, {a.y * 1e9:.1f} nm)"
+        )
+        note = (
+            "reference for the observations: the nearest static landmark, seen from the "
+            f"localized tip and the particle's start: {seen}"
+        )
+        return "observing", np.array([particle.x, particle.y]), dict(note=note)
+    o = f["observation"]
+    return "observing", o.mean, dict(note=f"{f['why']}; observed {o.note}; {f['verdict']}")

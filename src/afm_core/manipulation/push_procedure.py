@@ -46,7 +46,7 @@ from afm_core.instrument import (
     check_in_range,
 )
 from afm_core.localization.calibration.model import Calibration
-from afm_core.manipulation.closed_loop import PushCost, closed_loop_push
+from afm_core.manipulation.closed_loop import PushCost, closed_loop_push, report_fields
 from afm_core.manipulation.execute import (
     ExecutionResult,
     clear_point,
@@ -592,70 +592,13 @@ class PushProcedure:
         track = TipTrack(
             self.calibration, self.instrument, tip.mean, relative, self.scanner_matrix
         )
-        t0, leg_plan = self.instrument.time, [None]
-
-        def tip_now():
-            return TipEstimate(track.mean.copy(), track.covariance.copy(), self.instrument.time)
+        t0, loop = self.instrument.time, {}
 
         def report(kind, **f):
-            if kind == "plan":
-                leg_plan[0] = f["plan"]
-                here = np.array([state_particle().x, state_particle().y])
-                self._report(
-                    progress,
-                    "pushing",
-                    particle,
-                    here,
-                    steps_total=len(f["plan"].strokes),
-                    tip=tip_now(),
-                    plan=f["plan"],
-                    note=f"leg {f['leg'] + 1}",
-                )
-            elif kind == "stroke":
-                r = f["step"]
-                self._report(
-                    progress,
-                    "pushing",
-                    particle,
-                    pushed_object_after(f["plan"], r.index + 1)[0],
-                    step=r.index + 1,
-                    steps_total=r.total,
-                    tip=tip_now(),
-                    peak_lateral_force=float(r.peak_lateral_force),
-                    peak_normal_force=float(r.peak_normal_force),
-                    note=f["why"],
-                )
-            elif kind == "anchor":
-                a = f["anchor"]
-                seen = (
-                    "no anchor: a line missed it"
-                    if a is None
-                    else f"anchor {a.id} at ({a.x * 1e9:.1f} nm, {a.y * 1e9:.1f} nm)"
-                )
-                self._report(
-                    progress,
-                    "observing",
-                    particle,
-                    np.array([particle.x, particle.y]),
-                    tip=tip_now(),
-                    note=f"reference for the observations: the nearest static landmark, "
-                    f"seen from the localized tip and the particle's start: {seen}",
-                )
-            else:
-                o = f["observation"]
-                self._report(
-                    progress,
-                    "observing",
-                    particle,
-                    o.mean,
-                    tip=tip_now(),
-                    note=f"{f['why']}; observed {o.note}; {f['verdict']}",
-                )
-
-        loop = {}
-
-        def state_particle():
-            return loop["state"].particle if "state" in loop else particle
+            current = loop["state"].particle if "state" in loop else particle
+            phase, estimate, fields = report_fields(kind, f, particle, current)
+            tip_now = TipEstimate(track.mean.copy(), track.covariance.copy(), self.instrument.time)
+            self._report(progress, phase, particle, estimate, tip=tip_now, **fields)
 
         settings = {**self.settings, "tolerance": tolerance}
         state = closed_loop_push(
