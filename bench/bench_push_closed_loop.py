@@ -49,7 +49,7 @@ CALIBRATION = ROOT / "afm_localization" / "config" / "sim_calibration.yaml"
 RESULTS = ROOT / "bench" / "results"
 
 
-def push_once(seed: int, strategy: str, calibration, frame) -> dict:
+def push_once(seed: int, strategy: str, calibration, frame, tolerance=TOLERANCE) -> dict:
     spheres = [{"x": x, "y": y, "radius": 100 * NM} for x, y in SPHERES]
     sim = SimulatedAfm(merge(load_config(), {"seed": seed, "sample": {"spheres": spheres}}))
     scan = sim.raster_scan(MAP_SCAN)
@@ -83,7 +83,7 @@ def push_once(seed: int, strategy: str, calibration, frame) -> dict:
             mark.id,
             goal,
             strategy=strategy,
-            tolerance=TOLERANCE,
+            tolerance=tolerance,
             progress=lambda p: notes.append(p.note) if p.phase == "observing" else None,
         )
     except Exception as exc:  # a failed push is a row, not the end of the run
@@ -144,6 +144,7 @@ def markdown(result: dict) -> str:
         "",
         f"Command: `{result['command']}`",
         "",
+        f"Tolerance asked of the push: {result['tolerance_nm']:g} nm. "
         "Per seed: the middle of three spheres (r = 100 nm) pushed 500 nm along -y, once per "
         "strategy on a fresh simulator with the same seed. Error: the true displacement "
         "(simulator truth, in the maps' frame) against the planned one. Time: instrument time "
@@ -173,6 +174,9 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=30)
     parser.add_argument("--first-seed", type=int, default=1)
     parser.add_argument("--out", default=str(RESULTS / "push_closed_loop"))
+    parser.add_argument(
+        "--tolerance", type=float, default=TOLERANCE / NM, help="the push's tolerance, nm"
+    )
     args = parser.parse_args()
     load = os.getloadavg()
     began = time.monotonic()
@@ -181,7 +185,7 @@ def main() -> None:
     rows = []
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         for name in STRATEGIES:
-            rows.append(push_once(seed, name, calibration, frame))
+            rows.append(push_once(seed, name, calibration, frame, args.tolerance * NM))
             r = rows[-1]
             print(
                 f"seed {seed} {name:11s} "
@@ -199,6 +203,7 @@ def main() -> None:
         "machine": machine_record(list(load)),
         "command": command_line(),
         "seeds": args.seeds,
+        "tolerance_nm": args.tolerance,
         "wall_seconds": time.monotonic() - began,
         "summary": summarise(rows),
         "rows": rows,
