@@ -12,7 +12,10 @@
    Localize action, ROS-free `localize_with(Localizer)`), or trust the current estimate;
 4. plan the strokes (nano-hand zigzag chosen from the particle's and the tip's uncertainty,
    centre pushing, or the rod hand) and execute them stroke by stroke, commands linearised
-   about the localized tip through the calibrated scanner matrix;
+   about the localized tip through the calibrated scanner matrix; or, strategy "closed_loop",
+   in legs with local scan lines across a static landmark and the particle between them,
+   re-planned until the particle is within tolerance with 2-sigma confidence
+   (`afm_core.manipulation.closed_loop`);
 5. rescan ("after") and verify the particle's position against the goal with the pits (and
    the other particles) as control points; the particle's displacement between the images,
    in commanded scanner coordinates, becomes a true one through the scanner matrix.
