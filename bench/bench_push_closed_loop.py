@@ -21,6 +21,7 @@ import math
 import os
 import sys
 import time
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -145,7 +146,12 @@ def markdown(result: dict) -> str:
         f"Command: `{result['command']}`",
         "",
         f"Tolerance asked of the push: {result['tolerance_nm']:g} nm. "
-        "Per seed: the middle of three spheres (r = 100 nm) pushed 500 nm along -y, once per "
+        + (
+            "DIAGNOSIS: the calibration's scanner matrix replaced by the identity. "
+            if result["identity_matrix"]
+            else ""
+        )
+        + "Per seed: the middle of three spheres (r = 100 nm) pushed 500 nm along -y, once per "
         "strategy on a fresh simulator with the same seed. Error: the true displacement "
         "(simulator truth, in the maps' frame) against the planned one. Time: instrument time "
         "of the whole push (scans, localization, strokes, observations, rescan).",
@@ -175,12 +181,20 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=1)
     parser.add_argument("--out", default=str(RESULTS / "push_closed_loop"))
     parser.add_argument(
+        "--identity-matrix",
+        action="store_true",
+        help="diagnosis: the calibration with its scanner matrix replaced by the identity (the "
+        "frame this bench's truth is brought into: moves and images alike)",
+    )
+    parser.add_argument(
         "--tolerance", type=float, default=TOLERANCE / NM, help="the push's tolerance, nm"
     )
     args = parser.parse_args()
     load = os.getloadavg()
     began = time.monotonic()
     calibration = load_calibration(CALIBRATION)
+    if args.identity_matrix:
+        calibration = replace(calibration, scanner_matrix=[[1.0, 0.0], [0.0, 1.0]])
     frame = image_frame_matrix()
     rows = []
     for seed in range(args.first_seed, args.first_seed + args.seeds):
@@ -204,6 +218,7 @@ def main() -> None:
         "command": command_line(),
         "seeds": args.seeds,
         "tolerance_nm": args.tolerance,
+        "identity_matrix": args.identity_matrix,
         "wall_seconds": time.monotonic() - began,
         "summary": summarise(rows),
         "rows": rows,

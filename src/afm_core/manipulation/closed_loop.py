@@ -12,9 +12,10 @@ the residual hysteresis. The closed loop runs the strokes in legs and looks betw
    contact strokes are free moves;
 2. the leg ends early when the force trace disagrees with the model (a stroke the model says
    pushes the particle whose lateral force never rises above the trace's noise: contact lost,
-   or rises and falls back before the stroke ends: slip), or when the track's predicted 2-sigma
-   radius reaches the tolerance while an anchor can bring it back (observing sooner cannot
-   improve on a track that is still good enough);
+   or rises and falls back before the stroke ends: slip), or when the 2-sigma the strokes added
+   to the track since the last observation reaches the tolerance while an anchor can bring it
+   back and two legs are left (the rest of the way and a correction); observing sooner cannot
+   improve on a track that is still good enough;
 3. observe (`observe_particle`): lines across a static anchor landmark, then across the
    particle; the estimate (mean, covariance) replaces the model's;
 4. stop when |estimate - goal| + CONFIDENCE_SIGMAS * sigma <= tolerance (within tolerance with
@@ -283,7 +284,9 @@ def closed_loop_push(
             state,
             settings["push_speed"],
             tolerance,
-            anchor is not None,
+            # an early observation is worth it only with legs left to use it: the rest of the
+            # way and a correction (else the legs run out before the goal)
+            anchor is not None and leg + 2 < int(settings["max_iterations"]),
             lambda r, w: report("stroke", step=r, why=w, plan=plan),
             should_stop,
         )
