@@ -70,7 +70,7 @@ class Session:
             self.sim,
             localize_with(localizer),
             lambda: self.map,
-            scanner_matrix=calibration.scanner_matrix,
+            calibration=calibration,
             on_moved=lambda mark: self.map.__setitem__(mark.id, mark),
         )
 
@@ -216,3 +216,59 @@ def test_refusals_come_before_anything_moves(calibration):
         middle, np.array([middle.x, middle.y - 530 * NM]), "nano_hand", book
     )
     assert (s.sim.time, s.sim.commanded_position(), s.reports) == (time, command, [])
+
+
+def test_the_closed_loop_observes_the_particle_where_the_simulator_has_it(calibration):
+    """strategy closed_loop: legs of strokes, then local scan lines across a static neighbour
+    and the particle. Each observation's estimate of the particle's displacement is compared
+    with the simulator's: within what the rescan's verification is allowed (10 nm)."""
+    s = Session(calibration)
+    mark = s.row[1]
+    start = np.array([mark.x, mark.y])
+    goal = start + [0.0, -400 * NM]
+    truth_before = s.true_sphere(start)
+    seen = []
+
+    def progress(p):
+        s.reports.append(p)
+        if p.phase == "observing" and "particle x, particle y" in p.note:
+            seen.append((np.array(p.particle_estimate) - start, s.true_sphere(truth_before)))
+
+    result = s.procedure.push(mark.id, goal, strategy="closed_loop", progress=progress)
+
+    assert len(seen) >= 1
+    for estimated, particle in seen:
+        assert math.hypot(*(estimated - (particle - truth_before))) <= VERIFICATION_ERROR
+    moved = s.true_sphere(truth_before) - truth_before
+    true_error = math.hypot(*(moved - (goal - start)))
+    assert true_error <= TRUE_TOLERANCE, f"true error {true_error / NM:.1f} nm"
+    cost = result.cost
+    assert cost.observations == len(seen) and cost.legs >= 1
+    # two lines across the anchor and two across the particle per observation, and once more
+    # before the strokes (the chain's reference)
+    assert cost.lines >= 4 * (len(seen) + 1)
+    assert cost.slid > 0 and cost.duration > result.execution.duration > 0
+    observing = [r for r in s.reports if r.phase == "observing"]
+    assert all("anchor" in r.note for r in observing)
+    assert [r.phase for r in s.reports][-1] == "verifying"
+
+
+def test_contact_in_a_force_trace_is_a_rise_above_its_noise():
+    """contact_in_trace on synthetic traces: noise alone is no contact; a rise of 20 sigma
+    after the run-up is contact; one that falls back before the end is a slip."""
+    from types import SimpleNamespace
+
+    from afm_core.manipulation.closed_loop import contact_in_trace
+
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0.0, 1e-4, 400)
+    rise = np.where(np.arange(400) >= 100, 2e-3, 0.0)
+    slip = np.where((np.arange(400) >= 100) & (np.arange(400) < 300), 2e-3, 0.0)
+    for torsion, made, lost in (
+        (noise, False, False),
+        (noise + rise, True, False),
+        (noise + slip, True, True),
+    ):
+        contact = contact_in_trace(SimpleNamespace(lateral_torsion=torsion))
+        assert (contact.made, contact.lost) == (made, lost)
+    assert contact_in_trace(SimpleNamespace(lateral_torsion=noise[:10])) is None

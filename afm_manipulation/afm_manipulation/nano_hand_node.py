@@ -95,7 +95,7 @@ class NanoHandNode(Node):
             self.instrument,
             self.localize,
             self.landmarks.wait,
-            scanner_matrix=(load_calibration(path) if path else Calibration()).scanner_matrix,
+            calibration=load_calibration(path) if path else Calibration(),
             settings={name: self.config[name] for name in PUSH_PARAMETERS.names()},
             tip_estimate=self.current_tip,
             on_moved=lambda moved: self.publish_landmarks(

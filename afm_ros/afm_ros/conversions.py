@@ -349,6 +349,7 @@ def progress_to_push_feedback(progress: Progress):
         particle_covariance=list(progress.particle_covariance.ravel()),
         peak_lateral_force=progress.peak_lateral_force,
         peak_normal_force=progress.peak_normal_force,
+        note=progress.note,
     )
     if progress.tip is not None:
         feedback.tip_pose = tip_estimate_to_pose(progress.tip)
@@ -376,5 +377,8 @@ def outcome_to_result(outcome, result):
     else:
         result.achieved = xy_to_point(outcome.achieved)
         result.error, result.steps = outcome.error, outcome.steps
+        cost = outcome.cost
+        result.duration, result.lines = float(cost.duration), int(cost.lines)
+        result.observations, result.slid = int(cost.observations), float(cost.slid)
     result.success, result.message = outcome.success, outcome.message
     return result

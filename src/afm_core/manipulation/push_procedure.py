@@ -12,7 +12,10 @@
    Localize action, ROS-free `localize_with(Localizer)`), or trust the current estimate;
 4. plan the strokes (nano-hand zigzag chosen from the particle's and the tip's uncertainty,
    centre pushing, or the rod hand) and execute them stroke by stroke, commands linearised
-   about the localized tip through the calibrated scanner matrix;
+   about the localized tip through the calibrated scanner matrix; or, strategy "closed_loop",
+   in legs with local scan lines across a static landmark and the particle between them,
+   re-planned until the particle is within tolerance with 2-sigma confidence
+   (`afm_core.manipulation.closed_loop`);
 5. rescan ("after") and verify the particle's position against the goal with the pits (and
    the other particles) as control points; the particle's displacement between the images,
    in commanded scanner coordinates, becomes a true one through the scanner matrix.
@@ -45,7 +48,15 @@ from afm_core.instrument import (
     ScanRequest,
     check_in_range,
 )
-from afm_core.manipulation.execute import ExecutionResult, execute_plan, pushed_object_after
+from afm_core.localization.calibration.model import Calibration
+from afm_core.manipulation.closed_loop import PushCost, closed_loop_push, report_fields
+from afm_core.manipulation.execute import (
+    ExecutionResult,
+    clear_point,
+    execute_plan,
+    pushed_object_after,
+)
+from afm_core.manipulation.particle_observation import TipTrack
 from afm_core.manipulation.plans import PushPlan, path_blocker
 from afm_core.manipulation.push_steps import (
     Localization,
@@ -147,6 +158,14 @@ PUSH_PARAMETERS = ParameterTable(
         runtime=True,
     ),
     Parameter(
+        "max_iterations",
+        4,
+        "closed_loop: the most legs (strokes, then an observation) a push may take.",
+        minimum=1,
+        maximum=20,
+        runtime=True,
+    ),
+    Parameter(
         "localize_first",
         True,
         "Localize the tip on the particle before planning (book 7.3); false: trust the "
@@ -154,7 +173,7 @@ PUSH_PARAMETERS = ParameterTable(
         runtime=True,
     ),
 )
-STRATEGIES = ("nano_hand", "center", "centre", "rod_hand")
+STRATEGIES = ("nano_hand", "closed_loop", "center", "centre", "rod_hand")
 PIT_DWELL = 0.1  # s
 
 
@@ -175,7 +194,9 @@ class PushFailed(Exception):
 class Progress:
     """One progress report. phase: "scanning" (step: control pits made of steps_total, the
     before image the last), "localizing", "pushing" (step 0 before the first stroke, then
-    after each), "verifying"."""
+    after each), "observing" (closed_loop: after a leg, what the local scan lines found, in
+    `note`, with why the leg ended), "verifying". A closed-loop push reports each leg's plan
+    on its first "pushing" report, its steps counted within the leg."""
 
     phase: str
     particle_id: int
@@ -189,6 +210,7 @@ class Progress:
     peak_normal_force: float = 0.0  # N
     plan: PushPlan | None = None  # on the report before the first stroke: the strokes planned
     index: int = 0  # position in an assembly's order
+    note: str = ""  # closed_loop: why the leg ended (a stroke) / what was observed and decided
 
 
 @dataclass
@@ -203,6 +225,7 @@ class PushResult:
     plan: PushPlan
     execution: ExecutionResult
     verification: VerificationResult
+    cost: PushCost = field(default_factory=PushCost)
 
     @property
     def success(self) -> bool:
@@ -241,6 +264,8 @@ class PushProcedure:
     tip_estimate() -> TipEstimate | None: the newest estimate from elsewhere (the graph's
         /afm/tip_pose), used when localize_first is false and reported while pushing.
     on_moved(landmark): a pushed particle, where the rescan found it (e.g. publish the map).
+    calibration: the localization calibration (motion model of the closed loop's tip track;
+        its scanner matrix unless scanner_matrix is given; default: the book's defaults).
     """
 
     def __init__(
@@ -253,12 +278,15 @@ class PushProcedure:
         settings: Mapping | None = None,
         tip_estimate: Callable[[], TipEstimate | None] = lambda: None,
         on_moved: Callable[[Landmark], None] = lambda _landmark: None,
+        calibration: Calibration | None = None,
     ):
         self.instrument = instrument
         self.localize = localize
         self.landmarks = landmarks
-        identity = [[1.0, 0.0], [0.0, 1.0]]
-        self.scanner_matrix = np.array(identity if scanner_matrix is None else scanner_matrix)
+        self.calibration = calibration or Calibration()
+        self.scanner_matrix = np.array(
+            self.calibration.scanner_matrix if scanner_matrix is None else scanner_matrix
+        )
         self.settings = {
             **PUSH_PARAMETERS.defaults(),
             **PUSH_PARAMETERS.validate(dict(settings or {})),
@@ -325,10 +353,10 @@ class PushProcedure:
         in the scanner; before anything moves."""
         if not overrides.any():
             return
-        if strategy != "nano_hand":
+        if strategy not in ("nano_hand", "closed_loop"):
             raise ValueError(
                 f"push_length, back_length, lateral_offset, step_length, max_steps: only for "
-                f"strategy 'nano_hand', not {strategy!r} (leave them 0)"
+                f"strategy 'nano_hand' or 'closed_loop', not {strategy!r} (leave them 0)"
             )
         sigma = float(math.sqrt(max(np.max(np.diag(particle.covariance)), 0.0)))
         overrides.check(particle.radius, self.settings["tip_radius"], sigma)
@@ -391,19 +419,33 @@ class PushProcedure:
         should_stop: Callable[[], bool],
     ) -> PushResult:
         """The push of a checked goal: scan, localize, plan, execute, rescan, verify."""
+        started = self.instrument.time
+        cost = PushCost()
         try:
             start_xy = np.array([particle.x, particle.y])
             request, before = self._scan_before(particle, start_xy, target, progress, should_stop)
             tip = self._localized(particle, start_xy, progress, should_stop)
-            plan, execution = self._execute(
-                particle, target, strategy, tip, overrides, progress, should_stop
-            )
+            if strategy == "closed_loop":
+                plan, execution, cost = self._closed_loop(
+                    particle, target, tip, tolerance, overrides, progress, should_stop
+                )
+            else:
+                plan, execution = self._execute(
+                    particle, target, strategy, tip, overrides, progress, should_stop
+                )
+                cost.legs = 1
+                cost.slid = sum(
+                    float(np.hypot(*(np.asarray(s.end) - s.start)))
+                    for s in plan.strokes
+                    if s.contact
+                )
             verification, achieved = self._verify(
                 particle, target, plan, execution, tip, request, before, progress, should_stop
             )
         except (ValueError, InstrumentUnavailable) as exc:
             raise PushFailed(str(exc)) from exc
         error = float(np.hypot(*(achieved - target)))
+        cost.duration = self.instrument.time - started
         self.on_moved(replace(particle, x=float(achieved[0]), y=float(achieved[1])))
         used = sum(1 for c in verification.control_points if c.used)
         message = (
@@ -422,6 +464,7 @@ class PushProcedure:
             plan,
             execution,
             verification,
+            cost,
         )
 
     def _report(self, progress, phase: str, particle: Landmark, estimate, **fields) -> None:
@@ -537,6 +580,72 @@ class PushProcedure:
                 execution,
             )
         return plan, execution
+
+    def _closed_loop(
+        self, particle, target, tip: TipEstimate, tolerance, overrides, progress, should_stop
+    ) -> tuple[PushPlan, ExecutionResult, PushCost]:
+        """The closed-loop strategy (afm_core.manipulation.closed_loop) from the localized tip;
+        the plan returned holds every stroke run and the last estimate as its prediction."""
+        # the push's frame is the particle's map position (the goal's displacement from it is
+        # what is asked): the map's error of the particle, in the localization's covariance, is
+        # common to the start and the goal
+        relative = tip.covariance - np.asarray(particle.covariance, float)
+        w, v = np.linalg.eigh(0.5 * (relative + relative.T))
+        relative = v @ np.diag(np.maximum(w, (1e-9) ** 2)) @ v.T
+        track = TipTrack(
+            self.calibration, self.instrument, tip.mean, relative, self.scanner_matrix
+        )
+        t0, loop = self.instrument.time, {}
+
+        def report(kind, **f):
+            current = loop["state"].particle if "state" in loop else particle
+            phase, estimate, fields = report_fields(kind, f, particle, current)
+            tip_now = TipEstimate(track.mean.copy(), track.covariance.copy(), self.instrument.time)
+            self._report(progress, phase, particle, estimate, tip=tip_now, **fields)
+
+        settings = {**self.settings, "tolerance": tolerance}
+        state = closed_loop_push(
+            track,
+            particle,
+            target,
+            dict(self.landmarks()),
+            overrides,
+            settings,
+            report,
+            should_stop,
+            loop,
+        )
+        strokes = [st for p in state.plans for st in p.strokes][: len(state.reports)]
+        final = np.array([state.particle.x, state.particle.y])
+        plan = replace(state.plans[-1], strokes=strokes, predicted=final)
+        execution = ExecutionResult(
+            not state.cancelled,
+            state.cancelled,
+            len(state.reports),
+            state.reports,
+            predicted_particle=final,
+            duration=self.instrument.time - t0,
+        )
+        state.cost.lines = track.lines
+        if state.cancelled:
+            here = np.array(self.instrument.commanded_position(), float)
+            distance = particle.radius + self.settings["tip_radius"] + 50e-9
+            target_cmd = clear_point(
+                track.to_command(final), -plan.axis, distance, self.instrument.limits
+            )
+            self.instrument.move_tip(
+                *map(float, target_cmd), self.instrument.limits.max_speed / 10
+            )
+            lifted = self.instrument.commanded_position()
+            raise PushFailed(
+                f"cancelled after {len(state.reports)} strokes (closed loop, leg "
+                f"{state.cost.legs}); tip lifted clear from ({here[0] * 1e9:.1f} nm, "
+                f"{here[1] * 1e9:.1f} nm) to ({lifted[0] * 1e9:.1f} nm, {lifted[1] * 1e9:.1f} nm) "
+                f"in afm_scanner; particle {particle.id} estimated at ({final[0] * 1e9:.1f} nm, "
+                f"{final[1] * 1e9:.1f} nm) in afm_task (not verified)",
+                execution,
+            )
+        return plan, execution, state.cost
 
     def _verify(
         self, particle, target, plan, execution, tip, request, before, progress, should_stop
