@@ -3,6 +3,7 @@ names the likely scanner cause (mismatch.py). The rule's own tests run on fakes 
 stages (the held-out checks handed in as made on the way), in milliseconds; two diagnoses and
 one refusal check it on sessions against simulator truth."""
 
+import json
 from types import SimpleNamespace
 
 import numpy as np
@@ -163,6 +164,33 @@ def test_a_held_out_check_that_gets_worse_names_nothing_and_updates_no_config(tm
     assert not (tmp_path / "updated_config.yaml").exists()
     assert (tmp_path / "overrides.yaml").read_text().strip() in ("{}", "")
     assert "653.0 -> 718.0" in text and "Tried and not named: tip_radius" in text
+    record = json.loads((tmp_path / "verdict.json").read_text())
+    assert record["verdict"] == NOT_EXPLAINED and record["named"] == []
+    assert record["updated_config_written"] is False and record["parameters"] == {}
+    assert record["heldout"]["terms"] == ["tip_radius"] and "worse" in record["not_named"]
+    assert (record["heldout"]["chi2_before"], record["heldout"]["chi2_after"]) == (653.0, 718.0)
+
+
+def test_the_verdict_json_of_a_named_term(tmp_path):
+    """A term named: verdict.json carries the verdict, the fit (value, sigma, model's value,
+    whether the session can tell it) and the held-out demonstration, and says the updated
+    configuration was written beside it."""
+    from afm_core.sim2real.report import write_report
+
+    config = _nominal(3)
+    tried = [(["height_gain"], np.array([0.9972]), np.array([0.0005]))]
+    checked = {("height_gain",): _check(800.0, 220.0, 211)}
+    decision, evidence = _decide(config, ["height_gain"], tried, checked)
+    write_report(_diagnosis(decision, evidence, config), tmp_path, config=config)
+    record = json.loads((tmp_path / "verdict.json").read_text())
+    assert record["verdict"] == NAMED and record["named"] == ["height_gain"]
+    assert record["updated_config_written"] is True
+    assert (tmp_path / "updated_config.yaml").exists()
+    (key,) = record["parameters"]
+    fit = record["parameters"][key]
+    assert (fit["value"], fit["sigma"], fit["nominal"]) == (0.9972, 0.0005, 1.0)
+    assert fit["cannot_tell"] is False and fit["candidate"] == "height_gain"
+    assert (record["heldout"]["chi2_before"], record["heldout"]["dof"]) == (800.0, 211)
 
 
 def test_a_pair_that_fails_falls_back_to_the_leader_alone():
