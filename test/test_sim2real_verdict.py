@@ -293,3 +293,26 @@ def test_an_excess_without_structure_is_noise_not_missing_physics():
     assert not _structured(None, [])
     assert _structured(nothing, [_row(0.5 * ALPHA)])
     assert _structured(described, [_row(1.0)])
+
+
+def test_a_session_of_moves_only_is_refused_naming_what_it_holds():
+    """A recording of lifted moves gives no feature: the refusal counts what the session holds
+    and says which operations features come from, not a guess about particles."""
+    from afm_core.sim2real.reference import NoFeaturesError
+    from afm_core.sim2real.session import operation_from_call
+
+    ops = [
+        operation_from_call(
+            k,
+            "move",
+            {"x": 55e-6 + k * 1e-7, "y": 55e-6, "speed": 1e-6, "contact": False},
+            None,
+            start_time=float(k),
+            end_time=k + 0.1,
+            start_position=(55e-6, 55e-6),
+            end_position=(55e-6 + k * 1e-7, 55e-6),
+        )
+        for k in range(3)
+    ]
+    with pytest.raises(NoFeaturesError, match=r"3 commands \(3 move\) include no scan line"):
+        diagnose(ops, _nominal(3), candidates=select(["height_gain"]))
