@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from afm_core.sim.config import merge
+from afm_core.sim.config import load_config, merge
 from afm_core.sim2real.candidates import library, select
 from afm_core.sim2real.diagnose import diagnose
 from afm_core.sim2real.protocol import make_session, session_config
@@ -316,3 +316,56 @@ def test_a_session_of_moves_only_is_refused_naming_what_it_holds():
     ]
     with pytest.raises(NoFeaturesError, match=r"3 commands \(3 move\) include no scan line"):
         diagnose(ops, _nominal(3), candidates=select(["height_gain"]))
+
+
+def test_the_substrates_surface_is_shared_by_passes_over_one_place():
+    """sample_realization.shared_covariance in closed form: each feature's variance on the
+    diagonal, the Gaussian kernel of the distance at the correlation length between features
+    of one group and axis, nothing across groups or axes; positive semi-definite."""
+    from afm_core.sim2real.feature_table import Table
+    from afm_core.sim2real.sample_realization import shared_covariance
+
+    xy = np.array([[0.0, 0.0], [10e-9, 0.0], [0.0, 0.0], [0.0, 0.0], [1e-6, 0.0]])
+    u = np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [0.0, 0.0]])
+    groups = np.array(["line.peak", "line.peak", "line.width", "line.peak", "line.peak"])
+    table = Table(
+        [str(k) for k in range(5)], groups, np.arange(5.0), xy, u, [{}] * 5, np.arange(5)
+    )
+    variance = np.array([4.0, 1.0, 9.0, 4.0, 1.0]) * 1e-20
+    cov = shared_covariance(table, variance, 20e-9)
+    assert np.allclose(np.diag(cov), variance)
+    assert cov[0, 1] == pytest.approx(2e-20 * np.exp(-0.125))  # 10 nm apart at 20 nm
+    assert cov[0, 2] == 0.0 and cov[0, 3] == 0.0  # another group; another axis
+    assert cov[0, 4] == pytest.approx(0.0, abs=1e-40)  # 1 um apart: another part of the surface
+    assert np.linalg.eigvalsh(cov).min() > -1e-30
+
+
+def test_a_null_on_another_surface_names_no_z_gain():
+    """A null whose model knows the substrate's roughness but not its surface (the truth's seed
+    differs from the model's, as a lab's model never has the recorded surface): the heights
+    differ by what the surface gives every pass over a particle, in the training and held-out
+    blocks alike. Without that in the noise model this session named a z gain of
+    0.9993 +- 0.0002 (held-out chi2 229.5 -> 217.7 for 275 dof); with it, nothing."""
+    # bench/probe_nulls.py's null 1900: its layout, radius and substrate drawn from that seed
+    spheres = [
+        (5.513391128804767e-05, 5.3847210781219066e-05),
+        (5.632754892099877e-05, 5.573053033221023e-05),
+        (5.442766994018618e-05, 5.652579572284048e-05),
+        (5.353832267517195e-05, 5.5054777705650725e-05),
+        (5.3421155155795224e-05, 5.337065126704058e-05),
+        (5.648955300154536e-05, 5.330154755981993e-05),
+        (5.500493512338502e-05, 5.520262559448489e-05),
+    ]
+    sample = {
+        "spheres": [{"x": x, "y": y, "radius": 1.1157236354019429e-07} for x, y in spheres],
+        "random_spheres": 0,
+        "roughness_sigma": 3.9581418341117974e-10,
+        "roughness_correlation": 2.8880576349912347e-08,
+    }
+    model = merge(load_config(), {"sample": sample})
+    ops = make_session(merge(model, {"seed": 1900}), protocol_seed=1900, spheres=spheres)
+    # against the whole library, as the probe diagnosed it: the held-out gain's family-wise
+    # threshold is the library's (a library of one term has a lower one, s2r-naming.md)
+    d = diagnose(ops, model)
+    assert d.chosen == [] and d.verdict == NO_MISSING_PHYSICS, d.summary()
+    assert d.updated_config is None

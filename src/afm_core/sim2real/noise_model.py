@@ -180,6 +180,7 @@ def build_noise_model(
     J_shape: np.ndarray | None = None,
     mismatch=None,
     extra_white: np.ndarray | None = None,
+    extra_cov: np.ndarray | None = None,
 ) -> NoiseModel:
     """sensor: (K, N) features of re-simulations with only the sensor noise on (at the recorded
     geometry); J: (N, 2) sensitivity of every feature to a drift offset; moves: (time, distance)
@@ -187,7 +188,9 @@ def build_noise_model(
     projected through J; roughness on background-curvature features; for shape features
     (J_shape: their sensitivity to the tip-particle geometry), how far the recorded geometry may
     be from the reference's (mismatch: per feature and axis, the id of the position observation
-    the drift trajectory follows there and the variance of the walk and wander since)."""
+    the drift trajectory follows there and the variance of the walk and wander since);
+    extra_cov: a covariance of the features' own (the substrate's unknown surface: static, so
+    shared by passes over one place, sample_realization.py)."""
     white, pools = pooled_white(sensor, table.groups, shrink, reference)
     analytic = _bow_sensor_variance(table, config.noise)
     white = np.where(
@@ -198,6 +201,9 @@ def build_noise_model(
         white = white + extra_white
     group_sigma = {g: math.sqrt(v) for g, v in pools.items()}
     cov = np.diag(white)
+    if extra_cov is not None:
+        cov = cov + extra_cov
+        white = white + np.diag(extra_cov)
     if J_shape is not None and mismatch is not None:
         ids, var = mismatch
         for axis in (0, 1):
@@ -339,4 +345,5 @@ def session_noise_model(
         J_shape=sess.J_shape,
         mismatch=geometry_mismatch(sess.drift, sess.table.time),
         extra_white=sess.rounding_variance + level_variance(sess.table, config),
+        extra_cov=getattr(sess, "sample_cov", None),
     )

@@ -44,6 +44,7 @@ from afm_core.sim2real.mismatch import (
     likely_scanner_causes,
 )
 from afm_core.sim2real.protocol import deterministic, replay
+from afm_core.sim2real.sample_realization import sample_covariance
 
 MIN_MATCHED_FRACTION = 0.7  # of the recorded features the reference simulation must reproduce
 SHIFT = 10e-9  # m, drift shift of the sensitivity replays
@@ -113,6 +114,9 @@ class ReferenceSession:
         self.noisy = np.isin(table.groups, NOISE_GROUPS)
         self.replays = 0
         self.exclusions = Exclusions()  # what build_reference left out of the recording
+        # the shape features' covariance from the substrate's unknown surface (build_reference:
+        # sample_realization.py); None: not drawn
+        self.sample_cov = None
         self.set_reference(reference, bias, {})
         self.r_before = self.r  # against the nominal model (a fitted noise level changes self.r)
 
@@ -448,6 +452,8 @@ def build_reference(
         moves=nominal.moves,
         noise_seeds=[1000 + k for k in range(sensor_replicas)],
     )
+    say("other surfaces of the substrate")
+    sess.sample_cov = sample_covariance(ops, config, drift, anchors, keys, table, nom)
     sess.exclusions = exclusions
     return sess
 
