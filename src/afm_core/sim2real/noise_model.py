@@ -8,8 +8,9 @@ e^-|t-s|/tau]) + the J-projected persistent random walk of free moves (each adds
 axis) + for background-curvature features the substrate roughness (the walk moves large images
 by more than its correlation length) and the sensor noise from the noise model itself (white in
 closed form, 1/f drawn as the simulator draws it: two replicas cannot tell a curvature's
-variance). Nuisance: a constant offset per axis (J-projected). A feature group the model
-describes too optimistically is scaled by its overdispersion (`group_overdispersion`).
+variance) + for shape features the substrate's unknown surface, shared by passes over one place
+(sample_realization.py). Nuisance: a constant offset per axis (J-projected). A feature group
+the model describes too optimistically is scaled by its overdispersion (`group_overdispersion`).
 """
 
 from __future__ import annotations
