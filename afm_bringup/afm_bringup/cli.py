@@ -263,7 +263,7 @@ def cmd_sim2real(args):
             f"{100 * held['excess_reduction']:.0f} % of the excess over the noise removed"
         )
     print(
-        f"report: {report / 'report.md'}"
+        f"report: {report / 'report.md'} (the verdict as JSON: {report / 'verdict.json'})"
         + (
             f"; updated simulator configuration: {report / 'updated_config.yaml'}"
             if (report / "updated_config.yaml").is_file()
@@ -479,8 +479,9 @@ def _add_sim2real(sub) -> None:
         description="Re-run a recording's commands in the simulator (--model), compare every "
         "measurement against the noise model, rank candidate physics the model lacks "
         "by held-out evidence, fit the chosen term and write report.md, plots and (when a "
-        "term is named) updated_config.yaml into --report. The verdict: named, partly "
-        "explained, not explained by the library, or no missing physics. Our recorder's "
+        "term is named) updated_config.yaml into --report, and the verdict as verdict.json. The "
+        "verdict: named, partly explained, not explained by the library, or no missing "
+        "physics. Our recorder's "
         "files and rosbag2 MCAP both work; no ROS needed.",
     )
     p.add_argument(

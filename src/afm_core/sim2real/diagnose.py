@@ -9,7 +9,9 @@ The stages, in the order `diagnose` runs them (all SI; each module's docstring s
    re-simulation cannot reproduce in an ordinary session (exclusions.py: pushed particles'
    contact history, single lines' chords): the drift trajectory that puts the
    particles where the recording saw them (drift_trajectory.py), the deterministic
-   re-simulation with it, each feature's drift sensitivity J, the sensor-noise replicas.
+   re-simulation with it, each feature's drift sensitivity J, the sensor-noise replicas, and
+   the shape features' covariance from the substrate's surface, which the model never knows
+   (sample_realization.py).
 3. Sensor noise first (noise_term.py): the noise terms tested on the noise statistics alone;
    a named noise level redraws the replicas. Then the noise model and GLS (noise_model.py).
 4. Candidates (candidates.py: config keys): design columns by re-simulation

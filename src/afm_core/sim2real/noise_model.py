@@ -8,8 +8,9 @@ e^-|t-s|/tau]) + the J-projected persistent random walk of free moves (each adds
 axis) + for background-curvature features the substrate roughness (the walk moves large images
 by more than its correlation length) and the sensor noise from the noise model itself (white in
 closed form, 1/f drawn as the simulator draws it: two replicas cannot tell a curvature's
-variance). Nuisance: a constant offset per axis (J-projected). A feature group the model
-describes too optimistically is scaled by its overdispersion (`group_overdispersion`).
+variance) + for shape features the substrate's unknown surface, shared by passes over one place
+(sample_realization.py). Nuisance: a constant offset per axis (J-projected). A feature group
+the model describes too optimistically is scaled by its overdispersion (`group_overdispersion`).
 """
 
 from __future__ import annotations
@@ -180,6 +181,7 @@ def build_noise_model(
     J_shape: np.ndarray | None = None,
     mismatch=None,
     extra_white: np.ndarray | None = None,
+    extra_cov: np.ndarray | None = None,
 ) -> NoiseModel:
     """sensor: (K, N) features of re-simulations with only the sensor noise on (at the recorded
     geometry); J: (N, 2) sensitivity of every feature to a drift offset; moves: (time, distance)
@@ -187,7 +189,9 @@ def build_noise_model(
     projected through J; roughness on background-curvature features; for shape features
     (J_shape: their sensitivity to the tip-particle geometry), how far the recorded geometry may
     be from the reference's (mismatch: per feature and axis, the id of the position observation
-    the drift trajectory follows there and the variance of the walk and wander since)."""
+    the drift trajectory follows there and the variance of the walk and wander since);
+    extra_cov: a covariance of the features' own (the substrate's unknown surface: static, so
+    shared by passes over one place, sample_realization.py)."""
     white, pools = pooled_white(sensor, table.groups, shrink, reference)
     analytic = _bow_sensor_variance(table, config.noise)
     white = np.where(
@@ -198,6 +202,9 @@ def build_noise_model(
         white = white + extra_white
     group_sigma = {g: math.sqrt(v) for g, v in pools.items()}
     cov = np.diag(white)
+    if extra_cov is not None:
+        cov = cov + extra_cov
+        white = white + np.diag(extra_cov)
     if J_shape is not None and mismatch is not None:
         ids, var = mismatch
         for axis in (0, 1):
@@ -339,4 +346,5 @@ def session_noise_model(
         J_shape=sess.J_shape,
         mismatch=geometry_mismatch(sess.drift, sess.table.time),
         extra_white=sess.rounding_variance + level_variance(sess.table, config),
+        extra_cov=getattr(sess, "sample_cov", None),
     )

@@ -44,6 +44,7 @@ from afm_core.sim2real.mismatch import (
     likely_scanner_causes,
 )
 from afm_core.sim2real.protocol import deterministic, replay
+from afm_core.sim2real.sample_realization import sample_covariance
 
 MIN_MATCHED_FRACTION = 0.7  # of the recorded features the reference simulation must reproduce
 SHIFT = 10e-9  # m, drift shift of the sensitivity replays
@@ -113,6 +114,9 @@ class ReferenceSession:
         self.noisy = np.isin(table.groups, NOISE_GROUPS)
         self.replays = 0
         self.exclusions = Exclusions()  # what build_reference left out of the recording
+        # the shape features' covariance from the substrate's unknown surface (build_reference:
+        # sample_realization.py); None: not drawn
+        self.sample_cov = None
         self.set_reference(reference, bias, {})
         self.r_before = self.r  # against the nominal model (a fitted noise level changes self.r)
 
@@ -448,6 +452,8 @@ def build_reference(
         moves=nominal.moves,
         noise_seeds=[1000 + k for k in range(sensor_replicas)],
     )
+    say("other surfaces of the substrate")
+    sess.sample_cov = sample_covariance(ops, config, drift, anchors, keys, table, nom)
     sess.exclusions = exclusions
     return sess
 
@@ -507,10 +513,28 @@ def _read(recorded_ops, anchors: np.ndarray):
         raise NoFeaturesError("the session holds no commands the simulator can re-run")
     f_rec = by_key(extractor.finish())
     if not f_rec:
-        raise NoFeaturesError(
-            "no scan line, raster or push in the recording gave a feature (no particle crossed?)"
-        )
+        raise NoFeaturesError(f"no operation of the recording gave a feature: {_no_feature(ops)}")
     return extractor, ops, f_rec
+
+
+def _no_feature(ops) -> str:
+    """What the session holds and the likely cause, among the two the reader can tell apart:
+    no measurement a feature comes from, or measurements that crossed no particle."""
+    kinds: dict = {}
+    for op in ops:
+        kinds[op.kind] = kinds.get(op.kind, 0) + 1
+    held = ", ".join(f"{n} {kind}" for kind, n in sorted(kinds.items()))
+    measured = sum(kinds.get(k, 0) for k in ("scan_line", "raster", "push"))
+    if not measured:
+        return (
+            f"its {len(ops)} commands ({held}) include no scan line, raster or push, the "
+            "operations features come from; record scans or pushes over the particles"
+        )
+    return (
+        f"its {measured} scan lines, rasters and pushes ({held}) crossed no particle: the "
+        "scanned area is bare (the particles lie elsewhere on the sample) or the images are too "
+        "coarse to resolve one"
+    )
 
 
 def _check_config_matches(agree: Agreement, lost_rec: set, lost_sim: set, explain=None):

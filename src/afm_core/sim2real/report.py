@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -103,8 +105,8 @@ def _figures(diagnosis, out: Path) -> list[str]:
 
 
 def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path:
-    """Writes OUT/report.md, OUT/*.png, OUT/updated_config.yaml (when physics was added) and
-    OUT/overrides.yaml. Returns the report's path."""
+    """Writes OUT/report.md, OUT/*.png, OUT/updated_config.yaml (when physics was added),
+    OUT/overrides.yaml and OUT/verdict.json (`verdict_record`). Returns the report's path."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     figures = []
@@ -138,7 +140,60 @@ def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path
     ]
     path = out / "report.md"
     path.write_text("\n".join(lines))
+    record = verdict_record(diagnosis)
+    record["updated_config_written"] = (out / "updated_config.yaml").is_file()
+    (out / "verdict.json").write_text(json.dumps(_plain(record), indent=2, allow_nan=False))
     return path
+
+
+def verdict_record(diagnosis) -> dict:
+    """The verdict as a program reads it (SI values, as the config keys): the verdict, its
+    words, the named terms and their fit (each parameter with "cannot_tell"), the held-out
+    demonstration, where a partly explained excess remains, what was tried and not named,
+    what the session cannot tell and what it left out."""
+    held = {
+        k: v
+        for k, v in (diagnosis.heldout or {}).items()
+        if k in ("chi2_before", "chi2_after", "dof", "limit", "gain_limit", "excess_reduction")
+        or k == "terms"
+    }
+    parameters = {
+        key: {**p, "cannot_tell": unresolved(p)} for key, p in diagnosis.parameters.items()
+    }
+    return {
+        "verdict": diagnosis.verdict,
+        "summary": diagnosis.summary(),
+        "named": list(diagnosis.chosen),
+        "parameters": parameters,
+        "heldout": held,
+        "excess_share_required": EXCESS_SHARE,
+        "remaining": [
+            {k: row[k] for k in ("where", "n", "mean", "chi2") if k in row}
+            for row in diagnosis.remaining
+        ],
+        "not_named": diagnosis.verdict_note,
+        "overall": dict(diagnosis.overall),
+        "cannot_tell": list(diagnosis.cannot_tell),
+        "excluded": list(diagnosis.excluded),
+    }
+
+
+def _plain(value):
+    """`value` in JSON's types: numpy scalars and arrays as numbers and lists, a non-finite
+    number as null (strict JSON has no NaN), anything else as its text."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_plain(v) for v in (value.tolist() if isinstance(value, np.ndarray) else value)]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if value is None or isinstance(value, str):
+        return value
+    return str(value)
 
 
 def _where_section(diagnosis) -> list[str]:

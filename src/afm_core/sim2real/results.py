@@ -157,10 +157,17 @@ class Diagnosis:
         )
 
 
-UNRESOLVED = "within 2 sigma of the model: this session cannot tell"
+# a fitted change from the model's value within this many sigma is "cannot tell": a null
+# session gives a change beyond it with probability 4.6 % per parameter (two-sided normal; the
+# 5 % point, evidence.ALPHA's, is 1.96), so a term named on a change within it would be a false
+# alarm at more than the rate the diagnosis states
+CANNOT_TELL_SIGMAS = 2.0
+UNRESOLVED = f"within {CANNOT_TELL_SIGMAS:g} sigma of the model: this session cannot tell"
 
 
 def unresolved(parameter: dict) -> bool:
-    """Whether a fitted parameter of a named term is within 2 sigma of the model's value (one
-    component of a drift whose other one is clear, say: left for the lab to judge, not news)."""
-    return abs(parameter["value"] - parameter["nominal"]) < 2 * parameter["sigma"]
+    """Whether a fitted parameter of a named term is within CANNOT_TELL_SIGMAS of the model's
+    value (one component of a drift whose other one is clear, say: left for the lab to judge,
+    not news; a term whose every parameter is so is never named, verdict.py)."""
+    change = abs(parameter["value"] - parameter["nominal"])
+    return change < CANNOT_TELL_SIGMAS * parameter["sigma"]

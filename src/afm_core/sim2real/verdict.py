@@ -11,7 +11,7 @@ session re-simulated, heldout.heldout_check):
   average);
 - does not make the held-out blocks worse;
 - has a fitted parameter the session can tell from the model's (results.unresolved: a term
-  whose every parameter is within 2 sigma of the model is never named).
+  whose every parameter is within CANNOT_TELL_SIGMAS = 2 sigma of the model is never named).
 
 A term that passes and leaves the held-out blocks within their noise (chi^2 below the 1 - ALPHA
 quantile) is "named"; one that leaves them beyond it is "partly explained", with where the
@@ -46,6 +46,7 @@ from afm_core.sim2real.noise_model import Whitener, gls
 from afm_core.sim2real.reference import ReferenceSession
 from afm_core.sim2real.refinement import refine, reported_sigma, sigma_of
 from afm_core.sim2real.results import (
+    CANNOT_TELL_SIGMAS,
     NAMED,
     NO_MISSING_PHYSICS,
     NOT_EXPLAINED,
@@ -145,7 +146,10 @@ def decide(
     )
 
 
-_CANNOT_TELL = "every fitted parameter within 2 sigma of the model (this session cannot tell)"
+_CANNOT_TELL = (
+    f"every fitted parameter within {CANNOT_TELL_SIGMAS:g} sigma of the model (this session "
+    "cannot tell)"
+)
 
 
 def judge(heldout: dict, n_parameters: int, n_candidates: int) -> tuple[str | None, str]:
