@@ -436,8 +436,9 @@ def _add_push(sub) -> None:
     p.add_argument(
         "--strategy",
         default="nano_hand",
-        choices=["nano_hand", "center", "rod_hand"],
-        help="how to push (default nano_hand, the virtual nano-hand's zigzag)",
+        choices=["nano_hand", "closed_loop", "center", "rod_hand"],
+        help="how to push (default nano_hand, the virtual nano-hand's zigzag; closed_loop "
+        "observes the particle between legs and re-plans)",
     )
     p.add_argument(
         "--tolerance",
