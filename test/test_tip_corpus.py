@@ -62,8 +62,10 @@ def test_corpus_design_covers_every_tip_sample_pixel_and_noise():
 
 
 def test_auto_threshold_is_near_the_best_fixed_threshold_across_the_corpus():
-    """Every other case of an unseen seed at 160 px; the measured level at 256 px and two
-    seeds is in bench/results/tip-corpus.md (median 1.32, worst 5.1)."""
+    """Every other case of a seed the rule was not developed on (seed 2; developed on seeds
+    0 and 3) at 160 px; measured there 2026-11-27: median 1.21, worst 3.58 (the steep error
+    on both sides of the best threshold: one fine rung too high or low costs 1.5-3.5x). The
+    level at 256 px on seeds 0 and 1 is in bench/results/tip-corpus.md."""
     ratios = []
     for case in tc.corpus_cases(n=160, seeds=(2,))[::2]:
         image, _, tip = tc.make_case(case)
@@ -71,5 +73,5 @@ def test_auto_threshold_is_near_the_best_fixed_threshold_across_the_corpus():
         _, best = tc.best_fixed_threshold(image, tip, case.tip_size, auto.noise, refine=0)
         ratios.append(te.tip_error(auto, tip, tc.score_depth(tip)) / best)
     print("auto / best fixed:", np.round(ratios, 2))
-    assert np.median(ratios) <= 1.3
-    assert max(ratios) <= 5.0
+    assert np.median(ratios) <= 1.25
+    assert max(ratios) <= 3.7

@@ -112,11 +112,13 @@ def estimate_tip(
     from one apex to several, the choice the local maximum of the area change rate nearest to
     it.
     "auto": the lowest threshold above the noise runaway. From LADDER_TOP sigma down a
-    ladder of rungs RUNG_RATIO apart (or the given `thresholds`), the RMS change of the
-    estimate over its top `depth` (m) per unit threshold is watched; the first rung where it
-    exceeds RUNAWAY (once the estimate has begun to follow the threshold) is noise running
-    away; the rung above it and above the gentle start of the runaway (rates over
-    RUNAWAY_EDGE) is chosen, and the sweep stops there.
+    ladder of rungs COARSE_RATIO apart (FINE_RATIO once a rung moves faster than CALM, from
+    the rung above it; or the given `thresholds`), the RMS change of the estimate over its
+    top `depth` (m) per unit threshold is watched; the first rung where it exceeds RUNAWAY
+    (once the estimate has begun to follow the threshold) is noise running away; the rung
+    above it and above the gentle start of the runaway (rates over RUNAWAY_EDGE) is chosen,
+    and the sweep stops there. Without a runaway down to the bottom, the
+    lowest rung at or above SINGLE_EXCURSION sigma.
     "consensus": the threshold whose estimate best matches (RMS over its top `depth`) the
     feature-consensus tip; for characterizers whose features are far sharper than the tip.
 

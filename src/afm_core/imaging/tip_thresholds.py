@@ -4,16 +4,20 @@ with `ThresholdSweep`, which warm-starts every estimate from the one at the next
 threshold (exact: the limit does not depend on the start as long as it is an upper bound of
 it).
 
-"auto" (`runaway_threshold`): walk N_TH down a geometric ladder and watch how fast the
-estimate moves per unit of threshold. Above the noise runaway a refined tip pixel sits at
-its bound + N_TH, so the estimate follows the threshold at most one for one; where noise
-starts to feed on itself (a cut admits contacts that cut further), the estimate drops many
-times faster than the threshold. The choice is the lowest rung above that runaway: the
-sharpest estimate that is still the threshold's and not the noise's. It needs only the
-image (the noise sigma sizes the ladder). On samples whose features are not much sharper
-than the tip (spheres, tubes, steps, grains) this is near the best fixed threshold; on a
-dedicated spike characterizer the best lies higher, where the cuts made by feature tops that
-noise displaced by a pixel are balanced by the blunting (docs/imaging.md).
+"auto" (`runaway_threshold`): walk N_TH down a geometric ladder (coarse, then fine near the
+runaway) and watch how fast the estimate moves per unit of threshold. Above the noise runaway
+a refined tip pixel sits at its bound + N_TH, so the estimate follows the threshold at most
+one for one; where noise starts to feed on itself (a cut admits contacts that cut further),
+the estimate drops many times faster than the threshold. The choice is the fine rung just
+above that runaway and its gentle start: the sharpest estimate that is still the threshold's
+and not the noise's. The error is steep on both sides of it (just below, the runaway cuts
+the tip into a needle; one coarse rung above, it is 1.3-2x blunter), so the runaway is
+resolved on fine rungs. Without any runaway, the lowest rung at or above 3 sigma (single
+noise excursions). It needs only the image (the noise sigma sizes the ladder; the choice
+does not scale with it: the best threshold is 0-35 sigmas on the corpus, set by where the
+runaway begins, and the image's sigma is 2-10x high at coarse pixels). On a dedicated spike
+characterizer the best can lie higher, where the cuts made by feature tops that noise
+displaced by a pixel are balanced by the blunting (docs/imaging.md).
 
 "consensus" (`consensus_threshold`): the threshold whose estimate is closest, over its top
 `depth`, to the feature-consensus tip (the median over the feature points of their
@@ -158,9 +162,13 @@ def book_threshold(sweep: ThresholdSweep, thresholds, sigma: float, pixel_size, 
     return chosen, critical, table
 
 
-# The sweep runs down a geometric ladder of thresholds, RUNG_RATIO apart, from LADDER_TOP
-# noise sigmas (where no feature point refines the tip yet) towards LADDER_BOTTOM sigmas.
-RUNG_RATIO = 2.0 ** (1.0 / 3.0)
+# The sweep runs down a geometric ladder of thresholds from LADDER_TOP noise sigmas (where no
+# feature point refines the tip yet) towards LADDER_BOTTOM sigmas. Coarse rungs COARSE_RATIO
+# apart cross the calm part; near the runaway the rungs are FINE_RATIO apart. The error is
+# steep on both sides of the best threshold (one 2^(1/3) rung above it cost 1.3-2x on the
+# corpus): the runaway must be located to a fine rung, and the choice is the rung just above.
+COARSE_RATIO = 2.0 ** (1.0 / 3.0)
+FINE_RATIO = 2.0 ** (1.0 / 6.0)
 LADDER_TOP = 64.0
 LADDER_BOTTOM = 0.25
 # Above the runaway every refined tip pixel sits at (its bound + N_TH): the estimate moves
@@ -169,16 +177,26 @@ LADDER_BOTTOM = 0.25
 # that cut further. A rate of a few is already out of the shifting regime; 3 keeps clear of
 # the rates of 1-2 that the blunting regime reaches on blunt samples.
 RUNAWAY = 3.0
-# The runaway starts gently: the rungs just above the jump that still move more than twice as
-# fast as the threshold (outside the one-for-one regime) belong to it.
-RUNAWAY_EDGE = 2.0
+# A coarse rung moving more than CALM times the threshold's rate has left the one-for-one
+# regime: the descent goes back one coarse rung and continues on the fine ladder (a fine rung
+# can run away inside a coarse step whose average rate is still below RUNAWAY).
+CALM = 2.0
+# The runaway starts gently: the fine rungs just above the jump that still move more than
+# RUNAWAY_EDGE times as fast as the threshold (outside the one-for-one regime) belong to it.
+RUNAWAY_EDGE = CALM
 # Passes per rung on the way down (each rung starts from the one above, so refinement carries
 # on down the ladder); only the chosen rung is run to convergence.
 DESCENT_PASSES = 2
 # The estimate has begun to follow the threshold once a rung moves it at between half and
-# RUNAWAY_EDGE times the threshold's rate (higher up, no feature point refines it and it stays
-# at the flat start; its first moves off the start can be jumps, not a runaway).
+# CALM times the threshold's rate (higher up, no feature point refines it and it stays at the
+# flat start; its first moves off the start can be jumps, not a runaway).
 FOLLOWING = 0.5
+# Without a runaway the estimate follows the threshold to the bottom of the ladder; below a few
+# sigmas single noise excursions still cut it (each bound is a difference of two noisy
+# heights). The choice is then the lowest rung at or above SINGLE_EXCURSION sigmas: a
+# one-sided 0.13 % excursion of one Gaussian height (tip_guard.NOISE_K, the same bound the
+# estimate's uncertainty uses).
+SINGLE_EXCURSION = 3.0
 
 
 def _change_rate(upper: np.ndarray, lower: np.ndarray, step: float, depth: float) -> float:
@@ -190,36 +208,63 @@ def _change_rate(upper: np.ndarray, lower: np.ndarray, step: float, depth: float
     return float(np.sqrt(np.mean((upper - lower)[region] ** 2)) / step)
 
 
+def _ladder(sigma: float, ratio: float, top: float) -> np.ndarray:
+    """Thresholds from `top` down by `ratio` to LADDER_BOTTOM sigma, then 0."""
+    rungs = int(np.ceil(np.log(top / (sigma * LADDER_BOTTOM)) / np.log(ratio)))
+    return np.append(top / ratio ** np.arange(rungs + 1), 0.0)
+
+
 def runaway_threshold(sweep: ThresholdSweep, sigma: float, depth: float, thresholds):
     """The lowest threshold above the noise runaway: walk down the ladder (or the given
     thresholds), each estimate warm-started from the one above, and stop at the first rung
     whose change rate exceeds RUNAWAY once the estimate follows the threshold; the choice is
-    the lowest rung above it that moved no faster than RUNAWAY_EDGE. Without a runaway,
-    the rung above the fastest change. Returns (chosen, rates: threshold -> change rate from
-    the rung above)."""
-    if thresholds is not None:
-        ladder = np.sort(np.asarray(thresholds, float))[::-1]
-    else:
-        rungs = int(np.ceil(np.log(LADDER_TOP / LADDER_BOTTOM) / np.log(RUNG_RATIO)))
-        ladder = np.append(sigma * LADDER_TOP / RUNG_RATIO ** np.arange(rungs + 1), 0.0)
+    the lowest rung above it that moved no faster than RUNAWAY_EDGE. The ladder is coarse
+    (COARSE_RATIO) until a rung moves faster than CALM, then fine (FINE_RATIO) from the rung
+    above that. Following down to the bottom without a runaway: the lowest rung at or above
+    SINGLE_EXCURSION sigma; never following: the rung above the fastest change. Returns
+    (chosen, rates: threshold -> change rate from the rung above)."""
+    fine = thresholds is not None
+    ladder = (
+        np.sort(np.asarray(thresholds, float))[::-1]
+        if fine
+        else _ladder(sigma, COARSE_RATIO, sigma * LADDER_TOP)
+    )
     rates: dict = {}
     following = False
     previous = sweep.run(ladder[0], cap=DESCENT_PASSES)
-    for j in range(1, len(ladder)):
+    j = 1
+    while j < len(ladder):
         tip = sweep.run(ladder[j], cap=DESCENT_PASSES)
         rate = _change_rate(previous, tip, ladder[j - 1] - ladder[j], depth)
+        if not fine and following and rate > CALM:
+            # go back one coarse rung and resolve this step on the fine ladder
+            fine = True
+            ladder = _ladder(sigma, FINE_RATIO, float(ladder[j - 1]))
+            previous, j = sweep.tips[float(ladder[0])], 1
+            continue
         rates[float(ladder[j])] = rate
         if following and rate > RUNAWAY:
             above = j - 1
-            while above > 1 and rates[float(ladder[above])] > RUNAWAY_EDGE:
+            # (the fine ladder's top is the calm coarse rung, with its rate from the coarse
+            # step; a given ladder's top has none)
+            while above > 0 and rates.get(float(ladder[above]), 0.0) > RUNAWAY_EDGE:
                 above -= 1
             sweep.run(ladder[above])  # converged
             return float(ladder[above]), rates
         # the first moves off the flat start can be jumps; following needs a calm rung
-        following = following or FOLLOWING < rate <= RUNAWAY_EDGE
+        following = following or FOLLOWING < rate <= CALM
         previous = tip
+        j += 1
+    if following:
+        # followed the threshold down to the bottom without running away: the noise never
+        # fed on itself, and what limits the threshold is single noise excursions
+        floor = min(
+            (t for t in sweep.tips if t >= SINGLE_EXCURSION * sigma), default=max(sweep.tips)
+        )
+        sweep.run(floor)
+        return float(floor), rates
     fastest = max(rates, key=rates.get)
-    above = ladder[np.flatnonzero(ladder == fastest)[0] - 1]
+    above = min(t for t in sweep.tips if t > fastest)
     sweep.run(above)
     return float(above), rates
 
