@@ -40,7 +40,7 @@ from afm_core.imaging.landmarks import Landmark
 from afm_core.instrument import check_in_range
 from afm_core.localization.landmark_observation import MapLandmark, line_noise
 from afm_core.manipulation.centre_push import centre_push_plan
-from afm_core.manipulation.execute import StepReport, force_summary, pushed_object_after
+from afm_core.manipulation.execute import StepReport, pushed_object_after
 from afm_core.manipulation.particle_observation import (
     LINE_MARGIN,
     LINE_SIGMAS,
@@ -165,18 +165,7 @@ def run_leg(
         move = track.move(b, speed if stroke.contact else lift_speed, stroke.contact, should_stop)
         if stroke.contact:
             state.cost.slid += float(np.hypot(*(b - a)))
-        lateral, normal = force_summary(move.trace, TIP_HEIGHT) if stroke.contact else (0, 0)
-        report = StepReport(
-            i,
-            len(plan.strokes),
-            stroke.label,
-            stroke.contact,
-            (move.end_x, move.end_y),
-            move.completed,
-            lateral,
-            normal,
-            move.trace.object_id if move.trace is not None else -1,
-        )
+        report = StepReport.of_move(i, len(plan.strokes), stroke, move, TIP_HEIGHT)
         state.reports.append(report)
         expected = stroke.contact and (i >= len(moved) or moved[i] > MODEL_CONTACT_MIN)
         contact = contact_in_trace(move.trace) if stroke.contact else None

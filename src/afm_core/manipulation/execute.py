@@ -49,6 +49,23 @@ class StepReport:
     peak_normal_force: float  # N
     object_id: int = -1  # what the instrument says it pushed (-1: nothing / unknown)
 
+    @classmethod
+    def of_move(cls, index: int, total: int, stroke, move, tip_height: float) -> StepReport:
+        """The report of one executed stroke: its move's end and, in contact, the peak forces
+        of its force trace."""
+        lateral, normal = force_summary(move.trace, tip_height) if stroke.contact else (0.0, 0.0)
+        return cls(
+            index,
+            total,
+            stroke.label,
+            stroke.contact,
+            (move.end_x, move.end_y),
+            move.completed,
+            lateral,
+            normal,
+            move.trace.object_id if move.trace is not None else -1,
+        )
+
 
 @dataclass
 class ExecutionResult:
@@ -153,18 +170,7 @@ def execute_plan(
             break
         instrument.move_tip(float(a[0]), float(a[1]), lift_speed, contact=False)
         move = instrument.move_tip(float(b[0]), float(b[1]), speed, contact=stroke.contact)
-        lateral, normal = force_summary(move.trace, tip_height) if stroke.contact else (0.0, 0.0)
-        report = StepReport(
-            i,
-            len(plan.strokes),
-            stroke.label,
-            stroke.contact,
-            (move.end_x, move.end_y),
-            move.completed,
-            lateral,
-            normal,
-            move.trace.object_id if move.trace is not None else -1,
-        )
+        report = StepReport.of_move(i, len(plan.strokes), stroke, move, tip_height)
         result.steps.append(report)
         result.strokes_done = i + 1
         if on_step is not None:
