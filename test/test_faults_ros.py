@@ -59,6 +59,9 @@ def test_a_killed_driver_ends_every_wait_for_it_within_seconds(nodes, ros_node):
         wait_for(lambda: scan.feedback is not None, 60, what="the scan started")
         helper = threading.Thread(target=graph_helper)
         helper.start()  # its goal queues behind the scan
+        # the driver killed before it had answered this new client would be "did not answer",
+        # not "gone": on a loaded machine matching a new client took more than a second
+        wait_for(lambda: client._answered_at > 0, 30, what="the driver answering call_action")
         time.sleep(1.0)
         killed = time.monotonic()
         driver.process.kill()

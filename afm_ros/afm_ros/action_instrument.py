@@ -115,7 +115,8 @@ def call_action(
         raise DriverUnavailable(f"{name}: not sent, this node is stopping")
     if not client.wait_until_answering(server_timeout):
         raise DriverUnavailable(
-            f"action {name} did not answer within {server_timeout} s; is its node running?"
+            f"action {name} did not answer within {server_timeout} s "
+            f"({client.not_answering}); is its node running?"
         )
     done = threading.Event()
     sent = client.send_goal_async(goal)
