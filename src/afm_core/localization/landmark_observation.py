@@ -198,6 +198,16 @@ def line_noise(height) -> float:
     )
 
 
+def line_threshold(height, apparent_height: float, fraction: float) -> tuple[float, float]:
+    """(substrate, threshold) of a line across a landmark: the substrate is the median of the
+    line's ends (EDGE_FRACTION of it at each end, at least MIN_EDGE_SAMPLES), the threshold that
+    plus `fraction` of the landmark's apparent height."""
+    h = np.asarray(height, dtype=float)
+    edge = max(MIN_EDGE_SAMPLES, int(EDGE_FRACTION * h.size))
+    substrate = float(np.median(np.concatenate([h[:edge], h[-edge:]])))
+    return substrate, substrate + fraction * apparent_height
+
+
 def find_crossings(
     height, threshold: float, expected_index: float | None = None, margin: float | None = None
 ):
@@ -289,9 +299,7 @@ def observe_line(
             "the position across the tube",
             direction=u,
         )
-    edge = max(MIN_EDGE_SAMPLES, int(EDGE_FRACTION * n))
-    substrate = float(np.median(np.concatenate([h[:edge], h[-edge:]])))
-    threshold = substrate + threshold_fraction * landmark.apparent_height
+    substrate, threshold = line_threshold(h, landmark.apparent_height, threshold_fraction)
     pairs, reason = find_crossings(h, threshold, expected_index)
     base = dict(threshold=threshold, substrate=substrate, direction=u)
     if not pairs:

@@ -37,11 +37,11 @@ from afm_core.instrument import Instrument, LineRequest, check_in_range
 from afm_core.localization.calibration.model import Calibration
 from afm_core.localization.landmark_observation import (
     DEFAULT_THRESHOLD_FRACTION,
-    EDGE_FRACTION,
     MIN_EDGE_SAMPLES,
     MapLandmark,
     find_crossings,
     line_noise,
+    line_threshold,
 )
 from afm_core.localization.localizer import LINE_SPEED, MOVE_SPEED, SAMPLE_SPACING
 from afm_core.localization.motion import MotionModel
@@ -200,9 +200,7 @@ def crossing(line, landmark: MapLandmark, scan_region_sigma: float) -> Crossing:
     n = h.size
     if not line.complete or n < 2 * MIN_EDGE_SAMPLES + 2 or not np.isfinite(h).all():
         return Crossing(False, "the line was not completed or has no usable samples")
-    edge = max(MIN_EDGE_SAMPLES, int(EDGE_FRACTION * n))
-    substrate = float(np.median(np.concatenate([h[:edge], h[-edge:]])))
-    threshold = substrate + DEFAULT_THRESHOLD_FRACTION * landmark.apparent_height
+    _, threshold = line_threshold(h, landmark.apparent_height, DEFAULT_THRESHOLD_FRACTION)
     pairs, reason = find_crossings(h, threshold)
     if not pairs:
         return Crossing(False, reason)
