@@ -24,8 +24,6 @@ from afm_bringup.launcher import (
 )
 from afm_bringup.units import length_type, nm
 
-_length = length_type
-
 
 def _param(text):
     if ":=" not in text:
@@ -420,7 +418,7 @@ def _add_push(sub) -> None:
     target.add_argument(
         "--at",
         nargs=2,
-        type=_length("at"),
+        type=length_type("at"),
         metavar=("X", "Y"),
         help="the particle nearest this position in afm_task (m, or with a unit: 55um), within "
         "the nano-hand's match_radius (nano_hand.yaml)",
@@ -429,7 +427,7 @@ def _add_push(sub) -> None:
         "--goal",
         nargs=2,
         required=True,
-        type=_length("goal"),
+        type=length_type("goal"),
         metavar=("X", "Y"),
         help="where the particle should end, afm_task (m, or with a unit: 54.7um)",
     )
@@ -442,7 +440,7 @@ def _add_push(sub) -> None:
     )
     p.add_argument(
         "--tolerance",
-        type=_length("tolerance"),
+        type=length_type("tolerance"),
         default=20e-9,
         help="success radius around the goal (m, or with a unit; default 20nm)",
     )
@@ -468,7 +466,7 @@ def _add_image(sub) -> None:
     from afm_core.imaging.cli import add_subcommands
     from afm_core.imaging.cli import run as run_image
 
-    add_subcommands(p, _length("length"))
+    add_subcommands(p, length_type("length"))
     p.set_defaults(func=run_image)
 
 
@@ -570,7 +568,7 @@ def _add_map(sub) -> None:
     p.add_argument("--channel", default="0", help="channel index or title (default 0)")
     p.add_argument(
         "--pixel-size",
-        type=_length("pixel-size"),
+        type=length_type("pixel-size"),
         help="for .npy files: pixel size (m, or with a unit: 2nm)",
     )
     p.add_argument(

@@ -12,7 +12,6 @@ recording never stops the batch.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import os
 import socket
 import time
@@ -82,7 +81,7 @@ def _options(kind: str, model, effects) -> tuple[dict, dict]:
         return {}, {}
     if model and not Path(model).is_file():
         raise ValueError(f"model {str(model)!r}: no such simulator configuration file")
-    model_hash = hashlib.sha256(Path(model).read_bytes()).hexdigest() if model else "defaults"
+    model_hash = file_sha256(str(model)) if model else "defaults"
     effects = sorted(effects or [])
     if effects:
         from afm_core.sim2real.candidates import select
