@@ -19,8 +19,10 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
+from datetime import datetime, timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -28,6 +30,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import sim2real_families as families  # noqa: E402
 import sim2real_scoring as scoring  # noqa: E402
+from machine import command_line, machine_record  # noqa: E402
 
 
 def null_cases(n_protocol: int, n_work: int, first: int) -> list:
@@ -69,6 +72,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     workdir = args.keep or tempfile.mkdtemp(prefix="probe-nulls-")
     alarms = named = 0
+    load = os.getloadavg()
+    started = datetime.now(timezone.utc)
+    lines = []
     cases = null_cases(args.protocol, args.work, args.first)
     for case in cases:
         row = families.run_family_case(case, workdir)
@@ -76,17 +82,46 @@ def main(argv=None) -> int:
         alarms += alarm
         named += bool(row.get("chosen"))
         chi2 = row.get("heldout_chi2") or [float("nan")] * 3
-        print(
+        lines.append(
             f"{case.name:26s} {row.get('verdict', '?'):30s} "
             f"{','.join(row.get('chosen', [])) or 'none':28s} "
             f"held-out {chi2[0] or float('nan'):.1f} -> {chi2[1] or float('nan'):.1f} "
             f"({chi2[2]}) config {'written' if row.get('config_written') else 'no'} "
-            f"{row.get('cpu_seconds', float('nan')):5.1f} s  {row.get('verdict_words', '')[:300]}",
-            flush=True,
+            f"{row.get('cpu_seconds', float('nan')):5.1f} s  {row.get('verdict_words', '')[:300]}"
         )
+        print(lines[-1], flush=True)
     n = len(cases)
-    print(f"false 'missing physics' {alarms} of {n}; a term named {named} of {n}")
+    lines.append(f"false 'missing physics' {alarms} of {n}; a term named {named} of {n}")
+    print(lines[-1])
+    write_results(args, started, load, lines)
     return 0
+
+
+def write_results(args, started, load, lines) -> Path:
+    """bench/results/sim2real-fresh-nulls-<first>.md: date, machine, command, one line a case."""
+    machine = machine_record(load)
+    out = Path(__file__).resolve().parent / "results" / f"sim2real-fresh-nulls-{args.first}.md"
+    out.write_text(
+        "\n".join(
+            [
+                f"# Sim-to-real on fresh null sessions (seeds {args.first} on)",
+                "",
+                f"Date: {started:%Y-%m-%d %H:%M} UTC  ",
+                f"Machine: {json.dumps(machine)}  ",
+                f"Command: `{command_line()}`",
+                "",
+                "Our own simulator: the model is the truth, only the seed, the sample layout "
+                "and the substrate differ from the suite's.",
+                "",
+                "```",
+                *lines,
+                "```",
+                "",
+            ]
+        )
+    )
+    print(f"wrote {out}")
+    return out
 
 
 if __name__ == "__main__":
