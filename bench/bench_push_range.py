@@ -20,7 +20,8 @@ brought into the maps' frame by the simulated scanner's local gain where the pus
 localization's first lines (missed or not, from the localizer's log), the move length, the
 action's time.
 
-Run: `scripts/with_env.sh python bench/bench_push_range.py [--trials 16]` (~1 min per push).
+Run: `scripts/with_env.sh python bench/bench_push_range.py [--trials 16] [--strategy closed_loop]`
+(~1 min per push open loop, a few with the closed loop).
 Results: bench/results/push_range.json and push_range.md.
 """
 
@@ -120,7 +121,7 @@ def localizations(log_dir: Path, since: int) -> tuple[list[str], int]:
     return re.findall(r"localize on landmark -?\d+: (.*)", text[since:]), len(text)
 
 
-def run_trial(seed: int, workdir: Path, log) -> list[dict]:
+def run_trial(seed: int, workdir: Path, log, strategy: str = "nano_hand") -> list[dict]:
     rng = np.random.default_rng([seed, 36])
     regions = {"centre": CENTRE + rng.uniform(-1, 1, 2) * UM, "away": away_centre(rng)}
     layouts = {name: spheres_in(c, rng) for name, c in regions.items()}
@@ -169,7 +170,9 @@ def run_trial(seed: int, workdir: Path, log) -> list[dict]:
                 rows.append(row)
                 began = time.monotonic()
                 try:
-                    row.update(push_in_region(afm, centre, layouts[name], maps, truths, rng))
+                    row.update(
+                        push_in_region(afm, centre, layouts[name], maps, truths, rng, strategy)
+                    )
                 except (AfmError, RuntimeError) as exc:
                     row.update(ran=False, success=False, fine=False, message=str(exc))
                 row["seconds"] = time.monotonic() - began
@@ -194,7 +197,7 @@ def run_trial(seed: int, workdir: Path, log) -> list[dict]:
     return rows
 
 
-def push_in_region(afm, centre, layout, maps, truths, rng) -> dict:
+def push_in_region(afm, centre, layout, maps, truths, rng, strategy="nano_hand") -> dict:
     seen = len(maps)
     origin = centre - AREA / 2
     pair = f"area-{centre[0] / UM:.1f}-{centre[1] / UM:.1f}"
@@ -225,9 +228,7 @@ def push_in_region(afm, centre, layout, maps, truths, rng) -> dict:
     if goal is None:
         raise RuntimeError("no clear push direction")
     before = true_spheres(truths[-1])
-    request = PushParticle.Goal(
-        particle_id=int(chosen.id), strategy="nano_hand", tolerance=TOLERANCE
-    )
+    request = PushParticle.Goal(particle_id=int(chosen.id), strategy=strategy, tolerance=TOLERANCE)
     request.goal.x, request.goal.y = map(float, goal)
     result = afm.send("push_particle", request, timeout=900)
     time.sleep(0.3)  # the last ground truth arrives
@@ -289,7 +290,8 @@ def markdown_report(result: dict, command: str) -> str:
         f"Measured {result['date']} on {m['cpu_count']} CPUs ({m['cpu_model']}), Python "
         f"{m['python']}, load {m['load_average_at_start'][0]:.2f} at start; "
         f"{result['wall_seconds']:.0f} s wall for {result['trials']} trials; graph peak memory "
-        f"(sum of the node peaks, worst trial) {result['graph_peak_bytes'] / 2**20:.0f} MiB.",
+        f"(sum of the node peaks, worst trial) {result['graph_peak_bytes'] / 2**20:.0f} MiB. "
+        f"PushParticle strategy: `{result.get('strategy', 'nano_hand')}`.",
         "",
         f"Command: `{command}`",
         "",
@@ -324,6 +326,12 @@ def main() -> int:
     parser.add_argument("--trials", type=int, default=16, help="graphs; two pushes each")
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--name", default="push_range", help="results file stem")
+    parser.add_argument(
+        "--strategy",
+        choices=("nano_hand", "closed_loop"),
+        default="nano_hand",
+        help="PushParticle strategy: the open-loop nano-hand or the closed loop (issue 32)",
+    )
     args = parser.parse_args()
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     # a domain of its own: another graph on the machine (a test run, say) would answer this
@@ -339,7 +347,7 @@ def main() -> int:
     log(f"node logs in {workdir}")
     rows = []
     for seed in range(args.first_seed, args.first_seed + args.trials):
-        rows += run_trial(seed, workdir, log)
+        rows += run_trial(seed, workdir, log, args.strategy)
     summary = summarise(rows)
     for name, s in summary.items():
         print(
@@ -352,6 +360,7 @@ def main() -> int:
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "machine": machine_record(load),
         "trials": args.trials,
+        "strategy": args.strategy,
         "summary": summary,
         "graph_peak_bytes": peak,
         "runs": rows,
