@@ -40,6 +40,10 @@ from machine import command_line, machine_record  # noqa: E402
 from afm_core.evaluation import image_frame_matrix  # noqa: E402
 from afm_core.imaging.drift_compensation import compensate_pair  # noqa: E402
 from afm_core.imaging.landmarks import extract_landmarks  # noqa: E402
+from afm_core.imaging.raster_approach import (  # noqa: E402
+    RASTER_APPROACH_OVERSHOOT,
+    approach_point,
+)
 from afm_core.instrument import ScanRequest  # noqa: E402
 from afm_core.localization import Localizer  # noqa: E402
 from afm_core.localization.calibration.model import load_calibration  # noqa: E402
@@ -84,6 +88,10 @@ def one_case(region, now: bool, seed: int) -> dict:
             *(region - AREA / 2), AREA, AREA, PIXELS, PIXELS, scan_angle_deg=angle, line_rate=4.0
         )
         if now:
+            t0, c0 = sim.time, sim.commanded_position()
+            sim.move_tip(*approach_point(request, RASTER_APPROACH_OVERSHOOT.default), 1e-5)
+            loc.predict_command("move", c0, sim.commanded_position(), t0, sim.time)
+            settler.observe(c0, sim.commanded_position(), t0, sim.time)
             t0, c0 = sim.time, sim.commanded_position()
             settling = settle_before(
                 sim, settler, *request.first_point(), 1e-5, TOLERANCE, MAX_WAIT

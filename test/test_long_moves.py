@@ -11,6 +11,7 @@ import pytest
 
 from afm_core.evaluation import image_frame_matrix
 from afm_core.imaging.landmarks import extract_landmarks
+from afm_core.imaging.raster_approach import RASTER_APPROACH_OVERSHOOT, approach_point
 from afm_core.instrument import ScanRequest
 from afm_core.localization import Localizer, MotionModel
 from afm_core.localization.calibration.model import Calibration, load_calibration
@@ -78,9 +79,9 @@ def test_after_a_long_move_the_localizer_finds_a_mapped_place_where_the_map_put_
     errors = {}
     for name, span in (("bounded", shipped.scanner_matrix_span), ("extrapolated", 1.0)):
         sim = sim_with([{"x": region[0], "y": region[1], "radius": 100 * NM}])
-        scan = sim.raster_scan(
-            ScanRequest(*(region - 1.2 * UM), 2.4 * UM, 2.4 * UM, 128, 128, line_rate=4.0)
-        )
+        request = ScanRequest(*(region - 1.2 * UM), 2.4 * UM, 2.4 * UM, 128, 128, line_rate=4.0)
+        sim.move_tip(*approach_point(request, RASTER_APPROACH_OVERSHOOT.default), 1e-5)
+        scan = sim.raster_scan(request)
         (mark,) = extract_landmarks(
             scan.height, scan.pixel_size_x, scan.pixel_size_y, scan.origin_x, scan.origin_y
         )

@@ -26,6 +26,7 @@ from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
 from afm_core.backends import open_instrument
+from afm_core.imaging.raster_approach import RASTER_APPROACH_OVERSHOOT, approach_point
 from afm_core.instrument import LineRequest, ScanRequest, move_speed, validate_move
 from afm_core.localization.calibration.model import load_calibration
 from afm_core.localization.creep_settle import (
@@ -110,6 +111,7 @@ PARAMETERS = ParameterTable(
     ),
     CREEP_SETTLE_TOLERANCE,
     MAX_CREEP_WAIT,
+    RASTER_APPROACH_OVERSHOOT,
     Parameter(
         "replay_input",
         "",
@@ -382,6 +384,7 @@ class DriverNode(Node):
             self.pace()
 
         should_stop = self.stop_check(goal_handle)
+        self.approach_from_beyond(request, should_stop)
         settled = self.settle_before_scan(request, should_stop)
         if settled:
             self.get_logger().info(
@@ -414,6 +417,19 @@ class DriverNode(Node):
         if settled:
             result.message = f"{result.message}; {settled}"
         return result
+
+    def approach_from_beyond(self, request: ScanRequest, should_stop) -> None:
+        """A lifted move to beyond the image's start (afm_core raster_approach), so both axes
+        image on a reversed hysteresis branch wherever the image is."""
+        overshoot = self.config["raster_approach_overshoot"]
+        if overshoot <= 0:
+            return
+        start_time, start = self.instrument.time, self.instrument.commanded_position()
+        speed = self.instrument.limits.max_speed / 10  # the scan's own approach speed
+        target = approach_point(request, overshoot, self.instrument.limits)
+        move = self.instrument.move_tip(*target, speed, should_stop=should_stop)
+        duration = self.instrument.time - start_time
+        self.command(TipCommand.MOVE, start_time, start, (move.end_x, move.end_y), duration, speed)
 
     def settle_before_scan(self, request: ScanRequest, should_stop) -> str:
         """Approach the image's first sample and wait there for creep (afm_core creep_settle);

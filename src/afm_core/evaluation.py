@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from afm_core.instrument import ScannerLimits
+
 
 @dataclass
 class ParticleView:
@@ -185,10 +187,14 @@ def compare_payloads(messages_a, messages_b) -> dict:
     }
 
 
+APPROACH_BEYOND = np.array([2e-6, 2e-6])  # m: an image's approach overshoot (one ~2 um image)
+
+
 def image_frame_matrix(config=None, step: float = 1e-6, at=None) -> np.ndarray:
     """Evaluation only (simulator truth): true displacement per commanded displacement for a
-    short move about the scanner centre (or about `at`, m, reached by a move from the centre:
-    the scanner's gain depends on where in its range it works), on a noise-, drift- and
+    short move about the scanner centre (or about `at`, m, reached by a move from the centre
+    and approached from beyond, as the driver approaches images: the scanner's gain depends on
+    its hysteresis branch, which this makes the images' own), on a noise-, drift- and
     creep-free copy of the simulated instrument. Images and calibrated maps are in commanded
     coordinates (the frame the calibration experiments measure in); the simulator's truth is
     metric. With the default
@@ -211,6 +217,13 @@ def image_frame_matrix(config=None, step: float = 1e-6, at=None) -> np.ndarray:
     for d in (np.array([step, 0.0]), np.array([0.0, step])):
         sim = SimulatedAfm(quiet)
         if at is not None:
+            # from beyond, as the driver approaches every image (imaging.raster_approach): the
+            # step then sweeps the reversed hysteresis branch the images are taken on
+            limits = ScannerLimits()
+            beyond = np.minimum(
+                np.asarray(at, dtype=float) + APPROACH_BEYOND, (limits.range_x, limits.range_y)
+            )
+            sim.move_tip(float(beyond[0]), float(beyond[1]), 1e-5)
             sim.move_tip(float(at[0]), float(at[1]), 1e-5)
         before = np.array(sim.truth()["tip_position"])
         x, y = np.array(sim.commanded_position()) + d
