@@ -242,3 +242,42 @@ def test_the_wrench_during_a_contact_move_is_the_force_trace_s(graph):
         f"sphere pushed {(true_sphere.position.x - cx) * 1e9:.1f} nm (truth), predicted "
         f"{(predicted.objects[0].position.x - cx) * 1e9:.1f} nm"
     )
+
+
+def test_a_nano_hand_push_is_refused_while_teleop_holds_the_tip_and_works_after_hand_back(
+    tmp_path, nodes, ros_node
+):
+    from sim_calibration import oracle_calibration
+    from test_push_graph import map_the_sample, true_sphere
+
+    calibration = str(oracle_calibration(tmp_path / "calibration.yaml"))
+    nodes("driver", seed=4, real_time_factor=0.0)
+    nodes("imaging")
+    nodes("localizer", calibration_file=calibration)
+    nodes("nano_hand", calibration_file=calibration)
+    nodes("teleop", calibration_file=calibration)
+    peer = Peer(ros_node)
+    with AfmCommander(server_timeout=60) as afm:
+        maps, truths = map_the_sample(afm, ros_node, "pair-teleop")
+        particle = min(
+            maps[-1].landmarks,
+            key=lambda lm: math.hypot(lm.position.x - 55e-6, lm.position.y - 55e-6),
+        )
+        goal = np.array([particle.position.x, particle.position.y - 300e-9])
+        take(peer)
+        peer.drive(0.0, MAX_SPEED, 0.3)  # the operator moves the tip a little, lifted
+        held = afm.push(goal, particle_id=particle.id, tolerance=40e-9, timeout=300)
+        assert not held.success and "teleop holds the tip" in held.message, held.message
+        assert peer.call(peer.enable, False).success
+        start_true = true_sphere(truths, 0)
+        job = afm.push(goal, particle_id=particle.id, tolerance=40e-9, wait=False)
+        wait_for(lambda: job.feedback is not None, 120, what="the push running")
+        busy = peer.call(peer.enable, True)  # refused while the push runs
+        assert not busy.success and topics.ACTION_PUSH_PARTICLE in busy.message, busy.message
+        result = job.result(timeout=600)
+        assert result.steps >= 1, result.message
+        wait_for(
+            lambda: np.linalg.norm(true_sphere(truths, 0) - start_true) > 100e-9,
+            10,
+            what="ground truth showing the pushed sphere",
+        )
