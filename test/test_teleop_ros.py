@@ -4,6 +4,7 @@ wrench is the force trace's."""
 
 import json
 import math
+import signal
 import threading
 import time
 
@@ -281,3 +282,23 @@ def test_a_nano_hand_push_is_refused_while_teleop_holds_the_tip_and_works_after_
             10,
             what="ground truth showing the pushed sphere",
         )
+
+
+def test_the_driver_takes_the_tip_back_when_the_teleop_node_dies(nodes, ros_node):
+    from afm_driver.tip_owner import OWNER_LEASE_S
+
+    nodes("driver", seed=2, real_time_factor=0.0)
+    teleop = nodes("teleop")
+    peer = Peer(ros_node)
+    take(peer)
+    goal = MoveTip.Goal(speed=50e-6)
+    goal.target.header.frame_id = "afm_scanner"
+    goal.target.point.x, goal.target.point.y = 50e-6, 50e-6
+    with AfmCommander(server_timeout=30) as afm:
+        assert not afm.send("move_tip", goal).success  # teleop holds the tip
+        teleop.stop(signal.SIGKILL)  # no hand-back
+        died = time.monotonic()
+        wait_for(lambda: afm.send("move_tip", goal).success, 30, 0.5, "the tip back")
+        # taken back once the lease was not renewed for OWNER_LEASE_S (checked every 0.5 s)
+        print(f"tip back {time.monotonic() - died:.1f} s after the teleop node was killed")
+        assert time.monotonic() - died >= OWNER_LEASE_S - 0.5  # the last renewal before death

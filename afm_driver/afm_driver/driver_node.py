@@ -57,7 +57,8 @@ from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED, SCANS, STREAM
 # each waiting goal holds one of the node's threads (the gate blocks it): the node runs this many
 # plus SERVICE_THREADS, so cancels and new goals are answered however full the queue is
 MAX_QUEUED_GOALS = 64
-SERVICE_THREADS = 3  # the running goal, goal/cancel requests, the clock timer
+# the running goal, goal/cancel requests, the clock timer, the tip owner's service and timer
+SERVICE_THREADS = 4
 
 PARAMETERS = ParameterTable(
     Parameter(

@@ -18,8 +18,10 @@ Handing back (false) is the teleop node's after it has stopped the tip. The answ
 one JSON object: {"owner": "teleop" | "automatic", "commanded_position": [x, y] (m,
 afm_scanner), "reason": text}.
 
-A teleop node that dies while holding the tip would block the instrument: when no client of
-the teleop endpoint has been in the graph for OWNER_GONE_S, the driver takes the tip back.
+A teleop node that dies while holding the tip would block the instrument, so the tip is held
+on a lease: the teleop node renews it (the same request, true) every RENEW_PERIOD_S, and when no
+renewal came for OWNER_LEASE_S the driver takes the tip back. (The graph would tell too, but
+only once DDS drops a killed process's endpoints: ~20 s, measured.)
 """
 
 from __future__ import annotations
@@ -31,8 +33,11 @@ from std_srvs.srv import SetBool
 
 from afm_ros import topics
 
-OWNER_GONE_S = 2.0  # s without any teleop client before the driver takes the tip back
-# (a live node's client never leaves the graph; DDS discovery under load takes well below 1 s)
+# The teleop node renews every RENEW_PERIOD_S; OWNER_LEASE_S without a renewal (6 missed in a
+# row) means it is gone: the margin of afm_ros.action_client's SERVER_SILENCE_S, whose probes
+# a live node answers within milliseconds even on a loaded machine.
+RENEW_PERIOD_S = topics.TELEOP_LEASE_RENEW_S
+OWNER_LEASE_S = 3.0
 
 
 class TipOwner:
@@ -41,9 +46,9 @@ class TipOwner:
         self.gate = gate
         self.commanded_position = commanded_position
         self.teleop = False
-        self.client_seen = 0.0
+        self.renewed = 0.0
         node.create_service(SetBool, topics.SERVICE_DRIVER_TELEOP, self.on_request)
-        node.create_timer(0.5, self.check_owner_alive)
+        node.create_timer(RENEW_PERIOD_S, self.check_lease)
 
     def answer(self, response, success: bool, reason: str):
         x, y = self.commanded_position()
@@ -66,6 +71,7 @@ class TipOwner:
                     response, True, "handed back" if was else "teleop did not hold the tip"
                 )
             if self.teleop:
+                self.renewed = time.monotonic()
                 return self.answer(response, True, "teleop already holds the tip")
             if self.gate.admitted > 0:
                 return self.answer(
@@ -75,7 +81,7 @@ class TipOwner:
                     "action holds the tip",
                 )
             self.teleop = True
-            self.client_seen = time.monotonic()
+            self.renewed = time.monotonic()
         self.node.get_logger().info("teleop holds the tip; automatic goals are refused")
         return self.answer(response, True, "teleop holds the tip")
 
@@ -90,16 +96,12 @@ class TipOwner:
             )
         return ""
 
-    def check_owner_alive(self) -> None:
-        if not self.teleop:
-            return
-        send_goal = f"{topics.ACTION_TELEOP_MOVE_TIP}/_action/send_goal"
-        if self.node.count_clients(send_goal) > 0:
-            self.client_seen = time.monotonic()
-        elif time.monotonic() - self.client_seen > OWNER_GONE_S:
-            with self.gate.condition:
-                self.teleop = False
-            self.node.get_logger().warning(
-                f"teleop held the tip but no teleop client has been seen for {OWNER_GONE_S} s: "
-                "the tip is back with the automatic clients"
-            )
+    def check_lease(self) -> None:
+        with self.gate.condition:
+            if not self.teleop or time.monotonic() - self.renewed <= OWNER_LEASE_S:
+                return
+            self.teleop = False
+        self.node.get_logger().warning(
+            f"teleop held the tip but did not renew it for {OWNER_LEASE_S} s: the tip is back "
+            "with the automatic clients"
+        )

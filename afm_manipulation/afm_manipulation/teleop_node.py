@@ -149,6 +149,7 @@ class TeleopNode(Node):
         self.create_service(
             SetBool, topics.SERVICE_TELEOP_CONTACT, self.on_contact, callback_group=services
         )
+        self.create_timer(topics.TELEOP_LEASE_RENEW_S, self.renew, callback_group=clients)
 
     def apply_parameter(self, name: str, value) -> None:
         if name in RUNTIME_SETTINGS:
@@ -254,6 +255,12 @@ class TeleopNode(Node):
         reply = json.loads(answer.message)
         reply["success"] = answer.success
         return reply
+
+    def renew(self) -> None:
+        """Renew the driver's lease on the tip while holding it (afm_driver.tip_owner); the
+        answer is not awaited: a lost one is made up by the next."""
+        if self.holding and self.owner_client.service_is_ready():
+            self.owner_client.call_async(SetBool.Request(data=True))
 
     def take_tip(self) -> tuple[bool, str]:
         if self.holding:
