@@ -13,7 +13,7 @@ import pytest
 from conftest import wait_for
 from geometry_msgs.msg import Twist, WrenchStamped
 from rclpy.qos import qos_profile_sensor_data
-from std_msgs.msg import Header, String
+from std_msgs.msg import Empty, Header, String
 from std_srvs.srv import SetBool
 
 from afm_bringup.commander import AfmCommander
@@ -169,6 +169,11 @@ def test_range_clip_ownership_and_hand_back(graph):
         reply = peer.call(peer.enable, False)
         assert reply.success and "tip stopped" in reply.message, reply.message
         assert peer.statuses[-1]["owner"] == "automatic"
+        # a lease renewal arriving late, after the hand-back, grants nothing
+        lease = peer.node.create_publisher(Empty, topics.TELEOP_LEASE, 10)
+        for _ in range(3):
+            lease.publish(Empty())
+            time.sleep(0.1)
         back = MoveTip.Goal(speed=50e-6)
         back.target.header.frame_id = "afm_scanner"
         back.target.point.x, back.target.point.y = 55e-6, 55e-6

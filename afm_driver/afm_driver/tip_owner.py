@@ -19,9 +19,10 @@ one JSON object: {"owner": "teleop" | "automatic", "commanded_position": [x, y] 
 afm_scanner), "reason": text}.
 
 A teleop node that dies while holding the tip would block the instrument, so the tip is held
-on a lease: the teleop node renews it (the same request, true) every RENEW_PERIOD_S, and when no
-renewal came for OWNER_LEASE_S the driver takes the tip back. (The graph would tell too, but
-only once DDS drops a killed process's endpoints: ~20 s, measured.)
+on a lease: the teleop node renews it with a message on /afm/teleop/lease every RENEW_PERIOD_S,
+and when none came for OWNER_LEASE_S the driver takes the tip back. A message only renews a
+lease that is held (a renewal still on its way after the hand-back grants nothing). The graph
+would tell too, but only once DDS drops a killed process's endpoints (~20 s, measured).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from __future__ import annotations
 import json
 import time
 
+from std_msgs.msg import Empty
 from std_srvs.srv import SetBool
 
 from afm_ros import topics
@@ -48,6 +50,7 @@ class TipOwner:
         self.teleop = False
         self.renewed = 0.0
         node.create_service(SetBool, topics.SERVICE_DRIVER_TELEOP, self.on_request)
+        node.create_subscription(Empty, topics.TELEOP_LEASE, self.on_renewal, 10)
         node.create_timer(RENEW_PERIOD_S, self.check_lease)
 
     def answer(self, response, success: bool, reason: str):
@@ -95,6 +98,11 @@ class TipOwner:
                 f"{topics.SERVICE_TELEOP_ENABLE} false)"
             )
         return ""
+
+    def on_renewal(self, _msg) -> None:
+        with self.gate.condition:
+            if self.teleop:
+                self.renewed = time.monotonic()
 
     def check_lease(self) -> None:
         with self.gate.condition:

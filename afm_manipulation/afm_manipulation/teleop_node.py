@@ -31,7 +31,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.node import Node
 from rclpy.qos import qos_profile_action_status_default
 from sensor_msgs.msg import Joy
-from std_msgs.msg import Header, String
+from std_msgs.msg import Empty, Header, String
 from std_srvs.srv import SetBool
 
 from afm_core.instrument import ScannerLimits
@@ -135,6 +135,7 @@ class TeleopNode(Node):
         self.wrench_pub = self.create_publisher(WrenchStamped, topics.TELEOP_WRENCH, 10)
         self.status_pub = self.create_publisher(String, topics.TELEOP_STATUS, LATCHED)
         self.objects_pub = self.create_publisher(ObjectArray, topics.OBJECTS_BELIEVED, 10)
+        self.lease_pub = self.create_publisher(Empty, topics.TELEOP_LEASE, 10)
         clients = ReentrantCallbackGroup()
         self.move_client = SafeActionClient(
             self, MoveTip, topics.ACTION_TELEOP_MOVE_TIP, callback_group=clients
@@ -257,10 +258,9 @@ class TeleopNode(Node):
         return reply
 
     def renew(self) -> None:
-        """Renew the driver's lease on the tip while holding it (afm_driver.tip_owner); the
-        answer is not awaited: a lost one is made up by the next."""
-        if self.holding and self.owner_client.service_is_ready():
-            self.owner_client.call_async(SetBool.Request(data=True))
+        """Renew the driver's lease on the tip while holding it (afm_driver.tip_owner)."""
+        if self.holding:
+            self.lease_pub.publish(Empty())
 
     def take_tip(self) -> tuple[bool, str]:
         if self.holding:

@@ -42,8 +42,10 @@ TELEOP_STATUS = "/afm/teleop/status"  # std_msgs/String, one JSON object, latche
 SERVICE_TELEOP_ENABLE = "/afm/teleop/enable"  # std_srvs/SetBool: take (true) / hand back
 SERVICE_TELEOP_CONTACT = "/afm/teleop/contact"  # std_srvs/SetBool: contact (true) / lifted
 # served by the driver: std_srvs/SetBool, who holds the tip (true: teleop, false: automatic);
-# teleop holds it on a lease it renews (true again) every TELEOP_LEASE_RENEW_S
+# teleop holds it on a lease it renews with a std_msgs/Empty on TELEOP_LEASE every
+# TELEOP_LEASE_RENEW_S (a message renews, never grants: a late one after hand-back does nothing)
 SERVICE_DRIVER_TELEOP = "/afm/driver/teleop"
+TELEOP_LEASE = "/afm/teleop/lease"
 TELEOP_LEASE_RENEW_S = 0.5
 # served by the driver, MoveTip: the only goals it runs while teleop holds the tip
 ACTION_TELEOP_MOVE_TIP = "/afm/teleop/move_tip"
