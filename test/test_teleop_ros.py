@@ -307,3 +307,31 @@ def test_the_driver_takes_the_tip_back_when_the_teleop_node_dies(nodes, ros_node
         # taken back once the lease was not renewed for OWNER_LEASE_S (checked every 0.5 s)
         print(f"tip back {time.monotonic() - died:.1f} s after the teleop node was killed")
         assert time.monotonic() - died >= OWNER_LEASE_S - 0.5  # the last renewal before death
+
+
+def test_a_joy_drives_the_tip_while_its_enable_button_is_held_and_toggles_contact(graph):
+    from sensor_msgs.msg import Joy
+
+    peer = graph
+    joy_pub = peer.node.create_publisher(Joy, topics.TELEOP_JOY, 10)
+    take(peer)
+    start = peer.commanded()[-1][1]
+
+    def press(axes, buttons, seconds):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            joy_pub.publish(Joy(axes=axes, buttons=buttons))
+            time.sleep(0.05)
+
+    # left stick pushed right (axis 0 = -1) without LB: nothing moves
+    press([-1.0, 0.0], [0] * 6, 0.4)
+    assert np.all(peer.commanded()[-1][1] == start)
+    # with LB (button 4) held: +x at the speed limit
+    press([-1.0, 0.0], [0, 0, 0, 0, 1, 0], 0.5)
+    wait_for(lambda: peer.statuses[-1]["stop"].startswith("dead-man"), 5, what="the dead-man")
+    moved = peer.commanded()[-1][1] - start
+    assert moved[0] > 0 and abs(moved[1]) < 1e-15, moved
+    # RB (button 5) pressed once: contact
+    press([0.0, 0.0], [0, 0, 0, 0, 0, 1], 0.1)
+    press([0.0, 0.0], [0] * 6, 0.1)
+    wait_for(lambda: peer.statuses[-1]["mode"] == "contact", 5, what="contact mode")
