@@ -338,11 +338,13 @@ class TeleopNode(Node):
         result = self.send(goal)
         with self.lock:
             if result is None or not result.success:
-                # refused, cancelled (hand-back) or lost: the tip stands still; the driver's
-                # commanded position is read again when the tip is taken next
+                # refused, cancelled or lost: the tip stands still (where a cancelled move
+                # stopped, if it ran at all; a refused one has no command)
                 reason = "no answer from the driver" if result is None else result.message
                 self.controller.stop()
                 self.status["stop"] = f"segment not run: {reason}"
+                if result is not None and result.command.duration > 0:
+                    self.position = (result.commanded_position.x, result.commanded_position.y)
                 if result is not None and "teleop does not hold" in result.message:
                     self.holding = False
                 return
