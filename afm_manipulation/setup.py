@@ -22,6 +22,7 @@ setup(
     entry_points={
         "console_scripts": [
             "nano_hand = afm_manipulation.nano_hand_node:main",
+            "teleop = afm_manipulation.teleop_node:main",
         ],
     },
 )

@@ -65,6 +65,7 @@ def test_launch_records_and_stops_cleanly(tmp_path):
         "planner.log",
         "recorder.log",
         "sim2real.log",
+        "teleop.log",
     ]
     launch.send_signal(signal.SIGINT)
     launch.wait(timeout=60)

@@ -16,10 +16,10 @@ def test_on_the_simulator_the_calibrated_nodes_get_its_calibration_unless_set():
     calibration = sim_calibration_file()
     load_calibration(calibration)  # the shipped file is there and valid
     assert Path(calibration).name == "sim_calibration.yaml"
-    nodes = ["driver", "imaging", "localizer", "planner", "nano_hand"]
+    nodes = ["driver", "imaging", "localizer", "planner", "nano_hand", "teleop"]
     overrides = {"planner": {"calibration_file": "/lab/mine.yaml"}, "imaging": {"x": "1"}}
     given = with_sim_calibration(nodes, overrides, calibration)
-    assert given == ["driver", "localizer", "nano_hand"]
+    assert given == ["driver", "localizer", "nano_hand", "teleop"]
     assert all(overrides[n]["calibration_file"] == calibration for n in given)
     assert overrides["planner"]["calibration_file"] == "/lab/mine.yaml"  # the user's wins
     assert "calibration_file" not in overrides["imaging"]  # it loads none

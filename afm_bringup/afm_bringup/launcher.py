@@ -31,11 +31,12 @@ NODES = {
     "localizer": NodeSpec("afm_localization.localizer_node", "afm_localization", "localizer.yaml"),
     "planner": NodeSpec("afm_planning.planner_node", "afm_planning", "planner.yaml"),
     "nano_hand": NodeSpec("afm_manipulation.nano_hand_node", "afm_manipulation", "nano_hand.yaml"),
+    "teleop": NodeSpec("afm_manipulation.teleop_node", "afm_manipulation", "teleop.yaml"),
     "recorder": NodeSpec("afm_bringup.recorder_node", "afm_bringup", "recorder.yaml"),
     "replay": NodeSpec("afm_bringup.replay_node", "afm_bringup", "replay.yaml"),
     "sim2real": NodeSpec("afm_bringup.sim2real_node", "afm_bringup", "sim2real.yaml"),
 }
-GRAPH = ["driver", "imaging", "localizer", "planner", "nano_hand", "sim2real"]
+GRAPH = ["driver", "imaging", "localizer", "planner", "nano_hand", "teleop", "sim2real"]
 # The recorder only listens: a new one loses nothing but the gap. More restarts than this in a
 # row mean it cannot run (a full disk, a bad path): the graph stops instead of looping.
 RESTARTABLE = {"recorder"}
@@ -44,7 +45,7 @@ PARENT_PID_ENV = "AFM_LAUNCHER_PID"  # read by afm_ros.node_main.die_with_parent
 
 
 # The nodes that load the localization calibration (the driver for its wait for creep).
-CALIBRATED_NODES = ("driver", "localizer", "planner", "nano_hand")
+CALIBRATED_NODES = ("driver", "localizer", "planner", "nano_hand", "teleop")
 
 
 def sim_calibration_file() -> str:

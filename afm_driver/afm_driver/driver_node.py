@@ -4,7 +4,9 @@ Backends: `sim` (afm_core.sim, publishes ground truth and /clock), `daq` (a scan
 through an NI DAQ card, afm_core.daq), `replay` (answers the actions with a recorded
 session's data, afm_core.replay_instrument). One motion at a time: goals wait in a FIFO
 queue of at most `max_queued_goals`; cancel stops a running motion where the tip is, or
-removes a waiting goal. With a `calibration_file`, ScanImage first approaches the image's
+removes a waiting goal. One owner of the tip at a time (afm_driver.tip_owner): while teleop
+holds it, only MoveTip goals on /afm/teleop/move_tip run and every other goal is refused.
+With a `calibration_file`, ScanImage first approaches the image's
 first sample and waits there as long as the calibrated creep model says the creep still to
 come exceeds `creep_settle_tolerance` (afm_core.localization.creep_settle), and its result
 message says how long and why.
@@ -36,6 +38,7 @@ from afm_core.localization.creep_settle import (
     settle_before,
 )
 from afm_core.parameters import Parameter, ParameterTable
+from afm_driver.tip_owner import TipOwner
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
 from afm_msgs.msg import ForceTrace, GroundTruth, RasterScan, ScanLine, TipCommand
 from afm_ros import frames, params, topics
@@ -55,7 +58,8 @@ from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED, SCANS, STREAM
 # each waiting goal holds one of the node's threads (the gate blocks it): the node runs this many
 # plus SERVICE_THREADS, so cancels and new goals are answered however full the queue is
 MAX_QUEUED_GOALS = 64
-SERVICE_THREADS = 3  # the running goal, goal/cancel requests, the clock timer
+# the running goal, goal/cancel requests, the clock timer, the tip owner's service and timer
+SERVICE_THREADS = 4
 
 PARAMETERS = ParameterTable(
     Parameter(
@@ -220,17 +224,19 @@ class DriverNode(Node):
             else None
         )
         group = ReentrantCallbackGroup()
+        self.owner = TipOwner(self, self.gate, self.instrument.commanded_position)
         for action_type, name, execute in (
             (ScanImage, topics.ACTION_SCAN_IMAGE, self.execute_scan),
             (LocalScan, topics.ACTION_LOCAL_SCAN, self.execute_line),
             (MoveTip, topics.ACTION_MOVE_TIP, self.execute_move),
             (Indent, topics.ACTION_INDENT, self.execute_indent),
+            (MoveTip, topics.ACTION_TELEOP_MOVE_TIP, self.execute_move),
         ):
             ActionServer(
                 self,
                 action_type,
                 name,
-                self._queued(action_type, execute),
+                self._queued(action_type, execute, name == topics.ACTION_TELEOP_MOVE_TIP),
                 callback_group=group,
                 feedback_pub_qos_profile=FEEDBACK,
                 goal_callback=self.accept_goal,
@@ -264,7 +270,7 @@ class DriverNode(Node):
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
-    def _queued(self, action_type, execute):
+    def _queued(self, action_type, execute, teleop: bool):
         def run_in_turn(goal_handle):
             ticket = self.gate.take()
             if not self.gate.wait(ticket, lambda: goal_handle.is_cancel_requested):
@@ -274,6 +280,9 @@ class DriverNode(Node):
                     success=False, message="cancelled while waiting for the instrument"
                 )
             try:
+                refusal = self.owner.refusal(teleop)
+                if refusal:
+                    return self.refuse(goal_handle, action_type.Result(), refusal)
                 return execute(goal_handle)
             except ValueError as exc:  # the instrument refused (e.g. a replay mismatch)
                 return self.refuse(goal_handle, action_type.Result(), exc)

@@ -34,6 +34,22 @@ SERVICE_PLAN_PATH = "/afm/plan_path"
 SERVICE_PLAN_OBSERVATION = "/afm/plan_observation"
 SERVICE_PLAN_SEQUENCE = "/afm/plan_sequence"
 
+# Teleoperation (afm_manipulation teleop, issue 33)
+TELEOP_CMD_VEL = "/afm/teleop/cmd_vel"  # geometry_msgs/Twist, linear.x/.y m/s in afm_task
+TELEOP_JOY = "/afm/teleop/joy"  # sensor_msgs/Joy (axes and buttons: the teleop node's params)
+TELEOP_WRENCH = "/afm/teleop/wrench"  # geometry_msgs/WrenchStamped, N on the tip, afm_task
+TELEOP_STATUS = "/afm/teleop/status"  # std_msgs/String, one JSON object, latched
+SERVICE_TELEOP_ENABLE = "/afm/teleop/enable"  # std_srvs/SetBool: take (true) / hand back
+SERVICE_TELEOP_CONTACT = "/afm/teleop/contact"  # std_srvs/SetBool: contact (true) / lifted
+# served by the driver: std_srvs/SetBool, who holds the tip (true: teleop, false: automatic);
+# teleop holds it on a lease it renews with a std_msgs/Empty on TELEOP_LEASE every
+# TELEOP_LEASE_RENEW_S (a message renews, never grants: a late one after hand-back does nothing)
+SERVICE_DRIVER_TELEOP = "/afm/driver/teleop"
+TELEOP_LEASE = "/afm/teleop/lease"
+TELEOP_LEASE_RENEW_S = 0.5
+# served by the driver, MoveTip: the only goals it runs while teleop holds the tip
+ACTION_TELEOP_MOVE_TIP = "/afm/teleop/move_tip"
+
 RECORDED_BY_DEFAULT = [
     SCAN,
     SCAN_LINE,
@@ -48,6 +64,9 @@ RECORDED_BY_DEFAULT = [
     PUSH_GOAL,
     MARKERS,
     OBJECTS_BELIEVED,
+    TELEOP_CMD_VEL,
+    TELEOP_WRENCH,
+    TELEOP_STATUS,
     SCAN_IMAGE,
     MAP_IMAGE,
     LANDMARK_MARKERS,

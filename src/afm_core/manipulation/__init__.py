@@ -39,6 +39,12 @@ one by one, the after image and verification with control points, on any Instrum
                                             PUSH_PARAMETERS its settings
 - localize_with(localizer)                  the localization callable over a core Localizer
 
+Teleoperation (afm_core.manipulation.teleop, .teleop_model; the teleop node runs them):
+- TeleopController(settings, limits, scanner_matrix)   velocity commands -> bounded segments
+                                            (speed, acceleration, range, dead-man timeout)
+- segment_wrench(...), joy_command(...)     force feedback from a force trace; Joy mapping
+- PushPredictor, BelievedTip                the push model along teleoperated contact moves
+
 The pushing physics is afm_core.physics (afm_core.physics.pushing.push_along_path with
 afm_core.physics.contact.ContactParams on an afm_core.physics.sample.Sample); the planners use
 it as their model, nothing here writes another one.
