@@ -97,3 +97,21 @@ def test_sharp_features_measure_the_apex_within_the_stated_range():
     assert "apex radius" in tip_shape_caption(shape) and "not measurable" not in tip_shape_caption(
         shape
     )
+
+
+def test_a_threshold_below_the_noise_bounds_nothing(tmp_path):
+    """A threshold set by hand below 3 sigma of the noise: noise sharpens the estimate beyond
+    the tip, so the report claims neither the width bound nor an apex radius."""
+    shape = estimate_run_tip(
+        small_run_map(spheres(100e-9, [(25, 30), (70, 40), (45, 75)])),
+        TRUE.apex_radius,
+        TRUE,
+        TIP_SIZE,
+        0.2e-9,
+    )
+    r = shape["reading"]
+    assert r.below_noise and not r.apex_measured
+    caption = tip_shape_caption(shape)
+    assert "nothing measured" in caption and "at most" not in caption
+    tip_shape_section(tmp_path / "tip.png", shape)
+    assert (tmp_path / "tip.png").stat().st_size > 10_000

@@ -69,7 +69,7 @@ def estimate_run_tip(
             )
         except ValueError as exc:  # the guard refuses an estimate with no constrained ring
             return {"refused": str(exc), "tip_size": tip_size}
-    reading = read_tip(estimate, pixel)
+    reading = read_tip(estimate, pixel, height)
     out = {
         "tip": estimate.tip,
         "pixel": pixel,
@@ -110,7 +110,9 @@ def tip_shape_caption(shape: dict) -> str:
         f"Blind estimate ({k} x {k} pixels of {shape['pixel'] * 1e9:.2f} nm) from the last "
         f"drift-corrected map, as the imaging node makes it: {r.sentence()}."
     )
-    if shape.get("true_tip") is not None:
+    if shape.get("true_tip") is not None and r.below_noise:
+        text += f" The simulator's tip: apex radius {shape['true_apex_radius'] * 1e9:.0f} nm."
+    elif shape.get("true_tip") is not None:
         inside = "within" if shape["true_width"] <= r.max_width else "OUTSIDE"
         text += (
             f" The simulator's tip: apex radius {shape['true_apex_radius'] * 1e9:.0f} nm, "
@@ -137,7 +139,7 @@ def tip_shape_section(path: Path, shape: dict) -> tuple[str, str]:
         shape["uncertainty"],
         shape["unconstrained"],
         r.radius,
-        r.depth,
+        None if r.below_noise else r.depth,
         shape.get("true_tip"),
     )
     notes = "".join(f"<li>{html.escape(w)}</li>" for w in shape["warnings"])

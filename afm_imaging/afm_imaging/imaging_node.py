@@ -261,7 +261,7 @@ class ImagingNode(Node):
         self.tip_pub.publish(shape)
         # the fit is published as the message defines it; whether it measures the apex at
         # all (afm_core.imaging.tip_apex) is said here
-        reading = read_tip(estimate, pixel)
+        reading = read_tip(estimate, pixel, height)
         if not reading.apex_measured:
             self.get_logger().warning(f"tip estimate: {reading.sentence()}")
         return (

@@ -242,14 +242,14 @@ def save_tip_figure(
     uncertainty,
     unconstrained,
     radius: float,
-    depth: float,
+    depth: float | None,
     true_tip=None,
 ) -> Path:
     """The blind tip estimate (m, apex 0 at the centre): the grid with the pixels the image did
     not constrain and the radius it constrained all round; its x and y sections through the
     apex with the resolution band below them (`uncertainty`, m; inf where unconstrained) and
     the true tip's (same grid and pixel) where there is one; the width bound 2 x `radius` at
-    `depth` below the apex."""
+    `depth` below the apex (None: no bound to show)."""
     tip = np.asarray(tip, float)
     k = tip.shape[0]
     h = k // 2
@@ -281,8 +281,9 @@ def save_tip_figure(
                     label="simulator's true tip")  # fmt: skip
         ax.axvspan(offsets[0], -_nm(radius), color="grey", alpha=0.15)
         ax.axvspan(_nm(radius), offsets[-1], color="grey", alpha=0.15, label="not constrained")
-        ax.plot([-_nm(radius), _nm(radius)], [-_nm(depth)] * 2, "c|-", lw=1.2,
-                label=f"at most {_nm(2 * radius):.0f} nm wide here")  # fmt: skip
+        if depth is not None:
+            ax.plot([-_nm(radius), _nm(radius)], [-_nm(depth)] * 2, "c|-", lw=1.2,
+                    label=f"at most {_nm(2 * radius):.0f} nm wide here")  # fmt: skip
         ax.set_xlabel(f"{name} from the apex (nm)")
         ax.set_ylabel("height (nm)")
         ax.set_title(f"section along {name} through the apex", fontsize=9)

@@ -13,7 +13,9 @@ at the fit ring and the band is U, the true drop there could lie anywhere in [d,
 the band alone, so R could lie anywhere in [R d / (d + U), R]: R is reported only when that
 range is within a factor APEX_MAX_RANGE. And features blunter than the tip (spheres larger
 than its apex) never image its apex: the estimate then follows the features' images, and
-even a resolved R is only an upper bound of the tip's.
+even a resolved R is only an upper bound of the tip's. Below SINGLE_EXCURSION sigma of the
+noise (a threshold chosen by hand) single noise excursions refine the tip: the estimate is
+then sharper than the tip, no upper bound, and neither the width bound nor R is claimed.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from afm_core.imaging.tip_guard import NOISE_K
+from afm_core.imaging.tip_refinement import estimate_noise
+from afm_core.imaging.tip_thresholds import SINGLE_EXCURSION
 
 # pixels from the apex the paraboloid is fitted over (the imaging node's TipShape.apex_radius)
 APEX_FIT_PIXELS = 3
@@ -63,9 +67,17 @@ class TipReading:
     apex_measured: bool
     apex_low: float  # the smallest apex radius the band allows (nan when not measured)
     whole_window: bool  # the constrained radius is the window's: a larger one may show more
+    below_noise: bool  # threshold < SINGLE_EXCURSION sigma: not an upper bound (module notes)
 
     def sentence(self) -> str:
         """What the estimate is good for, in one paragraph (nm)."""
+        if self.below_noise:
+            return (
+                f"nothing measured: the threshold {self.threshold * 1e9:.2f} nm is below "
+                f"{SINGLE_EXCURSION:.0f} x the noise ({self.noise * 1e9:.2f} nm), so noise "
+                "sharpens the estimate beyond the tip; neither its width nor its apex radius "
+                "is bounded (use the automatic threshold)"
+            )
         text = (
             f"constrained to {self.depth * 1e9:.1f} nm below the apex, within "
             f"{self.radius * 1e9:.0f} nm of it{' (the whole window)' if self.whole_window else ''}"
@@ -85,25 +97,34 @@ class TipReading:
         )
 
 
-def read_tip(estimate, pixel: float) -> TipReading:
+def read_tip(estimate, pixel: float, image: np.ndarray | None = None) -> TipReading:
     """The reading of a guarded TipEstimate (afm_core.imaging.tip_estimation: `.constraint`
-    and `.noise` filled) at `pixel` m."""
+    filled) at `pixel` m. The noise is the estimate's own (the automatic thresholds), else
+    that of `image` (the estimate's, as the guard measures it)."""
     c = estimate.constraint
-    if c is None or estimate.noise is None:
-        raise ValueError("tip estimate: no constraint or noise (run it through estimate_tip)")
+    noise = estimate.noise
+    if noise is None and image is not None:
+        noise = estimate_noise(np.asarray(image, float))
+    if c is None or noise is None:
+        raise ValueError(
+            "tip estimate: no constraint, or no noise and no image (run it through estimate_tip)"
+        )
     tip = np.asarray(estimate.tip, float)
     h = tip.shape[0] // 2
     k = min(APEX_FIT_PIXELS, h)
     a, b = np.mgrid[-h : h + 1, -h : h + 1]
     ring = np.rint(np.hypot(a, b)) == k
     drop = float(-tip[ring].mean()) if k > 0 else 0.0
-    band = float(estimate.threshold) + NOISE_K * float(estimate.noise)
+    band = float(estimate.threshold) + NOISE_K * float(noise)
     fit = apex_radius(tip, pixel, k)
-    measured = bool(np.isfinite(fit) and drop > 0 and band <= (APEX_MAX_RANGE - 1) * drop)
+    below_noise = float(estimate.threshold) < SINGLE_EXCURSION * float(noise)
+    measured = bool(
+        not below_noise and np.isfinite(fit) and drop > 0 and band <= (APEX_MAX_RANGE - 1) * drop
+    )
     return TipReading(
         resolution=band,
         threshold=float(estimate.threshold),
-        noise=float(estimate.noise),
+        noise=float(noise),
         radius=c.radius * pixel,
         depth=float(c.depth),
         max_width=2 * c.radius * pixel,
@@ -113,6 +134,7 @@ def read_tip(estimate, pixel: float) -> TipReading:
         apex_measured=measured,
         apex_low=fit * drop / (drop + band) if measured else float("nan"),
         whole_window=c.radius == h,
+        below_noise=below_noise,
     )
 
 
