@@ -18,7 +18,7 @@ def test_demo_runs_end_to_end_and_reports(tmp_path):
     assert run_demo(tmp_path) == 0
     run = tmp_path / "latest"
     report = (run / "report.html").read_text()
-    figures = ("push.png", "map.png", "forces.png", "localizer.png", "scans.png")
+    figures = ("push.png", "map.png", "tip.png", "forces.png", "localizer.png", "scans.png")
     assert report.count("<img") == len(figures)
     for name in figures:
         assert f"src='{name}'" in report and (run / name).stat().st_size > 10_000, name
@@ -49,3 +49,6 @@ def test_demo_runs_end_to_end_and_reports(tmp_path):
     verified = [a - s for a, s in zip(push["achieved"], push["start"])]
     assert sum((v - t) ** 2 for v, t in zip(verified, truth["true_displacement"])) ** 0.5 < 20e-9
     assert summary["tip"]["compared"] >= 5 and 0.2 < summary["tip"]["mean_nees"] < 10
+    # the tip shape estimated from the map is an upper bound: the true tip is no wider
+    shape = summary["tip_shape"]
+    assert 0 < shape["true_width"] <= shape["max_width"] and shape["depth"] > 0

@@ -34,7 +34,7 @@ from afm_core.localization.calibration.model import (
 from afm_core.sim.config import dump_config, load_config
 
 SEED = 30
-PER_KIND = 100  # mutated files of each of the 12 kinds: 1200 in all
+PER_KIND = 100  # mutated files of each of the 13 kinds: 1300 in all
 PER_FILE_LIMIT_S = 10.0  # a reader that takes longer on a 1-40 kB file is hanging
 TOTAL_LIMIT_S = 60.0  # the whole test on two loaded cores (4-6 s measured, 8 seeds)
 
@@ -135,12 +135,12 @@ def seeds(folder) -> dict:
     return out
 
 
-VENDOR = (".ibw", ".sxm", ".stp", ".jpk", ".spm")  # a lab's own scans (issue 31)
+VENDOR = (".ibw", ".sxm", ".stp", ".jpk", ".spm", ".asd")  # a lab's own scans (issue 31)
 
 
 def vendor_seeds(folder, height) -> None:
     """The same map in each vendor format the readers take (test/vendor_writers.py)."""
-    from vendor_writers import write_ibw, write_jpk, write_spm, write_sxm, write_wsxm
+    from vendor_writers import write_asd, write_ibw, write_jpk, write_spm, write_sxm, write_wsxm
 
     rows, columns = height.shape
     write_ibw(folder / "seed.ibw", height.T[:, :, None], (10e-9, 10e-9), (1e-6, 2e-6), ["Height"])
@@ -151,6 +151,9 @@ def vendor_seeds(folder, height) -> None:
     write_wsxm(folder / "seed.stp", nm[:, ::-1], (columns * 10, rows * 10), span)
     write_jpk(folder / "seed.jpk", [("height", False, nm, 1e-10, 0.0)], size, (1e-6, 2e-6))
     write_spm(folder / "seed.spm", [("Height", nm, False)], (size[0] * 1e6, size[1] * 1e6))
+    # two frames of the height in bipolar 2.5 V levels (20 nm/V: 0.024 nm a level)
+    levels = np.round((2.5 - height[::-1] / 20e-9) * 4096 / 5.0).astype(np.int16)
+    write_asd(folder / "seed.asd", 1, [("TP", np.stack([levels, levels]))], (240, 240))
 
 
 def mcap_seed(path) -> bytes:

@@ -145,3 +145,52 @@ def write_spm(path, images, size_um, sens=15.068, full_scale=439.9866, bpp=2, ro
     header = ("\r\n".join(text) + "\r\n\\*File list end\r\n").encode("latin-1")
     with open(path, "xb") as f:
         f.write(header.ljust(header_size, b"\0") + b"".join(blocks))
+
+
+# .asd AD range codes (bipolar 2.5 V: levels 0..4095 span +2.5 V .. -2.5 V) and their volts
+ASD_BIPOLAR_2_5V = 0x00020000
+
+
+def write_asd(
+    path, version, channels, size_nm, frame_time_ms=50.0, z_nm_per_v=(10.0, 2.0),
+    sensor_nm_per_v=3.0, ad_range=ASD_BIPOLAR_2_5V, bits=12, frame_header=32,
+):  # fmt: skip
+    """A high-speed AFM .asd movie (file version 0, 1 or 2) as libasd and AFMReader describe
+    it, little endian: `channels` = [(code "TP"/"ER"/"PH", int16 levels (frames, lines,
+    pixels), lines in stored order)], at most two, the same shape; `z_nm_per_v` = (z piezo
+    extension nm/V, z piezo gain). v2 is written as libasd reads it (a 1-byte feed-forward
+    flag), with no colour anchor points; `header_length` counts from the file's start."""
+    frames, lines, pixels = np.asarray(channels[0][1]).shape
+    codes = [c.encode() for c, _ in channels] + [b""] * (2 - len(channels))
+    name, comment = b"afm", b"written by the tests"
+    z_ext, z_gain = z_nm_per_v
+    if version == 0:
+        fixed = struct.calcsize("<i2s2s5i4h3fIi?ihh6Bff3i3ih")
+        length = fixed + len(name) + struct.calcsize("<ffi") + len(comment)
+        header = struct.pack(
+            "<i2s2s5i4h3fIi?ihh6Bff3i3ih", 0, codes[0], codes[1], length, frame_header,
+            len(name), 0, len(comment), pixels, lines, size_nm[0], size_nm[1],
+            frame_time_ms, z_ext, z_gain, ad_range, bits, False, 0, 0, 2026, 11, 27, 12,
+            0, 0, 0, 4000.0, 4000.0, 0, 0, 0, frames, frames, 1, 7,
+        ) + name + struct.pack("<ffi", sensor_nm_per_v, 1.0, 1) + comment  # fmt: skip
+    else:
+        body = struct.pack(
+            "<4s4s4i4i?i6i2i3fi12xiIi6f", codes[0], codes[1], frames, frames, 1, 7,
+            pixels, lines, size_nm[0], size_nm[1], False, 0, 2026, 11, 27, 12, 0, 0, 0, 0,
+            frame_time_ms, sensor_nm_per_v, 1.0, 0, 1, ad_range, bits, 4000.0, 4000.0,
+            1.0, 1.0, z_ext, z_gain,
+        ) + name + comment  # fmt: skip
+        if version == 2:
+            body += struct.pack("<i?id5i", frames, False, 0, 0.0, 255, 0, 0, 0, 0)
+        length = 4 + struct.calcsize("<5i") + len(body)
+        header = struct.pack("<6i", version, length, frame_header, 65001, len(name), len(comment))
+        header += body
+    assert len(header) == length
+    data = b""
+    for _, levels in channels:
+        for k, frame in enumerate(np.asarray(levels, dtype="<i2")):
+            head = struct.pack("<ihhhhff?bhii", k, int(frame.max()), int(frame.min()), 0, 0,
+                               0.0, 0.0, False, 0, 0, 0, 0)  # fmt: skip
+            data += head.ljust(frame_header, b"\0") + frame.tobytes()
+    with open(path, "xb") as f:
+        f.write(header + data)

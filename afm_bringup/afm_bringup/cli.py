@@ -518,7 +518,7 @@ def cmd_map_publish(args):
 
     channel = int(args.channel) if str(args.channel).isdigit() else args.channel
     try:
-        hmap = load_height_map(args.file, channel, args.pixel_size)
+        hmap = load_height_map(args.file, channel, args.pixel_size, args.frame)
         if args.level != "none":
             hmap.height, _ = level(hmap.height, args.level, "auto")
     except (ValueError, ImportError) as exc:
@@ -558,14 +558,18 @@ def _add_map(sub) -> None:
         "publish",
         help="publish a scan file as the map (the imaging node finds its landmarks)",
         description=(
-            "Publish a scan file (.npz, .gwy, .npy, .ibw, .jpk, .spm, .sxm, .stp, .top) on the "
-            "driver's scan topic, as a 0 deg scan in scanner coordinates: the imaging node "
+            "Publish a scan file (.npz, .gwy, .npy, .ibw, .jpk, .spm, .sxm, .stp, .top, .asd; "
+            "--frame for a movie) on the driver's scan topic, as a 0 deg scan in scanner "
+            "coordinates: the imaging node "
             "publishes it as /afm/map with its landmarks, which the localizer, planner and "
             "nano-hand use. Waits until the imaging node has done so."
         ),
     )
     p.add_argument("file")
     p.add_argument("--channel", default="0", help="channel index or title (default 0)")
+    p.add_argument(
+        "--frame", type=int, default=0, help="frame of a high-speed .asd movie (default 0)"
+    )
     p.add_argument(
         "--pixel-size",
         type=length_type("pixel-size"),

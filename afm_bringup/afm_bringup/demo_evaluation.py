@@ -1,6 +1,7 @@
 """The demo's evaluation against the simulator's ground truth, offline from the replayed
-recording: particles in every scan, the landmark map, the tip estimate, the push, the replay
-check; and the targets a run is judged by (`judge_run`).
+recording: particles in every scan, the landmark map, the tip estimate (its position; and its
+shape, blind-estimated from the last map: demo_tip), the push, the replay check; and the
+targets a run is judged by (`judge_run`).
 """
 
 from __future__ import annotations
@@ -9,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_bringup.demo_tip import estimate_run_tip
 from afm_core.evaluation import (
     compare_payloads,
     image_frame_matrix,
@@ -59,6 +61,10 @@ def evaluate(run_dir: Path) -> dict:
         "truth_anchor": _truth_anchor(truth),
         "force_strokes": _force_strokes(traces),
         "map_image": _last_map(maps),
+        "tip_shape": estimate_run_tip(
+            _last_map(maps),
+            float(truth["tip_apex_radius"][-1]) if len(truth.get("tip_apex_radius", [])) else None,
+        ),
     }
 
 

@@ -1,7 +1,8 @@
 """The demo's report: report.html (summary, the push zoomed in the task frame, the map with its
-landmarks, forces per stroke, the localizer's error, timings, scans, particles, landmarks,
-recorded topics, replay check, memory, how to reproduce the run and how to open the recording
-in Foxglove), its figures (each the page's width) and summary.json.
+landmarks, the estimated tip's shape (demo_tip), forces per stroke, the localizer's error,
+timings, scans, particles, landmarks, recorded topics, replay check, memory, how to reproduce
+the run and how to open the recording in Foxglove), its figures (each the page's width) and
+summary.json.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from afm_bringup.demo_evaluation import (
     truth_in_maps,
 )
 from afm_bringup.demo_reproduce import foxglove_section, reproducibility_section
+from afm_bringup.demo_tip import tip_shape_section, tip_shape_summary
 from afm_bringup.units import nm
 from afm_core.evaluation import push_image_frames
 from afm_core.instrument import RasterScanData
@@ -58,6 +60,8 @@ def write_report(
         frames_note = _save_push_figure(run_dir / "push.png", local, result, push, tip, truth)
         sections.append(_push_section(push, truth, frames_note))
     sections.append(_map_section(run_dir / "map.png", result, tip))
+    if result.get("tip_shape"):
+        sections.append(tip_shape_section(run_dir / "tip.png", result["tip_shape"]))
     if result.get("force_strokes"):
         save_force_figure(run_dir / "forces.png", result["force_strokes"])
         sections.append(_force_section(result["force_strokes"]))
@@ -403,7 +407,7 @@ def _write_summary(
 ) -> None:
     """summary.json: the evaluation without its arrays, and the run's own numbers."""
     tip = result.get("tip") or {}
-    arrays = ("tip", "truth_objects", "force_strokes", "map_image")
+    arrays = ("tip", "truth_objects", "force_strokes", "map_image", "tip_shape")
     summary = {key: value for key, value in result.items() if key not in arrays}
     summary.update(
         memory_bytes=memory,
@@ -412,6 +416,7 @@ def _write_summary(
         timings=timings,
         push=push,
         push_truth={k: v for k, v in truth.items() if k != "track"},
+        tip_shape=tip_shape_summary(result.get("tip_shape")),
         tip={
             k: v
             for k, v in tip.items()

@@ -233,6 +233,7 @@ class ImagingNode(Node):
 
     # -- the tip -----------------------------------------------------------------------------
     def estimate_tip(self) -> str:
+        from afm_core.imaging.tip_apex import apex_radius, read_tip
         from afm_core.imaging.tip_estimation import estimate_tip
         from afm_core.imaging.tip_thresholds import RULES
 
@@ -258,10 +259,15 @@ class ImagingNode(Node):
         )
         shape.height = array_to_image(estimate.tip.astype(np.float32), shape.header)
         self.tip_pub.publish(shape)
+        # the fit is published as the message defines it; whether it measures the apex at
+        # all (afm_core.imaging.tip_apex) is said here
+        reading = read_tip(estimate, pixel, height)
+        if not reading.apex_measured:
+            self.get_logger().warning(f"tip estimate: {reading.sentence()}")
         return (
             f"tip {self.config['tip_size']}x{self.config['tip_size']} estimated in "
             f"{estimate.seconds:.2f} s, threshold {estimate.threshold * 1e9:.3f} nm, apex radius "
-            f"{shape.apex_radius * 1e9:.1f} nm"
+            f"fit {shape.apex_radius * 1e9:.1f} nm: {reading.sentence()}"
         )
 
     def on_estimate_tip(self, _request, response):
@@ -271,20 +277,6 @@ class ImagingNode(Node):
         except ValueError as exc:
             response.success, response.message = False, str(exc)
         return response
-
-
-def apex_radius(tip: np.ndarray, pixel: float, depth_pixels: int = 3) -> float:
-    """Radius of the paraboloid z = -r^2 / (2R) that fits the tip's top (least squares)."""
-    c = tip.shape[0] // 2
-    k = min(depth_pixels, c)
-    window = tip[c - k : c + k + 1, c - k : c + k + 1]
-    offsets = np.arange(-k, k + 1) * pixel
-    r2 = np.add.outer(offsets**2, offsets**2)
-    mask = r2 > 0
-    z = -window[mask]
-    if not np.any(z > 0):
-        return float("inf")
-    return float(np.sum(r2[mask] ** 2) / (2.0 * np.sum(r2[mask] * z)))
 
 
 def main(args=None):

@@ -9,6 +9,8 @@ px, inside the report's 1100 px column), everything in one frame per figure and 
 - `save_force_figure`: lateral and normal force along each stroke.
 - `save_localizer_figure`: the localizer's error against the truth over time, with its
   3-sigma band.
+- `save_tip_figure`: the blind tip estimate, what the image constrained, its sections through
+  the apex beside the simulator's true tip (afm_core.imaging.tip_apex says it in numbers).
 """
 
 from __future__ import annotations
@@ -228,6 +230,65 @@ def save_localizer_figure(path: Path, times, errors, sigmas) -> Path:
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.suptitle("localizer error against the truth (maps' frame)", fontsize=9)
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+def save_tip_figure(
+    path: Path,
+    tip,
+    pixel: float,
+    uncertainty,
+    unconstrained,
+    radius: float,
+    depth: float | None,
+    true_tip=None,
+) -> Path:
+    """The blind tip estimate (m, apex 0 at the centre): the grid with the pixels the image did
+    not constrain and the radius it constrained all round; its x and y sections through the
+    apex with the resolution band below them (`uncertainty`, m; inf where unconstrained) and
+    the true tip's (same grid and pixel) where there is one; the width bound 2 x `radius` at
+    `depth` below the apex (None: no bound to show)."""
+    tip = np.asarray(tip, float)
+    k = tip.shape[0]
+    h = k // 2
+    band = np.where(np.isfinite(uncertainty), uncertainty, np.nan)
+    offsets = _nm((np.arange(k) - h) * pixel)
+    fig, axes = plt.subplots(
+        1, 3, figsize=(FIGURE_WIDTH_IN, 3.3), layout="constrained", width_ratios=[1, 1.3, 1.3]
+    )
+    half = (h + 0.5) * pixel
+    _image(fig, axes[0], tip, (-half, half, -half, half), "estimated tip (apex at 0)")
+    axes[0].contourf(
+        offsets, offsets, np.asarray(unconstrained, float), levels=[0.5, 1.5], colors="none",
+        hatches=["xx"],
+    )  # fmt: skip
+    circle = np.linspace(0, 2 * np.pi, 90)
+    axes[0].plot(
+        _nm(radius) * np.cos(circle), _nm(radius) * np.sin(circle), "c--", lw=1,
+        label="constrained all round",
+    )  # fmt: skip
+    axes[0].legend(fontsize=7, loc="lower left", framealpha=0.7)
+    for ax, name, cut in ((axes[1], "x", np.s_[h, :]), (axes[2], "y", np.s_[:, h])):
+        ax.fill_between(
+            offsets, _nm(tip[cut] - band[cut]), _nm(tip[cut]), color="tab:blue", alpha=0.2,
+            label="resolution band (threshold + 3 sigma)",
+        )  # fmt: skip
+        ax.plot(offsets, _nm(tip[cut]), "k.-", lw=1, ms=3, label="estimate (an upper bound)")
+        if true_tip is not None:
+            ax.plot(offsets, _nm(np.asarray(true_tip, float)[cut]), "g--", lw=1.2,
+                    label="simulator's true tip")  # fmt: skip
+        ax.axvspan(offsets[0], -_nm(radius), color="grey", alpha=0.15)
+        ax.axvspan(_nm(radius), offsets[-1], color="grey", alpha=0.15, label="not constrained")
+        if depth is not None:
+            ax.plot([-_nm(radius), _nm(radius)], [-_nm(depth)] * 2, "c|-", lw=1.2,
+                    label=f"at most {_nm(2 * radius):.0f} nm wide here")  # fmt: skip
+        ax.set_xlabel(f"{name} from the apex (nm)")
+        ax.set_ylabel("height (nm)")
+        ax.set_title(f"section along {name} through the apex", fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[2].legend(fontsize=6, loc="lower center", framealpha=0.8)
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return path

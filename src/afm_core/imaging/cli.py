@@ -25,7 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from afm_core.imaging.files import HeightMap, list_channels, load_height_map, save_height_map
+from afm_core.imaging.files import (
+    HeightMap,
+    count_frames,
+    list_channels,
+    load_height_map,
+    save_height_map,
+)
 from afm_core.imaging.levelling import level, parse_method
 from afm_core.instrument import RasterScanData
 
@@ -48,7 +54,7 @@ def _load(args, path) -> HeightMap:
             f"{path}: a .npy holds only heights (origin 0); give --pixel-size (e.g. 2nm), or "
             "save the scan as .npz or .gwy (afm scan --save F.npz keeps pixel size and origin)"
         )
-    hmap = load_height_map(path, args.channel, args.pixel_size)
+    hmap = load_height_map(path, args.channel, args.pixel_size, args.frame)
     if args.level != "none":
         mask = None if args.level_mask == "none" else "auto"
         hmap.height, _ = level(hmap.height, args.level, mask)
@@ -323,7 +329,7 @@ def cmd_landmarks(args) -> int:
 
 
 def cmd_level(args) -> int:
-    image = load_height_map(args.image, args.channel, args.pixel_size)
+    image = load_height_map(args.image, args.channel, args.pixel_size, args.frame)
     mask = None if args.mask == "none" else "auto"
     levelled, used = level(image.height, args.method, mask)
     layers = {"feature_mask": used.astype(np.uint8)} if Path(args.output).suffix == ".npz" else {}
@@ -337,6 +343,7 @@ def cmd_level(args) -> int:
             image.origin_y,
             title=f"{image.title} levelled ({args.method})".strip(),
             layers=layers,
+            meta=dict(image.meta),
         ),
     )
     background = levelled[~used] if (~used).any() else levelled
@@ -351,10 +358,14 @@ def cmd_level(args) -> int:
 def cmd_channels(args) -> int:
     for number, title in enumerate(list_channels(args.image)):
         print(f"{number}: {title}")
+    frames = count_frames(args.image)
+    if frames > 1:
+        print(f"{frames} frames (--frame 0 to {frames - 1})")
     return 0
 
 
 MIN_HEIGHT_HELP = "features lower than this are ignored (m, or with a unit; default 10nm)"
+FRAME_HELP = "which frame of a high-speed .asd movie (default 0; afm image channels counts them)"
 PIXEL_SIZE_HELP = "for .npy files: pixel size (m, or with a unit: 2nm); other formats carry theirs"
 
 
@@ -364,7 +375,10 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     sub = image_parser.add_subparsers(dest="image_command", required=True, metavar="STEP")
 
     def common(p):
-        p.add_argument("--channel", default=0, help=".gwy channel: index or title (default 0)")
+        p.add_argument(
+            "--channel", default=0, help="channel: index or title (default 0; afm image channels)"
+        )
+        p.add_argument("--frame", type=int, default=0, help=FRAME_HELP)
         p.add_argument("--pixel-size", type=length, help=PIXEL_SIZE_HELP)
 
     def levelling(p):

@@ -17,7 +17,8 @@ Formats, chosen by the file name's suffix (case-insensitive):
   channel's metadata (`/N/meta`, text as Gwyddion shows it; numbers read back as floats).
 
 - Vendors' scans (read only), by `vendor_files`: Asylum/Igor `.ibw` (through igor2), JPK
-  `.jpk` (through tifffile), Bruker NanoScope `.spm`, Nanonis `.sxm`, WSxM `.stp`/`.top`;
+  `.jpk` (through tifffile), Bruker NanoScope `.spm`, Nanonis `.sxm`, WSxM `.stp`/`.top`,
+  high-speed AFM movies `.asd` (through AFMReader; a frame by index, `count_frames`);
   channels by index or title as for .gwy (`list_channels`).
 
 Which way rows go. A `HeightMap` has rows along +y: row 0 is the bottom of the area
@@ -55,7 +56,12 @@ import numpy as np
 
 from afm_core.imaging.gwy_structure import check_gwy_structure
 from afm_core.imaging.vendor_common import length_scale
-from afm_core.imaging.vendor_files import VENDOR_SUFFIXES, read_vendor, vendor_channels
+from afm_core.imaging.vendor_files import (
+    VENDOR_SUFFIXES,
+    read_vendor,
+    vendor_channels,
+    vendor_frames,
+)
 
 SUFFIXES = (".npz", ".npy", ".gwy")  # read and written (.npy read only)
 READ_SUFFIXES = SUFFIXES + VENDOR_SUFFIXES
@@ -126,9 +132,12 @@ class HeightMap:
                 )
 
 
-def load_height_map(path, channel: int | str = 0, pixel_size: float | None = None) -> HeightMap:
+def load_height_map(
+    path, channel: int | str = 0, pixel_size: float | None = None, frame: int = 0
+) -> HeightMap:
     """The height map in `path` (.npz, .npy, .gwy or a vendor's file: .ibw, .jpk, .spm, .sxm,
-    .stp, .top), heights in metres, rows along +y.
+    .stp, .top, .asd), heights in metres, rows along +y; `frame`: which frame of a movie
+    (.asd, 0 first; `count_frames`), 0 for every other format.
 
     `channel`: for .gwy and vendor files, the position in `list_channels(path)` or the
     channel's title; a
@@ -140,6 +149,8 @@ def load_height_map(path, channel: int | str = 0, pixel_size: float | None = Non
         _is_number(pixel_size) and math.isfinite(pixel_size) and pixel_size > 0
     ):
         raise ValueError(f"pixel_size={pixel_size!r}: must be a finite number > 0 (m)")
+    if frame != 0 and suffix not in VENDOR_SUFFIXES:
+        raise ValueError(f"{path}: frame={frame!r}: a {suffix} file holds one frame (0)")
     if suffix == ".npy":
         hmap = _load_npy(path, channel, pixel_size)
     elif suffix == ".npz":
@@ -152,8 +163,9 @@ def load_height_map(path, channel: int | str = 0, pixel_size: float | None = Non
         except (*DAMAGED, AttributeError) as exc:  # a damaged field's components
             raise ValueError(f"{path}: malformed .gwy file ({type(exc).__name__}: {exc})") from exc
     else:
-        v = read_vendor(path, channel)
+        v = read_vendor(path, channel, frame)
         hmap = HeightMap(v.height, v.pixel_size_x, v.pixel_size_y, v.origin_x, v.origin_y, v.title)
+        hmap.meta.update(v.meta)
     if pixel_size is not None and suffix != ".npy":
         for name in ("pixel_size_x", "pixel_size_y"):
             if not math.isclose(getattr(hmap, name), pixel_size, rel_tol=1e-6):
@@ -215,6 +227,12 @@ def list_channels(path) -> list[str]:
     if suffix in VENDOR_SUFFIXES:
         return vendor_channels(path)
     return [path.stem]
+
+
+def count_frames(path) -> int:
+    """How many frames `path` holds: a high-speed .asd movie's frame count, 1 otherwise."""
+    path, suffix = _checked_path(path, must_exist=True)
+    return vendor_frames(path) if suffix in VENDOR_SUFFIXES else 1
 
 
 # -- .npy / .npz ----------------------------------------------------------------------------

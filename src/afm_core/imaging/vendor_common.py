@@ -3,7 +3,7 @@ image record they return, length units, channel choice and the check for unscann
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +46,8 @@ class VendorImage:
     origin_x: float  # m, lower-left corner of the area
     origin_y: float
     title: str
+    # how the scan was taken, for HeightMap.meta (SI numbers, strings)
+    meta: dict = field(default_factory=dict)
 
 
 def length_scale(unit: str, where: str, what: str = "unit") -> float:

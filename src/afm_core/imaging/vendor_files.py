@@ -38,8 +38,11 @@ bottom of the area, as `HeightMap`), for `files.load_height_map`.
   scaled so their range is General Info / Z Amplitude (WSxM stores the range, not a scale;
   without it the values are nm), lateral size from Control / X and Y Amplitude; WSxM gives
   no position: origin 0.
+- `.asd` (high-speed AFM movies, Ando lab / RIBM, versions 0-2): through AFMReader, one
+  frame at a time; vendor_asd describes the layout and what is checked.
 
-The readers live in vendor_libraries (.ibw, .jpk) and vendor_headers (.spm, .sxm, .stp/.top),
+The readers live in vendor_libraries (.ibw, .jpk), vendor_headers (.spm, .sxm, .stp/.top)
+and vendor_asd (.asd),
 their shared pieces in vendor_common. Each raises ValueError naming the file and the problem:
 a truncated or damaged file, a missing header field, a channel that does not exist (the
 message lists those that do), a unit that is not a length, a rotated frame (.spm Rotate Ang.,
@@ -51,6 +54,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from afm_core.imaging.vendor_asd import asd_channels, asd_frame_count, asd_header, asd_image
 from afm_core.imaging.vendor_common import VendorImage, length_scale
 from afm_core.imaging.vendor_headers import (
     spm_header,
@@ -72,14 +76,26 @@ from afm_core.imaging.vendor_libraries import (
     jpk_open,
 )
 
-__all__ = ["VENDOR_SUFFIXES", "VendorImage", "length_scale", "read_vendor", "vendor_channels"]
+__all__ = [
+    "VENDOR_SUFFIXES",
+    "VendorImage",
+    "length_scale",
+    "read_vendor",
+    "vendor_channels",
+    "vendor_frames",
+]
 
-VENDOR_SUFFIXES = (".ibw", ".jpk", ".spm", ".sxm", ".stp", ".top")
+VENDOR_SUFFIXES = (".ibw", ".jpk", ".spm", ".sxm", ".stp", ".top", ".asd")
 
 
-def read_vendor(path: Path, channel: int | str = 0) -> VendorImage:
-    """The channel `channel` (index in `vendor_channels(path)` or its title) of a vendor file."""
+def read_vendor(path: Path, channel: int | str = 0, frame: int = 0) -> VendorImage:
+    """The channel `channel` (index in `vendor_channels(path)` or its title) of a vendor file;
+    `frame`: which frame of a movie (.asd; 0 first), 0 for the single-frame formats."""
     suffix = path.suffix.lower()
+    if suffix == ".asd":
+        return asd_image(path, channel, frame)
+    if frame != 0:
+        raise ValueError(f"{path}: frame={frame!r}: a {suffix} file holds one frame (0)")
     if suffix == ".ibw":
         return ibw_image(path, channel)
     if suffix == ".sxm":
@@ -93,8 +109,15 @@ def read_vendor(path: Path, channel: int | str = 0) -> VendorImage:
     raise ValueError(f"{path}: {path.suffix!r} is not a vendor format read here")
 
 
+def vendor_frames(path: Path) -> int:
+    """How many frames the file holds (a high-speed .asd movie: its num_frames; others 1)."""
+    return asd_frame_count(path) if path.suffix.lower() == ".asd" else 1
+
+
 def vendor_channels(path: Path) -> list[str]:
     suffix = path.suffix.lower()
+    if suffix == ".asd":
+        return asd_channels(asd_header(path)[0])
     if suffix == ".ibw":
         return ibw_names(ibw_wave(path), path)
     if suffix == ".sxm":
