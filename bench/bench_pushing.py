@@ -65,11 +65,11 @@ from afm_core.manipulation import (  # noqa: E402
     PushProcedure,
     PushRefused,
     centre_push_plan,
-    execute_plan,
     localize_with,
     monte_carlo_push,
     nano_hand_plan,
 )
+from afm_core.manipulation.push_trials import push_trial  # noqa: E402
 from afm_core.sim.config import load_config, merge  # noqa: E402
 from afm_core.sim.instrument import SimulatedAfm  # noqa: E402
 
@@ -132,40 +132,20 @@ def monte_carlo_part() -> dict:
 
 
 def sim_run(seed: int, strategy: str, estimate_sigma: float) -> dict:
-    sim = SimulatedAfm(merge(load_config(), {"seed": seed}))
-    sphere = sim.sample.spheres[0]
-    truth0 = np.array([sphere.x, sphere.y])
-    err = np.random.default_rng(1000 + seed).normal(0.0, estimate_sigma, 2)
-    est = truth0 + err
-    goal = est + [0.0, 500 * NM]
-    if strategy == "nano_hand":
-        plan = nano_hand_plan(est, goal, limits=sim.limits)
-    elif strategy == "centre":
-        plan = centre_push_plan(est, goal, limits=sim.limits)
-    elif strategy == "centre_single":
-        plan = centre_push_plan(est, goal, single=True, limits=sim.limits)
-    elif strategy == "table_7_6":  # goal: where the model predicts the book's 13 steps end
-        plan = nano_hand_plan(est, est + [0.0, 600 * NM], steps=13, aim=False, limits=sim.limits)
-        goal = plan.predicted
-    else:
-        raise ValueError(strategy)
-    t0 = time.perf_counter()
-    result = execute_plan(sim, plan, speed=0.5e-6)
-    wall = time.perf_counter() - t0
-    final = np.array([sphere.x, sphere.y])
-    d = final - truth0
+    """(b): afm_core.manipulation.push_trials.push_trial, in the nm of this bench's report."""
+    trial = push_trial(seed, strategy, estimate_sigma, goal_distance=500 * NM, tolerance=TOL)
     return {
         "seed": seed,
         "strategy": strategy,
-        "strokes": len(plan),
-        "completed": result.completed,
-        "error_nm": float(np.hypot(*(final - goal)) / NM),
-        "success": bool(np.hypot(*(final - goal)) <= TOL),
-        "along_nm": float(d @ plan.axis / NM),
-        "sideways_nm": float(-(d @ plan.normal) / NM),
-        "estimate_error_nm": [float(v) for v in err / NM],
-        "sim_seconds": result.duration,
-        "wall_seconds": wall,
+        "strokes": trial["strokes"],
+        "completed": trial["completed"],
+        "error_nm": trial["error"] / NM,
+        "success": trial["success"],
+        "along_nm": trial["along"] / NM,
+        "sideways_nm": trial["sideways"] / NM,
+        "estimate_error_nm": [float(v) for v in trial["estimate_error"] / NM],
+        "sim_seconds": trial["sim_seconds"],
+        "wall_seconds": trial["wall_seconds"],
     }
 
 
