@@ -19,7 +19,7 @@ from afm_core.batch import read_rows, run_batch
 # one xdist worker runs the tests that share the module's sessions and its LocalCluster batch
 pytestmark = pytest.mark.xdist_group("batch_sessions")
 # the columns that depend on where and when a row was computed, not on what it says
-RUN_COLUMNS = ("seconds", "worker")
+RUN_COLUMNS = ("seconds", "worker", "finished_utc")
 SEEDS = (1, 2, 3)
 
 
