@@ -64,12 +64,14 @@ from afm_core.manipulation import (  # noqa: E402
     PushFailed,
     PushProcedure,
     PushRefused,
-    centre_push_plan,
     localize_with,
     monte_carlo_push,
-    nano_hand_plan,
 )
-from afm_core.manipulation.push_trials import push_trial  # noqa: E402
+from afm_core.manipulation.push_trials import (  # noqa: E402
+    MC_CENTRE,
+    monte_carlo_plans,
+    push_trial,
+)
 from afm_core.sim.config import load_config, merge  # noqa: E402
 from afm_core.sim.instrument import SimulatedAfm  # noqa: E402
 
@@ -95,14 +97,9 @@ def machine_info() -> dict:
 
 
 def monte_carlo_part() -> dict:
-    c0 = np.array([5e-6, 5e-6])
-    plain = nano_hand_plan(c0, c0 + [0.0, 300 * NM], steps=6, aim=False)
-    goal = c0 + [0.0, plain.along(plain.predicted)]
-    plans = {
-        "centre": centre_push_plan(c0, goal, steps=6),
-        "nano_hand": nano_hand_plan(c0, goal, steps=6, aim=False),
-        "nano_hand_aimed_300nm": nano_hand_plan(c0, c0 + [0.0, 300 * NM], steps=6),
-    }
+    c0 = np.array(MC_CENTRE)
+    plans = monte_carlo_plans(c0)  # the plans: afm_core.manipulation.push_trials
+    book = plans.pop("table_7_6_13_steps")
     out = {}
     for name, plan in plans.items():
         t0 = time.perf_counter()
@@ -112,7 +109,6 @@ def monte_carlo_part() -> dict:
             "wall_seconds": time.perf_counter() - t0,
             "goal_along_nm": float(plan.along(plan.goal) / NM),
         }
-    book = nano_hand_plan(c0, c0 + [0.0, 600 * NM], steps=13, aim=False)
     t0 = time.perf_counter()
     r = monte_carlo_push(book, samples=500, sigma=10 * NM, seed=1, tolerance=TOL)
     disp = r.final - c0

@@ -51,6 +51,24 @@ def test_a_push_sweep_is_one_row_per_seed_equal_to_the_trial_and_resumes_by_seed
     assert summary["strategies"][STRATEGY]["error_median_m"] == errors[1]
 
 
+def test_a_monte_carlo_sweep_row_is_the_models_share_within_the_tolerance(tmp_path):
+    from afm_core.manipulation import monte_carlo_push
+    from afm_core.manipulation.push_trials import monte_carlo_plans
+
+    result = run_batch(
+        "montecarlo", "4", tmp_path, workers=1, plan="nano_hand", samples=60, tolerance=15 * NM
+    )
+    (row,) = read_rows(result.table)
+    plan = monte_carlo_plans()["nano_hand"]
+    model = monte_carlo_push(plan, samples=60, sigma=10 * NM, seed=4, tolerance=15 * NM)
+    within = np.hypot(*(model.final - plan.goal).T) <= 15 * NM
+    assert float(row["success_probability"]) == np.mean(within)
+    assert float(row["sigma_lateral_m"]) == model.sigma_lateral
+    assert f"| nano_hand | 1 | 60 | 15.0 | {np.mean(within):.3f} +- nan |" in (
+        result.summary.read_text()
+    )
+
+
 def test_a_localization_sweep_reports_the_trials_nees_against_its_band(tmp_path):
     from afm_core.localization import trials
     from afm_core.localization.calibration.model import Calibration, save_calibration

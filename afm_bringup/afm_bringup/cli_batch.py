@@ -1,6 +1,7 @@
-"""`afm batch evaluate|sim2real PATHS... --output DIR` and `afm batch push|localize --seeds
-0-99 --output DIR`: many recordings, or the benchmark sweeps' seeds, at once on Dask, an
-embedded cluster by default or a lab's scheduler with --scheduler (afm_core.batch)."""
+"""`afm batch evaluate|sim2real PATHS... --output DIR` and `afm batch
+push|montecarlo|localize --seeds 0-99 --output DIR`: many recordings, or the benchmark sweeps'
+seeds, at once on Dask, an embedded cluster by default or a lab's scheduler with --scheduler
+(afm_core.batch)."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ def cmd_batch(args):
         print(f"afm batch: {state.line()}", flush=True)
 
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else []
-    seeds = args.kind in ("push", "localize")
+    seeds = args.kind in ("push", "montecarlo", "localize")
     if seeds != bool(args.seeds) or (not seeds and not args.paths) or (seeds and args.paths):
         return refuse(
             "batch",
@@ -74,6 +75,13 @@ def _settings(args) -> dict:
             "goal_distance": args.goal_distance,
             "tolerance": args.tolerance,
         }
+    if args.kind == "montecarlo":
+        return {
+            "plan": args.plan or "nano_hand",
+            "samples": args.samples,
+            "sigma": args.estimate_sigma,
+            "tolerance": args.tolerance,
+        }
     if args.kind == "localize":
         return {"mode": args.mode or "via_landmark_toward_x8", "calibration": args.calibration}
     return {}
@@ -87,7 +95,8 @@ def _add_batch(sub) -> None:
         "ground truth where recorded, scans against truth, pushes and push goals) or the "
         "sim-to-real diagnosis (sim2real) of every recording PATHS name (files, folders of "
         "*.mcap, fsspec URLs), or a benchmark sweep over --seeds (push: a push strategy on "
-        "the simulated AFM per seed; localize: the book's tip-localization trials), one "
+        "the simulated AFM per seed; montecarlo: the stochastic pushing model's draws per "
+        "seed; localize: the book's tip-localization trials), one "
         "row per item in OUTPUT/results.csv, written as each completes, and a summary "
         "across them in OUTPUT/summary.md. A failed item is a row with its error; a re-run "
         "skips the items done (same file content or seed, same configuration). Runs on an "
@@ -95,12 +104,14 @@ def _add_batch(sub) -> None:
     )
     p.add_argument(
         "kind",
-        choices=["evaluate", "sim2real", "push", "localize"],
+        choices=["evaluate", "sim2real", "push", "montecarlo", "localize"],
         help="what to run per item",
     )
     p.add_argument("paths", nargs="*", metavar="PATH", help="recording, folder or URL")
     p.add_argument(
-        "--seeds", default="", help="push, localize: the seeds, e.g. 0-99 or 0,1,5 (inclusive)"
+        "--seeds",
+        default="",
+        help="push, montecarlo, localize: the seeds, e.g. 0-99 or 0,1,5 (inclusive)",
     )
     p.add_argument("--output", "-o", required=True, help="folder for results.csv, summary.md")
     p.add_argument(
@@ -142,7 +153,8 @@ def _add_sweep_options(p) -> None:
         "--tolerance",
         type=length_type("tolerance"),
         default=None,
-        help="evaluate, push: success radius around a push goal (m, or with a unit; default 20nm)",
+        help="evaluate, push, montecarlo: success radius around a push goal (m, or with a "
+        "unit; default 20nm)",
     )
     p.add_argument(
         "--strategy",
@@ -154,7 +166,16 @@ def _add_sweep_options(p) -> None:
         "--estimate-sigma",
         type=length_type("estimate-sigma"),
         default=None,
-        help="push: the particle estimate's error per axis (default 10nm)",
+        help="push, montecarlo: the particle estimate's error per axis (default 10nm)",
+    )
+    p.add_argument(
+        "--plan",
+        default="",
+        choices=["", "centre", "nano_hand", "nano_hand_aimed_300nm", "table_7_6_13_steps"],
+        help="montecarlo: the bench's plan (default nano_hand, the Table 7.6 zigzag)",
+    )
+    p.add_argument(
+        "--samples", type=int, default=None, help="montecarlo: draws per seed (default 500)"
     )
     p.add_argument(
         "--goal-distance",

@@ -150,3 +150,27 @@ def localization_errors(rows: list[dict], folder: Path) -> str | None:
     figure.savefig(Path(folder) / LOCALIZATION_FIGURE, dpi=100)
     plt.close(figure)
     return LOCALIZATION_FIGURE
+
+
+MONTE_CARLO_FIGURE = "monte_carlo_success.png"
+
+
+def monte_carlo_success(rows: list[dict], folder: Path) -> str | None:
+    """Per plan, each seed's Monte Carlo success probability (its seed-to-seed scatter)."""
+    done = _ok(rows, "success_probability")
+    if not done:
+        return None
+    plt = _pyplot()
+    figure, axes = plt.subplots(figsize=(6, 3.5))
+    for plan in sorted({r["plan"] for r in done}):
+        group = sorted((r for r in done if r["plan"] == plan), key=lambda r: int(r["seed"]))
+        axes.plot([int(r["seed"]) for r in group],
+                  [float(r["success_probability"]) for r in group], "o", label=plan)  # fmt: skip
+    axes.set_xlabel("seed")
+    axes.set_ylabel("success probability (Monte Carlo)")
+    axes.set_ylim(0, 1.02)
+    axes.legend(fontsize="small")
+    figure.tight_layout()
+    figure.savefig(Path(folder) / MONTE_CARLO_FIGURE, dpi=100)
+    plt.close(figure)
+    return MONTE_CARLO_FIGURE

@@ -25,7 +25,11 @@ from afm_core.batch.items import config_hash, expand_items, file_sha256, local_f
 from afm_core.batch.table import COMMON_COLUMNS, FAILED, OK, ResultsTable, read_rows
 
 RECORDING_KINDS = ("evaluate", "sim2real")  # items: recordings, keyed by their content's hash
-SEED_KINDS = ("push", "localize")  # items: seeds of a benchmark sweep, keyed by the seed
+SEED_KINDS = (
+    "push",
+    "montecarlo",
+    "localize",
+)  # items: seeds of a benchmark sweep, keyed by the seed
 KINDS = RECORDING_KINDS + SEED_KINDS
 ERROR_CHARS = 300  # an error cell is one line, this long at most (the full text is in the log)
 CONNECT_TIMEOUT = 30.0  # s to reach a --scheduler (a wrong address must not hang the command)
@@ -85,6 +89,7 @@ def _options(kind: str, model, effects, settings: dict) -> tuple[dict, dict]:
         "evaluate": {"push_tolerance"},
         "sim2real": set(),
         "push": {"strategy", "estimate_sigma", "goal_distance", "tolerance"},
+        "montecarlo": {"plan", "samples", "sigma", "tolerance"},
         "localize": {"mode", "calibration"},
     }[kind]
     unknown = sorted(k for k, v in settings.items() if k not in allowed and v is not None)
@@ -95,6 +100,8 @@ def _options(kind: str, model, effects, settings: dict) -> tuple[dict, dict]:
         return evaluate.options(**settings)
     if kind == "push":
         return sweeps.push_options(**settings)
+    if kind == "montecarlo":
+        return sweeps.monte_carlo_options(**settings)
     if kind == "localize":
         return sweeps.localize_options(**settings)
     if model and not Path(model).is_file():
@@ -119,6 +126,8 @@ def run_item(
     try:
         if kind == "push":
             row.update(sweeps.push_row(int(item), options))
+        elif kind == "montecarlo":
+            row.update(sweeps.monte_carlo_row(int(item), options))
         elif kind == "localize":
             row.update(sweeps.localize_row(int(item), options, shared))
         else:
@@ -195,6 +204,13 @@ def _kind(kind: str) -> _Kind:
         return _Kind(
             sweeps.PUSH_COLUMNS, sweeps.ROW_FORMAT, sweeps.summarise_push, sweeps.push_markdown
         )
+    if kind == "montecarlo":
+        return _Kind(
+            sweeps.MONTE_CARLO_COLUMNS,
+            sweeps.ROW_FORMAT,
+            sweeps.summarise_monte_carlo,
+            sweeps.monte_carlo_markdown,
+        )
     return _Kind(
         sweeps.LOCALIZE_COLUMNS,
         sweeps.ROW_FORMAT,
@@ -221,8 +237,9 @@ def run_batch(
     OUTPUT/summary.md. Recording kinds ("evaluate", "sim2real"): `paths` names recordings
     (files, folders, URLs). Seed kinds ("push", "localize"): `paths` is the seeds (ints, or
     text such as "0-99" or "0,1,5"). `settings`: the kind's own (evaluate: push_tolerance;
-    push: strategy, estimate_sigma, goal_distance, tolerance; localize: mode, calibration; SI
-    units). `client`: an existing dask Client to use instead of making one."""
+    push: strategy, estimate_sigma, goal_distance, tolerance; montecarlo: plan, samples,
+    sigma, tolerance; localize: mode, calibration; SI units). `client`: an existing dask
+    Client to use instead of making one."""
     task_options, hashed = _options(kind, model, effects, settings)
     spec = _kind(kind)
     config = config_hash(kind, spec.row_format, hashed)
@@ -261,6 +278,8 @@ def _figure(kind: str, rows: list[dict], output: Path) -> str | None:
             return plots.effects_by_date(rows, output)
         if kind == "push":
             return plots.push_errors(rows, output)
+        if kind == "montecarlo":
+            return plots.monte_carlo_success(rows, output)
         if kind == "localize":
             return plots.localization_errors(rows, output)
         return plots.errors_by_session(rows, output)

@@ -5,6 +5,9 @@ hundreds of seeds spreads over a cluster and a re-run does only the seeds not do
 - push: afm_core.manipulation.push_trials.push_trial (bench_pushing (b)): a strategy's plan
   run on the simulated AFM from an estimate off the truth by N(0, estimate_sigma); the error
   of the particle's true final centre to the goal, success within the tolerance.
+- montecarlo: afm_core.manipulation.push_trials.monte_carlo_trial (bench_pushing (a)): the
+  stochastic pushing model of one of the bench's plans with this seed's draws (500 by
+  default); success probability within the tolerance, lateral / along spread, split.
 - localize: afm_core.localization.trials (bench_localization): the book's Tables 7.1 / 7.2
   trial in one of its modes (the tip's error at x8, the filter's sigma, the NEES), or Table
   7.3's pit below a nanotube; with a calibration file or the simulator's oracle calibration
@@ -41,6 +44,26 @@ PUSH_COLUMNS = [
     "along_m",
     "sideways_m",
     "sim_seconds",
+]
+MONTE_CARLO_COLUMNS = [
+    "seed",
+    "plan",
+    "samples",
+    "sigma_m",
+    "tolerance_m",
+    "strokes",
+    "success_probability",
+    "mean_offset_x_m",
+    "mean_offset_y_m",
+    "sigma_lateral_m",
+    "sigma_along_m",
+    "share_left",
+    "share_right",
+    "split_fraction",
+    "bimodal",
+    "bimodality_coefficient",
+    "between_paths",
+    "touched",
 ]
 LOCALIZE_COLUMNS = [
     "seed",
@@ -82,6 +105,27 @@ def push_options(strategy="nano_hand", estimate_sigma=None, goal_distance=None, 
         value = options[name]
         if not (math.isfinite(value) and value >= 0 and (value > 0 or name != "tolerance")):
             raise ValueError(f"{name}={value}: must be finite and >= 0 m (tolerance > 0)")
+    return options, options
+
+
+def monte_carlo_options(plan="nano_hand", samples=None, sigma=None, tolerance=None):
+    """(task options, hashed): every setting, defaults included."""
+    from afm_core.manipulation import push_trials as pt
+
+    if plan not in pt.MC_PLANS:
+        raise ValueError(f"plan {plan!r}: expected one of {list(pt.MC_PLANS)}")
+    options = {
+        "plan": plan,
+        "samples": 500 if samples is None else samples,
+        "sigma": pt.ESTIMATE_SIGMA if sigma is None else float(sigma),
+        "tolerance": pt.TOLERANCE if tolerance is None else float(tolerance),
+    }
+    if not (isinstance(options["samples"], int) and 1 <= options["samples"] <= 100_000):
+        raise ValueError(f"samples={samples}: must be an integer within [1, 100000]")
+    if not (math.isfinite(options["sigma"]) and options["sigma"] >= 0):
+        raise ValueError(f"sigma={sigma}: must be finite and >= 0 m")
+    if not (math.isfinite(options["tolerance"]) and options["tolerance"] > 0):
+        raise ValueError(f"tolerance={tolerance}: must be finite and > 0 m")
     return options, options
 
 
@@ -141,6 +185,39 @@ def push_row(seed: int, options: dict) -> dict:
         "along_m": trial["along"],
         "sideways_m": trial["sideways"],
         "sim_seconds": trial["sim_seconds"],
+    }
+
+
+def monte_carlo_row(seed: int, options: dict) -> dict:
+    from afm_core.manipulation.push_trials import monte_carlo_trial
+
+    r = monte_carlo_trial(
+        seed,
+        options["plan"],
+        samples=options["samples"],
+        sigma=options["sigma"],
+        tolerance=options["tolerance"],
+    )
+    offset = r.mean - r.goal
+    return {
+        "seed": seed,
+        "plan": options["plan"],
+        "samples": r.samples,
+        "sigma_m": options["sigma"],
+        "tolerance_m": r.tolerance,
+        "strokes": r.strokes_applied,
+        "success_probability": r.success_probability,
+        "mean_offset_x_m": float(offset[0]),
+        "mean_offset_y_m": float(offset[1]),
+        "sigma_lateral_m": r.sigma_lateral,
+        "sigma_along_m": r.sigma_along,
+        "share_left": r.share_left,
+        "share_right": r.share_right,
+        "split_fraction": r.split_fraction,
+        "bimodal": r.bimodal,
+        "bimodality_coefficient": r.bimodality_coefficient,
+        "between_paths": r.between_paths,
+        "touched": r.touched,
     }
 
 
@@ -208,6 +285,50 @@ def summarise_push(rows: list[dict]) -> dict:
             "sideways_abs_max_m": float(np.abs(side).max()),
         }
     return out
+
+
+def summarise_monte_carlo(rows: list[dict]) -> dict:
+    """Per plan, bench_pushing (a)'s figures averaged over the seeds, with the seed-to-seed
+    spread (sample sd) of the success probability: how far one seed's estimate can be off."""
+    out = {"failed": sum(1 for r in rows if r.get("status") == "failed"), "plans": {}}
+    for plan, group in _groups(rows, "plan").items():
+        success = _values(group, "success_probability")
+        between = _values(group, "between_paths")
+        out["plans"][plan] = {
+            "seeds": len(group),
+            "samples": sorted({int(r["samples"]) for r in group}),
+            "tolerance_m": sorted({float(r["tolerance_m"]) for r in group}),
+            "success_mean": float(success.mean()),
+            "success_sd": float(success.std(ddof=1)) if len(group) > 1 else math.nan,
+            "sigma_lateral_mean_m": float(_values(group, "sigma_lateral_m").mean()),
+            "sigma_along_mean_m": float(_values(group, "sigma_along_m").mean()),
+            "split_mean": float(_values(group, "split_fraction").mean()),
+            "bimodal_share": sum(r["bimodal"] == "True" for r in group) / len(group),
+            "between_paths_mean": float(between.mean()) if between.size else math.nan,
+        }
+    return out
+
+
+def monte_carlo_markdown(summary: dict) -> str:
+    lines = [
+        "# Push Monte Carlo model over seeds (afm batch montecarlo)",
+        "",
+        f"{summary['failed']} seeds failed (results.csv has each one's error).",
+        "",
+        "| plan | seeds | draws | tolerance (nm) | success (mean +- sd over seeds) "
+        "| lateral sigma (nm) | along sigma (nm) | split | bimodal seeds | between paths |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for plan, s in summary["plans"].items():
+        between = "-" if math.isnan(s["between_paths_mean"]) else f"{s['between_paths_mean']:.2f}"
+        lines.append(
+            f"| {plan} | {s['seeds']} | {', '.join(map(str, s['samples']))} | "
+            f"{', '.join(_nm(t) for t in s['tolerance_m'])} | "
+            f"{s['success_mean']:.3f} +- {s['success_sd']:.3f} | "
+            f"{_nm(s['sigma_lateral_mean_m'])} | {_nm(s['sigma_along_mean_m'])} | "
+            f"{s['split_mean']:.3f} | {s['bimodal_share']:.2f} | {between} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def summarise_localize(rows: list[dict]) -> dict:

@@ -91,3 +91,44 @@ def push_trial(
         "sim_seconds": result.duration,
         "wall_seconds": wall,
     }
+
+
+# -- the Monte Carlo model per seed (bench_pushing (a)) ---------------------------------------
+MC_PLANS = ("centre", "nano_hand", "nano_hand_aimed_300nm", "table_7_6_13_steps")
+MC_CENTRE = (5e-6, 5e-6)  # m: where the bench's plans start (any point: the model is uniform)
+
+
+def monte_carlo_plans(centre=MC_CENTRE) -> dict:
+    """bench_pushing (a)'s plans from `centre` (6 pushes of the 156 / 120 nm rhythm): "centre"
+    (straight pushes through the centre) and "nano_hand" (the Table 7.6 zigzag, not aimed) to
+    where that zigzag takes a particle sitting at the estimate; "nano_hand_aimed_300nm" (the
+    planner's aimed zigzag to a goal 300 nm away); "table_7_6_13_steps" (the book's 13 steps)."""
+    c0 = np.asarray(centre, float)
+    plain = nano_hand_plan(c0, c0 + [0.0, 300 * NM], steps=6, aim=False)
+    goal = c0 + [0.0, plain.along(plain.predicted)]
+    return {
+        "centre": centre_push_plan(c0, goal, steps=6),
+        "nano_hand": nano_hand_plan(c0, goal, steps=6, aim=False),
+        "nano_hand_aimed_300nm": nano_hand_plan(c0, c0 + [0.0, 300 * NM], steps=6),
+        "table_7_6_13_steps": nano_hand_plan(c0, c0 + [0.0, 600 * NM], steps=13, aim=False),
+    }
+
+
+def monte_carlo_trial(
+    seed: int,
+    plan: str = "nano_hand",
+    *,
+    samples: int = 500,
+    sigma: float = ESTIMATE_SIGMA,
+    tolerance: float = TOLERANCE,
+):
+    """monte_carlo_push of one of monte_carlo_plans() with this seed's draws (its
+    MonteCarloResult): how one seed's 500-draw estimate of the success probability and the
+    spreads scatters from seed to seed is what a sweep over seeds shows."""
+    from afm_core.manipulation.monte_carlo import monte_carlo_push
+
+    if plan not in MC_PLANS:
+        raise ValueError(f"plan={plan!r}: must be one of {list(MC_PLANS)}")
+    return monte_carlo_push(
+        monte_carlo_plans()[plan], samples=samples, sigma=sigma, seed=seed, tolerance=tolerance
+    )
