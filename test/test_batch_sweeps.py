@@ -15,20 +15,33 @@ import pytest
 from afm_core.batch import read_rows, run_batch
 
 NM = 1e-9
+
+
+@pytest.fixture(scope="module")
+def client():
+    """One single-worker embedded cluster for the in-process batches (its start is seconds)."""
+    from afm_core.batch import dask_client
+
+    with dask_client(workers=1) as client:
+        yield client
+
+
 # the cheapest trial (one stroke, ~0.2 s on one core): the tests are about the batch
 STRATEGY = "centre_single"
 
 
-def test_a_push_sweep_is_one_row_per_seed_equal_to_the_trial_and_resumes_by_seed(tmp_path):
+def test_a_push_sweep_is_one_row_per_seed_equal_to_the_trial_and_resumes_by_seed(tmp_path, client):
     from afm_core.batch.sweeps import summarise_push
     from afm_core.manipulation.push_trials import push_trial
 
     tolerance = 40 * NM
-    first = run_batch("push", "0-1", tmp_path, workers=1, strategy=STRATEGY, tolerance=tolerance)
+    first = run_batch(
+        "push", "0-1", tmp_path, client=client, strategy=STRATEGY, tolerance=tolerance
+    )
     assert (first.total, first.computed, first.ok) == (2, 2, 2)
     # more seeds, given as a list: the two done are skipped by seed and configuration
     again = run_batch(
-        "push", [0, "1,2"], tmp_path, workers=1, strategy=STRATEGY, tolerance=tolerance
+        "push", [0, "1,2"], tmp_path, client=client, strategy=STRATEGY, tolerance=tolerance
     )
     assert (again.total, again.computed, again.skipped) == (3, 1, 2)
     rows = {int(r["seed"]): r for r in read_rows(again.table)}
@@ -39,7 +52,7 @@ def test_a_push_sweep_is_one_row_per_seed_equal_to_the_trial_and_resumes_by_seed
         assert row["success"] == str(trial["error"] <= tolerance)
         assert (float(row["final_x_m"]), float(row["final_y_m"])) == tuple(trial["final"])
     # another configuration is another row per seed, not a skip
-    other = run_batch("push", "0", tmp_path, workers=1, strategy=STRATEGY)
+    other = run_batch("push", "0", tmp_path, client=client, strategy=STRATEGY)
     assert other.computed == 1 and len(read_rows(other.table)) == 4
     text = other.summary.read_text()
     errors = sorted(float(r["error_m"]) for r in rows.values())
@@ -51,12 +64,12 @@ def test_a_push_sweep_is_one_row_per_seed_equal_to_the_trial_and_resumes_by_seed
     assert summary["strategies"][STRATEGY]["error_median_m"] == errors[1]
 
 
-def test_a_monte_carlo_sweep_row_is_the_models_share_within_the_tolerance(tmp_path):
+def test_a_monte_carlo_sweep_row_is_the_models_share_within_the_tolerance(tmp_path, client):
     from afm_core.manipulation import monte_carlo_push
     from afm_core.manipulation.push_trials import monte_carlo_plans
 
     result = run_batch(
-        "montecarlo", "4", tmp_path, workers=1, plan="nano_hand", samples=60, tolerance=15 * NM
+        "montecarlo", "4", tmp_path, client=client, plan="nano_hand", samples=60, tolerance=15 * NM
     )
     (row,) = read_rows(result.table)
     plan = monte_carlo_plans()["nano_hand"]
@@ -69,13 +82,13 @@ def test_a_monte_carlo_sweep_row_is_the_models_share_within_the_tolerance(tmp_pa
     )
 
 
-def test_a_localization_sweep_reports_the_trials_nees_against_its_band(tmp_path):
+def test_a_localization_sweep_reports_the_trials_nees_against_its_band(tmp_path, client):
     from afm_core.localization import trials
     from afm_core.localization.calibration.model import Calibration, save_calibration
 
     save_calibration(Calibration(), tmp_path / "book.yaml")  # the book's defaults: no oracle
     result = run_batch(
-        "localize", "3-5", tmp_path / "out", workers=1, mode="direct",
+        "localize", "3-5", tmp_path / "out", client=client, mode="direct",
         calibration=str(tmp_path / "book.yaml"),
     )  # fmt: skip
     rows = read_rows(result.table)
@@ -218,14 +231,14 @@ def test_push_goals_are_judged_by_the_pushed_objects_final_true_position(tmp_pat
     )
 
 
-def test_push_goals_reach_the_batch_table_and_summary(tmp_path):
+def test_push_goals_reach_the_batch_table_and_summary(tmp_path, client):
     tip = np.array([50.0e-6, 50.0e-6])
     (tmp_path / "in").mkdir()
     _write_push_session(
         tmp_path / "in" / "a.mcap", tip, [(12.0, 1, (50.2e-6, 50.5e-6))],
         [(10.0, (50.2e-6, 50.5e-6))],
     )  # fmt: skip
-    result = run_batch("evaluate", [tmp_path / "in"], tmp_path / "out", workers=1)
+    result = run_batch("evaluate", [tmp_path / "in"], tmp_path / "out", client=client)
     (row,) = read_rows(result.table)
     assert row["push_goals"] == "1" and row["push_goals_judged"] == "1"
     text = result.summary.read_text()
