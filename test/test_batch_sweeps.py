@@ -104,6 +104,40 @@ def test_a_localization_sweep_reports_the_trials_nees_against_its_band(tmp_path,
     assert f"{np.mean(nees):.2f} (2 dof) [{lo:.2f}, {hi:.2f}]" in text
 
 
+def test_a_table_7_3_sweep_uses_the_high_resolution_maps_sigma(tmp_path, client):
+    import dataclasses
+
+    from afm_core.localization import trials
+    from afm_core.localization.calibration.model import Calibration, save_calibration
+
+    save_calibration(Calibration(), tmp_path / "book.yaml")
+    mode = "table_7_3_line_ends_at_pit"
+    result = run_batch(
+        "localize", "2", tmp_path / "out", client=client, mode=mode,
+        calibration=str(tmp_path / "book.yaml"),
+    )  # fmt: skip
+    (row,) = read_rows(result.table)
+    hires = dataclasses.replace(Calibration(), map_sigma=[trials.HIRES_MAP_SIGMA] * 2)
+    trial = trials.table_73_trial(2, hires, True)
+    assert float(row["pit_distance_m"]) == trial["distance"] and row["nees_dof"] == "1"
+    assert f"{trial['distance'] * 1e9:.1f} +- nan" in result.summary.read_text()
+
+
+def test_the_table_keeps_older_rows_and_drops_garbled_ones(tmp_path):
+    from afm_core.batch import ResultsTable
+    from afm_core.batch.table import COMMON_COLUMNS
+
+    old = [c for c in COMMON_COLUMNS if c != "finished_utc"] + ["seed"]
+    lines = [",".join(old), "1,,c1,ok,,0.5,w,1", "2,,c1,ok,,0.5,w,2,surplus", "3,,c1,ok"]
+    (tmp_path / "results.csv").write_text("\n".join(lines) + "\n")
+    with ResultsTable(tmp_path / "results.csv", COMMON_COLUMNS + ["seed"]) as table:
+        assert table.done == {("1", "c1")}  # a row of the older header; not the garbled two
+    (row,) = read_rows(tmp_path / "results.csv")
+    assert row["item"] == "1" and row["seed"] == "1" and row["finished_utc"] == ""
+    with pytest.raises(ValueError, match="another kind of batch"):
+        ResultsTable(tmp_path / "results.csv", ["item", "other"])
+
+
 def test_sweep_input_is_refused_naming_the_field(tmp_path):
     with pytest.raises(ValueError, match="seeds '5-2'"):
         run_batch("push", "5-2", tmp_path, workers=1)
