@@ -4,9 +4,10 @@ changes between the two.
 
 The items' hashes are computed on the workers (a recording is read where it lies, by whoever
 runs the task); an item whose (file hash, configuration hash) already has a finished row is
-skipped, every other one runs as one task. Rows are appended to DIR/results.csv as tasks
-complete; a task's exception becomes a failed row with its error on one line, so one bad
-recording never stops the batch.
+skipped, every other one runs as one task. A sweep's items are seeds, keyed by (seed,
+configuration hash), submitted at once. Rows are appended to DIR/results.csv as tasks
+complete, each with the time it was written; a task's exception becomes a failed row with its
+error on one line, so one bad recording never stops the batch.
 """
 
 from __future__ import annotations
