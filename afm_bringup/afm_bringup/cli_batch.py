@@ -158,8 +158,8 @@ def _add_sweep_options(p) -> None:
     )
     p.add_argument(
         "--strategy",
-        default="",
-        choices=["", "nano_hand", "centre", "centre_single", "table_7_6"],
+        default=None,
+        choices=["nano_hand", "centre", "centre_single", "table_7_6"],
         help="push: the plan (default nano_hand, the aimed zigzag)",
     )
     p.add_argument(
@@ -170,8 +170,8 @@ def _add_sweep_options(p) -> None:
     )
     p.add_argument(
         "--plan",
-        default="",
-        choices=["", "centre", "nano_hand", "nano_hand_aimed_300nm", "table_7_6_13_steps"],
+        default=None,
+        choices=["centre", "nano_hand", "nano_hand_aimed_300nm", "table_7_6_13_steps"],
         help="montecarlo: the bench's plan (default nano_hand, the Table 7.6 zigzag)",
     )
     p.add_argument(
@@ -185,9 +185,8 @@ def _add_sweep_options(p) -> None:
     )
     p.add_argument(
         "--mode",
-        default="",
+        default=None,
         choices=[
-            "",
             "direct",
             "via_landmark",
             "via_landmark_straight",
