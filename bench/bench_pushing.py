@@ -64,11 +64,13 @@ from afm_core.manipulation import (  # noqa: E402
     PushFailed,
     PushProcedure,
     PushRefused,
-    centre_push_plan,
-    execute_plan,
     localize_with,
     monte_carlo_push,
-    nano_hand_plan,
+)
+from afm_core.manipulation.push_trials import (  # noqa: E402
+    MC_CENTRE,
+    monte_carlo_plans,
+    push_trial,
 )
 from afm_core.sim.config import load_config, merge  # noqa: E402
 from afm_core.sim.instrument import SimulatedAfm  # noqa: E402
@@ -95,14 +97,9 @@ def machine_info() -> dict:
 
 
 def monte_carlo_part() -> dict:
-    c0 = np.array([5e-6, 5e-6])
-    plain = nano_hand_plan(c0, c0 + [0.0, 300 * NM], steps=6, aim=False)
-    goal = c0 + [0.0, plain.along(plain.predicted)]
-    plans = {
-        "centre": centre_push_plan(c0, goal, steps=6),
-        "nano_hand": nano_hand_plan(c0, goal, steps=6, aim=False),
-        "nano_hand_aimed_300nm": nano_hand_plan(c0, c0 + [0.0, 300 * NM], steps=6),
-    }
+    c0 = np.array(MC_CENTRE)
+    plans = monte_carlo_plans(c0)  # the plans: afm_core.manipulation.push_trials
+    book = plans.pop("table_7_6_13_steps")
     out = {}
     for name, plan in plans.items():
         t0 = time.perf_counter()
@@ -112,7 +109,6 @@ def monte_carlo_part() -> dict:
             "wall_seconds": time.perf_counter() - t0,
             "goal_along_nm": float(plan.along(plan.goal) / NM),
         }
-    book = nano_hand_plan(c0, c0 + [0.0, 600 * NM], steps=13, aim=False)
     t0 = time.perf_counter()
     r = monte_carlo_push(book, samples=500, sigma=10 * NM, seed=1, tolerance=TOL)
     disp = r.final - c0
@@ -132,40 +128,20 @@ def monte_carlo_part() -> dict:
 
 
 def sim_run(seed: int, strategy: str, estimate_sigma: float) -> dict:
-    sim = SimulatedAfm(merge(load_config(), {"seed": seed}))
-    sphere = sim.sample.spheres[0]
-    truth0 = np.array([sphere.x, sphere.y])
-    err = np.random.default_rng(1000 + seed).normal(0.0, estimate_sigma, 2)
-    est = truth0 + err
-    goal = est + [0.0, 500 * NM]
-    if strategy == "nano_hand":
-        plan = nano_hand_plan(est, goal, limits=sim.limits)
-    elif strategy == "centre":
-        plan = centre_push_plan(est, goal, limits=sim.limits)
-    elif strategy == "centre_single":
-        plan = centre_push_plan(est, goal, single=True, limits=sim.limits)
-    elif strategy == "table_7_6":  # goal: where the model predicts the book's 13 steps end
-        plan = nano_hand_plan(est, est + [0.0, 600 * NM], steps=13, aim=False, limits=sim.limits)
-        goal = plan.predicted
-    else:
-        raise ValueError(strategy)
-    t0 = time.perf_counter()
-    result = execute_plan(sim, plan, speed=0.5e-6)
-    wall = time.perf_counter() - t0
-    final = np.array([sphere.x, sphere.y])
-    d = final - truth0
+    """(b): afm_core.manipulation.push_trials.push_trial, in the nm of this bench's report."""
+    trial = push_trial(seed, strategy, estimate_sigma, goal_distance=500 * NM, tolerance=TOL)
     return {
         "seed": seed,
         "strategy": strategy,
-        "strokes": len(plan),
-        "completed": result.completed,
-        "error_nm": float(np.hypot(*(final - goal)) / NM),
-        "success": bool(np.hypot(*(final - goal)) <= TOL),
-        "along_nm": float(d @ plan.axis / NM),
-        "sideways_nm": float(-(d @ plan.normal) / NM),
-        "estimate_error_nm": [float(v) for v in err / NM],
-        "sim_seconds": result.duration,
-        "wall_seconds": wall,
+        "strokes": trial["strokes"],
+        "completed": trial["completed"],
+        "error_nm": trial["error"] / NM,
+        "success": trial["success"],
+        "along_nm": trial["along"] / NM,
+        "sideways_nm": trial["sideways"] / NM,
+        "estimate_error_nm": [float(v) for v in trial["estimate_error"] / NM],
+        "sim_seconds": trial["sim_seconds"],
+        "wall_seconds": trial["wall_seconds"],
     }
 
 

@@ -19,7 +19,7 @@ from afm_core.batch import read_rows, run_batch
 # one xdist worker runs the tests that share the module's sessions and its LocalCluster batch
 pytestmark = pytest.mark.xdist_group("batch_sessions")
 # the columns that depend on where and when a row was computed, not on what it says
-RUN_COLUMNS = ("seconds", "worker")
+RUN_COLUMNS = ("seconds", "worker", "finished_utc")
 SEEDS = (1, 2, 3)
 
 
@@ -143,6 +143,10 @@ def test_a_scheduler_and_two_worker_processes_give_the_same_rows(sessions, local
             for _ in range(2)
         ]
         result = run_batch("evaluate", [folder], tmp_path / "out", scheduler=address, workers=2)
+        # a sweep over seeds on the same workers: each row is its seed's trial, as in here
+        sweep = run_batch(
+            "push", "0-1", tmp_path / "push", scheduler=address, strategy="centre_single"
+        )
     finally:
         for process in [*workers, scheduler]:
             process.terminate()
@@ -157,6 +161,11 @@ def test_a_scheduler_and_two_worker_processes_give_the_same_rows(sessions, local
     assert _by_item(rows) == _by_item(local_batch[1])
     # computed by the worker processes, not in this one
     assert all(str(os.getpid()) not in r["worker"] and r["worker"] for r in rows)
+    from afm_core.manipulation.push_trials import push_trial
+
+    for row in read_rows(sweep.table):
+        assert str(os.getpid()) not in row["worker"] and row["status"] == "ok"
+        assert float(row["error_m"]) == push_trial(int(row["seed"]), "centre_single")["error"]
 
 
 def test_an_interrupted_batch_is_resumed_without_redoing_finished_items(

@@ -8,7 +8,9 @@ What a recording holds decides what is evaluated (an empty cell: not recorded):
 - the localizer's estimates (/afm/tip_pose) against the true tip: error RMS and mean NEES
   (afm_core.evaluation.tip_against_truth, the demo's evaluation);
 - pushes: the contact moves commanded (/afm/tip_command kind PUSH) and, with ground truth,
-  the objects they moved and how far (first truth to last).
+  the objects they moved and how far (first truth to last);
+- push goals (/afm/push_goal) with ground truth: each goal's pushed object, its final true
+  position and error to the goal, success within the tolerance (afm_core.batch.push_outcomes).
 
 Scans are decoded one at a time from the reader's stream; only the truth and pose topics
 (small messages, one per command) are held as arrays.
@@ -22,6 +24,7 @@ from datetime import datetime, timezone
 
 import numpy as np
 
+from afm_core.batch import push_outcomes
 from afm_core.evaluation import (
     image_frame_matrix,
     scan_against_truth,
@@ -32,7 +35,7 @@ from afm_core.evaluation import (
 from afm_core.recording import RecordingReader
 from afm_core.recording.reader import flatten
 
-ROW_FORMAT = 1  # bump when a column's meaning changes: the rows computed before are redone
+ROW_FORMAT = 2  # bump when a column's meaning changes: the rows computed before are redone
 SCAN, TRUTH, POSE, COMMAND = "/afm/scan", "/afm/ground_truth", "/afm/tip_pose", "/afm/tip_command"
 PUSH_KIND = 3  # afm_msgs/msg/TipCommand.PUSH
 # m: the simulator's truth moves an object only when the tip pushes it (drift moves the
@@ -56,7 +59,22 @@ COLUMNS = [
     "push_strokes",
     "objects_moved",
     "push_displacement_max_m",
+    "push_goals",
+    "push_goals_judged",
+    "push_succeeded",
+    "push_tolerance_m",
+    "push_error_median_m",
+    "push_error_max_m",
+    "push_outcomes",
 ]
+
+
+def options(push_tolerance: float | None = None) -> tuple[dict, dict]:
+    """(what each task gets, what the configuration hash is of)."""
+    tolerance = push_outcomes.TOLERANCE if push_tolerance is None else float(push_tolerance)
+    if not (math.isfinite(tolerance) and tolerance > 0):
+        raise ValueError(f"push_tolerance={push_tolerance}: must be finite and > 0 m")
+    return {"push_tolerance": tolerance}, {"push_tolerance": tolerance}
 
 
 @functools.cache
@@ -69,8 +87,9 @@ def recording_date(start_ns: int) -> str:
     return datetime.fromtimestamp(start_ns * 1e-9, tz=timezone.utc).date().isoformat()
 
 
-def evaluate_recording(path) -> dict:
-    """One recording's row (COLUMNS; SI units). RecordingError when it cannot be read."""
+def evaluate_recording(path, push_tolerance: float = push_outcomes.TOLERANCE) -> dict:
+    """One recording's row (COLUMNS; SI units). RecordingError when it cannot be read.
+    push_tolerance: m, a push goal is reached when its object ends this close to it."""
     with RecordingReader(path) as reader:
         topics = reader.topics()
         row = {
@@ -92,6 +111,9 @@ def evaluate_recording(path) -> dict:
             )
         if COMMAND in topics:
             row.update(_pushes(reader, truth))
+        if push_outcomes.GOAL in topics:
+            goals = reader.arrays(push_outcomes.GOAL)
+            row.update(push_outcomes.push_columns(goals, truth, _image_frame(), push_tolerance))
     return row
 
 
@@ -151,6 +173,7 @@ def summarise(rows: list[dict]) -> dict:
     """Across the finished rows: sessions, those with truth, the medians of the localization
     error and NEES and of the scans' centre error, the pushes and the objects they moved."""
     done = [r for r in rows if r.get("status") == "ok"]
+    errors = [e for r in done for e in push_outcomes.outcome_errors(r.get("push_outcomes", ""))]
 
     def median(column):
         values = _floats(done, column)
@@ -165,6 +188,12 @@ def summarise(rows: list[dict]) -> dict:
         "centre_error_rms_m": median("centre_error_rms_m"),
         "push_strokes": int(sum(_floats(done, "push_strokes"))),
         "objects_moved": int(sum(_floats(done, "objects_moved"))),
+        "push_goals": int(sum(_floats(done, "push_goals"))),
+        "push_goals_judged": int(sum(_floats(done, "push_goals_judged"))),
+        "push_succeeded": int(sum(_floats(done, "push_succeeded"))),
+        "push_tolerance_m": sorted(set(_floats(done, "push_tolerance_m"))),
+        # over every judged goal of every session, not a median of sessions' medians
+        "push_error_median_m": float(np.median(errors)) if errors else float("nan"),
     }
 
 
@@ -173,6 +202,11 @@ def summary_markdown(summary: dict) -> str:
         return "not recorded" if math.isnan(value) else f"{value * 1e9:.1f} nm"
 
     nees = summary["localization_mean_nees"]
+    tolerance = ", ".join(nm(t) for t in summary["push_tolerance_m"]) or "the tolerance"
+    judged = summary["push_goals_judged"]
+    reached = f"{summary['push_succeeded']} of {judged}" + (
+        f" ({summary['push_succeeded'] / judged:.0%})" if judged else ""
+    )
     return "\n".join(
         [
             "# Offline evaluation across sessions",
@@ -189,6 +223,11 @@ def summary_markdown(summary: dict) -> str:
             f"| scans' particle centre error RMS | {nm(summary['centre_error_rms_m'])} |",
             f"| push strokes (total) | {summary['push_strokes']} |",
             f"| objects moved (total) | {summary['objects_moved']} |",
+            f"| push goals (total; judged against truth) | {summary['push_goals']} "
+            f"({summary['push_goals_judged']}) |",
+            f"| push goals reached within {tolerance} | {reached} |",
+            f"| push error to the goal (median over goals) | "
+            f"{nm(summary['push_error_median_m'])} |",
             "",
         ]
     )

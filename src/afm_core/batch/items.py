@@ -112,3 +112,37 @@ def config_hash(kind: str, row_format: int, options: dict) -> str:
     the options (a model file enters by its content hash, so an edited model is redone)."""
     text = json.dumps({"kind": kind, "format": row_format, **options}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+MAX_SEEDS = 1_000_000  # one batch's seeds at most: a typo such as 0-1e9 must not fill memory
+MAX_SEED = 2**32 - 1 - 20_000  # the trials seed generators with seed + up to 20000 (< 2^32)
+
+
+def parse_seeds(seeds) -> list[int]:
+    """The seeds of a sweep, in order, each once: an int, text such as "0-99", "0,1,5" or
+    "0-9,20-29" (ranges inclusive), or a list of those."""
+    parts = [seeds] if isinstance(seeds, (int, str)) else list(seeds)
+    out: list[int] = []
+    for part in parts:
+        for piece in str(part).split(","):
+            out += _seed_range(piece.strip(), str(part))
+            if len(out) > MAX_SEEDS:
+                raise ValueError(f"seeds {str(part)!r}: more than {MAX_SEEDS} seeds")
+    if not out:
+        raise ValueError("seeds: none given (e.g. 0-99 or 0,1,5)")
+    return list(dict.fromkeys(out))
+
+
+def _seed_range(piece: str, given: str) -> list[int]:
+    low, dash, high = piece.partition("-")
+    try:
+        first, last = int(low), int(high if dash else low)
+    except ValueError:
+        raise ValueError(
+            f"seeds {given!r}: {piece!r} is not a seed or a range such as 0-99"
+        ) from None
+    if not 0 <= first <= last <= MAX_SEED:
+        raise ValueError(f"seeds {given!r}: {piece!r} must be 0 <= first <= last <= {MAX_SEED}")
+    if last - first >= MAX_SEEDS:
+        raise ValueError(f"seeds {given!r}: more than {MAX_SEEDS} seeds")
+    return list(range(first, last + 1))

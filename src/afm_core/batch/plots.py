@@ -93,3 +93,84 @@ def _nees_panel(right, points: list) -> None:
     right.set_xlabel("session (by recording date)")
     right.set_ylabel("mean NEES")
     right.legend(fontsize="small")
+
+
+PUSH_FIGURE = "push_errors.png"
+LOCALIZATION_FIGURE = "localization_errors.png"
+
+
+def _ok(rows: list[dict], column: str) -> list[dict]:
+    return [r for r in rows if r.get("status") == "ok" and r.get(column) not in (None, "")]
+
+
+def push_errors(rows: list[dict], folder: Path) -> str | None:
+    """Per strategy, the final error of every seed (nm, by seed) against the tolerance."""
+    done = _ok(rows, "error_m")
+    if not done:
+        return None
+    plt = _pyplot()
+    figure, axes = plt.subplots(figsize=(6, 3.5))
+    for strategy in sorted({r["strategy"] for r in done}):
+        group = sorted(
+            (r for r in done if r["strategy"] == strategy), key=lambda r: int(r["seed"])
+        )
+        axes.plot(
+            [int(r["seed"]) for r in group], [float(r["error_m"]) * 1e9 for r in group], "o",
+            label=strategy,
+        )  # fmt: skip
+    for tolerance in sorted({float(r["tolerance_m"]) for r in done}):
+        axes.axhline(tolerance * 1e9, color="grey", linestyle="--", label="tolerance")
+    axes.set_xlabel("seed")
+    axes.set_ylabel("final error to the goal (nm)")
+    axes.legend(fontsize="small")
+    figure.tight_layout()
+    figure.savefig(Path(folder) / PUSH_FIGURE, dpi=100)
+    plt.close(figure)
+    return PUSH_FIGURE
+
+
+def localization_errors(rows: list[dict], folder: Path) -> str | None:
+    """Per mode, the NEES of every seed against its dof (its mean when consistent)."""
+    done = _ok(rows, "nees")
+    if not done:
+        return None
+    plt = _pyplot()
+    figure, axes = plt.subplots(figsize=(6, 3.5))
+    for mode in sorted({r["mode"] for r in done}):
+        group = sorted((r for r in done if r["mode"] == mode), key=lambda r: int(r["seed"]))
+        axes.plot([int(r["seed"]) for r in group], [float(r["nees"]) for r in group], "o",
+                  label=mode)  # fmt: skip
+    for dof in sorted({int(float(r["nees_dof"])) for r in done}):
+        axes.axhline(dof, color="grey", linestyle="--", label=f"consistent mean ({dof} dof)")
+    axes.set_yscale("log")
+    axes.set_xlabel("seed")
+    axes.set_ylabel("NEES")
+    axes.legend(fontsize="small")
+    figure.tight_layout()
+    figure.savefig(Path(folder) / LOCALIZATION_FIGURE, dpi=100)
+    plt.close(figure)
+    return LOCALIZATION_FIGURE
+
+
+MONTE_CARLO_FIGURE = "monte_carlo_success.png"
+
+
+def monte_carlo_success(rows: list[dict], folder: Path) -> str | None:
+    """Per plan, each seed's Monte Carlo success probability (its seed-to-seed scatter)."""
+    done = _ok(rows, "success_probability")
+    if not done:
+        return None
+    plt = _pyplot()
+    figure, axes = plt.subplots(figsize=(6, 3.5))
+    for plan in sorted({r["plan"] for r in done}):
+        group = sorted((r for r in done if r["plan"] == plan), key=lambda r: int(r["seed"]))
+        axes.plot([int(r["seed"]) for r in group],
+                  [float(r["success_probability"]) for r in group], "o", label=plan)  # fmt: skip
+    axes.set_xlabel("seed")
+    axes.set_ylabel("success probability (Monte Carlo)")
+    axes.set_ylim(0, 1.02)
+    axes.legend(fontsize="small")
+    figure.tight_layout()
+    figure.savefig(Path(folder) / MONTE_CARLO_FIGURE, dpi=100)
+    plt.close(figure)
+    return MONTE_CARLO_FIGURE

@@ -4,9 +4,10 @@ changes between the two.
 
 The items' hashes are computed on the workers (a recording is read where it lies, by whoever
 runs the task); an item whose (file hash, configuration hash) already has a finished row is
-skipped, every other one runs as one task. Rows are appended to DIR/results.csv as tasks
-complete; a task's exception becomes a failed row with its error on one line, so one bad
-recording never stops the batch.
+skipped, every other one runs as one task. A sweep's items are seeds, keyed by (seed,
+configuration hash), submitted at once. Rows are appended to DIR/results.csv as tasks
+complete, each with the time it was written; a task's exception becomes a failed row with its
+error on one line, so one bad recording never stops the batch.
 """
 
 from __future__ import annotations
@@ -17,13 +18,20 @@ import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 
-from afm_core.batch import evaluate, plots, sim2real
-from afm_core.batch.items import config_hash, expand_items, file_sha256, local_file
+from afm_core.batch import evaluate, plots, sim2real, sweeps
+from afm_core.batch.items import config_hash, expand_items, file_sha256, local_file, parse_seeds
 from afm_core.batch.table import COMMON_COLUMNS, FAILED, OK, ResultsTable, read_rows
 
-KINDS = ("evaluate", "sim2real")
+RECORDING_KINDS = ("evaluate", "sim2real")  # items: recordings, keyed by their content's hash
+SEED_KINDS = (
+    "push",
+    "montecarlo",
+    "localize",
+)  # items: seeds of a benchmark sweep, keyed by the seed
+KINDS = RECORDING_KINDS + SEED_KINDS
 ERROR_CHARS = 300  # an error cell is one line, this long at most (the full text is in the log)
 CONNECT_TIMEOUT = 30.0  # s to reach a --scheduler (a wrong address must not hang the command)
 
@@ -38,6 +46,7 @@ class Progress:
     skipped: int = 0
     started: float = 0.0
     last: dict | None = None  # the row just written
+    unit: str = "recordings"
 
     @property
     def finished(self) -> int:
@@ -52,7 +61,7 @@ class Progress:
     def line(self) -> str:
         return (
             f"{self.finished}/{self.total} ({self.ok} ok, {self.failed} failed, "
-            f"{self.skipped} done before), {self.per_minute:.1f} recordings/min"
+            f"{self.skipped} done before), {self.per_minute:.1f} {self.unit}/min"
         )
 
 
@@ -73,12 +82,29 @@ def one_line(exc: BaseException) -> str:
     return text[:ERROR_CHARS]
 
 
-def _options(kind: str, model, effects) -> tuple[dict, dict]:
+def _options(kind: str, model, effects, settings: dict) -> tuple[dict, dict]:
     """(what the task gets, what the configuration hash is of)."""
     if kind not in KINDS:
         raise ValueError(f"batch kind {kind!r}: expected one of {list(KINDS)}")
+    allowed = {
+        "evaluate": {"push_tolerance"},
+        "sim2real": set(),
+        "push": {"strategy", "estimate_sigma", "goal_distance", "tolerance"},
+        "montecarlo": {"plan", "samples", "sigma", "tolerance"},
+        "localize": {"mode", "calibration"},
+    }[kind]
+    unknown = sorted(k for k, v in settings.items() if k not in allowed and v is not None)
+    if unknown:
+        raise ValueError(f"batch kind {kind!r}: no setting {unknown} (it has {sorted(allowed)})")
+    settings = {k: v for k, v in settings.items() if v is not None}
     if kind == "evaluate":
-        return {}, {}
+        return evaluate.options(**settings)
+    if kind == "push":
+        return sweeps.push_options(**settings)
+    if kind == "montecarlo":
+        return sweeps.monte_carlo_options(**settings)
+    if kind == "localize":
+        return sweeps.localize_options(**settings)
     if model and not Path(model).is_file():
         raise ValueError(f"model {str(model)!r}: no such simulator configuration file")
     model_hash = file_sha256(str(model)) if model else "defaults"
@@ -91,24 +117,35 @@ def _options(kind: str, model, effects) -> tuple[dict, dict]:
     return task, {"model": model_hash, "effects": effects}
 
 
-def run_item(kind: str, item: str, sha: str, config: str, options: dict, output: str) -> dict:
-    """One item's row on a worker; never raises (a failure is the row's status and error)."""
+def run_item(
+    kind: str, item: str, sha: str, config: str, options: dict, output: str, shared=None
+) -> dict:
+    """One item's row on a worker; never raises (a failure is the row's status and error).
+    shared: what every item of the batch needs, computed once (localize: the calibration)."""
     start = time.perf_counter()
     row = {"item": item, "sha256": sha, "config": config, "worker": _worker_name()}
     try:
-        with local_file(item) as path:
-            if kind == "evaluate":
-                row.update(evaluate.evaluate_recording(path))
-            else:
-                report = Path(output) / "reports" / f"{Path(path).stem}-{sha[:12]}"
-                row.update(
-                    sim2real.diagnose_recording(path, options["model"], options["effects"], report)
-                )
+        if kind == "push":
+            row.update(sweeps.push_row(int(item), options))
+        elif kind == "montecarlo":
+            row.update(sweeps.monte_carlo_row(int(item), options))
+        elif kind == "localize":
+            row.update(sweeps.localize_row(int(item), options, shared))
+        else:
+            with local_file(item) as path:
+                row.update(_recording_row(kind, path, sha, options, output))
         row["status"] = OK
     except Exception as exc:  # noqa: BLE001 - any failure is this item's row, not the batch's
         row.update(status=FAILED, error=one_line(exc))
     row["seconds"] = time.perf_counter() - start
     return row
+
+
+def _recording_row(kind: str, path: Path, sha: str, options: dict, output: str) -> dict:
+    if kind == "evaluate":
+        return evaluate.evaluate_recording(path, **options)
+    report = Path(output) / "reports" / f"{Path(path).stem}-{sha[:12]}"
+    return sim2real.diagnose_recording(path, options["model"], options["effects"], report)
 
 
 def _worker_name() -> str:
@@ -152,6 +189,37 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, memory
         yield client
 
 
+@dataclass(frozen=True)
+class _Kind:
+    columns: list
+    row_format: int
+    summarise: Callable
+    markdown: Callable
+
+
+def _kind(kind: str) -> _Kind:
+    if kind in RECORDING_KINDS:
+        module = evaluate if kind == "evaluate" else sim2real
+        return _Kind(module.COLUMNS, module.ROW_FORMAT, module.summarise, module.summary_markdown)
+    if kind == "push":
+        return _Kind(
+            sweeps.PUSH_COLUMNS, sweeps.ROW_FORMAT, sweeps.summarise_push, sweeps.push_markdown
+        )
+    if kind == "montecarlo":
+        return _Kind(
+            sweeps.MONTE_CARLO_COLUMNS,
+            sweeps.ROW_FORMAT,
+            sweeps.summarise_monte_carlo,
+            sweeps.monte_carlo_markdown,
+        )
+    return _Kind(
+        sweeps.LOCALIZE_COLUMNS,
+        sweeps.ROW_FORMAT,
+        sweeps.summarise_localize,
+        sweeps.localize_markdown,
+    )
+
+
 def run_batch(
     kind: str,
     paths,
@@ -164,26 +232,33 @@ def run_batch(
     effects: list | None = None,
     progress: Callable[[Progress], None] | None = None,
     client=None,
+    **settings,
 ) -> BatchResult:
-    """Evaluate (kind "evaluate") or diagnose ("sim2real") every recording `paths` name,
-    writing OUTPUT/results.csv (a row per item) and OUTPUT/summary.md. `client`: an existing
-    dask Client to use instead of making one from workers/scheduler."""
-    task_options, hashed = _options(kind, model, effects)
-    module = evaluate if kind == "evaluate" else sim2real
-    config = config_hash(kind, module.ROW_FORMAT, hashed)
-    items = expand_items(paths)
+    """Run `kind` over its items, writing OUTPUT/results.csv (a row per item) and
+    OUTPUT/summary.md. Recording kinds ("evaluate", "sim2real"): `paths` names recordings
+    (files, folders, URLs). Seed kinds ("push", "localize"): `paths` is the seeds (ints, or
+    text such as "0-99" or "0,1,5"). `settings`: the kind's own (evaluate: push_tolerance;
+    push: strategy, estimate_sigma, goal_distance, tolerance; montecarlo: plan, samples,
+    sigma, tolerance; localize: mode, calibration; SI units). `client`: an existing dask
+    Client to use instead of making one."""
+    task_options, hashed = _options(kind, model, effects, settings)
+    spec = _kind(kind)
+    config = config_hash(kind, spec.row_format, hashed)
+    items = parse_seeds(paths) if kind in SEED_KINDS else expand_items(paths)
     output = Path(output).absolute()  # the workers write the sim2real reports into it
     output.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    state = Progress(total=len(items), started=started)
-    with ResultsTable(output / "results.csv", COMMON_COLUMNS + module.COLUMNS) as table:
+    unit = "seeds" if kind in SEED_KINDS else "recordings"
+    state = Progress(total=len(items), started=started, unit=unit)
+    with ResultsTable(output / "results.csv", COMMON_COLUMNS + spec.columns) as table:
         with contextlib.ExitStack() as stack:
             if client is None:
                 client = stack.enter_context(dask_client(workers, scheduler, memory_limit))
-            _run(client, kind, items, config, task_options, output, table, state, progress)
+            batch = _Batch(client, kind, config, task_options, output, table, state, progress)
+            batch.run(items)
     rows = read_rows(output / "results.csv")
     summary = output / "summary.md"
-    text = module.summary_markdown(module.summarise(rows))
+    text = spec.markdown(spec.summarise(rows))
     figure = _figure(kind, rows, output)
     summary.write_text(text + (f"\n![{figure}]({figure})\n" if figure else ""))
     return BatchResult(
@@ -202,41 +277,95 @@ def _figure(kind: str, rows: list[dict], output: Path) -> str | None:
     try:
         if kind == "sim2real":
             return plots.effects_by_date(rows, output)
+        if kind == "push":
+            return plots.push_errors(rows, output)
+        if kind == "montecarlo":
+            return plots.monte_carlo_success(rows, output)
+        if kind == "localize":
+            return plots.localization_errors(rows, output)
         return plots.errors_by_session(rows, output)
     except ImportError:  # pragma: no cover - matplotlib is a project dependency
         return None
 
 
-def _run(client, kind, items, config, options, output, table, state, progress) -> None:
-    """Hash every item on the workers; as each hash arrives, skip the item or submit its task;
-    write each task's row as it completes."""
-    from distributed import as_completed
+@dataclass
+class _Batch:
+    """One batch on a client: items submitted, rows written as their tasks complete."""
 
-    hashes = client.map(file_sha256, items, pure=False)
-    role = {h.key: ("hash", item, "") for h, item in zip(hashes, items)}
-    pending = as_completed(hashes)
-    for future in pending:
-        what, item, sha = role.pop(future.key)
+    client: object
+    kind: str
+    config: str
+    options: dict
+    output: Path
+    table: ResultsTable
+    state: Progress
+    progress: Callable | None
+
+    def run(self, items: list) -> None:
+        """Recordings: hash every item on the workers; as each hash arrives, skip the item or
+        submit its task. Seeds: skip or submit at once. Write each task's row as it ends."""
+        from distributed import as_completed
+
+        self.pending = as_completed()
+        self.role: dict = {}
+        self.shared = None
+        if self.kind in SEED_KINDS:
+            todo = [s for s in items if (str(s), self.config) not in self.table.done]
+            self.state.skipped += len(items) - len(todo)
+            if self.state.skipped:
+                _say(self.progress, self.state)
+            if todo and self.kind == "localize":  # the calibration: once, on a worker
+                self.shared = self.client.submit(
+                    sweeps.prepare_calibration,
+                    self.options["calibration"],
+                    self.options["mode"],
+                    pure=False,
+                )
+            for seed in todo:
+                self._submit(str(seed), "")
+        else:
+            hashes = self.client.map(file_sha256, items, pure=False)
+            for future, item in zip(hashes, items):
+                self.role[future.key] = ("hash", item, "")
+                self.pending.add(future)
+        for future in self.pending:
+            self._completed(future)
+
+    def _submit(self, item: str, sha: str) -> None:
+        work = self.client.submit(
+            run_item,
+            self.kind,
+            item,
+            sha,
+            self.config,
+            self.options,
+            str(self.output),
+            self.shared,
+            pure=False,
+        )
+        self.role[work.key] = ("work", item, sha)
+        self.pending.add(work)
+
+    def _completed(self, future) -> None:
+        what, item, sha = self.role.pop(future.key)
         try:
             result = future.result()
         except Exception as exc:  # noqa: BLE001 - unreadable file, lost worker: the item's row
-            row = {"item": item, "sha256": sha, "config": config, "status": FAILED}
-            _record(table, state, {**row, "error": one_line(exc)}, progress)
-            continue
+            row = {"item": item, "sha256": sha, "config": self.config, "status": FAILED}
+            _record(self.table, self.state, {**row, "error": one_line(exc)}, self.progress)
+            return
         if what == "work":
-            _record(table, state, result, progress)
-        elif (result, config) in table.done:
-            state.skipped += 1
-            _say(progress, state)
+            _record(self.table, self.state, result, self.progress)
+        elif (result, self.config) in self.table.done:
+            self.state.skipped += 1
+            _say(self.progress, self.state)
         else:
-            work = client.submit(
-                run_item, kind, item, result, config, options, str(output), pure=False
-            )
-            role[work.key] = ("work", item, result)
-            pending.add(work)
+            self._submit(item, result)
 
 
 def _record(table: ResultsTable, state: Progress, row: dict, progress) -> None:
+    # when the row was written: a re-run tells the rows it kept from those it computed
+    row = {**row, "finished_utc": datetime.now(timezone.utc).isoformat(timespec="microseconds")}
     table.append(row)
     if row["status"] == OK:
         state.ok += 1

@@ -2,8 +2,10 @@
 item completes, so an interrupted batch keeps every row it finished.
 
 A re-run reads the table first: rows that finished (status "ok") are kept and their items
-(file hash + configuration hash) skipped; failed rows and a last line cut by the interrupt
-are dropped, so the failed items run again and the table keeps one row per item.
+(file hash, or for a seed the item itself, + configuration hash) skipped; failed rows and a
+last line cut by an interrupt (SIGKILL mid-write, a full disk: a line without its newline, or
+with fewer cells than the header) are dropped, so those items run again and the table keeps
+one row per item. A table written before a column was added is read with that column empty.
 """
 
 from __future__ import annotations
@@ -22,8 +24,16 @@ COMMON_COLUMNS = [
     "error",
     "seconds",
     "worker",
+    "finished_utc",  # when the row was written (ISO 8601, UTC)
 ]
 OK, FAILED = "ok", "failed"
+_EXTRA = "\x00extra"  # DictReader's key for cells beyond the header (a garbled line)
+
+
+def row_key(row: dict) -> tuple[str, str]:
+    """What a finished row stands for: the file's hash (recordings) or the item (seeds), and
+    the configuration hash."""
+    return (row.get("sha256") or row["item"], row["config"])
 
 
 def _cell(value) -> str:
@@ -61,15 +71,22 @@ class ResultsTable:
             text = stream.read()
         if text and not text.endswith("\n"):
             text = text[: text.rfind("\n") + 1]  # the line an interrupt cut
-        rows = list(csv.DictReader(text.splitlines(keepends=True)))
-        header = text.splitlines()[0].split(",") if text else self.columns
-        if header != self.columns:
+        reader = csv.DictReader(text.splitlines(keepends=True), restkey=_EXTRA)
+        rows = list(reader)
+        header = reader.fieldnames or self.columns
+        # an older table of this kind lacks only the columns added since: its rows are kept
+        if header != self.columns and not set(header) < set(self.columns):
             raise ValueError(
                 f"{self.path}: its columns {header[:8]}... are not this batch's "
                 f"{self.columns[:8]}... (another kind of batch?); use another --output"
             )
-        kept = [r for r in rows if r.get("status") == OK]
-        self.done = {(r["sha256"], r["config"]) for r in kept}
+        # a whole row has every header cell (DictReader fills a short one with None)
+        kept = [
+            {c: r.get(c) or "" for c in self.columns}
+            for r in rows
+            if r.get("status") == OK and None not in r.values() and _EXTRA not in r
+        ]
+        self.done = {row_key(r) for r in kept}
         return kept
 
     def append(self, row: dict) -> None:
@@ -81,7 +98,7 @@ class ResultsTable:
         self._stream.flush()
         os.fsync(self._stream.fileno())
         if row.get("status") == OK:
-            self.done.add((row["sha256"], row["config"]))
+            self.done.add(row_key(row))
 
     def close(self) -> None:
         self._stream.close()
