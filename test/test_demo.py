@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from afm_bringup.demo import run_demo
+from afm_core.batch.evaluate import evaluate_recording
 from afm_bringup.demo_evaluation import PUSH_DISTANCE
 
 pytestmark = pytest.mark.ros
@@ -52,3 +53,7 @@ def test_demo_runs_end_to_end_and_reports(tmp_path):
     # the tip shape estimated from the map is an upper bound: the true tip is no wider
     shape = summary["tip_shape"]
     assert 0 < shape["true_width"] <= shape["max_width"] and shape["depth"] > 0
+    # the nano-hand published its goal, so an offline batch evaluation judges the push
+    row = evaluate_recording(run / "session.mcap")
+    assert (row["push_goals"], row["push_goals_judged"]) == (1, 1)
+    assert 0 <= row["push_error_max_m"] < 100e-9

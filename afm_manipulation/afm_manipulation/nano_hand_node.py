@@ -17,10 +17,11 @@ import sys
 import threading
 from dataclasses import fields
 
-from geometry_msgs.msg import PoseWithCovarianceStamped
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
+from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from afm_core.instrument import ScannerLimits
@@ -42,11 +43,13 @@ from afm_ros import params, topics
 from afm_ros.action_client import SafeActionClient
 from afm_ros.action_instrument import ActionInstrument, call_action, call_service
 from afm_ros.conversions import (
+    FRAME_TASK,
     outcome_to_result,
     pose_to_tip_estimate,
     progress_to_assemble_feedback,
     progress_to_push_feedback,
     push_plan_to_msg,
+    seconds_to_time,
     stamp_of,
     wait_until,
 )
@@ -114,6 +117,7 @@ class NanoHandNode(Node):
             MarkerArray, topics.LANDMARK_MARKERS, LATCHED
         )
         self.path_pub = self.create_publisher(PlannedPath, topics.PLANNED_PATH, EVENTS)
+        self.goal_pub = self.create_publisher(PointStamped, topics.PUSH_GOAL, EVENTS)
         clients = ReentrantCallbackGroup()
         self.localize_client = SafeActionClient(
             self,
@@ -199,8 +203,15 @@ class NanoHandNode(Node):
     def reporter(self, goal_handle, to_feedback):
         """Progress as feedback; the planned strokes on /afm/planned_path when they come."""
 
+        goals_published = set()  # an assembly's positions in its order
+
         def report(p: Progress) -> None:
             if p.plan is not None:
+                if p.index not in goals_published:
+                    # once per particle, before its first stroke: what an offline evaluation
+                    # scores the particle's end against (every leg of a closed loop shares it)
+                    goals_published.add(p.index)
+                    self.goal_pub.publish(push_goal_msg(p.plan.goal, p.time))
                 tip_cov = p.tip.covariance
                 self.path_pub.publish(push_plan_to_msg(p.plan, tip_cov, p.particle_id, p.time))
             goal_handle.publish_feedback(to_feedback(p))
@@ -269,6 +280,12 @@ class NanoHandNode(Node):
         else:
             goal_handle.abort()
         return result
+
+
+def push_goal_msg(goal, time: float) -> PointStamped:
+    msg = PointStamped(header=Header(stamp=seconds_to_time(time), frame_id=FRAME_TASK))
+    msg.point.x, msg.point.y = float(goal[0]), float(goal[1])
+    return msg
 
 
 def main(args=None):
