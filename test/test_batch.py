@@ -93,6 +93,12 @@ def test_a_local_cluster_batch_gives_one_row_per_recording_against_truth(session
         assert float(row["push_displacement_max_m"]) == pytest.approx(
             truth[row["item"]]["moved"], rel=1e-12
         )
+        # and a report of the session a person reads, beside the table
+        report = (result.summary.parent / row["report"]).read_text()
+        assert report.startswith(f"# Session {row['item']}")
+        assert "| particles found / matched to truth |" in report and "/ 2 |" in report
+        moved = float(row["push_displacement_max_m"]) * 1e9
+        assert f"| objects moved / largest displacement | 1 / {moved:.1f} nm |" in report
     # progress: every item counted, with a rate
     assert lines[-1].startswith("4/4 (3 ok, 1 failed, 0 done before)")
     assert "recordings/min" in lines[-1]

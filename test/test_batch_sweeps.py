@@ -252,6 +252,10 @@ def test_push_goals_are_judged_by_the_pushed_objects_final_true_position(tmp_pat
     final = [float(v) for v in outcomes[1].split(":")[1].split(",")]
     assert final == pytest.approx(maps(final_2), abs=1e-15)
     assert evaluate_recording(path, push_tolerance=60 * NM)["push_succeeded"] == 2
+    from afm_core.batch.evaluate import session_report
+
+    report = session_report(row, "pushes.mcap")  # each goal's object and error, for a person
+    assert "| 1 | 1 | 5.0 nm |" in report and "| 2 | 2 | 50.0 nm |" in report
 
     # a goal whose push moved nothing: judged by the particle nearest it, and failed
     still = tmp_path / "still.mcap"

@@ -66,6 +66,7 @@ COLUMNS = [
     "push_error_median_m",
     "push_error_max_m",
     "push_outcomes",
+    "report",
 ]
 
 
@@ -231,3 +232,42 @@ def summary_markdown(summary: dict) -> str:
             "",
         ]
     )
+
+
+def session_report(row: dict, item: str) -> str:
+    """One session's evaluation for a person (Markdown): what was recorded and how it compared
+    with the ground truth; lengths in nm."""
+
+    def value(column, nm=False):
+        v = row.get(column)
+        if v is None or (isinstance(v, float) and math.isnan(v)):
+            return "not recorded"
+        return f"{float(v) * 1e9:.1f} nm" if nm else (f"{v:.3g}" if isinstance(v, float) else v)
+
+    lines = [
+        f"# Session {item}",
+        "",
+        f"Recorded {value('recording_date')}, {value('duration_s')} s, {value('messages')} "
+        f"messages on {value('topics')} topics; ground truth "
+        + ("recorded." if row.get("ground_truth") else "not recorded: nothing is compared."),
+        "",
+        "| measure | value |",
+        "| --- | --- |",
+        f"| scans | {value('scans')} |",
+        f"| particles found / matched to truth | {value('particles_found')} / "
+        f"{value('particles_matched')} |",
+        f"| particle centre error RMS | {value('centre_error_rms_m', nm=True)} |",
+        f"| tip poses compared with truth | {value('localization_compared')} |",
+        f"| localization error RMS | {value('localization_error_rms_m', nm=True)} |",
+        f"| localization mean NEES (2 when consistent) | {value('localization_mean_nees')} |",
+        f"| push strokes | {value('push_strokes')} |",
+        f"| objects moved / largest displacement | {value('objects_moved')} / "
+        f"{value('push_displacement_max_m', nm=True)} |",
+        f"| push goals (judged) | {value('push_goals')} ({value('push_goals_judged')}) |",
+        f"| push goals within {value('push_tolerance_m', nm=True)} | {value('push_succeeded')} |",
+        "",
+    ]
+    outcomes = push_outcomes.describe(row.get("push_outcomes", ""))
+    if outcomes:
+        lines += ["| goal | object | error to the goal |", "| --- | --- | --- |", *outcomes, ""]
+    return "\n".join(lines)

@@ -104,3 +104,15 @@ def push_columns(goals: dict, truth: dict | None, image_frame, tolerance: float)
 def outcome_errors(cell: str) -> list[float]:
     """The judged goals' errors (m) of a row's push_outcomes cell."""
     return [float(p.rsplit(":", 1)[1]) for p in (cell or "").split(";") if p and p != "-"]
+
+
+def describe(cell: str) -> list[str]:
+    """Markdown table rows (goal number, object, error in nm) of a row's push_outcomes cell."""
+    rows = []
+    for number, part in enumerate(p for p in (cell or "").split(";") if p):
+        if part == "-":
+            rows.append(f"| {number + 1} | - | not judged (no truth after it) |")
+            continue
+        obj, _final, error = part.split(":")
+        rows.append(f"| {number + 1} | {obj} | {float(error) * 1e9:.1f} nm |")
+    return rows

@@ -133,7 +133,7 @@ def run_item(
             row.update(sweeps.localize_row(int(item), options, shared))
         else:
             with local_file(item) as path:
-                row.update(_recording_row(kind, path, sha, options, output))
+                row.update(_recording_row(kind, path, item, sha, options, output))
         row["status"] = OK
     except Exception as exc:  # noqa: BLE001 - any failure is this item's row, not the batch's
         row.update(status=FAILED, error=one_line(exc))
@@ -141,10 +141,15 @@ def run_item(
     return row
 
 
-def _recording_row(kind: str, path: Path, sha: str, options: dict, output: str) -> dict:
+def _recording_row(kind: str, path: Path, item: str, sha: str, options: dict, output: str):
+    # reports are named by the item as given (a URL's file is a temporary copy)
+    report = Path(output) / "reports" / f"{Path(item).stem}-{sha[:12]}"
     if kind == "evaluate":
-        return evaluate.evaluate_recording(path, **options)
-    report = Path(output) / "reports" / f"{Path(path).stem}-{sha[:12]}"
+        row = evaluate.evaluate_recording(path, **options)
+        report = report.with_name(report.name + ".md")
+        report.parent.mkdir(parents=True, exist_ok=True)
+        report.write_text(evaluate.session_report(row, item))
+        return {**row, "report": str(report.relative_to(output))}  # the same on every cluster
     return sim2real.diagnose_recording(path, options["model"], options["effects"], report)
 
 
