@@ -12,6 +12,9 @@ TIP_SHAPE = "/afm/tip_shape"  # afm_msgs/TipShape, latched
 PLANNED_PATH = "/afm/planned_path"  # afm_msgs/PlannedPath
 PUSH_GOAL = "/afm/push_goal"  # geometry_msgs/PointStamped, every accepted push goal
 MARKERS = "/afm/markers"  # visualization_msgs/MarkerArray
+# afm_msgs/ObjectArray: objects as the push model predicts them per stroke (nano-hand, teleop)
+# and as local scan lines observe them
+OBJECTS_BELIEVED = "/afm/objects/believed"
 # What viewers that know only standard messages show (Foxglove, RViz, rqt_image_view)
 SCAN_IMAGE = "/afm/scan/image"  # sensor_msgs/Image rgb8, each scan colour-mapped, latched
 MAP_IMAGE = "/afm/map/image"  # sensor_msgs/Image rgb8, each map colour-mapped, latched
@@ -44,6 +47,7 @@ RECORDED_BY_DEFAULT = [
     PLANNED_PATH,
     PUSH_GOAL,
     MARKERS,
+    OBJECTS_BELIEVED,
     SCAN_IMAGE,
     MAP_IMAGE,
     LANDMARK_MARKERS,
