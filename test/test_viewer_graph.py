@@ -9,14 +9,14 @@ import time
 
 import numpy as np
 import pytest
-from afm_viewer.probe import Probe, decode
-from afm_viewer.server import CHANNELS, TELEOP_TOPIC
 from conftest import wait_for
 from sim_calibration import oracle_calibration
 from test_push_graph import map_the_sample
 
 from afm_bringup.commander import AfmCommander
 from afm_bringup.launcher import read_port
+from afm_viewer.probe import Probe, decode
+from afm_viewer.server import CHANNELS, TELEOP_TOPIC
 
 pytestmark = pytest.mark.ros
 

@@ -10,12 +10,12 @@ from types import SimpleNamespace as NS
 
 import numpy as np
 import pytest
-from afm_viewer.inputs import ActionStates, parse_twist
-from afm_viewer.probe import Probe, decode
-from afm_viewer.server import CHANNELS, TELEOP_TOPIC, LiveServer, PortTaken
 
 from afm_core.manipulation.execute import TIP_HEIGHT
 from afm_viewer import scene
+from afm_viewer.inputs import ActionStates, parse_twist
+from afm_viewer.probe import Probe, decode
+from afm_viewer.server import CHANNELS, TELEOP_TOPIC, LiveServer, PortTaken
 
 
 def header(sec=100, nanosec=250, frame="afm_task"):
