@@ -295,3 +295,21 @@ def test_the_live_layout_shows_only_advertised_channels_and_every_panel_is_place
         named = layout_topics(layout["configById"])
         assert named and named <= set(client.channels), named - set(client.channels)
     assert layout["configById"]["Teleop!drive"]["topic"] == TELEOP_TOPIC
+
+
+def test_the_demo_takes_any_free_port_when_the_default_is_taken(tmp_path):
+    import socket
+
+    from afm_bringup.launcher import port_free, read_port, viewer_overrides
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        busy = taken.getsockname()[1]
+        assert not port_free("127.0.0.1", busy)
+        chosen = viewer_overrides(tmp_path / "p", port=busy)
+    assert chosen == {"port": "0", "port_file": str(tmp_path / "p")}
+    assert viewer_overrides(tmp_path / "p", port=busy)["port"] == str(busy)  # free again
+    (tmp_path / "p").write_text("40123\n")
+    assert read_port(tmp_path / "p", timeout=1.0) == 40123
+    assert read_port(tmp_path / "missing", timeout=0.1) is None

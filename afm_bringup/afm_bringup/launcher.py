@@ -87,11 +87,12 @@ def port_free(host: str, port: int) -> bool:
     return True
 
 
-def viewer_overrides(port_file: str | os.PathLike, host: str = "127.0.0.1") -> dict[str, str]:
-    """The viewer on Foxglove's default port, or on any free port when another program (a
+def viewer_overrides(
+    port_file: str | os.PathLike, host: str = "127.0.0.1", port: int = VIEWER_PORT
+) -> dict[str, str]:
+    """The viewer on `port` (Foxglove's default), or on any free port when another program (a
     second graph, another demo) has it; the port served is written to `port_file`."""
-    port = VIEWER_PORT if port_free(host, VIEWER_PORT) else 0
-    return {"port": str(port), "port_file": str(port_file)}
+    return {"port": str(port if port_free(host, port) else 0), "port_file": str(port_file)}
 
 
 def read_port(port_file: str | os.PathLike, timeout: float = 10.0) -> int | None:
