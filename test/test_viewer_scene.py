@@ -313,3 +313,27 @@ def test_the_demo_takes_any_free_port_when_the_default_is_taken(tmp_path):
     (tmp_path / "p").write_text("40123\n")
     assert read_port(tmp_path / "p", timeout=1.0) == 40123
     assert read_port(tmp_path / "missing", timeout=0.1) is None
+
+
+def test_a_late_client_gets_the_newest_state_but_not_old_stream_samples(served):
+    server, _, _ = served
+    mark = NS(
+        id=1, position=NS(x=1e-6, y=1e-6, z=0.0), radius=5e-8, covariance=[1e-18, 0, 0, 1e-18]
+    )
+    for sec in (1, 2):  # two maps: only the newer is kept
+        server.log(
+            "/afm/viewer/landmarks",
+            scene.landmark_scene(NS(header=header(sec), landmarks=[mark])),
+            sec,
+        )
+    server.log("/afm/viewer/force", {"lateral_force": 1.0}, 5)
+    assert server.replay_pending() == 0  # nobody subscribed yet
+    with Probe(server.url) as client:
+        client.subscribe(["/afm/viewer/landmarks", "/afm/viewer/force"])
+        client.wait(
+            lambda: server.listener.new_subscriptions >= {"/afm/viewer/landmarks"}, what="sub"
+        )
+        assert server.replay_pending() == 1
+        (got,) = client.wait(lambda: client.messages("/afm/viewer/landmarks"), what="the map")
+        assert got.log_time == 2
+        assert client.messages("/afm/viewer/force") == []

@@ -5,6 +5,11 @@ context, advertises every channel of the live scene at once (a client sees the w
 before any data, and a layout can name them), and takes what clients publish: a client may
 advertise only TELEOP_TOPIC with JSON encoding; each of its messages is checked
 (afm_viewer.inputs.parse_twist) and handed to `on_twist`, or refused with a log line.
+
+The server keeps no history, so a client that subscribes late would see no map until the next
+one: the newest message of each state-like channel (KEPT: the images, landmarks, plan, tip,
+believed objects, frame tree, action states) is kept, and sent again when a client subscribes
+to its channel (`replay_pending`, called by the node's timer: not from the server's callback).
 """
 
 from __future__ import annotations
@@ -75,6 +80,20 @@ CHANNELS = {
     TELEOP_TOPIC: ("json", TWIST_SCHEMA),
     **{f"/afm/viewer/actions/{a}": ("json", {**ANY, "title": "afm.ActionState"}) for a in ACTIONS},
 }
+# channels whose newest message is a state a late client needs (not a stream like the forces)
+KEPT = {
+    "/afm/map/image",
+    "/afm/scan/image",
+    "/afm/viewer/landmarks",
+    "/afm/viewer/tip",
+    "/afm/tip_pose",
+    "/afm/viewer/planned_path",
+    "/afm/viewer/objects",
+    "/afm/objects/believed",
+    "/tf",
+    "/afm/teleop/status",
+    *(f"/afm/viewer/actions/{a}" for a in ACTIONS),
+}
 TYPED = {
     "image": RawImageChannel,
     "scene": SceneUpdateChannel,
@@ -91,9 +110,15 @@ class TeleopListener(ServerListener):
     """Client channels on TELEOP_TOPIC in JSON are taken; their messages go to `on_twist` when
     they are Twists with finite numbers. Everything else is refused with a log line."""
 
-    def __init__(self, on_twist: Callable[[dict], None], log: Callable[[str], None]):
-        self.on_twist, self.log = on_twist, log
+    def __init__(
+        self,
+        on_twist: Callable[[dict], None],
+        log: Callable[[str], None],
+        info: Callable[[str], None] | None = None,
+    ):
+        self.on_twist, self.log, self.info = on_twist, log, info or log
         self.lock = threading.Lock()
+        self.new_subscriptions: set[str] = set()  # topics to send their kept messages again
         self.accepted: set[tuple[int, int]] = set()  # (client id, client channel id)
         self.forwarded = 0
         self.refused = 0
@@ -102,6 +127,7 @@ class TeleopListener(ServerListener):
     def on_subscribe(self, client: Client, channel: ChannelView) -> None:
         with self.lock:
             self.subscribers.setdefault(client.id, set()).add(channel.topic)
+            self.new_subscriptions.add(channel.topic)
 
     def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
         with self.lock:
@@ -120,7 +146,7 @@ class TeleopListener(ServerListener):
             return
         with self.lock:
             self.accepted.add((client.id, channel.id))
-        self.log(f"client {client.id} publishes Twists on {TELEOP_TOPIC} (channel {channel.id})")
+        self.info(f"client {client.id} publishes Twists on {TELEOP_TOPIC} (channel {channel.id})")
 
     def on_client_unadvertise(self, client: Client, client_channel_id: int) -> None:
         with self.lock:
@@ -159,9 +185,12 @@ class LiveServer:
         log: Callable[[str], None],
         name: str = "afm live viewer",
         port_parameter: str = "port",
+        info: Callable[[str], None] | None = None,
     ):
         self.context = Context()
-        self.listener = TeleopListener(on_twist, log)
+        self.listener = TeleopListener(on_twist, log, info)
+        self.kept: dict[str, dict[str, tuple[object, int | None]]] = {}
+        self.kept_lock = threading.Lock()
         self.channels = {}
         for topic, (kind, schema) in CHANNELS.items():
             if kind == "json":
@@ -193,8 +222,28 @@ class LiveServer:
     def url(self) -> str:
         return f"ws://{self.host}:{self.port}"
 
-    def log(self, topic: str, message, log_time: int | None = None) -> None:
+    def log(self, topic: str, message, log_time: int | None = None, key: str = "") -> None:
+        """Send `message` on `topic`'s channel; on a KEPT channel also keep it, the newest per
+        `key` (e.g. the static and the dynamic frame tree on /tf), for late subscribers."""
+        if topic in KEPT:
+            with self.kept_lock:
+                self.kept.setdefault(topic, {})[key] = (message, log_time)
         self.channels[topic].log(message, log_time=log_time)
+
+    def replay_pending(self) -> int:
+        """Send the kept messages of every channel a client subscribed to since the last call
+        (every subscriber of it gets them again: each replaces what it shows). Returns how
+        many were sent."""
+        with self.listener.lock:
+            topics, self.listener.new_subscriptions = self.listener.new_subscriptions, set()
+        sent = 0
+        for topic in sorted(topics & KEPT):
+            with self.kept_lock:
+                kept = list(self.kept.get(topic, {}).values())
+            for message, log_time in kept:
+                self.channels[topic].log(message, log_time=log_time)
+                sent += 1
+        return sent
 
     def stop(self) -> None:
         self.server.stop()

@@ -53,6 +53,8 @@ ACTION_TYPES = {
     "move_tip": MoveTip,
 }
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
+# s: a client that subscribes gets the newest map, plan, tip... this long after, at most
+REPLAY_PERIOD = 0.2
 
 
 def _host(value: str) -> str:
@@ -100,10 +102,17 @@ class ViewerNode(Node):
         host, port = self.config["host"], self.config["port"]
         # a bad port is a configuration error (node_main: exit 2 with this message)
         try:
-            self.server = LiveServer(host, port, self.forward_twist, self.get_logger().warning)
+            self.server = LiveServer(
+                host,
+                port,
+                self.forward_twist,
+                self.get_logger().warning,
+                info=self.get_logger().info,
+            )
         except PortTaken as exc:
             raise ValueError(str(exc)) from exc
         self.subscribe()
+        self.create_timer(REPLAY_PERIOD, self.server.replay_pending)
         self.announce()
         if host not in LOOPBACK:
             self.get_logger().warning(
@@ -133,8 +142,8 @@ class ViewerNode(Node):
         sub(PlannedPath, topics.PLANNED_PATH, self.on_path, EVENTS)
         sub(ObjectArray, topics.OBJECTS_BELIEVED, self.on_objects, EVENTS)
         sub(ForceTrace, topics.FORCE_TRACE, self.on_force, STREAM)
-        sub(TFMessage, topics.TF, self.on_tf, frames.DYNAMIC_QOS)
-        sub(TFMessage, topics.TF_STATIC, self.on_tf, frames.STATIC_QOS)
+        sub(TFMessage, topics.TF, lambda m: self.on_tf(m, "dynamic"), frames.DYNAMIC_QOS)
+        sub(TFMessage, topics.TF_STATIC, lambda m: self.on_tf(m, "static"), frames.STATIC_QOS)
         sub(WrenchStamped, TELEOP_WRENCH, self.on_wrench, 10)
         sub(String, TELEOP_STATUS, self.on_teleop_status, 10)
         sub(Twist, TELEOP_TOPIC, self.on_twist_echo, 10)
@@ -179,8 +188,9 @@ class ViewerNode(Node):
 
     def on_objects(self, msg) -> None:
         t = scene.stamp_ns(msg.header)
-        self.server.log("/afm/viewer/objects", scene.objects_scene(msg), t)
-        self.server.log("/afm/objects/believed", scene.objects_json(msg), t)
+        key = f"{msg.origin}/" + ",".join(str(o.id) for o in msg.objects)  # newest per object
+        self.server.log("/afm/viewer/objects", scene.objects_scene(msg), t, key=key)
+        self.server.log("/afm/objects/believed", scene.objects_json(msg), t, key=key)
 
     def on_force(self, msg) -> None:
         try:
@@ -191,10 +201,10 @@ class ViewerNode(Node):
         for t, sample in samples:
             self.server.log("/afm/viewer/force", sample, t)
 
-    def on_tf(self, msg) -> None:
+    def on_tf(self, msg, kind: str) -> None:
         if msg.transforms:
             t = scene.stamp_ns(msg.transforms[0].header)
-            self.server.log("/tf", scene.transforms(msg), t)
+            self.server.log("/tf", scene.transforms(msg), t, key=kind)
 
     def on_wrench(self, msg) -> None:
         self.server.log(TELEOP_WRENCH, scene.message_dict(msg), scene.stamp_ns(msg.header))
