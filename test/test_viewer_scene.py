@@ -261,7 +261,9 @@ def test_a_client_twist_is_taken_and_bad_ones_refused(served):
 
 def test_a_taken_port_is_refused_naming_the_parameter(served):
     server, _, _ = served
-    with pytest.raises(PortTaken, match=rf"parameter port={server.port}: cannot serve"):
+    with pytest.raises(
+        PortTaken, match=rf"parameter port={server.port} \(host .*\): cannot serve"
+    ):
         LiveServer("127.0.0.1", server.port, print, print)
 
 

@@ -209,8 +209,9 @@ class LiveServer:
             )
         except RuntimeError as exc:
             raise PortTaken(
-                f"parameter {port_parameter}={port}: cannot serve on {host}:{port} ({exc}); "
-                f"give another port, or {port_parameter}:=0 for any free one"
+                f"parameter {port_parameter}={port} (host {host!r}): cannot serve on "
+                f"{host}:{port} ({exc}); give another port, or {port_parameter}:=0 for any "
+                "free one"
             ) from exc
         self.host = host
 

@@ -113,7 +113,13 @@ class ViewerNode(Node):
             raise ValueError(str(exc)) from exc
         self.subscribe()
         self.create_timer(REPLAY_PERIOD, self.server.replay_pending)
-        self.announce()
+        try:
+            self.announce()
+        except OSError as exc:
+            self.server.stop()
+            raise ValueError(
+                f"parameter port_file={self.config['port_file']!r}: cannot write it ({exc})"
+            ) from exc
         if host not in LOOPBACK:
             self.get_logger().warning(
                 f"host={host}: the viewer is reachable from the network, and anyone who reaches "
