@@ -11,7 +11,7 @@ cd "$ROOT"
 VENV="$ROOT/.venv"
 STAMPS="$VENV/.afm-stamps"
 PYTHON_FOR_VENV=${PYTHON:-python3}
-ROS_PACKAGES="afm_msgs afm_ros afm_driver afm_imaging afm_localization afm_planning afm_manipulation afm_bringup"
+ROS_PACKAGES="afm_msgs afm_ros afm_driver afm_imaging afm_localization afm_planning afm_manipulation afm_bringup afm_viewer"
 
 fingerprint() { cat "$@" 2>/dev/null | sha256sum | cut -d' ' -f1; }
 

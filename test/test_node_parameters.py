@@ -43,6 +43,8 @@ def cases(folder):
         ("localizer", {"calibration_file": str(folder / "broken.yaml")}, "calibration"),
         ("sim2real", {"model": f"{missing}.yaml"}, "parameter model="),
         ("sim2real", {"model": str(folder / "broken.yaml")}, "is not valid YAML"),
+        ("viewer", {"port": 70000}, "port=70000: must be <= 65535"),
+        ("viewer", {"port": 0, "port_file": f"{missing}/port"}, "parameter port_file="),
     ]
 
 

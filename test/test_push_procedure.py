@@ -26,6 +26,7 @@ from afm_core.manipulation import (
     ZigzagOverrides,
     localize_with,
 )
+from afm_core.manipulation.execute import OBSERVED, PREDICTED, pushed_object_after
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 
@@ -118,6 +119,10 @@ def test_a_push_reaches_its_goal_by_the_simulators_truth(calibration):
     assert all(r.peak_normal_force > 0 for r in contact)
     assert max(r.peak_lateral_force for r in contact) > 0
     assert all(r.particle_id == mark.id for r in s.reports)
+    # for a live view: after each stroke the push model's prediction, before them nothing new
+    assert [r.belief for r in s.reports] == [""] * (pits + 2) + [""] + [PREDICTED] * total + [""]
+    for r, done in zip(pushing[1:], range(1, total + 1)):
+        np.testing.assert_allclose(r.particle_estimate, pushed_object_after(result.plan, done)[0])
 
 
 def test_an_assembly_pushes_two_particles_in_the_given_order(calibration):
@@ -250,6 +255,10 @@ def test_the_closed_loop_observes_the_particle_where_the_simulator_has_it(calibr
     assert cost.slid > 0 and cost.duration > result.execution.duration > 0
     observing = [r for r in s.reports if r.phase == "observing"]
     assert all("anchor" in r.note for r in observing)
+    # what the lines saw of the particle is an observation with its covariance, for live views
+    observed = [r for r in observing if r.belief == OBSERVED]
+    assert observed and all("particle x, particle y" in r.note for r in observed)
+    assert all(np.all(np.linalg.eigvalsh(r.belief_covariance) > 0) for r in observed)
     assert [r.phase for r in s.reports][-1] == "verifying"
 
 

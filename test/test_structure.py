@@ -11,7 +11,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 CORE = ROOT / "src"
 PACKAGES = ["afm_ros", "afm_bringup", "afm_driver", "afm_imaging", "afm_localization",
-            "afm_planning", "afm_manipulation"]  # fmt: skip
+            "afm_planning", "afm_manipulation", "afm_viewer"]  # fmt: skip
 MAX_MODULE_LINES = 800
 MAX_FUNCTION_LINES = 120
 

@@ -31,7 +31,14 @@ from std_msgs.msg import Header
 from afm_bringup.commander import AfmCommander
 from afm_bringup.demo_evaluation import PUSH_DISTANCE, PUSH_TOLERANCE, evaluate, judge_run
 from afm_bringup.demo_report import write_report
-from afm_bringup.launcher import CALIBRATED_NODES, GRAPH, Graph, sim_calibration_file
+from afm_bringup.launcher import (
+    CALIBRATED_NODES,
+    GRAPH,
+    Graph,
+    read_port,
+    sim_calibration_file,
+    viewer_overrides,
+)
 from afm_bringup.units import nm
 from afm_core.manipulation import path_blocker
 from afm_core.recording import RecordingReader
@@ -167,9 +174,16 @@ def acquire(run_dir: Path, log) -> tuple[dict, dict, dict, dict]:
     graph = Graph(run_dir / "logs")
     graph.start("recorder", {"output": str(run_dir / "session.mcap")})
     calibration = sim_calibration_file()
+    port_file = run_dir / "logs" / "viewer.port"
     for name in GRAPH:
-        graph.start(name, {"calibration_file": calibration} if name in CALIBRATED_NODES else None)
+        overrides = {"calibration_file": calibration} if name in CALIBRATED_NODES else None
+        graph.start(name, viewer_overrides(port_file) if name == "viewer" else overrides)
     log(f"graph started: {', '.join(graph.processes)} (logs in {run_dir / 'logs'})")
+    port = read_port(port_file)
+    if port is not None:
+        log(
+            f"watch it live: Foxglove, Open connection > Foxglove WebSocket, ws://127.0.0.1:{port}"
+        )
     memory, push, timings = {}, {}, {}
     try:
         with AfmCommander(server_timeout=60.0) as afm:

@@ -35,8 +35,9 @@ NODES = {
     "recorder": NodeSpec("afm_bringup.recorder_node", "afm_bringup", "recorder.yaml"),
     "replay": NodeSpec("afm_bringup.replay_node", "afm_bringup", "replay.yaml"),
     "sim2real": NodeSpec("afm_bringup.sim2real_node", "afm_bringup", "sim2real.yaml"),
+    "viewer": NodeSpec("afm_viewer.viewer_node", "afm_viewer", "viewer.yaml"),
 }
-GRAPH = ["driver", "imaging", "localizer", "planner", "nano_hand", "teleop", "sim2real"]
+GRAPH = ["driver", "imaging", "localizer", "planner", "nano_hand", "teleop", "sim2real", "viewer"]
 # The recorder only listens: a new one loses nothing but the gap. More restarts than this in a
 # row mean it cannot run (a full disk, a bad path): the graph stops instead of looping.
 RESTARTABLE = {"recorder"}
@@ -70,6 +71,40 @@ def with_sim_calibration(nodes, overrides: dict[str, dict[str, str]], calibratio
             overrides.setdefault(node, {})["calibration_file"] = calibration
             given.append(node)
     return given
+
+
+VIEWER_PORT = 8765  # Foxglove's default WebSocket port (afm_viewer's default)
+
+
+def port_free(host: str, port: int) -> bool:
+    """True when a server could listen on host:port now (no one else does)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
+def viewer_overrides(
+    port_file: str | os.PathLike, host: str = "127.0.0.1", port: int = VIEWER_PORT
+) -> dict[str, str]:
+    """The viewer on `port` (Foxglove's default), or on any free port when another program (a
+    second graph, another demo) has it; the port served is written to `port_file`."""
+    return {"port": str(port if port_free(host, port) else 0), "port_file": str(port_file)}
+
+
+def read_port(port_file: str | os.PathLike, timeout: float = 10.0) -> int | None:
+    """The port a viewer wrote to `port_file`, once it has (None after `timeout` s)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            return int(Path(port_file).read_text())
+        except (OSError, ValueError):
+            time.sleep(0.05)
+    return None
 
 
 def restart_output(output: str, attempt: int) -> str:

@@ -8,7 +8,9 @@ phase and stroke; a cancel stops after the stroke in progress, lifts the tip cle
 particle and reports where the tip and the particle are. Assemble: many particles, in the
 planner's order (/afm/plan_sequence) unless keep_order. The planned strokes go on
 /afm/planned_path; after every push the map with the particle where the rescan found it goes on
-/afm/landmarks, so the localizer and planner know where it went.
+/afm/landmarks, so the localizer and planner know where it went. The particle as the push
+model predicts it after each stroke, and where local lines or the rescan observe it, goes on
+/afm/objects/believed (ObjectArray, origin "nano_hand") for live views.
 """
 
 from __future__ import annotations
@@ -35,9 +37,10 @@ from afm_core.manipulation import (
     PushRefused,
     ZigzagOverrides,
 )
+from afm_core.manipulation.execute import OBSERVED
 from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.action import Assemble, Localize, PushParticle
-from afm_msgs.msg import LandmarkArray, PlannedPath, TipCommand
+from afm_msgs.msg import LandmarkArray, ObjectArray, PlannedPath, TipCommand
 from afm_msgs.srv import PlanSequence
 from afm_ros import params, topics
 from afm_ros.action_client import SafeActionClient
@@ -56,6 +59,7 @@ from afm_ros.conversions import (
 from afm_ros.landmark_map import NewestLandmarkMap
 from afm_ros.markers import landmark_markers
 from afm_ros.node_main import run
+from afm_ros.objects_believed import believed_objects
 from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED
 
 PARAMETERS = ParameterTable(
@@ -101,9 +105,7 @@ class NanoHandNode(Node):
             calibration=load_calibration(path) if path else Calibration(),
             settings={name: self.config[name] for name in PUSH_PARAMETERS.names()},
             tip_estimate=self.current_tip,
-            on_moved=lambda moved: self.publish_landmarks(
-                self.landmarks.moved(moved, self.instrument.time)
-            ),
+            on_moved=self.on_moved,
         )
         inputs = MutuallyExclusiveCallbackGroup()
         for msg_type, topic, callback, qos in (
@@ -118,6 +120,7 @@ class NanoHandNode(Node):
         )
         self.path_pub = self.create_publisher(PlannedPath, topics.PLANNED_PATH, EVENTS)
         self.goal_pub = self.create_publisher(PointStamped, topics.PUSH_GOAL, EVENTS)
+        self.believed_pub = self.create_publisher(ObjectArray, topics.OBJECTS_BELIEVED, EVENTS)
         clients = ReentrantCallbackGroup()
         self.localize_client = SafeActionClient(
             self,
@@ -144,6 +147,27 @@ class NanoHandNode(Node):
                 cancel_callback=lambda _g: CancelResponse.ACCEPT,
                 feedback_pub_qos_profile=FEEDBACK,
             )
+
+    def on_moved(self, moved) -> None:
+        """A pushed particle where the rescan found it: the map, and the observed object."""
+        time = self.instrument.time
+        self.publish_landmarks(self.landmarks.moved(moved, time))
+        self.believed_pub.publish(
+            believed_objects(
+                moved, (moved.x, moved.y), moved.covariance, OBSERVED, "nano_hand", time
+            )
+        )
+
+    def publish_believed(self, p: Progress) -> None:
+        """The particle as the push model predicts it after a stroke, or as lines saw it."""
+        particle = self.landmarks.current().get(p.particle_id)
+        if not p.belief or particle is None:
+            return
+        self.believed_pub.publish(
+            believed_objects(
+                particle, p.particle_estimate, p.belief_covariance, p.belief, "nano_hand", p.time
+            )
+        )
 
     def publish_landmarks(self, array: LandmarkArray) -> None:
         """The map with a moved landmark, and its markers for viewers."""
@@ -214,6 +238,7 @@ class NanoHandNode(Node):
                     self.goal_pub.publish(push_goal_msg(p.plan.goal, p.time))
                 tip_cov = p.tip.covariance
                 self.path_pub.publish(push_plan_to_msg(p.plan, tip_cov, p.particle_id, p.time))
+            self.publish_believed(p)
             goal_handle.publish_feedback(to_feedback(p))
 
         return report

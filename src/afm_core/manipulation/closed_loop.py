@@ -40,7 +40,7 @@ from afm_core.imaging.landmarks import Landmark
 from afm_core.instrument import check_in_range
 from afm_core.localization.landmark_observation import MapLandmark, line_noise
 from afm_core.manipulation.centre_push import centre_push_plan
-from afm_core.manipulation.execute import StepReport, pushed_object_after
+from afm_core.manipulation.execute import OBSERVED, PREDICTED, StepReport, pushed_object_after
 from afm_core.manipulation.particle_observation import (
     LINE_MARGIN,
     LINE_SIGMAS,
@@ -340,6 +340,7 @@ def report_fields(kind: str, f: dict, particle: Landmark, current: Landmark):
                 peak_lateral_force=float(r.peak_lateral_force),
                 peak_normal_force=float(r.peak_normal_force),
                 note=f["why"],
+                belief=PREDICTED,
             ),
         )
     if kind == "anchor":
@@ -355,4 +356,5 @@ def report_fields(kind: str, f: dict, particle: Landmark, current: Landmark):
         )
         return "observing", np.array([particle.x, particle.y]), dict(note=note)
     o = f["observation"]
-    return "observing", o.mean, dict(note=f"{f['why']}; observed {o.note}; {f['verdict']}")
+    seen = dict(belief=OBSERVED, belief_covariance=np.asarray(o.covariance, float)) if o.ok else {}
+    return "observing", o.mean, dict(note=f"{f['why']}; observed {o.note}; {f['verdict']}", **seen)

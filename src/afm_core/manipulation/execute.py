@@ -84,6 +84,9 @@ class ExecutionResult:
 
 # m, the lateral force's lever arm (module docstring) when none is given
 TIP_HEIGHT = 10e-6
+# What a progress report's particle estimate is (push_procedure.Progress.belief): the push
+# model's prediction after the strokes done, or what local scan lines observed
+PREDICTED, OBSERVED = "predicted", "observed"
 
 
 def force_summary(trace, tip_height: float = TIP_HEIGHT) -> tuple[float, float]:

@@ -51,6 +51,7 @@ from afm_core.instrument import (
 from afm_core.localization.calibration.model import Calibration
 from afm_core.manipulation.closed_loop import PushCost, closed_loop_push, report_fields
 from afm_core.manipulation.execute import (
+    PREDICTED,
     ExecutionResult,
     clear_point,
     execute_plan,
@@ -211,6 +212,11 @@ class Progress:
     plan: PushPlan | None = None  # on the report before the first stroke: the strokes planned
     index: int = 0  # position in an assembly's order
     note: str = ""  # closed_loop: why the leg ended (a stroke) / what was observed and decided
+    # What particle_estimate is for a live view: PREDICTED (the push model after the strokes
+    # done, no measurement since), OBSERVED (local scan lines saw it; belief_covariance is the
+    # observation's), or "" (the map's or the plan's position, nothing new)
+    belief: str = ""
+    belief_covariance: np.ndarray | None = None  # (2, 2) m^2 when known
 
 
 @dataclass
@@ -555,6 +561,7 @@ class PushProcedure:
                 tip=current if current is not None else tip,
                 peak_lateral_force=float(report.peak_lateral_force),
                 peak_normal_force=float(report.peak_normal_force),
+                belief=PREDICTED,
             )
 
         execution = execute_plan(

@@ -1,0 +1,144 @@
+"""The viewer node in the graph, watched by a headless Foxglove client: the live scene during a
+push on the simulated instrument (the particle predicted stroke by stroke, then observed; the
+forces; the tip; the plan; the map; the action's state), and a client's Twist reaching ROS
+/afm/teleop/cmd_vel while a bad one does not."""
+
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+from conftest import wait_for
+from sim_calibration import oracle_calibration
+from test_push_graph import map_the_sample
+
+from afm_bringup.commander import AfmCommander
+from afm_bringup.launcher import read_port
+from afm_viewer.probe import Probe, decode
+from afm_viewer.server import CHANNELS, TELEOP_TOPIC
+
+pytestmark = pytest.mark.ros
+
+SCENE = [
+    "/afm/map/image",
+    "/afm/viewer/landmarks",
+    "/afm/viewer/tip",
+    "/afm/tip_pose",
+    "/afm/viewer/planned_path",
+    "/afm/viewer/objects",
+    "/afm/objects/believed",
+    "/afm/viewer/force",
+    "/tf",
+    "/afm/viewer/actions/push_particle",
+]
+
+
+def start_viewer(nodes, tmp_path):
+    port_file = tmp_path / "viewer.port"
+    viewer = nodes("viewer", port=0, port_file=str(port_file))
+    port = read_port(port_file, timeout=60.0)
+    assert port, f"the viewer wrote no port: {viewer.output()[-2000:]}"
+    return f"ws://127.0.0.1:{port}"
+
+
+def decoded(client, topic):
+    channel = client.channels[topic]
+    if channel["encoding"] == "json":
+        return [json.loads(m.payload) for m in client.messages(topic)]
+    import base64
+
+    schema = base64.b64decode(channel["schema"])
+    return [decode(m.payload, schema, channel["schemaName"]) for m in client.messages(topic)]
+
+
+def test_a_client_twist_reaches_ros_and_a_bad_one_does_not(nodes, ros_node, tmp_path):
+    from geometry_msgs.msg import Twist
+
+    heard = []
+    ros_node.create_subscription(Twist, TELEOP_TOPIC, heard.append, 10)
+    with Probe(start_viewer(nodes, tmp_path), timeout=30.0) as client:
+        client.wait(lambda: len(client.channels) == len(CHANNELS), what="every channel")
+        client.subscribe([TELEOP_TOPIC])
+        client.advertise(1, TELEOP_TOPIC, "geometry_msgs/Twist")
+        good = {"linear": {"x": 2e-7, "y": -1e-7, "z": 0.0}, "angular": {"z": 0.1}}
+
+        def sent_and_heard():
+            client.publish(1, json.dumps(good).encode())
+            end = time.monotonic() + 0.5
+            while not heard and time.monotonic() < end:
+                time.sleep(0.02)
+            return heard
+
+        # the viewer takes the client's channel a moment after the advertise: send until heard
+        wait_for(sent_and_heard, 30, interval=0.0, what="the Twist on ROS")
+        twist = heard[-1]
+        assert (twist.linear.x, twist.linear.y, twist.angular.z) == (2e-7, -1e-7, 0.1)
+        count = len(heard)
+        for bad in (b'{"linear": {"x": NaN}}', b'{"linear": {"x": "1"}}', b"not json"):
+            client.publish(1, bad)
+        client.publish(1, json.dumps({"linear": {"x": 3e-7}}).encode())  # a marker after them
+        wait_for(lambda: any(t.linear.x == 3e-7 for t in heard), 10, what="the marker")
+        assert [t.linear.x for t in heard[count:] if t.linear.x != 2e-7] == [3e-7]
+        # what ROS carries on the topic comes back to clients as the channel's messages
+        client.wait(lambda: decoded(client, TELEOP_TOPIC), what="the echo")
+        assert decoded(client, TELEOP_TOPIC)[-1]["linear"]["x"] in (2e-7, 3e-7)
+
+
+@pytest.fixture
+def graph(tmp_path, nodes):
+    calibration = str(oracle_calibration(tmp_path / "calibration.yaml"))
+    nodes("driver", seed=4, real_time_factor=0.0)
+    nodes("imaging")
+    nodes("localizer", calibration_file=calibration)
+    nodes("planner", calibration_file=calibration)
+    nodes("nano_hand", calibration_file=calibration)
+    return start_viewer(nodes, tmp_path)
+
+
+def test_the_viewer_shows_a_push_live(graph, ros_node):
+    with Probe(graph, timeout=30.0) as client, AfmCommander(server_timeout=60) as afm:
+        client.wait(lambda: len(client.channels) == len(CHANNELS), what="every channel")
+        client.subscribe(SCENE)
+        maps, _ = map_the_sample(afm, ros_node, "pair-viewer")
+        particle = min(
+            maps[-1].landmarks,
+            key=lambda lm: math.hypot(lm.position.x - 55e-6, lm.position.y - 55e-6),
+        )
+        start = np.array([particle.position.x, particle.position.y])
+        goal = start + np.array([0.0, -300e-9])
+        result = afm.push(goal, particle_id=particle.id, tolerance=40e-9, timeout=600)
+        assert result.steps >= 3, result.message
+        client.wait(lambda: decoded(client, "/afm/objects/believed")[-1:], what="objects")
+        beliefs = [b for b in decoded(client, "/afm/objects/believed") if b["origin"]]
+        sources = [b["source"] for b in beliefs]
+        # predicted stroke by stroke while pushing, then observed by the rescan
+        assert sources.count("predicted") >= result.steps and sources[-1] == "observed"
+        predicted = [b["objects"][0] for b in beliefs if b["source"] == "predicted"]
+        assert all(o["id"] == particle.id for o in predicted)
+        # the prediction moves the particle towards the goal, not elsewhere
+        last = np.array([predicted[-1]["x"], predicted[-1]["y"]])
+        assert np.linalg.norm(last - goal) < np.linalg.norm(start - goal), (last, start, goal)
+        observed = beliefs[-1]["objects"][0]
+        achieved = (result.achieved.x, result.achieved.y)
+        assert (observed["x"], observed["y"]) == pytest.approx(achieved, abs=1e-12)
+        scene = decoded(client, "/afm/viewer/objects")
+        ids = {e["id"] for update in scene for e in update.get("entities", [])}
+        assert f"nano_hand/{particle.id}" in ids
+        forces = decoded(client, "/afm/viewer/force")
+        assert max(abs(f.get("lateral_force", 0.0)) for f in forces) > 0  # pushing forces
+        pushes = [e for u in decoded(client, "/afm/viewer/planned_path") for e in u["entities"]]
+        assert pushes and any(line.get("thickness", 0) > 0 for line in pushes[-1]["lines"])
+        for topic in ("/afm/map/image", "/afm/viewer/landmarks", "/afm/viewer/tip", "/tf"):
+            assert client.messages(topic), topic
+        image = decoded(client, "/afm/map/image")[-1]
+        assert (
+            image["encoding"] == "rgb8" and len(image["data"]) == image["height"] * (image["step"])
+        )
+        states = decoded(client, "/afm/viewer/actions/push_particle")
+        phases = {(s.get("feedback") or {}).get("phase") for s in states}
+        assert {"localizing", "pushing", "verifying"} <= phases, phases
+        assert states[-1]["status"] in ("succeeded", "aborted")
+        # log times are the instrument's stamps: the force samples in order within a trace
+        times = [m.log_time for m in client.messages("/afm/viewer/force")]
+        assert times[0] > 1e18  # ns since the epoch (wall time at the driver's start + instrument)
