@@ -142,3 +142,39 @@ def test_the_viewer_shows_a_push_live(graph, ros_node):
         # log times are the instrument's stamps: the force samples in order within a trace
         times = [m.log_time for m in client.messages("/afm/viewer/force")]
         assert times[0] > 1e18  # ns since the epoch (wall time at the driver's start + instrument)
+
+
+def test_a_twist_from_a_foxglove_client_moves_the_simulated_tip_through_teleop(
+    nodes, ros_node, tmp_path
+):
+    """End to end, as the Teleop panel drives it: client -> viewer -> teleop -> driver. The
+    simulator's commanded tip moves along the Twist's direction, no faster than teleop's limit,
+    and stops once the client stops (the dead-man)."""
+    from test_teleop_ros import MAX_SPEED, TIMEOUT, Peer, take
+
+    nodes("driver", seed=2, real_time_factor=20.0)
+    nodes("teleop")
+    peer = Peer(ros_node)
+    wait_for(lambda: peer.truths, 30, what="the driver's ground truth")
+    take(peer)
+    start = peer.commanded()[-1][1]
+    u = np.array([-0.8, 0.6])
+    twist = {"linear": {"x": 0.5 * MAX_SPEED * u[0], "y": 0.5 * MAX_SPEED * u[1], "z": 0.0}}
+    with Probe(start_viewer(nodes, tmp_path), timeout=30.0) as client:
+        client.wait(lambda: len(client.channels) == len(CHANNELS), what="every channel")
+        client.advertise(1, TELEOP_TOPIC, "geometry_msgs/Twist")
+        first = time.monotonic()
+        while time.monotonic() - first < 3.0:  # 20 Hz, as the panel should be set
+            client.publish(1, json.dumps(twist).encode())
+            time.sleep(0.05)
+        last = time.monotonic()
+    wait_for(lambda: time.monotonic() > last + TIMEOUT + 1.0, 5)
+    end = peer.commanded()[-1][1]
+    travelled = end - start
+    assert np.linalg.norm(travelled) > 0, "the tip did not move"
+    assert travelled / np.linalg.norm(travelled) == pytest.approx(u, abs=1e-9)
+    # no faster than the Twist asked (half the limit) over the commands' span + the dead-man
+    assert np.linalg.norm(travelled) <= 0.5 * MAX_SPEED * (last - first + TIMEOUT) * (1 + 1e-9)
+    settled = peer.commanded()[-1][1]
+    time.sleep(1.0)
+    assert np.array_equal(peer.commanded()[-1][1], settled)  # stopped: no command, no motion
