@@ -346,3 +346,15 @@ def test_the_viewer_forwards_client_twists_to_the_topic_the_teleop_node_takes():
     from afm_viewer.server import TELEOP_TOPIC
 
     assert TELEOP_TOPIC == topics.TELEOP_CMD_VEL
+
+
+def test_the_layouts_teleop_panel_publishes_faster_than_the_dead_man_stops_the_tip():
+    """Foxglove's Teleop panel publishes at 1 Hz unless told: with the 0.5 s dead-man the tip
+    would move half of each second. The layout's rate puts at least two commands in each
+    timeout, so one lost message does not stop the tip."""
+    from afm_core.manipulation.teleop import DEFAULT_COMMAND_TIMEOUT
+
+    layout = json.loads(LAYOUT.read_text())
+    (teleop,) = [v for k, v in layout["configById"].items() if k.startswith("Teleop")]
+    assert teleop["topic"] == "/afm/teleop/cmd_vel"
+    assert 1.0 / teleop["publishRate"] <= DEFAULT_COMMAND_TIMEOUT / 2
