@@ -14,6 +14,7 @@ from afm_core.localization.calibration.experiment import (
     punch_at,
     range_centre,
     rescan,
+    wait,
 )
 from afm_core.localization.calibration.matching import match_points
 from afm_core.localization.calibration.pits import find_pits
@@ -27,6 +28,7 @@ def measure_scanner_matrix(
     spacing: float = 1e-6,
     pixel: float = 10e-9,
     force: float | None = None,
+    settle: float = 300.0,
 ) -> Experiment:
     """Imaged displacement per commanded displacement in normal (compensated) operation: a
     grid x grid pattern of pits `spacing` apart, punched row by row (serpentine, moves as
@@ -61,25 +63,45 @@ def measure_scanner_matrix(
     # differs from that of a long monotone run by the model error of the feed-forward).
     beyond = commands.max(axis=0) + 4e-6
     instrument.move_tip(float(beyond[0]), float(beyond[1]), 0.5 * limits.max_speed)
+    # the creep of the moves before (tens of um from the previous experiment) would carry the
+    # pits along while they are punched and imaged: a y gain of 0.94 with creep 3x (slowest
+    # 150 s) when punched at once; `settle` s of rest first (run_calibration: 4 x the slowest
+    # measured time constant, e^-4 = 2 % of that creep left)
+    wait(instrument, checks.non_negative("settle", settle, "s", upper=86400.0))
     for x, y in commands:
         punch_at(instrument, float(x), float(y), 0.1 * limits.max_speed, force)
-    scan = rescan(
-        instrument,
-        commands.min(axis=0) - 0.5e-6,
-        commands.max(axis=0) + 0.5e-6,
-        pixel,
-        slow_axis=1,
-    )
-    detected = find_pits(scan)
-    found = np.array([[p.x, p.y] for p in detected]).reshape(-1, 2)
-    index = match_points(commands, found, 0.3 * spacing)
-    ok = index >= 0
+    # Imaged with the slow axis up and then down, positions averaged: the slow axis of one
+    # pass is stretched by whatever moves the sample against the scanner while it runs (the
+    # creep of the moves before it, the drift), and a rescan of the 5 um grid takes minutes:
+    # on the simulator one up pass read a y gain of 0.93-0.98 (creep 3x-1x, issue 37) with x
+    # at 1.000; the down pass is stretched the other way, so the mean cancels the part
+    # linear in time.
+    images = []
+    for slow_up in (True, False):
+        scan = rescan(
+            instrument,
+            commands.min(axis=0) - 0.5e-6,
+            commands.max(axis=0) + 0.5e-6,
+            pixel,
+            slow_axis=1,
+            slow_up=slow_up,
+        )
+        detected = find_pits(scan)
+        found = np.array([[p.x, p.y] for p in detected]).reshape(-1, 2)
+        index = match_points(commands, found, 0.3 * spacing)
+        placed = np.full(commands.shape, np.nan)
+        placed[index >= 0] = found[index[index >= 0]]
+        images.append(placed)
+    imaged = np.mean(images, axis=0)
+    ok = np.all(np.isfinite(imaged), axis=1)
     if ok.sum() < 4:
-        raise RuntimeError(f"scanner matrix: only {int(ok.sum())} of {len(commands)} pits found")
+        raise RuntimeError(
+            f"scanner matrix: only {int(ok.sum())} of {len(commands)} pits found in both rescans"
+        )
     design = np.hstack([commands[ok] - origin, np.ones((int(ok.sum()), 1))])
-    solution, *_ = np.linalg.lstsq(design, found[index[ok]] - origin, rcond=None)
+    solution, *_ = np.linalg.lstsq(design, imaged[ok] - origin, rcond=None)
     matrix = solution[:2].T
-    residual = found[index[ok]] - origin - design @ solution
+    residual = imaged[ok] - origin - design @ solution
     # standard errors of the matrix entries: per output axis s^2 (X^T X)^-1, s^2 the residual
     # variance of that axis per degree of freedom (three parameters per axis)
     dof = max(1, int(ok.sum()) - 3)
@@ -93,5 +115,9 @@ def measure_scanner_matrix(
             # the longest commanded displacement the fit covers (MotionModel: M's reach)
             "span": float(np.max(np.ptp(commands[ok], axis=0))),
         },
-        {"commanded": commands[ok].tolist(), "imaged": found[index[ok]].tolist()},
+        {
+            "commanded": commands[ok].tolist(),
+            "imaged": imaged[ok].tolist(),
+            "imaged_per_rescan": [image[ok].tolist() for image in images],
+        },
     )
