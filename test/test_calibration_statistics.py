@@ -1,13 +1,13 @@
 """The calibration's stated uncertainties against the simulator (issue 37): the drift mean's
-95 % interval covers the configured mean at about its nominal rate (the pairs are correlated),
-and the check of the scanner matrix against the hysteresis gain compares what the two should
-agree on."""
+95 % interval covers the configured mean at about its nominal rate (the pairs are correlated);
+motion noise adds the trials its precision needs; the scanner matrix's gains are checked
+against the image frame."""
 
 import numpy as np
 import pytest
 
 from afm_core.localization.calibration.drift_statistics import mean_error
-from afm_core.localization.calibration.fit_checks import Z_95
+from afm_core.localization.calibration.fit_checks import Z_95, calibration_checks
 from afm_core.localization.calibration.motion_error import ROW_SIGMAS, measure_motion_noise
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.drift import DriftParams, ThermalDrift
@@ -96,3 +96,31 @@ def test_motion_noise_adds_the_trials_its_precision_needs_on_a_noisy_instrument(
     assert abs(p["pooled_slope"] - configured) <= Z_95 * p["pooled_slope_sigma"], (
         p["pooled_slope"] / configured
     )
+
+
+def test_the_scanner_matrix_gain_is_checked_against_the_image_frame_not_the_open_loop_gain():
+    """Issue 37 printed ok for an image-frame gain 0.9508 against an open-loop gain 1.0052
+    and would have warned only past 10 % between two quantities that do not measure the
+    same thing. Now each gain is checked against 1 with its standard error; the open-loop
+    gain is shown, not compared."""
+    hysteresis = {"gain": 1.0052}
+
+    def checks(gain, sigma):
+        matrix = {
+            "scanner_matrix": [[1.0, 0.0], [0.0, gain]],
+            "scanner_matrix_sigma": [[0.001, 0.001], [0.001, sigma]],
+        }
+        summary = {
+            "scanner_matrix": {"parameters": matrix},
+            "hysteresis_y": {"parameters": hysteresis},
+        }
+        found = [c for c in calibration_checks(summary) if c["parameter"] == "gain_y"]
+        assert len(found) == 1
+        return found[0]
+
+    assert checks(0.9508, 0.002)["level"] == "ok"
+    flagged = checks(0.85, 0.002)
+    assert flagged["level"] == "warning" and "--only scanner_matrix" in flagged["message"]
+    assert "not comparable" in flagged["message"]
+    # as far off but not resolved by the grid (a standard error of 6 %): no warning
+    assert checks(0.85, 0.06)["level"] == "ok"

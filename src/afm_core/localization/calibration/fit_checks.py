@@ -24,10 +24,16 @@ The rules, and why:
 - A creep time constant the runs did not sample (slower than a quarter of a run, faster than
   half the first pit's moment) is flagged, and so is a hysteresis asymmetry fitted without
   all four pits at the loop's tips (extrapolated).
-- The open-loop gain of the hysteresis cycle and the image-frame gain of the scanner matrix
-  measure the scanner at different histories (open loop against compensated); they differ by
-  the feed-forward's model error, a few %. A difference beyond ACCURACY_TARGET is as large as
-  the whole tolerance: one of the two or the controller's own model is off.
+- The scanner matrix's gains are checked against 1 (the image frame), not against the
+  hysteresis cycle's open-loop gain: that is the piezo's tip-to-tip output per drive with the
+  feed-forward off, the matrix is short compensated moves against a compensated raster
+  image. On the simulator the matrix's gains did not follow the controller's model error
+  (y 0.997-0.998 for model errors -0.3 to 0.1) nor the loop (0.985 for loops 0.07 and 0.18),
+  but the creep of the grid's moves (y 0.967, 0.991, 0.997, 1.000 for creep 3x, 1.5x, 1x,
+  0.3x; x 1.00, the serpentine reverses along x every row), while the open-loop gain was
+  1.005-1.016: issue 37's 0.9508 against 1.0052 was no inconsistency (it was the up-only
+  rescan's creep, now imaged up and down). A gain off by more than ACCURACY_TARGET and
+  Z_CONSISTENT standard errors is a warning: the grid or its rescan was disturbed.
 """
 
 from __future__ import annotations
@@ -304,34 +310,33 @@ def _noise_checks(p) -> list[dict]:
 
 
 def _gain_checks(matrix, px, py) -> list[dict]:
+    """The scanner matrix's gains (short compensated moves against the image frame, what the
+    localizer applies) against 1, with the hysteresis cycle's open-loop gain shown beside
+    them but not compared: the two measure different things (see the module doc)."""
     if matrix is None:
         return []
     checks = []
+    sigmas = matrix.get("scanner_matrix_sigma", [[0.0, 0.0], [0.0, 0.0]])
     for axis, p in ((0, px), (1, py)):
-        if p is None or "gain" not in p:
-            continue
-        image_gain = matrix["scanner_matrix"][axis][axis]
-        difference = image_gain - p["gain"]
-        text = (
-            f"image-frame gain {image_gain:.4f} (scanner matrix) against open-loop gain "
-            f"{p['gain']:.4f} (hysteresis cycle)"
-        )
-        level = "ok" if abs(difference) <= ACCURACY_TARGET else "warning"
-        if level == "warning":
+        gain, sigma = matrix["scanner_matrix"][axis][axis], sigmas[axis][axis]
+        deviation = gain - 1.0
+        z = abs(deviation) / sigma if sigma > 0 else math.inf
+        text = f"image-frame gain {'xy'[axis]} {gain:.4f} +- {sigma:.4f}"
+        if p is not None and "gain" in p:
             text += (
-                f": more than {ACCURACY_TARGET:.0%} apart, one of the two or the controller's "
-                f"feed-forward is off; {_repeat('scanner_matrix')} and hysteresis_{'xy'[axis]}"
+                f" (the hysteresis cycle's open-loop gain {p['gain']:.4f} is not comparable: "
+                "tip-to-tip, feed-forward off)"
             )
-        checks.append(
-            _entry(
-                f"scanner_matrix vs hysteresis_{'xy'[axis]}",
-                "gain",
-                level,
-                difference,
-                None,
-                text,
+        level = "ok"
+        if z > Z_CONSISTENT and abs(deviation) > ACCURACY_TARGET:
+            level = "warning"
+            text += (
+                f": short moves are {deviation:+.1%} off against the image, more than "
+                f"{ACCURACY_TARGET:.0%} and {Z_CONSISTENT:g} standard errors; the localizer "
+                f"applies the matrix, but so large a gain says the rescan or the moves were "
+                f"disturbed; {_repeat('scanner_matrix')}"
             )
-        )
+        checks.append(_entry("scanner_matrix", f"gain_{'xy'[axis]}", level, gain, sigma, text))
     return checks
 
 

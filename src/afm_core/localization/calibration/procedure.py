@@ -254,9 +254,7 @@ def run_calibration(
     )
     attempt(
         "scanner_matrix",
-        lambda: measure_scanner_matrix(
-            instrument, **{**_settle_for(creep_axes), **(scanner_matrix or {})}
-        ),
+        lambda: measure_scanner_matrix(instrument, **(scanner_matrix or {})),
     )
     attempt(
         "motion_noise",
@@ -316,19 +314,6 @@ def _accepted_fields(fields: dict, failed: dict) -> dict:
             for name in own:
                 accepted.pop(name)
     return accepted
-
-
-# Rest before the scanner matrix's pits, in slowest creep time constants: e^-4 (2 %) of the
-# creep of the previous experiment's moves is left (its pits would move with it).
-SETTLE_PER_TAU = 4.0
-
-
-def _settle_for(creep_axes) -> dict:
-    """measure_scanner_matrix's `settle` from the measured creep (SETTLE_PER_TAU x its slowest
-    time constant, at least the default's 300 s); {} (the default) without a creep model."""
-    if creep_axes[0] is None or not creep_axes[0][0]:
-        return {}
-    return {"settle": max(300.0, SETTLE_PER_TAU * float(max(creep_axes[0][0])))}
 
 
 def _creep_axes(result, previous: Calibration | None) -> list:

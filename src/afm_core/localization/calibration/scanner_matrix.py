@@ -14,7 +14,6 @@ from afm_core.localization.calibration.experiment import (
     punch_at,
     range_centre,
     rescan,
-    wait,
 )
 from afm_core.localization.calibration.matching import match_points
 from afm_core.localization.calibration.pits import find_pits
@@ -28,7 +27,6 @@ def measure_scanner_matrix(
     spacing: float = 1e-6,
     pixel: float = 10e-9,
     force: float | None = None,
-    settle: float = 300.0,
 ) -> Experiment:
     """Imaged displacement per commanded displacement in normal (compensated) operation: a
     grid x grid pattern of pits `spacing` apart, punched row by row (serpentine, moves as
@@ -63,11 +61,6 @@ def measure_scanner_matrix(
     # differs from that of a long monotone run by the model error of the feed-forward).
     beyond = commands.max(axis=0) + 4e-6
     instrument.move_tip(float(beyond[0]), float(beyond[1]), 0.5 * limits.max_speed)
-    # the creep of the moves before (tens of um from the previous experiment) would carry the
-    # pits along while they are punched and imaged: a y gain of 0.94 with creep 3x (slowest
-    # 150 s) when punched at once; `settle` s of rest first (run_calibration: 4 x the slowest
-    # measured time constant, e^-4 = 2 % of that creep left)
-    wait(instrument, checks.non_negative("settle", settle, "s", upper=86400.0))
     for x, y in commands:
         punch_at(instrument, float(x), float(y), 0.1 * limits.max_speed, force)
     # Imaged with the slow axis up and then down, positions averaged: the slow axis of one
