@@ -56,11 +56,12 @@ def variance_line(distances, variances, counts) -> tuple[float, float, float]:
 # the trials the pooled fit needs (the variance of the slope falls as 1 / trials), times
 # PLAN_MARGIN: the first round's standard error is itself estimated (its variances scatter
 # by sqrt(2 / (trials - 2)) each, ~7 % on the pooled slope), and the plan must not fall short
-# when it came out low. The second round's lanes (at most 25 x 48 um at max_trials 100) lie at
+# when it came out low. The second round's lanes (at most 25 x 45 um at max_trials 100) lie at
 # extra_site, left of the hysteresis y cycle's lanes and their repeat (x in -21..-3 um of the
-# centre), above the x cycle's (y -21..-3 um), left of the scanner matrix's grid, and within
-# 49.5 um of the centre, where the compensated scanner reaches with an asymmetry of 0.1 (a
-# rescan past it is clamped, see hysteresis._rescan_box).
+# centre), above the x cycle's (y -21..-3 um), left of the scanner matrix's grid, and 4.5 um
+# inside the 49.5 um from the centre that the compensated scanner reaches with an asymmetry
+# of 0.1 (a rescan past it is clamped, see hysteresis._rescan_box; at 1.1 um inside, x -48 um,
+# the 0.25 um x lane of the widest loop kept 3 trials).
 PLAN_MARGIN = 1.2
 
 
@@ -78,7 +79,7 @@ def measure_motion_noise(
     progress=None,
     precision: float | None = ACCURACY_TARGET,
     max_trials: int = 100,
-    extra_site=(-48e-6, 0.0),
+    extra_site=(-45e-6, 0.0),
 ) -> Experiment:
     """Motion error variance against distance (book Fig. 7.6e; Fig. 7.20b sigma^2 = a d + b).
 
