@@ -2,7 +2,8 @@
 feed-forward off, a full-range voltage cycle with a pit every few steps on the descending and
 the ascending sweep; with it back on, the rows are rescanned. Prandtl-Ishlinskii weights for
 fixed thresholds by non-negative least squares, the input asymmetry by a 1-D search; the
-measured creep is part of the model. Which detected pit is which punch: hysteresis_rows.py.
+measured creep is part of the model. Which detected pit is which punch: hysteresis_rows.py;
+the open-loop cycle itself: hysteresis_cycle.py.
 """
 
 from __future__ import annotations
