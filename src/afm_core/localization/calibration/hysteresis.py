@@ -266,26 +266,26 @@ def measure_hysteresis_once(
     """PI hysteresis of one axis (0 = x, 1 = y) driven open loop (book 7.2.2, Fig. 7.6a).
 
     Feed-forward off; from the range centre the drive rises to the upper bound of the cycle
-    (cycle_fraction of the half range), falls to the lower bound, rises again, in steps of
-    2 * bound / steps_per_sweep, with a pit every `pit_every` steps on the last two sweeps
-    (the descending sweep on one lane, the ascending one `branch_gap` (raw drive) beside it,
-    so the two rows of pits never mix; `ignore`: image positions of pits already on the
-    sample, e.g. the other axis' cycle, which crosses this one's lane). Feed-forward back
-    on, the pits are rescanned with the slow axis along the cycle: one monotone pass over the
-    whole row, so the image has no fast-axis loop along it and its residual distortion is
-    that of one branch of the compensated scanner (a smooth bulge of about model error x loop
-    width / 2); `rescans` ("down", "up") images the row on the descending and on the
-    ascending compensated branch and averages the pit positions, which cancels the even
-    part of that bulge and the drift. Down first: the cycle ends at its top, so each pass
-    starts where the tip already is; an up pass first, after a full-range move down and a
-    reversal, placed the pits up to 1.3 um low over its first ~40 um (issue 37: the
-    asymmetry read 8-12 % low on a loop of 0.18, a = 0.08, even with a perfect feed-forward
-    and no creep; -1 % down first). The box follows the loop's tips (`_rescan_box`). The fit
-    (`fit_hysteresis`) uses thresholds r_k = k A / (2 operators) (A: cycle amplitude; the
-    first rise of A wipes out the memory of every such operator, so the unknown state before
-    the cycle does not matter) and the measured creep (time constants, fractions) when
-    given. Derived loop_fraction and asymmetry are defined as in
-    PrandtlIshlinskii.from_fraction."""
+    (cycle_fraction of the half range), falls to the lower bound, rises again, in steps of 2 *
+    bound / steps_per_sweep, with a pit every `pit_every` steps on the last two sweeps (the
+    descending sweep on one lane, the ascending one `branch_gap` (raw drive) beside it, so the
+    two rows of pits never mix; `ignore`: image positions of pits already on the sample, e.g.
+    the other axis' cycle, which crosses this one's lane). Feed-forward back on, the pits are
+    rescanned with the slow axis along the cycle: one monotone pass over the whole row, so the
+    image has no fast-axis loop along it and its residual distortion is that of one branch of
+    the compensated scanner (a smooth bulge of about model error x loop width / 2); `rescans`
+    ("down", "up") images the row on the descending and on the ascending compensated branch and
+    averages the pit positions, which cancels the even part of that bulge and the drift. Down
+    first: the cycle ends at its top, so each pass starts where the tip already is; an up pass
+    first, after a full-range move down and a reversal, placed the pits up to 1.3 um low over
+    its first ~40 um in a box of +-0.95 of the half range and up to 0.27 um in the box below
+    (issue 37: the asymmetry read 8-12 % low on a loop of 0.18, a = 0.08, even with a perfect
+    feed-forward and no creep; the mechanism is not separated; down first: within 1 %). The box
+    follows the loop's tips (`_rescan_box`). The fit (`fit_hysteresis`) uses thresholds r_k = k
+    A / (2 operators) (A: cycle amplitude; the first rise of A wipes out the memory of every
+    such operator, so the unknown state before the cycle does not matter) and the measured
+    creep (time constants, fractions) when given. Derived loop_fraction and asymmetry are
+    defined as in PrandtlIshlinskii.from_fraction."""
     limits = instrument.limits
     steps_per_sweep, pit_every, operators, speed, branch_gap = _checked_options(
         limits, axis, cycle_fraction, steps_per_sweep, pit_every, operators, speed, branch_gap
