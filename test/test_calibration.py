@@ -49,7 +49,7 @@ from afm_core.sim.instrument import SimulatedAfm
 # A smaller run than the bench's (bench/bench_calibration.py has the full one).
 QUICK = dict(
     hysteresis={"steps_per_sweep": 96, "pixel": 35e-9},
-    motion_noise={"distances": (0.5e-6, 1e-6, 2e-6, 4e-6)},
+    motion_noise={"distances": (0.5e-6, 1e-6, 2e-6, 4e-6), "precision": None},
     drift={"pairs": 3, "interval": 1800.0},
 )
 

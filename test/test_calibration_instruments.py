@@ -90,6 +90,36 @@ def test_hysteresis_recovered_or_flagged_across_instruments(
     assert precision and precision[0]["level"] == "ok", precision
 
 
+@pytest.mark.parametrize(
+    "seed, loop, asymmetry, axis, options",
+    [(2, 0.18, 0.08, 0, QUICK_HYSTERESIS), (4, 0.25, 0.10, 1, {})],
+)
+def test_wide_asymmetric_loops_recover_the_asymmetry_unflagged(
+    seed, loop, asymmetry, axis, options
+):
+    """Issue 37: on wide loops the asymmetry read 5-13 % low with every tip pit found, and
+    nothing warned. The cause was the rescans: an up pass first (a full-range move down and a
+    reversal after the cycle) placed the pits up to 1.3 um low over its first ~40 um, even
+    with a perfect feed-forward and no creep, and a box fixed at 0.95 of the half range
+    started a pass beyond what the compensated scanner can reach. Down first, in a box that
+    follows the loop's tips: the loop and the asymmetry within 10 %, and no warning unless a
+    tip pit is missing (coupling 0.02, creep 0.6x, noise 2x). The widest loop on the default
+    cycle (128 steps): on the tests' coarse one (96 steps, 35 nm pixels) its rows are not
+    always matched (then the run says so, see the repeat test below)."""
+    config = _instrument(seed, loop, asymmetry, 0.6, 0.02, 2.0)
+    experiment = measure_hysteresis(
+        SimulatedAfm(config), axis, creep=_true_creep(config), **options
+    )
+    p = experiment.parameters
+    assert "retried" not in experiment.data
+    assert p["loop_fraction"] == pytest.approx(loop, rel=0.10)
+    assert p["asymmetry"] == pytest.approx(asymmetry, rel=0.10)
+    checks = calibration_checks(_hysteresis_summary(experiment, "xy"[axis]))
+    # a tip pit lost where the rows converge (the widest loop's top) is still said
+    expected = ["ok", "ok" if experiment.data["tip_pits_found"] == 4 else "warning"]
+    assert [c["level"] for c in checks] == expected, checks
+
+
 def test_the_widest_loop_with_strong_negative_asymmetry_is_recovered():
     """Loop 0.25, asymmetry -0.1, coupling 0.05, noise 4x: at a cycle of 0.9 of the half
     range the bottom tip lands 4.4 um past the cycle, outside the rescan box; the rows (0.15-
@@ -114,7 +144,7 @@ def test_rows_not_matched_are_measured_again_on_a_smaller_cycle():
     """Loop 0.25, asymmetry +0.1, y axis (seed 4): at 0.9 the rows do not close at the top
     tip (outside the rescan); the experiment repeats at 0.8 on a fresh lane, ignoring the
     first attempt's pits: the loop within 10 % of the simulator's, and the asymmetry flagged
-    with the reason (the rescans' residual on so wide a loop)."""
+    (not all four tip pits found on the smaller cycle)."""
     config = _instrument(4, 0.25, 0.10, 0.3, 0.05, 4.0)
     experiment = measure_hysteresis(
         SimulatedAfm(config), 1, creep=_true_creep(config), **QUICK_HYSTERESIS
@@ -225,7 +255,7 @@ def test_motion_noise_at_a_quarter_micron_after_a_full_range_excursion():
     afm.move_tip(105e-6, 105e-6, 50e-6)
     afm.move_tip(5e-6, 5e-6, 50e-6)
     afm.hold(1500.0)
-    experiment = measure_motion_noise(afm, distances=(0.25e-6, 0.5e-6), trials=8)
+    experiment = measure_motion_noise(afm, distances=(0.25e-6, 0.5e-6), trials=8, precision=None)
     for axis in "xy":
         assert [row["trials"] for row in experiment.data[axis]] == [7, 7]
 

@@ -12,7 +12,8 @@ Modules, one per experiment and what they share:
 - experiment.py: the `Experiment` each returns, and the steps on the instrument they share
   (wait, punch a pit, rescan);
 - pits.py: finding the punched pits in a rescan; matching.py: which pit is which punch;
-  hysteresis_rows.py: the same for the two rows of a hysteresis cycle;
+  hysteresis_rows.py: the same for the two rows of a hysteresis cycle; hysteresis_cycle.py:
+  the open-loop cycle that punches them;
 - simulator_comparison.py: the results against a simulated instrument's configuration;
 - figures.py: `calibration_figures`, a PNG of each experiment's raw data and fit from the
   report (what `afm calibrate --report` puts beside its readable summary).

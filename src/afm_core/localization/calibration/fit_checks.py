@@ -22,12 +22,19 @@ The rules, and why:
   tube whose axes are identical. The axes of a real tube may differ, so this is a warning to
   look, not an error.
 - A creep time constant the runs did not sample (slower than a quarter of a run, faster than
-  half the first pit's moment) is flagged, and a hysteresis cycle that had to be repeated
-  on a smaller cycle (a wide, strongly asymmetric loop) flags its asymmetry.
-- The open-loop gain of the hysteresis cycle and the image-frame gain of the scanner matrix
-  measure the scanner at different histories (open loop against compensated); they differ by
-  the feed-forward's model error, a few %. A difference beyond ACCURACY_TARGET is as large as
-  the whole tolerance: one of the two or the controller's own model is off.
+  half the first pit's moment) is flagged, and so is a hysteresis asymmetry fitted without
+  all four pits at the loop's tips (extrapolated).
+- The scanner matrix's gains are checked against 1 (the image frame), not against the
+  hysteresis cycle's open-loop gain: that is the piezo's tip-to-tip output per drive with the
+  feed-forward off, the matrix is short compensated moves against a compensated raster
+  image. On the simulator the matrix's gains did not follow the controller's model error
+  (y 0.997-0.998 for model errors -0.3 to 0.1) nor the loop (0.985 for loops 0.07 and 0.18),
+  but the creep of the grid's moves (y 0.967, 0.991, 0.997, 1.000 for creep 3x, 1.5x, 1x,
+  0.3x; x 1.00, the serpentine reverses along x every row), while the open-loop gain was
+  1.005-1.016: issue 37's 0.9508 against 1.0052 compared unrelated numbers. (In a full run
+  the y gain is lower still, 0.945 on that instrument, for a reason not yet separated.) A
+  gain off by more than ACCURACY_TARGET and Z_CONSISTENT standard errors is a warning: the
+  grid or its rescan was disturbed.
 """
 
 from __future__ import annotations
@@ -171,6 +178,17 @@ def _tip_check(axis: str, p: dict, data: dict) -> list[dict]:
     found = data["tip_pits_found"]
     name = f"hysteresis_{axis}"
     if data.get("retried"):
+        # after the down-first rescans the retried cycle is a measurement like the first; what
+        # differs is that the loop fraction extrapolates from it (fit_hysteresis on exact
+        # from_fraction data: -2.5 to -2.9 % at 0.8 of the half range, loops 0.05-0.25)
+        text = (
+            f"asymmetry {p['asymmetry']:.4f}, loop {p['loop_fraction']:.4f}: measured on a cycle "
+            f"of {data.get('cycle_fraction', 0.0):.2f} of the half range after the rows could "
+            f"not be matched on the first ({data['retried']}); the loop fraction extrapolates "
+            "from the smaller cycle (about -3 % on an exact scanner)"
+        )
+        if found == 4:
+            return [_entry(name, "asymmetry", "ok", p["asymmetry"], None, text)]
         return [
             _entry(
                 name,
@@ -178,13 +196,8 @@ def _tip_check(axis: str, p: dict, data: dict) -> list[dict]:
                 "warning",
                 p["asymmetry"],
                 None,
-                f"asymmetry {p['asymmetry']:.4f}, loop {p['loop_fraction']:.4f}: measured on a "
-                f"cycle of {data.get('cycle_fraction', 0.0):.2f} of the half range after the "
-                f"rows could not be matched on the first ({data['retried']}): a wide, strongly "
-                "asymmetric loop, where the rescans' own compensation residual biases the "
-                f"asymmetry by more than {ACCURACY_TARGET:.0%} (-13 % at a loop of 0.25 on the "
-                "simulator) and the loop is extrapolated from the smaller cycle; load this "
-                f"calibration (the feed-forward then fits the loop better) and {_repeat(name)}",
+                f"{text}; only {found} of the 4 tip pits found, the asymmetry is extrapolated "
+                f"and may be off by more than {ACCURACY_TARGET:.0%}; {_repeat(name)}",
             )
         ]
     if found == 4:
@@ -298,45 +311,48 @@ def _noise_checks(p) -> list[dict]:
 
 
 def _gain_checks(matrix, px, py) -> list[dict]:
+    """The scanner matrix's gains (short compensated moves against the image frame, what the
+    localizer applies) against 1, with the hysteresis cycle's open-loop gain shown beside
+    them but not compared: the two measure different things (see the module doc)."""
     if matrix is None:
         return []
     checks = []
+    sigmas = matrix.get("scanner_matrix_sigma", [[0.0, 0.0], [0.0, 0.0]])
     for axis, p in ((0, px), (1, py)):
-        if p is None or "gain" not in p:
-            continue
-        image_gain = matrix["scanner_matrix"][axis][axis]
-        difference = image_gain - p["gain"]
-        text = (
-            f"image-frame gain {image_gain:.4f} (scanner matrix) against open-loop gain "
-            f"{p['gain']:.4f} (hysteresis cycle)"
-        )
-        level = "ok" if abs(difference) <= ACCURACY_TARGET else "warning"
-        if level == "warning":
+        gain, sigma = matrix["scanner_matrix"][axis][axis], sigmas[axis][axis]
+        deviation = gain - 1.0
+        z = abs(deviation) / sigma if sigma > 0 else math.inf
+        text = f"image-frame gain {'xy'[axis]} {gain:.4f} +- {sigma:.4f}"
+        if p is not None and "gain" in p:
             text += (
-                f": more than {ACCURACY_TARGET:.0%} apart, one of the two or the controller's "
-                f"feed-forward is off; {_repeat('scanner_matrix')} and hysteresis_{'xy'[axis]}"
+                f" (the hysteresis cycle's open-loop gain {p['gain']:.4f} is not comparable: "
+                "tip-to-tip, feed-forward off)"
             )
-        checks.append(
-            _entry(
-                f"scanner_matrix vs hysteresis_{'xy'[axis]}",
-                "gain",
-                level,
-                difference,
-                None,
-                text,
+        level = "ok"
+        if z > Z_CONSISTENT and abs(deviation) > ACCURACY_TARGET:
+            level = "warning"
+            text += (
+                f": short moves are {deviation:+.1%} off against the image, more than "
+                f"{ACCURACY_TARGET:.0%} and {Z_CONSISTENT:g} standard errors; the localizer "
+                f"applies the matrix, but so large a gain says the rescan or the moves were "
+                f"disturbed; {_repeat('scanner_matrix')}"
             )
-        )
+        checks.append(_entry("scanner_matrix", f"gain_{'xy'[axis]}", level, gain, sigma, text))
     return checks
 
 
 def _drift_checks(p) -> list[dict]:
-    """The drift means are sample statistics: their sampling error sigma / sqrt(pairs)."""
+    """The drift means are sample statistics of a few correlated pairs: their 95 % interval
+    (drift_statistics.mean_error; sigma / sqrt(pairs) where a report predates it)."""
     if p is None:
         return []
     checks = []
     pairs = max(1, int(p.get("pairs", 1)))
-    for axis, mean, sigma in zip("xy", p["mean_velocity"], p["sigma_velocity"]):
-        error = sigma / math.sqrt(pairs)
+    intervals = p.get(
+        "mean_velocity_interval95", [1.96 * s / math.sqrt(pairs) for s in p["sigma_velocity"]]
+    )
+    errors = p.get("mean_velocity_sigma", [s / math.sqrt(pairs) for s in p["sigma_velocity"]])
+    for axis, mean, error, interval in zip("xy", p["mean_velocity"], errors, intervals):
         checks.append(
             _entry(
                 "drift",
@@ -344,8 +360,9 @@ def _drift_checks(p) -> list[dict]:
                 "ok",
                 mean,
                 error,
-                f"mean drift {axis} {mean * 1e9:.4f} +- {error * 1e9:.4f} nm/s (sampling error of "
-                f"{pairs} pairs; more pairs narrow it)",
+                f"mean drift {axis} {mean * 1e9:.4f} nm/s, 95 % interval +- {interval * 1e9:.4f} "
+                f"nm/s (standard error {error * 1e9:.4f}; {pairs} pairs, their correlation "
+                "allowed for; more pairs, further apart, narrow it)",
             )
         )
     return checks

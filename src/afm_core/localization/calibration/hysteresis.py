@@ -2,7 +2,8 @@
 feed-forward off, a full-range voltage cycle with a pit every few steps on the descending and
 the ascending sweep; with it back on, the rows are rescanned. Prandtl-Ishlinskii weights for
 fixed thresholds by non-negative least squares, the input asymmetry by a 1-D search; the
-measured creep is part of the model. Which detected pit is which punch: hysteresis_rows.py.
+measured creep is part of the model. Which detected pit is which punch: hysteresis_rows.py;
+the open-loop cycle itself: hysteresis_cycle.py.
 """
 
 from __future__ import annotations
@@ -19,8 +20,8 @@ from afm_core.localization.calibration.experiment import (
     check_box,
     indent_force,
     range_centre,
-    wait,
 )
+from afm_core.localization.calibration.hysteresis_cycle import drive_cycle, drive_record
 from afm_core.localization.calibration.hysteresis_rows import (
     RowsNotMatched,
     imaged_rows,
@@ -205,9 +206,9 @@ FIT_PARAMETERS = (
 
 # The cycle's share of the half range H. An input asymmetry a moves the top tip of a cycle of
 # amplitude c H out to about (c + |a| c^2) H (from_fraction's p(xi) at xi = c); the rescan
-# reaches RESCAN_REACH H. At 0.9 the PI fit covers 90 % of the range (exact on an ideal
-# scanner), but the tips of a wide loop with |a| > ~0.06 may fall outside the rescan and the
-# rows cannot be matched (issue 37: loop 0.25, asymmetry 0.1); the experiment is then
+# box follows the tips but stays in the range. At 0.9 the PI fit covers 90 % of the range
+# (exact on an ideal scanner), but with |a| = 0.1 the top tip is ~1 um from the range's end
+# and the rows may not be matched (issue 37: loop 0.25, asymmetry 0.1); the experiment is then
 # repeated once at RETRY_CYCLE_FRACTION on a fresh lane, where |a| up to 0.1 (the issue's
 # range) keeps the tips ~4 um inside (the loop fraction then extrapolates from 80 % of the
 # range: -3 % on an ideal scanner).
@@ -257,7 +258,7 @@ def measure_hysteresis_once(
     speed: float = 20e-6,
     settle: float = 300.0,
     pixel: float = 30e-9,
-    rescans=("up", "down"),
+    rescans=("down", "up"),
     force: float | None = None,
     ignore=None,
     progress=None,
@@ -265,21 +266,26 @@ def measure_hysteresis_once(
     """PI hysteresis of one axis (0 = x, 1 = y) driven open loop (book 7.2.2, Fig. 7.6a).
 
     Feed-forward off; from the range centre the drive rises to the upper bound of the cycle
-    (cycle_fraction of the half range), falls to the lower bound, rises again, in steps of
-    2 * bound / steps_per_sweep, with a pit every `pit_every` steps on the last two sweeps
-    (the descending sweep on one lane, the ascending one `branch_gap` (raw drive) beside it,
-    so the two rows of pits never mix; `ignore`: image positions of pits already on the
-    sample, e.g. the other axis' cycle, which crosses this one's lane). Feed-forward back
-    on, the pits are rescanned with the slow axis along the cycle: one monotone pass over the
-    whole row, so the image has no fast-axis loop along it and its residual distortion is
-    that of one branch of the compensated scanner (a smooth bulge of about model error x loop
-    width / 2); `rescans` ("up", "down") images the row on the ascending and on the
-    descending compensated branch and averages the pit positions, which cancels the even
-    part of that bulge and the drift. The fit (`fit_hysteresis`) uses thresholds
-    r_k = k A / (2 operators) (A: cycle amplitude; the first rise of A wipes out the memory of
-    every such operator, so the unknown state before the cycle does not matter) and the
-    measured creep (time constants, fractions) when given. Derived loop_fraction and
-    asymmetry are defined as in PrandtlIshlinskii.from_fraction."""
+    (cycle_fraction of the half range), falls to the lower bound, rises again, in steps of 2 *
+    bound / steps_per_sweep, with a pit every `pit_every` steps on the last two sweeps (the
+    descending sweep on one lane, the ascending one `branch_gap` (raw drive) beside it, so the
+    two rows of pits never mix; `ignore`: image positions of pits already on the sample, e.g.
+    the other axis' cycle, which crosses this one's lane). Feed-forward back on, the pits are
+    rescanned with the slow axis along the cycle: one monotone pass over the whole row, so the
+    image has no fast-axis loop along it and its residual distortion is that of one branch of
+    the compensated scanner (a smooth bulge of about model error x loop width / 2); `rescans`
+    ("down", "up") images the row on the descending and on the ascending compensated branch and
+    averages the pit positions, which cancels the even part of that bulge and the drift. Down
+    first: the cycle ends at its top, so each pass starts where the tip already is; an up pass
+    first, after a full-range move down and a reversal, placed the pits up to 1.3 um low over
+    its first ~40 um in a box of +-0.95 of the half range and up to 0.27 um in the box below
+    (issue 37: the asymmetry read 8-12 % low on a loop of 0.18, a = 0.08, even with a perfect
+    feed-forward and no creep; the mechanism is not separated; down first: within 1 %). The box
+    follows the loop's tips (`_rescan_box`). The fit (`fit_hysteresis`) uses thresholds r_k = k
+    A / (2 operators) (A: cycle amplitude; the first rise of A wipes out the memory of every
+    such operator, so the unknown state before the cycle does not matter) and the measured
+    creep (time constants, fractions) when given. Derived loop_fraction and asymmetry are
+    defined as in PrandtlIshlinskii.from_fraction."""
     limits = instrument.limits
     steps_per_sweep, pit_every, operators, speed, branch_gap = _checked_options(
         limits, axis, cycle_fraction, steps_per_sweep, pit_every, operators, speed, branch_gap
@@ -294,7 +300,7 @@ def measure_hysteresis_once(
     lo, hi = _box(axis, centre, amplitude, (lane, lane + branch_gap), 3e-6)
     check_box(f"hysteresis cycle ({'xy'[axis]})", instrument, lo, hi)
     step = 2 * amplitude / steps_per_sweep
-    timeline, pits = _drive_cycle(
+    timeline, pits = drive_cycle(
         instrument,
         axis,
         (centre[axis], lane),
@@ -314,27 +320,20 @@ def measure_hysteresis_once(
             instrument,
         ),
     )
-    box = _rescan_box(axis, centre, amplitude, half, (lane, lane + branch_gap))
+    # the cycle ended at its top with the feed-forward back on: the command is now where the
+    # controller puts the top tip, the only place a compensated pass can start for certain
+    top = float(instrument.commanded_position()[axis])
+    box = _rescan_box(axis, centre, amplitude, half, (lane, lane + branch_gap), top)
     branches = np.array([p[0] for p in pits])
     drives = np.array([p[1] for p in pits])
     moments = np.array([p[2] for p in pits])
-    measured, all_detected = imaged_rows(
-        instrument, axis, box, pixel, rescans, branches, drives, ignore
-    )
-    disagreeing = rescan_disagreements(measured, branches)
-    measured[:, disagreeing] = np.nan
-    found = np.all(np.isfinite(measured), axis=0)
-    if found.sum() < 2 * operators:
-        raise RuntimeError(
-            f"hysteresis ({'xy'[axis]}): only {int(found.sum())} of {len(pits)} pits found in "
-            f"every rescan; need {2 * operators}"
-        )
-    positions = measured[:, found].mean(axis=0)
-    times, drive = timeline.sampled(axis, MODEL_DT)
+    cycle = (branches, drives, moments, timeline.sampled(axis, MODEL_DT))
+    imaging = (instrument, axis, pixel, rescans, ignore)
     thresholds = np.arange(operators) * amplitude / (2 * operators)
-    fit = fit_hysteresis(
-        times, drive, centre[axis], half, moments[found], positions, thresholds, creep
-    )
+    model = (centre[axis], half, thresholds, creep)
+    fit, measured, disagreeing, all_detected = _imaged_fit(imaging, box, cycle, model)
+    found = np.all(np.isfinite(measured), axis=0)
+    positions = measured[:, found].mean(axis=0)
     parameters = {key: fit[key] for key in FIT_PARAMETERS}
     data = {
         "branch": branches[found].tolist(),
@@ -351,9 +350,34 @@ def measure_hysteresis_once(
         "tip_pits_found": int(sum(found[_tip_pits(branches, drives)])),
         "all_detected": all_detected[0],
         "cycle_fraction": cycle_fraction,
-        **_drive_record(timeline, axis, centre[axis], half),
+        # the rescan box along the cycled axis
+        "rescan_box": [float(box[0][axis]), float(box[1][axis])],
+        **drive_record(timeline, axis, centre[axis], half),
     }
     return Experiment(parameters, data)
+
+
+def _imaged_fit(imaging, box, cycle, model) -> tuple:
+    """The rows of pits imaged in `box` (imaged_rows), the pits the rescans disagree on left
+    out, and fit_hysteresis on the rest: (fit, measured positions per rescan (NaN where not
+    used), disagreeing, detections)."""
+    instrument, axis, pixel, rescans, ignore = imaging
+    branches, drives, moments, (times, drive) = cycle
+    centre, half, thresholds, creep = model
+    measured, all_detected = imaged_rows(
+        instrument, axis, box, pixel, rescans, branches, drives, ignore
+    )
+    disagreeing = rescan_disagreements(measured, branches)
+    measured[:, disagreeing] = np.nan
+    found = np.all(np.isfinite(measured), axis=0)
+    if found.sum() < 2 * thresholds.size:
+        raise RuntimeError(
+            f"hysteresis ({'xy'[axis]}): only {int(found.sum())} of {len(branches)} pits found "
+            f"in every rescan; need {2 * thresholds.size}"
+        )
+    positions = measured[:, found].mean(axis=0)
+    fit = fit_hysteresis(times, drive, centre, half, moments[found], positions, thresholds, creep)
+    return fit, measured, disagreeing, all_detected
 
 
 def _tip_pits(branches: np.ndarray, drives: np.ndarray) -> list[int]:
@@ -405,96 +429,34 @@ def _box(
     return lo, hi
 
 
-# How far from the range centre the rescan reaches along the cycled axis, in half ranges: the
-# outer 5 % stays clear (see _rescan_box). A smaller cycle leaves its tips more room.
-RESCAN_REACH = 0.95
+# The rows' ends lie at the cycle's tips; the box reaches TIP_MARGIN beyond them: the end pits
+# stay whole in the image and each pass starts a few pit spacings (~1 um) before the first
+# pit. At 2 um the rows of a loop of 0.25 (a = -0.1, coupling 0.05, noise 4x, the tests'
+# coarse cycle) were not matched at the top tip on both cycles; at 4 um the smaller one was.
+TIP_MARGIN = 4.0e-6  # m
 
 
-def _rescan_box(axis: int, centre, amplitude: float, half: float, lanes) -> tuple:
-    """The box the rows of pits are rescanned in. It covers where the pits can land: an
-    asymmetric loop lifts or lowers the row's ends by up to ~asymmetry x half range. It must
-    stay clear of the range ends: the loop's tips lie inside the range, so a compensated
-    command there needs a drive past the range, which the amplifier clamps; the controller's
-    inverse then runs ahead of the scanner and misplaces the pits over the following tens of
-    um of the pass (with cycle_fraction 0.95 and a fixed 1.5 um margin this biased the fitted
-    asymmetry by -4 % on a noise-free scanner)."""
-    return _box(axis, centre, amplitude, lanes, 2e-6, margin=RESCAN_REACH * half - amplitude)
-
-
-def _on_axis(axis: int, along: float, across: float) -> tuple[float, float]:
-    """(x, y) of the point `along` the cycled axis and `across` on the other."""
-    p = np.empty(2)
-    p[axis], p[1 - axis] = along, across
-    return float(p[0]), float(p[1])
-
-
-def _drive_cycle(
-    instrument,
-    axis: int,
-    start,
-    amplitude: float,
-    step: float,
-    *,
-    steps_per_sweep: int,
-    pit_every: int,
-    branch_gap: float,
-    speed: float,
-    settle: float,
-    force: float,
-    progress: StepProgress,
-) -> tuple[_Timeline, list[tuple]]:
-    """The open-loop cycle about start = (range centre of the cycled axis, lane): feed-forward
-    off, rise to +amplitude, then the descending sweep and (`branch_gap` beside it) the
-    ascending one in steps of `step`, a pit every `pit_every` steps; feed-forward back on.
-    Returns the drive as issued and the pits as (branch, drive, moment)."""
-    limits = instrument.limits
-    middle, lane = start
-    other = 1 - axis
-    instrument.move_tip(*_on_axis(axis, middle, lane), 0.5 * limits.max_speed)
-    _set_feed_forward(instrument, False)
-    try:
-        # Open loop a raw drive is up to half a loop width (several um) from where the
-        # compensated command puts the tip: keep the other axis' drive where the switch left it
-        # (the tip stays on the lane) and move only the cycled axis, to the raw centre.
-        lane_drive = float(instrument.commanded_position()[other])
-        instrument.move_tip(*_on_axis(axis, middle, lane_drive), speed)
-        wait(instrument, settle)
-        timeline = _Timeline(instrument)
-        for k in range(1, steps_per_sweep // 2 + 1):
-            timeline.move(*_on_axis(axis, middle + k * step, lane_drive), speed)
-        pits = []  # (branch, drive, moment)
-        top, bottom = middle + amplitude, middle - amplitude
-        for branch, first, sign, b in (
-            ("descending", top, -1.0, lane_drive),
-            ("ascending", bottom, 1.0, lane_drive + branch_gap),
-        ):
-            if branch == "ascending":
-                # to the second lane, along the other axis only
-                timeline.move(*_on_axis(axis, bottom, b), speed)
-            for k in range(steps_per_sweep + 1):
-                drive = first + sign * k * step
-                if k:
-                    timeline.move(*_on_axis(axis, drive, b), speed)
-                if k % pit_every == 0:
-                    pits.append((branch, drive, timeline.punch(force)))
-                    progress.step(len(pits))
-    finally:
-        _set_feed_forward(instrument, True)
-    return timeline, pits
-
-
-def _drive_record(timeline: _Timeline, axis: int, centre: float, half: float) -> dict:
-    """The drive of `axis` as `refit_hysteresis` needs it, with the centre it cycled about and
-    the half range."""
-    return {
-        # the drive as issued (piecewise linear between these knots), to refit or plot
-        "drive_knots": {
-            "time": list(timeline.times),
-            "drive": [c[axis] for c in timeline.commands],
-        },
-        "centre": float(centre),
-        "half_range": half,
-    }
+def _rescan_box(axis: int, centre, amplitude: float, half: float, lanes, top: float) -> tuple:
+    """The box the rows of pits are rescanned in: from TIP_MARGIN below the cycle's bottom
+    tip to TIP_MARGIN above its top one (`top`: where the controller puts the top tip; the
+    bottom one lies 2 amplitude x the tip-to-tip gain below it, 1 to a few %, which the
+    margin covers), within the range. Centred on the tips, not on the range: an input
+    asymmetry a moves both tips by about a x half (4.4 um at a = 0.08), and a pass must not
+    start where the compensated scanner cannot go: a command beyond the loop's tips at full
+    drive needs a drive past the range, the amplifier clamps it and the controller's inverse
+    runs ahead of the scanner over the following tens of um (a fixed box of 0.95 of the half
+    range biased the asymmetry by -4 % on a noise-free scanner, and failed to match the
+    rows of a loop of 0.25 with a = -0.1). The tips are `amplitude` inside full drive, so
+    the margin is reachable whenever TIP_MARGIN < (half - amplitude) x the branch slope."""
+    lo, hi = _box(axis, centre, amplitude, lanes, 2e-6)
+    limit = 2.0 * half  # the range along the cycled axis: [0, 2 half]
+    if math.isfinite(top) and abs(top - centre[axis] - amplitude) < 0.25 * half:
+        lo[axis] = max(0.0, top - 2.0 * amplitude - TIP_MARGIN)
+        hi[axis] = min(limit, top + TIP_MARGIN)
+    else:  # an instrument that does not report the compensated command: the drive's span
+        lo[axis] = max(0.0, lo[axis] - TIP_MARGIN)
+        hi[axis] = min(limit, hi[axis] + TIP_MARGIN)
+    return lo, hi
 
 
 def refit_hysteresis(
@@ -530,47 +492,3 @@ def hysteresis_fit_of(experiment: Experiment) -> HysteresisFit:
         loop_fraction=float(p["loop_fraction"]),
         asymmetry=float(p["asymmetry"]),
     )
-
-
-class _Timeline:
-    """The commanded position against the instrument clock, as issued: the command is held
-    between calls and ramps linearly during a move, so the drive is piecewise linear in time."""
-
-    def __init__(self, instrument):
-        self.instrument = instrument
-        self.times: list[float] = []
-        self.commands: list[tuple[float, float]] = []
-        self.mark()
-
-    def mark(self) -> None:
-        self.times.append(float(self.instrument.time))
-        self.commands.append(tuple(float(c) for c in self.instrument.commanded_position()))
-
-    def move(self, x: float, y: float, speed: float) -> None:
-        self.mark()
-        self.instrument.move_tip(x, y, speed)
-        self.mark()
-
-    def punch(self, force: float) -> float:
-        """A pit where the tip is; returns the moment it is punched (instrument clock)."""
-        self.mark()
-        x, y = self.instrument.commanded_position()
-        moment = float(self.instrument.time)
-        self.instrument.indent(x, y, force, 0.0)
-        self.mark()
-        return moment
-
-    def sampled(self, axis: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        times = np.asarray(self.times)
-        values = np.asarray(self.commands)[:, axis]
-        grid = np.arange(times[0], times[-1] + dt, dt)
-        return grid, np.interp(grid, times, values)
-
-
-def _set_feed_forward(instrument, enabled: bool) -> None:
-    if not hasattr(instrument, "feed_forward_enabled"):
-        raise ValueError(
-            "instrument: has no feed_forward_enabled switch; the hysteresis experiment drives the "
-            "piezos open loop (raw voltages) and needs it"
-        )
-    instrument.feed_forward_enabled = enabled

@@ -6,6 +6,8 @@ afm_core.localization.motion_noise (MotionNoise).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from afm_core import checks
@@ -19,6 +21,7 @@ from afm_core.localization.calibration.experiment import (
     rescan,
     wait,
 )
+from afm_core.localization.calibration.fit_checks import ACCURACY_TARGET, Z_95
 from afm_core.localization.calibration.pits import DetectedPit, find_pits
 
 
@@ -47,6 +50,21 @@ def variance_line(distances, variances, counts) -> tuple[float, float, float]:
     return float(a), float(b), float(np.sqrt(max(0.0, covariance[0, 0])))
 
 
+# The precision the slope is measured to: its 95 % interval within ACCURACY_TARGET of the
+# value (what fit_checks asks of it). A first round of `trials` per lane gives the slope's
+# standard error; where that is short of it, a second round of lanes at `extra_site` adds
+# the trials the pooled fit needs (the variance of the slope falls as 1 / trials), times
+# PLAN_MARGIN: the first round's standard error is itself estimated (its variances scatter
+# by sqrt(2 / (trials - 2)) each, ~7 % on the pooled slope), and the plan must not fall short
+# when it came out low. The second round's lanes (at most 25 x 45 um at max_trials 100) lie at
+# extra_site, left of the hysteresis y cycle's lanes and their repeat (x in -21..-3 um of the
+# centre), above the x cycle's (y -21..-3 um), left of the scanner matrix's grid, and 4.5 um
+# inside the 49.5 um from the centre that the compensated scanner reaches with an asymmetry
+# of 0.1 (a rescan past it is clamped, see hysteresis._rescan_box; at 1.1 um inside, x -48 um,
+# the 0.25 um x lane of the widest loop kept 3 trials).
+PLAN_MARGIN = 1.2
+
+
 def measure_motion_noise(
     instrument,
     *,
@@ -59,6 +77,9 @@ def measure_motion_noise(
     pixel: float = 15e-9,
     force: float | None = None,
     progress=None,
+    precision: float | None = ACCURACY_TARGET,
+    max_trials: int = 100,
+    extra_site=(-45e-6, 0.0),
 ) -> Experiment:
     """Motion error variance against distance (book Fig. 7.6e; Fig. 7.20b sigma^2 = a d + b).
 
@@ -70,15 +91,57 @@ def measure_motion_noise(
     trials, for anything slow). The spread left is the random error of that one move, along
     the axis (slope_x / slope_y) and across it (the cross slope), plus the pit-position noise
     (part of the intercept b). Rescan with the fast axis along the moves: A and B of a trial
-    are on one line, measured by the same trace."""
+    are on one line, measured by the same trace.
+
+    precision (relative, or None): when the pooled slope's 95 % interval is wider than this
+    share of it, a second round of lanes at `extra_site` adds the trials the pooled fit needs
+    (PLAN_MARGIN), at most `max_trials` per lane (the time budget: each lane's rescan grows
+    with its trials); data["rounds"] says what was planned and why."""
     limits = instrument.limits
     distances = [checks.positive("distances[]", d, "m", upper=20e-6) for d in distances]
     if len(distances) < 2:
         raise ValueError(f"distances={distances}: need at least two distances for a line")
     trials = checks.count("trials", trials, 5, 400)
+    max_trials = checks.count("max_trials", max_trials, 5, 400)
     row_spacing = checks.positive("row_spacing", row_spacing, "m", upper=5e-6)
     speed = checks.positive("speed", speed, "m/s", upper=limits.max_speed)
     force = indent_force(instrument, force)
+    options = (row_spacing, speed, settle, pixel, force, progress)
+    samples, data = _round(instrument, site, distances, trials, options)
+    parameters = _fitted_slopes(samples)
+    data["rounds"] = [{"site": list(site), "trials": trials}]
+    width = Z_95 * parameters["pooled_slope_sigma"] / max(abs(parameters["pooled_slope"]), 1e-300)
+    if precision is not None and width > precision:
+        wanted = math.ceil((trials - 2) * ((width / precision) ** 2 * PLAN_MARGIN - 1.0)) + 2
+        largest = max(np.sqrt(max(r[3], r[4], 0.0)) for r in samples)
+        spacing = float(max(row_spacing, ROW_SIGMAS * largest))
+        more = min(max(wanted, 5), max_trials, int(MAX_EXTENT / spacing) + 1)
+        extra, extra_data = _round(
+            instrument, extra_site, distances, more, (spacing, *options[1:])
+        )
+        samples += extra
+        for axis in "xy":
+            data[axis] += extra_data[axis]
+        parameters = _fitted_slopes(samples)
+        data["rounds"].append(
+            {
+                "site": list(extra_site),
+                "trials": more,
+                "row_spacing": spacing,
+                "why": f"95 % interval of the slope {width:.1%} of it after the first round, "
+                f"aim {precision:.0%}: {wanted} trials per lane planned, {more} run "
+                f"(max_trials {max_trials}, {MAX_EXTENT * 1e6:.1f} um per lane at "
+                f"{spacing * 1e9:.0f} nm rows)",
+            }
+        )
+    return Experiment(parameters, data)
+
+
+def _round(instrument, site, distances, trials: int, options) -> tuple[list, dict]:
+    """One round of lanes (every distance, both axes) at `site`: the samples (axis, d,
+    trials - 1, variance along, variance across) and the per-lane data."""
+    row_spacing, speed, settle, pixel, force, progress = options
+    limits = instrument.limits
     origin = range_centre(instrument) + np.asarray(site, float)
     lanes = _lanes(instrument, origin, distances, (trials - 1) * row_spacing)
     data, samples = {"x": [], "y": []}, []
@@ -117,7 +180,7 @@ def measure_motion_noise(
                 "variance_across": var_across,
             }
         )
-    return Experiment(_fitted_slopes(samples), data)
+    return samples, data
 
 
 # Between neighbouring lanes: a lane's rescan reaches 0.4 um + 0.15 d past its pits, and
@@ -175,6 +238,18 @@ def _punched_lane(
     return find_pits(scan)
 
 
+# A trial's two pits differ across the axis by the move's cross error, neighbouring trials by
+# the row spacing minus it: half the spacing splits them with equal odds either way. A third
+# (before) dropped the trials whose cross error passed 67 nm: 4.5 % of them at noise 4x and
+# 4 um (sigma 33 nm), the largest errors, so the variances read 10-20 % low (issue 37).
+ROW_SPLIT = 0.5
+# The second round's row spacing: at least ROW_SIGMAS standard deviations of the largest cross
+# error the first round measured, so half of it is 4 sigma (6e-5 of the trials split).
+ROW_SIGMAS = 8.0
+# The tallest lane of the second round (100 trials at 200 nm: the area extra_site has).
+MAX_EXTENT = 19.8e-6  # m
+
+
 def _trial_separations(
     detected: list[DetectedPit], axis: int, d: float, row_spacing: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -183,13 +258,13 @@ def _trial_separations(
     other = 1 - axis
     along = np.array([[p.x, p.y][axis] for p in detected])
     across = np.array([[p.x, p.y][other] for p in detected])
-    # rows: pits closer than a third of the row spacing across the axis belong together
+    # rows: pits closer than ROW_SPLIT of the row spacing across the axis belong together
     order = np.argsort(across)
     separations = []
     row_index = []
     group = [order[0]] if len(order) else []
     for i in list(order[1:]) + [None]:
-        if i is not None and across[i] - across[group[-1]] < row_spacing / 3:
+        if i is not None and across[i] - across[group[-1]] < ROW_SPLIT * row_spacing:
             group.append(i)
             continue
         if len(group) == 2:

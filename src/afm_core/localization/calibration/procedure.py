@@ -345,7 +345,7 @@ def report_json(summary: dict) -> str:
 
 # The fitted numbers a person reads first, per experiment (the rest is in the JSON report).
 HEADLINE = {
-    "drift": ("mean_velocity", "sigma_velocity", "pairs"),
+    "drift": ("mean_velocity", "mean_velocity_interval95", "sigma_velocity", "pairs"),
     "map_errors": ("map_sigma", "scan_region_sigma"),
     "creep": ("time_constants", "fractions_x", "fractions_y", "step_response_25s", "rms_residual"),
     "hysteresis_x": ("loop_fraction", "loop_fraction_sigma", "asymmetry", "gain", "rms_residual"),

@@ -158,19 +158,23 @@ def _creep_rows(calibration: Calibration, scanner) -> list[dict]:
 
 def _drift_and_noise_rows(calibration: Calibration, report: dict, config) -> list[dict]:
     scanner, drift = config.scanner, config.drift
+    measured = (report.get("drift") or {}).get("parameters") or {}
+    intervals = measured.get("mean_velocity_interval95", [math.nan, math.nan])
     rows = [
         _row(
-            "drift.mean_velocity_x",
-            calibration.drift_mean_velocity[0],
-            drift.mean_velocity_x,
-            "m/s",
-        ),
-        _row(
-            "drift.mean_velocity_y",
-            calibration.drift_mean_velocity[1],
-            drift.mean_velocity_y,
-            "m/s",
-        ),
+            f"drift.mean_velocity_{axis}",
+            calibration.drift_mean_velocity[k],
+            configured,
+            # the claim to check: the configured mean inside the run's own 95 % interval
+            f"m/s; the run's 95 % interval +- {intervals[k]:.3g} "
+            f"({abs(calibration.drift_mean_velocity[k] - configured) / intervals[k]:.2f} of it)"
+            if math.isfinite(intervals[k]) and intervals[k] > 0
+            else "m/s",
+        )
+        for k, (axis, configured) in enumerate(
+            (("x", drift.mean_velocity_x), ("y", drift.mean_velocity_y))
+        )
+    ] + [
         _row(
             "drift.sigma_velocity_x",
             calibration.drift_sigma_velocity[0],

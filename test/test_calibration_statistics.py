@@ -1,0 +1,126 @@
+"""The calibration's stated uncertainties against the simulator (issue 37): the drift mean's
+95 % interval covers the configured mean at about its nominal rate (the pairs are correlated);
+motion noise adds the trials its precision needs; the scanner matrix's gains are checked
+against the image frame."""
+
+import numpy as np
+import pytest
+
+from afm_core.localization.calibration.drift_statistics import mean_error
+from afm_core.localization.calibration.fit_checks import Z_95, calibration_checks
+from afm_core.localization.calibration.motion_error import ROW_SIGMAS, measure_motion_noise
+from afm_core.sim.config import load_config, merge
+from afm_core.sim.drift import DriftParams, ThermalDrift
+from afm_core.sim.instrument import SimulatedAfm
+
+PAIR_HALF = 280.0  # s, half the stretch a frame pair averages the velocity over (measure_drift)
+
+
+def _pair_velocities(seed: int, pairs: int, interval: float, params: DriftParams) -> np.ndarray:
+    """What measure_drift's pairs see of the simulator's drift: the mean velocity over each
+    pair's stretch, a pair every `interval` s."""
+    drift = ThermalDrift(params, seed)
+    t = 900.0 + interval * np.arange(pairs)
+    return (drift.offset(t + PAIR_HALF) - drift.offset(t - PAIR_HALF)) / (2 * PAIR_HALF)
+
+
+def _coverage(pairs: int, interval: float, params: DriftParams, seeds: int = 300):
+    mean = np.array([params.mean_velocity_x, params.mean_velocity_y])
+    stated, naive = [], []
+    for seed in range(seeds):
+        v = _pair_velocities(seed, pairs, interval, params)
+        for axis in range(2):
+            error = mean_error(v[:, axis])
+            miss = abs(v[:, axis].mean() - mean[axis])
+            stated.append(miss <= error["interval95"])
+            naive.append(miss <= 1.96 * v[:, axis].std(ddof=1) / np.sqrt(pairs))
+    return float(np.mean(stated)), float(np.mean(naive))
+
+
+@pytest.mark.parametrize(
+    "pairs, interval, correlation_time",
+    [(6, 1800.0, 1800.0), (6, 3600.0, 1800.0), (20, 1800.0, 1800.0)],
+)
+def test_the_drift_mean_interval_covers_the_configured_mean(pairs, interval, correlation_time):
+    """Issue 37: 'ok' for a mean 3.9 sampling errors off the configured one (6 pairs,
+    sigma / sqrt(n)). Pairs closer than the drift's correlation time are correlated: the
+    stated 95 % interval covers the configured mean in 84-99 % of seeds (the pairs' own
+    correlation estimate is noisy with 6), where sigma / sqrt(n) covered 73-90 %."""
+    params = DriftParams(correlation_time=correlation_time)
+    stated, naive = _coverage(pairs, interval, params)
+    assert 0.84 <= stated <= 0.99, (stated, naive)
+    assert stated > naive + 0.03, (stated, naive)
+
+
+def test_the_drift_mean_interval_of_independent_pairs_is_the_students_t_one():
+    """Independent pairs (spacing 10x the correlation time): no inflation beyond what the
+    small-sample correlation estimate adds, coverage near 95 %."""
+    params = DriftParams(correlation_time=180.0)
+    stated, _ = _coverage(8, 1800.0, params)
+    assert 0.90 <= stated <= 0.995, stated
+
+
+def test_pairs_closer_than_half_the_correlation_time_are_under_covered_but_far_less():
+    """The limit of estimating the pairs' correlation from 6 of them: a pair every half
+    correlation time, the interval covers 82-85 % (measured, 300-1500 seeds), against 55 %
+    for sigma / sqrt(n); measure_drift's default interval (3600 s) keeps pairs a correlation
+    time of the book's drift apart or more."""
+    stated, naive = _coverage(6, 1800.0, DriftParams(correlation_time=3600.0))
+    assert stated > naive + 0.2, (stated, naive)
+
+
+def test_motion_noise_adds_the_trials_its_precision_needs_on_a_noisy_instrument():
+    """Issue 37: the slope was flagged on every instrument (95 % interval 15 % wide) and read
+    14-21 % low at noise 4x (trials whose cross error passed a third of the row spacing were
+    dropped: the largest errors). A first round too imprecise for the 10 % target plans a
+    second from its own standard error, with rows spaced from the cross error it measured;
+    the pooled slope then lies within its (narrower) 95 % interval of the configured one."""
+    base = load_config().scanner
+    config = merge(
+        load_config(),
+        {
+            "seed": 4,
+            "scanner": {
+                "positioning_noise_slope": 4.0 * base.positioning_noise_slope,
+                "positioning_noise_offset": 4.0 * base.positioning_noise_offset,
+            },
+        },
+    )
+    experiment = measure_motion_noise(SimulatedAfm(config), distances=(1e-6, 4e-6), trials=20)
+    p, rounds = experiment.parameters, experiment.data["rounds"]
+    assert len(rounds) == 2 and rounds[1]["trials"] > rounds[0]["trials"], rounds
+    first = experiment.data["x"][:2] + experiment.data["y"][:2]
+    largest = max(np.sqrt(row["variance_across"]) for row in first)
+    assert rounds[1]["row_spacing"] >= ROW_SIGMAS * largest * (1 - 1e-9)
+    configured = config.scanner.positioning_noise_slope
+    assert abs(p["pooled_slope"] - configured) <= Z_95 * p["pooled_slope_sigma"], (
+        p["pooled_slope"] / configured
+    )
+
+
+def test_the_scanner_matrix_gain_is_checked_against_the_image_frame_not_the_open_loop_gain():
+    """Issue 37 printed ok for an image-frame gain 0.9508 against an open-loop gain 1.0052
+    and would have warned only past 10 % between two quantities that do not measure the
+    same thing. Now each gain is checked against 1 with its standard error; the open-loop
+    gain is shown, not compared."""
+    hysteresis = {"gain": 1.0052}
+
+    def checks(gain, sigma):
+        matrix = {
+            "scanner_matrix": [[1.0, 0.0], [0.0, gain]],
+            "scanner_matrix_sigma": [[0.001, 0.001], [0.001, sigma]],
+        }
+        summary = {
+            "scanner_matrix": {"parameters": matrix},
+            "hysteresis_y": {"parameters": hysteresis},
+        }
+        found = [c for c in calibration_checks(summary) if c["parameter"] == "gain_y"]
+        assert len(found) == 1
+        return found[0]
+
+    assert checks(0.9508, 0.002)["level"] == "ok"
+    flagged = checks(0.85, 0.002)
+    assert flagged["level"] == "warning" and "--only scanner_matrix" in flagged["message"]
+    assert "not comparable" in flagged["message"]
+    # as far off but not resolved by the grid (a standard error of 6 %): no warning
+    assert checks(0.85, 0.06)["level"] == "ok"
