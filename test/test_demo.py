@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from afm_bringup.demo import run_demo
-from afm_core.batch.evaluate import evaluate_recording
 from afm_bringup.demo_evaluation import PUSH_DISTANCE
+from afm_core.batch.evaluate import evaluate_recording
 
 pytestmark = pytest.mark.ros
 
