@@ -166,7 +166,8 @@ def _add_sweep_options(p) -> None:
         "--estimate-sigma",
         type=length_type("estimate-sigma"),
         default=None,
-        help="push, montecarlo: the particle estimate's error per axis (default 10nm)",
+        help="push, montecarlo: the particle estimate's error per axis (m, or with a unit; "
+        "default 10nm)",
     )
     p.add_argument(
         "--plan",
@@ -181,7 +182,8 @@ def _add_sweep_options(p) -> None:
         "--goal-distance",
         type=length_type("goal-distance"),
         default=None,
-        help="push: the goal's distance from the estimate along +y (default 500nm)",
+        help="push: the goal's distance from the estimate along +y (m, or with a unit; "
+        "default 500nm)",
     )
     p.add_argument(
         "--mode",
