@@ -180,6 +180,25 @@ def test_a_cancel_lifts_the_tip_clear_and_says_where_the_tip_and_the_particle_ar
     assert math.hypot(*((predicted - start) - (particle - truth_before))) <= 10 * NM
     assert math.hypot(*(np.array(s.sim.truth()["tip_position"]) - particle)) > 150 * NM
     assert "verifying" not in [r.phase for r in s.reports]
+
+
+def test_a_closed_loop_cancel_says_where_it_lifted_the_tip(calibration):
+    """As the open loop: the result carries the lift position, and the tip is off the particle."""
+    s = Session(calibration)
+    mark = s.row[1]
+    start = np.array([mark.x, mark.y])
+    with pytest.raises(PushFailed) as failed:
+        s.procedure.push(
+            mark.id,
+            start + [0.0, -400 * NM],
+            strategy="closed_loop",
+            progress=s.reports.append,
+            should_stop=lambda: any(r.phase == "pushing" and r.step >= 2 for r in s.reports),
+        )
+    execution = failed.value.execution
+    assert execution.cancelled
+    assert execution.lift_position == s.sim.commanded_position()
+    assert "tip lifted clear" in str(failed.value)
     assert (s.map[mark.id].x, s.map[mark.id].y) == (mark.x, mark.y)  # nothing verified
 
 

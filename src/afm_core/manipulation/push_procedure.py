@@ -644,6 +644,7 @@ class PushProcedure:
                 *map(float, target_cmd), self.instrument.limits.max_speed / 10
             )
             lifted = self.instrument.commanded_position()
+            execution.lift_position = (float(lifted[0]), float(lifted[1]))  # as the open loop
             raise PushFailed(
                 f"cancelled after {len(state.reports)} strokes (closed loop, leg "
                 f"{state.cost.legs}); tip lifted clear from ({here[0] * 1e9:.1f} nm, "
