@@ -52,30 +52,36 @@ def test_launch_records_and_stops_cleanly(tmp_path):
     )
     lines = []
     threading.Thread(target=lambda: lines.extend(launch.stdout), daemon=True).start()
-    wait_for(lambda: any(b"afm launch: ready" in line for line in lines), 60, what="launch ready")
-    with AfmCommander(server_timeout=20.0) as afm:
-        afm.scan(origin=(54.5e-6, 54.5e-6), size=(1e-6, 1e-6), pixels=(32, 32))
-    time.sleep(1.0)
-    logs = sorted(p.name for p in (tmp_path / "logs").iterdir())
-    assert logs == [
-        "driver.log",
-        "imaging.log",
-        "localizer.log",
-        "nano_hand.log",
-        "planner.log",
-        "recorder.log",
-        "sim2real.log",
-        "teleop.log",
-    ]
-    launch.send_signal(signal.SIGINT)
-    launch.wait(timeout=60)
+    try:
+        wait_for(
+            lambda: any(b"afm launch: ready" in line for line in lines), 60, what="launch ready"
+        )
+        with AfmCommander(server_timeout=20.0) as afm:
+            afm.scan(origin=(54.5e-6, 54.5e-6), size=(1e-6, 1e-6), pixels=(32, 32))
+        time.sleep(1.0)
+        logs = sorted(p.name for p in (tmp_path / "logs").iterdir())
+        assert logs == [
+            "driver.log",
+            "imaging.log",
+            "localizer.log",
+            "nano_hand.log",
+            "planner.log",
+            "recorder.log",
+            "sim2real.log",
+            "teleop.log",
+            "viewer.log",
+        ]
+    finally:  # a graph left running would answer every later test's goals on this domain
+        launch.send_signal(signal.SIGINT)
+        launch.wait(timeout=60)
     assert launch.returncode == 0, b"".join(lines).decode()
     with RecordingReader(record) as reader:
         topics = reader.topics()
     assert topics["/afm/scan"].message_count == 1
-    # the approach to the image's first sample, where the driver waited for creep (afm launch
-    # gives it the simulator's calibration), then the raster
-    assert topics["/afm/tip_command"].message_count == 2
+    # the approach from beyond the image (raster_approach), the move to its first sample,
+    # where the driver waited for creep (afm launch gives it the simulator's calibration), then
+    # the raster
+    assert topics["/afm/tip_command"].message_count == 3
     assert topics["/afm/ground_truth"].message_count >= 1
 
 
