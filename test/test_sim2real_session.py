@@ -711,8 +711,10 @@ def test_a_session_recorded_from_the_driver_node_reads_and_resimulates_to_the_bi
     driver.stop()
     assert recorder.stop()[0] == 0
     ops = list(read_operations(recording))
-    assert [op.kind for op in ops] == ["move", "raster", "scan_line", "move", "push", "indent"]
-    assert ops[1].pair_id == "live" and ops[2].landmark_id == 7 and ops[5].request["dwell"] == 0.2
+    # the driver approaches the image from beyond its start (raster_approach): a move before it
+    kinds = ["move", "move", "raster", "scan_line", "move", "push", "indent"]
+    assert [op.kind for op in ops] == kinds
+    assert ops[2].pair_id == "live" and ops[3].landmark_id == 7 and ops[6].request["dwell"] == 0.2
     resimulation = resimulate(read_operations(recording), load_config(), seed=5)
     for recorded, simulated in resimulation:
         assert simulated.start_time == pytest.approx(recorded.start_time, abs=1e-6)

@@ -109,7 +109,13 @@ def test_the_viewer_shows_a_push_live(graph, ros_node):
         goal = start + np.array([0.0, -300e-9])
         result = afm.push(goal, particle_id=particle.id, tolerance=40e-9, timeout=600)
         assert result.steps >= 3, result.message
-        client.wait(lambda: decoded(client, "/afm/objects/believed")[-1:], what="objects")
+
+        # the rescan's observation is published as the action ends: it may arrive after it
+        def observed_last():
+            beliefs = [b for b in decoded(client, "/afm/objects/believed") if b["origin"]]
+            return beliefs and beliefs[-1]["source"] == "observed"
+
+        client.wait(observed_last, what="the observed particle")
         beliefs = [b for b in decoded(client, "/afm/objects/believed") if b["origin"]]
         sources = [b["source"] for b in beliefs]
         # predicted stroke by stroke while pushing, then observed by the rescan
