@@ -71,6 +71,9 @@ class Peer:
         """Publish the Twist at `rate` for `seconds`: wall times of the first and last."""
         msg = Twist()
         msg.linear.x, msg.linear.y = vx, vy
+        # a command stream is volatile: until DDS has matched the teleop node's subscription the
+        # first commands are lost, and the tip moves for less time than they were sent
+        wait_for(lambda: self.twist_pub.get_subscription_count() > 0, 30, what="teleop listening")
         first = time.monotonic()
         last = first
         while time.monotonic() - first < seconds:
@@ -87,14 +90,26 @@ class Peer:
             ]
 
 
-@pytest.fixture
-def graph(nodes, ros_node):
-    # 20x real time: teleop's short segments take little wall time, a 512-line scan ~25 s
-    nodes("driver", seed=2, real_time_factor=20.0)
+def start_graph(nodes, ros_node, real_time_factor: float) -> Peer:
+    nodes("driver", seed=2, real_time_factor=real_time_factor)
     nodes("teleop")
     peer = Peer(ros_node)
     wait_for(lambda: peer.truths, 30, what="the driver's ground truth")
     return peer
+
+
+@pytest.fixture
+def graph(nodes, ros_node):
+    # 20x real time: teleop's short segments take little wall time, a 512-line scan ~25 s
+    return start_graph(nodes, ros_node, 20.0)
+
+
+@pytest.fixture
+def real_time_graph(nodes, ros_node):
+    # wall-time figures (the dead-man, the distance a second of commands moves the tip) need
+    # the instrument's clock to run with the wall's: ahead of it, a segment ends before its
+    # wall time and the driver's truth arrives in bursts
+    return start_graph(nodes, ros_node, 1.0)
 
 
 def take(peer):
@@ -104,9 +119,9 @@ def take(peer):
 
 
 def test_a_twist_moves_the_tip_in_its_direction_within_the_speed_limit_and_the_dead_man_stops_it(
-    graph,
+    real_time_graph,
 ):
-    peer = graph
+    peer = real_time_graph
     take(peer)
     before = len(peer.truths)
     start = peer.commanded()[-1][1]
@@ -131,7 +146,8 @@ def test_a_twist_moves_the_tip_in_its_direction_within_the_speed_limit_and_the_d
         dt = stamp_of(m1.header) - stamp_of(m0.header)
         assert np.linalg.norm(p1 - p0) <= MAX_SPEED * (dt + STAMP_RESOLUTION)
     assert np.linalg.norm(travelled) <= MAX_SPEED * (last - first + TIMEOUT) * (1 + 1e-9)
-    assert np.linalg.norm(travelled) > 0.5 * MAX_SPEED * (last - first)  # it did go
+    stops = [(s.get("stop"), s.get("velocity")) for s in peer.statuses[-6:]]
+    assert np.linalg.norm(travelled) > 0.5 * MAX_SPEED * (last - first), stops
     latency = moves[0][0] - first
     stop_delay = moves[-1][0] - last
     print(
@@ -140,7 +156,7 @@ def test_a_twist_moves_the_tip_in_its_direction_within_the_speed_limit_and_the_d
     )
     # dead-man: motion ends at the timeout after the last command (plus the delivery of one
     # segment), and the tip stands still afterwards
-    assert TIMEOUT - 0.1 < stop_delay < TIMEOUT + 0.3, stop_delay
+    assert TIMEOUT - 0.1 < stop_delay < TIMEOUT + 0.3, (stop_delay, stops)
     assert np.all(peer.commanded()[-1][1] == end)
     status = peer.statuses[-1]
     assert status["owner"] == "teleop" and status["mode"] == "lifted"

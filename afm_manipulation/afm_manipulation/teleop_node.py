@@ -116,9 +116,15 @@ class TeleopNode(Node):
 
     def _build_interfaces(self) -> None:
         inputs = MutuallyExclusiveCallbackGroup()
+        # the operator's commands in a group of their own: the dead-man counts from their
+        # arrival, so no other input (action states, poses, maps) may queue ahead of them
+        commands = MutuallyExclusiveCallbackGroup()
+        for msg_type, topic, callback in (
+            (Twist, topics.TELEOP_CMD_VEL, self.on_twist),
+            (Joy, topics.TELEOP_JOY, self.on_joy),
+        ):
+            self.create_subscription(msg_type, topic, callback, 10, callback_group=commands)
         for msg_type, topic, callback, qos in (
-            (Twist, topics.TELEOP_CMD_VEL, self.on_twist, 10),
-            (Joy, topics.TELEOP_JOY, self.on_joy, 10),
             (LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED),
             (PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10),
             (TipCommand, topics.TIP_COMMAND, self.on_tip_command, EVENTS),
