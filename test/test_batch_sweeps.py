@@ -325,7 +325,13 @@ def _interrupt(output, how: int) -> int:
 
 @pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGINT], ids=["SIGKILL", "SIGINT"])
 def test_a_batch_killed_midway_resumes_without_redoing_or_duplicating_rows(tmp_path, how):
-    status = _interrupt(tmp_path, how)
+    for attempt in range(3):
+        output = tmp_path / f"attempt-{attempt}"
+        status = _interrupt(output, how)
+        # a batch that finished before the signal was handled was not interrupted: again
+        if not (status == 0 and _data_lines(output / "results.csv") == SEEDS):
+            break
+    tmp_path = output
     assert status == (-signal.SIGKILL if how == signal.SIGKILL else 130)
     table = tmp_path / "results.csv"
     written = read_rows(table)
