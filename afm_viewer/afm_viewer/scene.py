@@ -275,7 +275,7 @@ def force_samples(trace, max_samples: int = MAX_FORCE_SAMPLES) -> list[tuple[int
     lateral force (N, torsion x lateral spring constant / tip height, afm_core's rule) and the
     normal force (N, deflection x normal spring constant) at header stamp + times[i]; at most
     `max_samples`, evenly spread, the last sample always kept."""
-    from afm_core.manipulation.execute import TIP_HEIGHT
+    from afm_core.manipulation.execute import cantilever_forces
 
     times = np.asarray(trace.times, float)
     n = len(times)
@@ -287,8 +287,12 @@ def force_samples(trace, max_samples: int = MAX_FORCE_SAMPLES) -> list[tuple[int
             f"vertical_deflection ({len(trace.vertical_deflection)}) must have one length"
         )
     keep = np.unique(np.linspace(0, n - 1, min(n, max_samples)).round().astype(int))
-    lateral = np.asarray(trace.lateral_torsion, float) * trace.lateral_spring_constant / TIP_HEIGHT
-    normal = np.asarray(trace.vertical_deflection, float) * trace.normal_spring_constant
+    lateral, normal = cantilever_forces(
+        trace.lateral_torsion,
+        trace.vertical_deflection,
+        trace.lateral_spring_constant,
+        trace.normal_spring_constant,
+    )
     start = stamp_ns(trace.header)
     out = []
     for i in keep:

@@ -89,15 +89,32 @@ TIP_HEIGHT = 10e-6
 PREDICTED, OBSERVED = "predicted", "observed"
 
 
+def cantilever_forces(
+    lateral_torsion,
+    vertical_deflection,
+    lateral_spring_constant: float,
+    normal_spring_constant: float,
+    tip_height: float = TIP_HEIGHT,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(lateral, normal) force in N per sample: torsion x lateral spring constant / tip height
+    (the lever arm), deflection x normal spring constant."""
+    lateral = np.asarray(lateral_torsion, float) * lateral_spring_constant / tip_height
+    normal = np.asarray(vertical_deflection, float) * normal_spring_constant
+    return lateral, normal
+
+
 def force_summary(trace, tip_height: float = TIP_HEIGHT) -> tuple[float, float]:
     """(peak lateral force, peak normal force) in N of a ForceTraceData (0, 0 for None)."""
     if trace is None or len(trace.lateral_torsion) == 0:
         return 0.0, 0.0
-    lateral = (
-        float(np.max(np.abs(trace.lateral_torsion))) * trace.lateral_spring_constant / tip_height
+    lateral, normal = cantilever_forces(
+        trace.lateral_torsion,
+        trace.vertical_deflection,
+        trace.lateral_spring_constant,
+        trace.normal_spring_constant,
+        tip_height,
     )
-    normal = float(np.max(trace.vertical_deflection)) * trace.normal_spring_constant
-    return lateral, normal
+    return float(np.max(np.abs(lateral))), float(np.max(normal))
 
 
 def _identity(p: np.ndarray) -> np.ndarray:

@@ -40,6 +40,7 @@ import numpy as np
 
 from afm_core import checks
 from afm_core.instrument import ScannerLimits
+from afm_core.manipulation.execute import cantilever_forces
 
 # s without a command after which the tip stands still (issue 33: "no command for 0.5 s")
 DEFAULT_COMMAND_TIMEOUT = 0.5
@@ -224,8 +225,11 @@ def segment_wrench(
     norm = float(np.hypot(*u))
     if torsion.size == 0 or norm == 0.0:
         return np.zeros(3)
-    lateral = float(np.mean(torsion)) * lateral_spring_constant / tip_height
-    normal = float(np.mean(deflection)) * normal_spring_constant if deflection.size else 0.0
+    lateral_n, normal_n = cantilever_forces(
+        torsion, deflection, lateral_spring_constant, normal_spring_constant, tip_height
+    )
+    lateral = float(np.mean(lateral_n))
+    normal = float(np.mean(normal_n)) if deflection.size else 0.0
     return np.array([-lateral * u[0] / norm, -lateral * u[1] / norm, normal])
 
 
