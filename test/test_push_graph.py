@@ -43,14 +43,19 @@ def true_sphere(truths, object_id):
     )
 
 
-@pytest.fixture
-def graph(tmp_path, nodes):
+def start_push_graph(tmp_path, nodes, planner: bool = True, extra=()) -> None:
+    """The nodes a push needs (driver seed 4 as fast as it can, imaging, localizer, the planner
+    unless told, nano-hand) and `extra` after them, with the oracle calibration."""
     calibration = str(oracle_calibration(tmp_path / "calibration.yaml"))
     nodes("driver", seed=4, real_time_factor=0.0)
     nodes("imaging")
-    nodes("localizer", calibration_file=calibration)
-    nodes("planner", calibration_file=calibration)
-    nodes("nano_hand", calibration_file=calibration)
+    for name in ["localizer", *(["planner"] if planner else []), "nano_hand", *extra]:
+        nodes(name, calibration_file=calibration)
+
+
+@pytest.fixture
+def graph(tmp_path, nodes):
+    start_push_graph(tmp_path, nodes)
 
 
 def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):

@@ -278,15 +278,9 @@ def test_the_wrench_during_a_contact_move_is_the_force_trace_s(graph):
 def test_a_nano_hand_push_is_refused_while_teleop_holds_the_tip_and_works_after_hand_back(
     tmp_path, nodes, ros_node
 ):
-    from sim_calibration import oracle_calibration
-    from test_push_graph import map_the_sample, true_sphere
+    from test_push_graph import map_the_sample, start_push_graph, true_sphere
 
-    calibration = str(oracle_calibration(tmp_path / "calibration.yaml"))
-    nodes("driver", seed=4, real_time_factor=0.0)
-    nodes("imaging")
-    nodes("localizer", calibration_file=calibration)
-    nodes("nano_hand", calibration_file=calibration)
-    nodes("teleop", calibration_file=calibration)
+    start_push_graph(tmp_path, nodes, planner=False, extra=("teleop",))
     peer = Peer(ros_node)
     with AfmCommander(server_timeout=60) as afm:
         maps, truths = map_the_sample(afm, ros_node, "pair-teleop")

@@ -10,8 +10,7 @@ import time
 import numpy as np
 import pytest
 from conftest import wait_for
-from sim_calibration import oracle_calibration
-from test_push_graph import map_the_sample
+from test_push_graph import map_the_sample, start_push_graph
 
 from afm_bringup.commander import AfmCommander
 from afm_bringup.launcher import read_port
@@ -87,12 +86,7 @@ def test_a_client_twist_reaches_ros_and_a_bad_one_does_not(nodes, ros_node, tmp_
 
 @pytest.fixture
 def graph(tmp_path, nodes):
-    calibration = str(oracle_calibration(tmp_path / "calibration.yaml"))
-    nodes("driver", seed=4, real_time_factor=0.0)
-    nodes("imaging")
-    nodes("localizer", calibration_file=calibration)
-    nodes("planner", calibration_file=calibration)
-    nodes("nano_hand", calibration_file=calibration)
+    start_push_graph(tmp_path, nodes)
     return start_viewer(nodes, tmp_path)
 
 
