@@ -10,9 +10,10 @@ instrument), as a lab runs it. The sample holds two work areas: one near the ran
 from the centre. Each area has four spheres (radius 60-150 nm, at least 650 nm apart, in a 2 um
 square). The areas are visited in the trial's order (centre first on even seeds, away first on
 odd ones), each as a lab works: a long move there (the scan's own approach), a 0/90 deg pair
-(256 x 256 px over 2.4 um, 4 Hz) mapped by the imaging node, then PushParticle with the
-nano-hand on the sphere nearest the area's centre, 300-600 nm in a random direction that stays
-clear of the others, tolerance 20 nm. A push the action refuses or that fails counts as not run.
+(256 x 256 px over 2.4 um, 4 Hz) mapped by the imaging node, then PushParticle (the
+nano-hand's default strategy, or `--strategy`) on the sphere nearest the area's centre,
+300-600 nm in a random direction that stays clear of the others, tolerance 20 nm. A push the
+action refuses or that fails counts as not run.
 
 Success: the true displacement of the pushed sphere (ground truth; the sphere that moved most),
 brought into the maps' frame by the simulated scanner's local gain where the push was
@@ -20,7 +21,7 @@ brought into the maps' frame by the simulated scanner's local gain where the pus
 localization's first lines (missed or not, from the localizer's log), the move length, the
 action's time.
 
-Run: `scripts/with_env.sh python bench/bench_push_range.py [--trials 16] [--strategy closed_loop]`
+Run: `scripts/with_env.sh python bench/bench_push_range.py [--trials 16] [--strategy nano_hand]`
 (~1 min per push open loop, a few with the closed loop).
 Results: bench/results/push_range.json and push_range.md.
 """
@@ -49,6 +50,7 @@ from afm_bringup.commander import AfmCommander, AfmError  # noqa: E402
 from afm_bringup.demo import peak_rss_bytes  # noqa: E402
 from afm_bringup.launcher import Graph  # noqa: E402
 from afm_core.evaluation import image_frame_matrix  # noqa: E402
+from afm_core.manipulation.push_procedure import DEFAULT_STRATEGY  # noqa: E402
 from afm_msgs.action import PushParticle  # noqa: E402
 from afm_msgs.msg import GroundTruth, LandmarkArray  # noqa: E402
 from afm_ros.qos_profiles import LATCHED  # noqa: E402
@@ -121,7 +123,7 @@ def localizations(log_dir: Path, since: int) -> tuple[list[str], int]:
     return re.findall(r"localize on landmark -?\d+: (.*)", text[since:]), len(text)
 
 
-def run_trial(seed: int, workdir: Path, log, strategy: str = "nano_hand") -> list[dict]:
+def run_trial(seed: int, workdir: Path, log, strategy: str = "") -> list[dict]:
     rng = np.random.default_rng([seed, 36])
     regions = {"centre": CENTRE + rng.uniform(-1, 1, 2) * UM, "away": away_centre(rng)}
     layouts = {name: spheres_in(c, rng) for name, c in regions.items()}
@@ -197,7 +199,7 @@ def run_trial(seed: int, workdir: Path, log, strategy: str = "nano_hand") -> lis
     return rows
 
 
-def push_in_region(afm, centre, layout, maps, truths, rng, strategy="nano_hand") -> dict:
+def push_in_region(afm, centre, layout, maps, truths, rng, strategy="") -> dict:
     seen = len(maps)
     origin = centre - AREA / 2
     pair = f"area-{centre[0] / UM:.1f}-{centre[1] / UM:.1f}"
@@ -252,6 +254,9 @@ def push_in_region(afm, centre, layout, maps, truths, rng, strategy="nano_hand")
         "success": bool(ran and error <= TOLERANCE),
         "fine": bool(ran and error <= FINE),
         "verified_error": float(result.error),
+        "push_seconds": float(result.duration),  # instrument time of the action, scans included
+        "lines": int(result.lines),
+        "observations": int(result.observations),
         "verified_success": bool(result.success),
         "message": result.message,
     }
@@ -278,6 +283,9 @@ def summarise(rows: list[dict]) -> dict:
                 for r in mine
             ),
             "median_seconds": float(np.median([r["seconds"] for r in mine])) if mine else math.nan,
+            "median_push_seconds": float(np.median([r["push_seconds"] for r in ran]))
+            if ran
+            else math.nan,
         }
     return out
 
@@ -291,7 +299,8 @@ def markdown_report(result: dict, command: str) -> str:
         f"{m['python']}, load {m['load_average_at_start'][0]:.2f} at start; "
         f"{result['wall_seconds']:.0f} s wall for {result['trials']} trials; graph peak memory "
         f"(sum of the node peaks, worst trial) {result['graph_peak_bytes'] / 2**20:.0f} MiB. "
-        f"PushParticle strategy: `{result.get('strategy', 'nano_hand')}`.",
+        f"PushParticle strategy: `{result.get('strategy', 'nano_hand')}`"
+        + (" (the product's default)." if result.get("default_strategy") else "."),
         "",
         f"Command: `{command}`",
         "",
@@ -301,14 +310,15 @@ def markdown_report(result: dict, command: str) -> str:
         "",
         "| region | pushes | ran | within 20 nm | within 10 nm | median error (ran) "
         "| first line missed (search found it) | line lost after the search "
-        "| median s per area |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| median s per area (wall) | median push s (instrument) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, s in result["summary"].items():
         lines.append(
             f"| {name} | {s['pushes']} | {s['ran']} | {s['success_rate']:.2f} | "
             f"{s['fine_rate']:.2f} | {s['median_error_nm']:.1f} nm | {s['first_lines_lost']} | "
-            f"{s['lines_lost_after_search']} | {s['median_seconds']:.0f} |"
+            f"{s['lines_lost_after_search']} | {s['median_seconds']:.0f} | "
+            f"{s['median_push_seconds']:.0f} |"
         )
     failed = [r for r in result["runs"] if not r["ran"]]
     if failed:
@@ -328,9 +338,9 @@ def main() -> int:
     parser.add_argument("--name", default="push_range", help="results file stem")
     parser.add_argument(
         "--strategy",
-        choices=("nano_hand", "closed_loop"),
-        default="nano_hand",
-        help="PushParticle strategy: the open-loop nano-hand or the closed loop (issue 32)",
+        choices=("closed_loop", "nano_hand"),
+        help="PushParticle strategy: the closed loop (issue 32) or the open-loop nano-hand "
+        f"(default: the nano-hand node's, {DEFAULT_STRATEGY})",
     )
     args = parser.parse_args()
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -347,20 +357,22 @@ def main() -> int:
     log(f"node logs in {workdir}")
     rows = []
     for seed in range(args.first_seed, args.first_seed + args.trials):
-        rows += run_trial(seed, workdir, log, args.strategy)
+        rows += run_trial(seed, workdir, log, args.strategy or "")
     summary = summarise(rows)
     for name, s in summary.items():
         print(
             f"{name:6s}: {s['ran']}/{s['pushes']} ran, within 20 nm {s['success_rate']:.2f}, "
             f"within 10 nm {s['fine_rate']:.2f}, median {s['median_error_nm']:.1f} nm, first "
-            f"lines lost {s['first_lines_lost']}, {s['median_seconds']:.0f} s per area"
+            f"lines lost {s['first_lines_lost']}, {s['median_seconds']:.0f} s per area, "
+            f"push {s['median_push_seconds']:.0f} s instrument time"
         )
     peak = max((r["graph_peak_bytes"] for r in rows if "graph_peak_bytes" in r), default=0)
     result = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "machine": machine_record(load),
         "trials": args.trials,
-        "strategy": args.strategy,
+        "strategy": args.strategy or DEFAULT_STRATEGY,
+        "default_strategy": not args.strategy,
         "summary": summary,
         "graph_peak_bytes": peak,
         "runs": rows,

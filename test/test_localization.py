@@ -705,6 +705,26 @@ def test_a_first_line_that_misses_is_followed_by_a_bounded_search(
     assert np.all(np.abs(error) < 3 * np.sqrt(np.diag(loc.covariance))), error
 
 
+def test_the_search_goes_on_past_a_particle_the_map_does_not_hold(bench, sim_calibration):
+    """As in the range bench's seed 10 away from the centre: a particle the map does not hold
+    (cut by the image's edge) lies on the first line's track, 560 nm before the mapped one,
+    and the line passes beside the mapped one (the tip believed 160 nm off across it). The
+    search's line on the track crosses only the unmapped particle, which the gate rejects
+    (560 nm at 70 nm); the search goes on beside the track, finds the mapped particle and the
+    estimate ends within 3 sigma of the truth (the unmapped particle's crossing never taken)."""
+    true_track = PARTICLE + np.array([0.0, -160 * NM])  # where the believed-centred line runs
+    unmapped = (true_track[0] - 560 * NM, true_track[1], 150 * NM)
+    sim = SimulatedAfm(bench.sim_config(13, spheres=[(*PARTICLE, 100 * NM), unmapped]))
+    cov = np.diag([70 * NM, 70 * NM]) ** 2
+    loc = Localizer(sim, sim_calibration, truth(sim) + [0.0, 160 * NM], cov, sample_spacing=2 * NM)
+    result = loc.observe_landmark(MapLandmark(*PARTICLE, np.diag([1e-18, 1e-18]), 100 * NM))
+    x_line = result.lines[0]
+    assert x_line.accepted and "gated out" in x_line.search, x_line.describe()
+    assert result.all_accepted, result.summary()
+    error = loc.mean - truth(sim)
+    assert np.all(np.abs(error) < 3 * np.sqrt(np.diag(loc.covariance))), error
+
+
 def test_the_first_line_runs_along_the_axis_whose_across_error_is_smaller(bench, sim_calibration):
     """y known to 70 nm, x to 15 nm: a horizontal line would need y to within the landmark's
     half-width (a 6 % risk of passing beside it), so the vertical line goes first (then the

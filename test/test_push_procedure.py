@@ -20,6 +20,7 @@ from afm_core.instrument import ScanRequest
 from afm_core.localization import Localizer
 from afm_core.localization.calibration.model import load_calibration
 from afm_core.manipulation import (
+    DEFAULT_STRATEGY,
     PushFailed,
     PushProcedure,
     PushRefused,
@@ -81,13 +82,15 @@ class Session:
 
 
 def test_a_push_reaches_its_goal_by_the_simulators_truth(calibration):
+    """The open-loop nano-hand (no longer the default: asked for by name), one plan run
+    stroke by stroke."""
     s = Session(calibration)
     mark = s.row[1]
     start = np.array([mark.x, mark.y])
     goal = start + [0.0, -400 * NM]
     truth_before = s.true_sphere(start)
 
-    result = s.procedure.push(mark.id, goal, progress=s.reports.append)
+    result = s.procedure.push(mark.id, goal, strategy="nano_hand", progress=s.reports.append)
 
     moved = s.true_sphere(truth_before) - truth_before
     true_error = math.hypot(*(moved - (goal - start)))
@@ -150,6 +153,7 @@ def test_an_assembly_pushes_two_particles_in_the_given_order(calibration):
 
 
 def test_a_cancel_lifts_the_tip_clear_and_says_where_the_tip_and_the_particle_are(calibration):
+    """The open-loop nano-hand (asked for by name); the closed loop's cancel: the next test."""
     s = Session(calibration)
     mark = s.row[1]
     start = np.array([mark.x, mark.y])
@@ -159,6 +163,7 @@ def test_a_cancel_lifts_the_tip_clear_and_says_where_the_tip_and_the_particle_ar
         s.procedure.push(
             mark.id,
             start + [0.0, -400 * NM],
+            strategy="nano_hand",
             progress=s.reports.append,
             should_stop=lambda: any(r.phase == "pushing" and r.step >= 3 for r in s.reports),
         )
@@ -243,9 +248,10 @@ def test_refusals_come_before_anything_moves(calibration):
 
 
 def test_the_closed_loop_observes_the_particle_where_the_simulator_has_it(calibration):
-    """strategy closed_loop: legs of strokes, then local scan lines across a static neighbour
-    and the particle. Each observation's estimate of the particle's displacement is compared
-    with the simulator's: within what the rescan's verification is allowed (10 nm)."""
+    """strategy closed_loop, the default (a goal without a strategy): legs of strokes, then
+    local scan lines across a static neighbour and the particle. Each observation's estimate
+    of the particle's displacement is compared with the simulator's: within what the rescan's
+    verification is allowed (10 nm)."""
     s = Session(calibration)
     mark = s.row[1]
     start = np.array([mark.x, mark.y])
@@ -258,8 +264,9 @@ def test_the_closed_loop_observes_the_particle_where_the_simulator_has_it(calibr
         if p.phase == "observing" and "particle x, particle y" in p.note:
             seen.append((np.array(p.particle_estimate) - start, s.true_sphere(truth_before)))
 
-    result = s.procedure.push(mark.id, goal, strategy="closed_loop", progress=progress)
+    result = s.procedure.push(mark.id, goal, progress=progress)
 
+    assert DEFAULT_STRATEGY == "closed_loop" and result.message.startswith("closed_loop:")
     assert len(seen) >= 1
     for estimated, particle in seen:
         assert math.hypot(*(estimated - (particle - truth_before))) <= VERIFICATION_ERROR

@@ -104,12 +104,19 @@ def test_the_viewer_shows_a_push_live(graph, ros_node):
         result = afm.push(goal, particle_id=particle.id, tolerance=40e-9, timeout=600)
         assert result.steps >= 3, result.message
 
-        # the rescan's observation is published as the action ends: it may arrive after it
-        def observed_last():
-            beliefs = [b for b in decoded(client, "/afm/objects/believed") if b["origin"]]
-            return beliefs and beliefs[-1]["source"] == "observed"
+        achieved = (result.achieved.x, result.achieved.y)
 
-        client.wait(observed_last, what="the observed particle")
+        # the rescan's observation is published as the action ends: it may arrive after it. The
+        # closed loop (the default) also publishes what its local lines observe between legs:
+        # the rescan's is the observed particle where the action says it is
+        def rescan_observed_last():
+            beliefs = [b for b in decoded(client, "/afm/objects/believed") if b["origin"]]
+            if not beliefs or beliefs[-1]["source"] != "observed":
+                return False
+            last = beliefs[-1]["objects"][0]
+            return math.hypot(last["x"] - achieved[0], last["y"] - achieved[1]) <= 1e-12
+
+        client.wait(rescan_observed_last, what="the particle observed by the rescan")
         beliefs = [b for b in decoded(client, "/afm/objects/believed") if b["origin"]]
         sources = [b["source"] for b in beliefs]
         # predicted stroke by stroke while pushing, then observed by the rescan
@@ -120,7 +127,6 @@ def test_the_viewer_shows_a_push_live(graph, ros_node):
         last = np.array([predicted[-1]["x"], predicted[-1]["y"]])
         assert np.linalg.norm(last - goal) < np.linalg.norm(start - goal), (last, start, goal)
         observed = beliefs[-1]["objects"][0]
-        achieved = (result.achieved.x, result.achieved.y)
         assert (observed["x"], observed["y"]) == pytest.approx(achieved, abs=1e-12)
         scene = decoded(client, "/afm/viewer/objects")
         ids = {e["id"] for update in scene for e in update.get("entities", [])}

@@ -188,7 +188,7 @@ def cmd_push(args):
                 goal=args.goal,
                 particle_id=args.particle,
                 particle_position=args.at,
-                strategy=args.strategy,
+                strategy=args.strategy or "",  # "": the node's default
                 tolerance=args.tolerance,
                 feedback=show,
                 wait=False,
@@ -433,10 +433,10 @@ def _add_push(sub) -> None:
     )
     p.add_argument(
         "--strategy",
-        default="nano_hand",
-        choices=["nano_hand", "closed_loop", "center", "rod_hand"],
-        help="how to push (default nano_hand, the virtual nano-hand's zigzag; closed_loop "
-        "observes the particle between legs and re-plans)",
+        choices=["closed_loop", "nano_hand", "center", "rod_hand"],
+        help="how to push (default: the nano-hand node's, closed_loop, which observes the "
+        "particle with local scan lines between legs and re-plans; nano_hand: the open-loop "
+        "zigzag)",
     )
     p.add_argument(
         "--tolerance",

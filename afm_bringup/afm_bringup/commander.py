@@ -263,14 +263,15 @@ class AfmCommander:
         goal,
         particle_id: int = -1,
         particle_position=None,
-        strategy="nano_hand",
+        strategy="",
         tolerance=0.0,
         feedback=None,
         wait=True,
         timeout=None,
         progress=False,
     ):
-        """Push a particle (by landmark id, or the one at `particle_position`) to `goal`.
+        """Push a particle (by landmark id, or the one at `particle_position`) to `goal`;
+        strategy "" is the nano-hand node's default (closed_loop).
         `feedback(f)` hears each step (str(f) is one line: step, phase, the particle's and the
         tip's estimates, peak forces); `progress=True` shows the steps done on stderr."""
         request = PushParticle.Goal(

@@ -3,12 +3,13 @@
 Every node runs as its own process with a recorder: the driver acquires a 0/90 deg scan
 pair (and a frame-down scan), the imaging node corrects the drift and maps the particles,
 the planner plans the tip's way to the push, and the nano-hand pushes a particle to a goal
-through its PushParticle action (localize on the particle, scan, plan the zigzag, push
-stroke by stroke through the driver, rescan, verify). Everything is recorded to MCAP; the
-recording is replayed into a second recording (checked byte for byte), and the replayed copy
-is evaluated offline against the simulator's ground truth into report.html: before/after
-maps, the tip path with its covariance ellipses, the particle path, the achieved error and
-the timings.
+through its PushParticle action with its default strategy, the closed loop (scan, localize on
+the particle, push in legs of zigzag strokes through the driver with local scan lines across
+the particle between them, re-planned until it is within tolerance, rescan, verify).
+Everything is recorded to MCAP; the recording is replayed into a second recording (checked
+byte for byte), and the replayed copy is evaluated offline against the simulator's ground
+truth into report.html: before/after maps, the tip path with its covariance ellipses, the
+particle path, the achieved error and the timings.
 
 The driver, localizer, planner and nano-hand use the calibration the calibration experiments
 produced on this simulated instrument (afm_localization/config/sim_calibration.yaml,
@@ -143,8 +144,7 @@ def push_stage(afm: AfmCommander, log, timings: dict) -> dict:
     started = time.monotonic()
     result = afm.push(
         goal,
-        particle_id=particle.id,
-        strategy="nano_hand",
+        particle_id=particle.id,  # the node's default strategy, as a lab's first push
         tolerance=PUSH_TOLERANCE,
         feedback=on_feedback,
         timeout=900,

@@ -540,14 +540,18 @@ class Localizer:
 
     def _search(self, landmark: MapLandmark, missed: LineResult, sign: float, after) -> LineResult:
         """A missed line's bounded search (SEARCH_SIGMAS): longer parallel lines beside its
-        track until one finds the landmark; that line (or the last miss) is the result, its
-        `search` field says what was run."""
+        track until one finds the landmark and the gate accepts it; that line (or the last
+        failure) is the result, its `search` field says what was run. A crossing the gate
+        rejects is not taken for the landmark, so the search goes on past it: a line can cross
+        a particle the map does not hold (one cut by the image's edge, or come since) and pass
+        beside the landmark. Rejecting a good crossing costs one more line at the gate's
+        false-alarm rate (0.1 % at the default gate)."""
         d = np.array([1.0, 0.0]) if missed.axis == "x" else np.array([0.0, 1.0])
         half = SEARCH_LENGTH_FACTOR * self._line_half_length(landmark, d)
         offsets = self.search_offsets(landmark, missed.axis)
         if not offsets:
             return missed
-        line, run, offset = missed, 0, 0.0
+        line, run, offset, rejected, gated = missed, 0, 0.0, 0, None
         for offset in offsets:
             try:
                 line = self.observe_line(
@@ -562,15 +566,25 @@ class Localizer:
                 line.search = f"search stopped after {run} line(s): {exc}"
                 return line
             run += 1
-            if not line.lost:
+            if not (line.lost or line.gated_out):
                 break
+            rejected += line.gated_out
+            gated = gated or (line if line.gated_out else None)
+        found = not (line.lost or line.gated_out)
+        if not found and gated is not None:
+            line = gated  # something was crossed and rejected: the more telling failure
+        first = f"first try missed ({missed.reason})"
         where = f"{offset * 1e9:+.0f} nm across" if offset else "on its track"
+        passed = (
+            f", after {rejected} crossing(s) the gate rejected (gated out)" if rejected else ""
+        )
         line.search = (
-            f"first try missed ({missed.reason}); search line {run} of up to {len(offsets)}, "
-            f"{2 * half * 1e9:.0f} nm long, {where}: {line.status}"
-            if not line.lost
-            else f"first try missed; {run} search line(s) up to "
-            f"{max(abs(o) for o in offsets) * 1e9:.0f} nm across found nothing"
+            f"{first}; search line {run} of up to {len(offsets)}, "
+            f"{2 * half * 1e9:.0f} nm long, {where}{passed}: {line.status}"
+            if found
+            else f"{first}; {run} search line(s) up to "
+            f"{max(abs(o) for o in offsets) * 1e9:.0f} nm across found nothing the gate "
+            f"accepts ({rejected} gated out)"
         )
         return line
 
@@ -633,7 +647,9 @@ class Localizer:
             except ValueError as exc:  # the re-planned line left the scanner range
                 line = LineResult(axis, "not_run", f"line not run: {exc}")
             # a search only looks for a landmark where the model says it may be: once a line
-            # found it and gated it out, the disagreement is beyond the model, not a miss
+            # found it where it was planned and gated it out, the disagreement is beyond the
+            # model, not a miss (a line that missed and searched goes on past crossings the
+            # gate rejects: _search)
             searchable = line.observation is not None and line.request is not None
             if line.lost and searchable and not result.gated_out:
                 line = self._search(landmark, line, sign, after)

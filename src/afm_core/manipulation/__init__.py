@@ -64,6 +64,7 @@ from afm_core.manipulation.plans import (
     predict_particle,
 )
 from afm_core.manipulation.push_procedure import (
+    DEFAULT_STRATEGY,
     PUSH_PARAMETERS,
     AssemblyResult,
     Progress,
@@ -111,6 +112,7 @@ __all__ = [
     "find_particles",
     "find_pits",
     "verify_push",
+    "DEFAULT_STRATEGY",
     "PUSH_PARAMETERS",
     "AssemblyResult",
     "Localization",
