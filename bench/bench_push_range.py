@@ -50,7 +50,7 @@ from afm_bringup.commander import AfmCommander, AfmError  # noqa: E402
 from afm_bringup.demo import peak_rss_bytes  # noqa: E402
 from afm_bringup.launcher import Graph  # noqa: E402
 from afm_core.evaluation import image_frame_matrix  # noqa: E402
-from afm_core.manipulation.push_procedure import DEFAULT_STRATEGY  # noqa: E402
+from afm_core.manipulation.push_parameters import DEFAULT_STRATEGY  # noqa: E402
 from afm_msgs.action import PushParticle  # noqa: E402
 from afm_msgs.msg import GroundTruth, LandmarkArray  # noqa: E402
 from afm_ros.qos_profiles import LATCHED  # noqa: E402

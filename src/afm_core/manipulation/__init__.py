@@ -36,7 +36,7 @@ one by one, the after image and verification with control points, on any Instrum
                                             .push(...) / .assemble(...) -> PushResult /
                                             AssemblyResult; PushRefused before anything moved,
                                             PushFailed after; Progress reports;
-                                            PUSH_PARAMETERS its settings
+                                            PUSH_PARAMETERS its settings (.push_parameters)
 - localize_with(localizer)                  the localization callable over a core Localizer
 
 Teleoperation (afm_core.manipulation.teleop, .teleop_model; the teleop node runs them):
@@ -63,9 +63,8 @@ from afm_core.manipulation.plans import (
     path_blocker,
     predict_particle,
 )
+from afm_core.manipulation.push_parameters import DEFAULT_STRATEGY, PUSH_PARAMETERS
 from afm_core.manipulation.push_procedure import (
-    DEFAULT_STRATEGY,
-    PUSH_PARAMETERS,
     AssemblyResult,
     Progress,
     PushFailed,

@@ -70,7 +70,7 @@ TIP_HEIGHT = 10e-6  # m, the lever arm of the lateral force (execute.force_summa
 
 @dataclass
 class PushCost:
-    duration: float = 0.0  # s, instrument time of the whole push (scans included)
+    duration: float = 0.0  # s, instrument time from the push's first command (scans included)
     lines: int = 0  # local scan lines run (measuring lines and ramps)
     observations: int = 0
     slid: float = 0.0  # m, commanded distance in contact

@@ -44,7 +44,6 @@ from afm_core.instrument import (
     Instrument,
     InstrumentUnavailable,
     RasterScanData,
-    ScannerLimits,
     ScanRequest,
     check_in_range,
 )
@@ -59,6 +58,11 @@ from afm_core.manipulation.execute import (
 )
 from afm_core.manipulation.particle_observation import TipTrack
 from afm_core.manipulation.plans import PushPlan, path_blocker
+from afm_core.manipulation.push_parameters import (
+    DEFAULT_STRATEGY,
+    PUSH_PARAMETERS,
+    STRATEGIES,
+)
 from afm_core.manipulation.push_steps import (
     Localization,
     TipEstimate,
@@ -71,116 +75,7 @@ from afm_core.manipulation.push_steps import (
     task_to_command,
 )
 from afm_core.manipulation.verify import VerificationResult, verify_push
-from afm_core.parameters import Parameter, ParameterTable
 
-PUSH_PARAMETERS = ParameterTable(
-    Parameter(
-        "tip_radius",
-        50e-9,
-        "Effective contact radius of the tip (R_T; book's simulation: 50 nm).",
-        unit="m",
-        minimum=0.0,
-        above_minimum=True,
-        runtime=True,
-    ),
-    Parameter(
-        "default_tolerance",
-        20e-9,
-        "Success radius around the goal when a goal's tolerance is 0.",
-        unit="m",
-        minimum=0.0,
-        above_minimum=True,
-        runtime=True,
-    ),
-    Parameter(
-        "push_speed",
-        0.5e-6,
-        "Speed of the tip in contact.",
-        unit="m/s",
-        minimum=0.0,
-        above_minimum=True,
-        maximum=ScannerLimits().max_speed,
-        runtime=True,
-    ),
-    Parameter(
-        "rescan_margin",
-        300e-9,
-        "Margin around the particle and the goal in the before/after rescans.",
-        unit="m",
-        minimum=0.0,
-        above_minimum=True,
-        runtime=True,
-    ),
-    Parameter(
-        "rescan_pixel",
-        8e-9,
-        "Pixel size of the before/after rescans.",
-        unit="m",
-        minimum=0.0,
-        above_minimum=True,
-        runtime=True,
-    ),
-    Parameter(
-        "rescan_line_rate",
-        4.0,
-        "Line rate of the before/after rescans.",
-        unit="Hz",
-        minimum=0.0,
-        above_minimum=True,
-        maximum=ScannerLimits().max_line_rate,
-        runtime=True,
-    ),
-    Parameter(
-        "match_radius",
-        300e-9,
-        "A particle given by position is the nearest landmark within this.",
-        unit="m",
-        minimum=0.0,
-        above_minimum=True,
-        runtime=True,
-    ),
-    Parameter(
-        "control_pits",
-        2,
-        "Indentation pits punched in the rescan's corners before a push: control points that "
-        "tie the after image to the before image (book 7.3); 0: none.",
-        minimum=0,
-        maximum=4,
-        runtime=True,
-    ),
-    Parameter(
-        "pit_force",
-        0.5e-6,
-        "Indentation force of the control pits (a ~10 nm deep pit on the default sample).",
-        unit="N",
-        minimum=0.0,
-        above_minimum=True,
-        maximum=ScannerLimits().max_indent_force,
-        runtime=True,
-    ),
-    Parameter(
-        "max_iterations",
-        4,
-        "closed_loop: the most legs (strokes, then an observation) a push may take.",
-        minimum=1,
-        maximum=20,
-        runtime=True,
-    ),
-    Parameter(
-        "localize_first",
-        True,
-        "Localize the tip on the particle before planning (book 7.3); false: trust the "
-        "current estimate.",
-        runtime=True,
-    ),
-)
-STRATEGIES = ("nano_hand", "closed_loop", "center", "centre", "rod_hand")
-# A goal's strategy "" means this one. The closed loop, because away from the range centre the
-# open-loop zigzag lands 20-45 nm short (its ratchet runs the tip on the major hysteresis
-# branch, 0.99 true per commanded against the map's 1.06) and only observation corrects that
-# (bench/results/push_range*.md: within 20 nm 0.65 / 0.25 open loop against 1.00 / 0.94
-# closed loop, centre / away); "nano_hand" stays available as the open-loop baseline.
-DEFAULT_STRATEGY = "closed_loop"
 PIT_DWELL = 0.1  # s
 
 
@@ -431,11 +326,12 @@ class PushProcedure:
         should_stop: Callable[[], bool],
     ) -> PushResult:
         """The push of a checked goal: scan, localize, plan, execute, rescan, verify."""
-        started = self.instrument.time
         cost = PushCost()
         try:
             start_xy = np.array([particle.x, particle.y])
-            request, before = self._scan_before(particle, start_xy, target, progress, should_stop)
+            request, before, started = self._scan_before(
+                particle, start_xy, target, progress, should_stop
+            )
             tip = self._localized(particle, start_xy, progress, should_stop)
             if strategy == "closed_loop":
                 plan, execution, cost = self._closed_loop(
@@ -488,9 +384,11 @@ class PushProcedure:
 
     def _scan_before(
         self, particle, start_xy, target, progress, should_stop
-    ) -> tuple[ScanRequest, RasterScanData]:
+    ) -> tuple[ScanRequest, RasterScanData, float]:
         """The control pits, then the before image (module docstring, step 2); a report
-        before each of them, so a listener that joined late still sees the phase."""
+        before each of them, so a listener that joined late still sees the phase. Also when the
+        first started: a backend that hears others' commands late (the graph's nano-hand) may
+        not know the time when the goal arrives, so the push's cost counts from there."""
         s = self.settings
         request = rescan_request(
             start_xy,
@@ -501,20 +399,23 @@ class PushProcedure:
             self.instrument.limits,
         )
         pits = control_pit_sites(request, start_xy, target, s["control_pits"])
+        first_start = None
         for done, pit in enumerate(pits):
             self._report(
                 progress, "scanning", particle, start_xy, step=done, steps_total=len(pits) + 1
             )
-            self.instrument.indent(
+            pitted = self.instrument.indent(
                 pit[0], pit[1], s["pit_force"], PIT_DWELL, should_stop=should_stop
             )
+            if first_start is None:
+                first_start = pitted.trace.start_time
         self._report(
             progress, "scanning", particle, start_xy, step=len(pits), steps_total=len(pits) + 1
         )
         before = self.instrument.raster_scan(request, should_stop=should_stop)
         if should_stop() or not before.complete:
             raise PushFailed("cancelled before pushing; nothing was pushed")
-        return request, before
+        return request, before, before.start_time if first_start is None else first_start
 
     def _localized(self, particle, start_xy, progress, should_stop) -> TipEstimate:
         self._report(progress, "localizing", particle, start_xy)
