@@ -291,7 +291,12 @@ def _noise_checks(p) -> list[dict]:
         return []
     checks = [
         _precision(
-            "motion_noise", "pooled_slope", p["pooled_slope"], p["pooled_slope_sigma"], 1e9, "nm"
+            "motion_noise",
+            "pooled_slope",
+            p["pooled_slope"],
+            p["pooled_slope_sigma"],
+            1e9,
+            "nm^2/nm (in the images' frame, the localizer's; motion_error)",
         )
     ]
     for name in ("slope_x", "slope_y", "cross_slope"):
