@@ -226,6 +226,7 @@ def _creep_checks(p) -> list[dict]:
         for axis, r, s in zip("xy", responses, sigmas)
     ]
     checks += _time_constant_checks(p)
+    checks += _creep_term_checks(p)
     if len(responses) == 2:
         checks.append(
             _agreement(
@@ -284,6 +285,42 @@ def _time_constant_checks(p) -> list[dict]:
             f"which the step response keeps); {_repeat('creep')}",
         )
     ]
+
+
+def _creep_term_checks(p) -> list[dict]:
+    """Each creep term (a time constant and its fraction per axis) against its own 95 %
+    interval, as every fit here: issue 37's creep 0.3x (0.15 / 1.5 / 15 s, 0.6 % of the step,
+    noise 4x) fitted 0.51 / 8.4 / 27 s and fractions 37-100 % off, with the constants "ok"
+    because they lay inside the sampled range. The three terms trade off when the creep is
+    small against the pits' scatter; their linearised standard errors (fit_creep) say so. A
+    fraction whose interval reaches 0 is a term not seen at this noise: its 95 % upper bound
+    is given instead of a value. The step response (the curve the motion model uses) has its
+    own check and can hold where the terms do not."""
+    if "time_constants_sigma" not in p:
+        return []
+    checks = []
+    for i, (tau, tau_sigma) in enumerate(zip(p["time_constants"], p["time_constants_sigma"])):
+        parts, poor = [f"{tau:.3g} +- {tau_sigma:.2g} s"], Z_95 * tau_sigma > ACCURACY_TARGET * tau
+        unseen = []
+        for axis in "xy":
+            c, c_sigma = p[f"fractions_{axis}"][i], p[f"fractions_{axis}_sigma"][i]
+            parts.append(f"fraction {axis} {c:.3g} +- {c_sigma:.2g}")
+            poor |= Z_95 * c_sigma > ACCURACY_TARGET * c
+            if c < Z_95 * c_sigma:
+                unseen.append(f"{axis} below {c + Z_95 * c_sigma:.2g} of the step (95 % bound)")
+        text = f"creep term {i + 1}: " + ", ".join(parts)
+        level = "ok"
+        if poor:
+            level = "warning"
+            text += (
+                f": not determined to {ACCURACY_TARGET:.0%} (95 % interval); the step response "
+                "is checked on its own"
+            )
+            if unseen:
+                text += "; not measurable at this noise: " + ", ".join(unseen)
+            text += f"; more runs (measure_creep repeats) narrow it, {_repeat('creep')}"
+        checks.append(_entry("creep", f"term_{i + 1}", level, tau, tau_sigma, text))
+    return checks
 
 
 def _noise_checks(p) -> list[dict]:
@@ -357,7 +394,10 @@ def _drift_checks(p) -> list[dict]:
         "mean_velocity_interval95", [1.96 * s / math.sqrt(pairs) for s in p["sigma_velocity"]]
     )
     errors = p.get("mean_velocity_sigma", [s / math.sqrt(pairs) for s in p["sigma_velocity"]])
-    for axis, mean, error, interval in zip("xy", p["mean_velocity"], errors, intervals):
+    spreads = p.get("sigma_velocity_interval95", [[math.nan, math.nan]] * 2)
+    for axis, mean, error, interval, spread, sigma in zip(
+        "xy", p["mean_velocity"], errors, intervals, spreads, p["sigma_velocity"]
+    ):
         checks.append(
             _entry(
                 "drift",
@@ -367,7 +407,8 @@ def _drift_checks(p) -> list[dict]:
                 error,
                 f"mean drift {axis} {mean * 1e9:.4f} nm/s, 95 % interval +- {interval * 1e9:.4f} "
                 f"nm/s (standard error {error * 1e9:.4f}; {pairs} pairs, their correlation "
-                "allowed for; more pairs, further apart, narrow it)",
+                f"allowed for; more pairs, further apart, narrow it); spread {sigma * 1e9:.4f} "
+                f"nm/s, 95 % interval {spread[0] * 1e9:.3g}-{spread[1] * 1e9:.3g} nm/s",
             )
         )
     return checks

@@ -345,9 +345,22 @@ def report_json(summary: dict) -> str:
 
 # The fitted numbers a person reads first, per experiment (the rest is in the JSON report).
 HEADLINE = {
-    "drift": ("mean_velocity", "mean_velocity_interval95", "sigma_velocity", "pairs"),
+    "drift": (
+        "mean_velocity",
+        "mean_velocity_interval95",
+        "sigma_velocity",
+        "sigma_velocity_interval95",
+        "pairs",
+    ),
     "map_errors": ("map_sigma", "scan_region_sigma"),
-    "creep": ("time_constants", "fractions_x", "fractions_y", "step_response_25s", "rms_residual"),
+    "creep": (
+        "time_constants",
+        "time_constants_sigma",
+        "fractions_x",
+        "fractions_y",
+        "step_response_25s",
+        "rms_residual",
+    ),
     "hysteresis_x": ("loop_fraction", "loop_fraction_sigma", "asymmetry", "gain", "rms_residual"),
     "hysteresis_y": ("loop_fraction", "loop_fraction_sigma", "asymmetry", "gain", "rms_residual"),
     "scanner_matrix": ("scanner_matrix", "span", "rms_residual"),

@@ -220,20 +220,23 @@ def _drift_and_noise_rows(calibration: Calibration, report: dict, config, scales
         for k, (axis, configured) in enumerate(
             (("x", drift.mean_velocity_x), ("y", drift.mean_velocity_y))
         )
-    ] + [
-        _row(
-            "drift.sigma_velocity_x",
-            calibration.drift_sigma_velocity[0],
-            drift.sigma_velocity_x,
-            "m/s",
-        ),
-        _row(
-            "drift.sigma_velocity_y",
-            calibration.drift_sigma_velocity[1],
-            drift.sigma_velocity_y,
-            "m/s",
-        ),
     ]
+    spreads = measured.get("sigma_velocity_interval95", [[math.nan, math.nan]] * 2)
+    for k, (axis, configured) in enumerate(
+        (("x", drift.sigma_velocity_x), ("y", drift.sigma_velocity_y))
+    ):
+        low, high = spreads[k]
+        inside = "inside" if low <= configured <= high else "outside"
+        rows.append(
+            _row(
+                f"drift.sigma_velocity_{axis}",
+                calibration.drift_sigma_velocity[k],
+                configured,
+                f"m/s; the run's 95 % interval {low:.3g}-{high:.3g} (configured {inside})"
+                if math.isfinite(low) and math.isfinite(high)
+                else "m/s",
+            )
+        )
     noise = (report.get("motion_noise") or {}).get("parameters") or dict.fromkeys(
         ("pooled_slope", "slope_x", "slope_y", "cross_slope"), math.nan
     )
