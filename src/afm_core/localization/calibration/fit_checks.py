@@ -31,8 +31,9 @@ The rules, and why:
   (y 0.997-0.998 for model errors -0.3 to 0.1) nor the loop (0.985 for loops 0.07 and 0.18),
   but the creep of the grid's moves (y 0.967, 0.991, 0.997, 1.000 for creep 3x, 1.5x, 1x,
   0.3x; x 1.00, the serpentine reverses along x every row), while the open-loop gain was
-  1.005-1.016: issue 37's 0.9508 against 1.0052 compared unrelated numbers. (In a full run
-  the y gain is lower still, 0.945 on that instrument, for a reason not yet separated.) A
+  1.005-1.016: issue 37's 0.9508 against 1.0052 compared unrelated numbers. (In full runs the
+  y gain was lower still, 0.92-0.95: the creep of the moves before the grid, which now rests
+  at its first pit first; scanner_matrix.) A
   gain off by more than ACCURACY_TARGET and Z_CONSISTENT standard errors is a warning: the
   grid or its rescan was disturbed.
 """
