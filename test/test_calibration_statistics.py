@@ -13,7 +13,11 @@ from afm_core.localization.calibration.motion_error import (
     _fitted_slopes,
     measure_motion_noise,
 )
-from afm_core.localization.calibration.simulator_comparison import lane_image_scales, lane_pits
+from afm_core.localization.calibration.simulator_comparison import (
+    lane_image_scales,
+    lane_pits,
+    matched_rows,
+)
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.drift import DriftParams, ThermalDrift
 from afm_core.sim.instrument import SimulatedAfm
@@ -151,7 +155,7 @@ def test_motion_noise_is_measured_in_the_images_frame_on_a_wide_loop():
     for axis, lane, pits in lane_pits(experiment.data, afm.sample.pits):
         along = np.array([[p.x, p.y][axis] for p in pits])
         across = np.array([[p.y, p.x][axis] for p in pits])
-        rows = np.asarray(lane["rows"])
+        _, rows = matched_rows(axis, lane, pits)
         variances = []
         for position in (along, across):
             true = position[2 * rows + 1] - position[2 * rows]

@@ -176,11 +176,35 @@ def lane_image_scales(data: dict, pits) -> list[tuple[int, float, float]]:
     (motion_error._round), `punched` trials of two pits each."""
     scales = []
     for axis, lane, block in lane_pits(data, pits):
+        measured, rows = matched_rows(axis, lane, block)
         along = np.array([[p.x, p.y][axis] for p in block])
-        rows = np.asarray(lane["rows"], int)
         true = along[2 * rows + 1] - along[2 * rows]
-        scales.append((axis, lane["distance"], lane["mean_separation"] / float(np.mean(true))))
+        image = np.asarray(lane["separations"], float)[measured]
+        scales.append((axis, lane["distance"], float(np.mean(image) / np.mean(true))))
     return scales
+
+
+def matched_rows(axis: int, lane: dict, block) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the lane's measured trials (index into lane["rows"]) are which punched trial:
+    the experiment numbers rows from the lowest pit it found, so a stray pit below the lane
+    (another experiment's) shifts every number by one; the shift whose true separations
+    follow the measured ones best (correlation) is taken."""
+    along = np.array([[p.x, p.y][axis] for p in block])
+    rows = np.asarray(lane["rows"], int)
+    image = np.asarray(lane["separations"], float)
+    best = None
+    for shift in range(-3, 4):
+        shifted = rows + shift
+        inside = (shifted >= 0) & (shifted < lane["punched"])
+        if inside.sum() < 3:
+            continue
+        true = along[2 * shifted[inside] + 1] - along[2 * shifted[inside]]
+        score = float(np.corrcoef(true, image[inside])[0, 1])
+        if best is None or score > best[0]:
+            best = (score, np.flatnonzero(inside), shifted[inside])
+    if best is None:
+        raise ValueError(f"motion-noise lane {lane.get('distance')}: no trials to match")
+    return best[1], best[2]
 
 
 def lane_pits(data: dict, pits) -> list[tuple[int, dict, list]]:
