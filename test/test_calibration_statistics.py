@@ -11,6 +11,7 @@ from afm_core.localization.calibration.fit_checks import ACCURACY_TARGET, Z_95, 
 from afm_core.localization.calibration.motion_error import (
     ROW_SIGMAS,
     _fitted_slopes,
+    calibrated_slopes,
     measure_motion_noise,
 )
 from afm_core.localization.calibration.simulator_comparison import (
@@ -167,6 +168,31 @@ def test_motion_noise_is_measured_in_the_images_frame_on_a_wide_loop():
     assert abs(ratio / squared - 1.0) < ACCURACY_TARGET, (ratio, squared)
     # the pits' position noise only adds to the images' variance: below 1 is the frame's scale
     assert ratio < 1.0, ratio
+
+
+def test_the_calibration_keeps_the_pooled_slope_where_a_component_agrees():
+    """Each component has a fraction of the pooled slope's samples (issue 37's narrowest
+    instrument: cross slope -11 % on its own, unflagged): where it agrees with the pooled one
+    (fit_checks' agreement: within Z_CONSISTENT of its standard error) the pooled slope is
+    kept, where it does not (a warning there) its own."""
+    parameters = {
+        "pooled_slope": 7.0e-11,
+        "pooled_slope_sigma": 0.2e-11,
+        "slope_x": 6.2e-11,  # 2 standard errors low: agrees
+        "slope_x_sigma": 0.4e-11,
+        "slope_y": 7.3e-11,
+        "slope_y_sigma": 0.4e-11,
+        "cross_slope": 3.0e-11,  # 10 standard errors and 57 % low: its own
+        "cross_slope_sigma": 0.4e-11,
+    }
+    kept = calibrated_slopes(parameters)
+    assert kept == {"slope_x": 7.0e-11, "slope_y": 7.0e-11, "cross_slope": 3.0e-11}
+    flagged = {
+        c["parameter"]
+        for c in calibration_checks({"motion_noise": {"parameters": parameters}})
+        if c["level"] != "ok"
+    }
+    assert flagged == {"cross_slope"}
 
 
 def test_the_scanner_matrix_gain_is_checked_against_the_image_frame_not_the_open_loop_gain():
