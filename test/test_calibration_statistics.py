@@ -195,6 +195,31 @@ def test_the_calibration_keeps_the_pooled_slope_where_a_component_agrees():
     assert flagged == {"cross_slope"}
 
 
+@pytest.mark.parametrize(
+    "gain, error, level",
+    [(1.08, 0.005, "warning"), (1.08, 0.05, "ok"), (1.03, 0.001, "ok"), (0.93, 0.005, "warning")],
+)
+def test_moves_that_disagree_with_the_images_flag_the_slope(gain, error, level):
+    """Issue 37's widest loop (0.25, asymmetry 0.1): moves of 1-4 um appeared 6-9 % long in the
+    images, the lanes' true separations 24-42 % long, and the slope measured through that
+    frame was off against either truth, unflagged. A lane whose g^2 departs from 1 by more
+    than the accuracy target and g from 1 by more than Z_CONSISTENT standard errors flags
+    the pooled slope; a departure within its error or under the target does not."""
+    parameters = {
+        "pooled_slope": 7.0e-11,
+        "pooled_slope_sigma": 0.2e-11,
+        **{name: 7.0e-11 for name in ("slope_x", "slope_y", "cross_slope")},
+        **{f"{name}_sigma": 0.4e-11 for name in ("slope_x", "slope_y", "cross_slope")},
+        "move_gains": [[0, 0.25e-6, 1.0, 0.003], [0, 4e-6, gain, error]],
+    }
+    checks = calibration_checks({"motion_noise": {"parameters": parameters}})
+    flagged = [c for c in checks if c["level"] != "ok"]
+    assert [c["level"] for c in flagged] == ([level] if level != "ok" else []), flagged
+    if flagged:
+        assert flagged[0]["parameter"] == "pooled_slope"
+        assert "afm calibrate --only motion_noise" in flagged[0]["message"]
+
+
 def test_the_scanner_matrix_gain_is_checked_against_the_image_frame_not_the_open_loop_gain():
     """Issue 37 printed ok for an image-frame gain 0.9508 against an open-loop gain 1.0052
     and would have warned only past 10 % between two quantities that do not measure the

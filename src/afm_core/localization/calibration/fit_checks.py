@@ -337,6 +337,7 @@ def _noise_checks(p) -> list[dict]:
             "nm^2/nm (in the images' frame, the localizer's; motion_error)",
         )
     ]
+    checks += _move_gain_checks(p)
     for name in ("slope_x", "slope_y", "cross_slope"):
         checks.append(
             _agreement(
@@ -351,6 +352,44 @@ def _noise_checks(p) -> list[dict]:
             )
         )
     return checks
+
+
+def _move_gain_checks(p) -> list[dict]:
+    """The motion-noise lanes' moves against the images (motion_error._move_gains): a lane
+    whose moves of d appear g d long, g off 1 by more than Z_CONSISTENT standard errors,
+    with |g^2 - 1| (what it can do to a variance) beyond ACCURACY_TARGET, says the images'
+    frame is not the commanded one at that length, so the slope measured through it may be
+    off by that much; the usual cause is a feed-forward far from the scanner (load this
+    run's hysteresis fit and repeat)."""
+    if not p.get("move_gains"):
+        return []
+    worst = max(p["move_gains"], key=lambda row: abs(row[2] ** 2 - 1.0))
+    axis, d, g, error = worst
+    text = (
+        f"moves against the images: largest departure {'xy'[int(axis)]} at {d * 1e6:.2g} um, "
+        f"g {g:.4f} +- {error:.4f}"
+    )
+    off = [
+        row
+        for row in p["move_gains"]
+        if abs(row[2] ** 2 - 1.0) > ACCURACY_TARGET and abs(row[2] - 1.0) > Z_CONSISTENT * row[3]
+    ]
+    if not off:
+        return [_entry("motion_noise", "move_gain", "ok", g, error, text)]
+    return [
+        _entry(
+            "motion_noise",
+            "pooled_slope",
+            "warning",
+            g,
+            error,
+            f"{text}: {len(off)} lane(s) with |g^2 - 1| over {ACCURACY_TARGET:.0%} and "
+            f"{Z_CONSISTENT:g} standard errors: the images' frame is not the commanded one at "
+            "these lengths, the slope measured through it may be off by that much (a "
+            "feed-forward far from the scanner: load this run's hysteresis fit); "
+            f"{_repeat('motion_noise')}",
+        )
+    ]
 
 
 def _gain_checks(matrix, px, py) -> list[dict]:

@@ -145,7 +145,24 @@ def measure_motion_noise(
                 f"{spacing * 1e9:.0f} nm rows)",
             }
         )
+    parameters["move_gains"] = _move_gains(data)
     return Experiment(parameters, data)
+
+
+def _move_gains(data: dict) -> list[list[float]]:
+    """Per lane [axis, d, g, standard error of g]: how long a commanded move of d is in the
+    images (its trials' mean separation / d). The slopes are variances in the images' frame
+    per metre commanded; where g departs from 1 the moves and the images disagree on the
+    frame at that length (a compensated scanner that is not linear there: on the widest
+    loop of issue 37, g 1.06-1.09 at 1-4 um and 1.00 at 0.25 um), and the slope measured
+    through it is off by up to |g^2 - 1| (fit_checks flags it)."""
+    gains = []
+    for axis in (0, 1):
+        for lane in data["xy"[axis]]:
+            d, n = lane["distance"], max(lane["trials"], 2)
+            error = math.sqrt(lane["variance_along"] / n) / d
+            gains.append([axis, d, lane["mean_separation"] / d, error])
+    return gains
 
 
 def calibrated_slopes(parameters: dict) -> dict:
