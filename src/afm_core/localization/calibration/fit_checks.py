@@ -23,7 +23,12 @@ The rules, and why:
   look, not an error.
 - A creep time constant the runs did not sample (slower than a quarter of a run, faster than
   half the first pit's moment) is flagged, and so is a hysteresis asymmetry fitted without
-  all four pits at the loop's tips (extrapolated).
+  all four pits at the loop's tips (extrapolated). Each creep term (time constant and
+  fractions) is held to its own 95 % interval like any fit; a fraction whose interval
+  reaches 0 is given as an upper bound ("not measurable at this noise").
+- The motion-noise slope is a variance in the images' frame (motion_error): a lane whose
+  moves appear g d long with |g^2 - 1| beyond ACCURACY_TARGET and g beyond Z_CONSISTENT
+  standard errors from 1 flags it (the frame is not the commanded one at that length).
 - The scanner matrix's gains are checked against 1 (the image frame), not against the
   hysteresis cycle's open-loop gain: that is the piezo's tip-to-tip output per drive with the
   feed-forward off, the matrix is short compensated moves against a compensated raster
