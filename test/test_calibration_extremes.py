@@ -16,8 +16,11 @@ import pytest
 
 from afm_core.localization.calibration.creep import creep_step_response, measure_creep
 from afm_core.localization.calibration.drift_statistics import measure_drift
+from afm_core.localization.calibration.experiment import range_centre
 from afm_core.localization.calibration.figures import calibration_figures
+from afm_core.localization.calibration.fit_checks import Z_CONSISTENT, calibration_checks
 from afm_core.localization.calibration.procedure import report_markdown
+from afm_core.localization.calibration.scanner_matrix import measure_scanner_matrix
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 
@@ -47,6 +50,75 @@ def test_creep_three_times_the_default_is_recovered():
     assert first["pits_found"] >= first["pits_punched"] - 2
     # the run lagged past the first box (5 % of the step + 0.5 um)
     assert first["lag"] > 0.05 * first["step"]
+
+
+def test_a_small_fast_creep_is_recovered_or_its_terms_flagged():
+    """Creep 0.3x in size and time under noise 4x (time constants 0.15, 1.5, 15 s, 0.6 % of
+    the step; issue 37's widest instrument): the terms trade off against the pits' scatter
+    (fitted 0.51 / 8.4 / 27 s in the bench, reported "ok"). Every time constant and fraction
+    is within 10 % of the simulator's or its term is flagged, and a flagged term says why
+    (its 95 % interval, or a 95 % upper bound where the term is not seen at this noise)."""
+    base = load_config().scanner
+    config = merge(
+        load_config(),
+        {
+            "seed": 4,
+            "scanner": {
+                "hysteresis_fraction": 0.25,
+                "hysteresis_asymmetry": 0.1,
+                "creep_time_constants": [0.3 * t for t in base.creep_time_constants],
+                "creep_fractions": [0.3 * f for f in base.creep_fractions],
+                "positioning_noise_slope": 4.0 * base.positioning_noise_slope,
+                "positioning_noise_offset": 4.0 * base.positioning_noise_offset,
+            },
+        },
+    )
+    p = measure_creep(SimulatedAfm(config)).parameters
+    flagged = {
+        c["parameter"]
+        for c in calibration_checks({"creep": {"parameters": p}})
+        if c["level"] != "ok"
+    }
+    order = np.argsort(config.scanner.creep_time_constants)
+    taus = np.asarray(config.scanner.creep_time_constants)[order]
+    fractions = np.asarray(config.scanner.creep_fractions)[order]
+    wrong = []
+    for i in range(3):
+        fitted = [p["time_constants"][i], p["fractions_x"][i], p["fractions_y"][i]]
+        true = [taus[i], fractions[i], fractions[i]]
+        if any(abs(f / t - 1) > 0.10 for f, t in zip(fitted, true)):
+            wrong.append(i)
+            assert f"term_{i + 1}" in flagged, (i, fitted, true, flagged)
+    assert wrong, "the case no longer tests the flag: every term within 10 %"
+
+
+def test_the_scanner_matrix_does_not_depend_on_where_the_tip_came_from():
+    """Issue 37: the scanner matrix's y gain read 0.92-0.95 in full runs. The creep of the
+    moves before the grid ran on while its rows were punched one after another along y, so
+    the gain followed the last long move: with creep 3x, 0.967 after a 45 um move from above
+    and 1.026 from below. With a rest at the first pit the two agree within Z_CONSISTENT
+    combined standard errors and lie nearer 1 than either did."""
+    base = load_config().scanner
+    config = merge(
+        load_config(),
+        {
+            "seed": 3,
+            "scanner": {
+                "creep_time_constants": [3 * t for t in base.creep_time_constants],
+                "creep_fractions": [3 * f for f in base.creep_fractions],
+            },
+        },
+    )
+    axis, gains = 1, []
+    for side in (1.0, -1.0):
+        afm = SimulatedAfm(config)
+        centre = range_centre(afm)
+        afm.move_tip(centre[0] - 20e-6, centre[1] + side * 45e-6, 20e-6)
+        p = measure_scanner_matrix(afm).parameters
+        gains.append((p["scanner_matrix"][axis][axis], p["scanner_matrix_sigma"][axis][axis]))
+    (above, s_above), (below, s_below) = gains
+    assert abs(above - below) < Z_CONSISTENT * math.hypot(s_above, s_below), gains
+    assert abs(above - 1) < 1 - 0.967 and abs(below - 1) < 0.026, gains
 
 
 def test_drift_of_one_nanometre_per_second_is_measured():

@@ -144,10 +144,18 @@ def fit_creep(
     rms = float(np.sqrt(np.mean(misfit**2))) * 1e-9
     ends = np.cumsum([len(t) for t, *_ in prepared])[:-1]
     models = [(x + r) * 1e-9 for (_, x, *_), r in zip(prepared, np.split(misfit, ends))]
-    response, response_sigma = _step_response_sigmas(fit, unpack, len(groups))
+    covariance = _covariance(fit)
+    response, response_sigma = _step_response_sigmas(fit, covariance, unpack, len(groups))
+    # the time constants are fitted as logarithms: their standard errors are relative
+    log_sigma = np.sqrt(np.maximum(np.diag(covariance)[:n_constants], 0.0))
+    fraction_sigma = np.sqrt(
+        np.maximum(np.diag(covariance)[n_constants : n_constants * (1 + len(groups))], 0.0)
+    ).reshape(len(groups), n_constants)
     return {
         "time_constants": taus[order].tolist(),
+        "time_constants_sigma": (taus * log_sigma)[order].tolist(),
         "fractions": [f[order].tolist() for f in fractions],
+        "fractions_sigma": [f[order].tolist() for f in fraction_sigma],
         "step_response_25s": response,
         "step_response_25s_sigma": response_sigma,
         "settled": [float(p[0]) * 1e-9 for p in per_run],
@@ -237,6 +245,10 @@ def measure_creep(
         "rms_residual": fit["rms_residual"],
         "step_response_25s": fit["step_response_25s"],
         "step_response_25s_sigma": fit["step_response_25s_sigma"],
+        "time_constants_sigma": fit["time_constants_sigma"],
+        "fractions_x_sigma": fit["fractions_sigma"][0],
+        "fractions_y_sigma": fit["fractions_sigma"][1],
+        "step": step,
         "success": fit["success"],
         # what the runs could resolve: a time constant at either end is not measured
         "time_constant_range": [float(min(r["t"][0] for r in runs)), duration],
@@ -438,14 +450,17 @@ def _rescanned_lane(instrument, axis, end, lane, pixel, reach, fast_pits) -> tup
 STEP_RESPONSE_TIME = 25.0  # s, the book's creep figure: what the motion model predicts
 
 
-def _step_response_sigmas(fit, unpack, groups: int) -> tuple[list, list]:
-    """Per group the creep step response at STEP_RESPONSE_TIME and its standard error,
-    linearised: covariance s^2 (J^T J)^-1 of the parameters at the solution (J and the cost as
-    least_squares leaves them, whitened where the fit was), propagated by the numerical
-    gradient of the response."""
+def _covariance(fit) -> np.ndarray:
+    """The parameters' covariance at the solution, linearised: s^2 (J^T J)^-1 (J and the cost
+    as least_squares leaves them, whitened where the fit was)."""
     jacobian = np.asarray(fit.jac, float)
     dof = max(1, jacobian.shape[0] - jacobian.shape[1])
-    covariance = 2.0 * float(fit.cost) / dof * np.linalg.pinv(jacobian.T @ jacobian)
+    return 2.0 * float(fit.cost) / dof * np.linalg.pinv(jacobian.T @ jacobian)
+
+
+def _step_response_sigmas(fit, covariance, unpack, groups: int) -> tuple[list, list]:
+    """Per group the creep step response at STEP_RESPONSE_TIME and its standard error: the
+    parameters' covariance propagated by the numerical gradient of the response."""
     t = np.array([STEP_RESPONSE_TIME])
 
     def responses(theta):

@@ -115,7 +115,10 @@ def measure_drift(
     errors = [mean_error(v[:, axis]) for axis in range(2)]
     parameters = {
         "mean_velocity": v.mean(axis=0).tolist(),
-        "sigma_velocity": v.std(axis=0, ddof=1).tolist(),
+        # the spread with the pairs' correlation allowed for (mean_error), and as sampled
+        "sigma_velocity": [e["sigma"] for e in errors],
+        "sigma_velocity_interval95": [e["sigma_interval95"] for e in errors],
+        "sample_sigma_velocity": v.std(axis=0, ddof=1).tolist(),
         "pairs": pairs,
         # the mean's sampling error with the pairs' correlation allowed for (mean_error)
         "mean_velocity_sigma": [e["standard_error"] for e in errors],
@@ -290,14 +293,25 @@ def mean_error(velocities) -> dict:
     pair velocities over 560 s, correlation time 1800 s): 6 pairs 1800 s apart 0.90 (sigma /
     sqrt(n) with a normal quantile: 0.73), 3600 s apart 0.95, 20 pairs 0.93-0.96; pairs half
     a correlation time apart are under-covered, 0.82-0.85 (0.55).
-    Returns {"standard_error", "interval95", "lag1_correlation" (the corrected rho)}."""
+    The velocity's own spread is corrected alike (`sigma`: the sample variance divided by
+    that shrink), with a chi-square 95 % interval on the n/f - 1 effective degrees of freedom
+    (`sigma_interval95`, [low, high]): 6 correlated pairs hold about 3 independent values.
+    Returns {"standard_error", "interval95", "lag1_correlation" (the corrected rho),
+    "sigma", "sigma_interval95"}."""
     v = np.asarray(velocities, float)
     n = v.size
     deviation = v - v.mean()
     spread = float(np.sum(deviation**2))
     if n < 3 or spread <= 0.0:
-        error = float(np.std(v, ddof=1) / np.sqrt(n)) if n > 1 else float("nan")
-        return {"standard_error": error, "interval95": 1.96 * error, "lag1_correlation": 0.0}
+        sigma = float(np.std(v, ddof=1)) if n > 1 else float("nan")
+        error = sigma / np.sqrt(n)
+        return {
+            "standard_error": error,
+            "interval95": 1.96 * error,
+            "lag1_correlation": 0.0,
+            "sigma": sigma,
+            "sigma_interval95": [float("nan"), float("nan")],
+        }
     r1 = float(np.sum(deviation[1:] * deviation[:-1]) / spread)
     rho = float(np.clip(r1 + (1.0 + 4.0 * r1) / n, 0.0, MAX_RHO))
     lags = np.arange(1, n)
@@ -308,8 +322,14 @@ def mean_error(velocities) -> dict:
     variance = spread / (n - 1) / shrink
     error = float(np.sqrt(variance * inflation / n))
     dof = max(n / inflation - 1.0, 1.0)
+    sigma = float(np.sqrt(variance))
     return {
         "standard_error": error,
         "interval95": float(stats.t.ppf(0.975, dof)) * error,
         "lag1_correlation": rho,
+        "sigma": sigma,
+        "sigma_interval95": [
+            sigma * float(np.sqrt(dof / stats.chi2.ppf(0.975, dof))),
+            sigma * float(np.sqrt(dof / stats.chi2.ppf(0.025, dof))),
+        ],
     }

@@ -46,7 +46,7 @@ from afm_core.localization.calibration.hysteresis import hysteresis_fit_of, meas
 from afm_core.localization.calibration.line_deflection import measure_line_deflection
 from afm_core.localization.calibration.map_errors import map_errors
 from afm_core.localization.calibration.model import Calibration
-from afm_core.localization.calibration.motion_error import measure_motion_noise
+from afm_core.localization.calibration.motion_error import calibrated_slopes, measure_motion_noise
 from afm_core.localization.calibration.scanner_matrix import measure_scanner_matrix
 
 # What an experiment that cannot measure raises (too few pits found, a fit that does not
@@ -172,9 +172,10 @@ def _calibration_fields(report: dict) -> dict:
             fields["scanner_matrix_span"] = report["scanner_matrix"].parameters["span"]
     if report.get("motion_noise") is not None:
         noise = report["motion_noise"].parameters
-        fields["motion_noise_slope_x"] = max(0.0, noise["slope_x"])
-        fields["motion_noise_slope_y"] = max(0.0, noise["slope_y"])
-        fields["motion_noise_cross_slope"] = max(0.0, noise["cross_slope"])
+        slopes = calibrated_slopes(noise) if "pooled_slope_sigma" in noise else noise
+        fields["motion_noise_slope_x"] = max(0.0, slopes["slope_x"])
+        fields["motion_noise_slope_y"] = max(0.0, slopes["slope_y"])
+        fields["motion_noise_cross_slope"] = max(0.0, slopes["cross_slope"])
         fields["motion_noise_offset"] = max(0.0, 0.5 * (noise["offset_x"] + noise["offset_y"]))
     if report.get("line_deflection") is not None:
         deflection = report["line_deflection"].parameters
@@ -345,9 +346,22 @@ def report_json(summary: dict) -> str:
 
 # The fitted numbers a person reads first, per experiment (the rest is in the JSON report).
 HEADLINE = {
-    "drift": ("mean_velocity", "mean_velocity_interval95", "sigma_velocity", "pairs"),
+    "drift": (
+        "mean_velocity",
+        "mean_velocity_interval95",
+        "sigma_velocity",
+        "sigma_velocity_interval95",
+        "pairs",
+    ),
     "map_errors": ("map_sigma", "scan_region_sigma"),
-    "creep": ("time_constants", "fractions_x", "fractions_y", "step_response_25s", "rms_residual"),
+    "creep": (
+        "time_constants",
+        "time_constants_sigma",
+        "fractions_x",
+        "fractions_y",
+        "step_response_25s",
+        "rms_residual",
+    ),
     "hysteresis_x": ("loop_fraction", "loop_fraction_sigma", "asymmetry", "gain", "rms_residual"),
     "hysteresis_y": ("loop_fraction", "loop_fraction_sigma", "asymmetry", "gain", "rms_residual"),
     "scanner_matrix": ("scanner_matrix", "span", "rms_residual"),

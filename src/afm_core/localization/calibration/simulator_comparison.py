@@ -50,14 +50,24 @@ def branch_error(fit: HysteresisFit, true_model: PrandtlIshlinskii, half: float)
     return float(np.max(np.abs(difference - shift)) / np.max(td - ta))
 
 
-def compare_with_simulator(calibration: Calibration, report: dict, config) -> list[dict]:
+def compare_with_simulator(
+    calibration: Calibration, report: dict, config, motion_noise_pits=None
+) -> list[dict]:
     """Recovered against configured values of a simulated instrument (afm_core.sim.config
     SimConfig), one row per quantity: name, recovered, true, relative error (None where the
-    true value is 0 or there is none to compare with), and what is compared."""
+    true value is 0 or there is none to compare with), and what is compared.
+    motion_noise_pits: the simulator's true pits (afm_core.sim Pit, in the order punched)
+    from the motion-noise experiment's first on; with them the motion-noise slopes are
+    compared in the images' frame, where they are measured and used (`lane_image_scales`),
+    and the configured true-metre value is shown beside."""
+    scales = None
+    noise = report.get("motion_noise")
+    if motion_noise_pits is not None and isinstance(noise, dict) and "data" in noise:
+        scales = lane_image_scales(noise["data"], motion_noise_pits)
     rows = (
         _hysteresis_rows(calibration, report, config.scanner)
         + _creep_rows(calibration, config.scanner)
-        + _drift_and_noise_rows(calibration, report, config)
+        + _drift_and_noise_rows(calibration, report, config, scales)
         + _image_frame_rows(calibration, config.scanner)
     )
     for row in rows:  # an experiment that failed measured nothing: say so, compare nothing
@@ -156,7 +166,67 @@ def _creep_rows(calibration: Calibration, scanner) -> list[dict]:
     return rows
 
 
-def _drift_and_noise_rows(calibration: Calibration, report: dict, config) -> list[dict]:
+def lane_image_scales(data: dict, pits) -> list[tuple[int, float, float]]:
+    """Per motion-noise lane (measure_motion_noise's data), (axis, distance, s): the images'
+    length scale there, the lane's mean separation in the images over the mean of the same
+    trials' true separations; the images see the noise's variance about s^2 times the true
+    one (within a few %: the compensated scanner's gain also varies along a stroke).
+    `pits`: the simulator's pits in the order punched, from the experiment's first on; the
+    lanes punched them round by round, the x lanes and then the y lanes of each
+    (motion_error._round), `punched` trials of two pits each."""
+    scales = []
+    for axis, lane, block in lane_pits(data, pits):
+        measured, rows = matched_rows(axis, lane, block)
+        along = np.array([[p.x, p.y][axis] for p in block])
+        true = along[2 * rows + 1] - along[2 * rows]
+        image = np.asarray(lane["separations"], float)[measured]
+        scales.append((axis, lane["distance"], float(np.mean(image) / np.mean(true))))
+    return scales
+
+
+def matched_rows(axis: int, lane: dict, block) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the lane's measured trials (index into lane["rows"]) are which punched trial:
+    the experiment numbers rows from the lowest pit it found, so a stray pit below the lane
+    (another experiment's) shifts every number by one; the shift whose true separations
+    follow the measured ones best (correlation) is taken."""
+    along = np.array([[p.x, p.y][axis] for p in block])
+    rows = np.asarray(lane["rows"], int)
+    image = np.asarray(lane["separations"], float)
+    best = None
+    for shift in range(-3, 4):
+        shifted = rows + shift
+        inside = (shifted >= 0) & (shifted < lane["punched"])
+        if inside.sum() < 3:
+            continue
+        true = along[2 * shifted[inside] + 1] - along[2 * shifted[inside]]
+        score = float(np.corrcoef(true, image[inside])[0, 1])
+        if best is None or score > best[0]:
+            best = (score, np.flatnonzero(inside), shifted[inside])
+    if best is None:
+        raise ValueError(f"motion-noise lane {lane.get('distance')}: no trials to match")
+    return best[1], best[2]
+
+
+def lane_pits(data: dict, pits) -> list[tuple[int, dict, list]]:
+    """(axis, lane data, the lane's pits in the order punched: A, B of trial 0, ...) of every
+    motion-noise lane (see lane_image_scales)."""
+    lanes = [(axis, lane) for axis in (0, 1) for lane in data["xy"[axis]]]
+    ordered = sorted(lanes, key=lambda item: (item[1].get("round", 0), item[0]))
+    if any("punched" not in lane or "rows" not in lane for _, lane in ordered):
+        raise ValueError("motion-noise data without 'punched'/'rows' per lane: cannot match pits")
+    out, first = [], 0
+    for axis, lane in ordered:
+        block = pits[first : first + 2 * lane["punched"]]
+        first += 2 * lane["punched"]
+        if len(block) < 2 * lane["punched"]:
+            raise ValueError(
+                f"motion_noise_pits: {len(pits)} pits, fewer than the lanes punched ({first})"
+            )
+        out.append((axis, lane, block))
+    return out
+
+
+def _drift_and_noise_rows(calibration: Calibration, report: dict, config, scales) -> list[dict]:
     scanner, drift = config.scanner, config.drift
     measured = (report.get("drift") or {}).get("parameters") or {}
     intervals = measured.get("mean_velocity_interval95", [math.nan, math.nan])
@@ -174,32 +244,59 @@ def _drift_and_noise_rows(calibration: Calibration, report: dict, config) -> lis
         for k, (axis, configured) in enumerate(
             (("x", drift.mean_velocity_x), ("y", drift.mean_velocity_y))
         )
-    ] + [
-        _row(
-            "drift.sigma_velocity_x",
-            calibration.drift_sigma_velocity[0],
-            drift.sigma_velocity_x,
-            "m/s",
-        ),
-        _row(
-            "drift.sigma_velocity_y",
-            calibration.drift_sigma_velocity[1],
-            drift.sigma_velocity_y,
-            "m/s",
-        ),
     ]
+    spreads = measured.get("sigma_velocity_interval95", [[math.nan, math.nan]] * 2)
+    for k, (axis, configured) in enumerate(
+        (("x", drift.sigma_velocity_x), ("y", drift.sigma_velocity_y))
+    ):
+        low, high = spreads[k]
+        inside = "inside" if low <= configured <= high else "outside"
+        rows.append(
+            _row(
+                f"drift.sigma_velocity_{axis}",
+                calibration.drift_sigma_velocity[k],
+                configured,
+                f"m/s; the run's 95 % interval {low:.3g}-{high:.3g} (configured {inside})"
+                if math.isfinite(low) and math.isfinite(high)
+                else "m/s",
+            )
+        )
     noise = (report.get("motion_noise") or {}).get("parameters") or dict.fromkeys(
         ("pooled_slope", "slope_x", "slope_y", "cross_slope"), math.nan
     )
-    for name in ("pooled_slope", "slope_x", "slope_y", "cross_slope"):
-        rows.append(
-            _row(
-                f"motion_noise.{name}",
-                noise[name],
-                scanner.positioning_noise_slope,
-                "m^2/m (the simulator's noise is isotropic: every slope is the configured one)",
+    true_slope = scanner.positioning_noise_slope
+    # the per-axis slopes as the calibration keeps them (motion_error.calibrated_slopes: the
+    # pooled one where a component agrees with it)
+    kept = {
+        "pooled_slope": noise["pooled_slope"],
+        "slope_x": calibration.motion_noise_slope_x,
+        "slope_y": calibration.motion_noise_slope_y,
+        "cross_slope": calibration.motion_noise_cross_slope,
+    }
+    for name, axes in (
+        ("pooled_slope", (0, 1)),
+        ("slope_x", (0,)),
+        ("slope_y", (1,)),
+        ("cross_slope", (0, 1)),
+    ):
+        note = "m^2/m (the simulator's noise is isotropic: every slope is the configured one)"
+        truth = true_slope
+        if scales:
+            # the noise is configured in true metres per metre commanded; the images see it
+            # times s^2 at the lanes (lane_image_scales, motion_error's module doc)
+            squared = float(np.mean([s**2 for axis, _, s in scales if axis in axes]))
+            truth = true_slope * squared
+            physical = _row("", kept[name], true_slope)["relative_error"]
+            note = (
+                f"m^2/m in the images' frame: configured {true_slope:.4g} x (the lanes' image "
+                f"/ true length)^2 {squared:.4f}; against the configured true-metre "
+                f"value {physical:+.1%}"
+                if physical is not None and math.isfinite(physical)
+                else f"m^2/m in the images' frame (x {squared:.4f})"
             )
-        )
+        if name != "pooled_slope":
+            note += f"; fitted on its own {noise[name]:.4g}"
+        rows.append(_row(f"motion_noise.{name}", kept[name], truth, note))
     rows.append(
         _row(
             "motion_noise.offset",
