@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import random
 import signal
 import subprocess
 import tempfile
@@ -11,8 +10,12 @@ import time
 
 import pytest
 
-# Isolate this run's DDS traffic from anything else on the machine (other runs, demos).
-os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(110, 200)))
+# Isolate this run's DDS traffic from anything else on the machine (other runs, demos): a domain
+# id no other process uses, held for this run (a random one collided with other runs' graphs)
+if "ROS_DOMAIN_ID" not in os.environ:
+    from afm_ros.exposure import claim_domain
+
+    os.environ["ROS_DOMAIN_ID"] = str(claim_domain())
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 LOG_TAIL_CHARS = 6000  # of each node's output, printed when a test fails
 
