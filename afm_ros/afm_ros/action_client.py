@@ -34,6 +34,9 @@ from unique_identifier_msgs.msg import UUID
 # orders of magnitude of margin over a live server's answer for a loaded machine.
 HEARTBEAT_PERIOD_S = 0.5
 SERVER_SILENCE_S = 3.0
+# What rclpy's take_data returns for the server's replies to our requests (goal, cancel and
+# result services); feedback and status are topics, which prove nothing about our requests.
+ANSWERS = ("goal", "cancel", "result")
 # A cancel request a live server has not even acknowledged in this long will not be honoured.
 CANCEL_ACK_TIMEOUT_S = 3.0
 # Set when this process is stopping (SIGINT/SIGTERM): every wait for a server gives up at once,
@@ -142,4 +145,10 @@ class SafeActionClient(ActionClient):
 
     def take_data(self):
         with self._request_lock:
-            return super().take_data()
+            data = super().take_data()
+        if any(key in data for key in ANSWERS):
+            # a reply to one of our requests is as good an answer as a probe's: a client that
+            # sends goal after goal (teleop, 20 a second) never stops to probe a server that
+            # answers it all the time
+            self._answered_at = time.monotonic()
+        return data
