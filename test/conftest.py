@@ -40,11 +40,15 @@ class NodeProcess:
 
         self.name = name
         self.log = tempfile.TemporaryFile()
+        self.started = time.time()  # the epoch of the nodes' log stamps
         self.process = subprocess.Popen(
             node_command(name, None, overrides),
             stdout=self.log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
+            # what it printed reaches the file at once: a node killed at the test's end shows
+            # how far it got, not an empty buffer
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )
 
     def output(self) -> str:
@@ -90,7 +94,11 @@ def nodes(request):
     if report is not None and report.failed:
         for node in started:  # what each node said, for the failure's diagnosis
             tail = node.output()[-LOG_TAIL_CHARS:]
-            print(f"\n----- {node.name} (exit {node.process.returncode}) -----\n{tail}")
+            print(
+                f"\n----- {node.name} (started at {node.started:.3f}, pid {node.process.pid}, "
+                f"domain {os.environ.get('ROS_DOMAIN_ID')}, exit {node.process.returncode}) "
+                f"-----\n{tail}"
+            )
     for node in started:
         node.log.close()
 

@@ -19,6 +19,7 @@ SERVER_SILENCE_S.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 import uuid
@@ -122,8 +123,22 @@ class SafeActionClient(ActionClient):
                 self._answered_at = time.monotonic()
                 self.not_answering = ""
                 return True
-        self.not_answering = f"its server is listed but answered none of {probes} probes"
+        self.not_answering = (
+            f"its server is listed ({self.listed_servers()}) but answered none of {probes} probes"
+        )
         return False
+
+    def listed_servers(self) -> str:
+        """Who the graph says serves this action (the publishers of its status topic, a
+        process each): two where one was started means a dead one still listed, or another
+        run's graph on the same domain."""
+        try:
+            listed = self._node.get_publishers_info_by_topic(f"{self._action_name}/_action/status")
+        except Exception as exc:  # noqa: BLE001 - a diagnosis must not hide the failure
+            return f"by whom unknown: {exc}"
+        names = sorted(f"{p.node_namespace.rstrip('/')}/{p.node_name}" for p in listed)
+        domain = os.environ.get("ROS_DOMAIN_ID", "0")
+        return f"by {len(names)} node(s) on domain {domain}: {', '.join(names) or 'none now'}"
 
     def _forget_requests(self, futures) -> None:
         """Remove cancel requests a dead server will never answer from the pending table."""
