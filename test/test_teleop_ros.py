@@ -339,6 +339,26 @@ def test_the_driver_takes_the_tip_back_when_the_teleop_node_dies(nodes, ros_node
         assert time.monotonic() - died >= OWNER_LEASE_S - 0.5  # the last renewal before death
 
 
+def test_taking_is_refused_while_two_drivers_serve_the_teleop_endpoint(nodes, ros_node):
+    # each segment goes to both and the first answer wins: the driver teleop does not hold
+    # refuses it, and the tip stopped while the commands still came (another run's driver on
+    # the same ROS domain did exactly that)
+    nodes("driver", seed=2, real_time_factor=0.0)
+    nodes("driver", seed=3, real_time_factor=0.0)
+    nodes("teleop")
+    peer = Peer(ros_node)
+
+    def refused():
+        reply = peer.call(peer.enable, True)
+        if reply.success:  # the teleop node has not discovered the second driver yet
+            assert peer.call(peer.enable, False).success
+            return None
+        return reply.message
+
+    message = wait_for(refused, 30, 0.5, "the take refused")
+    assert f"2 servers of {topics.ACTION_TELEOP_MOVE_TIP}" in message, message
+
+
 def test_a_joy_drives_the_tip_while_its_enable_button_is_held_and_toggles_contact(graph):
     from sensor_msgs.msg import Joy
 

@@ -290,6 +290,16 @@ class TeleopNode(Node):
                 f"refused: the driver's {topics.ACTION_TELEOP_MOVE_TIP} does not answer "
                 f"({self.move_client.not_answering}); is the driver running?"
             )
+        # every segment goes to every server of the endpoint and the first answer wins: a
+        # second driver on this domain (which teleop does not hold) refuses them, and the tip
+        # stops while the operator's commands still come (measured: after 4 commands)
+        servers = self.move_client.servers()
+        if len(servers) > 1:
+            return False, (
+                f"refused: {len(servers)} servers of {topics.ACTION_TELEOP_MOVE_TIP} on this "
+                f"ROS domain ({', '.join(servers)}): one driver per domain (a driver stopped "
+                "just now stays listed for about 20 s)"
+            )
         try:
             reply = self.ask_driver(True)
         except DriverUnavailable as exc:

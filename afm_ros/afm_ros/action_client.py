@@ -128,15 +128,19 @@ class SafeActionClient(ActionClient):
         )
         return False
 
+    def servers(self) -> list[str]:
+        """Who the graph says serves this action (the publishers of its status topic, one per
+        server): two where one was started means a dead one still listed, or another graph on
+        the same domain, whose answers race the right server's."""
+        listed = self._node.get_publishers_info_by_topic(f"{self._action_name}/_action/status")
+        return sorted(f"{p.node_namespace.rstrip('/')}/{p.node_name}" for p in listed)
+
     def listed_servers(self) -> str:
-        """Who the graph says serves this action (the publishers of its status topic, a
-        process each): two where one was started means a dead one still listed, or another
-        run's graph on the same domain."""
+        """servers() in words, with the domain, for an error message."""
         try:
-            listed = self._node.get_publishers_info_by_topic(f"{self._action_name}/_action/status")
+            names = self.servers()
         except Exception as exc:  # noqa: BLE001 - a diagnosis must not hide the failure
             return f"by whom unknown: {exc}"
-        names = sorted(f"{p.node_namespace.rstrip('/')}/{p.node_name}" for p in listed)
         domain = os.environ.get("ROS_DOMAIN_ID", "0")
         return f"by {len(names)} node(s) on domain {domain}: {', '.join(names) or 'none now'}"
 
