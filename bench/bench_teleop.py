@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import sys
 import tempfile
 import threading
@@ -34,7 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(110, 200)))
+if "ROS_DOMAIN_ID" not in os.environ:  # one no other run uses (afm_ros.exposure.claim_domain)
+    from afm_ros.exposure import claim_domain
+
+    os.environ["ROS_DOMAIN_ID"] = str(claim_domain())
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

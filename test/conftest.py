@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import random
 import signal
 import subprocess
 import tempfile
@@ -11,8 +10,12 @@ import time
 
 import pytest
 
-# Isolate this run's DDS traffic from anything else on the machine (other runs, demos).
-os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(110, 200)))
+# Isolate this run's DDS traffic from anything else on the machine (other runs, demos): a domain
+# id no other process uses, held for this run (a random one collided with other runs' graphs)
+if "ROS_DOMAIN_ID" not in os.environ:
+    from afm_ros.exposure import claim_domain
+
+    os.environ["ROS_DOMAIN_ID"] = str(claim_domain())
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 LOG_TAIL_CHARS = 6000  # of each node's output, printed when a test fails
 
@@ -37,11 +40,15 @@ class NodeProcess:
 
         self.name = name
         self.log = tempfile.TemporaryFile()
+        self.started = time.time()  # the epoch of the nodes' log stamps
         self.process = subprocess.Popen(
             node_command(name, None, overrides),
             stdout=self.log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
+            # what it printed reaches the file at once: a node killed at the test's end shows
+            # how far it got, not an empty buffer
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )
 
     def output(self) -> str:
@@ -87,7 +94,11 @@ def nodes(request):
     if report is not None and report.failed:
         for node in started:  # what each node said, for the failure's diagnosis
             tail = node.output()[-LOG_TAIL_CHARS:]
-            print(f"\n----- {node.name} (exit {node.process.returncode}) -----\n{tail}")
+            print(
+                f"\n----- {node.name} (started at {node.started:.3f}, pid {node.process.pid}, "
+                f"domain {os.environ.get('ROS_DOMAIN_ID')}, exit {node.process.returncode}) "
+                f"-----\n{tail}"
+            )
     for node in started:
         node.log.close()
 

@@ -129,3 +129,56 @@ def test_a_node_started_as_ros2_run_would_binds_only_the_loopback(nodes):
     time.sleep(1.0)  # all its transports are open by now
     sockets = udp_sockets(driver.process.pid)
     assert not outside_loopback(sockets), f"bound beyond the loopback: {sockets}"
+
+
+def test_a_claimed_domain_is_not_claimed_again_until_its_holder_exits(tmp_path):
+    import subprocess
+    import sys
+
+    # two ids no process uses (the holder's environment names none: it would count as a use)
+    first, second = sorted(set(range(1, exposure.MAX_DOMAIN_ID + 1)) - exposure.domains_in_use())[
+        :2
+    ]
+    environment = {k: v for k, v in os.environ.items() if k != "ROS_DOMAIN_ID"}
+    # another process claims and holds one of them; this process gets the other
+    code = (
+        "import sys, time; from afm_ros import exposure; "
+        f"print(exposure.claim_domain({first}, {second}, folder={str(tmp_path)!r}), flush=True); "
+        "time.sleep(30)"
+    )
+    holder = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=environment
+    )
+    try:
+        held = int(holder.stdout.readline())
+        mine = exposure.claim_domain(first, second, folder=tmp_path)
+        assert {held, mine} == {first, second}
+        with pytest.raises(RuntimeError, match="no free ROS domain id"):
+            exposure.claim_domain(first, second, folder=tmp_path)
+    finally:
+        holder.kill()
+        holder.wait()
+    # the holder died (killed: no clean-up ran), so its id is free again
+    assert exposure.claim_domain(held, held, folder=tmp_path) == held
+    with pytest.raises(ValueError, match="must lie in"):
+        exposure.claim_domain(0, 5, folder=tmp_path)
+
+
+def test_a_domain_a_running_process_uses_is_skipped(tmp_path):
+    import subprocess
+    import sys
+
+    free = exposure.claim_domain(folder=tmp_path)  # an id nobody uses (now held by us)
+    user = subprocess.Popen(
+        [sys.executable, "-c", "import time; time.sleep(30)"],
+        env={**os.environ, "ROS_DOMAIN_ID": str(free)},
+    )
+    try:
+        wait_for(lambda: free in exposure.domains_in_use(), 10, what="the process listed")
+        # a fresh lock folder: only the process's environment can keep the id from being chosen
+        (tmp_path / "other").mkdir()
+        with pytest.raises(RuntimeError):
+            exposure.claim_domain(free, free, folder=tmp_path / "other")
+    finally:
+        user.kill()
+        user.wait()

@@ -196,6 +196,7 @@ class FifoGate:
 
 class DriverNode(Node):
     def __init__(self):
+        started = time.monotonic()
         super().__init__("afm_driver")
         self.config = params.declare(self, PARAMETERS)
         self.instrument = make_instrument(self.config)
@@ -245,6 +246,12 @@ class DriverNode(Node):
         if self.clock_pub is not None:
             self.create_timer(1.0 / self.config["clock_frequency"], self.publish_clock)
         self.publish_truth()
+        # one line when the servers exist: a client that finds them listed but unanswered
+        # (a test's driver killed at its end) can tell a driver that never got here
+        self.get_logger().info(
+            f"ready: {self.config['backend']} instrument, actions served, "
+            f"{time.monotonic() - started:.2f} s after the node was created"
+        )
 
     def _settler(self) -> CreepSettler | None:
         """The creep model that times the wait before an image (none without a calibration,

@@ -66,6 +66,10 @@ AUTOMATIC_ACTIONS = (
     topics.ACTION_PUSH_PARTICLE,
     topics.ACTION_ASSEMBLE,
 )
+# s: a command that waited longer than this in the middleware before its callback ran is
+# reported in the status (`late_commands`): a tenth of the dead-man timeout, the share of it an
+# operator would notice as a stutter
+LATE_COMMAND_S = 0.05
 ACTIVE = (GoalStatus.STATUS_ACCEPTED, GoalStatus.STATUS_EXECUTING, GoalStatus.STATUS_CANCELING)
 KINDS = {"sphere": ObjectState.SPHERE, "tube": ObjectState.TUBE, "rod": ObjectState.ROD}
 
@@ -93,6 +97,7 @@ class TeleopNode(Node):
         self.active: dict[str, list[str]] = {}
         self.commands: list[tuple[float, tuple[float, float]]] = []  # (end time, end)
         self.status = {"clip": "", "last_clip": "", "stop": "", "velocity": [0.0, 0.0]}
+        self.timing = CommandTiming()
         self.landmarks = NewestLandmarkMap(self.get_logger())
         self._build_interfaces()
         self.stopping = threading.Event()
@@ -166,11 +171,11 @@ class TeleopNode(Node):
                 )
 
     # -- inputs ------------------------------------------------------------------------------
-    def on_twist(self, msg: Twist) -> None:
+    def on_twist(self, msg: Twist, info) -> None:
         scale = self.config["twist_scale"]
-        self.take_command(msg.linear.x * scale, msg.linear.y * scale)
+        self.take_command(msg.linear.x * scale, msg.linear.y * scale, arrival(info))
 
-    def on_joy(self, msg: Joy) -> None:
+    def on_joy(self, msg: Joy, info) -> None:
         try:
             command = joy_command(
                 msg.axes,
@@ -187,9 +192,11 @@ class TeleopNode(Node):
             with self.lock:
                 self.controller.contact = not self.controller.contact
             self.publish_status()
-        self.take_command(command.vx, command.vy)
+        self.take_command(command.vx, command.vy, arrival(info))
 
-    def take_command(self, vx: float, vy: float) -> None:
+    def take_command(self, vx: float, vy: float, arrived: float) -> None:
+        """arrived: when the middleware received the command (monotonic s): the dead-man
+        counts from there, not from when an executor thread got round to this callback."""
         with self.lock:
             if not self.holding:
                 self.status["stop"] = (
@@ -198,7 +205,8 @@ class TeleopNode(Node):
                 )
                 return
             try:
-                clip = self.controller.command(vx, vy, time.monotonic())
+                clip = self.controller.command(vx, vy, arrived)
+                self.timing.command(arrived)
             except ValueError as exc:
                 self.status["stop"] = f"command refused: {exc}"
                 return
@@ -274,6 +282,24 @@ class TeleopNode(Node):
         running = self.running_actions()
         if running:
             return False, f"refused: an automatic action runs ({', '.join(running)})"
+        # the driver's teleop endpoint must answer before the operator drives: found later,
+        # in the first segment, its discovery (a probe every second until one is answered)
+        # would hold the tip still while the operator's commands come
+        if not self.move_client.wait_until_answering(self.config["server_timeout"]):
+            return False, (
+                f"refused: the driver's {topics.ACTION_TELEOP_MOVE_TIP} does not answer "
+                f"({self.move_client.not_answering}); is the driver running?"
+            )
+        # every segment goes to every server of the endpoint and the first answer wins: a
+        # second driver on this domain (which teleop does not hold) refuses them, and the tip
+        # stops while the operator's commands still come (measured: after 4 commands)
+        servers = self.move_client.servers()
+        if len(servers) > 1:
+            return False, (
+                f"refused: {len(servers)} servers of {topics.ACTION_TELEOP_MOVE_TIP} on this "
+                f"ROS domain ({', '.join(servers)}): one driver per domain (a driver stopped "
+                "just now stays listed for about 20 s)"
+            )
         try:
             reply = self.ask_driver(True)
         except DriverUnavailable as exc:
@@ -287,6 +313,7 @@ class TeleopNode(Node):
             self.predictor.load(self.landmarks.current().values())
             self.holding = True
             self.status["stop"] = ""
+            self.timing = CommandTiming()
         self.get_logger().info("teleop holds the tip")
         return True, "teleop holds the tip (lifted); commands on " + topics.TELEOP_CMD_VEL
 
@@ -341,8 +368,10 @@ class TeleopNode(Node):
         goal = MoveTip.Goal(speed=float(segment.speed), contact=segment.contact)
         goal.target.header.frame_id = FRAME_SCANNER
         goal.target.point.x, goal.target.point.y = segment.end
+        started = time.monotonic()
         result = self.send(goal)
         with self.lock:
+            self.timing.segment(time.monotonic() - started)
             if result is None or not result.success:
                 # refused, cancelled or lost: the tip stands still (where a cancelled move
                 # stopped, if it ran at all; a refused one has no command)
@@ -436,6 +465,7 @@ class TeleopNode(Node):
                 "command_timeout": self.controller.settings.command_timeout,
                 "commanded_position": [float(p) for p in self.position],
                 **self.status,
+                **self.timing.figures(),
                 "automatic_actions": sorted(n for n, g in self.active.items() if g),
             }
         self.status_pub.publish(String(data=json.dumps(status)))
@@ -444,6 +474,52 @@ class TeleopNode(Node):
         self.stopping.set()
         self.loop.join(timeout=2.0)
         super().destroy_node()
+
+
+def arrival(info) -> float:
+    """When the middleware received a message (rclpy's message info: received_timestamp, ns
+    on the system clock), on the monotonic clock the teleop loop steps on; now when unknown."""
+    now, wall = time.monotonic(), time.time()
+    received = info.get("received_timestamp", 0) * 1e-9 if info else 0.0
+    if received <= 0.0:
+        return now
+    return now - min(max(wall - received, 0.0), now)
+
+
+class CommandTiming:
+    """What the status reports of the operator's commands and the segments since the take, so
+    a tip that stood still while commands came says why: commands arriving apart by more than
+    the dead-man timeout (the sender or the transport), waiting in this node before their
+    callback ran (its executor), or segments the driver took long to run (the loop blocked)."""
+
+    def __init__(self):
+        self.commands = 0
+        self.last = None
+        self.longest_gap = 0.0
+        self.longest_wait = 0.0
+        self.late = 0
+        self.longest_segment = 0.0
+
+    def command(self, arrived: float) -> None:
+        waited = time.monotonic() - arrived
+        self.longest_wait = max(self.longest_wait, waited)
+        self.late += waited > LATE_COMMAND_S
+        if self.last is not None:
+            self.longest_gap = max(self.longest_gap, arrived - self.last)
+        self.last = arrived
+        self.commands += 1
+
+    def segment(self, seconds: float) -> None:
+        self.longest_segment = max(self.longest_segment, seconds)
+
+    def figures(self) -> dict:
+        return {
+            "commands": self.commands,
+            "longest_command_gap": round(self.longest_gap, 4),
+            "longest_command_wait": round(self.longest_wait, 4),
+            "late_commands": self.late,
+            "longest_segment": round(self.longest_segment, 4),
+        }
 
 
 def main(args=None):

@@ -19,6 +19,7 @@ SERVER_SILENCE_S.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 import uuid
@@ -34,6 +35,9 @@ from unique_identifier_msgs.msg import UUID
 # orders of magnitude of margin over a live server's answer for a loaded machine.
 HEARTBEAT_PERIOD_S = 0.5
 SERVER_SILENCE_S = 3.0
+# What rclpy's take_data returns for the server's replies to our requests (goal, cancel and
+# result services); feedback and status are topics, which prove nothing about our requests.
+ANSWERS = ("goal", "cancel", "result")
 # A cancel request a live server has not even acknowledged in this long will not be honoured.
 CANCEL_ACK_TIMEOUT_S = 3.0
 # Set when this process is stopping (SIGINT/SIGTERM): every wait for a server gives up at once,
@@ -119,8 +123,26 @@ class SafeActionClient(ActionClient):
                 self._answered_at = time.monotonic()
                 self.not_answering = ""
                 return True
-        self.not_answering = f"its server is listed but answered none of {probes} probes"
+        self.not_answering = (
+            f"its server is listed ({self.listed_servers()}) but answered none of {probes} probes"
+        )
         return False
+
+    def servers(self) -> list[str]:
+        """Who the graph says serves this action (the publishers of its status topic, one per
+        server): two where one was started means a dead one still listed, or another graph on
+        the same domain, whose answers race the right server's."""
+        listed = self._node.get_publishers_info_by_topic(f"{self._action_name}/_action/status")
+        return sorted(f"{p.node_namespace.rstrip('/')}/{p.node_name}" for p in listed)
+
+    def listed_servers(self) -> str:
+        """servers() in words, with the domain, for an error message."""
+        try:
+            names = self.servers()
+        except Exception as exc:  # noqa: BLE001 - a diagnosis must not hide the failure
+            return f"by whom unknown: {exc}"
+        domain = os.environ.get("ROS_DOMAIN_ID", "0")
+        return f"by {len(names)} node(s) on domain {domain}: {', '.join(names) or 'none now'}"
 
     def _forget_requests(self, futures) -> None:
         """Remove cancel requests a dead server will never answer from the pending table."""
@@ -142,4 +164,10 @@ class SafeActionClient(ActionClient):
 
     def take_data(self):
         with self._request_lock:
-            return super().take_data()
+            data = super().take_data()
+        if any(key in data for key in ANSWERS):
+            # a reply to one of our requests is as good an answer as a probe's: a client that
+            # sends goal after goal (teleop, 20 a second) never stops to probe a server that
+            # answers it all the time
+            self._answered_at = time.monotonic()
+        return data

@@ -20,7 +20,9 @@ default middleware); another RMW ignores it, and then only the discovery range l
 
 from __future__ import annotations
 
+import fcntl
 import os
+import random
 import tempfile
 from collections.abc import MutableMapping
 from pathlib import Path
@@ -83,6 +85,57 @@ def private_folder() -> Path:
     if folder.is_symlink() or info.st_uid != os.getuid() or info.st_mode & 0o077:
         raise ValueError(f"{folder}: not a private folder of this user; remove it")
     return folder
+
+
+# the open lock files of the domain ids this process claimed: held until it exits (the kernel
+# drops a flock with the process, however it dies)
+_CLAIMED: list = []
+
+
+def domains_in_use(proc: str | os.PathLike = "/proc") -> set[int]:
+    """The ROS domain ids in the environments of the processes this user can read (a graph, a
+    node left running, a test run that chose its id another way)."""
+    used = set()
+    for environ in Path(proc).glob("[0-9]*/environ"):
+        try:
+            entries = environ.read_bytes().split(b"\0")
+        except OSError:  # gone, or another user's
+            continue
+        for entry in entries:
+            if entry.startswith(b"ROS_DOMAIN_ID="):
+                try:
+                    used.add(int(entry[len(b"ROS_DOMAIN_ID=") :]))
+                except ValueError:
+                    pass
+    return used
+
+
+def claim_domain(first: int = 1, last: int = MAX_DOMAIN_ID, folder=None) -> int:
+    """A ROS domain id in [first, last] that no other process on this machine uses, held (a
+    lock file) until this process exits: for a run (tests, a benchmark) whose nodes must hear
+    only each other. A random pick from a range collides: two runs of 91 ids share a domain
+    one time in 91, and then each hears the other's nodes (measured: a teleop test on a domain
+    another run's graph used was refused for that graph's running actions, another moved its
+    tip the wrong way). Domain 0 (everyone's default) is never chosen; ids above 101 put DDS
+    ports in the ephemeral range (MAX_DOMAIN_ID). RuntimeError when every id is taken."""
+    if not 0 < first <= last <= MAX_DOMAIN_ID:
+        raise ValueError(f"domain ids [{first}, {last}]: must lie in [1, {MAX_DOMAIN_ID}]")
+    folder = Path(folder) if folder else private_folder()
+    used = domains_in_use()
+    ids = list(range(first, last + 1))
+    start = random.Random(os.getpid()).randrange(len(ids))  # runs starting at once spread out
+    for domain in ids[start:] + ids[:start]:
+        if domain in used:
+            continue
+        handle = open(folder / f"domain-{domain}.lock", "a")  # noqa: SIM115 - held open
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # another run holds it
+            handle.close()
+            continue
+        _CLAIMED.append(handle)
+        return domain
+    raise RuntimeError(f"no free ROS domain id in [{first}, {last}]: all used or claimed")
 
 
 def localhost_profile(folder: str | os.PathLike | None = None) -> Path:
