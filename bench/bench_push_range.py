@@ -32,7 +32,6 @@ import argparse
 import json
 import math
 import os
-import random
 import re
 import sys
 import tempfile
@@ -344,9 +343,12 @@ def main() -> int:
     )
     args = parser.parse_args()
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    # a domain of its own: another graph on the machine (a test run, say) would answer this
-    # one's goals and publish its truth on the same topics
-    os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(110, 200)))
+    # a domain no other process uses: another graph on the machine (a test run, say) would
+    # answer this one's goals and publish its truth on the same topics
+    if "ROS_DOMAIN_ID" not in os.environ:
+        from afm_ros.exposure import claim_domain
+
+        os.environ["ROS_DOMAIN_ID"] = str(claim_domain())
     started = time.monotonic()
     load = os.getloadavg()
 
