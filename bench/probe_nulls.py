@@ -8,7 +8,7 @@ variants are not the families' (sim2real_families.py: 700-729), so a rule tuned 
 show here.
 
 Run: `scripts/with_env.sh python bench/probe_nulls.py [--protocol N] [--work N] [--first SEED]
-[--keep DIR]`.
+[--keep DIR] [--effects NAME,...] [--name RESULTS]`.
 """
 
 from __future__ import annotations
@@ -69,6 +69,15 @@ def main(argv=None) -> int:
     parser.add_argument("--work", type=int, default=3, help="normal-work nulls")
     parser.add_argument("--first", type=int, default=1900, help="first seed")
     parser.add_argument("--keep", default="", help="keep recordings and reports here")
+    parser.add_argument(
+        "--effects",
+        default="",
+        help="library terms to consider, comma-separated (default: all); a library of one "
+        "term has the lowest family-wise threshold, the naming rule's hardest case",
+    )
+    parser.add_argument(
+        "--name", default="", help="results name (default sim2real-fresh-nulls-<first>)"
+    )
     args = parser.parse_args(argv)
     workdir = args.keep or tempfile.mkdtemp(prefix="probe-nulls-")
     alarms = named = 0
@@ -77,7 +86,8 @@ def main(argv=None) -> int:
     lines = []
     cases = null_cases(args.protocol, args.work, args.first)
     for case in cases:
-        row = families.run_family_case(case, workdir)
+        effects = [e for e in args.effects.split(",") if e] or None
+        row = families.run_family_case(case, workdir, effects=effects)
         alarm = row.get("verdict") in scoring.MISSING_PHYSICS
         alarms += alarm
         named += bool(row.get("chosen"))
@@ -100,11 +110,13 @@ def main(argv=None) -> int:
 def write_results(args, started, load, lines) -> Path:
     """bench/results/sim2real-fresh-nulls-<first>.md: date, machine, command, one line a case."""
     machine = machine_record(load)
-    out = Path(__file__).resolve().parent / "results" / f"sim2real-fresh-nulls-{args.first}.md"
+    name = args.name or f"sim2real-fresh-nulls-{args.first}"
+    out = Path(__file__).resolve().parent / "results" / f"{name}.md"
     out.write_text(
         "\n".join(
             [
-                f"# Sim-to-real on fresh null sessions (seeds {args.first} on)",
+                f"# Sim-to-real on fresh null sessions (seeds {args.first} on; library: "
+                f"{args.effects or 'all terms'})",
                 "",
                 f"Date: {started:%Y-%m-%d %H:%M} UTC  ",
                 f"Machine: {json.dumps(machine)}  ",

@@ -276,9 +276,9 @@ def record_case(case: FamilyCase, folder: Path, model) -> tuple[Path, dict]:
     return folder / "session.mcap", info
 
 
-def run_family_case(case: FamilyCase, workdir: str) -> dict:
+def run_family_case(case: FamilyCase, workdir: str, effects=None) -> dict:
     """Record, diagnose through the MCAP file (CPU and wall time of the diagnosis alone),
-    score."""
+    score. `effects`: library terms to consider (run_sim2real's; None: all of them)."""
     from afm_core.sim.config import dump_config
     from afm_core.sim2real.diagnose import run_sim2real
 
@@ -300,7 +300,9 @@ def run_family_case(case: FamilyCase, workdir: str) -> dict:
     }
     cpu, wall = time.process_time(), time.perf_counter()
     try:
-        diagnosis = run_sim2real(session, folder / "model.yaml", folder / "report")
+        diagnosis = run_sim2real(
+            session, folder / "model.yaml", folder / "report", effects=effects
+        )
     except Exception as exc:  # noqa: BLE001 - a refusal is a result (the issue's "check the sample")
         diagnosis = None
         # a session too thin to diagnose (session_scope.TooLittleError, once merged) is told so,

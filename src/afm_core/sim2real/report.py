@@ -324,9 +324,10 @@ def _heldout_section(diagnosis, figures: list[str]) -> list[str]:
         lines += [
             f"Noise alone gives the held-out chi2 its {h['dof']} dof on average, and more than "
             f"{h['limit']:.1f} in {100 * ALPHA:.0f} % of sessions; a term is named when there is "
-            f"an excess beyond that, it removes at least {100 * EXCESS_SHARE:.0f} % of the excess "
-            "over the dof and leaves the held-out chi2 below that quantile (beyond it, in some "
-            "signal or condition: partly explained).",
+            f"an excess over the dof, its fit gains more than noise would "
+            f"({h.get('gain_limit', float('nan')):.1f}), removes at least "
+            f"{100 * EXCESS_SHARE:.0f} % of the excess and leaves the held-out chi2 below that "
+            "quantile (beyond it, in some signal or condition: partly explained).",
             "",
         ]
     if h:

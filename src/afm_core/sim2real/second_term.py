@@ -1,10 +1,11 @@
 """A second term on top of the first, only if it passes the same tests on the first's
 re-simulated residual: the linear evidence and held-out gain, then a joint re-simulated fit
 whose Wald statistic must pass the threshold, and, re-simulated, a better prediction of the
-held-out blocks than the first alone. When none passes, the group overdispersion is taken
-again under the first term (the factors taken with the first effect's excess in the residual
-divide a second effect's evidence away) and any library term may be second, if the first alone
-misfits the held-out blocks and the pair takes RELEASED_EXCESS_REDUCTION of that excess."""
+held-out blocks than the first alone, by more than noise would (heldout.significant_gain).
+When none passes, the group overdispersion is taken again under the first term (the factors
+taken with the first effect's excess in the residual divide a second effect's evidence away)
+and any library term may be second, if the first alone misfits the held-out blocks and the
+pair takes RELEASED_EXCESS_REDUCTION of that excess."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from scipy import stats
 
 from afm_core.sim2real.design_columns import Design
 from afm_core.sim2real.evidence import ALPHA, Evidence, can_act, cv_gain_on
-from afm_core.sim2real.heldout import heldout_check
+from afm_core.sim2real.heldout import heldout_check, significant_gain
 from afm_core.sim2real.noise_model import Weighting, gls, group_overdispersion
 from afm_core.sim2real.reference import ReferenceSession
 from afm_core.sim2real.refinement import Leader, refine, reported_sigma, sigma_of
@@ -170,7 +171,10 @@ def _second_term(
             sess, [first, second], noise, P, folds[0], ctx.iterations, joint_theta
         )
         alone = heldout_check(sess, [first], noise, P, folds[0], ctx.iterations, theta1)
-        why = _heldout_objection(first_cand.name, pair, alone, released)
+        gain_limit = significant_gain(
+            pair["dof"], second[0].size, max(len(ctx.evidence.results), 1)
+        )
+        why = _heldout_objection(first_cand.name, pair, alone, released, gain_limit)
         if why is not None:
             second_res.note += (
                 f" second to {first_cand.name}{where}, but {why} (chi2 {pair['chi2_after']:.1f} "
@@ -223,19 +227,27 @@ def _best_second(ctx, first, r1, r1w, pw, weighting, chi2_1lin, factor1, release
     return best
 
 
-def _heldout_objection(first_name: str, pair: dict, alone: dict, released: bool) -> str | None:
-    """Why the pair's held-out check does not name the second term, or None."""
+def _heldout_objection(
+    first_name: str, pair: dict, alone: dict, released: bool, gain_limit: float
+) -> str | None:
+    """Why the pair's held-out check does not name the second term, or None. Its gain over the
+    first alone must be beyond noise (`gain_limit`, heldout.significant_gain), as a named
+    term's gain over the model is (verdict.judge)."""
     excess = alone["chi2_after"] - alone["dof"]
     needed = RELEASED_EXCESS_REDUCTION * max(excess, 0.0) if released else 0.0
     # released factors are for a first term that leaves the held-out blocks beyond their noise
     # (a z gain of 0.9991 was named on top of a 3.8 ms latency that already fit them)
     misfit = alone["chi2_after"] > float(stats.chi2.isf(ALPHA, alone["dof"])) or not released
-    if misfit and alone["chi2_after"] - pair["chi2_after"] > needed:
+    gain = alone["chi2_after"] - pair["chi2_after"]
+    if misfit and gain > needed and gain > gain_limit:
         return None
     return (
         "the held-out blocks fit worse with it"
-        if pair["chi2_after"] >= alone["chi2_after"]
+        if gain <= 0
         else f"{first_name} alone fits the held-out blocks within their noise"
         if not misfit
+        else f"its held-out gain over {first_name} alone is within the noise (beyond "
+        f"{gain_limit:.1f} would be evidence)"
+        if gain <= gain_limit
         else f"it takes too little of the held-out excess {first_name} leaves"
     )
