@@ -25,12 +25,11 @@ from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 
 
-def test_creep_three_times_the_default_is_recovered():
-    """Creep 3x in size and time (time constants 1.5, 15, 150 s; 6 % of the step): the
-    step response at 25 s within 10 % of the simulator's on both axes, and the early pits
-    (the fast constant) found in the first run although they lag past the first box."""
+def creep_three_times():
+    """The default instrument (seed 3) with creep 3x in size and time: time constants 1.5, 15,
+    150 s and 6 % of the step."""
     base = load_config().scanner
-    config = merge(
+    return merge(
         load_config(),
         {
             "seed": 3,
@@ -40,6 +39,13 @@ def test_creep_three_times_the_default_is_recovered():
             },
         },
     )
+
+
+def test_creep_three_times_the_default_is_recovered():
+    """Creep 3x in size and time (time constants 1.5, 15, 150 s; 6 % of the step): the
+    step response at 25 s within 10 % of the simulator's on both axes, and the early pits
+    (the fast constant) found in the first run although they lag past the first box."""
+    config = creep_three_times()
     result = measure_creep(SimulatedAfm(config), repeats=2)
     truth = creep_step_response(
         config.scanner.creep_time_constants, config.scanner.creep_fractions, [25.0]
@@ -98,17 +104,7 @@ def test_the_scanner_matrix_does_not_depend_on_where_the_tip_came_from():
     the gain followed the last long move: with creep 3x, 0.967 after a 45 um move from above
     and 1.026 from below. With a rest at the first pit the two agree within Z_CONSISTENT
     combined standard errors and lie nearer 1 than either did."""
-    base = load_config().scanner
-    config = merge(
-        load_config(),
-        {
-            "seed": 3,
-            "scanner": {
-                "creep_time_constants": [3 * t for t in base.creep_time_constants],
-                "creep_fractions": [3 * f for f in base.creep_fractions],
-            },
-        },
-    )
+    config = creep_three_times()
     axis, gains = 1, []
     for side in (1.0, -1.0):
         afm = SimulatedAfm(config)
