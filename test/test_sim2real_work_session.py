@@ -30,7 +30,11 @@ def test_a_work_session_records_what_the_graph_does_and_reads_back(tmp_path):
 
 @pytest.mark.parametrize(
     ("field", "value", "words"),
-    [("pushes", -1, "pushes=-1"), ("push_distance", 0.0, "push_distance=0.0")],
+    [
+        ("pushes", -1, "pushes=-1"),
+        ("push_distance", 0.0, "push_distance=0.0"),
+        ("strategy", "zigzag", "strategy='zigzag'"),
+    ],
 )
 def test_bad_arguments_are_refused_naming_the_field(tmp_path, field, value, words):
     with pytest.raises(ValueError, match=words):

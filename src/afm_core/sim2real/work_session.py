@@ -35,6 +35,13 @@ from afm_core.instrument import ScanRequest
 from afm_core.localization.calibration.simulator_comparison import simulator_calibration
 from afm_core.sim.config import SimConfig, merge
 
+# The pushes' strategy in the sessions the diagnosis is built and tested on: the open-loop
+# nano-hand. The graph's default is now the closed loop, whose sessions the diagnosis does not
+# yet handle: on a null closed-loop session (seed 1, two pushes) two strokes kept as meeting no
+# particle read chi^2 609 for 2 in their torsion and the closed loop's lines' absolute levels
+# 271 for 34, and the verdict is a false "not explained by the library" (issue 29).
+OPEN_LOOP = "nano_hand"
+
 # Spheres of the work sample (m): a loose cluster around the scanner centre, 0.9-1.5 um apart,
 # so a push of a few hundred nm has a clear path in at least one direction.
 WORK_SPHERES = [
@@ -169,7 +176,9 @@ def _fresh_localizer(recording, calibration):
     return localize
 
 
-def _push_all(recording, procedure, marks: dict, rng, pushes: int, distance: float) -> list:
+def _push_all(
+    recording, procedure, marks: dict, rng, pushes: int, distance: float, strategy: str
+) -> list:
     from afm_core.manipulation import PushFailed, PushRefused
 
     outcomes = []
@@ -181,7 +190,7 @@ def _push_all(recording, procedure, marks: dict, rng, pushes: int, distance: flo
             outcomes.append({"particle": particle, "ran": False, "message": "no clear path"})
             continue
         try:
-            result = procedure.push(particle, goal)
+            result = procedure.push(particle, goal, strategy=strategy)
             outcome = {"ran": True, "success": bool(result.success), "message": result.message}
         except (PushFailed, PushRefused) as exc:
             outcome = {"ran": isinstance(exc, PushFailed), "success": False, "message": str(exc)}
@@ -198,18 +207,23 @@ def record_work_session(
     push_distance: float = PUSH_DISTANCE,
     spheres=None,
     truth: bool = True,
+    strategy: str = OPEN_LOOP,
 ) -> WorkSummary:
     """Record a normal-work session (module docstring) on SimulatedAfm(config) to a new MCAP
     file `path`. seed: the choices (which particles, which directions); the instrument's own
-    randomness is config.seed. spheres: where the area is (m; default: config's spheres). The
-    summary says what ran."""
+    randomness is config.seed. spheres: where the area is (m; default: config's spheres).
+    strategy: the pushes' (default the open-loop nano-hand, see OPEN_LOOP). The summary says
+    what ran."""
     from afm_core.manipulation import PushProcedure
+    from afm_core.manipulation.push_parameters import STRATEGIES
     from afm_core.sim.instrument import SimulatedAfm
     from afm_core.sim2real.session_writer import RecordingInstrument
 
     seed = checks.count("seed", seed)
     pushes = checks.count("pushes", pushes, 0, MAX_PUSHES)
     push_distance = checks.positive("push_distance", push_distance, "m", upper=2e-6)
+    if strategy not in STRATEGIES:  # a refused push is recorded as ordinary work: refuse here
+        raise ValueError(f"strategy={strategy!r}: must be one of {list(STRATEGIES)}")
     if spheres is None:
         spheres = [(s["x"], s["y"]) for s in config.sample.spheres]
     spheres = [checks.point(f"spheres[{k}]", p) for k, p in enumerate(spheres)]
@@ -239,7 +253,9 @@ def record_work_session(
                 scanner_matrix=calibration.scanner_matrix,
                 on_moved=lambda moved: marks.__setitem__(moved.id, moved),
             )
-            summary.pushes = _push_all(recording, procedure, marks, rng, pushes, push_distance)
+            summary.pushes = _push_all(
+                recording, procedure, marks, rng, pushes, push_distance, strategy
+            )
         _scan_pair(recording, spheres)
         summary.seconds = float(recording.time - t0)
     finally:
