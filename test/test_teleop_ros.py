@@ -193,10 +193,19 @@ def test_range_clip_ownership_and_hand_back(graph):
         # an automatic goal is refused while teleop holds the tip, naming teleop
         refused = afm.send("move_tip", near_edge)
         assert not refused.success and "teleop holds the tip" in refused.message
-        peer.drive(MAX_SPEED, 0.0, 0.6)
+        # 100 nm from the edge: 0.1 s of commands would do, but a segment's round trip
+        # sometimes takes about 1 s (issue 33, open; `longest_segment` in the status), and the
+        # subject here is the clip, not that stall
+        peer.drive(MAX_SPEED, 0.0, 2.0)
         wait_for(lambda: peer.statuses[-1]["stop"].startswith("dead-man"), 5, what="the dead-man")
+        # the driver's truth and teleop's status come on topics of their own, in either order
+        try:
+            wait_for(lambda: max(p[0] for _, p, _ in peer.commanded()) >= 110e-6, 5, what="edge")
+        except AssertionError:
+            pass  # the assertion below says what was seen
         xs = [p[0] for _, p, _ in peer.commanded()]
-        assert max(xs) == 110e-6  # reached the edge, never past it
+        stops = [(s["stop"], s.get("commands"), s.get("longest_segment")) for s in peer.statuses]
+        assert max(xs) == 110e-6, (xs, stops[-3:])  # reached the edge, never past it
         clips = [s["last_clip"] for s in peer.statuses if s["last_clip"]]
         assert clips and clips[-1].startswith("range: x=") and "[0, 110] um" in clips[-1]
         # hand back: the driver takes automatic goals again
@@ -244,7 +253,9 @@ def test_the_wrench_during_a_contact_move_is_the_force_trace_s(graph):
     time.sleep(0.5)
     take(peer)
     assert peer.call(peer.contact, True).success
-    peer.drive(MAX_SPEED, 0.0, 0.6)
+    # 0.6 s of contact segments would do, but a segment's round trip sometimes takes about 1 s
+    # (issue 33, open); the subject here is the wrench, not that stall
+    peer.drive(MAX_SPEED, 0.0, 1.2)
     wait_for(lambda: peer.statuses[-1]["stop"].startswith("dead-man"), 5, what="the dead-man")
     contact = [w for w in peer.wrenches if w.wrench.force.z != 0.0]
     assert len(contact) >= 5

@@ -113,8 +113,11 @@ class SafeActionClient(ActionClient):
             self.not_answering = "the graph does not list its server"
             return False
         probes = 0
+        # one event for all the probes: a late answer to an earlier probe is as good as the
+        # newest one's (waiting for the newest only held a teleop segment for a whole probe
+        # interval when the first answer came a moment after it)
+        answered = threading.Event()
         while (remaining := deadline - time.monotonic()) > 0:
-            answered = threading.Event()
             self._cancel_goal_async(_nobodys_goal(self)).add_done_callback(
                 lambda _f: answered.set()
             )
