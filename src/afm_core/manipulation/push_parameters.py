@@ -27,6 +27,16 @@ PUSH_PARAMETERS = ParameterTable(
         runtime=True,
     ),
     Parameter(
+        "default_angle_tolerance",
+        0.05235987755982988,
+        "A tube's or rod's success range around its goal angle when a goal's is 0 (3 deg).",
+        unit="rad",
+        minimum=0.0,
+        above_minimum=True,
+        maximum=1.5707963267948966,
+        runtime=True,
+    ),
+    Parameter(
         "push_speed",
         0.5e-6,
         "Speed of the tip in contact.",
