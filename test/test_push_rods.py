@@ -6,17 +6,20 @@ and two spheres as static landmarks; the map from a raster image (extract_landma
 localized by the core Localizer with the simulated instrument's calibration. Ground truth: the
 simulator's tube. The map is an image in commanded coordinates: a goal is the map's pose plus
 a displacement and a turn, and the truth is compared as the true displacement and turn from
-the tube's true start (the map's own error is common to the start and the goal, as for spheres
-in test_push_procedure).
+the tube's true start (the map's own error is common to the start and the goal), brought into
+the maps' frame through the images' true-per-commanded matrix (`image_frame_matrix`, the
+convention of bench_push_graph and bench_push_rods).
 """
 
 import math
+import re
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from sim_calibration import oracle_calibration
 
+from afm_core.evaluation import image_frame_matrix
 from afm_core.imaging.landmarks import extract_landmarks
 from afm_core.instrument import ScanRequest
 from afm_core.localization import Localizer
@@ -39,7 +42,14 @@ VERIFICATION_ANGLE = math.atan2(math.sqrt(2) * 8 * NM, 800 * NM)
 # what one observation by local lines may be off: the sphere loop's 10 nm; the angle, the
 # crossings' spread (a few nm) over the cross lines' distance (0.6 of the length)
 OBSERVATION_ERROR = 10 * NM
+# the local lines measure through the calibrated motion model, the maps are images: in the
+# default simulator the scanner's gain differs by up to this share between the branch an image
+# runs on and the one the calibration measured (1.06 true per commanded against 0.99, see
+# push_parameters.DEFAULT_STRATEGY), so an observation may be off by this share of the
+# displacement in the maps' frame (an open issue of the task frame's scale, not of the rod)
+GAIN_AMBIGUITY = 1.06 / 0.99 - 1.0
 OBSERVATION_ANGLE = 1.0 * DEG
+FRAME = image_frame_matrix()
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +86,12 @@ class RodSession:
         )
 
     def true_tube(self) -> SimpleNamespace:
+        """The simulator's tube in the maps' frame (module docstring)."""
         rod = next(o for o in self.sim.truth()["objects"] if o.kind == "tube")
-        return SimpleNamespace(xy=np.array([rod.x, rod.y]), angle=float(rod.angle))
+        axis = np.linalg.solve(FRAME, [math.cos(rod.angle), math.sin(rod.angle)])
+        return SimpleNamespace(
+            xy=np.linalg.solve(FRAME, [rod.x, rod.y]), angle=math.atan2(axis[1], axis[0])
+        )
 
 
 def test_a_tube_reaches_its_goal_pose_closed_loop(calibration):
@@ -94,7 +108,9 @@ def test_a_tube_reaches_its_goal_pose_closed_loop(calibration):
     def progress(p):
         if p.phase == "observing" and p.belief == OBSERVED:
             now = s.true_tube()
-            seen.append((np.array(p.particle_estimate) - start, now.xy - before.xy, p.note))
+            # the true angle still to turn, against what the lines saw
+            left = abs(wrap_angle((now.angle - before.angle) - (goal_angle - tube.orientation)))
+            seen.append((np.array(p.particle_estimate) - start, now.xy - before.xy, left, p.note))
 
     result = s.procedure.push(tube.id, goal, goal_angle=goal_angle, progress=progress)
 
@@ -114,9 +130,12 @@ def test_a_tube_reaches_its_goal_pose_closed_loop(calibration):
     assert result.goal_angle == pytest.approx(goal_angle)
     # every observation placed the tube where the simulator had it
     assert len(seen) == result.cost.observations >= 1
-    for estimated, moved, note in seen:
-        assert math.hypot(*(estimated - moved)) <= OBSERVATION_ERROR, note
+    for estimated, moved, left, note in seen:
+        allowed = OBSERVATION_ERROR + GAIN_AMBIGUITY * math.hypot(*moved)
+        assert math.hypot(*(estimated - moved)) <= allowed, (estimated, moved, note)
         assert "rod + across, rod - across, rod along" in note
+        observed = float(re.search(r"and ([0-9.]+) deg \(sigma", note).group(1)) * DEG
+        assert abs(observed - left) <= OBSERVATION_ANGLE, (observed / DEG, left / DEG, note)
     assert "deg from the goal" in result.message
     # the map has the tube's new pose
     assert s.map[tube.id].orientation == pytest.approx(result.achieved_angle)

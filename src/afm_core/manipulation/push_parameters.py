@@ -111,6 +111,16 @@ PUSH_PARAMETERS = ParameterTable(
         runtime=True,
     ),
     Parameter(
+        "rod_max_iterations",
+        8,
+        "closed_loop on a tube or rod: the most legs a push may take (position and angle both "
+        "to bring within tolerance, a leg's strokes cut by the track's uncertainty after about "
+        "400 nm of rod-hand strokes).",
+        minimum=1,
+        maximum=20,
+        runtime=True,
+    ),
+    Parameter(
         "localize_first",
         True,
         "Localize the tip on the particle before planning (book 7.3); false: trust the "

@@ -18,7 +18,8 @@ turning. The closed loop runs the rod hand in legs and looks between them, as th
    and falls at the other, the midpoint is the centre along the axis;
 3. stop when the position and the angle are both within tolerance with CONFIDENCE_SIGMAS
    confidence, or what is left of each is within the observation's own error, or the rod hand
-   finds nothing left to push, or after max_iterations legs; else re-plan from the observation.
+   finds nothing left to push, or after rod_max_iterations legs; else re-plan from the
+   observation.
 """
 
 from __future__ import annotations
@@ -381,7 +382,7 @@ def rod_closed_loop_push(
         # an anchor it was reset to the anchor's map position, whose error relative to the rod
         # the calibrated anchor takes out only from the next observation on)
         track.mean = track.mean - (first[0].mean - mark.position)
-    for leg in range(int(settings["max_iterations"])):
+    for leg in range(int(settings["rod_max_iterations"])):
         plan = plan_rod_leg(state.particle, goal, goal_angle, tip_radius, tolerance, limits)
         if plan is None:
             break
@@ -394,7 +395,7 @@ def rod_closed_loop_push(
             state,
             settings["push_speed"],
             tolerance,
-            anchor is not None and leg + 2 < int(settings["max_iterations"]),
+            anchor is not None and leg + 2 < int(settings["rod_max_iterations"]),
             lambda r, w: report("stroke", step=r, why=w, plan=plan),
             should_stop,
         )
