@@ -167,24 +167,21 @@ def wrap_angle(angle: float) -> float:
     return _wrap_half_turn(angle)
 
 
-def _line(track: TipTrack, mark: MapLandmark, centre, direction, half: float, stop, margin=None):
+def _line(track: TipTrack, mark: MapLandmark, centre, direction, half: float, stop, axial=False):
     """A measuring line through task point `centre` along unit `direction`; (Crossing, the
-    tip's estimate and covariance at the crossing)."""
+    tip's estimate and covariance at the crossing). axial: along the rod, most of the line on
+    it: the Schmitt margin from the line's own noise (AXIAL_MARGIN_SHARE)."""
     d = np.asarray(direction, float) * half
     start, end = track.to_command(centre - d), track.to_command(centre + d)
     line = track.scan(start, end, stop)
+    margin = None
+    if axial:
+        margin = min(3.0 * line_noise(line.height), AXIAL_MARGIN_SHARE * mark.apparent_height)
     found = crossing(line, mark, track.calibration.scan_region_sigma, margin)
     if not found.ok:
         return found, None, None
     mean, cov, _ = track.at_line_sample(line, found.index)
     return found, mean, cov
-
-
-def _axial_margin(mark: MapLandmark) -> Callable[[object], float]:
-    def margin(line) -> float:
-        return min(3.0 * line_noise(line.height), AXIAL_MARGIN_SHARE * mark.apparent_height)
-
-    return margin
 
 
 def observe_rod(
@@ -230,7 +227,7 @@ def observe_rod(
     angle_variance = (variances[0] + variances[1] + gained + 2 * deflection**2) / span**2
     middle = 0.5 * (points[0] + points[1])
     half_axial = 0.5 * length + rod.radius + tip_radius + LINE_SIGMAS * wobble + LINE_MARGIN
-    found, end_mean, end_cov = _axial(track, rod, middle, t, half_axial, should_stop)
+    found, end_mean, end_cov = _line(track, rod, middle, t, half_axial, should_stop, True)
     if not found.ok:
         notes.append(f"rod along-axis line lost ({found.reason})")
         return _failed(rod, anchor, notes)
@@ -248,18 +245,6 @@ def observe_rod(
         -1 if anchor is None else anchor.id,
         ", ".join(notes),
     )
-
-
-def _axial(track, rod: MapLandmark, middle, t, half: float, should_stop):
-    """The line along the measured axis; its Schmitt margin from its own noise."""
-    d = t * half
-    start, end = track.to_command(middle - d), track.to_command(middle + d)
-    line = track.scan(start, end, should_stop)
-    found = crossing(line, rod, track.calibration.scan_region_sigma, _axial_margin(rod)(line))
-    if not found.ok:
-        return found, None, None
-    mean, cov, _ = track.at_line_sample(line, found.index)
-    return found, mean, cov
 
 
 def _failed(rod: MapLandmark, anchor, notes) -> RodObservation:
