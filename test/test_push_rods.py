@@ -161,3 +161,21 @@ def test_rod_goals_are_refused_naming_the_field(calibration):
     with pytest.raises(PushRefused, match="strategy='center': landmark .* is a tube"):
         s.procedure.push(tube.id, here, strategy="center")
     assert (s.sim.time, s.sim.commanded_position()) == (time, command)
+
+
+@pytest.mark.parametrize(
+    "text, radians", [("15deg", 15 * DEG), ("-3 deg", -3 * DEG), ("0.26", 0.26), ("0.5rad", 0.5)]
+)
+def test_goal_angles_typed_with_units(text, radians):
+    """`afm push --goal-angle`: radians, or a number with a unit."""
+    from afm_bringup.units import parse_angle
+
+    assert parse_angle(text) == pytest.approx(radians)
+
+
+@pytest.mark.parametrize("text", ["", "nan", "inf deg", "5 turns", "1e999"])
+def test_bad_goal_angles_are_refused_naming_the_option(text):
+    from afm_bringup.units import parse_angle
+
+    with pytest.raises(ValueError, match="goal-angle="):
+        parse_angle(text, "goal-angle")
