@@ -15,10 +15,13 @@
    about the localized tip through the calibrated scanner matrix; or, strategy "closed_loop"
    (the default, `DEFAULT_STRATEGY`), in legs with local scan lines across a static landmark
    and the particle between them, re-planned until the particle is within tolerance with
-   2-sigma confidence (`afm_core.manipulation.closed_loop`);
+   2-sigma confidence (`afm_core.manipulation.closed_loop`); a tube or rod goes to a goal pose
+   (position and `goal_angle`) by the rod hand, open loop ("rod_hand") or closed loop (the
+   default: `afm_core.manipulation.rod_loop`, the tube observation model between legs);
 5. rescan ("after") and verify the particle's position against the goal with the pits (and
    the other particles) as control points; the particle's displacement between the images,
-   in commanded scanner coordinates, becomes a true one through the scanner matrix.
+   in commanded scanner coordinates, becomes a true one through the scanner matrix (a tube's
+   or rod's turn between the images too: `PushResult.achieved_angle`, `angle_error`).
 
 Progress goes to a callback (`Progress`: phase, step, the particle's and the tip's estimates,
 peak forces, the planned strokes once); `should_stop` is polled during the pits and scans,
