@@ -112,10 +112,10 @@ PUSH_PARAMETERS = ParameterTable(
     ),
     Parameter(
         "rod_max_iterations",
-        8,
+        10,
         "closed_loop on a tube or rod: the most legs a push may take (position and angle both "
-        "to bring within tolerance, a leg's strokes cut by the track's uncertainty after about "
-        "400 nm of rod-hand strokes).",
+        "to bring within tolerance, a way along the axis turned across it and back, a leg's "
+        "strokes cut by the track's uncertainty after about 400 nm of rod-hand strokes).",
         minimum=1,
         maximum=20,
         runtime=True,

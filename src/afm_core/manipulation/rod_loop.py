@@ -9,7 +9,9 @@ turning. The closed loop runs the rod hand in legs and looks between them, as th
 1. a leg: the rod hand's strokes from the pose as last observed to the goal pose (an end cap
    pushed along the axis too when that error is the largest: the observation after the leg
    corrects the turn such a push may cause), ended early by the force trace or the track's
-   added uncertainty (`run_leg`);
+   added uncertainty (`run_leg`); a way along the axis (beyond AXIAL_LIMIT, now or at the
+   goal's angle) is made across it instead: the rod turned across its way in place, pushed
+   across, then turned to the goal's angle at the goal (`leg_target`);
 2. observe (`observe_rod`, the tube observation model): lines across a static anchor (as the
    sphere's loop), then two lines across the rod's predicted axis at +-CROSS_FRACTION of its
    half length and one along the axis they measured. A line across a tube meets it
@@ -57,6 +59,15 @@ CROSS_FRACTION = 0.6
 # from the profile's median, would be 0): 3 sigma of the line's noise, at most this share of
 # the rod's apparent height
 AXIAL_MARGIN_SHARE = 0.25
+# a way along the rod's axis longer than this is not pushed at its end caps (a push there
+# slides off a thin tube and turns it; bench_push_rods' first run: the 5 of 30 pushes that
+# missed were those with most of their way along the axis, each stuck after all its legs):
+# the rod is turned across the way, pushed across, and turned to the goal's angle at the goal
+# (leg_target). Two of the rod hand's strokes (2 x 40 nm): what a few cap pushes still do
+AXIAL_LIMIT = 80e-9  # m
+# a failed observation (a line missed the rod: the strokes moved it farther than the model)
+# is repeated once with the prediction's uncertainty this many times wider
+RETRY_WIDENING = 3.0
 # the rod hand's own stop, at its pushing points: a fraction of the push's tolerance, so the
 # model's error is what is left for the observation to judge
 PLAN_TOLERANCE_SHARE = 0.25
@@ -290,6 +301,24 @@ def map_angle_sigma(rod: Landmark) -> float:
     return math.sqrt(2.0) * sigma / (0.5 * rod.length)
 
 
+def leg_target(rod: Landmark, goal, goal_angle: float):
+    """The pose the next leg aims at (module docstring, 1): the goal when the way left is
+    across both the rod's axis now and the goal's (within AXIAL_LIMIT along either); else,
+    with the way along the axis now, the rod turned across it in place; else (across now, along
+    the goal's axis) the goal's position at the rod's angle now, the turn left for the end."""
+    centre = np.array([rod.x, rod.y])
+    way = np.asarray(goal, float) - centre
+    now = np.array([math.cos(rod.orientation), math.sin(rod.orientation)])
+    then = np.array([math.cos(goal_angle), math.sin(goal_angle)])
+    along_now, along_then = abs(float(way @ now)), abs(float(way @ then))
+    if along_now <= AXIAL_LIMIT and along_then <= AXIAL_LIMIT:
+        return np.asarray(goal, float), goal_angle
+    if along_now > AXIAL_LIMIT:
+        across = math.atan2(way[1], way[0]) + 0.5 * math.pi
+        return centre, rod.orientation + wrap_angle(across - rod.orientation)
+    return np.asarray(goal, float), rod.orientation
+
+
 def plan_rod_leg(rod: Landmark, goal, goal_angle: float, tip_radius, tolerance, limits):
     """The rod hand from the pose estimated now (None: nothing left for it to push)."""
     pose = SimpleNamespace(
@@ -368,7 +397,8 @@ def rod_closed_loop_push(
         # the calibrated anchor takes out only from the next observation on)
         track.mean = track.mean - (first[0].mean - mark.position)
     for leg in range(int(settings["rod_max_iterations"])):
-        plan = plan_rod_leg(state.particle, goal, goal_angle, tip_radius, tolerance, limits)
+        aim, aim_angle = leg_target(state.particle, goal, goal_angle)
+        plan = plan_rod_leg(state.particle, aim, aim_angle, tip_radius, tolerance, limits)
         if plan is None:
             break
         state.plans.append(plan)
@@ -394,15 +424,15 @@ def rod_closed_loop_push(
         # the model's turn is as uncertain as the strokes' positions over the grip's arm
         turned = abs(wrap_angle(angle - state.particle.orientation))
         spread = math.hypot(angle_sigma, 0.5 * turned)
-        observation = observe(
-            track,
-            mark,
-            anchor,
-            tip_radius,
-            should_stop,
-            float(np.hypot(x - start[0], y - start[1])) if anchor is not None else 0.0,
-            spread,
-        )
+        moved = float(np.hypot(x - start[0], y - start[1])) if anchor is not None else 0.0
+        observation = observe(track, mark, anchor, tip_radius, should_stop, moved, spread)
+        if not observation.ok and not should_stop():
+            wider = replace(mark, covariance=mark.covariance * RETRY_WIDENING**2)
+            note = observation.note
+            observation = observe(
+                track, wider, anchor, tip_radius, should_stop, moved, RETRY_WIDENING * spread
+            )
+            observation = replace(observation, note=f"{note}; again, wider: {observation.note}")
         observation = replace(observation, angle=observation.angle - angle_offset)
         state.cost.observations += 1
         finished, verdict = decide_pose(observation, goal, goal_angle, tolerance, angle_tolerance)
