@@ -160,6 +160,8 @@ def test_rod_goals_are_refused_naming_the_field(calibration):
         s.procedure.push(tube.id, here, overrides=ZigzagOverrides(push_length=100 * NM))
     with pytest.raises(PushRefused, match="strategy='center': landmark .* is a tube"):
         s.procedure.push(tube.id, here, strategy="center")
+    with pytest.raises(PushRefused, match="goal and goal_angle: the tube is already there"):
+        s.procedure.push(tube.id, (tube.x + 5 * NM, tube.y), goal_angle=tube.orientation + DEG)
     assert (s.sim.time, s.sim.commanded_position()) == (time, command)
 
 

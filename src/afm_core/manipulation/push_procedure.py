@@ -80,6 +80,7 @@ from afm_core.manipulation.push_steps import (
 from afm_core.manipulation.rod_loop import (
     ROD_STRATEGIES,
     RodGoal,
+    check_rod_goal,
     rescan_margin,
     rod_closed_loop_push,
     rod_goal_for,
@@ -341,6 +342,7 @@ class PushProcedure:
             )
             self.check_goal(particle, target, strategy, tolerance)
             self.check_overrides(particle, target, strategy, overrides)
+            check_rod_goal(particle, target, rod, tolerance)
         except ValueError as exc:
             raise PushRefused(str(exc)) from exc
         return self.run(

@@ -118,6 +118,19 @@ def rod_goal_for(particle, goal_angle: float | None, angle_tolerance: float) -> 
     )
 
 
+def check_rod_goal(particle, target, rod: RodGoal | None, tolerance: float) -> None:
+    """ValueError when a tube's or rod's goal pose is where the map has it already."""
+    if rod is None:
+        return
+    distance = math.hypot(target[0] - particle.x, target[1] - particle.y)
+    turn = abs(wrap_angle(rod.angle - particle.orientation))
+    if distance <= tolerance and turn <= rod.angle_tolerance:
+        raise ValueError(
+            f"goal and goal_angle: the {particle.kind} is already there ({distance * 1e9:.1f} nm "
+            f"and {math.degrees(turn):.2f} deg away, within tolerance): nothing to push"
+        )
+
+
 def swept_radius(particle) -> float:
     """How far from its centre a pushed particle reaches: a sphere's radius, half a rod."""
     if particle.kind in ("tube", "rod"):
