@@ -6,6 +6,7 @@ Every subcommand has --help. Lengths accept units (500nm, 1.5um) or plain metres
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from pathlib import Path
@@ -22,7 +23,7 @@ from afm_bringup.launcher import (
     sim_calibration_file,
     with_sim_calibration,
 )
-from afm_bringup.units import length_type, nm
+from afm_bringup.units import angle_type, length_type, nm
 
 
 def _param(text):
@@ -192,6 +193,7 @@ def cmd_push(args):
                 tolerance=args.tolerance,
                 feedback=show,
                 wait=False,
+                goal_angle=args.goal_angle,
             )
             try:
                 result = job.result(args.timeout)
@@ -213,6 +215,12 @@ def cmd_push(args):
     print(
         f"{'succeeded' if result.success else 'failed'}: {result.message}; particle at "
         f"({nm(result.achieved.x)}, {nm(result.achieved.y)}), error {nm(result.error)}"
+        + (
+            f", axis {math.degrees(result.achieved_angle):.2f} deg, error "
+            f"{math.degrees(result.angle_error):.2f} deg"
+            if math.isfinite(result.angle_error)
+            else ""
+        )
     )
     return 0 if result.success else 1
 
@@ -437,6 +445,13 @@ def _add_push(sub) -> None:
         help="how to push (default: the nano-hand node's, closed_loop, which observes the "
         "particle with local scan lines between legs and re-plans; nano_hand: the open-loop "
         "zigzag)",
+    )
+    p.add_argument(
+        "--goal-angle",
+        type=angle_type("goal-angle"),
+        default=None,
+        help="a tube or rod: its axis at the goal, afm_task (rad, or with a unit: 15deg; "
+        "default: keep its orientation); refused for a sphere",
     )
     p.add_argument(
         "--tolerance",

@@ -269,13 +269,21 @@ class AfmCommander:
         wait=True,
         timeout=None,
         progress=False,
+        goal_angle=None,
+        angle_tolerance=0.0,
     ):
         """Push a particle (by landmark id, or the one at `particle_position`) to `goal`;
-        strategy "" is the nano-hand node's default (closed_loop).
+        strategy "" is the nano-hand node's default (closed_loop). A tube or rod: goal_angle
+        (rad, afm_task; None: keep its orientation) and angle_tolerance (rad, 0: 3 deg).
         `feedback(f)` hears each step (str(f) is one line: step, phase, the particle's and the
         tip's estimates, peak forces); `progress=True` shows the steps done on stderr."""
         request = PushParticle.Goal(
-            particle_id=int(particle_id), strategy=strategy, tolerance=float(tolerance)
+            particle_id=int(particle_id),
+            strategy=strategy,
+            tolerance=float(tolerance),
+            use_goal_angle=goal_angle is not None,
+            goal_angle=0.0 if goal_angle is None else float(goal_angle),
+            angle_tolerance=float(angle_tolerance),
         )
         request.goal.x, request.goal.y = float(goal[0]), float(goal[1])
         if particle_position is not None:

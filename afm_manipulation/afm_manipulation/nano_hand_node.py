@@ -247,10 +247,15 @@ class NanoHandNode(Node):
     def execute_push(self, goal_handle) -> PushParticle.Result:
         goal = goal_handle.request
         overrides = ZigzagOverrides(**{f: getattr(goal, f) for f in ZIGZAG_FIELDS})
-        return self.run_goal(
-            goal_handle,
-            PushParticle.Result(),
-            lambda progress, should_stop: self.procedure.push(
+
+        def push(progress, should_stop):
+            if not goal.use_goal_angle and goal.goal_angle != 0.0:
+                # an angle that would be silently ignored is refused
+                raise PushRefused(
+                    f"goal_angle={goal.goal_angle}: set while use_goal_angle is false "
+                    "(set use_goal_angle to turn a tube or rod, or leave goal_angle 0)"
+                )
+            return self.procedure.push(
                 goal.particle_id,
                 (goal.goal.x, goal.goal.y),
                 position=(goal.particle_position.x, goal.particle_position.y),
@@ -259,9 +264,11 @@ class NanoHandNode(Node):
                 overrides=overrides,
                 progress=progress,
                 should_stop=should_stop,
-            ),
-            progress_to_push_feedback,
-        )
+                goal_angle=goal.goal_angle if goal.use_goal_angle else None,
+                angle_tolerance=goal.angle_tolerance,
+            )
+
+        return self.run_goal(goal_handle, PushParticle.Result(), push, progress_to_push_feedback)
 
     def execute_assemble(self, goal_handle) -> Assemble.Result:
         goal = goal_handle.request

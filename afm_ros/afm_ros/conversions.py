@@ -380,5 +380,7 @@ def outcome_to_result(outcome, result):
         cost = outcome.cost
         result.duration, result.lines = float(cost.duration), int(cost.lines)
         result.observations, result.slid = int(cost.observations), float(cost.slid)
+        result.achieved_angle = float(outcome.achieved_angle)
+        result.angle_error = float(outcome.angle_error)
     result.success, result.message = outcome.success, outcome.message
     return result

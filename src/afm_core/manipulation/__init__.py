@@ -38,6 +38,10 @@ one by one, the after image and verification with control points, on any Instrum
                                             PushFailed after; Progress reports;
                                             PUSH_PARAMETERS its settings (.push_parameters)
 - localize_with(localizer)                  the localization callable over a core Localizer
+- .push(..., goal_angle=..., angle_tolerance=...) on a tube or rod: a goal pose; the closed
+                                            loop runs the rod hand in legs observed by the tube
+                                            observation model (afm_core.manipulation.rod_loop:
+                                            observe_rod, rod_closed_loop_push)
 
 Teleoperation (afm_core.manipulation.teleop, .teleop_model; the teleop node runs them):
 - TeleopController(settings, limits, scanner_matrix)   velocity commands -> bounded segments

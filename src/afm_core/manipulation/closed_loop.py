@@ -192,7 +192,12 @@ def run_leg(
 
 
 def calibrate_chain(
-    track: TipTrack, anchor: MapLandmark, particle: MapLandmark, tip_radius: float, should_stop
+    track: TipTrack,
+    anchor: MapLandmark,
+    particle: MapLandmark,
+    tip_radius: float,
+    should_stop,
+    observe: Callable[..., ParticleObservation] = observe_particle,
 ) -> MapLandmark | None:
     """The anchor as the observation chain sees it: the chain (anchor lines, the way to the
     particle, particle lines) run once before the first stroke, where the particle is where
@@ -201,8 +206,9 @@ def calibrate_chain(
     from the anchor, which depend on its direction) is then taken out of every later
     observation. The anchor's variance becomes that observation's without the map's error of
     the anchor (it cancels).
-    None: a line missed (no anchor then)."""
-    seen = observe_particle(track, particle, anchor, tip_radius, should_stop)
+    None: a line missed (no anchor then). observe: how the particle is seen (a rod's:
+    `afm_core.manipulation.rod_loop.observe_rod`)."""
+    seen = observe(track, particle, anchor, tip_radius, should_stop)
     if not seen.ok:
         return None
     offset = seen.mean - particle.position
@@ -330,10 +336,14 @@ def report_fields(kind: str, f: dict, particle: Landmark, current: Landmark):
             dict(steps_total=len(plan.strokes), plan=plan, note=f"leg {f['leg'] + 1}"),
         )
     if kind == "stroke":
-        r = f["step"]
+        r, plan = f["step"], f["plan"]
         return (
             "pushing",
-            pushed_object_after(f["plan"], r.index + 1)[0],
+            # a rod plan's track is the rod's centre (rod_loop); pushed_object_after gives the
+            # contact point for it
+            np.asarray(plan.predicted_track[r.index], float)
+            if plan.kind == "rod" and r.index < len(plan.predicted_track)
+            else pushed_object_after(plan, r.index + 1)[0],
             dict(
                 step=r.index + 1,
                 steps_total=r.total,

@@ -194,14 +194,17 @@ class Crossing:
     variance: float = math.nan  # m^2, of the centre's position along the line
 
 
-def crossing(line, landmark: MapLandmark, scan_region_sigma: float) -> Crossing:
-    """Where the line passed the landmark's centre (module docstring)."""
+def crossing(
+    line, landmark: MapLandmark, scan_region_sigma: float, margin: float | None = None
+) -> Crossing:
+    """Where the line passed the landmark's centre (module docstring). margin: the Schmitt
+    trigger's (`find_crossings`; None: its default)."""
     h = np.asarray(line.height, float)
     n = h.size
     if not line.complete or n < 2 * MIN_EDGE_SAMPLES + 2 or not np.isfinite(h).all():
         return Crossing(False, "the line was not completed or has no usable samples")
     _, threshold = line_threshold(h, landmark.apparent_height, DEFAULT_THRESHOLD_FRACTION)
-    pairs, reason = find_crossings(h, threshold)
+    pairs, reason = find_crossings(h, threshold, margin=margin)
     if not pairs:
         return Crossing(False, reason)
     rising, falling = pairs[0]
@@ -292,6 +295,29 @@ def choose_anchor(
     return None if best is None else MapLandmark.from_landmark(best)
 
 
+def reset_on_anchor(
+    track: TipTrack, anchor: MapLandmark | None, towards, tip_radius: float, should_stop=None
+) -> list[str]:
+    """Lines across the anchor (from the side away from `towards`), each resetting the track's
+    axis to where `measure_anchor` saw it; the notes say which lines were seen."""
+    notes: list[str] = []
+    if anchor is None:
+        return notes
+    away = np.sign(np.asarray(towards, float) - anchor.position)
+    away[away == 0] = 1.0
+    for axis in (0, 1):
+        found, mean, cov = scan_across(
+            track, anchor, axis, float(away[axis]), tip_radius, should_stop
+        )
+        if not found.ok:
+            notes.append(f"anchor {anchor.id} {'xy'[axis]} line lost ({found.reason})")
+            continue
+        variance = float(anchor.covariance[axis, axis]) + found.variance
+        track.reset(axis, float(anchor.position[axis]), variance, mean, cov)
+        notes.append(f"anchor {anchor.id} {'xy'[axis]}")
+    return notes
+
+
 def observe_particle(
     track: TipTrack,
     particle: MapLandmark,
@@ -304,20 +330,7 @@ def observe_particle(
     particle's predicted centre (module docstring); the track is reset by the anchor and ends
     at the particle. displacement: how far the particle is from where the anchor was measured
     (m): the ramps' systematic deflection error over it is added to the estimate's variance."""
-    notes = []
-    if anchor is not None:
-        away = np.sign(particle.position - anchor.position)
-        away[away == 0] = 1.0
-        for axis in (0, 1):
-            found, mean, cov = scan_across(
-                track, anchor, axis, float(away[axis]), tip_radius, should_stop
-            )
-            if not found.ok:
-                notes.append(f"anchor {anchor.id} {'xy'[axis]} line lost ({found.reason})")
-                continue
-            variance = float(anchor.covariance[axis, axis]) + found.variance
-            track.reset(axis, float(anchor.position[axis]), variance, mean, cov)
-            notes.append(f"anchor {anchor.id} {'xy'[axis]}")
+    notes = reset_on_anchor(track, anchor, particle.position, tip_radius, should_stop)
     deflection = math.radians(track.calibration.line_deflection_sigma_deg) * displacement
     estimate, variances, ok = particle.position.copy(), [math.nan, math.nan], True
     for axis in (0, 1):

@@ -27,6 +27,16 @@ PUSH_PARAMETERS = ParameterTable(
         runtime=True,
     ),
     Parameter(
+        "default_angle_tolerance",
+        0.05235987755982988,
+        "A tube's or rod's success range around its goal angle when a goal's is 0 (3 deg).",
+        unit="rad",
+        minimum=0.0,
+        above_minimum=True,
+        maximum=1.5707963267948966,
+        runtime=True,
+    ),
+    Parameter(
         "push_speed",
         0.5e-6,
         "Speed of the tip in contact.",
@@ -96,6 +106,16 @@ PUSH_PARAMETERS = ParameterTable(
         "max_iterations",
         4,
         "closed_loop: the most legs (strokes, then an observation) a push may take.",
+        minimum=1,
+        maximum=20,
+        runtime=True,
+    ),
+    Parameter(
+        "rod_max_iterations",
+        10,
+        "closed_loop on a tube or rod: the most legs a push may take (position and angle both "
+        "to bring within tolerance, a way along the axis turned across it and back, a leg's "
+        "strokes cut by the track's uncertainty after about 400 nm of rod-hand strokes).",
         minimum=1,
         maximum=20,
         runtime=True,

@@ -15,10 +15,13 @@
    about the localized tip through the calibrated scanner matrix; or, strategy "closed_loop"
    (the default, `DEFAULT_STRATEGY`), in legs with local scan lines across a static landmark
    and the particle between them, re-planned until the particle is within tolerance with
-   2-sigma confidence (`afm_core.manipulation.closed_loop`);
+   2-sigma confidence (`afm_core.manipulation.closed_loop`); a tube or rod goes to a goal pose
+   (position and `goal_angle`) by the rod hand, open loop ("rod_hand") or closed loop (the
+   default: `afm_core.manipulation.rod_loop`, the tube observation model between legs);
 5. rescan ("after") and verify the particle's position against the goal with the pits (and
    the other particles) as control points; the particle's displacement between the images,
-   in commanded scanner coordinates, becomes a true one through the scanner matrix.
+   in commanded scanner coordinates, becomes a true one through the scanner matrix (a tube's
+   or rod's turn between the images too: `PushResult.achieved_angle`, `angle_error`).
 
 Progress goes to a callback (`Progress`: phase, step, the particle's and the tip's estimates,
 peak forces, the planned strokes once); `should_stop` is polled during the pits and scans,
@@ -73,6 +76,16 @@ from afm_core.manipulation.push_steps import (
     plan_push,
     rescan_request,
     task_to_command,
+)
+from afm_core.manipulation.rod_loop import (
+    ROD_STRATEGIES,
+    RodGoal,
+    check_rod_goal,
+    rescan_margin,
+    rod_closed_loop_push,
+    rod_goal_for,
+    rod_pose_verified,
+    swept_radius,
 )
 from afm_core.manipulation.verify import VerificationResult, verify_push
 
@@ -133,10 +146,19 @@ class PushResult:
     execution: ExecutionResult
     verification: VerificationResult
     cost: PushCost = field(default_factory=PushCost)
+    # a tube or rod: its axis's goal, verified angle (task frame, rad) and the error between
+    # them folded into a half turn; NaN for a sphere
+    goal_angle: float = math.nan
+    achieved_angle: float = math.nan
+    angle_error: float = math.nan  # rad, >= 0
+    angle_tolerance: float = math.nan  # rad
 
     @property
     def success(self) -> bool:
-        return self.error <= self.tolerance
+        turned = (
+            not math.isfinite(self.angle_tolerance) or self.angle_error <= self.angle_tolerance
+        )
+        return self.error <= self.tolerance and turned
 
 
 @dataclass
@@ -228,17 +250,17 @@ class PushProcedure:
                 f"strategy='rod_hand': landmark {particle.id} is a {particle.kind}, "
                 "not a tube or rod"
             )
-        if strategy != "rod_hand" and particle.kind != "sphere":
+        if strategy not in ROD_STRATEGIES and particle.kind != "sphere":
             raise ValueError(
                 f"strategy={strategy!r}: landmark {particle.id} is a {particle.kind}; "
-                "use 'rod_hand'"
+                f"use one of {list(ROD_STRATEGIES)}"
             )
         start = np.array([particle.x, particle.y])
         s = self.settings
         rescan_request(
             start,
             goal,
-            s["rescan_margin"],
+            rescan_margin(particle, s["rescan_margin"]),
             s["rescan_pixel"],
             s["rescan_line_rate"],
             self.instrument.limits,
@@ -246,7 +268,9 @@ class PushProcedure:
         if not blockers:
             return
         others = [m for m in self.landmarks().values() if m.id != particle.id]
-        blocker = path_blocker(start, goal, particle.radius, self.settings["tip_radius"], others)
+        blocker = path_blocker(
+            start, goal, swept_radius(particle), self.settings["tip_radius"], others
+        )
         if blocker is not None:
             raise ValueError(
                 f"path blocked: landmark {blocker.id} at ({blocker.x * 1e9:.0f} nm, "
@@ -260,6 +284,12 @@ class PushProcedure:
         in the scanner; before anything moves."""
         if not overrides.any():
             return
+        if particle.kind != "sphere":
+            raise ValueError(
+                "push_length, back_length, lateral_offset, step_length, max_steps: the "
+                f"zigzag's, not for the rod hand; landmark {particle.id} is a {particle.kind} "
+                "(leave them 0)"
+            )
         if strategy not in ("nano_hand", "closed_loop"):
             raise ValueError(
                 f"push_length, back_length, lateral_offset, step_length, max_steps: only for "
@@ -292,17 +322,27 @@ class PushProcedure:
         overrides: ZigzagOverrides = ZigzagOverrides(),
         progress: Callable[[Progress], None] | None = None,
         should_stop: Callable[[], bool] | None = None,
+        goal_angle: float | None = None,
+        angle_tolerance: float = 0.0,
     ) -> PushResult:
         """Push landmark `particle_id` (-1: the one nearest `position`) to `goal` (task frame,
-        m). strategy "" is DEFAULT_STRATEGY; tolerance 0 is default_tolerance. PushRefused before
-        anything moved, PushFailed after (module docstring)."""
+        m). strategy "" is DEFAULT_STRATEGY; tolerance 0 is default_tolerance. A tube or rod:
+        goal_angle (rad, task frame; None: keep its orientation), angle_tolerance (rad, 0:
+        default_angle_tolerance); refused for a sphere. PushRefused before anything moved,
+        PushFailed after (module docstring)."""
         try:
             particle = self.particle(particle_id, position)
             target = np.array([goal[0], goal[1]], dtype=float)
             strategy = strategy or DEFAULT_STRATEGY
             tolerance = tolerance or self.settings["default_tolerance"]
+            rod = rod_goal_for(
+                particle,
+                goal_angle,
+                angle_tolerance or self.settings["default_angle_tolerance"],
+            )
             self.check_goal(particle, target, strategy, tolerance)
             self.check_overrides(particle, target, strategy, overrides)
+            check_rod_goal(particle, target, rod, tolerance)
         except ValueError as exc:
             raise PushRefused(str(exc)) from exc
         return self.run(
@@ -313,6 +353,7 @@ class PushProcedure:
             overrides,
             progress or _ignore,
             should_stop or _never,
+            rod,
         )
 
     def run(
@@ -324,9 +365,13 @@ class PushProcedure:
         overrides: ZigzagOverrides,
         progress: Callable[[Progress], None],
         should_stop: Callable[[], bool],
+        rod: RodGoal | None = None,
     ) -> PushResult:
-        """The push of a checked goal: scan, localize, plan, execute, rescan, verify."""
+        """The push of a checked goal: scan, localize, plan, execute, rescan, verify. rod: a
+        tube's or rod's goal angle (None: keep its orientation)."""
         cost = PushCost()
+        if rod is None and particle.kind != "sphere":
+            rod = rod_goal_for(particle, None, self.settings["default_angle_tolerance"])
         try:
             start_xy = np.array([particle.x, particle.y])
             request, before, started = self._scan_before(
@@ -335,11 +380,11 @@ class PushProcedure:
             tip = self._localized(particle, start_xy, progress, should_stop)
             if strategy == "closed_loop":
                 plan, execution, cost = self._closed_loop(
-                    particle, target, tip, tolerance, overrides, progress, should_stop
+                    particle, target, tip, tolerance, overrides, progress, should_stop, rod
                 )
             else:
                 plan, execution = self._execute(
-                    particle, target, strategy, tip, overrides, progress, should_stop
+                    particle, target, strategy, tip, overrides, progress, should_stop, rod
                 )
                 cost.legs = 1
                 cost.slid = sum(
@@ -347,19 +392,23 @@ class PushProcedure:
                     for s in plan.strokes
                     if s.contact
                 )
-            verification, achieved = self._verify(
+            verification, achieved, seen_before = self._verify(
                 particle, target, plan, execution, tip, request, before, progress, should_stop
+            )
+            pose = rod_pose_verified(
+                rod, particle, before, seen_before, verification, self.scanner_matrix
             )
         except (ValueError, InstrumentUnavailable) as exc:
             raise PushFailed(str(exc)) from exc
         error = float(np.hypot(*(achieved - target)))
         cost.duration = self.instrument.time - started
-        self.on_moved(replace(particle, x=float(achieved[0]), y=float(achieved[1])))
+        moved = replace(particle, x=float(achieved[0]), y=float(achieved[1]))
+        self.on_moved(moved if rod is None else replace(moved, orientation=pose.achieved_angle))
         used = sum(1 for c in verification.control_points if c.used)
         message = (
             f"{strategy}: particle {particle.id} at ({achieved[0] * 1e9:.1f} nm, "
             f"{achieved[1] * 1e9:.1f} nm), {error * 1e9:.1f} nm from the goal "
-            f"(tolerance {tolerance * 1e9:.1f} nm; {used} control point(s))"
+            f"(tolerance {tolerance * 1e9:.1f} nm{pose.text}; {used} control point(s))"
         )
         return PushResult(
             particle.id,
@@ -373,6 +422,10 @@ class PushProcedure:
             execution,
             verification,
             cost,
+            pose.goal_angle,
+            pose.achieved_angle,
+            pose.angle_error,
+            pose.angle_tolerance,
         )
 
     def _report(self, progress, phase: str, particle: Landmark, estimate, **fields) -> None:
@@ -393,7 +446,7 @@ class PushProcedure:
         request = rescan_request(
             start_xy,
             target,
-            s["rescan_margin"],
+            rescan_margin(particle, s["rescan_margin"]),
             s["rescan_pixel"],
             s["rescan_line_rate"],
             self.instrument.limits,
@@ -435,7 +488,7 @@ class PushProcedure:
         return localization.estimate
 
     def _execute(
-        self, particle, target, strategy, tip: TipEstimate, overrides, progress, should_stop
+        self, particle, target, strategy, tip: TipEstimate, overrides, progress, should_stop, rod
     ) -> tuple[PushPlan, ExecutionResult]:
         """Plan the strokes and run them, commands linearised about the localized tip."""
         start_xy = np.array([particle.x, particle.y])
@@ -449,6 +502,7 @@ class PushProcedure:
             overrides,
             self.settings["tip_radius"],
             self.instrument.limits,
+            goal_angle=None if rod is None else rod.angle,
         )
         total = len(plan.strokes)
         self._report(
@@ -496,10 +550,11 @@ class PushProcedure:
         return plan, execution
 
     def _closed_loop(
-        self, particle, target, tip: TipEstimate, tolerance, overrides, progress, should_stop
+        self, particle, target, tip: TipEstimate, tolerance, overrides, progress, should_stop, rod
     ) -> tuple[PushPlan, ExecutionResult, PushCost]:
-        """The closed-loop strategy (afm_core.manipulation.closed_loop) from the localized tip;
-        the plan returned holds every stroke run and the last estimate as its prediction."""
+        """The closed-loop strategy (afm_core.manipulation.closed_loop; a tube's or rod's:
+        rod_loop) from the localized tip; the plan returned holds every stroke run and the last
+        estimate as its prediction."""
         # the push's frame is the particle's map position (the goal's displacement from it is
         # what is asked): the map's error of the particle, in the localization's covariance, is
         # common to the start and the goal
@@ -518,17 +573,33 @@ class PushProcedure:
             self._report(progress, phase, particle, estimate, tip=tip_now, **fields)
 
         settings = {**self.settings, "tolerance": tolerance}
-        state = closed_loop_push(
-            track,
-            particle,
-            target,
-            dict(self.landmarks()),
-            overrides,
-            settings,
-            report,
-            should_stop,
-            loop,
-        )
+        if rod is not None:
+            settings["angle_tolerance"] = rod.angle_tolerance
+            state = rod_closed_loop_push(
+                track,
+                particle,
+                target,
+                rod.angle,
+                dict(self.landmarks()),
+                settings,
+                report,
+                should_stop,
+                loop,
+            )
+        else:
+            state = closed_loop_push(
+                track,
+                particle,
+                target,
+                dict(self.landmarks()),
+                overrides,
+                settings,
+                report,
+                should_stop,
+                loop,
+            )
+        if not state.plans:  # the rod hand found nothing to push: the map's pose is the goal's
+            raise ValueError("goal: the rod is already there (within tolerance): nothing to push")
         strokes = [st for p in state.plans for st in p.strokes][: len(state.reports)]
         final = np.array([state.particle.x, state.particle.y])
         plan = replace(state.plans[-1], strokes=strokes, predicted=final)
@@ -564,9 +635,10 @@ class PushProcedure:
 
     def _verify(
         self, particle, target, plan, execution, tip, request, before, progress, should_stop
-    ) -> tuple[VerificationResult, np.ndarray]:
+    ) -> tuple[VerificationResult, np.ndarray, np.ndarray]:
         """The after image, the particle's position by control points, and its true
-        displacement through the scanner matrix (module docstring, step 5)."""
+        displacement through the scanner matrix (module docstring, step 5); also where the
+        before image had it."""
         start_xy = np.array([particle.x, particle.y])
         total = len(plan.strokes)
         predicted = plan.predicted if plan.predicted is not None else target
@@ -609,7 +681,7 @@ class PushProcedure:
         # before and after images becomes a true one through the calibrated scanner matrix
         image_displacement = np.asarray(verification.achieved) - before_particle
         achieved = start_xy + self.scanner_matrix @ image_displacement
-        return verification, achieved
+        return verification, achieved, before_particle
 
     # -- many pushes -------------------------------------------------------------------------
     def assemble(

@@ -197,9 +197,11 @@ def plan_push(
     overrides: ZigzagOverrides,
     tip_radius: float,
     limits: ScannerLimits,
+    goal_angle: float | None = None,
 ) -> PushPlan:
     """The strokes for `strategy`; the nano-hand's zigzag is chosen from the particle's (map)
-    and the tip's (localization) uncertainty unless `overrides` fix its lengths."""
+    and the tip's (localization) uncertainty unless `overrides` fix its lengths. goal_angle:
+    the rod hand's goal axis (rad; None: the rod's orientation kept)."""
     sigma = float(math.sqrt(max(np.max(np.diag(particle.covariance)), 0.0)))
     tip_sigma = float(math.sqrt(max(np.max(np.diag(tip_cov)), 0.0)))
     estimate = ParticleEstimate(
@@ -215,8 +217,9 @@ def plan_push(
             length=particle.length,
             radius=particle.radius,
         )
+        angle = particle.orientation if goal_angle is None else goal_angle
         return rod_hand_plan(
-            rod, (target[0], target[1], particle.orientation), tip_radius=tip_radius, limits=limits
+            rod, (target[0], target[1], angle), tip_radius=tip_radius, limits=limits
         )
     chosen = choose_nano_hand_params(sigma, particle.radius, tip_radius, tip_sigma=tip_sigma)
     o = overrides
