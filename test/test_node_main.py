@@ -1,0 +1,77 @@
+"""afm_ros.node_main: the heap a node's start built is frozen before it spins, so a full
+garbage collection later (which holds the GIL: no callback of the process runs meanwhile) scans
+only what came after (issue 33: such a collection stalled teleop segments)."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+START_OBJECTS = 100_000  # containers the start builds in the scripts below
+
+
+def run_script(source: str) -> dict:
+    done = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(source)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
+    assert lines, f"exit {done.returncode}: {done.stdout[-2000:]} {done.stderr[-2000:]}"
+    return json.loads(lines[-1])
+
+
+def test_a_collection_after_the_frozen_start_scans_only_what_came_after():
+    seen = run_script(
+        f"""
+        import gc, json
+        from afm_ros.node_main import freeze_startup_heap
+        start = [[i] for i in range({START_OBJECTS})]  # long-lived, as a node's start builds
+        freeze_startup_heap()
+        later = [[i] for i in range(10)]
+        scanned = {{id(o) for o in gc.get_objects()}}  # what a full collection would visit
+        print(json.dumps({{
+            "frozen": gc.get_freeze_count(),
+            "start_scanned": sum(id(o) in scanned for o in [start, *start]),
+            "later_scanned": sum(id(o) in scanned for o in [later, *later]),
+            "scanned": len(scanned),
+        }}))
+        """
+    )
+    assert seen["frozen"] > START_OBJECTS
+    assert seen["start_scanned"] == 0, seen
+    assert seen["later_scanned"] == 11, seen  # new objects are still collected
+    assert seen["scanned"] < START_OBJECTS / 10, seen
+
+
+@pytest.mark.ros
+def test_a_node_run_by_node_main_spins_with_its_start_frozen():
+    seen = run_script(
+        f"""
+        import gc, json
+        from rclpy.node import Node
+        from afm_ros.node_main import run
+
+        class Probe(Node):
+            def __init__(self):
+                super().__init__("afm_freeze_probe")
+                self.start = [[i] for i in range({START_OBJECTS})]
+                self.create_timer(0.01, self.tick)
+
+            def tick(self):
+                scanned = {{id(o) for o in gc.get_objects()}}
+                print(json.dumps({{
+                    "frozen": gc.get_freeze_count(),
+                    "start_scanned": sum(id(o) in scanned for o in self.start),
+                }}), flush=True)
+                raise SystemExit(0)
+
+        run(Probe, "freeze probe")
+        """
+    )
+    assert seen["frozen"] > START_OBJECTS and seen["start_scanned"] == 0, seen
