@@ -22,8 +22,10 @@ Run: `scripts/with_env.sh python bench/bench_teleop.py [--cycles 20] [--real-tim
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
+import resource
 import sys
 import tempfile
 import threading
@@ -42,8 +44,11 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import command_line, machine_record  # noqa: E402
 
+from afm_bringup.demo import peak_rss_bytes  # noqa: E402
+
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 SPEED = 1e-6  # m/s, the teleop node's default limit
+LATE_STOP = 0.8  # s: the dead-man's 0.5 s plus the graph test's margin for delivery
 RATE = 20.0  # Hz of the Twists, what Foxglove's Teleop panel publishes at by default
 
 
@@ -60,8 +65,8 @@ def measure(cycles: int, hold: float, factor: float) -> dict:
     from afm_ros.qos_profiles import LATCHED
 
     graph = Graph(tempfile.mkdtemp(prefix="bench-teleop-"))
-    graph.start("driver", {"seed": "2", "real_time_factor": str(factor)})
-    graph.start("teleop")
+    driver = graph.start("driver", {"seed": "2", "real_time_factor": str(factor)})
+    teleop = graph.start("teleop")
     context = Context()
     rclpy.init(context=context)
     node = rclpy.create_node("bench_teleop", context=context)
@@ -87,13 +92,26 @@ def measure(cycles: int, hold: float, factor: float) -> dict:
             time.sleep(0.05)
         if not future.result().success:
             raise RuntimeError(f"could not take the tip: {future.result().message}")
+        # Cycle 1 once compared against no position at all (the latched truth had not come),
+        # so the start-up's late delivery counted as motion: wait for where the tip stands.
+        deadline = time.monotonic() + 30.0
+        while not truths and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if not truths:
+            raise RuntimeError("no ground truth from the driver within 30 s")
+        while twist_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        # The nodes freeze their start-up heap (afm_ros.node_main); the operator's process
+        # does the same, so a full collection here does not delay the arrival stamps.
+        gc.collect()
+        gc.freeze()
         time.sleep(0.5)
         latencies, stops = [], []
         for cycle in range(cycles):
             msg = Twist()
             msg.linear.x = SPEED if cycle % 2 == 0 else -SPEED
             before = len(truths)
-            start = truths[-1][1] if truths else None
+            start = truths[-1][1]
             first = time.monotonic()
             last = first
             while time.monotonic() - first < hold:
@@ -105,7 +123,11 @@ def measure(cycles: int, hold: float, factor: float) -> dict:
             if moved:
                 latencies.append(moved[0] - first)
                 stops.append(moved[-1] - last)
-        return {"latency_s": latencies, "stop_delay_s": stops}
+        peaks = {
+            name: peak_rss_bytes(proc.pid) / 2**20
+            for name, proc in (("driver", driver), ("teleop", teleop))
+        }
+        return {"latency_s": latencies, "stop_delay_s": stops, "peak_rss_mib": peaks}
     finally:
         executor.shutdown()
         node.destroy_node()
@@ -129,6 +151,7 @@ def main() -> int:
     args = parser.parse_args()
     load = os.getloadavg()
     result = measure(args.cycles, args.hold, args.real_time_factor)
+    own_peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     record = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "command": command_line(),
@@ -144,7 +167,12 @@ def main() -> int:
         f"Machine: {record['machine']['cpu_count']} CPUs ({record['machine']['cpu_model']}), "
         f"load at start {load[0]:.1f}; driver real_time_factor {args.real_time_factor:g}.\n\n"
         f"- command-to-motion latency: {summary(result['latency_s'])}\n"
-        f"- dead-man stop delay (timeout 0.5 s): {summary(result['stop_delay_s'])}\n\n"
+        f"- dead-man stop delay (timeout 0.5 s): {summary(result['stop_delay_s'])}\n"
+        f"- first cycle after the take: latency {result['latency_s'][0] * 1e3:.0f} ms, "
+        f"stop {result['stop_delay_s'][0] * 1e3:.0f} ms; stops later than "
+        f"{LATE_STOP:.1f} s: {sum(s > LATE_STOP for s in result['stop_delay_s'])}\n"
+        f"- peak memory: driver {result['peak_rss_mib']['driver']:.0f} MiB, teleop "
+        f"{result['peak_rss_mib']['teleop']:.0f} MiB, this script {own_peak:.0f} MiB\n\n"
     )
     with open(RESULTS_DIR / "teleop.md", "a") as out:
         out.write(text)
