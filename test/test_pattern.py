@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from afm_core.evaluation import pattern_against_truth
 from afm_core.instrument import ScannerLimits
 from afm_core.manipulation.plans import path_blocker
 from afm_core.planning.pattern import (
@@ -162,3 +163,26 @@ def test_bad_input_is_refused_naming_the_field(call, field):
     with pytest.raises(ValueError, match=None) as refused:
         call()
     assert field in str(refused.value), str(refused.value)
+
+
+def test_pattern_against_truth_scores_the_true_displacement_from_the_mapped_start():
+    """The true particles in another frame than the map (shifted by 1 um: only displacements
+    count), listed in another order, one of them not in the pattern."""
+    starts = np.array([[0.0, 0.0], [1e-6, 0.0], [0.0, 1e-6]])
+    goals = starts + [[300e-9, 0.0], [0.0, 300e-9], [-300e-9, 0.0]]
+    ends_off = np.array([[3e-9, 4e-9], [3e-9, 4e-9], [3e-9, 4e-9]])  # a common 5 nm offset
+    shift = np.array([1e-6, 1e-6])
+    before = np.vstack([starts[::-1] + shift, [[5e-6, 5e-6]]])
+    after = np.vstack([(goals + ends_off)[::-1] + shift, [[5e-6, 5e-6]]])
+    scored = pattern_against_truth(starts + shift, goals + shift, before, after)
+    assert scored["true_index"] == [2, 1, 0]
+    assert np.allclose(scored["errors"], 5e-9)
+    assert scored["rms"] == pytest.approx(5e-9)
+    assert scored["shape_rms"] == pytest.approx(0.0, abs=1e-18)  # the shape itself is exact
+    assert scored["within_10nm"] == 1.0
+    after[0] += [0.0, 30e-9]  # the last of the pattern (row 0 here) 30 nm further
+    scored = pattern_against_truth(starts + shift, goals + shift, before, after)
+    assert scored["errors"][2] == pytest.approx(np.hypot(3e-9, 34e-9))
+    assert scored["within_20nm"] == pytest.approx(2 / 3)
+    with pytest.raises(ValueError, match="true_before"):
+        pattern_against_truth(starts, goals, before[:2], after[:2])
