@@ -48,6 +48,13 @@ def evaluate(run_dir: Path) -> dict:
         believed = (
             reader.arrays("/afm/objects/believed") if "/afm/objects/believed" in topics else {}
         )
+        goals = reader.arrays("/afm/push_goal") if "/afm/push_goal" in topics else {}
+    # the map and the first push alone (up to the second particle's goal): the part of the
+    # session near where it started, which a single push's demo had
+    second = goals.get("log_time", [])[1:2]
+    first_push = (
+        (_until(poses, second[0]), _until(truth, second[0])) if len(second) else (poses, truth)
+    )
     return {
         "topics": recorded_topics,
         "duration_s": duration,
@@ -60,6 +67,7 @@ def evaluate(run_dir: Path) -> dict:
         "truth_radius": [o["radius"] for o in truth["objects"][-1]],
         "scan_arrays": scans,
         "tip": _tip_against_truth(poses, truth) if poses else {},
+        "tip_first_push": _tip_against_truth(*first_push) if poses else {},
         "strokes": _planned_strokes(paths),
         "strokes_by_particle": {pid: _planned_strokes(paths, pid) for pid in _pushed_ids(paths)},
         "truth_by_id": [
@@ -75,6 +83,21 @@ def evaluate(run_dir: Path) -> dict:
             _last_map(maps),
             float(truth["tip_apex_radius"][-1]) if len(truth.get("tip_apex_radius", [])) else None,
         ),
+    }
+
+
+def _until(arrays: dict, t: float) -> dict:
+    """The messages of a recording's arrays logged before `t`."""
+    keep = np.asarray(arrays["log_time"]) < t
+    return {
+        k: (
+            np.asarray(v)[keep]
+            if isinstance(v, np.ndarray)
+            else [x for x, kept in zip(v, keep) if kept]
+        )
+        if len(v) == len(keep)
+        else v
+        for k, v in arrays.items()
     }
 
 

@@ -81,7 +81,7 @@ def write_report(
         save_localizer_figure(
             run_dir / "localizer.png", tip["times"], tip["errors"], tip["sigmas"]
         )
-        sections.append(_tip_section(tip))
+        sections.append(_tip_section(tip, result.get("tip_first_push") or {}))
     sections += [
         (
             "Timings",
@@ -309,11 +309,15 @@ def _push_section(push: dict, truth: dict, frames_note: str):
     return "The assembly's first push, zoomed in", table(["", "value"], rows) + caption
 
 
-def _tip_section(tip: dict):
+def _tip_section(tip: dict, first: dict):
     rows = [
         ["estimates compared with the truth (one per driver command)", tip["compared"]],
         ["RMS error of the estimate", nm(tip["error_rms"])],
         ["mean NEES (2 dof; consistent filter: about 2)", f"{tip['mean_nees']:.2f}"],
+        [
+            "the same over the map and the first push",
+            f"{first['mean_nees']:.2f} ({first['compared']} compared)" if first else "-",
+        ],
         [
             "final 1-sigma x / y",
             f"{nm(tip['final_sigma'][0])} / {nm(tip['final_sigma'][1])}",
@@ -428,6 +432,7 @@ def _write_summary(
     """summary.json: the evaluation without its arrays, and the run's own numbers; `push`:
     {"push", "push_truth"}, `assembly`: {"assembly", "assembly_truth"}."""
     tip = result.get("tip") or {}
+    first = result.get("tip_first_push") or {}
     arrays = (
         "tip",
         "truth_objects",
@@ -450,6 +455,11 @@ def _write_summary(
         tip={
             k: v
             for k, v in tip.items()
+            if k not in ("means", "covariances", "true_tip", "times", "errors", "sigmas")
+        },
+        tip_first_push={
+            k: v
+            for k, v in first.items()
             if k not in ("means", "covariances", "true_tip", "times", "errors", "sigmas")
         },
     )
