@@ -260,8 +260,9 @@ def assembly_section(path: Path, result: dict, assembly: dict, truth: dict):
         "start (o), its way to its goal (*) numbered in the order the planner gave, and the "
         "objects left in place (squares; the rod among them). Right: each particle's end minus "
         "its goal: predicted by the push model as the push was verified (triangle; the closed "
-        "loop's last leg is planned to end on the goal), verified by the nano-hand's rescan (x), and true (+, the simulator's truth brought into the maps' "
-        "frame: the particle's true displacement from its mapped start).</p>"
+        "loop's last leg is planned to end on the goal), verified by the nano-hand's rescan "
+        "(x), and true (+, the simulator's truth brought into the maps' frame: the particle's "
+        "true displacement from its mapped start).</p>"
     )
     return "The assembly (Assemble action, planner's order)", (
         table(["", "value"], summary) + caption + table(header, rows)
