@@ -332,6 +332,7 @@ def write_results(args, rows: list[dict], load, started: float, command: str) ->
         },
         "seeds": len(rows),
         "seeds_asked": args.seeds,
+        "command": command,
         "sample": args.sample,
         "tolerance_nm": args.tolerance / NM,
         "summary": summarise(rows),
@@ -352,6 +353,9 @@ def main() -> int:
     parser.add_argument("--sample", choices=("random", "demo"), default="random")
     parser.add_argument("--tolerance", type=float, default=20e-9, help="m, asked of each push")
     parser.add_argument("--output", default="assembly", help="results file stem")
+    parser.add_argument(
+        "--append", action="store_true", help="add these seeds to the results file's runs"
+    )
     args = parser.parse_args()
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     started = time.monotonic()
@@ -369,8 +373,13 @@ def main() -> int:
         + (f" --tolerance {args.tolerance:g}" if args.tolerance != 20e-9 else "")
         + (f" --output {args.output}" if args.output != "assembly" else "")
     )
-    rows = []
-    for seed in range(args.first_seed, args.first_seed + args.seeds):
+    rows, path = [], RESULTS_DIR / f"{args.output}.json"
+    if args.append and path.is_file():
+        earlier = json.loads(path.read_text())
+        rows = earlier["runs"]
+        command = f"{earlier['command']}; then {command} --append"
+        args.seeds += earlier["seeds_asked"]
+    for seed in range(args.first_seed, args.first_seed + args.seeds - len(rows)):
         rows.append(run_seed(seed, workdir, log, args.sample, args.tolerance))
         # written after every seed: a long run stopped early keeps the seeds it finished
         write_results(args, rows, load, started, command)
