@@ -377,6 +377,7 @@ def main() -> int:
     if args.append and path.is_file():
         earlier = json.loads(path.read_text())
         rows = earlier["runs"]
+        started -= earlier["wall_seconds"]  # the wall time of both runs
         command = f"{earlier['command']}; then {command} --append"
         args.seeds += earlier["seeds_asked"]
     for seed in range(args.first_seed, args.first_seed + args.seeds - len(rows)):

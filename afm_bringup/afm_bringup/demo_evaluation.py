@@ -24,7 +24,6 @@ from afm_core.manipulation.execute import TIP_HEIGHT
 from afm_core.recording import RecordingReader
 
 MEMORY_LIMIT = 2 * 2**30  # bytes, the whole graph's peak resident memory
-PUSH_DISTANCE = 300e-9  # m, from the particle's mapped centre to the goal
 PUSH_TOLERANCE = 20e-9  # m
 # true displacement per commanded (= map) displacement of the simulated instrument, for the
 # evaluation against truth only (afm_core.evaluation.image_frame_matrix)
