@@ -86,8 +86,8 @@ def test_demo_runs_end_to_end_and_reports(tmp_path):
     assert 0 <= row["push_error_max_m"] < 100e-9
     # last, as it is a known open defect: the localizer is consistent (mean NEES about 2) on
     # the single push's 1.8 um map of three spheres (2.7 on 2026-11-27), not on the assembly's
-    # 2.8 um map of nine objects (28 and 32 over the session in two runs, 140 over the map
-    # and the first push, where one pair is 440 nm off); cause open (notes/h44-asm32.md)
+    # 2.8 um map of nine objects (26-32 over the session in three runs, 46-140 over the map
+    # and the first push, where one pair was 440 nm off); cause open (notes/h44-asm32.md)
     if not 0.2 < tip["mean_nees"] < 10:
         pytest.xfail(
             f"known open defect: the localizer's mean NEES {tip['mean_nees']:.1f} over the "
