@@ -172,6 +172,9 @@ def test_assemble_pushes_several_particles_in_the_planners_order(graph, ros_node
         assert sorted(result.order) == sorted(request.particle_ids), result.message
         assert len(result.achieved) == len(result.errors) == 2
         assert all(np.isfinite(result.errors)), result.message
+        # the instrument time of both pushes: at least their before and after rescans, each
+        # (200 nm + 2 x 300 nm margin) / 8 nm = 100 lines at 4 Hz, 25 s
+        assert result.duration >= 4 * 25.0, result.duration
         time.sleep(0.5)
         for m in marks:  # each moved about 200 nm down (truth)
             moved = true_sphere_near(truths, before[m.id]) - before[m.id]

@@ -10,6 +10,7 @@ displacements compare with planned ones directly.
 """
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -336,3 +337,34 @@ def test_contact_in_a_force_trace_is_a_rise_above_its_noise():
         contact = contact_in_trace(SimpleNamespace(lateral_torsion=torsion))
         assert (contact.made, contact.lost) == (made, lost)
     assert contact_in_trace(SimpleNamespace(lateral_torsion=noise[:10])) is None
+
+
+def test_the_verification_follows_the_pushed_particle_when_the_map_is_off(calibration):
+    """A map off the scanner by more than half the way to a neighbour (an assembly's drift
+    since the map: 280 nm by the demo's fourth push, its particles 400 nm apart): the task
+    frame is shifted 450 nm towards the right neighbour (800 nm away), consistently for the
+    map and the localizer, so the strokes go where they should; the before image must find the
+    pushed particle where the localized tip puts it, not at its map position (there, the right
+    neighbour is nearer, and it would be "verified" unmoved)."""
+    shift = np.array([450 * NM, 0.0])
+    s = Session(calibration)
+    s.map = {i: replace(m, x=m.x + shift[0], y=m.y + shift[1]) for i, m in s.map.items()}
+    localizer = Localizer(
+        s.sim,
+        calibration,
+        np.array(s.sim.commanded_position()) + shift,
+        np.diag([(50 * NM) ** 2] * 2),
+    )
+    s.procedure.localize = localize_with(localizer)
+    s.procedure.settings["rescan_margin"] = 700 * NM  # the images hold the true particle
+    mark = s.map[s.row[1].id]
+    start = np.array([mark.x, mark.y])
+    goal = start + [0.0, -400 * NM]
+    truth_before = s.true_sphere(start - shift)
+
+    result = s.procedure.push(mark.id, goal, strategy="nano_hand")
+
+    moved = s.true_sphere(truth_before) - truth_before
+    assert math.hypot(*(moved - (goal - start))) <= 3 * TRUE_TOLERANCE  # it was pushed
+    # the verified displacement is the pushed particle's, not its neighbour's (zero)
+    assert math.hypot(*((result.achieved - start) - moved)) <= VERIFICATION_ERROR

@@ -1,15 +1,17 @@
 """`make demo`: the graph on the simulated instrument, end to end, with a report.
 
-Every node runs as its own process with a recorder: the driver acquires a 0/90 deg scan
-pair (and a frame-down scan), the imaging node corrects the drift and maps the particles,
-the planner plans the tip's way to the push, and the nano-hand pushes a particle to a goal
-through its PushParticle action with its default strategy, the closed loop (scan, localize on
-the particle, push in legs of zigzag strokes through the driver with local scan lines across
-the particle between them, re-planned until it is within tolerance, rescan, verify).
-Everything is recorded to MCAP; the recording is replayed into a second recording (checked
-byte for byte), and the replayed copy is evaluated offline against the simulator's ground
-truth into report.html: before/after maps, the tip path with its covariance ellipses, the
-particle path, the achieved error and the timings.
+Every node runs as its own process with a recorder, the driver on the demo's sample (eight
+spheres and a rod, demo_assembly.DEMO_SAMPLE): the driver acquires a 0/90 deg scan pair (and
+a frame-down scan), the imaging node corrects the drift and maps the particles, the core
+places a small pattern (an "L" of six particles, afm_core.planning.plan_pattern) on the map,
+and the nano-hand assembles it through its Assemble action in the planner's order, each push
+with its default strategy, the closed loop (scan, localize on the particle, push in legs of
+zigzag strokes through the driver with local scan lines across the particle between them,
+re-planned until it is within tolerance, rescan, verify). Everything is recorded to MCAP; the
+recording is replayed into a second recording (checked byte for byte), and the replayed copy
+is evaluated offline against the simulator's ground truth into report.html: the pattern
+planned, predicted, verified and true, the first push zoomed in, the maps, the tip path with
+its covariance ellipses, the errors and the timings.
 
 The driver, localizer, planner and nano-hand use the calibration the calibration experiments
 produced on this simulated instrument (afm_localization/config/sim_calibration.yaml,
@@ -25,12 +27,19 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from rclpy.qos import QoSProfile
-from std_msgs.msg import Header
 
 from afm_bringup.commander import AfmCommander
-from afm_bringup.demo_evaluation import PUSH_DISTANCE, PUSH_TOLERANCE, evaluate, judge_run
+from afm_bringup.demo_assembly import (
+    NANO_HAND_OVERRIDES,
+    SCAN_ORIGIN,
+    SCAN_PIXELS,
+    SCAN_SIZE,
+    assembly_stage,
+    judge_assembly,
+    write_sample,
+)
+from afm_bringup.demo_evaluation import evaluate, judge_run
 from afm_bringup.demo_report import write_report
 from afm_bringup.launcher import (
     CALIBRATED_NODES,
@@ -41,17 +50,11 @@ from afm_bringup.launcher import (
     viewer_overrides,
 )
 from afm_bringup.units import nm
-from afm_core.manipulation import path_blocker
 from afm_core.recording import RecordingReader
 from afm_msgs.msg import LandmarkArray, RasterScan
-from afm_msgs.srv import PlanPath
 from afm_ros import topics
-from afm_ros.conversions import FRAME_TASK, mean_cov_to_pose, msg_to_landmarks
+from afm_ros.conversions import msg_to_landmarks
 from afm_ros.qos_profiles import LATCHED
-
-SCAN_ORIGIN = (54.3e-6, 54.3e-6)  # m: the simulated sample's particles lie around (55 um, 55 um)
-SCAN_SIZE = (1.8e-6, 1.8e-6)
-SCAN_PIXELS = (256, 256)
 
 
 def peak_rss_bytes(pid: int) -> int:
@@ -81,22 +84,8 @@ def new_run_dir(root: Path) -> Path:
     raise RuntimeError(f"{root}: could not make a new run folder")
 
 
-def choose_push(landmarks) -> tuple[object, np.ndarray]:
-    """The mapped particle nearest the map's centre and a goal PUSH_DISTANCE away in the first
-    of eight directions whose way is clear of the other particles."""
-    centre = np.mean([[m.x, m.y] for m in landmarks], axis=0)
-    particle = min(landmarks, key=lambda m: np.hypot(m.x - centre[0], m.y - centre[1]))
-    others = [m for m in landmarks if m.id != particle.id]
-    start = np.array([particle.x, particle.y])
-    for angle in np.radians([270, 0, 90, 180, 315, 45, 135, 225]):
-        goal = start + PUSH_DISTANCE * np.array([np.cos(angle), np.sin(angle)])
-        if path_blocker(start, goal, particle.radius, 50e-9, others) is None:
-            return particle, goal
-    raise RuntimeError(f"no clear direction to push particle {particle.id}")
-
-
-def push_stage(afm: AfmCommander, log, timings: dict) -> dict:
-    """Plan and push one particle with the virtual nano-hand; returns what the report needs."""
+def mapped_landmarks(afm: AfmCommander):
+    """The imaging node's latest landmark map (core Landmarks)."""
     marks: list = []
     afm.node.create_subscription(
         LandmarkArray, topics.LANDMARKS, lambda m: marks.append(m), LATCHED
@@ -106,77 +95,22 @@ def push_stage(afm: AfmCommander, log, timings: dict) -> dict:
         time.sleep(0.1)
     if not marks:
         raise RuntimeError("no landmarks from the imaging node")
-    landmarks = msg_to_landmarks(marks[-1])
-    particle, goal = choose_push(landmarks)
-    log(
-        f"push particle {particle.id} at ({nm(particle.x)}, {nm(particle.y)}) "
-        f"to ({nm(goal[0])}, {nm(goal[1])})"
-    )
-    started = time.monotonic()
-    client = afm.node.create_client(PlanPath, topics.SERVICE_PLAN_PATH)
-    request = PlanPath.Request(
-        start=mean_cov_to_pose(
-            (particle.x - 500e-9, particle.y), np.diag([50e-9**2] * 2), Header(frame_id=FRAME_TASK)
-        )
-    )
-    request.target.x, request.target.y = float(goal[0]), float(goal[1])
-    plan_message = "planner not answering"
-    if client.wait_for_service(timeout_sec=30.0):
-        future = client.call_async(request)
-        end = time.monotonic() + 30.0
-        while not future.done() and time.monotonic() < end:
-            time.sleep(0.05)
-        if future.done():
-            plan_message = future.result().message
-    timings["plan the way to the goal (planner)"] = time.monotonic() - started
-    log(f"planner: {plan_message}")
-    phases: dict[str, float] = {}
-    last = {"phase": None, "t": time.monotonic()}
-
-    def on_feedback(feedback):
-        now = time.monotonic()
-        if feedback.phase != last["phase"]:
-            if last["phase"]:
-                phases[last["phase"]] = phases.get(last["phase"], 0.0) + now - last["t"]
-            last.update(phase=feedback.phase, t=now)
-            log(f"nano-hand: {feedback.phase}")
-
-    started = time.monotonic()
-    result = afm.push(
-        goal,
-        particle_id=particle.id,  # the node's default strategy, as a lab's first push
-        tolerance=PUSH_TOLERANCE,
-        feedback=on_feedback,
-        timeout=900,
-    )
-    if last["phase"]:
-        phases[last["phase"]] = phases.get(last["phase"], 0.0) + time.monotonic() - last["t"]
-    timings.update({f"nano-hand: {phase}": seconds for phase, seconds in phases.items()})
-    timings["push, whole action"] = time.monotonic() - started
-    log(f"push result: {result.message}")
-    return {
-        "particle_id": int(particle.id),
-        "start": [particle.x, particle.y],
-        "goal": goal.tolist(),
-        "achieved": [result.achieved.x, result.achieved.y],
-        "error": float(result.error),
-        "steps": int(result.steps),
-        "success": bool(result.success),
-        "message": result.message,
-        "plan_message": plan_message,
-        "ran": bool(result.steps > 0),
-    }
+    return msg_to_landmarks(marks[-1])
 
 
 def acquire(run_dir: Path, log) -> tuple[dict, dict, dict, dict]:
-    """Start the graph with a recorder, map, push, stop everything. Returns (exit codes, peak
-    memory per process, the push's outcome, timings)."""
+    """Start the graph with a recorder on the demo's sample, map, assemble, stop everything.
+    Returns (exit codes, peak memory per process, the assembly's outcome, timings)."""
     graph = Graph(run_dir / "logs")
     graph.start("recorder", {"output": str(run_dir / "session.mcap")})
     calibration = sim_calibration_file()
     port_file = run_dir / "logs" / "viewer.port"
     for name in GRAPH:
-        overrides = {"calibration_file": calibration} if name in CALIBRATED_NODES else None
+        overrides = {"calibration_file": calibration} if name in CALIBRATED_NODES else {}
+        if name == "driver":
+            overrides["sim_config"] = str(write_sample(run_dir))
+        if name == "nano_hand":
+            overrides.update(NANO_HAND_OVERRIDES)
         graph.start(name, viewer_overrides(port_file) if name == "viewer" else overrides)
     log(f"graph started: {', '.join(graph.processes)} (logs in {run_dir / 'logs'})")
     port = read_port(port_file)
@@ -184,7 +118,7 @@ def acquire(run_dir: Path, log) -> tuple[dict, dict, dict, dict]:
         log(
             f"watch it live: Foxglove, Open connection > Foxglove WebSocket, ws://127.0.0.1:{port}"
         )
-    memory, push, timings = {}, {}, {}
+    memory, assembly, timings = {}, {}, {}
     try:
         with AfmCommander(server_timeout=60.0) as afm:
             started = time.monotonic()
@@ -233,7 +167,7 @@ def acquire(run_dir: Path, log) -> tuple[dict, dict, dict, dict]:
                 else "imaging node published no corrected map within 120 s"
             )
             timings["scans and drift-corrected map"] = time.monotonic() - started
-            push = push_stage(afm, log, timings)
+            assembly = assembly_stage(afm, mapped_landmarks(afm), log, timings)
         time.sleep(1.0)  # the recorder drains its queues
         dead = graph.dead()
         if dead:
@@ -241,7 +175,7 @@ def acquire(run_dir: Path, log) -> tuple[dict, dict, dict, dict]:
         memory = {name: peak_rss_bytes(p.pid) for name, p in graph.processes.items()}
     finally:
         codes = graph.stop_all()
-    return codes, memory, push, timings
+    return codes, memory, assembly, timings
 
 
 REPLAY_SPEED_UP = 4.0  # the replay takes a quarter of the wall time the session took
@@ -296,7 +230,7 @@ def run_demo(output_root: Path) -> int:
         print(f"[demo {time.monotonic() - started:6.1f} s] {text}", flush=True)
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    codes, memory, push, timings = acquire(run_dir, log)
+    codes, memory, assembly, timings = acquire(run_dir, log)
     replay_started = time.monotonic()
     codes.update(replay_into_new_recording(run_dir, log))
     timings["replay into a second recording"] = time.monotonic() - replay_started
@@ -304,10 +238,11 @@ def run_demo(output_root: Path) -> int:
     result = evaluate(run_dir)
     timings["offline evaluation and report"] = time.monotonic() - evaluation_started
     report = write_report(
-        run_dir, result, memory, codes, time.monotonic() - started, push, timings
+        run_dir, result, memory, codes, time.monotonic() - started, assembly, timings
     )
-    truth = json.loads((run_dir / "summary.json").read_text())["push_truth"]
-    failures = judge_run(codes, memory, result, push, truth)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    failures = judge_run(codes, memory, result, summary["push"], summary["push_truth"])
+    failures += judge_assembly(assembly, summary["assembly_truth"])
     log(f"report: {report}")
     for failure in failures:
         print(f"demo FAILED: {failure}", file=sys.stderr)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_bringup.demo_assembly import true_particles
 from afm_bringup.demo_tip import estimate_run_tip
 from afm_core.evaluation import (
     compare_payloads,
@@ -23,7 +24,6 @@ from afm_core.manipulation.execute import TIP_HEIGHT
 from afm_core.recording import RecordingReader
 
 MEMORY_LIMIT = 2 * 2**30  # bytes, the whole graph's peak resident memory
-PUSH_DISTANCE = 300e-9  # m, from the particle's mapped centre to the goal
 PUSH_TOLERANCE = 20e-9  # m
 # true displacement per commanded (= map) displacement of the simulated instrument, for the
 # evaluation against truth only (afm_core.evaluation.image_frame_matrix)
@@ -44,6 +44,16 @@ def evaluate(run_dir: Path) -> dict:
         topics = reader.topics()
         traces = reader.arrays("/afm/force_trace") if "/afm/force_trace" in topics else {}
         maps = reader.arrays("/afm/map") if "/afm/map" in topics else {}
+        believed = (
+            reader.arrays("/afm/objects/believed") if "/afm/objects/believed" in topics else {}
+        )
+        goals = reader.arrays("/afm/push_goal") if "/afm/push_goal" in topics else {}
+    # the map and the first push alone (up to the second particle's goal): the part of the
+    # session near where it started, which a single push's demo had
+    second = goals.get("log_time", [])[1:2]
+    first_push = (
+        (_until(poses, second[0]), _until(truth, second[0])) if len(second) else (poses, truth)
+    )
     return {
         "topics": recorded_topics,
         "duration_s": duration,
@@ -56,7 +66,14 @@ def evaluate(run_dir: Path) -> dict:
         "truth_radius": [o["radius"] for o in truth["objects"][-1]],
         "scan_arrays": scans,
         "tip": _tip_against_truth(poses, truth) if poses else {},
+        "tip_first_push": _tip_against_truth(*first_push) if poses else {},
         "strokes": _planned_strokes(paths),
+        "strokes_by_particle": {pid: _planned_strokes(paths, pid) for pid in _pushed_ids(paths)},
+        "truth_by_id": [
+            true_particles(truth, 0),
+            true_particles(truth, len(truth["log_time"]) - 1),
+        ],
+        "believed": believed,
         "truth_objects": [truth_xy(truth, i) for i in range(len(truth["log_time"]))],
         "truth_anchor": _truth_anchor(truth),
         "force_strokes": _force_strokes(traces),
@@ -65,6 +82,21 @@ def evaluate(run_dir: Path) -> dict:
             _last_map(maps),
             float(truth["tip_apex_radius"][-1]) if len(truth.get("tip_apex_radius", [])) else None,
         ),
+    }
+
+
+def _until(arrays: dict, t: float) -> dict:
+    """The messages of a recording's arrays logged before `t`."""
+    keep = np.asarray(arrays["log_time"]) < t
+    return {
+        k: (
+            np.asarray(v)[keep]
+            if isinstance(v, np.ndarray)
+            else [x for x, kept in zip(v, keep) if kept]
+        )
+        if len(v) == len(keep)
+        else v
+        for k, v in arrays.items()
     }
 
 
@@ -210,10 +242,15 @@ def _tip_against_truth(poses: dict, truth: dict) -> dict:
     return tip_against_truth(poses, truth, IMAGE_FRAME)
 
 
-def _planned_strokes(paths: dict) -> list:
-    """The nano-hand's strokes of its last push path, (start, end, in contact) each; the
-    planner's paths have no pushes."""
-    pushes = [k for k, roles in enumerate(paths.get("waypoint_role", [])) if "push" in list(roles)]
+def _planned_strokes(paths: dict, particle_id: int | None = None) -> list:
+    """The nano-hand's strokes of its last push path (of `particle_id`'s pushes when given),
+    (start, end, in contact) each; the planner's paths have no pushes."""
+    pushes = [
+        k
+        for k, roles in enumerate(paths.get("waypoint_role", []))
+        if "push" in list(roles)
+        and (particle_id is None or particle_id in list(paths["landmark_id"][k]))
+    ]
     if not pushes:
         return []
     roles, poses_k = list(paths["waypoint_role"][pushes[-1]]), paths["path.poses"][pushes[-1]]
@@ -221,6 +258,15 @@ def _planned_strokes(paths: dict) -> list:
     return [
         (points[i], points[i + 1], roles[i + 1] == "push") for i in range(0, len(points) - 1, 2)
     ]
+
+
+def _pushed_ids(paths: dict) -> list[int]:
+    """The particles the nano-hand planned pushes for."""
+    ids = set()
+    for roles, marks in zip(paths.get("waypoint_role", []), paths.get("landmark_id", [])):
+        if "push" in list(roles):
+            ids.update(int(m) for m in marks if m >= 0)
+    return sorted(ids)
 
 
 def push_truth(result: dict, push: dict) -> dict:

@@ -1,8 +1,8 @@
-"""The demo's report: report.html (summary, the push zoomed in the task frame, the map with its
-landmarks, the estimated tip's shape (demo_tip), forces per stroke, the localizer's error,
-timings, scans, particles, landmarks, recorded topics, replay check, memory, how to reproduce
-the run and how to open the recording in Foxglove), its figures (each the page's width) and
-summary.json.
+"""The demo's report: report.html (summary, the assembled pattern (demo_assembly), its first
+push zoomed in the task frame, the map with its landmarks, the estimated tip's shape
+(demo_tip), forces per stroke, the localizer's error, timings, scans, particles, landmarks,
+recorded topics, replay check, memory, how to reproduce the run and how to open the recording
+in Foxglove), its figures (each the page's width) and summary.json.
 """
 
 from __future__ import annotations
@@ -12,9 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_bringup.demo_assembly import (
+    assembly_section,
+    assembly_truth,
+    first_push,
+    predicted_ends,
+)
 from afm_bringup.demo_evaluation import (
     MEMORY_LIMIT,
-    PUSH_DISTANCE,
     PUSH_TOLERANCE,
     push_truth,
     truth_in_maps,
@@ -39,12 +44,16 @@ def write_report(
     memory: dict,
     codes: dict,
     elapsed: float,
-    push: dict,
+    assembly: dict,
     timings: dict,
 ) -> Path:
-    """The figures (scans.png, push.png), summary.json and report.html of a run; takes the
-    scan arrays out of `result`."""
+    """The figures (scans.png, pattern.png, push.png of the assembly's first push, ...),
+    summary.json and report.html of a run; takes the scan arrays out of `result`."""
     scans = result.pop("scan_arrays")
+    assembly["predicted"] = predicted_ends(
+        result.pop("believed", {}), assembly.get("particle_ids", [])
+    )
+    push = first_push(assembly)
     images, local = _scan_images(scans)
     anchor = result["truth_anchor"]
     save_height_maps(
@@ -54,8 +63,11 @@ def write_report(
         marker_label="true centre at the start",
     )
     truth = push_truth(result, push)
+    pattern_truth = assembly_truth(result, assembly, lambda p: truth_in_maps(p, anchor))
     tip = result.get("tip") or {}
-    sections = [_summary_section(result, memory, codes, elapsed, push)]
+    sections = [_summary_section(result, memory, codes, elapsed, assembly)]
+    if assembly.get("order"):
+        sections.append(assembly_section(run_dir / "pattern.png", result, assembly, pattern_truth))
     if push.get("ran"):
         frames_note = _save_push_figure(run_dir / "push.png", local, result, push, tip, truth)
         sections.append(_push_section(push, truth, frames_note))
@@ -69,7 +81,7 @@ def write_report(
         save_localizer_figure(
             run_dir / "localizer.png", tip["times"], tip["errors"], tip["sigmas"]
         )
-        sections.append(_tip_section(tip))
+        sections.append(_tip_section(tip, result.get("tip_first_push") or {}))
     sections += [
         (
             "Timings",
@@ -87,7 +99,16 @@ def write_report(
         reproducibility_section(run_dir),
         foxglove_section(run_dir),
     ]
-    _write_summary(run_dir / "summary.json", result, memory, codes, elapsed, timings, push, truth)
+    _write_summary(
+        run_dir / "summary.json",
+        result,
+        memory,
+        codes,
+        elapsed,
+        timings,
+        {"push": push, "push_truth": truth},
+        {"assembly": assembly, "assembly_truth": pattern_truth},
+    )
     return write_html(run_dir / "report.html", "AFM nano-manipulation demo", sections)
 
 
@@ -138,16 +159,16 @@ def _shifted(panel, shift):
 
 
 def _save_push_figure(path: Path, local: list, result: dict, push: dict, tip: dict, truth: dict):
-    """The nano-hand's before and after rescans in the task frame, zoomed on the push, with
-    the strokes, goal, verified and true end, and the tip estimate near the push. Returns a
-    sentence on how the images were placed."""
+    """The nano-hand's before and after rescans of the push (the first two local scans) in the
+    task frame, zoomed on the push, with the strokes, goal, verified and true end, and the tip
+    estimate near the push. Returns a sentence on how the images were placed."""
     before = (f"before ({local[0][0]})", *local[0][1:3]) if local else None
-    after = (f"after ({local[-1][0]})", *local[-1][1:3]) if len(local) > 1 else None
+    after = (f"after ({local[1][0]})", *local[1][1:3]) if len(local) > 1 else None
     note = "the rescans placed in the task frame as the nano-hand's verification does"
     try:
         frames = push_image_frames(
             local[0][3],
-            local[-1][3] if after is not None else None,
+            local[1][3] if after is not None else None,
             push["start"],
             push["goal"],
         )
@@ -181,7 +202,7 @@ def _save_push_figure(path: Path, local: list, result: dict, push: dict, tip: di
         push["goal"],
         push["achieved"],
         true_end=maps_track[-1] if len(maps_track) else None,
-        strokes=result.get("strokes", []),
+        strokes=result.get("strokes_by_particle", {}).get(push["particle_id"], []),
         tip_means=tip.get("means", []),
         tip_covariances=tip.get("covariances", []),
         true_tip=tip.get("true_tip", []),
@@ -225,7 +246,7 @@ def _force_section(strokes: list):
     )
 
 
-def _summary_section(result: dict, memory: dict, codes: dict, elapsed: float, push: dict):
+def _summary_section(result: dict, memory: dict, codes: dict, elapsed: float, assembly: dict):
     replay_ok = all(v["identical"] for v in result["replay"].values())
     recording = (
         f"session.mcap, {sum(result['topics'].values())} messages, {result['duration_s']:.1f} s"
@@ -240,7 +261,7 @@ def _summary_section(result: dict, memory: dict, codes: dict, elapsed: float, pu
             "replay reproduced every payload (evaluation reads the replayed copy)",
             "yes" if replay_ok else "NO",
         ],
-        ["push", push.get("message", "not run")],
+        ["assembly", assembly.get("message", "not run")],
         [
             "graph peak memory (sum of node peaks)",
             f"{sum(memory.values()) / 2**20:.0f} MiB (limit {MEMORY_LIMIT / 2**30:.0f} GiB)",
@@ -269,7 +290,8 @@ def _push_section(push: dict, truth: dict, frames_note: str):
         ],
         [
             "true displacement along / sideways",
-            f"{nm(truth['along'])} / {nm(truth['sideways'])} (planned {nm(PUSH_DISTANCE)} / 0)",
+            f"{nm(truth['along'])} / {nm(truth['sideways'])} (planned "
+            f"{nm(float(np.hypot(*np.subtract(push['goal'], push['start']))))} / 0)",
         ],
         ["true error (displacement against the planned one)", nm(truth["true_error"])],
         ["verification error (verified against true displacement)", nm(verification_error)],
@@ -284,16 +306,18 @@ def _push_section(push: dict, truth: dict, frames_note: str):
         f"{frames_note}. Right: the localizer's tip estimates near the push with their "
         "3-sigma ellipses, the true tip and the true particle track.</p>"
     )
-    return "The push (virtual nano-hand, PushParticle action)", table(
-        ["", "value"], rows
-    ) + caption
+    return "The assembly's first push, zoomed in", table(["", "value"], rows) + caption
 
 
-def _tip_section(tip: dict):
+def _tip_section(tip: dict, first: dict):
     rows = [
         ["estimates compared with the truth (one per driver command)", tip["compared"]],
         ["RMS error of the estimate", nm(tip["error_rms"])],
         ["mean NEES (2 dof; consistent filter: about 2)", f"{tip['mean_nees']:.2f}"],
+        [
+            "the same over the map and the first push",
+            f"{first['mean_nees']:.2f} ({first['compared']} compared)" if first else "-",
+        ],
         [
             "final 1-sigma x / y",
             f"{nm(tip['final_sigma'][0])} / {nm(tip['final_sigma'][1])}",
@@ -403,23 +427,39 @@ def _write_summary(
     elapsed: float,
     timings: dict,
     push: dict,
-    truth: dict,
+    assembly: dict,
 ) -> None:
-    """summary.json: the evaluation without its arrays, and the run's own numbers."""
+    """summary.json: the evaluation without its arrays, and the run's own numbers; `push`:
+    {"push", "push_truth"}, `assembly`: {"assembly", "assembly_truth"}."""
     tip = result.get("tip") or {}
-    arrays = ("tip", "truth_objects", "force_strokes", "map_image", "tip_shape")
+    first = result.get("tip_first_push") or {}
+    arrays = (
+        "tip",
+        "truth_objects",
+        "force_strokes",
+        "map_image",
+        "tip_shape",
+        "truth_by_id",
+        "strokes_by_particle",
+    )
     summary = {key: value for key, value in result.items() if key not in arrays}
     summary.update(
         memory_bytes=memory,
         exit_codes=codes,
         elapsed_s=elapsed,
         timings=timings,
-        push=push,
-        push_truth={k: v for k, v in truth.items() if k != "track"},
+        push=push["push"],
+        push_truth={k: v for k, v in push["push_truth"].items() if k != "track"},
+        **assembly,
         tip_shape=tip_shape_summary(result.get("tip_shape")),
         tip={
             k: v
             for k, v in tip.items()
+            if k not in ("means", "covariances", "true_tip", "times", "errors", "sigmas")
+        },
+        tip_first_push={
+            k: v
+            for k, v in first.items()
             if k not in ("means", "covariances", "true_tip", "times", "errors", "sigmas")
         },
     )

@@ -94,6 +94,11 @@ def reproducibility_section(run_dir: Path):
         ["command", " ".join(sys.argv)],
         ["commit", commit()],
         *seed_and_configs(),
+        *(
+            [["the demo's sample (merged into it)", f"{sample} (sha256 {_digest(sample)})"]]
+            if (sample := Path(run_dir) / "sample.yaml").is_file()
+            else []
+        ),
         ["python", f"{platform.python_version()} ({platform.platform()})"],
         ["ROS 2 rclpy", _version("ros-jazzy-rclpy")],
         *[[name, _version(name)] for name in VERSIONED],

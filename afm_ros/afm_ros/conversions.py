@@ -374,6 +374,7 @@ def outcome_to_result(outcome, result):
     if hasattr(result, "order"):
         result.order, result.errors = outcome.order, [float(e) for e in outcome.errors]
         result.achieved = [xy_to_point(xy) for xy in outcome.achieved]
+        result.duration = float(sum(push.cost.duration for push in outcome.pushes))
     else:
         result.achieved = xy_to_point(outcome.achieved)
         result.error, result.steps = outcome.error, outcome.steps

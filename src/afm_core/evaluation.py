@@ -276,3 +276,35 @@ def push_image_frames(
     )
     used = sum(1 for c in result.control_points if c.used)
     return PushImageFrames(before_shift, before_shift - result.offset, used)
+
+
+def pattern_against_truth(starts, goals, true_before, true_after) -> dict:
+    """An assembled pattern against the simulator's truth: each particle is the true one
+    nearest its mapped start in `true_before`; its true displacement (`true_after` minus
+    `true_before`, both (m, 2) m in the maps' frame, rows the same objects) from its mapped
+    start gives its true end, scored against its goal. Returns per particle the true index, end
+    and error (m), and the pattern's RMS error, the RMS left once the pattern's common offset is
+    removed (its shape alone), and the shares within 10 and 20 nm."""
+    starts, goals = np.asarray(starts, float), np.asarray(goals, float)
+    before, after = np.asarray(true_before, float), np.asarray(true_after, float)
+    if starts.shape != goals.shape or starts.ndim != 2 or starts.shape[1] != 2:
+        raise ValueError(f"starts {starts.shape} and goals {goals.shape}: must both be (n, 2) m")
+    if before.shape != after.shape or len(before) < len(starts):
+        raise ValueError(
+            f"true_before {before.shape} and true_after {after.shape}: must be (m, 2) m with "
+            f"m >= {len(starts)}, the same objects in the same rows"
+        )
+    index = [int(np.argmin(np.hypot(*(before - s).T))) for s in starts]
+    ends = starts + after[index] - before[index]
+    offsets = ends - goals
+    errors = np.hypot(*offsets.T)
+    shape = offsets - offsets.mean(axis=0)
+    return {
+        "true_index": index,
+        "true_end": ends.tolist(),
+        "errors": errors.tolist(),
+        "rms": float(np.sqrt(np.mean(errors**2))),
+        "shape_rms": float(np.sqrt(np.mean(np.sum(shape**2, axis=1)))),
+        "within_20nm": float(np.mean(errors <= 20e-9)),
+        "within_10nm": float(np.mean(errors <= 10e-9)),
+    }

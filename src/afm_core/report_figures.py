@@ -9,6 +9,8 @@ px, inside the report's 1100 px column), everything in one frame per figure and 
 - `save_force_figure`: lateral and normal force along each stroke.
 - `save_localizer_figure`: the localizer's error against the truth over time, with its
   3-sigma band.
+- `save_pattern_figure`: an assembly: the pattern planned on the map, the order, and each
+  particle's end (predicted, verified, true) against its goal.
 - `save_tip_figure`: the blind tip estimate, what the image constrained, its sections through
   the apex beside the simulator's true tip (afm_core.imaging.tip_apex says it in numbers).
 """
@@ -289,6 +291,69 @@ def save_tip_figure(
         ax.set_title(f"section along {name} through the apex", fontsize=9)
         ax.grid(alpha=0.3)
     axes[2].legend(fontsize=6, loc="lower center", framealpha=0.8)
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+def save_pattern_figure(
+    path: Path,
+    map_image,
+    starts,
+    goals,
+    order,
+    predicted=None,
+    achieved=None,
+    true_ends=None,
+    obstacles=(),
+) -> Path:
+    """An assembly: left, the map (title, height m, extent m, or None) with each particle's
+    mapped start, its way to its goal numbered in the order pushed, and the other mapped
+    objects; right, each particle's end against its goal in nm (predicted by the push model,
+    verified by rescan, true), with 10 and 20 nm circles. Points (n, 2) m in the maps' frame,
+    rows alike; `order`: row indices in the order pushed; NaN rows are left out."""
+    starts, goals = np.asarray(starts, float), np.asarray(goals, float)
+    fig, (ax, err) = plt.subplots(
+        1, 2, figsize=(FIGURE_WIDTH_IN, 5.0), layout="constrained", width_ratios=(1.2, 1)
+    )
+    if map_image is not None:
+        _image(fig, ax, *map_image[1:], map_image[0])
+    others = np.asarray(obstacles, float).reshape(-1, 2)
+    if len(others):
+        ax.plot(*_nm(others.T), "s", color="grey", mfc="none", ms=7, label="not pushed")
+    ax.plot(*_nm(starts.T), "o", color="deepskyblue", mfc="none", ms=8, label="mapped start")
+    ax.plot(*_nm(goals.T), "g*", ms=10, label="goal (planned)")
+    for rank, row in enumerate(order):
+        a, b = _nm(starts[row]), _nm(goals[row])
+        ax.annotate("", b, a, arrowprops={"arrowstyle": "->", "color": "c", "lw": 1.0})
+        ax.annotate(str(rank + 1), a, xytext=(5, 5), textcoords="offset points", color="c")
+    ends = (
+        ("predicted", predicted, "^", "tab:orange"),
+        ("verified (rescan)", achieved, "x", "b"),
+        ("true", true_ends, "+", "m"),
+    )
+    for label, points, marker, colour in ends:
+        if points is None:
+            continue
+        p = np.asarray(points, float).reshape(-1, 2)
+        ax.plot(*_nm(p.T), marker, color=colour, ms=8, mew=1.5, label=f"end, {label}")
+        off = _nm(p - goals)
+        err.plot(*off.T, marker, color=colour, ms=9, mew=1.5, label=label)
+        for rank, row in enumerate(order):
+            if np.isfinite(off[row]).all():
+                err.annotate(str(rank + 1), off[row], xytext=(4, 4), textcoords="offset points")
+    # under the panels: inside, the legend would hide the objects at the map's corners
+    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", ncol=6, fontsize=7)
+    for radius in (10, 20):
+        circle = radius * np.exp(1j * np.linspace(0, 2 * np.pi, 90))
+        err.plot(circle.real, circle.imag, ":", color="grey", lw=0.8)
+        err.annotate(f"{radius} nm", (0, radius), ha="center", va="bottom", fontsize=7)
+    err.axhline(0, color="grey", lw=0.4)
+    err.axvline(0, color="grey", lw=0.4)
+    err.set_aspect("equal", adjustable="datalim")
+    err.set_title("end minus goal, per particle (order pushed)", fontsize=9)
+    err.set_xlabel("x (nm)")
+    err.set_ylabel("y (nm)")
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return path

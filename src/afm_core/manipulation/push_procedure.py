@@ -378,6 +378,12 @@ class PushProcedure:
                 particle, start_xy, target, progress, should_stop
             )
             tip = self._localized(particle, start_xy, progress, should_stop)
+            # where the localized tip puts the particle in scanner coordinates (the images'):
+            # the map's position is off by the drift since the map, hundreds of nm late in a
+            # long session (an assembly), more than half the way to a placed neighbour
+            start_in_scan = task_to_command(
+                tip.mean, np.array(self.instrument.commanded_position()), self.scanner_matrix
+            )(start_xy)
             if strategy == "closed_loop":
                 plan, execution, cost = self._closed_loop(
                     particle, target, tip, tolerance, overrides, progress, should_stop, rod
@@ -393,7 +399,14 @@ class PushProcedure:
                     if s.contact
                 )
             verification, achieved, seen_before = self._verify(
-                particle, target, plan, execution, tip, request, before, progress, should_stop
+                particle,
+                target,
+                plan,
+                execution,
+                tip,
+                (request, before, start_in_scan),
+                progress,
+                should_stop,
             )
             pose = rod_pose_verified(
                 rod, particle, before, seen_before, verification, self.scanner_matrix
@@ -634,11 +647,13 @@ class PushProcedure:
         return plan, execution, state.cost
 
     def _verify(
-        self, particle, target, plan, execution, tip, request, before, progress, should_stop
+        self, particle, target, plan, execution, tip, images, progress, should_stop
     ) -> tuple[VerificationResult, np.ndarray, np.ndarray]:
         """The after image, the particle's position by control points, and its true
         displacement through the scanner matrix (module docstring, step 5); also where the
-        before image had it."""
+        before image had it. images: (the rescan's request, the before image, the particle's
+        start in the images' coordinates as the localized tip has it)."""
+        request, before, start_in_scan = images
         start_xy = np.array([particle.x, particle.y])
         total = len(plan.strokes)
         predicted = plan.predicted if plan.predicted is not None else target
@@ -648,7 +663,7 @@ class PushProcedure:
         # the rescan sees the particle in scan coordinates; its position before the push in the
         # same scan ties the scan to the map (task frame), control points remove drift between
         # scans
-        before_particle = nearest_particle(before, start_xy)
+        before_particle = nearest_particle(before, start_in_scan)
         if before_particle is None:
             raise PushFailed("before scan: no particle found; nothing was pushed")
         map_to_scan = before_particle - start_xy

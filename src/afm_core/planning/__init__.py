@@ -11,6 +11,8 @@ Entry points:
   Table 6.5 / 6.6): the order in which to manipulate many particles.
 - `landmark_domain`, `covering_landmarks`, `plan_landmark_configuration` (domain.py, eq.
   6.13-6.15): landmark domains and which particle to push where when none covers the task.
+- `pattern_offsets`, `plan_pattern` (pattern.py): an assembly's goals, a small pattern placed
+  on the map clear of everything else, particles assigned so that any push order works.
 
 All SI (m, m^2, s), frame afm_task. Motion noise is afm_core.localization.MotionNoise.
 Bad input raises ValueError naming the field and its limit.
@@ -39,6 +41,7 @@ from .landmark_paths import (
     plan_landmark_route,
 )
 from .observation_plan import ObservationPlan, ScanLine, plan_observation
+from .pattern import PatternObject, PatternPlan, pattern_offsets, plan_pattern
 from .sequencing import (
     EXACT_LIMIT,
     EXACT_MAX,
@@ -84,4 +87,8 @@ __all__ = [
     "plan_landmark_configuration",
     "LandmarkDomain",
     "LandmarkConfiguration",
+    "pattern_offsets",
+    "plan_pattern",
+    "PatternPlan",
+    "PatternObject",
 ]
