@@ -205,30 +205,18 @@ def calibrate_chain(
     time (the anchor's map error relative to the particle, the hysteresis and creep of the way
     from the anchor, which depend on its direction) is then taken out of every later
     observation. The anchor's variance becomes that observation's without the map's error of
-    the anchor (it cancels). The track is shifted into the same frame at once (`align_track`):
-    the first leg's strokes are aimed with it.
+    the anchor (it cancels).
     None: a line missed (no anchor then). observe: how the particle is seen (a rod's:
     `afm_core.manipulation.rod_loop.observe_rod`)."""
     seen = observe(track, particle, anchor, tip_radius, should_stop)
     if not seen.ok:
         return None
-    offset = align_track(track, seen, particle.position)
+    offset = seen.mean - particle.position
     # the anchor's map error is in the offset, not in what the offset is measured with
     own = np.diag(np.maximum(np.diag(seen.covariance - anchor.covariance), (1e-9) ** 2))
     return replace(
         anchor, x=float(anchor.x - offset[0]), y=float(anchor.y - offset[1]), covariance=own
     )
-
-
-def align_track(track: TipTrack, seen, position) -> np.ndarray:
-    """Shift the track so that where the first look saw the particle (seen.mean) is where the
-    push's frame has it (position); returns the shift taken out. After the anchor's lines the
-    track sits on the anchor's MAP position, whose error relative to the particle (the map's
-    scale error over the anchor's distance: tens of nm) the calibrated anchor removes only from
-    the next observation on: without this the first leg is aimed with that error."""
-    offset = np.asarray(seen.mean, float) - np.asarray(position, float)
-    track.mean = track.mean - offset
-    return offset
 
 
 def added(sigma: float, floor: float) -> float:

@@ -38,7 +38,6 @@ from afm_core.localization.landmark_observation import MapLandmark, line_noise
 from afm_core.manipulation.closed_loop import (
     CONFIDENCE_SIGMAS,
     LoopState,
-    align_track,
     calibrate_chain,
     run_leg,
 )
@@ -398,16 +397,18 @@ def rod_closed_loop_push(
         return first[-1]
 
     mark = MapLandmark.from_landmark(rod)
-    # the track into the same frame: where it saw the rod is where the map has it (align_track;
-    # calibrate_chain does it with an anchor)
     if anchor is not None:
         anchor = calibrate_chain(track, anchor, mark, tip_radius, should_stop, first_look)
         report("anchor", anchor=anchor)
-    elif first_look(track, mark, None, tip_radius, should_stop).ok:
-        align_track(track, first[0], mark.position)
+    else:
+        first_look(track, mark, None, tip_radius, should_stop)
     angle_offset = 0.0
     if first[0].ok:
         angle_offset = wrap_angle(first[0].angle - rod.orientation)
+        # the track into the same frame: where it saw the rod is where the map has it (with
+        # an anchor it was reset to the anchor's map position, whose error relative to the rod
+        # the calibrated anchor takes out only from the next observation on)
+        track.mean = track.mean - (first[0].mean - mark.position)
     for leg in range(int(settings["rod_max_iterations"])):
         aim, aim_angle = leg_target(state.particle, goal, goal_angle)
         plan = plan_rod_leg(state.particle, aim, aim_angle, tip_radius, tolerance, limits)
