@@ -44,7 +44,7 @@ same features are left out of the recording and of every re-simulation.
   line that comes within reach of where a pushed particle may be is left out too; lines over
   particles nothing pushed keep theirs.
 
-A third thing is decided by the tip's positioning walk, which the reference leaves out and the
+One more thing is decided by the tip's positioning walk, which the reference leaves out and the
 noise model carries only to first order:
 
 - **The shape of a single scan line.** A line scanned once (no forward/back partner over the
