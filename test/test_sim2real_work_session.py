@@ -236,3 +236,38 @@ def test_exclusions_follow_a_pushed_particle_past_the_strokes_end():
     assert excluded.keys == {(0, "push.torsion0"), (1, "push.torsion0"), (2, "line.level")}
     assert excluded.strokes == 2
     assert "scan lines' levels over moved particles" in {row["what"] for row in excluded.rows}
+
+
+def test_a_stroke_where_a_scan_line_saw_a_particle_meets_it():
+    """The closed loop observes its particle with scan lines between legs and starts the next
+    leg from there: a stroke within reach of where a line crossed a particle is left out, even
+    far from every image's place and every earlier stroke; one far from it is kept."""
+    from afm_core.sim2real.exclusions import ordinary_exclusions
+    from afm_core.sim2real.features import Feature
+    from afm_core.sim2real.protocol import Operation
+
+    config = work_config()
+    x0, y0 = WORK_SPHERES[0]
+    um = 1e-6
+    seen = (x0, y0 - 0.6 * um)  # a particle no image placed (0.6 um from the configured one)
+
+    def op(index, kind, start, end, t):
+        return Operation(index=index, kind=kind, start_time=t, start=start, end=end)
+
+    ops = [
+        op(0, "scan_line", (seen[0] - 0.25 * um, seen[1]), (seen[0] + 0.25 * um, seen[1]), 10.0),
+        op(1, "push", (seen[0], seen[1] - 0.3 * um), (seen[0], seen[1] - 0.12 * um), 11.0),
+        op(2, "push", (seen[0] + 1.0 * um, seen[1]), (seen[0] + 1.5 * um, seen[1]), 12.0),
+    ]
+    features = {
+        f.key: f
+        for f in [
+            Feature((0, "line.mid"), "line.mid", 0.0, 10.0, *seen),
+            Feature((1, "push.torsion0"), "push.torsion", 0.0, 11.0, seen[0], seen[1] - 0.2 * um),
+            Feature((2, "push.torsion0"), "push.torsion", 0.0, 12.0, seen[0] + 1.2 * um, seen[1]),
+        ]
+    }
+    excluded = ordinary_exclusions(ops, features, config)
+
+    assert excluded.keys == {(1, "push.torsion0")}
+    assert excluded.strokes == 1

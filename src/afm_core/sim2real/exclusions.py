@@ -28,8 +28,11 @@ that place: 3 sigma of the persistent positioning walk (offset + slope x the str
 and a micrometre of approach) and 3 sigma of the drift's wander since the place was measured
 (the stationary velocity spread times the time since; the model's mean drift moves the place).
 The places are where the session's own images saw the particles (an image supersedes the places
-inside its area; before any image, the configured spheres), and the paths of the strokes that
-met one before: a moved particle is somewhere along them or up to the contact distance beyond
+inside its area; before any image, the configured spheres) and where its scan lines crossed one
+(the closed loop observes its particle so between legs: on a null closed-loop session a
+correction stroke beyond reach of every earlier path met the particle where the last
+observation had seen it, and its torsion read 54 sigma), and the paths of the strokes that met
+one before: a moved particle is somewhere along them or up to the contact distance beyond
 their end (the particle leads the tip). The closed loop's later legs start from where its scan
 lines saw the particle, beyond its last stroke's end: on a null closed-loop session two such
 correction strokes, taken as meeting nothing, read chi^2 609 for 2 in their torsion before the
@@ -83,6 +86,10 @@ PARTICLE_GROUPS = (
     "raster.height",
     "raster.half_width",
 )
+
+# the line features that say where a line crossed a particle (features.py: the crossing's
+# point on the line)
+LINE_PLACE_GROUPS = ("line.pos", "line.mid")
 
 CONTACT_REASON = (
     "torsion of strokes that meet a particle: the particle's contact history (where the tip "
@@ -216,6 +223,13 @@ def ordinary_exclusions(ops, features: dict, config) -> Exclusions:
             # the image shows what is in its area now: older places there are superseded
             places = [p for p in places if not _inside(p, op.request)]
             places += places_of.get(op.index, [])
+        # a scan line across a particle saw it where it crossed (a closed loop's observation
+        # between legs: its next leg starts from there)
+        places += [
+            (features[k].x, features[k].y, features[k].time)
+            for k in keys
+            if features[k].group in LINE_PLACE_GROUPS
+        ]
     single_keys = _single_line_shapes(ops, features)
     rows = []
     if contact_keys:
