@@ -664,7 +664,8 @@ def main(argv=None) -> int:
         "--family",
         default="",
         help="comma-separated families: protocol (the suite), beyond (= --beyond), "
-        "null_protocol, null_work, work_effects, out_of_library (sim2real_families.py)",
+        "null_protocol, null_work, work_effects, out_of_library, null_work_closed_loop, "
+        "work_effects_closed_loop (sim2real_families.py)",
     )
     parser.add_argument(
         "--name", default="sim2real-families", help="results name of the new families"

@@ -12,6 +12,10 @@ original suite and its `--beyond`):
 - work_effects: normal-work sessions with one in-library effect a session of that kind can
   inform (scanner coupling, the feed-forward's loop width, tip radius, drift velocity,
   scan-line rotation);
+- null_work_closed_loop, work_effects_closed_loop: the same kinds of session with the pushes
+  closed loop (the graph's default strategy: legs of strokes, local scan lines between them),
+  on seeds and layouts of their own; null_work and work_effects push open loop ("nano_hand"),
+  as they always did, so their figures stay comparable with earlier runs;
 - out_of_library: the protocol (and, for two post-processed effects, a normal-work session)
   with one effect no library term has (sim2real_injections.py: post-processing of the
   recorded messages, or a simulator extension), with its kind of signature as the truth.
@@ -36,7 +40,15 @@ import numpy as np
 import sim2real_injections as injections
 import sim2real_scoring as scoring
 
-FAMILIES = ("null_protocol", "null_work", "work_effects", "out_of_library")
+FAMILIES = (
+    "null_protocol",
+    "null_work",
+    "work_effects",
+    "out_of_library",
+    "null_work_closed_loop",
+    "work_effects_closed_loop",
+)
+OPEN_LOOP, CLOSED_LOOP = "nano_hand", "closed_loop"  # the work sessions' push strategies
 # the protocol's slides and indents (protocol.SLIDE_*, INDENT_SPOT) with 250 nm clearance: a
 # drawn particle stays off them, as the protocol's own sample does
 SLIDE_KEEP_OUT = (
@@ -62,6 +74,7 @@ class FamilyCase:
     also: tuple = ()  # names that mean the same physics in this session (see work_effects)
     truth: dict = field(default_factory=dict)  # key -> true value
     injection: str | None = None  # out_of_library effect name
+    strategy: str = OPEN_LOOP  # a work session's pushes (record_work_session's strategy)
 
     @property
     def kind(self) -> str:
@@ -131,7 +144,38 @@ def _nulls_work() -> list[FamilyCase]:
     return cases
 
 
-def _work_effects(model) -> list[FamilyCase]:
+def _nulls_work_closed_loop() -> list[FamilyCase]:
+    """Closed-loop nulls on seeds 760-765 (none of the other families'), with particle counts
+    and substrates varied as null_work's."""
+    variants = [
+        (5, 0.3e-9, 20e-9),
+        (4, 0.5e-9, 20e-9),
+        (6, 0.2e-9, 30e-9),
+        (5, 0.4e-9, 10e-9),
+        (5, 0.25e-9, 40e-9),
+        (4, 0.35e-9, 15e-9),
+    ]
+    cases = []
+    for k, (count, sigma, corr) in enumerate(variants):
+        seed = 760 + k
+        layout = draw_layout(np.random.default_rng(seed), count, WORK_SPACING, half=1.5e-6)
+        substrate = {"roughness_sigma": sigma, "roughness_correlation": corr}
+        cases.append(
+            FamilyCase(
+                f"null-work-cl-{k}",
+                "null_work_closed_loop",
+                seed,
+                "work",
+                layout,
+                100e-9,
+                substrate,
+                strategy=CLOSED_LOOP,
+            )
+        )
+    return cases
+
+
+def _work_effects(model, closed_loop: bool = False) -> list[FamilyCase]:
     """One in-library effect each, drawn per seed within the protocol suite's ranges. The
     feed-forward's loop width: under closed-loop control the simulator's feed-forward takes
     the scanner's loop width times (1 + model_error), so hysteresis_width and
@@ -150,7 +194,7 @@ def _work_effects(model) -> list[FamilyCase]:
             "scanner.deflection_deg": s.deflection_deg + _sign(r) * r.uniform(0.5, 1.0)}),
     ]  # fmt: skip
     for k, (name, also, draw) in enumerate(specs):
-        seed = 740 + k
+        seed = (780 if closed_loop else 740) + k
         rng = np.random.default_rng(seed)
         truth = draw(rng)
         overrides: dict = {}
@@ -160,8 +204,8 @@ def _work_effects(model) -> list[FamilyCase]:
         layout = draw_layout(rng, 5, WORK_SPACING, half=1.5e-6)
         cases.append(
             FamilyCase(
-                f"work-{name}",
-                "work_effects",
+                f"work-{'cl-' if closed_loop else ''}{name}",
+                "work_effects_closed_loop" if closed_loop else "work_effects",
                 seed,
                 "work",
                 layout,
@@ -169,6 +213,7 @@ def _work_effects(model) -> list[FamilyCase]:
                 expected=name,
                 also=also,
                 truth=truth,
+                strategy=CLOSED_LOOP if closed_loop else OPEN_LOOP,
             )
         )
     return cases
@@ -218,6 +263,8 @@ def family_cases(families, model) -> list[FamilyCase]:
         "null_work": _nulls_work,
         "work_effects": lambda: _work_effects(model),
         "out_of_library": _out_of_library,
+        "null_work_closed_loop": _nulls_work_closed_loop,
+        "work_effects_closed_loop": lambda: _work_effects(model, closed_loop=True),
     }
     lists = [by_family[f]() for f in families]
     out = []
@@ -265,8 +312,14 @@ def record_case(case: FamilyCase, folder: Path, model) -> tuple[Path, dict]:
                 f"{case.name}: record_work_session builds its own SimulatedAfm; a work session "
                 "takes post-processed effects only"
             )
-        summary = record_work_session(raw, truth_config, seed=case.seed, spheres=case.layout)
-        info["work"] = {"operations": summary.operations, "pushes": summary.pushes}
+        summary = record_work_session(
+            raw, truth_config, seed=case.seed, spheres=case.layout, strategy=case.strategy
+        )
+        info["work"] = {
+            "strategy": case.strategy,
+            "operations": summary.operations,
+            "pushes": summary.pushes,
+        }
     if effect is not None:
         info["injected"] = {k: v for k, v in effect.parameters.items()}
         info["signature_truth"] = effect.signature.form

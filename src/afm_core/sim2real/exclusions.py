@@ -28,12 +28,26 @@ that place: 3 sigma of the persistent positioning walk (offset + slope x the str
 and a micrometre of approach) and 3 sigma of the drift's wander since the place was measured
 (the stationary velocity spread times the time since; the model's mean drift moves the place).
 The places are where the session's own images saw the particles (an image supersedes the places
-inside its area; before any image, the configured spheres), and the paths of the strokes that
-met one before (a moved particle is somewhere along them). Everything is from the commands and
-the session's own images, so the same features are left out of the recording and of every
-re-simulation.
+inside its area; before any image, the configured spheres) and where its scan lines crossed one
+(the closed loop observes its particle so between legs: on a null closed-loop session a
+correction stroke beyond reach of every earlier path met the particle where the last
+observation had seen it, and its torsion read 54 sigma), and the paths of the strokes that met
+one before: a moved particle is somewhere along them or up to the contact distance beyond
+their end (the particle leads the tip). The closed loop's later legs start from where its scan
+lines saw the particle, beyond its last stroke's end: on a null closed-loop session two such
+correction strokes, taken as meeting nothing, read chi^2 609 for 2 in their torsion before the
+paths were extended so. Everything is from the commands and the session's own images, so the
+same features are left out of the recording and of every re-simulation.
 
-A third thing is decided by the tip's positioning walk, which the reference leaves out and the
+- **The level of a scan line over a moved particle.** A line's absolute level
+  (`features_absolute`) is its edges' substrate; where a push left the particle decides
+  whether an edge lies on its flank, which moves the level by nm (a closed loop's anchor line
+  over a particle pushed before read -5.5 nm against the re-simulation, 17 sigma). The
+  both-edges rule catches an edge on a particle, not one on part of a flank. So the level of a
+  line that comes within reach of where a pushed particle may be is left out too; lines over
+  particles nothing pushed keep theirs.
+
+One more thing is decided by the tip's positioning walk, which the reference leaves out and the
 noise model carries only to first order:
 
 - **The shape of a single scan line.** A line scanned once (no forward/back partner over the
@@ -73,6 +87,10 @@ PARTICLE_GROUPS = (
     "raster.half_width",
 )
 
+# the line features that say where a line crossed a particle (features.py: the crossing's
+# point on the line)
+LINE_PLACE_GROUPS = ("line.pos", "line.mid")
+
 CONTACT_REASON = (
     "torsion of strokes that meet a particle: the particle's contact history (where the tip "
     "met it, how it rolled, when it left), set by a few nm of positioning walk, which the "
@@ -84,6 +102,11 @@ MOVED_REASON = (
     "noise about 1 nm)"
 )
 
+MOVED_LEVEL_REASON = (
+    "absolute levels of scan lines within reach of a moved particle: where the push left it "
+    "(its own contact history in the recording and in the re-simulation) decides whether an "
+    "edge of the line lies on its flank, which moves the line's substrate level by nm"
+)
 
 SINGLE_LINE_GROUPS = ("line.width", "line.peak", "line.asym")
 SINGLE_LINE_REASON = (
@@ -174,7 +197,7 @@ def ordinary_exclusions(ops, features: dict, config) -> Exclusions:
     t0 = min((op.start_time for op in ops), default=0.0)
     places = [(float(s["x"]), float(s["y"]), t0) for s in config.sample.spheres]
     paths: list = []  # (start, end, time) of strokes that met a particle
-    contact_keys, moved_keys = set(), set()
+    contact_keys, moved_keys, level_keys = set(), set(), set()
     strokes = 0
     for op in ops:
         keys = by_op.get(op.index, [])
@@ -190,10 +213,23 @@ def ordinary_exclusions(ops, features: dict, config) -> Exclusions:
             for k in keys
             if features[k].group in PARTICLE_GROUPS and _near_paths(features[k], paths, reach)
         )
+        level_keys.update(
+            k
+            for k in keys
+            if features[k].group == "line.level"
+            and _line_near_paths(op, features[k].time, paths, reach)
+        )
         if op.kind == "raster" and op.request is not None:
             # the image shows what is in its area now: older places there are superseded
             places = [p for p in places if not _inside(p, op.request)]
             places += places_of.get(op.index, [])
+        # a scan line across a particle saw it where it crossed (a closed loop's observation
+        # between legs: its next leg starts from there)
+        places += [
+            (features[k].x, features[k].y, features[k].time)
+            for k in keys
+            if features[k].group in LINE_PLACE_GROUPS
+        ]
     single_keys = _single_line_shapes(ops, features)
     rows = []
     if contact_keys:
@@ -201,6 +237,14 @@ def ordinary_exclusions(ops, features: dict, config) -> Exclusions:
     if moved_keys:
         rows.append(
             {"what": "moved particles' features", "count": len(moved_keys), "reason": MOVED_REASON}
+        )
+    if level_keys:
+        rows.append(
+            {
+                "what": "scan lines' levels over moved particles",
+                "count": len(level_keys),
+                "reason": MOVED_LEVEL_REASON,
+            }
         )
     single_keys -= moved_keys
     if single_keys:
@@ -211,7 +255,9 @@ def ordinary_exclusions(ops, features: dict, config) -> Exclusions:
                 "reason": SINGLE_LINE_REASON,
             }
         )
-    return Exclusions(keys=contact_keys | moved_keys | single_keys, rows=rows, strokes=strokes)
+    return Exclusions(
+        keys=contact_keys | moved_keys | level_keys | single_keys, rows=rows, strokes=strokes
+    )
 
 
 def _single_line_shapes(ops, features: dict) -> set:
@@ -241,8 +287,28 @@ def _meets(a, b, start_time: float, places: list, paths: list, reach: _Reach) ->
         if _segment_distance(here, a, b) <= reach(length, start_time - t):
             return True
     return any(
-        _segment_to_segment(a, b, c, d) <= reach(length, start_time - t) for c, d, t in paths
+        _segment_to_segment(a, b, c, _ahead(c, d, reach)) <= reach(length, start_time - t)
+        for c, d, t in paths
     )
+
+
+def _ahead(a, b, reach: _Reach) -> np.ndarray:
+    """The end of the stretch a stroke a-b may have left its particle on: the particle leads
+    the tip, so its centre is up to the contact distance beyond the stroke's end."""
+    length = float(np.hypot(*(b - a)))
+    return b + (b - a) / max(length, 1e-30) * reach.contact
+
+
+def _line_near_paths(op, time: float, paths: list, reach: _Reach) -> bool:
+    """Whether a scan line's segment comes within reach of where a pushed particle may be
+    (along a stroke that met one, up to the contact distance beyond its end): the tip then
+    meets the particle somewhere on the line, its edges included."""
+    a, b = np.asarray(op.start, float), np.asarray(op.end, float)
+    for c, d, t in paths:
+        length = float(np.hypot(*(d - c)))
+        if _segment_to_segment(a, b, c, _ahead(c, d, reach)) <= reach(length, time - t):
+            return True
+    return False
 
 
 def _inside(place, request) -> bool:
@@ -259,7 +325,6 @@ def _near_paths(feature, paths: list, reach: _Reach) -> bool:
     p = np.array([feature.x, feature.y])
     for a, b, t in paths:
         length = float(np.hypot(*(b - a)))
-        ahead = b + (b - a) / max(length, 1e-30) * reach.contact
-        if _segment_distance(p, a, ahead) <= reach(length, feature.time - t):
+        if _segment_distance(p, a, _ahead(a, b, reach)) <= reach(length, feature.time - t):
             return True
     return False
