@@ -319,15 +319,14 @@ def test_every_help_gives_defaults_and_length_units():
     """`--help` says each option's default, and a length's unit (a README reader's second
     step); lengths are the options whose type parses units."""
     from afm_bringup.cli import build_parser
-    from afm_bringup.units import length_type
+    from afm_bringup.units import parse_length
 
-    length = length_type("x").__qualname__
     missing = []
     for command, action in options(build_parser()):
         text = action.help or ""
         if action.default not in (None, "", -1) and "default" not in text:
             missing.append(f"{command} {action.option_strings[-1]}: no default in {text!r}")
-        if getattr(action.type, "__qualname__", "") == length and not re.search(
+        if getattr(action.type, "parse", None) is parse_length and not re.search(
             r"\(m[,;) ]", text
         ):
             missing.append(f"{command} {action.option_strings[-1]}: no unit in {text!r}")

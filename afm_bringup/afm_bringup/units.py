@@ -6,48 +6,48 @@ import math
 import re
 
 UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "nm": 1e-9, "pm": 1e-12}
-_LENGTH = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([a-zµ]*)\s*$")
+_NUMBER = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([a-zµ]*)\s*$")
 
 
-def parse_length(text: str, name: str = "length") -> float:
-    match = _LENGTH.match(str(text))
-    if not match or match.group(2) not in ("",) + tuple(UNITS):
-        raise ValueError(
-            f"{name}={text!r}: expected a number with an optional unit "
-            f"({', '.join(UNITS)}), e.g. 500nm or 2e-6 (metres)"
-        )
-    value = float(match.group(1)) * UNITS.get(match.group(2) or "m")
+def _parse(text: str, name: str, units: dict, default: str, expected: str) -> float:
+    """A number with an optional unit from `units` (`default` when none) -> SI; the error
+    names the field and what was expected."""
+    match = _NUMBER.match(str(text))
+    if not match or match.group(2) not in ("",) + tuple(units):
+        raise ValueError(f"{name}={text!r}: expected a number with an optional unit {expected}")
+    value = float(match.group(1)) * units[match.group(2) or default]
     if not math.isfinite(value):
         raise ValueError(f"{name}={text!r}: must be finite")
     return value
+
+
+def parse_length(text: str, name: str = "length") -> float:
+    return _parse(text, name, UNITS, "m", f"({', '.join(UNITS)}), e.g. 500nm or 2e-6 (metres)")
 
 
 ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180}
 
 
 def parse_angle(text: str, name: str = "angle") -> float:
-    match = _LENGTH.match(str(text))
-    if not match or match.group(2) not in ("",) + tuple(ANGLE_UNITS):
-        raise ValueError(
-            f"{name}={text!r}: expected a number with an optional unit (rad, deg), e.g. 15deg "
-            "or 0.26 (radians)"
-        )
-    value = float(match.group(1)) * ANGLE_UNITS[match.group(2) or "rad"]
-    if not math.isfinite(value):
-        raise ValueError(f"{name}={text!r}: must be finite")
-    return value
+    return _parse(text, name, ANGLE_UNITS, "rad", "(rad, deg), e.g. 15deg or 0.26 (radians)")
+
+
+def _argparse_type(parse, name: str):
+    """An argparse `type` that parses with `parse` and reports its error as argparse's."""
+
+    def convert(text):
+        try:
+            return parse(text, name)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from exc
+
+    convert.parse = parse  # what it reads, for those that list the options by kind (--help)
+    return convert
 
 
 def angle_type(name: str):
     """An argparse `type` for an angle option: radians, or a number with a unit."""
-
-    def convert(text):
-        try:
-            return parse_angle(text, name)
-        except ValueError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from exc
-
-    return convert
+    return _argparse_type(parse_angle, name)
 
 
 def nm(metres: float) -> str:
@@ -56,11 +56,4 @@ def nm(metres: float) -> str:
 
 def length_type(name: str):
     """An argparse `type` for a length option: metres, or a number with a unit."""
-
-    def convert(text):
-        try:
-            return parse_length(text, name)
-        except ValueError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from exc
-
-    return convert
+    return _argparse_type(parse_length, name)
