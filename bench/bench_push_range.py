@@ -52,6 +52,7 @@ from afm_core.evaluation import image_frame_matrix  # noqa: E402
 from afm_core.manipulation.push_parameters import DEFAULT_STRATEGY  # noqa: E402
 from afm_msgs.action import PushParticle  # noqa: E402
 from afm_msgs.msg import GroundTruth, LandmarkArray  # noqa: E402
+from afm_ros.exposure import isolate_run  # noqa: E402
 from afm_ros.qos_profiles import LATCHED  # noqa: E402
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
@@ -342,13 +343,9 @@ def main() -> int:
         f"(default: the nano-hand node's, {DEFAULT_STRATEGY})",
     )
     args = parser.parse_args()
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     # a domain no other process uses: another graph on the machine (a test run, say) would
     # answer this one's goals and publish its truth on the same topics
-    if "ROS_DOMAIN_ID" not in os.environ:
-        from afm_ros.exposure import claim_domain
-
-        os.environ["ROS_DOMAIN_ID"] = str(claim_domain())
+    isolate_run()
     started = time.monotonic()
     load = os.getloadavg()
 

@@ -35,11 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-if "ROS_DOMAIN_ID" not in os.environ:  # one no other run uses (afm_ros.exposure.claim_domain)
-    from afm_ros.exposure import claim_domain
+from afm_ros.exposure import isolate_run  # noqa: E402
 
-    os.environ["ROS_DOMAIN_ID"] = str(claim_domain())
-os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+isolate_run()  # a domain no other run uses
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import command_line, machine_record  # noqa: E402

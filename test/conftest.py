@@ -12,11 +12,9 @@ import pytest
 
 # Isolate this run's DDS traffic from anything else on the machine (other runs, demos): a domain
 # id no other process uses, held for this run (a random one collided with other runs' graphs)
-if "ROS_DOMAIN_ID" not in os.environ:
-    from afm_ros.exposure import claim_domain
+from afm_ros.exposure import isolate_run  # noqa: E402
 
-    os.environ["ROS_DOMAIN_ID"] = str(claim_domain())
-os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+isolate_run()
 LOG_TAIL_CHARS = 6000  # of each node's output, printed when a test fails
 
 

@@ -138,6 +138,15 @@ def claim_domain(first: int = 1, last: int = MAX_DOMAIN_ID, folder=None) -> int:
     raise RuntimeError(f"no free ROS domain id in [{first}, {last}]: all used or claimed")
 
 
+def isolate_run(environ=os.environ) -> int:
+    """Give this run (tests, a benchmark) a domain of its own unless the caller chose one
+    (claim_domain), and localhost-only discovery unless told otherwise; the domain id."""
+    if "ROS_DOMAIN_ID" not in environ:
+        environ["ROS_DOMAIN_ID"] = str(claim_domain())
+    environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    return int(environ["ROS_DOMAIN_ID"])
+
+
 def localhost_profile(folder: str | os.PathLike | None = None) -> Path:
     """The localhost profile written into `folder` (default: private_folder())."""
     folder = Path(folder) if folder else private_folder()
