@@ -63,6 +63,7 @@ from afm_core.planning.pattern import PatternObject, pattern_offsets, plan_patte
 from afm_msgs.action import Assemble  # noqa: E402
 from afm_msgs.msg import GroundTruth, LandmarkArray  # noqa: E402
 from afm_ros.conversions import msg_to_landmarks  # noqa: E402
+from afm_ros.exposure import isolate_run  # noqa: E402
 from afm_ros.qos_profiles import LATCHED  # noqa: E402
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
@@ -357,7 +358,9 @@ def main() -> int:
         "--append", action="store_true", help="add these seeds to the results file's runs"
     )
     args = parser.parse_args()
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    # a domain no other process uses: another graph on the machine would answer this one's
+    # goals and publish its truth on the same topics
+    isolate_run()
     started = time.monotonic()
     load = os.getloadavg()
 

@@ -49,6 +49,7 @@ from afm_bringup.launcher import Graph  # noqa: E402
 from afm_core.evaluation import image_frame_matrix  # noqa: E402
 from afm_msgs.action import PushParticle  # noqa: E402
 from afm_msgs.msg import GroundTruth, LandmarkArray  # noqa: E402
+from afm_ros.exposure import isolate_run  # noqa: E402
 from afm_ros.qos_profiles import LATCHED  # noqa: E402
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
@@ -267,7 +268,9 @@ def main() -> int:
         "--table-7-6", action="store_true", help="the book's 13-step push instead of centre"
     )
     args = parser.parse_args()
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    # a domain no other process uses: another graph on the machine would answer this one's
+    # goals and publish its truth on the same topics
+    isolate_run()
     started = time.monotonic()
 
     def log(text):
