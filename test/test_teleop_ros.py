@@ -251,7 +251,9 @@ def test_the_wrench_during_a_contact_move_is_the_force_trace_s(graph):
     time.sleep(0.5)
     take(peer)
     assert peer.call(peer.contact, True).success
-    peer.drive(MAX_SPEED, 0.0, 0.6)
+    # long enough that a stalled segment leaves five contact wrenches to compare (a fresh clone
+    # after the start-up heap freeze still saw only 4 in a 0.6 s drive; issue 33)
+    peer.drive(MAX_SPEED, 0.0, 1.2)
     wait_for(lambda: peer.statuses[-1]["stop"].startswith("dead-man"), 5, what="the dead-man")
     contact = [w for w in peer.wrenches if w.wrench.force.z != 0.0]
     assert len(contact) >= 5
