@@ -80,9 +80,7 @@ class Peer:
         longest gap between two in `self.publish_gap`)."""
         msg = Twist()
         msg.linear.x, msg.linear.y = vx, vy
-        # a command stream is volatile: until DDS has matched the teleop node's subscription the
-        # first commands are lost, and the tip moves for less time than they were sent
-        wait_for(lambda: self.twist_pub.get_subscription_count() > 0, 30, what="teleop listening")
+        self.establish_stream(rate)
         first = time.monotonic()
         last = first
         self.publish_gap = 0.0
@@ -92,6 +90,20 @@ class Peer:
             last = time.monotonic()
             time.sleep(1.0 / rate)
         return first, last
+
+    def establish_stream(self, rate: float) -> None:
+        """Publish still Twists until the teleop node counts one. A command stream is volatile,
+        and DDS matches the two ends one at a time: the publisher may already count the
+        subscription while the teleop node has not yet matched the publisher and drops what
+        it sends (a fresh clone: teleop heard 6 of 20 commands, the first ones lost), so the
+        tip would move for less time than the commands were sent."""
+        wait_for(lambda: self.twist_pub.get_subscription_count() > 0, 30, what="teleop listening")
+        heard = self.statuses[-1].get("commands", 0) if self.statuses else 0
+        deadline = time.monotonic() + 30
+        while not (self.statuses and self.statuses[-1].get("commands", 0) > heard):
+            assert time.monotonic() < deadline, "the teleop node heard no Twist in 30 s"
+            self.twist_pub.publish(Twist())
+            time.sleep(1.0 / rate)
 
     def commanded(self):
         with self.lock:
