@@ -1,6 +1,8 @@
 """The localizer node in a graph with the simulated driver: it follows every command the
 driver executes, publishes the estimate, and localizes through the Localize action."""
 
+import time
+
 import numpy as np
 import pytest
 from conftest import wait_for
@@ -147,3 +149,52 @@ def test_a_parameter_set_at_run_time_is_applied_or_refused_with_the_reason(
         read_only = set_parameter(client, "calibration_file", "other.yaml")
         assert not read_only.successful and "read-only" in read_only.reason
         assert afm.localize(landmark_id=0).success  # the refusals changed nothing
+
+
+def test_no_pose_is_published_for_a_time_the_driver_has_not_yet_said_what_it_did(nodes, ros_node):
+    """The driver publishes a command once it has run it, and its /clock runs ahead meanwhile.
+    A pose for a clock time past the last command heard would put the tip where the move began,
+    and the same stamp would come again with the tip where it ended once the command arrives."""
+    from rosgraph_msgs.msg import Clock
+
+    from afm_msgs.msg import TipCommand
+    from afm_ros import topics
+    from afm_ros.conversions import seconds_to_time, stamp_of
+    from afm_ros.qos_profiles import EVENTS
+
+    nodes("localizer")
+    poses = []
+    ros_node.create_subscription(PoseWithCovarianceStamped, topics.TIP_POSE, poses.append, 100)
+    commands = ros_node.create_publisher(TipCommand, topics.TIP_COMMAND, EVENTS)
+    clock = ros_node.create_publisher(Clock, "/clock", 10)
+    wait_for(lambda: clock.get_subscription_count() > 0, 30, what="the localizer listening")
+
+    def command(start_time, start, end, duration):
+        msg = TipCommand(kind=TipCommand.MOVE, duration=duration, speed=1e-6)
+        msg.header.stamp, msg.header.frame_id = seconds_to_time(start_time), "afm_scanner"
+        msg.start.x, msg.start.y = start
+        msg.end.x, msg.end.y = end
+        msg.start_voltage = msg.end_voltage = [float("nan")] * 3
+        commands.publish(msg)
+
+    begin, end = (50e-6, 50e-6), (50.45e-6, 50e-6)
+    command(1.0, begin, begin, 0.1)
+    clock.publish(Clock(clock=seconds_to_time(1.1)))
+    wait_for(lambda: poses, 30, what="a pose after the first command")
+    clock.publish(Clock(clock=seconds_to_time(3.0)))  # a 450 nm move running, unheard
+    time.sleep(1.0)  # ten ticks of the steady-rate pose
+    command(1.1, begin, end, 1.9)
+    wait_for(
+        lambda: any(
+            stamp_of(p.header) >= 3.0 - 1e-6 and p.pose.pose.position.x - begin[0] > 400e-9
+            for p in list(poses)
+        ),
+        10,
+        what="a pose at the move's end that has the move",
+    )
+    time.sleep(0.5)  # and the ticks after it
+    at = {}
+    for pose in poses:
+        at.setdefault(round(stamp_of(pose.header), 6), []).append(pose.pose.pose.position.x)
+    spread = {t: max(xs) - min(xs) for t, xs in at.items()}
+    assert max(spread.values()) < 1e-9, spread
