@@ -136,9 +136,9 @@ def tip_against_truth(poses: dict, truth: dict, image_frame: np.ndarray) -> dict
     )
     true_tip = start_commanded + (metric - metric[0]) @ np.linalg.inv(image_frame).T
     # the localizer publishes its estimate as each command ends, the driver its truth: compare
-    # the pairs with the same stamp (error and NEES). A command DDS delivers late (a reliable
-    # sample repaired after a loss) is predicted after hold poses already went out with its
-    # end stamp, so stamps are not in order: take the last pose published with each stamp.
+    # the pairs with the same stamp (error and NEES). Recordings made before 2026-11-27 hold
+    # poses for times past the last command heard (the tip still where the move began), then
+    # the same stamp again once the command came: take the last pose published with each stamp.
     # (a stamp summed from a start and a duration in float seconds since 1970 is good to
     # ~0.3 us)
     origin = int(truth["header.stamp.sec"][0])
