@@ -86,9 +86,11 @@ def test_demo_runs_end_to_end_and_reports(tmp_path):
     assert 0 <= row["push_error_max_m"] < 100e-9
     # last, as it is a known open defect: the localizer is consistent (mean NEES about 2) on
     # the single push's 1.8 um map of three spheres (2.7 on 2026-11-27), not on the assembly's
-    # 2.8 um map of nine objects (26-32 over the session in three runs, 46-140 over the map
-    # and the first push, where one pair was 440 nm off); cause open (notes/h44-asm32.md)
-    if not 0.2 < tip["mean_nees"] < 10:
+    # 2.8 um map of nine objects. Poses for times the driver had not yet reported made 26-32
+    # (one pair 440 nm off); without them 8.4 (2026-11-27), still overconfident. The gate is
+    # chi2(2)'s 95 % quantile, 6.0: a consistent filter's mean over hundreds of pairs stays
+    # far below what 95 % of single draws stay below
+    if not 0.2 < tip["mean_nees"] < 6.0:
         pytest.xfail(
             f"known open defect: the localizer's mean NEES {tip['mean_nees']:.1f} over the "
             f"assembly ({first['mean_nees']:.1f} over the map and the first push)"
