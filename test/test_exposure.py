@@ -32,8 +32,55 @@ def test_the_default_is_the_localhost_profile_and_what_the_user_set_wins(tmp_pat
     assert (env["ROS_DOMAIN_ID"], env["ROS_AUTOMATIC_DISCOVERY_RANGE"]) == ("7", "LOCALHOST")
     env = exposure.apply(dict(mine), domain_id=42, folder=tmp_path)
     assert env["ROS_DOMAIN_ID"] == "42"
-    lab = exposure.apply(exposure.apply({}, folder=tmp_path), network="lab", domain_id=3)
+    lab = exposure.apply(
+        exposure.apply({}, folder=tmp_path), network="lab", domain_id=3, folder=tmp_path
+    )
+    lab_profile = lab.pop("FASTRTPS_DEFAULT_PROFILES_FILE")
+    assert lab_profile == lab.pop("FASTDDS_DEFAULT_PROFILES_FILE")
     assert lab == {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET", "ROS_DOMAIN_ID": "3"}
+    # the lab's profile leaves Fast DDS its own transports: the repair period only
+    assert Path(lab_profile).read_text() == exposure.LAB_PROFILE
+    assert "<transport" not in exposure.LAB_PROFILE and "<participant" not in exposure.LAB_PROFILE
+    mine_lab = exposure.apply(dict(mine), network="lab", folder=tmp_path)
+    assert mine_lab["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/etc/lab/dds.xml"
+
+
+@pytest.mark.ros
+def test_fast_dds_reads_both_profiles_without_an_error(tmp_path):
+    """Fast DDS says nothing of an element it does not know but an XMLPARSER error, and then
+    runs on its defaults (a 3 s repair): a participant started with each profile must print
+    none, and one with a misspelled element must (so the check can see it)."""
+    import subprocess
+    import sys
+
+    heartbeat = f"<nanosec>{round(exposure.REPAIR_PERIOD_S * 1e9)}</nanosec>"
+    for text in (exposure.LOCALHOST_PROFILE, exposure.LAB_PROFILE):
+        assert "<heartbeatPeriod>" in text and heartbeat in text
+    misspelled = exposure.LAB_PROFILE.replace("heartbeatPeriod>", "heartbeatPeriodX>")
+    probe = (
+        "import rclpy; from std_msgs.msg import String; rclpy.init(); "
+        "rclpy.create_node('afm_profile_probe').create_publisher(String, '/afm_probe', 10); "
+        "print('participant up')"
+    )
+    outputs = {}
+    for name, text in (
+        ("localhost", exposure.LOCALHOST_PROFILE),
+        ("lab", exposure.LAB_PROFILE),
+        ("misspelled", misspelled),
+    ):
+        path = tmp_path / f"{name}.xml"
+        path.write_text(text)
+        env = dict(os.environ, FASTRTPS_DEFAULT_PROFILES_FILE=str(path))
+        env.pop("FASTDDS_DEFAULT_PROFILES_FILE", None)
+        env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
+        run = subprocess.run(
+            [sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=60
+        )
+        outputs[name] = run.stdout + run.stderr
+        assert "participant up" in outputs[name], outputs[name]
+    assert "XMLPARSER" not in outputs["localhost"], outputs["localhost"]
+    assert "XMLPARSER" not in outputs["lab"], outputs["lab"]
+    assert "XMLPARSER" in outputs["misspelled"], outputs["misspelled"]
 
 
 @pytest.mark.parametrize("value", [-1, 102, "abc", 1.5])
@@ -109,6 +156,20 @@ def test_a_node_on_its_own_takes_the_localhost_default_unless_told_wider(tmp_pat
         assert exposure.apply_node_default(dict(wider)) == wider  # the lab's choice is kept
 
 
+def test_an_isolated_run_takes_the_nodes_profile_itself_unless_told_otherwise():
+    # a test's or a benchmark's own writers (commands, goals) repair as the nodes' do
+    run = {"ROS_DOMAIN_ID": "9"}
+    exposure.isolate_run(run)
+    assert exposure.is_ours(run["FASTRTPS_DEFAULT_PROFILES_FILE"])
+    assert "ROS_AUTOMATIC_DISCOVERY_RANGE" not in run
+    wider = {"ROS_DOMAIN_ID": "9", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
+    assert exposure.isolate_run(dict(wider)) == 9
+    own = {"ROS_DOMAIN_ID": "9", "FASTRTPS_DEFAULT_PROFILES_FILE": "/lab.xml"}
+    exposure.isolate_run(own)
+    assert own["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/lab.xml"
+    assert own["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+
+
 def outside_loopback(sockets):
     return [
         (address, port)
@@ -120,10 +181,12 @@ def outside_loopback(sockets):
 
 
 @pytest.mark.ros
-def test_a_node_started_as_ros2_run_would_binds_only_the_loopback(nodes):
-    """No `afm` in between (the test's environment has only ROS_AUTOMATIC_DISCOVERY_RANGE=
-    LOCALHOST, as scripts/env.sh sets): the node applies the localhost profile itself."""
-    assert not any(os.environ.get(name) for name in exposure.PROFILE_VARIABLES)
+def test_a_node_started_as_ros2_run_would_binds_only_the_loopback(nodes, monkeypatch):
+    """No `afm` in between (the environment has only ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
+    as scripts/env.sh sets): the node applies the localhost profile itself."""
+    for name in exposure.PROFILE_VARIABLES:  # the test run's own (conftest's isolate_run)
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     driver = nodes("driver", seed=1)
     sockets = wait_for(lambda: udp_sockets(driver.process.pid), 20, what="the driver's sockets")
     time.sleep(1.0)  # all its transports are open by now

@@ -95,8 +95,7 @@ class Peer:
         """Publish still Twists until the teleop node counts one. A command stream is volatile,
         and DDS matches the two ends one at a time: the publisher may already count the
         subscription while the teleop node has not yet matched the publisher and drops what
-        it sends (a fresh clone: teleop heard 6 of 20 commands, the first ones lost), so the
-        tip would move for less time than the commands were sent."""
+        it sends, so the tip would move for less time than the commands were sent."""
         wait_for(lambda: self.twist_pub.get_subscription_count() > 0, 30, what="teleop listening")
         heard = self.statuses[-1].get("commands", 0) if self.statuses else 0
         deadline = time.monotonic() + 30

@@ -10,6 +10,10 @@ graph. "lab" opens the graph to the subnet (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET
 own transports); pair it with a domain id the lab has agreed on (`--domain-id`), and prefer
 SROS2 (docker/README.md) on any network others share.
 
+Both profiles set one more thing: every reliable writer asks for what its readers missed every
+REPAIR_PERIOD_S instead of Fast DDS's 3 s, so a sample lost under load is resent before a
+dead-man or a server's heartbeat gives up.
+
 A node started on its own (`ros2 run`) applies the same default to itself (apply_node_default)
 unless its environment asks for a wider range or names a profile.
 
@@ -33,9 +37,27 @@ NETWORKS = ("localhost", "lab")
 MAX_DOMAIN_ID = 101
 PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
 PROFILE_NAME = "afm_dds_localhost.xml"
-LOCALHOST_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+LAB_PROFILE_NAME = "afm_dds_lab.xml"
+# s: how soon a reliable writer asks its readers what they miss. Fast DDS's default is 3 s, and
+# a reliable reader holds every later sample back until a lost one is repaired, so one sample
+# lost under load stalls its topic (or a service's replies) for up to 3 s: a teleop stream
+# froze past the 0.5 s dead-man, and a server went silent for the 3 s its clients allow
+# (action_client.SERVER_SILENCE_S). Measured in docs/ros_graph.md ("Lost samples").
+REPAIR_PERIOD_S = 0.1
+WRITER_TIMES = f"""    <data_writer profile_name="afm_writer" is_default_profile="true">
+      <times>
+        <heartbeatPeriod>
+          <sec>0</sec>
+          <nanosec>{round(REPAIR_PERIOD_S * 1e9)}</nanosec>
+        </heartbeatPeriod>
+      </times>
+    </data_writer>
+"""
+LOCALHOST_PROFILE = (
+    """<?xml version="1.0" encoding="UTF-8" ?>
 <!-- afm: DDS for one machine. Shared memory and UDP on 127.0.0.1 only, nothing else: no node
-     binds or sends on another interface (afm_ros.exposure). -->
+     binds or sends on another interface (afm_ros.exposure). A lost sample is repaired within
+     about REPAIR_PERIOD_S. -->
 <dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
   <profiles>
     <transport_descriptors>
@@ -60,9 +82,24 @@ LOCALHOST_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
         <useBuiltinTransports>false</useBuiltinTransports>
       </rtps>
     </participant>
-  </profiles>
+"""
+    + WRITER_TIMES
+    + """  </profiles>
 </dds>
 """
+)
+LAB_PROFILE = (
+    """<?xml version="1.0" encoding="UTF-8" ?>
+<!-- afm: DDS for a lab's subnet. Fast DDS's own transports; a lost sample is repaired within
+     about REPAIR_PERIOD_S (afm_ros.exposure). -->
+<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <profiles>
+"""
+    + WRITER_TIMES
+    + """  </profiles>
+</dds>
+"""
+)
 
 
 def check_domain_id(value) -> int:
@@ -143,25 +180,38 @@ def isolate_run(environ=os.environ) -> int:
     (claim_domain), and localhost-only discovery unless told otherwise; the domain id."""
     if "ROS_DOMAIN_ID" not in environ:
         environ["ROS_DOMAIN_ID"] = str(claim_domain())
-    environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    # the nodes' profile in this process too: its writers (a test's commands, a client's goals)
+    # need the nodes' repair period
+    apply_node_default(environ)
+    if not any(is_ours(environ.get(name, "")) for name in PROFILE_VARIABLES):
+        environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     return int(environ["ROS_DOMAIN_ID"])
 
 
 def localhost_profile(folder: str | os.PathLike | None = None) -> Path:
     """The localhost profile written into `folder` (default: private_folder())."""
+    return _written(PROFILE_NAME, LOCALHOST_PROFILE, folder)
+
+
+def lab_profile(folder: str | os.PathLike | None = None) -> Path:
+    """The lab profile (the repair period only) written into `folder`."""
+    return _written(LAB_PROFILE_NAME, LAB_PROFILE, folder)
+
+
+def _written(name: str, text: str, folder) -> Path:
     folder = Path(folder) if folder else private_folder()
-    path = folder / PROFILE_NAME
-    if not path.is_file() or path.read_text() != LOCALHOST_PROFILE:
+    path = folder / name
+    if not path.is_file() or path.read_text() != text:
         # whole or not at all: nodes starting at once write it together while others read it
-        fd, staged = tempfile.mkstemp(dir=folder, prefix=PROFILE_NAME, suffix=".tmp")
+        fd, staged = tempfile.mkstemp(dir=folder, prefix=name, suffix=".tmp")
         with os.fdopen(fd, "w") as file:
-            file.write(LOCALHOST_PROFILE)
+            file.write(text)
         os.replace(staged, path)
     return path
 
 
 def is_ours(path: str) -> bool:
-    return Path(path).name == PROFILE_NAME
+    return Path(path).name in (PROFILE_NAME, LAB_PROFILE_NAME)
 
 
 def apply_node_default(environment: MutableMapping[str, str]) -> MutableMapping[str, str]:
@@ -191,15 +241,15 @@ def apply(
     own = [environment.get(name, "") for name in PROFILE_VARIABLES]
     user_profile = any(value and not is_ours(value) for value in own)
     if network == "lab":
-        for name in PROFILE_VARIABLES:
-            if is_ours(environment.get(name, "")):
-                del environment[name]
+        if not user_profile:
+            for name in PROFILE_VARIABLES:
+                environment[name] = str(lab_profile(folder))
         environment["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"
         return environment
     if user_profile:  # the user's own Fast DDS profile: keep it, and localhost discovery
         environment.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         return environment
-    profile = next((value for value in own if value), "") or str(localhost_profile(folder))
+    profile = str(localhost_profile(folder))
     for name in PROFILE_VARIABLES:
         environment[name] = profile
     environment.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
