@@ -2,9 +2,11 @@
 with a fixed one, against Gwyddion 2.62's full estimate at the same threshold, with 21x21 and
 41x41 tip windows, on bench_tip's 512x512 characteriser image, in one run, single-threaded.
 
-Run: `scripts/with_env.sh python bench/bench_tip_speed.py [--repeat 3]`. Writes
-bench/results/tip-speed.json and tip-speed.md. Needs bench_tip's Gwyddion harness (built by
-bench/gwyddion/build.sh, which apt-installs Debian's libgwyddion20-dev when missing).
+Run: `scripts/with_env.sh python bench/bench_tip_speed.py [--repeat 3] [--image spheres]
+[--baseline REV]`. Writes bench/results/tip-speed.json and tip-speed.md (with --image spheres,
+the 512x512 4 nm-pixel spheres image of bench_tip_corpus --speed: tip-speed-spheres.*).
+Needs bench_tip's Gwyddion harness (built by bench/gwyddion/build.sh, which apt-installs
+Debian's libgwyddion20-dev when missing).
 
 For each window, `--repeat` rounds, each: ours auto, ours fixed at the auto threshold, ours
 auto once more with the candidate test's morphology on every CPU (as `afm image tip` runs it),
@@ -69,14 +71,13 @@ def peak_mib(fn) -> float:
 
 
 # --baseline: the estimate of another revision's afm_core, timed in a subprocess on the same
-# image (its own characteriser with bench_tip's arguments), its tip saved for comparison
+# image (saved as .npy), its tip saved for comparison
 BASELINE_RUN = """
 import json, os, sys, time
 sys.path.insert(0, sys.argv[1])
 import numpy as np
 from afm_core.imaging.tip_estimation import estimate_tip
-from afm_core.sim.characterizer import characterizer_image
-image = np.asarray(characterizer_image(n=int(sys.argv[2]), noise=float(sys.argv[3]), seed=0)[0])
+image = np.load(sys.argv[2])
 k, th = int(sys.argv[4]), sys.argv[5]
 load = os.getloadavg()[0]
 w, c = time.perf_counter(), time.process_time()
@@ -101,9 +102,11 @@ class Baseline:
         ).stdout
         subprocess.run(["tar", "-x", "-C", str(self.dir)], input=archive, check=True)
 
-    def run(self, image_n: int, k: int, threshold) -> tuple[dict, np.ndarray]:
-        out = self.dir / "tip.npy"
-        args = [str(self.dir / "src"), str(image_n), repr(bt.NOISE), str(k), str(threshold)]
+    def run(self, image: np.ndarray, k: int, threshold) -> tuple[dict, np.ndarray]:
+        out, path = self.dir / "tip.npy", self.dir / "image.npy"
+        if not path.exists():
+            np.save(path, image)
+        args = [str(self.dir / "src"), str(path), "", str(k), str(threshold)]
         done = subprocess.run(
             [sys.executable, "-c", BASELINE_RUN, *args, str(out)],
             capture_output=True,
@@ -137,7 +140,7 @@ def measure(image, true_tip, pixel, k: int, repeat: int, gwy, baseline=None) -> 
         rows["auto_all_cpus"].append({"wall_s": wall, "cpu_s": cpu, "load": load})
         if baseline is not None:
             for name, th, ours in (("auto", "auto", auto), ("fixed", threshold, fixed)):
-                row, tip = baseline.run(image.shape[0], k, th)
+                row, tip = baseline.run(image, k, th)
                 rows[f"baseline_{name}"].append(row)
                 diffs.append(float(np.abs(tip - ours.tip).max()))
         if k <= 21 or round_ == 0:
@@ -245,6 +248,27 @@ def render(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def characterizer() -> tuple:
+    image, _, true_tip, pixel, source = bt.make_image(bt.import_characterizer(required=True))
+    return image, true_tip, pixel, source
+
+
+def spheres() -> tuple:
+    from afm_core.sim.tip_corpus import Case, TipModel, make_case
+
+    case = Case(TipModel("hyperboloid", 12e-9, 20.0), "spheres", 4e-9, bt.NOISE, 512, 41, seed=7)
+    image, _, true_tip = make_case(case)
+    return (
+        np.asarray(image, float),
+        np.asarray(true_tip, float),
+        case.pixel,
+        f"afm_core.sim.tip_corpus.make_case({case})",
+    )
+
+
+IMAGES = {"characterizer": characterizer, "spheres": spheres}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=3, help="rounds per tip size (default 3)")
@@ -254,11 +278,17 @@ def main() -> None:
         help="also time another git revision's afm_core in each round (e.g. the last release)",
     )
     parser.add_argument(
+        "--image",
+        choices=sorted(IMAGES),
+        default="characterizer",
+        help="bench_tip's characteriser (default) or bench_tip_corpus --speed's spheres",
+    )
+    parser.add_argument(
         "--sizes", type=int, nargs="+", default=list(TIP_SIZES), help="tip windows (21 41)"
     )
     args = parser.parse_args()
     bt.build_harness()
-    image, _, true_tip, pixel, source = bt.make_image(bt.import_characterizer(required=True))
+    image, true_tip, pixel, source = IMAGES[args.image]()
     result = {
         "measured": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "command": command_line(),
@@ -272,7 +302,7 @@ def main() -> None:
         },
         "image": source,
         "image_n": int(image.shape[0]),
-        "noise_m": bt.NOISE,
+        "noise_m": bt.NOISE,  # both images
         "repeat": args.repeat,
         "sources_sha256": bt.source_hashes(),
         "sizes": [],
@@ -292,9 +322,10 @@ def main() -> None:
         ),
     }
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "tip-speed.json").write_text(json.dumps(result, indent=2))
+    name = "tip-speed" + ("" if args.image == "characterizer" else f"-{args.image}")
+    (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2))
     text = render(result)
-    (RESULTS / "tip-speed.md").write_text(text)
+    (RESULTS / f"{name}.md").write_text(text)
     print(text)
 
 
