@@ -354,3 +354,38 @@ def test_candidate_morphology_in_parallel_row_bands_is_identical(monkeypatch):
     assert pools == [3, 3]  # the bands did run in parallel
     for one, many in zip(single, banded):
         assert np.array_equal(one, many)
+
+
+def test_candidate_test_with_less_work_selects_as_the_whole_image_one(monkeypatch):
+    """The candidate test's staged dilation, gathered completion and kept erosion give the
+    points and order of the plain whole-image float32 computation (its definition)."""
+    image, _, _ = characterizer_image(n=160, noise=0.3 * NM, seed=3)
+    est = tr.TipRefiner(image, 21)
+    refined = te.estimate_tip(image, 21, threshold=6 * NM).tip  # a real cone
+    h, ny0, nx0 = est.h, *image.shape
+    mask = est.interior()
+    mask[:40, :] = False  # a masked part too
+    erode_valid, dilate_valid = tr._erode_valid, tr._dilate_valid
+
+    def plain(tip, th):
+        t32 = tip.astype(np.float32)
+        r = erode_valid(est.image32, t32)
+        top = est.image32[h : h + ny0, h : h + nx0] + np.float32(est.eps)
+        reach = dilate_valid(np.minimum(r + np.float32(th), top), t32)
+        excess = est.image32[2 * h : ny0, 2 * h : nx0] - reach
+        py, px = np.nonzero((excess > est.test_eps) & mask[h : ny0 - h, h : nx0 - h])
+        order = np.argsort(-excess[py, px], kind="stable")
+        return (py[order] + 2 * h) * est.nx + (px[order] + 2 * h)
+
+    erosions = []
+    monkeypatch.setattr(tr, "_erode_valid", lambda a, t: erosions.append(1) or erode_valid(a, t))
+    flat = np.zeros_like(refined)
+    for tip, share in ((refined, tr._GATHER_SHARE), (flat, tr._GATHER_SHARE), (refined, 1.0)):
+        # share 1: the gathered completion does all but the first stage
+        monkeypatch.setattr(tr, "_GATHER_SHARE", share)
+        for th in (0.0, 0.5 * NM, 1 * NM, 2 * NM):  # below the 6 nm the tip was refined at
+            expected = plain(tip, th)
+            assert expected.size > 0
+            assert np.array_equal(est.candidates(tip, th, mask), expected), f"threshold {th}"
+    # one erosion per tip, kept for the other thresholds and recomputed for a new tip
+    assert len(erosions) == 3

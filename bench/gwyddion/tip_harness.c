@@ -18,7 +18,9 @@
  * dilate/erode take the tip in Gwyddion's convention (apex = maximum) and write the result.
  *
  * Prints one JSON object on stdout; "seconds" is the wall time of the Gwyddion call alone
- * (g_get_monotonic_time). Threads are disabled (gwy_threads_set_enabled(FALSE) and one
+ * (g_get_monotonic_time); "vm_hwm_kib" the process's peak resident memory (VmHWM of
+ * /proc/self/status, -1 where unreadable; the parent's getrusage of children would count the
+ * parent's pages shared before exec). Threads are disabled (gwy_threads_set_enabled(FALSE) and one
  * OpenMP thread), matching the single-threaded reference measurement.
  */
 #include <stdio.h>
@@ -36,6 +38,21 @@ die(const gchar *message)
 {
     fprintf(stderr, "tip_harness: %s\n", message);
     exit(2);
+}
+
+static long
+vm_hwm_kib(void)
+{
+    char line[256];
+    long kib = -1;
+    FILE *fh = fopen("/proc/self/status", "r");
+    if (!fh)
+        return -1;
+    while (fgets(line, sizeof line, fh))
+        if (strncmp(line, "VmHWM:", 6) == 0)
+            kib = strtol(line + 6, NULL, 10);
+    fclose(fh);
+    return kib;
 }
 
 static void
@@ -136,9 +153,10 @@ main(int argc, char *argv[])
         seconds = (t1 - t0)/1e6;
         printf("{\"mode\": \"estimate-full\", \"seconds\": %.6f, \"tip_n\": %d, \"threshold_m\": %.17g, "
                "\"threshold_steps\": %d, \"step_m\": %.17g, \"use_edges\": %s, \"count\": %d, "
-               "\"omp_max_threads\": %d, \"gwy_threads\": %s}\n",
+               "\"omp_max_threads\": %d, \"gwy_threads\": %s, \"vm_hwm_kib\": %ld}\n",
                seconds, tip_n, threshold, (gint)(threshold/step), step, use_edges ? "true" : "false",
-               count, omp_get_max_threads(), gwy_threads_are_enabled() ? "true" : "false");
+               count, omp_get_max_threads(), gwy_threads_are_enabled() ? "true" : "false",
+               vm_hwm_kib());
         g_object_unref(tip);
     }
     else if (strcmp(mode, "dilate") == 0 || strcmp(mode, "erode") == 0) {
@@ -159,8 +177,9 @@ main(int argc, char *argv[])
         write_raw(argv[9], gwy_data_field_get_data_const(result), (gsize)xres*yres);
         seconds = (t1 - t0)/1e6;
         printf("{\"mode\": \"%s\", \"seconds\": %.6f, \"tip_n\": %d, \"omp_max_threads\": %d, "
-               "\"gwy_threads\": %s}\n",
-               mode, seconds, tip_n, omp_get_max_threads(), gwy_threads_are_enabled() ? "true" : "false");
+               "\"gwy_threads\": %s, \"vm_hwm_kib\": %ld}\n",
+               mode, seconds, tip_n, omp_get_max_threads(), gwy_threads_are_enabled() ? "true" : "false",
+               vm_hwm_kib());
         g_object_unref(result);
         g_object_unref(tip);
     }
