@@ -13,6 +13,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from afm_core.localization.motion_noise import MotionNoise
@@ -42,6 +43,18 @@ class Calibration:
     # short moves, which is bounded (a hysteresis offset saturates); the motion model lets it
     # grow over at most this much of a move instead of extrapolating it to long moves.
     scanner_matrix_span: float = 4.0e-6
+    # true displacement per commanded displacement between positions on the images' own
+    # hysteresis branch (a place reached through reversals, as the raster and the closed
+    # loop's chains of scan lines reach it), in this calibration's frame: the identity for a
+    # calibration measured in the images (the frame the maps live in); a metric one's is the
+    # images' scale. The scanner matrix is what a short move after a reversal adds to that.
+    image_matrix: list[list[float]] = field(default_factory=lambda: [[1.0, 0.0], [0.0, 1.0]])
+    # m per unit of this calibration's lateral frame: the images' scale against the sample,
+    # which the calibration's own experiments cannot see (it is common to every image) and a
+    # grating measures; 1: the commanded frame taken as metres. A length measured in metres
+    # (a particle's radius from its height, the tip's radius) is 1/lateral_scale of it in the
+    # maps' frame: the push planners' contact distance
+    lateral_scale: float = 1.0
     hysteresis_x: HysteresisFit = field(default_factory=HysteresisFit)
     hysteresis_y: HysteresisFit = field(default_factory=HysteresisFit)
     creep_time_constants: list[float] = field(default_factory=list)  # s
@@ -76,13 +89,22 @@ class Calibration:
         self.validate()
 
     def validate(self) -> None:
-        matrix = self.scanner_matrix
-        if (
-            len(matrix) != 2
-            or any(len(row) != 2 for row in matrix)
-            or not all(math.isfinite(v) for row in matrix for v in row)
-        ):
-            raise ValueError(f"calibration scanner_matrix={matrix}: need a finite 2x2 matrix")
+        for name in ("scanner_matrix", "image_matrix"):
+            matrix = getattr(self, name)
+            if (
+                len(matrix) != 2
+                or any(len(row) != 2 for row in matrix)
+                or not all(math.isfinite(v) for row in matrix for v in row)
+                or abs(np.linalg.det(np.asarray(matrix, float))) < 1e-6
+            ):
+                raise ValueError(
+                    f"calibration {name}={matrix}: need a finite, invertible 2x2 matrix"
+                )
+        if not (math.isfinite(self.lateral_scale) and 0.5 <= self.lateral_scale <= 2.0):
+            raise ValueError(
+                f"calibration lateral_scale={self.lateral_scale}: need a value in [0.5, 2] "
+                "(m per unit of the maps' frame)"
+            )
         if not (math.isfinite(self.scanner_matrix_span) and self.scanner_matrix_span > 0):
             raise ValueError(
                 f"calibration scanner_matrix_span={self.scanner_matrix_span}: need a value > 0 (m)"

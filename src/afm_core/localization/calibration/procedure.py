@@ -68,6 +68,9 @@ EXPERIMENTS = (
 
 
 # Which experiment measures which Calibration field (for `measured`, `--only` and merging).
+# what no experiment here can measure, by design not a fallback to the book: the images' own
+# branch is the identity in the images' frame, and their scale needs a grating (model.Calibration)
+FRAME_FIELDS = ("image_matrix", "lateral_scale")
 FIELDS = {
     "drift": ("drift_mean_velocity", "drift_sigma_velocity"),
     "map_errors": ("map_sigma", "scan_region_sigma"),
@@ -282,7 +285,7 @@ def run_calibration(
     calibration.defaults = sorted(
         f.name
         for f in dataclasses.fields(Calibration)
-        if f.name not in fields and f.name not in ("source", "defaults", "measured")
+        if f.name not in fields and f.name not in ("source", "defaults", "measured", *FRAME_FIELDS)
     )
     summary = {
         name: {"failed": failed[name]}

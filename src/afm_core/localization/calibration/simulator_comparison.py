@@ -20,6 +20,8 @@ def simulator_calibration(config, scanner_matrix, source: str, **fields) -> Cali
     (measured on a quiet copy: afm_core.evaluation.image_frame_matrix); `fields` set the rest
     (scan_region_sigma, ...). An instrument whose creep is off has no creep terms."""
     s, d = config.scanner, config.drift
+    # the matrix is the images' own (a metric calibration: the images' scale), unless given
+    fields.setdefault("image_matrix", np.asarray(scanner_matrix, float).tolist())
     fractions = list(s.creep_fractions) if s.creep_enabled else []
     return Calibration(
         source=source,
