@@ -109,6 +109,41 @@ def test_pointwise_dilation_tries_only_offsets_that_can_win_and_equals_the_defin
             )
 
 
+def test_pointwise_dilation_of_a_large_particle_under_a_fine_tip_equals_the_definition():
+    """The closed-loop sessions' local scans: 100 nm particles under a 20 nm tip gridded at
+    1 nm (209 x 209 offsets, nearly all within a particle's reach), over a pit deeper than the
+    roughness (the base tries per point only offsets that can beat the apex's own height, the
+    particle only tiles of offsets whose bound can): every height equals the definition's,
+    max over every offset, to the bit, on lines across the particle, its flank, the pit and a
+    line clear of the particle."""
+    from afm_core.physics.sample import Pit, Roughness, Sample, Sphere
+    from afm_core.sim.imaging import dilated_heights_at
+
+    sample = Sample(
+        spheres=[Sphere(0, 300e-9, 300e-9, 100e-9), Sphere(1, 480e-9, 330e-9, 60e-9)],
+        pits=[Pit(2, 150e-9, 300e-9, 25e-9, 10e-9), Pit(3, 160e-9, 305e-9, 25e-9, 6e-9)],
+        roughness=Roughness(1.5e-9, 8e-9, seed=5),
+    )
+    pixel = 1e-9
+    tip = paraboloid_cone_tip(20e-9, 20.0, pixel, 210e-9)
+    half = tip.shape[0] // 2
+    u = np.arange(-half, half + 1) * pixel
+    ux, uy = (a.ravel() for a in np.meshgrid(u, u))
+    s = np.linspace(0.0, 1.0, 160)
+    lines = (
+        (100e-9, 300e-9, 600e-9, 310e-9),  # the pit, across both particles
+        (300e-9, 150e-9, 330e-9, 450e-9),  # across the large one
+        (180e-9, 190e-9, 420e-9, 210e-9),  # along its flank
+        (100e-9, 600e-9, 600e-9, 620e-9),  # clear of the particles
+    )
+    for x0, y0, x1, y1 in lines:
+        xs, ys = x0 + s * (x1 - x0), y0 + s * (y1 - y0)
+        definition = np.max(
+            sample.height(xs[:, None] + ux, ys[:, None] + uy) + tip.ravel(), axis=1
+        )
+        np.testing.assert_array_equal(dilated_heights_at(sample, tip, pixel, xs, ys), definition)
+
+
 @pytest.mark.parametrize("level_key", ["height_white_sigma", "height_flicker_sigma"])
 def test_raster_sensor_noise_is_linear_in_its_level(level_key):
     """The sim2real noise curve re-simulates a noise term at two levels and takes every other

@@ -30,6 +30,19 @@ class Sphere:
             inside, self.radius + np.sqrt(np.where(inside, self.radius**2 - d2, 0.0)), -np.inf
         )
 
+    def height_bound(self, x_lo, x_hi, y_lo, y_hi) -> np.ndarray:
+        """The highest `height` over each rectangle [x_lo, x_hi] x [y_lo, y_hi], an upper
+        bound of what `height` computes at any point in it: the same operations at the
+        rectangle's point nearest the centre, and rounding is monotone (a point farther out
+        rounds to a d2 no smaller)."""
+        dx = np.maximum(np.maximum(x_lo - self.x, self.x - x_hi), 0.0)
+        dy = np.maximum(np.maximum(y_lo - self.y, self.y - y_hi), 0.0)
+        d2 = dx**2 + dy**2
+        inside = d2 < self.radius**2
+        return np.where(
+            inside, self.radius + np.sqrt(np.where(inside, self.radius**2 - d2, 0.0)), -np.inf
+        )
+
     def bounds(self) -> tuple[float, float, float, float]:
         return (
             self.x - self.radius,
@@ -204,6 +217,15 @@ class Sample:
                 if not (b[1] < x_lo or b[0] > x_hi or b[3] < y_lo or b[2] > y_hi):
                     z = z + pit.depression(xs, ys)
         return z
+
+    def base_top(self) -> float:
+        """An upper bound of base_height anywhere (m): the roughness tile's highest node (its
+        linear interpolation stays within the nodes, here with a margin far above round-off),
+        pits only lower it."""
+        if self.roughness is None or self.roughness.sigma == 0:
+            return 0.0
+        tile = self.roughness.tile
+        return float(tile.max()) + 1e-9 * float(np.abs(tile).max())
 
     def base_span(self) -> float:
         """An upper bound of max - min of base_height anywhere (m): the roughness's span plus
