@@ -41,11 +41,12 @@ import numpy as np
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import cpu_model  # noqa: E402
+from machine import command_line, cpu_model  # noqa: E402
 
 from afm_bringup.commander import AfmCommander  # noqa: E402
 from afm_bringup.demo import peak_rss_bytes  # noqa: E402
 from afm_bringup.launcher import Graph  # noqa: E402
+from afm_bringup.units import length_type  # noqa: E402
 from afm_core.evaluation import image_frame_matrix  # noqa: E402
 from afm_msgs.action import PushParticle  # noqa: E402
 from afm_msgs.msg import GroundTruth, LandmarkArray  # noqa: E402
@@ -66,7 +67,9 @@ CALIBRATION = (
 )
 
 
-def run_seed(seed: int, workdir: Path, log, table: bool = False) -> list[dict]:
+def run_seed(
+    seed: int, workdir: Path, log, table: bool = False, tolerance: float = TOLERANCE
+) -> list[dict]:
     config = workdir / f"sim-{seed}.yaml"
     config.write_text(
         yaml.safe_dump(
@@ -133,7 +136,7 @@ def run_seed(seed: int, workdir: Path, log, table: bool = False) -> list[dict]:
                 request = PushParticle.Goal(
                     particle_id=int(mark.id),
                     strategy="nano_hand" if name == "table_7_6" else name,
-                    tolerance=TOLERANCE,
+                    tolerance=tolerance,
                     **overrides,
                 )
                 request.goal.x, request.goal.y = map(float, goal)
@@ -155,6 +158,7 @@ def run_seed(seed: int, workdir: Path, log, table: bool = False) -> list[dict]:
                         "along": float(-moved[1]),
                         "sideways": float(moved[0]),
                         "true_error": error,
+                        # the issue's yardstick, whatever the push was asked for
                         "success": bool(result.steps > 0 and error <= TOLERANCE),
                         "verified_error": float(result.error),
                         "verified_success": bool(result.success),
@@ -233,7 +237,8 @@ def markdown_report(result: dict, command: str) -> str:
         f"strategy through PushParticle, {result['push_nm']:.0f} nm along -y (Table 7.6: its own "
         f"13 steps, goal 530 nm). Success: the true displacement, in the maps' frame, within "
         f"{result['tolerance_nm']:.0f} nm of the planned one; verified: the action's own verdict "
-        "from its rescans.",
+        f"from its rescans. Each push was asked for "
+        f"{result.get('asked_tolerance_nm', result['tolerance_nm']):.0f} nm.",
         "",
         "| strategy | pushes run | success (true) | within 10 nm | success (verified) | median "
         "true error | p95 | along | max sideways | s per push (median) | instrument s | lines |",
@@ -267,6 +272,13 @@ def main() -> int:
     parser.add_argument(
         "--table-7-6", action="store_true", help="the book's 13-step push instead of centre"
     )
+    parser.add_argument(
+        "--tolerance",
+        type=length_type("--tolerance"),
+        default=TOLERANCE,
+        help="what each push is asked for (default 20nm); success stays within 20 nm",
+    )
+    parser.add_argument("--name", default="push_graph", help="results file name in results/")
     args = parser.parse_args()
     # a domain no other process uses: another graph on the machine would answer this one's
     # goals and publish its truth on the same topics
@@ -280,7 +292,7 @@ def main() -> int:
     workdir = Path(tempfile.mkdtemp(prefix="bench_push_graph-"))
     log(f"node logs in {workdir}")
     for seed in range(args.seeds):
-        rows += run_seed(seed, workdir, log, args.table_7_6)
+        rows += run_seed(seed, workdir, log, args.table_7_6, args.tolerance)
     summary = summarise(rows)
     print(
         "\nstrategy   runs  success(true) success(verified)  median error  along (mean+-sd)  "
@@ -311,19 +323,14 @@ def main() -> int:
         "seeds": args.seeds,
         "push_nm": PUSH / NM,
         "tolerance_nm": TOLERANCE / NM,
+        "asked_tolerance_nm": args.tolerance / NM,
         "summary": summary,
         "graph_peak_bytes": peak,
         "runs": rows,
         "wall_seconds": time.monotonic() - started,
     }
-    (RESULTS_DIR / "push_graph.json").write_text(json.dumps(result, indent=2))
-    (RESULTS_DIR / "push_graph.md").write_text(
-        markdown_report(
-            result,
-            "scripts/with_env.sh python bench/bench_push_graph.py --seeds "
-            f"{args.seeds}" + (" --table-7-6" if args.table_7_6 else ""),
-        )
-    )
+    (RESULTS_DIR / f"{args.name}.json").write_text(json.dumps(result, indent=2))
+    (RESULTS_DIR / f"{args.name}.md").write_text(markdown_report(result, command_line()))
     return 0
 
 
