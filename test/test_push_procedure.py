@@ -368,3 +368,26 @@ def test_the_verification_follows_the_pushed_particle_when_the_map_is_off(calibr
     assert math.hypot(*(moved - (goal - start))) <= 3 * TRUE_TOLERANCE  # it was pushed
     # the verified displacement is the pushed particle's, not its neighbour's (zero)
     assert math.hypot(*((result.achieved - start) - moved)) <= VERIFICATION_ERROR
+
+
+def test_a_before_image_that_missed_the_particle_is_not_verified_on_a_neighbour(calibration):
+    """As above, but with images too small for the drift: the before image holds the right
+    neighbour and not the pushed particle. The push must say it could not verify, not report
+    the neighbour as the particle, unmoved (the demo's assembly did, 411 nm of drift into its
+    sixth push with a 500 nm margin)."""
+    shift = np.array([450 * NM, 0.0])
+    s = Session(calibration)
+    s.map = {i: replace(m, x=m.x + shift[0], y=m.y + shift[1]) for i, m in s.map.items()}
+    localizer = Localizer(
+        s.sim,
+        calibration,
+        np.array(s.sim.commanded_position()) + shift,
+        np.diag([(50 * NM) ** 2] * 2),
+    )
+    s.procedure.localize = localize_with(localizer)
+    s.procedure.settings["rescan_margin"] = 150 * NM  # the particle is 450 nm off its image
+    mark = s.map[s.row[1].id]
+    start = np.array([mark.x, mark.y])
+
+    with pytest.raises(PushFailed, match="not verified: the before image shows no particle"):
+        s.procedure.push(mark.id, start + [0.0, -400 * NM], strategy="nano_hand")

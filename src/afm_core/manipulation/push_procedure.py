@@ -664,8 +664,16 @@ class PushProcedure:
         # same scan ties the scan to the map (task frame), control points remove drift between
         # scans
         before_particle = nearest_particle(before, start_in_scan)
-        if before_particle is None:
-            raise PushFailed("before scan: no particle found; nothing was pushed")
+        if before_particle is None or np.hypot(*(before_particle - start_in_scan)) > 2 * (
+            swept_radius(particle)
+        ):
+            raise PushFailed(
+                f"not verified: the before image shows no particle within two radii of where "
+                f"the localized tip puts particle {particle.id} ({start_in_scan[0] * 1e9:.1f} nm, "
+                f"{start_in_scan[1] * 1e9:.1f} nm in afm_scanner): it was cut off or drifted "
+                "out of the image (a wider rescan_margin)",
+                execution,
+            )
         map_to_scan = before_particle - start_xy
         # the particle may end far from the plan (a centre push slides it off): look for it
         # anywhere it could have gone
