@@ -14,51 +14,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_push_procedure import Session
 
 from afm_core.evaluation import image_frame_matrix
-from afm_core.imaging.landmarks import extract_landmarks
-from afm_core.instrument import ScanRequest
-from afm_core.localization import Localizer
 from afm_core.localization.calibration.model import load_calibration
-from afm_core.manipulation import PushProcedure, localize_with
 from afm_core.manipulation.execute import OBSERVED
-from afm_core.sim.config import load_config, merge
-from afm_core.sim.instrument import SimulatedAfm
 
 NM = 1e-9
 ROOT = Path(__file__).resolve().parents[1]
-SPHERES = ((54.2e-6, 55.0e-6), (55.0e-6, 55.0e-6), (55.8e-6, 55.0e-6))
-MAP_SCAN = ScanRequest(53.8e-6, 53.9e-6, 2.4e-6, 2.4e-6, 256, 256, line_rate=4.0)
 
 
 def run(calibration, seed: int, push: float = 500 * NM, tolerance: float = 10 * NM):
     """One closed-loop push along -y; per observation (estimated displacement, its covariance,
     true displacement in the maps' frame)."""
-    spheres = [{"x": x, "y": y, "radius": 100 * NM} for x, y in SPHERES]
-    sim = SimulatedAfm(merge(load_config(), {"seed": seed, "sample": {"spheres": spheres}}))
-    scan = sim.raster_scan(MAP_SCAN)
-    marks = extract_landmarks(
-        scan.height, scan.pixel_size_x, scan.pixel_size_y, scan.origin_x, scan.origin_y
-    )
-    landmarks = {m.id: m for m in marks}
-    localizer = Localizer(
-        sim, calibration, np.array(sim.commanded_position()), np.diag([(50 * NM) ** 2] * 2)
-    )
-    procedure = PushProcedure(
-        sim,
-        localize_with(localizer),
-        lambda: landmarks,
-        calibration=calibration,
-        on_moved=lambda mark: landmarks.__setitem__(mark.id, mark),
-    )
-    mark = sorted(marks, key=lambda m: m.x)[1]
+    session = Session(calibration, seed=seed)
+    procedure, true_sphere = session.procedure, session.true_sphere
+    mark = session.row[1]
     start = np.array([mark.x, mark.y])
     frame = np.linalg.inv(image_frame_matrix())
-
-    def true_sphere(near):
-        found = [np.array([o.x, o.y]) for o in sim.truth()["objects"] if o.kind == "sphere"]
-        return min(found, key=lambda p: math.hypot(*(p - near)))
-
     before = true_sphere(start)
     seen = []
 

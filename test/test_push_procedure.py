@@ -339,14 +339,9 @@ def test_contact_in_a_force_trace_is_a_rise_above_its_noise():
     assert contact_in_trace(SimpleNamespace(lateral_torsion=noise[:10])) is None
 
 
-def test_the_verification_follows_the_pushed_particle_when_the_map_is_off(calibration):
-    """A map off the scanner by more than half the way to a neighbour (an assembly's drift
-    since the map: 280 nm by the demo's fourth push, its particles 400 nm apart): the task
-    frame is shifted 450 nm towards the right neighbour (800 nm away), consistently for the
-    map and the localizer, so the strokes go where they should; the before image must find the
-    pushed particle where the localized tip puts it, not at its map position (there, the right
-    neighbour is nearer, and it would be "verified" unmoved)."""
-    shift = np.array([450 * NM, 0.0])
+def shifted_session(calibration, shift) -> Session:
+    """A session whose task frame (the map and the localizer alike) is `shift` off the
+    scanner's: an assembly's drift since the map."""
     s = Session(calibration)
     s.map = {i: replace(m, x=m.x + shift[0], y=m.y + shift[1]) for i, m in s.map.items()}
     localizer = Localizer(
@@ -356,6 +351,18 @@ def test_the_verification_follows_the_pushed_particle_when_the_map_is_off(calibr
         np.diag([(50 * NM) ** 2] * 2),
     )
     s.procedure.localize = localize_with(localizer)
+    return s
+
+
+def test_the_verification_follows_the_pushed_particle_when_the_map_is_off(calibration):
+    """A map off the scanner by more than half the way to a neighbour (an assembly's drift
+    since the map: 280 nm by the demo's fourth push, its particles 400 nm apart): the task
+    frame is shifted 450 nm towards the right neighbour (800 nm away), consistently for the
+    map and the localizer, so the strokes go where they should; the before image must find the
+    pushed particle where the localized tip puts it, not at its map position (there, the right
+    neighbour is nearer, and it would be "verified" unmoved)."""
+    shift = np.array([450 * NM, 0.0])
+    s = shifted_session(calibration, shift)
     s.procedure.settings["rescan_margin"] = 700 * NM  # the images hold the true particle
     mark = s.map[s.row[1].id]
     start = np.array([mark.x, mark.y])
@@ -375,16 +382,7 @@ def test_a_before_image_that_missed_the_particle_is_not_verified_on_a_neighbour(
     neighbour and not the pushed particle. The push must say it could not verify, not report
     the neighbour as the particle, unmoved (the demo's assembly did, 411 nm of drift into its
     sixth push with a 500 nm margin)."""
-    shift = np.array([450 * NM, 0.0])
-    s = Session(calibration)
-    s.map = {i: replace(m, x=m.x + shift[0], y=m.y + shift[1]) for i, m in s.map.items()}
-    localizer = Localizer(
-        s.sim,
-        calibration,
-        np.array(s.sim.commanded_position()) + shift,
-        np.diag([(50 * NM) ** 2] * 2),
-    )
-    s.procedure.localize = localize_with(localizer)
+    s = shifted_session(calibration, np.array([450 * NM, 0.0]))
     s.procedure.settings["rescan_margin"] = 150 * NM  # the particle is 450 nm off its image
     mark = s.map[s.row[1].id]
     start = np.array([mark.x, mark.y])
