@@ -24,7 +24,10 @@ class Sphere:
     kind: str = "sphere"
 
     def height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-        d2 = (xs - self.x) ** 2 + (ys - self.y) ** 2
+        return self._cap((xs - self.x) ** 2 + (ys - self.y) ** 2)
+
+    def _cap(self, d2: np.ndarray) -> np.ndarray:
+        """The sphere's top at squared distance d2 from its centre (-inf off it)."""
         inside = d2 < self.radius**2
         return np.where(
             inside, self.radius + np.sqrt(np.where(inside, self.radius**2 - d2, 0.0)), -np.inf
@@ -37,11 +40,7 @@ class Sphere:
         rounds to a d2 no smaller)."""
         dx = np.maximum(np.maximum(x_lo - self.x, self.x - x_hi), 0.0)
         dy = np.maximum(np.maximum(y_lo - self.y, self.y - y_hi), 0.0)
-        d2 = dx**2 + dy**2
-        inside = d2 < self.radius**2
-        return np.where(
-            inside, self.radius + np.sqrt(np.where(inside, self.radius**2 - d2, 0.0)), -np.inf
-        )
+        return self._cap(dx**2 + dy**2)
 
     def bounds(self) -> tuple[float, float, float, float]:
         return (
