@@ -20,7 +20,7 @@ from rclpy.executors import (
 )
 from rclpy.signals import SignalHandlerOptions
 
-from afm_ros import exposure
+from afm_ros import exposure, stall_watch
 from afm_ros.action_client import STOPPING
 
 DRAIN_IDLE = 0.01  # s without a ready callback: what had arrived is taken
@@ -106,6 +106,7 @@ def run(
     if callable(threads):  # from the node's configuration (e.g. its queue length)
         threads = threads(node)
     freeze_startup_heap()
+    watch = stall_watch.start_from_environment(program)  # AFM_STALL_WATCH: a diagnosis, off
     executor = (
         MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
     )
@@ -141,6 +142,8 @@ def run(
             os._exit(status)
         node.destroy_node()
         rclpy.try_shutdown()
+        if watch is not None:
+            watch.stop()
     return status
 
 
