@@ -26,6 +26,10 @@ def test_the_default_is_the_localhost_profile_and_what_the_user_set_wins(tmp_pat
     assert "<useBuiltinTransports>false</useBuiltinTransports>" in exposure.LOCALHOST_PROFILE
     # with the profile, LOCALHOST would make rmw_fastrtps open sockets on every interface
     assert "ROS_AUTOMATIC_DISCOVERY_RANGE" not in env and "ROS_DOMAIN_ID" not in env
+    # writes go out on Fast DDS's own thread, not inside publish (which holds the GIL)
+    assert env[exposure.PUBLICATION_MODE] == "ASYNCHRONOUS"
+    told = exposure.apply({exposure.PUBLICATION_MODE: "SYNCHRONOUS"}, folder=tmp_path)
+    assert told[exposure.PUBLICATION_MODE] == "SYNCHRONOUS"
     mine = {"FASTRTPS_DEFAULT_PROFILES_FILE": "/etc/lab/dds.xml", "ROS_DOMAIN_ID": "7"}
     env = exposure.apply(dict(mine), folder=tmp_path)
     assert env["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/etc/lab/dds.xml"
@@ -37,10 +41,14 @@ def test_the_default_is_the_localhost_profile_and_what_the_user_set_wins(tmp_pat
     )
     lab_profile = lab.pop("FASTRTPS_DEFAULT_PROFILES_FILE")
     assert lab_profile == lab.pop("FASTDDS_DEFAULT_PROFILES_FILE")
+    assert lab.pop(exposure.PUBLICATION_MODE) == "ASYNCHRONOUS"
     assert lab == {"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET", "ROS_DOMAIN_ID": "3"}
-    # the lab's profile leaves Fast DDS its own transports: the repair period only
+    # the lab's profile: Fast DDS's UDP on every interface, without its shared memory
     assert Path(lab_profile).read_text() == exposure.LAB_PROFILE
-    assert "<transport" not in exposure.LAB_PROFILE and "<participant" not in exposure.LAB_PROFILE
+    assert "<type>UDPv4</type>" in exposure.LAB_PROFILE
+    assert "<interfaceWhiteList>" not in exposure.LAB_PROFILE
+    for profile in (exposure.LOCALHOST_PROFILE, exposure.LAB_PROFILE):
+        assert "SHM" not in profile
     mine_lab = exposure.apply(dict(mine), network="lab", folder=tmp_path)
     assert mine_lab["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/etc/lab/dds.xml"
 
@@ -122,6 +130,12 @@ def udp_sockets(pid: int) -> list[tuple[str, int]]:
     return found
 
 
+def shared_memory_files(pid: int) -> set[str]:
+    """The Fast DDS shared-memory files (segments, ports) process `pid` has mapped."""
+    lines = Path(f"/proc/{pid}/maps").read_text().splitlines()
+    return {line.split()[-1] for line in lines if "/dev/shm/fastrtps" in line}
+
+
 @pytest.mark.ros
 def test_a_launched_node_binds_only_the_loopback_and_still_answers(tmp_path):
     from afm_bringup.commander import AfmCommander
@@ -139,6 +153,9 @@ def test_a_launched_node_binds_only_the_loopback_and_still_answers(tmp_path):
         sockets = wait_for(lambda: udp_sockets(process.pid), 10, what="the driver's sockets")
         outside = outside_loopback(sockets)
         assert not outside, f"bound beyond the loopback: {outside} (all: {sockets})"
+        # no shared memory: a write into another process's port waits on its interprocess
+        # lock with the GIL held (afm_ros.exposure), which stood whole nodes still
+        assert not shared_memory_files(process.pid)
     finally:
         graph.stop_all()
 
@@ -178,6 +195,32 @@ def outside_loopback(sockets):
             ipaddress.ip_address(address).is_loopback or ipaddress.ip_address(address).is_multicast
         )
     ]
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("network", exposure.NETWORKS)
+def test_a_participant_on_either_profile_maps_no_shared_memory(tmp_path, network):
+    """Measured, as Fast DDS reads the profile with the discovery range `afm` sets for it
+    (Fast DDS's own default maps a segment and ports in /dev/shm)."""
+    import subprocess
+    import sys
+
+    env = exposure.apply(
+        {k: v for k, v in os.environ.items() if k not in exposure.PROFILE_VARIABLES},
+        network=network,
+        folder=tmp_path,
+    )
+    script = (
+        "import os, time, rclpy; from std_msgs.msg import String; rclpy.init(); "
+        "node = rclpy.create_node('afm_shm_probe'); node.create_publisher(String, '/x', 10); "
+        "time.sleep(1.0); print(sum('/dev/shm/fastrtps' in line for line in "
+        "open(f'/proc/{os.getpid()}/maps')))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split()[-1] == "0", f"shared memory mapped on {network}: {done.stdout}"
 
 
 @pytest.mark.ros

@@ -1,18 +1,19 @@
 """Who can reach the graph: the DDS environment every process `afm` starts gets.
 
 By default ("localhost") the graph is reachable from this machine only: each node's Fast DDS
-participant uses a profile whose only transports are shared memory and UDP on 127.0.0.1, so
+participant uses a profile whose only transport is UDP on 127.0.0.1 (no shared memory), so
 discovery and data never leave the loopback (measured: every UDP socket of a node is bound to
 127.0.0.1, test_exposure). ROS_AUTOMATIC_DISCOVERY_RANGE is left unset there: with it set to
 LOCALHOST, rmw_fastrtps (Jazzy) adds output sockets on every interface even with the profile.
 A shell with `ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST` (scripts/env.sh) still talks to the
 graph. "lab" opens the graph to the subnet (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET, Fast DDS's
-own transports); pair it with a domain id the lab has agreed on (`--domain-id`), and prefer
+UDP on every interface); pair it with a domain id the lab has agreed on (`--domain-id`), and prefer
 SROS2 (docker/README.md) on any network others share.
 
-Both profiles set one more thing: every reliable writer asks for what its readers missed every
-REPAIR_PERIOD_S instead of Fast DDS's 3 s, so a sample lost under load is resent before a
-dead-man or a server's heartbeat gives up.
+Both profiles leave out Fast DDS's shared-memory transport and make writes asynchronous
+(PUBLICATION_MODE), so no publish waits on another process with the GIL held, and every reliable
+writer asks for what its readers missed every REPAIR_PERIOD_S instead of Fast DDS's 3 s, so a
+sample lost under load is resent before a dead-man or a server's heartbeat gives up.
 
 A node started on its own (`ros2 run`) applies the same default to itself (apply_node_default)
 unless its environment asks for a wider range or names a profile.
@@ -42,8 +43,14 @@ LAB_PROFILE_NAME = "afm_dds_lab.xml"
 # a reliable reader holds every later sample back until a lost one is repaired, so one sample
 # lost under load stalls its topic (or a service's replies) for up to 3 s: a teleop stream
 # froze past the 0.5 s dead-man, and a server went silent for the 3 s its clients allow
-# (action_client.SERVER_SILENCE_S). Measured in docs/ros_graph.md ("Lost samples").
+# (action_client.SERVER_SILENCE_S). Measured in docs/interfaces.md ("Lost samples").
 REPAIR_PERIOD_S = 0.1
+# Writes are handed to Fast DDS's sending thread (asynchronous publication) instead of sent in
+# the publishing thread (rmw_fastrtps's default since Humble): rclpy's publish holds the GIL
+# through the write, so a send that waits stopped every thread of the node (0.3 s in the
+# driver's /clock publish, measured with afm_ros.stall_watch; docs/interfaces.md). A user's
+# own setting of the variable is kept.
+PUBLICATION_MODE = "RMW_FASTRTPS_PUBLICATION_MODE"
 WRITER_TIMES = f"""    <data_writer profile_name="afm_writer" is_default_profile="true">
       <times>
         <heartbeatPeriod>
@@ -53,11 +60,18 @@ WRITER_TIMES = f"""    <data_writer profile_name="afm_writer" is_default_profile
       </times>
     </data_writer>
 """
+# Fast DDS's shared-memory transport is left out: a write into another process's shared-memory
+# port takes that port's interprocess mutex, and rclpy's publish holds the GIL through the
+# write, so while another process held the mutex (itself stalled, or gone and leaving it to a
+# timeout) the writer's whole process stood still for 0.1-0.35 s: driver, localizer and teleop
+# node alike, with the teleop tip stopped by its own dead-man (measured with
+# afm_ros.stall_watch; docs/interfaces.md). UDP on the loopback has no lock between processes,
+# and images larger than the shared segment went by UDP already.
 LOCALHOST_PROFILE = (
     """<?xml version="1.0" encoding="UTF-8" ?>
-<!-- afm: DDS for one machine. Shared memory and UDP on 127.0.0.1 only, nothing else: no node
-     binds or sends on another interface (afm_ros.exposure). A lost sample is repaired within
-     about REPAIR_PERIOD_S. -->
+<!-- afm: DDS for one machine. UDP on 127.0.0.1 only, nothing else: no node binds or sends on
+     another interface, and no shared memory (afm_ros.exposure). A lost sample is repaired
+     within about REPAIR_PERIOD_S. -->
 <dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
   <profiles>
     <transport_descriptors>
@@ -68,15 +82,10 @@ LOCALHOST_PROFILE = (
           <address>127.0.0.1</address>
         </interfaceWhiteList>
       </transport_descriptor>
-      <transport_descriptor>
-        <transport_id>afm_shared_memory</transport_id>
-        <type>SHM</type>
-      </transport_descriptor>
     </transport_descriptors>
     <participant profile_name="afm_localhost" is_default_profile="true">
       <rtps>
         <userTransports>
-          <transport_id>afm_shared_memory</transport_id>
           <transport_id>afm_loopback_udp</transport_id>
         </userTransports>
         <useBuiltinTransports>false</useBuiltinTransports>
@@ -90,10 +99,25 @@ LOCALHOST_PROFILE = (
 )
 LAB_PROFILE = (
     """<?xml version="1.0" encoding="UTF-8" ?>
-<!-- afm: DDS for a lab's subnet. Fast DDS's own transports; a lost sample is repaired within
-     about REPAIR_PERIOD_S (afm_ros.exposure). -->
+<!-- afm: DDS for a lab's subnet. UDP on every interface (Fast DDS's own UDP transport, without
+     its shared memory); a lost sample is repaired within about REPAIR_PERIOD_S
+     (afm_ros.exposure). -->
 <dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
   <profiles>
+    <transport_descriptors>
+      <transport_descriptor>
+        <transport_id>afm_udp</transport_id>
+        <type>UDPv4</type>
+      </transport_descriptor>
+    </transport_descriptors>
+    <participant profile_name="afm_lab" is_default_profile="true">
+      <rtps>
+        <userTransports>
+          <transport_id>afm_udp</transport_id>
+        </userTransports>
+        <useBuiltinTransports>false</useBuiltinTransports>
+      </rtps>
+    </participant>
 """
     + WRITER_TIMES
     + """  </profiles>
@@ -244,6 +268,7 @@ def apply(
         if not user_profile:
             for name in PROFILE_VARIABLES:
                 environment[name] = str(lab_profile(folder))
+            environment.setdefault(PUBLICATION_MODE, "ASYNCHRONOUS")
         environment["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"
         return environment
     if user_profile:  # the user's own Fast DDS profile: keep it, and localhost discovery
@@ -252,5 +277,6 @@ def apply(
     profile = str(localhost_profile(folder))
     for name in PROFILE_VARIABLES:
         environment[name] = profile
+    environment.setdefault(PUBLICATION_MODE, "ASYNCHRONOUS")
     environment.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
     return environment
