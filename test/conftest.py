@@ -7,15 +7,20 @@ import signal
 import subprocess
 import tempfile
 import time
+from pathlib import Path
 
 import pytest
 
 # Isolate this run's DDS traffic from anything else on the machine (other runs, demos): a domain
 # id no other process uses, held for this run (a random one collided with other runs' graphs)
 from afm_ros.exposure import isolate_run  # noqa: E402
+from afm_ros.stall_watch import ENVIRONMENT as STALL_WATCH  # noqa: E402
 
 isolate_run()
 LOG_TAIL_CHARS = 6000  # of each node's output, printed when a test fails
+# every node of the graph tests watches for whole-process stalls (afm_ros.stall_watch), so a
+# failure that came from a node standing still carries what held it
+STALL_FOLDER = os.environ.setdefault(STALL_WATCH, tempfile.mkdtemp(prefix="afm_stalls_"))
 
 
 def wait_for(predicate, timeout=10.0, interval=0.05, what="condition"):
@@ -53,6 +58,11 @@ class NodeProcess:
         self.log.seek(0)
         return self.log.read().decode(errors="replace")
 
+    def stalls(self) -> str:
+        """What this node's stall watch wrote (stacks and CPU over each stall), if anything."""
+        found = sorted(Path(STALL_FOLDER).glob(f"*.{self.process.pid}.stalls.txt"))
+        return "".join(path.read_text(errors="replace") for path in found)
+
     def stop(self, sig=signal.SIGINT, timeout=15.0) -> tuple[int, str]:
         if self.process.poll() is None:
             self.process.send_signal(sig)
@@ -89,13 +99,14 @@ def nodes(request):
         if node.process.poll() is None:
             node.stop(signal.SIGKILL)
     report = getattr(request.node, "report_call", None)
-    if report is not None and report.failed:
+    if report is not None and (report.failed or hasattr(report, "wasxfail")):
         for node in started:  # what each node said, for the failure's diagnosis
             tail = node.output()[-LOG_TAIL_CHARS:]
+            stalls = node.stalls()[-LOG_TAIL_CHARS:]
             print(
                 f"\n----- {node.name} (started at {node.started:.3f}, pid {node.process.pid}, "
                 f"domain {os.environ.get('ROS_DOMAIN_ID')}, exit {node.process.returncode}) "
-                f"-----\n{tail}"
+                f"-----\n{tail}" + (f"\n----- its stalls -----\n{stalls}" if stalls else "")
             )
     for node in started:
         node.log.close()

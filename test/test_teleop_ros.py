@@ -112,6 +112,11 @@ class Peer:
             ]
 
 
+def stalls_of(peer) -> str:
+    """The driver's and teleop node's stall watches (conftest), for a known defect's report."""
+    return " | ".join(f"{p.name}: {p.stalls()[-1500:] or 'no stall'}" for p in peer.processes)
+
+
 def node_stood_still(status: dict) -> bool:
     """What the teleop status says when the node itself stood still while commands came: some
     waited in it past LATE_COMMAND_S and a segment took longer than the dead-man timeout."""
@@ -119,9 +124,10 @@ def node_stood_still(status: dict) -> bool:
 
 
 def start_graph(nodes, ros_node, real_time_factor: float) -> Peer:
-    nodes("driver", seed=2, real_time_factor=real_time_factor)
-    nodes("teleop")
+    driver = nodes("driver", seed=2, real_time_factor=real_time_factor)
+    teleop = nodes("teleop")
     peer = Peer(ros_node)
+    peer.processes = (driver, teleop)
     wait_for(lambda: peer.truths, 30, what="the driver's ground truth")
     return peer
 
@@ -193,10 +199,12 @@ def test_a_twist_moves_the_tip_in_its_direction_within_the_speed_limit_and_the_d
     assert stop_delay < TIMEOUT + 0.3, said  # safety: never later
     if distance <= 0.5 * MAX_SPEED * (last - first) and node_stood_still(status):
         # every command arrived, but the teleop node ran their callbacks late and a segment
-        # took longer than the dead-man timeout: the node itself stood still (issue 33, open;
-        # a fresh clone on 2026-11-28 with nothing else running: 14 of 21 commands late, one
-        # waited 0.65 s, a segment took 0.70 s)
-        pytest.xfail(f"known open defect: the teleop node stood still; {said}")
+        # took longer than the dead-man timeout: the node itself stood still. Writes that held
+        # the GIL were one cause, removed (docs/interfaces.md); a 1.05 s busy executor thread
+        # seen once is not explained, so the case stays reported, with the nodes' stalls
+        pytest.xfail(
+            f"known open defect: the teleop node stood still; {said}; stalls: {stalls_of(peer)}"
+        )
     assert distance > 0.5 * MAX_SPEED * (last - first), said
     assert TIMEOUT - 0.1 < stop_delay, said
     assert np.all(peer.commanded()[-1][1] == end)
@@ -280,7 +288,10 @@ def test_the_wrench_during_a_contact_move_is_the_force_trace_s(graph):
     wait_for(lambda: peer.statuses[-1]["stop"].startswith("dead-man"), 5, what="the dead-man")
     contact = [w for w in peer.wrenches if w.wrench.force.z != 0.0]
     if len(contact) < 5 and node_stood_still(peer.statuses[-1]):
-        pytest.xfail(f"known open defect: the teleop node stood still; {peer.statuses[-1]}")
+        pytest.xfail(
+            "known open defect: the teleop node stood still; "
+            f"{peer.statuses[-1]}; stalls: {stalls_of(peer)}"
+        )
     assert len(contact) >= 5
     checked = 0
     for w in contact:
