@@ -1,0 +1,208 @@
+"""How often a node of the graph stands still as a whole, and why, with the DDS transport and
+publication mode the project had (shared memory, synchronous writes) and has now (UDP on the
+loopback, asynchronous writes; afm_ros.exposure).
+
+What is measured
+----------------
+The workload is the teleop graph tests (test/test_teleop_ros.py: driver, teleop node, and the
+graphs of the hand-back and nano-hand tests), run once per variant per round, the variants in
+turn, every node with the stall watch on (afm_ros.stall_watch, threshold 0.15 s). A stall is
+written up with every thread's stack and each thread's CPU and run-queue time over it:
+- held: the threads together ran and queued for less than half its length, so they waited
+  on something (a lock, the GIL held by a thread that waits);
+- starved: the rest, threads queued for a CPU (the machine is loaded).
+A held stall whose stacks show rclpy's publish is a write that waited with the GIL held.
+
+Run: `scripts/with_env.sh python bench/bench_node_stalls.py [--rounds 3] [--busy 0]`
+(~4 min per round at load 8). Results: bench/results/node_stalls.md and node_stalls.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import command_line, machine_record  # noqa: E402
+
+from afm_ros import exposure  # noqa: E402
+from afm_ros.stall_watch import ENVIRONMENT  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS_DIR = ROOT / "bench" / "results"
+WORKLOAD = "test/test_teleop_ros.py"
+SHARED_MEMORY = """      <transport_descriptor>
+        <transport_id>afm_shared_memory</transport_id>
+        <type>SHM</type>
+      </transport_descriptor>
+    </transport_descriptors>"""
+WITH_SHARED_MEMORY = exposure.LOCALHOST_PROFILE.replace(
+    "    </transport_descriptors>", SHARED_MEMORY, 1
+).replace(
+    "          <transport_id>afm_loopback_udp</transport_id>",
+    "          <transport_id>afm_shared_memory</transport_id>\n"
+    "          <transport_id>afm_loopback_udp</transport_id>",
+    1,
+)
+assert WITH_SHARED_MEMORY.count("afm_shared_memory") == 2, "the profile's layout changed"
+# name: (profile text, publication mode)
+VARIANTS = {
+    "shared memory + UDP, synchronous writes (until 2026-11-28)": (
+        WITH_SHARED_MEMORY,
+        "SYNCHRONOUS",
+    ),
+    "UDP, synchronous writes": (exposure.LOCALHOST_PROFILE, "SYNCHRONOUS"),
+    "UDP, asynchronous writes (now)": (exposure.LOCALHOST_PROFILE, "ASYNCHRONOUS"),
+}
+STALL = re.compile(r"STALL ([\d.]+) s, ended \S+ \(monotonic [\d.]+\): (.*)")
+
+
+def classify(report: str) -> list[dict]:
+    """Each stall of one node's report: its length, held or starved, and whether the stacks
+    written during it show a publish."""
+    stalls = []
+    for block in re.split(r"(?=Timeout \()", report):
+        found = STALL.search(block)
+        if not found:
+            continue
+        seconds = float(found.group(1))
+        busy_ms = sum(int(v) for v in re.findall(r"(?:ran|queued) (\d+) ms", found.group(2)))
+        stalls.append(
+            {
+                "seconds": seconds,
+                "held": busy_ms < 0.5 * seconds * 1e3,
+                "in_publish": "rclpy/publisher.py" in block and "in publish" in block,
+            }
+        )
+    return stalls
+
+
+def run_variant(profile_text: str, mode: str) -> dict:
+    with tempfile.TemporaryDirectory(prefix="afm_stalls_") as folder:
+        # named as the project's own profile, so the nodes take it as theirs (is_ours)
+        profile = Path(folder) / exposure.PROFILE_NAME
+        profile.write_text(profile_text)
+        watch = Path(folder) / "stalls"
+        env = {k: v for k, v in os.environ.items() if k not in exposure.PROFILE_VARIABLES}
+        env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
+        env.pop("ROS_DOMAIN_ID", None)  # the test run claims its own
+        for name in exposure.PROFILE_VARIABLES:
+            env[name] = str(profile)
+        env[exposure.PUBLICATION_MODE] = mode
+        env[ENVIRONMENT] = str(watch)
+        started = time.monotonic()
+        done = subprocess.run(
+            [sys.executable, "-m", "pytest", WORKLOAD, "-q", "-p", "no:cacheprovider", "-rxs"],
+            cwd=ROOT,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=1800,
+        )
+        summary = done.stdout.strip().splitlines()[-1] if done.stdout.strip() else done.stderr
+        stalls = {}
+        for file in sorted(watch.glob("*.stalls.txt")) if watch.is_dir() else []:
+            node = file.name.split(".")[0]
+            stalls.setdefault(node, []).extend(classify(file.read_text()))
+    return {
+        "tests": summary,
+        "wall_s": round(time.monotonic() - started, 1),
+        "load_average": os.getloadavg()[0],
+        "stalls": stalls,
+    }
+
+
+def figures(runs: list[dict]) -> dict:
+    every = [s for run in runs for node in run["stalls"].values() for s in node]
+    held = [s for s in every if s["held"]]
+    return {
+        "held": len(held),
+        "held_in_publish": sum(s["in_publish"] for s in held),
+        "held_max_s": max((s["seconds"] for s in held), default=0.0),
+        "starved": len(every) - len(held),
+        "held_nodes": sorted(
+            {
+                node
+                for run in runs
+                for node, ss in run["stalls"].items()
+                if any(s["held"] for s in ss)
+            }
+        ),
+    }
+
+
+def report(rounds: list[dict], args, started: str, load) -> str:
+    lines = [
+        "# Whole-node stalls in the teleop graph tests, by DDS transport and publication mode",
+        "",
+        f"Measured {started} on {load['cpu_count']} CPUs ({load['cpu_model']}), load average "
+        f"{load['load_average_at_start'][0]:.1f} at the start, {args.busy} busy loops beside; "
+        f"{args.rounds} rounds, each running `{WORKLOAD}` once per variant with every node's "
+        "stall watch on (0.15 s). On this machine's loopback and our simulated driver only.",
+        "",
+        f"Command: `{command_line()}`",
+        "",
+        "| variant | held stalls (in publish) | longest held | starved stalls | nodes held "
+        "| tests per round (load average) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name in VARIANTS:
+        runs = [r[name] for r in rounds]
+        f = figures(runs)
+        lines.append(
+            f"| {name} | {f['held']} ({f['held_in_publish']}) | {f['held_max_s']:.2f} s | "
+            f"{f['starved']} | {', '.join(f['held_nodes']) or '-'} | "
+            + "; ".join(f"{r['tests']} ({r['load_average']:.1f})" for r in runs)
+            + " |"
+        )
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    lines += [
+        "",
+        "Held: the node's threads together ran and queued for less than half the stall, so they "
+        "waited (rclpy's publish holds the GIL through Fast DDS's write: a write that waits stops "
+        "the whole node). Starved: they queued for a CPU; that is the machine's load, the same "
+        "for every variant.",
+        "",
+        f"Peak memory of a child process (the pytest run): {peak:.0f} MiB.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--busy", type=int, default=0, help="busy loops beside the runs")
+    args = parser.parse_args()
+    started = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    load = machine_record(os.getloadavg())
+    busy = [subprocess.Popen(["sh", "-c", "while :; do :; done"]) for _ in range(args.busy)]
+    rounds = []
+    try:
+        for k in range(args.rounds):
+            rounds.append({})
+            for name, (profile, mode) in VARIANTS.items():
+                rounds[-1][name] = run_variant(profile, mode)
+                print(f"round {k + 1} {name}: {json.dumps(rounds[-1][name])}", flush=True)
+    finally:
+        for loop in busy:
+            loop.kill()
+    text = report(rounds, args, started, load)
+    print(text)
+    RESULTS_DIR.mkdir(exist_ok=True)
+    (RESULTS_DIR / "node_stalls.md").write_text(text)
+    record = {"started": started, "machine": load, "command": command_line(), "rounds": rounds}
+    (RESULTS_DIR / "node_stalls.json").write_text(json.dumps(record, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
