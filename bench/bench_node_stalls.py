@@ -81,9 +81,23 @@ def classify(report: str) -> list[dict]:
                 "seconds": seconds,
                 "held": busy_ms < 0.5 * seconds * 1e3,
                 "in_publish": "rclpy/publisher.py" in block and "in publish" in block,
+                "where": own_frames(block),
             }
         )
     return stalls
+
+
+def own_frames(block: str, count: int = 3) -> list[str]:
+    """The innermost frames of the project's code (and rclpy's publish) in a stall's stacks,
+    beyond the threads that only wait for work."""
+    frames = re.findall(r'File "([^"]+)", line (\d+) in (\S+)', block)
+    idle = ("threading.py", "thread.py", "stall_watch.py", "node_main.py", "<frozen runpy>")
+    own = [
+        f"{Path(path).name}:{line} {name}"
+        for path, line, name in frames
+        if not path.endswith(idle) and ("site-packages" not in path or name == "publish")
+    ]
+    return own[:count]
 
 
 def run_variant(profile_text: str, mode: str) -> dict:
@@ -108,13 +122,16 @@ def run_variant(profile_text: str, mode: str) -> dict:
             text=True,
             timeout=1800,
         )
-        summary = done.stdout.strip().splitlines()[-1] if done.stdout.strip() else done.stderr
+        lines = done.stdout.strip().splitlines()
+        summary = lines[-1] if lines else done.stderr[-300:]
+        outcomes = [line[:300] for line in lines if line.startswith(("FAILED", "XFAIL", "ERROR"))]
         stalls = {}
         for file in sorted(watch.glob("*.stalls.txt")) if watch.is_dir() else []:
             node = file.name.split(".")[0]
             stalls.setdefault(node, []).extend(classify(file.read_text()))
     return {
         "tests": summary,
+        "outcomes": outcomes,
         "wall_s": round(time.monotonic() - started, 1),
         "load_average": os.getloadavg()[0],
         "stalls": stalls,
