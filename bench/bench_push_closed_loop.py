@@ -9,6 +9,12 @@ closed loop. Error: the true displacement (simulator truth, brought into the map
 bench_push_graph) against the planned one. Time: instrument time of the whole push (before
 scan, localization, strokes, observations, rescan), and of the strokes and observations alone.
 
+Verdict (issue 32): the push's own verdict from its rescan (within / outside / cannot tell at
+this tolerance, `afm_core.manipulation.verdict`) against the truth at the tolerance asked, with
+the legacy verdict (scanner-matrix conversion, error <= tolerance) of the same push, and the
+verification's measured displacement minus the truth in two frames: the benches' and the map
+scan's own with creep (`evaluation.images_frame_matrix`).
+
 Run: `scripts/with_env.sh python bench/bench_push_closed_loop.py --seeds 30`
 Results: bench/results/push_closed_loop.{json,md}.
 """
@@ -30,12 +36,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import command_line, machine_record  # noqa: E402
 
-from afm_core.evaluation import image_frame_matrix  # noqa: E402
+from afm_core.evaluation import image_frame_matrix, images_frame_matrix  # noqa: E402
 from afm_core.imaging.landmarks import extract_landmarks  # noqa: E402
 from afm_core.instrument import ScanRequest  # noqa: E402
 from afm_core.localization import Localizer  # noqa: E402
 from afm_core.localization.calibration.model import load_calibration  # noqa: E402
 from afm_core.manipulation import PushProcedure, localize_with  # noqa: E402
+from afm_core.manipulation.verdict import OUTSIDE, WITHIN  # noqa: E402
 from afm_core.sim.config import load_config, merge  # noqa: E402
 from afm_core.sim.instrument import SimulatedAfm  # noqa: E402
 
@@ -50,9 +57,14 @@ CALIBRATION = ROOT / "afm_localization" / "config" / "sim_calibration.yaml"
 RESULTS = ROOT / "bench" / "results"
 
 
-def push_once(seed: int, strategy: str, calibration, frame, tolerance=TOLERANCE) -> dict:
+def push_once(
+    seed: int, strategy: str, calibration, frames, tolerance=TOLERANCE, config=None
+) -> dict:
+    """One push; frames: {name: true displacement per map displacement} (the first is the
+    maps' frame the figures use; the others are diagnoses)."""
     spheres = [{"x": x, "y": y, "radius": 100 * NM} for x, y in SPHERES]
-    sim = SimulatedAfm(merge(load_config(), {"seed": seed, "sample": {"spheres": spheres}}))
+    config = load_config() if config is None else config
+    sim = SimulatedAfm(merge(config, {"seed": seed, "sample": {"spheres": spheres}}))
     scan = sim.raster_scan(MAP_SCAN)
     marks = extract_landmarks(
         scan.height, scan.pixel_size_x, scan.pixel_size_y, scan.origin_x, scan.origin_y
@@ -89,8 +101,14 @@ def push_once(seed: int, strategy: str, calibration, frame, tolerance=TOLERANCE)
         )
     except Exception as exc:  # a failed push is a row, not the end of the run
         return {"seed": seed, "strategy": strategy, "ran": False, "message": str(exc)}
-    moved = np.linalg.solve(frame, true_sphere(before) - before)
+    shift = true_sphere(before) - before
+    moved = np.linalg.solve(next(iter(frames.values())), shift)
     error = float(np.hypot(*(moved - (goal - start))))
+    verdict = result.verdict
+    # the verification before issue 32's fix: the images' displacement through the short-move
+    # scanner matrix, no drift stretch taken out, judged by error <= tolerance
+    legacy = start + np.asarray(calibration.scanner_matrix) @ result.verification.displacement
+    measured = verdict.achieved - start
     return {
         "seed": seed,
         "strategy": strategy,
@@ -99,6 +117,15 @@ def push_once(seed: int, strategy: str, calibration, frame, tolerance=TOLERANCE)
         "along": float(-moved[1]),
         "sideways": float(moved[0]),
         "verified_error": float(result.error),
+        "verified_sigma": float(verdict.sigma),
+        "within_probability": float(verdict.within_probability),
+        "verdict": verdict.verdict,
+        "legacy_verified_error": float(np.hypot(*(legacy - goal))),
+        "tolerance": float(tolerance),
+        # the verification's measurement minus the truth, per frame of the truth (m, x and y)
+        "measured_minus_true": {
+            name: (measured - np.linalg.solve(f, shift)).tolist() for name, f in frames.items()
+        },
         "push_seconds": float(result.cost.duration),
         "strokes_seconds": float(result.execution.duration),
         "lines": int(result.cost.lines),
@@ -108,6 +135,44 @@ def push_once(seed: int, strategy: str, calibration, frame, tolerance=TOLERANCE)
         "wall_seconds": time.monotonic() - began,
         "observed": notes,
         "message": result.message,
+    }
+
+
+def verdict_summary(mine: list[dict]) -> dict:
+    """How often the push's own verdict agrees with the truth (maps' frame) at its tolerance:
+    legacy (before issue 32's fix: error <= tolerance through the scanner matrix), the measured
+    error alone (after the fix, no uncertainty), and the stated verdict (within / outside /
+    cannot tell: agreement over the definite ones)."""
+    truly = np.array([r["true_error"] <= r["tolerance"] for r in mine])
+    legacy = np.array([r["legacy_verified_error"] <= r["tolerance"] for r in mine])
+    measured = np.array([r["verified_error"] <= r["tolerance"] for r in mine])
+    verdicts = np.array([r["verdict"] for r in mine])
+    within, outside = verdicts == WITHIN, verdicts == OUTSIDE
+    definite = within | outside
+    off = {
+        name: np.array([r["measured_minus_true"][name] for r in mine]) / NM
+        for name in mine[0]["measured_minus_true"]
+    }
+    z = np.array(
+        [np.hypot(*r["measured_minus_true"][next(iter(off))]) / r["verified_sigma"] for r in mine]
+    )
+    return {
+        "agreement_legacy": float(np.mean(legacy == truly)),
+        "agreement_measured": float(np.mean(measured == truly)),
+        "share_within": float(np.mean(within)),
+        "share_outside": float(np.mean(outside)),
+        "share_cannot_tell": float(np.mean(~definite)),
+        "agreement_definite": float(np.mean((within == truly)[definite]))
+        if definite.any()
+        else 1.0,
+        "wrong_within": int(np.sum(within & ~truly)),
+        "wrong_outside": int(np.sum(outside & truly)),
+        "sigma_median_nm": float(np.median([r["verified_sigma"] for r in mine]) / NM),
+        "measured_minus_true_nm": {
+            name: {"mean": v.mean(axis=0).tolist(), "sd": v.std(axis=0).tolist()}
+            for name, v in off.items()
+        },
+        "miss_over_sigma_rms": float(np.sqrt(np.mean(z**2))),
     }
 
 
@@ -130,6 +195,7 @@ def summarise(rows: list[dict]) -> dict:
             "lines_median": float(np.median([r["lines"] for r in mine])),
             "observations_mean": float(np.mean([r["observations"] for r in mine])),
             "slid_median_nm": float(np.median([r["slid"] for r in mine]) / NM),
+            "verdict": verdict_summary(mine),
         }
     return out
 
@@ -168,6 +234,36 @@ def markdown(result: dict) -> str:
             f"{s['strokes_seconds_median']:.1f} s | {s['lines_median']:.0f} | "
             f"{s['observations_mean']:.1f} | {s['slid_median_nm']:.0f} nm |"
         )
+    lines += [
+        "",
+        "The push's own verdict (from its rescan) against the truth at the tolerance asked: "
+        "legacy = before issue 32's fix (scanner-matrix conversion, error <= tolerance); "
+        "measured = after the fix, error <= tolerance alone; stated = the verdict with its "
+        "uncertainty (within / outside / cannot tell at this tolerance), agreement over the "
+        "definite ones. Measured - true: the verified displacement minus the true one (mean, sd "
+        "in x and y), per frame the truth is brought into: `maps` the benches' "
+        "(image_frame_matrix, creep-free), `images_with_creep` the map scan's own gain.",
+        "",
+        "| strategy | agreement legacy | agreement measured | within / outside / cannot tell "
+        "| agreement (definite) | wrong within | wrong outside | sigma (median) | measured - "
+        "true (maps) | measured - true (images with creep) | miss/sigma rms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, s in result["summary"].items():
+        v = s["verdict"]
+        off = v["measured_minus_true_nm"]
+        text = {
+            k: f"x {o['mean'][0]:+.1f} +- {o['sd'][0]:.1f}, y {o['mean'][1]:+.1f} +- "
+            f"{o['sd'][1]:.1f} nm"
+            for k, o in off.items()
+        }
+        lines.append(
+            f"| {name} | {v['agreement_legacy']:.0%} | {v['agreement_measured']:.0%} | "
+            f"{v['share_within']:.0%} / {v['share_outside']:.0%} / {v['share_cannot_tell']:.0%} "
+            f"| {v['agreement_definite']:.0%} | {v['wrong_within']} | {v['wrong_outside']} | "
+            f"{v['sigma_median_nm']:.1f} nm | {text.get('maps', '')} | "
+            f"{text.get('images_with_creep', '')} | {v['miss_over_sigma_rms']:.2f} |"
+        )
     failed = [r for r in result["rows"] if not r["ran"]]
     if failed:
         lines += ["", "Failed pushes:", ""]
@@ -189,24 +285,36 @@ def main() -> None:
     parser.add_argument(
         "--tolerance", type=float, default=TOLERANCE / NM, help="the push's tolerance, nm"
     )
+    parser.add_argument(
+        "--strategies",
+        nargs="+",
+        choices=STRATEGIES,
+        default=list(STRATEGIES),
+        help="the strategies to run (default both)",
+    )
     args = parser.parse_args()
     load = os.getloadavg()
     began = time.monotonic()
     calibration = load_calibration(CALIBRATION)
     if args.identity_matrix:
         calibration = replace(calibration, scanner_matrix=[[1.0, 0.0], [0.0, 1.0]])
-    frame = image_frame_matrix()
+    frames = {
+        "maps": image_frame_matrix(),
+        "images_with_creep": images_frame_matrix(load_config(), MAP_SCAN, SPHERES[1]),
+    }
+    print("true per map displacement:", {k: v.round(4).tolist() for k, v in frames.items()})
     rows = []
     for seed in range(args.first_seed, args.first_seed + args.seeds):
-        for name in STRATEGIES:
-            rows.append(push_once(seed, name, calibration, frame, args.tolerance * NM))
+        for name in args.strategies:
+            rows.append(push_once(seed, name, calibration, frames, args.tolerance * NM))
             r = rows[-1]
             print(
                 f"seed {seed} {name:11s} "
                 + (
                     f"true {r['true_error'] / NM:5.1f} nm, verified "
-                    f"{r['verified_error'] / NM:5.1f} nm, {r['push_seconds']:.0f} s, "
-                    f"{r['observations']} obs"
+                    f"{r['verified_error'] / NM:5.1f} +- {r['verified_sigma'] / NM:.1f} nm "
+                    f"({r['verdict']}; legacy {r['legacy_verified_error'] / NM:5.1f} nm), "
+                    f"{r['push_seconds']:.0f} s, {r['observations']} obs"
                     if r["ran"]
                     else f"failed: {r['message']}"
                 ),
@@ -218,6 +326,7 @@ def main() -> None:
         "command": command_line(),
         "seeds": args.seeds,
         "tolerance_nm": args.tolerance,
+        "frames": {k: v.tolist() for k, v in frames.items()},
         "identity_matrix": args.identity_matrix,
         "wall_seconds": time.monotonic() - began,
         "summary": summarise(rows),

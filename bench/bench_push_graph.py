@@ -162,6 +162,9 @@ def run_seed(
                         "success": bool(result.steps > 0 and error <= TOLERANCE),
                         "verified_error": float(result.error),
                         "verified_success": bool(result.success),
+                        "verified_sigma": float(result.error_sigma),
+                        "verdict": result.verdict,
+                        "asked_tolerance": float(tolerance),
                         "steps": int(result.steps),
                         "seconds": seconds,
                         "push_seconds": float(result.duration),
@@ -211,8 +214,30 @@ def summarise(rows: list[dict]) -> dict:
             "sideways_mean_nm": float(np.mean([r["sideways"] for r in mine]) / NM),
             "sideways_abs_max_nm": float(np.max(np.abs([r["sideways"] for r in mine])) / NM),
             "seconds_median": float(np.median([r["seconds"] for r in mine])),
+            **verdict_agreement(mine),
         }
     return out
+
+
+def verdict_agreement(mine: list[dict]) -> dict:
+    """The action's own verdict against the truth at the tolerance each push was asked for:
+    success (verdict "within tolerance") as a yes/no, and the stated verdict (within / outside
+    / cannot tell at this tolerance) over the definite ones."""
+    truly = np.array([r["true_error"] <= r["asked_tolerance"] for r in mine])
+    success = np.array([r["verified_success"] for r in mine])
+    verdicts = np.array([r.get("verdict", "") for r in mine])
+    within, outside = verdicts == "within tolerance", verdicts == "outside tolerance"
+    definite = within | outside
+    return {
+        "verdict_agreement": float(np.mean(success == truly)),
+        "share_within": float(np.mean(within)),
+        "share_outside": float(np.mean(outside)),
+        "share_cannot_tell": float(np.mean(~definite)),
+        "agreement_definite": float(np.mean((within == truly)[definite]))
+        if definite.any()
+        else 1.0,
+        "verified_sigma_median_nm": float(np.median([r["verified_sigma"] for r in mine]) / NM),
+    }
 
 
 def markdown_report(result: dict, command: str) -> str:
@@ -253,6 +278,22 @@ def markdown_report(result: dict, command: str) -> str:
             f"{s['along_mean_nm']:.1f} +- {s['along_sd_nm']:.1f} nm | "
             f"{s['sideways_abs_max_nm']:.1f} nm | {s['seconds_median']:.1f} | "
             f"{s['instrument_seconds_median']:.1f} | {s['lines_median']:.0f} |"
+        )
+    lines += [
+        "",
+        "The action's own verdict against the truth at the tolerance asked (issue 32): "
+        "success (verdict within) agreeing with the truth, and the stated verdict's shares "
+        "with the agreement of its definite ones (within / outside).",
+        "",
+        "| strategy | success agrees | within / outside / cannot tell | agreement (definite) | "
+        "sigma (median) |",
+        "|---|---|---|---|---|",
+    ]
+    for name, s in result["summary"].items():
+        lines.append(
+            f"| {names.get(name, name)} | {s['verdict_agreement']:.2f} | "
+            f"{s['share_within']:.2f} / {s['share_outside']:.2f} / {s['share_cannot_tell']:.2f} "
+            f"| {s['agreement_definite']:.2f} | {s['verified_sigma_median_nm']:.1f} nm |"
         )
     lines += [
         "",

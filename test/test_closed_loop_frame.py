@@ -14,11 +14,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_push_procedure import Session
+from test_push_procedure import MAP_SCAN, SPHERES, Session
 
-from afm_core.evaluation import image_frame_matrix
+from afm_core.evaluation import image_frame_matrix, images_frame_matrix
 from afm_core.localization.calibration.model import load_calibration
 from afm_core.manipulation.execute import OBSERVED
+from afm_core.manipulation.verdict import (
+    CANNOT_TELL,
+    OUTSIDE,
+    WITHIN,
+    judge,
+    within_probability,
+)
+from afm_core.sim.config import load_config
 
 NM = 1e-9
 ROOT = Path(__file__).resolve().parents[1]
@@ -76,3 +84,64 @@ def test_a_push_asked_for_10_nm_ends_within_it_by_the_truth(seed):
     tolerance = 10 * NM
     _, error, _ = run(calibration, seed, tolerance=tolerance)
     assert error <= tolerance, f"true error {error / NM:.1f} nm in the maps' frame"
+
+
+@pytest.fixture(scope="module")
+def images_frame():
+    """True per image displacement of the maps' own scan with the scanner's creep (the
+    verification's images have it; the benches' `image_frame_matrix` is creep-free, 0.7 % off
+    in y)."""
+    return images_frame_matrix(load_config(), MAP_SCAN, SPHERES[1])
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_verified_displacement_is_the_images_truth_within_its_sigma(seed, images_frame):
+    """The rescan's verified displacement, in the maps' frame, against the truth in the maps'
+    own (images') frame, per axis within 2 of the verdict's sigmas. Through the short-move
+    scanner matrix it came out 7 nm long over 500 nm, and the drift during the before
+    image's pass (0.13 nm/s over its 15.6 s between start and goal rows) added 2 nm more."""
+    calibration = load_calibration(ROOT / "afm_localization" / "config" / "sim_calibration.yaml")
+    session = Session(calibration, seed=seed)
+    mark = session.row[1]
+    start = np.array([mark.x, mark.y])
+    before = session.true_sphere(start)
+    result = session.procedure.push(
+        mark.id, start + [0.0, -500 * NM], strategy="closed_loop", tolerance=10 * NM
+    )
+    truth = np.linalg.solve(images_frame, session.true_sphere(before) - before)
+    miss = (result.achieved - start) - truth
+    sigma = np.sqrt(np.diag(result.verdict.covariance))
+    assert np.all(np.abs(miss) <= 2 * sigma), (
+        f"verified minus true {miss / NM} nm, sigma {sigma / NM} nm ({result.message})"
+    )
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_the_verdict_at_10_nm_agrees_with_the_truth(seed, images_frame):
+    """Pushes that landed 4 nm from the goal by the truth were reported 10.4 and 10.8 nm off
+    (failed at 10 nm) by the scanner-matrix conversion; the verdict now says within, or at
+    worst that it cannot tell, never outside, and success only when the truth is within."""
+    calibration = load_calibration(ROOT / "afm_localization" / "config" / "sim_calibration.yaml")
+    session = Session(calibration, seed=seed)
+    mark = session.row[1]
+    start = np.array([mark.x, mark.y])
+    goal = start + [0.0, -500 * NM]
+    before = session.true_sphere(start)
+    result = session.procedure.push(mark.id, goal, strategy="closed_loop", tolerance=10 * NM)
+    truth = np.linalg.solve(images_frame, session.true_sphere(before) - before)
+    true_error = float(np.hypot(*(truth - (goal - start))))
+    assert true_error <= 10 * NM, f"the premise: true error {true_error / NM:.1f} nm"
+    assert result.verdict.verdict != OUTSIDE, result.message
+    assert result.success == (result.verdict.verdict == WITHIN)
+
+
+def test_within_probability_is_the_closed_form():
+    """A measured error of 0: the true error is Rayleigh, P = 1 - exp(-t^2 / (2 sigma^2));
+    and the verdict's thresholds."""
+    sigma, tolerance = 3 * NM, 5 * NM
+    p = within_probability([0.0, 0.0], np.eye(2) * sigma**2, tolerance)
+    assert p == pytest.approx(1 - math.exp(-(tolerance**2) / (2 * sigma**2)), rel=1e-9)
+    # far beyond the tolerance, a one-dimensional Gaussian tail along the error
+    far = within_probability([0.0, 20 * NM], np.eye(2) * sigma**2, 10 * NM)
+    assert far == pytest.approx(0.0, abs=1e-3)
+    assert judge(0.96) == WITHIN and judge(0.04) == OUTSIDE and judge(0.5) == CANNOT_TELL

@@ -29,6 +29,7 @@ from afm_core.manipulation import (
     localize_with,
 )
 from afm_core.manipulation.execute import OBSERVED, PREDICTED, pushed_object_after
+from afm_core.manipulation.verdict import OUTSIDE, WITHIN
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
 
@@ -121,14 +122,17 @@ def test_a_push_reaches_its_goal_by_the_simulators_truth(calibration):
     moved = s.true_sphere(truth_before) - truth_before
     true_error = math.hypot(*(moved - (goal - start)))
     assert true_error <= TRUE_TOLERANCE, f"true error {true_error / NM:.1f} nm"
-    # the verified position (rescan, control points, scanner matrix) is where the particle is
+    # the verified position (rescan, control points, image matrix) is where the particle is
     assert math.hypot(*((result.achieved - start) - moved)) <= VERIFICATION_ERROR
     assert abs(result.error - true_error) <= VERIFICATION_ERROR
-    assert result.success and result.error <= 20 * NM
+    # the verdict states what the rescan supports: this push lands close to the 20 nm
+    # tolerance (19 nm by the truth), where a measurement of a few nm sigma cannot be sure
+    assert result.error <= 20 * NM and result.verdict.verdict != OUTSIDE
+    assert result.success == (result.verdict.verdict == WITHIN)
     assert result.steps == sum(stroke.contact for stroke in result.plan.strokes) > 0
     assert sum(c.used for c in result.verification.control_points) >= 2  # the two pits at least
     assert result.verification.drift_corrected
-    assert f"{result.error / NM:.1f} nm from the goal" in result.message
+    assert f"{result.error / NM:.1f} +- " in result.message
     np.testing.assert_allclose([s.map[mark.id].x, s.map[mark.id].y], result.achieved)
 
     phases = [r.phase for r in s.reports]

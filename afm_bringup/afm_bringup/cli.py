@@ -213,7 +213,8 @@ def cmd_push(args):
         except AfmError as exc:
             sys.exit(f"afm push: {exc}")
     print(
-        f"{'succeeded' if result.success else 'failed'}: {result.message}; particle at "
+        f"{'succeeded' if result.success else result.verdict or 'failed'}: {result.message}; "
+        "particle at "
         f"({nm(result.achieved.x)}, {nm(result.achieved.y)}), error {nm(result.error)}"
         + (
             f", axis {math.degrees(result.achieved_angle):.2f} deg, error "

@@ -378,6 +378,9 @@ def outcome_to_result(outcome, result):
     else:
         result.achieved = xy_to_point(outcome.achieved)
         result.error, result.steps = outcome.error, outcome.steps
+        if outcome.verdict is not None:
+            result.error_sigma = float(outcome.verdict.sigma)
+            result.verdict = outcome.verdict.verdict
         cost = outcome.cost
         result.duration, result.lines = float(cost.duration), int(cost.lines)
         result.observations, result.slid = int(cost.observations), float(cost.slid)

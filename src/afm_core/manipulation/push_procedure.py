@@ -18,10 +18,10 @@
    2-sigma confidence (`afm_core.manipulation.closed_loop`); a tube or rod goes to a goal pose
    (position and `goal_angle`) by the rod hand, open loop ("rod_hand") or closed loop (the
    default: `afm_core.manipulation.rod_loop`, the tube observation model between legs);
-5. rescan ("after") and verify the particle's position against the goal with the pits (and
-   the other particles) as control points; the particle's displacement between the images,
-   in commanded scanner coordinates, becomes a true one through the scanner matrix (a tube's
-   or rod's turn between the images too: `PushResult.achieved_angle`, `angle_error`).
+5. rescan ("after"), verify the particle's position with the pits (and the other particles)
+   as control points, and judge it in the maps' frame with its uncertainty
+   (`afm_core.manipulation.verdict`: within, outside, or cannot tell at this tolerance; a
+   tube's or rod's turn too: `PushResult.achieved_angle`, `angle_error`).
 
 Progress goes to a callback (`Progress`: phase, step, the particle's and the tip's estimates,
 peak forces, the planned strokes once); `should_stop` is polled during the pits and scans,
@@ -87,6 +87,7 @@ from afm_core.manipulation.rod_loop import (
     rod_pose_verified,
     swept_radius,
 )
+from afm_core.manipulation.verdict import PushVerdict, push_verdict, reversed_scan
 from afm_core.manipulation.verify import VerificationResult, verify_push
 
 PIT_DWELL = 0.1  # s
@@ -152,13 +153,18 @@ class PushResult:
     achieved_angle: float = math.nan
     angle_error: float = math.nan  # rad, >= 0
     angle_tolerance: float = math.nan  # rad
+    # the rescan's measurement: error with its sigma and whether it supports "within
+    # tolerance" (afm_core.manipulation.verdict); None: judged by error <= tolerance alone
+    verdict: PushVerdict | None = None
 
     @property
     def success(self) -> bool:
+        """Within tolerance as far as the rescan can tell (verdict WITHIN), the angle too."""
         turned = (
             not math.isfinite(self.angle_tolerance) or self.angle_error <= self.angle_tolerance
         )
-        return self.error <= self.tolerance and turned
+        within = self.error <= self.tolerance if self.verdict is None else self.verdict.within
+        return within and turned
 
 
 @dataclass
@@ -186,7 +192,7 @@ class PushProcedure:
     localize(particle, should_stop) -> Localization: observe the tip on the particle.
     landmarks() -> {id: Landmark}: the current map (task frame; the graph's /afm/landmarks).
     scanner_matrix: the calibration's (true displacement per commanded one, 2x2): it maps
-        task-frame strokes to commands and image displacements to true ones (default: identity).
+        task-frame strokes to commands (default: the calibration's).
     settings: values of PUSH_PARAMETERS, validated (the rest their defaults), kept in
         `self.settings`, which each step reads when it needs a value: a change there (a
         node's run-time parameter) reaches the next step that uses it.
@@ -398,7 +404,7 @@ class PushProcedure:
                     for s in plan.strokes
                     if s.contact
                 )
-            verification, achieved, seen_before = self._verify(
+            verification, seen_before = self._verify(
                 particle,
                 target,
                 plan,
@@ -409,20 +415,17 @@ class PushProcedure:
                 should_stop,
             )
             pose = rod_pose_verified(
-                rod, particle, before, seen_before, verification, self.scanner_matrix
+                rod, particle, before, seen_before, verification, self.calibration.image_matrix
             )
+            verdict = push_verdict(verification, self.calibration, start_xy, target, tolerance)
         except (ValueError, InstrumentUnavailable) as exc:
             raise PushFailed(str(exc)) from exc
-        error = float(np.hypot(*(achieved - target)))
+        achieved, error = verdict.achieved, verdict.error
         cost.duration = self.instrument.time - started
         moved = replace(particle, x=float(achieved[0]), y=float(achieved[1]))
         self.on_moved(moved if rod is None else replace(moved, orientation=pose.achieved_angle))
         used = sum(1 for c in verification.control_points if c.used)
-        message = (
-            f"{strategy}: particle {particle.id} at ({achieved[0] * 1e9:.1f} nm, "
-            f"{achieved[1] * 1e9:.1f} nm), {error * 1e9:.1f} nm from the goal "
-            f"(tolerance {tolerance * 1e9:.1f} nm{pose.text}; {used} control point(s))"
-        )
+        message = verdict.message(strategy, particle.id, tolerance, pose.text, used)
         return PushResult(
             particle.id,
             target,
@@ -439,6 +442,7 @@ class PushProcedure:
             pose.achieved_angle,
             pose.angle_error,
             pose.angle_tolerance,
+            verdict,
         )
 
     def _report(self, progress, phase: str, particle: Landmark, estimate, **fields) -> None:
@@ -648,11 +652,10 @@ class PushProcedure:
 
     def _verify(
         self, particle, target, plan, execution, tip, images, progress, should_stop
-    ) -> tuple[VerificationResult, np.ndarray, np.ndarray]:
-        """The after image, the particle's position by control points, and its true
-        displacement through the scanner matrix (module docstring, step 5); also where the
-        before image had it. images: (the rescan's request, the before image, the particle's
-        start in the images' coordinates as the localized tip has it)."""
+    ) -> tuple[VerificationResult, np.ndarray]:
+        """The after image and the particle's position by control points (module docstring,
+        step 5); also where the before image had it. images: (the rescan's request, the before
+        image, the particle's start in the images' coordinates as the localized tip has it)."""
         request, before, start_in_scan = images
         start_xy = np.array([particle.x, particle.y])
         total = len(plan.strokes)
@@ -680,7 +683,7 @@ class PushProcedure:
         reach = float(np.hypot(*(target - start_xy))) + 2 * particle.radius + 100e-9
         # a cancel is honoured until the result is sent: the strokes can be done before a cancel
         # sent on their first report arrives, and the rescan takes longer than all of them
-        after = self.instrument.raster_scan(request, should_stop=should_stop)
+        after = self.instrument.raster_scan(reversed_scan(request), should_stop=should_stop)
         if should_stop() or not after.complete:
             raise PushFailed(
                 f"cancelled while verifying, after all {total} strokes; tip lifted off the "
@@ -700,11 +703,7 @@ class PushProcedure:
             particle_radius=particle.radius,
             particle_match_radius=reach,
         )
-        # images are in commanded scanner coordinates: the particle's displacement between the
-        # before and after images becomes a true one through the calibrated scanner matrix
-        image_displacement = np.asarray(verification.achieved) - before_particle
-        achieved = start_xy + self.scanner_matrix @ image_displacement
-        return verification, achieved, before_particle
+        return verification, before_particle
 
     # -- many pushes -------------------------------------------------------------------------
     def assemble(

@@ -22,7 +22,11 @@ verify_push(instrument, request, goal, ...):
    `particle_match_radius` (expected: where the plan predicted it, default the goal); its
    position minus the offset is the achieved position in the reference frame;
 5. error = achieved - goal (reference frame: the before image's, which is the frame the plan
-   was made in when it was made from that image).
+   was made in when it was made from that image); with `start`, also the displacement from
+   it and how much later the before image passed over the achieved position than over the
+   start (`pass_time`: the before image's own drift stretches the displacement by the drift
+   velocity times that; `afm_core.manipulation.verdict` takes it out and states the
+   uncertainty).
 
 Without control points the offset is 0 and `drift_corrected` is False.
 """
@@ -37,6 +41,7 @@ import numpy as np
 
 from afm_core import checks
 from afm_core.imaging.landmarks import Landmark, extract_landmarks
+from afm_core.imaging.scan_timing import pixel_times
 from afm_core.instrument import Instrument, RasterScanData, ScanRequest
 
 
@@ -46,6 +51,7 @@ class ControlPoint:
     before: np.ndarray  # (2,) reference frame
     after: np.ndarray  # (2,) after-image frame
     used: bool = True  # inlier of the offset estimate
+    elapsed: float = math.nan  # s from the before image's pass over it to the after image's
 
     @property
     def displacement(self) -> np.ndarray:
@@ -65,6 +71,21 @@ class VerificationResult:
     particle: Landmark | None = None  # the after-image landmark
     offset_spread: float = 0.0  # m, rms of the used control points' displacements about the offset
     after: RasterScanData | None = None
+    # (2,) m, the images' frame: achieved - start (None without start)
+    displacement: np.ndarray | None = None
+    # s: how much later the before image passed over the achieved position than over the
+    # start: the drift in that time stretches the displacement (afm_core.manipulation.verdict)
+    pass_time: float = math.nan
+    # m/s, the drift's velocity fitted to the control points (None: not measured, the images
+    # were scanned the same way; `displacement` then still holds the before image's stretch)
+    drift_velocity: np.ndarray | None = None
+    elapsed: float = math.nan  # s from the before image's pass over the start to the after's
+
+
+# the control points' elapsed times must span this much for the drift's velocity to be fitted
+# (an after image scanned the other way than the before image: about twice the time between
+# the rows of the rescan's corner pits, ~60 s for a 500 nm push)
+MIN_ELAPSED_SPAN = 10.0  # s
 
 
 def _image_args(scan: RasterScanData) -> dict:
@@ -99,6 +120,13 @@ def find_particles(scan: RasterScanData, min_height: float = 10e-9) -> list[Land
     return extract_landmarks(height, min_height=min_height, **_image_args(scan))
 
 
+def scan_time(scan: RasterScanData, xy) -> float:
+    """When `scan` passed over point xy (m, its frame): the pixel's acquisition time."""
+    col = (float(xy[0]) - scan.origin_x) / scan.pixel_size_x - 0.5
+    row = (float(xy[1]) - scan.origin_y) / scan.pixel_size_y - 0.5
+    return float(pixel_times(scan, row, col))
+
+
 def _xy(lm) -> np.ndarray:
     return np.array([lm.x, lm.y], float)
 
@@ -125,6 +153,64 @@ def _fit_offset(controls: list[ControlPoint], inlier_radius: float) -> tuple[np.
     offset = disp[inliers].mean(axis=0)
     spread = float(np.sqrt(np.mean(np.sum((disp[inliers] - offset) ** 2, axis=1))))
     return offset, spread
+
+
+def _fit_drift(controls: list[ControlPoint], inlier_radius: float):
+    """The offset as c + v * elapsed (the drift's velocity v between and during the images,
+    the scanner's shift c between them), least squares per axis over the timed control points
+    (pits first: never pushed; then every one within inlier_radius of that fit, at least the
+    best two); (c, v, rms residual), or None when their elapsed times span less than
+    MIN_ELAPSED_SPAN (both images scanned the same way: v cannot be told from c)."""
+    timed = [c for c in controls if math.isfinite(c.elapsed)]
+    e = np.array([c.elapsed for c in timed])
+    if len(timed) < 2 or np.ptp(e) < MIN_ELAPSED_SPAN:
+        return None
+    disp = np.array([c.displacement for c in timed])
+    design = np.column_stack([np.ones_like(e), e])
+    pits = np.array([c.kind == "pit" for c in timed])
+    first = pits if pits.sum() >= 2 and np.ptp(e[pits]) >= MIN_ELAPSED_SPAN else pits | True
+    coef = np.linalg.lstsq(design[first], disp[first], rcond=None)[0]
+    residual = np.hypot(*(disp - design @ coef).T)
+    used = residual <= max(inlier_radius, float(np.sort(residual)[1]))
+    if np.ptp(e[used]) < MIN_ELAPSED_SPAN:
+        return None
+    coef = np.linalg.lstsq(design[used], disp[used], rcond=None)[0]
+    for control in controls:
+        control.used = False
+    for control, keep in zip(timed, used):
+        control.used = bool(keep)
+    rest = disp[used] - design[used] @ coef
+    return coef[0], coef[1], float(np.sqrt(np.mean(np.sum(rest**2, axis=1))))
+
+
+def _references(before, reference_points, use_landmarks, start, p_radius, pit_depth, min_height):
+    """The reference frame's control points: (pits, static particles), from `reference_points`
+    (pits only) or the before image (its particles but the pushed one, within p_radius of
+    `start`)."""
+    if reference_points is not None:
+        pits = [checks.point(f"reference_points[{i}]", p) for i, p in enumerate(reference_points)]
+        return pits, []
+    if before is None:
+        return [], []
+    pits, landmarks = [_xy(p) for p in find_pits(before, pit_depth)], []
+    if use_landmarks:
+        st = None if start is None else checks.point("start", start)
+        for lm in find_particles(before, min_height):
+            xy = _xy(lm)
+            if st is not None and np.hypot(*(xy - st)) < p_radius:
+                continue  # the pushed particle
+            landmarks.append(xy)
+    return pits, landmarks
+
+
+def _first_guess(offset_guess, ref_pits, pa) -> np.ndarray:
+    """The first offset guess: given, or the median nearest-neighbour displacement of the
+    pits."""
+    if offset_guess is not None:
+        return checks.point("offset_guess", offset_guess)
+    if ref_pits and len(pa):
+        return np.median(np.array([pa[_nearest(pa, r)[0]] - r for r in ref_pits]), axis=0)
+    return np.zeros(2)
 
 
 def verify_push(
@@ -171,37 +257,23 @@ def verify_push(
     pa = np.array([_xy(p) for p in pits_after]).reshape(-1, 2)
     la = np.array([_xy(p) for p in particles_after]).reshape(-1, 2)
 
-    ref_pits: list[np.ndarray] = []
-    ref_landmarks: list[np.ndarray] = []
-    if reference_points is not None:
-        ref_pits = [
-            checks.point(f"reference_points[{i}]", p) for i, p in enumerate(reference_points)
-        ]
-    elif before is not None:
-        ref_pits = [_xy(p) for p in find_pits(before, pit_depth)]
-        if use_landmarks:
-            st = None if start is None else checks.point("start", start)
-            for lm in find_particles(before, min_height):
-                xy = _xy(lm)
-                if st is not None and np.hypot(*(xy - st)) < p_radius:
-                    continue  # the pushed particle
-                ref_landmarks.append(xy)
-
-    # first offset guess: median nearest-neighbour displacement of the pits
-    if offset_guess is not None:
-        guess = checks.point("offset_guess", offset_guess)
-    elif ref_pits and len(pa):
-        disp = [pa[_nearest(pa, r)[0]] - r for r in ref_pits]
-        guess = np.median(np.array(disp), axis=0)
-    else:
-        guess = np.zeros(2)
+    ref_pits, ref_landmarks = _references(
+        before, reference_points, use_landmarks, start, p_radius, pit_depth, min_height
+    )
+    guess = _first_guess(offset_guess, ref_pits, pa)
     controls: list[ControlPoint] = []
     taken_p: set[int] = set()
+
+    def control(kind: str, reference: np.ndarray, seen: np.ndarray) -> ControlPoint:
+        timed = before is not None and reference_points is None
+        elapsed = scan_time(after, seen) - scan_time(before, reference) if timed else math.nan
+        return ControlPoint(kind, reference, seen.copy(), elapsed=elapsed)
+
     for r in ref_pits:
         k, d = _nearest(pa, r + guess)
         if d <= match_radius and k not in taken_p:
             taken_p.add(k)
-            controls.append(ControlPoint("pit", r, pa[k].copy()))
+            controls.append(control("pit", r, pa[k]))
     particle_after_guess = exp + guess
     k_particle, _ = _nearest(la, particle_after_guess)
     taken_l: set[int] = {k_particle} if k_particle >= 0 else set()
@@ -209,9 +281,16 @@ def verify_push(
         k, d = _nearest(la, r + guess)
         if d <= match_radius and k not in taken_l:
             taken_l.add(k)
-            controls.append(ControlPoint("landmark", r, la[k].copy()))
+            controls.append(control("landmark", r, la[k]))
 
-    offset, spread = _fit_offset(controls, inlier_radius)
+    drift = _fit_drift(controls, inlier_radius)
+    velocity = None
+    if drift is None:
+        offset, spread = _fit_offset(controls, inlier_radius)
+    else:
+        shift, velocity, spread = drift
+        # the offset where the particle is expected: its elapsed time there
+        offset = shift + velocity * (scan_time(after, exp + shift) - scan_time(before, exp))
 
     k, d = _nearest(la, exp + offset)
     if k < 0 or d > p_radius:
@@ -221,8 +300,20 @@ def verify_push(
             f"{offset[1]:.3e}) m) in the after scan"
         )
     raw = la[k].copy()
+    if velocity is not None:
+        offset = shift + velocity * (scan_time(after, raw) - scan_time(before, raw - shift))
     achieved = raw - offset
     err = achieved - g
+    displacement, pass_time, elapsed = None, math.nan, math.nan
+    if start is not None:
+        st = checks.point("start", start)
+        displacement = achieved - st
+        if before is not None:
+            pass_time = scan_time(before, achieved) - scan_time(before, st)
+            elapsed = scan_time(after, raw) - scan_time(before, st)
+        if velocity is not None:
+            # the before image's own drift between the start's and the achieved rows
+            displacement = displacement - velocity * pass_time
     return VerificationResult(
         achieved=achieved,
         goal=g,
@@ -235,4 +326,8 @@ def verify_push(
         particle=particles_after[k],
         offset_spread=spread,
         after=after,
+        displacement=displacement,
+        pass_time=pass_time,
+        drift_velocity=velocity,
+        elapsed=elapsed,
     )
