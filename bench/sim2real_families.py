@@ -404,6 +404,10 @@ def score(case: FamilyCase, diagnosis, model, report_dir: Path) -> dict:
     else:
         row.update(scoring.signature_of(diagnosis, injections.SIGNATURES[case.injection]))
         row["generic_share"] = scoring.generic_share(diagnosis)
+        # the generic term's own held-out check (the column above is the library's)
+        gh = (getattr(diagnosis, "generic", None) or {}).get("heldout") or {}
+        row["generic_heldout_chi2"] = [gh.get("chi2_before"), gh.get("chi2_after"), gh.get("dof")]
+        row["generic_form"] = (getattr(diagnosis, "generic", None) or {}).get("form")
         # right: a verdict that says the library does not (wholly) explain it, never a library
         # term named with a confident fit nor "no missing physics", and (when a describer
         # exists) the right kind of signature
@@ -451,6 +455,13 @@ FAMILY_LINES = {
 }  # fmt: skip
 
 
+def _chi2(chi2) -> str:
+    chi2 = chi2 or [None] * 3
+    if None in chi2 or not all(isinstance(c, (int, float)) for c in chi2):
+        return "-"
+    return f"{chi2[0]:.1f} -> {chi2[1]:.1f} ({chi2[2]})"
+
+
 def markdown(report: dict) -> str:
     lines = [
         "# Sim-to-real diagnosis: the suite's families",
@@ -483,21 +494,23 @@ def markdown(report: dict) -> str:
         lines.append("")
     lines += [
         "| case | family | truth | chosen | verdict | right | held-out chi2 before -> after "
-        "(dof) | signature | CPU s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "(dof), library terms | generic term: form, held-out chi2 before -> after (dof), share "
+        "of the excess | signature | CPU s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in report["cases"]:
-        chi2 = r.get("heldout_chi2") or [None] * 3
-        held = (
-            f"{chi2[0]:.1f} -> {chi2[1]:.1f} ({chi2[2]})"
-            if None not in chi2 and all(isinstance(c, (int, float)) for c in chi2)
-            else "-"
-        )
+        held = _chi2(r.get("heldout_chi2"))
+        generic = "-"
+        if r.get("generic_form"):
+            generic = (
+                f"{r['generic_form']}: {_chi2(r.get('generic_heldout_chi2'))}, "
+                f"{_pct(r.get('generic_share'))}"
+            )
         signature = r.get("signature", "-") if r["kind"] == "out_of_library" else "-"
         lines.append(
             f"| {r['name']} | {r['family']} | {r['expected'] or '-'} | "
             f"{', '.join(r.get('chosen', [])) or 'none'} | {r.get('verdict', 'crashed')} | "
-            f"{'yes' if r.get('correct') else '**no**'} | {held} | {signature} | "
+            f"{'yes' if r.get('correct') else '**no**'} | {held} | {generic} | {signature} | "
             f"{r.get('cpu_seconds', math.nan):.0f} |"
         )
     refusals = [

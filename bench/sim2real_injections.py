@@ -54,7 +54,8 @@ class Signature:
 # {"kind": kinds, "time": forms (optional), "space": forms (optional), "particles_differ": True
 # (optional), "relation": a covariate's name part (optional)}. A signal faster than any
 # feature's sampling (50 Hz in z) reaches the features as extra noise: "noise" is its kind there.
-CHANGING_IN_TIME = ("linear trend", "random walk", "step")
+# "smooth": signature.py's low-degree polynomial in time (a settling, a slow bend)
+CHANGING_IN_TIME = ("linear trend", "random walk", "step", "smooth")
 
 
 @dataclass

@@ -64,9 +64,15 @@ def thermal_bending(rate):
     return lambda t, x, y: rate * np.asarray(t, float)
 
 
-def z_pickup_with_x(amplitude, period):
+def z_pickup_with_x(amplitude, period, phase=0.0):
     """A pickup on the z sensor periodic in the scanner's x position."""
-    return lambda t, x, y: amplitude * np.sin(2 * math.pi * np.asarray(x, float) / period)
+    return lambda t, x, y: amplitude * np.sin(2 * math.pi * np.asarray(x, float) / period + phase)
+
+
+def z_settling(level, time_constant):
+    """The cantilever settles thermally after power-on: the whole z signal moves by
+    level (1 - exp(-t / time_constant)) (m)."""
+    return lambda t, x, y: level * (1 - np.exp(-np.asarray(t, float) / time_constant))
 
 
 def z_jump(size, at):

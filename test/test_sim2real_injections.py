@@ -338,6 +338,11 @@ def test_a_structured_signature_is_judged_by_its_fields_not_by_the_forms_it_reje
         False
     )
     assert scoring.signature_of(periodic_in_time, truth["debris_step"])["described"] is False
+    # a smooth change in time (signature.py's low-degree polynomial) is a settling's kind of
+    # form, not a step's
+    smooth = described("z", "smooth", "uniform")
+    assert scoring.signature_of(smooth, truth["thermal_bending"])["described"] is True
+    assert scoring.signature_of(smooth, truth["debris_step"])["described"] is False
     fringes = described("z", "none", "periodic in x")
     assert scoring.signature_of(fringes, truth["interference_fringes"])["described"] is True
     assert scoring.signature_of(fringes, truth["x_nonlinearity"])["described"] is False  # z

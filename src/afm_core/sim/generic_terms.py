@@ -16,6 +16,9 @@ true position (m):
 - time_linear: amplitude * (t - t0)                    (amplitude per s; t0 default 0)
 - time_step: amplitude * (t >= t0)
 - time_sine: amplitude * sin(2 pi (t - t0) / period)   (t0 as a phase)
+- time_legendre: amplitude * P_degree(2 (t - t0) / (t1 - t0) - 1), the Legendre polynomial of
+  that degree (1 to MAX_DEGREE) over the span [t0, t1]: a smooth change in time (a settling,
+  a slow bend) as a sum of degrees, each bounded by |amplitude| on the span
 - x_linear, y_linear: amplitude * (x - x0) or (y - y0) (amplitude per m; x0, y0 default 0)
 - x_sine, y_sine: amplitude * sin(2 pi (x - x0) / period)
 - height_proportional: amplitude * (true height about the substrate)  (height signal only)
@@ -35,6 +38,7 @@ FORMS = {
     "time_linear": {"t0": 0.0},
     "time_step": {"t0": None},
     "time_sine": {"period": None, "t0": 0.0},
+    "time_legendre": {"degree": None, "t0": None, "t1": None},
     "x_linear": {"x0": 0.0},
     "y_linear": {"y0": 0.0},
     "x_sine": {"period": None, "x0": 0.0},
@@ -42,6 +46,7 @@ FORMS = {
     "height_proportional": {},
 }
 MAX_OFFSET = 1e-5  # m or rad: a generic term larger than the z range describes no instrument
+MAX_DEGREE = 5  # time_legendre: a smooth change, not a fit of every wiggle
 
 
 @dataclass(frozen=True)
@@ -66,6 +71,11 @@ class GenericTerm:
             return np.broadcast_to(a * (t - self.param("t0")), shape).copy()
         if form == "time_step":
             return np.broadcast_to(a * (t >= self.param("t0")), shape).astype(float)
+        if form == "time_legendre":
+            t0, t1 = self.param("t0"), self.param("t1")
+            u = 2.0 * (t - t0) / (t1 - t0) - 1.0
+            value = np.polynomial.legendre.legval(u, [0.0] * int(self.param("degree")) + [a])
+            return np.broadcast_to(value, shape).copy()
         if form == "time_sine":
             phase = 2 * math.pi * (t - self.param("t0")) / self.param("period")
             return np.broadcast_to(a * np.sin(phase), shape).copy()
@@ -130,11 +140,14 @@ def _parse_one(k: int, entry) -> GenericTerm:
         value = _number(f"{where}.{name}", entry.get(name, default))
         if name == "period" and value <= 0:
             raise ValueError(f"{where}.period={value}: must be > 0")
+        if name == "degree" and (value != int(value) or not 1 <= value <= MAX_DEGREE):
+            raise ValueError(f"{where}.degree={value}: must be an integer from 1 to {MAX_DEGREE}")
         params.append((name, value))
+    if form == "time_legendre" and dict(params)["t1"] <= dict(params)["t0"]:
+        raise ValueError(f"{where}.t1={dict(params)['t1']}: must be > t0={dict(params)['t0']}")
     term = GenericTerm(signal, form, amplitude, tuple(params))
-    if form in ("constant", "time_step", "time_sine", "x_sine", "y_sine") and abs(amplitude) > (
-        MAX_OFFSET
-    ):
+    bounded = ("constant", "time_step", "time_sine", "time_legendre", "x_sine", "y_sine")
+    if form in bounded and abs(amplitude) > MAX_OFFSET:
         raise ValueError(f"{where}.amplitude={amplitude}: |amplitude| must be <= {MAX_OFFSET}")
     return term
 

@@ -29,11 +29,13 @@ import yaml
 from scipy import stats
 
 from afm_core.sim.config import merge
-from afm_core.sim.generic_terms import GenericTerm
+from afm_core.sim.generic_terms import GenericTerm, parse_generic_terms
+from afm_core.sim2real.generic_forms import search_form
 from afm_core.sim2real.heldout import heldout_chi2
 from afm_core.sim2real.noise_model import Whitener, gls
 from afm_core.sim2real.results import UNEXPLAINED_P
-from afm_core.sim2real.signature import Signature, describe
+from afm_core.sim2real.signature import ALPHA, Signature, describe
+from afm_core.sim2real.signature_text import sentences
 
 HELDOUT_QUANTILE = 0.95  # held-out chi^2 above this quantile of chi^2(dof): beyond the noise
 # share of the held-out excess above which a generic model of a secondary signal is taken to
@@ -43,6 +45,7 @@ GENERIC_EXPLAINS = 0.5
 # overdispersion factor: the term's fit cannot have inflated that factor
 ACTS = 0.1
 SIGNALS = {"z": "height", "torsion": "torsion"}  # signature kind -> the generic term's signal
+SPACE_FORMS = ("linear in x", "linear in y", "linear in x and y", "periodic in x", "periodic in y")
 DESCRIPTION = (
     "generic description fitted by the sim2real diagnosis where no library term explains the "
     "residual; not a named physical effect"
@@ -153,7 +156,18 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
     if sig.kind not in SIGNALS or not sig.time or not sig.space:
         return {"fitted": False, "reason": f"no generic term acts on a {sig.kind or 'no'} signal"}
     centre = tuple(float(v) for v in np.mean(sess.table.xy, axis=0))
-    form, basis = basis_for(sig, float(np.min(sess.table.time)), centre)
+    searched = {}
+    if sig.kind == "z":
+        # the form and its shape by what the samples do (generic_forms.py), on one noise model:
+        # the signature's groups without the factors the unexplained effect inflated
+        live = {row["group"] for row in sig.signals}
+        noise = dataclasses.replace(evidence.unscaled)
+        noise.overdispersed(
+            {g: f for g, f in evidence.group_factors.items() if g not in live}, sess.table.groups
+        )
+        form, basis, searched = search_form(sess, noise, evidence.P, r0, sig, say)
+    else:
+        form, basis = basis_for(sig, float(np.min(sess.table.time)), centre)
     if not basis:
         return {"fitted": False, "reason": f"no generic basis for the form {form!r}"}
     say(f"generic term: {form} on the {SIGNALS[sig.kind]} signal ({len(basis)} re-simulations)")
@@ -199,6 +213,7 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
         "heldout": heldout,
         "acts_on": sorted(acted),
         "replays": len(basis) + 1,
+        "searched": searched,
     }
 
 
@@ -260,6 +275,9 @@ def describe_unexplained(
         generic = generic_fit(sess, evidence, r0, fitted, say)
     except ValueError as exc:  # a fitted amplitude beyond what the simulator takes, say
         generic = {"fitted": False, "reason": f"the generic model cannot be simulated: {exc}"}
+    if generic.get("fitted"):
+        adopt_sampled_form(fitted, generic)
+        sig.sentences.append(model_sentence(generic))
     lead = sig.signals[0]["group"] if sig.signals else None
     if (
         fitted is not sig
@@ -275,6 +293,66 @@ def describe_unexplained(
         )
         return fitted, generic
     return sig, generic
+
+
+def adopt_sampled_form(sig: Signature, generic: dict) -> None:
+    """When the form chosen on the samples (generic_forms.py) is not the one the signature read
+    at the features' labelled places (a fringe the lines' midpoints alias into a gradient), the
+    signature takes it, with the fit's parameters, and its sentences are told again; the form
+    read at the features is kept (`read_at_features`) and said in the model's sentence."""
+    form = generic["form"]
+    family = "space" if form in SPACE_FORMS else "time"
+    own = getattr(sig, family)
+    if not generic.get("searched") or not own or own.get("form") == form:
+        return
+    terms = parse_generic_terms(
+        [{k: v for k, v in term.items() if k != "sigma"} for term in generic["terms"]]
+    )
+    amplitudes = [term.amplitude for term in terms]
+    if "periodic" in form:
+        params = {"period": terms[0].param("period"), "amplitude": math.hypot(*amplitudes[:2])}
+    elif form.startswith("linear in"):
+        params = {"gradient": amplitudes}
+    elif form == "linear trend":
+        params = {"slope": amplitudes[0]}
+    elif form == "step":
+        params = {"time": terms[0].param("t0"), "size": amplitudes[0]}
+    else:  # smooth: Legendre degrees over one span
+        t0, t1 = terms[0].param("t0"), terms[0].param("t1")
+        ends = np.array([t0, t1])
+        level = sum(term.offset(ends, 0 * ends, 0 * ends) for term in terms)
+        degree = int(max(term.param("degree") for term in terms))
+        params = {"degree": degree, "t0": t0, "t1": t1, "change": float(level[1] - level[0])}
+    generic["read_at_features"] = own.get("form")
+    setattr(sig, family, dict(own, form=form, params=params))
+    sig.time["primary"] = family == "time"
+    sig.space["primary"] = family == "space"
+    sig.sentences = sentences(sig, ALPHA)
+
+
+def model_sentence(generic: dict) -> str:
+    """The generic model in words: its form and shape as fitted on the samples the features
+    take (which may differ from the form the features show at their labelled places), and
+    what it does to the held-out blocks."""
+    terms, form = generic["terms"], generic["form"]
+    shape = ""
+    if "period" in terms[0]:
+        amplitude = math.hypot(*(t["amplitude"] for t in terms[:2]))
+        unit = "s" if terms[0]["form"] == "time_sine" else "um"
+        period = terms[0]["period"] * (1.0 if unit == "s" else 1e6)
+        shape = f", period {period:.3g} {unit}, amplitude {amplitude * 1e9:.3g} nm"
+    elif terms[0]["form"] == "time_step":
+        shape = f" of {terms[0]['amplitude'] * 1e9:.3g} nm at t = {terms[0]['t0']:.0f} s"
+    if generic["signal"] != "height":
+        shape = ""  # the shapes above are in the height's units
+    h = generic["heldout"]
+    read = generic.get("read_at_features")
+    read = f" (at the features' labelled places it reads as {read})" if read else ""
+    return (
+        f"Its simplest generic model, fitted on the {generic['signal']} samples the features "
+        f"take, is {form}{shape}{read}; re-simulated, it removes {h['excess_reduction']:.0%} of "
+        "the held-out excess."
+    )
 
 
 def generic_yaml(generic: dict) -> str:

@@ -7,7 +7,8 @@ table's conditions), `describe` says:
 - in which signals it lives (feature groups whose chi^2 passes chi^2(n) at ALPHA over the number
   of groups), and what kind of signal that is (z, lateral position, torsion, noise statistics);
 - under which conditions (the "where" rows of those groups that pass their Bonferroni test);
-- its form in time: none, constant, linear trend, step at a time, periodic, random walk, the
+- its form in time: none, constant, linear trend, step at a time, smooth (a low-degree
+  polynomial: a settling, a slow bend), periodic, random walk, the
   smallest BIC (-2 log L + k ln n, Gaussian with the noise sigma; the random walk by its
   Kalman likelihood, its step variance the parameter);
 - across the sample: linear in x, y, or periodic in x or y (same BIC), and whether what its
@@ -36,6 +37,7 @@ SINE_PERIODS = 24  # log-spaced periods tried between 3 spacings and the span
 # BIC parameters of a sinusoid of searched period: offset, two amplitudes, the period, and
 # about two more for choosing among SINE_PERIODS (2 ln 24 ~ ln n of a few hundred features)
 SINE_PENALTY = 6
+SMOOTH_DEGREE = 3  # the highest Legendre degree of a "smooth" change in time
 # groups measuring the same additive offset, described together
 SAME_OFFSET = {"line.level": "level", "raster.level": "level"}
 
@@ -133,7 +135,8 @@ def _periods(coord) -> np.ndarray:
 
 
 def time_form(t, y, s) -> dict:
-    """The residual's form in time by BIC: none, constant, linear, step, periodic, random walk."""
+    """The residual's form in time by BIC: none, constant, linear, step, smooth, periodic,
+    random walk."""
     order = np.argsort(t)
     t, y, s = t[order], y[order], s[order]
     n = len(y)
@@ -153,6 +156,7 @@ def time_form(t, y, s) -> dict:
         m2l, at, size, k = min(steps)
         fit, _ = _wls(y, s, np.stack([one, (np.arange(n) >= k).astype(float)], 1))
         out["step"] = (m2l + 3 * ln, {"time": float(at), "size": size}, fit)
+    out["smooth"] = _smooth(t, y, s)
     periods = _periods(t)
     if periods.size:
         fit, m2l, period, amplitude, _ = _sine_fit(t - t[0], y, s, periods)
@@ -167,6 +171,27 @@ def time_form(t, y, s) -> dict:
         m2l += _neg2loglik(y[:1], s[:1], y[:1])
         out["random walk"] = (m2l + 2 * ln, {"step_variance_per_s": q}, None)
     return _best(out, order)
+
+
+def _smooth(t, y, s) -> tuple:
+    """(BIC, params, fitted) of the best smooth change in time: a Legendre polynomial over
+    the span of degree 2 to SMOOTH_DEGREE (a settling, a slow bend: what a line and a step
+    only approximate), its degree by BIC; params: degree, span (t0, t1), the change it makes
+    from the first time to the last."""
+    n, ln = len(y), math.log(len(y))
+    t0, t1 = float(t[0]), float(max(t[-1], t[0] + 1e-9))
+    u = 2 * (t - t0) / (t1 - t0) - 1
+    best = None
+    for degree in range(2, SMOOTH_DEGREE + 1):
+        if n <= degree + 2:
+            break
+        X = np.polynomial.legendre.legvander(u, degree)
+        fit, _ = _wls(y, s, X)
+        bic = _neg2loglik(y, s, fit) + (degree + 1) * ln
+        if best is None or bic < best[0]:
+            change = float(fit[-1] - fit[0])
+            best = (bic, {"degree": degree, "t0": t0, "t1": t1, "change": change}, fit)
+    return best if best is not None else (math.inf, {}, 0 * y)
 
 
 def _best(out: dict, order=None) -> dict:
@@ -519,10 +544,10 @@ def _along_scan(table, sel, y, s) -> dict:
 
 def _amplitude(sig: Signature) -> float:
     """The best form's size in SI: the change over the session (trend), the step, the sine's
-    amplitude."""
+    amplitude, a smooth form's change from first to last."""
     if not sig.time:
         return float("nan")
     p = sig.time["params"]
     if "slope" in p:
         return p["slope"]
-    return p.get("size", p.get("amplitude", p.get("offset", float("nan"))))
+    return p.get("size", p.get("amplitude", p.get("change", p.get("offset", float("nan")))))

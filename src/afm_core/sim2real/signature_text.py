@@ -90,6 +90,11 @@ def _time_sentence(time: dict, scale: float, unit: str) -> str:
         return f"In time it is a linear trend of {p['slope'] * scale * 60:.3g} {unit} per minute."
     if form == "step":
         return f"In time it is a step of {p['size'] * scale:.3g} {unit} at t = {p['time']:.0f} s."
+    if form == "smooth":
+        return (
+            f"In time it changes smoothly (a polynomial of degree {p['degree']}): by "
+            f"{p['change'] * scale:.3g} {unit} from t = {p['t0']:.0f} s to {p['t1']:.0f} s."
+        )
     if form == "periodic":
         return (
             f"In time it is periodic: {p['amplitude'] * scale:.3g} {unit} amplitude, period "
