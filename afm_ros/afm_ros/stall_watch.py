@@ -25,7 +25,11 @@ from pathlib import Path
 
 ENVIRONMENT = "AFM_STALL_WATCH"
 THRESHOLD_S = 0.15  # a tenth of a second and more: what a 20 Hz teleop stream notices
-TICK_S = 0.02
+TICK_S = 0.05
+# the threads' CPU figures are read every this many ticks, not every tick (a node has 20-40
+# threads: reading all of them 50 times a second cost 5 % of a core), so a stall's figures
+# also cover up to SNAPSHOT_TICKS * TICK_S before it
+SNAPSHOT_TICKS = 2
 
 
 def _thread_times() -> dict[str, tuple[int, int]]:
@@ -49,7 +53,7 @@ def _thread_times() -> dict[str, tuple[int, int]]:
 class StallWatch:
     """Reports to `path` every time this process's threads stood still for more than
     `threshold_s`: first the stacks (written while the stall lasts), then a line with its length
-    and each thread's CPU and queue time over it."""
+    and each thread's CPU and queue time over it (and up to 0.1 s before it)."""
 
     def __init__(self, path: Path, threshold_s: float = THRESHOLD_S):
         if not threshold_s > TICK_S:
@@ -71,15 +75,20 @@ class StallWatch:
     def _run(self) -> None:
         last = time.monotonic()
         before = _thread_times()
+        ticks = 0
         while not self._stop.is_set():
             faulthandler.dump_traceback_later(self.threshold_s, file=self._file)
             self._stop.wait(TICK_S)
             now = time.monotonic()
-            after = _thread_times()
+            ticks += 1
             if now - last - TICK_S > self.threshold_s and not self._stop.is_set():
                 self.stalls.append(now - last)
+                after = _thread_times()
                 self._file.write(self._summary(now - last, before, after) + "\n")
-            last, before = now, after
+                before = after
+            elif ticks % SNAPSHOT_TICKS == 0:
+                before = _thread_times()
+            last = now
         faulthandler.cancel_dump_traceback_later()
 
     def _summary(self, seconds: float, before: dict, after: dict) -> str:
