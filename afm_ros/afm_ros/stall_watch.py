@@ -11,7 +11,11 @@ starved of CPU (threads queued) or one busy in Python (one thread ran throughout
 Off unless the environment variable AFM_STALL_WATCH names a directory; `afm_ros.node_main.run`
 starts it for every node then. The stacks come from the standard library's faulthandler, whose
 watchdog thread needs no GIL; it is process-wide, so nothing else in the process may use
-faulthandler.dump_traceback_later meanwhile.
+faulthandler.dump_traceback_later meanwhile. It is a diagnosis, not something to leave on: the
+watchdog reads the other threads' frames without the GIL, and re-arming it each tick joins and
+starts a thread with the GIL held. With it on in every node of a full graph test run, three
+nodes crashed (SIGSEGV) after their executor thread had run Python for 0.4-0.8 s, and the same
+files passed with it off (2026-11-28).
 """
 
 from __future__ import annotations
