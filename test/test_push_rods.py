@@ -18,6 +18,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from sim_calibration import oracle_calibration
+from test_closed_loop_frame import (
+    SCALE_ERROR,
+    SIM_CALIBRATION,
+    first_plan,
+    true_contact_in_maps,
+)
 
 from afm_core.evaluation import image_frame_matrix
 from afm_core.imaging.landmarks import extract_landmarks
@@ -139,6 +145,25 @@ def test_a_tube_reaches_its_goal_pose_closed_loop(calibration):
     assert "deg from the goal" in result.message
     # the map has the tube's new pose
     assert s.map[tube.id].orientation == pytest.approx(result.achieved_angle)
+
+
+@pytest.mark.parametrize("strategy", ["rod_hand", "closed_loop"])
+def test_the_rod_hands_plan_the_maps_frames_contact_distance(strategy):
+    """The rod hand's reach (the tube's radius + the tip's) is the map's radius and the
+    simulator's tip in the maps' frame (test_closed_loop_frame), open loop and in the closed
+    loop's legs."""
+    session = RodSession(load_calibration(SIM_CALIBRATION))
+    tube = session.tube
+    goal = np.array([tube.x, tube.y]) + 250 * NM * np.array(
+        [-math.sin(tube.orientation), math.cos(tube.orientation)]
+    )
+    plan = first_plan(session.procedure, tube.id, goal, strategy)
+    truth = true_contact_in_maps(plan, tube.radius)
+    planned = plan.particle_radius + plan.tip_radius
+    assert abs(planned - truth) <= SCALE_ERROR * truth, (
+        f"{strategy}: planned reach {planned / NM:.1f} nm, the truth's in the maps' frame "
+        f"{truth / NM:.1f} nm"
+    )
 
 
 def test_rod_goals_are_refused_naming_the_field(calibration):

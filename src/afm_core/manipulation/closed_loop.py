@@ -50,7 +50,7 @@ from afm_core.manipulation.particle_observation import (
     observe_particle,
 )
 from afm_core.manipulation.plans import ParticleEstimate, PushPlan
-from afm_core.manipulation.push_steps import ZigzagOverrides, plan_push
+from afm_core.manipulation.push_steps import ZigzagOverrides, in_maps_frame, plan_push
 
 # stop rule: the estimate's error plus this many sigma within the tolerance (one-sided ~97.7 %
 # per axis for a Gaussian estimate; "2-sigma" in the brief's words)
@@ -108,15 +108,6 @@ class LoopState:
     cost: PushCost = field(default_factory=PushCost)
     reports: list = field(default_factory=list)
     observations: list = field(default_factory=list)
-
-
-def in_maps_frame(particle: Landmark, lateral_scale: float) -> Landmark:
-    """The particle with its radius (metres, from its height) in the maps' lateral frame, as
-    the tip's radius is divided by lateral_scale too: the planners' contact distance (radius
-    + tip radius) is then where the tip meets the particle in the frame the strokes are placed
-    in. Taken as metres on the simulator, whose images are ~6 % small, every centre stroke
-    stopped ~8.5 nm before the particle's goal (150 nm against 141.5 nm)."""
-    return replace(particle, radius=float(particle.radius) / lateral_scale)
 
 
 def plan_leg(
@@ -276,14 +267,11 @@ def closed_loop_push(
     # the chain measures displacements from the start (calibrate_chain): its direction error
     # grows with the distance from there
     for leg in range(int(settings["max_iterations"])):
+        particle_maps, tip_maps = in_maps_frame(
+            state.particle, tip_radius, track.calibration.lateral_scale
+        )
         plan = plan_leg(
-            in_maps_frame(state.particle, track.calibration.lateral_scale),
-            target,
-            track.covariance,
-            overrides,
-            tip_radius / track.calibration.lateral_scale,
-            limits,
-            leg == 0,
+            particle_maps, target, track.covariance, overrides, tip_maps, limits, leg == 0
         )
         state.plans.append(plan)
         state.cost.legs += 1

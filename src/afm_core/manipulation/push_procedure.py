@@ -72,6 +72,7 @@ from afm_core.manipulation.push_steps import (
     ZigzagOverrides,
     control_pit_sites,
     find_particle,
+    in_maps_frame,
     nearest_particle,
     plan_push,
     rescan_request,
@@ -229,6 +230,11 @@ class PushProcedure:
         self.tip_estimate = tip_estimate
         self.on_moved = on_moved
 
+    def maps_frame(self, particle: Landmark) -> tuple[Landmark, float]:
+        """The particle and the tip's radius with the radii in the maps' frame, where the
+        strokes are placed (push_steps.in_maps_frame): the contact distances of every plan."""
+        return in_maps_frame(particle, self.settings["tip_radius"], self.calibration.lateral_scale)
+
     # -- refusals ----------------------------------------------------------------------------
     def particle(self, particle_id: int, position=None) -> Landmark:
         return find_particle(
@@ -302,17 +308,12 @@ class PushProcedure:
                 f"strategy 'nano_hand' or 'closed_loop', not {strategy!r} (leave them 0)"
             )
         sigma = float(math.sqrt(max(np.max(np.diag(particle.covariance)), 0.0)))
-        overrides.check(particle.radius, self.settings["tip_radius"], sigma)
+        # the zigzag's lengths are the maps' frame's, as the strokes they place
+        particle, tip_radius = self.maps_frame(particle)
+        overrides.check(particle.radius, tip_radius, sigma)
         try:
-            plan_push(
-                particle,
-                goal,
-                strategy,
-                np.zeros((2, 2)),
-                overrides,
-                self.settings["tip_radius"],
-                self.instrument.limits,
-            )
+            limits = self.instrument.limits
+            plan_push(particle, goal, strategy, np.zeros((2, 2)), overrides, tip_radius, limits)
         except ValueError as exc:
             raise ValueError(f"the zigzag these fields give cannot be run: {exc}") from exc
 
@@ -511,13 +512,14 @@ class PushProcedure:
         start_xy = np.array([particle.x, particle.y])
         commanded = np.array(self.instrument.commanded_position())
         to_instrument = task_to_command(tip.mean, commanded, self.scanner_matrix)
+        maps_particle, tip_radius = self.maps_frame(particle)
         plan = plan_push(
-            particle,
+            maps_particle,
             target,
             strategy,
             tip.covariance,
             overrides,
-            self.settings["tip_radius"],
+            tip_radius,
             self.instrument.limits,
             goal_angle=None if rod is None else rod.angle,
         )

@@ -49,6 +49,7 @@ from afm_core.manipulation.particle_observation import (
     crossing,
     reset_on_anchor,
 )
+from afm_core.manipulation.push_steps import in_maps_frame
 from afm_core.manipulation.rod_hand import _wrap_half_turn, rod_hand_plan
 
 # the cross lines meet the axis at +-this share of the half length: far apart, since the
@@ -411,7 +412,11 @@ def rod_closed_loop_push(
         track.mean = track.mean - (first[0].mean - mark.position)
     for leg in range(int(settings["rod_max_iterations"])):
         aim, aim_angle = leg_target(state.particle, goal, goal_angle)
-        plan = plan_rod_leg(state.particle, aim, aim_angle, tip_radius, tolerance, limits)
+        # the rod hand's reach (radii) in the maps' frame, where its strokes are placed
+        rod_maps, tip_maps = in_maps_frame(
+            state.particle, tip_radius, track.calibration.lateral_scale
+        )
+        plan = plan_rod_leg(rod_maps, aim, aim_angle, tip_maps, tolerance, limits)
         if plan is None:
             break
         state.plans.append(plan)
