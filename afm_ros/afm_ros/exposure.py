@@ -10,10 +10,10 @@ graph. "lab" opens the graph to the subnet (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET
 UDP on every interface); pair it with a domain id the lab has agreed on (`--domain-id`), and prefer
 SROS2 (docker/README.md) on any network others share.
 
-Both profiles leave out Fast DDS's shared-memory transport and make writes asynchronous
-(PUBLICATION_MODE), so no publish waits on another process with the GIL held, and every reliable
-writer asks for what its readers missed every REPAIR_PERIOD_S instead of Fast DDS's 3 s, so a
-sample lost under load is resent before a dead-man or a server's heartbeat gives up.
+Both profiles leave out Fast DDS's shared-memory transport, so no publish waits on another
+process's shared-memory lock with the GIL held, and every reliable writer asks for what its
+readers missed every REPAIR_PERIOD_S instead of Fast DDS's 3 s, so a sample lost under load is
+resent before a dead-man or a server's heartbeat gives up.
 
 A node started on its own (`ros2 run`) applies the same default to itself (apply_node_default)
 unless its environment asks for a wider range or names a profile.
@@ -45,11 +45,10 @@ LAB_PROFILE_NAME = "afm_dds_lab.xml"
 # froze past the 0.5 s dead-man, and a server went silent for the 3 s its clients allow
 # (action_client.SERVER_SILENCE_S). Measured in docs/interfaces.md ("Lost samples").
 REPAIR_PERIOD_S = 0.1
-# Writes are handed to Fast DDS's sending thread (asynchronous publication) instead of sent in
-# the publishing thread (rmw_fastrtps's default since Humble): rclpy's publish holds the GIL
-# through the write, so a send that waits stopped every thread of the node (0.3 s in the
-# driver's /clock publish, measured with afm_ros.stall_watch; docs/interfaces.md). A user's
-# own setting of the variable is kept.
+# rmw_fastrtps's publication mode (bench_node_stalls compares both). Left synchronous: with
+# asynchronous writes a burst of publishes (a test's four scans, an action's replies) returned
+# before Fast DDS had sent them, and a KEEP_LAST history replaced samples not yet sent, so the
+# imaging node never got a scan pair and a localizer's replies went missing (2026-11-28).
 PUBLICATION_MODE = "RMW_FASTRTPS_PUBLICATION_MODE"
 WRITER_TIMES = f"""    <data_writer profile_name="afm_writer" is_default_profile="true">
       <times>
@@ -268,7 +267,6 @@ def apply(
         if not user_profile:
             for name in PROFILE_VARIABLES:
                 environment[name] = str(lab_profile(folder))
-            environment.setdefault(PUBLICATION_MODE, "ASYNCHRONOUS")
         environment["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"
         return environment
     if user_profile:  # the user's own Fast DDS profile: keep it, and localhost discovery
@@ -277,6 +275,5 @@ def apply(
     profile = str(localhost_profile(folder))
     for name in PROFILE_VARIABLES:
         environment[name] = profile
-    environment.setdefault(PUBLICATION_MODE, "ASYNCHRONOUS")
     environment.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
     return environment
