@@ -42,7 +42,7 @@ from afm_core.instrument import ScanRequest  # noqa: E402
 from afm_core.localization import Localizer  # noqa: E402
 from afm_core.localization.calibration.model import load_calibration  # noqa: E402
 from afm_core.manipulation import PushProcedure, localize_with  # noqa: E402
-from afm_core.manipulation.verdict import OUTSIDE, WITHIN  # noqa: E402
+from afm_core.manipulation.verdict import OUTSIDE, WITHIN, verdict_shares  # noqa: E402
 from afm_core.sim.config import load_config, merge  # noqa: E402
 from afm_core.sim.instrument import SimulatedAfm  # noqa: E402
 
@@ -148,7 +148,6 @@ def verdict_summary(mine: list[dict]) -> dict:
     measured = np.array([r["verified_error"] <= r["tolerance"] for r in mine])
     verdicts = np.array([r["verdict"] for r in mine])
     within, outside = verdicts == WITHIN, verdicts == OUTSIDE
-    definite = within | outside
     off = {
         name: np.array([r["measured_minus_true"][name] for r in mine]) / NM
         for name in mine[0]["measured_minus_true"]
@@ -159,12 +158,7 @@ def verdict_summary(mine: list[dict]) -> dict:
     return {
         "agreement_legacy": float(np.mean(legacy == truly)),
         "agreement_measured": float(np.mean(measured == truly)),
-        "share_within": float(np.mean(within)),
-        "share_outside": float(np.mean(outside)),
-        "share_cannot_tell": float(np.mean(~definite)),
-        "agreement_definite": float(np.mean((within == truly)[definite]))
-        if definite.any()
-        else 1.0,
+        **verdict_shares(verdicts, truly),
         "wrong_within": int(np.sum(within & ~truly)),
         "wrong_outside": int(np.sum(outside & truly)),
         "sigma_median_nm": float(np.median([r["verified_sigma"] for r in mine]) / NM),

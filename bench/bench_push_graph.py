@@ -48,6 +48,7 @@ from afm_bringup.demo import peak_rss_bytes  # noqa: E402
 from afm_bringup.launcher import Graph  # noqa: E402
 from afm_bringup.units import length_type  # noqa: E402
 from afm_core.evaluation import image_frame_matrix  # noqa: E402
+from afm_core.manipulation.verdict import verdict_shares  # noqa: E402
 from afm_msgs.action import PushParticle  # noqa: E402
 from afm_msgs.msg import GroundTruth, LandmarkArray  # noqa: E402
 from afm_ros.exposure import isolate_run  # noqa: E402
@@ -225,17 +226,10 @@ def verdict_agreement(mine: list[dict]) -> dict:
     / cannot tell at this tolerance) over the definite ones."""
     truly = np.array([r["true_error"] <= r["asked_tolerance"] for r in mine])
     success = np.array([r["verified_success"] for r in mine])
-    verdicts = np.array([r.get("verdict", "") for r in mine])
-    within, outside = verdicts == "within tolerance", verdicts == "outside tolerance"
-    definite = within | outside
+    verdicts = [r.get("verdict", "") for r in mine]
     return {
         "verdict_agreement": float(np.mean(success == truly)),
-        "share_within": float(np.mean(within)),
-        "share_outside": float(np.mean(outside)),
-        "share_cannot_tell": float(np.mean(~definite)),
-        "agreement_definite": float(np.mean((within == truly)[definite]))
-        if definite.any()
-        else 1.0,
+        **verdict_shares(verdicts, truly),
         "verified_sigma_median_nm": float(np.median([r["verified_sigma"] for r in mine]) / NM),
     }
 

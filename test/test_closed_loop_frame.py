@@ -108,7 +108,13 @@ def test_every_hand_plans_the_maps_frames_contact_distance(strategy):
     mark = session.row[1]
     goal = np.array([mark.x, mark.y - 500 * NM])
     plan = first_plan(session.procedure, mark.id, goal, strategy)
-    truth = true_contact_in_maps(plan, mark.radius)
+    assert_contact_in_maps_frame(plan, mark.radius, strategy)
+
+
+def assert_contact_in_maps_frame(plan, radius: float, strategy: str) -> None:
+    """The plan's contact distance (particle + tip radius) is the truth's in the maps' frame,
+    within the calibration's scale error."""
+    truth = true_contact_in_maps(plan, radius)
     planned = plan.particle_radius + plan.tip_radius
     assert abs(planned - truth) <= SCALE_ERROR * truth, (
         f"{strategy}: planned contact {planned / NM:.1f} nm, the truth's in the maps' frame "

@@ -19,10 +19,9 @@ import numpy as np
 import pytest
 from sim_calibration import oracle_calibration
 from test_closed_loop_frame import (
-    SCALE_ERROR,
     SIM_CALIBRATION,
+    assert_contact_in_maps_frame,
     first_plan,
-    true_contact_in_maps,
 )
 
 from afm_core.evaluation import image_frame_matrix
@@ -158,12 +157,7 @@ def test_the_rod_hands_plan_the_maps_frames_contact_distance(strategy):
         [-math.sin(tube.orientation), math.cos(tube.orientation)]
     )
     plan = first_plan(session.procedure, tube.id, goal, strategy)
-    truth = true_contact_in_maps(plan, tube.radius)
-    planned = plan.particle_radius + plan.tip_radius
-    assert abs(planned - truth) <= SCALE_ERROR * truth, (
-        f"{strategy}: planned reach {planned / NM:.1f} nm, the truth's in the maps' frame "
-        f"{truth / NM:.1f} nm"
-    )
+    assert_contact_in_maps_frame(plan, tube.radius, strategy)
 
 
 def test_rod_goals_are_refused_naming_the_field(calibration):

@@ -115,6 +115,22 @@ def judge(probability: float) -> str:
     return CANNOT_TELL
 
 
+def verdict_shares(verdicts, truly) -> dict:
+    """How a set of pushes' verdicts read against the truth (truly: each push's true error within
+    its tolerance): the three answers' shares and the agreement of the definite ones."""
+    verdicts, truly = np.asarray(verdicts), np.asarray(truly, bool)
+    within, outside = verdicts == WITHIN, verdicts == OUTSIDE
+    definite = within | outside
+    return {
+        "share_within": float(np.mean(within)),
+        "share_outside": float(np.mean(outside)),
+        "share_cannot_tell": float(np.mean(~definite)),
+        "agreement_definite": float(np.mean((within == truly)[definite]))
+        if definite.any()
+        else 1.0,
+    }
+
+
 def maps_displacement(
     verification: VerificationResult, calibration: Calibration
 ) -> tuple[np.ndarray, np.ndarray]:
