@@ -17,6 +17,7 @@ from afm_core.evaluation import (
     image_frame_matrix,
     scan_against_truth,
     tip_against_truth,
+    truth_frame,
     truth_index_at,
     truth_xy,
 )
@@ -38,6 +39,7 @@ def evaluate(run_dir: Path) -> dict:
         recorded_topics = {t: i.message_count for t, i in reader.topics().items()}
         duration = reader.duration_s
     scans, truth, poses, paths, marks = _read_replayed(recording)
+    frame = _truth_frame(recording, truth)
     replay = _replay_check(run_dir / "session.mcap", recording, recorded_topics)
     final_truth = truth_xy(truth, len(truth["log_time"]) - 1)
     with RecordingReader(recording) as reader:
@@ -65,8 +67,8 @@ def evaluate(run_dir: Path) -> dict:
         "final_particles_xy": truth_xy(truth, len(truth["log_time"]) - 1, particles=True).tolist(),
         "truth_radius": [o["radius"] for o in truth["objects"][-1]],
         "scan_arrays": scans,
-        "tip": _tip_against_truth(poses, truth) if poses else {},
-        "tip_first_push": _tip_against_truth(*first_push) if poses else {},
+        "tip": _tip_against_truth(poses, truth, frame) if poses else {},
+        "tip_first_push": _tip_against_truth(*first_push, frame) if poses else {},
         "strokes": _planned_strokes(paths),
         "strokes_by_particle": {pid: _planned_strokes(paths, pid) for pid in _pushed_ids(paths)},
         "truth_by_id": [
@@ -238,8 +240,15 @@ def _landmarks_against_truth(marks, final_truth: np.ndarray) -> list[dict]:
     return landmarks
 
 
-def _tip_against_truth(poses: dict, truth: dict) -> dict:
-    return tip_against_truth(poses, truth, IMAGE_FRAME)
+def _truth_frame(recording: Path, truth: dict) -> tuple:
+    """The frame the localizer is judged in: the first landmark map's own (`truth_frame`)."""
+    with RecordingReader(recording) as reader:
+        marks = reader.arrays("/afm/landmarks") if "/afm/landmarks" in reader.topics() else {}
+    return truth_frame(truth, marks, IMAGE_FRAME)
+
+
+def _tip_against_truth(poses: dict, truth: dict, frame: tuple) -> dict:
+    return {**tip_against_truth(poses, truth, frame[0]), "frame_basis": frame[1]}
 
 
 def _planned_strokes(paths: dict, particle_id: int | None = None) -> list:

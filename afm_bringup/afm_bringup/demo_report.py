@@ -314,6 +314,7 @@ def _tip_section(tip: dict, first: dict):
         ["estimates compared with the truth (one per driver command)", tip["compared"]],
         ["RMS error of the estimate", nm(tip["error_rms"])],
         ["mean NEES (2 dof; consistent filter: about 2)", f"{tip['mean_nees']:.2f}"],
+        ["the truth judged in the frame of", tip.get("frame_basis", "-")],
         [
             "the same over the map and the first push",
             f"{first['mean_nees']:.2f} ({first['compared']} compared)" if first else "-",

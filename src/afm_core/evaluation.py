@@ -120,21 +120,83 @@ def scan_against_truth(
     }
 
 
-def tip_against_truth(poses: dict, truth: dict, image_frame: np.ndarray) -> dict:
-    """The localizer's tip estimates (/afm/tip_pose arrays) against the true tip
-    (/afm/ground_truth arrays): error RMS (m), mean NEES (2 dof: 2 when consistent), the pairs
-    compared with their times (s from the first), errors (estimate minus truth) and sigmas, the
-    final sigma (m). image_frame: true displacement per commanded displacement
-    (image_frame_matrix), as the estimate is in the maps' (commanded) frame."""
-    means = np.stack([poses["pose.pose.position.x"], poses["pose.pose.position.y"]], axis=1)
-    cov = np.asarray(poses["pose.covariance"])[:, [0, 1, 6, 7]].reshape(-1, 2, 2)
-    # the truth is metric: bring it into the maps' frame about where the session started (at
-    # rest, commanded = true)
-    metric = np.stack([truth["tip_position.x"], truth["tip_position.y"]], axis=1)
+def affine_fit(true_xy, mapped_xy) -> np.ndarray:
+    """(2, 3) [A | b] with mapped = A true + b, least squares over the point pairs (m).
+    ValueError when the shapes differ or fewer than 3 non-collinear points are given."""
+    true_xy = np.asarray(true_xy, float).reshape(-1, 2)
+    mapped_xy = np.asarray(mapped_xy, float).reshape(-1, 2)
+    if true_xy.shape != mapped_xy.shape:
+        raise ValueError(f"true_xy {true_xy.shape} and mapped_xy {mapped_xy.shape}: must pair up")
+    centred = true_xy - true_xy.mean(axis=0)
+    # collinear points leave the affine undetermined across their line
+    if len(true_xy) < 3 or np.linalg.matrix_rank(centred, tol=1e-3 * np.abs(centred).max()) < 2:
+        raise ValueError(f"true_xy: need at least 3 non-collinear points, got {len(true_xy)}")
+    design = np.hstack([true_xy, np.ones((len(true_xy), 1))])
+    solution, *_ = np.linalg.lstsq(design, mapped_xy, rcond=None)
+    return solution.T
+
+
+def anchor_frame(truth: dict, image_frame: np.ndarray) -> np.ndarray:
+    """(2, 3) [A | b]: metric truth into the commanded frame about where the session started (at
+    rest there, commanded = true), scaled by `image_frame` (image_frame_matrix). The fallback
+    of `map_frame` for a session without a landmark map."""
+    inverse = np.linalg.inv(image_frame)
+    start_metric = np.array([truth["tip_position.x"][0], truth["tip_position.y"][0]])
     start_commanded = np.array(
         [truth["commanded_position.x"][0], truth["commanded_position.y"][0]]
     )
-    true_tip = start_commanded + (metric - metric[0]) @ np.linalg.inv(image_frame).T
+    return np.hstack([inverse, (start_commanded - inverse @ start_metric)[:, None]])
+
+
+def map_frame(truth: dict, landmarks: dict, image_frame: np.ndarray) -> np.ndarray | None:
+    """(2, 3) [A | b]: the first landmark map's own frame, the affine that takes the true
+    particle centres at its time to their mapped positions, or None when fewer than 3
+    landmarks pair with a true particle. `landmarks`: a recording's /afm/landmarks arrays, of
+    which the first map is taken, before a push moved anything. A landmark pairs with the true
+    centre nearest where `anchor_frame` puts it, within MATCH_DISTANCE (that frame is off by
+    tens of nm, particles are hundreds apart). The localizer's task frame is the map's: a pose
+    is where the map puts the tip, and the truth of that is where the map would put the true
+    tip (docs/localization.md, "Judging the localizer against the truth")."""
+    if not len(landmarks.get("landmarks", [])) or not len(landmarks["landmarks"][0]):
+        return None
+    mapped = np.array([[m["position.x"], m["position.y"]] for m in landmarks["landmarks"][0]])
+    # the truth as the map was published (nothing moves a particle while it is imaged)
+    true_xy = truth_xy(truth, truth_index_at(truth, landmarks["log_time"][0]), particles=True)
+    guess = anchor_frame(truth, image_frame)
+    seen = true_xy @ guess[:, :2].T + guess[:, 2]
+    pairs = []
+    for k, position in enumerate(mapped):
+        distance = np.hypot(*(seen - position).T) if len(seen) else np.array([np.inf])
+        if distance.min() <= MATCH_DISTANCE:
+            pairs.append((int(np.argmin(distance)), k))
+    if len({j for j, _ in pairs}) < 3:
+        return None
+    try:
+        return affine_fit(true_xy[[j for j, _ in pairs]], mapped[[k for _, k in pairs]])
+    except ValueError:
+        return None
+
+
+def truth_frame(truth: dict, landmarks: dict, image_frame: np.ndarray) -> tuple[np.ndarray, str]:
+    """(frame, basis): `map_frame` ("first landmark map"), or without one `anchor_frame`
+    ("session start")."""
+    frame = map_frame(truth, landmarks, image_frame)
+    if frame is not None:
+        return frame, "first landmark map"
+    return anchor_frame(truth, image_frame), "session start"
+
+
+def tip_against_truth(poses: dict, truth: dict, frame: np.ndarray) -> dict:
+    """The localizer's tip estimates (/afm/tip_pose arrays) against the true tip
+    (/afm/ground_truth arrays): error RMS (m), mean NEES (2 dof: 2 when consistent), the pairs
+    compared with their times (s from the first), errors (estimate minus truth) and sigmas, the
+    final sigma (m). frame: (2, 3) [A | b], the metric truth into the frame the estimate is in
+    (`map_frame`, or `anchor_frame` without a map)."""
+    means = np.stack([poses["pose.pose.position.x"], poses["pose.pose.position.y"]], axis=1)
+    cov = np.asarray(poses["pose.covariance"])[:, [0, 1, 6, 7]].reshape(-1, 2, 2)
+    metric = np.stack([truth["tip_position.x"], truth["tip_position.y"]], axis=1)
+    frame = np.asarray(frame, float)
+    true_tip = metric @ frame[:, :2].T + frame[:, 2]
     # the localizer publishes its estimate as each command ends, the driver its truth: compare
     # the pairs with the same stamp (error and NEES). Recordings made before 2026-11-27 hold
     # poses for times past the last command heard (the tip still where the move began), then
@@ -163,6 +225,7 @@ def tip_against_truth(poses: dict, truth: dict, image_frame: np.ndarray) -> dict
         "mean_nees": float(np.mean(nees)) if nees else float("nan"),
         "compared": int(len(errors)),
         "final_sigma": np.sqrt(np.diag(cov[-1])).tolist(),
+        "frame": frame.tolist(),
     }
 
 
