@@ -68,3 +68,23 @@ def test_bad_scans_are_refused_by_name():
     small = ScanRequest(55e-6, 55e-6, 0.5e-6, 0.5e-6, 64, 64)
     with pytest.raises(ValueError, match="1 um"):
         maps_frame_matrix(config, [small])
+
+
+def test_the_demo_judges_a_push_in_the_first_maps_own_frame():
+    """The demo's push truth: the true displacement through the first map's affine (its goal's
+    frame), the creep-free step's beside it; closed forms of a push along -y."""
+    from afm_bringup.demo_evaluation import IMAGE_FRAME, push_truth, truth_in_maps
+
+    gain = 1.02 * np.linalg.inv(IMAGE_FRAME)  # map per true, 2 % above the creep-free step
+    frame = np.hstack([gain, [[1e-7], [-2e-7]]])
+    anchor = {"commanded": [55e-6, 55e-6], "metric": [55e-6, 55e-6], "frame": frame.tolist()}
+    start, shift = np.array([55e-6, 55e-6]), np.array([0.0, -500e-9])
+    result = {"truth_objects": [start[None, :], (start + shift)[None, :]], "truth_anchor": anchor}
+    goal = start + [0.0, -500e-9]
+    push = {"ran": True, "start": start.tolist(), "goal": goal.tolist(), "achieved": goal}
+    truth = push_truth(result, push)
+    wanted = goal - start
+    assert truth["true_error"] == pytest.approx(np.hypot(*(gain @ shift - wanted)), rel=1e-9)
+    old = np.linalg.solve(IMAGE_FRAME, shift)
+    assert truth["true_error_creep_free"] == pytest.approx(np.hypot(*(old - wanted)), rel=1e-9)
+    assert np.allclose(truth_in_maps([start], anchor), gain @ start + frame[:, 2], atol=1e-15)
