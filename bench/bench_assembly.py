@@ -429,6 +429,8 @@ def main() -> int:
 
     workdir = Path(tempfile.mkdtemp(prefix="bench_assembly-"))
     log(f"node logs in {workdir}")
+    # before any graph runs: the map's frame takes a simulated 0/90 pair (tens of seconds)
+    log(f"map's frame, true per map displacement: {maps_frame().round(4).tolist()}")
     command = (
         f"scripts/with_env.sh python bench/bench_assembly.py --seeds {args.seeds}"
         + (f" --first-seed {args.first_seed}" if args.first_seed else "")

@@ -375,6 +375,8 @@ def main() -> int:
     rows = []
     workdir = Path(tempfile.mkdtemp(prefix="bench_push_graph-"))
     log(f"node logs in {workdir}")
+    # before any graph runs: the map's frame takes a simulated 0/90 pair (tens of seconds)
+    log(f"map's frame, true per map displacement: {maps_frame().round(4).tolist()}")
     for seed in range(args.seeds):
         rows += run_seed(seed, workdir, log, args.table_7_6, args.tolerance)
     summary = summarise(rows)
