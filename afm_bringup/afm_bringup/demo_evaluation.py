@@ -77,7 +77,7 @@ def evaluate(run_dir: Path) -> dict:
         ],
         "believed": believed,
         "truth_objects": [truth_xy(truth, i) for i in range(len(truth["log_time"]))],
-        "truth_anchor": _truth_anchor(truth),
+        "truth_anchor": _truth_anchor(truth, frame[0]),
         "force_strokes": _force_strokes(traces),
         "map_image": _last_map(maps),
         "tip_shape": estimate_run_tip(
@@ -102,20 +102,29 @@ def _until(arrays: dict, t: float) -> dict:
     }
 
 
-def _truth_anchor(truth: dict) -> dict:
-    """Where the session started, commanded (maps' frame) and true (metric): at rest there,
-    commanded = true, which ties the simulator's metric truth to the maps' frame
-    (`truth_in_maps`)."""
-    return {
+def _truth_anchor(truth: dict, frame=None) -> dict:
+    """What ties the simulator's metric truth to the maps' frame (`truth_in_maps`): "frame",
+    the first map's own (`_truth_frame`, [A | b], map = A true + b), the frame its goals are
+    given in; and where the session started, commanded and true (at rest there, commanded =
+    true), which with the creep-free step (IMAGE_FRAME) gives the frame used before
+    2026-11-28 ("creep_free", `truth_in_maps(..., creep_free=True)`)."""
+    anchor = {
         "commanded": [truth["commanded_position.x"][0], truth["commanded_position.y"][0]],
         "metric": [truth["tip_position.x"][0], truth["tip_position.y"][0]],
     }
+    if frame is not None:
+        anchor["frame"] = np.asarray(frame, float).tolist()
+    return anchor
 
 
-def truth_in_maps(points, anchor: dict) -> np.ndarray:
-    """True (metric) positions as the maps' frame has them: about the start, scaled by the
-    simulated scanner's image frame (IMAGE_FRAME)."""
+def truth_in_maps(points, anchor: dict, creep_free: bool = False) -> np.ndarray:
+    """True (metric) positions as the maps' frame has them: through the first map's own frame
+    (anchor["frame"]); without one, or `creep_free`, about the session's start scaled by the
+    creep-free step (IMAGE_FRAME), 2 % off the map's gain on the default simulator."""
     p = np.asarray(points, float).reshape(-1, 2)
+    if "frame" in anchor and not creep_free:
+        frame = np.asarray(anchor["frame"], float)
+        return p @ frame[:, :2].T + frame[:, 2]
     return (
         np.asarray(anchor["commanded"])
         + (p - np.asarray(anchor["metric"])) @ np.linalg.inv(IMAGE_FRAME).T
@@ -288,13 +297,18 @@ def push_truth(result: dict, push: dict) -> dict:
     first = np.asarray(result["truth_objects"][0])
     index = int(np.argmin(np.hypot(*(first - np.asarray(push["start"])).T)))
     track = np.array([objects[index] for objects in result["truth_objects"]])
-    moved = np.linalg.solve(IMAGE_FRAME, track[-1] - track[0])  # in the maps' frame
+    anchor = result["truth_anchor"]
+    # the displacement in the maps' frame: the map's own, and the creep-free step's (before)
+    moved, creep_free = (
+        np.diff(truth_in_maps(track[[0, -1]], anchor, old), axis=0)[0] for old in (False, True)
+    )
     wanted = np.asarray(push["goal"]) - np.asarray(push["start"])
     axis = wanted / np.linalg.norm(wanted)
     return {
         "track": track,
         "true_displacement": moved.tolist(),
         "true_error": float(np.linalg.norm(moved - wanted)),
+        "true_error_creep_free": float(np.linalg.norm(creep_free - wanted)),
         "along": float(moved @ axis),
         "sideways": float(moved @ np.array([-axis[1], axis[0]])),
         "verified_displacement": (

@@ -64,6 +64,10 @@ def write_report(
     )
     truth = push_truth(result, push)
     pattern_truth = assembly_truth(result, assembly, lambda p: truth_in_maps(p, anchor))
+    if pattern_truth:  # the figure in the frame used before 2026-11-28, beside it
+        pattern_truth["rms_creep_free"] = assembly_truth(
+            result, assembly, lambda p: truth_in_maps(p, anchor, creep_free=True)
+        )["rms"]
     tip = result.get("tip") or {}
     sections = [_summary_section(result, memory, codes, elapsed, assembly)]
     if assembly.get("order"):

@@ -399,3 +399,78 @@ def pattern_against_truth(starts, goals, true_before, true_after) -> dict:
         "within_20nm": float(np.mean(errors <= 20e-9)),
         "within_10nm": float(np.mean(errors <= 10e-9)),
     }
+
+
+def maps_frame_matrix(config, scans, approach_overshoot: float = 0.0) -> np.ndarray:
+    """Evaluation only (simulator truth): true displacement per map displacement of a map
+    imaged as `scans` (ScanRequests of one area: one image as it is, or a 0 and a 90 deg image
+    corrected for drift as the imaging node corrects a pair, `compensate_pair`), the frame a
+    push planned on that map is judged in (docs/manipulation.md, "The truth's frame"). The map
+    is imaged on a copy of `config` whose sample is a 3 x 3 lattice of spheres over the area
+    (r = 100 nm, or a fifth of the pitch); the result is the inverse of the affine that takes
+    their true centres to their landmarks. Drift, creep and noise draw from streams that do not
+    depend on the sample, so a session's own config (seed included) gives that session's map
+    frame, drift and all; with drift off, the frame of a drift-free map. The images are taken
+    from the tip's rest at the range centre, each approached from `approach_overshoot` image
+    sizes beyond its start (the driver's raster approach; 0: the simulator's own approach).
+
+    It differs from `image_frame_matrix` (a creep-free step) where creep is on: a scan line is
+    traced faster than the creep follows, so a map's fast axis images short by about the creep
+    fractions (2 % on the default simulator), its slow axis by what the creep follows in the
+    image's time, and a 0/90 pair's drift correction takes the two images' difference for drift
+    and leaves the pair at the fast axis's gain on both axes. ValueError when a scan is not
+    0 or 90 deg, a pair is not one 0 and one 90 deg image of the same area, the area is under
+    1 um, or not all 9 spheres are found."""
+    from afm_core.imaging.drift_compensation import compensate_pair
+    from afm_core.imaging.landmarks import extract_landmarks
+    from afm_core.imaging.raster_approach import approach_point
+    from afm_core.sim.config import merge
+    from afm_core.sim.instrument import SimulatedAfm
+
+    scans = list(scans)
+    first = scans[0] if scans else None
+    if len(scans) == 2 and {s.scan_angle_deg for s in scans} != {0.0, 90.0}:
+        raise ValueError("scans: a pair must be one 0 deg and one 90 deg image")
+    if len(scans) not in (1, 2) or any(
+        (s.origin_x, s.origin_y, s.size_x, s.size_y)
+        != (first.origin_x, first.origin_y) + (first.size_x, first.size_y)
+        for s in scans
+    ):
+        raise ValueError(f"scans: need 1 image or a 0/90 pair of one area, got {len(scans)}")
+    if min(first.size_x, first.size_y) < 1e-6:
+        raise ValueError(f"scans: area {first.size_x} x {first.size_y} m, must be >= 1 um")
+    pitch = np.array([first.size_x, first.size_y]) / 3.6  # the lattice keeps 0.8 pitch clear
+    centre = np.array([first.origin_x + first.size_x / 2, first.origin_y + first.size_y / 2])
+    radius = min(100e-9, float(pitch.min()) / 5)
+    true_xy = np.array([centre + pitch * (i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)])
+    sample = {
+        "spheres": [{"x": x, "y": y, "radius": radius} for x, y in true_xy],
+        "rods": [],
+        "electrodes": [],
+        "random_spheres": 0,
+    }
+    sim = SimulatedAfm(merge(config, {"sample": sample}))
+    images = {}
+    for scan in scans:
+        if approach_overshoot > 0:
+            beyond = approach_point(scan, approach_overshoot, sim.limits)
+            sim.move_tip(*beyond, sim.limits.max_speed / 10)
+        images[scan.scan_angle_deg] = sim.raster_scan(scan)
+    image = images[first.scan_angle_deg] if len(scans) == 1 else images[0.0]
+    height = (
+        image.height if len(scans) == 1 else compensate_pair(images[0.0], images[90.0]).corrected
+    )
+    marks = extract_landmarks(
+        np.asarray(height, float),
+        image.pixel_size_x,
+        image.pixel_size_y,
+        image.origin_x,
+        image.origin_y,
+    )
+    mapped = np.array([[m.x, m.y] for m in marks]).reshape(-1, 2)
+    # map and truth differ by a few % about the range centre: tens of nm, the pitch is 280+
+    pairs = [(int(np.argmin(np.hypot(*(true_xy - p).T))), k) for k, p in enumerate(mapped)]
+    if len(marks) != 9 or len({j for j, _ in pairs}) != 9:
+        raise ValueError(f"maps_frame_matrix: the map shows {len(marks)} of the 9 spheres")
+    fit = affine_fit(true_xy[[j for j, _ in pairs]], mapped[[k for _, k in pairs]])
+    return np.linalg.inv(fit[:, :2])
