@@ -10,6 +10,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import rclpy
 from rclpy.executors import (
@@ -23,6 +24,7 @@ from afm_ros import exposure, stall_watch
 from afm_ros.action_client import STOPPING
 from afm_ros.executor import multi_threaded
 
+_LOADED = time.monotonic()
 DRAIN_IDLE = 0.01  # s without a ready callback: what had arrived is taken
 # After SIGINT/SIGTERM a callback in progress gets this long to end (waits for other servers
 # end at once through STOPPING); one that does not (a long computation) is abandoned and the
@@ -47,6 +49,16 @@ def die_with_parent() -> None:
         )
     if os.getppid() != int(expected):
         os.kill(os.getpid(), signal.SIGTERM)
+
+
+def seconds_since_start() -> float:
+    """Seconds since this process started (Linux: /proc; elsewhere since this module loaded)."""
+    try:
+        ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return uptime - ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return time.monotonic() - _LOADED
 
 
 def freeze_startup_heap() -> None:
@@ -109,6 +121,11 @@ def run(
     watch = stall_watch.start_from_environment(program)  # AFM_STALL_WATCH: a diagnosis, off
     executor = multi_threaded(threads) if threads > 1 else SingleThreadedExecutor()
     executor.add_node(node)
+    # one line per node when it starts to serve: a client that finds no server can then tell a
+    # node that never got here (its import or construction) from one the graph did not discover
+    node.get_logger().info(
+        f"spinning ({threads} threads), {seconds_since_start():.2f} s after its process started"
+    )
     status = 0
     try:
         # spin in slices: a Python signal handler runs only between them
