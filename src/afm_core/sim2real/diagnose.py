@@ -138,22 +138,14 @@ def diagnose(
         )
     chosen, parameters, overrides = decision.chosen, decision.parameters, decision.overrides
     heldout = decision.heldout
-    verdict, note = decision.verdict, decision.note
     with timed("generic"):
-        # the named terms against the simplest generic form of the same residual (rival.py)
-        rival, signature, generic = _generic_rival(
+        verdict, note, rival, signature, generic = _judged_and_described(
             sess, evidence, deviations, design.terms, decision, heldout_resimulation, say
         )
-        verdict = ruling(verdict, rival)
-        if rival and not rival["library_better"]:
-            note = "; ".join(filter(None, [note, rival_words(rival, chosen)]))
-            overrides = {}
-        elif chosen or signature is None:
-            signature, generic = describe_unexplained(
-                sess, evidence, deviations, design.terms, chosen, parameters, heldout, say
-            )
     # a term not named (its held-out check got worse, say), or one this session cannot tell
     # from a generic form, updates no configuration
+    if rival and not rival["library_better"]:
+        overrides = {}
     updated = merge(config, overrides) if chosen and overrides else None
     if verdict == NO_MISSING_PHYSICS and signature is not None and signature.signals:
         # one group beyond its own noise although the whole residual is not: still unexplained
@@ -192,6 +184,30 @@ def diagnose(
         generic=generic,
         rival=rival,
     )
+
+
+def _judged_and_described(sess, evidence, deviations, terms, decision, resimulate, say):
+    """(verdict, note, rival, signature, generic fit): the named terms against their generic
+    rival (rival.py), and what no library term explains (generic_fit.describe_unexplained),
+    the nominal residual's own description when the session cannot tell them apart."""
+    rival, signature, generic = _generic_rival(
+        sess, evidence, deviations, terms, decision, resimulate, say
+    )
+    verdict, note = ruling(decision.verdict, rival), decision.note
+    if rival and not rival["library_better"]:
+        note = "; ".join(filter(None, [note, rival_words(rival, decision.chosen)]))
+    else:
+        signature, generic = describe_unexplained(
+            sess,
+            evidence,
+            deviations,
+            terms,
+            decision.chosen,
+            decision.parameters,
+            decision.heldout,
+            say,
+        )
+    return verdict, note, rival, signature, generic
 
 
 def _generic_rival(sess, evidence, deviations, terms, decision, resimulate: bool, say):
