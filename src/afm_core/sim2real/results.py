@@ -134,10 +134,11 @@ class Diagnosis:
             r = self.rival
             return (
                 f"{PARTLY_EXPLAINED} (this session cannot tell): {' + '.join(self.chosen)} or a "
-                f"generic {r['form']} on the {r['signal']} signal explain the held-out blocks "
-                f"alike (chi2 {r['chi2_library']:.1f} and {r['chi2_generic']:.1f} for {r['dof']} "
-                f"dof; a library term must do better by {r['bound']:.1f}); no configuration is "
-                f"updated. The library term's fit: {text}{self._signature_words()}"
+                f"generic {r['form']} on the {r['signal']} signal; the library does not explain "
+                f"the held-out blocks better (chi2 {r['chi2_library']:.1f} with it, "
+                f"{r['chi2_generic']:.1f} with the generic form, for {r['dof']} dof; it must do "
+                f"better by {r['bound']:.1f}), so no configuration is updated. The library "
+                f"term's fit: {text}{self._signature_words()}"
             )
         if self.verdict == PARTLY_EXPLAINED:
             where = "; ".join(
