@@ -26,7 +26,8 @@ The stages, in the order `diagnose` runs them (all SI; each module's docstring s
 6. Held-out demonstration (heldout.py): fit on one fold only, re-simulate the whole session
    with that fit, residuals on the other fold before and after; the naming rule and the
    verdict on it (verdict.py: named, partly explained, not explained by the library, no
-   missing physics).
+   missing physics); a named set then meets the simplest generic form of the same residual
+   (rival.py): no better than it, "partly explained (this session cannot tell)", no update.
 7. What no library term explains (generic_fit.py): its signature (signature.py) and a generic
    simulator term of that form, fitted and checked on held-out blocks the same way.
 """
