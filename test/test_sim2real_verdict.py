@@ -215,6 +215,39 @@ def test_the_verdict_json_of_a_named_term(tmp_path):
     assert (record["heldout"]["chi2_before"], record["heldout"]["dof"]) == (800.0, 211)
 
 
+def test_a_term_no_better_than_its_generic_rival_updates_no_config(tmp_path):
+    """Friction named by the held-out rule (399.7 -> 217.7 for 243 dof) on a torsion that a
+    generic linear trend in time explains better (205.6): partly explained, this session
+    cannot tell, no updated configuration; verdict.json says why."""
+    from afm_core.sim2real.report import write_report
+    from afm_core.sim2real.rival import ruling
+
+    config = _nominal(3)
+    tried = [(["friction"], np.array([0.0919]), np.array([0.00045]))]
+    checked = {("friction",): _check(399.7, 217.7, 243)}
+    decision, evidence = _decide(config, ["friction"], tried, checked)
+    assert decision.verdict == NAMED  # the held-out rule alone
+    rival = {
+        "form": "linear trend",
+        "signal": "torsion",
+        "parameters": 2,
+        "chi2_library": 217.7,
+        "chi2_generic": 205.6,
+        "dof": 243,
+        "bound": float(stats.chi2.isf(0.05, 2)),
+        "library_better": False,
+    }
+    d = _diagnosis(decision, evidence, config)
+    d.verdict, d.rival = ruling(decision.verdict, rival), rival
+    assert d.verdict == PARTLY_EXPLAINED and d.cannot_tell_generic
+    assert "cannot tell" in d.summary() and "linear trend" in d.summary()
+    write_report(d, tmp_path, config=config)
+    assert not (tmp_path / "updated_config.yaml").exists()
+    record = json.loads((tmp_path / "verdict.json").read_text())
+    assert record["cannot_tell_generic"] is True and record["updated_config_written"] is False
+    assert record["generic_rival"]["chi2_generic"] == 205.6
+
+
 def test_a_pair_that_fails_falls_back_to_the_leader_alone():
     """A second term whose pair leaves the held-out blocks worse than the leader alone does:
     the leader is judged alone, at its own fit, and named alone when it passes."""

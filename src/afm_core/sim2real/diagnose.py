@@ -26,7 +26,8 @@ The stages, in the order `diagnose` runs them (all SI; each module's docstring s
 6. Held-out demonstration (heldout.py): fit on one fold only, re-simulate the whole session
    with that fit, residuals on the other fold before and after; the naming rule and the
    verdict on it (verdict.py: named, partly explained, not explained by the library, no
-   missing physics).
+   missing physics); a named set then meets the simplest generic form of the same residual
+   (rival.py): no better than it, "partly explained (this session cannot tell)", no update.
 7. What no library term explains (generic_fit.py): its signature (signature.py) and a generic
    simulator term of that form, fitted and checked on held-out blocks the same way.
 """
@@ -53,7 +54,14 @@ from afm_core.sim2real.noise_term import sensor_noise_first
 from afm_core.sim2real.reference import NoFeaturesError, build_reference
 from afm_core.sim2real.refinement import compare_leaders
 from afm_core.sim2real.report import write_report
-from afm_core.sim2real.results import NO_MISSING_PHYSICS, NOT_EXPLAINED, Diagnosis
+from afm_core.sim2real.results import (
+    NAMED,
+    NO_MISSING_PHYSICS,
+    NOT_EXPLAINED,
+    PARTLY_EXPLAINED,
+    Diagnosis,
+)
+from afm_core.sim2real.rival import compare_rival, rival_words, ruling
 from afm_core.sim2real.second_term import add_second_term
 from afm_core.sim2real.session_reader import read_operations
 from afm_core.sim2real.session_scope import (
@@ -131,13 +139,15 @@ def diagnose(
         )
     chosen, parameters, overrides = decision.chosen, decision.parameters, decision.overrides
     heldout = decision.heldout
-    # a term not named (its held-out check got worse, say) updates no configuration
-    updated = merge(config, overrides) if chosen else None
     with timed("generic"):
-        signature, generic = describe_unexplained(
-            sess, evidence, deviations, design.terms, chosen, parameters, heldout, say
+        verdict, note, rival, signature, generic = _judged_and_described(
+            sess, evidence, deviations, design.terms, decision, heldout_resimulation, say
         )
-    verdict, note = decision.verdict, decision.note
+    # a term not named (its held-out check got worse, say), or one this session cannot tell
+    # from a generic form, updates no configuration
+    if rival and not rival["library_better"]:
+        overrides = {}
+    updated = merge(config, overrides) if chosen and overrides else None
     if verdict == NO_MISSING_PHYSICS and signature is not None and signature.signals:
         # one group beyond its own noise although the whole residual is not: still unexplained
         verdict = NOT_EXPLAINED
@@ -173,7 +183,54 @@ def diagnose(
         cannot_tell=untold,
         signature=signature,
         generic=generic,
+        rival=rival,
     )
+
+
+def _judged_and_described(sess, evidence, deviations, terms, decision, resimulate, say):
+    """(verdict, note, rival, signature, generic fit): the named terms against their generic
+    rival (rival.py), and what no library term explains (generic_fit.describe_unexplained),
+    the nominal residual's own description when the session cannot tell them apart."""
+    rival, signature, generic = _generic_rival(
+        sess, evidence, deviations, terms, decision, resimulate, say
+    )
+    verdict, note = ruling(decision.verdict, rival), decision.note
+    if rival and not rival["library_better"]:
+        note = "; ".join(filter(None, [note, rival_words(rival, decision.chosen)]))
+    else:
+        signature, generic = describe_unexplained(
+            sess,
+            evidence,
+            deviations,
+            terms,
+            decision.chosen,
+            decision.parameters,
+            decision.heldout,
+            say,
+        )
+    return verdict, note, rival, signature, generic
+
+
+def _generic_rival(sess, evidence, deviations, terms, decision, resimulate: bool, say):
+    """(rival comparison, signature, generic fit) of a set of named library terms (rival.py):
+    the nominal residual described and its generic form fitted and re-simulated, compared with
+    the named terms on the held-out blocks. ({}, None, {}) when there is nothing to compare:
+    nothing named, no held-out demonstration, or a sensor-noise term alone (a noise level is
+    judged on the noise statistics, which no generic offset moves)."""
+    library = [n for n in decision.chosen if terms[n][0].analytic != "sensor_noise"]
+    if decision.verdict not in (NAMED, PARTLY_EXPLAINED) or not resimulate or not library:
+        return {}, None, {}
+    say("the named terms against the generic form of the nominal residual")
+    signature, generic = describe_unexplained(sess, evidence, deviations, terms, [], {}, {}, say)
+    if signature is None:
+        return {}, None, {}
+    rival = compare_rival(evidence, decision.heldout, generic, sess.r_before)
+    if rival:
+        say(
+            f"held-out chi2 {rival['chi2_library']:.1f} (library) against "
+            f"{rival['chi2_generic']:.1f} (generic {rival['form']}; bound {rival['bound']:.1f})"
+        )
+    return rival, signature, generic
 
 
 def _structured(signature, where_rows: list) -> bool:

@@ -172,6 +172,8 @@ def verdict_record(diagnosis) -> dict:
             for row in diagnosis.remaining
         ],
         "not_named": diagnosis.verdict_note,
+        "generic_rival": dict(diagnosis.rival),
+        "cannot_tell_generic": diagnosis.cannot_tell_generic,
         "overall": dict(diagnosis.overall),
         "cannot_tell": list(diagnosis.cannot_tell),
         "excluded": list(diagnosis.excluded),
@@ -269,7 +271,13 @@ def _candidates_section(diagnosis, figures: list[str]) -> list[str]:
 def _update_section(diagnosis, out: Path) -> list[str]:
     """The fitted parameters; writes the updated config and its overrides beside the report."""
     lines = ["", "## 3. The model update", ""]
-    if diagnosis.chosen and diagnosis.verdict in (NAMED, PARTLY_EXPLAINED):
+    if diagnosis.cannot_tell_generic:
+        lines += [
+            "Nothing added: this session cannot tell the library term from a generic form of "
+            "the same residual (see the verdict); the configuration is left as it is."
+        ]
+        overrides = {}
+    elif diagnosis.chosen and diagnosis.verdict in (NAMED, PARTLY_EXPLAINED):
         lines += ["| config key | fitted | +- | model had |", "|---|---|---|---|"]
         for key, p in diagnosis.parameters.items():
             note = f" ({UNRESOLVED})" if unresolved(p) else ""

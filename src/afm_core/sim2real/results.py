@@ -79,6 +79,15 @@ class Diagnosis:
     cannot_tell: list = field(default_factory=list)
     signature: object = None  # signature.Signature of what no term explains (None: nothing left)
     generic: dict = field(default_factory=dict)  # generic_fit.generic_fit: the generic term
+    # rival.compare_rival: the named terms against the generic form of the nominal residual
+    # ({} when none was compared); library_better False: this session cannot tell them apart
+    rival: dict = field(default_factory=dict)
+
+    @property
+    def cannot_tell_generic(self) -> bool:
+        """Whether the chosen terms are no better than a generic form of the same residual
+        (rival.py): partly explained, no updated configuration."""
+        return bool(self.rival) and not self.rival.get("library_better", True)
 
     @property
     def missing_physics(self) -> bool:
@@ -121,6 +130,16 @@ class Diagnosis:
             )
             parts.append(f"{c.words}: {values}")
         text = "; ".join(parts) + self._heldout_words()
+        if self.cannot_tell_generic:
+            r = self.rival
+            return (
+                f"{PARTLY_EXPLAINED} (this session cannot tell): {' + '.join(self.chosen)} or a "
+                f"generic {r['form']} on the {r['signal']} signal; the library does not explain "
+                f"the held-out blocks better (chi2 {r['chi2_library']:.1f} with it, "
+                f"{r['chi2_generic']:.1f} with the generic form, for {r['dof']} dof; it must do "
+                f"better by {r['bound']:.1f}), so no configuration is updated. The library "
+                f"term's fit: {text}{self._signature_words()}"
+            )
         if self.verdict == PARTLY_EXPLAINED:
             where = "; ".join(
                 f"{row['where']} (chi2 {row['chi2']:.1f} for {row['n']})" for row in self.remaining

@@ -27,7 +27,10 @@ The terms are tried as a set (a sensor-noise term first, the leader, a second te
 that fails is tried without its last library term (the leader alone: its held-out check is
 usually made already for the second term), and an accepted noise term last alone.
 When none passes, nothing is named and no updated configuration is written: "not explained by
-the library" when the residual exceeds the noise model, else "no missing physics".
+the library" when the residual exceeds the noise model, else "no missing physics". A set named
+here still meets its generic rival (rival.py, run by diagnose.py): no better on the held-out
+blocks than the simplest generic form of the same residual, it is "partly explained (this
+session cannot tell)" and updates no configuration.
 """
 
 from __future__ import annotations
