@@ -167,7 +167,9 @@ def procedure_run(seed: int, calibration, image_frame: np.ndarray) -> dict:
         sim,
         localize_with(localizer),
         lambda: marks,
-        scanner_matrix=calibration.scanner_matrix,
+        # the whole calibration, as the node and the other benches pass it, not its scanner
+        # matrix alone
+        calibration=calibration,
         on_moved=lambda moved: marks.__setitem__(moved.id, moved),
     )
     t0, sim_t0 = time.perf_counter(), sim.time
