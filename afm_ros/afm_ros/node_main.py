@@ -14,7 +14,6 @@ from collections.abc import Callable
 import rclpy
 from rclpy.executors import (
     ExternalShutdownException,
-    MultiThreadedExecutor,
     SingleThreadedExecutor,
     TimeoutException,
 )
@@ -22,6 +21,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from afm_ros import exposure, stall_watch
 from afm_ros.action_client import STOPPING
+from afm_ros.executor import multi_threaded
 
 DRAIN_IDLE = 0.01  # s without a ready callback: what had arrived is taken
 # After SIGINT/SIGTERM a callback in progress gets this long to end (waits for other servers
@@ -107,9 +107,7 @@ def run(
         threads = threads(node)
     freeze_startup_heap()
     watch = stall_watch.start_from_environment(program)  # AFM_STALL_WATCH: a diagnosis, off
-    executor = (
-        MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
-    )
+    executor = multi_threaded(threads) if threads > 1 else SingleThreadedExecutor()
     executor.add_node(node)
     status = 0
     try:
