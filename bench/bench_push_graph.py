@@ -28,7 +28,8 @@ which on the default simulated scanner is ~6 % smaller than the sample, see
 afm_core.evaluation.image_frame_matrix) within 20 nm of the planned one. Also the action's own
 verdict (the rescan) and the run time per push.
 
-Run: `scripts/with_env.sh python bench/bench_push_graph.py [--seeds 20]` (~10 min).
+Run: `scripts/with_env.sh python bench/bench_push_graph.py [--seeds 30]` (~15 min for 30 seeds
+on two loaded cores, the rods included).
 Results: bench/results/push_graph.json.
 """
 
