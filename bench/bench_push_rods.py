@@ -67,7 +67,7 @@ def case(seed: int) -> dict:
 
 
 def push_once(seed: int, strategy: str) -> dict:
-    from afm_core.evaluation import image_frame_matrix
+    from afm_core.evaluation import image_frame_matrix, rod_pose_against_truth
     from afm_core.imaging.landmarks import extract_landmarks
     from afm_core.instrument import ScanRequest
     from afm_core.localization import Localizer
@@ -130,15 +130,10 @@ def push_once(seed: int, strategy: str) -> dict:
     angle_error = abs(wrap_angle((angle1 - angle0) - c["turn"]))
     # the maps' frame (bench_push_graph's convention): true displacements and directions
     # through the inverse of the images' true-per-commanded matrix
-    frame = image_frame_matrix()
-    moved = np.linalg.solve(frame, xy1 - xy0)
-
-    def image_angle(angle):
-        d = np.linalg.solve(frame, [math.cos(angle), math.sin(angle)])
-        return math.atan2(d[1], d[0])
-
-    image_error = float(np.hypot(*(moved - (goal - start))))
-    image_angle_error = abs(wrap_angle(image_angle(angle1) - image_angle(angle0) - c["turn"]))
+    score = rod_pose_against_truth(
+        (*xy0, angle0), (*xy1, angle1), goal - start, c["turn"], image_frame_matrix()
+    )
+    image_error, image_angle_error = score["error"], score["angle_error"]
     return {
         **base,
         "ran": True,
