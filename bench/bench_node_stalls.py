@@ -1,7 +1,8 @@
-"""How often a node of the graph stands still as a whole, and why, with the DDS transport and
-publication mode: what the project had (shared memory, synchronous writes), what it has now
-(UDP on the loopback, synchronous writes; afm_ros.exposure), and asynchronous writes, measured
-but not taken (they lost bursts of publishes).
+"""How often a node of the graph stands still as a whole, and why, with the DDS transport, the
+publication mode and the executor: what the project had (shared memory, synchronous writes,
+rclpy's MultiThreadedExecutor), asynchronous writes (measured, not taken: they lost bursts of
+publishes), and what it has now (UDP on the loopback, synchronous writes, afm_ros.exposure;
+the queue-aware executor, afm_ros.executor).
 
 What is measured
 ----------------
@@ -14,13 +15,20 @@ written up with every thread's stack and each thread's CPU and run-queue time ov
 - starved: the rest, threads queued for a CPU (the machine is loaded).
 A held stall whose stacks show rclpy's publish is a write that waited with the GIL held.
 
-Run: `scripts/with_env.sh python bench/bench_node_stalls.py [--rounds 3] [--busy 0]`
-(~4 min per round at load 8). Results: bench/results/node_stalls.md and node_stalls.json.
+Beside the stalls, the teleop node's own figures from the first test (a 1 s drive at real
+time): commands whose callback ran more than 50 ms after they arrived, the longest such wait,
+the longest segment (one MoveTip round trip to the driver), the command-to-motion latency, and
+how many tests reported the node standing still (their known-defect guard).
+
+Run: `scripts/with_env.sh python bench/bench_node_stalls.py [--rounds 3] [--busy 0]
+[--variants TEXT] [--no-watch] [--name node_stalls]` (~1-4 min per variant and round, with the
+load). Results: bench/results/<name>.md and .json.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import os
 import re
@@ -36,6 +44,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import command_line, machine_record  # noqa: E402
 
 from afm_ros import exposure  # noqa: E402
+from afm_ros.executor import ENVIRONMENT as EXECUTOR  # noqa: E402
+from afm_ros.executor import STOCK  # noqa: E402
 from afm_ros.stall_watch import ENVIRONMENT  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -55,16 +65,32 @@ WITH_SHARED_MEMORY = exposure.LOCALHOST_PROFILE.replace(
     1,
 )
 assert WITH_SHARED_MEMORY.count("afm_shared_memory") == 2, "the profile's layout changed"
-# name: (profile text, publication mode)
+# name: (profile text, publication mode, executor: "" ours, STOCK rclpy's MultiThreadedExecutor)
 VARIANTS = {
-    "shared memory + UDP, synchronous writes (until 2026-11-28)": (
+    "shared memory + UDP, synchronous writes, rclpy's executor (until 2026-11-28)": (
         WITH_SHARED_MEMORY,
         "SYNCHRONOUS",
+        STOCK,
     ),
-    "UDP, synchronous writes (now)": (exposure.LOCALHOST_PROFILE, "SYNCHRONOUS"),
+    "UDP, synchronous writes, rclpy's executor": (
+        exposure.LOCALHOST_PROFILE,
+        "SYNCHRONOUS",
+        STOCK,
+    ),
     # measured, not taken: asynchronous writes lost bursts of publishes (afm_ros.exposure)
-    "UDP, asynchronous writes": (exposure.LOCALHOST_PROFILE, "ASYNCHRONOUS"),
+    "UDP, asynchronous writes, rclpy's executor": (
+        exposure.LOCALHOST_PROFILE,
+        "ASYNCHRONOUS",
+        STOCK,
+    ),
+    "UDP, synchronous writes, queue-aware executor (now)": (
+        exposure.LOCALHOST_PROFILE,
+        "SYNCHRONOUS",
+        "",
+    ),
 }
+# the first teleop test prints what the teleop node measured of its commands and segments
+TIMING = re.compile(r"command-to-motion latency (\d+) ms;.*?teleop's timing (\{[^}]*\})")
 STALL = re.compile(r"STALL ([\d.]+) s, ended \S+ \(monotonic [\d.]+\): (.*)")
 
 
@@ -102,7 +128,7 @@ def own_frames(block: str, count: int = 3) -> list[str]:
     return own[:count]
 
 
-def run_variant(profile_text: str, mode: str) -> dict:
+def run_variant(profile_text: str, mode: str, executor: str, watch_on: bool = True) -> dict:
     with tempfile.TemporaryDirectory(prefix="afm_stalls_") as folder:
         # named as the project's own profile, so the nodes take it as theirs (is_ours)
         profile = Path(folder) / exposure.PROFILE_NAME
@@ -114,10 +140,16 @@ def run_variant(profile_text: str, mode: str) -> dict:
         for name in exposure.PROFILE_VARIABLES:
             env[name] = str(profile)
         env[exposure.PUBLICATION_MODE] = mode
-        env[ENVIRONMENT] = str(watch)
+        if watch_on:
+            env[ENVIRONMENT] = str(watch)
+        else:
+            env.pop(ENVIRONMENT, None)
+        env.pop(EXECUTOR, None)
+        if executor:
+            env[EXECUTOR] = executor
         started = time.monotonic()
         done = subprocess.run(
-            [sys.executable, "-m", "pytest", WORKLOAD, "-q", "-p", "no:cacheprovider", "-rxs"],
+            [sys.executable, "-m", "pytest", WORKLOAD, "-q", "-p", "no:cacheprovider", "-rxsP"],
             cwd=ROOT,
             env=env,
             capture_output=True,
@@ -127,6 +159,7 @@ def run_variant(profile_text: str, mode: str) -> dict:
         lines = done.stdout.strip().splitlines()
         summary = lines[-1] if lines else done.stderr[-300:]
         outcomes = [line[:300] for line in lines if line.startswith(("FAILED", "XFAIL", "ERROR"))]
+        timing = TIMING.search(done.stdout)
         stalls = {}
         for file in sorted(watch.glob("*.stalls.txt")) if watch.is_dir() else []:
             node = file.name.split(".")[0]
@@ -137,6 +170,8 @@ def run_variant(profile_text: str, mode: str) -> dict:
         "wall_s": round(time.monotonic() - started, 1),
         "load_average": os.getloadavg()[0],
         "stalls": stalls,
+        "latency_ms": int(timing.group(1)) if timing else None,
+        "teleop_timing": ast.literal_eval(timing.group(2)) if timing else None,
     }
 
 
@@ -159,27 +194,37 @@ def figures(runs: list[dict]) -> dict:
     }
 
 
-def report(rounds: list[dict], args, started: str, load) -> str:
+def report(rounds: list[dict], chosen: list[str], args, started: str, load) -> str:
     lines = [
-        "# Whole-node stalls in the teleop graph tests, by DDS transport and publication mode",
+        "# Whole-node stalls in the teleop graph tests, by DDS transport, publication mode and "
+        "executor",
         "",
         f"Measured {started} on {load['cpu_count']} CPUs ({load['cpu_model']}), load average "
         f"{load['load_average_at_start'][0]:.1f} at the start, {args.busy} busy loops beside; "
-        f"{args.rounds} rounds, each running `{WORKLOAD}` once per variant with every node's "
-        "stall watch on (0.15 s). On this machine's loopback and our simulated driver only.",
+        f"{args.rounds} rounds, each running `{WORKLOAD}` once per variant, every node's stall "
+        f"watch {'off' if args.no_watch else 'on (0.15 s)'}. On this machine's loopback and our "
+        "simulated driver only.",
         "",
         f"Command: `{command_line()}`",
         "",
         "| variant | held stalls (in publish) | longest held | starved stalls | nodes held "
-        "| tests per round (load average) |",
-        "|---|---|---|---|---|---|",
+        "| teleop stood still (tests) | late commands | longest command wait | longest segment "
+        "| command-to-motion latency, median | tests per round (load average) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for name in VARIANTS:
+    for name in chosen:
         runs = [r[name] for r in rounds]
         f = figures(runs)
+        timings = [r["teleop_timing"] for r in runs if r.get("teleop_timing")]
+        latencies = sorted(r["latency_ms"] for r in runs if r.get("latency_ms") is not None)
+        stood = sum("stood still" in o for r in runs for o in r["outcomes"])
         lines.append(
             f"| {name} | {f['held']} ({f['held_in_publish']}) | {f['held_max_s']:.2f} s | "
-            f"{f['starved']} | {', '.join(f['held_nodes']) or '-'} | "
+            f"{f['starved']} | {', '.join(f['held_nodes']) or '-'} | {stood} | "
+            f"{sum(t.get('late_commands', 0) for t in timings)} | "
+            f"{max((t.get('longest_command_wait', 0) for t in timings), default=0):.3f} s | "
+            f"{max((t.get('longest_segment', 0) for t in timings), default=0):.3f} s | "
+            f"{latencies[len(latencies) // 2] if latencies else '-'} ms | "
             + "; ".join(f"{r['tests']} ({r['load_average']:.1f})" for r in runs)
             + " |"
         )
@@ -201,7 +246,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--busy", type=int, default=0, help="busy loops beside the runs")
+    parser.add_argument(
+        "--variants", default="", help="only the variants whose name contains this text"
+    )
+    parser.add_argument(
+        "--no-watch",
+        action="store_true",
+        help="the nodes' stall watch off (their own figures only)",
+    )
+    parser.add_argument("--name", default="node_stalls", help="results file name (no suffix)")
     args = parser.parse_args()
+    chosen = [name for name in VARIANTS if args.variants in name]
+    if not chosen:
+        parser.error(f"--variants {args.variants!r} matches none of {list(VARIANTS)}")
     started = datetime.now(timezone.utc).isoformat(timespec="seconds")
     load = machine_record(os.getloadavg())
     busy = [subprocess.Popen(["sh", "-c", "while :; do :; done"]) for _ in range(args.busy)]
@@ -209,18 +266,18 @@ def main() -> None:
     try:
         for k in range(args.rounds):
             rounds.append({})
-            for name, (profile, mode) in VARIANTS.items():
-                rounds[-1][name] = run_variant(profile, mode)
+            for name in chosen:
+                rounds[-1][name] = run_variant(*VARIANTS[name], watch_on=not args.no_watch)
                 print(f"round {k + 1} {name}: {json.dumps(rounds[-1][name])}", flush=True)
     finally:
         for loop in busy:
             loop.kill()
-    text = report(rounds, args, started, load)
+    text = report(rounds, chosen, args, started, load)
     print(text)
     RESULTS_DIR.mkdir(exist_ok=True)
-    (RESULTS_DIR / "node_stalls.md").write_text(text)
+    (RESULTS_DIR / f"{args.name}.md").write_text(text)
     record = {"started": started, "machine": load, "command": command_line(), "rounds": rounds}
-    (RESULTS_DIR / "node_stalls.json").write_text(json.dumps(record, indent=1) + "\n")
+    (RESULTS_DIR / f"{args.name}.json").write_text(json.dumps(record, indent=1) + "\n")
 
 
 if __name__ == "__main__":

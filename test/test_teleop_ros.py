@@ -199,9 +199,10 @@ def test_a_twist_moves_the_tip_in_its_direction_within_the_speed_limit_and_the_d
     assert stop_delay < TIMEOUT + 0.3, said  # safety: never later
     if distance <= 0.5 * MAX_SPEED * (last - first) and node_stood_still(status):
         # every command arrived, but the teleop node ran their callbacks late and a segment
-        # took longer than the dead-man timeout: the node itself stood still. Writes that held
-        # the GIL were one cause, removed (docs/interfaces.md); a 1.05 s busy executor thread
-        # seen once is not explained, so the case stays reported, with the nodes' stalls
+        # took longer than the dead-man timeout: the node itself stood still. Two causes were
+        # removed (docs/interfaces.md): writes that held the GIL, and rclpy's executor looping
+        # over re-queued callbacks with the GIL held. Until fresh clones show it gone, the case
+        # stays reported, with the nodes' stalls
         pytest.xfail(
             f"known open defect: the teleop node stood still; {said}; stalls: {stalls_of(peer)}"
         )

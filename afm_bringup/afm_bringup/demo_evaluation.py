@@ -17,6 +17,7 @@ from afm_core.evaluation import (
     image_frame_matrix,
     scan_against_truth,
     tip_against_truth,
+    truth_frame,
     truth_index_at,
     truth_xy,
 )
@@ -38,6 +39,7 @@ def evaluate(run_dir: Path) -> dict:
         recorded_topics = {t: i.message_count for t, i in reader.topics().items()}
         duration = reader.duration_s
     scans, truth, poses, paths, marks = _read_replayed(recording)
+    frame = _truth_frame(recording, truth)
     replay = _replay_check(run_dir / "session.mcap", recording, recorded_topics)
     final_truth = truth_xy(truth, len(truth["log_time"]) - 1)
     with RecordingReader(recording) as reader:
@@ -65,8 +67,8 @@ def evaluate(run_dir: Path) -> dict:
         "final_particles_xy": truth_xy(truth, len(truth["log_time"]) - 1, particles=True).tolist(),
         "truth_radius": [o["radius"] for o in truth["objects"][-1]],
         "scan_arrays": scans,
-        "tip": _tip_against_truth(poses, truth) if poses else {},
-        "tip_first_push": _tip_against_truth(*first_push) if poses else {},
+        "tip": _tip_against_truth(poses, truth, frame) if poses else {},
+        "tip_first_push": _tip_against_truth(*first_push, frame) if poses else {},
         "strokes": _planned_strokes(paths),
         "strokes_by_particle": {pid: _planned_strokes(paths, pid) for pid in _pushed_ids(paths)},
         "truth_by_id": [
@@ -75,7 +77,7 @@ def evaluate(run_dir: Path) -> dict:
         ],
         "believed": believed,
         "truth_objects": [truth_xy(truth, i) for i in range(len(truth["log_time"]))],
-        "truth_anchor": _truth_anchor(truth),
+        "truth_anchor": _truth_anchor(truth, frame[0]),
         "force_strokes": _force_strokes(traces),
         "map_image": _last_map(maps),
         "tip_shape": estimate_run_tip(
@@ -100,20 +102,29 @@ def _until(arrays: dict, t: float) -> dict:
     }
 
 
-def _truth_anchor(truth: dict) -> dict:
-    """Where the session started, commanded (maps' frame) and true (metric): at rest there,
-    commanded = true, which ties the simulator's metric truth to the maps' frame
-    (`truth_in_maps`)."""
-    return {
+def _truth_anchor(truth: dict, frame=None) -> dict:
+    """What ties the simulator's metric truth to the maps' frame (`truth_in_maps`): "frame",
+    the first map's own (`_truth_frame`, [A | b], map = A true + b), the frame its goals are
+    given in; and where the session started, commanded and true (at rest there, commanded =
+    true), which with the creep-free step (IMAGE_FRAME) gives the frame used before
+    2026-11-28 ("creep_free", `truth_in_maps(..., creep_free=True)`)."""
+    anchor = {
         "commanded": [truth["commanded_position.x"][0], truth["commanded_position.y"][0]],
         "metric": [truth["tip_position.x"][0], truth["tip_position.y"][0]],
     }
+    if frame is not None:
+        anchor["frame"] = np.asarray(frame, float).tolist()
+    return anchor
 
 
-def truth_in_maps(points, anchor: dict) -> np.ndarray:
-    """True (metric) positions as the maps' frame has them: about the start, scaled by the
-    simulated scanner's image frame (IMAGE_FRAME)."""
+def truth_in_maps(points, anchor: dict, creep_free: bool = False) -> np.ndarray:
+    """True (metric) positions as the maps' frame has them: through the first map's own frame
+    (anchor["frame"]); without one, or `creep_free`, about the session's start scaled by the
+    creep-free step (IMAGE_FRAME), 2 % off the map's gain on the default simulator."""
     p = np.asarray(points, float).reshape(-1, 2)
+    if "frame" in anchor and not creep_free:
+        frame = np.asarray(anchor["frame"], float)
+        return p @ frame[:, :2].T + frame[:, 2]
     return (
         np.asarray(anchor["commanded"])
         + (p - np.asarray(anchor["metric"])) @ np.linalg.inv(IMAGE_FRAME).T
@@ -238,8 +249,15 @@ def _landmarks_against_truth(marks, final_truth: np.ndarray) -> list[dict]:
     return landmarks
 
 
-def _tip_against_truth(poses: dict, truth: dict) -> dict:
-    return tip_against_truth(poses, truth, IMAGE_FRAME)
+def _truth_frame(recording: Path, truth: dict) -> tuple:
+    """The frame the localizer is judged in: the first landmark map's own (`truth_frame`)."""
+    with RecordingReader(recording) as reader:
+        marks = reader.arrays("/afm/landmarks") if "/afm/landmarks" in reader.topics() else {}
+    return truth_frame(truth, marks, IMAGE_FRAME)
+
+
+def _tip_against_truth(poses: dict, truth: dict, frame: tuple) -> dict:
+    return {**tip_against_truth(poses, truth, frame[0]), "frame_basis": frame[1]}
 
 
 def _planned_strokes(paths: dict, particle_id: int | None = None) -> list:
@@ -279,13 +297,18 @@ def push_truth(result: dict, push: dict) -> dict:
     first = np.asarray(result["truth_objects"][0])
     index = int(np.argmin(np.hypot(*(first - np.asarray(push["start"])).T)))
     track = np.array([objects[index] for objects in result["truth_objects"]])
-    moved = np.linalg.solve(IMAGE_FRAME, track[-1] - track[0])  # in the maps' frame
+    anchor = result["truth_anchor"]
+    # the displacement in the maps' frame: the map's own, and the creep-free step's (before)
+    moved, creep_free = (
+        np.diff(truth_in_maps(track[[0, -1]], anchor, old), axis=0)[0] for old in (False, True)
+    )
     wanted = np.asarray(push["goal"]) - np.asarray(push["start"])
     axis = wanted / np.linalg.norm(wanted)
     return {
         "track": track,
         "true_displacement": moved.tolist(),
         "true_error": float(np.linalg.norm(moved - wanted)),
+        "true_error_creep_free": float(np.linalg.norm(creep_free - wanted)),
         "along": float(moved @ axis),
         "sideways": float(moved @ np.array([-axis[1], axis[0]])),
         "verified_displacement": (

@@ -64,6 +64,10 @@ def write_report(
     )
     truth = push_truth(result, push)
     pattern_truth = assembly_truth(result, assembly, lambda p: truth_in_maps(p, anchor))
+    if pattern_truth:  # the figure in the frame used before 2026-11-28, beside it
+        pattern_truth["rms_creep_free"] = assembly_truth(
+            result, assembly, lambda p: truth_in_maps(p, anchor, creep_free=True)
+        )["rms"]
     tip = result.get("tip") or {}
     sections = [_summary_section(result, memory, codes, elapsed, assembly)]
     if assembly.get("order"):
@@ -314,6 +318,7 @@ def _tip_section(tip: dict, first: dict):
         ["estimates compared with the truth (one per driver command)", tip["compared"]],
         ["RMS error of the estimate", nm(tip["error_rms"])],
         ["mean NEES (2 dof; consistent filter: about 2)", f"{tip['mean_nees']:.2f}"],
+        ["the truth judged in the frame of", tip.get("frame_basis", "-")],
         [
             "the same over the map and the first push",
             f"{first['mean_nees']:.2f} ({first['compared']} compared)" if first else "-",

@@ -40,6 +40,7 @@ from afm_ros import params, topics
 from afm_ros.conversions import (
     FRAME_TASK,
     pose_to_mean_cov,
+    stamp_of,
 )
 from afm_ros.instrument_clock import InstrumentClock
 from afm_ros.landmark_map import NewestLandmarkMap
@@ -129,6 +130,13 @@ class PlannerNode(Node):
     def on_tip_pose(self, msg: PoseWithCovarianceStamped) -> None:
         with self.lock:
             self.tip_pose = msg
+
+    def stamp_now(self):
+        """The instrument time for a plan: never before the map or the tip pose it used."""
+        with self.lock:
+            pose = self.tip_pose
+        inputs = [self.landmarks.stamp, stamp_of(pose.header) if pose is not None else None]
+        return self.instrument_clock.now(not_before=max((s for s in inputs if s), default=None))
 
     def start_estimate(self, start: PoseWithCovarianceStamped):
         """The request's start, or the localizer's latest estimate when the request leaves the
@@ -221,7 +229,7 @@ class PlannerNode(Node):
                 self.noise,
                 direction=request.direction or "h",
             )
-            header = Header(stamp=self.instrument_clock.now(), frame_id=FRAME_TASK)
+            header = Header(stamp=self.stamp_now(), frame_id=FRAME_TASK)
             out = PlannedPath()
             out.path.header = header
             for line in plan.lines:
@@ -295,7 +303,7 @@ class PlannerNode(Node):
 
     # -- outputs -----------------------------------------------------------------------------
     def route_to_msg(self, route) -> PlannedPath:
-        header = Header(stamp=self.instrument_clock.now(), frame_id=FRAME_TASK)
+        header = Header(stamp=self.stamp_now(), frame_id=FRAME_TASK)
         out = PlannedPath()
         out.path.header = header
         for waypoint in route.waypoints:

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from rosgraph_msgs.msg import Clock
 
+from afm_ros.conversions import seconds_to_time
+
 
 class InstrumentClock:
     def __init__(self, node, callback_group=None):
@@ -22,7 +24,17 @@ class InstrumentClock:
     def _take(self, msg: Clock) -> None:
         self.latest = msg.clock
 
-    def now(self):
-        """The latest instrument time heard (builtin_interfaces/Time), else wall time."""
+    def now(self, not_before: float | None = None):
+        """The latest instrument time heard (builtin_interfaces/Time), else wall time; never
+        before `not_before` (s), the stamp of the newest input what is stamped was made from.
+
+        Why: /clock and the inputs come on topics of their own, taken by separate callbacks. A
+        node whose /clock callbacks had not run since a scan began stamped a plan made from that
+        scan's map 32 s (the scan's length) before the map itself, so a recording showed the plan
+        before what it was made from (the Foxglove recording test, 2026-11-28)."""
         latest = self.latest
-        return latest if latest is not None else self.node.get_clock().now().to_msg()
+        if latest is None:
+            latest = self.node.get_clock().now().to_msg()
+        if not_before is not None and latest.sec + latest.nanosec * 1e-9 < not_before:
+            return seconds_to_time(not_before)
+        return latest

@@ -42,6 +42,12 @@ class NewestLandmarkMap:
         with self._lock:
             self._marks, self._stamp = marks, stamp_of(msg.header)
 
+    @property
+    def stamp(self) -> float | None:
+        """The held map's stamp (s), None before the first."""
+        with self._lock:
+            return self._stamp
+
     def current(self) -> dict:
         """The landmarks by id, as held now (empty before the first map)."""
         with self._lock:

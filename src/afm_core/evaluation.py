@@ -120,21 +120,83 @@ def scan_against_truth(
     }
 
 
-def tip_against_truth(poses: dict, truth: dict, image_frame: np.ndarray) -> dict:
-    """The localizer's tip estimates (/afm/tip_pose arrays) against the true tip
-    (/afm/ground_truth arrays): error RMS (m), mean NEES (2 dof: 2 when consistent), the pairs
-    compared with their times (s from the first), errors (estimate minus truth) and sigmas, the
-    final sigma (m). image_frame: true displacement per commanded displacement
-    (image_frame_matrix), as the estimate is in the maps' (commanded) frame."""
-    means = np.stack([poses["pose.pose.position.x"], poses["pose.pose.position.y"]], axis=1)
-    cov = np.asarray(poses["pose.covariance"])[:, [0, 1, 6, 7]].reshape(-1, 2, 2)
-    # the truth is metric: bring it into the maps' frame about where the session started (at
-    # rest, commanded = true)
-    metric = np.stack([truth["tip_position.x"], truth["tip_position.y"]], axis=1)
+def affine_fit(true_xy, mapped_xy) -> np.ndarray:
+    """(2, 3) [A | b] with mapped = A true + b, least squares over the point pairs (m).
+    ValueError when the shapes differ or fewer than 3 non-collinear points are given."""
+    true_xy = np.asarray(true_xy, float).reshape(-1, 2)
+    mapped_xy = np.asarray(mapped_xy, float).reshape(-1, 2)
+    if true_xy.shape != mapped_xy.shape:
+        raise ValueError(f"true_xy {true_xy.shape} and mapped_xy {mapped_xy.shape}: must pair up")
+    centred = true_xy - true_xy.mean(axis=0)
+    # collinear points leave the affine undetermined across their line
+    if len(true_xy) < 3 or np.linalg.matrix_rank(centred, tol=1e-3 * np.abs(centred).max()) < 2:
+        raise ValueError(f"true_xy: need at least 3 non-collinear points, got {len(true_xy)}")
+    design = np.hstack([true_xy, np.ones((len(true_xy), 1))])
+    solution, *_ = np.linalg.lstsq(design, mapped_xy, rcond=None)
+    return solution.T
+
+
+def anchor_frame(truth: dict, image_frame: np.ndarray) -> np.ndarray:
+    """(2, 3) [A | b]: metric truth into the commanded frame about where the session started (at
+    rest there, commanded = true), scaled by `image_frame` (image_frame_matrix). The fallback
+    of `map_frame` for a session without a landmark map."""
+    inverse = np.linalg.inv(image_frame)
+    start_metric = np.array([truth["tip_position.x"][0], truth["tip_position.y"][0]])
     start_commanded = np.array(
         [truth["commanded_position.x"][0], truth["commanded_position.y"][0]]
     )
-    true_tip = start_commanded + (metric - metric[0]) @ np.linalg.inv(image_frame).T
+    return np.hstack([inverse, (start_commanded - inverse @ start_metric)[:, None]])
+
+
+def map_frame(truth: dict, landmarks: dict, image_frame: np.ndarray) -> np.ndarray | None:
+    """(2, 3) [A | b]: the first landmark map's own frame, the affine that takes the true
+    particle centres at its time to their mapped positions, or None when fewer than 3
+    landmarks pair with a true particle. `landmarks`: a recording's /afm/landmarks arrays, of
+    which the first map is taken, before a push moved anything. A landmark pairs with the true
+    centre nearest where `anchor_frame` puts it, within MATCH_DISTANCE (that frame is off by
+    tens of nm, particles are hundreds apart). The localizer's task frame is the map's: a pose
+    is where the map puts the tip, and the truth of that is where the map would put the true
+    tip (docs/localization.md, "Judging the localizer against the truth")."""
+    if not len(landmarks.get("landmarks", [])) or not len(landmarks["landmarks"][0]):
+        return None
+    mapped = np.array([[m["position.x"], m["position.y"]] for m in landmarks["landmarks"][0]])
+    # the truth as the map was published (nothing moves a particle while it is imaged)
+    true_xy = truth_xy(truth, truth_index_at(truth, landmarks["log_time"][0]), particles=True)
+    guess = anchor_frame(truth, image_frame)
+    seen = true_xy @ guess[:, :2].T + guess[:, 2]
+    pairs = []
+    for k, position in enumerate(mapped):
+        distance = np.hypot(*(seen - position).T) if len(seen) else np.array([np.inf])
+        if distance.min() <= MATCH_DISTANCE:
+            pairs.append((int(np.argmin(distance)), k))
+    if len({j for j, _ in pairs}) < 3:
+        return None
+    try:
+        return affine_fit(true_xy[[j for j, _ in pairs]], mapped[[k for _, k in pairs]])
+    except ValueError:
+        return None
+
+
+def truth_frame(truth: dict, landmarks: dict, image_frame: np.ndarray) -> tuple[np.ndarray, str]:
+    """(frame, basis): `map_frame` ("first landmark map"), or without one `anchor_frame`
+    ("session start")."""
+    frame = map_frame(truth, landmarks, image_frame)
+    if frame is not None:
+        return frame, "first landmark map"
+    return anchor_frame(truth, image_frame), "session start"
+
+
+def tip_against_truth(poses: dict, truth: dict, frame: np.ndarray) -> dict:
+    """The localizer's tip estimates (/afm/tip_pose arrays) against the true tip
+    (/afm/ground_truth arrays): error RMS (m), mean NEES (2 dof: 2 when consistent), the pairs
+    compared with their times (s from the first), errors (estimate minus truth) and sigmas, the
+    final sigma (m). frame: (2, 3) [A | b], the metric truth into the frame the estimate is in
+    (`map_frame`, or `anchor_frame` without a map)."""
+    means = np.stack([poses["pose.pose.position.x"], poses["pose.pose.position.y"]], axis=1)
+    cov = np.asarray(poses["pose.covariance"])[:, [0, 1, 6, 7]].reshape(-1, 2, 2)
+    metric = np.stack([truth["tip_position.x"], truth["tip_position.y"]], axis=1)
+    frame = np.asarray(frame, float)
+    true_tip = metric @ frame[:, :2].T + frame[:, 2]
     # the localizer publishes its estimate as each command ends, the driver its truth: compare
     # the pairs with the same stamp (error and NEES). Recordings made before 2026-11-27 hold
     # poses for times past the last command heard (the tip still where the move began), then
@@ -163,6 +225,7 @@ def tip_against_truth(poses: dict, truth: dict, image_frame: np.ndarray) -> dict
         "mean_nees": float(np.mean(nees)) if nees else float("nan"),
         "compared": int(len(errors)),
         "final_sigma": np.sqrt(np.diag(cov[-1])).tolist(),
+        "frame": frame.tolist(),
     }
 
 
@@ -338,14 +401,90 @@ def pattern_against_truth(starts, goals, true_before, true_after) -> dict:
     }
 
 
+def maps_frame_matrix(config, scans, approach_overshoot: float = 0.0) -> np.ndarray:
+    """Evaluation only (simulator truth): true displacement per map displacement of a map
+    imaged as `scans` (ScanRequests of one area: one image as it is, or a 0 and a 90 deg image
+    corrected for drift as the imaging node corrects a pair, `compensate_pair`), the frame a
+    push planned on that map is judged in (docs/manipulation.md, "The truth's frame"). The map
+    is imaged on a copy of `config` whose sample is a 3 x 3 lattice of spheres over the area
+    (r = 100 nm, or a fifth of the pitch); the result is the inverse of the affine that takes
+    their true centres to their landmarks. Drift, creep and noise draw from streams that do not
+    depend on the sample, so a session's own config (seed included) gives that session's map
+    frame, drift and all; with drift off, the frame of a drift-free map. The images are taken
+    from the tip's rest at the range centre, each approached from `approach_overshoot` image
+    sizes beyond its start (the driver's raster approach; 0: the simulator's own approach).
+
+    It differs from `image_frame_matrix` (a creep-free step) where creep is on: a scan line is
+    traced faster than the creep follows, so a map's fast axis images short by about the creep
+    fractions (2 % on the default simulator), its slow axis by what the creep follows in the
+    image's time, and a 0/90 pair's drift correction takes the two images' difference for drift
+    and leaves the pair at the fast axis's gain on both axes. ValueError when a scan is not
+    0 or 90 deg, a pair is not one 0 and one 90 deg image of the same area, the area is under
+    1 um, or not all 9 spheres are found."""
+    from afm_core.imaging.drift_compensation import compensate_pair
+    from afm_core.imaging.landmarks import extract_landmarks
+    from afm_core.imaging.raster_approach import approach_point
+    from afm_core.sim.config import merge
+    from afm_core.sim.instrument import SimulatedAfm
+
+    scans = list(scans)
+    first = scans[0] if scans else None
+    if len(scans) == 2 and {s.scan_angle_deg for s in scans} != {0.0, 90.0}:
+        raise ValueError("scans: a pair must be one 0 deg and one 90 deg image")
+    if len(scans) not in (1, 2) or any(
+        (s.origin_x, s.origin_y, s.size_x, s.size_y)
+        != (first.origin_x, first.origin_y) + (first.size_x, first.size_y)
+        for s in scans
+    ):
+        raise ValueError(f"scans: need 1 image or a 0/90 pair of one area, got {len(scans)}")
+    if min(first.size_x, first.size_y) < 1e-6:
+        raise ValueError(f"scans: area {first.size_x} x {first.size_y} m, must be >= 1 um")
+    pitch = np.array([first.size_x, first.size_y]) / 3.6  # the lattice keeps 0.8 pitch clear
+    centre = np.array([first.origin_x + first.size_x / 2, first.origin_y + first.size_y / 2])
+    radius = min(100e-9, float(pitch.min()) / 5)
+    true_xy = np.array([centre + pitch * (i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)])
+    sample = {
+        "spheres": [{"x": x, "y": y, "radius": radius} for x, y in true_xy],
+        "rods": [],
+        "electrodes": [],
+        "random_spheres": 0,
+    }
+    sim = SimulatedAfm(merge(config, {"sample": sample}))
+    images = {}
+    for scan in scans:
+        if approach_overshoot > 0:
+            beyond = approach_point(scan, approach_overshoot, sim.limits)
+            sim.move_tip(*beyond, sim.limits.max_speed / 10)
+        images[scan.scan_angle_deg] = sim.raster_scan(scan)
+    image = images[first.scan_angle_deg] if len(scans) == 1 else images[0.0]
+    height = (
+        image.height if len(scans) == 1 else compensate_pair(images[0.0], images[90.0]).corrected
+    )
+    marks = extract_landmarks(
+        np.asarray(height, float),
+        image.pixel_size_x,
+        image.pixel_size_y,
+        image.origin_x,
+        image.origin_y,
+    )
+    mapped = np.array([[m.x, m.y] for m in marks]).reshape(-1, 2)
+    # map and truth differ by a few % about the range centre: tens of nm, the pitch is 280+
+    pairs = [(int(np.argmin(np.hypot(*(true_xy - p).T))), k) for k, p in enumerate(mapped)]
+    if len(marks) != 9 or len({j for j, _ in pairs}) != 9:
+        raise ValueError(f"maps_frame_matrix: the map shows {len(marks)} of the 9 spheres")
+    fit = affine_fit(true_xy[[j for j, _ in pairs]], mapped[[k for _, k in pairs]])
+    return np.linalg.inv(fit[:, :2])
+
+
 def rod_pose_against_truth(true_before, true_after, move, turn: float, frame) -> dict:
     """A rod's or tube's push scored against the simulator's truth in the maps' frame: the
     true start and end poses (`true_before`, `true_after`: (x, y, axis angle), m and rad, the
     simulator's metres) against the goal's displacement `move` (m, maps' frame) and `turn`
     (rad) from the map's pose (the map's own error is common to the start and the goal). True
-    displacements and axis directions go through the inverse of `frame` (the images' true per
-    commanded matrix, `image_frame_matrix`). Returns the position error (m) and the axis
-    angle error (rad, folded into a half turn: an axis has no head), and the true
+    displacements and axis directions go through the inverse of `frame` (true per map
+    displacement: `maps_frame_matrix`, the map's own, or `image_frame_matrix`). Returns the
+    position error (m) and the axis angle error (rad, folded into a half turn: an axis has no
+    head), and the true
     displacement and turn in the maps' frame."""
     frame = np.asarray(frame, float)
     if frame.shape != (2, 2):

@@ -6,7 +6,9 @@ What a recording holds decides what is evaluated (an empty cell: not recorded):
   found, those within MATCH_DISTANCE of a true centre, the matched centres' RMS error
   (afm_core.evaluation.scan_against_truth; found - matched are false detections);
 - the localizer's estimates (/afm/tip_pose) against the true tip: error RMS and mean NEES
-  (afm_core.evaluation.tip_against_truth, the demo's evaluation);
+  (afm_core.evaluation.tip_against_truth, the demo's evaluation), the truth brought into the
+  first landmark map's own frame (/afm/landmarks; without one, the session start's frame:
+  afm_core.evaluation.truth_frame);
 - pushes: the contact moves commanded (/afm/tip_command kind PUSH) and, with ground truth,
   the objects they moved and how far (first truth to last);
 - push goals (/afm/push_goal) with ground truth: each goal's pushed object, its final true
@@ -29,14 +31,18 @@ from afm_core.evaluation import (
     image_frame_matrix,
     scan_against_truth,
     tip_against_truth,
+    truth_frame,
     truth_index_at,
     truth_xy,
 )
 from afm_core.recording import RecordingReader
 from afm_core.recording.reader import flatten
 
-ROW_FORMAT = 2  # bump when a column's meaning changes: the rows computed before are redone
+# bump when a column's meaning changes: the rows computed before are redone (3: the localizer
+# judged in its first landmark map's own frame, 2026-11-28)
+ROW_FORMAT = 3
 SCAN, TRUTH, POSE, COMMAND = "/afm/scan", "/afm/ground_truth", "/afm/tip_pose", "/afm/tip_command"
+LANDMARKS = "/afm/landmarks"
 PUSH_KIND = 3  # afm_msgs/msg/TipCommand.PUSH
 # m: the simulator's truth moves an object only when the tip pushes it (drift moves the
 # scanner, not the sample), so any displacement is a push's; 1 nm is below what any AFM
@@ -104,7 +110,9 @@ def evaluate_recording(path, push_tolerance: float = push_outcomes.TOLERANCE) ->
         if SCAN in topics:
             row.update(_scans(reader, truth))
         if POSE in topics and truth is not None and len(truth["log_time"]):
-            tip = tip_against_truth(reader.arrays(POSE), truth, _image_frame())
+            marks = reader.arrays(LANDMARKS) if LANDMARKS in topics else {}
+            frame, _basis = truth_frame(truth, marks, _image_frame())
+            tip = tip_against_truth(reader.arrays(POSE), truth, frame)
             row.update(
                 localization_compared=tip["compared"],
                 localization_error_rms_m=tip["error_rms"],

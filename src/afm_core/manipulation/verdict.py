@@ -61,7 +61,11 @@ CONTROL_SIGMA = 1.0e-9  # m
 # (20 seeds), a systematic the control points cannot see. It stays without drift and with both
 # images scanned the same way (2.2 nm, 4 seeds), so it is not the drift fit's; the rescan's gain
 # against the map scan's makes 0.5 nm of it (a sphere imaged at the push's start and end), the
-# rest is not located (the after image's scanner state, after the push's moves, is one suspect)
+# rest is not located (the after image's scanner state, after the push's moves, is one suspect).
+# In each seed's own map frame (drift included) the same pushes read 2.2 nm (sd 3.1) longer. On a
+# drift-corrected 0/90 pair's map (the graph's) the rescans read them 5.1 nm (sd 1.0) shorter
+# than the map's frame, 1 %, which this does not cover: the pair takes the fast axis's gain on
+# both axes (docs/manipulation.md, "The truth's frame")
 GAIN_SIGMA = 0.005
 SIGMA_FLOOR = 0.1e-9  # m, keeps the chi^2 finite for a degenerate covariance
 
