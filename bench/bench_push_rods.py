@@ -69,7 +69,7 @@ def case(seed: int) -> dict:
 
 
 def push_once(seed: int, strategy: str) -> dict:
-    from afm_core.evaluation import image_frame_matrix, maps_frame_matrix
+    from afm_core.evaluation import image_frame_matrix, maps_frame_matrix, rod_pose_against_truth
     from afm_core.imaging.landmarks import extract_landmarks
     from afm_core.instrument import ScanRequest
     from afm_core.localization import Localizer
@@ -134,14 +134,10 @@ def push_once(seed: int, strategy: str) -> dict:
 
     # true displacements and directions in a frame (true per map displacement)
     def in_frame(frame):
-        moved = np.linalg.solve(frame, xy1 - xy0)
-
-        def image_angle(angle):
-            d = np.linalg.solve(frame, [math.cos(angle), math.sin(angle)])
-            return math.atan2(d[1], d[0])
-
-        turned = image_angle(angle1) - image_angle(angle0) - c["turn"]
-        return float(np.hypot(*(moved - (goal - start)))), float(abs(wrap_angle(turned)))
+        score = rod_pose_against_truth(
+            (*xy0, angle0), (*xy1, angle1), goal - start, c["turn"], frame
+        )
+        return score["error"], score["angle_error"]
 
     # the map's own: its scan on the same seed (drift, creep and noise do not depend on the
     # sample)

@@ -474,3 +474,41 @@ def maps_frame_matrix(config, scans, approach_overshoot: float = 0.0) -> np.ndar
         raise ValueError(f"maps_frame_matrix: the map shows {len(marks)} of the 9 spheres")
     fit = affine_fit(true_xy[[j for j, _ in pairs]], mapped[[k for _, k in pairs]])
     return np.linalg.inv(fit[:, :2])
+
+
+def rod_pose_against_truth(true_before, true_after, move, turn: float, frame) -> dict:
+    """A rod's or tube's push scored against the simulator's truth in the maps' frame: the
+    true start and end poses (`true_before`, `true_after`: (x, y, axis angle), m and rad, the
+    simulator's metres) against the goal's displacement `move` (m, maps' frame) and `turn`
+    (rad) from the map's pose (the map's own error is common to the start and the goal). True
+    displacements and axis directions go through the inverse of `frame` (true per map
+    displacement: `maps_frame_matrix`, the map's own, or `image_frame_matrix`). Returns the
+    position error (m) and the axis angle error (rad, folded into a half turn: an axis has no
+    head), and the true
+    displacement and turn in the maps' frame."""
+    frame = np.asarray(frame, float)
+    if frame.shape != (2, 2):
+        raise ValueError(f"frame {frame.shape}: must be a 2x2 matrix")
+    before, after = np.asarray(true_before, float), np.asarray(true_after, float)
+    if before.shape != (3,) or after.shape != (3,):
+        raise ValueError(
+            f"true_before {before.shape} and true_after {after.shape}: must be (x, y, angle)"
+        )
+    moved = np.linalg.solve(frame, after[:2] - before[:2])
+
+    def maps_angle(angle: float) -> float:
+        d = np.linalg.solve(frame, [np.cos(angle), np.sin(angle)])
+        return float(np.arctan2(d[1], d[0]))
+
+    turned = fold_half_turn(maps_angle(after[2]) - maps_angle(before[2]))
+    return {
+        "error": float(np.hypot(*(moved - np.asarray(move, float)))),
+        "angle_error": abs(fold_half_turn(turned - turn)),
+        "moved": moved.tolist(),
+        "turned": turned,
+    }
+
+
+def fold_half_turn(angle: float) -> float:
+    """An axis angle difference folded into [-pi/2, pi/2)."""
+    return float((angle + np.pi / 2) % np.pi - np.pi / 2)
