@@ -58,13 +58,20 @@ class NewestLandmarkMap:
         latched map reaches a node a moment after it is published, later under load)."""
         return wait_for_landmarks(self.current, timeout)
 
+    def dropped(self, landmark_id: int, time: float):
+        """Hold no landmark with `landmark_id` (it is no longer where the map had it); the whole
+        map as a LandmarkArray stamped at `time`, or just after the newest map held."""
+        return self._update(lambda held: {k: v for k, v in held.items() if k != landmark_id}, time)
+
     def moved(self, landmark, time: float):
         """Hold `landmark` in place of the one with its id; the whole map as a LandmarkArray
         stamped at `time`, or just after the newest map held, to publish."""
-        with self._lock:
-            self._marks = {**self._marks, landmark.id: landmark}
+        return self._update(lambda marks: {**marks, landmark.id: landmark}, time)
+
+    def _update(self, change, time: float):
+        with self._lock:  # one step, so a map taken meanwhile is not overwritten
+            self._marks = marks = change(self._marks)
             stamp = max(time, (self._stamp or 0.0) + 1e-6)
             header = Header(stamp=seconds_to_time(stamp), frame_id=FRAME_TASK)
             self._stamp = stamp_of(header)
-            marks = list(self._marks.values())
-        return landmarks_to_msg(marks, header)
+        return landmarks_to_msg(list(marks.values()), header)

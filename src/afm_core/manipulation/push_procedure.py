@@ -200,6 +200,7 @@ class PushProcedure:
     tip_estimate() -> TipEstimate | None: the newest estimate from elsewhere (the graph's
         /afm/tip_pose), used when localize_first is false and reported while pushing.
     on_moved(landmark): a pushed particle, where the rescan found it (e.g. publish the map).
+    on_lost(landmark): a particle whose push failed after its strokes: not where the map holds it.
     calibration: the localization calibration (motion model of the closed loop's tip track;
         its scanner matrix unless scanner_matrix is given; default: the book's defaults).
     """
@@ -214,6 +215,7 @@ class PushProcedure:
         settings: Mapping | None = None,
         tip_estimate: Callable[[], TipEstimate | None] = lambda: None,
         on_moved: Callable[[Landmark], None] = lambda _landmark: None,
+        on_lost: Callable[[Landmark], None] = lambda _landmark: None,
         calibration: Calibration | None = None,
     ):
         self.instrument = instrument
@@ -228,7 +230,7 @@ class PushProcedure:
             **PUSH_PARAMETERS.validate(dict(settings or {})),
         }
         self.tip_estimate = tip_estimate
-        self.on_moved = on_moved
+        self.on_moved, self.on_lost = on_moved, on_lost
 
     def maps_frame(self, particle: Landmark) -> tuple[Landmark, float]:
         """The particle and the tip's radius with the radii in the maps' frame, where the
@@ -376,7 +378,7 @@ class PushProcedure:
     ) -> PushResult:
         """The push of a checked goal: scan, localize, plan, execute, rescan, verify. rod: a
         tube's or rod's goal angle (None: keep its orientation)."""
-        cost = PushCost()
+        cost, strokes_ran = PushCost(), False
         if rod is None and particle.kind != "sphere":
             rod = rod_goal_for(particle, None, self.settings["default_angle_tolerance"])
         try:
@@ -385,12 +387,12 @@ class PushProcedure:
                 particle, start_xy, target, progress, should_stop
             )
             tip = self._localized(particle, start_xy, progress, should_stop)
-            # where the localized tip puts the particle in scanner coordinates (the images'):
-            # the map's position is off by the drift since the map, hundreds of nm late in a
-            # long session (an assembly), more than half the way to a placed neighbour
+            # the particle in scanner coordinates (the images') by the localized tip: the map's is
+            # off by the drift since the map, hundreds of nm late in an assembly
             start_in_scan = task_to_command(
                 tip.mean, np.array(self.instrument.commanded_position()), self.scanner_matrix
             )(start_xy)
+            strokes_ran = True  # from here on the particle may have moved
             if strategy == "closed_loop":
                 plan, execution, cost = self._closed_loop(
                     particle, target, tip, tolerance, overrides, progress, should_stop, rod
@@ -419,7 +421,11 @@ class PushProcedure:
                 rod, particle, before, seen_before, verification, self.calibration.image_matrix
             )
             verdict = push_verdict(verification, self.calibration, start_xy, target, tolerance)
-        except (ValueError, InstrumentUnavailable) as exc:
+        except (ValueError, InstrumentUnavailable, PushFailed) as exc:
+            if strokes_ran:  # failed or cancelled after strokes: the map's place is stale
+                self.on_lost(particle)
+            if isinstance(exc, PushFailed):
+                raise
             raise PushFailed(str(exc)) from exc
         achieved, error = verdict.achieved, verdict.error
         cost.duration = self.instrument.time - started
@@ -666,8 +672,7 @@ class PushProcedure:
             progress, "verifying", particle, predicted, step=total, steps_total=total, tip=tip
         )
         # the rescan sees the particle in scan coordinates; its position before the push in the
-        # same scan ties the scan to the map (task frame), control points remove drift between
-        # scans
+        # same scan ties it to the map (task frame); control points remove drift between scans
         before_particle = nearest_particle(before, start_in_scan)
         if before_particle is None or np.hypot(*(before_particle - start_in_scan)) > 2 * (
             swept_radius(particle)
@@ -680,8 +685,7 @@ class PushProcedure:
                 execution,
             )
         map_to_scan = before_particle - start_xy
-        # the particle may end far from the plan (a centre push slides it off): look for it
-        # anywhere it could have gone
+        # the particle may end far from the plan (a centre push slides it off): look anywhere
         reach = float(np.hypot(*(target - start_xy))) + 2 * particle.radius + 100e-9
         # a cancel is honoured until the result is sent: the strokes can be done before a cancel
         # sent on their first report arrives, and the rescan takes longer than all of them
