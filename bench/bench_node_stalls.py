@@ -208,7 +208,8 @@ def report(rounds: list[dict], chosen: list[str], args, started: str, load) -> s
         f"Command: `{command_line()}`",
         "",
         "| variant | held stalls (in publish) | longest held | starved stalls | nodes held "
-        "| teleop stood still (tests) | late commands | longest command wait | longest segment "
+        "| teleop held the commands (tests) | late commands | longest command wait "
+        "| longest segment "
         "| command-to-motion latency, median | tests per round (load average) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -217,7 +218,7 @@ def report(rounds: list[dict], chosen: list[str], args, started: str, load) -> s
         f = figures(runs)
         timings = [r["teleop_timing"] for r in runs if r.get("teleop_timing")]
         latencies = sorted(r["latency_ms"] for r in runs if r.get("latency_ms") is not None)
-        stood = sum("stood still" in o for r in runs for o in r["outcomes"])
+        stood = sum("held the commands" in o for r in runs for o in r["outcomes"])
         lines.append(
             f"| {name} | {f['held']} ({f['held_in_publish']}) | {f['held_max_s']:.2f} s | "
             f"{f['starved']} | {', '.join(f['held_nodes']) or '-'} | {stood} | "
