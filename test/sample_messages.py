@@ -47,3 +47,21 @@ def landmarks(i: int) -> LandmarkArray:
 
 def cdr(msg) -> bytes:
     return serialize_message(msg)
+
+
+def dict_message_writer(writer, types: dict):
+    """A channel per topic on an open RecordingWriter, and write(topic, log_ns, message) for
+    messages given as plain dicts (CDR-encoded from the full definition of `types[topic]`)."""
+    from afm_core.recording.cdr import encoder
+    from afm_core.recording.definitions import full_message_definition
+
+    channels, encode = {}, {}
+    for topic, type_name in types.items():
+        definition = full_message_definition(type_name)
+        channels[topic] = writer.add_channel(topic, type_name, [], definition=definition)
+        encode[topic] = encoder(type_name, definition)
+
+    def write(topic: str, log_ns: int, message: dict) -> None:
+        writer.write(channels[topic], log_ns, encode[topic](message))
+
+    return write

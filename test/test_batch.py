@@ -256,10 +256,10 @@ def test_a_sim2real_batch_reports_each_diagnosis_or_why_not(sessions, tmp_path):
 def test_localization_error_and_nees_against_truth_are_the_closed_form(tmp_path):
     """A recording of the truth (tip at rest) and four localizer estimates off it by known
     errors, with known covariances: the row's error RMS and mean NEES are the closed form."""
+    from sample_messages import dict_message_writer
+
     from afm_core.batch import evaluate_recording
     from afm_core.recording import RecordingWriter
-    from afm_core.recording.cdr import encoder
-    from afm_core.recording.definitions import full_message_definition
 
     tip = {"x": 50e-6, "y": 51e-6, "z": 0.0}
     errors = np.array([[10e-9, 0.0], [0.0, -20e-9], [30e-9, 40e-9], [-10e-9, -10e-9]])
@@ -270,11 +270,7 @@ def test_localization_error_and_nees_against_truth_are_the_closed_form(tmp_path)
     }
     path = tmp_path / "poses.mcap"
     with RecordingWriter(path) as writer:
-        channels, encode = {}, {}
-        for topic, type_name in types.items():
-            definition = full_message_definition(type_name)
-            channels[topic] = writer.add_channel(topic, type_name, [], definition=definition)
-            encode[topic] = encoder(type_name, definition)
+        write = dict_message_writer(writer, types)
         zero = {"x": 0.0, "y": 0.0, "z": 0.0}
         for k, (ex, ey) in enumerate(errors):
             header = {"stamp": {"sec": 1000 + k, "nanosec": 0}, "frame_id": "afm_task"}
@@ -300,8 +296,8 @@ def test_localization_error_and_nees_against_truth_are_the_closed_form(tmp_path)
                 },
             }
             log_ns = (1000 + k) * 10**9
-            writer.write(channels["/afm/ground_truth"], log_ns, encode["/afm/ground_truth"](truth))
-            writer.write(channels["/afm/tip_pose"], log_ns + 1, encode["/afm/tip_pose"](pose))
+            write("/afm/ground_truth", log_ns, truth)
+            write("/afm/tip_pose", log_ns + 1, pose)
 
     row = evaluate_recording(path)
 

@@ -80,10 +80,10 @@ def test_the_batch_judges_the_localizer_in_the_maps_frame(tmp_path):
     covariances: the row's mean NEES and error RMS are the closed form. Judged in the frame of
     the session start and the creep-free gain (before 2026-11-28) the same estimates are tens of
     nm off near the edges and the mean NEES is many times the closed form."""
+    from sample_messages import dict_message_writer
+
     from afm_core.batch import evaluate_recording
     from afm_core.recording import RecordingWriter
-    from afm_core.recording.cdr import encoder
-    from afm_core.recording.definitions import full_message_definition
 
     tips = START + np.array([[0, 0], [1.2e-6, 0.3e-6], [-1.1e-6, 1.0e-6], [0.4e-6, -1.2e-6]])
     errors = np.array([[10e-9, 0.0], [0.0, -20e-9], [30e-9, 40e-9], [-10e-9, -10e-9]])
@@ -98,14 +98,7 @@ def test_the_batch_judges_the_localizer_in_the_maps_frame(tmp_path):
     start = {"x": START[0], "y": START[1], "z": 0.0}
     path = tmp_path / "poses.mcap"
     with RecordingWriter(path) as writer:
-        channels, encode = {}, {}
-        for topic, type_name in types.items():
-            definition = full_message_definition(type_name)
-            channels[topic] = writer.add_channel(topic, type_name, [], definition=definition)
-            encode[topic] = encoder(type_name, definition)
-
-        def write(topic, log_ns, message):
-            writer.write(channels[topic], log_ns, encode[topic](message))
+        write = dict_message_writer(writer, types)
 
         for k, (tip, estimate) in enumerate(zip(tips, estimates)):
             header = {"stamp": {"sec": 1000 + k, "nanosec": 0}, "frame_id": "afm_task"}
