@@ -151,6 +151,19 @@ def test_a_driver_killed_mid_push_frees_the_nano_hand(nodes, ros_node):
     assert stop_time(hand, signal.SIGTERM) < STOP_S
 
 
+def push_ending(job) -> str:
+    """How a client learns that the nano-hand stopped mid-push: its own aborted result (the
+    node ends its goal within its stop grace when the reply leaves before the process does),
+    or, when the process went first, the heartbeat's "server gone". Which one comes depends on
+    the scheduling of the stopping node's last milliseconds; both name the cause."""
+    try:
+        result = job.result(60)
+    except AfmError as exc:
+        return str(exc)
+    assert not result.success, result.message
+    return result.message
+
+
 def test_nodes_stop_within_two_seconds_mid_action(nodes, ros_node):
     driver = nodes("driver", seed=2, real_time_factor=1.0)
     hand = nodes("nano_hand")
@@ -161,12 +174,13 @@ def test_nodes_stop_within_two_seconds_mid_action(nodes, ros_node):
         wait_for(lambda: "scanning" in phases, 60, what="the push's first scan")
         time.sleep(1.0)  # the nano-hand waits on the driver
         hand_s = stop_time(hand, signal.SIGTERM)
-        with pytest.raises(AfmError, match="aborted: server gone"):
-            job.result(60)
+        ending = push_ending(job)
+        assert "aborted: server gone" in ending or "this node is stopping" in ending, ending
         scan = afm.send("scan_image", scan_goal(pixels=(64, 256), line_rate=1.0), wait=False)
         wait_for(lambda: scan.feedback is not None, 60, what="a scan started")
         driver_s = stop_time(driver, signal.SIGINT)
-    print(f"mid-action stop: nano-hand (SIGTERM) {hand_s:.2f} s, driver (SIGINT) {driver_s:.2f} s")
+    print(f"mid-action stop: nano-hand (SIGTERM) {hand_s:.2f} s ({ending}),", end=" ")
+    print(f"driver (SIGINT) {driver_s:.2f} s")
     assert hand_s < STOP_S and driver_s < STOP_S, (hand_s, driver_s)
 
 

@@ -75,3 +75,51 @@ def test_a_node_run_by_node_main_spins_with_its_start_frozen():
         """
     )
     assert seen["frozen"] > START_OBJECTS and seen["start_scanned"] == 0, seen
+
+
+STOP_SIGNALS_SCRIPT = """
+    import json, os, signal, threading, time
+    from afm_ros.node_main import watch_stop_signals
+    stopped = threading.Event()
+    calls = []
+    def on_stop():
+        calls.append(1)
+        stopped.set()
+    {install}
+    # the main thread holds the lock on_stop needs when the signals come, twice (a launcher's
+    # parent-death signal and a second stop): a handler that took the lock itself would wait
+    # for its own thread for ever
+    with stopped._cond:
+        os.kill(os.getpid(), signal.SIGTERM)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.3)
+    print(json.dumps({{"stopped": stopped.wait(5.0), "calls": len(calls)}}))
+"""
+
+
+@pytest.mark.parametrize(
+    "install, deadlocks",
+    [
+        ("watch_stop_signals(on_stop)", False),
+        (
+            "[signal.signal(s, lambda *_: on_stop()) for s in (signal.SIGINT, signal.SIGTERM)]",
+            True,
+        ),
+    ],
+    ids=["watch_stop_signals", "handler_sets_the_event"],
+)
+def test_stop_signals_arriving_while_the_main_thread_holds_the_lock_still_stop(install, deadlocks):
+    """A node that got SIGTERM while its main thread held the stop event's lock ignored every
+    later signal (a restarted recorder outlived its killed launcher). The second case is the
+    old handler, kept to show the script can catch the deadlock."""
+    script = textwrap.dedent(STOP_SIGNALS_SCRIPT.format(install=install))
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", script], capture_output=True, text=True, timeout=20
+        )
+    except subprocess.TimeoutExpired:
+        assert deadlocks, "the process hung after its stop signals"
+        return
+    assert not deadlocks, f"the old handler did not deadlock: {done.stdout} {done.stderr}"
+    seen = json.loads(done.stdout.splitlines()[-1])
+    assert seen["stopped"] and seen["calls"] >= 1, (seen, done.stderr)

@@ -51,6 +51,31 @@ def die_with_parent() -> None:
         os.kill(os.getpid(), signal.SIGTERM)
 
 
+def watch_stop_signals(on_stop: Callable[[], None]) -> None:
+    """Call on_stop from a thread of its own at every SIGINT/SIGTERM.
+
+    Why not in the Python signal handler: the handler runs in the main thread between two
+    bytecodes, possibly while that thread holds the very lock on_stop needs (threading.Event's
+    condition), and a second signal runs a nested handler on top of the first. Both deadlock
+    the process for good, and a node that ignores SIGTERM outlives its launcher; seen when the
+    launcher died while a restarted recorder was starting (it got its parent-death SIGTERM
+    twice). The C-level handler only writes the signal's number to a pipe (set_wakeup_fd,
+    async-signal-safe); the Python handler does nothing."""
+    reader, writer = os.pipe()  # raw descriptors: nothing closes them behind our back
+    os.set_blocking(writer, False)
+    signal.set_wakeup_fd(writer, warn_on_full_buffer=False)
+    stop_numbers = {int(signal.SIGINT), int(signal.SIGTERM)}
+    for sig in stop_numbers:
+        signal.signal(sig, lambda *_: None)
+
+    def relay():
+        while received := os.read(reader, 64):
+            if stop_numbers.intersection(received):
+                on_stop()
+
+    threading.Thread(target=relay, name="afm-stop-signals", daemon=True).start()
+
+
 def seconds_since_start() -> float:
     """Seconds since this process started (Linux: /proc; elsewhere since this module loaded)."""
     try:
@@ -100,14 +125,13 @@ def run(
     busy (an action mid-way: its goal is abandoned with the process)."""
     stop = threading.Event()
 
-    def on_signal(*_):
+    def on_stop_signal():
         stop.set()
         STOPPING.set()
 
     exposure.apply_node_default(os.environ)  # before ROS reads it: localhost unless told
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, on_signal)
+    watch_stop_signals(on_stop_signal)
     die_with_parent()
     try:
         node = node_factory()
