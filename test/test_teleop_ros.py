@@ -32,6 +32,9 @@ TIMING_FIELDS = (
     "commands",
     "longest_command_gap",
     "longest_command_wait",
+    "longest_wait_before_callback",
+    "longest_wait_on_lock",
+    "load_at_longest_wait",
     "late_commands",
     "longest_segment",
 )
@@ -436,3 +439,19 @@ def test_a_joy_drives_the_tip_while_its_enable_button_is_held_and_toggles_contac
     press([0.0, 0.0], [0, 0, 0, 0, 0, 1], 0.1)
     press([0.0, 0.0], [0] * 6, 0.1)
     wait_for(lambda: peer.statuses[-1]["mode"] == "contact", 5, what="contact mode")
+
+
+def test_a_late_command_s_wait_is_split_between_the_executor_and_the_lock():
+    """What tells the next stall's cause (issue 33): time before the callback ran against time
+    on the node's lock, each against the clock the command was stamped with."""
+    from afm_manipulation.teleop_node import LATE_COMMAND_S, CommandTiming
+
+    timing = CommandTiming()
+    now = time.monotonic()
+    timing.command(now - 0.30, called=now - 0.10)  # 0.2 s before its callback, then the lock
+    timing.command(time.monotonic() - 0.01)  # on time, all of it before the callback
+    figures = timing.figures()
+    assert figures["late_commands"] == 1 and 0.30 <= figures["longest_command_wait"] < 0.35
+    assert 0.2 <= figures["longest_wait_before_callback"] < 0.2 + LATE_COMMAND_S
+    assert 0.1 <= figures["longest_wait_on_lock"] < 0.1 + LATE_COMMAND_S
+    assert figures["load_at_longest_wait"] >= 0.0

@@ -20,6 +20,7 @@ the objects the push model says a contact segment pushed on /afm/objects/believe
 from __future__ import annotations
 
 import json
+import os
 import sys
 import threading
 import time
@@ -197,6 +198,7 @@ class TeleopNode(Node):
     def take_command(self, vx: float, vy: float, arrived: float) -> None:
         """arrived: when the middleware received the command (monotonic s): the dead-man
         counts from there, not from when an executor thread got round to this callback."""
+        called = time.monotonic()
         with self.lock:
             if not self.holding:
                 self.status["stop"] = (
@@ -206,7 +208,7 @@ class TeleopNode(Node):
                 return
             try:
                 clip = self.controller.command(vx, vy, arrived)
-                self.timing.command(arrived)
+                self.timing.command(arrived, called)
             except ValueError as exc:
                 self.status["stop"] = f"command refused: {exc}"
                 return
@@ -490,19 +492,34 @@ class CommandTiming:
     """What the status reports of the operator's commands and the segments since the take, so
     a tip that stood still while commands came says why: commands arriving apart by more than
     the dead-man timeout (the sender or the transport), waiting in this node before their
-    callback ran (its executor), or segments the driver took long to run (the loop blocked)."""
+    callback ran (its executor), or segments the driver took long to run (the loop blocked).
+    A late command's wait is split where it was spent: before its callback ran (no executor
+    thread free, the GIL held by another thread, or the process starved of CPU; the machine's
+    load at that moment tells the last apart) and on the node's lock (another of its threads
+    held it: the loop, a segment's end, the landmarks)."""
 
     def __init__(self):
         self.commands = 0
         self.last = None
         self.longest_gap = 0.0
         self.longest_wait = 0.0
+        self.longest_callback_wait = 0.0
+        self.longest_lock_wait = 0.0
+        self.load_at_longest_wait = 0.0
         self.late = 0
         self.longest_segment = 0.0
 
-    def command(self, arrived: float) -> None:
-        waited = time.monotonic() - arrived
+    def command(self, arrived: float, called: float | None = None) -> None:
+        """arrived: when the middleware had the command; called: when its callback began
+        (None: not known, all of the wait is counted before the callback)."""
+        now = time.monotonic()
+        called = now if called is None else called
+        waited = now - arrived
+        if waited > self.longest_wait:
+            self.load_at_longest_wait = os.getloadavg()[0]
         self.longest_wait = max(self.longest_wait, waited)
+        self.longest_callback_wait = max(self.longest_callback_wait, called - arrived)
+        self.longest_lock_wait = max(self.longest_lock_wait, now - called)
         self.late += waited > LATE_COMMAND_S
         if self.last is not None:
             self.longest_gap = max(self.longest_gap, arrived - self.last)
@@ -517,6 +534,9 @@ class CommandTiming:
             "commands": self.commands,
             "longest_command_gap": round(self.longest_gap, 4),
             "longest_command_wait": round(self.longest_wait, 4),
+            "longest_wait_before_callback": round(self.longest_callback_wait, 4),
+            "longest_wait_on_lock": round(self.longest_lock_wait, 4),
+            "load_at_longest_wait": round(self.load_at_longest_wait, 2),
             "late_commands": self.late,
             "longest_segment": round(self.longest_segment, 4),
         }
