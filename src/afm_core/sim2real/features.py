@@ -690,7 +690,8 @@ def _push_features(op, slid_before) -> list[Feature]:
             float(np.mean(xm)),
             float(np.mean(ym)),
             (0.0, 0.0),
-            cond,
+            # its sample count: an rms of n samples is known to 1 / sqrt(2 (n - 1))
+            dict(cond, samples=int(tor.size)),
         )
     )
     n_seg = max(1, int(round(length / SEGMENT)))
