@@ -6,7 +6,9 @@ held-out blocks beyond theirs, the residual's signature (signature.py) says in w
 lives and its form; this stage models it with the simulator's generic term family
 (sim/generic_terms.py: an additive offset on the height or torsion signal, shaped by a small
 basis: a linear trend, a step at the signature's time, a sinusoid of its period, linear or
-periodic in x or y). Its coefficients are fitted by re-simulation columns, one replay per basis
+periodic in x or y; a torsion residual that follows the deflection sample by sample,
+signal_relations.py, is k x the measured deflection instead).
+Its coefficients are fitted by re-simulation columns, one replay per basis
 function (the offset is additive, so one step gives the column), like the library's design
 columns. The held-out check is heldout.py's: fit on one fold of time blocks, re-simulate the
 whole session with that fit, chi^2 of the other fold before and after, the share of its excess
@@ -191,7 +193,7 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
     # a proportional term's column at the slope the samples show: the torsion's rms features
     # are not linear in a slope near zero
     steps = (
-        [abs(tracked["coefficient"])]
+        [abs(tracked["coefficient"]) or 1.0]
         if tracked is not None
         else [_step(term, sess, size) for term in basis]
     )
