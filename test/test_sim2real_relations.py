@@ -136,20 +136,47 @@ def test_a_torsion_signature_with_the_relation_says_it_and_is_fitted_as_proporti
 
 def test_an_rms_feature_is_never_known_better_than_its_sampling_precision():
     """The floor is the chi distribution's spread: the sd of the rms of n Gaussian samples of
-    sd s is s / sqrt(2 (n - 1)) to O(1/n); checked by drawing (2000 draws: 3 % on the sd)."""
+    sd s is s / sqrt(2 (n - 1)) to O(1/n); s read from the trace's own steps as the features
+    do (2000 draws: 3 % on the sd)."""
     n, s = 400, 1.2e-9
+    rng = np.random.default_rng(0)
+    draws = rng.normal(0, s, (2000, n))
+    trace = 1e-5 + np.linspace(0, 2e-7, n) + draws[0]  # a slow course under the noise
+    fluct = [f for f in _push_features_of(trace) if f.group == "push.fluct"][0]
     table = SimpleNamespace(
         groups=np.array(["push.fluct", "push.torsion", "push.fluct"]),
-        conditions=[{"samples": n}, {}, {}],
+        conditions=[fluct.conditions, {}, {"samples": n}],
     )
-    var = statistic_variance(table, np.array([s, 1e-5, s]), np.array([1e-12, 1e-5, 1e-12]))
-    rng = np.random.default_rng(0)
-    rms = np.std(rng.normal(0, s, (2000, n)), axis=1)
+    var = statistic_variance(table)
+    rms = np.std(draws, axis=1)
     assert math.sqrt(var[0]) == pytest.approx(np.std(rms), rel=0.1)
-    assert var[1] == 0.0 and var[2] == 0.0  # not an rms feature; no sample count
-    # the larger of the recorded and the modelled level sets it
-    swapped = statistic_variance(table, np.array([1e-12, 1e-5, s]), np.array([s, 1e-5, s]))
-    assert swapped[0] == pytest.approx(var[0])
+    assert var[1] == 0.0 and var[2] == 0.0  # not an rms feature; no step noise
+
+
+def test_a_noiseless_sawtooth_gets_no_floor_from_its_slips():
+    """A stick-slip sawtooth without noise: its rms is deterministic, its steps' robust spread
+    is the ramp's (none), so the floor stays at zero however large the fluctuation."""
+    n = 400
+    saw = 1e-5 + 2e-7 * ((np.arange(n) % 40) / 40.0)
+    fluct = [f for f in _push_features_of(saw) if f.group == "push.fluct"][0]
+    table = SimpleNamespace(groups=np.array(["push.fluct"]), conditions=[fluct.conditions])
+    assert fluct.value > 5e-8
+    assert statistic_variance(table)[0] < 1e-30
+
+
+def _push_features_of(torsion: np.ndarray) -> list:
+    """features.py's push features of one slide along x with this torsion."""
+    from afm_core.sim2real.features import _push_features
+
+    n = torsion.size
+    data = SimpleNamespace(
+        lateral_torsion=torsion,
+        commanded_x=np.linspace(50e-6, 51e-6, n),
+        commanded_y=np.full(n, 50e-6),
+        times=np.arange(n) * 1e-3,
+        start_time=10.0,
+    )
+    return _push_features(SimpleNamespace(index=1, data=data), 0.0)
 
 
 def test_a_relation_no_feature_sees_is_a_torsion_signature_the_scoring_judges_right(monkeypatch):

@@ -348,6 +348,6 @@ def session_noise_model(
         mismatch=geometry_mismatch(sess.drift, sess.table.time),
         extra_white=sess.rounding_variance
         + level_variance(sess.table, config)
-        + statistic_variance(sess.table, sess.recorded, sess.nominal),
+        + statistic_variance(sess.table),
         extra_cov=getattr(sess, "sample_cov", None),
     )
