@@ -22,6 +22,9 @@ true position (m):
 - x_linear, y_linear: amplitude * (x - x0) or (y - y0) (amplitude per m; x0, y0 default 0)
 - x_sine, y_sine: amplitude * sin(2 pi (x - x0) / period)
 - height_proportional: amplitude * (true height about the substrate)  (height signal only)
+- deflection_proportional: amplitude * (the vertical deflection measured at the same moment)
+  (torsion signal only; amplitude in rad per m): one signal leaking into another, as a
+  residual that tracks a signal recorded alongside it
 """
 
 from __future__ import annotations
@@ -44,7 +47,10 @@ FORMS = {
     "x_sine": {"period": None, "x0": 0.0},
     "y_sine": {"period": None, "y0": 0.0},
     "height_proportional": {},
+    "deflection_proportional": {},
 }
+# the proportional forms: form -> the one signal they act on
+PROPORTIONAL = {"height_proportional": "height", "deflection_proportional": "torsion"}
 MAX_OFFSET = 1e-5  # m or rad: a generic term larger than the z range describes no instrument
 MAX_DEGREE = 5  # time_legendre: a smooth change, not a fit of every wiggle
 
@@ -59,9 +65,10 @@ class GenericTerm:
     def param(self, name: str) -> float:
         return dict(self.params)[name]
 
-    def offset(self, t, x, y, height=None) -> np.ndarray:
+    def offset(self, t, x, y, measured=None) -> np.ndarray:
         """The term's additive offset at times t (s) and scanner positions x, y (m);
-        `height`: the true height there (for height_proportional)."""
+        `measured`: the signal a proportional form scales there (the true height for
+        height_proportional, the measured vertical deflection for deflection_proportional)."""
         t, x, y = (np.asarray(a, float) for a in (t, x, y))
         a, form = self.amplitude, self.form
         shape = np.broadcast(t, x, y).shape
@@ -86,10 +93,10 @@ class GenericTerm:
             coord, origin = (x, "x0") if form[0] == "x" else (y, "y0")
             phase = 2 * math.pi * (coord - self.param(origin)) / self.param("period")
             return np.broadcast_to(a * np.sin(phase), shape).copy()
-        # height_proportional
-        if height is None:
+        # height_proportional, deflection_proportional
+        if measured is None:
             return np.zeros(shape)
-        return a * np.asarray(height, float)
+        return a * np.asarray(measured, float)
 
     def as_dict(self) -> dict:
         return {"signal": self.signal, "form": self.form, "amplitude": self.amplitude} | dict(
@@ -124,8 +131,8 @@ def _parse_one(k: int, entry) -> GenericTerm:
         raise ValueError(f"{where}.signal={signal!r}: must be one of {list(SIGNALS)}")
     if form not in FORMS:
         raise ValueError(f"{where}.form={form!r}: must be one of {sorted(FORMS)}")
-    if form == "height_proportional" and signal != "height":
-        raise ValueError(f"{where}.form=height_proportional: only on the height signal")
+    if form in PROPORTIONAL and signal != PROPORTIONAL[form]:
+        raise ValueError(f"{where}.form={form}: only on the {PROPORTIONAL[form]} signal")
     known = {"signal", "form", "amplitude", "description"} | set(FORMS[form])
     unknown = sorted(set(entry) - known)
     if unknown:
@@ -152,9 +159,10 @@ def _parse_one(k: int, entry) -> GenericTerm:
     return term
 
 
-def total_offset(terms, signal: str, t, x, y, height=None):
-    """The sum of the terms on `signal` at (t, x, y); None when none acts on it."""
+def total_offset(terms, signal: str, t, x, y, measured=None):
+    """The sum of the terms on `signal` at (t, x, y) (`measured`: GenericTerm.offset's); None
+    when none acts on it."""
     acting = [term for term in terms if term.signal == signal]
     if not acting:
         return None
-    return sum(term.offset(t, x, y, height) for term in acting)
+    return sum(term.offset(t, x, y, measured) for term in acting)

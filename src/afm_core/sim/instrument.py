@@ -621,7 +621,8 @@ class SimulatedAfm:
             0, self.config.noise.deflection_sigma, len(deflection)
         )
         if self._generic:
-            extra = total_offset(self._generic, "torsion", times + start, cx, cy)
+            # deflection_proportional scales the deflection as measured (with its noise)
+            extra = total_offset(self._generic, "torsion", times + start, cx, cy, deflection)
             torsion = torsion if extra is None else torsion + extra
         moved = sorted({i for p in pieces for i in p[3].moved_ids})
         return ForceTraceData(

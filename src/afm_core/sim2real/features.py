@@ -656,6 +656,12 @@ def _weighted_centre(h: np.ndarray, data, mark, level: float) -> tuple[float, fl
     )
 
 
+def _step_noise(values: np.ndarray) -> float:
+    """Robust sd of the sample-to-sample changes over sqrt(2): the white noise of a trace,
+    which its slow course and a few jumps (slips, contacts) do not reach."""
+    return float(median_abs_deviation(np.diff(values), scale="normal") / math.sqrt(2))
+
+
 def _push_features(op, slid_before) -> list[Feature]:
     data = op.data
     torsion = np.asarray(data.lateral_torsion, float)
@@ -690,7 +696,9 @@ def _push_features(op, slid_before) -> list[Feature]:
             float(np.mean(xm)),
             float(np.mean(ym)),
             (0.0, 0.0),
-            cond,
+            # how well an rms of these samples is known (noise_floor.py): their count and the
+            # trace's own sample-to-sample noise
+            dict(cond, samples=int(tor.size), step_noise=_step_noise(tor)),
         )
     )
     n_seg = max(1, int(round(length / SEGMENT)))

@@ -6,7 +6,9 @@ held-out blocks beyond theirs, the residual's signature (signature.py) says in w
 lives and its form; this stage models it with the simulator's generic term family
 (sim/generic_terms.py: an additive offset on the height or torsion signal, shaped by a small
 basis: a linear trend, a step at the signature's time, a sinusoid of its period, linear or
-periodic in x or y). Its coefficients are fitted by re-simulation columns, one replay per basis
+periodic in x or y; a torsion residual that follows the deflection sample by sample,
+signal_relations.py, is k x the measured deflection instead).
+Its coefficients are fitted by re-simulation columns, one replay per basis
 function (the offset is additive, so one step gives the column), like the library's design
 columns. The held-out check is heldout.py's: fit on one fold of time blocks, re-simulate the
 whole session with that fit, chi^2 of the other fold before and after, the share of its excess
@@ -34,6 +36,7 @@ from afm_core.sim2real.generic_forms import search_form
 from afm_core.sim2real.heldout import heldout_chi2
 from afm_core.sim2real.noise_model import Whitener, gls
 from afm_core.sim2real.results import UNEXPLAINED_P
+from afm_core.sim2real.signal_relations import DEFLECTION, deflection_relation, unseen_signature
 from afm_core.sim2real.signature import ALPHA, Signature, describe
 from afm_core.sim2real.signature_text import sentences
 
@@ -115,6 +118,17 @@ def basis_for(sig: Signature, t_first: float, centre=(0.0, 0.0)) -> tuple[str, l
     return time_form, terms + _constant(signal)
 
 
+PROPORTIONAL_FORM = "proportional to the vertical deflection"
+
+
+def _tracked(sig: Signature) -> dict | None:
+    """The sample-level relation of a torsion residual to the deflection (signal_relations.py),
+    None without one."""
+    if sig.kind != "torsion":
+        return None
+    return next((r for r in sig.relations if r.get("covariate") == DEFLECTION), None)
+
+
 def _constant(signal: str) -> list[GenericTerm]:
     """A constant offset: the torsion's absolute level is measured, the height's is not (every
     height feature is relative to a substrate or to the session's first level)."""
@@ -168,11 +182,21 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
         form, basis, searched = search_form(sess, noise, evidence.P, r0, sig, say)
     else:
         form, basis = basis_for(sig, float(np.min(sess.table.time)), centre)
+    tracked = _tracked(sig)
+    if tracked is not None:
+        # a residual that follows another signal sample by sample: residual = k x that signal
+        form, basis = PROPORTIONAL_FORM, [GenericTerm("torsion", "deflection_proportional", 1.0)]
     if not basis:
         return {"fitted": False, "reason": f"no generic basis for the form {form!r}"}
     say(f"generic term: {form} on the {SIGNALS[sig.kind]} signal ({len(basis)} re-simulations)")
     size = max(sig.size["rms"], 1e-12)
-    steps = [_step(term, sess, size) for term in basis]
+    # a proportional term's column at the slope the samples show: the torsion's rms features
+    # are not linear in a slope near zero
+    steps = (
+        [abs(tracked["coefficient"]) or 1.0]
+        if tracked is not None
+        else [_step(term, sess, size) for term in basis]
+    )
     cols = np.stack(
         [np.nan_to_num(_change(sess, [_scaled(term, a)])) / a for term, a in zip(basis, steps)],
         1,
@@ -193,6 +217,17 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
     k = P.shape[1]
     theta, theta_cov = coef[k:], cov[k:, k:]
     heldout = _heldout(sess, noise, P, evidence.folds[0], r0, cols, basis)
+    if heldout["chi2_after"] > heldout["chi2_before"]:
+        # a description the held-out blocks refute is no fit, whatever it gained on its own
+        return {
+            "fitted": False,
+            "form": form,
+            "reason": (
+                f"the generic {form} fitted on one fold made the other fold's chi2 worse "
+                f"({heldout['chi2_before']:.1f} -> {heldout['chi2_after']:.1f} for "
+                f"{heldout['dof']} dof)"
+            ),
+        }
     terms = [
         dict(
             _scaled(term, value).as_dict(),
@@ -246,7 +281,13 @@ def describe_unexplained(
     it leaves nothing (`needs_description`). The residual is the named terms' at their fitted
     values (re-simulated: ReferenceSession.residual), the nominal model's when none is named."""
     if not needs_description(evidence.overall(), chosen, heldout, deviations.group_stats):
-        return None, {}
+        if chosen:
+            return None, {}
+        # nothing the features show: a torsion that follows the deflection at the samples
+        # still is (signal_relations.py), at the verdict's own level
+        unseen = unseen_signature(sess, UNEXPLAINED_P)
+        reason = "no feature of this session sees it (this session cannot tell its size there)"
+        return (None, {}) if unseen is None else (unseen, {"fitted": False, "reason": reason})
     say("describing the unexplained residual")
     if chosen:
         terms = [design_terms[name] for name in chosen]
@@ -260,6 +301,12 @@ def describe_unexplained(
     e = r0 - evidence.P @ coef
     sigma = np.sqrt(np.diag(evidence.unscaled.cov))
     sig = describe(sess.table, e, sigma, sess.recorded, evidence.group_factors)
+    if sig.kind == "torsion":
+        # its relation to the deflection at the same moment, read at the samples
+        relation = deflection_relation(sess, ALPHA / max(len(sig.relations) + 1, 1))
+        if relation is not None:
+            sig.relations.append(relation)
+            sig.sentences = sentences(sig, ALPHA)
     fitted = sig
     if sig.kind not in SIGNALS and any(row["kind"] in SIGNALS for row in sig.signals):
         # the leading signal has no generic term (a lateral one), but a z or torsion part lives
@@ -345,6 +392,8 @@ def model_sentence(generic: dict) -> str:
         shape = f" of {terms[0]['amplitude'] * 1e9:.3g} nm at t = {terms[0]['t0']:.0f} s"
     if generic["signal"] != "height":
         shape = ""  # the shapes above are in the height's units
+    if terms[0]["form"] == "deflection_proportional":
+        shape = f", {terms[0]['amplitude']:.3g} rad per m of deflection"
     h = generic["heldout"]
     read = generic.get("read_at_features")
     read = f" (at the features' labelled places it reads as {read})" if read else ""

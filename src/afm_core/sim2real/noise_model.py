@@ -28,6 +28,7 @@ from afm_core.sim2real.drift_trajectory import geometry_mismatch
 from afm_core.sim2real.feature_table import BOW_GROUPS, Table
 from afm_core.sim2real.features import POSITION_GROUPS
 from afm_core.sim2real.features_absolute import LEVEL_GROUPS, level_variance
+from afm_core.sim2real.noise_floor import statistic_variance
 from afm_core.sim2real.reference import ReferenceSession
 
 COLLINEAR = 1e-9  # |R_jj| of a unit-norm column below which it repeats the others
@@ -345,6 +346,8 @@ def session_noise_model(
         reference=sess.nominal,
         J_shape=sess.J_shape,
         mismatch=geometry_mismatch(sess.drift, sess.table.time),
-        extra_white=sess.rounding_variance + level_variance(sess.table, config),
+        extra_white=sess.rounding_variance
+        + level_variance(sess.table, config)
+        + statistic_variance(sess.table),
         extra_cov=getattr(sess, "sample_cov", None),
     )

@@ -45,6 +45,7 @@ from afm_core.sim2real.mismatch import (
 )
 from afm_core.sim2real.protocol import deterministic, replay
 from afm_core.sim2real.sample_realization import sample_covariance
+from afm_core.sim2real.signal_relations import collecting
 
 MIN_MATCHED_FRACTION = 0.7  # of the recorded features the reference simulation must reproduce
 SHIFT = 10e-9  # m, drift shift of the sensitivity replays
@@ -359,7 +360,8 @@ def build_reference(
     trajectory (stages A and B), the reference and the check that the config describes the
     recording, the drift sensitivities and the sensor-noise replicas."""
     anchors = np.array([(s["x"], s["y"]) for s in config.sample.spheres], float).reshape(-1, 2)
-    extractor, ops, f_rec = _read(recorded_ops, anchors)
+    traces: dict = {}  # the force traces' sample-to-sample changes (signal_relations.py)
+    extractor, ops, f_rec = _read(collecting(recorded_ops, traces), anchors)
     # what the re-simulation cannot reproduce (pushed particles' contact history) is left out
     # before anything is fitted to the recording, the drift trajectory first (exclusions.py)
     exclusions = ordinary_exclusions(ops, f_rec, config)
@@ -455,6 +457,7 @@ def build_reference(
     say("other surfaces of the substrate")
     sess.sample_cov = sample_covariance(ops, config, drift, anchors, keys, table, nom)
     sess.exclusions = exclusions
+    sess.force_differences = traces
     return sess
 
 

@@ -65,6 +65,13 @@ def sentences(sig, alpha: float) -> list[str]:
         )
     for rel in sig.relations:
         sign = "rises" if rel["r"] > 0 else "falls"
+        if rel.get("samples"):  # signal_relations.py: sample by sample, with its slope
+            out.append(
+                f"Sample by sample it {sign} with {rel['covariate']}: proportional to it, "
+                f"{rel['coefficient']:.3g} {rel['units']} (rank correlation {rel['r']:.2f} over "
+                f"{rel['n']} samples, p = {rel['p']:.2g})."
+            )
+            continue
         out.append(f"It {sign} with {rel['covariate']} (rank correlation {rel['r']:.2f}).")
     for g, part in sig.particles.items():
         out.append(
