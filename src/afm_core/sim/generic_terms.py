@@ -22,6 +22,9 @@ true position (m):
 - x_linear, y_linear: amplitude * (x - x0) or (y - y0) (amplitude per m; x0, y0 default 0)
 - x_sine, y_sine: amplitude * sin(2 pi (x - x0) / period)
 - height_proportional: amplitude * (true height about the substrate)  (height signal only)
+- disc_proportional: amplitude * (true height about the substrate) where the scanner is within
+  radius of (x0, y0), else 0: one object's apparent height scaled, the others' not (height
+  signal only; one term per object describes "each particle differs by its own amount")
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ FORMS = {
     "x_sine": {"period": None, "x0": 0.0},
     "y_sine": {"period": None, "y0": 0.0},
     "height_proportional": {},
+    "disc_proportional": {"x0": None, "y0": None, "radius": None},
 }
 MAX_OFFSET = 1e-5  # m or rad: a generic term larger than the z range describes no instrument
 MAX_DEGREE = 5  # time_legendre: a smooth change, not a fit of every wiggle
@@ -86,10 +90,13 @@ class GenericTerm:
             coord, origin = (x, "x0") if form[0] == "x" else (y, "y0")
             phase = 2 * math.pi * (coord - self.param(origin)) / self.param("period")
             return np.broadcast_to(a * np.sin(phase), shape).copy()
-        # height_proportional
         if height is None:
             return np.zeros(shape)
-        return a * np.asarray(height, float)
+        scaled = a * np.broadcast_to(np.asarray(height, float), shape)
+        if form == "disc_proportional":
+            x0, y0 = self.param("x0"), self.param("y0")
+            return np.where(np.hypot(x - x0, y - y0) <= self.param("radius"), scaled, 0.0)
+        return scaled.copy()  # height_proportional
 
     def as_dict(self) -> dict:
         return {"signal": self.signal, "form": self.form, "amplitude": self.amplitude} | dict(
@@ -124,8 +131,8 @@ def _parse_one(k: int, entry) -> GenericTerm:
         raise ValueError(f"{where}.signal={signal!r}: must be one of {list(SIGNALS)}")
     if form not in FORMS:
         raise ValueError(f"{where}.form={form!r}: must be one of {sorted(FORMS)}")
-    if form == "height_proportional" and signal != "height":
-        raise ValueError(f"{where}.form=height_proportional: only on the height signal")
+    if form in ("height_proportional", "disc_proportional") and signal != "height":
+        raise ValueError(f"{where}.form={form}: only on the height signal")
     known = {"signal", "form", "amplitude", "description"} | set(FORMS[form])
     unknown = sorted(set(entry) - known)
     if unknown:
@@ -138,8 +145,8 @@ def _parse_one(k: int, entry) -> GenericTerm:
         if name not in entry and default is None:
             raise ValueError(f"{where}.{name}: required by form {form}")
         value = _number(f"{where}.{name}", entry.get(name, default))
-        if name == "period" and value <= 0:
-            raise ValueError(f"{where}.period={value}: must be > 0")
+        if name in ("period", "radius") and value <= 0:
+            raise ValueError(f"{where}.{name}={value}: must be > 0")
         if name == "degree" and (value != int(value) or not 1 <= value <= MAX_DEGREE):
             raise ValueError(f"{where}.degree={value}: must be an integer from 1 to {MAX_DEGREE}")
         params.append((name, value))
