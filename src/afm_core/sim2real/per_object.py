@@ -94,7 +94,7 @@ def object_offsets(table, r, cov, P, anchors=None, factors=None, groups=OBJECT_G
         out[g] = row
         factor = max(1.0, float((factors or {}).get(g, 1.0)), row["scatter"])
         beyond = stats.chi2.sf(row["chi2"] / factor, row["dof"]) * len(tried) < ALPHA
-        row["differ"] = row["differ"] and bool(beyond)
+        row["differ"] = row["differ"] and bool(beyond) and _apart(row["objects"], len(tried))
     return out
 
 
@@ -146,6 +146,20 @@ def _one_group(table, r, cov, P, tags, g: str, names: list, n_groups: int) -> di
 def differing(offsets: dict) -> list[str]:
     """The groups whose particles differ from each other beyond the noise."""
     return [g for g, row in offsets.items() if row["differ"]]
+
+
+def _apart(objects: dict, n_groups: int) -> bool:
+    """Whether the particles' offsets, each told alone, differ from each other beyond their
+    sigmas (chi^2 about their weighted mean, at ALPHA over the groups): what the description
+    says must hold on the offsets it quotes (a work session's pushed particles passed the
+    plane-based test with five offsets of -230 +- 98 nm each)."""
+    values = np.array([v[0] for v in objects.values()])
+    sigmas = np.array([v[1] for v in objects.values()])
+    if len(values) < 2 or not np.all(np.isfinite(sigmas) & (sigmas > 0)):
+        return False
+    w = 1 / sigmas**2
+    chi2 = float(np.sum(w * (values - np.sum(w * values) / np.sum(w)) ** 2))
+    return bool(stats.chi2.sf(chi2, len(values) - 1) * n_groups < ALPHA)
 
 
 def _planes(cols: np.ndarray, places: np.ndarray, ops: np.ndarray) -> np.ndarray:
