@@ -10,14 +10,10 @@ import pytest
 
 from afm_core.sim.config import load_config, merge
 from afm_core.sim.instrument import SimulatedAfm
+from afm_core.sim2real.force_samples import collecting, force_differences
 from afm_core.sim2real.generic_fit import PROPORTIONAL_FORM, _tracked, model_sentence
 from afm_core.sim2real.noise_floor import statistic_variance
-from afm_core.sim2real.signal_relations import (
-    DEFLECTION,
-    collecting,
-    force_differences,
-    sample_relation,
-)
+from afm_core.sim2real.signal_relations import DEFLECTION, sample_relation
 from afm_core.sim2real.signature import Signature
 from afm_core.sim2real.signature_text import sentences
 

@@ -25,6 +25,9 @@ true position (m):
 - deflection_proportional: amplitude * (the vertical deflection measured at the same moment)
   (torsion signal only; amplitude in rad per m): one signal leaking into another, as a
   residual that tracks a signal recorded alongside it
+- disc_proportional: amplitude * (true height about the substrate) where the scanner is within
+  radius of (x0, y0), else 0: one object's apparent height scaled, the others' not (height
+  signal only; one term per object describes "each particle differs by its own amount")
 """
 
 from __future__ import annotations
@@ -48,9 +51,14 @@ FORMS = {
     "y_sine": {"period": None, "y0": 0.0},
     "height_proportional": {},
     "deflection_proportional": {},
+    "disc_proportional": {"x0": None, "y0": None, "radius": None},
 }
 # the proportional forms: form -> the one signal they act on
-PROPORTIONAL = {"height_proportional": "height", "deflection_proportional": "torsion"}
+PROPORTIONAL = {
+    "height_proportional": "height",
+    "deflection_proportional": "torsion",
+    "disc_proportional": "height",
+}
 MAX_OFFSET = 1e-5  # m or rad: a generic term larger than the z range describes no instrument
 MAX_DEGREE = 5  # time_legendre: a smooth change, not a fit of every wiggle
 
@@ -93,9 +101,13 @@ class GenericTerm:
             coord, origin = (x, "x0") if form[0] == "x" else (y, "y0")
             phase = 2 * math.pi * (coord - self.param(origin)) / self.param("period")
             return np.broadcast_to(a * np.sin(phase), shape).copy()
-        # height_proportional, deflection_proportional
+        # the proportional forms
         if measured is None:
             return np.zeros(shape)
+        if form == "disc_proportional":
+            scaled = a * np.broadcast_to(np.asarray(measured, float), shape)
+            x0, y0 = self.param("x0"), self.param("y0")
+            return np.where(np.hypot(x - x0, y - y0) <= self.param("radius"), scaled, 0.0)
         return a * np.asarray(measured, float)
 
     def as_dict(self) -> dict:
@@ -145,8 +157,8 @@ def _parse_one(k: int, entry) -> GenericTerm:
         if name not in entry and default is None:
             raise ValueError(f"{where}.{name}: required by form {form}")
         value = _number(f"{where}.{name}", entry.get(name, default))
-        if name == "period" and value <= 0:
-            raise ValueError(f"{where}.period={value}: must be > 0")
+        if name in ("period", "radius") and value <= 0:
+            raise ValueError(f"{where}.{name}={value}: must be > 0")
         if name == "degree" and (value != int(value) or not 1 <= value <= MAX_DEGREE):
             raise ValueError(f"{where}.degree={value}: must be an integer from 1 to {MAX_DEGREE}")
         params.append((name, value))

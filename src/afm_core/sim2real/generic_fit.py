@@ -35,6 +35,13 @@ from afm_core.sim.generic_terms import GenericTerm, parse_generic_terms
 from afm_core.sim2real.generic_forms import search_form
 from afm_core.sim2real.heldout import heldout_chi2
 from afm_core.sim2real.noise_model import Whitener, gls
+from afm_core.sim2real.per_object import (
+    OBJECT_STEP,
+    PER_OBJECT_FORM,
+    differing,
+    object_basis,
+    object_offsets,
+)
 from afm_core.sim2real.results import UNEXPLAINED_P
 from afm_core.sim2real.signal_relations import DEFLECTION, deflection_relation, unseen_signature
 from afm_core.sim2real.signature import ALPHA, Signature, describe
@@ -167,11 +174,15 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
     """The generic term of the signature's form fitted to the residual r0 (after the named
     terms, if any): columns, fit on all features (amplitudes, sigmas, chi^2 gain), the held-out
     check. {"fitted": False, "reason": ...} when the signature's signal has no generic term."""
-    if sig.kind not in SIGNALS or not sig.time or not sig.space:
+    per_object = bool(sig.space.get("per_object"))
+    if sig.kind not in SIGNALS or not sig.space or not (sig.time or per_object):
         return {"fitted": False, "reason": f"no generic term acts on a {sig.kind or 'no'} signal"}
     centre = tuple(float(v) for v in np.mean(sess.table.xy, axis=0))
     searched = {}
-    if sig.kind == "z":
+    if per_object:  # one offset per particle (per_object.py)
+        form = PER_OBJECT_FORM
+        basis = object_basis(sig.space["tags"], sess.anchors) if sig.kind == "z" else []
+    elif sig.kind == "z":
         # the form and its shape by what the samples do (generic_forms.py), on one noise model:
         # the signature's groups without the factors the unexplained effect inflated
         live = {row["group"] for row in sig.signals}
@@ -195,7 +206,7 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
     steps = (
         [abs(tracked["coefficient"]) or 1.0]
         if tracked is not None
-        else [_step(term, sess, size) for term in basis]
+        else [OBJECT_STEP if per_object else _step(term, sess, size) for term in basis]
     )
     cols = np.stack(
         [np.nan_to_num(_change(sess, [_scaled(term, a)])) / a for term, a in zip(basis, steps)],
@@ -280,15 +291,9 @@ def describe_unexplained(
     """(Signature, generic fit dict) of what the library leaves unexplained, or (None, {}) when
     it leaves nothing (`needs_description`). The residual is the named terms' at their fitted
     values (re-simulated: ReferenceSession.residual), the nominal model's when none is named."""
-    if not needs_description(evidence.overall(), chosen, heldout, deviations.group_stats):
-        if chosen:
-            return None, {}
-        # nothing the features show: a torsion that follows the deflection at the samples
-        # still is (signal_relations.py), at the verdict's own level
-        unseen = unseen_signature(sess, UNEXPLAINED_P)
-        reason = "no feature of this session sees it (this session cannot tell its size there)"
-        return (None, {}) if unseen is None else (unseen, {"fitted": False, "reason": reason})
-    say("describing the unexplained residual")
+    unexplained = needs_description(evidence.overall(), chosen, heldout, deviations.group_stats)
+    if chosen and not unexplained:
+        return None, {}
     if chosen:
         terms = [design_terms[name] for name in chosen]
         theta = [parameters[key]["value"] for name in chosen for key in design_terms[name][0].keys]
@@ -299,8 +304,17 @@ def describe_unexplained(
     white = Whitener(evidence.unscaled.cov)
     coef, _, _ = gls(white(r0), white(evidence.P))
     e = r0 - evidence.P @ coef
-    sigma = np.sqrt(np.diag(evidence.unscaled.cov))
-    sig = describe(sess.table, e, sigma, sess.recorded, evidence.group_factors)
+    cov, factors = evidence.unscaled.cov, evidence.group_factors
+    objects = object_offsets(sess.table, e, cov, evidence.P, sess.anchors, factors)
+    if not unexplained and not differing(objects):
+        # nothing the features show: a torsion that follows the deflection at the samples
+        # still is (signal_relations.py), at the verdict's own level
+        unseen = unseen_signature(sess, UNEXPLAINED_P)
+        reason = "no feature of this session sees it (this session cannot tell its size there)"
+        return (None, {}) if unseen is None else (unseen, {"fitted": False, "reason": reason})
+    say("describing the unexplained residual")
+    sigma = np.sqrt(np.diag(cov))
+    sig = describe(sess.table, e, sigma, sess.recorded, factors, objects)
     if sig.kind == "torsion":
         # its relation to the deflection at the same moment, read at the samples
         relation = deflection_relation(sess, ALPHA / max(len(sig.relations) + 1, 1))

@@ -37,6 +37,7 @@ from afm_core.sim2real.features import (
     extract_features,
     raster_noise_statistics,
 )
+from afm_core.sim2real.force_samples import collecting
 from afm_core.sim2real.mismatch import (
     Agreement,
     agreement,
@@ -45,7 +46,6 @@ from afm_core.sim2real.mismatch import (
 )
 from afm_core.sim2real.protocol import deterministic, replay
 from afm_core.sim2real.sample_realization import sample_covariance
-from afm_core.sim2real.signal_relations import collecting
 
 MIN_MATCHED_FRACTION = 0.7  # of the recorded features the reference simulation must reproduce
 SHIFT = 10e-9  # m, drift shift of the sensitivity replays

@@ -27,34 +27,12 @@ import math
 import numpy as np
 from scipy import stats
 
+from afm_core.sim2real.force_samples import force_differences
 from afm_core.sim2real.protocol import replay
 from afm_core.sim2real.signature import Signature
 
 DEFLECTION = "the vertical deflection measured at the same moment"
 MIN_SAMPLES = 50  # fewer differences than this say nothing about a sample-level relation
-
-
-def force_differences(op) -> dict:
-    """{op.index: (first differences of the torsion, of the deflection)} of a push or indent
-    with a force trace, else {}: what the sample-level relation needs of a recorded trace (the
-    recording is read once and not held: reference._read)."""
-    data = op.data
-    if op.kind not in ("push", "indent") or data is None:
-        return {}
-    if not hasattr(data, "lateral_torsion") or not hasattr(data, "vertical_deflection"):
-        return {}
-    torsion = np.asarray(data.lateral_torsion, float)
-    deflection = np.asarray(data.vertical_deflection, float)
-    if torsion.size != deflection.size or torsion.size < 3:
-        return {}
-    return {op.index: (np.diff(torsion), np.diff(deflection))}
-
-
-def collecting(ops, into: dict):
-    """The operations `ops`, one by one, each push's force_differences kept in `into`."""
-    for op in ops:
-        into.update(force_differences(op))
-        yield op
 
 
 def sample_relation(recorded: dict, nominal: dict, alpha: float) -> dict | None:

@@ -29,7 +29,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, stats
 
-from afm_core.sim2real.signature_text import WORDS, sentences
+from afm_core.sim2real.per_object import (
+    EACH_ITS_OWN,
+    object_rows,
+    object_sentence,
+    particles_entry,
+)
+from afm_core.sim2real.signature_text import UNITS, WORDS, sentences
 
 ALPHA = 0.05  # family-wise false-alarm rate of each "lives here / depends on this" statement
 MIN_FEATURES = 4  # fewer features in a signal describe no form
@@ -467,17 +473,22 @@ def _particles(table, r, sigma) -> dict:
     return out
 
 
-def describe(table, r, sigma, recorded=None, factors=None) -> Signature:
+def describe(table, r, sigma, recorded=None, factors=None, objects=None) -> Signature:
     """The signature of residual r (N, SI) with noise sigma (N, the model's, unscaled) over the
     feature `table` (feature_table.Table); recorded: the recorded values (for the heights
-    measured alongside); factors: the diagnosis' overdispersion factors per group."""
+    measured alongside); factors: the diagnosis' overdispersion factors per group; objects:
+    per_object.object_offsets of the residual (groups whose particles differ, each its own
+    way, are signals too)."""
     r, sigma = np.asarray(r, float), np.asarray(sigma, float)
     live = _significant_groups(table, r, sigma, factors or {})
+    live = _with_object_rows(live, objects or {})
     sig = Signature(signals=live)
     if not live:
         sig.sentences = ["No signal departs from its noise model: there is nothing to describe."]
         return sig
     top = live[0]["group"]
+    if live[0].get("per_object"):
+        return _per_object(sig, table, r, sigma, objects[top])
     sig.kind = live[0]["kind"]
     family = SAME_OFFSET.get(top)
     sig.groups = [
@@ -506,6 +517,56 @@ def describe(table, r, sigma, recorded=None, factors=None) -> Signature:
         "left_rms_sigma": float(np.sqrt(np.mean((rest / s) ** 2))),
     }
     sig.sentences = sentences(sig, ALPHA)
+    return sig
+
+
+def _with_object_rows(live: list, objects: dict) -> list:
+    """The significant groups and those whose particles differ, each its own way (a group
+    beyond its noise as a whole keeps its row, marked), by excess, with their shares."""
+    rows = {row["group"]: row for row in live}
+    for row in object_rows(objects, WORDS):
+        if row["group"] in rows:
+            rows[row["group"]]["per_object"] = True
+        else:
+            rows[row["group"]] = row
+    out = sorted(rows.values(), key=lambda row: -row["excess"])
+    total = sum(row["excess"] for row in out) or 1.0
+    for row in out:
+        row["share"] = row["excess"] / total
+    return out
+
+
+def _per_object(sig: Signature, table, r, sigma, row: dict) -> Signature:
+    """The signature whose leading signal is one offset per particle, the same in every image:
+    its form across the sample is read on the particles' offsets at their places; in time it
+    is constant (the test itself)."""
+    g = sig.signals[0]["group"]
+    sig.kind, sig.groups = sig.signals[0]["kind"], [g]
+    tags = list(row["objects"])
+    y = np.array([row["objects"][t][0] for t in tags])
+    s = np.maximum(np.array([row["objects"][t][1] for t in tags]), 1e-300)
+    xy = np.array([row["place"][t] for t in tags])
+    space = space_form(xy, y, s)
+    # a handful of particles: a form through their places is said only if it leaves their
+    # offsets within their noise (4 parameters of a sinusoid fit 6 offsets of any kind)
+    left = float(np.sum(((y - space["fitted"]) / s) ** 2))
+    used = {"uniform": 1, "linear in x": 2, "linear in y": 2}.get(space["form"], 4)
+    if stats.chi2.sf(left, max(len(y) - used, 1)) < ALPHA:
+        space = dict(space, form=EACH_ITS_OWN, params={})
+    sig.space = dict(space, primary=True, per_object=True, tags=tags)
+    sig.particles = _particles(table, r, sigma)
+    sig.particles[g] = particles_entry(row)
+    sel = (table.groups == g) & np.isfinite(r) & (sigma > 0)
+    sig.size = {
+        "rms": float(np.sqrt(np.mean(y**2))),
+        "rms_sigma": float(np.sqrt(np.mean((r[sel] / sigma[sel]) ** 2))),
+        "amplitude": float(np.ptp(y)),
+        "noise_sigma": float(np.sqrt(np.mean(sigma[sel] ** 2))),
+        "left_rms_sigma": float("nan"),
+    }
+    scale, unit = UNITS.get(sig.kind, (1.0, "SI"))
+    sig.sentences = sentences(sig, ALPHA)
+    sig.sentences.insert(2, object_sentence(WORDS[g][0], row, scale, unit))
     return sig
 
 

@@ -120,6 +120,8 @@ def _space_sentence(space: dict, scale: float, unit: str, alpha: float) -> str:
     )
     if form == "uniform":
         text = f"{lead} it shows no gradient"
+    elif form == "each particle its own":
+        text = f"{lead} no form through the particles' places explains their offsets"
     elif form.startswith("linear"):
         grads = ", ".join(f"{g * scale * 1e-6:.3g} {unit}/um" for g in p["gradient"])
         text = f"{lead} it is {form} ({grads})"
