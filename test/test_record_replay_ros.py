@@ -26,7 +26,11 @@ def publish_session(node, n_traces=20, period=0.02):
     """Latched scan + landmarks published before the recorder subscribes, then a stream."""
     scan_pub = node.create_publisher(RasterScan, "/afm/scan", LATCHED)
     marks_pub = node.create_publisher(LandmarkArray, "/afm/landmarks", LATCHED)
-    trace_pub = node.create_publisher(ForceTrace, "/afm/force_trace", 10)
+    # a history as deep as the stream: a reliable KEEP_LAST writer drops a sample it has not yet
+    # repaired once `depth` newer ones follow (DDS's own rule), and with depth 10 at 50 Hz a
+    # fresh clone's loaded run lost one that way (0, 1, 2, 4, ...); what the recorder is asked
+    # to keep is what reached it, so the writer must not be the one losing messages
+    trace_pub = node.create_publisher(ForceTrace, "/afm/force_trace", n_traces)
     scan_pub.publish(raster_scan(7))
     marks_pub.publish(landmarks(2))
     return scan_pub, marks_pub, trace_pub
