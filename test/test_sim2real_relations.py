@@ -7,9 +7,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from test_sim2real_signature import contact_traces_without_and_with
 
 from afm_core.sim.config import load_config, merge
-from afm_core.sim.instrument import SimulatedAfm
 from afm_core.sim2real.force_samples import collecting, force_differences
 from afm_core.sim2real.generic_fit import PROPORTIONAL_FORM, _tracked, model_sentence
 from afm_core.sim2real.noise_floor import statistic_variance
@@ -80,13 +80,8 @@ def test_only_force_traces_are_collected_as_the_operations_pass():
 def test_the_deflection_proportional_term_adds_k_times_the_measured_deflection():
     """The simulator's torsion with the term, less the one without (same seed), is k times the
     deflection the trace reports at each sample (closed form)."""
-    base = load_config()
     term = {"signal": "torsion", "form": "deflection_proportional", "amplitude": 30.0}
-    traces = []
-    for config in (base, merge(base, {"generic_terms": [term]})):
-        sim = SimulatedAfm(config)
-        sim.move_tip(54.5e-6, 54.2e-6, 1e-5)
-        traces.append(sim.move_tip(55.5e-6, 54.2e-6, 1e-6, contact=True).trace)
+    traces = contact_traces_without_and_with(term)
     deflection = np.asarray(traces[1].vertical_deflection)
     diff = np.asarray(traces[1].lateral_torsion) - np.asarray(traces[0].lateral_torsion)
     assert np.allclose(diff, 30.0 * deflection, rtol=1e-9, atol=1e-18)

@@ -125,16 +125,23 @@ def test_a_generic_term_added_to_the_samples_is_what_the_simulator_measures(term
         assert error < tolerance, (kind, error)
 
 
-def test_the_generic_torsion_term_adds_its_offset_to_the_push_trace():
-    """A torsion offset linear in the commanded x: the trace with it minus the one without is
-    that offset at each sample's commanded position (closed form)."""
+def contact_traces_without_and_with(term: dict) -> list:
+    """The force traces of one contact move on the default simulator, without and with the
+    generic `term` (same seed, so they differ by the term alone)."""
     base = load_config()
-    term = {"signal": "torsion", "form": "x_linear", "amplitude": 50.0, "x0": 55e-6}
     traces = []
     for config in (base, merge(base, {"generic_terms": [term]})):
         sim = SimulatedAfm(config)
         sim.move_tip(54.5e-6, 54.2e-6, 1e-5)
         traces.append(sim.move_tip(55.5e-6, 54.2e-6, 1e-6, contact=True).trace)
+    return traces
+
+
+def test_the_generic_torsion_term_adds_its_offset_to_the_push_trace():
+    """A torsion offset linear in the commanded x: the trace with it minus the one without is
+    that offset at each sample's commanded position (closed form)."""
+    term = {"signal": "torsion", "form": "x_linear", "amplitude": 50.0, "x0": 55e-6}
+    traces = contact_traces_without_and_with(term)
     x = np.asarray(traces[1].commanded_x)
     diff = np.asarray(traces[1].lateral_torsion) - np.asarray(traces[0].lateral_torsion)
     assert np.allclose(diff, 50.0 * (x - 55e-6), rtol=1e-9, atol=1e-15)
