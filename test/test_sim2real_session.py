@@ -338,8 +338,8 @@ def test_messages_are_those_the_driver_publishes_byte_for_byte(session):
     drivers_qos = {
         TIP_COMMAND: qos_profiles.EVENTS,
         SCAN: qos_profiles.SCANS,
-        SCAN_LINE: qos_profiles.STREAM,
-        FORCE_TRACE: qos_profiles.STREAM,
+        SCAN_LINE: qos_profiles.STREAM_OFFERED,
+        FORCE_TRACE: qos_profiles.STREAM_OFFERED,
         GROUND_TRUTH: qos_profiles.LATCHED,
     }
     for topic, profile in drivers_qos.items():  # as the recorder stores the driver's offers

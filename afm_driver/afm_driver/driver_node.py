@@ -53,7 +53,7 @@ from afm_ros.conversions import (
 )
 from afm_ros.height_image import height_image_msg
 from afm_ros.node_main import run
-from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED, SCANS, STREAM
+from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED, SCANS, STREAM_OFFERED
 
 # each waiting goal holds one of the node's threads (the gate blocks it): the node runs this many
 # plus SERVICE_THREADS, so cancels and new goals are answered however full the queue is
@@ -211,8 +211,8 @@ class DriverNode(Node):
         # instrument's time 0, the start of the session)
         self.tf_static_pub = self.create_publisher(TFMessage, topics.TF_STATIC, frames.STATIC_QOS)
         self.tf_static_pub.publish(frames.static_tree(self.stamp(self.instrument.time)))
-        self.line_pub = self.create_publisher(ScanLine, topics.SCAN_LINE, STREAM)
-        self.trace_pub = self.create_publisher(ForceTrace, topics.FORCE_TRACE, STREAM)
+        self.line_pub = self.create_publisher(ScanLine, topics.SCAN_LINE, STREAM_OFFERED)
+        self.trace_pub = self.create_publisher(ForceTrace, topics.FORCE_TRACE, STREAM_OFFERED)
         self.command_pub = self.create_publisher(TipCommand, topics.TIP_COMMAND, EVENTS)
         self.truth_pub = (
             self.create_publisher(GroundTruth, topics.GROUND_TRUTH, LATCHED)

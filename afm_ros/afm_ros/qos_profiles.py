@@ -22,7 +22,18 @@ SCANS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
+# Subscribers to streams take sensor-data QoS (best effort: a viewer wants the newest, not every
+# one). The driver offers them reliably, which a best-effort subscriber still matches, so a
+# recorder (which subscribes reliably when every publisher offers it) keeps every scan line and
+# force trace: the replay backend serves a local scan from the recorded line, and one lost best
+# effort sample on a loaded machine made that replay refuse it.
 STREAM = qos_profile_sensor_data
+STREAM_OFFERED = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
 # Commands and goals: reliable, and the last 100 kept for late joiners, so a recorder that
 # matched a moment after the first command still records it.
 EVENTS = QoSProfile(

@@ -46,7 +46,7 @@ TYPES = {
 # The QoS the driver offers (afm_ros.qos_profiles), in the form our recorder stores what it
 # discovers (history and depth are not sent over the wire: "unknown", 0; durations infinite),
 # so a replay republishes each topic as the driver did: commands and scans reliable and
-# latched, streams best effort (sensor data), truth reliable and latched.
+# latched, streams reliable and volatile, truth reliable and latched.
 def _offered(reliability: str, durability: str) -> QosDescription:
     return QosDescription(
         history="unknown",
@@ -63,8 +63,8 @@ def _offered(reliability: str, durability: str) -> QosDescription:
 OFFERED_QOS = {
     TIP_COMMAND: _offered("reliable", "transient_local"),
     SCAN: _offered("reliable", "transient_local"),
-    SCAN_LINE: _offered("best_effort", "volatile"),
-    FORCE_TRACE: _offered("best_effort", "volatile"),
+    SCAN_LINE: _offered("reliable", "volatile"),
+    FORCE_TRACE: _offered("reliable", "volatile"),
     GROUND_TRUTH: _offered("reliable", "transient_local"),
 }
 
