@@ -189,6 +189,15 @@ def test_a_clients_readiness_probe_leaves_running_goals_alone(nodes):
         assert image_msg_to_array(result.scan.height).shape == (64, 32)
 
 
+def test_a_server_nobody_runs_is_reported_with_the_nodes_the_graph_lists(ros_node):
+    with AfmCommander("lonely_commander", server_timeout=1) as afm:
+        client = afm.clients["scan_image"]
+        assert not client.wait_until_answering(1.0)
+        assert "the graph does not list its server" in client.not_answering
+        assert "none now" in client.not_answering
+        assert "/lonely_commander" in client.not_answering, client.not_answering
+
+
 def test_sim_clock_runs_ahead_of_wall_time(nodes, ros_node):
     clocks = []
     ros_node.create_subscription(

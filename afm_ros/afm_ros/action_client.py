@@ -110,7 +110,12 @@ class SafeActionClient(ActionClient):
             return True  # it answered just now; an older answer proves nothing (it may be dead)
         deadline = time.monotonic() + timeout_sec
         if not self.wait_for_server(timeout_sec=timeout_sec):
-            self.not_answering = "the graph does not list its server"
+            # which nodes the graph knows tells a participant never discovered from one whose
+            # action endpoints are not (yet) matched
+            self.not_answering = (
+                "the graph does not list its server: its status is published "
+                f"{self.listed_servers()}; {self.known_nodes()}"
+            )
             return False
         probes = 0
         # one event for all the probes: a late answer to an earlier probe is as good as the
@@ -146,6 +151,15 @@ class SafeActionClient(ActionClient):
             return f"by whom unknown: {exc}"
         domain = os.environ.get("ROS_DOMAIN_ID", "0")
         return f"by {len(names)} node(s) on domain {domain}: {', '.join(names) or 'none now'}"
+
+    def known_nodes(self) -> str:
+        """The nodes this client's graph lists, in words, for an error message."""
+        try:
+            names = self._node.get_node_names_and_namespaces()
+        except Exception as exc:  # noqa: BLE001 - a diagnosis must not hide the failure
+            return f"the nodes it lists are unknown: {exc}"
+        listed = sorted(f"{ns.rstrip('/')}/{name}" for name, ns in names)
+        return f"the graph lists {len(listed)} node(s): {', '.join(listed) or 'none'}"
 
     def _forget_requests(self, futures) -> None:
         """Remove cancel requests a dead server will never answer from the pending table."""
