@@ -9,8 +9,12 @@ named physical effect. Each entry:
     {signal: height | torsion, form: <form>, amplitude: <SI>, ...form parameters}
 
 `height` adds to every measured height (rasters and scan lines; m), `torsion` to the push
-traces' lateral torsion (rad). Forms, with t the instrument clock (s) and x, y the scanner's
-true position (m):
+traces' lateral torsion (rad); `x_position` and `y_position` displace the scanner's true x or
+y (m) as a function of where it truly is (a commanded-to-true map the library's scanner terms
+do not have: a sensitivity that ripples or changes across the range), so every measurement
+taken there, heights and torsion alike, is taken at the displaced place. The lateral signals
+take the forms across the sample only (LATERAL_FORMS): a displacement in time is the drift's.
+Forms, with t the instrument clock (s) and x, y the scanner's true position (m):
 
 - constant: amplitude
 - time_linear: amplitude * (t - t0)                    (amplitude per s; t0 default 0)
@@ -37,7 +41,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SIGNALS = ("height", "torsion")
+SIGNALS = ("height", "torsion", "x_position", "y_position")
+LATERAL_SIGNALS = ("x_position", "y_position")
+LATERAL_FORMS = ("x_linear", "y_linear", "x_sine", "y_sine")
 FORMS = {
     # form -> its parameters besides amplitude (defaults None: required)
     "constant": {},
@@ -60,6 +66,7 @@ PROPORTIONAL = {
     "disc_proportional": "height",
 }
 MAX_OFFSET = 1e-5  # m or rad: a generic term larger than the z range describes no instrument
+MAX_STRAIN = 0.1  # x_position/y_position linear in x or y: a 10 % gain error is no ripple
 MAX_DEGREE = 5  # time_legendre: a smooth change, not a fit of every wiggle
 
 
@@ -145,6 +152,10 @@ def _parse_one(k: int, entry) -> GenericTerm:
         raise ValueError(f"{where}.form={form!r}: must be one of {sorted(FORMS)}")
     if form in PROPORTIONAL and signal != PROPORTIONAL[form]:
         raise ValueError(f"{where}.form={form}: only on the {PROPORTIONAL[form]} signal")
+    if signal in LATERAL_SIGNALS and form not in LATERAL_FORMS:
+        raise ValueError(
+            f"{where}.form={form}: the {signal} signal takes only {list(LATERAL_FORMS)}"
+        )
     known = {"signal", "form", "amplitude", "description"} | set(FORMS[form])
     unknown = sorted(set(entry) - known)
     if unknown:
@@ -168,6 +179,8 @@ def _parse_one(k: int, entry) -> GenericTerm:
     bounded = ("constant", "time_step", "time_sine", "time_legendre", "x_sine", "y_sine")
     if form in bounded and abs(amplitude) > MAX_OFFSET:
         raise ValueError(f"{where}.amplitude={amplitude}: |amplitude| must be <= {MAX_OFFSET}")
+    if signal in LATERAL_SIGNALS and form.endswith("_linear") and abs(amplitude) > MAX_STRAIN:
+        raise ValueError(f"{where}.amplitude={amplitude}: |amplitude| must be <= {MAX_STRAIN}")
     return term
 
 

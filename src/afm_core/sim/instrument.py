@@ -303,6 +303,8 @@ class SimulatedAfm:
             self._open_loop_models[0].apply(drive_x - centre[0])
             self._open_loop_models[1].apply(drive_y - centre[1])
         true_x, true_y = self.scanner.apply(drive_x, drive_y, dt)
+        if self._generic:
+            true_x, true_y = self._generic_displacement(true_x, true_y, dt)
         if position_error is None:
             true_x, true_y = true_x + self._position_error[0], true_y + self._position_error[1]
         else:
@@ -313,6 +315,18 @@ class SimulatedAfm:
         self._commanded = (float(cmd_x[-1]), float(cmd_y[-1]))
         self._true_scanner = (float(true_x[-1]), float(true_y[-1]))
         return times, true_x, true_y
+
+    def _generic_displacement(self, true_x, true_y, dt):
+        """The scanner's true position displaced by the generic lateral terms (x_position,
+        y_position: functions of where the scanner truly is, both taken at the undisplaced
+        place)."""
+        times = self.time + dt * np.arange(1, np.size(true_x) + 1)
+        dx = total_offset(self._generic, "x_position", times, true_x, true_y)
+        dy = total_offset(self._generic, "y_position", times, true_x, true_y)
+        return (
+            true_x if dx is None else true_x + dx,
+            true_y if dy is None else true_y + dy,
+        )
 
     def sample_frame(self, true_x, true_y, times):
         """Where the tip is on the sample (afm_task): the sample has drifted by offset(t)."""

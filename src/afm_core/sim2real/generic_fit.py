@@ -7,7 +7,9 @@ lives and its form; this stage models it with the simulator's generic term famil
 (sim/generic_terms.py: an additive offset on the height or torsion signal, shaped by a small
 basis: a linear trend, a step at the signature's time, a sinusoid of its period, linear or
 periodic in x or y; a torsion residual that follows the deflection sample by sample,
-signal_relations.py, is k x the measured deflection instead).
+signal_relations.py, is k x the measured deflection instead; particle positions displaced as
+a function of their place, lateral.py, are a displacement of the scanner's true x or y of that
+form, x_position / y_position, applied in the re-simulation's commanded-to-true map).
 Its coefficients are fitted by re-simulation columns, one replay per basis
 function (the offset is additive, so one step gives the column), like the library's design
 columns. The held-out check is heldout.py's: fit on one fold of time blocks, re-simulate the
@@ -34,6 +36,7 @@ from afm_core.sim.config import merge
 from afm_core.sim.generic_terms import GenericTerm, parse_generic_terms
 from afm_core.sim2real.generic_forms import search_form
 from afm_core.sim2real.heldout import heldout_chi2
+from afm_core.sim2real.lateral import alarms, displacement_form, lateral_lead
 from afm_core.sim2real.noise_model import Whitener, gls
 from afm_core.sim2real.per_object import (
     OBJECT_STEP,
@@ -125,6 +128,22 @@ def basis_for(sig: Signature, t_first: float, centre=(0.0, 0.0)) -> tuple[str, l
     return time_form, terms + _constant(signal)
 
 
+def displacement_basis(sig: Signature, signal: str, centre) -> tuple[str, list[GenericTerm]]:
+    """(form, basis at unit amplitude) of a displacement of the scanner's true x or y
+    (`signal`) of the signature's form across the sample: a sinusoid of its period (two
+    phases), or linear in x or y about the features' centre."""
+    form, p = sig.space["form"], sig.space["params"]
+    axis = form.split()[-1]
+    if form.startswith("periodic"):
+        period, key = p["period"], f"{axis}0"
+        return form, [
+            GenericTerm(signal, f"{axis}_sine", 1.0, (("period", period), (key, 0.0))),
+            GenericTerm(signal, f"{axis}_sine", 1.0, (("period", period), (key, -period / 4))),
+        ]
+    origin = centre[0] if axis == "x" else centre[1]
+    return form, [GenericTerm(signal, f"{axis}_linear", 1.0, ((f"{axis}0", origin),))]
+
+
 PROPORTIONAL_FORM = "proportional to the vertical deflection"
 
 
@@ -175,11 +194,17 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
     terms, if any): columns, fit on all features (amplitudes, sigmas, chi^2 gain), the held-out
     check. {"fitted": False, "reason": ...} when the signature's signal has no generic term."""
     per_object = bool(sig.space.get("per_object"))
-    if sig.kind not in SIGNALS or not sig.space or not (sig.time or per_object):
+    displaced = sig.space.get("displaced")
+    if not displaced and (
+        sig.kind not in SIGNALS or not sig.space or not (sig.time or per_object)
+    ):
         return {"fitted": False, "reason": f"no generic term acts on a {sig.kind or 'no'} signal"}
+    signal = f"{displaced}_position" if displaced else SIGNALS[sig.kind]
     centre = tuple(float(v) for v in np.mean(sess.table.xy, axis=0))
     searched = {}
-    if per_object:  # one offset per particle (per_object.py)
+    if displaced:  # the scanner's true x or y as a function of its place (lateral.py)
+        form, basis = displacement_basis(sig, signal, centre)
+    elif per_object:  # one offset per particle (per_object.py)
         form = PER_OBJECT_FORM
         basis = object_basis(sig.space["tags"], sess.anchors) if sig.kind == "z" else []
     elif sig.kind == "z":
@@ -199,8 +224,8 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
         form, basis = PROPORTIONAL_FORM, [GenericTerm("torsion", "deflection_proportional", 1.0)]
     if not basis:
         return {"fitted": False, "reason": f"no generic basis for the form {form!r}"}
-    say(f"generic term: {form} on the {SIGNALS[sig.kind]} signal ({len(basis)} re-simulations)")
-    size = max(sig.size["rms"], 1e-12)
+    say(f"generic term: {form} on the {signal} signal ({len(basis)} re-simulations)")
+    size = max(sig.size["amplitude"] if displaced else sig.size["rms"], 1e-12)
     # a proportional term's column at the slope the samples show: the torsion's rms features
     # are not linear in a slope near zero
     steps = (
@@ -250,7 +275,7 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
     ]
     return {
         "fitted": True,
-        "signal": SIGNALS[sig.kind],
+        "signal": signal,
         "form": form,
         "terms": terms,
         "delta_chi2": float(chi2_0 - chi2_fit),
@@ -306,7 +331,10 @@ def describe_unexplained(
     e = r0 - evidence.P @ coef
     cov, factors = evidence.unscaled.cov, evidence.group_factors
     objects = object_offsets(sess.table, e, cov, evidence.P, sess.anchors, factors)
-    if not unexplained and not differing(objects):
+    lateral = displacement_form(sess.table, e, cov, evidence.P)
+    if not unexplained and not alarms(lateral, UNEXPLAINED_P):
+        lateral = None
+    if not unexplained and not differing(objects) and lateral is None:
         # nothing the features show: a torsion that follows the deflection at the samples
         # still is (signal_relations.py), at the verdict's own level
         unseen = unseen_signature(sess, UNEXPLAINED_P)
@@ -315,6 +343,7 @@ def describe_unexplained(
     say("describing the unexplained residual")
     sigma = np.sqrt(np.diag(cov))
     sig = describe(sess.table, e, sigma, sess.recorded, factors, objects)
+    sig = lateral_lead(sig, sess.table, e, sigma, sess.recorded, lateral)
     if sig.kind == "torsion":
         # its relation to the deflection at the same moment, read at the samples
         relation = deflection_relation(sess, ALPHA / max(len(sig.relations) + 1, 1))
@@ -322,7 +351,12 @@ def describe_unexplained(
             sig.relations.append(relation)
             sig.sentences = sentences(sig, ALPHA)
     fitted = sig
-    if sig.kind not in SIGNALS and any(row["kind"] in SIGNALS for row in sig.signals):
+    displaced = bool(sig.space.get("displaced"))
+    if (
+        sig.kind not in SIGNALS
+        and not displaced
+        and any(row["kind"] in SIGNALS for row in sig.signals)
+    ):
         # the leading signal has no generic term (a lateral one), but a z or torsion part lives
         # too: its generic model is fitted, and the re-simulation says what it does to the rest
         kinds = {row["group"]: row["kind"] for row in sig.signals}
@@ -404,8 +438,8 @@ def model_sentence(generic: dict) -> str:
         shape = f", period {period:.3g} {unit}, amplitude {amplitude * 1e9:.3g} nm"
     elif terms[0]["form"] == "time_step":
         shape = f" of {terms[0]['amplitude'] * 1e9:.3g} nm at t = {terms[0]['t0']:.0f} s"
-    if generic["signal"] != "height":
-        shape = ""  # the shapes above are in the height's units
+    if generic["signal"] not in ("height", "x_position", "y_position"):
+        shape = ""  # the shapes above are in m
     if terms[0]["form"] == "deflection_proportional":
         shape = f", {terms[0]['amplitude']:.3g} rad per m of deflection"
     h = generic["heldout"]

@@ -13,7 +13,9 @@ library term's by more than that loss could give at ALPHA (chi^2(k_generic) at A
 generic fit's own parameters: it is the generic model whose fit is asked to be as good). When it
 does not, this session cannot tell the library term from the generic description: the verdict
 is "partly explained" with both named, the residual described as no term explains it, and no
-updated configuration is written.
+updated configuration is written. Particle positions displaced as a function of their place
+have a generic form too (a displacement of the scanner's true x or y, linear or periodic in its
+place: lateral.py), which faces the library's scanner terms (gain, hysteresis, coupling).
 
 The physics this separates: a library term is a constrained model, one parameter acting on many
 signals and conditions in a fixed pattern (a friction coefficient scales the torsion of every
