@@ -24,8 +24,13 @@ def force_differences(op) -> dict:
     return {op.index: (np.diff(torsion), np.diff(deflection))}
 
 
-def collecting(ops, into: dict):
-    """The operations `ops`, one by one, each push's force_differences kept in `into`."""
+def collecting(ops, into: dict, heights: dict | None = None):
+    """The operations `ops`, one by one, each push's force_differences kept in `into` (and, given
+    `heights`, each raster's and scan line's height samples: height_spectrum.collect_heights)."""
+    from afm_core.sim2real.height_spectrum import collect_heights
+
     for op in ops:
         into.update(force_differences(op))
+        if heights is not None:
+            collect_heights(op, heights)
         yield op
