@@ -51,7 +51,7 @@ FLOOR_HZ = 1.0  # the band the spectrum's floor is the median over
 MIN_SAMPLES = 8  # a stretch shorter than this has no form in time to speak of
 MAX_GRID = 1 << 23  # grid points of the FFT (the step grows for long sessions)
 BLOCKS = 6  # time blocks, alternately in the two folds
-SEARCH = 8  # grid resolutions either side of the detected peak the sine's frequency is sought in
+SEARCH = 2  # grid resolutions either side of a candidate the sine's frequency is sought in
 
 
 def collect_heights(op, into: dict) -> None:
@@ -153,7 +153,8 @@ class Spectrum:
         t = res.t
         self.t0 = float(t.min())
         span = float(t.max()) - self.t0
-        spacing = min(float(np.min(np.diff(np.unique(t)))), 1.0)
+        # the finest sampling along a line (operations never overlap in time on one instrument)
+        spacing = min(float(np.min(np.diff(res.recorded[o][0], axis=1))) for o in res.scales)
         self.step = max(spacing / 2, span / (MAX_GRID - 1))
         self.n = 1 << int(math.ceil(math.log2(span / self.step + 2)))
         self.k = np.round((t - self.t0) / self.step).astype(np.int64)
@@ -254,12 +255,16 @@ def detect(res: Residual, alpha: float) -> dict | None:
             (maximum_filter1d(z, 3), tail_threshold(z[spectrum.band], spectrum.m, alpha), floor)
         )
     (za, ta, _), (zb, tb, floor_b) = found
-    both = np.where((za > ta) & (zb > tb), np.minimum(za, zb), 0.0)
+    # the strongest, in all the samples, of the frequencies that pass in both folds (gating
+    # the lines puts sidelobes at the line rate about a peak, nearly as strong in one fold)
+    z_all = maximum_filter1d(np.nan_to_num(spectrum.power(fold | ~fold)[0]), 3)
+    both = np.where((za > ta) & (zb > tb), z_all, 0.0)
     k = int(np.argmax(both))
     if both[k] <= 0:
         return None
     return {
         "frequency": float(spectrum.f[k]),
+        "candidates": _candidates(spectrum, za, float(spectrum.f[k])),  # the fit fold's
         "z": [float(za[k]), float(zb[k])],
         "thresholds": [ta, tb],
         "independent_frequencies": spectrum.m,
@@ -268,6 +273,23 @@ def detect(res: Residual, alpha: float) -> dict | None:
         "train": fold,
         "floor_test": float(floor_b[k]),
     }
+
+
+def _candidates(spectrum: Spectrum, z: np.ndarray, frequency: float) -> list[float]:
+    """The frequencies the sine may be at, given a peak at `frequency` that may be a sidelobe
+    the gating of the raster lines puts at a line rate from it: the strongest bin of z within
+    one raster resolution (1 / its duration) of the peak and of the peak +- each line rate."""
+    res = spectrum.res
+    out = []
+    for o, period in res.periods.items():
+        if period is None:
+            continue
+        width = 1.0 / max(float(np.ptp(res.t[res.op == o])), period)
+        for centre in (frequency - 1 / period, frequency, frequency + 1 / period):
+            near = np.flatnonzero(spectrum.band & (np.abs(spectrum.f - centre) <= width))
+            if near.size:
+                out.append(float(spectrum.f[near[int(np.argmax(z[near]))]]))
+    return sorted(set(out)) or [frequency]
 
 
 def _columns(res: Residual, frequency: float, ops) -> tuple[np.ndarray, np.ndarray]:
@@ -282,7 +304,7 @@ def _columns(res: Residual, frequency: float, ops) -> tuple[np.ndarray, np.ndarr
     return np.concatenate(cols) if cols else np.zeros((0, 2))
 
 
-def fit_sine(res: Residual, frequency: float, mask: np.ndarray, resolution: float) -> dict:
+def fit_sine(res: Residual, candidates, mask: np.ndarray, resolution: float) -> dict:
     """The sine (frequency refined within SEARCH grid resolutions, amplitude and phase) fitted by
     least squares to the prepared residual samples in `mask`, unclipped: {frequency,
     coefficients (sin, cos; m), amplitude, phase_time t0 of the simulator's time_sine}."""
@@ -295,17 +317,21 @@ def fit_sine(res: Residual, frequency: float, mask: np.ndarray, resolution: floa
         coef, *_ = np.linalg.lstsq(X, y, rcond=None)
         return -float(np.sum((X @ coef) ** 2)), coef
 
-    # the detection's peak is where both folds pass, not the sine's own: a grid of quarter
-    # resolutions about it, then a bounded search about the grid's best
-    grid = frequency + resolution * np.arange(-SEARCH, SEARCH + 0.25, 0.25)
+    # about each candidate (_candidates), a grid of half resolutions; then a grid of
+    # twentieths about the best, and a bounded search about that one's best
+    steps = resolution * np.arange(-SEARCH, SEARCH + 0.5, 0.5)
+    grid = np.concatenate([c + steps for c in candidates if c + steps[0] > 0])
     best = float(grid[int(np.argmin([gain(f)[0] for f in grid]))])
+    fine = best + resolution * np.linspace(-0.5, 0.5, 21)
+    scores = [gain(f)[0] for f in fine]
+    best = float(fine[int(np.argmin(scores))])
     found = optimize.minimize_scalar(
         lambda f: gain(f)[0],
-        bounds=(best - resolution / 4, best + resolution / 4),
+        bounds=(best - resolution / 20, best + resolution / 20),
         method="bounded",
-        options={"xatol": resolution * 1e-3},
+        options={"xatol": resolution * 1e-4},
     )
-    f = float(found.x)
+    f = float(found.x) if found.fun <= min(scores) else best
     _, (a, b) = gain(f)
     phase = math.atan2(b, a)  # a sin(w) + b cos(w) = A sin(w + phase)
     return {

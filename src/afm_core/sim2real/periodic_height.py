@@ -49,7 +49,7 @@ def periodic_height(sess, alpha: float, say=lambda m: None):
         return None
     train = found["train"]
     say(f"a periodic height signal at {found['frequency']:.4g} Hz on the samples")
-    fit = fit_sine(res, found["frequency"], train, found["resolution"])
+    fit = fit_sine(res, found["candidates"], train, found["resolution"])
     f = fit["frequency"]
     term = GenericTerm(
         "height", "time_sine", fit["amplitude"], (("period", 1 / f), ("t0", fit["t0"]))
