@@ -3,7 +3,7 @@
 A feature takes a median, an edge or a peak of a whole scan line or image; a height signal
 that oscillates many times within a line (mains pickup: 50 Hz on the z sensor) averages out
 there and leaves the features within their noise. The samples keep it: every height sample of
-a raster and a scan line has a known time (generic_forms.raster_samples: the trace in the first
+a raster and a scan line has a known time (sample_times.raster_samples: the trace in the first
 half of the line period), and the residual recorded less the nominal re-simulation, sample by
 sample, holds the oscillation on a clock the re-simulation shares.
 
@@ -46,6 +46,8 @@ import numpy as np
 from scipy import optimize
 from scipy.ndimage import maximum_filter1d
 
+from afm_core.sim2real.sample_times import raster_samples
+
 CLIP = 4.0  # robust noise units a sample is clipped at (particle edges, lost lines)
 FLOOR_HZ = 1.0  # the band the spectrum's floor is the median over
 MIN_SAMPLES = 8  # a stretch shorter than this has no form in time to speak of
@@ -69,8 +71,6 @@ def collect_heights(op, into: dict) -> None:
 def stretches(data):
     """(t, h, line period or None) of a raster's or scan line's samples, lines as rows in
     trace order; None when it has too few samples."""
-    from afm_core.sim2real.generic_forms import raster_samples
-
     if hasattr(data, "line_start_times"):
         t, _, _ = raster_samples(data)
         h = np.asarray(data.height, float)
