@@ -92,6 +92,7 @@ def test_a_fast_sine_in_time_is_found_and_fitted_as_its_closed_form(frequency):
     res = Residual(recorded, nominal)
     found = detect(res, 1e-3)
     assert found is not None  # (its peak may be a sidelobe at the line rate: the fit decides)
+    assert found["false_alarm"] < 1e-3
     fit = fit_sine(res, found["candidates"], found["train"], found["resolution"])
     assert fit["frequency"] == pytest.approx(frequency, abs=2e-5)
     assert fit["amplitude"] == pytest.approx(amplitude, rel=0.05)

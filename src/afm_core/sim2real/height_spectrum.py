@@ -251,10 +251,11 @@ def detect(res: Residual, alpha: float) -> dict | None:
         z, floor = spectrum.power(mask)
         z = np.where(spectrum.band, np.nan_to_num(z), 0.0)
         # a peak between two bins: either neighbour
-        found.append(
-            (maximum_filter1d(z, 3), tail_threshold(z[spectrum.band], spectrum.m, alpha), floor)
-        )
-    (za, ta, _), (zb, tb, floor_b) = found
+        level = tail_threshold(z[spectrum.band], spectrum.m, alpha)
+        # the tail's scale: the level moves by it per factor e in alpha
+        scale = tail_threshold(z[spectrum.band], spectrum.m, alpha / math.e) - level
+        found.append((maximum_filter1d(z, 3), level, floor, scale))
+    (za, ta, _, sa), (zb, tb, floor_b, sb) = found
     # the strongest, in all the samples, of the frequencies that pass in both folds (gating
     # the lines puts sidelobes at the line rate about a peak, nearly as strong in one fold)
     z_all = maximum_filter1d(np.nan_to_num(spectrum.power(fold | ~fold)[0]), 3)
@@ -267,6 +268,10 @@ def detect(res: Residual, alpha: float) -> dict | None:
         "candidates": _candidates(spectrum, za, float(spectrum.f[k])),  # the fit fold's
         "z": [float(za[k]), float(zb[k])],
         "thresholds": [ta, tb],
+        # the chance of a peak this high in a fold of noise alone (the larger of the two)
+        "false_alarm": float(
+            min(1.0, alpha * math.exp(-min((za[k] - ta) / sa, (zb[k] - tb) / sb)))
+        ),
         "independent_frequencies": spectrum.m,
         "resolution": float(spectrum.f[1]),
         "spectrum": spectrum,

@@ -82,7 +82,7 @@ def periodic_height(sess, alpha: float, say=lambda m: None):
         "terms": [dict(term.as_dict(), sigma=_noise(res) * math.sqrt(2 / fit["samples"]))],
         "delta_chi2": float("nan"),
         "parameters": 3,
-        "p": float(min(1.0, found["independent_frequencies"] * math.exp(-min(found["z"])))),
+        "p": found["false_alarm"],
         "heldout": heldout,
         "acts_on": [GROUP],
         "replays": 2,
