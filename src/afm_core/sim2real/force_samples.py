@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from afm_core.sim2real.height_spectrum import collect_heights
+
 
 def force_differences(op) -> dict:
     """{op.index: (first differences of the torsion, of the deflection)} of a push or indent
@@ -24,8 +26,11 @@ def force_differences(op) -> dict:
     return {op.index: (np.diff(torsion), np.diff(deflection))}
 
 
-def collecting(ops, into: dict):
-    """The operations `ops`, one by one, each push's force_differences kept in `into`."""
+def collecting(ops, into: dict, heights: dict | None = None):
+    """The operations `ops`, one by one, each push's force_differences kept in `into` (and, given
+    `heights`, each raster's and scan line's height samples: height_spectrum.collect_heights)."""
     for op in ops:
         into.update(force_differences(op))
+        if heights is not None:
+            collect_heights(op, heights)
         yield op

@@ -45,6 +45,7 @@ from afm_core.sim2real.per_object import (
     object_basis,
     object_offsets,
 )
+from afm_core.sim2real.periodic_height import periodic_height
 from afm_core.sim2real.results import UNEXPLAINED_P
 from afm_core.sim2real.signal_relations import DEFLECTION, deflection_relation, unseen_signature
 from afm_core.sim2real.signature import ALPHA, Signature, describe
@@ -339,7 +340,11 @@ def describe_unexplained(
         # still is (signal_relations.py), at the verdict's own level
         unseen = unseen_signature(sess, UNEXPLAINED_P)
         reason = "no feature of this session sees it (this session cannot tell its size there)"
-        return (None, {}) if unseen is None else (unseen, {"fitted": False, "reason": reason})
+        if unseen is not None:
+            return unseen, {"fitted": False, "reason": reason}
+        # a height signal faster than any feature's sampling, periodic in time
+        periodic = periodic_height(sess, UNEXPLAINED_P, say)
+        return (None, {}) if periodic is None else periodic
     say("describing the unexplained residual")
     sigma = np.sqrt(np.diag(cov))
     sig = describe(sess.table, e, sigma, sess.recorded, factors, objects)

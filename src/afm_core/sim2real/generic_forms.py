@@ -36,27 +36,11 @@ from afm_core.sim2real.feature_table import by_key, values_at
 from afm_core.sim2real.features import extract_features
 from afm_core.sim2real.noise_model import Whitener, gls
 from afm_core.sim2real.protocol import replay
+from afm_core.sim2real.sample_times import raster_samples
 from afm_core.sim2real.signature import SMOOTH_DEGREE, Signature
 
 SEARCH_PERIODS = 10  # log-spaced periods tried between 3 feature spacings and the span
 REFINE_EVALUATIONS = 6  # bounded search between the best grid period's neighbours
-
-
-def raster_samples(data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t, x, y) of every pixel of a RasterScanData, shaped like its height: the commanded
-    place of the pixel's centre, at start_time + line_start_times[line] + (k + 1) dt, k its
-    index along the fast axis, dt = line_period / (2 pixels along it) (the simulator's trace:
-    the first half of the line period)."""
-    rows, columns = np.asarray(data.height).shape
-    fast_is_x = data.scan_angle_deg == 0.0
-    n_fast = columns if fast_is_x else rows
-    dt = data.line_period / (2 * n_fast)
-    r, c = np.meshgrid(np.arange(rows), np.arange(columns), indexing="ij")
-    line, k = (r, c) if fast_is_x else (c, r)
-    t = data.start_time + np.asarray(data.line_start_times, float)[line] + (k + 1) * dt
-    x = data.origin_x + (c + 0.5) * data.pixel_size_x
-    y = data.origin_y + (r + 0.5) * data.pixel_size_y
-    return t, x, y
 
 
 def with_height_offset(op, terms: list[GenericTerm]):

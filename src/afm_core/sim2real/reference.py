@@ -361,7 +361,8 @@ def build_reference(
     recording, the drift sensitivities and the sensor-noise replicas."""
     anchors = np.array([(s["x"], s["y"]) for s in config.sample.spheres], float).reshape(-1, 2)
     traces: dict = {}  # the force traces' sample-to-sample changes (signal_relations.py)
-    extractor, ops, f_rec = _read(collecting(recorded_ops, traces), anchors)
+    heights: dict = {}  # the height samples and their times (height_spectrum.py)
+    extractor, ops, f_rec = _read(collecting(recorded_ops, traces, heights), anchors)
     # what the re-simulation cannot reproduce (pushed particles' contact history) is left out
     # before anything is fitted to the recording, the drift trajectory first (exclusions.py)
     exclusions = ordinary_exclusions(ops, f_rec, config)
@@ -458,6 +459,7 @@ def build_reference(
     sess.sample_cov = sample_covariance(ops, config, drift, anchors, keys, table, nom)
     sess.exclusions = exclusions
     sess.force_differences = traces
+    sess.height_samples = heights
     return sess
 
 

@@ -108,9 +108,15 @@ class Diagnosis:
                     if self.not_considered
                     else "in the library"
                 )
+                # a signal no feature shows (at the samples) leaves the features within noise
+                beyond = (
+                    f"exceeds the noise model ({fit})"
+                    if self.overall["p"] < UNEXPLAINED_P
+                    else f"is beyond its noise where no feature looks (the features: {fit})"
+                )
                 return (
                     f"{NOT_EXPLAINED}: no candidate {among} explains the residual, which "
-                    f"exceeds the noise model ({fit}): physics the library lacks or a noise "
+                    f"{beyond}: physics the library lacks or a noise "
                     f"model too optimistic (see where it deviates){tried}"
                     f"{self._signature_words()}"
                 )
