@@ -14,8 +14,9 @@ Its coefficients are fitted by re-simulation columns, one replay per basis
 function (the offset is additive, so one step gives the column), like the library's design
 columns. The held-out check is heldout.py's: fit on one fold of time blocks, re-simulate the
 whole session with that fit, chi^2 of the other fold before and after, the share of its excess
-removed. The groups the term acts on are judged against their modelled noise (without the
-quasi-likelihood factor, which the unexplained effect itself inflated); the others keep theirs.
+removed, on the groups the term reaches (generic_reach.py): those are judged against their
+modelled noise (without the quasi-likelihood factor, which the unexplained effect itself may
+have inflated); the others keep theirs and stay out of the share.
 
 The generic term is a description, not a named physical effect: it never enters the updated
 configuration; the report writes it to `generic_terms.yaml`, which the simulator loads as a
@@ -35,6 +36,7 @@ from scipy import stats
 from afm_core.sim.config import merge
 from afm_core.sim.generic_terms import GenericTerm, parse_generic_terms
 from afm_core.sim2real.generic_forms import search_form
+from afm_core.sim2real.generic_reach import heldout_where, reached_groups
 from afm_core.sim2real.heldout import heldout_chi2
 from afm_core.sim2real.lateral import alarms, displacement_form, lateral_lead
 from afm_core.sim2real.noise_model import Whitener, gls
@@ -241,9 +243,12 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
     # where the term at the residual's size moves a feature by a tenth of its noise or more
     sigma = np.sqrt(np.diag(evidence.unscaled.cov))
     acts = np.abs(cols * np.array(steps)[None, :]).max(axis=1) >= ACTS * sigma
-    noise = dataclasses.replace(evidence.unscaled)
     acted = set(np.unique(sess.table.groups[acts]).tolist())
-    factors = {g: f for g, f in evidence.group_factors.items() if g not in acted}
+    # the groups whose chi^2 the term moves: only there may the effect have inflated a factor,
+    # and only there is the held-out excess the term's to remove (generic_reach.py)
+    reached, reach = reached_groups(sess, evidence, r0, cols)
+    noise = dataclasses.replace(evidence.unscaled)
+    factors = {g: f for g, f in evidence.group_factors.items() if g not in reached}
     noise.overdispersed(factors, sess.table.groups)
     P = evidence.P
     white = Whitener(noise.cov)
@@ -253,7 +258,8 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
     _, chi2_0, _ = gls(rw, pw)
     k = P.shape[1]
     theta, theta_cov = coef[k:], cov[k:, k:]
-    heldout = _heldout(sess, noise, P, evidence.folds[0], r0, cols, basis)
+    where = np.isin(sess.table.groups, sorted(reached))
+    heldout = _heldout(sess, noise, P, evidence.folds[0], r0, cols, basis, where)
     if heldout["chi2_after"] > heldout["chi2_before"]:
         # a description the held-out blocks refute is no fit, whatever it gained on its own
         return {
@@ -284,14 +290,18 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
         "p": float(stats.chi2.sf(max(chi2_0 - chi2_fit, 0.0), len(basis))),
         "heldout": heldout,
         "acts_on": sorted(acted),
+        "reached": sorted(reached),
+        "reach": reach,
         "replays": len(basis) + 1,
         "searched": searched,
     }
 
 
-def _heldout(sess, noise, P, train, r0, cols, basis) -> dict:
+def _heldout(sess, noise, P, train, r0, cols, basis, where) -> dict:
     """Fit on the `train` blocks, re-simulate the whole session with that fit, chi^2 of the
-    other blocks before and after (heldout.py's check for a generic term)."""
+    other blocks before and after (heldout.py's check for a generic term), on the features of
+    the groups the term reaches (`where`, a mask; generic_reach.py) and, as `all_groups`, on
+    the whole session."""
     test = ~train
     w_tr = Whitener(noise.cov[np.ix_(train, train)])
     k = P.shape[1]
@@ -300,9 +310,11 @@ def _heldout(sess, noise, P, train, r0, cols, basis) -> dict:
     fitted = [_scaled(term, a) for term, a in zip(basis, theta) if a != 0]
     change = _change(sess, fitted) if fitted else np.zeros_like(r0)
     r_after = np.where(np.isfinite(change), r0 - change, r0 - cols @ theta)
-    check = heldout_chi2(noise, P, test, r0, r_after)
+    whole = heldout_chi2(noise, P, test, r0, r_after)
+    check = heldout_where(noise, P, test, where, r0, r_after) if where.any() else whole
     return {
         **check,
+        "all_groups": whole,
         "within_noise": bool(
             check["chi2_after"] <= stats.chi2.ppf(HELDOUT_QUANTILE, max(check["dof"], 1))
         ),
@@ -495,12 +507,16 @@ def generic_section(diagnosis, out: Path) -> list[str]:
         lines.append(
             f"| {term['form']} | {term['amplitude']:.4g} | {term['sigma']:.2g} | {extra} |"
         )
+    where = ", ".join(generic.get("reached", [])) or "all groups"
+    whole = h.get("all_groups", h)
     lines += [
         "",
-        f"Held-out (fitted on the other fold, re-simulated): chi2 {h['chi2_before']:.1f} -> "
-        f"{h['chi2_after']:.1f} for {h['dof']} dof; {h['excess_reduction']:.0%} of the excess "
-        f"removed; {'within' if h['within_noise'] else 'still beyond'} the noise "
-        f"({HELDOUT_QUANTILE:.0%} quantile).",
+        f"Held-out (fitted on the other fold, re-simulated), in the groups the term reaches "
+        f"({where}): chi2 {h['chi2_before']:.1f} -> {h['chi2_after']:.1f} for {h['dof']} dof; "
+        f"{h['excess_reduction']:.0%} of the excess removed; "
+        f"{'within' if h['within_noise'] else 'still beyond'} the noise "
+        f"({HELDOUT_QUANTILE:.0%} quantile). Over the whole session: chi2 "
+        f"{whole['chi2_before']:.1f} -> {whole['chi2_after']:.1f} for {whole['dof']} dof.",
         "",
         "The fitted term: `generic_terms.yaml` (load it as a simulator config file).",
         "",
