@@ -28,6 +28,13 @@ true position (m):
 - disc_proportional: amplitude * (true height about the substrate) where the scanner is within
   radius of (x0, y0), else 0: one object's apparent height scaled, the others' not (height
   signal only; one term per object describes "each particle differs by its own amount")
+
+`lateral` is the noise family's one signal: where each scan line is read along its fast axis.
+
+- line_jitter: each scan line (an image's rows and every local scan line) read at a random
+  offset along its own direction, normal with sd amplitude (m), independent from line to line:
+  a line reads h(s + d). It is no additive offset (`offset` gives none); the simulator draws
+  it from its sensor-noise generator's seed, so replicas with other noise seeds draw others.
 """
 
 from __future__ import annotations
@@ -37,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SIGNALS = ("height", "torsion")
+SIGNALS = ("height", "torsion", "lateral")
 FORMS = {
     # form -> its parameters besides amplitude (defaults None: required)
     "constant": {},
@@ -52,6 +59,7 @@ FORMS = {
     "height_proportional": {},
     "deflection_proportional": {},
     "disc_proportional": {"x0": None, "y0": None, "radius": None},
+    "line_jitter": {},
 }
 # the proportional forms: form -> the one signal they act on
 PROPORTIONAL = {
@@ -82,6 +90,8 @@ class GenericTerm:
         shape = np.broadcast(t, x, y).shape
         if form == "constant":
             return np.full(shape, a)
+        if form == "line_jitter":  # where a line is read, not what is added to it
+            return np.zeros(shape)
         if form == "time_linear":
             return np.broadcast_to(a * (t - self.param("t0")), shape).copy()
         if form == "time_step":
@@ -143,6 +153,10 @@ def _parse_one(k: int, entry) -> GenericTerm:
         raise ValueError(f"{where}.signal={signal!r}: must be one of {list(SIGNALS)}")
     if form not in FORMS:
         raise ValueError(f"{where}.form={form!r}: must be one of {sorted(FORMS)}")
+    if (signal == "lateral") != (form == "line_jitter"):
+        raise ValueError(
+            f"{where}.form={form}: line_jitter, and only it, acts on the lateral signal"
+        )
     if form in PROPORTIONAL and signal != PROPORTIONAL[form]:
         raise ValueError(f"{where}.form={form}: only on the {PROPORTIONAL[form]} signal")
     known = {"signal", "form", "amplitude", "description"} | set(FORMS[form])
@@ -166,6 +180,8 @@ def _parse_one(k: int, entry) -> GenericTerm:
         raise ValueError(f"{where}.t1={dict(params)['t1']}: must be > t0={dict(params)['t0']}")
     term = GenericTerm(signal, form, amplitude, tuple(params))
     bounded = ("constant", "time_step", "time_sine", "time_legendre", "x_sine", "y_sine")
+    if form == "line_jitter" and not 0.0 <= amplitude <= MAX_OFFSET:
+        raise ValueError(f"{where}.amplitude={amplitude}: an sd in m, from 0 to {MAX_OFFSET}")
     if form in bounded and abs(amplitude) > MAX_OFFSET:
         raise ValueError(f"{where}.amplitude={amplitude}: |amplitude| must be <= {MAX_OFFSET}")
     return term
@@ -178,3 +194,9 @@ def total_offset(terms, signal: str, t, x, y, measured=None):
     if not acting:
         return None
     return sum(term.offset(t, x, y, measured) for term in acting)
+
+
+def line_jitter_sd(terms) -> float:
+    """The sd (m) of the per-line lateral offset the line_jitter terms give together (they add
+    in quadrature); 0 without one."""
+    return math.sqrt(sum(t.amplitude**2 for t in terms if t.form == "line_jitter"))

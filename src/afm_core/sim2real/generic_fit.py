@@ -34,6 +34,7 @@ from afm_core.sim.config import merge
 from afm_core.sim.generic_terms import GenericTerm, parse_generic_terms
 from afm_core.sim2real.generic_forms import search_form
 from afm_core.sim2real.heldout import heldout_chi2
+from afm_core.sim2real.jitter_fit import jitter_sentence, line_jitter_fit, lives_in_line_shifts
 from afm_core.sim2real.noise_model import Whitener, gls
 from afm_core.sim2real.per_object import (
     OBJECT_STEP,
@@ -321,6 +322,12 @@ def describe_unexplained(
         if relation is not None:
             sig.relations.append(relation)
             sig.sentences = sentences(sig, ALPHA)
+    if lives_in_line_shifts(sig):
+        # the lines' own shifts: the noise family's per-line lateral offset (jitter_fit.py)
+        generic = line_jitter_fit(sess, evidence, r0, say)
+        if generic.get("fitted"):
+            sig.sentences.append(jitter_sentence(generic))
+        return sig, generic
     fitted = sig
     if sig.kind not in SIGNALS and any(row["kind"] in SIGNALS for row in sig.signals):
         # the leading signal has no generic term (a lateral one), but a z or torsion part lives
