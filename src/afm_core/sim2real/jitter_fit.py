@@ -34,8 +34,9 @@ HELDOUT_QUANTILE = 0.95
 
 
 def lives_in_line_shifts(sig) -> bool:
-    """Whether the signature's signals include the lines' own shifts."""
-    return any(row["group"] == LINE_SHIFT_GROUP for row in sig.signals)
+    """Whether the signature leads with the lines' own shifts (a z or torsion signal that
+    leads is modelled by its own generic form, whatever else passes beside it)."""
+    return bool(sig.signals) and sig.signals[0]["group"] == LINE_SHIFT_GROUP
 
 
 def _overrides(sess, sd: float) -> dict:
