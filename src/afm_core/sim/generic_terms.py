@@ -6,7 +6,8 @@ form. The simulator takes such a model from its configuration (`generic_terms: [
 none), so the fitted description can be re-simulated and kept, without pretending it is a
 named physical effect. Each entry:
 
-    {signal: height | torsion, form: <form>, amplitude: <SI>, ...form parameters}
+    {signal: height | torsion | x_position | y_position | lateral, form: <form>,
+     amplitude: <SI>, ...form parameters}
 
 `height` adds to every measured height (rasters and scan lines; m), `torsion` to the push
 traces' lateral torsion (rad); `x_position` and `y_position` displace the scanner's true x or
@@ -32,6 +33,13 @@ Forms, with t the instrument clock (s) and x, y the scanner's true position (m):
 - disc_proportional: amplitude * (true height about the substrate) where the scanner is within
   radius of (x0, y0), else 0: one object's apparent height scaled, the others' not (height
   signal only; one term per object describes "each particle differs by its own amount")
+
+`lateral` is the noise family's one signal: where each scan line is read along its fast axis.
+
+- line_jitter: each scan line (an image's rows and every local scan line) read at a random
+  offset along its own direction, normal with sd amplitude (m), independent from line to line:
+  a line reads h(s + d). It is no additive offset (`offset` gives none); the simulator draws
+  it from its sensor-noise generator's seed, so replicas with other noise seeds draw others.
 """
 
 from __future__ import annotations
@@ -41,7 +49,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SIGNALS = ("height", "torsion", "x_position", "y_position")
+# "lateral": the lines' own random offsets along their fast axis (line_jitter, noise-like);
+# x_position / y_position: the scanner's true x or y displaced as a function of its place
+SIGNALS = ("height", "torsion", "x_position", "y_position", "lateral")
 LATERAL_SIGNALS = ("x_position", "y_position")
 LATERAL_FORMS = ("x_linear", "y_linear", "x_sine", "y_sine")
 FORMS = {
@@ -58,6 +68,7 @@ FORMS = {
     "height_proportional": {},
     "deflection_proportional": {},
     "disc_proportional": {"x0": None, "y0": None, "radius": None},
+    "line_jitter": {},
 }
 # the proportional forms: form -> the one signal they act on
 PROPORTIONAL = {
@@ -89,6 +100,8 @@ class GenericTerm:
         shape = np.broadcast(t, x, y).shape
         if form == "constant":
             return np.full(shape, a)
+        if form == "line_jitter":  # where a line is read, not what is added to it
+            return np.zeros(shape)
         if form == "time_linear":
             return np.broadcast_to(a * (t - self.param("t0")), shape).copy()
         if form == "time_step":
@@ -150,6 +163,10 @@ def _parse_one(k: int, entry) -> GenericTerm:
         raise ValueError(f"{where}.signal={signal!r}: must be one of {list(SIGNALS)}")
     if form not in FORMS:
         raise ValueError(f"{where}.form={form!r}: must be one of {sorted(FORMS)}")
+    if (signal == "lateral") != (form == "line_jitter"):
+        raise ValueError(
+            f"{where}.form={form}: line_jitter, and only it, acts on the lateral signal"
+        )
     if form in PROPORTIONAL and signal != PROPORTIONAL[form]:
         raise ValueError(f"{where}.form={form}: only on the {PROPORTIONAL[form]} signal")
     if signal in LATERAL_SIGNALS and form not in LATERAL_FORMS:
@@ -177,6 +194,8 @@ def _parse_one(k: int, entry) -> GenericTerm:
         raise ValueError(f"{where}.t1={dict(params)['t1']}: must be > t0={dict(params)['t0']}")
     term = GenericTerm(signal, form, amplitude, tuple(params))
     bounded = ("constant", "time_step", "time_sine", "time_legendre", "x_sine", "y_sine")
+    if form == "line_jitter" and not 0.0 <= amplitude <= MAX_OFFSET:
+        raise ValueError(f"{where}.amplitude={amplitude}: an sd in m, from 0 to {MAX_OFFSET}")
     if form in bounded and abs(amplitude) > MAX_OFFSET:
         raise ValueError(f"{where}.amplitude={amplitude}: |amplitude| must be <= {MAX_OFFSET}")
     if signal in LATERAL_SIGNALS and form.endswith("_linear") and abs(amplitude) > MAX_STRAIN:
@@ -191,3 +210,9 @@ def total_offset(terms, signal: str, t, x, y, measured=None):
     if not acting:
         return None
     return sum(term.offset(t, x, y, measured) for term in acting)
+
+
+def line_jitter_sd(terms) -> float:
+    """The sd (m) of the per-line lateral offset the line_jitter terms give together (they add
+    in quadrature); 0 without one."""
+    return math.sqrt(sum(t.amplitude**2 for t in terms if t.form == "line_jitter"))

@@ -38,7 +38,7 @@ from afm_core.physics.sample import Electrode, Pit, Rod, Roughness, Sample, Sphe
 from afm_core.pzt import LateralScanner, PrandtlIshlinskii
 from afm_core.sim.config import SimConfig, load_config
 from afm_core.sim.drift import ThermalDrift
-from afm_core.sim.generic_terms import parse_generic_terms, total_offset
+from afm_core.sim.generic_terms import line_jitter_sd, parse_generic_terms, total_offset
 from afm_core.sim.imaging import DilatedField, dilated_heights_at, pink_noise
 from afm_core.sim.tip import Tip
 
@@ -180,6 +180,8 @@ class SimulatedAfm:
         self._position_error = np.zeros(2)  # m, accumulated random error of the moves so far
         self.feed_forward = self._controller_feed_forward()
         self._generic = parse_generic_terms(self.config.generic_terms)
+        self._jitter_sd = line_jitter_sd(self._generic)
+        self._jitter_rng = None  # drawn from the sensor noise's seed at first use
         self._open_loop_models = None  # the controller's forward models while feed-forward is off
         self.time = 0.0
         self._commanded = tuple(float(c) for c in self.scanner.centre)  # at rest at power-on
@@ -343,6 +345,16 @@ class SimulatedAfm:
             height = height + self._bow(true_x, true_y)
         return self._height_gain(height)
 
+    def _line_jitter(self, lines: int) -> np.ndarray:
+        """The generic line_jitter's offsets (m) of the next `lines` scan lines. Its generator
+        is spawned from the sensor noise's seed without drawing from it, so the noise itself is
+        the same with and without the term, and another noise seed draws other offsets."""
+        if self._jitter_rng is None:
+            self._jitter_rng = np.random.default_rng(
+                self.noise_rng.bit_generator.seed_seq.spawn(1)[0]
+            )
+        return self._jitter_rng.normal(0.0, self._jitter_sd, lines)
+
     def _generic_offset(self, signal, at_t, at_x, at_y, values) -> np.ndarray:
         """The generic terms' offset on a raster chunk's trace pixels (values: their heights,
         rows of the chunk; at_t, at_x, at_y: the chunk's trace and retrace samples)."""
@@ -425,6 +437,9 @@ class SimulatedAfm:
             # with sensor latency a pixel reports where the tip was `latency` before its time
             at_t, at_x, at_y = (times, tx, ty) if delayed is None else delayed(times, tx, ty)
             sx, sy = self.sample_frame(at_x, at_y, at_t)
+            if self._jitter_sd > 0.0:  # each line read at its own offset along the fast axis
+                shift = np.repeat(self._line_jitter(len(chunk)), 2 * n_fast)
+                sx, sy = (sx + shift, sy) if fast_is_x else (sx, sy + shift)
             values = field.at(sx, sy).reshape(len(chunk), 2 * n_fast)[:, :n_fast]
             if self._has_bow() or self.config.noise.height_gain != 1.0:
                 trace_x, trace_y = (
@@ -520,6 +535,10 @@ class SimulatedAfm:
             )
         )
         sx, sy = self.sample_frame(at_x, at_y, at_t)
+        if self._jitter_sd > 0.0:  # the line read at its own offset along its direction
+            shift = float(self._line_jitter(1)[0]) / max(request.length, 1e-12)
+            sx = sx + shift * (request.end_x - request.start_x)
+            sy = sy + shift * (request.end_y - request.start_y)
         spacing = request.length / (request.samples - 1)
         tip = self.tip.grid(max(min(spacing, 5e-9), 0.5e-9), self._imaging_depth())
         height = dilated_heights_at(self.sample, tip, max(min(spacing, 5e-9), 0.5e-9), sx, sy)

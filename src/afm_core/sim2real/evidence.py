@@ -22,11 +22,14 @@ from scipy import stats
 
 from afm_core.sim2real.candidates import Candidate
 from afm_core.sim2real.features_absolute import LEVEL_GROUPS
+from afm_core.sim2real.line_shift import LINE_SHIFT_GROUP
 from afm_core.sim2real.noise_model import NoiseModel, Weighting, gls, group_overdispersion
 from afm_core.sim2real.reference import ReferenceSession
 from afm_core.sim2real.results import CandidateResult
 
 ALPHA = 0.05  # family-wise false "missing physics" rate on null recordings
+# groups whose noise is modelled whole, never scaled by an overdispersion factor
+UNSCALED_GROUPS = (*LEVEL_GROUPS, LINE_SHIFT_GROUP)
 
 
 def can_act(cand: Candidate, theta0: np.ndarray, estimate: np.ndarray) -> bool:
@@ -107,9 +110,10 @@ def weigh_candidates(
     group_factors = group_overdispersion(
         r, P, [c[2] for c in terms.values()], noise.cov, table.groups
     )
-    # not the absolute levels: their noise is modelled whole (replicas, roughness), and what
-    # moves the whole z signal shows nowhere else, so a factor would hide exactly that
-    group_factors = {g: f for g, f in group_factors.items() if g not in LEVEL_GROUPS}
+    # not the absolute levels nor the lines' own shifts: their noise is modelled whole
+    # (replicas, roughness), and what moves the whole z signal or each line sideways shows
+    # nowhere else, so a factor would hide exactly that
+    group_factors = {g: f for g, f in group_factors.items() if g not in UNSCALED_GROUPS}
     # before overdispersion: a second term's test takes its own
     unscaled = dataclasses.replace(noise)
     noise.overdispersed(group_factors, table.groups)

@@ -8,13 +8,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from afm_core.sim2real.features import Feature
+from afm_core.sim2real.line_shift import LINE_SHIFT_GROUP
 
 SHAPE_GROUPS = ("line.width", "line.peak", "line.asym", "raster.height", "raster.half_width")
 HEIGHT_GROUPS = ("line.peak", "raster.height")
 BOW_GROUPS = ("raster.bow_xx", "raster.bow_yy", "raster.bow_xy")
 PUSH_GROUPS = ("push.torsion", "push.fluct")
 # noise statistics: move only with the sensor noise
-NOISE_GROUPS = ("raster.streak", "raster.pixel_noise")
+NOISE_GROUPS = ("raster.streak", "raster.pixel_noise", LINE_SHIFT_GROUP)
 
 
 @dataclass

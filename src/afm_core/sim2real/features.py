@@ -49,6 +49,7 @@ from scipy.stats import median_abs_deviation
 
 from afm_core.localization.landmark_observation import find_crossings
 from afm_core.sim2real.features_absolute import AbsoluteLevels
+from afm_core.sim2real.line_shift import LINE_SHIFT_GROUP, line_shift_noise
 
 POSITION_GROUPS = ("line.pos", "line.mid", "raster.x", "raster.y")
 EDGE_FRACTION = 0.1
@@ -625,6 +626,27 @@ def _streak_features(op, h: np.ndarray, cond: dict) -> list[Feature]:
                     where,
                 )
             )
+    # one per image: the lines crossing a particle are too few per block
+    shift, crossings = line_shift_noise(
+        lines, data.pixel_size_x if data.scan_angle_deg == 0.0 else data.pixel_size_y
+    )
+    if math.isfinite(shift):
+        t_mid = float(data.start_time + 0.5 * data.line_period * lines.shape[0])
+        x = data.origin_x + 0.5 * h.shape[1] * data.pixel_size_x
+        y = data.origin_y + 0.5 * h.shape[0] * data.pixel_size_y
+        where = dict(cond, lines=int(lines.shape[0]), crossings=crossings, statistic=shift)
+        out.append(
+            Feature(
+                (op.index, LINE_SHIFT_GROUP),
+                LINE_SHIFT_GROUP,
+                shift,
+                t_mid,
+                float(x),
+                float(y),
+                (0.0, 0.0),
+                where,
+            )
+        )
     return out
 
 

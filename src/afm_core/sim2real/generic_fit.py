@@ -38,6 +38,7 @@ from afm_core.sim.generic_terms import GenericTerm, parse_generic_terms
 from afm_core.sim2real.generic_forms import search_form
 from afm_core.sim2real.generic_reach import heldout_where, reached_groups
 from afm_core.sim2real.heldout import heldout_chi2
+from afm_core.sim2real.jitter_fit import jitter_sentence, line_jitter_fit, lives_in_line_shifts
 from afm_core.sim2real.lateral import alarms, displacement_form, lateral_lead
 from afm_core.sim2real.noise_model import Whitener, gls
 from afm_core.sim2real.per_object import (
@@ -367,6 +368,12 @@ def describe_unexplained(
         if relation is not None:
             sig.relations.append(relation)
             sig.sentences = sentences(sig, ALPHA)
+    if lives_in_line_shifts(sig):
+        # the lines' own shifts: the noise family's per-line lateral offset (jitter_fit.py)
+        generic = line_jitter_fit(sess, evidence, r0, say)
+        if generic.get("fitted"):
+            sig.sentences.append(jitter_sentence(generic))
+        return sig, generic
     fitted = sig
     displaced = bool(sig.space.get("displaced"))
     if (

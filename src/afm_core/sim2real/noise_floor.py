@@ -20,14 +20,21 @@ from __future__ import annotations
 
 import numpy as np
 
+from afm_core.sim2real.line_shift import LINE_SHIFT_GROUP
+from afm_core.sim2real.line_shift import statistic_variance as shift_statistic_variance
+
 # rms features whose conditions carry their sample count and step noise (features.py)
 RMS_GROUPS = ("push.fluct",)
 
 
 def statistic_variance(table) -> np.ndarray:
     """(N,) variance (SI^2) to add to each feature's white noise: s^2 / (2 (n - 1)) of an rms
-    feature of n samples whose recorded trace has step noise s; 0 for the other features."""
+    feature of n samples whose recorded trace has step noise s; a line-shift statistic's own
+    sampling variance (line_shift.statistic_variance); 0 for the other features."""
     out = np.zeros(len(table.groups))
+    for i in np.flatnonzero(table.groups == LINE_SHIFT_GROUP):
+        cond = table.conditions[i]
+        out[i] = shift_statistic_variance(cond.get("statistic", 0.0), cond.get("crossings", 1))
     for i in np.flatnonzero(np.isin(table.groups, RMS_GROUPS)):
         cond = table.conditions[i]
         n, s = cond.get("samples"), cond.get("step_noise")

@@ -27,6 +27,8 @@ from afm_core.sim2real.candidates import Candidate, merge_overrides
 from afm_core.sim2real.evidence import ALPHA, cv_gain_on
 from afm_core.sim2real.feature_table import HEIGHT_GROUPS
 from afm_core.sim2real.features import STREAK_MIN_LINES
+from afm_core.sim2real.line_shift import LINE_SHIFT_GROUP
+from afm_core.sim2real.noise_floor import statistic_variance
 from afm_core.sim2real.noise_model import Whitener, gls, group_overdispersion, pooled_white
 from afm_core.sim2real.reference import ReferenceSession
 from afm_core.sim2real.results import CandidateResult
@@ -81,6 +83,8 @@ def _noise_statistics_covariance(
     noisy = sess.noisy
     groups = sess.table.groups[noisy]
     variance, _ = pooled_white(replicas[:, noisy], groups, 4.0, nom[noisy])
+    # what the replicas cannot show: a line-shift statistic's own sampling (noise_floor.py)
+    variance = variance + statistic_variance(sess.table)[noisy]
     residual = sess.r if residual is None else residual
     factors = group_overdispersion(
         residual[noisy],
@@ -89,6 +93,8 @@ def _noise_statistics_covariance(
         np.diag(variance),
         groups,
     )
+    # the lines' own shifts keep their modelled noise (line_shift.py): a factor hides them
+    factors.pop(LINE_SHIFT_GROUP, None)
     cov = np.diag(variance * np.array([factors.get(g, 1.0) for g in groups]))
     offsets = sess.realization_offsets(REALIZATIONS, level)[:, noisy]
     for group in np.unique(groups):

@@ -27,6 +27,7 @@ GROUP_UNITS = {
     "push.fluct": (1e6, "urad"),
     "raster.streak": (1e9, "nm"),
     "raster.pixel_noise": (1e9, "nm"),
+    "raster.line_shift": (1e9, "nm"),
 }
 
 

@@ -23,6 +23,7 @@ WORDS = {
     "raster.bow_xy": ("substrate curvature (xy)", "z"),
     "raster.streak": ("line-offset noise", "noise"),
     "raster.pixel_noise": ("pixel noise", "noise"),
+    "raster.line_shift": ("each image line's own shift along the fast axis", "noise"),
     "push.torsion": ("torsion while sliding", "torsion"),
     "push.fluct": ("torsion fluctuation while sliding", "torsion"),
 }
