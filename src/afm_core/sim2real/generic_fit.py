@@ -7,7 +7,8 @@ lives and its form; this stage models it with the simulator's generic term famil
 (sim/generic_terms.py: an additive offset on the height or torsion signal, shaped by a small
 basis: a linear trend, a step at the signature's time, a sinusoid of its period, linear or
 periodic in x or y; a torsion residual that follows the deflection sample by sample,
-signal_relations.py, is k x the measured deflection instead; particle positions displaced as
+signal_relations.py, is k x the measured deflection instead, fitted and checked at the
+samples when no feature sees it, deflection_term.py; particle positions displaced as
 a function of their place, lateral.py, are a displacement of the scanner's true x or y of that
 form, x_position / y_position, applied in the re-simulation's commanded-to-true map).
 Its coefficients are fitted by re-simulation columns, one replay per basis
@@ -35,6 +36,7 @@ from scipy import stats
 
 from afm_core.sim.config import merge
 from afm_core.sim.generic_terms import GenericTerm, parse_generic_terms
+from afm_core.sim2real.deflection_term import deflection_fit, sample_sentence
 from afm_core.sim2real.generic_forms import search_form
 from afm_core.sim2real.generic_reach import heldout_where, reached_groups
 from afm_core.sim2real.heldout import heldout_chi2
@@ -352,9 +354,16 @@ def describe_unexplained(
         # nothing the features show: a torsion that follows the deflection at the samples
         # still is (signal_relations.py), at the verdict's own level
         unseen = unseen_signature(sess, UNEXPLAINED_P)
-        reason = "no feature of this session sees it (this session cannot tell its size there)"
         if unseen is not None:
-            return unseen, {"fitted": False, "reason": reason}
+            # no feature sees it: fitted and checked at the samples (deflection_term.py)
+            try:
+                generic = deflection_fit(sess, say)
+            except ValueError as exc:  # no deflection change to fit on, say
+                generic = {"fitted": False, "reason": f"no generic fit at the samples: {exc}"}
+            unseen.sentences.append(
+                sample_sentence(generic) if generic.get("fitted") else generic["reason"] + "."
+            )
+            return unseen, generic
         # a height signal faster than any feature's sampling, periodic in time
         periodic = periodic_height(sess, UNEXPLAINED_P, say)
         return (None, {}) if periodic is None else periodic

@@ -31,6 +31,9 @@ from afm_core.sim2real.features_absolute import LEVEL_GROUPS, level_variance
 from afm_core.sim2real.noise_floor import statistic_variance
 from afm_core.sim2real.reference import ReferenceSession
 
+# the precision of a signal the simulation reproduces without noise, relative to its size
+RELATIVE_PRECISION = 1e-3
+
 COLLINEAR = 1e-9  # |R_jj| of a unit-norm column below which it repeats the others
 
 
@@ -101,7 +104,7 @@ def pooled_white(
         floor = (
             1e-11
             if group in POSITION_GROUPS or group == "line.dir"
-            else 1e-3 * float(np.sqrt(np.nanmean(size[sel] ** 2))) + 1e-15
+            else RELATIVE_PRECISION * float(np.sqrt(np.nanmean(size[sel] ** 2))) + 1e-15
         ) ** 2
         good = sel & np.isfinite(spread)
         pooled = max(
