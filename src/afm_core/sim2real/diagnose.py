@@ -53,6 +53,7 @@ from afm_core.sim2real.noise_model import nuisance_columns, session_noise_model
 from afm_core.sim2real.noise_term import sensor_noise_first
 from afm_core.sim2real.reference import NoFeaturesError, build_reference
 from afm_core.sim2real.refinement import compare_leaders
+from afm_core.sim2real.replication import heldout_confirms
 from afm_core.sim2real.report import write_report
 from afm_core.sim2real.results import (
     NAMED,
@@ -154,6 +155,11 @@ def diagnose(
     elif verdict == NOT_EXPLAINED and not chosen and not _structured(signature, deviations.rows):
         verdict = NO_MISSING_PHYSICS
         note = _unstructured_note(evidence.overall(), note)
+    if verdict == NOT_EXPLAINED and not chosen:
+        stands, why = heldout_confirms(evidence.overall(), generic)
+        if not stands:
+            verdict = NO_MISSING_PHYSICS
+            note = "; ".join(filter(None, [note, f"a hint, not confirmed: {why}"]))
     timings = timed.finish(replays=float(sess.replays + 5 + sensor_replicas))
     return Diagnosis(
         n_features=len(sess.keys),
