@@ -7,7 +7,7 @@ from scipy import stats
 
 from afm_core.sim2real.feature_table import Table
 from afm_core.sim2real.generic_fit import needs_description
-from afm_core.sim2real.level_trend import level_trend
+from afm_core.sim2real.level_trend import level_trend, trend_sentence
 
 NM = 1e-9
 
@@ -96,3 +96,13 @@ def test_a_slow_change_of_the_levels_is_described_though_its_group_chi2_is_dilut
     assert needs_description(quiet, [], {}, groups, {"chi2": 37.3, "dof": 3, "p": 4e-8})
     # a trend no stronger than noise keeps the verdict
     assert not needs_description(quiet, [], {}, groups, {"chi2": 3.0, "dof": 3, "p": 0.39})
+
+
+def test_a_linear_change_of_the_levels_says_what_the_session_cannot_tell():
+    table, offset = _levels(span=280.0)
+    r = np.where(table.groups == "raster.level", 1e-12 * table.time, 0.0)
+    trend = level_trend(table, r, np.eye(len(r)) * (0.13 * NM) ** 2, offset)
+    assert trend["span"] == pytest.approx(280.0)
+    linear = trend_sentence(trend, "linear trend")
+    assert "cannot tell whether the change goes on or settles" in linear and "280 s" in linear
+    assert "cannot tell" not in trend_sentence(trend, "smooth")

@@ -377,7 +377,7 @@ def describe_unexplained(
     sig = describe(sess.table, e, sigma, sess.recorded, factors, objects)
     sig = lateral_lead(sig, sess.table, e, sigma, sess.recorded, lateral)
     if trend and trend["p"] < UNEXPLAINED_P / (len(deviations.group_stats) + 1) and sig.signals:
-        sig.sentences.insert(1, trend_sentence(trend))
+        sig.sentences.insert(1, trend_sentence(trend, sig.time.get("form", "")))
     if sig.kind == "torsion":
         # its relation to the deflection at the same moment, read at the samples
         relation = deflection_relation(sess, ALPHA / max(len(sig.relations) + 1, 1))

@@ -77,14 +77,24 @@ def level_trend(table, r, cov, nuisance, factors=None, degree: int = SMOOTH_DEGR
     coef, *_ = np.linalg.lstsq(wx, wy, rcond=None)
     factor = max([1.0] + [float((factors or {}).get(g, 1.0)) for g in LEVEL_GROUPS])
     chi2 = float(np.sum((wx @ coef) ** 2)) / factor
-    return {"chi2": chi2, "dof": dof, "p": float(stats.chi2.sf(chi2, dof)), "n": n}
+    p = float(stats.chi2.sf(chi2, dof))
+    return {"chi2": chi2, "dof": dof, "p": p, "n": n, "span": span}
 
 
-def trend_sentence(trend: dict) -> str:
-    """The trend test's result in words, for the signature it made describable."""
-    return (
+def trend_sentence(trend: dict, form: str) -> str:
+    """The trend test's result in words, for the signature it made describable (form: the
+    signature's form in time); a linear trend says what the session's span cannot tell."""
+    words = (
         f"The absolute substrate levels change smoothly in time beyond their noise (a trend of "
         f"degree <= {trend['dof']} over {trend['n']} levels removes chi2 {trend['chi2']:.1f} "
         f"for {trend['dof']} dof, p = {trend['p']:.2g}), which the chi2 of all the features "
         "dilutes."
     )
+    if form == "linear trend":
+        # a settling slower than the session and a steady drift of z agree within its span
+        words += (
+            f" Over the {trend['span']:.0f} s the levels span they change linearly: this "
+            "session cannot tell whether the change goes on or settles, nor at what level "
+            "(a longer session, or the protocol, can)."
+        )
+    return words
