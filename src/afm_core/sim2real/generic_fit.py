@@ -42,6 +42,7 @@ from afm_core.sim2real.generic_reach import heldout_where, reached_groups
 from afm_core.sim2real.heldout import heldout_chi2
 from afm_core.sim2real.jitter_fit import jitter_sentence, line_jitter_fit, lives_in_line_shifts
 from afm_core.sim2real.lateral import alarms, displacement_form, lateral_lead
+from afm_core.sim2real.level_trend import level_trend, trend_sentence
 from afm_core.sim2real.noise_model import Whitener, gls
 from afm_core.sim2real.per_object import (
     OBJECT_STEP,
@@ -71,19 +72,24 @@ DESCRIPTION = (
 )
 
 
-def needs_description(overall: dict, chosen: list, heldout: dict, groups=None) -> bool:
+def needs_description(
+    overall: dict, chosen: list, heldout: dict, groups=None, trend: dict | None = None
+) -> bool:
     """Whether the residual is left unexplained: nothing named while the residual exceeds the
     noise model — as a whole, or in one group whose noise the diagnosis took as modelled (no
     overdispersion factor) at UNEXPLAINED_P over the groups (an effect in a few dozen features
-    is diluted in the chi^2 of several hundred) —, or a named term leaving the held-out blocks
-    beyond their noise. groups: group -> {chi2, dof, p} (deviations.group_stats)."""
+    is diluted in the chi^2 of several hundred), or the absolute levels change smoothly in time
+    (trend: level_trend.level_trend, one more test in that family) —, or a named term leaving
+    the held-out blocks beyond their noise. groups: group -> {chi2, dof, p}
+    (deviations.group_stats)."""
     if not chosen:
         factors = overall.get("group_factors", {})
-        limit = UNEXPLAINED_P / max(len(groups or {}), 1)
+        limit = UNEXPLAINED_P / max(len(groups or {}) + bool(trend), 1)
         alone = any(
             row["p"] < limit and factors.get(g, 1.0) <= 1.0 for g, row in (groups or {}).items()
         )
-        return overall["p"] < UNEXPLAINED_P or alone
+        slow = bool(trend) and trend["p"] < limit
+        return overall["p"] < UNEXPLAINED_P or alone or slow
     if "chi2_after" not in heldout:
         return False
     return heldout["chi2_after"] > stats.chi2.ppf(HELDOUT_QUANTILE, max(heldout["dof"], 1))
@@ -332,7 +338,15 @@ def describe_unexplained(
     """(Signature, generic fit dict) of what the library leaves unexplained, or (None, {}) when
     it leaves nothing (`needs_description`). The residual is the named terms' at their fitted
     values (re-simulated: ReferenceSession.residual), the nominal model's when none is named."""
-    unexplained = needs_description(evidence.overall(), chosen, heldout, deviations.group_stats)
+    overall = evidence.overall()
+    trend = (
+        {}
+        if chosen
+        else level_trend(
+            sess.table, sess.r, evidence.unscaled.cov, evidence.P, overall["group_factors"]
+        )
+    )
+    unexplained = needs_description(overall, chosen, heldout, deviations.group_stats, trend)
     if chosen and not unexplained:
         return None, {}
     if chosen:
@@ -371,6 +385,8 @@ def describe_unexplained(
     sigma = np.sqrt(np.diag(cov))
     sig = describe(sess.table, e, sigma, sess.recorded, factors, objects)
     sig = lateral_lead(sig, sess.table, e, sigma, sess.recorded, lateral)
+    if trend and trend["p"] < UNEXPLAINED_P / (len(deviations.group_stats) + 1) and sig.signals:
+        sig.sentences.insert(1, trend_sentence(trend, sig.time.get("form", "")))
     if sig.kind == "torsion":
         # its relation to the deflection at the same moment, read at the samples
         relation = deflection_relation(sess, ALPHA / max(len(sig.relations) + 1, 1))

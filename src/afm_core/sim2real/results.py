@@ -108,10 +108,18 @@ class Diagnosis:
                     if self.not_considered
                     else "in the library"
                 )
-                # a signal no feature shows (at the samples) leaves the features within noise
+                # a signal no feature shows (at the samples), or one in a few features (a
+                # slow change of the levels, say), leaves the features as a whole within noise
+                seen = [
+                    row["group"]
+                    for row in (self.signature.signals if self.signature is not None else [])
+                    if row["group"] in self.groups
+                ]
                 beyond = (
                     f"exceeds the noise model ({fit})"
                     if self.overall["p"] < UNEXPLAINED_P
+                    else f"is beyond its noise in {', '.join(seen)} (all features: {fit})"
+                    if seen
                     else f"is beyond its noise where no feature looks (the features: {fit})"
                 )
                 return (
