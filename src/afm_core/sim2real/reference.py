@@ -53,8 +53,10 @@ SHIFT = 10e-9  # m, drift shift of the sensitivity replays
 # sizes along the sample, in the commanded coordinates the images and lines are drawn in: the
 # scanner's local gain scales them (a feed-forward's loop-width error of 0.318 against the
 # model's 0.1 narrowed three images' particles from 124-128 nm to 109-111 nm half-width, the
-# recording's 110 nm), so a term that moves the tip changes them
-LATERAL_SIZE_GROUPS = ("line.width", "raster.half_width")
+# recording's 110 nm), so a term that moves the tip changes them. A scan line's width stays at
+# the recorded geometry: it is a chord at an offset across the line the walk decides, and with
+# it re-simulated the protocol's feed-forward asymmetry error (0.2) was no longer fitted
+LATERAL_SIZE_GROUPS = ("raster.half_width",)
 # compared at the recorded geometry: what a term that only moves the tip leaves as it is (the
 # heights and profiles of what it meets, the substrate's level)
 AT_GEOMETRY_GROUPS = tuple(g for g in SHAPE_GROUPS if g not in LATERAL_SIZE_GROUPS) + LEVEL_GROUPS
