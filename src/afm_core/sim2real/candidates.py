@@ -32,9 +32,14 @@ class Candidate:
     upper: list | None = None
     display: list | None = None  # per parameter: (factor, unit) for the report
     # how the term acts, which decides how its design columns are computed:
-    # geometric: it moves where the scanner puts the tip (drift, scanner); the shapes of what is
-    #   measured (widths, heights) do not change at a given tip-particle geometry, and the
-    #   diagnosis compares shapes at the recorded geometry, so its columns there are zero;
+    # geometric: it moves where the scanner puts the tip (drift, scanner); the heights and
+    #   profiles of what is measured and the substrate's absolute level do not change at a
+    #   given tip-particle geometry, and the diagnosis compares them at the recorded geometry,
+    #   so its columns there are zero (a re-simulated loop-width error put two scan lines'
+    #   edges on a particle's flank, their levels 18 and 63 sigma off, where the recording's
+    #   were not: the held-out check of the true value got worse); sizes in commanded
+    #   coordinates (widths) scale with the scanner's local gain and are re-simulated
+    #   (reference.AT_GEOMETRY_GROUPS);
     # analytic: the columns follow in closed form from the reference ("drift_velocity",
     #   "drift_ramp": positions move by J t, J t^2 / 2; "height_gain": heights scale; "bow":
     #   the background curvature adds the curvature);

@@ -1,12 +1,12 @@
 """Design columns of the candidate terms (candidates.py: each a set of config keys).
 
 A term's columns are d features / d value by re-simulation at the same drift trajectory
-(closed form for drift, z gain and bow; zero on shape features for terms that only move the
-tip; the noise statistics move with the sensor noise only). A term whose linear fit lies many
-steps beyond the model's value gets the secant to that fit instead (`_columns_at_estimate`); a
-term whose features bend with it (a search range) the secant to the step the whole range
-searched says (`_profile_minimum`). The friction-region candidate (region_candidate.py) is
-added at the patch the torsion residual shows.
+(closed form for drift, z gain and bow; zero on shape features and absolute substrate levels
+for terms that only move the tip; the noise statistics move with the sensor noise only). A
+term whose linear fit lies many steps beyond the model's value gets the secant to that fit
+instead (`_columns_at_estimate`); a term whose features bend with it (a search range) the
+secant to the step the whole range searched says (`_profile_minimum`). The friction-region
+candidate (region_candidate.py) is added at the patch the torsion residual shows.
 """
 
 from __future__ import annotations
@@ -50,8 +50,8 @@ def _feature_change(
         col[~sess.push] = 0.0
         lost &= sess.push
     if cand.geometric:
-        col[sess.shape] = 0.0
-        lost &= ~sess.shape
+        col[sess.at_geometry] = 0.0
+        lost &= ~sess.at_geometry
     return col, lost
 
 

@@ -70,6 +70,7 @@ from afm_core.sim2real.session_scope import (
     check_enough_features,
     check_something_to_tell,
 )
+from afm_core.sim2real.simpler_term import prefer_simpler
 from afm_core.sim2real.verdict import decide, runner_up
 
 
@@ -138,6 +139,11 @@ def diagnose(
             heldout_resimulation,
             say,
         )
+        if heldout_resimulation:  # a simpler term as good on the held-out blocks is named
+            decision = prefer_simpler(
+                sess, evidence, config, design.terms, noise_first, decision,
+                refine_iterations, say,
+            )  # fmt: skip
     chosen, parameters, overrides = decision.chosen, decision.parameters, decision.overrides
     heldout = decision.heldout
     with timed("generic"):

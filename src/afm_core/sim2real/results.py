@@ -61,7 +61,7 @@ class Diagnosis:
     # overall p, for a Diagnosis made by hand)
     verdict: str = ""
     remaining: list = field(default_factory=list)  # partly explained: where the excess remains
-    verdict_note: str = ""  # what was tried and why it was not named
+    verdict_note: str = ""  # what was tried and why it was not named (or what it could be)
 
     def __post_init__(self):
         if not self.verdict:
@@ -161,9 +161,12 @@ class Diagnosis:
             where = f", most in {where}" if where else ""
             return (
                 f"{PARTLY_EXPLAINED}: {text}; the held-out blocks stay beyond the noise{where}"
+                f"{'; ' + self.verdict_note if self.verdict_note else ''}"
                 f"{self._signature_words()}"
             )
-        return f"{NAMED} (missing physics): {text}"
+        # a simpler term named over one the session cannot tell it from says so (simpler_term)
+        also = f"; {self.verdict_note}" if self.verdict_note else ""
+        return f"{NAMED} (missing physics): {text}{also}"
 
     def _signature_words(self) -> str:
         """What the residual looks like and how much a generic term of that form explains."""
