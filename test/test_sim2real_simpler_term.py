@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from sim2real_decisions import diagnosis_of
 
 from afm_core.pzt import LateralScanner, ScannerParams
 from afm_core.sim.config import merge
@@ -14,7 +15,7 @@ from afm_core.sim2real import simpler_term
 from afm_core.sim2real.candidates import library
 from afm_core.sim2real.heldout import significant_gain
 from afm_core.sim2real.protocol import session_config
-from afm_core.sim2real.results import NAMED, CandidateResult, Diagnosis
+from afm_core.sim2real.results import NAMED, CandidateResult
 from afm_core.sim2real.verdict import Decision
 
 N = 40  # features of the fake session
@@ -116,24 +117,7 @@ def test_a_simpler_term_as_good_on_the_held_out_blocks_is_named_and_both_are_sai
     assert "cannot tell" in decision.note and "coupling" in decision.note
     assert decision.parameters["scanner.deflection_deg"]["value"] == pytest.approx(1.437)
     evidence, config = stage[1], stage[4]
-    diagnosis = Diagnosis(
-        n_features=N,
-        groups={},
-        overall=evidence.overall(),
-        where=[],
-        change_points=[],
-        candidates=evidence.results,
-        chosen=decision.chosen,
-        parameters=decision.parameters,
-        overrides=decision.overrides,
-        updated_config=merge(config, decision.overrides),
-        heldout=decision.heldout,
-        missing_candidates=[],
-        timings={},
-        verdict=decision.verdict,
-        remaining=decision.remaining,
-        verdict_note=decision.note,
-    )
+    diagnosis = diagnosis_of(decision, evidence, config, N)
     summary = diagnosis.summary()
     assert "rotation" in summary and "coupling" in summary and "cannot tell" in summary
 

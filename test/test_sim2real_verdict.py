@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from scipy import stats
+from sim2real_decisions import diagnosis_of
 
 from afm_core.sim.config import load_config, merge
 from afm_core.sim2real.candidates import library, select
@@ -21,7 +22,6 @@ from afm_core.sim2real.results import (
     NOT_EXPLAINED,
     PARTLY_EXPLAINED,
     CandidateResult,
-    Diagnosis,
 )
 from afm_core.sim2real.verdict import EXCESS_SHARE, decide, judge
 
@@ -80,24 +80,7 @@ def _decide(config, names, tried, checked, p_overall=1e-9):
 
 
 def _diagnosis(decision, evidence, config):
-    return Diagnosis(
-        n_features=N,
-        groups={},
-        overall=evidence.overall(),
-        where=[],
-        change_points=[],
-        candidates=evidence.results,
-        chosen=decision.chosen,
-        parameters=decision.parameters,
-        overrides=decision.overrides,
-        updated_config=merge(config, decision.overrides) if decision.chosen else None,
-        heldout=decision.heldout,
-        missing_candidates=[],
-        timings={},
-        verdict=decision.verdict,
-        remaining=decision.remaining,
-        verdict_note=decision.note,
-    )
+    return diagnosis_of(decision, evidence, config, N)
 
 
 def test_the_held_out_rule_in_closed_form():
