@@ -47,6 +47,7 @@ from scipy import stats
 from afm_core.sim.config import merge
 from afm_core.sim.generic_terms import GenericTerm
 from afm_core.sim2real.force_samples import force_differences
+from afm_core.sim2real.heldout import heldout_summary
 from afm_core.sim2real.noise_model import RELATIVE_PRECISION
 from afm_core.sim2real.protocol import replay
 
@@ -99,12 +100,7 @@ def heldout(before: np.ndarray, after: np.ndarray, floor: float) -> dict:
     b, a = b[~contact], a[~contact]
     dof = int(b.size)
     chi_b, chi_a = float(np.sum(b * b)), float(np.sum(a * a))
-    excess = chi_b - dof
-    return {
-        "chi2_before": chi_b,
-        "chi2_after": chi_a,
-        "dof": dof,
-        "excess_reduction": (chi_b - chi_a) / excess if excess > 0 else float("nan"),
+    return heldout_summary(chi_b, chi_a, dof) | {
         "within_noise": bool(chi_a <= stats.chi2.ppf(0.95, max(dof, 1))),
         "contact_steps": int(contact.sum()),
         # free of the floor's level (only the contact steps depend on it)

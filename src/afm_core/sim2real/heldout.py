@@ -77,7 +77,12 @@ def heldout_chi2(noise: NoiseModel, P: np.ndarray, test: np.ndarray, r_before, r
     pte = w_te(P[test])
     _, before, _ = gls(w_te(r_before[test]), pte)
     _, after, _ = gls(w_te(r_after[test]), pte)
-    dof = int(test.sum() - P.shape[1])
+    return heldout_summary(before, after, int(test.sum() - P.shape[1]))
+
+
+def heldout_summary(before: float, after: float, dof: int) -> dict:
+    """A held-out check's chi^2 before and after, its dof and the share of the excess over the
+    dof removed (NaN when there is no excess to remove)."""
     excess = before - dof
     return {
         "chi2_before": before,
