@@ -3,8 +3,29 @@ summary as a user would (shared by the verdict and simpler-term tests)."""
 
 from __future__ import annotations
 
+import numpy as np
+
 from afm_core.sim.config import merge
-from afm_core.sim2real.results import Diagnosis
+from afm_core.sim2real.results import CandidateResult, Diagnosis
+
+
+def accepted_results(lib: dict, names, config, offset: float = 0.0, **extra) -> list:
+    """An accepted CandidateResult per named library term, estimated at its nominal value plus
+    `offset`, sigma 1 (the earlier stages' output on a fake session)."""
+    return [
+        CandidateResult(
+            n,
+            lib[n].words,
+            lib[n].keys,
+            lib[n].units,
+            lib[n].size,
+            estimate=lib[n].nominal(config) + offset,
+            sigma=np.ones(lib[n].size),
+            accepted=True,
+            **extra,
+        )
+        for n in names
+    ]
 
 
 def diagnosis_of(decision, evidence, config, n_features: int) -> Diagnosis:

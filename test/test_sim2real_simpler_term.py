@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from sim2real_decisions import diagnosis_of
+from sim2real_decisions import accepted_results, diagnosis_of
 
 from afm_core.pzt import LateralScanner, ScannerParams
 from afm_core.sim.config import merge
@@ -15,7 +15,7 @@ from afm_core.sim2real import simpler_term
 from afm_core.sim2real.candidates import library
 from afm_core.sim2real.heldout import significant_gain
 from afm_core.sim2real.protocol import session_config
-from afm_core.sim2real.results import NAMED, CandidateResult
+from afm_core.sim2real.results import NAMED
 from afm_core.sim2real.verdict import Decision
 
 N = 40  # features of the fake session
@@ -60,20 +60,7 @@ def _stage(monkeypatch, simpler_after):
     lib = {c.name: c for c in library()}
     names = ["coupling", "rotation"]
     terms = {n: (lib[n], lib[n].nominal(config), np.zeros((N, lib[n].size))) for n in names}
-    results = [
-        CandidateResult(
-            n,
-            lib[n].words,
-            lib[n].keys,
-            lib[n].units,
-            lib[n].size,
-            estimate=lib[n].nominal(config) + 0.01,
-            sigma=np.ones(lib[n].size),
-            accepted=True,
-            bic_gain=39000.0,
-        )
-        for n in names
-    ]
+    results = accepted_results(lib, names, config, 0.01, bic_gain=39000.0)
     evidence = SimpleNamespace(
         overall=lambda: {"chi2": 39000.0, "dof": N - 1, "p": 0.0, "variance_factor": 1},
         results=results,

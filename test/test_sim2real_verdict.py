@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from scipy import stats
-from sim2real_decisions import diagnosis_of
+from sim2real_decisions import accepted_results, diagnosis_of
 
 from afm_core.sim.config import load_config, merge
 from afm_core.sim2real.candidates import library, select
@@ -21,7 +21,6 @@ from afm_core.sim2real.results import (
     NO_MISSING_PHYSICS,
     NOT_EXPLAINED,
     PARTLY_EXPLAINED,
-    CandidateResult,
 )
 from afm_core.sim2real.verdict import EXCESS_SHARE, decide, judge
 
@@ -36,19 +35,7 @@ def _fakes(config, names, p_overall):
     """(sess, evidence, terms, noise_first) standing in for the earlier stages."""
     lib = {c.name: c for c in library()}
     terms = {n: (lib[n], lib[n].nominal(config), np.zeros((N, lib[n].size))) for n in names}
-    results = [
-        CandidateResult(
-            n,
-            lib[n].words,
-            lib[n].keys,
-            lib[n].units,
-            lib[n].size,
-            estimate=lib[n].nominal(config),
-            sigma=np.ones(lib[n].size),
-            accepted=True,
-        )
-        for n in names
-    ]
+    results = accepted_results(lib, names, config)
     folds = [np.arange(N) % 2 == 0, np.arange(N) % 2 == 1]
     evidence = SimpleNamespace(
         overall=lambda: {"chi2": 100.0, "dof": N - 1, "p": p_overall, "variance_factor": 1},
