@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -13,11 +14,20 @@ import pytest
 
 # Isolate this run's DDS traffic from anything else on the machine (other runs, demos): a domain
 # id no other process uses, held for this run (a random one collided with other runs' graphs)
-from afm_ros.exposure import isolate_run  # noqa: E402
+from afm_ros.exposure import claim_domain, isolate_run  # noqa: E402
 from afm_ros.stall_watch import ENVIRONMENT as STALL_WATCH  # noqa: E402
 
+DOMAIN_CHOSEN_BY_USER = "ROS_DOMAIN_ID" in os.environ
 isolate_run()
+# Unless the user chose the domain, the graph tests take turns over this many domains claimed
+# for the run: a participant a test leaves behind (a node it killed on purpose is listed, and
+# its endpoints matched, for its lease, about 20 s) is in another domain than the next test's
+GRAPH_DOMAINS = 3
+_graph_domains: list[int] = []
+_graph_tests = itertools.count()
 LOG_TAIL_CHARS = 6000  # of each node's output, printed when a test fails
+# s: the driver, the slowest to stop, takes about 1.1 s after a stop signal
+GRACEFUL_STOP_S = 5.0
 # AFM_STALL_WATCH=<folder> in the test run's environment turns the nodes' stall watch on
 # (afm_ros.stall_watch), and a failure then prints what held them. It is off by default: with
 # it on in every node of a full run, three nodes crashed (faulthandler reads the threads'
@@ -89,6 +99,37 @@ def pytest_runtest_makereport(item, call):
     return report
 
 
+def stop_all(started: list[NodeProcess], grace_s: float = GRACEFUL_STOP_S) -> None:
+    """Stop the test's nodes the way a user's Ctrl-C does, all at once, and kill only those
+    still running after grace_s. A killed node's DDS participant says no goodbye: the other
+    participants list it and match its endpoints until its lease runs out (about 20 s,
+    measured), so the next test's graph held a second driver, nano-hand... of the test before."""
+    running = [node for node in started if node.process.poll() is None]
+    for node in running:
+        node.process.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + grace_s
+    for node in running:
+        try:
+            node.process.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            node.process.kill()
+            node.process.wait()
+
+
+@pytest.fixture(autouse=True)
+def graph_domain(request, monkeypatch):
+    """The domain of this test's graph (None for a test that starts no DDS participant)."""
+    if request.node.get_closest_marker("ros") is None or DOMAIN_CHOSEN_BY_USER:
+        yield None
+        return
+    if not _graph_domains:
+        _graph_domains.append(int(os.environ["ROS_DOMAIN_ID"]))
+        _graph_domains.extend(claim_domain() for _ in range(GRAPH_DOMAINS - 1))
+    domain = _graph_domains[next(_graph_tests) % GRAPH_DOMAINS]
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    yield domain
+
+
 @pytest.fixture
 def nodes(request):
     started: list[NodeProcess] = []
@@ -99,9 +140,7 @@ def nodes(request):
         return node
 
     yield start
-    for node in started:
-        if node.process.poll() is None:
-            node.stop(signal.SIGKILL)
+    stop_all(started)
     report = getattr(request.node, "report_call", None)
     if report is not None and (report.failed or hasattr(report, "wasxfail")):
         for node in started:  # what each node said, for the failure's diagnosis

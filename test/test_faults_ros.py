@@ -32,6 +32,7 @@ AFM = [sys.executable, "-m", "afm_bringup.cli"]
 # scheduling on a loaded two-core machine (the issue's bound: "within a few seconds").
 NOTICE_S = SERVER_SILENCE_S + 2.0
 STOP_S = 2.0  # every node honours SIGINT/SIGTERM within this, even mid-action
+GOODBYE_S = 3.0  # s: how soon a peer drops a node that stopped (the goodbye is one UDP packet)
 
 
 def stop_time(node, sig) -> float:
@@ -182,6 +183,25 @@ def test_nodes_stop_within_two_seconds_mid_action(nodes, ros_node):
     print(f"mid-action stop: nano-hand (SIGTERM) {hand_s:.2f} s ({ending}),", end=" ")
     print(f"driver (SIGINT) {driver_s:.2f} s")
     assert hand_s < STOP_S and driver_s < STOP_S, (hand_s, driver_s)
+
+
+def test_a_stopped_node_leaves_the_graph_at_once_a_killed_one_stays_listed(nodes, ros_node):
+    """A node stopped by a signal says goodbye: `ros2 node list` and every peer drop it at
+    once. A killed one cannot: its participant stays listed, its endpoints matched, until its
+    lease runs out (Fast DDS: 20 s). The test fixtures stop nodes by signal for this reason."""
+
+    def listed(name):
+        return name in ros_node.get_node_names()
+
+    for sig, name in ((signal.SIGINT, "planner"), (signal.SIGKILL, "planner")):
+        node = nodes(name)
+        wait_for(lambda: listed("afm_planner"), 30, what="the planner listed")
+        node.stop(sig)
+        time.sleep(GOODBYE_S)
+        if sig == signal.SIGINT:
+            assert not listed("afm_planner"), f"listed {GOODBYE_S} s after a clean stop"
+        else:  # its lease has not run out
+            assert listed("afm_planner"), f"not listed {GOODBYE_S} s after it was killed"
 
 
 def test_afm_push_ends_soon_after_the_nano_hand_is_killed(nodes, ros_node):

@@ -77,7 +77,7 @@ def test_push_a_particle_end_to_end_then_refusals_and_cancel(graph, ros_node):
             steps.append(f.step)
 
         result = afm.push(
-            goal, particle_id=particle.id, tolerance=40e-9, feedback=on_feedback, timeout=600
+            goal, particle_id=particle.id, tolerance=40e-9, feedback=on_feedback, timeout=300
         )
         print("PUSH", result.message, result.error, result.success)
         assert result.message and result.steps >= 3, result.message
@@ -176,7 +176,7 @@ def test_assemble_pushes_several_particles_in_the_planners_order(graph, ros_node
         request = Assemble.Goal(particle_ids=[m.id for m in marks], tolerance=40e-9)
         for m in marks:
             request.goals.append(Point(x=m.position.x, y=m.position.y - 200e-9))
-        result = afm.send("assemble", request, timeout=900)
+        result = afm.send("assemble", request, timeout=300)
         assert sorted(result.order) == sorted(request.particle_ids), result.message
         assert len(result.achieved) == len(result.errors) == 2
         assert all(np.isfinite(result.errors)), result.message

@@ -75,7 +75,7 @@ def test_push_a_tube_to_a_goal_pose_through_the_graph(tmp_path, nodes, ros_node)
             particle_id=tube.id,
             goal_angle=goal_angle,
             feedback=lambda f: phases.append(f.phase),
-            timeout=900,
+            timeout=300,
         )
         print("PUSH", result.message)
         assert {"localizing", "pushing", "observing", "verifying"} <= set(phases), phases

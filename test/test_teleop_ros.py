@@ -364,7 +364,7 @@ def test_a_nano_hand_push_is_refused_while_teleop_holds_the_tip_and_works_after_
         wait_for(lambda: job.feedback is not None, 120, what="the push running")
         busy = peer.call(peer.enable, True)  # refused while the push runs
         assert not busy.success and topics.ACTION_PUSH_PARTICLE in busy.message, busy.message
-        result = job.result(timeout=600)
+        result = job.result(timeout=300)
         assert result.steps >= 1, result.message
         wait_for(
             lambda: np.linalg.norm(true_sphere(truths, 0) - start_true) > 100e-9,
