@@ -169,6 +169,15 @@ def test_a_twist_from_a_foxglove_client_moves_the_simulated_tip_through_teleop(
     with Probe(start_viewer(nodes, tmp_path), timeout=30.0) as client:
         client.wait(lambda: len(client.channels) == len(CHANNELS), what="every channel")
         client.advertise(1, TELEOP_TOPIC, "geometry_msgs/Twist")
+        # still Twists until teleop counts one: the viewer's publisher is new, and on a fresh
+        # clone teleop and the viewer took 3 s (DDS's next announcement) to discover each
+        # other, so a timed drive sent before that moved nothing
+        still = json.dumps({"linear": {"x": 0.0, "y": 0.0, "z": 0.0}}).encode()
+        deadline = time.monotonic() + 30
+        while not (peer.statuses and peer.statuses[-1].get("commands", 0) > 0):
+            assert time.monotonic() < deadline, "teleop heard no Twist from the viewer in 30 s"
+            client.publish(1, still)
+            time.sleep(0.05)
         first = time.monotonic()
         while time.monotonic() - first < 3.0:  # 20 Hz, as the panel should be set
             client.publish(1, json.dumps(twist).encode())
