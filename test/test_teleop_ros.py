@@ -204,18 +204,22 @@ def test_a_twist_moves_the_tip_in_its_direction_within_the_speed_limit_and_the_d
     # aside: at least half the limit x their span), and stopped at the timeout after the last
     # (plus the delivery of one segment), never later, and stands still afterwards
     assert stop_delay < TIMEOUT + 0.3, said  # safety: never later
-    if distance <= 0.5 * MAX_SPEED * (last - first) and node_was_late(status):
+    moved_while_commanded = distance > 0.5 * MAX_SPEED * (last - first)
+    ran_until_the_dead_man = TIMEOUT - 0.1 < stop_delay
+    if not (moved_while_commanded and ran_until_the_dead_man) and node_was_late(status):
         # every command arrived in time, but the teleop node ran their callbacks late: the node
-        # itself held them (and often its segments too). Two causes were
-        # removed (docs/interfaces.md): writes that held the GIL, and rclpy's executor looping
-        # over re-queued callbacks with the GIL held. Until fresh clones show it gone, the case
-        # stays reported, with the nodes' stalls
+        # itself held them (and often its segments too), so the tip moved less or stopped
+        # before the dead-man. Two causes were removed (docs/interfaces.md): writes that held
+        # the GIL, and rclpy's executor looping over re-queued callbacks with the GIL held. A
+        # third is open: in such a drive the executor's thread ran Python 83 % of the time, not
+        # 6-21 % (py-spy, 2026-11-28). Until it is found, the case stays reported, with the
+        # nodes' stalls
         pytest.xfail(
             f"known open defect: the teleop node held the commands; {said}; "
             f"stalls: {stalls_of(peer)}"
         )
-    assert distance > 0.5 * MAX_SPEED * (last - first), said
-    assert TIMEOUT - 0.1 < stop_delay, said
+    assert moved_while_commanded, said
+    assert ran_until_the_dead_man, said
     assert np.all(peer.commanded()[-1][1] == end)
     assert status["owner"] == "teleop" and status["mode"] == "lifted"
     # the dead-man said so (a status published after it may already carry another tick's)
