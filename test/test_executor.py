@@ -11,7 +11,13 @@ import textwrap
 
 import pytest
 
-from afm_ros.executor import ENVIRONMENT, STOCK, QueueAwareExecutor, multi_threaded
+from afm_ros.executor import (
+    ENVIRONMENT,
+    STOCK,
+    YIELD_ENVIRONMENT,
+    QueueAwareExecutor,
+    multi_threaded,
+)
 
 # Two pool threads, both held by callbacks that wait without the GIL for BLOCKED_S (as a
 # callback waiting for another server does), while a 100 Hz timer and a coroutine that awaits
@@ -122,5 +128,31 @@ def test_the_default_is_the_queue_aware_executor():
         executor = multi_threaded(2, {})
         assert isinstance(executor, QueueAwareExecutor)
         executor.shutdown(timeout_sec=0)
+    finally:
+        rclpy.shutdown()
+
+
+def test_the_spinning_thread_yields_the_gil_before_each_pass_unless_told_not_to(monkeypatch):
+    """The yield is what stops the spinning thread from taking the GIL back from the pool
+    threads after every immediate wake-up (bench/bench_teleop_holds.py measures its effect)."""
+    import time
+
+    import rclpy
+    from rclpy.executors import TimeoutException
+
+    sleeps = []
+    real_sleep = time.sleep
+    monkeypatch.setattr(time, "sleep", lambda s: sleeps.append(s) or real_sleep(s))
+    rclpy.init()
+    try:
+        for environ, expected in (({}, [0]), ({YIELD_ENVIRONMENT: "0"}, [])):
+            executor = multi_threaded(2, environ)
+            sleeps.clear()
+            with pytest.raises(TimeoutException):  # nothing to wait on
+                next(executor._wait_for_ready_callbacks(timeout_sec=0.01))
+            assert sleeps == expected, environ
+            executor.shutdown(timeout_sec=0)
+        with pytest.raises(ValueError, match=f"{YIELD_ENVIRONMENT}='yes'"):
+            multi_threaded(2, {YIELD_ENVIRONMENT: "yes"})
     finally:
         rclpy.shutdown()

@@ -21,6 +21,7 @@ guard conditions, the thread pool, and `_futures`, which node_main's clean stop 
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Mapping
 
 from rclpy.exceptions import InvalidHandle
@@ -32,6 +33,9 @@ from rclpy.executors import (
     TimeoutException,
 )
 
+# "0" leaves out the executor thread's yield of the GIL before each pass (below): only so that
+# bench/bench_teleop_holds.py can measure with and without it; unset in normal use
+YIELD_ENVIRONMENT = "AFM_EXECUTOR_YIELD"
 # "rclpy" gives a node rclpy's own MultiThreadedExecutor instead: only so that
 # bench/bench_node_stalls.py can measure the two side by side; unset in normal use
 ENVIRONMENT = "AFM_EXECUTOR"
@@ -46,7 +50,22 @@ _NOTHING_READY = (
 
 
 class QueueAwareExecutor(MultiThreadedExecutor):
-    """A MultiThreadedExecutor that submits each ready callback to its pool once."""
+    """A MultiThreadedExecutor that submits each ready callback to its pool once, and whose
+    spinning thread yields the GIL before each pass over the wait set."""
+
+    yield_each_pass = True
+
+    def _wait_for_ready_callbacks(self, *args, **kwargs):
+        # The spinning thread drops the GIL in every wait and takes it back at once when the
+        # wait returns at once (work is ready), so a pool thread that waits for the GIL to run
+        # the ready callback does not get it: CPython hands the GIL over by force only to a
+        # thread that waited a whole switch interval without any release in between. In the
+        # teleop drive this held the operator's commands 0.3-0.7 s in about one run in six,
+        # with the spinning thread running Python 83 % of the drive. sleep(0) releases the GIL
+        # and lets the kernel run the waiting thread (bench/bench_teleop_holds.py).
+        if self.yield_each_pass:
+            time.sleep(0)
+        yield from super()._wait_for_ready_callbacks(*args, **kwargs)
 
     def _spin_once_impl(self, timeout_sec=None, wait_condition=lambda: False) -> None:
         try:
@@ -91,4 +110,9 @@ def multi_threaded(threads: int, environ: Mapping[str, str] = os.environ) -> Mul
         return MultiThreadedExecutor(num_threads=threads)
     if choice:
         raise ValueError(f"{ENVIRONMENT}={choice!r}: unset, or {STOCK!r} for rclpy's own executor")
-    return QueueAwareExecutor(num_threads=threads)
+    executor = QueueAwareExecutor(num_threads=threads)
+    passes = environ.get(YIELD_ENVIRONMENT, "")
+    if passes not in ("", "0", "1"):
+        raise ValueError(f"{YIELD_ENVIRONMENT}={passes!r}: unset, or 0 to leave out the yield")
+    executor.yield_each_pass = passes != "0"
+    return executor
