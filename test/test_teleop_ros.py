@@ -209,11 +209,11 @@ def test_a_twist_moves_the_tip_in_its_direction_within_the_speed_limit_and_the_d
     if not (moved_while_commanded and ran_until_the_dead_man) and node_was_late(status):
         # every command arrived in time, but the teleop node ran their callbacks late: the node
         # itself held them (and often its segments too), so the tip moved less or stopped
-        # before the dead-man. Two causes were removed (docs/interfaces.md): writes that held
-        # the GIL, and rclpy's executor looping over re-queued callbacks with the GIL held. A
-        # third is open: in such a drive the executor's thread ran Python 83 % of the time, not
-        # 6-21 % (py-spy, 2026-11-28). Until it is found, the case stays reported, with the
-        # nodes' stalls
+        # before the dead-man. Three causes were removed (docs/interfaces.md): writes that held
+        # the GIL, rclpy's executor looping over re-queued callbacks with the GIL held, and the
+        # spinning thread taking the GIL back after every wait (2026-11-28: 0 of 25 idle runs
+        # held, 4 of 25 before). Until fresh clones show no held drive, the case stays
+        # reported, with the nodes' stalls
         pytest.xfail(
             f"known open defect: the teleop node held the commands; {said}; "
             f"stalls: {stalls_of(peer)}"
