@@ -116,18 +116,8 @@ class Peer:
 
 
 def stalls_of(peer) -> str:
-    """The driver's and teleop node's stall watches (conftest), for a known defect's report."""
+    """The driver's and teleop node's stall watches (conftest), for a failure's diagnosis."""
     return " | ".join(f"{p.name}: {p.stalls()[-1500:] or 'no stall'}" for p in peer.processes)
-
-
-def node_was_late(status: dict) -> bool:
-    """What the teleop status says when the node itself held the operator's commands: some
-    arrived on time (the test checks their gaps) and waited in it past LATE_COMMAND_S before
-    their callback ran. Until 2026-11-28 this also asked for a segment longer than the dead-man
-    timeout; a fresh clone on an idle machine then had 15 of 21 commands held up to 0.29 s and
-    segments up to 0.35 s, and the tip moved 409 nm of the 480 nm asked: the same defect,
-    milder (issue 33)."""
-    return status.get("late_commands", 0) > 0
 
 
 def start_graph(nodes, ros_node, real_time_factor: float) -> Peer:
@@ -195,7 +185,8 @@ def test_a_twist_moves_the_tip_in_its_direction_within_the_speed_limit_and_the_d
     said = (
         f"{distance * 1e9:.0f} nm in {last - first:.2f} s of commands (the test's longest gap "
         f"between two {peer.publish_gap:.3f} s), stopped {stop_delay:.3f} s after the last; "
-        f"teleop's timing {timing}; stops {[s.get('stop') for s in peer.statuses[-6:]]}"
+        f"teleop's timing {timing}; stops {[s.get('stop') for s in peer.statuses[-6:]]}; "
+        f"stalls: {stalls_of(peer)}"
     )
     print(f"command-to-motion latency {latency * 1e3:.0f} ms; {said}")
     # the commands came closer than the dead-man timeout (else stopping was right)
@@ -206,18 +197,6 @@ def test_a_twist_moves_the_tip_in_its_direction_within_the_speed_limit_and_the_d
     assert stop_delay < TIMEOUT + 0.3, said  # safety: never later
     moved_while_commanded = distance > 0.5 * MAX_SPEED * (last - first)
     ran_until_the_dead_man = TIMEOUT - 0.1 < stop_delay
-    if not (moved_while_commanded and ran_until_the_dead_man) and node_was_late(status):
-        # every command arrived in time, but the teleop node ran their callbacks late: the node
-        # itself held them (and often its segments too), so the tip moved less or stopped
-        # before the dead-man. Three causes were removed (docs/interfaces.md): writes that held
-        # the GIL, rclpy's executor looping over re-queued callbacks with the GIL held, and the
-        # spinning thread taking the GIL back after every wait (2026-11-28: 0 of 25 idle runs
-        # held, 4 of 25 before). Until fresh clones show no held drive, the case stays
-        # reported, with the nodes' stalls
-        pytest.xfail(
-            f"known open defect: the teleop node held the commands; {said}; "
-            f"stalls: {stalls_of(peer)}"
-        )
     assert moved_while_commanded, said
     assert ran_until_the_dead_man, said
     assert np.all(peer.commanded()[-1][1] == end)
@@ -300,12 +279,7 @@ def test_the_wrench_during_a_contact_move_is_the_force_trace_s(graph):
     peer.drive(MAX_SPEED, 0.0, 1.2)
     wait_for(lambda: peer.statuses[-1]["stop"].startswith("dead-man"), 5, what="the dead-man")
     contact = [w for w in peer.wrenches if w.wrench.force.z != 0.0]
-    if len(contact) < 5 and node_was_late(peer.statuses[-1]):
-        pytest.xfail(
-            "known open defect: the teleop node held the commands; "
-            f"{peer.statuses[-1]}; stalls: {stalls_of(peer)}"
-        )
-    assert len(contact) >= 5
+    assert len(contact) >= 5, f"{peer.statuses[-1]}; stalls: {stalls_of(peer)}"
     checked = 0
     for w in contact:
         stamp = stamp_of(w.header)
