@@ -10,7 +10,10 @@ before their callback ran, and the longest such wait. A run "held the commands" 
 `--held` commands were late (a held run had 7-22 of about 21; a good one 0-3). The test's own
 outcome is counted too (passed, xfailed as the known defect, failed).
 
-Run: `scripts/with_env.sh python bench/bench_teleop_holds.py [--runs 30] [--held 5]
+`--busy N` runs N processes that only spin on the CPU beside the tests, for the same count under
+CPU contention (on 2 CPUs, 2 of them bring the load to about 4).
+
+Run: `scripts/with_env.sh python bench/bench_teleop_holds.py [--runs 30] [--held 5] [--busy 0]
 [--name teleop_holds]` (about 7 s per run). Results: bench/results/<name>.md and .json.
 """
 
@@ -68,6 +71,11 @@ def run_once(setting: str) -> dict:
     }
 
 
+def start_busy(count: int) -> list[subprocess.Popen]:
+    spin = "while True: pass"
+    return [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(count)]
+
+
 def summarise(runs: list[dict], held: int) -> dict:
     timed = [r for r in runs if r["late_commands"] is not None]
     waits = sorted(r["longest_wait_s"] for r in timed)
@@ -85,13 +93,15 @@ def summarise(runs: list[dict], held: int) -> dict:
 
 
 def report(results: dict, args, started: str, machine: dict) -> str:
+    loads = [r["load_average"] for runs in results.values() for r in runs]
     lines = [
         "# Teleop commands held by the node, with and without the executor's yield",
         "",
         f"Measured {started} on {machine['cpu_count']} CPUs ({machine['cpu_model']}), load "
-        f"average {machine['load_average_at_start'][0]:.1f} at the start; {args.runs} runs of "
-        "the teleop dead-man test per variant, in turn. On this machine and our simulated "
-        "driver only.",
+        f"average {machine['load_average_at_start'][0]:.1f} at the start, "
+        f"{min(loads):.1f}-{max(loads):.1f} after the runs; {args.runs} runs of the teleop "
+        f"dead-man test per variant, in turn, beside {args.busy} busy-looping processes. On "
+        "this machine and our simulated driver only.",
         "",
         f"Command: `{command_line()}`",
         "",
@@ -122,22 +132,37 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=30)
     parser.add_argument("--held", type=int, default=5, help="late commands that make a run held")
+    parser.add_argument("--busy", type=int, default=0, help="busy-looping processes beside")
     parser.add_argument("--name", default="teleop_holds", help="results file name (no suffix)")
     args = parser.parse_args()
     if args.runs < 1 or args.held < 1:
         parser.error(f"--runs {args.runs} and --held {args.held}: each must be at least 1")
+    if not 0 <= args.busy <= 16:
+        parser.error(f"--busy {args.busy}: must be 0-16")
     started = datetime.now(timezone.utc).isoformat(timespec="seconds")
     machine = machine_record(os.getloadavg())
     results: dict[str, list[dict]] = {name: [] for name in VARIANTS}
-    for k in range(args.runs):
-        for name, setting in VARIANTS.items():
-            results[name].append(run_once(setting))
-            print(f"run {k + 1} {name}: {json.dumps(results[name][-1])}", flush=True)
+    busy = start_busy(args.busy)
+    try:
+        for k in range(args.runs):
+            for name, setting in VARIANTS.items():
+                results[name].append(run_once(setting))
+                print(f"run {k + 1} {name}: {json.dumps(results[name][-1])}", flush=True)
+    finally:
+        for process in busy:
+            process.kill()
+            process.wait()
     text = report(results, args, started, machine)
     print(text)
     RESULTS_DIR.mkdir(exist_ok=True)
     (RESULTS_DIR / f"{args.name}.md").write_text(text)
-    record = {"started": started, "machine": machine, "command": command_line(), "runs": results}
+    record = {
+        "started": started,
+        "machine": machine,
+        "command": command_line(),
+        "busy": args.busy,
+        "runs": results,
+    }
     (RESULTS_DIR / f"{args.name}.json").write_text(json.dumps(record, indent=1) + "\n")
 
 
