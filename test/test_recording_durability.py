@@ -182,3 +182,24 @@ def test_a_killed_writer_loses_at_most_the_flush_interval(tmp_path):
     # bound: the flush interval, plus one message period and scheduling slack on a loaded box
     assert lost_s <= interval + 0.2, f"lost the last {lost_s:.2f} s"
     print(f"killed writer: lost the last {lost_s:.2f} s ({len(written) - len(kept)} messages)")
+
+
+@pytest.mark.parametrize(
+    "content, complaint",
+    [
+        (b"", "is empty"),
+        (b"\x89MCA", "ends within the MCAP magic"),
+        (b"# lab notes, not a recording\n", "is not an MCAP recording"),
+    ],
+)
+def test_a_file_that_is_no_recording_is_refused_and_recover_writes_nothing(
+    tmp_path, content, complaint
+):
+    path = tmp_path / "notes.mcap"
+    path.write_bytes(content)
+    with pytest.raises(RecordingError, match=complaint):
+        RecordingReader(path)
+    with pytest.raises(RecordingError, match=complaint + ".*no file written"):
+        recover(path, tmp_path / "out.mcap")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.mcap"]
+    assert path.read_bytes() == content

@@ -176,6 +176,21 @@ MAGIC_BYTES = 8
 MCAP0_MAGIC = b"\x89MCAP0\r\n"
 
 
+def not_a_recording(path: Path) -> str:
+    """Why the file at `path` cannot be an MCAP recording at all, or ''. A recording (also a
+    recorder's unfinished .part) starts with the MCAP magic, written when it is opened; a file
+    that does not is something else, and no chunk of it can be recovered."""
+    with open(path, "rb") as stream:
+        start = stream.read(MAGIC_BYTES)
+    if not start:
+        return "is empty (0 bytes)"
+    if start == MCAP0_MAGIC:
+        return ""
+    if MCAP0_MAGIC.startswith(start):
+        return f"ends within the MCAP magic ({len(start)} bytes): it holds no record"
+    return f"is not an MCAP recording (it starts with {start!r}, not the MCAP magic)"
+
+
 def summary_damage(stream) -> str:
     """'' when the summary section's CRC (in the footer) matches or is not set, else what is
     wrong. The mcap library does not check it; a flipped bit there would change topics,
@@ -225,6 +240,9 @@ class RecordingReader:
         self.path = Path(path)
         if not self.path.is_file():
             raise RecordingError(f"recording {str(self.path)!r} does not exist")
+        wrong = not_a_recording(self.path)
+        if wrong:
+            raise RecordingError(f"{str(self.path)!r} {wrong}")
         self._stream = open(self.path, "rb")
         try:
             self._reader = make_reader(

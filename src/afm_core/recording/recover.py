@@ -27,6 +27,7 @@ from afm_core.recording.reader import (
     DAMAGE_ERRORS,
     DamagedChunk,
     describe_damage,
+    not_a_recording,
     read_chunk_at,
     summary_damage,
 )
@@ -139,6 +140,9 @@ def recover(source: str | os.PathLike, output: str | os.PathLike | None = None) 
         output = source.with_name(stem + ".recovered.mcap")
     if not source.is_file():
         raise RecordingError(f"recording {str(source)!r} does not exist")
+    wrong = not_a_recording(source)
+    if wrong:
+        raise RecordingError(f"{str(source)!r} {wrong}: nothing to recover, no file written")
     damaged: list[DamagedChunk] = []
     stopped = ""
     with open(source, "rb") as stream, RecordingWriter(output, flush_interval=None) as writer:
