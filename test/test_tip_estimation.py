@@ -389,3 +389,10 @@ def test_candidate_test_with_less_work_selects_as_the_whole_image_one(monkeypatc
             assert np.array_equal(est.candidates(tip, th, mask), expected), f"threshold {th}"
     # one erosion per tip, kept for the other thresholds and recomputed for a new tip
     assert len(erosions) == 3
+
+
+@pytest.mark.parametrize("threshold", [-1e-9, float("nan"), float("inf")])
+def test_a_threshold_that_is_not_a_finite_non_negative_number_is_refused(threshold):
+    image = np.random.default_rng(0).normal(0.0, 1e-9, (48, 48))
+    with pytest.raises(ValueError, match=r"threshold=.*: must be a finite number >= 0 \(m\)"):
+        te.estimate_tip(image, 7, threshold=threshold, pixel_size=2e-9)

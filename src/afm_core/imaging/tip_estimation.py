@@ -74,8 +74,8 @@ class TipEstimate:
 
 def _checked_start(est: TipRefiner, th: float, start) -> np.ndarray | None:
     """A fixed threshold's start (an upper bound of the result, clipped to <= 0), checked."""
-    if th < 0:
-        raise ValueError(f"threshold={th}: must be >= 0")
+    if not 0 <= th < np.inf:  # also refuses NaN, which would refine nothing silently
+        raise ValueError(f"threshold={th}: must be a finite number >= 0 (m)")
     if start is not None:
         start = np.minimum(np.asarray(start, float), 0.0)
         if start.shape != (est.k, est.k):

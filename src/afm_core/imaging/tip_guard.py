@@ -220,7 +220,7 @@ def tip_constraint(
         )
         out.warnings.append(
             f"the image constrains the tip {supports} (tip_size={k}: {count} of {k * k} "
-            f"pixels unconstrained, {int(at_start.sum())} at the flat start 0, "
+            f"pixels unconstrained, {int(at_start.sum())} at the flat start (0), "
             f"{int(floor.sum())} bounded only by the image's height range); a reconstruction "
             "with this tip may cut into objects there"
         )
