@@ -150,3 +150,8 @@ def test_cli_drift_warns_about_the_gap_and_gap_auto_uses_the_images(drifting, tm
     assert given.returncode == 0 and given.stderr == "", given.stderr
     bad = run_cli(*files, "--line-rate", RATE, "--gap", "soon", "-o", tmp_path / "d.npz")
     assert bad.returncode == 2 and "--gap" in bad.stderr
+    # a 90 deg scan starting before the 0 deg one ends: refused, nothing written
+    overlap = run_cli(*files, "--line-rate", RATE, "--gap", SCAN / 2, "-o", tmp_path / "e.npz")
+    assert overlap.returncode == 2, overlap.stderr
+    assert f">= {SCAN:.4g} s" in overlap.stderr and "--gap auto" in overlap.stderr
+    assert not (tmp_path / "e.npz").exists()

@@ -128,6 +128,14 @@ def cmd_drift(args) -> int:
     lines0 = first.height.shape[0]
     given = isinstance(args.gap, float)
     gap = args.gap if given else lines0 / args.line_rate
+    if given and not gap >= lines0 / args.line_rate:
+        # the tool times the 0 deg scan first; one tip cannot take two scans at once
+        raise ValueError(
+            f"--gap={args.gap} s: the 90 deg scan must start after the 0 deg one ends "
+            f"({lines0} lines at --line-rate={args.line_rate} Hz: >= "
+            f"{lines0 / args.line_rate:.4g} s from the start of the 0 deg scan); --gap auto "
+            "takes the gap the images imply"
+        )
 
     def compensate(gap: float):
         return compensate_pair(
