@@ -153,6 +153,15 @@ def test_cli_refuses_bad_input_by_name(tmp_path):
     assert missing.returncode == 2 and "pixel_size" in missing.stderr.replace("-", "_")
     rate = run_cli("drift", scan0, scan0, "--line-rate", 0, "-o", tmp_path / "x.npz")
     assert rate.returncode == 2 and "--line-rate=0.0" in rate.stderr
+    # a tip on another grid than the image's (2.5x its pixel): refused, nothing written
+    pixel = load_height_map(scan0).pixel_size_x
+    coarse = tmp_path / "coarse_tip.npz"
+    save_height_map(coarse, HeightMap(np.zeros((7, 7)), 2.5 * pixel, 2.5 * pixel, 0.0, 0.0))
+    grid = run_cli("reconstruct", scan0, "--tip", coarse, "-o", tmp_path / "y.npz")
+    assert grid.returncode == 2 and "differs from the image's" in grid.stderr, grid.stderr
+    bare = run_cli("reconstruct", scan0, "--tip", plain, "-o", tmp_path / "z.npz")
+    assert bare.returncode == 2 and "--pixel-size" in bare.stderr, bare.stderr
+    assert not (tmp_path / "y.npz").exists() and not (tmp_path / "z.npz").exists()
 
 
 def test_cli_landmarks_are_reported_in_the_files_frame(tmp_path):

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 import warnings
@@ -255,11 +256,19 @@ def cmd_reconstruct(args) -> int:
             f"{args.output}: already exists; not overwriting it (choose another name or remove it)"
         )
     image = _load(args, args.image)
-    tip = load_height_map(args.tip)
-    if not np.isclose(tip.pixel_size_x, image.pixel_size_x, rtol=1e-6):
+    if str(args.tip).lower().endswith(".npy") and args.pixel_size is None:
         raise ValueError(
-            f"--tip pixel size {tip.pixel_size_x:.4e} m differs from the image's "
-            f"{image.pixel_size_x:.4e} m"
+            f"--tip {args.tip}: a .npy holds only heights; give --pixel-size (the tip must be on "
+            "the image's grid) or write the tip as .npz (afm image tip does)"
+        )
+    tip = load_height_map(args.tip, pixel_size=args.pixel_size)
+    # pixel sizes are ~1e-9 m: compare relatively only (np.isclose's default atol of 1e-8
+    # would call any two pixel sizes equal)
+    if not math.isclose(tip.pixel_size_x, image.pixel_size_x, rel_tol=1e-6):
+        raise ValueError(
+            f"--tip pixel size {tip.pixel_size_x * 1e9:.4g} nm differs from the image's "
+            f"{image.pixel_size_x * 1e9:.4g} nm: erosion needs the tip on the image's grid "
+            "(estimate the tip from an image at this pixel size, or resample one of them)"
         )
     started = time.perf_counter()
     check = _quietly(
