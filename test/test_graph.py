@@ -156,6 +156,15 @@ def test_calibrate_refuses_to_overwrite_and_names_a_missing_config(tmp_path):
         and "missing.yaml" in result.stderr
         and not (tmp_path / "new.yaml").exists()
     )
+    # a drift-pair count the drift experiment would refuse hours in: refused at once
+    result = subprocess.run(
+        AFM + ["calibrate", "-o", str(tmp_path / "new.yaml"), "--pairs", "1"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2 and "pairs=1" in result.stderr and "[2, " in result.stderr
+    assert not (tmp_path / "new.yaml").exists()
 
 
 @pytest.mark.parametrize(

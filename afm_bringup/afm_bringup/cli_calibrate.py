@@ -13,6 +13,7 @@ from afm_bringup.progress import Progress
 
 def cmd_calibrate(args):
     from afm_core.backends import open_instrument
+    from afm_core.localization.calibration.drift_statistics import check_pairs
     from afm_core.localization.calibration.figures import calibration_figures
     from afm_core.localization.calibration.model import load_calibration, save_calibration
     from afm_core.localization.calibration.procedure import (
@@ -27,6 +28,8 @@ def cmd_calibrate(args):
     if output.exists() and not args.overwrite:
         sys.exit(f"afm calibrate: {output} exists (use --overwrite to replace it)")
     try:
+        # before any experiment: a bad count would only fail the drift experiment, hours in
+        check_pairs(args.pairs)
         chosen = checked_experiments(args.only)
         previous = load_calibration(args.merge) if args.merge else None
         instrument = open_instrument(

@@ -29,6 +29,15 @@ def _particle_area(instrument, area) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+# the frame-up/down pairs measure_drift takes: one pair gives no spread
+PAIRS = (2, 100000)
+
+
+def check_pairs(pairs) -> int:
+    """`pairs` checked against PAIRS (also by `afm calibrate` before any experiment runs)."""
+    return checks.count("pairs", pairs, *PAIRS)
+
+
 def measure_drift(
     instrument,
     *,
@@ -67,7 +76,7 @@ def measure_drift(
     1800 s). The frames are kept for the map error and scan-region error (`map_errors`)."""
     limits = instrument.limits
     lo, hi = _particle_area(instrument, area)
-    pairs = checks.count("pairs", pairs, 2, 100000)
+    pairs = check_pairs(pairs)
     pixel = checks.positive("pixel", pixel, "m", upper=1e-6)
     frame_time = checks.positive("frame_time", frame_time, "s", upper=86400.0)
     interval = checks.positive("interval", interval, "s")
