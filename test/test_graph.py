@@ -118,7 +118,7 @@ def test_cli_help_and_info(tmp_path):
     broken = tmp_path / "broken.mcap"
     broken.write_bytes(b"not an mcap file")
     info = subprocess.run(AFM + ["info", str(broken)], capture_output=True, text=True)
-    assert info.returncode != 0 and "truncated or corrupt" in info.stderr
+    assert info.returncode != 0 and "is not an MCAP recording" in info.stderr
 
 
 def test_cli_rejects_bad_lengths_by_name():

@@ -27,7 +27,7 @@ def cases(folder):
         (
             "driver",
             {"backend": "replay", "replay_input": str(folder / "text.mcap")},
-            "not a valid MCAP file",
+            "is not an MCAP recording",
         ),
         ("driver", {"sim_config": str(folder / "broken.yaml")}, "is not valid YAML"),
         ("driver", {"sim_config": f"{missing}.yaml"}, "does not exist"),
@@ -37,7 +37,7 @@ def cases(folder):
             "discovery_period=-1.0: must be > 0",
         ),
         ("replay", {"input": f"{missing}.mcap"}, "does not exist"),
-        ("replay", {"input": str(folder / "text.mcap")}, "not a valid MCAP file"),
+        ("replay", {"input": str(folder / "text.mcap")}, "is not an MCAP recording"),
         ("nano_hand", {"push_speed": 1.0}, "push_speed=1.0: must be <= 0.0001 m/s"),
         ("nano_hand", {"calibration_file": f"{missing}.yaml"}, "does not exist"),
         ("localizer", {"calibration_file": str(folder / "broken.yaml")}, "calibration"),
