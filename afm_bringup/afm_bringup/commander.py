@@ -17,6 +17,7 @@ import time
 
 import rclpy
 from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import Header
 
@@ -34,7 +35,6 @@ from afm_msgs.action import (
 from afm_ros import topics
 from afm_ros.action_client import CANCEL_ACK_TIMEOUT_S, Heartbeat, SafeActionClient
 from afm_ros.conversions import FRAME_SCANNER
-from afm_ros.executor import QueueAwareExecutor
 from afm_ros.qos_profiles import FEEDBACK
 
 
@@ -125,10 +125,7 @@ class AfmCommander:
             )
             for name, (action_type, action_name) in self.ACTIONS.items()
         }
-        # the nodes' executor: rclpy's own re-queues waiting callbacks, and its spinning thread
-        # can keep the GIL from the caller's other threads while feedback comes in bursts, as
-        # it held the teleop node's callbacks (issue 33)
-        self.executor = QueueAwareExecutor(num_threads=2, context=self.context)
+        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
         self.executor.add_node(self.node)
         self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
         self._spinner.start()
