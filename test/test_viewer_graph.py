@@ -141,10 +141,16 @@ def test_the_viewer_shows_a_push_live(graph, ros_node):
         assert (
             image["encoding"] == "rgb8" and len(image["data"]) == image["height"] * (image["step"])
         )
-        states = decoded(client, "/afm/viewer/actions/push_particle")
-        phases = {(s.get("feedback") or {}).get("phase") for s in states}
-        assert {"localizing", "pushing", "verifying"} <= phases, phases
-        assert states[-1]["status"] in ("succeeded", "aborted")
+
+        # the action's feedback reaches the viewer after its status and after the rescan's
+        # observation (a fresh clone's check ran with the last 4 of 16 states still to come)
+        def phases_and_end():
+            states = decoded(client, "/afm/viewer/actions/push_particle")
+            phases = {(s.get("feedback") or {}).get("phase") for s in states}
+            ended = states and states[-1]["status"] in ("succeeded", "aborted")
+            return {"localizing", "pushing", "verifying"} <= phases and ended
+
+        client.wait(phases_and_end, what="the push's phases and its end on the action channel")
         # log times are the instrument's stamps: the force samples in order within a trace
         times = [m.log_time for m in client.messages("/afm/viewer/force")]
         assert times[0] > 1e18  # ns since the epoch (wall time at the driver's start + instrument)
