@@ -121,6 +121,19 @@ def test_cli_help_and_info(tmp_path):
     assert info.returncode != 0 and "is not an MCAP recording" in info.stderr
 
 
+def test_a_refused_push_prints_the_reason_and_no_position(nodes):
+    nodes("nano_hand")  # no map yet: it refuses every particle
+    result = subprocess.run(
+        AFM + ["push", "--particle", "7", "--goal", "55um", "55um"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "refused: particle_id=7: unknown" in result.stdout, result.stdout
+    assert "particle at" not in result.stdout  # the result carries no position
+
+
 def test_cli_rejects_bad_lengths_by_name():
     result = subprocess.run(
         AFM + ["push", "--particle", "1", "--goal", "12furlong", "3nm"],

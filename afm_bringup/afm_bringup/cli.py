@@ -212,9 +212,13 @@ def cmd_push(args):
                 raise
         except AfmError as exc:
             sys.exit(f"afm push: {exc}")
+    outcome = f"{'succeeded' if result.success else result.verdict or 'failed'}: {result.message}"
+    if not result.success and result.steps == 0:
+        # refused or failed before any stroke: the result carries no position to report
+        print(outcome)
+        return 1
     print(
-        f"{'succeeded' if result.success else result.verdict or 'failed'}: {result.message}; "
-        "particle at "
+        f"{outcome}; particle at "
         f"({nm(result.achieved.x)}, {nm(result.achieved.y)}), error {nm(result.error)}"
         + (
             f", axis {math.degrees(result.achieved_angle):.2f} deg, error "
