@@ -42,6 +42,25 @@ def test_config_rejects_unknown_keys_and_wrong_types_by_name():
     assert round_trip == load_config()
 
 
+def test_a_config_file_may_write_numbers_without_a_dot(tmp_path):
+    """3e-10 is a string to PyYAML (YAML 1.1) and a number to YAML 1.2 and to people."""
+    import yaml
+
+    from afm_core.localization.calibration.model import load_calibration
+
+    path = tmp_path / "lab.yaml"
+    path.write_text("noise: {height_white_sigma: 3e-10}\ntip: {apex_radius: 2E-8}\n")
+    config = load_config(path)
+    assert config.noise.height_white_sigma == 3e-10 and config.tip.apex_radius == 2e-8
+    calibration = tmp_path / "calibration.yaml"
+    calibration.write_text("map_sigma: [2e-9, 3e-9]\n")
+    assert tuple(load_calibration(calibration).map_sigma) == (2e-9, 3e-9)
+    assert yaml.safe_load("a: 3e-10") == {"a": "3e-10"}  # PyYAML's own loader left as it is
+    with pytest.raises(ValueError, match=r"noise.height_white_sigma='3nm'"):
+        path.write_text("noise: {height_white_sigma: 3nm}\n")
+        load_config(path)
+
+
 def test_same_seed_same_session():
     request = ScanRequest(4.5e-6, 4.5e-6, 1e-6, 1e-6, 64, 64)
     a = SimulatedAfm(load_config()).raster_scan(request).height

@@ -38,13 +38,15 @@ def load_calibration(path=None) -> DaqCalibration:
 
     import yaml
 
+    from afm_core.yaml_files import load_yaml
+
     if path is None:
         return DaqCalibration()
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"parameter daq_calibration: {str(path)!r} does not exist")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = load_yaml(path.read_text()) or {}
         return _daq_calibration(data, path)
     except (yaml.YAMLError, OSError, TypeError, KeyError, AttributeError, ValueError) as exc:
         if str(path) in str(exc):

@@ -21,6 +21,7 @@ from afm_core.pzt import ScannerParams
 from afm_core.sim.drift import DriftParams
 from afm_core.sim.generic_terms import parse_generic_terms
 from afm_core.sim.tip import TipParams
+from afm_core.yaml_files import load_yaml
 
 DEFAULT_CONFIG_FILE = Path(__file__).with_name("default_config.yaml")
 
@@ -165,14 +166,14 @@ def config_from_dict(data: dict) -> SimConfig:
 
 def load_config(path: str | Path | None = None) -> SimConfig:
     """Defaults from default_config.yaml, overridden by the user's file (any subset of keys)."""
-    config = config_from_dict(yaml.safe_load(DEFAULT_CONFIG_FILE.read_text()) or {})
+    config = config_from_dict(load_yaml(DEFAULT_CONFIG_FILE.read_text()) or {})
     if path is None:
         return config
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"simulator config {str(path)!r} does not exist")
     try:
-        user = yaml.safe_load(path.read_text()) or {}
+        user = load_yaml(path.read_text()) or {}
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ValueError(f"simulator config {str(path)!r} is not valid YAML: {exc}") from exc
     except OSError as exc:

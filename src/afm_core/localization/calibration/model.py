@@ -18,6 +18,7 @@ import yaml
 
 from afm_core.localization.motion_noise import MotionNoise
 from afm_core.sim.config import dataclass_from_dict
+from afm_core.yaml_files import load_yaml
 
 
 @dataclass
@@ -162,7 +163,7 @@ def load_calibration(path: str | Path) -> Calibration:
     if not path.is_file():
         raise ValueError(f"calibration file {str(path)!r} does not exist")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text())
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ValueError(f"calibration file {str(path)!r} is not valid YAML: {exc}") from exc
     except OSError as exc:
