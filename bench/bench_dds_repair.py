@@ -37,7 +37,7 @@ from afm_ros.exposure import isolate_run  # noqa: E402
 isolate_run()  # a domain no other run uses
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import command_line, machine_record  # noqa: E402
+from machine import busy_loops, command_line, machine_record  # noqa: E402
 
 from afm_ros import exposure  # noqa: E402
 
@@ -119,8 +119,7 @@ def run_variant(profile: str, seconds: float, busy: int, big_hz: float, big_byte
             env[name] = str(path)
         env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
         me = [sys.executable, __file__, "--role"]
-        loops = [subprocess.Popen(["sh", "-c", "while :; do :; done"]) for _ in range(busy)]
-        try:
+        with busy_loops(busy):
             sub = subprocess.Popen(
                 [*me, "sub", "--seconds", str(seconds + 30)], env=env, stdout=subprocess.PIPE
             )
@@ -132,10 +131,6 @@ def run_variant(profile: str, seconds: float, busy: int, big_hz: float, big_byte
                 check=True,
             )
             received = json.loads(sub.communicate(timeout=seconds + 120)[0].splitlines()[-1])
-        finally:
-            for loop in loops:
-                loop.kill()
-                loop.wait()
     sent = json.loads(pub.stdout.splitlines()[-1])
     load = os.getloadavg()[0]  # over the last minute, i.e. this run
     latency = sorted(received["latency"].values())

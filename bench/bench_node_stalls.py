@@ -41,7 +41,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import command_line, machine_record  # noqa: E402
+from machine import busy_loops, command_line, machine_record  # noqa: E402
 
 from afm_ros import exposure  # noqa: E402
 from afm_ros.executor import ENVIRONMENT as EXECUTOR  # noqa: E402
@@ -262,17 +262,13 @@ def main() -> None:
         parser.error(f"--variants {args.variants!r} matches none of {list(VARIANTS)}")
     started = datetime.now(timezone.utc).isoformat(timespec="seconds")
     load = machine_record(os.getloadavg())
-    busy = [subprocess.Popen(["sh", "-c", "while :; do :; done"]) for _ in range(args.busy)]
     rounds = []
-    try:
+    with busy_loops(args.busy):
         for k in range(args.rounds):
             rounds.append({})
             for name in chosen:
                 rounds[-1][name] = run_variant(*VARIANTS[name], watch_on=not args.no_watch)
                 print(f"round {k + 1} {name}: {json.dumps(rounds[-1][name])}", flush=True)
-    finally:
-        for loop in busy:
-            loop.kill()
     text = report(rounds, chosen, args, started, load)
     print(text)
     RESULTS_DIR.mkdir(exist_ok=True)

@@ -10,7 +10,7 @@ before their callback ran, and the longest such wait. A run "held the commands" 
 `--held` commands were late (a held run had 7-22 of about 21; a good one 0-3). The test's own
 outcome is counted too (passed, xfailed as the known defect, failed).
 
-`--busy N` runs N processes that only spin on the CPU beside the tests, for the same count under
+`--busy N` runs N shell loops that only spin on the CPU beside the tests, for the same count under
 CPU contention (on 2 CPUs, 2 of them bring the load to about 4).
 
 Run: `scripts/with_env.sh python bench/bench_teleop_holds.py [--runs 30] [--held 5] [--busy 0]
@@ -31,7 +31,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import command_line, machine_record  # noqa: E402
+from machine import busy_loops, command_line, machine_record  # noqa: E402
 
 from afm_ros.executor import YIELD_ENVIRONMENT  # noqa: E402
 
@@ -69,11 +69,6 @@ def run_once(setting: str) -> dict:
         "longest_segment_s": timing.get("longest_segment"),
         "load_average": round(os.getloadavg()[0], 2),
     }
-
-
-def start_busy(count: int) -> list[subprocess.Popen]:
-    spin = "while True: pass"
-    return [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(count)]
 
 
 def summarise(runs: list[dict], held: int) -> dict:
@@ -142,16 +137,11 @@ def main() -> None:
     started = datetime.now(timezone.utc).isoformat(timespec="seconds")
     machine = machine_record(os.getloadavg())
     results: dict[str, list[dict]] = {name: [] for name in VARIANTS}
-    busy = start_busy(args.busy)
-    try:
+    with busy_loops(args.busy):
         for k in range(args.runs):
             for name, setting in VARIANTS.items():
                 results[name].append(run_once(setting))
                 print(f"run {k + 1} {name}: {json.dumps(results[name][-1])}", flush=True)
-    finally:
-        for process in busy:
-            process.kill()
-            process.wait()
     text = report(results, args, started, machine)
     print(text)
     RESULTS_DIR.mkdir(exist_ok=True)

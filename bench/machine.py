@@ -1,6 +1,8 @@
 """What the benchmarks record about the machine they ran on."""
 
 import platform
+import subprocess
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -38,3 +40,16 @@ def command_line() -> str:
     except ValueError:
         pass
     return shlex.join(["scripts/with_env.sh", "python", str(script), *sys.argv[1:]])
+
+
+@contextmanager
+def busy_loops(count: int):
+    """`count` shell loops that only spin on a CPU while the block runs (the other nodes of a
+    graph and other jobs on the machine), killed when it ends."""
+    loops = [subprocess.Popen(["sh", "-c", "while :; do :; done"]) for _ in range(count)]
+    try:
+        yield
+    finally:
+        for loop in loops:
+            loop.kill()
+            loop.wait()
