@@ -176,19 +176,24 @@ MAGIC_BYTES = 8
 MCAP0_MAGIC = b"\x89MCAP0\r\n"
 
 
-def not_a_recording(path: Path) -> str:
-    """Why the file at `path` cannot be an MCAP recording at all, or ''. A recording (also a
-    recorder's unfinished .part) starts with the MCAP magic, written when it is opened; a file
-    that does not is something else, and no chunk of it can be recovered."""
+def check_recording_file(path: Path, refused: str = "") -> None:
+    """RecordingError unless `path` is a file that starts as an MCAP recording does (`refused`
+    is added to the message). A recording, also a recorder's unfinished .part, starts with the
+    MCAP magic, written when it is opened; a file that does not is something else, and no
+    chunk of it can be recovered."""
+    if not path.is_file():
+        raise RecordingError(f"recording {str(path)!r} does not exist")
     with open(path, "rb") as stream:
         start = stream.read(MAGIC_BYTES)
-    if not start:
-        return "is empty (0 bytes)"
     if start == MCAP0_MAGIC:
-        return ""
-    if MCAP0_MAGIC.startswith(start):
-        return f"ends within the MCAP magic ({len(start)} bytes): it holds no record"
-    return f"is not an MCAP recording (it starts with {start!r}, not the MCAP magic)"
+        return
+    if not start:
+        wrong = "is empty (0 bytes)"
+    elif MCAP0_MAGIC.startswith(start):
+        wrong = f"ends within the MCAP magic ({len(start)} bytes): it holds no record"
+    else:
+        wrong = f"is not an MCAP recording (it starts with {start!r}, not the MCAP magic)"
+    raise RecordingError(f"{str(path)!r} {wrong}{refused}")
 
 
 def summary_damage(stream) -> str:
@@ -238,11 +243,7 @@ class RecordingReader:
 
     def __init__(self, path: str | os.PathLike, validate_crcs: bool = True):
         self.path = Path(path)
-        if not self.path.is_file():
-            raise RecordingError(f"recording {str(self.path)!r} does not exist")
-        wrong = not_a_recording(self.path)
-        if wrong:
-            raise RecordingError(f"{str(self.path)!r} {wrong}")
+        check_recording_file(self.path)
         self._stream = open(self.path, "rb")
         try:
             self._reader = make_reader(

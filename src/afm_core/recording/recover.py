@@ -26,8 +26,8 @@ from afm_core.recording.qos import load_profiles
 from afm_core.recording.reader import (
     DAMAGE_ERRORS,
     DamagedChunk,
+    check_recording_file,
     describe_damage,
-    not_a_recording,
     read_chunk_at,
     summary_damage,
 )
@@ -138,11 +138,7 @@ def recover(source: str | os.PathLike, output: str | os.PathLike | None = None) 
         name = source.name[: -len(".part")] if source.name.endswith(".part") else source.name
         stem = name[: -len(".mcap")] if name.endswith(".mcap") else name
         output = source.with_name(stem + ".recovered.mcap")
-    if not source.is_file():
-        raise RecordingError(f"recording {str(source)!r} does not exist")
-    wrong = not_a_recording(source)
-    if wrong:
-        raise RecordingError(f"{str(source)!r} {wrong}: nothing to recover, no file written")
+    check_recording_file(source, ": nothing to recover, no file written")
     damaged: list[DamagedChunk] = []
     stopped = ""
     with open(source, "rb") as stream, RecordingWriter(output, flush_interval=None) as writer:
