@@ -195,10 +195,8 @@ def test_a_twist_moves_the_tip_in_its_direction_within_the_speed_limit_and_the_d
     # aside: at least half the limit x their span), and stopped at the timeout after the last
     # (plus the delivery of one segment), never later, and stands still afterwards
     assert stop_delay < TIMEOUT + 0.3, said  # safety: never later
-    moved_while_commanded = distance > 0.5 * MAX_SPEED * (last - first)
-    ran_until_the_dead_man = TIMEOUT - 0.1 < stop_delay
-    assert moved_while_commanded, said
-    assert ran_until_the_dead_man, said
+    assert distance > 0.5 * MAX_SPEED * (last - first), said
+    assert TIMEOUT - 0.1 < stop_delay, said
     assert np.all(peer.commanded()[-1][1] == end)
     assert status["owner"] == "teleop" and status["mode"] == "lifted"
     # the dead-man said so (a status published after it may already carry another tick's)
