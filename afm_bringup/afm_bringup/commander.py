@@ -19,7 +19,8 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
-from std_msgs.msg import Header
+from rclpy.qos import QoSProfile
+from std_msgs.msg import Header, String
 
 from afm_bringup.progress import FEEDBACK_TEXTS, Feedback, Progress
 from afm_msgs.action import (
@@ -32,10 +33,13 @@ from afm_msgs.action import (
     ScanImage,
     Sim2Real,
 )
-from afm_ros import topics
+from afm_ros import links, topics
 from afm_ros.action_client import CANCEL_ACK_TIMEOUT_S, Heartbeat, SafeActionClient
 from afm_ros.conversions import FRAME_SCANNER
-from afm_ros.qos_profiles import FEEDBACK
+from afm_ros.qos_profiles import FEEDBACK, LATCHED
+
+# every node's latest link report: latched, and room for the whole graph's at once
+LINK_REPORTS = QoSProfile(depth=64, reliability=LATCHED.reliability, durability=LATCHED.durability)
 
 
 class AfmError(RuntimeError):
@@ -125,6 +129,9 @@ class AfmCommander:
             )
             for name, (action_type, action_name) in self.ACTIONS.items()
         }
+        self._links: dict[str, dict[str, dict]] = {}
+        self._links_lock = threading.Lock()
+        self.node.create_subscription(String, topics.LINKS, self._take_links, LINK_REPORTS)
         self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
         self.executor.add_node(self.node)
         self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
@@ -184,24 +191,69 @@ class AfmCommander:
         self, topics_to_check, node_name: str = "afm_recorder", timeout: float = 15.0
     ) -> None:
         """Block until node `node_name` subscribes to every listed topic that has a publisher
-        (the recorder before a recorded session, a processing node before its input is sent),
-        so nothing this script triggers next goes unheard."""
+        (the recorder before a recorded session, a processing node before its input is sent)
+        and every afm publisher of it has matched the subscriptions the graph lists (its
+        report on /afm/links), so nothing this script triggers next goes unheard."""
         deadline = time.monotonic() + timeout
-        missing = list(topics_to_check)
-        while time.monotonic() < deadline:
-            missing = [
-                t
-                for t in topics_to_check
-                if any(p.node_name != node_name for p in self.node.get_publishers_info_by_topic(t))
-                and not any(
-                    s.node_name == node_name for s in self.node.get_subscriptions_info_by_topic(t)
-                )
-            ]
+        while True:
+            missing, unchecked = self._not_yet_heard(topics_to_check, node_name)
             if not missing:
-                time.sleep(0.5)  # the graph shows a subscription a moment before DDS matches it
+                if unchecked:  # the graph shows a subscription a moment before DDS matches it
+                    time.sleep(0.5)
                 return
-            time.sleep(0.1)
-        raise AfmError(f"node {node_name!r} did not subscribe to {missing} within {timeout} s")
+            if time.monotonic() > deadline:
+                raise AfmError(
+                    f"node {node_name!r} did not hear every topic within {timeout} s: "
+                    + "; ".join(missing)
+                )
+            time.sleep(0.05)
+
+    def _not_yet_heard(self, topics_to_check, node_name: str) -> tuple[list[str], bool]:
+        reporting = {
+            links.full_name(p.node_name, p.node_namespace)
+            for p in self.node.get_publishers_info_by_topic(topics.LINKS)
+        }
+        own = links.full_name(self.node.get_name(), self.node.get_namespace())
+        reporting.add(own)
+        with self._links_lock:
+            reports = dict(self._links)
+        reports[own] = links.link_state(self.node)
+        missing, unchecked = [], False
+        for topic in topics_to_check:
+            publishers = self.node.get_publishers_info_by_topic(topic)
+            publishers = [p for p in publishers if p.node_name != node_name]
+            if not publishers:
+                continue
+            targets = [
+                s
+                for s in self.node.get_subscriptions_info_by_topic(topic)
+                if s.node_name == node_name
+            ]
+            if not targets:
+                missing.append(f"no subscription to {topic}")
+                continue
+            reasons, some_unchecked = links.unconfirmed(
+                topic, publishers, targets, reports, reporting
+            )
+            missing += reasons
+            unchecked = unchecked or some_unchecked
+        return missing, unchecked
+
+    def link_reports(self) -> dict[str, dict[str, dict]]:
+        """Each afm node's latest report on /afm/links, by the node's full name: topic ->
+        {"matched": subscriptions its publishers there have matched, "known": the ids of
+        those its process has discovered}."""
+        with self._links_lock:
+            return {node: dict(state) for node, state in self._links.items()}
+
+    def _take_links(self, message) -> None:
+        try:
+            node, state = links.decode(message.data)
+        except ValueError as exc:
+            self.node.get_logger().warning(str(exc))
+            return
+        with self._links_lock:
+            self._links[node] = state
 
     # -- the instrument --------------------------------------------------------------------
     def scan(

@@ -20,7 +20,7 @@ from rclpy.executors import (
 )
 from rclpy.signals import SignalHandlerOptions
 
-from afm_ros import exposure, stall_watch
+from afm_ros import exposure, links, stall_watch
 from afm_ros.action_client import STOPPING
 from afm_ros.executor import multi_threaded
 
@@ -141,6 +141,7 @@ def run(
         return 2
     if callable(threads):  # from the node's configuration (e.g. its queue length)
         threads = threads(node)
+    links.LinkReporter(node)
     freeze_startup_heap()
     watch = stall_watch.start_from_environment(program)  # AFM_STALL_WATCH: a diagnosis, off
     executor = multi_threaded(threads) if threads > 1 else SingleThreadedExecutor()

@@ -21,6 +21,9 @@ MAP_IMAGE = "/afm/map/image"  # sensor_msgs/Image rgb8, each map colour-mapped, 
 LANDMARK_MARKERS = "/afm/landmarks/markers"  # visualization_msgs/MarkerArray, latched
 TF = "/tf"  # tf2_msgs/TFMessage: afm_task -> afm_scanner as the localizer estimates it
 TF_STATIC = "/tf_static"  # tf2_msgs/TFMessage, latched: the fixed part of the frame tree
+# std_msgs/String, one JSON object per node, latched: the subscriptions each node's publishers
+# have matched (afm_ros.links), so a client can wait until a recorder really hears a topic
+LINKS = "/afm/links"
 
 ACTION_SCAN_IMAGE = "/afm/scan_image"
 ACTION_LOCAL_SCAN = "/afm/local_scan"
