@@ -123,9 +123,16 @@ def acquire(run_dir: Path, log) -> tuple[dict, dict, dict, dict]:
         with AfmCommander(server_timeout=60.0) as afm:
             started = time.monotonic()
             afm.clients["scan_image"].wait_for_server(timeout_sec=60.0)
+            # the recorder, on the driver's topics (the volatile streams are lost if it is late)
             afm.wait_until_subscribed(
-                [topics.SCAN, topics.TIP_COMMAND, topics.GROUND_TRUTH]
-            )  # the recorder
+                [
+                    topics.SCAN,
+                    topics.TIP_COMMAND,
+                    topics.GROUND_TRUTH,
+                    topics.SCAN_LINE,
+                    topics.FORCE_TRACE,
+                ]
+            )
             for node_name, inputs in (
                 ("afm_imaging", [topics.SCAN]),
                 ("afm_localizer", [topics.TIP_COMMAND]),
