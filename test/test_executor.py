@@ -16,6 +16,7 @@ from afm_ros.executor import (
     STOCK,
     YIELD_ENVIRONMENT,
     QueueAwareExecutor,
+    collect_stopped_tasks,
     multi_threaded,
 )
 
@@ -156,3 +157,24 @@ def test_the_spinning_thread_yields_the_gil_before_each_pass_unless_told_not_to(
             multi_threaded(2, {YIELD_ENVIRONMENT: "yes"})
     finally:
         rclpy.shutdown()
+
+
+def test_after_a_stop_only_errors_other_than_the_stop_itself_are_reported(capfd):
+    from types import SimpleNamespace
+
+    from rclpy.exceptions import InvalidHandle
+    from rclpy.task import Future
+
+    def failed(error):
+        future = Future()
+        future.set_exception(error)
+        return future
+
+    raced = failed(InvalidHandle("cannot use Destroyable because destruction was requested"))
+    real = ValueError("a real failure")
+    finished, running = Future(), Future()
+    finished.set_result(None)
+    executor = SimpleNamespace(_futures=[raced, failed(real), finished, running])
+    assert collect_stopped_tasks(executor) == [real]
+    del executor, raced, finished, running
+    assert "never retrieved" not in capfd.readouterr().err

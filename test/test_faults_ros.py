@@ -185,6 +185,17 @@ def test_nodes_stop_within_two_seconds_mid_action(nodes, ros_node):
     assert hand_s < STOP_S and driver_s < STOP_S, (hand_s, driver_s)
 
 
+def test_a_node_stopped_after_its_work_says_nothing_of_unread_errors(nodes):
+    """Callbacks handed to the pool as the stop came used to fail on the destroyed executor
+    and rclpy printed "The following exception was never retrieved" at every stop."""
+    driver = nodes("driver", seed=2, real_time_factor=0.0)
+    with AfmCommander(server_timeout=60) as afm:
+        afm.scan(origin=(54.6e-6, 54.6e-6), size=(0.5e-6, 0.5e-6), pixels=(32, 32))
+    status, output = driver.stop(signal.SIGINT)
+    assert status == 0, output
+    assert "never retrieved" not in output and "failed while stopping" not in output, output
+
+
 def test_a_stopped_node_leaves_the_graph_at_once_a_killed_one_stays_listed(nodes, ros_node):
     """A node stopped by a signal says goodbye: `ros2 node list` and every peer drop it at
     once. A killed one cannot: its participant stays listed, its endpoints matched, until its

@@ -36,6 +36,7 @@ from afm_msgs.action import (
 from afm_ros import links, topics
 from afm_ros.action_client import CANCEL_ACK_TIMEOUT_S, Heartbeat, SafeActionClient
 from afm_ros.conversions import FRAME_SCANNER
+from afm_ros.executor import collect_stopped_tasks
 from afm_ros.qos_profiles import FEEDBACK, LATCHED
 
 # every node's latest link report: latched, and room for the whole graph's at once
@@ -406,6 +407,8 @@ class AfmCommander:
     def close(self):
         self.executor.shutdown()
         self._spinner.join(timeout=5.0)
+        for error in collect_stopped_tasks(self.executor):
+            self.node.get_logger().error(f"a callback failed while stopping: {error!r}")
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
 

@@ -103,6 +103,22 @@ class QueueAwareExecutor(MultiThreadedExecutor):
                     pass  # the executor shut down meanwhile: nothing will poll it
 
 
+def collect_stopped_tasks(executor) -> list[BaseException]:
+    """After a stop: take the errors of the callbacks that finished once spinning had ended,
+    and return those that are not the stop itself. A callback handed to the pool just before
+    the stop runs after the executor's guard condition is destroyed, and rclpy 7.1's handler
+    triggers it unguarded: InvalidHandle ("cannot use Destroyable because destruction was
+    requested"), which nobody reads, so rclpy printed "The following exception was never
+    retrieved" at every node's stop."""
+    errors = []
+    for task in list(getattr(executor, "_futures", [])):
+        if task.done():
+            error = task.exception()  # read: the task no longer reports it when collected
+            if error is not None and not isinstance(error, InvalidHandle):
+                errors.append(error)
+    return errors
+
+
 def multi_threaded(threads: int, environ: Mapping[str, str] = os.environ) -> MultiThreadedExecutor:
     """The executor a node with `threads` threads spins (node_main.run)."""
     choice = environ.get(ENVIRONMENT, "")

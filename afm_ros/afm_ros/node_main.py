@@ -22,7 +22,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from afm_ros import exposure, links, stall_watch
 from afm_ros.action_client import STOPPING
-from afm_ros.executor import multi_threaded
+from afm_ros.executor import collect_stopped_tasks, multi_threaded
 
 _LOADED = time.monotonic()
 DRAIN_IDLE = 0.01  # s without a ready callback: what had arrived is taken
@@ -180,6 +180,8 @@ def run(
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(status)
+        for error in collect_stopped_tasks(executor):
+            print(f"{program}: a callback failed while stopping: {error!r}", file=sys.stderr)
         node.destroy_node()
         rclpy.try_shutdown()
         if watch is not None:
