@@ -43,24 +43,26 @@ def link_state(node) -> dict[str, dict]:
     """Topic -> {"matched": subscriptions its publishers have matched (the fewest, when the
     node has several there: each must have), "known": ids of the subscriptions on it the
     node's process has discovered and its publishers can match}."""
-    state: dict[str, dict] = {}
+    offers: dict[str, list] = {}  # topic -> (matched count, offered QoS) per publisher
     for publisher in list(node.publishers):
         try:
-            topic = publisher.topic_name
-            if topic in NOT_REPORTED:
-                continue
-            count = publisher.get_subscription_count()
-            offered = publisher.qos_profile
+            if publisher.topic_name not in NOT_REPORTED:
+                offers.setdefault(publisher.topic_name, []).append(
+                    (publisher.get_subscription_count(), publisher.qos_profile)
+                )
         except InvalidHandle:  # destroyed by another thread meanwhile: no longer publishes
             continue
-        known = {
-            endpoint_id(s)
-            for s in node.get_subscriptions_info_by_topic(topic)
-            if compatible(offered, s.qos_profile)
+    state = {}
+    for topic, offered in offers.items():
+        subscriptions = node.get_subscriptions_info_by_topic(topic)  # once per topic
+        state[topic] = {
+            "matched": min(count for count, _ in offered),
+            "known": {
+                endpoint_id(s)
+                for s in subscriptions
+                if any(compatible(qos, s.qos_profile) for _, qos in offered)
+            },
         }
-        entry = state.setdefault(topic, {"matched": count, "known": set()})
-        entry["matched"] = min(entry["matched"], count)
-        entry["known"] |= known
     return state
 
 
