@@ -356,6 +356,37 @@ def test_candidate_morphology_in_parallel_row_bands_is_identical(monkeypatch):
         assert np.array_equal(one, many)
 
 
+def test_staged_erosion_is_the_whole_erosion_bit_for_bit(monkeypatch):
+    """The candidate test's erosion runs the tip's highest pixels over the whole image and
+    gathers the rest only where they can still lower the minimum: the same float32 numbers.
+    A tip whose outer pixels lie almost the image's height range below the apex (as an
+    estimate's pixels bounded only by that range do) exercises the gathered completion."""
+    rng = np.random.default_rng(7)
+    k, h = 41, 20
+    image = rng.normal(0.0, 1.0, (220, 170)).astype(np.float32)
+    image[100:124, 60:84] += 30.0  # a mesa: only on it can the outer pixels lower the minimum
+    a = np.pad(image, h, constant_values=np.inf)
+    cone = crop(default_tip(), k) / NM
+    outer = cone.copy()
+    outer[np.hypot(*np.mgrid[-h : h + 1, -h : h + 1]) > 6] = -25.0
+    rough = -rng.uniform(0.0, 3.0, (k, k))
+    rough[h, h] = 0.0
+    stages = []
+    erode_pixels = tr._erode_pixels
+    monkeypatch.setattr(
+        tr, "_erode_pixels", lambda a, t, p=None: stages.append(len(p)) or erode_pixels(a, t, p)
+    )
+    for tip in (cone, outer, rough, np.zeros((k, k))):
+        t32 = tip.astype(np.float32)
+        stages.clear()
+        staged = tr._erode_valid(a, t32)
+        assert np.array_equal(staged, erode_pixels(a, t32)), tip[0, 0]
+        if tip is outer:
+            assert sum(stages) < k * k  # the rest was gathered, and it mattered:
+            seen = np.argsort(-t32.ravel(), kind="stable")[: sum(stages)]
+            assert not np.array_equal(erode_pixels(a, t32, seen), staged)
+
+
 def test_candidate_test_with_less_work_selects_as_the_whole_image_one(monkeypatch):
     """The candidate test's staged dilation, gathered completion and kept erosion give the
     points and order of the plain whole-image float32 computation (its definition)."""

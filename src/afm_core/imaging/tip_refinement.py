@@ -43,8 +43,8 @@ Speed-ups (book 4.2); (a) and (c) do not change the limit:
   (c) per-pass and per-point early stops: a point x' can refine the tip only if
       dilate(min(erode(I, T) + N_TH, I), T)(x') < I(x') (a sound form of Villarrubia's
       opening test that stays exact with N_TH > 0; its erosion is kept while the tip does
-      not change, its dilation runs over the whole image only for the tip's highest pixels,
-      TipRefiner.candidates); within a point, the tip pixels w that
+      not change, and its erosion and dilation run over the whole image only for the tip's
+      highest pixels, TipRefiner.candidates); within a point, the tip pixels w that
       the apex contact or the contact c = w (when admissible) already bound by T(w) - N_TH
       are dropped, and the remaining contacts are processed in chunks, dropping the pixels
       whose running bound reaches T - N_TH and stopping as soon as none is left (Fig. 4.12).
@@ -94,10 +94,11 @@ def _in_bands(valid_op, a: np.ndarray, tip: np.ndarray) -> np.ndarray:
 # Output rows per block of the whole-image morphology: a block's running result and temporary
 # stay in the cache while all tip pixels pass over it (about 20 % faster than whole arrays).
 _BLOCK_ROWS = 128
-# The candidate test's dilation: whole-image stages of this share of the tip's pixels (highest
-# first) until at most _GATHER_SHARE of the points can still refine; those get the other
-# pixels by gathering (on the characteriser, 20 % of the pixels leave 0-3 % of the points),
-# in blocks of about _GATHER_TERMS terms.
+# The candidate test's erosion and dilation: whole-image stages of this share of the tip's
+# pixels (highest first) until at most _GATHER_SHARE of the points can still change; those get
+# the other pixels by gathering (dilation on the characteriser: 20 % of the pixels leave 0-3 %
+# of the points), in blocks of about _GATHER_TERMS terms. A larger share gathers more slowly
+# than the whole-image stages compute (erosion at 5 %: no faster; at 10 %: 2.5x slower).
 _STAGE_SHARE = 0.05
 _GATHER_SHARE = 0.02
 _GATHER_TERMS = 1 << 21
@@ -107,24 +108,73 @@ _GATHER_TERMS = 1 << 21
 _FIRST_TERMS = 16384
 
 
-def _erode_valid(a: np.ndarray, tip: np.ndarray) -> np.ndarray:
-    """min_u a(y-u) - t(u) for the y whose whole tip footprint lies inside `a` (no padding)."""
+def _erode_pixels(a: np.ndarray, tip: np.ndarray, pixels: np.ndarray | None = None) -> np.ndarray:
+    """min_u a(y-u) - t(u) for the y whose whole tip footprint lies inside `a` (no padding),
+    over all tip pixels u or only the flat indices `pixels` of the tip."""
     k = tip.shape[0]
     h = k // 2
     ny, nx = a.shape[0] - 2 * h, a.shape[1] - 2 * h
     out = np.full((ny, nx), np.inf, dtype=a.dtype)
     tmp = np.empty((min(ny, _BLOCK_ROWS), nx), dtype=a.dtype)
+    pixels = np.arange(k * k) if pixels is None else pixels
     for r0 in range(0, ny, _BLOCK_ROWS):
         r1 = min(r0 + _BLOCK_ROWS, ny)
         o, t = out[r0:r1], tmp[: r1 - r0]
-        for i in range(k):
-            for j in range(k):
-                np.subtract(
-                    a[2 * h - i + r0 : 2 * h - i + r1, 2 * h - j : 2 * h - j + nx],
-                    tip[i, j],
-                    out=t,
-                )
-                np.minimum(o, t, out=o)
+        for p in pixels:
+            i, j = divmod(int(p), k)
+            np.subtract(
+                a[2 * h - i + r0 : 2 * h - i + r1, 2 * h - j : 2 * h - j + nx], tip[i, j], out=t
+            )
+            np.minimum(o, t, out=o)
+    return out
+
+
+def _erode_valid(a: np.ndarray, tip: np.ndarray) -> np.ndarray:
+    """_erode_pixels over all tip pixels, bit for bit, with less work: the tip's highest
+    pixels run over the whole image in stages while more than _GATHER_SHARE of the points
+    could still be lowered by the rest, which those points then gather. A pixel u can lower
+    the running minimum m(y) only if m(y) > min(a) - t(u): an estimate's low outer pixels
+    (bounded only by the image's height range) matter at the highest points alone (on a
+    512x512 spheres image with a 41x41 tip, 20 % of the pixels left 0.3 % of the points)."""
+    k = tip.shape[0]
+    h = k // 2
+    finite = a[np.isfinite(a)]
+    if finite.size == 0:
+        return _erode_pixels(a, tip)
+    floor = float(finite.min())
+    flat_tip = tip.ravel()
+    pixels = np.argsort(-flat_tip, kind="stable")  # highest first: they bound most
+    stage = max(1, int(np.ceil(_STAGE_SHARE * k * k)))
+    out = None
+    done = 0
+    while done < pixels.size:
+        chunk = pixels[done : done + stage]
+        done += chunk.size
+        part = _erode_pixels(a, tip, chunk)
+        out = part if out is None else np.minimum(out, part, out=out)
+        if done >= pixels.size:
+            return out
+        # the float32 terms of the remaining pixels are >= floor - t_next (rounding is
+        # monotone); the margin covers the float64 subtraction's own rounding
+        t_next = float(flat_tip[pixels[done]])
+        limit = (floor - t_next) - 4 * np.finfo(float).eps * (abs(floor) + abs(t_next))
+        open_ = out > np.float64(limit)  # compared in float64, not rounded to float32
+        if open_.sum() <= _GATHER_SHARE * open_.size:
+            break
+    py, px = np.nonzero(open_)
+    if py.size == 0:
+        return out
+    rest = pixels[done:]
+    af = a.ravel()
+    shifts = -((rest // k) * a.shape[1] + rest % k)
+    trest = flat_tip[rest]
+    base = (py + 2 * h) * a.shape[1] + (px + 2 * h)
+    best = out[py, px]
+    step = max(1, _GATHER_TERMS // rest.size)
+    for s in range(0, base.size, step):
+        terms = af[base[s : s + step, None] + shifts[None, :]] - trest[None, :]
+        np.minimum(best[s : s + step], terms.min(axis=1), out=best[s : s + step])
+    out[py, px] = best
     return out
 
 
