@@ -356,7 +356,8 @@ def test_candidate_morphology_in_parallel_row_bands_is_identical(monkeypatch):
         assert np.array_equal(one, many)
 
 
-def test_staged_erosion_is_the_whole_erosion_bit_for_bit(monkeypatch):
+@pytest.mark.parametrize("gather_terms", [tr._GATHER_TERMS, 1])  # index matrix, pixel by pixel
+def test_staged_erosion_is_the_whole_erosion_bit_for_bit(monkeypatch, gather_terms):
     """The candidate test's erosion runs the tip's highest pixels over the whole image and
     gathers the rest only where they can still lower the minimum: the same float32 numbers.
     A tip whose outer pixels lie almost the image's height range below the apex (as an
@@ -371,6 +372,7 @@ def test_staged_erosion_is_the_whole_erosion_bit_for_bit(monkeypatch):
     outer[np.hypot(*np.mgrid[-h : h + 1, -h : h + 1]) > 6] = -25.0
     rough = -rng.uniform(0.0, 3.0, (k, k))
     rough[h, h] = 0.0
+    monkeypatch.setattr(tr, "_GATHER_TERMS", gather_terms)
     stages = []
     erode_pixels = tr._erode_pixels
     monkeypatch.setattr(

@@ -100,7 +100,7 @@ _BLOCK_ROWS = 128
 # of the points), in blocks of about _GATHER_TERMS terms. A larger share gathers more slowly
 # than the whole-image stages compute (erosion at 5 %: no faster; at 10 %: 2.5x slower).
 _STAGE_SHARE = 0.05
-_GATHER_SHARE = 0.02
+_GATHER_SHARE = 0.05
 _GATHER_TERMS = 1 << 21
 # refine_point's first block of contacts x pixels: most candidate points are ruled out within
 # it (every pixel's running bound reaches T - N_TH), so a smaller first block saves work; the
@@ -169,13 +169,23 @@ def _erode_valid(a: np.ndarray, tip: np.ndarray) -> np.ndarray:
     shifts = -((rest // k) * a.shape[1] + rest % k)
     trest = flat_tip[rest]
     base = (py + 2 * h) * a.shape[1] + (px + 2 * h)
-    best = out[py, px]
-    step = max(1, _GATHER_TERMS // rest.size)
-    for s in range(0, base.size, step):
-        terms = af[base[s : s + step, None] + shifts[None, :]] - trest[None, :]
-        np.minimum(best[s : s + step], terms.min(axis=1), out=best[s : s + step])
-    out[py, px] = best
+    # a - t is a + (-t) bit for bit (IEEE subtraction is the addition of the negation)
+    out[py, px] = _gather(np.minimum, af, base, shifts, -trest, out[py, px])
     return out
+
+
+def _gather(extreme, flat: np.ndarray, base: np.ndarray, shifts, values, best: np.ndarray):
+    """best combined by `extreme` (np.minimum or np.maximum) with flat[base + s] + v over the
+    pairs (s, v) of shifts and values: the whole-image stages' float32 terms at a few points.
+    Small problems as one index matrix; large ones one pixel at a time (no index matrix)."""
+    if base.size * len(shifts) <= _GATHER_TERMS:
+        terms = flat[base[:, None] + shifts[None, :]] + values[None, :]
+        return extreme(best, extreme.reduce(terms, axis=1), out=best)
+    term = np.empty_like(best)
+    for shift, value in zip(shifts, values):
+        np.add(flat[base + shift], value, out=term)
+        extreme(best, term, out=best)
+    return best
 
 
 def _dilate_valid(a: np.ndarray, tip: np.ndarray, pixels: np.ndarray | None = None) -> np.ndarray:
@@ -361,14 +371,10 @@ class TipRefiner:
         rest = pixels[done:]
         best = reach[py, px]
         if rest.size and py.size:
-            qf = q.ravel()
             shifts = (rest // k) * q.shape[1] + rest % k
-            trest = t32.ravel()[rest]
-            base = py * q.shape[1] + px
-            step = max(1, _GATHER_TERMS // rest.size)
-            for s in range(0, base.size, step):
-                terms = qf[base[s : s + step, None] + shifts[None, :]] + trest[None, :]
-                np.maximum(best[s : s + step], terms.max(axis=1), out=best[s : s + step])
+            best = _gather(
+                np.maximum, q.ravel(), py * q.shape[1] + px, shifts, t32.ravel()[rest], best
+            )
         excess = top[py, px] - best
         keep = excess > self.test_eps
         return py[keep], px[keep], excess[keep]
