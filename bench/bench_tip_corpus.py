@@ -2,7 +2,9 @@
 and Gwyddion 2.62's best, and the speed of auto and fixed estimates against Gwyddion.
 
 Run: `scripts/with_env.sh python bench/bench_tip_corpus.py [--n 256] [--gwyddion 10]
-[--speed] [--seeds 0 1]`. Writes bench/results/tip-corpus.json and tip-corpus.md.
+[--speed] [--seeds 0 1]`. Writes bench/results/tip-corpus.json and tip-corpus.md; with
+`--outside` (the outside tester's 512x512 spheres setting, OUTSIDE_TIPS x OUTSIDE_SEEDS)
+tip-corpus-outside.json and .md.
 
 Corpus: afm_core.sim.tip_corpus (five tip kinds x five sample kinds per seed, pixel 1-10 nm,
 noise 0.1-1 nm, its own tip formulas and imaging) plus the project's characterizer (two seeds,
@@ -74,6 +76,26 @@ def cases(n: int, tip_size: int, seeds) -> list[tuple[str, int, object, float]]:
     return out
 
 
+# The outside tester's setting (issue 35), rebuilt with the corpus's own generator: 512x512
+# spheres at 4 nm pixels and 0.3 nm noise imaged by a sharp, a blunt and an asymmetric tip
+# (hyperboloids: a paraboloid apex on a cone), two seeds. Their images and tips are not ours.
+OUTSIDE_TIPS = (
+    TipModel("hyperboloid", 5e-9, 15.0),
+    TipModel("hyperboloid", 25e-9, 30.0),
+    TipModel("tilted", 12e-9, 22.0, tilt_deg=8.0),
+)
+OUTSIDE_SEEDS = (11, 12)
+
+
+def outside_cases(tip_size: int) -> list[tuple[str, int, object, float]]:
+    out = []
+    for seed in OUTSIDE_SEEDS:
+        for tip in OUTSIDE_TIPS:
+            c = Case(tip, "spheres", 4e-9, 0.3e-9, 512, tip_size, seed=seed)
+            out.append((f"{c.name()} / seed {seed}", tip_size, lambda c=c: make_case(c), c.pixel))
+    return out
+
+
 def chosen(image, k, rule, tip, depth) -> tuple[float, float]:
     """(threshold, error) of estimate_tip with a threshold rule; a refusal (the rule's
     threshold leaves the tip unconstrained) counts as (nan, inf): a failure."""
@@ -111,7 +133,9 @@ def run_corpus(args) -> list[dict]:
         import bench_tip as bt
 
         bt.build_harness()
-    all_cases = cases(args.n, args.tip_size, args.seeds)
+    all_cases = (
+        outside_cases(args.tip_size) if args.outside else cases(args.n, args.tip_size, args.seeds)
+    )
     spread = set(range(0, len(all_cases), max(1, len(all_cases) // max(args.gwyddion, 1))))
     workdir = Path(tempfile.mkdtemp())
     for i, (name, k, make, pixel) in enumerate(all_cases):
@@ -220,9 +244,16 @@ def render(result: dict) -> str:
         ),
         f"(peak memory {result['peak_memory_mib']:.0f} MiB).",
         "",
-        "Images: afm_core.sim.tip_corpus (its own tip formulas and imaging; five tip kinds x five"
-        f" samples per seed, seeds {result['seeds']}) and the characterizer, {result['n']}x"
-        f"{result['n']} px, tip window {result['tip_size']}x{result['tip_size']}. Error: RMS"
+        (
+            "Images: the outside tester's setting (issue 35) rebuilt with afm_core.sim.tip_corpus:"
+            " 512x512 spheres, 4 nm pixels, 0.3 nm noise, a sharp, a blunt and an asymmetric tip,"
+            f" seeds {list(OUTSIDE_SEEDS)}"
+            if result.get("outside")
+            else "Images: afm_core.sim.tip_corpus (its own tip formulas and imaging; five tip"
+            f" kinds x five samples per seed, seeds {result['seeds']}) and the characterizer,"
+            f" {result['n']}x{result['n']} px"
+        )
+        + f", tip window {result['tip_size']}x{result['tip_size']}. Error: RMS"
         " over the top 20 nm of the true tip (at least the apex's 3x3 neighbours). Best fixed:"
         " our estimator at the threshold that minimises the error against the true tip.",
         "",
@@ -300,7 +331,15 @@ def main() -> None:
         action="store_true",
         help="measure the speed only; keep the corpus rows of the last run (their date stays)",
     )
+    parser.add_argument(
+        "--outside",
+        action="store_true",
+        help="the outside tester's 512x512 spheres setting instead of the corpus "
+        "(writes tip-corpus-outside.*)",
+    )
     args = parser.parse_args()
+    if args.outside and (args.speed or args.speed_only):
+        parser.error("--outside measures the threshold only; run --speed without it")
     result = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "machine": f"{os.cpu_count()} CPUs ({cpu_model()}), Python {platform.python_version()}",
@@ -308,6 +347,7 @@ def main() -> None:
         "n": args.n,
         "tip_size": args.tip_size,
         "seeds": args.seeds,
+        "outside": args.outside,
         "rows": [] if args.speed_only else run_corpus(args),
         "speed": run_speed() if args.speed or args.speed_only else [],
     }
@@ -318,9 +358,10 @@ def main() -> None:
         result["corpus_date"] = last.get("corpus_date", last["date"])
     result["peak_memory_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "tip-corpus.json").write_text(json.dumps(result, indent=2))
+    name = "tip-corpus-outside" if args.outside else "tip-corpus"
+    (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2))
     text = render(result)
-    (RESULTS / "tip-corpus.md").write_text(text)
+    (RESULTS / f"{name}.md").write_text(text)
     print(text)
 
 

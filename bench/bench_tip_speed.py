@@ -3,8 +3,10 @@ with a fixed one, against Gwyddion 2.62's full estimate at the same threshold, w
 41x41 tip windows, on bench_tip's 512x512 characteriser image, in one run, single-threaded.
 
 Run: `scripts/with_env.sh python bench/bench_tip_speed.py [--repeat 3] [--image spheres]
-[--baseline REV]`. Writes bench/results/tip-speed.json and tip-speed.md (with --image spheres,
-the 512x512 4 nm-pixel spheres image of bench_tip_corpus --speed: tip-speed-spheres.*).
+[--baseline REV] [--busy N]`. Writes bench/results/tip-speed.json and tip-speed.md (with
+--image spheres, the 512x512 4 nm-pixel spheres image of bench_tip_corpus --speed:
+tip-speed-spheres.*; with --busy N, N shell loops spin on the CPUs throughout, as other jobs
+on a shared machine do: the names end in -busy).
 Needs bench_tip's Gwyddion harness (built by bench/gwyddion/build.sh, which apt-installs
 Debian's libgwyddion20-dev when missing).
 
@@ -45,7 +47,7 @@ from pathlib import Path  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_tip as bt  # noqa: E402
 import numpy as np  # noqa: E402
-from machine import command_line, cpu_model  # noqa: E402
+from machine import busy_loops, command_line, cpu_model  # noqa: E402
 
 from afm_core.imaging.tip_estimation import estimate_tip, tip_error  # noqa: E402
 
@@ -185,7 +187,12 @@ def render(result: dict) -> str:
         "",
         f"Measured {result['measured']} on {m['cpus']} shared CPUs ({m['cpu']}), Python "
         f"{m['python']}, Gwyddion {m['gwyddion']}, both single-threaded; 1-min load average "
-        f"{m['loadavg_start'][0]:.1f} at start, {m['loadavg_end'][0]:.1f} at end.",
+        f"{m['loadavg_start'][0]:.1f} at start, {m['loadavg_end'][0]:.1f} at end"
+        + (
+            f"; {result['busy']} shell loops spinning on the CPUs throughout (other jobs)."
+            if result.get("busy")
+            else "."
+        ),
         "",
         f"Command: `{result['command']}`",
         "",
@@ -286,7 +293,10 @@ def main() -> None:
     parser.add_argument(
         "--sizes", type=int, nargs="+", default=list(TIP_SIZES), help="tip windows (21 41)"
     )
+    parser.add_argument("--busy", type=int, default=0, help="busy-looping processes beside")
     args = parser.parse_args()
+    if not 0 <= args.busy <= 16:
+        parser.error(f"--busy {args.busy}: must be 0-16")
     bt.build_harness()
     image, true_tip, pixel, source = IMAGES[args.image]()
     result = {
@@ -304,6 +314,7 @@ def main() -> None:
         "image_n": int(image.shape[0]),
         "noise_m": bt.NOISE,  # both images
         "repeat": args.repeat,
+        "busy": args.busy,
         "sources_sha256": bt.source_hashes(),
         "sizes": [],
     }
@@ -311,8 +322,11 @@ def main() -> None:
         gwy = bt.Gwyddion(image, pixel, Path(tmp))
         baseline = Baseline(args.baseline, Path(tmp)) if args.baseline else None
         result["baseline"] = baseline.rev if baseline else None
-        for k in args.sizes:
-            result["sizes"].append(measure(image, true_tip, pixel, k, args.repeat, gwy, baseline))
+        with busy_loops(args.busy):
+            for k in args.sizes:
+                result["sizes"].append(
+                    measure(image, true_tip, pixel, k, args.repeat, gwy, baseline)
+                )
     result["machine"]["loadavg_end"] = list(os.getloadavg())
     result["max_rss_mib"] = {  # Linux: ru_maxrss in KiB
         "process": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -323,6 +337,7 @@ def main() -> None:
     }
     RESULTS.mkdir(exist_ok=True)
     name = "tip-speed" + ("" if args.image == "characterizer" else f"-{args.image}")
+    name += "-busy" if args.busy else ""
     (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2))
     text = render(result)
     (RESULTS / f"{name}.md").write_text(text)
