@@ -130,48 +130,55 @@ def _erode_pixels(a: np.ndarray, tip: np.ndarray, pixels: np.ndarray | None = No
     return out
 
 
+def _in_stages(tip: np.ndarray, run, extreme, still_open):
+    """The staged whole-image morphology of the candidate test: the tip's pixels, highest
+    first (they bound most), `run(pixels)` over the whole image _STAGE_SHARE of them at a
+    time, the parts combined by `extreme` (np.minimum or np.maximum), until all have run or
+    at most _GATHER_SHARE of the points are `still_open(result, pixels not yet run)` (a
+    boolean mask). Returns (result, the pixels not yet run, that mask)."""
+    k = tip.shape[0]
+    pixels = np.argsort(-tip.ravel(), kind="stable")
+    stage = max(1, int(np.ceil(_STAGE_SHARE * k * k)))
+    out = None
+    done = 0
+    while True:
+        part = run(pixels[done : done + stage])
+        done = min(done + stage, pixels.size)
+        out = part if out is None else extreme(out, part, out=out)
+        open_ = still_open(out, pixels[done:])
+        if done >= pixels.size or open_.sum() <= _GATHER_SHARE * open_.size:
+            return out, pixels[done:], open_
+
+
 def _erode_valid(a: np.ndarray, tip: np.ndarray) -> np.ndarray:
-    """_erode_pixels over all tip pixels, bit for bit, with less work: the tip's highest
-    pixels run over the whole image in stages while more than _GATHER_SHARE of the points
-    could still be lowered by the rest, which those points then gather. A pixel u can lower
-    the running minimum m(y) only if m(y) > min(a) - t(u): an estimate's low outer pixels
+    """_erode_pixels over all tip pixels, bit for bit, with less work (_in_stages): the
+    points that the remaining pixels could still lower gather them. A pixel u can lower the
+    running minimum m(y) only if m(y) > min(a) - t(u): an estimate's low outer pixels
     (bounded only by the image's height range) matter at the highest points alone (on a
     512x512 spheres image with a 41x41 tip, 20 % of the pixels left 0.3 % of the points)."""
     k = tip.shape[0]
     h = k // 2
-    finite = a[np.isfinite(a)]
-    if finite.size == 0:
+    floor = float(np.min(a, where=np.isfinite(a), initial=np.inf))
+    if not np.isfinite(floor):
         return _erode_pixels(a, tip)
-    floor = float(finite.min())
     flat_tip = tip.ravel()
-    pixels = np.argsort(-flat_tip, kind="stable")  # highest first: they bound most
-    stage = max(1, int(np.ceil(_STAGE_SHARE * k * k)))
-    out = None
-    done = 0
-    while done < pixels.size:
-        chunk = pixels[done : done + stage]
-        done += chunk.size
-        part = _erode_pixels(a, tip, chunk)
-        out = part if out is None else np.minimum(out, part, out=out)
-        if done >= pixels.size:
-            return out
+
+    def still_open(out, rest):
+        if not rest.size:
+            return np.zeros(out.shape, bool)
         # the float32 terms of the remaining pixels are >= floor - t_next (rounding is
         # monotone); the margin covers the float64 subtraction's own rounding
-        t_next = float(flat_tip[pixels[done]])
+        t_next = float(flat_tip[rest[0]])
         limit = (floor - t_next) - 4 * np.finfo(float).eps * (abs(floor) + abs(t_next))
-        open_ = out > np.float64(limit)  # compared in float64, not rounded to float32
-        if open_.sum() <= _GATHER_SHARE * open_.size:
-            break
+        return out > np.float64(limit)  # compared in float64, not rounded to float32
+
+    out, rest, open_ = _in_stages(tip, lambda p: _erode_pixels(a, tip, p), np.minimum, still_open)
     py, px = np.nonzero(open_)
-    if py.size == 0:
-        return out
-    rest = pixels[done:]
-    af = a.ravel()
-    shifts = -((rest // k) * a.shape[1] + rest % k)
-    trest = flat_tip[rest]
-    base = (py + 2 * h) * a.shape[1] + (px + 2 * h)
-    # a - t is a + (-t) bit for bit (IEEE subtraction is the addition of the negation)
-    out[py, px] = _gather(np.minimum, af, base, shifts, -trest, out[py, px])
+    if py.size:
+        shifts = -((rest // k) * a.shape[1] + rest % k)
+        base = (py + 2 * h) * a.shape[1] + (px + 2 * h)
+        # a - t is a + (-t) bit for bit (IEEE subtraction is the addition of the negation)
+        out[py, px] = _gather(np.minimum, a.ravel(), base, shifts, -flat_tip[rest], out[py, px])
     return out
 
 
@@ -356,20 +363,13 @@ class TipRefiner:
         partial maximum is a lower bound of reach: a point below the tolerance stays below);
         the remaining pixels are then gathered at those points only."""
         k = self.k
-        pixels = np.argsort(-t32.ravel(), kind="stable")  # highest first: they bound most
-        stage = max(1, int(np.ceil(_STAGE_SHARE * k * k)))
-        reach = np.full(top.shape, -np.inf, dtype=np.float32)
-        done = 0
-        while True:
-            chunk = pixels[done : done + stage]
-            done += chunk.size
-            part = _in_bands(lambda a, t, c=chunk: _dilate_valid(a, t, c), q, t32)
-            np.maximum(reach, part, out=reach)
-            sel = (top - reach > self.test_eps) & mask
-            if done >= pixels.size or sel.sum() <= _GATHER_SHARE * sel.size:
-                break
+        reach, rest, sel = _in_stages(
+            t32,
+            lambda p: _in_bands(lambda a, t: _dilate_valid(a, t, p), q, t32),
+            np.maximum,
+            lambda reach, _: (top - reach > self.test_eps) & mask,
+        )
         py, px = np.nonzero(sel)
-        rest = pixels[done:]
         best = reach[py, px]
         if rest.size and py.size:
             shifts = (rest // k) * q.shape[1] + rest % k
