@@ -123,3 +123,82 @@ def test_stop_signals_arriving_while_the_main_thread_holds_the_lock_still_stop(i
     assert not deadlocks, f"the old handler did not deadlock: {done.stdout} {done.stderr}"
     seen = json.loads(done.stdout.splitlines()[-1])
     assert seen["stopped"] and seen["calls"] >= 1, (seen, done.stderr)
+
+
+REFUSING_NODE_SCRIPT = """
+    import threading
+    import rclpy
+    from afm_ros.node_main import run
+    {patch}
+
+    class HalfBuilt:
+        def __del__(self):  # deleting what the start had built: where a middleware may block
+            if DELETION_HANGS:
+                threading.Event().wait()
+
+    def refuse():
+        half_built = HalfBuilt()  # held by the traceback's frame, as a node's __init__ is
+        raise ValueError("parameter model='x.yaml': is not valid YAML")
+
+    raise SystemExit(run(refuse, "refusing probe"))  # as every node's main
+"""
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize(
+    "patch",
+    [
+        "DELETION_HANGS = False",
+        "DELETION_HANGS = False; rclpy.try_shutdown = lambda *a, **k: threading.Event().wait()",
+        "DELETION_HANGS = True",
+    ],
+    ids=["clean", "shutdown_hangs", "deletion_hangs"],
+)
+def test_a_node_that_refuses_its_configuration_exits_with_status_2_even_if_ros_hangs(patch):
+    """A refused node once printed its reason and never exited (make test, 2026-11-28); the
+    other cases make leaving ROS hang for ever, as a middleware deadlock would."""
+    script = textwrap.dedent(REFUSING_NODE_SCRIPT.format(patch=patch))
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2, (done.returncode, done.stdout, done.stderr)
+    assert "refusing probe: parameter model='x.yaml': is not valid YAML" in done.stderr
+
+
+GRAPH_WATCH_SCRIPT = """
+    import json, subprocess, sys, textwrap, time
+    import rclpy
+    refuser = textwrap.dedent('''
+        import time
+        from rclpy.node import Node
+        from afm_ros.node_main import run
+        class Late(Node):
+            def __init__(self):
+                super().__init__("afm_late_refuser")
+                time.sleep(3.0)  # long enough to be discovered first
+                raise ValueError("parameter x: bad")
+        raise SystemExit(run(Late, "late refuser"))
+    ''')
+    rclpy.init()
+    watcher = rclpy.create_node("afm_graph_watch")
+    process = subprocess.Popen([sys.executable, "-c", refuser])
+    start, exited, last_seen = time.monotonic(), None, None
+    while time.monotonic() - start < 15.0:
+        rclpy.spin_once(watcher, timeout_sec=0.1)
+        now = time.monotonic() - start
+        if "afm_late_refuser" in watcher.get_node_names():
+            last_seen = now
+        if exited is None and process.poll() is not None:
+            exited = now
+    print(json.dumps({"status": process.returncode, "exited": exited, "last_seen": last_seen}))
+"""
+
+
+@pytest.mark.ros
+def test_a_refused_node_leaves_the_graph_when_its_process_ends():
+    """Not a ghost for the middleware's lease (about 20 s): the half-built node and the
+    context are destroyed before the process ends, so its participant says it leaves."""
+    seen = run_script(GRAPH_WATCH_SCRIPT)
+    assert seen["status"] == 2, seen
+    assert seen["last_seen"] is not None, f"the node was never discovered: {seen}"
+    assert seen["last_seen"] < seen["exited"] + 2.0, seen

@@ -11,6 +11,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
 
 import rclpy
 from rclpy.executors import (
@@ -30,6 +31,7 @@ DRAIN_IDLE = 0.01  # s without a ready callback: what had arrived is taken
 # end at once through STOPPING); one that does not (a long computation) is abandoned and the
 # process exits anyway, so a stop takes at most about 2 s with the drain's share.
 STOP_GRACE_S = 1.0
+REFUSED_EXIT_S = 5.0  # s a refused node gets to leave ROS before it exits anyway
 SPIN_SLICE_S = 0.1  # the main thread looks at the stop flag this often
 PARENT_PID_ENV = "AFM_LAUNCHER_PID"  # set by afm_bringup.launcher.Graph for its children
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -133,12 +135,14 @@ def run(
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     watch_stop_signals(on_stop_signal)
     die_with_parent()
+    refusal = []
     try:
         node = node_factory()
     except config_errors as exc:
         print(f"{program}: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
+        refusal.append(exc)  # its traceback holds the half-built node; exit_refused frees it
+    if refusal:
+        exit_refused(refusal)
     if callable(threads):  # from the node's configuration (e.g. its queue length)
         threads = threads(node)
     links.LinkReporter(node)
@@ -187,6 +191,33 @@ def run(
         if watch is not None:
             watch.stop()
     return status
+
+
+def exit_refused(refusal: list) -> NoReturn:
+    """Leave ROS and end the process with status 2 within about REFUSED_EXIT_S, whatever the
+    middleware does.
+
+    Why bounded: in `make test` (2026-11-28) a node refused while 17 others started beside it
+    printed its reason and then never exited (not reproduced in 288 later runs under load).
+    Fast DDS is known to deadlock now and then when a participant is deleted while others are
+    being discovered (eProsima/Fast-DDS#6193). So the leaving runs in a thread: the half-built
+    node freed there (`refusal` holds the only reference to the exception whose traceback holds
+    it; it is the context's last node, so its participant is deleted and announces that it
+    leaves, and the graph forgets the node at once rather than after its ~20 s lease), then ROS
+    shut down. The process then exits without the interpreter's own clean-up, which would
+    delete what is left with no bound."""
+
+    def leave():
+        refusal.clear()
+        gc.collect()  # in case reference cycles still hold the half-built node
+        rclpy.try_shutdown()
+
+    thread = threading.Thread(target=leave, name="afm-leave-ros", daemon=True)
+    thread.start()
+    thread.join(REFUSED_EXIT_S)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(2)
 
 
 def _callbacks_finish(executor, timeout_s: float) -> bool:
