@@ -165,6 +165,39 @@ def test_a_node_that_refuses_its_configuration_exits_with_status_2_even_if_ros_h
     assert "refusing probe: parameter model='x.yaml': is not valid YAML" in done.stderr
 
 
+STOPPING_NODE_SCRIPT = """
+    import threading
+    from rclpy.node import Node
+    from afm_ros.node_main import run
+
+    class StopsItself(Node):
+        def __init__(self):
+            super().__init__("afm_stop_probe")
+            self.create_timer(0.05, self.stop)
+
+        def stop(self):
+            raise SystemExit({status})
+
+        def destroy_node(self):
+            if {deletion_hangs}:  # as a middleware deadlock while its participant is deleted
+                threading.Event().wait()
+            return super().destroy_node()
+
+    raise SystemExit(run(StopsItself, "stop probe"))
+"""
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("deletion_hangs", [False, True], ids=["clean", "deletion_hangs"])
+def test_a_stopping_node_exits_with_its_status_even_if_deleting_it_hangs(deletion_hangs):
+    script = textwrap.dedent(STOPPING_NODE_SCRIPT.format(status=3, deletion_hangs=deletion_hangs))
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 3, (done.returncode, done.stdout, done.stderr)
+    assert ("leaving ROS took over" in done.stderr) == deletion_hangs, done.stderr
+
+
 GRAPH_WATCH_SCRIPT = """
     import json, subprocess, sys, textwrap, time
     import rclpy

@@ -31,7 +31,7 @@ DRAIN_IDLE = 0.01  # s without a ready callback: what had arrived is taken
 # end at once through STOPPING); one that does not (a long computation) is abandoned and the
 # process exits anyway, so a stop takes at most about 2 s with the drain's share.
 STOP_GRACE_S = 1.0
-REFUSED_EXIT_S = 5.0  # s a refused node gets to leave ROS before it exits anyway
+LEAVE_ROS_S = 5.0  # s a node gets to delete itself and shut ROS down before it exits anyway
 SPIN_SLICE_S = 0.1  # the main thread looks at the stop flag this often
 PARENT_PID_ENV = "AFM_LAUNCHER_PID"  # set by afm_bringup.launcher.Graph for its children
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -181,43 +181,54 @@ def run(
         if not _callbacks_finish(executor, STOP_GRACE_S):
             # a callback is still busy; its thread would keep the interpreter from exiting
             print(f"{program}: stopped with a callback still running", file=sys.stderr)
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(status)
+            _exit_now(status)
         for error in collect_stopped_tasks(executor):
             print(f"{program}: a callback failed while stopping: {error!r}", file=sys.stderr)
-        node.destroy_node()
-        rclpy.try_shutdown()
+        left = _leave_ros(lambda: (node.destroy_node(), rclpy.try_shutdown()))
         if watch is not None:
             watch.stop()
+        if not left:
+            print(f"{program}: leaving ROS took over {LEAVE_ROS_S:g} s; exiting", file=sys.stderr)
+            _exit_now(status)
     return status
 
 
 def exit_refused(refusal: list) -> NoReturn:
-    """Leave ROS and end the process with status 2 within about REFUSED_EXIT_S, whatever the
-    middleware does.
-
-    Why bounded: in `make test` (2026-11-28) a node refused while 17 others started beside it
-    printed its reason and then never exited (not reproduced in 288 later runs under load).
-    Fast DDS is known to deadlock now and then when a participant is deleted while others are
-    being discovered (eProsima/Fast-DDS#6193). So the leaving runs in a thread: the half-built
-    node freed there (`refusal` holds the only reference to the exception whose traceback holds
-    it; it is the context's last node, so its participant is deleted and announces that it
-    leaves, and the graph forgets the node at once rather than after its ~20 s lease), then ROS
-    shut down. The process then exits without the interpreter's own clean-up, which would
-    delete what is left with no bound."""
+    """Leave ROS and end the process with status 2, within about LEAVE_ROS_S whatever the
+    middleware does. `refusal` holds the only reference to the exception whose traceback holds
+    the half-built node, so the node is deleted in _leave_ros's thread; it is the context's last
+    node, so its participant is deleted and announces that it leaves, and the graph forgets the
+    node at once rather than after its ~20 s lease. The process then exits without the
+    interpreter's own clean-up, which would delete what is left with no bound."""
 
     def leave():
         refusal.clear()
         gc.collect()  # in case reference cycles still hold the half-built node
         rclpy.try_shutdown()
 
-    thread = threading.Thread(target=leave, name="afm-leave-ros", daemon=True)
+    _leave_ros(leave)
+    _exit_now(2)
+
+
+def _leave_ros(release: Callable[[], object]) -> bool:
+    """Run `release` (deleting the node, shutting ROS down) in a thread of its own; True if it
+    ended within LEAVE_ROS_S.
+
+    Why a thread: in `make test` (2026-11-28) a node refused while 17 others started beside it
+    printed its reason and then never exited (not reproduced in 288 later runs under load).
+    Fast DDS is known to deadlock now and then when a participant is deleted while others are
+    being discovered (eProsima/Fast-DDS#6193); a stop must not wait on that for ever."""
+    thread = threading.Thread(target=release, name="afm-leave-ros", daemon=True)
     thread.start()
-    thread.join(REFUSED_EXIT_S)
+    thread.join(LEAVE_ROS_S)
+    return not thread.is_alive()
+
+
+def _exit_now(status: int) -> NoReturn:
+    """End the process at once (threads still running would keep the interpreter alive)."""
     sys.stdout.flush()
     sys.stderr.flush()
-    os._exit(2)
+    os._exit(status)
 
 
 def _callbacks_finish(executor, timeout_s: float) -> bool:
