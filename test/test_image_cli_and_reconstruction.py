@@ -162,6 +162,13 @@ def test_cli_refuses_bad_input_by_name(tmp_path):
     bare = run_cli("reconstruct", scan0, "--tip", plain, "-o", tmp_path / "z.npz")
     assert bare.returncode == 2 and "--pixel-size" in bare.stderr, bare.stderr
     assert not (tmp_path / "y.npz").exists() and not (tmp_path / "z.npz").exists()
+    # a .npy in nm: refused as metres (its span is beyond any z range), read with its unit
+    in_nm = tmp_path / "in_nm.npy"
+    np.save(in_nm, load_height_map(scan0).height * 1e9)
+    as_metres = run_cli("landmarks", in_nm, "--pixel-size", "1nm")
+    assert as_metres.returncode == 2 and "--height-unit nm" in as_metres.stderr
+    with_unit = run_cli("landmarks", in_nm, "--pixel-size", "1nm", "--height-unit", "nm")
+    assert with_unit.returncode == 0, with_unit.stderr
 
 
 def test_cli_landmarks_are_reported_in_the_files_frame(tmp_path):

@@ -138,7 +138,7 @@ def test_gwy_rows_go_top_to_bottom_and_ours_bottom_to_top(tmp_path):
     [("nm", 1e-9), ("m", 1.0), ("um", 1e-6), ("\u00b5m", 1e-6), ("pm", 1e-12), ("\u00c5", 1e-10)],
 )
 def test_gwy_z_units_are_converted_to_metres(tmp_path, unit, scale):
-    values = np.arange(12.0).reshape(3, 4) + 1.0
+    values = (np.arange(12.0).reshape(3, 4) + 1.0) * 1e-9 / scale  # 1-12 nm in `unit`
     path = tmp_path / "units.gwy"
     write_gwy(
         path,
@@ -336,3 +336,38 @@ def test_how_the_scan_was_taken_survives_npz_and_gwy(tmp_path):
     bad.meta = {"stamp": float("nan")}
     with pytest.raises(ValueError, match="meta stamp"):
         save_height_map(tmp_path / "bad.npz", bad)
+
+
+SPHERES_NM = np.array([[0.0, 1.5, 20.0], [3.0, 0.5, 12.0], [0.2, 7.0, 1.0]])  # heights in nm
+
+
+def test_heights_not_in_metres_are_refused_with_the_fix_and_an_npy_unit_is_applied(tmp_path):
+    """A map in nm read as metres is 1e9 times too tall: everything after it is nonsense in
+    silence, so the loader refuses a span beyond any AFM's z range and names the fix."""
+    npy = tmp_path / "nm.npy"
+    np.save(npy, SPHERES_NM)
+    with pytest.raises(ValueError, match=r"heights span 20 m, .*--height-unit nm"):
+        load_height_map(npy, pixel_size=2e-9)
+    loaded = load_height_map(npy, pixel_size=2e-9, height_unit=1e-9)
+    np.testing.assert_allclose(loaded.height, SPHERES_NM * 1e-9, rtol=1e-12)
+
+    npz = tmp_path / "nm.npz"
+    save_height_map(npz, HeightMap(SPHERES_NM * 1e-9, 2e-9, 2e-9))
+    assert load_height_map(npz).height.max() == pytest.approx(20e-9)
+    with pytest.raises(ValueError, match="height_unit is for .npy files only"):
+        load_height_map(npz, height_unit=1e-9)
+
+    gwy = tmp_path / "counts.gwy"  # raw counts stored as metres by a careless exporter
+    field = GwyDataField(SPHERES_NM * 1000, xreal=6e-9, yreal=6e-9, si_unit_xy="m", si_unit_z="m")
+    write_gwy(gwy, {"Z": field})
+    with pytest.raises(ValueError, match=r"heights span 2e\+04 m, .*not read as metres"):
+        load_height_map(gwy)
+
+
+@pytest.mark.parametrize("bad", [2.0, 1e-3])
+def test_a_pixel_size_no_afm_has_is_refused_naming_the_limit(tmp_path, bad):
+    npy = tmp_path / "m.npy"
+    np.save(npy, SPHERES_NM * 1e-9)
+    with pytest.raises(ValueError, match=rf"pixel_size={bad!r} m: must be <= 0.0001 m"):
+        load_height_map(npy, pixel_size=bad)
+    assert load_height_map(npy, pixel_size=1e-4).pixel_size_x == 1e-4  # the limit itself

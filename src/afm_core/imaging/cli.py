@@ -34,6 +34,7 @@ from afm_core.imaging.files import (
     save_height_map,
 )
 from afm_core.imaging.levelling import level, parse_method
+from afm_core.imaging.vendor_common import length_scale
 from afm_core.instrument import RasterScanData
 
 
@@ -55,7 +56,7 @@ def _load(args, path) -> HeightMap:
             f"{path}: a .npy holds only heights (origin 0); give --pixel-size (e.g. 2nm), or "
             "save the scan as .npz or .gwy (afm scan --save F.npz keeps pixel size and origin)"
         )
-    hmap = load_height_map(path, args.channel, args.pixel_size, args.frame)
+    hmap = load_height_map(path, args.channel, args.pixel_size, args.frame, args.height_unit)
     if args.level != "none":
         mask = None if args.level_mask == "none" else "auto"
         hmap.height, _ = level(hmap.height, args.level, mask)
@@ -261,7 +262,11 @@ def cmd_reconstruct(args) -> int:
             f"--tip {args.tip}: a .npy holds only heights; give --pixel-size (the tip must be on "
             "the image's grid) or write the tip as .npz (afm image tip does)"
         )
-    tip = load_height_map(args.tip, pixel_size=args.pixel_size)
+    tip = load_height_map(
+        args.tip,
+        pixel_size=args.pixel_size,
+        height_unit=args.height_unit if str(args.tip).lower().endswith(".npy") else None,
+    )
     # pixel sizes are ~1e-9 m: compare relatively only (np.isclose's default atol of 1e-8
     # would call any two pixel sizes equal)
     if not math.isclose(tip.pixel_size_x, image.pixel_size_x, rel_tol=1e-6):
@@ -346,7 +351,9 @@ def cmd_landmarks(args) -> int:
 
 
 def cmd_level(args) -> int:
-    image = load_height_map(args.image, args.channel, args.pixel_size, args.frame)
+    image = load_height_map(
+        args.image, args.channel, args.pixel_size, args.frame, args.height_unit
+    )
     mask = None if args.mask == "none" else "auto"
     levelled, used = level(image.height, args.method, mask)
     layers = {"feature_mask": used.astype(np.uint8)} if Path(args.output).suffix == ".npz" else {}
@@ -384,6 +391,15 @@ def cmd_channels(args) -> int:
 MIN_HEIGHT_HELP = "features lower than this are ignored (m, or with a unit; default 10nm)"
 FRAME_HELP = "which frame of a high-speed .asd movie (default 0; afm image channels counts them)"
 PIXEL_SIZE_HELP = "for .npy files: pixel size (m, or with a unit: 2nm); other formats carry theirs"
+HEIGHT_UNIT_HELP = "for .npy files: the heights' unit (m, um, nm, pm, angstrom; default m)"
+
+
+def height_unit(text: str) -> float:
+    """argparse type of --height-unit: metres per stored value."""
+    try:
+        return length_scale(text, "--height-unit")
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
@@ -397,6 +413,7 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
         )
         p.add_argument("--frame", type=int, default=0, help=FRAME_HELP)
         p.add_argument("--pixel-size", type=length, help=PIXEL_SIZE_HELP)
+        p.add_argument("--height-unit", type=height_unit, help=HEIGHT_UNIT_HELP)
 
     def levelling(p):
         common(p)

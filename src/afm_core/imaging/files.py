@@ -132,8 +132,21 @@ class HeightMap:
                 )
 
 
+# What a file's numbers can mean in metres. An AFM's z range is at most about 100 um (large-range
+# scanners; most are 5-25 um), and no AFM pixel is larger than 100 um (the widest scans are
+# about 150 um over 128 px or more). A map beyond either is in a unit nobody stated (nm, um, raw
+# counts: a nm map read as metres is 1e9 times too tall), and every later number would be
+# nonsense in silence.
+MAX_HEIGHT_SPAN_M = 1e-4
+MAX_PIXEL_SIZE_M = 1e-4
+
+
 def load_height_map(
-    path, channel: int | str = 0, pixel_size: float | None = None, frame: int = 0
+    path,
+    channel: int | str = 0,
+    pixel_size: float | None = None,
+    frame: int = 0,
+    height_unit: float | None = None,
 ) -> HeightMap:
     """The height map in `path` (.npz, .npy, .gwy or a vendor's file: .ibw, .jpk, .spm, .sxm,
     .stp, .top, .asd), heights in metres, rows along +y; `frame`: which frame of a movie
@@ -143,16 +156,34 @@ def load_height_map(
     channel's title; a
     .npz/.npy holds one map (channel 0, or its title). `pixel_size` (m, square pixels) is
     needed for .npy; for the other formats, which carry their own, it is only checked
-    against the file's (ValueError if it disagrees)."""
+    against the file's (ValueError if it disagrees). `height_unit` (m per stored value, e.g.
+    1e-9 for nm; default 1) is for .npy only, whose numbers carry no unit.
+
+    A map whose heights span more than MAX_HEIGHT_SPAN_M or whose pixels are larger than
+    MAX_PIXEL_SIZE_M is refused (ValueError): it is not in metres."""
     path, suffix = _checked_path(path, must_exist=True)
     if pixel_size is not None and not (
         _is_number(pixel_size) and math.isfinite(pixel_size) and pixel_size > 0
     ):
         raise ValueError(f"pixel_size={pixel_size!r}: must be a finite number > 0 (m)")
+    if pixel_size is not None and pixel_size > MAX_PIXEL_SIZE_M:
+        raise ValueError(
+            f"pixel_size={pixel_size!r} m: must be <= {MAX_PIXEL_SIZE_M:g} m (no AFM pixel is "
+            "larger); give it in metres (2e-9) or with a unit (2nm)"
+        )
+    if height_unit is not None:
+        if suffix != ".npy":
+            raise ValueError(
+                f"{path}: height_unit is for .npy files only; a {suffix} file carries its unit"
+            )
+        if not (_is_number(height_unit) and math.isfinite(height_unit) and height_unit > 0):
+            raise ValueError(f"height_unit={height_unit!r}: must be a finite number > 0 (m)")
     if frame != 0 and suffix not in VENDOR_SUFFIXES:
         raise ValueError(f"{path}: frame={frame!r}: a {suffix} file holds one frame (0)")
     if suffix == ".npy":
         hmap = _load_npy(path, channel, pixel_size)
+        if height_unit is not None:
+            hmap.height = hmap.height * float(height_unit)
     elif suffix == ".npz":
         hmap = _load_npz(path, channel, pixel_size)
     elif suffix == ".gwy":
@@ -173,10 +204,33 @@ def load_height_map(
                     f"{path}: pixel_size={pixel_size!r} m disagrees with the file's "
                     f"{name}={getattr(hmap, name)!r} m; leave pixel_size out for this format"
                 )
-    hmap.validate(
-        str(path) + (f" channel {channel!r}" if suffix in (".gwy",) + VENDOR_SUFFIXES else "")
-    )
+    where = str(path) + (f" channel {channel!r}" if suffix in (".gwy",) + VENDOR_SUFFIXES else "")
+    hmap.validate(where)
+    _check_in_metres(hmap, where, suffix)
     return hmap
+
+
+def _check_in_metres(hmap: HeightMap, where: str, suffix: str) -> None:
+    """ValueError when the map cannot be in metres (MAX_HEIGHT_SPAN_M, MAX_PIXEL_SIZE_M)."""
+    span = float(np.ptp(hmap.height))
+    if span > MAX_HEIGHT_SPAN_M:
+        fix = (
+            "give their unit (height_unit=1e-9 for nm; afm image: --height-unit nm)"
+            if suffix == ".npy"
+            else "convert the heights to metres"
+            if suffix == ".npz"
+            else "the file's z scale was not read as metres"
+        )
+        raise ValueError(
+            f"{where}: heights span {span:.4g} m, more than any AFM's z range "
+            f"({MAX_HEIGHT_SPAN_M:g} m): they are not in metres (nm, um, raw counts?); {fix}"
+        )
+    for name in ("pixel_size_x", "pixel_size_y"):
+        if getattr(hmap, name) > MAX_PIXEL_SIZE_M:
+            raise ValueError(
+                f"{where}: {name}={getattr(hmap, name)!r} m: must be <= {MAX_PIXEL_SIZE_M:g} m "
+                "(no AFM pixel is larger): not in metres"
+            )
 
 
 def save_height_map(path, hmap: HeightMap | Sequence[HeightMap]) -> None:
