@@ -11,7 +11,7 @@ import pytest
 from afm_core.imaging import tip_estimation as te
 from afm_core.imaging import tip_guard as tg
 from afm_core.imaging.files import HeightMap, load_height_map, save_height_map
-from afm_core.physics.tip_morphology import dilate
+from afm_core.physics.tip_morphology import dilate, erode
 from afm_core.sim.characterizer import characterizer_image, default_tip
 
 NM = 1e-9
@@ -179,6 +179,24 @@ def test_the_true_tip_is_not_flagged_and_the_upper_reconstruction_bounds_the_sur
     exact = tg.check_reconstruction(clean, true, unc, noise=0.0)
     assert np.all(exact.upper >= clean_surface - 1e-15)
     assert np.all(exact.uncertain_removal >= 0)
+
+
+def test_a_tip_with_its_base_at_0_is_moved_to_apex_0_and_an_off_centre_apex_is_refused():
+    """Gwyddion's tips have their base at 0 and the apex above it; eroding with one as given
+    lowers the whole reconstruction by the tip's depth without a word."""
+    _, image, true = tube_scene(NOISE)
+    unc = tg.tip_constraint(true, THRESHOLD, NOISE).uncertainty
+    depth = -float(true.min())
+    based = true + depth  # apex at +depth, base at 0
+    ours = quiet(tg.check_reconstruction, image, true, unc, noise=NOISE)
+    with pytest.warns(tg.TipGuardWarning, match=rf"apex was at \+{depth / NM:.3g} nm"):
+        moved = tg.check_reconstruction(image, based, unc, noise=NOISE)
+    np.testing.assert_allclose(moved.reconstruction, ours.reconstruction, rtol=0, atol=1e-15)
+    # closed form: eroding with the tip as stored lowers everything by its depth
+    np.testing.assert_allclose(erode(image, based), moved.reconstruction - depth, atol=1e-15)
+    shifted = np.roll(true, 2, axis=1)  # the apex two pixels right of the centre
+    with pytest.raises(ValueError, match=r"highest pixel \(row 10, column 12\)"):
+        tg.check_reconstruction(image, shifted, unc, noise=NOISE)
 
 
 def test_tip_files_carry_the_uncertainty_and_reconstruct_warns(tmp_path):

@@ -313,6 +313,24 @@ def _sharpest(tip: np.ndarray, unc: np.ndarray, image: np.ndarray):
     return np.where(known, tip, far), np.where(known, tip - np.where(known, unc, 0.0), far)
 
 
+def _apex_at_zero(tip: np.ndarray) -> tuple[np.ndarray, float]:
+    """(the tip with its apex at 0, the apex's height before). The apex is the centre pixel,
+    which must be the highest: a tip whose highest pixel lies elsewhere would shift the
+    reconstruction sideways by that offset, and which pixel the file meant as the apex is
+    unknown, so it is refused (ValueError naming the pixel)."""
+    c = tip.shape[0] // 2
+    apex = float(tip[c, c])
+    tolerance = 1e-6 * max(float(np.ptp(tip)), np.finfo(float).tiny)
+    if float(tip.max()) > apex + tolerance:
+        row, col = np.unravel_index(int(np.argmax(tip)), tip.shape)
+        raise ValueError(
+            f"tip: its highest pixel (row {row}, column {col}) is "
+            f"{(float(tip.max()) - apex) * 1e9:.3g} nm above the centre pixel ({c}, {c}); the "
+            "apex must be the centre pixel and the highest (t <= 0 around it): centre the tip"
+        )
+    return tip - apex, apex
+
+
 def check_reconstruction(
     image: np.ndarray,
     tip: np.ndarray,
@@ -336,6 +354,12 @@ def check_reconstruction(
         raise ValueError(f"tip: shape {tip.shape}, expected a square odd-sized grid")
     sigma = estimate_noise(image) if noise is None else float(noise)
     notes = []
+    tip, apex = _apex_at_zero(tip)
+    if apex != 0.0:
+        notes.append(
+            f"the tip's apex was at {apex * 1e9:+.3g} nm, not 0 (Gwyddion's tips have their base "
+            "at 0); it was moved to 0, else the whole reconstruction would be off by that much"
+        )
     if uncertainty is None:
         uncertainty = tip_constraint(tip, 0.0, sigma).uncertainty
         notes.append(
