@@ -179,8 +179,10 @@ STOPPING_NODE_SCRIPT = """
             raise SystemExit({status})
 
         def destroy_node(self):
-            if {deletion_hangs}:  # as a middleware deadlock while its participant is deleted
+            if "{deletion}" == "hangs":  # as a middleware deadlock while its participant goes
                 threading.Event().wait()
+            if "{deletion}" == "fails":
+                raise RuntimeError("rcl_node_fini failed")
             return super().destroy_node()
 
     raise SystemExit(run(StopsItself, "stop probe"))
@@ -188,14 +190,23 @@ STOPPING_NODE_SCRIPT = """
 
 
 @pytest.mark.ros
-@pytest.mark.parametrize("deletion_hangs", [False, True], ids=["clean", "deletion_hangs"])
-def test_a_stopping_node_exits_with_its_status_even_if_deleting_it_hangs(deletion_hangs):
-    script = textwrap.dedent(STOPPING_NODE_SCRIPT.format(status=3, deletion_hangs=deletion_hangs))
+@pytest.mark.parametrize(
+    "deletion, status, says",
+    [
+        ("works", 3, None),
+        ("hangs", 3, "leaving ROS took over 5 s"),
+        ("fails", 3, "leaving ROS failed: RuntimeError('rcl_node_fini failed')"),
+        ("fails", 0, "leaving ROS failed"),  # a clean stop whose clean-up failed: status 1
+    ],
+)
+def test_a_stopping_node_exits_with_its_status_even_if_deleting_it_hangs(deletion, status, says):
+    script = textwrap.dedent(STOPPING_NODE_SCRIPT.format(status=status, deletion=deletion))
     done = subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
     )
-    assert done.returncode == 3, (done.returncode, done.stdout, done.stderr)
-    assert ("leaving ROS took over" in done.stderr) == deletion_hangs, done.stderr
+    expected = 1 if (deletion == "fails" and status == 0) else status
+    assert done.returncode == expected, (done.returncode, done.stdout, done.stderr)
+    assert (says is None and "leaving ROS" not in done.stderr) or says in done.stderr, done.stderr
 
 
 GRAPH_WATCH_SCRIPT = """

@@ -115,7 +115,8 @@ def run(
     """threads: executor threads, or a function of the built node giving them.
 
     Exit status: 0 after a clean stop, 2 when the node refused its configuration
-    (the message names the parameter), 1 when a callback asked to stop with an error.
+    (the message names the parameter), a callback's SystemExit code as Python reads it (1 for
+    a message), and 1 when deleting the node or shutting ROS down failed after a clean stop.
 
     drain_seconds > 0: SIGINT/SIGTERM stop the spinning but not ROS, and the callbacks already
     waiting (messages a reliable publisher counts as delivered) run until none is ready within
@@ -165,7 +166,7 @@ def run(
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except SystemExit as exc:
-        status = int(exc.code or 1)
+        status = _exit_status(exc.code)
     except Exception:  # noqa: BLE001 - a signal may shut the context down mid-wait (RCLError)
         if rclpy.ok():
             raise
@@ -184,9 +185,12 @@ def run(
             _exit_now(status)
         for error in collect_stopped_tasks(executor):
             print(f"{program}: a callback failed while stopping: {error!r}", file=sys.stderr)
-        left = _leave_ros(lambda: (node.destroy_node(), rclpy.try_shutdown()))
+        left, error = _leave_ros(lambda: (node.destroy_node(), rclpy.try_shutdown()))
         if watch is not None:
             watch.stop()
+        if error is not None:
+            print(f"{program}: leaving ROS failed: {error!r}", file=sys.stderr)
+            status = status or 1
         if not left:
             print(f"{program}: leaving ROS took over {LEAVE_ROS_S:g} s; exiting", file=sys.stderr)
             _exit_now(status)
@@ -210,18 +214,37 @@ def exit_refused(refusal: list) -> NoReturn:
     _exit_now(2)
 
 
-def _leave_ros(release: Callable[[], object]) -> bool:
-    """Run `release` (deleting the node, shutting ROS down) in a thread of its own; True if it
-    ended within LEAVE_ROS_S.
+def _leave_ros(release: Callable[[], object]) -> tuple[bool, Exception | None]:
+    """Run `release` (deleting the node, shutting ROS down) in a thread of its own: (True if
+    it ended within LEAVE_ROS_S, the exception it raised or None).
 
     Why a thread: in `make test` (2026-11-28) a node refused while 17 others started beside it
     printed its reason and then never exited (not reproduced in 288 later runs under load).
     Fast DDS is known to deadlock now and then when a participant is deleted while others are
     being discovered (eProsima/Fast-DDS#6193); a stop must not wait on that for ever."""
-    thread = threading.Thread(target=release, name="afm-leave-ros", daemon=True)
+    failed = []
+
+    def guarded():
+        try:
+            release()
+        except Exception as exc:  # noqa: BLE001 - reported by the caller, the exit goes on
+            failed.append(exc)
+
+    thread = threading.Thread(target=guarded, name="afm-leave-ros", daemon=True)
     thread.start()
     thread.join(LEAVE_ROS_S)
-    return not thread.is_alive()
+    return not thread.is_alive(), (failed[0] if failed else None)
+
+
+def _exit_status(code) -> int:
+    """SystemExit's code as Python itself reads it: None is 0, a number is itself, anything
+    else (a message) is printed and 1."""
+    if code is None:
+        return 0
+    if isinstance(code, int):
+        return code
+    print(code, file=sys.stderr)
+    return 1
 
 
 def _exit_now(status: int) -> NoReturn:
