@@ -169,6 +169,13 @@ def test_cli_refuses_bad_input_by_name(tmp_path):
     assert as_metres.returncode == 2 and "--height-unit nm" in as_metres.stderr
     with_unit = run_cli("landmarks", in_nm, "--pixel-size", "1nm", "--height-unit", "nm")
     assert with_unit.returncode == 0, with_unit.stderr
+    # a threshold with a unit is read as one; a word that is neither is refused by name
+    nm_tip = run_cli(
+        "tip", scan0, "--tip-size", 11, "--threshold", "1nm", "-o", tmp_path / "t.npz"
+    )
+    assert nm_tip.returncode == 0 and "threshold 1.000 nm" in nm_tip.stdout, nm_tip.stderr
+    word = run_cli("tip", scan0, "--threshold", "1x", "-o", tmp_path / "u.npz")
+    assert word.returncode == 2 and "--threshold='1x'" in word.stderr and "auto" in word.stderr
 
 
 def test_cli_landmarks_are_reported_in_the_files_frame(tmp_path):

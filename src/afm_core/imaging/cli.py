@@ -1,7 +1,7 @@
 """`afm image ...`: the imaging algorithms on a lab's own files, no ROS needed.
 
     afm image drift SCAN0 SCAN90 --line-rate 1 -o corrected.npz
-    afm image tip IMAGE --tip-size 41 [--threshold auto|consensus|book|1e-9] -o tip.npz
+    afm image tip IMAGE --tip-size 41 [--threshold auto|consensus|book|2.5nm] -o tip.npz
     afm image reconstruct IMAGE --tip tip.npz -o surface.npz
     afm image landmarks IMAGE [--min-height 10nm] [--json landmarks.json]
     afm image level IMAGE [--method plane|median|poly2] [--mask auto|none] -o levelled.npz
@@ -207,18 +207,7 @@ def cmd_tip(args) -> int:
             f"{args.image}: blind tip estimation needs square pixels "
             f"({image.pixel_size_x:.3e} x {image.pixel_size_y:.3e} m)"
         )
-    from afm_core.imaging.tip_thresholds import RULES
-
-    if args.threshold in RULES:
-        threshold = args.threshold
-    else:
-        try:
-            threshold = float(args.threshold)
-        except ValueError:
-            raise ValueError(
-                f"--threshold={args.threshold!r}: a threshold in metres or one of "
-                f"{', '.join(RULES)}"
-            ) from None
+    threshold = args.threshold  # a rule's name, or metres (threshold_type)
     estimate = _quietly(
         estimate_tip,
         image.height,
@@ -402,6 +391,22 @@ def height_unit(text: str) -> float:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def threshold_type(length):
+    """argparse type of --threshold: a rule's name, or a length as `length` reads it."""
+
+    def convert(text: str):
+        from afm_core.imaging.tip_thresholds import RULES
+
+        if text in RULES:
+            return text
+        try:
+            return length.parse(text, "--threshold")
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"{exc}; or one of {', '.join(RULES)}") from None
+
+    return convert
+
+
 def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     """Register `drift`, `tip`, `reconstruct`, `landmarks`, `level`, `channels`; `length` parses
     '10nm'-style values."""
@@ -468,8 +473,9 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     p.add_argument(
         "--threshold",
         default="auto",
-        help="denoising threshold in metres, or a rule: auto (default), consensus (for a "
-        "characteriser far sharper than the tip), book",
+        type=threshold_type(length),
+        help="denoising threshold (m, or with a unit: 2.5nm), or a rule: auto (default), "
+        "consensus (for a characteriser far sharper than the tip), book",
     )
     p.add_argument(
         "-o", "--output", required=True, help="tip (.npz or .gwy), apex 0 at the centre"
