@@ -191,3 +191,12 @@ def test_lengths_with_units(text, metres):
 def test_bad_lengths_are_refused(text):
     with pytest.raises(ValueError):
         parse_length(text)
+
+
+def test_a_bare_number_too_long_for_metres_asks_for_its_unit():
+    """'--min-height 10' meant 10 nm; read as 10 m it found no feature without a word."""
+    with pytest.raises(ValueError, match=r"min-height='10': .* give the unit, e.g. 10nm"):
+        parse_length("10", "min-height")
+    with pytest.raises(ValueError, match="give the unit"):
+        parse_length("-5", "at")
+    assert parse_length("1e-3") == 1e-3 and parse_length("10nm") == pytest.approx(10e-9)

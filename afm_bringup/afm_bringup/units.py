@@ -21,8 +21,20 @@ def _parse(text: str, name: str, units: dict, default: str, expected: str) -> fl
     return value
 
 
+# A number typed without a unit is metres; beyond this it was meant in another unit (no
+# length an AFM works with comes near a millimetre: the widest scanners reach ~100 um).
+BARE_METRES_MAX = 1e-3
+
+
 def parse_length(text: str, name: str = "length") -> float:
-    return _parse(text, name, UNITS, "m", f"({', '.join(UNITS)}), e.g. 500nm or 2e-6 (metres)")
+    value = _parse(text, name, UNITS, "m", f"({', '.join(UNITS)}), e.g. 500nm or 2e-6 (metres)")
+    if abs(value) > BARE_METRES_MAX and _NUMBER.match(str(text)).group(2) == "":
+        raise ValueError(
+            f"{name}={text!r}: a number without a unit is metres, and {value:g} m is beyond "
+            f"any AFM length (at most {BARE_METRES_MAX:g} m without a unit): give the unit, "
+            f"e.g. {text.strip()}nm"
+        )
+    return value
 
 
 ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180}
