@@ -371,3 +371,15 @@ def test_a_pixel_size_no_afm_has_is_refused_naming_the_limit(tmp_path, bad):
     with pytest.raises(ValueError, match=rf"pixel_size={bad!r} m: must be <= 0.0001 m"):
         load_height_map(npy, pixel_size=bad)
     assert load_height_map(npy, pixel_size=1e-4).pixel_size_x == 1e-4  # the limit itself
+
+
+def test_an_unfinished_scan_is_refused_with_the_rows_to_keep(tmp_path):
+    """A scan aborted at row 7 of 10 stores its last rows as NaN; one more pixel is lost at
+    row 2: the refusal names the empty rows and the longest run of complete ones."""
+    height = np.zeros((10, 8))
+    height[7:] = np.nan
+    height[2, 3] = np.inf
+    path = tmp_path / "aborted.npy"
+    np.save(path, height)
+    with pytest.raises(ValueError, match=r"25 NaN .* 3 of 10 rows hold no value .* e\.g\. 3-6"):
+        load_height_map(path, pixel_size=1e-9)

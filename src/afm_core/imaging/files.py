@@ -103,9 +103,8 @@ class HeightMap:
             )
         if not np.issubdtype(h.dtype, np.number) or np.iscomplexobj(h):
             raise ValueError(f"{where}: height must be real numbers (m), got dtype {h.dtype}")
-        bad = int(np.count_nonzero(~np.isfinite(h)))
-        if bad:
-            raise ValueError(f"{where}: height has {bad} NaN or infinite pixel(s)")
+        if not np.isfinite(h).all():
+            raise ValueError(f"{where}: height has {_non_finite(h)}")
         for name in ("pixel_size_x", "pixel_size_y"):
             value = getattr(self, name)
             if not (_is_number(value) and math.isfinite(value) and value > 0):
@@ -639,10 +638,31 @@ def _heights(values, path: Path) -> np.ndarray:
     if height.dtype.kind not in "iuf":
         raise ValueError(f"{path}: height must be real numbers (m), got dtype {height.dtype}")
     height = height.astype(np.float64)
-    bad = int(np.count_nonzero(~np.isfinite(height)))
-    if bad:
-        raise ValueError(f"{path}: height has {bad} NaN or infinite pixel(s)")
+    if not np.isfinite(height).all():
+        raise ValueError(f"{path}: height has {_non_finite(height)}")
     return height
+
+
+def _non_finite(height: np.ndarray) -> str:
+    """What is missing, for the refusal: the count, and the lines that hold no value at all
+    (an unfinished or aborted scan stores its remaining lines so), with the rows to keep."""
+    finite = np.isfinite(height)
+    text = f"{np.count_nonzero(~finite)} NaN or infinite pixel(s)"
+    empty = np.flatnonzero(~finite.any(axis=1))
+    if empty.size and empty.size < height.shape[0]:
+        text += f"; {empty.size} of {height.shape[0]} rows hold no value (an unfinished scan?)"
+        complete = np.r_[False, finite.all(axis=1), False].astype(int)
+        starts, stops = (
+            np.flatnonzero(np.diff(complete) == 1),
+            np.flatnonzero(np.diff(complete) == -1),
+        )
+        if starts.size:
+            longest = int(np.argmax(stops - starts))
+            text += (
+                f": crop to complete rows, e.g. {starts[longest]}-{stops[longest] - 1} "
+                "(the longest run)"
+            )
+    return text
 
 
 def _is_number(value) -> bool:
