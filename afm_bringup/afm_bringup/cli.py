@@ -538,7 +538,7 @@ def cmd_map_publish(args):
 
     channel = int(args.channel) if str(args.channel).isdigit() else args.channel
     try:
-        hmap = load_height_map(args.file, channel, args.pixel_size, args.frame)
+        hmap = load_height_map(args.file, channel, args.pixel_size, args.frame, args.height_unit)
         if args.level != "none":
             hmap.height, _ = level(hmap.height, args.level, "auto")
     except (ValueError, ImportError) as exc:
@@ -566,7 +566,7 @@ def cmd_map_publish(args):
 
 
 def _add_map(sub) -> None:
-    from afm_core.imaging.cli import level_method
+    from afm_core.imaging.cli import HEIGHT_UNIT_HELP, height_unit, level_method
 
     p = sub.add_parser(
         "map",
@@ -595,6 +595,7 @@ def _add_map(sub) -> None:
         type=length_type("pixel-size"),
         help="for .npy files: pixel size (m, or with a unit: 2nm)",
     )
+    p.add_argument("--height-unit", type=height_unit, help=HEIGHT_UNIT_HELP)
     p.add_argument(
         "--level",
         type=level_method,

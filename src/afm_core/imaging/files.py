@@ -214,7 +214,7 @@ def _check_in_metres(hmap: HeightMap, where: str, suffix: str) -> None:
     span = float(np.ptp(hmap.height))
     if span > MAX_HEIGHT_SPAN_M:
         fix = (
-            "give their unit (height_unit=1e-9 for nm; afm image: --height-unit nm)"
+            "give their unit (height_unit=1e-9 for nm; on the command line --height-unit nm)"
             if suffix == ".npy"
             else "convert the heights to metres"
             if suffix == ".npz"
