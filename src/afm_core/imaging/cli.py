@@ -407,6 +407,38 @@ def threshold_type(length):
     return convert
 
 
+def _add_drift(sub, levelling) -> None:
+    """The `drift` subcommand (add_subcommands)."""
+    p = sub.add_parser(
+        "drift",
+        help="correct thermal drift from a 0 deg / 90 deg scan pair",
+        description=(
+            "Thermal-drift compensation from a 0/90 deg pair of the same area (book ch. 3)."
+        ),
+    )
+    p.add_argument("scan0", help="0 deg scan (rows = fast lines)")
+    p.add_argument("scan90", help="90 deg scan of the same area (columns = fast lines)")
+    p.add_argument(
+        "--line-rate", type=float, required=True, help="lines per second of both scans (Hz)"
+    )
+    p.add_argument("--down0", action="store_true", help="the 0 deg scan was frame-down")
+    p.add_argument("--down90", action="store_true", help="the 90 deg scan was frame-down")
+    p.add_argument(
+        "--gap",
+        type=_gap,
+        help=(
+            "s from the start of the 0 deg scan to the 90 deg one (default: right after it), "
+            "or auto: the gap the images imply"
+        ),
+    )
+    p.add_argument(
+        "--order", type=int, default=1, choices=[1, 2], help="offset-vector order (default 1)"
+    )
+    p.add_argument("-o", "--output", required=True, help="corrected map (.npz or .gwy)")
+    levelling(p)
+    p.set_defaults(image_func=cmd_drift)
+
+
 def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     """Register `drift`, `tip`, `reconstruct`, `landmarks`, `level`, `channels`; `length` parses
     '10nm'-style values."""
@@ -436,34 +468,7 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
             help="auto (default): leave features out of the levelling fit; none: fit all pixels",
         )
 
-    p = sub.add_parser(
-        "drift",
-        help="correct thermal drift from a 0 deg / 90 deg scan pair",
-        description=(
-            "Thermal-drift compensation from a 0/90 deg pair of the same area (book ch. 3)."
-        ),
-    )
-    p.add_argument("scan0", help="0 deg scan (rows = fast lines)")
-    p.add_argument("scan90", help="90 deg scan of the same area (columns = fast lines)")
-    p.add_argument(
-        "--line-rate", type=float, required=True, help="lines per second of both scans (Hz)"
-    )
-    p.add_argument("--down0", action="store_true", help="the 0 deg scan was frame-down")
-    p.add_argument("--down90", action="store_true", help="the 90 deg scan was frame-down")
-    p.add_argument(
-        "--gap",
-        type=_gap,
-        help=(
-            "s from the start of the 0 deg scan to the 90 deg one (default: right after it), "
-            "or auto: the gap the images imply"
-        ),
-    )
-    p.add_argument(
-        "--order", type=int, default=1, choices=[1, 2], help="offset-vector order (default 1)"
-    )
-    p.add_argument("-o", "--output", required=True, help="corrected map (.npz or .gwy)")
-    levelling(p)
-    p.set_defaults(image_func=cmd_drift)
+    _add_drift(sub, levelling)
 
     p = sub.add_parser(
         "tip", help="blind tip estimation", description="Blind tip estimation (book ch. 4)."
