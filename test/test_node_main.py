@@ -13,14 +13,19 @@ import pytest
 START_OBJECTS = 100_000  # containers the start builds in the scripts below
 
 
-def run_script(source: str) -> dict:
-    done = subprocess.run(
+def run_python(source: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    """`source` (dedented) in a Python process of its own, its output captured."""
+    return subprocess.run(
         [sys.executable, "-c", textwrap.dedent(source)],
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=timeout,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
+
+
+def run_script(source: str) -> dict:
+    done = run_python(source, timeout=120)
     lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
     assert lines, f"exit {done.returncode}: {done.stdout[-2000:]} {done.stderr[-2000:]}"
     return json.loads(lines[-1])
@@ -157,10 +162,7 @@ REFUSING_NODE_SCRIPT = """
 def test_a_node_that_refuses_its_configuration_exits_with_status_2_even_if_ros_hangs(patch):
     """A refused node once printed its reason and never exited (make test, 2026-11-28); the
     other cases make leaving ROS hang for ever, as a middleware deadlock would."""
-    script = textwrap.dedent(REFUSING_NODE_SCRIPT.format(patch=patch))
-    done = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
-    )
+    done = run_python(REFUSING_NODE_SCRIPT.format(patch=patch))
     assert done.returncode == 2, (done.returncode, done.stdout, done.stderr)
     assert "refusing probe: parameter model='x.yaml': is not valid YAML" in done.stderr
 
@@ -200,10 +202,7 @@ STOPPING_NODE_SCRIPT = """
     ],
 )
 def test_a_stopping_node_exits_with_its_status_even_if_deleting_it_hangs(deletion, status, says):
-    script = textwrap.dedent(STOPPING_NODE_SCRIPT.format(status=status, deletion=deletion))
-    done = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
-    )
+    done = run_python(STOPPING_NODE_SCRIPT.format(status=status, deletion=deletion))
     expected = 1 if (deletion == "fails" and status == 0) else status
     assert done.returncode == expected, (done.returncode, done.stdout, done.stderr)
     assert (says is None and "leaving ROS" not in done.stderr) or says in done.stderr, done.stderr
