@@ -1,5 +1,8 @@
 """The link check's decisions on a given graph (afm_ros.links), without ROS running."""
 
+import importlib.util
+import re
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -68,7 +71,25 @@ def test_a_node_that_reports_links_but_whose_report_has_not_arrived_is_waited_fo
 
 
 def test_a_publisher_that_reports_nothing_falls_back_to_the_graph():
-    assert check({}, reporting=set()) == ([], True)
+    stranger = endpoint("lab_daq_bridge", STREAM_OFFERED, b"\x06" * 16)
+    assert check({}, publishers=(stranger,), reporting=set()) == ([], True)
+
+
+def test_an_afm_node_whose_links_publisher_is_not_yet_discovered_is_waited_for():
+    # the graph shows the driver's scan line publisher before its LINKS publisher
+    assert check({}, reporting=set()) == (["/afm_driver has not reported its links yet"], False)
+    assert check(state(1, REC), reporting=set()) == ([], False)  # its report arrived
+
+
+def test_every_afm_node_is_known_by_the_name_it_gives_itself():
+    from afm_bringup.launcher import NODES
+
+    given = set()
+    for spec in NODES.values():
+        source = Path(importlib.util.find_spec(spec.module).origin).read_text()
+        given |= set(re.findall(r'super\(\).__init__\("([^"]+)"', source))
+    assert len(given) == len(NODES)
+    assert given == links.REPORTING_NODES
 
 
 def test_a_subscription_that_cannot_match_the_offer_is_not_expected():
