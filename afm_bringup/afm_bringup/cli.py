@@ -123,8 +123,8 @@ def cmd_info(args):
     try:
         with RecordingReader(args.recording) as reader:
             topics = reader.topics()
-            size = Path(args.recording).stat().st_size
-            print(f"file:      {args.recording} ({size / 2**20:.2f} MiB)")
+            size = reader.path.stat().st_size
+            print(f"file:      {reader.path} ({size / 2**20:.2f} MiB)")
             print(f"duration:  {reader.duration_s:.3f} s")
             print(f"messages:  {reader.message_count}")
             print(f"topics:    {len(topics)}")

@@ -88,10 +88,15 @@ class Sim2RealNode(Node):
 
     def recording_for(self, goal) -> tuple[Path, str]:
         """(file to diagnose, note); raises ValueError naming what is missing."""
-        from afm_core.recording import recover_recording
+        from afm_core.recording import RecordingError, recover_recording
+        from afm_core.recording.bag_folder import recording_file
 
         if goal.recording:
             path = inside("recording", goal.recording, self.config["read_roots"], ROOTS_HINT)
+            try:
+                path = recording_file(path)  # a rosbag2 folder: its MCAP file
+            except RecordingError as exc:
+                raise ValueError(f"recording={goal.recording!r}: {exc}") from None
             if not path.is_file():
                 raise ValueError(f"recording={goal.recording!r}: no such file")
             return path, ""

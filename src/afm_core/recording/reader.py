@@ -29,6 +29,7 @@ from mcap.stream_reader import breakup_chunk
 from mcap_ros2.decoder import DecoderFactory
 from zstandard import ZstdError
 
+from afm_core.recording.bag_folder import recording_file
 from afm_core.recording.errors import RecordingError
 from afm_core.recording.qos import QosDescription, load_profiles
 
@@ -181,6 +182,8 @@ def check_recording_file(path: Path, refused: str = "") -> None:
     is added to the message). A recording, also a recorder's unfinished .part, starts with the
     MCAP magic, written when it is opened; a file that does not is something else, and no
     chunk of it can be recovered."""
+    if path.is_dir():
+        raise RecordingError(f"recording {str(path)!r} is a folder; give the recording file")
     if not path.is_file():
         raise RecordingError(f"recording {str(path)!r} does not exist")
     with open(path, "rb") as stream:
@@ -236,13 +239,14 @@ def describe_damage(exc: BaseException) -> str:
 
 
 class RecordingReader:
-    """Open an MCAP recording (ours or rosbag2's) for offline evaluation.
+    """Open an MCAP recording (ours or rosbag2's, also given as its folder) for offline
+    evaluation.
 
     validate_crcs (default True): each chunk's CRC is checked when it is read, and a
     mismatch is a RecordingError naming the damaged chunks; False reads what is there."""
 
     def __init__(self, path: str | os.PathLike, validate_crcs: bool = True):
-        self.path = Path(path)
+        self.path = recording_file(Path(path))
         check_recording_file(self.path)
         self._stream = open(self.path, "rb")
         try:

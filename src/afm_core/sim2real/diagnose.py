@@ -41,6 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_core.recording import RecordingError
+from afm_core.recording.bag_folder import recording_file
 from afm_core.sim.config import SimConfig, load_config, merge
 from afm_core.sim2real.candidates import available, library, select
 from afm_core.sim2real.design_columns import design_columns
@@ -64,6 +66,7 @@ from afm_core.sim2real.results import (
 )
 from afm_core.sim2real.rival import compare_rival, rival_words, ruling
 from afm_core.sim2real.second_term import add_second_term
+from afm_core.sim2real.session import SessionError
 from afm_core.sim2real.session_reader import read_operations
 from afm_core.sim2real.session_scope import (
     cannot_tell,
@@ -328,7 +331,10 @@ def run_sim2real(
     missing_data="skip" leaves out commands whose measurement is not in the file (a snapshot
     of a recording still being written ends mid-operation); "error" refuses them. `effects`:
     names of library terms to consider (candidates.select), None or empty: all of them."""
-    recording_path = Path(recording_path)
+    try:
+        recording_path = recording_file(Path(recording_path))  # a rosbag2 folder: its MCAP
+    except RecordingError as exc:
+        raise SessionError(str(exc)) from None
     if not recording_path.is_file():
         raise FileNotFoundError(f"recording {str(recording_path)!r} does not exist")
     candidates = select(effects)  # before the reading: a misspelt effect costs nothing

@@ -1,0 +1,78 @@
+"""A rosbag2 recording given as its folder: the MCAP file inside it, or why it cannot be read.
+
+`ros2 bag record -s mcap -o NAME` writes a folder, NAME/metadata.yaml beside NAME/NAME_0.mcap,
+and labs pass that folder on as "the recording". Its single MCAP file is what we read; what we
+cannot read (a sqlite3 bag, file-compressed or per-message-compressed storage, a bag split
+into several files) is refused with the rosbag2 command that makes it readable, so nothing is
+guessed and nothing lost.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+
+from afm_core.recording.errors import RecordingError
+
+METADATA = "metadata.yaml"
+MCAP_SUFFIX = ".mcap"
+# `ros2 bag convert` writes one uncompressed MCAP file from any bag rosbag2 can read
+CONVERT_HINT = (
+    "`ros2 bag convert -i {folder} -o out.yaml` with out.yaml holding "
+    "`output_bags: [{{uri: merged, storage_id: mcap}}]` writes one MCAP file we read"
+)
+
+
+def recording_file(path: Path) -> Path:
+    """`path` itself unless it is a folder; for a rosbag2 folder, its one MCAP file."""
+    if not path.is_dir():
+        return path
+    metadata = path / METADATA
+    if metadata.is_file():
+        files = _listed_files(path, metadata)
+    else:
+        files = sorted(p.name for p in path.glob(f"*{MCAP_SUFFIX}") if p.is_file())
+        if not files:
+            raise RecordingError(
+                f"recording {str(path)!r} is a folder with no {METADATA} and no "
+                f"{MCAP_SUFFIX} file; give the recording file itself"
+            )
+    if len(files) > 1:
+        shown = ", ".join(files[:3]) + (", ..." if len(files) > 3 else "")
+        raise RecordingError(
+            f"recording {str(path)!r} is split into {len(files)} files ({shown}); give one "
+            f"of them, or merge them: " + CONVERT_HINT.format(folder=path)
+        )
+    # older rosbag2 wrote the folder's own name in front of each listed file
+    for found in (path / files[0], path / Path(files[0]).name):
+        if found.is_file():
+            return found
+    raise RecordingError(
+        f"recording {str(path)!r}: {METADATA} lists {files[0]!r}, which is not in the folder"
+    )
+
+
+def _listed_files(folder: Path, metadata: Path) -> list[str]:
+    try:
+        info = (yaml.safe_load(metadata.read_text()) or {})["rosbag2_bagfile_information"]
+        storage = str(info.get("storage_identifier", ""))
+        compression = str(info.get("compression_mode", "") or "")
+        files = [str(f) for f in info.get("relative_file_paths", [])]
+    except (yaml.YAMLError, KeyError, TypeError, AttributeError, OSError) as exc:
+        raise RecordingError(
+            f"recording {str(folder)!r}: {METADATA} is not rosbag2 metadata ({exc})"
+        ) from None
+    if storage != "mcap":
+        raise RecordingError(
+            f"recording {str(folder)!r} is a rosbag2 bag in {storage or 'unnamed'} storage, "
+            "not MCAP; " + CONVERT_HINT.format(folder=folder)
+        )
+    if compression.upper() not in ("", "NONE"):
+        raise RecordingError(
+            f"recording {str(folder)!r} is compressed by rosbag2 (compression_mode "
+            f"{compression}); " + CONVERT_HINT.format(folder=folder)
+        )
+    if not files:
+        raise RecordingError(f"recording {str(folder)!r}: {METADATA} lists no file")
+    return files
