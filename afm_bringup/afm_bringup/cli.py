@@ -23,7 +23,7 @@ from afm_bringup.launcher import (
     sim_calibration_file,
     with_sim_calibration,
 )
-from afm_bringup.units import angle_type, length_type, nm
+from afm_bringup.units import QuantityArgumentParser, angle_type, length_type, nm, positive_type
 
 
 def _param(text):
@@ -460,13 +460,13 @@ def _add_push(sub) -> None:
     )
     p.add_argument(
         "--tolerance",
-        type=length_type("tolerance"),
+        type=length_type("tolerance", positive=True),
         default=20e-9,
         help="success radius around the goal (m, or with a unit; default 20nm)",
     )
     p.add_argument(
         "--timeout",
-        type=float,
+        type=positive_type("timeout"),
         default=PUSH_TIMEOUT_S,
         help=f"s to wait for the result, then cancel (default {PUSH_TIMEOUT_S:.0f}); a "
         "nano-hand that stops answering ends the wait within a few seconds anyway",
@@ -632,7 +632,7 @@ def _add_demo(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = QuantityArgumentParser(
         prog="afm",
         description="Run, drive, record and replay the AFM nano-manipulation graph.",
         epilog="Lengths accept units (500nm, 1.5um) or plain metres. "

@@ -6,7 +6,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from afm_bringup.units import length_type, nm
+from afm_bringup.units import length_type, nm, positive_type
 
 SAVE_SUFFIXES = (".npz", ".gwy", ".npy")
 
@@ -106,14 +106,14 @@ def _add_scan(sub) -> None:
         "--size",
         nargs=2,
         required=True,
-        type=length_type("size"),
+        type=length_type("size", positive=True),
         metavar=("W", "H"),
         help="width and height of the area (m, or with a unit: 2um)",
     )
     p.add_argument(
         "--pixels",
         nargs=2,
-        type=int,
+        type=positive_type("pixels", int),
         default=[256, 256],
         metavar=("NX", "NY"),
         help="columns and rows (default 256 256)",
@@ -128,7 +128,7 @@ def _add_scan(sub) -> None:
     p.add_argument("--frame-down", action="store_true", help="slow axis downwards")
     p.add_argument(
         "--line-rate",
-        type=float,
+        type=positive_type("line-rate"),
         default=1.0,
         help="lines (trace + retrace) per second, Hz (default 1.0)",
     )

@@ -66,6 +66,45 @@ def nm(metres: float) -> str:
     return f"{metres * 1e9:.1f} nm"
 
 
-def length_type(name: str):
-    """An argparse `type` for a length option: metres, or a number with a unit."""
-    return _argparse_type(parse_length, name)
+def length_type(name: str, positive: bool = False):
+    """An argparse `type` for a length option: metres, or a number with a unit; `positive`:
+    refused unless above 0 (a size, a tolerance)."""
+    return _argparse_type(_above_zero(parse_length) if positive else parse_length, name)
+
+
+def positive_type(name: str, kind=float):
+    """An argparse `type` for a count or rate that must be above 0: refused by argparse, before
+    anything is sent, with the field's name."""
+
+    def parse(text, name):
+        try:
+            return kind(text)
+        except ValueError:
+            raise ValueError(f"{name}={text!r}: expected {kind.__name__}") from None
+
+    return _argparse_type(_above_zero(parse), name)
+
+
+def _above_zero(parse):
+    def checked(text, name):
+        value = parse(text, name)
+        if not value > 0:
+            raise ValueError(f"{name}={text!r}: must be above 0")
+        return value
+
+    return checked
+
+
+# argparse takes only bare negative numbers (-2, -0.5) for values; '-15deg' or '-2nm' it reads
+# as an unknown option, and `--goal-angle -15deg` failed with "expected one argument"
+NEGATIVE_QUANTITY = re.compile(r"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*[a-zµ]*$")
+
+
+class QuantityArgumentParser(argparse.ArgumentParser):
+    """An ArgumentParser that reads a negative number with a unit as a value. Its subcommands'
+    parsers are of its class (argparse's add_subparsers default), so one at the top is enough.
+    None of our options looks like a negative number, so none is shadowed."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = NEGATIVE_QUANTITY

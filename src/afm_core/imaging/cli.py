@@ -400,9 +400,12 @@ def threshold_type(length):
         if text in RULES:
             return text
         try:
-            return length.parse(text, "--threshold")
+            value = length.parse(text, "--threshold")
         except ValueError as exc:
             raise argparse.ArgumentTypeError(f"{exc}; or one of {', '.join(RULES)}") from None
+        if value < 0:
+            raise argparse.ArgumentTypeError(f"--threshold={text!r}: must be >= 0")
+        return value
 
     return convert
 
