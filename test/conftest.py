@@ -16,6 +16,7 @@ import pytest
 # id no other process uses, held for this run (a random one collided with other runs' graphs)
 from afm_ros.exposure import claim_domain, isolate_run  # noqa: E402
 from afm_ros.stall_watch import ENVIRONMENT as STALL_WATCH  # noqa: E402
+from afm_ros.teardown import destroy_node_fully  # noqa: E402
 
 DOMAIN_CHOSEN_BY_USER = "ROS_DOMAIN_ID" in os.environ
 isolate_run()
@@ -174,5 +175,4 @@ def ros_node():
     yield node
     executor.shutdown()
     thread.join(timeout=5)
-    node.destroy_node()
-    rclpy.try_shutdown(context=context)
+    destroy_node_fully(node, context)  # or a later test in its domain still lists it

@@ -11,6 +11,7 @@ from std_msgs.msg import Header
 from afm_msgs.action import Localize
 from afm_msgs.msg import TipCommand
 from afm_ros.conversions import FRAME_TASK, mean_cov_to_pose, seconds_to_time
+from afm_ros.teardown import destroy_node_fully
 
 pytestmark = pytest.mark.ros
 
@@ -34,8 +35,8 @@ def nano_hand(monkeypatch):
     node = module.NanoHandNode()
     node.instrument.rest_at((54e-6, 54e-6), 900.0)  # before the lines
     yield node
-    node.destroy_node()
-    rclpy.try_shutdown()
+    destroy_node_fully(node)  # its action servers too: a later graph test in its domain
+    rclpy.try_shutdown()  # listed this nano-hand beside its own and found no server
 
 
 def line_command(end_xy, end_time) -> TipCommand:

@@ -38,6 +38,7 @@ from afm_ros.action_client import CANCEL_ACK_TIMEOUT_S, Heartbeat, SafeActionCli
 from afm_ros.conversions import FRAME_SCANNER
 from afm_ros.executor import collect_stopped_tasks
 from afm_ros.qos_profiles import FEEDBACK, LATCHED
+from afm_ros.teardown import destroy_node_fully
 
 # every node's latest link report: latched, and room for the whole graph's at once
 LINK_REPORTS = QoSProfile(depth=64, reliability=LATCHED.reliability, durability=LATCHED.durability)
@@ -121,6 +122,7 @@ class AfmCommander:
 
     def __init__(self, node_name: str = "afm_commander", server_timeout: float = 10.0):
         self.server_timeout = server_timeout
+        self._closed = False
         self.context = Context()
         rclpy.init(context=self.context)
         self.node = Node(node_name, context=self.context)
@@ -405,12 +407,14 @@ class AfmCommander:
 
     # -- lifetime --------------------------------------------------------------------------
     def close(self):
+        if self._closed:
+            return
+        self._closed = True
         self.executor.shutdown()
         self._spinner.join(timeout=5.0)
         for error in collect_stopped_tasks(self.executor):
             self.node.get_logger().error(f"a callback failed while stopping: {error!r}")
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
+        destroy_node_fully(self.node, self.context)
 
     def __enter__(self):
         return self

@@ -24,6 +24,7 @@ from rclpy.signals import SignalHandlerOptions
 from afm_ros import exposure, links, stall_watch
 from afm_ros.action_client import STOPPING
 from afm_ros.executor import collect_stopped_tasks, multi_threaded
+from afm_ros.teardown import destroy_node_fully
 
 _LOADED = time.monotonic()
 DRAIN_IDLE = 0.01  # s without a ready callback: what had arrived is taken
@@ -185,7 +186,7 @@ def run(
             _exit_now(status)
         for error in collect_stopped_tasks(executor):
             print(f"{program}: a callback failed while stopping: {error!r}", file=sys.stderr)
-        left, error = _leave_ros(lambda: (node.destroy_node(), rclpy.try_shutdown()))
+        left, error = _leave_ros(lambda: (destroy_node_fully(node), rclpy.try_shutdown()))
         if watch is not None:
             watch.stop()
         if error is not None:
