@@ -81,7 +81,11 @@ def test_what_cannot_be_read_is_refused_with_what_to_do(
 
 
 def test_a_folder_that_is_no_bag_is_refused_as_a_folder(tmp_path):
-    with pytest.raises(RecordingError, match="a folder with no metadata.yaml and no .mcap"):
+    with pytest.raises(RecordingError, match="a folder with no metadata.yaml and none;"):
+        RecordingReader(tmp_path)
+    write_session(tmp_path / "monday.mcap", n=1)
+    write_session(tmp_path / "tuesday.mcap", n=1)
+    with pytest.raises(RecordingError, match=r"2 .mcap files \(monday.mcap, tuesday.mcap\)"):
         RecordingReader(tmp_path)
     (tmp_path / "metadata.yaml").write_text("- not: rosbag2\n")
     with pytest.raises(RecordingError, match="metadata.yaml is not rosbag2 metadata"):

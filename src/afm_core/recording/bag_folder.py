@@ -31,19 +31,19 @@ def recording_file(path: Path) -> Path:
     metadata = path / METADATA
     if metadata.is_file():
         files = _listed_files(path, metadata)
+        if len(files) > 1:
+            raise RecordingError(
+                f"recording {str(path)!r} is split into {len(files)} files ({_few(files)}); "
+                "give one of them, or merge them: " + CONVERT_HINT.format(folder=path)
+            )
     else:
         files = sorted(p.name for p in path.glob(f"*{MCAP_SUFFIX}") if p.is_file())
-        if not files:
+        if len(files) != 1:
+            held = f"{len(files)} {MCAP_SUFFIX} files ({_few(files)})" if files else "none"
             raise RecordingError(
-                f"recording {str(path)!r} is a folder with no {METADATA} and no "
-                f"{MCAP_SUFFIX} file; give the recording file itself"
+                f"recording {str(path)!r} is a folder with no {METADATA} and {held}; give "
+                "the recording file itself"
             )
-    if len(files) > 1:
-        shown = ", ".join(files[:3]) + (", ..." if len(files) > 3 else "")
-        raise RecordingError(
-            f"recording {str(path)!r} is split into {len(files)} files ({shown}); give one "
-            f"of them, or merge them: " + CONVERT_HINT.format(folder=path)
-        )
     # older rosbag2 wrote the folder's own name in front of each listed file
     for found in (path / files[0], path / Path(files[0]).name):
         if found.is_file():
@@ -51,6 +51,10 @@ def recording_file(path: Path) -> Path:
     raise RecordingError(
         f"recording {str(path)!r}: {METADATA} lists {files[0]!r}, which is not in the folder"
     )
+
+
+def _few(names: list[str]) -> str:
+    return ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
 
 
 def _listed_files(folder: Path, metadata: Path) -> list[str]:
