@@ -75,6 +75,15 @@ def test_launch_records_and_stops_cleanly(tmp_path):
         launch.send_signal(signal.SIGINT)
         launch.wait(timeout=60)
     assert launch.returncode == 0, b"".join(lines).decode()
+    # every pair of a topic's publishers and subscribers can match: the teleop node offered its
+    # believed objects volatile where the viewer asks for the history, and the viewer never
+    # got them
+    said = b"".join(lines).decode() + "".join(
+        p.read_text(errors="replace") for p in (tmp_path / "logs").iterdir()
+    )
+    assert "incompatible QoS" not in said, [
+        line for line in said.splitlines() if "incompatible QoS" in line
+    ]
     with RecordingReader(record) as reader:
         topics = reader.topics()
     assert topics["/afm/scan"].message_count == 1

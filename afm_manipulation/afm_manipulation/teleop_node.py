@@ -146,7 +146,7 @@ class TeleopNode(Node):
             )
         self.wrench_pub = self.create_publisher(WrenchStamped, topics.TELEOP_WRENCH, 10)
         self.status_pub = self.create_publisher(String, topics.TELEOP_STATUS, LATCHED)
-        self.objects_pub = self.create_publisher(ObjectArray, topics.OBJECTS_BELIEVED, 10)
+        self.objects_pub = self.create_publisher(ObjectArray, topics.OBJECTS_BELIEVED, EVENTS)
         self.lease_pub = self.create_publisher(Empty, topics.TELEOP_LEASE, 10)
         clients = ReentrantCallbackGroup()
         self.move_client = SafeActionClient(
