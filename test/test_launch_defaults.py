@@ -1,9 +1,15 @@
 """What `afm launch` gives the nodes by default (afm_bringup.launcher)."""
 
+import subprocess
+import sys
+import time
 from pathlib import Path
+from types import SimpleNamespace
 
 from afm_bringup.launcher import (
     CALIBRATED_NODES,
+    REFUSED_STATUS,
+    Graph,
     latest_output,
     restart_output,
     sim_calibration_file,
@@ -44,3 +50,39 @@ def test_the_live_recording_follows_the_restarted_recorder(tmp_path):
     second = Path(restart_output(str(output), 2))
     second.write_bytes(b"")  # finished under its own name
     assert latest_output(output) == second != first
+
+
+def test_a_recorder_that_refused_its_configuration_is_not_restarted(tmp_path):
+    """It would refuse again (a name already taken, a bad compression): the graph stops and
+    says why, instead of recording to another name than the one asked for."""
+    graph = Graph(environment={})
+    started = []
+
+    def start(name, overrides, alias, params_file):  # no process: only what would start
+        started.append(overrides["output"])
+        graph.processes[alias] = SimpleNamespace(returncode=None)
+        return graph.processes[alias]
+
+    graph.start = start
+    graph.specs["recorder"] = ("recorder", {"output": str(tmp_path / "s.mcap")}, None)
+    graph.processes["recorder"] = SimpleNamespace(returncode=REFUSED_STATUS)
+    assert graph.restart("recorder") is None and started == []
+    graph.processes["recorder"] = SimpleNamespace(returncode=-9)  # killed: restarted
+    assert graph.restart("recorder") is not None
+    assert started == [restart_output(str(tmp_path / "s.mcap"), 1)]
+
+
+def test_launch_refuses_a_recording_name_in_use_before_starting_anything(tmp_path):
+    taken = tmp_path / "taken.mcap"
+    taken.write_bytes(b"")
+    started = time.monotonic()
+    run = subprocess.run(
+        [sys.executable, "-m", "afm_bringup.cli", "launch", "--record", str(taken)]
+        + ["--log-dir", str(tmp_path / "logs")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert run.returncode == 1 and "--record: output" in run.stderr
+    assert "already exists" in run.stderr and time.monotonic() - started < 30
+    assert not any((tmp_path / "logs").iterdir())  # no node was started

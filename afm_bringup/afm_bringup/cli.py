@@ -63,6 +63,13 @@ def cmd_launch(args):
             file=sys.stderr,
         )
     if args.record:
+        from afm_core.recording import RecordingError
+        from afm_core.recording.writer import check_output_path
+
+        try:  # before any node starts: the recorder would refuse it only once the graph runs
+            check_output_path(args.record)
+        except RecordingError as exc:
+            sys.exit(f"afm launch: --record: {exc}")
         graph.start("recorder", {"output": args.record})
         if "sim2real" in nodes:
             overrides.setdefault("sim2real", {}).setdefault("live_recording", args.record)

@@ -42,6 +42,7 @@ GRAPH = ["driver", "imaging", "localizer", "planner", "nano_hand", "teleop", "si
 # row mean it cannot run (a full disk, a bad path): the graph stops instead of looping.
 RESTARTABLE = {"recorder"}
 MAX_RESTARTS = 3
+REFUSED_STATUS = 2  # a node's exit status when it refuses its configuration (node_main)
 PARENT_PID_ENV = "AFM_LAUNCHER_PID"  # read by afm_ros.node_main.die_with_parent in each child
 
 
@@ -195,10 +196,12 @@ class Graph:
 
     def restart(self, alias: str) -> subprocess.Popen | None:
         """Start a dead restartable node again (a recorder on a new file); None when it may
-        not be (not restartable, or MAX_RESTARTS used)."""
+        not be (not restartable, MAX_RESTARTS used, or it refused its configuration, which it
+        would refuse again)."""
         name, overrides, params_file = self.specs[alias]
         attempt = self.restarts.get(alias, 0) + 1
-        if name not in RESTARTABLE or attempt > MAX_RESTARTS:
+        refused = self.processes[alias].returncode == REFUSED_STATUS
+        if name not in RESTARTABLE or attempt > MAX_RESTARTS or refused:
             return None
         self.restarts[alias] = attempt
         place = list(self.processes).index(alias)
