@@ -61,3 +61,22 @@ def test_each_bad_parameter_stops_its_node_with_status_2_and_the_reason(nodes, t
         if code != 2 or "Traceback" in output or not any(words in line for line in lines):
             problems.append(f"{node} {overrides}: exit {code}: {output[-400:]!r}")
     assert not problems, "\n".join(problems)
+
+
+@pytest.mark.parametrize(
+    "contents, words",
+    [(None, "Error opening YAML file"), ("x: [\n", "Sequences can only be values")],
+)
+def test_a_params_file_ros_cannot_read_stops_the_node_with_status_2(tmp_path, contents, words):
+    import subprocess
+
+    from afm_bringup.launcher import node_command
+
+    params = tmp_path / "driver.yaml"
+    if contents is not None:
+        params.write_text(contents)
+    run = subprocess.run(
+        node_command("driver", str(params), {}), capture_output=True, text=True, timeout=60
+    )
+    assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr
+    assert "afm driver: ROS refused the command line: " in run.stderr and words in run.stderr

@@ -134,7 +134,11 @@ def run(
         STOPPING.set()
 
     exposure.apply_node_default(os.environ)  # before ROS reads it: localhost unless told
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except RuntimeError as exc:  # rcl's RCLError: a --params-file missing or not parameters
+        print(f"{program}: ROS refused the command line: {_first_line(exc)}", file=sys.stderr)
+        _exit_now(2)
     watch_stop_signals(on_stop_signal)
     die_with_parent()
     refusal = []
@@ -235,6 +239,11 @@ def _leave_ros(release: Callable[[], object]) -> tuple[bool, Exception | None]:
     thread.start()
     thread.join(LEAVE_ROS_S)
     return not thread.is_alive(), (failed[0] if failed else None)
+
+
+def _first_line(exc: Exception) -> str:
+    """rcl's message without its source locations ("..., at /project/src/...")."""
+    return str(exc).split(", at /")[0].strip()
 
 
 def _exit_status(code) -> int:
