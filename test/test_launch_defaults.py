@@ -65,6 +65,9 @@ def test_a_recorder_that_refused_its_configuration_is_not_restarted(tmp_path):
 
     graph.start = start
     graph.specs["recorder"] = ("recorder", {"output": str(tmp_path / "s.mcap")}, None)
+    from afm_ros import node_main
+
+    assert REFUSED_STATUS == node_main.REFUSED_STATUS  # what a refusing node exits with
     graph.processes["recorder"] = SimpleNamespace(returncode=REFUSED_STATUS)
     assert graph.restart("recorder") is None and started == []
     graph.processes["recorder"] = SimpleNamespace(returncode=-9)  # killed: restarted

@@ -42,7 +42,7 @@ GRAPH = ["driver", "imaging", "localizer", "planner", "nano_hand", "teleop", "si
 # row mean it cannot run (a full disk, a bad path): the graph stops instead of looping.
 RESTARTABLE = {"recorder"}
 MAX_RESTARTS = 3
-REFUSED_STATUS = 2  # a node's exit status when it refuses its configuration (node_main)
+REFUSED_STATUS = 2  # afm_ros.node_main.REFUSED_STATUS, not imported: it would load rclpy here
 PARENT_PID_ENV = "AFM_LAUNCHER_PID"  # read by afm_ros.node_main.die_with_parent in each child
 
 

@@ -35,6 +35,9 @@ STOP_GRACE_S = 1.0
 LEAVE_ROS_S = 5.0  # s a node gets to delete itself and shut ROS down before it exits anyway
 SPIN_SLICE_S = 0.1  # the main thread looks at the stop flag this often
 PARENT_PID_ENV = "AFM_LAUNCHER_PID"  # set by afm_bringup.launcher.Graph for its children
+# exit status of a node that refuses its configuration or command line: afm_bringup.launcher
+# does not restart it (it would refuse again)
+REFUSED_STATUS = 2
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
@@ -138,7 +141,7 @@ def run(
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except RuntimeError as exc:  # rcl's RCLError: a --params-file missing or not parameters
         print(f"{program}: ROS refused the command line: {_first_line(exc)}", file=sys.stderr)
-        _exit_now(2)
+        _exit_now(REFUSED_STATUS)
     watch_stop_signals(on_stop_signal)
     die_with_parent()
     refusal = []
@@ -216,7 +219,7 @@ def exit_refused(refusal: list) -> NoReturn:
         rclpy.try_shutdown()
 
     _leave_ros(leave)
-    _exit_now(2)
+    _exit_now(REFUSED_STATUS)
 
 
 def _leave_ros(release: Callable[[], object]) -> tuple[bool, Exception | None]:
