@@ -2,6 +2,7 @@
 parameter and what is wrong (issue 30: 7 of 22 gave a traceback or were accepted)."""
 
 import pytest
+from conftest import wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -80,3 +81,18 @@ def test_a_params_file_ros_cannot_read_stops_the_node_with_status_2(tmp_path, co
     )
     assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr
     assert "afm driver: ROS refused the command line: " in run.stderr and words in run.stderr
+
+
+def test_a_bad_topic_name_stops_the_recorder_before_its_file_exists(nodes, tmp_path):
+    output = tmp_path / "session.mcap"
+    code, said = nodes("recorder", output=output, topics="['bad topic']").wait(60)
+    assert code == 2 and "parameter topics: 'bad topic' is not a topic name" in said, said
+    assert not list(tmp_path.iterdir())  # no .part left to block the name
+
+
+def test_a_relative_topic_name_is_recorded_under_its_full_name(nodes, tmp_path):
+    recorder = nodes("recorder", output=tmp_path / "session.mcap", topics="['afm/scan']")
+    try:
+        wait_for(lambda: "recording ['/afm/scan']" in recorder.output(), 60, what="the start")
+    finally:
+        recorder.stop()

@@ -28,7 +28,7 @@ from afm_core.recording import (
 from afm_core.recording.stamps import stamp_layout, stamp_ns
 from afm_ros import params, topics
 from afm_ros.message_types import describe_qos, import_message_type, subscription_qos_for
-from afm_ros.node_main import run
+from afm_ros.node_main import rcl_reason, run
 
 PARAMETERS = ParameterTable(
     Parameter("output", "", "Path of the new .mcap file (required; never overwritten)."),
@@ -98,6 +98,8 @@ class RecorderNode(Node):
         self.config = params.declare(self, PARAMETERS)
         if not self.config["output"]:
             raise RecordingError("parameter output: required (path of the new .mcap file)")
+        # before the file exists: a refusal after it would leave a .part blocking the name
+        wanted = {self._full_name(topic) for topic in self.config["topics"]}
         self.writer = RecordingWriter(
             self.config["output"],
             compression=self.config["compression"],
@@ -105,7 +107,7 @@ class RecorderNode(Node):
             min_free_bytes=self.config["min_free_bytes"],
             flush_interval=self.config["flush_interval"],
         )
-        self.wanted = set(self.config["topics"])
+        self.wanted = wanted
         self.latest_clock_ns: int | None = None
         if self.config["log_time"] == "header":
             self.create_subscription(Clock, "/clock", self._take_clock, 10)
@@ -119,6 +121,17 @@ class RecorderNode(Node):
             f"recording {sorted(self.wanted) if not self.config['all_topics'] else 'all topics'}"
             f" to {self.writer.part} (final name {self.writer.path})"
         )
+
+    def _full_name(self, topic: str) -> str:
+        """The topic as the graph names it ('afm/scan' -> '/afm/scan'): a relative name would
+        never equal a graph's name and record nothing without a word."""
+        try:
+            return self.resolve_topic_name(topic)
+        except RuntimeError as exc:  # rcl's RCLError
+            reason = rcl_reason(exc).removeprefix("failed to resolve name: ")
+            raise RecordingError(
+                f"parameter topics: {topic!r} is not a topic name: {reason}"
+            ) from None
 
     def discover(self):
         if self.config["all_topics"]:

@@ -140,7 +140,7 @@ def run(
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except RuntimeError as exc:  # rcl's RCLError: a --params-file missing or not parameters
-        print(f"{program}: ROS refused the command line: {_first_line(exc)}", file=sys.stderr)
+        print(f"{program}: ROS refused the command line: {rcl_reason(exc)}", file=sys.stderr)
         _exit_now(REFUSED_STATUS)
     watch_stop_signals(on_stop_signal)
     die_with_parent()
@@ -244,7 +244,7 @@ def _leave_ros(release: Callable[[], object]) -> tuple[bool, Exception | None]:
     return not thread.is_alive(), (failed[0] if failed else None)
 
 
-def _first_line(exc: Exception) -> str:
+def rcl_reason(exc: Exception) -> str:
     """rcl's message without its source locations ("..., at /project/src/...")."""
     return str(exc).split(", at /")[0].strip()
 
