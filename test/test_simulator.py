@@ -43,8 +43,10 @@ def test_config_rejects_unknown_keys_and_wrong_types_by_name():
 
 
 def test_a_config_file_may_write_numbers_without_a_dot(tmp_path):
-    """3e-10 is a string to PyYAML (YAML 1.1) and a number to YAML 1.2 and to people."""
+    """3e-10 and 1.5e9 are strings to PyYAML (YAML 1.1) and numbers to YAML 1.2 and to people."""
     import yaml
+
+    from afm_core.yaml_files import load_yaml
 
     from afm_core.localization.calibration.model import load_calibration
 
@@ -56,6 +58,10 @@ def test_a_config_file_may_write_numbers_without_a_dot(tmp_path):
     calibration.write_text("map_sigma: [2e-9, 3e-9]\n")
     assert tuple(load_calibration(calibration).map_sigma) == (2e-9, 3e-9)
     assert yaml.safe_load("a: 3e-10") == {"a": "3e-10"}  # PyYAML's own loader left as it is
+    for text, value in [("1.5e9", 1.5e9), ("-2.0e6", -2.0e6), (".5E3", 500.0), ("+1.e-3", 1e-3)]:
+        assert load_yaml(f"a: {text}") == {"a": value}, text
+    for text in ["1.5e", "e9", "1.5e9nm", "1_5e"]:
+        assert load_yaml(f"a: {text}") == {"a": text}, text
     with pytest.raises(ValueError, match=r"noise.height_white_sigma='3nm'"):
         path.write_text("noise: {height_white_sigma: 3nm}\n")
         load_config(path)

@@ -1,8 +1,9 @@
 """YAML files people write (simulator configurations, calibrations): PyYAML's safe loader with
 YAML 1.2's numbers.
 
-PyYAML follows YAML 1.1, where a float needs a dot: `3e-10` and `1E5` are read as strings, and a
-configuration in SI units written that way was refused as "expected a number". YAML 1.2's core
+PyYAML follows YAML 1.1, where a float needs a dot and an exponent needs a sign: `3e-10`, `1E5`
+and `1.5e9` are read as strings, and a configuration in SI units written that way was refused as
+"expected a number". YAML 1.2's core
 schema (and every other YAML library in use) reads them as numbers, so this loader does too.
 Everything else is PyYAML's safe loader.
 """
@@ -24,12 +25,12 @@ _SafeLoader.yaml_implicit_resolvers = {
 }
 _SafeLoader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"),
-    list("-+0123456789"),
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
 )
 
 
 def load_yaml(text: str):
-    """The document in `text`, as yaml.safe_load reads it, but with exponent-only numbers
-    (`3e-10`) read as floats. Raises yaml.YAMLError as safe_load does."""
+    """The document in `text`, as yaml.safe_load reads it, but with every number in exponent form
+    (`3e-10`, `1.5e9`, `.5E3`) read as a float. Raises yaml.YAMLError as safe_load does."""
     return yaml.load(text, Loader=_SafeLoader)  # noqa: S506 - a SafeLoader subclass
