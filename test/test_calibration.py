@@ -264,6 +264,34 @@ def test_calibration_file_round_trip(calibrated, tmp_path):
     assert loaded.motion_noise().k_h1 == calibration.motion_noise_slope_x
 
 
+@pytest.mark.parametrize(
+    "line, message",
+    [
+        ("creep_fractions_x: [-0.5, 0.006, 0.006]", r"creep_fractions_x=\[-0.5, .*\[0, 1\)"),
+        ("creep_fractions_x: [0.6, 0.3, 0.2]", r"creep_fractions_x=.*a sum < 1"),
+        ("creep_fractions_x: ['0.008', 0.006, 0.006]", r"creep_fractions_x\[0\]='0.008'"),
+        ("creep_fractions_x: [.nan, 0.006, 0.006]", r"creep_fractions_x=\[nan"),
+        ("scanner_matrix: [[1.0, '0'], [0.0, 1.0]]", r"scanner_matrix\[0\]\[1\]='0'"),
+        ("map_sigma: [5.0e-9, 4nm]", r"map_sigma\[1\]='4nm': expected a number"),
+    ],
+)
+def test_a_calibration_file_with_a_bad_list_entry_is_refused_by_name(tmp_path, line, message):
+    """A hand-edited list entry (a wrong sign, a quoted number) used to load and send the
+    localizer hundreds of nm off while it reported a 33 nm sigma."""
+    path = tmp_path / "calibration.yaml"
+    path.write_text(
+        "creep_time_constants: [1.0, 10.0, 100.0]\n"
+        "creep_fractions_x: [0.008, 0.006, 0.006]\n"
+        "creep_fractions_y: [0.008, 0.006, 0.006]\n"
+    )
+    assert load_calibration(path).creep_fractions_x == [0.008, 0.006, 0.006]
+    field = line.split(":")[0]
+    kept = [row for row in path.read_text().splitlines() if not row.startswith(field + ":")]
+    path.write_text("\n".join(kept + [line]) + "\n")
+    with pytest.raises(ValueError, match=message):
+        load_calibration(path)
+
+
 def test_observation_errors_are_measured(calibrated):
     """No configured value to compare with (see compare_with_simulator): sizes only."""
     calibration, _, _, _ = calibrated

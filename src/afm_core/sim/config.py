@@ -156,6 +156,11 @@ def _coerce(hint, value, where):
     if origin in (list, tuple):
         if not isinstance(value, (list, tuple)):
             raise ValueError(f"{where}={value!r}: expected a list")
+        item_hints = typing.get_args(hint)
+        if origin is list and len(item_hints) == 1:
+            # a list's entries are checked as its own type is: '0.008' inside a list of numbers
+            # is as wrong as on its own
+            return [_coerce(item_hints[0], item, f"{where}[{i}]") for i, item in enumerate(value)]
         return origin(value)
     return value
 

@@ -121,6 +121,15 @@ class Calibration:
                 f"calibration creep_time_constants={self.creep_time_constants}: "
                 "need values > 0 (s)"
             )
+        for name in ("creep_fractions_x", "creep_fractions_y"):
+            fractions = getattr(self, name)
+            # fractions of a commanded step that arrive late: the step's own direction, and
+            # together less than the step (the fit bounds each to [0, 0.5])
+            if not all(math.isfinite(f) and 0 <= f < 1 for f in fractions) or sum(fractions) >= 1:
+                raise ValueError(
+                    f"calibration {name}={fractions}: need values in [0, 1) with a sum < 1 "
+                    "(fractions of a commanded step)"
+                )
         for name in ("drift_mean_velocity", "drift_sigma_velocity", "map_sigma"):
             value = getattr(self, name)
             if len(value) != 2 or not all(math.isfinite(v) for v in value):
