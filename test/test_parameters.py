@@ -120,3 +120,19 @@ def test_a_path_must_lie_in_an_allowed_folder_after_links_and_dots(tmp_path):
             inside("recording", path, [str(root)], "see read_roots")
     with pytest.raises(ValueError, match=r"allowed folders \(none\)"):
         inside("recording", root / "a.mcap", [""])
+
+
+def test_push_settings_refuse_a_unit_slip_and_agree_with_the_rod_goal_rule():
+    """50 for 50 nm was taken as a 50 m tip; pi/2 passed the table and every rod push using the
+    default then failed on the rod goal's open interval."""
+    from afm_core.manipulation.push_parameters import PUSH_PARAMETERS
+    from afm_core.manipulation.rod_loop import rod_goal_for
+
+    for name in ("tip_radius", "default_tolerance", "rescan_margin", "rescan_pixel"):
+        with pytest.raises(ValueError, match=rf"{name}=50.*<= 0.00011 m"):
+            PUSH_PARAMETERS.validate({name: 50.0})
+    with pytest.raises(ValueError, match=r"default_angle_tolerance=1.5707.*< 1.5708"):
+        PUSH_PARAMETERS.validate({"default_angle_tolerance": math.pi / 2})
+    accepted = PUSH_PARAMETERS.validate({"default_angle_tolerance": math.pi / 2 - 1e-9})
+    rod = type("Rod", (), {"id": "r", "kind": "tube", "orientation": 0.3})()
+    assert rod_goal_for(rod, None, accepted["default_angle_tolerance"]) is not None

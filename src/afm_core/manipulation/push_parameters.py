@@ -7,6 +7,9 @@ from __future__ import annotations
 from afm_core.instrument import ScannerLimits
 from afm_core.parameters import Parameter, ParameterTable
 
+# A length no scanner spans is a unit slip (50 for 50 nm), not a setting: refused at the start
+_LONGEST = ScannerLimits().range_x
+
 PUSH_PARAMETERS = ParameterTable(
     Parameter(
         "tip_radius",
@@ -15,6 +18,7 @@ PUSH_PARAMETERS = ParameterTable(
         unit="m",
         minimum=0.0,
         above_minimum=True,
+        maximum=_LONGEST,
         runtime=True,
     ),
     Parameter(
@@ -24,6 +28,7 @@ PUSH_PARAMETERS = ParameterTable(
         unit="m",
         minimum=0.0,
         above_minimum=True,
+        maximum=_LONGEST,
         runtime=True,
     ),
     Parameter(
@@ -34,6 +39,7 @@ PUSH_PARAMETERS = ParameterTable(
         minimum=0.0,
         above_minimum=True,
         maximum=1.5707963267948966,
+        below_maximum=True,  # the rod goal's own rule: an axis has no head
         runtime=True,
     ),
     Parameter(
@@ -53,6 +59,7 @@ PUSH_PARAMETERS = ParameterTable(
         unit="m",
         minimum=0.0,
         above_minimum=True,
+        maximum=_LONGEST,
         runtime=True,
     ),
     Parameter(
@@ -62,6 +69,7 @@ PUSH_PARAMETERS = ParameterTable(
         unit="m",
         minimum=0.0,
         above_minimum=True,
+        maximum=_LONGEST,
         runtime=True,
     ),
     Parameter(
@@ -81,6 +89,7 @@ PUSH_PARAMETERS = ParameterTable(
         unit="m",
         minimum=0.0,
         above_minimum=True,
+        maximum=_LONGEST,
         runtime=True,
     ),
     Parameter(
