@@ -163,14 +163,21 @@ def test_an_assembly_pushes_two_particles_in_the_given_order(calibration):
     left, middle, right = s.row
     goals = [(left.x, left.y - 300 * NM), (right.x, right.y - 300 * NM)]
     before = {m.id: s.true_sphere((m.x, m.y)) for m in s.row}
+    settled = (middle.x + 5 * NM, middle.y)  # within the default tolerance: not pushed
 
     result = s.procedure.assemble(
-        [left.id, right.id], goals, order=lambda ids: ids[::-1], progress=s.reports.append
+        [left.id, middle.id, right.id],
+        [goals[0], settled, goals[1]],
+        order=lambda ids: ids[::-1],
+        progress=s.reports.append,
     )
 
-    assert result.order == [right.id, left.id]
+    assert result.order == [right.id, middle.id, left.id]
     assert result.success, result.message
-    for mark, goal, achieved, error in zip((left, right), goals, result.achieved, result.errors):
+    assert f"particle {middle.id}: already within tolerance, not pushed" in result.message
+    assert result.errors[1] == pytest.approx(5 * NM)
+    achieved, errors = result.achieved[::2], result.errors[::2]
+    for mark, goal, achieved, error in zip((left, right), goals, achieved, errors):
         moved = s.true_sphere(before[mark.id]) - before[mark.id]
         wanted = np.array(goal) - (mark.x, mark.y)
         assert math.hypot(*(moved - wanted)) <= TRUE_TOLERANCE
@@ -178,7 +185,7 @@ def test_an_assembly_pushes_two_particles_in_the_given_order(calibration):
         assert error <= 20 * NM
     assert np.allclose(s.true_sphere(before[middle.id]), before[middle.id])  # left alone
     started = [r for r in s.reports if r.phase == "scanning" and r.step == 0]
-    assert [(r.index, r.particle_id) for r in started] == [(0, right.id), (1, left.id)]
+    assert [(r.index, r.particle_id) for r in started] == [(0, right.id), (2, left.id)]
     assert [p.particle_id for p in result.pushes] == [right.id, left.id]
 
 
@@ -267,6 +274,10 @@ def test_refusals_come_before_anything_moves(calibration):
             s.procedure.push(middle.id, down, overrides=overrides, progress=s.reports.append)
     with pytest.raises(PushRefused, match="tolerance=-1.0: must be finite and >= 0"):
         s.procedure.push(middle.id, down, tolerance=-1.0)
+    # a sphere already within tolerance: no stroke can be planned, found out before the pits
+    for goal in ((middle.x, middle.y), (middle.x, middle.y - 5 * NM)):
+        with pytest.raises(PushRefused, match=r"within the tolerance 20.0 nm: already there"):
+            s.procedure.push(middle.id, goal, progress=s.reports.append)
     # 20 um away: the rescan around both cannot be made at the rescan line rate; the message is
     # about the distance and names the farthest goal
     far = (middle.x, middle.y - 20e-6)

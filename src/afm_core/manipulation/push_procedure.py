@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 
@@ -66,16 +66,25 @@ from afm_core.manipulation.push_parameters import (
     PUSH_PARAMETERS,
     STRATEGIES,
 )
+from afm_core.manipulation.push_results import (
+    AssemblyResult,
+    Progress,
+    PushFailed,
+    PushRefused,
+    PushResult,
+)
 from afm_core.manipulation.push_steps import (
     Localization,
     TipEstimate,
     ZigzagOverrides,
+    check_sphere_not_there,
     control_pit_sites,
     find_particle,
     in_maps_frame,
     nearest_particle,
     plan_push,
     rescan_request,
+    sphere_distance_within,
     task_to_command,
 )
 from afm_core.manipulation.rod_loop import (
@@ -88,95 +97,10 @@ from afm_core.manipulation.rod_loop import (
     rod_pose_verified,
     swept_radius,
 )
-from afm_core.manipulation.verdict import PushVerdict, push_verdict, reversed_scan
+from afm_core.manipulation.verdict import push_verdict, reversed_scan
 from afm_core.manipulation.verify import VerificationResult, verify_push
 
 PIT_DWELL = 0.1  # s
-
-
-class PushRefused(Exception):
-    """A push (or an assembly) refused before anything moved; the message says why."""
-
-
-class PushFailed(Exception):
-    """A push that started could not finish, or was cancelled; the message says what happened
-    and where things are. `execution`: the strokes run, when the failure came after them."""
-
-    def __init__(self, message: str, execution: ExecutionResult | None = None):
-        super().__init__(message)
-        self.execution = execution
-
-
-@dataclass(frozen=True)
-class Progress:
-    """One progress report. phase: "scanning" (step: control pits made of steps_total, the
-    before image the last), "localizing", "pushing" (step 0 before the first stroke, then
-    after each), "observing" (closed_loop: after a leg, what the local scan lines found, in
-    `note`, with why the leg ended), "verifying". A closed-loop push reports each leg's plan
-    on its first "pushing" report, its steps counted within the leg."""
-
-    phase: str
-    particle_id: int
-    particle_estimate: np.ndarray  # (2,) task frame, m
-    particle_covariance: np.ndarray  # (2, 2) m^2, the map's
-    time: float  # s, instrument clock
-    step: int = 0
-    steps_total: int = 0
-    tip: TipEstimate | None = None
-    peak_lateral_force: float = 0.0  # N, this stroke
-    peak_normal_force: float = 0.0  # N
-    plan: PushPlan | None = None  # on the report before the first stroke: the strokes planned
-    index: int = 0  # position in an assembly's order
-    note: str = ""  # closed_loop: why the leg ended (a stroke) / what was observed and decided
-    # What particle_estimate is for a live view: PREDICTED (the push model after the strokes
-    # done, no measurement since), OBSERVED (local scan lines saw it; belief_covariance is the
-    # observation's), or "" (the map's or the plan's position, nothing new)
-    belief: str = ""
-    belief_covariance: np.ndarray | None = None  # (2, 2) m^2 when known
-
-
-@dataclass
-class PushResult:
-    particle_id: int
-    goal: np.ndarray  # (2,) task frame
-    achieved: np.ndarray  # (2,) verified position after the rescan, task frame
-    error: float  # m, |achieved - goal|
-    tolerance: float  # m
-    steps: int  # strokes in contact
-    message: str
-    plan: PushPlan
-    execution: ExecutionResult
-    verification: VerificationResult
-    cost: PushCost = field(default_factory=PushCost)
-    # a tube or rod: its axis's goal, verified angle (task frame, rad) and the error between
-    # them folded into a half turn; NaN for a sphere
-    goal_angle: float = math.nan
-    achieved_angle: float = math.nan
-    angle_error: float = math.nan  # rad, >= 0
-    angle_tolerance: float = math.nan  # rad
-    # the rescan's measurement: error with its sigma and whether it supports "within
-    # tolerance" (afm_core.manipulation.verdict); None: judged by error <= tolerance alone
-    verdict: PushVerdict | None = None
-
-    @property
-    def success(self) -> bool:
-        """Within tolerance as far as the rescan can tell (verdict WITHIN), the angle too."""
-        turned = (
-            not math.isfinite(self.angle_tolerance) or self.angle_error <= self.angle_tolerance
-        )
-        within = self.error <= self.tolerance if self.verdict is None else self.verdict.within
-        return within and turned
-
-
-@dataclass
-class AssemblyResult:
-    particle_ids: list[int]  # as given
-    order: list[int]  # as pushed (or planned, when a push failed)
-    achieved: list[np.ndarray]  # per particle_ids: verified position, or the map's if not pushed
-    errors: list[float]  # per particle_ids, m (NaN: not pushed)
-    success: bool
-    message: str
-    pushes: list[PushResult] = field(default_factory=list)
 
 
 def _never() -> bool:
@@ -350,6 +274,7 @@ class PushProcedure:
                 angle_tolerance or self.settings["default_angle_tolerance"],
             )
             self.check_goal(particle, target, strategy, tolerance)
+            check_sphere_not_there(particle, target, tolerance)
             self.check_overrides(particle, target, strategy, overrides)
             check_rod_goal(particle, target, rod, tolerance)
         except ValueError as exc:
@@ -737,6 +662,7 @@ class PushProcedure:
         except (ValueError, InstrumentUnavailable) as exc:
             raise PushRefused(str(exc)) from exc
         pushes: dict[int, PushResult] = {}
+        settled: dict[int, np.ndarray] = {}  # already within tolerance: left where they are
         messages = []
         for index, pid in enumerate(sequence):
 
@@ -745,6 +671,10 @@ class PushProcedure:
 
             try:
                 particle = self.particle(pid)  # where the last pushes left it
+                if sphere_distance_within(particle, targets[pid], tolerance) is not None:
+                    settled[pid] = np.array([particle.x, particle.y])
+                    messages.append(f"particle {pid}: already within tolerance, not pushed")
+                    continue
                 self.check_goal(particle, targets[pid], strategy, tolerance)
                 # no per-push overrides: the planner chooses the zigzag
                 pushes[pid] = self.run(
@@ -764,11 +694,19 @@ class PushProcedure:
             ids,
             sequence,
             [
-                pushes[pid].achieved if pid in pushes else np.array([p.x, p.y])
+                pushes[pid].achieved if pid in pushes else settled.get(pid, np.array([p.x, p.y]))
                 for pid, p in particles.items()
             ],
-            [pushes[pid].error if pid in pushes else math.nan for pid in ids],
-            len(pushes) == len(sequence) and all(p.success for p in pushes.values()),
+            [
+                pushes[pid].error
+                if pid in pushes
+                else float(np.hypot(*(settled[pid] - targets[pid])))
+                if pid in settled
+                else math.nan
+                for pid in ids
+            ],
+            len(pushes) + len(settled) == len(sequence)
+            and all(p.success for p in pushes.values()),
             "; ".join(messages),
             [pushes[pid] for pid in sequence if pid in pushes],
         )

@@ -271,3 +271,24 @@ def localize_with(localizer) -> Callable[[Landmark, Callable[[], bool]], Localiz
         return Localization(observation.all_accepted, estimate, lines or "no line run")
 
     return localize
+
+
+def sphere_distance_within(particle: Landmark, goal, tolerance: float) -> float | None:
+    """The map's distance from a sphere to its goal when it is within tolerance already (None
+    otherwise, and for a tube or rod, whose angle counts too)."""
+    if particle.kind != "sphere":
+        return None
+    distance = float(np.hypot(goal[0] - particle.x, goal[1] - particle.y))
+    return distance if distance <= tolerance else None
+
+
+def check_sphere_not_there(particle: Landmark, goal, tolerance: float) -> None:
+    """ValueError for a sphere already within tolerance of its goal: no stroke can be planned
+    for it, and finding that out after the control pits and the rescan cost the sample two
+    pits and the lab half a minute."""
+    distance = sphere_distance_within(particle, goal, tolerance)
+    if distance is not None:
+        raise ValueError(
+            f"goal: {distance * 1e9:.1f} nm from particle {particle.id}, within the "
+            f"tolerance {tolerance * 1e9:.1f} nm: already there, nothing to push"
+        )
