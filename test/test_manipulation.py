@@ -359,3 +359,46 @@ def test_path_blocker_finds_the_first_particle_in_the_swept_corridor():
         path_blocker((0, 0), (-800e-9, 0), r, 50e-9, [far, near]) is None
     )  # behind the tip's approach
     assert path_blocker((0, 0), (0, 0), r, 50e-9, [near]) is None
+
+
+def test_path_blocker_counts_the_zigzag_tip_beside_the_line():
+    """The zigzag runs the tip h/2 beside the push line: an object just outside the particle's
+    corridor but within the tip's reach is moved by the strokes (the push model says so), so the
+    check before a push must call it in the way; one beyond both is clear."""
+    from types import SimpleNamespace
+
+    from afm_core.manipulation import choose_nano_hand_params, nano_hand_plan, path_blocker
+    from afm_core.manipulation.plans import model_contact_params, simulate_strokes
+    from afm_core.manipulation.push_steps import zigzag_reach
+    from afm_core.physics.sample import Sample, Sphere
+
+    r, tip_radius, sigma = 100e-9, 50e-9, 10e-9
+    start, goal = np.array([50e-6, 50e-6]), np.array([50.5e-6, 50e-6])
+    pushed = SimpleNamespace(kind="sphere", radius=r, covariance=np.eye(2) * sigma**2)
+    reach = zigzag_reach(pushed, "closed_loop", tip_radius)
+    params = choose_nano_hand_params(sigma, r, tip_radius)
+    assert reach == params.h / 2 > 0
+    assert zigzag_reach(pushed, "centre", tip_radius) == 0.0
+    plan = nano_hand_plan(start, goal, params, tip_radius=tip_radius, particle_radius=r)
+    touched, clear = [], []
+    for across in np.arange(195e-9, 260e-9, 5e-9):
+        other = SimpleNamespace(id=7, x=50.25e-6, y=50e-6 + across, radius=r)
+        sample = Sample(spheres=[Sphere(0, *start, r), Sphere(7, other.x, other.y, r)])
+        simulate_strokes(sample, plan.strokes, model_contact_params(None, tip_radius))
+        moved = {s.id: np.hypot(s.x - other.x, s.y - other.y) for s in sample.movable}[7]
+        blocked = path_blocker(start, goal, r, tip_radius, [other], reach) is not None
+        (touched if moved > 0.1e-9 else clear).append((across, blocked))
+    assert touched and all(blocked for _, blocked in touched), touched
+    assert clear and not all(blocked for _, blocked in clear), clear
+    # without the tip's reach the corridor is the particle's alone and misses the farthest touched
+    assert touched[-1][0] > 2 * r
+    assert (
+        path_blocker(
+            start,
+            goal,
+            r,
+            tip_radius,
+            [SimpleNamespace(id=7, x=50.25e-6, y=50e-6 + touched[-1][0], radius=r)],
+        )
+        is None
+    )

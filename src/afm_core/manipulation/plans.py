@@ -244,16 +244,18 @@ def predict_particle(plan: PushPlan, contact_params=None, start=None) -> list[np
     return [np.array(p) for p in track]
 
 
-def path_blocker(start, goal, radius: float, tip_radius: float, others):
+def path_blocker(start, goal, radius: float, tip_radius: float, others, tip_reach: float = 0.0):
     """The first of `others` (objects with x, y, radius: landmarks) a particle of `radius` would
     run into on its way from `start` to `goal` ((2,) m): the corridor it sweeps (its radius plus
-    the other's) and the tip's approach behind it. None when the way is clear."""
+    the other's), the tip's approach behind it and, for a zigzag, the tip running `tip_reach`
+    (its centre's farthest offset) beside the push line. None when the way is clear."""
     start, goal = np.asarray(start, float), np.asarray(goal, float)
     axis = goal - start
     length = float(np.hypot(*axis))
     if length == 0:
         return None
     u = axis / length
+    half_width = max(radius, tip_reach + tip_radius)
     hits = []
     for other in others:
         rel = np.array([other.x, other.y]) - start
@@ -261,7 +263,7 @@ def path_blocker(start, goal, radius: float, tip_radius: float, others):
         across = abs(float(rel[0] * u[1] - rel[1] * u[0]))
         if (
             -(radius + 2 * tip_radius) < along < length + radius + other.radius
-            and across < radius + other.radius
+            and across < half_width + other.radius
         ):
             hits.append((along, other))
     return min(hits, key=lambda h: h[0])[1] if hits else None

@@ -86,6 +86,7 @@ from afm_core.manipulation.push_steps import (
     rescan_request,
     sphere_distance_within,
     task_to_command,
+    zigzag_reach,
 )
 from afm_core.manipulation.rod_loop import (
     ROD_STRATEGIES,
@@ -206,8 +207,14 @@ class PushProcedure:
         if not blockers:
             return
         others = [m for m in self.landmarks().values() if m.id != particle.id]
+        tip_radius = self.settings["tip_radius"]
         blocker = path_blocker(
-            start, goal, swept_radius(particle), self.settings["tip_radius"], others
+            start,
+            goal,
+            swept_radius(particle),
+            tip_radius,
+            others,
+            zigzag_reach(particle, strategy, tip_radius),
         )
         if blocker is not None:
             raise ValueError(

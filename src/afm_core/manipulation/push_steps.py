@@ -292,3 +292,16 @@ def check_sphere_not_there(particle: Landmark, goal, tolerance: float) -> None:
             f"goal: {distance * 1e9:.1f} nm from particle {particle.id}, within the "
             f"tolerance {tolerance * 1e9:.1f} nm: already there, nothing to push"
         )
+
+
+def zigzag_reach(particle: Landmark, strategy: str, tip_radius: float) -> float:
+    """How far beside the push line the zigzag's tip centre runs (h/2, as plan_push chooses it
+    for the map's sigma; the localized tip's own sigma can only widen it): 0 for a push that
+    keeps the tip on the line, or when no zigzag fits (the plan is refused then)."""
+    if particle.kind != "sphere" or strategy not in ("nano_hand", "closed_loop"):
+        return 0.0
+    sigma = float(math.sqrt(max(np.max(np.diag(particle.covariance)), 0.0)))
+    try:
+        return choose_nano_hand_params(sigma, particle.radius, tip_radius).h / 2
+    except ValueError:
+        return 0.0
