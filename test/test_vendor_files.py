@@ -246,3 +246,23 @@ def test_spm_damaged_and_rotated_files_are_refused_by_name(tmp_path):
     (tmp_path / "other.spm").write_bytes(b"PK\x03\x04 not a scan")
     with pytest.raises(ValueError, match="other.spm: not a Bruker NanoScope file"):
         load_height_map(tmp_path / "other.spm")
+
+
+def test_header_numbers_that_are_not_numbers_and_twin_titles_are_refused_by_name(tmp_path):
+    """A header edited by hand or written by another software version gave Python's bare
+    'could not convert string to float'; of two channels titled alike the first was read."""
+    raw = np.zeros((ROWS, COLS), dtype=np.int16)
+    write_spm(tmp_path / "angle.spm", [("Height", raw, False)], (1, 1), rotate="n/a")
+    with pytest.raises(ValueError, match=r"angle.spm: Rotate Ang. 'n/a' is not a number"):
+        load_height_map(tmp_path / "angle.spm")
+    write_spm(tmp_path / "sens.spm", [("Height", raw, False)], (1, 1), sens="abc")
+    with pytest.raises(ValueError, match=r"sens.spm channel 'Height': @Sens. Zscan 'abc' is not"):
+        load_height_map(tmp_path / "sens.spm")
+    write_spm(tmp_path / "twins.spm", [("Height", raw, False), ("Height", raw + 1, False)], (1, 1))
+    assert list_channels(tmp_path / "twins.spm") == ["Height", "Height"]
+    with pytest.raises(ValueError, match=r"twins.spm: 2 channels are titled 'Height'; choose one"):
+        load_height_map(tmp_path / "twins.spm", "Height")
+    assert load_height_map(tmp_path / "twins.spm", 1).height.max() > 0
+    write_wsxm(tmp_path / "z.stp", np.ones((ROWS, COLS)), (COLS, ROWS), "1.2.3 nm")
+    with pytest.raises(ValueError, match=r"z.stp: General Info / Z Amplitude '1.2.3' is not a"):
+        load_height_map(tmp_path / "z.stp")

@@ -3,6 +3,7 @@ image record they return, length units, channel choice and the check for unscann
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -64,6 +65,11 @@ def length_scale(unit: str, where: str, what: str = "unit") -> float:
 def choose_channel(path: Path, names: list[str], channel) -> int:
     listing = ", ".join(f"{i}: {n!r}" for i, n in enumerate(names)) or "none"
     if isinstance(channel, str):
+        if names.count(channel) > 1:  # the first of two "Height" may be the wrong one
+            raise ValueError(
+                f"{path}: {names.count(channel)} channels are titled {channel!r}; choose one by "
+                f"index ({listing})"
+            )
         if channel in names:
             return names.index(channel)
     elif isinstance(channel, (int, np.integer)) and not isinstance(channel, bool):
@@ -81,3 +87,15 @@ def finite_height(height: np.ndarray, where: str) -> np.ndarray:
             f"{where}: {bad_rows} line(s) hold NaN or infinite values (an interrupted scan?)"
         )
     return np.ascontiguousarray(height, dtype=np.float64)
+
+
+def header_number(text, where: str, name: str) -> float:
+    """A number from a vendor header's text; ValueError naming the file and the field when it
+    is none (a header edited by hand, or written by another software version)."""
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: {name} {text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{where}: {name} {text!r} is not a finite number")
+    return value

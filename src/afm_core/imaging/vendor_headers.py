@@ -8,7 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from afm_core.imaging.vendor_common import VendorImage, choose_channel, finite_height, length_scale
+from afm_core.imaging.vendor_common import (
+    VendorImage,
+    choose_channel,
+    finite_height,
+    header_number,
+    length_scale,
+)
 
 # -- Bruker NanoScope .spm ---------------------------------------------------------------------
 
@@ -65,14 +71,16 @@ def _spm_scale(sections, fields: dict, bpp: int, where: str) -> float:
         raise ValueError(
             f"{where}: '@2:Z scale' {text!r} names no sensitivity; the channel is not a height"
         )
-    key, full_scale = "@" + match.group(1), float(match.group(3))
+    key = "@" + match.group(1)
+    full_scale = header_number(match.group(3), where, "@2:Z scale")
     sens = next((f[key] for _, f in sections if key in f), None)
     parts = (sens or "").split()
     if len(parts) < 3 or not parts[2].endswith("/V"):
         raise ValueError(
             f"{where}: sensitivity {key!r} = {sens!r}: expected 'V <number> <unit>/V'"
         )
-    per_volt = float(parts[1]) * length_scale(parts[2][:-2], f"{where} ({key})")
+    per_volt = header_number(parts[1], where, key)
+    per_volt *= length_scale(parts[2][:-2], f"{where} ({key})")
     return full_scale / 2.0 ** (8 * bpp) * per_volt
 
 
@@ -84,7 +92,7 @@ def spm_image(path: Path, channel) -> VendorImage:
     where = f"{path} channel {title!r}"
     for _, section in sections:
         angle = section.get("Rotate Ang.", "0").split()
-        if angle and float(angle[0]) != 0.0:
+        if angle and header_number(angle[0], str(path), "Rotate Ang.") != 0.0:
             raise ValueError(
                 f"{path}: Rotate Ang. {angle[0]} deg: a rotated frame is not read (the map's "
                 "axes are the scanner's)"
@@ -98,6 +106,8 @@ def spm_image(path: Path, channel) -> VendorImage:
         if "Bytes/pixel" in fields
         else length // max(columns * lines, 1)
     )
+    if offset < 0:
+        raise ValueError(f"{where}: 'Data offset' {offset}: must be >= 0 (bytes)")
     if bpp not in (2, 4) or columns < 1 or lines < 1:
         raise ValueError(f"{where}: {columns} x {lines} px of {bpp} bytes: expected 2 or 4 bytes")
     if len(data) < offset + columns * lines * bpp:
@@ -110,7 +120,8 @@ def spm_image(path: Path, channel) -> VendorImage:
         raise ValueError(f"{where}: 'Scan Size' {' '.join(size)!r}: expected 'x y unit'")
     unit = size[2].replace("~", "u")  # NanoScope writes the micro sign as '~'
     scale = length_scale(unit, f"{where} (Scan Size)")
-    size_x, size_y = float(size[0]) * scale, float(size[1]) * scale
+    size_x = header_number(size[0], where, "Scan Size x") * scale
+    size_y = header_number(size[1], where, "Scan Size y") * scale
     raw = np.frombuffer(data, dtype=f"<i{bpp}", count=columns * lines, offset=offset)
     height = raw.reshape(lines, columns) * _spm_scale(sections, fields, bpp, where)
     return VendorImage(
@@ -261,7 +272,7 @@ def _wsxm_quantity(fields: dict, key: str, path: Path) -> tuple[float, str]:
     match = re.fullmatch(r"([-+0-9.eE]+)\s*(\S*)", text)
     if not match:
         raise ValueError(f"{path}: {key.replace('::', ' / ')} {text!r}: expected 'number unit'")
-    return float(match.group(1)), match.group(2)
+    return header_number(match.group(1), str(path), key.replace("::", " / ")), match.group(2)
 
 
 def wsxm_image(path: Path, channel) -> VendorImage:
