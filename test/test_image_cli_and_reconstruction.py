@@ -197,3 +197,55 @@ def test_cli_landmarks_are_reported_in_the_files_frame(tmp_path):
     # image puts them within a pixel (12 nm) or so
     for true in ((55000.0, 55000.0), (55500.0, 55400.0)):
         assert min(np.hypot(x - true[0], y - true[1]) for x, y in found) < 25.0, marks.stdout
+
+
+def test_cli_keeps_the_image_s_and_the_tip_s_units_and_grids_apart(tmp_path):
+    """--height-unit was applied to a .npy tip too: following the tool's own advice for an
+    image in nm eroded it by a tip 1e9 times too small (exit 0); a tip on 2 x 4 nm pixels was
+    applied to a 2 x 2 nm image, as only x was compared."""
+    scan0 = sim_map(tmp_path, "s0.npz")
+    image = load_height_map(scan0)
+    pixel = f"{image.pixel_size_x!r}"
+    np.save(tmp_path / "image_nm.npy", image.height * 1e9)
+    tip = paraboloid_cone_tip(20e-9, 20.0, image.pixel_size_x, 20e-9, max_half_width=3)
+    np.save(tmp_path / "tip_m.npy", tip)
+    np.save(tmp_path / "tip_nm.npy", tip * 1e9)
+    metres = run_cli("reconstruct", scan0, "--tip", tmp_path / "tip_m.npy",
+                     "--pixel-size", pixel, "-o", tmp_path / "a.npz")  # fmt: skip
+    assert metres.returncode == 0, metres.stderr
+    mixed = run_cli("reconstruct", tmp_path / "image_nm.npy", "--height-unit", "nm",
+                    "--tip", tmp_path / "tip_m.npy", "--pixel-size", pixel,
+                    "-o", tmp_path / "b.npz")  # fmt: skip
+    assert mixed.returncode == 0, mixed.stderr
+    expected = erode(image.height, tip)
+    for name in ("a.npz", "b.npz"):
+        np.testing.assert_allclose(load_height_map(tmp_path / name).height, expected, atol=1e-15)
+    unitless = run_cli("reconstruct", scan0, "--tip", tmp_path / "tip_nm.npy",
+                       "--pixel-size", pixel, "-o", tmp_path / "c.npz")  # fmt: skip
+    assert unitless.returncode == 2 and "--tip-height-unit nm" in unitless.stderr
+    given = run_cli("reconstruct", scan0, "--tip", tmp_path / "tip_nm.npy", "--pixel-size",
+                    pixel, "--tip-height-unit", "nm", "-o", tmp_path / "c.npz")  # fmt: skip
+    assert given.returncode == 0, given.stderr
+    np.testing.assert_allclose(load_height_map(tmp_path / "c.npz").height, expected, atol=1e-15)
+    tall = tmp_path / "tall_pixels_tip.npz"
+    save_height_map(tall, HeightMap(tip, image.pixel_size_x, 2 * image.pixel_size_y, 0.0, 0.0))
+    grid = run_cli("reconstruct", scan0, "--tip", tall, "-o", tmp_path / "d.npz")
+    assert grid.returncode == 2 and "pixel size in y" in grid.stderr, grid.stderr
+    assert not (tmp_path / "d.npz").exists()
+
+
+def test_cli_checks_its_outputs_before_the_work(tmp_path):
+    """A missing folder or an existing --json was found only after the work (and printed as a
+    bare OS error); an upper-case .NPZ lost the level mask."""
+    scan0 = sim_map(tmp_path, "s0.npz")
+    (tmp_path / "marks.json").write_text("[]")
+    taken = run_cli("landmarks", scan0, "--json", tmp_path / "marks.json")
+    assert taken.returncode == 2 and "--json" in taken.stderr and "already exists" in taken.stderr
+    assert taken.stdout == ""  # refused before the work
+    nowhere = run_cli("level", tmp_path / "missing.npz", "-o", tmp_path / "no" / "x.npz")
+    assert nowhere.returncode == 2 and "the folder" in nowhere.stderr, nowhere.stderr
+    text = run_cli("level", scan0, "-o", tmp_path / "x.txt")
+    assert text.returncode == 2 and "must end in .npz or .gwy" in text.stderr
+    upper = run_cli("level", scan0, "-o", tmp_path / "LEVELLED.NPZ")
+    assert upper.returncode == 0, upper.stderr
+    assert "feature_mask" in load_height_map(tmp_path / "LEVELLED.NPZ").layers

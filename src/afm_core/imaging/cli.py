@@ -241,29 +241,31 @@ def cmd_tip(args) -> int:
 def cmd_reconstruct(args) -> int:
     from afm_core.imaging.tip_guard import check_reconstruction
 
-    if Path(args.output).exists():  # before the work, and before judging the tip
-        raise FileExistsError(
-            f"{args.output}: already exists; not overwriting it (choose another name or remove it)"
-        )
     image = _load(args, args.image)
     if str(args.tip).lower().endswith(".npy") and args.pixel_size is None:
         raise ValueError(
             f"--tip {args.tip}: a .npy holds only heights; give --pixel-size (the tip must be on "
             "the image's grid) or write the tip as .npz (afm image tip does)"
         )
+    # the image's --height-unit is not the tip's: a tip estimated in metres eroding an image
+    # given in nm (or the reverse) flattened it by 1e9 without a word
     tip = load_height_map(
         args.tip,
         pixel_size=args.pixel_size,
-        height_unit=args.height_unit if str(args.tip).lower().endswith(".npy") else None,
+        height_unit=args.tip_height_unit,
+        unit_option="--tip-height-unit",
     )
-    # pixel sizes are ~1e-9 m: compare relatively only (np.isclose's default atol of 1e-8
-    # would call any two pixel sizes equal)
-    if not math.isclose(tip.pixel_size_x, image.pixel_size_x, rel_tol=1e-6):
-        raise ValueError(
-            f"--tip pixel size {tip.pixel_size_x * 1e9:.4g} nm differs from the image's "
-            f"{image.pixel_size_x * 1e9:.4g} nm: erosion needs the tip on the image's grid "
-            "(estimate the tip from an image at this pixel size, or resample one of them)"
-        )
+    for axis in ("x", "y"):
+        tip_pixel = getattr(tip, f"pixel_size_{axis}")
+        image_pixel = getattr(image, f"pixel_size_{axis}")
+        # pixel sizes are ~1e-9 m: compare relatively only (np.isclose's default atol of 1e-8
+        # would call any two pixel sizes equal)
+        if not math.isclose(tip_pixel, image_pixel, rel_tol=1e-6):
+            raise ValueError(
+                f"--tip pixel size in {axis} {tip_pixel * 1e9:.4g} nm differs from the image's "
+                f"{image_pixel * 1e9:.4g} nm: erosion needs the tip on the image's grid "
+                "(estimate the tip from an image at this pixel size, or resample one of them)"
+            )
     started = time.perf_counter()
     check = _quietly(
         check_reconstruction,
@@ -345,7 +347,8 @@ def cmd_level(args) -> int:
     )
     mask = None if args.mask == "none" else "auto"
     levelled, used = level(image.height, args.method, mask)
-    layers = {"feature_mask": used.astype(np.uint8)} if Path(args.output).suffix == ".npz" else {}
+    keeps_mask = Path(args.output).suffix.lower() == ".npz"
+    layers = {"feature_mask": used.astype(np.uint8)} if keeps_mask else {}
     save_height_map(
         args.output,
         HeightMap(
@@ -494,6 +497,11 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     p = sub.add_parser("reconstruct", help="erode an image by a tip (remove tip broadening)")
     p.add_argument("image")
     p.add_argument("--tip", required=True, help="tip file from `afm image tip`")
+    p.add_argument(
+        "--tip-height-unit",
+        type=height_unit,
+        help="for a .npy tip: its heights' unit (default m; --height-unit is the image's)",
+    )
     p.add_argument("-o", "--output", required=True)
     levelling(p)
     p.set_defaults(image_func=cmd_reconstruct)
@@ -538,11 +546,30 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     p.set_defaults(image_func=cmd_channels, channel=0)
 
 
+def check_new_output(path: str, option: str, suffixes: tuple[str, ...] = ()) -> None:
+    """Before any work: `path` must be new, in a folder that exists, with one of `suffixes`
+    (any if empty); an error naming `option` otherwise."""
+    target = Path(path)
+    if target.exists():
+        raise FileExistsError(
+            f"{option} {path}: already exists; not overwriting it (choose another name or "
+            "remove it)"
+        )
+    if not target.parent.is_dir():
+        raise ValueError(f"{option} {path}: the folder {str(target.parent)!r} does not exist")
+    if suffixes and target.suffix.lower() not in suffixes:
+        raise ValueError(f"{option} {path}: must end in {' or '.join(suffixes)}")
+
+
 def run(args) -> int:
     if isinstance(args.channel, str) and args.channel.isdigit():
         args.channel = int(args.channel)
     try:
+        if getattr(args, "output", None):
+            check_new_output(args.output, "-o", (".npz", ".gwy"))
+        if getattr(args, "json", None):
+            check_new_output(args.json, "--json")
         return args.image_func(args)
-    except (ValueError, FileExistsError, ImportError) as exc:
+    except (ValueError, OSError, ImportError) as exc:
         print(f"afm image {args.image_command}: {exc}", file=sys.stderr)
         return 2

@@ -146,6 +146,8 @@ def load_height_map(
     pixel_size: float | None = None,
     frame: int = 0,
     height_unit: float | None = None,
+    *,
+    unit_option: str = "--height-unit",
 ) -> HeightMap:
     """The height map in `path` (.npz, .npy, .gwy or a vendor's file: .ibw, .jpk, .spm, .sxm,
     .stp, .top, .asd), heights in metres, rows along +y; `frame`: which frame of a movie
@@ -156,7 +158,8 @@ def load_height_map(
     .npz/.npy holds one map (channel 0, or its title). `pixel_size` (m, square pixels) is
     needed for .npy; for the other formats, which carry their own, it is only checked
     against the file's (ValueError if it disagrees). `height_unit` (m per stored value, e.g.
-    1e-9 for nm; default 1) is for .npy only, whose numbers carry no unit.
+    1e-9 for nm; default 1) is for .npy only, whose numbers carry no unit; `unit_option` is the
+    command-line option a refusal of its heights names.
 
     A map whose heights span more than MAX_HEIGHT_SPAN_M or whose pixels are larger than
     MAX_PIXEL_SIZE_M is refused (ValueError): it is not in metres."""
@@ -205,16 +208,16 @@ def load_height_map(
                 )
     where = str(path) + (f" channel {channel!r}" if suffix in (".gwy",) + VENDOR_SUFFIXES else "")
     hmap.validate(where)
-    _check_in_metres(hmap, where, suffix)
+    _check_in_metres(hmap, where, suffix, unit_option)
     return hmap
 
 
-def _check_in_metres(hmap: HeightMap, where: str, suffix: str) -> None:
+def _check_in_metres(hmap: HeightMap, where: str, suffix: str, unit_option: str) -> None:
     """ValueError when the map cannot be in metres (MAX_HEIGHT_SPAN_M, MAX_PIXEL_SIZE_M)."""
     span = float(np.ptp(hmap.height))
     if span > MAX_HEIGHT_SPAN_M:
         fix = (
-            "give their unit (height_unit=1e-9 for nm; on the command line --height-unit nm)"
+            f"give their unit (height_unit=1e-9 for nm; on the command line {unit_option} nm)"
             if suffix == ".npy"
             else "convert the heights to metres"
             if suffix == ".npz"
