@@ -402,3 +402,18 @@ def test_path_blocker_counts_the_zigzag_tip_beside_the_line():
         )
         is None
     )
+
+
+def test_an_aimed_zigzag_that_does_not_carry_the_particle_is_refused():
+    """The book's zigzag (for R_P 100 nm, R_T 50 nm) on a 50 nm particle with a 25 nm tip: the
+    plan was returned although its own pushing model ended it ~400 nm short of the goal."""
+    from afm_core.manipulation import choose_nano_hand_params, nano_hand_plan
+
+    start, goal = np.array([50e-6, 50e-6]), np.array([50.5e-6, 50e-6])
+    with pytest.raises(ValueError, match=r"misses the goal by 3\.\d+e-07 m in the pushing model"):
+        nano_hand_plan(start, goal, tip_radius=25e-9, particle_radius=50e-9)
+    fitting = choose_nano_hand_params(5e-9, 50e-9, 25e-9)
+    plan = nano_hand_plan(start, goal, fitting, tip_radius=25e-9, particle_radius=50e-9)
+    assert np.hypot(*plan.extra["predicted_error"]) < fitting.step
+    book = nano_hand_plan(start, goal, tip_radius=50e-9, particle_radius=100e-9)
+    assert np.hypot(*book.extra["predicted_error"]) < 10e-9

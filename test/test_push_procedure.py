@@ -176,8 +176,8 @@ def test_an_assembly_pushes_two_particles_in_the_given_order(calibration):
     assert result.success, result.message
     assert f"particle {middle.id}: already within tolerance, not pushed" in result.message
     assert result.errors[1] == pytest.approx(5 * NM)
-    achieved, errors = result.achieved[::2], result.errors[::2]
-    for mark, goal, achieved, error in zip((left, right), goals, achieved, errors):
+    pushed, errors = result.achieved[::2], result.errors[::2]
+    for mark, goal, achieved, error in zip((left, right), goals, pushed, errors):
         moved = s.true_sphere(before[mark.id]) - before[mark.id]
         wanted = np.array(goal) - (mark.x, mark.y)
         assert math.hypot(*(moved - wanted)) <= TRUE_TOLERANCE

@@ -46,9 +46,8 @@ def test_a_config_file_may_write_numbers_without_a_dot(tmp_path):
     """3e-10 and 1.5e9 are strings to PyYAML (YAML 1.1) and numbers to YAML 1.2 and to people."""
     import yaml
 
-    from afm_core.yaml_files import load_yaml
-
     from afm_core.localization.calibration.model import load_calibration
+    from afm_core.yaml_files import load_yaml
 
     path = tmp_path / "lab.yaml"
     path.write_text("noise: {height_white_sigma: 3e-10}\ntip: {apex_radius: 2E-8}\n")

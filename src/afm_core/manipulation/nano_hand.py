@@ -244,6 +244,16 @@ def nano_hand_plan(
             model_contact_params(contact_params, tip_radius),
         )
         plan = _aimed(zigzag, dist, aim, aim_iterations)
+        missed = float(np.hypot(*plan.extra["predicted_error"]))
+        # aiming leaves a few nm (up to ~17 nm on 40 nm pushes with params chosen for the
+        # particle); more than two steps means the zigzag does not carry this particle at all
+        if aim and missed > 2 * params.step:
+            raise ValueError(
+                f"params: the aimed zigzag misses the goal by {missed:.4e} m in the pushing model "
+                f"(more than two steps, {2 * params.step:.4e} m): they do not suit R_P = "
+                f"{est.radius:.4e} m with R_T = {tip_radius:.4e} m (choose_nano_hand_params "
+                "gives ones that do)"
+            )
     if limits is not None:
         check_plan_limits(plan, limits)
     return plan
@@ -255,11 +265,12 @@ def _best_step_count(
     """The count whose nominal reach is nearest, and its neighbours: aim each, keep the best
     (how well the end can be put on the goal depends on how much contact the last push has)."""
     nominal = max(1, int(round((dist - nominal_reach(params, 1)) / params.step)) + 1)
-    best = None
+    best, why = None, ""
     for n in sorted({max(1, nominal - 1), nominal, nominal + 1}):
         try:
             cand = nano_hand_plan(est, g, params, steps=n, **options)
-        except ValueError:
+        except ValueError as exc:
+            why = f" ({n} steps: {exc})"
             continue
         if best is None or (
             np.hypot(*cand.extra.get("predicted_error", (0, 0)))
@@ -269,7 +280,7 @@ def _best_step_count(
     if best is None:
         raise ValueError(
             f"goal: {dist:.4e} m: no step count around {nominal} gives a push plan with these "
-            f"params"
+            f"params{why}"
         )
     return best
 
