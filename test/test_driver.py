@@ -98,7 +98,7 @@ def test_scan_line_move_push_and_indent_through_actions(driver, ros_node):
         (
             "scan_image",
             scan_goal(pixels=(100_000, 64)),
-            "pixels_x=100000: must be within [2, 4096]",
+            "pixels_x=100000: need a whole number [2, 4096]",
         ),
         ("scan_image", scan_goal(origin=(109.5e-6, 1e-6)), "outside the scanner range"),
         ("scan_image", scan_goal(size=(50e-6, 50e-6), line_rate=20.0), "slew limit"),

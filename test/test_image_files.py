@@ -221,6 +221,30 @@ def test_gwy_bad_content_is_rejected(tmp_path):
         load_height_map(tmp_path / "whole.gwy", pixel_size=1e-9)
 
 
+def test_a_gwy_channel_s_mask_is_kept_and_named_not_applied(tmp_path):
+    """Gwyddion's importers fill pixels that held no data and mask them; a .sxm with those
+    lines is refused, the same scan saved by Gwyddion was read without a word."""
+    from afm_core.imaging.files import GWYDDION_MASK, mask_note
+
+    stored = np.random.default_rng(2).normal(0, 1e-9, (8, 6))
+    marked = np.zeros((8, 6))
+    marked[:3] = 1.0  # Gwyddion's top three rows: our last three
+    container = GwyContainer()
+    container["/0/data"] = GwyDataField(stored, xreal=6e-8, yreal=8e-8, si_unit_xy="m",
+                                        si_unit_z="m")  # fmt: skip
+    container["/0/data/title"] = "Z (forward)"
+    container["/0/mask"] = GwyDataField(marked, xreal=6e-8, yreal=8e-8)
+    container.tofile(str(tmp_path / "aborted.gwy"))
+    hmap = load_height_map(tmp_path / "aborted.gwy")
+    np.testing.assert_array_equal(hmap.layers[GWYDDION_MASK], marked[::-1].astype(np.uint8))
+    assert "mask over 18 of 48 pixels; it is not applied" in mask_note(hmap, "aborted.gwy")
+    done = subprocess.run([sys.executable, "-m", "afm_bringup.cli", "image", "landmarks",
+                           str(tmp_path / "aborted.gwy")], capture_output=True, text=True,
+                          timeout=120)  # fmt: skip
+    assert done.returncode == 0 and "Gwyddion mask over 18 of 48" in done.stderr, done.stderr
+    assert mask_note(sample_map(), "x") == ""
+
+
 @pytest.mark.skipif(shutil.which("gwyddion") is None, reason="Gwyddion itself is not installed")
 def test_gwyddion_itself_reads_what_we_write(tmp_path):
     """Gwyddion loads our file and writes it again as its own; that reads back the same."""
@@ -292,6 +316,12 @@ def test_bad_maps_and_archives_are_rejected_by_name(tmp_path):
     assert load_height_map(tmp_path / "nosize.npz", pixel_size=2e-9).pixel_size_y == 2e-9
     with pytest.raises(ValueError, match="channel 1 does not exist"):
         load_height_map(tmp_path / "nosize.npz", channel=1, pixel_size=2e-9)
+    # another format renamed: numpy's own message suggested allow_pickle, i.e. loading a pickle
+    save_height_map(tmp_path / "scan.gwy", sample_map())
+    (tmp_path / "renamed.npz").write_bytes((tmp_path / "scan.gwy").read_bytes())
+    with pytest.raises(ValueError, match=r"renamed.npz: not a .npz archive") as refused:
+        load_height_map(tmp_path / "renamed.npz")
+    assert "pickle" not in str(refused.value)
 
 
 def test_landmarks_are_where_they_were_after_a_gwy_round_trip(tmp_path):

@@ -139,7 +139,7 @@ def test_map_publish_reads_the_frame_then_needs_the_graph(tmp_path):
     write_asd(path, 2, [("TP", _particle_movie([(16.0, 12.0), (40.0, 30.0)]))], (128, 96))
     command = [sys.executable, "-m", "afm_bringup.cli", "map", "publish", str(path)]
     bad = subprocess.run([*command, "--frame", "5"], capture_output=True, text=True, timeout=60)
-    assert bad.returncode != 0 and "frame 5 does not exist" in bad.stderr
+    assert bad.returncode == 2 and "frame 5 does not exist" in bad.stderr  # as afm image
     # a readable frame gets as far as the graph: without the imaging node it says so
     done = subprocess.run(
         [*command, "--frame", "1", "--timeout", "2"], capture_output=True, text=True, timeout=60

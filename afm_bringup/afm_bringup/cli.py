@@ -540,18 +540,22 @@ def _add_sim2real(sub) -> None:
 def cmd_map_publish(args):
     from afm_bringup.commander import AfmCommander, AfmError
     from afm_core.imaging.cli import raster_scan_of
-    from afm_core.imaging.files import load_height_map
+    from afm_core.imaging.files import load_height_map, mask_note
     from afm_core.imaging.levelling import level
 
     channel = int(args.channel) if str(args.channel).isdigit() else args.channel
     try:
+        if not args.line_rate > 0:
+            raise ValueError(f"--line-rate={args.line_rate}: must be > 0 Hz")
         hmap = load_height_map(args.file, channel, args.pixel_size, args.frame, args.height_unit)
         if args.level != "none":
             hmap.height, _ = level(hmap.height, args.level, "auto")
-    except (ValueError, ImportError) as exc:
-        sys.exit(f"afm map publish: {exc}")
-    if not args.line_rate > 0:
-        sys.exit(f"afm map publish: --line-rate={args.line_rate}: must be > 0 Hz")
+    except (ValueError, ImportError) as exc:  # the input's fault: the status afm image gives
+        print(f"afm map publish: {exc}", file=sys.stderr)
+        return INPUT_STATUS
+    note = mask_note(hmap, str(args.file))
+    if note:
+        print(f"afm map publish: warning: {note}", file=sys.stderr)
     scan = raster_scan_of(hmap, line_rate=args.line_rate, mode=args.mode)
     with AfmCommander("afm_map_publisher") as afm:
         try:

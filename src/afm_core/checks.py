@@ -19,7 +19,12 @@ def _unit(unit: str) -> str:
 
 
 def finite(name: str, value, unit: str = "") -> float:
-    """A finite number."""
+    """A finite number (not a string that reads as one: every interface takes numbers in SI
+    units, and '5e-6' would be compared with numbers further on)."""
+    if isinstance(value, (str, bytes)):
+        raise ValueError(
+            f"{name}={value!r}: must be a number, not text" + (f" ({unit})" if unit else "")
+        )
     try:
         number = float(value)
     except (TypeError, ValueError) as exc:
@@ -55,6 +60,8 @@ def non_negative(name: str, value, unit: str = "", *, upper: float | None = None
 
 def count(name: str, value, minimum: int = 0, maximum: int | None = None) -> int:
     """A whole number in [minimum, maximum] (no maximum when None)."""
+    if isinstance(value, (str, bytes)):
+        raise ValueError(f"{name}={value!r}: must be a whole number, not text")
     try:
         whole = int(value)
     except (TypeError, ValueError, OverflowError) as exc:

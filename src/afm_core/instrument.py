@@ -99,9 +99,8 @@ class ScanRequest:
                 f"line_rate={self.line_rate}: must be within (0, {limits.max_line_rate}] Hz"
             )
         for name in ("pixels_x", "pixels_y"):
-            value = getattr(self, name)
-            if not 2 <= value <= limits.max_pixels:
-                raise ValueError(f"{name}={value}: must be within [2, {limits.max_pixels}]")
+            # 64.5 pixels is no count (it failed later as a TypeError); 64.0 is taken as 64
+            setattr(self, name, checks.count(name, getattr(self, name), 2, limits.max_pixels))
         if self.scan_angle_deg not in (0.0, 90.0):
             raise ValueError(f"scan_angle_deg={self.scan_angle_deg}: must be 0 or 90")
         if self.mode not in ("tapping", "contact"):
@@ -170,10 +169,7 @@ class LineRequest:
     def validate(self, limits: ScannerLimits = ScannerLimits()) -> None:
         check_in_range("start", self.start_x, self.start_y, limits)
         check_in_range("end", self.end_x, self.end_y, limits)
-        if not 2 <= self.samples <= limits.max_line_samples:
-            raise ValueError(
-                f"samples={self.samples}: must be within [2, {limits.max_line_samples}]"
-            )
+        self.samples = checks.count("samples", self.samples, 2, limits.max_line_samples)
         check_speed("speed", self.speed, limits)
         if self.mode not in ("tapping", "contact"):
             raise ValueError(f"mode={self.mode!r}: must be 'tapping' or 'contact'")

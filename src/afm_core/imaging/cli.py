@@ -31,6 +31,7 @@ from afm_core.imaging.files import (
     count_frames,
     list_channels,
     load_height_map,
+    mask_note,
     save_height_map,
 )
 from afm_core.imaging.levelling import level, parse_method
@@ -57,6 +58,9 @@ def _load(args, path) -> HeightMap:
             "save the scan as .npz or .gwy (afm scan --save F.npz keeps pixel size and origin)"
         )
     hmap = load_height_map(path, args.channel, args.pixel_size, args.frame, args.height_unit)
+    note = mask_note(hmap, str(path))
+    if note:
+        print(f"afm image {args.image_command}: warning: {note}", file=sys.stderr)
     if args.level != "none":
         mask = None if args.level_mask == "none" else "auto"
         hmap.height, _ = level(hmap.height, args.level, mask)

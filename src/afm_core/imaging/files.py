@@ -138,6 +138,8 @@ class HeightMap:
 # nonsense in silence.
 MAX_HEIGHT_SPAN_M = 1e-4
 MAX_PIXEL_SIZE_M = 1e-4
+# the layer a .gwy channel's mask is read into (files._gwy_mask)
+GWYDDION_MASK = "gwyddion_mask"
 
 
 def load_height_map(
@@ -335,6 +337,10 @@ def _load_npz(path: Path, channel, pixel_size) -> HeightMap:
     except ValueError as exc:
         if str(path) in str(exc) or str(exc).startswith("channel"):
             raise
+        if "allow_pickle" in str(exc):  # numpy's hint would invite loading a pickle: never
+            raise ValueError(
+                f"{path}: not a .npz archive (not a zip of arrays; is it another format renamed?)"
+            ) from exc
         raise ValueError(f"{path}: not a readable .npz archive ({exc})") from exc
     except DAMAGED as exc:
         raise ValueError(
@@ -541,6 +547,7 @@ def _load_gwy(path: Path, channel) -> HeightMap:
     bad = int(np.count_nonzero(~np.isfinite(height)))
     if bad:
         raise ValueError(f"{where}: {bad} NaN or infinite value(s) in the data")
+    mask = _gwy_mask(container.get(f"/{number}/mask"), xres, yres)
     return HeightMap(
         np.ascontiguousarray(height),
         sizes["xreal"] / xres,
@@ -548,7 +555,32 @@ def _load_gwy(path: Path, channel) -> HeightMap:
         offsets["xoff"],
         offsets["yoff"],
         title,
+        layers={GWYDDION_MASK: mask} if mask is not None else {},
         meta=_gwy_meta(container_meta),
+    )
+
+
+def _gwy_mask(field, xres: int, yres: int) -> np.ndarray | None:
+    """A channel's /N/mask as 0/1 in our row order, None when there is none or it marks
+    nothing. Kept, not applied: Gwyddion's masks mark grains, or (its importers') pixels that
+    held no data and were filled in; only the lab knows which (`mask_note`)."""
+    try:
+        marked = np.asarray(field["data"], dtype=np.float64).reshape(yres, xres)[::-1] > 0
+    except (KeyError, TypeError, ValueError):
+        return None
+    return marked.astype(np.uint8) if marked.any() else None
+
+
+def mask_note(hmap: HeightMap, where: str) -> str:
+    """What a user must hear about a .gwy channel's mask before its heights are used ("" if
+    it has none)."""
+    mask = hmap.layers.get(GWYDDION_MASK)
+    if mask is None:
+        return ""
+    return (
+        f"{where}: the channel has a Gwyddion mask over {int(mask.sum())} of {mask.size} pixels; "
+        "it is not applied. If it marks pixels that held no data (Gwyddion's importers fill "
+        "those and mask them), crop them out in Gwyddion first; a grain mask can be ignored"
     )
 
 

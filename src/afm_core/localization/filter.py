@@ -121,9 +121,13 @@ def _direction(axis) -> np.ndarray:
     if isinstance(axis, (str, int)) and not isinstance(axis, bool) and axis in AXES:
         u = np.array(AXES[axis])
     else:
-        u = np.asarray(axis, dtype=float)
+        need = f"axis={axis!r}: need 'x', 'y', 0, 1 or a finite non-zero 2-vector"
+        try:
+            u = np.asarray(axis, dtype=float)
+        except (TypeError, ValueError):  # 'X', or a string of numbers
+            raise ValueError(need) from None
         if u.shape != (2,) or not np.isfinite(u).all() or not np.hypot(*u) > 0:
-            raise ValueError(f"axis={axis!r}: need 'x', 'y', 0, 1 or a finite non-zero 2-vector")
+            raise ValueError(need)
         u = u / np.hypot(*u)
     return u
 
