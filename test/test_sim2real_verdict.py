@@ -185,6 +185,28 @@ def test_the_verdict_json_of_a_named_term(tmp_path):
     assert (record["heldout"]["chi2_before"], record["heldout"]["dof"]) == (800.0, 211)
 
 
+def test_a_report_written_over_one_that_named_a_term_leaves_none_of_its_files(tmp_path):
+    """sim2real --overwrite after a named term: the new verdict named nothing, yet the first
+    run's updated_config.yaml stayed and the command offered it as this run's."""
+    from afm_core.sim2real.report import REPORT_FILES, write_report
+
+    config = _nominal(3)
+    tried = [(["height_gain"], np.array([0.9972]), np.array([0.0005]))]
+    decision, evidence = _decide(
+        config, ["height_gain"], tried, {("height_gain",): _check(800.0, 220.0, 211)}
+    )
+    write_report(_diagnosis(decision, evidence, config), tmp_path, config=config)
+    assert (tmp_path / "updated_config.yaml").exists()
+    (tmp_path / "notes.txt").write_text("the lab's own")
+    worse = {("height_gain",): _check(653.0, 718.0, 600)}
+    decision, evidence = _decide(config, ["height_gain"], tried, worse)
+    write_report(_diagnosis(decision, evidence, config), tmp_path, config=config)
+    assert not (tmp_path / "updated_config.yaml").exists()
+    assert json.loads((tmp_path / "verdict.json").read_text())["updated_config_written"] is False
+    assert (tmp_path / "notes.txt").read_text() == "the lab's own"  # not a report's file
+    assert "report.md" in REPORT_FILES and (tmp_path / "report.md").exists()
+
+
 def test_a_term_no_better_than_its_generic_rival_updates_no_config(tmp_path):
     """Friction named by the held-out rule (399.7 -> 217.7 for 243 dof) on a torsion that a
     generic linear trend in time explains better (205.6): partly explained, this session

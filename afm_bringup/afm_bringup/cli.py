@@ -526,7 +526,12 @@ def _add_sim2real(sub) -> None:
         help="consider only these library terms, e.g. tip_radius,tip_wear (default: all of them; "
         "fewer terms run faster)",
     )
-    p.add_argument("--overwrite", action="store_true", help="write into a non-empty report folder")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into a non-empty report folder (an earlier report's files are removed, "
+        "other files kept)",
+    )
     p.add_argument(
         "--verbose",
         "-v",

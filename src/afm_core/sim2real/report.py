@@ -105,11 +105,28 @@ def _figures(diagnosis, out: Path) -> list[str]:
     return names
 
 
+# every file write_report may write (the figures, the generic fit's terms included)
+REPORT_FILES = (
+    "report.md",
+    "verdict.json",
+    "updated_config.yaml",
+    "overrides.yaml",
+    "generic_terms.yaml",
+    "residuals_time.png",
+    "candidates.png",
+)
+
+
 def write_report(diagnosis, out: Path, config=None, recording: str = "") -> Path:
     """Writes OUT/report.md, OUT/*.png, OUT/updated_config.yaml (when physics was added),
     OUT/overrides.yaml and OUT/verdict.json (`verdict_record`). Returns the report's path."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    # a report written over an earlier one (--overwrite, a batch re-run) must not leave that
+    # one's files behind: an updated_config.yaml from a run that named a term, beside a verdict
+    # of no missing physics, was offered to the lab as this run's
+    for name in REPORT_FILES:
+        (out / name).unlink(missing_ok=True)
     figures = []
     try:
         figures = _figures(diagnosis, out)
