@@ -389,3 +389,22 @@ def test_the_command_shows_progress_and_says_by_its_status_whether_an_item_faile
     # nothing to run: refused with the input named, status 2, no cluster started
     assert main(["batch", "evaluate", str(tmp_path / "none"), "--output", str(tmp_path)]) == 2
     assert "none" in capsys.readouterr().err
+
+
+def test_a_re_run_with_other_settings_keeps_each_row_s_own_report(sessions, tmp_path):
+    """Two tolerances over one recording: both rows pointed at one report file, which held the
+    second run's numbers only."""
+    from afm_core.batch.items import file_sha256
+    from afm_core.batch.runner import run_item
+
+    folder, truth, _ = sessions
+    item = sorted(truth)[0]
+    sha = file_sha256(item)
+    rows = [
+        run_item("evaluate", item, sha, config, {"push_tolerance": tolerance}, str(tmp_path))
+        for config, tolerance in (("0123456789ab", 20e-9), ("fedcba987654", 50e-9))
+    ]
+    assert [r["status"] for r in rows] == ["ok", "ok"], rows
+    assert rows[0]["report"] != rows[1]["report"]
+    for row in rows:
+        assert row["config"][:8] in row["report"] and (tmp_path / row["report"]).is_file()

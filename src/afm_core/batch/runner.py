@@ -133,7 +133,7 @@ def run_item(
             row.update(sweeps.localize_row(int(item), options, shared))
         else:
             with local_file(item) as path:
-                row.update(_recording_row(kind, path, item, sha, options, output))
+                row.update(_recording_row(kind, path, item, sha, config, options, output))
         row["status"] = OK
     except Exception as exc:  # noqa: BLE001 - any failure is this item's row, not the batch's
         row.update(status=FAILED, error=one_line(exc))
@@ -141,9 +141,12 @@ def run_item(
     return row
 
 
-def _recording_row(kind: str, path: Path, item: str, sha: str, options: dict, output: str):
-    # reports are named by the item as given (a URL's file is a temporary copy)
-    report = Path(output) / "reports" / f"{Path(item).stem}-{sha[:12]}"
+def _recording_row(
+    kind: str, path: Path, item: str, sha: str, config: str, options: dict, output: str
+):
+    # reports are named by the item as given (a URL's file is a temporary copy), its content
+    # and the settings: a re-run with other settings keeps the earlier row's report its own
+    report = Path(output) / "reports" / f"{Path(item).stem}-{sha[:12]}-{config[:8]}"
     if kind == "evaluate":
         row = evaluate.evaluate_recording(path, **options)
         report = report.with_name(report.name + ".md")
