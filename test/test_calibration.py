@@ -87,6 +87,27 @@ def test_the_report_file_holds_every_experiments_fit_and_data(calibrated):
     assert written["wall_seconds"] > 0
 
 
+def test_ctrl_c_keeps_the_experiments_done_and_runs_no_more(monkeypatch):
+    """Ctrl-C during an experiment lost every one done before it (hours on an instrument)."""
+    from afm_core.localization.calibration import procedure
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(procedure, "measure_motion_noise", interrupted)
+    heard = []
+    only = ["scanner_matrix", "motion_noise", "line_deflection"]
+    calibration, report = run_calibration(
+        SimulatedAfm(load_config()), **QUICK, only=only, progress=heard.append
+    )
+    assert report["interrupted"] is True
+    assert "scanner_matrix" in calibration.measured and "parameters" in report["scanner_matrix"]
+    assert report["motion_noise"] == {"failed": "interrupted (Ctrl-C)"}
+    assert report["line_deflection"] == {"failed": "not run (interrupted)"}
+    assert "line_deflection_mean_deg" in calibration.defaults
+    assert not any("line_deflection ..." in text for text in heard)
+
+
 def test_a_failed_experiment_keeps_the_others_results(monkeypatch, tmp_path):
     """One experiment that cannot measure (issue 37: "motion noise: only 0 trials measured")
     must not lose the others: the file is written, the failed experiment's fields keep the

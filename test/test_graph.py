@@ -187,6 +187,19 @@ def test_calibrate_refuses_to_overwrite_and_names_a_missing_config(tmp_path):
     )
     assert result.returncode == 2 and "pairs=1" in result.stderr and "[2, " in result.stderr
     assert not (tmp_path / "new.yaml").exists()
+    # outputs that cannot be written were found after the experiments (hours on an instrument)
+    for extra, complaint in (
+        (["-o", str(tmp_path / "no folder" / "cal.yaml")], "the folder"),
+        (["-o", str(tmp_path)], "a folder; name a file"),
+        (["-o", str(tmp_path / "new.yaml"), "--report", str(existing)], "--report"),
+        (["-o", str(existing), "--overwrite", "--report", str(existing)], "the calibration file"),
+    ):
+        result = subprocess.run(
+            AFM + ["calibrate", *extra], capture_output=True, text=True, timeout=60
+        )
+        assert result.returncode == 2 and complaint in result.stderr, (extra, result.stderr)
+        assert "calibrating the" not in result.stdout  # refused before any experiment
+    assert existing.read_text() == "keep me"
 
 
 @pytest.mark.parametrize(

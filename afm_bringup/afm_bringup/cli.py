@@ -733,6 +733,9 @@ def main(argv=None) -> int:
             return INPUT_STATUS
     try:
         return args.func(args) or 0
+    except KeyboardInterrupt:  # Ctrl-C where a command keeps nothing: one line, no traceback
+        print(f"afm {args.command}: interrupted", file=sys.stderr)
+        return 130
     except Exception as exc:
         if args.command in FILE_COMMANDS and isinstance(exc, input_errors()):
             return refuse(args.command, exc)

@@ -25,10 +25,9 @@ def cmd_calibrate(args):
     )
 
     output = Path(args.output)
-    if output.exists() and not args.overwrite:
-        sys.exit(f"afm calibrate: {output} exists (use --overwrite to replace it)")
     try:
-        # before any experiment: a bad count would only fail the drift experiment, hours in
+        # before any experiment: a bad count or an unwritable file would only fail hours in
+        check_outputs(args)
         check_pairs(args.pairs)
         chosen = checked_experiments(args.only)
         previous = load_calibration(args.merge) if args.merge else None
@@ -66,6 +65,8 @@ def cmd_calibrate(args):
         relative = {name: path.relative_to(report_path.parent) for name, path in figures.items()}
         report_path.with_suffix(".md").write_text(report_markdown(report, relative))
     _print_calibration(output, calibration, report)
+    if report.get("interrupted"):
+        print("afm calibrate: interrupted; the experiments done are in the file", file=sys.stderr)
     failed = {n: v["failed"] for n, v in report.items() if isinstance(v, dict) and "failed" in v}
     for name, reason in failed.items():
         print(f"afm calibrate: {name} could not measure: {reason}", file=sys.stderr)
@@ -76,8 +77,33 @@ def cmd_calibrate(args):
             f"repeat them: afm calibrate --only {' '.join(failed)} --merge {output}",
             file=sys.stderr,
         )
-        return 1
+        return INTERRUPTED_STATUS if report.get("interrupted") else 1
     return 0
+
+
+INTERRUPTED_STATUS = 130  # a shell's for Ctrl-C
+
+
+def check_outputs(args) -> None:
+    """ValueError naming the option when the calibration file or the report cannot be written
+    where asked: checked before the experiments, which take hours on an instrument."""
+    output = Path(args.output)
+    targets = [("-o", output)]
+    if args.report:
+        report = Path(args.report)
+        if report.resolve() in {
+            output.resolve(),
+            *([Path(args.merge).resolve()] if args.merge else []),
+        }:
+            raise ValueError(f"--report {report}: the calibration file itself; name another file")
+        targets += [("--report", report), ("--report", report.with_suffix(".md"))]
+    for option, path in targets:
+        if path.is_dir():
+            raise ValueError(f"{option} {path}: a folder; name a file")
+        if not path.parent.is_dir():
+            raise ValueError(f"{option} {path}: the folder {str(path.parent)!r} does not exist")
+        if path.exists() and not args.overwrite:
+            raise ValueError(f"{option} {path}: exists (use --overwrite to replace it)")
 
 
 # run_calibration's progress texts: "experiment K of N: NAME ..." at the start and

@@ -130,6 +130,10 @@ def _attempt(report: dict, name: str, measure, progress=None, instrument=None):
     seconds: on the real instrument the experiments take hours)."""
     chosen = report.get("_chosen", EXPERIMENTS)
     number, total = chosen.index(name) + 1, len(chosen)
+    if report.get("_interrupted"):  # Ctrl-C: what was measured is kept, nothing more is run
+        report[name] = None
+        report.setdefault("_failed", {})[name] = "not run (interrupted)"
+        return None
     wall0 = wallclock.perf_counter()
     clock0 = float(instrument.time) if instrument is not None else 0.0
     if progress is not None:
@@ -141,6 +145,13 @@ def _attempt(report: dict, name: str, measure, progress=None, instrument=None):
         report[name] = None
         report.setdefault("_failed", {})[name] = f"{type(exc).__name__}: {exc}"
         outcome = f"failed ({type(exc).__name__}: {exc})"
+    except KeyboardInterrupt:
+        # hours of experiments done before this one are worth a file: the run ends here and
+        # returns them, this one and the rest listed as not measured
+        report[name] = None
+        report.setdefault("_failed", {})[name] = "interrupted (Ctrl-C)"
+        report["_interrupted"] = True
+        outcome = "interrupted"
     if progress is not None:
         spent = float(instrument.time) - clock0 if instrument is not None else 0.0
         progress(
@@ -269,6 +280,7 @@ def run_calibration(
         lambda: measure_line_deflection(instrument, **(line_deflection or {})),
     )
     report.pop("_chosen")
+    interrupted = report.pop("_interrupted", False)
     failed = report.pop("_failed", {})
     fields = _accepted_fields(_calibration_fields(report), failed)
     stamp = datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -297,6 +309,7 @@ def run_calibration(
         if report.get(name) is not None:
             summary[name]["failed"] = reason
     summary["checks"] = calibration_checks(summary)
+    summary["interrupted"] = interrupted
     summary["instrument_seconds"] = float(instrument.time) - clock0
     summary["wall_seconds"] = wallclock.perf_counter() - started
     return calibration, summary
