@@ -294,6 +294,10 @@ def test_calibration_file_round_trip(calibrated, tmp_path):
         ("creep_fractions_x: [.nan, 0.006, 0.006]", r"creep_fractions_x=\[nan"),
         ("scanner_matrix: [[1.0, '0'], [0.0, 1.0]]", r"scanner_matrix\[0\]\[1\]='0'"),
         ("map_sigma: [5.0e-9, 4nm]", r"map_sigma\[1\]='4nm': expected a number"),
+        ("map_sigma: [-5.0e-9, 4.5e-9]", r"map_sigma=\[-5e-09, 4.5e-09\]: need values in \[0, "),
+        ("scan_region_sigma: 4.7", r"scan_region_sigma=4.7: need values in \[0, 0.00011\]"),
+        ("line_deflection_sigma_deg: -1", r"line_deflection_sigma_deg=-1.0: need values in"),
+        ("hysteresis_x: {thresholds: [0.0, 1.0e-6]}", r"hysteresis_x: need one weight per thr"),
     ],
 )
 def test_a_calibration_file_with_a_bad_list_entry_is_refused_by_name(tmp_path, line, message):

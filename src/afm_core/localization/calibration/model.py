@@ -16,9 +16,12 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from afm_core.instrument import ScannerLimits
 from afm_core.localization.motion_noise import MotionNoise
 from afm_core.sim.config import dataclass_from_dict
 from afm_core.yaml_files import load_yaml
+
+_LONGEST = ScannerLimits().range_x  # m
 
 
 @dataclass
@@ -139,6 +142,34 @@ class Calibration:
                 f"calibration drift_sigma_velocity={self.drift_sigma_velocity}: "
                 "need values >= 0 (m/s)"
             )
+        # standard deviations: >= 0, and a length no scanner spans is a unit slip (4.7 for
+        # 4.7 nm), not a measurement
+        for name, values, unit, top in (
+            ("map_sigma", self.map_sigma, "m", _LONGEST),
+            ("scan_region_sigma", [self.scan_region_sigma], "m", _LONGEST),
+            ("line_deflection_sigma_deg", [self.line_deflection_sigma_deg], "deg", 90.0),
+        ):
+            if not all(math.isfinite(v) and 0 <= v <= top for v in values):
+                raise ValueError(
+                    f"calibration {name}={getattr(self, name)}: need values in [0, {top:g}] "
+                    f"({unit})"
+                )
+        if not (
+            math.isfinite(self.line_deflection_mean_deg)
+            and abs(self.line_deflection_mean_deg) < 90
+        ):
+            raise ValueError(
+                f"calibration line_deflection_mean_deg={self.line_deflection_mean_deg}: need a "
+                "finite angle within (-90, 90) deg"
+            )
+        for name in ("hysteresis_x", "hysteresis_y"):
+            fit = getattr(self, name)
+            if len(fit.thresholds) != len(fit.weights) or len(fit.polynomial) != 3:
+                raise ValueError(
+                    f"calibration {name}: need one weight per threshold ({len(fit.thresholds)} "
+                    f"thresholds, {len(fit.weights)} weights) and 3 polynomial coefficients "
+                    f"({len(fit.polynomial)})"
+                )
         self.motion_noise()  # checks the noise fields
         names = {f.name for f in dataclasses.fields(self)} - {"source", "defaults", "measured"}
         for label, listed in (("defaults", self.defaults), ("measured", self.measured)):
