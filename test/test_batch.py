@@ -408,3 +408,26 @@ def test_a_re_run_with_other_settings_keeps_each_row_s_own_report(sessions, tmp_
     assert rows[0]["report"] != rows[1]["report"]
     for row in rows:
         assert row["config"][:8] in row["report"] and (tmp_path / row["report"]).is_file()
+
+
+@pytest.mark.parametrize(
+    "workers, memory_limit, complaint",
+    [
+        (0, "auto", r"workers=0: must be at least 1"),
+        (1, "1KiB", r"memory_limit: 0 MiB per worker \(1 workers\) is below the 512 MiB"),
+        (1, "-5GiB", r"memory_limit: -5120 MiB per worker"),
+        (1, "lots", r"memory_limit='lots': not a size"),
+        (100_000, "auto", r"\(100000 workers sharing .* GiB\) is below the 512 MiB"),
+    ],
+)
+def test_a_cluster_that_would_not_run_is_refused_before_anything_is_written(
+    sessions, tmp_path, workers, memory_limit, complaint
+):
+    """1 KiB per worker (or 1000 workers sharing the memory) had Dask restart its workers
+    without end: the batch hung with no row; a negative limit gave 14 tracebacks."""
+    folder, _, _ = sessions
+    with pytest.raises(ValueError, match=complaint):
+        run_batch(
+            "evaluate", [str(folder)], tmp_path / "out", workers=workers, memory_limit=memory_limit
+        )
+    assert not (tmp_path / "out").exists()

@@ -165,6 +165,44 @@ def _worker_name() -> str:
         return f"{socket.gethostname()}:{os.getpid()}"
 
 
+# a worker's peak RSS was 140-212 MiB (bench/results/batch.md); below twice that Dask's nanny
+# kills and restarts it without end, and the batch hangs with no row
+MIN_WORKER_MEMORY = 512 * 2**20  # bytes
+
+
+def check_cluster(workers: int | None, scheduler: str | None, memory_limit="auto") -> None:
+    """ValueError naming the option when the embedded cluster would not run: fewer than one
+    worker, a memory limit that is no size, or too little memory per worker."""
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers={workers}: must be at least 1")
+    if scheduler:
+        return
+    from dask.utils import parse_bytes
+    from distributed.system import MEMORY_LIMIT
+
+    count = workers or os.cpu_count() or 1
+    if memory_limit == "auto":
+        per_worker = MEMORY_LIMIT / count
+    else:
+        try:
+            per_worker = (
+                parse_bytes(memory_limit) if isinstance(memory_limit, str) else memory_limit
+            )
+        except ValueError:
+            raise ValueError(
+                f"memory_limit={memory_limit!r}: not a size (e.g. 2GiB, or auto)"
+            ) from None
+        if per_worker == 0:  # Dask's "no limit"
+            return
+    if per_worker < MIN_WORKER_MEMORY:
+        raise ValueError(
+            f"memory_limit: {per_worker / 2**20:.0f} MiB per worker ({count} workers"
+            + (f" sharing {MEMORY_LIMIT / 2**30:.1f} GiB" if memory_limit == "auto" else "")
+            + f") is below the {MIN_WORKER_MEMORY / 2**20:.0f} MiB a worker needs: fewer "
+            "workers or a larger --memory-limit"
+        )
+
+
 @contextlib.contextmanager
 def dask_client(workers: int | None = None, scheduler: str | None = None, memory_limit="auto"):
     """A Client on an embedded LocalCluster (`workers` processes, default one per core, one
@@ -173,8 +211,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, memory
     given, is how many workers to wait for before starting)."""
     from distributed import Client, LocalCluster
 
-    if workers is not None and workers < 1:
-        raise ValueError(f"workers={workers}: must be at least 1")
+    check_cluster(workers, scheduler, memory_limit)
     if scheduler:
         with Client(scheduler, timeout=CONNECT_TIMEOUT) as client:
             if workers:
@@ -253,6 +290,8 @@ def run_batch(
     spec = _kind(kind)
     config = config_hash(kind, spec.row_format, hashed)
     items = parse_seeds(paths) if kind in SEED_KINDS else expand_items(paths)
+    if client is None:  # before anything is written: a refusal leaves no results.csv
+        check_cluster(workers, scheduler, memory_limit)
     output = Path(output).absolute()  # the workers write the sim2real reports into it
     output.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
