@@ -136,6 +136,9 @@ def test_the_table_keeps_older_rows_and_drops_garbled_ones(tmp_path):
     assert row["item"] == "1" and row["seed"] == "1" and row["finished_utc"] == ""
     with pytest.raises(ValueError, match="another kind of batch"):
         ResultsTable(tmp_path / "results.csv", ["item", "other"])
+    # the message names the columns that differ (the common ones said nothing)
+    with pytest.raises(ValueError, match=r"it has \['seed'\], this one writes \['particles'\]"):
+        ResultsTable(tmp_path / "results.csv", COMMON_COLUMNS + ["particles"])
 
 
 def test_sweep_input_is_refused_naming_the_field(tmp_path):

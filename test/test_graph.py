@@ -128,6 +128,11 @@ def test_cli_help_and_info(tmp_path):
     broken.write_bytes(b"not an mcap file")
     info = subprocess.run(AFM + ["info", str(broken)], capture_output=True, text=True)
     assert info.returncode != 0 and "is not an MCAP recording" in info.stderr
+    # a file given as the report folder: named as such, not "[Errno 20] Not a directory"
+    taken = subprocess.run(
+        AFM + ["sim2real", str(path), "--report", str(broken)], capture_output=True, text=True
+    )
+    assert taken.returncode == 2 and "--report" in taken.stderr and "a file" in taken.stderr
 
 
 def test_a_refused_push_prints_the_reason_and_no_position(nodes):

@@ -241,10 +241,13 @@ def cmd_sim2real(args):
     from afm_core.sim2real.diagnose import run_sim2real
 
     report = Path(args.report)
+    if report.exists() and not report.is_dir():
+        return refuse("sim2real", ValueError(f"--report {report}: a file; name a folder"))
     if report.exists() and any(report.iterdir()) and not args.overwrite:
         sys.exit(
             f"afm sim2real: --report {report} is not empty (use --overwrite to write into it)"
         )
+    made_here = not report.exists()
 
     from afm_bringup.progress import Progress
 
@@ -271,6 +274,10 @@ def cmd_sim2real(args):
         return refuse("sim2real", exc)
     except RuntimeError as exc:
         sys.exit(f"afm sim2real: {exc}")
+    except KeyboardInterrupt:
+        if made_here and report.is_dir() and not any(report.iterdir()):
+            report.rmdir()  # an empty folder would read as a report that found nothing
+        raise
     print(f"verdict: {diagnosis.verdict}")
     print(diagnosis.summary())
     held = diagnosis.heldout

@@ -76,9 +76,12 @@ class ResultsTable:
         header = reader.fieldnames or self.columns
         # an older table of this kind lacks only the columns added since: its rows are kept
         if header != self.columns and not set(header) < set(self.columns):
+            # name what differs: the common columns come first and are the same for every kind
+            theirs = [c for c in header if c not in self.columns][:6]
+            ours = [c for c in self.columns if c not in header][:6]
             raise ValueError(
-                f"{self.path}: its columns {header[:8]}... are not this batch's "
-                f"{self.columns[:8]}... (another kind of batch?); use another --output"
+                f"{self.path}: written by another kind of batch (it has {theirs}, this one "
+                f"writes {ours}); use another --output"
             )
         # a whole row has every header cell (DictReader fills a short one with None)
         kept = [
