@@ -158,6 +158,12 @@ def test_cli_levels_and_finds_a_particle_where_a_down_scan_put_it(tmp_path):
 
     listed = afm("channels", scan)
     assert listed.returncode == 0 and listed.stdout.strip() == "0: Z", listed.stderr
+    # a truncated copy lists the same channel but cannot be read: "channels" says so
+    (tmp_path / "cut.sxm").write_bytes(scan.read_bytes()[:-100])
+    cut = afm("channels", tmp_path / "cut.sxm")
+    assert (
+        cut.returncode == 2 and "0: Z (cannot be used:" in cut.stdout and "truncated" in cut.stdout
+    )
     levelled = afm("level", scan, "--method", "plane", "-o", tmp_path / "flat.npz")
     assert levelled.returncode == 0, levelled.stderr
     flat = load_height_map(tmp_path / "flat.npz")

@@ -376,11 +376,22 @@ def cmd_level(args) -> int:
 
 
 def cmd_channels(args) -> int:
+    # each channel is read, not only listed: a truncated file's header lists its channels
+    # as well as a whole one's, and "channels" is how a user checks a file before using it
+    readable = 0
     for number, title in enumerate(list_channels(args.image)):
+        try:
+            load_height_map(args.image, number)
+        except ValueError as exc:
+            print(f"{number}: {title} (cannot be used: {exc})")
+            continue
+        readable += 1
         print(f"{number}: {title}")
     frames = count_frames(args.image)
     if frames > 1:
         print(f"{frames} frames (--frame 0 to {frames - 1})")
+    if not readable:
+        raise ValueError(f"{args.image}: no channel can be read as heights")
     return 0
 
 
