@@ -153,6 +153,10 @@ def test_cli_refuses_bad_input_by_name(tmp_path):
     assert missing.returncode == 2 and "pixel_size" in missing.stderr.replace("-", "_")
     rate = run_cli("drift", scan0, scan0, "--line-rate", 0, "-o", tmp_path / "x.npz")
     assert rate.returncode == 2 and "--line-rate=0.0" in rate.stderr
+    for option, value in (("--line-rate", "inf"), ("--gap", "inf")):
+        given = ["--line-rate", 1, option, value] if option == "--gap" else [option, value]
+        endless = run_cli("drift", scan0, scan0, *given, "-o", tmp_path / "x.npz")
+        assert endless.returncode == 2 and f"{option}=inf: must be finite" in endless.stderr
     # a tip on another grid than the image's (2.5x its pixel): refused, nothing written
     pixel = load_height_map(scan0).pixel_size_x
     coarse = tmp_path / "coarse_tip.npz"

@@ -127,8 +127,10 @@ def _report_timing(timing, gap_given: bool) -> None:
 def cmd_drift(args) -> int:
     from afm_core.imaging.drift_compensation import compensate_pair
 
-    if not args.line_rate > 0:
-        raise ValueError(f"--line-rate={args.line_rate}: must be > 0 Hz")
+    if not (math.isfinite(args.line_rate) and args.line_rate > 0):
+        raise ValueError(f"--line-rate={args.line_rate}: must be finite and > 0 Hz")
+    if isinstance(args.gap, float) and not math.isfinite(args.gap):
+        raise ValueError(f"--gap={args.gap}: must be finite (s), or auto")
     first = _load(args, args.scan0)
     second = _load(args, args.scan90)
     lines0 = first.height.shape[0]
