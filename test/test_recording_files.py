@@ -198,6 +198,12 @@ def test_unfinished_part_file_blocks_the_name(tmp_path):
     (tmp_path / "x.mcap.part").write_bytes(b"unfinished")
     with pytest.raises(RecordingError, match="afm recover"):
         RecordingWriter(tmp_path / "x.mcap")
+    # the command it suggests can be pasted into a shell in a folder whose name has a space
+    folder = tmp_path / "run 3"
+    folder.mkdir()
+    (folder / "x.mcap.part").write_bytes(b"unfinished")
+    with pytest.raises(RecordingError, match=r"`afm recover '.*/run 3/x.mcap.part'`"):
+        RecordingWriter(folder / "x.mcap")
 
 
 def test_unwritable_location_is_refused(tmp_path):

@@ -24,6 +24,7 @@ from afm_bringup.launcher import (
     with_sim_calibration,
 )
 from afm_bringup.units import QuantityArgumentParser, angle_type, length_type, nm, positive_type
+from afm_core.recording.errors import recover_command
 
 
 def _param(text):
@@ -149,7 +150,8 @@ def cmd_info(args):
         return INPUT_STATUS
     if damaged:  # damaged input: exit 2 like every other file command, the report above kept
         print(
-            f"afm info: `afm recover {args.recording}` keeps the undamaged chunks", file=sys.stderr
+            f"afm info: {recover_command(args.recording)} keeps the undamaged chunks",
+            file=sys.stderr,
         )
         return INPUT_STATUS
     return 0

@@ -30,7 +30,7 @@ from mcap_ros2.decoder import DecoderFactory
 from zstandard import ZstdError
 
 from afm_core.recording.bag_folder import recording_file
-from afm_core.recording.errors import RecordingError
+from afm_core.recording.errors import RecordingError, recover_command
 from afm_core.recording.qos import QosDescription, load_profiles
 
 # What damaged bytes raise inside the mcap library and its decompressors: a CRC mismatch
@@ -258,20 +258,20 @@ class RecordingReader:
             self._stream.close()
             raise RecordingError(
                 f"recording {str(self.path)!r} is truncated or corrupt ({exc}); "
-                f"`afm recover {self.path}` saves the complete chunks"
+                f"{recover_command(self.path)} saves the complete chunks"
             ) from exc
         damage = summary_damage(self._stream) if validate_crcs else ""
         if damage:
             self._stream.close()
             raise RecordingError(
-                f"recording {str(self.path)!r} is corrupt: {damage}; `afm recover {self.path}` "
+                f"recording {str(self.path)!r} is corrupt: {damage}; {recover_command(self.path)} "
                 "keeps every message of the undamaged chunks"
             )
         if self.summary is None or self.summary.statistics is None:
             self._stream.close()
             raise RecordingError(
                 f"recording {str(self.path)!r} has no summary (the writer did not finish); "
-                f"`afm recover {self.path}` rebuilds it"
+                f"{recover_command(self.path)} rebuilds it"
             )
 
     def close(self):
@@ -350,7 +350,7 @@ class RecordingReader:
             else describe_damage(exc)
         )
         return RecordingError(
-            f"recording {str(self.path)!r} is corrupt: {where}; `afm recover {self.path}` "
+            f"recording {str(self.path)!r} is corrupt: {where}; {recover_command(self.path)} "
             f"keeps every message of the undamaged chunks"
         )
 

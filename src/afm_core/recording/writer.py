@@ -25,7 +25,7 @@ from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
 from afm_core.recording.definitions import full_message_definition
-from afm_core.recording.errors import RecordingError
+from afm_core.recording.errors import RecordingError, recover_command
 from afm_core.recording.qos import QosDescription, dump_profiles
 
 PART_SUFFIX = ".part"
@@ -57,7 +57,7 @@ def check_output_path(path: str | os.PathLike) -> Path:
     if part_path(path).exists():
         raise RecordingError(
             f"output {str(path)!r}: an unfinished recording {part_path(path).name!r} "
-            f"is in the way; run `afm recover {part_path(path)}` or remove it"
+            f"is in the way; run {recover_command(part_path(path))} or remove it"
         )
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
@@ -276,5 +276,5 @@ class RecordingWriter:
                 pass
             raise RecordingError(
                 f"{self.path}: write failed ({exc.strerror or exc}); the incomplete data is in "
-                f"{self.part}; `afm recover {self.part}` saves what reached the disk"
+                f"{self.part}; {recover_command(self.part)} saves what reached the disk"
             ) from exc
