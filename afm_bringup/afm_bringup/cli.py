@@ -366,7 +366,7 @@ def _add_exposure(p) -> None:
         "--network",
         choices=["localhost", "lab"],
         default="localhost",
-        help="localhost (default): DDS on this machine only (loopback and shared memory); "
+        help="localhost (default): DDS on this machine only (UDP on 127.0.0.1); "
         "lab: discoverable on the subnet, for a lab network (pick a --domain-id)",
     )
 
@@ -382,8 +382,9 @@ def _add_record(sub) -> None:
     p.add_argument(
         "topics",
         nargs="*",
-        help="topics (default: scans, lines, force traces, commands, poses, "
-        "landmarks, goals, truth)",
+        help="topics (default: afm_bringup/config/recorder.yaml's: scans and maps with their "
+        "images, lines, force traces, commands, poses, landmarks, tip shapes, paths, push goals, "
+        "believed objects, teleop commands and status, markers, /tf, /tf_static, truth)",
     )
     p.add_argument("--all", action="store_true", help="record every topic that appears")
     p.add_argument(

@@ -74,7 +74,8 @@ def cmd_calibrate(args):
         print(
             f"afm calibrate: {output} keeps the book's defaults for "
             f"{', '.join(calibration.defaults)} (listed under `defaults:` in the file); "
-            f"repeat them: afm calibrate --only {' '.join(failed)} --merge {output}",
+            f"repeat them: afm calibrate --only {' '.join(failed)} --merge {output} -o {output} "
+            "--overwrite",
             file=sys.stderr,
         )
         return INTERRUPTED_STATUS if report.get("interrupted") else 1

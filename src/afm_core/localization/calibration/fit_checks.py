@@ -64,7 +64,10 @@ def _entry(experiment, parameter, level, value, sigma, message) -> dict:
 
 
 def _repeat(experiment: str) -> str:
-    return f"repeat it: afm calibrate --only {experiment} --merge <this file>"
+    return (
+        f"repeat it: afm calibrate --only {experiment} --merge FILE -o FILE --overwrite "
+        "(FILE: this calibration)"
+    )
 
 
 def _precision(experiment, parameter, value, sigma, unit_scale, unit, residual=None) -> dict:
