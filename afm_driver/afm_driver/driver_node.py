@@ -296,7 +296,11 @@ class DriverNode(Node):
             except Exception as exc:  # noqa: BLE001 - report it and keep serving
                 self.get_logger().error(f"{action_type.__name__} failed: {exc!r}")
                 goal_handle.abort()
-                return action_type.Result(success=False, message=f"driver error: {exc}")
+                # the type too: a MemoryError's text is empty ("driver error: " said nothing)
+                return action_type.Result(
+                    success=False,
+                    message=f"driver error: {type(exc).__name__}: {exc}".rstrip(": "),
+                )
             finally:
                 self.gate.release()
                 self.gate.leave()

@@ -46,6 +46,10 @@ LINES_PER_CHUNK = 16  # raster lines simulated at once (progress and cancel gran
 MOVE_STEP = 2e-9  # m, path sampling of moves (pushes resolve objects finer inside)
 IDLE_STEP = 0.05  # s, scanner sampling while holding still (creep keeps going)
 INDENT_SAMPLES = 200
+# The widest tip grid an image is simulated with: each band's dilation costs up to the grid's
+# pixels times the band's, so finer pixels than this allows (a 100 nm image at 64 px is fine,
+# 1 nm at 64 px would need a 10,000 px grid and took the driver to 23 GB) are refused
+MAX_TIP_GRID = 257  # px across
 
 
 class RasterPath:
@@ -409,6 +413,7 @@ class SimulatedAfm:
         should_stop: StopCheck | None = None,
     ) -> RasterScanData:
         request.validate(self.limits)
+        self._check_tip_grid(request)
         path = RasterPath(request)
         fast_is_x, n_fast, n_lines, line_order = (
             path.fast_is_x,
@@ -486,6 +491,21 @@ class SimulatedAfm:
             mode=request.mode,
             complete=complete,
         )
+
+    def _check_tip_grid(self, request: ScanRequest) -> None:
+        """ValueError, before anything moves, when the image's pixels are finer than the
+        simulator can dilate with this tip over this sample (MAX_TIP_GRID)."""
+        pixel = min(request.size_x / request.pixels_x, request.size_y / request.pixels_y)
+        reach = self.tip.reach(self._imaging_depth())
+        across = 2 * math.ceil(reach / pixel) + 1
+        if across > MAX_TIP_GRID:
+            finest = 2 * reach / (MAX_TIP_GRID - 1)
+            raise ValueError(
+                f"pixel size {pixel * 1e9:.3g} nm: finer than the simulator images with this "
+                f"tip and sample (its tip grid would be {across} px across, at most "
+                f"{MAX_TIP_GRID}); use pixels of at least {finest * 1e9:.2g} nm (fewer pixels or "
+                "a larger area)"
+            )
 
     def _field_for(self, request: ScanRequest) -> DilatedField:
         """Dilated surface over the scan area plus a margin for where hysteresis, creep and

@@ -48,6 +48,29 @@ class TipParams:
             raise ValueError(f"tip.wear_rate={self.wear_rate}: must be >= 0")
 
 
+def tip_reach(
+    apex_radius: float,
+    half_angle_deg: float,
+    depth: float,
+    asymmetry: float = 0.0,
+    apex_shape: str = "paraboloid",
+) -> float:
+    """How far from the apex axis (m) the tip of `paraboloid_cone_tip` reaches at `depth` below
+    the apex, on its widest flank: its grid's half width."""
+    flattest = 1.0 / np.tan(np.radians(half_angle_deg * (1 + abs(asymmetry))))
+    if apex_shape == "sphere":
+        r_t = apex_radius * flattest / np.sqrt(1 + flattest**2)
+        z_t = -(apex_radius - np.sqrt(apex_radius**2 - r_t**2))
+        if depth <= -z_t:
+            return float(np.sqrt(depth * (2 * apex_radius - depth)))
+    else:
+        r_t = apex_radius * flattest
+        z_t = -(r_t**2) / (2 * apex_radius)
+        if depth <= -z_t:
+            return float(np.sqrt(2 * apex_radius * depth))
+    return float(r_t + (depth + z_t) / flattest)
+
+
 def paraboloid_cone_tip(
     apex_radius: float,
     half_angle_deg: float,
@@ -77,18 +100,7 @@ def paraboloid_cone_tip(
         r = apex_radius * slope
         return r, -(r**2) / (2 * apex_radius)
 
-    flattest = 1.0 / np.tan(
-        np.radians(half_angle_deg * (1 + abs(asymmetry)))
-    )  # widest flank's slope
-    r_t, z_t = tangent(flattest)
-    if depth <= -z_t:
-        r_max = (
-            np.sqrt(depth * (2 * apex_radius - depth))
-            if sphere
-            else np.sqrt(2 * apex_radius * depth)
-        )
-    else:
-        r_max = r_t + (depth + z_t) / flattest
+    r_max = tip_reach(apex_radius, half_angle_deg, depth, asymmetry, apex_shape)
     half = int(np.ceil(r_max / pixel_size))
     if max_half_width is not None:
         half = min(half, max_half_width)
@@ -115,6 +127,16 @@ class Tip:
         self.apex_radius = params.apex_radius
         self.contact_distance = 0.0
         self._cache: dict = {}
+
+    def reach(self, depth: float) -> float:
+        """The grid's half width at `depth` (m): how far from the apex the tip can touch."""
+        return tip_reach(
+            self.apex_radius,
+            self.params.half_angle_deg,
+            depth,
+            self.params.asymmetry,
+            self.params.apex_shape,
+        )
 
     def grid(
         self, pixel_size: float, depth: float, max_half_width: int | None = None
