@@ -35,6 +35,35 @@ def test_scan_through_the_driver_action(nodes):
     assert len(scan.line_start_times) == 64 and scan.scan_angle_deg == 90.0
 
 
+def test_ctrl_c_while_waiting_for_a_scan_cancels_it(nodes, ros_node):
+    """Ctrl-C on `afm scan` left its goal running: the driver scanned a 4096 x 4096 image on
+    for minutes, the next scan queued behind it and the interrupted one was published."""
+    from afm_msgs.msg import RasterScan
+    from afm_ros.qos_profiles import SCANS
+
+    nodes("driver", seed=3)
+    published = []
+    ros_node.create_subscription(RasterScan, "/afm/scan", published.append, SCANS)
+
+    def interrupt(_signum, _frame):
+        raise KeyboardInterrupt
+
+    with AfmCommander(server_timeout=20.0) as afm:
+        afm.scan(origin=(54.6e-6, 54.6e-6), size=(0.5e-6, 0.5e-6), pixels=(16, 16))
+        previous = signal.signal(signal.SIGALRM, interrupt)
+        signal.setitimer(signal.ITIMER_REAL, 2.0)  # a shell's Ctrl-C, in the waiting thread
+        try:
+            with pytest.raises(KeyboardInterrupt):  # minutes of computing: never done in 2 s
+                afm.scan(origin=(50e-6, 50e-6), size=(10e-6, 10e-6), pixels=(2048, 2048))
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0.0)
+            signal.signal(signal.SIGALRM, previous)
+        after = afm.scan(origin=(54.6e-6, 54.6e-6), size=(0.5e-6, 0.5e-6), pixels=(16, 16))
+    wait_for(lambda: any(m.scan_id == after.scan_id for m in published), 10, what="the scan")
+    widths = [m.height.width for m in published]
+    assert 2048 not in widths and widths[-1] == 16, widths  # the interrupted scan was stopped
+
+
 def test_commander_reports_a_missing_server_by_name():
     with (
         AfmCommander(server_timeout=0.5) as afm,

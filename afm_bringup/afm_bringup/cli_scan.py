@@ -36,6 +36,9 @@ def cmd_scan(args):
             )
         except AfmError as exc:
             sys.exit(f"afm scan: {exc}")
+        except KeyboardInterrupt:  # the commander has asked the driver to stop the scan
+            print("afm scan: cancelled; the driver stops the scan, nothing saved", file=sys.stderr)
+            return 130
     height = image_msg_to_array(scan.height)
     print(
         f"scan {scan.scan_id}: {height.shape[1]} x {height.shape[0]} px, "

@@ -12,6 +12,7 @@ thread, so calls block only the caller.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 
@@ -41,6 +42,11 @@ from afm_ros.qos_profiles import FEEDBACK, LATCHED
 from afm_ros.teardown import destroy_node_fully
 
 # every node's latest link report: latched, and room for the whole graph's at once
+# why a server may refuse a goal (rclpy's rejection carries no reason; the server's log has it)
+REJECTED = {
+    "push_particle": " (a push or an assembly is running: one manipulation at a time)",
+    "assemble": " (a push or an assembly is running: one manipulation at a time)",
+}
 LINK_REPORTS = QoSProfile(depth=64, reliability=LATCHED.reliability, durability=LATCHED.durability)
 
 
@@ -96,6 +102,11 @@ class Job:
             if heartbeat is not None:
                 heartbeat.forget()
         return self._result_future.result().result
+
+    def cancel_quietly(self) -> None:
+        """Ask the server to stop, without waiting to hear that it did (Ctrl-C's path)."""
+        with contextlib.suppress(AfmError):
+            self.cancel()
 
     def cancel(self, timeout: float = CANCEL_ACK_TIMEOUT_S) -> bool:
         """Ask the server to stop; True when it accepted the cancel. AfmError when it does not
@@ -182,13 +193,23 @@ class AfmCommander:
                 raise AfmError(f"{action}: goal not acknowledged within {self.server_timeout} s")
             handle = future.result()
             if not handle.accepted:
-                raise AfmError(f"{action}: goal rejected by the server")
+                raise AfmError(f"{action}: goal rejected by the server{REJECTED.get(action, '')}")
         except AfmError:
             if progress is not None:
                 progress[0].close()
             raise
+        except KeyboardInterrupt:  # a goal the server accepts after Ctrl-C would still run
+            if event.wait(CANCEL_ACK_TIMEOUT_S) and future.result().accepted:
+                Job(action, future.result(), box, client).cancel_quietly()
+            raise
         job = Job(action, handle, box, client, progress[0] if progress is not None else None)
-        return job.result(timeout) if wait else job
+        if not wait:
+            return job
+        try:
+            return job.result(timeout)
+        except KeyboardInterrupt:  # a goal nobody waits for any more is stopped, not left running
+            job.cancel_quietly()
+            raise
 
     def wait_until_subscribed(
         self, topics_to_check, node_name: str = "afm_recorder", timeout: float = 15.0
