@@ -245,6 +245,10 @@ def test_a_closed_loop_cancel_says_where_it_lifted_the_tip(calibration):
     assert "tip lifted clear" in str(failed.value)
     assert (s.map[mark.id].x, s.map[mark.id].y) == (mark.x, mark.y)  # nothing verified
     assert [m.id for m in lost] == [mark.id]  # but strokes ran: no longer where the map has it
+    # and the user hears it (the next push by id met "unknown" without a reason)
+    assert str(failed.value).endswith(
+        f"particle {mark.id}'s place is no longer known: scan the area before pushing it again"
+    )
 
 
 def test_refusals_come_before_anything_moves(calibration):

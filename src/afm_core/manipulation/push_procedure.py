@@ -354,11 +354,18 @@ class PushProcedure:
             )
             verdict = push_verdict(verification, self.calibration, start_xy, target, tolerance)
         except (ValueError, InstrumentUnavailable, PushFailed) as exc:
-            if strokes_ran:  # failed or cancelled after strokes: the map's place is stale
-                self.on_lost(particle)
-            if isinstance(exc, PushFailed):
-                raise
-            raise PushFailed(str(exc)) from exc
+            if not strokes_ran:
+                if isinstance(exc, PushFailed):
+                    raise
+                raise PushFailed(str(exc)) from exc
+            # failed or cancelled after strokes: the map's place is stale (the graph drops it),
+            # which the next push by id or position would otherwise meet as "unknown"
+            self.on_lost(particle)
+            raise PushFailed(
+                f"{exc}; particle {particle.id}'s place is no longer known: scan the area before "
+                "pushing it again",
+                getattr(exc, "execution", None),
+            ) from exc
         achieved, error = verdict.achieved, verdict.error
         cost.duration = self.instrument.time - started
         moved = replace(particle, x=float(achieved[0]), y=float(achieved[1]))
