@@ -20,7 +20,6 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-
 # scipy's grey filters precompute the footprint's offsets for every border case: about
 # (tip pixels)^2 indices, 2.6 GB for a 135 x 135 tip (a 100 nm scan at 1.6 nm pixels on the
 # simulator). Above this many bytes of them the tip is applied by shifted slices instead.
