@@ -41,12 +41,12 @@ from afm_ros.executor import collect_stopped_tasks
 from afm_ros.qos_profiles import FEEDBACK, LATCHED
 from afm_ros.teardown import destroy_node_fully
 
-# every node's latest link report: latched, and room for the whole graph's at once
 # why a server may refuse a goal (rclpy's rejection carries no reason; the server's log has it)
 REJECTED = {
     "push_particle": " (a push or an assembly is running: one manipulation at a time)",
     "assemble": " (a push or an assembly is running: one manipulation at a time)",
 }
+# every node's latest link report: latched, and room for the whole graph's at once
 LINK_REPORTS = QoSProfile(depth=64, reliability=LATCHED.reliability, durability=LATCHED.durability)
 
 
