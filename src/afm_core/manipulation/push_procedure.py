@@ -81,6 +81,7 @@ from afm_core.manipulation.push_steps import (
     control_pit_sites,
     find_particle,
     in_maps_frame,
+    largest_sigma,
     nearest_particle,
     plan_push,
     rescan_request,
@@ -240,7 +241,7 @@ class PushProcedure:
                 f"push_length, back_length, lateral_offset, step_length, max_steps: only for "
                 f"strategy 'nano_hand' or 'closed_loop', not {strategy!r} (leave them 0)"
             )
-        sigma = float(math.sqrt(max(np.max(np.diag(particle.covariance)), 0.0)))
+        sigma = largest_sigma(particle.covariance)
         # the zigzag's lengths are the maps' frame's, as the strokes they place
         particle, tip_radius = self.maps_frame(particle)
         overrides.check(particle.radius, tip_radius, sigma)

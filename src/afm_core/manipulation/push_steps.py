@@ -204,6 +204,12 @@ def in_maps_frame(
     )
 
 
+def largest_sigma(covariance) -> float:
+    """The standard deviation along the covariance's most uncertain axis of x and y (m): what
+    the zigzag is chosen for."""
+    return float(math.sqrt(max(np.max(np.diag(covariance)), 0.0)))
+
+
 def plan_push(
     particle: Landmark,
     target: np.ndarray,
@@ -217,8 +223,7 @@ def plan_push(
     """The strokes for `strategy`; the nano-hand's zigzag is chosen from the particle's (map)
     and the tip's (localization) uncertainty unless `overrides` fix its lengths. goal_angle:
     the rod hand's goal axis (rad; None: the rod's orientation kept)."""
-    sigma = float(math.sqrt(max(np.max(np.diag(particle.covariance)), 0.0)))
-    tip_sigma = float(math.sqrt(max(np.max(np.diag(tip_cov)), 0.0)))
+    sigma, tip_sigma = largest_sigma(particle.covariance), largest_sigma(tip_cov)
     estimate = ParticleEstimate(
         particle.x, particle.y, particle.radius, math.hypot(sigma, tip_sigma)
     )
@@ -300,7 +305,7 @@ def zigzag_reach(particle: Landmark, strategy: str, tip_radius: float) -> float:
     keeps the tip on the line, or when no zigzag fits (the plan is refused then)."""
     if particle.kind != "sphere" or strategy not in ("nano_hand", "closed_loop"):
         return 0.0
-    sigma = float(math.sqrt(max(np.max(np.diag(particle.covariance)), 0.0)))
+    sigma = largest_sigma(particle.covariance)
     try:
         return choose_nano_hand_params(sigma, particle.radius, tip_radius).h / 2
     except ValueError:
