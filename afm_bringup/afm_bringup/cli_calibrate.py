@@ -9,6 +9,7 @@ from pathlib import Path
 
 from afm_bringup.cli_errors import refuse
 from afm_bringup.progress import Progress
+from afm_core import checks
 
 
 def cmd_calibrate(args):
@@ -99,12 +100,7 @@ def check_outputs(args) -> None:
             raise ValueError(f"--report {report}: the calibration file itself; name another file")
         targets += [("--report", report), ("--report", report.with_suffix(".md"))]
     for option, path in targets:
-        if path.is_dir():
-            raise ValueError(f"{option} {path}: a folder; name a file")
-        if not path.parent.is_dir():
-            raise ValueError(f"{option} {path}: the folder {str(path.parent)!r} does not exist")
-        if path.exists() and not args.overwrite:
-            raise ValueError(f"{option} {path}: exists (use --overwrite to replace it)")
+        checks.new_file(option, path, overwrite=args.overwrite, option="--overwrite")
 
 
 # run_calibration's progress texts: "experiment K of N: NAME ..." at the start and

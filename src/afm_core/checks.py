@@ -92,6 +92,26 @@ def one_of(name: str, value, choices) -> object:
     return value
 
 
+def new_file(
+    name: str, path, suffixes: tuple[str, ...] = (), *, overwrite: bool = False, option: str = ""
+) -> Path:
+    """A file about to be written, checked before the work (which may take hours): not a
+    folder, in a folder that exists, ending in one of `suffixes` (any if empty), and new unless
+    `overwrite` (`option` is the flag that allows it, named in the refusal); else ValueError
+    naming the field."""
+    target = Path(path)
+    if target.is_dir():
+        raise ValueError(f"{name} {path}: a folder; name a file")
+    if target.exists() and not overwrite:
+        fix = f"use {option} to replace it" if option else "not overwriting it"
+        raise ValueError(f"{name} {path}: already exists; {fix} (or choose another name)")
+    if not target.parent.is_dir():
+        raise ValueError(f"{name} {path}: the folder {str(target.parent)!r} does not exist")
+    if suffixes and target.suffix.lower() not in suffixes:
+        raise ValueError(f"{name} {path}: must end in {' or '.join(suffixes)}")
+    return target
+
+
 def inside(name: str, path, roots, hint: str = "") -> Path:
     """`path` resolved (symlinks followed, so a link cannot lead out), when it lies in one of
     the folders `roots` (resolved the same way; empty entries ignored); else ValueError naming

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afm_core import checks
 from afm_core.imaging.files import (
     HeightMap,
     count_frames,
@@ -563,29 +564,14 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
     p.set_defaults(image_func=cmd_channels, channel=0)
 
 
-def check_new_output(path: str, option: str, suffixes: tuple[str, ...] = ()) -> None:
-    """Before any work: `path` must be new, in a folder that exists, with one of `suffixes`
-    (any if empty); an error naming `option` otherwise."""
-    target = Path(path)
-    if target.exists():
-        raise FileExistsError(
-            f"{option} {path}: already exists; not overwriting it (choose another name or "
-            "remove it)"
-        )
-    if not target.parent.is_dir():
-        raise ValueError(f"{option} {path}: the folder {str(target.parent)!r} does not exist")
-    if suffixes and target.suffix.lower() not in suffixes:
-        raise ValueError(f"{option} {path}: must end in {' or '.join(suffixes)}")
-
-
 def run(args) -> int:
     if isinstance(args.channel, str) and args.channel.isdigit():
         args.channel = int(args.channel)
     try:
         if getattr(args, "output", None):
-            check_new_output(args.output, "-o", (".npz", ".gwy"))
+            checks.new_file("-o", args.output, (".npz", ".gwy"))
         if getattr(args, "json", None):
-            check_new_output(args.json, "--json")
+            checks.new_file("--json", args.json)
         return args.image_func(args)
     except (ValueError, OSError, ImportError) as exc:
         print(f"afm image {args.image_command}: {exc}", file=sys.stderr)
