@@ -131,13 +131,17 @@ def test_stop_signals_arriving_while_the_main_thread_holds_the_lock_still_stop(i
 
 
 REFUSING_NODE_SCRIPT = """
+    import ctypes
     import threading
     import rclpy
     from afm_ros.node_main import run
+    GIL_HELD = False
     {patch}
 
     class HalfBuilt:
         def __del__(self):  # deleting what the start had built: where a middleware may block
+            if DELETION_HANGS and GIL_HELD:  # a deadlock inside C++ code that keeps the GIL
+                ctypes.PyDLL(None).sleep(600)
             if DELETION_HANGS:
                 threading.Event().wait()
 
@@ -156,18 +160,21 @@ REFUSING_NODE_SCRIPT = """
         "DELETION_HANGS = False",
         "DELETION_HANGS = False; rclpy.try_shutdown = lambda *a, **k: threading.Event().wait()",
         "DELETION_HANGS = True",
+        "DELETION_HANGS = GIL_HELD = True",
     ],
-    ids=["clean", "shutdown_hangs", "deletion_hangs"],
+    ids=["clean", "shutdown_hangs", "deletion_hangs", "deletion_hangs_holding_the_gil"],
 )
 def test_a_node_that_refuses_its_configuration_exits_with_status_2_even_if_ros_hangs(patch):
-    """A refused node once printed its reason and never exited (make test, 2026-11-28); the
-    other cases make leaving ROS hang for ever, as a middleware deadlock would."""
+    """A refused node once printed its reason and never exited (make test, 2026-11-28; CI,
+    2026-11-29); the other cases make leaving ROS hang for ever, as a middleware deadlock would,
+    the last one while holding the GIL as rclpy's C++ code does."""
     done = run_python(REFUSING_NODE_SCRIPT.format(patch=patch))
     assert done.returncode == 2, (done.returncode, done.stdout, done.stderr)
     assert "refusing probe: parameter model='x.yaml': is not valid YAML" in done.stderr
 
 
 STOPPING_NODE_SCRIPT = """
+    import ctypes
     import threading
     from rclpy.node import Node
     from afm_ros.node_main import run
@@ -183,6 +190,8 @@ STOPPING_NODE_SCRIPT = """
         def destroy_node(self):
             if "{deletion}" == "hangs":  # as a middleware deadlock while its participant goes
                 threading.Event().wait()
+            if "{deletion}" == "hangs_holding_the_gil":  # the same inside rclpy's C++ code
+                ctypes.PyDLL(None).sleep(600)
             if "{deletion}" == "fails":
                 raise RuntimeError("rcl_node_fini failed")
             return super().destroy_node()
@@ -197,6 +206,7 @@ STOPPING_NODE_SCRIPT = """
     [
         ("works", 3, None),
         ("hangs", 3, "leaving ROS took over 5 s"),
+        ("hangs_holding_the_gil", 3, "Thread "),  # no Python runs: the stacks, then status 3
         ("fails", 3, "leaving ROS failed: RuntimeError('rcl_node_fini failed')"),
         ("fails", 0, "leaving ROS failed"),  # a clean stop whose clean-up failed: status 1
     ],

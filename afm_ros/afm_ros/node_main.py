@@ -24,6 +24,7 @@ from rclpy.signals import SignalHandlerOptions
 from afm_ros import exposure, links, stall_watch
 from afm_ros.action_client import STOPPING
 from afm_ros.executor import collect_stopped_tasks, multi_threaded
+from afm_ros.hard_exit import Deadline
 from afm_ros.teardown import destroy_node_fully
 
 _LOADED = time.monotonic()
@@ -33,6 +34,9 @@ DRAIN_IDLE = 0.01  # s without a ready callback: what had arrived is taken
 # process exits anyway, so a stop takes at most about 2 s with the drain's share.
 STOP_GRACE_S = 1.0
 LEAVE_ROS_S = 5.0  # s a node gets to delete itself and shut ROS down before it exits anyway
+# then, if the GIL is still held by the middleware (no Python thread runs), the C-level
+# deadline ends the process with its status
+HARD_EXIT_AFTER_S = LEAVE_ROS_S + 1.0
 SPIN_SLICE_S = 0.1  # the main thread looks at the stop flag this often
 PARENT_PID_ENV = "AFM_LAUNCHER_PID"  # set by afm_bringup.launcher.Graph for its children
 # exit status of a node that refuses its configuration or command line: afm_bringup.launcher
@@ -193,7 +197,7 @@ def run(
             _exit_now(status)
         for error in collect_stopped_tasks(executor):
             print(f"{program}: a callback failed while stopping: {error!r}", file=sys.stderr)
-        left, error = _leave_ros(lambda: (destroy_node_fully(node), rclpy.try_shutdown()))
+        left, error = _leave_ros(lambda: (destroy_node_fully(node), rclpy.try_shutdown()), status)
         if watch is not None:
             watch.stop()
         if error is not None:
@@ -218,18 +222,22 @@ def exit_refused(refusal: list) -> NoReturn:
         gc.collect()  # in case reference cycles still hold the half-built node
         rclpy.try_shutdown()
 
-    _leave_ros(leave)
+    _leave_ros(leave, REFUSED_STATUS)
     _exit_now(REFUSED_STATUS)
 
 
-def _leave_ros(release: Callable[[], object]) -> tuple[bool, Exception | None]:
+def _leave_ros(release: Callable[[], object], status: int) -> tuple[bool, Exception | None]:
     """Run `release` (deleting the node, shutting ROS down) in a thread of its own: (True if
     it ended within LEAVE_ROS_S, the exception it raised or None).
 
     Why a thread: in `make test` (2026-11-28) a node refused while 17 others started beside it
     printed its reason and then never exited (not reproduced in 288 later runs under load).
     Fast DDS is known to deadlock now and then when a participant is deleted while others are
-    being discovered (eProsima/Fast-DDS#6193); a stop must not wait on that for ever."""
+    being discovered (eProsima/Fast-DDS#6193); a stop must not wait on that for ever.
+    Why also a Deadline: a deadlock inside rclpy's C++ code keeps the GIL, and then the join's
+    timeout never returns (CI, 2026-11-29: a refused recorder hung 90 s); the deadline ends
+    the process with `status` from outside the interpreter, after writing the threads' stacks."""
+    deadline = Deadline(HARD_EXIT_AFTER_S, status)
     failed = []
 
     def guarded():
@@ -241,7 +249,10 @@ def _leave_ros(release: Callable[[], object]) -> tuple[bool, Exception | None]:
     thread = threading.Thread(target=guarded, name="afm-leave-ros", daemon=True)
     thread.start()
     thread.join(LEAVE_ROS_S)
-    return not thread.is_alive(), (failed[0] if failed else None)
+    left = not thread.is_alive()
+    if left:
+        deadline.cancel()  # else it stays armed over the exit that follows
+    return left, (failed[0] if failed else None)
 
 
 def rcl_reason(exc: Exception) -> str:
