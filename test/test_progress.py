@@ -105,3 +105,33 @@ def test_calibrate_counts_the_experiments_the_core_reports():
         _attempt(report, "creep", lambda: 2, lambda t: _experiment_progress(bar, t))
         assert bar.done == 2
     assert "afm calibrate: experiment 2 of 2: creep done in" in tty.getvalue()
+
+
+def test_a_finished_action_ends_at_its_total_and_late_feedback_is_ignored():
+    """Feedback is best effort and travels apart from the result: a scan whose last lines'
+    feedback was dropped (or comes after the result) still ends its log at the total."""
+    log = io.StringIO()
+    bar = Progress("scan", "lines", 100, log)
+    for k in range(1, 91):
+        bar.update(k, 100)
+    bar.close(finished=True)
+    bar.update(95, 100)  # the late feedback
+    lines = log.getvalue().splitlines()
+    assert lines[-1] == "scan: 100 of 100 lines", lines
+    assert "scan: 95 of 100 lines" not in lines
+
+
+def test_an_unfinished_action_ends_at_what_was_done():
+    log = io.StringIO()
+    bar = Progress("scan", "lines", 100, log)
+    bar.update(37, 100)
+    bar.close()  # failed or cancelled: the count stays where the work stopped
+    assert log.getvalue().splitlines()[-1] == "scan: 37 of 100 lines"
+
+
+def test_on_a_terminal_a_finished_bar_shows_the_total():
+    screen = Terminal()
+    bar = Progress("scan", "lines", 64, screen)
+    bar.update(60, 64)
+    bar.close(finished=True)
+    assert "64/64" in screen.getvalue().split("\r")[-1]

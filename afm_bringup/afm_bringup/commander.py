@@ -17,6 +17,7 @@ import threading
 import time
 
 import rclpy
+from action_msgs.msg import GoalStatus
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
@@ -58,6 +59,17 @@ class ServerGone(AfmError):
     """The action server stopped answering while we waited (its node died or hangs)."""
 
 
+def succeeded(result_future) -> bool:
+    """The action ended with its work done: status SUCCEEDED and, where the result has one,
+    success set."""
+    if result_future.cancelled() or result_future.exception() is not None:
+        return False
+    response = result_future.result()
+    return response.status == GoalStatus.STATUS_SUCCEEDED and getattr(
+        response.result, "success", True
+    )
+
+
 class Job:
     """A sent goal: wait for its result, read its latest feedback, or cancel it. While waiting
     the server is probed (a heartbeat): one that stops answering (its node died) ends the
@@ -70,7 +82,9 @@ class Job:
         self._client = client
         self._result_future = goal_handle.get_result_async()
         if progress is not None:  # the bar ends with the action, whoever waits for it
-            self._result_future.add_done_callback(lambda _f: progress.close())
+            self._result_future.add_done_callback(
+                lambda future: progress.close(finished=succeeded(future))
+            )
 
     @property
     def feedback(self):

@@ -24,7 +24,7 @@ class Progress:
     def __init__(self, what: str, unit: str = "", total: int | None = None, stream=None):
         self.what, self.unit, self.total = what, unit, total
         self.stream = stream if stream is not None else sys.stderr
-        self.done, self.status, self.updated = 0, "", False
+        self.done, self.status, self.updated, self.closed = 0, "", False, False
         self._logged_done, self._logged_status = -1, None
         isatty = getattr(self.stream, "isatty", lambda: False)
         self._bar = (
@@ -46,6 +46,8 @@ class Progress:
         return self._bar is not None
 
     def update(self, done: int, total: int | None = None, status: str = "") -> None:
+        if self.closed:  # feedback travels apart from the result and may come after it
+            return
         self.done, self.updated = int(done), True
         if total:
             self.total = int(total)
@@ -78,7 +80,18 @@ class Progress:
         print(f"{self.what}: {count}{unit}{status}", file=self.stream, flush=True)
         self._logged_done, self._logged_status = self.done, self.status
 
-    def close(self) -> None:
+    def close(self, finished: bool = False) -> None:
+        """finished: the work is known to be complete (the action succeeded), so the count
+        ends at the total even when the last feedback was dropped or has not arrived yet
+        (feedback is best effort and travels apart from the result)."""
+        if self.closed:
+            return
+        self.closed = True
+        if finished and self.total:
+            self.done, self.updated = self.total, True
+            if self._bar is not None:
+                self._bar.n = self.total
+                self._bar.refresh()
         if self._bar is not None:
             self._bar.close()
             self._bar = None
