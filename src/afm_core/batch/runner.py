@@ -33,6 +33,7 @@ SEED_KINDS = (
 )  # items: seeds of a benchmark sweep, keyed by the seed
 KINDS = RECORDING_KINDS + SEED_KINDS
 ERROR_CHARS = 300  # an error cell is one line, this long at most (the full text is in the log)
+WORKER_SETUP = "afm_core.batch.worker_setup"
 CONNECT_TIMEOUT = 30.0  # s to reach a --scheduler (a wrong address must not hang the command)
 
 
@@ -228,6 +229,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, memory
             # an ephemeral port: the scheduler always serves HTTP (health, metrics), and the
             # default 8787 would collide with another cluster on the machine; this machine only
             dashboard_address="127.0.0.1:0",
+            preload=[WORKER_SETUP],  # the workers leave Ctrl-C to this process
         ) as cluster,
         Client(cluster) as client,
     ):
