@@ -52,16 +52,19 @@ class Deadline:
     STACKS_BEFORE_S = 0.5  # the stacks are written this long before the exit
 
     def __init__(self, seconds: float, status: int):
-        if not 0 <= status <= 255:
-            raise ValueError(f"status={status}: an exit status is 0-255")
+        status &= 0xFF  # what the parent would read of _exit(status) anyway
         self._libc = None
         self._timer = None
-        faulthandler.dump_traceback_later(
-            max(seconds - self.STACKS_BEFORE_S, 0.01), exit=False, file=sys.__stderr__
-        )
-        self._timer_armed = self._arm_timer(seconds, status)
-        if not self._timer_armed:
-            faulthandler.dump_traceback_later(seconds, exit=True, file=sys.__stderr__)
+        timed = self._arm_timer(seconds, status)
+        self.exits_with = status if timed else 1  # else faulthandler's own exit status
+        try:
+            faulthandler.dump_traceback_later(
+                max(seconds - self.STACKS_BEFORE_S, 0.01) if timed else seconds,
+                exit=not timed,
+                file=sys.__stderr__,
+            )
+        except (ValueError, RuntimeError, AttributeError):  # no stderr to write the stacks to
+            pass
 
     def _arm_timer(self, seconds: float, status: int) -> bool:
         if not sys.platform.startswith("linux"):
