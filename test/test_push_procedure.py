@@ -251,6 +251,34 @@ def test_a_closed_loop_cancel_says_where_it_lifted_the_tip(calibration):
     )
 
 
+@pytest.mark.parametrize("strategy", ["closed_loop", "nano_hand"])
+def test_a_plan_refused_after_localizing_leaves_the_particle_on_the_map(calibration, strategy):
+    """A particle too uncertain for the zigzag: nothing touched it, so the map keeps it (the
+    closed loop's refusal at planning, after the pits, the before image and the localization,
+    dropped it and told the user to rescan, as after strokes)."""
+    s = Session(calibration)
+    lost = []
+    s.procedure.on_lost = lost.append
+    mark = s.row[1]
+    s.map[mark.id] = replace(mark, covariance=np.diag([(40 * NM) ** 2] * 2))
+    start = np.array([mark.x, mark.y])
+    truth_before = s.true_sphere(start)
+    with pytest.raises((PushFailed, PushRefused)) as failed:
+        s.procedure.push(
+            mark.id, start + [0.0, -400 * NM], strategy=strategy, progress=s.reports.append
+        )
+    assert "too wide" in str(failed.value), failed.value
+    assert "no longer known" not in str(failed.value)
+    assert lost == [] and mark.id in s.map
+    assert "pushing" not in [r.phase for r in s.reports]
+    assert math.hypot(*(s.true_sphere(truth_before) - truth_before)) < 1 * NM  # untouched
+    # the open loop plans with the map's sigma: refused before the pits; the closed loop
+    # observes the particle first (its sigma may shrink), so it is refused only at planning
+    late = "localizing" in [r.phase for r in s.reports]
+    assert late == (strategy == "closed_loop"), [r.phase for r in s.reports]
+    assert isinstance(failed.value, PushRefused) == (strategy == "nano_hand")
+
+
 def test_refusals_come_before_anything_moves(calibration):
     s = Session(calibration)
     lost = []

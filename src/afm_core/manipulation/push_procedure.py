@@ -59,6 +59,7 @@ from afm_core.manipulation.execute import (
     execute_plan,
     pushed_object_after,
 )
+from afm_core.manipulation.nano_hand import choose_nano_hand_params
 from afm_core.manipulation.particle_observation import TipTrack
 from afm_core.manipulation.plans import PushPlan, path_blocker
 from afm_core.manipulation.push_parameters import (
@@ -205,6 +206,13 @@ class PushProcedure:
             s["rescan_line_rate"],
             self.instrument.limits,
         )
+        if strategy == "nano_hand" and particle.kind == "sphere":
+            # the open loop plans with the map's sigma (and the localized tip's, which can only
+            # add to it): one too wide for any zigzag is refused before the pits are made
+            maps_particle, tip_radius = self.maps_frame(particle)
+            choose_nano_hand_params(
+                largest_sigma(particle.covariance), maps_particle.radius, tip_radius
+            )
         if not blockers:
             return
         others = [m for m in self.landmarks().values() if m.id != particle.id]
@@ -311,7 +319,15 @@ class PushProcedure:
     ) -> PushResult:
         """The push of a checked goal: scan, localize, plan, execute, rescan, verify. rod: a
         tube's or rod's goal angle (None: keep its orientation)."""
-        cost, strokes_ran = PushCost(), False
+        cost, planned = PushCost(), []
+
+        def progress_watched(p: Progress) -> None:
+            # the first "pushing" report comes once a plan stands, before its first stroke:
+            # from then on the particle may have moved (a refused plan touched nothing)
+            if p.phase == "pushing":
+                planned.append(True)
+            progress(p)
+
         if rod is None and particle.kind != "sphere":
             rod = rod_goal_for(particle, None, self.settings["default_angle_tolerance"])
         try:
@@ -325,14 +341,13 @@ class PushProcedure:
             start_in_scan = task_to_command(
                 tip.mean, np.array(self.instrument.commanded_position()), self.scanner_matrix
             )(start_xy)
-            strokes_ran = True  # from here on the particle may have moved
             if strategy == "closed_loop":
                 plan, execution, cost = self._closed_loop(
-                    particle, target, tip, tolerance, overrides, progress, should_stop, rod
+                    particle, target, tip, tolerance, overrides, progress_watched, should_stop, rod
                 )
             else:
                 plan, execution = self._execute(
-                    particle, target, strategy, tip, overrides, progress, should_stop, rod
+                    particle, target, strategy, tip, overrides, progress_watched, should_stop, rod
                 )
                 cost.legs = 1
                 cost.slid = sum(
@@ -355,7 +370,7 @@ class PushProcedure:
             )
             verdict = push_verdict(verification, self.calibration, start_xy, target, tolerance)
         except (ValueError, InstrumentUnavailable, PushFailed) as exc:
-            if not strokes_ran:
+            if not planned:
                 if isinstance(exc, PushFailed):
                     raise
                 raise PushFailed(str(exc)) from exc
