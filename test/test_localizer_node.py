@@ -198,3 +198,52 @@ def test_no_pose_is_published_for_a_time_the_driver_has_not_yet_said_what_it_did
         at.setdefault(round(stamp_of(pose.header), 6), []).append(pose.pose.pose.position.x)
     spread = {t: max(xs) - min(xs) for t, xs in at.items()}
     assert max(spread.values()) < 1e-9, spread
+
+
+def test_a_tip_command_no_driver_can_have_run_is_ignored(nodes, ros_node):
+    """Another program's TipCommand ending at 1 m (the scanner is 110 um), or one stamped
+    1e6 s ahead of the clock, put the localizer's estimate there for good: every later
+    Localize was refused as out of range until the node was restarted."""
+    from rosgraph_msgs.msg import Clock
+
+    from afm_msgs.msg import TipCommand
+    from afm_ros import topics
+    from afm_ros.conversions import seconds_to_time, stamp_of
+    from afm_ros.qos_profiles import EVENTS
+
+    nodes("localizer")
+    poses = []
+    ros_node.create_subscription(PoseWithCovarianceStamped, topics.TIP_POSE, poses.append, 100)
+    commands = ros_node.create_publisher(TipCommand, topics.TIP_COMMAND, EVENTS)
+    clock = ros_node.create_publisher(Clock, "/clock", 10)
+    wait_for(lambda: clock.get_subscription_count() > 0, 30, what="the localizer listening")
+
+    def command(start_time, end, kind=TipCommand.MOVE):
+        msg = TipCommand(kind=kind, duration=0.1, speed=1e-6)
+        msg.header.stamp, msg.header.frame_id = seconds_to_time(start_time), "afm_scanner"
+        msg.start.x, msg.start.y = end
+        msg.end.x, msg.end.y = end
+        msg.start_voltage = msg.end_voltage = [float("nan")] * 3
+        commands.publish(msg)
+
+    here = (50e-6, 50e-6)
+    command(1.0, here)
+    clock.publish(Clock(clock=seconds_to_time(1.1)))
+    wait_for(lambda: poses, 30, what="a pose after the first command")
+    command(2.0, (1.0, 50e-6))  # 1 m: outside the scanner
+    command(1e6, (60e-6, 50e-6))  # a million seconds ahead of the clock
+    command(2.5, (60e-6, 50e-6), kind=42)  # no such kind
+    there = (51e-6, 50e-6)
+    command(3.0, there)
+    clock.publish(Clock(clock=seconds_to_time(3.1)))
+    wait_for(
+        lambda: any(stamp_of(p.header) >= 3.1 - 1e-6 for p in list(poses)),
+        10,
+        what="a pose after the good command",
+    )
+    time.sleep(0.3)
+    last = list(poses)[-1]
+    assert stamp_of(last.header) < 10.0, stamp_of(last.header)  # not moved to 1e6 s
+    x = last.pose.pose.position.x
+    # where the good command left the tip (the estimate follows the commands' model), not 1 m
+    assert abs(x - there[0]) < 5e-6, x

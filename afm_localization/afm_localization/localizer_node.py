@@ -35,7 +35,12 @@ from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.action import Localize
 from afm_msgs.msg import LandmarkArray, TipCommand
 from afm_ros import frames, params, topics
-from afm_ros.action_instrument import ActionInstrument, DriverUnavailable, stamp_seconds
+from afm_ros.action_instrument import (
+    ActionInstrument,
+    DriverUnavailable,
+    stamp_seconds,
+    tip_command_problem,
+)
 from afm_ros.conversions import (
     FRAME_TASK,
     mean_cov_to_pose,
@@ -97,6 +102,7 @@ APPLY = {
         for name in ("line_speed", "move_speed", "sample_spacing", "threshold_fraction", "margin")
     },
 }
+FUTURE_COMMAND_S = 3600.0  # s a command may start after the newest clock heard
 KINDS = {
     TipCommand.SCAN_LINE: "line",
     TipCommand.INDENT: "indent",
@@ -161,6 +167,12 @@ class LocalizerNode(Node):
         while self.pending:
             msg = self.pending.popleft()
             start_time = stamp_seconds(msg.header.stamp)
+            problem = tip_command_problem(msg, self.instrument.limits) or self.future_problem(
+                start_time
+            )
+            if problem is not None:
+                self.get_logger().error(f"tip command ignored: {problem}")
+                continue
             start, end = (msg.start.x, msg.start.y), (msg.end.x, msg.end.y)
             if self.localizer is None:
                 self.instrument.rest_at(start, start_time)
@@ -192,6 +204,19 @@ class LocalizerNode(Node):
                     self.publish(self.localizer.time)  # the estimate as each command ends
             except ValueError as exc:
                 self.get_logger().error(f"tip command ignored: {exc}")
+
+    def future_problem(self, start_time: float) -> str | None:
+        """A command that starts far after the newest clock heard (one stamped 1e6 s ahead
+        moved the estimate's time there, and every later command looked already accounted
+        for); None if it does not. The bound is wide, as a fast simulator's /clock may lag
+        its commands by many of its seconds."""
+        now = self.now()
+        if start_time > now + FUTURE_COMMAND_S:
+            return (
+                f"header.stamp={start_time:.3f} s: {start_time - now:.0f} s after the clock "
+                f"({now:.3f} s); at most {FUTURE_COMMAND_S:.0f} s ahead is taken"
+            )
+        return None
 
     def heard_every_command(self) -> bool:
         """Whether every command up to the driver's /clock has reached us. The simulated driver's

@@ -13,6 +13,7 @@ driver reported (its results carry the executed TipCommand).
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -30,10 +31,12 @@ from afm_core.instrument import (
     ScanLineData,
     ScannerLimits,
     ScanRequest,
+    check_in_range,
     validate_indent,
     validate_move,
 )
 from afm_msgs.action import Indent, LocalScan, MoveTip, ScanImage
+from afm_msgs.msg import TipCommand
 from afm_ros import topics
 from afm_ros.action_client import (
     CANCEL_ACK_TIMEOUT_S,
@@ -52,6 +55,36 @@ class DriverUnavailable(InstrumentUnavailable):
 
 def stamp_seconds(stamp) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
+
+
+TIP_COMMAND_KINDS = {
+    TipCommand.MOVE: "MOVE",
+    TipCommand.SCAN_LINE: "SCAN_LINE",
+    TipCommand.RASTER: "RASTER",
+    TipCommand.PUSH: "PUSH",
+    TipCommand.INDENT: "INDENT",
+}
+
+
+def tip_command_problem(command, limits: ScannerLimits) -> str | None:
+    """Why a reported TipCommand cannot be one a driver executed on a scanner with `limits`
+    (None: it can). Every node that follows /afm/tip_command takes the last one's end as
+    where the tip is commanded: one bogus message (an end at 1 m, another program's test)
+    otherwise put the localizer's estimate there for good."""
+    if command.kind not in TIP_COMMAND_KINDS:
+        known = ", ".join(f"{name}={kind}" for kind, name in TIP_COMMAND_KINDS.items())
+        return f"kind={command.kind}: not a TipCommand kind ({known})"
+    start = stamp_seconds(command.header.stamp)
+    if not start > 0.0:
+        return f"header.stamp={start} s: must be after the epoch (when the command started)"
+    if not (math.isfinite(command.duration) and command.duration >= 0.0):
+        return f"duration={command.duration}: must be finite and >= 0 (s)"
+    for name, point in (("start", command.start), ("end", command.end)):
+        try:
+            check_in_range(name, point.x, point.y, limits)
+        except ValueError as exc:
+            return str(exc)
+    return None
 
 
 def msg_to_scan_line(msg) -> ScanLineData:
@@ -247,16 +280,22 @@ class ActionInstrument:
             raise DriverUnavailable(f"{self._clients[name]._action_name}: {result.message}")
         return result
 
-    def observe_command(self, command) -> None:
+    def observe_command(self, command) -> bool:
         """A TipCommand the driver executed (ours, from a result, or anyone's, from
         /afm/tip_command): the instrument is now where and when it ended, unless a later
-        command is already known."""
+        command is already known. One that no driver can have executed (tip_command_problem)
+        is logged and ignored: False."""
+        problem = tip_command_problem(command, self.limits)
+        if problem is not None:
+            self.node.get_logger().error(f"{topics.TIP_COMMAND} message ignored: {problem}")
+            return False
         end_time = stamp_seconds(command.header.stamp) + command.duration
         with self._lock:
             if end_time > self.time or self._commanded is None:
                 self.time = end_time
                 self._commanded = (command.end.x, command.end.y)
                 self.last_command = command
+        return True
 
     def rest_at(self, position, time: float) -> None:
         """Declare where and when the instrument was before the first command we know of."""
