@@ -119,8 +119,9 @@ def _experiment_progress(bar, text: str) -> None:
 
 
 def _print_calibration(output, calibration, report) -> None:
-    """The headline figures (those measured; the file's `defaults:` lists the rest) and every
-    warning of the fit checks."""
+    """The headline figures (those measured; the file's `defaults:` lists the rest), every
+    warning of the fit checks, and a last line: how many experiments failed (any error check),
+    else how many warnings, else that every fit check passed."""
     c, measured = calibration, set(calibration.measured)
     parts = [
         ("hysteresis_x", f"hysteresis loop x {c.hysteresis_x.loop_fraction:.3f} of the range"),
@@ -144,10 +145,24 @@ def _print_calibration(output, calibration, report) -> None:
     ]
     shown = [text for field, text in parts if field in measured]
     print(f"wrote {output}: " + ("; ".join(shown) if shown else "nothing measured"))
-    warnings = [c for c in report.get("checks", []) if c["level"] == "warning"]
+    fit_checks = report.get("checks", [])
+    warnings = [c for c in fit_checks if c["level"] == "warning"]
     for check in warnings:
         print(f"afm calibrate: WARNING {check['experiment']}: {check['message']}", file=sys.stderr)
-    if not warnings:
+    # an experiment that could not measure is an error check (and `{"failed": ...}` in the
+    # report): it never passed, whatever the warnings say
+    run = [n for n, v in report.items() if isinstance(v, dict)]  # the experiments, in order
+    errors = {c["experiment"] for c in fit_checks if c["level"] == "error"}
+    failed = [n for n in run if n in errors or "failed" in report[n]]
+    failed += sorted(errors - set(failed))
+    if failed:
+        print(
+            f"afm calibrate: {len(failed)} of {len(run)} experiments failed "
+            f"({', '.join(failed)}); {len(warnings)} warning(s) (see --report for each check)"
+        )
+    elif warnings:
+        print(f"afm calibrate: {len(warnings)} warning(s) (see --report for each check)")
+    else:
         print("afm calibrate: every fit check passed (see --report for each fit's residual)")
 
 

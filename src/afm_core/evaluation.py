@@ -8,8 +8,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from afm_core.instrument import ScannerLimits
-
 
 @dataclass
 class ParticleView:
@@ -256,7 +254,8 @@ APPROACH_BEYOND = np.array([2e-6, 2e-6])  # m: an image's approach overshoot (on
 def image_frame_matrix(config=None, step: float = 1e-6, at=None) -> np.ndarray:
     """Evaluation only (simulator truth): true displacement per commanded displacement for a
     short move about the scanner centre (or about `at`, m, reached by a move from the centre
-    and approached from beyond, as the driver approaches images: the scanner's gain depends on
+    and approached from beyond, within the config's `limits` range, as the driver approaches
+    images: the scanner's gain depends on
     its hysteresis branch, which this makes the images' own), on a noise-, drift- and
     creep-free copy of the simulated instrument. Images and calibrated maps are in commanded
     coordinates (the frame the calibration experiments measure in); the simulator's truth is
@@ -282,7 +281,7 @@ def image_frame_matrix(config=None, step: float = 1e-6, at=None) -> np.ndarray:
         if at is not None:
             # from beyond, as the driver approaches every image (imaging.raster_approach): the
             # step then sweeps the reversed hysteresis branch the images are taken on
-            limits = ScannerLimits()
+            limits = sim.limits  # the config's range, not the default instrument's
             beyond = np.minimum(
                 np.asarray(at, dtype=float) + APPROACH_BEYOND, (limits.range_x, limits.range_y)
             )

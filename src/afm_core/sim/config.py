@@ -116,6 +116,97 @@ class SimConfig:
 
     def __post_init__(self):
         parse_generic_terms(self.generic_terms)  # a bad entry is an error naming its field
+        check_ranges(self.limits, self.scanner)
+        check_controller_model(self.scanner, self.controller)
+
+
+RANGE_AXES = ("range_x", "range_y")
+
+
+def check_ranges(limits: ScannerLimits, scanner: ScannerParams) -> None:
+    """ValueError naming both keys when limits.range_* and scanner.range_* disagree.
+
+    They are one travel: `limits` is what every request is checked against ([0, range]),
+    `scanner` what the piezo model spans (centred at range/2, where the tip rests at power-on).
+    A scanner shorter than the limits reports moves past its end as reached (its amplifier
+    clamps them); limits shorter than the scanner put the power-on position outside them. A
+    user file or `merge` that sets only one of the two sets the other to it (`_follow_ranges`).
+    """
+    for name in RANGE_AXES:
+        limit, travel = getattr(limits, name), getattr(scanner, name)
+        if not math.isclose(limit, travel, rel_tol=1e-9, abs_tol=0.0):
+            raise ValueError(
+                f"limits.{name}={limit:.4e} m and scanner.{name}={travel:.4e} m disagree: both "
+                "are the scanner's travel (limits checks every request against [0, range], "
+                "scanner models the piezo over it and rests at its centre at power-on); change "
+                f"limits.{name} to {travel:.4e} m or scanner.{name} to {limit:.4e} m, whichever "
+                "is not the scanner's real travel, or give only one of them: the other follows it"
+            )
+
+
+def check_controller_model(scanner: ScannerParams, controller: ControllerParams) -> None:
+    """ValueError naming the keys when the controller's hysteresis model (the scanner's loop
+    width x (1 + controller.model_error), its asymmetry minus controller.asymmetry_error) is not
+    one the simulator can build (PrandtlIshlinskii.from_fraction): checked at load, so a
+    config never fails later, when the instrument is built, on a value nobody wrote."""
+    if not (
+        controller.hysteresis_compensation
+        and scanner.hysteresis_enabled
+        and scanner.hysteresis_fraction > 0
+    ):
+        return  # no feed-forward: the controller has no model
+    error = controller.model_error
+    if not (math.isfinite(error) and error > -1.0):
+        raise ValueError(
+            f"controller.model_error={error}: must be finite and > -1 "
+            "(relative error of the calibrated loop width)"
+        )
+    fraction = scanner.hysteresis_fraction * (1.0 + error)
+    if not fraction < 1.0 / 3.0:
+        raise ValueError(
+            f"scanner.hysteresis_fraction={scanner.hysteresis_fraction} with "
+            f"controller.model_error={error}: the controller's calibrated loop width, "
+            f"hysteresis_fraction x (1 + model_error) = {fraction:.4g} of the range, must be "
+            "below 1/3 (the widest loop the simulator's hysteresis model takes); lower "
+            f"controller.model_error below {1.0 / (3.0 * scanner.hysteresis_fraction) - 1.0:.4g} "
+            f"or scanner.hysteresis_fraction below {1.0 / (3.0 * (1.0 + error)):.4g}"
+        )
+    asymmetry = scanner.hysteresis_asymmetry - controller.asymmetry_error
+    if not (math.isfinite(asymmetry) and asymmetry * asymmetry < 2.0 / 3.0):
+        raise ValueError(
+            f"controller.asymmetry_error={controller.asymmetry_error} with "
+            f"scanner.hysteresis_asymmetry={scanner.hysteresis_asymmetry}: the controller's "
+            f"asymmetry (scanner.hysteresis_asymmetry minus it) is {asymmetry}; need a finite "
+            "value with square < 2/3"
+        )
+
+
+def _follow_ranges(data):
+    """`data` (a user's nested mapping) with limits.range_x/y and scanner.range_x/y made to
+    follow each other: where only one of a pair is given, the other is set to it (a copy; the
+    caller's mapping is left alone). Both given and different stays an error (check_ranges)."""
+    if not isinstance(data, dict):
+        return data
+    limits, scanner = data.get("limits", {}), data.get("scanner", {})
+    if not (isinstance(limits, dict) and isinstance(scanner, dict)):
+        return data  # the wrong type is reported, naming the key, by dataclass_from_dict
+    limits, scanner = dict(limits), dict(scanner)
+    for name in RANGE_AXES:
+        # a value of the wrong type is not copied: its error names the key the user wrote
+        if name in limits and name not in scanner and _is_number(limits[name]):
+            scanner[name] = limits[name]
+        elif name in scanner and name not in limits and _is_number(scanner[name]):
+            limits[name] = scanner[name]
+    out = dict(data)
+    if limits:
+        out["limits"] = limits
+    if scanner:
+        out["scanner"] = scanner
+    return out
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def dataclass_from_dict(cls, data, path: str = ""):
@@ -166,7 +257,7 @@ def _coerce(hint, value, where):
 
 
 def config_from_dict(data: dict) -> SimConfig:
-    return dataclass_from_dict(SimConfig, data or {}, "")
+    return dataclass_from_dict(SimConfig, _follow_ranges(data or {}), "")
 
 
 def load_config(path: str | Path | None = None) -> SimConfig:
@@ -199,7 +290,7 @@ def check_config_file(path: str) -> str:
 
 def merge(config: SimConfig, overrides: dict) -> SimConfig:
     """A new config with `overrides` (nested dict, any subset of keys) applied."""
-    merged = _deep_update(dataclasses.asdict(config), overrides, "")
+    merged = _deep_update(dataclasses.asdict(config), _follow_ranges(overrides), "")
     return config_from_dict(merged)
 
 
