@@ -75,17 +75,33 @@ def test_a_recorder_that_refused_its_configuration_is_not_restarted(tmp_path):
     assert started == [restart_output(str(tmp_path / "s.mcap"), 1)]
 
 
-def test_launch_refuses_a_recording_name_in_use_before_starting_anything(tmp_path):
-    taken = tmp_path / "taken.mcap"
-    taken.write_bytes(b"")
+def launch_recording(tmp_path, output) -> tuple[subprocess.CompletedProcess, float]:
     started = time.monotonic()
     run = subprocess.run(
-        [sys.executable, "-m", "afm_bringup.cli", "launch", "--record", str(taken)]
+        [sys.executable, "-m", "afm_bringup.cli", "launch", "--record", str(output)]
         + ["--log-dir", str(tmp_path / "logs")],
         capture_output=True,
         text=True,
         timeout=60,
     )
-    assert run.returncode == 1 and "--record: output" in run.stderr
-    assert "already exists" in run.stderr and time.monotonic() - started < 30
+    return run, time.monotonic() - started
+
+
+def test_launch_refuses_a_recording_name_in_use_before_starting_anything(tmp_path):
+    taken = tmp_path / "taken.mcap"
+    taken.write_bytes(b"")
+    run, took = launch_recording(tmp_path, taken)
+    assert run.returncode == 2 and "--record: output" in run.stderr  # bad input: status 2
+    assert "already exists" in run.stderr and took < 30
     assert not any((tmp_path / "logs").iterdir())  # no node was started
+
+
+def test_launch_refuses_a_name_whose_restart_file_an_earlier_session_left(tmp_path):
+    """A restarted recorder would have refused that name (and the graph stopped), and
+    Sim2Real took the old file for the live recording."""
+    old = Path(restart_output(str(tmp_path / "b.mcap"), 2))
+    old.with_name(old.name + ".part").write_bytes(b"")
+    run, _ = launch_recording(tmp_path, tmp_path / "b.mcap")
+    assert run.returncode == 2, run.stderr
+    assert f"{old}.part exists from an earlier session" in run.stderr
+    assert not any((tmp_path / "logs").iterdir())

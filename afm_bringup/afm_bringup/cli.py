@@ -19,6 +19,7 @@ from afm_bringup.launcher import (
     GRAPH,
     NODES,
     Graph,
+    check_no_restart_outputs,
     node_command,
     sim_calibration_file,
     with_sim_calibration,
@@ -69,8 +70,10 @@ def cmd_launch(args):
 
         try:  # before any node starts: the recorder would refuse it only once the graph runs
             check_output_path(args.record)
+            check_no_restart_outputs(args.record)
         except RecordingError as exc:
-            sys.exit(f"afm launch: --record: {exc}")
+            print(f"afm launch: --record: {exc}", file=sys.stderr)
+            return INPUT_STATUS
         graph.start("recorder", {"output": args.record})
         if "sim2real" in nodes:
             overrides.setdefault("sim2real", {}).setdefault("live_recording", args.record)
@@ -145,9 +148,19 @@ def cmd_info(args):
             print(f"chunks:    {len(reader.summary.chunk_indexes)}, {len(damaged)} damaged (CRC)")
             for chunk in damaged:
                 print(f"  {chunk}")
+            sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
     except RecordingError as exc:
         print(f"afm info: {one_line(exc)}", file=sys.stderr)
         return INPUT_STATUS
+    except BrokenPipeError:
+        # the reader went away (`afm info F | head -1`): end quietly. cat, ls, grep and git are
+        # killed by SIGPIPE there, and the shell reports 141 (128 + SIGPIPE); we return the
+        # same, so `set -o pipefail` scripts see what they see with those tools. Writes to the
+        # closed pipe at exit would fail again, so stdout goes to /dev/null.
+        import signal
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
     if damaged:  # damaged input: exit 2 like every other file command, the report above kept
         print(
             f"afm info: {recover_command(args.recording)} keeps the undamaged chunks",

@@ -114,6 +114,26 @@ def restart_output(output: str, attempt: int) -> str:
     return str(path.with_name(f"{path.stem}.restart{attempt}{path.suffix}"))
 
 
+def check_no_restart_outputs(output: str | os.PathLike) -> None:
+    """RecordingError when a file a restarted recorder of `output` would write (or its .part)
+    exists already: an earlier session's. The restarted recorder would refuse that name and
+    the graph stop, and Sim2Real's live recording (latest_output) would be the old file."""
+    from afm_core.recording import RecordingError
+
+    path = Path(output)
+    found = []
+    for attempt in range(1, MAX_RESTARTS + 1):
+        restarted = Path(restart_output(str(path), attempt))
+        found += [
+            f for f in (restarted, restarted.with_name(restarted.name + ".part")) if f.exists()
+        ]
+    if found:
+        raise RecordingError(
+            f"{', '.join(str(f) for f in found)} exists from an earlier session; a restarted "
+            f"recorder of {path.name} writes there: choose another name, or move that file away"
+        )
+
+
 def latest_output(output: str | os.PathLike) -> Path:
     """The file the newest recorder of `output` writes (or wrote): the highest
     restart_output(output, n) whose file or .part exists, else `output` itself."""
