@@ -172,9 +172,16 @@ def test_after_a_stop_only_errors_other_than_the_stop_itself_are_reported(capfd)
 
     raced = failed(InvalidHandle("cannot use Destroyable because destruction was requested"))
     real = ValueError("a real failure")
+    try:  # a handler rclpy built after the shutdown holds its guard condition as None
+        None.trigger()
+    except AttributeError as exc:
+        no_guard = failed(exc)
+    other_attribute = AttributeError("'Node' object has no attribute 'trigger'")  # not it
     finished, running = Future(), Future()
     finished.set_result(None)
-    executor = SimpleNamespace(_futures=[raced, failed(real), finished, running])
-    assert collect_stopped_tasks(executor) == [real]
-    del executor, raced, finished, running
+    executor = SimpleNamespace(
+        _futures=[raced, failed(real), no_guard, failed(other_attribute), finished, running]
+    )
+    assert collect_stopped_tasks(executor) == [real, other_attribute]
+    del executor, raced, no_guard, finished, running
     assert "never retrieved" not in capfd.readouterr().err

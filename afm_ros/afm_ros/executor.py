@@ -114,9 +114,21 @@ def collect_stopped_tasks(executor) -> list[BaseException]:
     for task in list(getattr(executor, "_futures", [])):
         if task.done():
             error = task.exception()  # read: the task no longer reports it when collected
-            if error is not None and not isinstance(error, InvalidHandle):
+            if (
+                error is not None
+                and not isinstance(error, InvalidHandle)
+                and not guard_gone(error)
+            ):
                 errors.append(error)
     return errors
+
+
+def guard_gone(error: BaseException) -> bool:
+    """The stop itself, not a callback's failure: rclpy built this callback's handler after the
+    executor had shut down, so the handler captured its guard condition as None and fails on
+    it ("'NoneType' object has no attribute 'trigger'"; seen when the launcher stopped a
+    nano-hand in the middle of a push)."""
+    return isinstance(error, AttributeError) and error.name == "trigger" and error.obj is None
 
 
 def multi_threaded(threads: int, environ: Mapping[str, str] = os.environ) -> MultiThreadedExecutor:
