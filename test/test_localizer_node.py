@@ -10,9 +10,9 @@ from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from sim_calibration import oracle_calibration
 from std_msgs.msg import Header
 
-from afm_bringup.commander import AfmCommander
+from afm_bringup.commander import AfmCommander, AfmError
 from afm_core.imaging.landmarks import Landmark
-from afm_msgs.action import MoveTip
+from afm_msgs.action import Localize, MoveTip
 from afm_msgs.msg import GroundTruth, LandmarkArray
 from afm_ros.conversions import FRAME_TASK, landmarks_to_msg, pose_to_mean_cov
 from afm_ros.qos_profiles import LATCHED
@@ -247,3 +247,31 @@ def test_a_tip_command_no_driver_can_have_run_is_ignored(nodes, ros_node):
     x = last.pose.pose.position.x
     # where the good command left the tip (the estimate follows the commands' model), not 1 m
     assert abs(x - there[0]) < 5e-6, x
+
+
+def test_localize_goals_beyond_the_limit_are_rejected_and_the_rest_all_answer(
+    tmp_path, nodes, ros_node
+):
+    """Three Localize goals at once held all three executor threads waiting on the one that
+    observed, which then heard nothing from a live, idle driver and reported it gone."""
+    from afm_localization.localizer_node import MAX_LOCALIZE_GOALS
+
+    calibration = oracle_calibration(tmp_path / "calibration.yaml")
+    nodes("driver", seed=3, real_time_factor=0.0)
+    nodes("localizer", calibration_file=str(calibration))
+    ros_node.create_publisher(LandmarkArray, "/afm/landmarks", LATCHED).publish(
+        landmarks_to_msg([landmark(0, *SPHERE)], Header(frame_id=FRAME_TASK))
+    )
+    with AfmCommander(server_timeout=30) as afm:
+        move(afm, 54.7e-6, 54.75e-6)
+        jobs, rejected = [], []
+        for _ in range(MAX_LOCALIZE_GOALS + 2):
+            try:
+                jobs.append(afm.send("localize", Localize.Goal(landmark_id=0), wait=False))
+            except AfmError as exc:
+                rejected.append(str(exc))
+        assert len(jobs) >= MAX_LOCALIZE_GOALS  # those within the limit are all taken
+        assert len(rejected) == MAX_LOCALIZE_GOALS + 2 - len(jobs)
+        assert all("at most three at once" in text for text in rejected), rejected
+        results = [job.result(120) for job in jobs]
+        assert all(r.success for r in results), [r.message for r in results]

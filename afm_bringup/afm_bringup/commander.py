@@ -44,6 +44,7 @@ from afm_ros.teardown import destroy_node_fully
 
 # why a server may refuse a goal (rclpy's rejection carries no reason; the server's log has it)
 REJECTED = {
+    "localize": " (three Localize goals already run or wait: at most three at once)",
     "push_particle": " (a push or an assembly is running: one manipulation at a time)",
     "assemble": " (a push or an assembly is running: one manipulation at a time)",
 }

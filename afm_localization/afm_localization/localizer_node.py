@@ -102,6 +102,12 @@ APPLY = {
         for name in ("line_speed", "move_speed", "sample_spacing", "threshold_fraction", "margin")
     },
 }
+# Localize goals at once (one observes, the rest wait for it, each holding an executor
+# thread); more are rejected. The threads are these plus the inputs' and two for the driver's
+# answers: three goals on three threads once left none for those answers, and the running
+# goal reported a live, idle driver as gone.
+MAX_LOCALIZE_GOALS = 3
+THREADS = MAX_LOCALIZE_GOALS + 3
 FUTURE_COMMAND_S = 3600.0  # s a command may start after the newest clock heard
 KINDS = {
     TipCommand.SCAN_LINE: "line",
@@ -140,9 +146,11 @@ class LocalizerNode(Node):
             topics.ACTION_LOCALIZE,
             self.execute,
             callback_group=ReentrantCallbackGroup(),
-            goal_callback=lambda _g: GoalResponse.ACCEPT,
+            goal_callback=self.accept,
             cancel_callback=lambda _g: CancelResponse.ACCEPT,
         )
+        self.goals = 0  # accepted and not yet ended
+        self.goals_lock = threading.Lock()
         if not path:
             self.get_logger().warning(
                 "no calibration_file: using the book's figures; run `afm calibrate` for "
@@ -300,7 +308,25 @@ class LocalizerNode(Node):
             )
         return nearest
 
+    def accept(self, _goal) -> GoalResponse:
+        with self.goals_lock:
+            if self.goals >= MAX_LOCALIZE_GOALS:
+                self.get_logger().warning(
+                    f"goal rejected: {self.goals} Localize goals already run or wait (at most "
+                    f"{MAX_LOCALIZE_GOALS} at once)"
+                )
+                return GoalResponse.REJECT
+            self.goals += 1
+            return GoalResponse.ACCEPT
+
     def execute(self, goal_handle) -> Localize.Result:
+        try:
+            return self.localize(goal_handle)
+        finally:
+            with self.goals_lock:
+                self.goals -= 1
+
+    def localize(self, goal_handle) -> Localize.Result:
         goal, result = goal_handle.request, Localize.Result()
         wait_until(
             lambda: self.localizer is not None or self.pending, 5.0
@@ -366,7 +392,7 @@ class LocalizerNode(Node):
 
 
 def main(args=None):
-    return run(LocalizerNode, "afm_localizer", args, config_errors=(ValueError,), threads=3)
+    return run(LocalizerNode, "afm_localizer", args, config_errors=(ValueError,), threads=THREADS)
 
 
 if __name__ == "__main__":
