@@ -81,7 +81,7 @@ def test_what_cannot_be_read_is_refused_with_what_to_do(
 
 
 def test_a_folder_that_is_no_bag_is_refused_as_a_folder(tmp_path):
-    with pytest.raises(RecordingError, match="a folder with no metadata.yaml and none;"):
+    with pytest.raises(RecordingError, match="a folder with no metadata.yaml and no .mcap file;"):
         RecordingReader(tmp_path)
     write_session(tmp_path / "monday.mcap", n=1)
     write_session(tmp_path / "tuesday.mcap", n=1)

@@ -75,6 +75,30 @@ PARAMETERS = ParameterTable(
 )
 # A subscriber that has not acknowledged within this is stalled or gone; the replay goes on.
 ACKNOWLEDGE_TIMEOUT_S = 10.0
+# The longest playback a rate may ask for (about 32 years): beyond it the schedule's waits
+# overflow the platform's time_t mid-playback (rate=1e-300), so such a rate is refused.
+MAX_PLAYBACK_S = 1e9
+
+
+def check_playable(reader: RecordingReader, topics: list[str], rate: float) -> None:
+    """RecordingError (a refusal, exit 2) when there is nothing to replay in `topics` (a loop
+    would spin for ever publishing nothing) or `rate` stretches the recording past
+    MAX_PLAYBACK_S."""
+    recorded = reader.topics()
+    counts = {t: recorded[t].message_count for t in topics}
+    if not sum(counts.values()):
+        held = ", ".join(f"{t} ({n} messages)" for t, n in counts.items()) or "no topic"
+        raise RecordingError(
+            f"nothing to replay: {reader.path} holds {held}"
+            + ("" if topics else " that can be published")
+        )
+    playback_s = reader.duration_s / rate if rate > 0 else float("inf")
+    if not playback_s <= MAX_PLAYBACK_S:
+        raise RecordingError(
+            f"parameter rate={rate!r}: the recording's {reader.duration_s:.6g} s would take "
+            f"{playback_s:.3g} s; the limit is {MAX_PLAYBACK_S:.0e} s of playback, so rate "
+            f"must be at least {reader.duration_s / MAX_PLAYBACK_S:.3g}"
+        )
 
 
 class ReplayNode(Node):
@@ -104,6 +128,7 @@ class ReplayNode(Node):
             self.publishers_by_topic[topic] = self.create_publisher(
                 msg_type, topic, publisher_qos_for(info.offered_qos, self.config["queue_depth"])
             )
+        check_playable(self.reader, list(self.publishers_by_topic), self.config["rate"])
         self.clock_publisher = (
             self.create_publisher(Clock, "/clock", 10) if self.config["publish_clock"] else None
         )
@@ -174,6 +199,7 @@ class ReplayNode(Node):
             schedule = _Schedule(self.reader.start_time_ns, self.config["rate"])
             next_clock = self.reader.start_time_ns
             clock_step_ns = int(1e9 / self.config["clock_frequency"])
+            published_before = self.published
             for _schema, channel, message in self.reader.raw_messages(topics):
                 if schedule.start_wall is None:  # /clock starts with the first message played
                     next_clock = max(next_clock, message.log_time)
@@ -194,8 +220,8 @@ class ReplayNode(Node):
                 schedule.published(message.log_time)
                 unacknowledged[channel.topic] += 1
                 self.published += 1
-            if not self.config["loop"]:
-                break
+            if not self.config["loop"] or self.published == published_before:
+                break  # a pass that found nothing would loop for ever publishing nothing
         self.get_logger().info(f"replayed {self.published} messages from {self.reader.path}")
 
     def _publish_clock(self, t_ns):

@@ -119,9 +119,12 @@ class Sim2RealNode(Node):
                 "(is the recorder running?)"
             )
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-        snapshot, count = recover_recording(
-            part, part.with_name(f"{live.stem}.snapshot-{stamp}.mcap")
-        )
+        try:  # a recorder that has just started has no complete chunk yet
+            snapshot, count = recover_recording(
+                part, part.with_name(f"{live.stem}.snapshot-{stamp}.mcap")
+            )
+        except RecordingError as exc:
+            raise ValueError(f"live_recording: {exc}") from None
         return snapshot, f"snapshot of {part.name} ({count} messages){restarted}"
 
     def paths_for(self, goal) -> tuple[Path | None, Path]:

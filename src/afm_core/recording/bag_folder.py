@@ -39,18 +39,35 @@ def recording_file(path: Path) -> Path:
     else:
         files = sorted(p.name for p in path.glob(f"*{MCAP_SUFFIX}") if p.is_file())
         if len(files) != 1:
-            held = f"{len(files)} {MCAP_SUFFIX} files ({_few(files)})" if files else "none"
+            held = (
+                f"{len(files)} {MCAP_SUFFIX} files ({_few(files)})"
+                if files
+                else f"no {MCAP_SUFFIX} file"
+            )
             raise RecordingError(
                 f"recording {str(path)!r} is a folder with no {METADATA} and {held}; give "
                 "the recording file itself"
             )
     # older rosbag2 wrote the folder's own name in front of each listed file
-    for found in (path / files[0], path / Path(files[0]).name):
+    for found in (_inside(path, files[0]), path / Path(files[0]).name):
         if found.is_file():
             return found
     raise RecordingError(
         f"recording {str(path)!r}: {METADATA} lists {files[0]!r}, which is not in the folder"
     )
+
+
+def _inside(folder: Path, listed: str) -> Path:
+    """`folder / listed`, refused unless it resolves inside the folder: metadata.yaml comes with
+    the recording, and a listed path that is absolute or climbs out with `..` (or a symlink
+    that points out) would have us open any file, past the roots a node may read from."""
+    found = folder / listed
+    if not found.resolve().is_relative_to(folder.resolve()):
+        raise RecordingError(
+            f"recording {str(folder)!r}: {METADATA} lists {listed!r}, which is outside the "
+            "folder; a rosbag2 folder lists only its own files"
+        )
+    return found
 
 
 def _few(names: list[str]) -> str:
@@ -62,7 +79,10 @@ def _listed_files(folder: Path, metadata: Path) -> list[str]:
         info = (yaml.safe_load(metadata.read_text()) or {})["rosbag2_bagfile_information"]
         storage = str(info.get("storage_identifier", ""))
         compression = str(info.get("compression_mode", "") or "")
-        files = [str(f) for f in info.get("relative_file_paths", [])]
+        listed = info.get("relative_file_paths", [])
+        if not isinstance(listed, list):  # a string would count its characters as files
+            raise TypeError(f"relative_file_paths is a {type(listed).__name__}, not a list")
+        files = [str(f) for f in listed]
     except (yaml.YAMLError, KeyError, TypeError, AttributeError, OSError) as exc:
         raise RecordingError(
             f"recording {str(folder)!r}: {METADATA} is not rosbag2 metadata ({exc})"

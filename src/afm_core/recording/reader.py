@@ -234,6 +234,77 @@ def _summary_damage(stream) -> str:
     return ""
 
 
+RECORD_HEADER_BYTES = 1 + 8  # opcode, length
+# a walk over the record headers to say where a file ends gives up after this many records
+END_WALK_RECORDS = 1_000_000
+
+
+def has_footer(stream) -> bool:
+    """True when the file ends as a finished MCAP file does: a footer record, then the magic.
+    A recorder writes them last, so a killed recorder's .part, or a file cut short, has none.
+    Leaves the stream at its start."""
+    try:
+        end = stream.seek(0, io.SEEK_END)
+        if end < 2 * MAGIC_BYTES + FOOTER_BYTES:
+            return False
+        stream.seek(end - MAGIC_BYTES - FOOTER_BYTES)
+        tail = stream.read(FOOTER_BYTES + MAGIC_BYTES)
+    finally:
+        stream.seek(0)
+    opcode, length = struct.unpack("<BQ", tail[:RECORD_HEADER_BYTES])
+    return tail[FOOTER_BYTES:] == MCAP0_MAGIC and opcode == Opcode.FOOTER and length == 20
+
+
+def footer_summary_start(stream) -> int:
+    """Where the footer of a finished file says its summary starts (0: no summary)."""
+    try:
+        end = stream.seek(0, io.SEEK_END)
+        stream.seek(end - MAGIC_BYTES - FOOTER_BYTES + RECORD_HEADER_BYTES)
+        return struct.unpack("<Q", stream.read(8))[0]
+    finally:
+        stream.seek(0)
+
+
+def _record_name(opcode: int) -> str:
+    try:
+        return f"{Opcode(opcode).name} record"
+    except ValueError:
+        return f"record of unknown opcode {opcode:#04x}"
+
+
+def describe_end(stream) -> str:
+    """Where the file ends, found by walking the record headers from the magic on (only their
+    lengths are read): after a complete record, or how far into which one. Leaves the stream
+    at its start."""
+    try:
+        end = stream.seek(0, io.SEEK_END)
+        offset, records = MAGIC_BYTES, 0
+        while offset < end and records < END_WALK_RECORDS:
+            stream.seek(offset)
+            header = stream.read(RECORD_HEADER_BYTES)
+            if end - offset == MAGIC_BYTES and header == MCAP0_MAGIC:
+                return f"it ends at byte {end}: {records} complete records, then the end magic"
+            if len(header) < RECORD_HEADER_BYTES:
+                return (
+                    f"it ends at byte {end}, {end - offset} bytes into the header of a record "
+                    f"at byte {offset}, after {records} complete records"
+                )
+            opcode, length = struct.unpack("<BQ", header)
+            record_end = offset + RECORD_HEADER_BYTES + length
+            if record_end > end:
+                return (
+                    f"it ends at byte {end}, {end - offset} of {record_end - offset} bytes into "
+                    f"a {_record_name(opcode)} at byte {offset}, after {records} complete "
+                    "records"
+                )
+            offset, records = record_end, records + 1
+        if offset == end:
+            return f"it ends at byte {end}, after its last complete record ({records} records)"
+        return f"it ends at byte {end}"
+    finally:
+        stream.seek(0)
+
+
 def describe_damage(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}"[:200]
 
@@ -250,14 +321,38 @@ class RecordingReader:
         check_recording_file(self.path)
         self._stream = open(self.path, "rb")
         try:
+            finished = has_footer(self._stream)
+            where = "" if finished else describe_end(self._stream)
+        except OSError as exc:
+            self._stream.close()
+            raise RecordingError(f"recording {str(self.path)!r}: cannot read it ({exc})") from exc
+        if not finished:
+            # a killed recorder's .part, or a file cut short: what the mcap library would make
+            # of the bytes at the end (a garbage length, an empty message) says nothing
+            self._stream.close()
+            raise RecordingError(
+                f"recording {str(self.path)!r} is unfinished or truncated: it has no footer "
+                "(the writer did not finish, as with a killed recorder's .part, or the file was "
+                f"cut short); {where}; "
+                f"{recover_command(self.path)} saves its complete chunks into a new recording"
+            )
+        try:
             self._reader = make_reader(
                 self._stream, validate_crcs=validate_crcs, decoder_factories=[DecoderFactory()]
             )
             self.summary = self._reader.get_summary()
         except (*DAMAGE_ERRORS, OSError) as exc:
+            try:
+                reason = str(exc) or (
+                    f"{type(exc).__name__} reading the summary at byte "
+                    f"{footer_summary_start(self._stream)} the footer points to; "
+                    f"{describe_end(self._stream)}"
+                )
+            except OSError:
+                reason = type(exc).__name__
             self._stream.close()
             raise RecordingError(
-                f"recording {str(self.path)!r} is truncated or corrupt ({exc}); "
+                f"recording {str(self.path)!r} is truncated or corrupt ({reason}); "
                 f"{recover_command(self.path)} saves the complete chunks"
             ) from exc
         damage = summary_damage(self._stream) if validate_crcs else ""

@@ -28,6 +28,8 @@ from afm_core.recording.reader import (
     DamagedChunk,
     check_recording_file,
     describe_damage,
+    describe_end,
+    has_footer,
     read_chunk_at,
     summary_damage,
 )
@@ -78,10 +80,10 @@ def _summary(stream):
     """The summary when it is there and its CRC holds (a damaged one could send the walk to
     the wrong offsets or name the wrong topics), else None."""
     try:
-        if summary_damage(stream):
-            return None
+        if not has_footer(stream) or summary_damage(stream):
+            return None  # unfinished (a .part, a cut file): no summary to trust
         summary = make_reader(stream).get_summary()
-    except DAMAGE_ERRORS:
+    except (*DAMAGE_ERRORS, OSError):  # e.g. EINVAL: a seek before the start of a tiny file
         return None
     return summary if summary is not None and summary.chunk_indexes else None
 
@@ -141,15 +143,44 @@ def recover(source: str | os.PathLike, output: str | os.PathLike | None = None) 
     check_recording_file(source, ": nothing to recover, no file written")
     damaged: list[DamagedChunk] = []
     stopped = ""
-    with open(source, "rb") as stream, RecordingWriter(output, flush_interval=None) as writer:
-        copier = _Copier(writer)
-        summary = _summary(stream)
-        if summary is not None:
-            _by_index(stream, summary, copier, damaged)
-        else:
-            stopped = _by_stream(stream, copier, damaged)
-        count = writer.message_count
+    with open(source, "rb") as stream:
+        writer = RecordingWriter(output, flush_interval=None)  # refuses an existing output
+        try:
+            copier = _Copier(writer)
+            summary = _summary(stream)
+            if summary is not None:
+                _by_index(stream, summary, copier, damaged)
+            else:
+                stopped = _by_stream(stream, copier, damaged)
+            count = writer.message_count
+            if count == 0:
+                raise RecordingError(_nothing_recoverable(source, stream, damaged, copier))
+            writer.close()
+        except BaseException as exc:
+            writer.discard()  # no output on any failure: a second run must not find one
+            if isinstance(exc, OSError):
+                raise RecordingError(
+                    f"{str(source)!r}: recovery failed ({exc.strerror or exc}); no file written"
+                ) from exc
+            raise
     return Recovery(Path(output), count, damaged, stopped, copier.orphaned)
+
+
+def _nothing_recoverable(source: Path, stream, damaged: list, copier: _Copier) -> str:
+    try:
+        where = "it is finished and holds none" if has_footer(stream) else describe_end(stream)
+    except OSError:
+        where = ""
+    why = [
+        f"{len(damaged)} damaged chunks skipped" if damaged else "",
+        f"{copier.orphaned} messages without their channel" if copier.orphaned else "",
+        where,
+    ]
+    return (
+        f"{str(source)!r} holds nothing to recover: no complete chunk with a message ("
+        + "; ".join(w for w in why if w)
+        + "); no file written"
+    )
 
 
 def recover_recording(

@@ -55,9 +55,12 @@ def check_output_path(path: str | os.PathLike) -> Path:
             f"output {str(path)!r} already exists; recordings are never overwritten"
         )
     if part_path(path).exists():
+        # never suggest removing it: it may be another recorder's file, being written now
         raise RecordingError(
-            f"output {str(path)!r}: an unfinished recording {part_path(path).name!r} "
-            f"is in the way; run {recover_command(part_path(path))} or remove it"
+            f"output {str(path)!r}: an unfinished recording {part_path(path).name!r} is in "
+            "the way; it may be a recording in progress (another recorder writing it: choose "
+            "another name) or a killed recorder's, which "
+            f"{recover_command(part_path(path))} saves"
         )
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
@@ -233,6 +236,25 @@ class RecordingWriter:
         os.unlink(self.part)
         self._fsync_directory()  # the new name, and the .part's removal, survive a power cut
         return self.path
+
+    def discard(self) -> None:
+        """Stop and delete what this writer created (its .part, or the finished file it
+        linked), for a caller whose output is worthless (`afm recover` that saved nothing).
+        Never a file of the same name that someone else made."""
+        if not self.closed:
+            self.closed = True
+            try:
+                self._stream.close()
+            except OSError:
+                pass
+        linked = self.path.exists() and (
+            not self.part.exists() or os.path.samefile(self.part, self.path)
+        )
+        for path in (self.part, self.path) if linked else (self.part,):
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                pass
 
     def __enter__(self):
         return self
