@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -221,12 +222,18 @@ def wait_for_landmarks(current, timeout: float = 5.0) -> dict:
 
 
 def msg_to_landmarks(array) -> list:
-    """LandmarkArray -> core landmarks; ValueError naming the landmark and field when not
-    finite."""
+    """LandmarkArray -> core landmarks; ValueError naming the landmark and the field when the
+    map cannot be one (another program's map is checked as our imaging node's: a duplicate id
+    was silently collapsed to its last entry, and a covariance that is no covariance reached
+    the planner's plans)."""
     from afm_core.imaging.landmarks import Landmark
 
+    if array.header.frame_id != FRAME_TASK:
+        raise ValueError(
+            f"header.frame_id={array.header.frame_id!r}: landmarks are in {FRAME_TASK!r}"
+        )
     kinds = {v: k for k, v in LANDMARK_KINDS.items()}
-    marks = []
+    marks, seen = [], set()
     for lm in array.landmarks:
         values = [lm.position.x, lm.position.y, lm.radius, *lm.covariance]
         if not np.all(np.isfinite(values)):
@@ -235,6 +242,15 @@ def msg_to_landmarks(array) -> list:
             raise ValueError(
                 f"landmark {lm.id}: kind={lm.kind} unknown (expected one of {sorted(kinds)})"
             )
+        if lm.id in seen:
+            raise ValueError(f"landmark {lm.id}: the id occurs twice in the map")
+        seen.add(lm.id)
+        if not (lm.radius > 0 and lm.length >= 0 and math.isfinite(lm.length)):
+            raise ValueError(
+                f"landmark {lm.id}: radius={lm.radius} m must be > 0 and length={lm.length} m "
+                "finite and >= 0"
+            )
+        check_covariance(f"landmark {lm.id}: covariance", lm.covariance)
         marks.append(
             Landmark(
                 id=int(lm.id),
@@ -249,6 +265,17 @@ def msg_to_landmarks(array) -> list:
             )
         )
     return marks
+
+
+def check_covariance(name: str, values) -> None:
+    """ValueError naming `name` unless the 4 values (row-major 2x2, m^2) are a covariance:
+    symmetric and positive semi-definite (to rounding)."""
+    c = np.asarray(values, float).reshape(2, 2)
+    scale = max(abs(c[0, 0]), abs(c[1, 1]), 1e-300)
+    if abs(c[0, 1] - c[1, 0]) > 1e-9 * scale:
+        raise ValueError(f"{name}={list(values)}: not symmetric")
+    if np.linalg.eigvalsh(0.5 * (c + c.T)).min() < -1e-9 * scale:
+        raise ValueError(f"{name}={list(values)}: not positive semi-definite (m^2)")
 
 
 def pose_to_mean_cov(pose_msg) -> tuple[np.ndarray, np.ndarray]:
