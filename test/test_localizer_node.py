@@ -146,6 +146,11 @@ def test_a_parameter_set_at_run_time_is_applied_or_refused_with_the_reason(
 
         refused = set_parameter(client, "gate", -1.0)
         assert not refused.successful and "parameter gate=-1.0: must be > 0" in refused.reason
+        # what `ros2 param set /afm_localizer gate 12` sends: an integer, taken as the number
+        assert set_parameter(client, "gate", 12).successful
+        word = set_parameter(client, "gate", "wide")
+        assert not word.successful and "parameter gate='wide': must be a number" in word.reason
+        assert set_parameter(client, "gate", 10.827566170662733).successful
         read_only = set_parameter(client, "calibration_file", "other.yaml")
         assert not read_only.successful and "read-only" in read_only.reason
         assert afm.localize(landmark_id=0).success  # the refusals changed nothing

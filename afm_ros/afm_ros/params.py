@@ -36,19 +36,13 @@ KINDS = {
 
 
 def _declare(node, parameter) -> None:
-    """A float parameter given as a whole number (`discovery_period:=-1`, which ROS reads as an
-    integer) is declared with dynamic typing, so the value reaches the table's rule and a bad
-    one is refused with its limit, not with a type name."""
-    try:
-        node.declare_parameter(parameter.name, parameter.default, describe(parameter))
-    except InvalidParameterTypeException:
-        if type(parameter.default) is not float:
-            raise
-        descriptor = describe(parameter)
-        descriptor.dynamic_typing = True
-        node.declare_parameter(parameter.name, parameter.default, descriptor)
-        if not isinstance(node.get_parameter(parameter.name).value, int | float):
-            raise
+    """A float parameter is declared with dynamic typing, so a whole number reaches the
+    table's rule (ROS reads `discovery_period:=-1` and `ros2 param set NODE gate 3` as
+    integers, and refused them with "Wrong parameter type, expected 'Type.DOUBLE'"): a bad
+    value, of any type, is refused with the parameter's limit, not with a type name."""
+    descriptor = describe(parameter)
+    descriptor.dynamic_typing = type(parameter.default) is float
+    node.declare_parameter(parameter.name, parameter.default, descriptor)
 
 
 def declare(node, table: ParameterTable, apply: Callable[[str, object], None] | None = None):
