@@ -94,6 +94,9 @@ def test_localize_through_the_action_with_lost_gated_and_unknown_landmarks(
         assert not lost.success and lost.lost and "lost" in lost.message
         unknown = afm.localize(landmark_id=42)
         assert not unknown.success and "landmark_id=42" in unknown.message
+        assert "known ids: 0, 7, 8)" in unknown.message
+        below = afm.localize(landmark_id=-5, position=SPHERE)  # not -1: no position meant
+        assert not below.success and "landmark_id=-5: an id >= 0, or -1" in below.message
         far = afm.localize(position=(60e-6, 60e-6))
         assert not far.success and "match_radius" in far.message
         out_of_range = afm.localize(landmark_id=0, toward=(SPHERE[0], 200e-6))

@@ -27,6 +27,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
+from afm_core import checks
 from afm_core.instrument import ScannerLimits
 from afm_core.localization import Localizer, MapLandmark
 from afm_core.localization.calibration.model import Calibration, load_calibration
@@ -286,11 +287,15 @@ class LocalizerNode(Node):
     # -- the Localize action -----------------------------------------------------------------
     def landmark_for(self, goal):
         known = self.landmarks.wait()
+        if goal.landmark_id < -1:
+            raise ValueError(
+                f"landmark_id={goal.landmark_id}: an id >= 0, or -1 for the one at position"
+            )
         if goal.landmark_id >= 0:
             if goal.landmark_id not in known:
                 raise ValueError(
                     f"landmark_id={goal.landmark_id}: unknown "
-                    f"(known ids: {sorted(known) or 'none yet'})"
+                    f"(known ids: {checks.few(sorted(known)) or 'none yet'})"
                 )
             return known[goal.landmark_id]
         point = np.array([goal.position.x, goal.position.y])

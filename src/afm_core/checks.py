@@ -92,6 +92,14 @@ def one_of(name: str, value, choices) -> object:
     return value
 
 
+def few(items, shown: int = 10) -> str:
+    """The first `shown` of `items` for a message, and how many more: a map of 20000
+    landmarks made a 120 KB error message when every id was listed."""
+    items = [str(item) for item in items]
+    more = f" and {len(items) - shown} more" if len(items) > shown else ""
+    return ", ".join(items[:shown]) + more
+
+
 def new_file(
     name: str, path, suffixes: tuple[str, ...] = (), *, overwrite: bool = False, option: str = ""
 ) -> Path:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import yaml
 
+from afm_core.checks import few
 from afm_core.recording.errors import RecordingError
 
 METADATA = "metadata.yaml"
@@ -33,14 +34,14 @@ def recording_file(path: Path) -> Path:
         files = _listed_files(path, metadata)
         if len(files) > 1:
             raise RecordingError(
-                f"recording {str(path)!r} is split into {len(files)} files ({_few(files)}); "
+                f"recording {str(path)!r} is split into {len(files)} files ({few(files, 3)}); "
                 "give one of them, or merge them: " + CONVERT_HINT.format(folder=path)
             )
     else:
         files = sorted(p.name for p in path.glob(f"*{MCAP_SUFFIX}") if p.is_file())
         if len(files) != 1:
             held = (
-                f"{len(files)} {MCAP_SUFFIX} files ({_few(files)})"
+                f"{len(files)} {MCAP_SUFFIX} files ({few(files, 3)})"
                 if files
                 else f"no {MCAP_SUFFIX} file"
             )
@@ -68,10 +69,6 @@ def _inside(folder: Path, listed: str) -> Path:
             "folder; a rosbag2 folder lists only its own files"
         )
     return found
-
-
-def _few(names: list[str]) -> str:
-    return ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
 
 
 def _listed_files(folder: Path, metadata: Path) -> list[str]:
