@@ -185,3 +185,40 @@ def test_cli_refuses_bad_input_with_the_reason(session, tmp_path):
         and "friction" in err
         and not (tmp_path / "r3").exists()
     )
+
+
+def test_cli_leaves_out_a_command_without_its_measurement_when_asked(session, tmp_path):
+    """A restarted recorder's file begins with the latched commands of the session before it,
+    whose measurements are not latched: the error named a Python argument, the CLI had none."""
+    import subprocess
+    import sys
+
+    from afm_core.recording import RecordingReader, RecordingWriter
+
+    cut = tmp_path / "one_line_lost.mcap"
+    dropped = []
+    with RecordingReader(session / "session.mcap") as reader, RecordingWriter(cut) as writer:
+        channels = {}
+        for schema, channel, message in reader.raw_messages():
+            if channel.topic == "/afm/scan_line" and not dropped:
+                dropped.append(message.log_time)
+                continue
+            if channel.topic not in channels:
+                channels[channel.topic] = writer.add_channel(
+                    channel.topic, schema.name, [], definition=schema.data.decode()
+                )
+            writer.write(channels[channel.topic], message.log_time, message.data)
+    assert dropped
+
+    def run(*extra):
+        command = [sys.executable, "-m", "afm_bringup.cli", "sim2real", str(cut)]
+        command += ["--model", str(session / "model.yaml"), *map(str, extra)]
+        return subprocess.run(command, capture_output=True, text=True, timeout=300)
+
+    refused = run("--report", tmp_path / "r1")
+    assert refused.returncode == 2, refused.stderr
+    assert "has no measurement" in refused.stderr
+    assert "afm sim2real --skip-incomplete" in refused.stderr
+    done = run("--skip-incomplete", "--effects", "tip_radius", "--report", tmp_path / "r2")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("verdict: ") and (tmp_path / "r2" / "report.md").is_file()

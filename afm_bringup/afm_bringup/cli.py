@@ -284,6 +284,7 @@ def cmd_sim2real(args):
                 report,
                 progress=progress,
                 effects=[e for e in args.effects.split(",") if e.strip()],
+                missing_data="skip" if args.skip_incomplete else "error",
             )
     except (ValueError, OSError) as exc:  # the recording, the model or the folder
         return refuse("sim2real", exc)
@@ -554,6 +555,13 @@ def _add_sim2real(sub) -> None:
         action="store_true",
         help="write into a non-empty report folder (an earlier report's files are removed, "
         "other files kept)",
+    )
+    p.add_argument(
+        "--skip-incomplete",
+        action="store_true",
+        help="leave out commands whose measurement is not in the file, and measurements no "
+        "command claims (a recording cut short, a recovered .part, a restarted recorder's "
+        "NAME.restartN.mcap, which starts with the latched commands of the session before it)",
     )
     p.add_argument(
         "--verbose",

@@ -111,6 +111,10 @@ def indent_request_from_trace(trace: ForceTraceData) -> dict:
     return {"x": x, "y": y, "force": level * k, "dwell": dwell}
 
 
+# how a user leaves out what a cut-short recording lacks, in the CLI and in Python
+SKIP_HINT = "`afm sim2real --skip-incomplete` (read_operations(..., missing_data='skip'))"
+
+
 @dataclass
 class _Command:
     index: int
@@ -344,8 +348,7 @@ class OperationStream:
             raise SessionError(
                 f"{self.path}: a {topic} message stamped {when} matches no {TIP_COMMAND} (no "
                 "command of its kind whose time window and geometry contain it); "
-                "read_operations(..., missing_data='skip') "
-                "ignores such messages"
+                f"{SKIP_HINT} ignores such messages"
             )
 
     def _finish(self, command: _Command, first_ns: int) -> Operation | None:
@@ -369,8 +372,7 @@ class OperationStream:
                 f"[{start_time:.6f}, {start_time + cmd.duration:.6f}] s and matching its geometry "
                 f"(start {cmd.start.x:.4e}, {cmd.start.y:.4e} m, "
                 f"end {cmd.end.x:.4e}, {cmd.end.y:.4e} m). "
-                "Cancelled, or not recorded? read_operations(..., missing_data='skip') drops such "
-                "commands"
+                f"Cancelled, or not recorded? {SKIP_HINT} leaves such commands out"
             )
         msg = command.data
         common = dict(
