@@ -61,3 +61,22 @@ def test_localization_waits_for_the_lines_to_be_heard(nano_hand):
 def test_localization_fails_when_the_lines_never_arrive(nano_hand):
     localization = nano_hand.localize(SimpleNamespace(id=0), lambda: False)
     assert not localization.success and "/afm/tip_command" in localization.message
+
+
+def test_one_manipulation_is_claimed_at_acceptance_and_given_back_however_it_ends(nano_hand):
+    """Two goals arriving at once at an idle nano-hand were both accepted, the second waiting
+    for the first: now the second is rejected at once, and the claim returns when the first
+    ends, also by an exception."""
+    from rclpy.action import GoalResponse
+
+    assert nano_hand.accept(None) == GoalResponse.ACCEPT
+    assert nano_hand.accept(None) == GoalResponse.REJECT
+
+    def fails(_goal_handle):
+        raise RuntimeError("the push broke")
+
+    with pytest.raises(RuntimeError):
+        nano_hand.releasing(fails)(None)
+    assert nano_hand.accept(None) == GoalResponse.ACCEPT
+    assert nano_hand.releasing(lambda _goal_handle: "result")(None) == "result"
+    assert nano_hand.accept(None) == GoalResponse.ACCEPT

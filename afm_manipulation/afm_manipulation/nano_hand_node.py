@@ -94,7 +94,10 @@ class NanoHandNode(Node):
             result_timeout=self.config["action_timeout"],
             scan_pair_id="local-nano-hand",
         )
-        self.busy = threading.Lock()  # one manipulation at a time
+        # one manipulation at a time, claimed at acceptance: two goals arriving at once were
+        # both accepted, the second waiting for the first instead of being rejected
+        self.claim_lock = threading.Lock()
+        self.claimed = False
         self.state_lock = threading.Lock()
         self.landmarks = NewestLandmarkMap(self.get_logger())
         self.tip_pose: PoseWithCovarianceStamped | None = None
@@ -142,7 +145,7 @@ class NanoHandNode(Node):
                 self,
                 action,
                 name,
-                execute,
+                self.releasing(execute),
                 callback_group=servers,
                 goal_callback=self.accept,
                 cancel_callback=lambda _g: CancelResponse.ACCEPT,
@@ -200,10 +203,26 @@ class NanoHandNode(Node):
         return None if pose is None else pose_to_tip_estimate(pose)
 
     def accept(self, _goal):
-        if self.busy.locked():
-            self.get_logger().warning("goal rejected: a manipulation is running (one at a time)")
-            return GoalResponse.REJECT
-        return GoalResponse.ACCEPT
+        with self.claim_lock:
+            if self.claimed:
+                self.get_logger().warning(
+                    "goal rejected: a manipulation is running (one at a time)"
+                )
+                return GoalResponse.REJECT
+            self.claimed = True
+            return GoalResponse.ACCEPT
+
+    def releasing(self, execute):
+        """`execute` that gives the claim back when its goal ends, however it ends."""
+
+        def run(goal_handle):
+            try:
+                return execute(goal_handle)
+            finally:
+                with self.claim_lock:
+                    self.claimed = False
+
+        return run
 
     # -- what the procedure calls ------------------------------------------------------------
     def localize(self, particle, should_stop) -> Localization:
@@ -298,22 +317,21 @@ class NanoHandNode(Node):
         )
 
     def run_goal(self, goal_handle, result, procedure, to_feedback):
-        """One manipulation at a time: refused before anything moved, failed or cancelled after
-        it started, or its outcome; the goal ends accordingly."""
-        with self.busy:
-            try:
-                outcome = procedure(
-                    self.reporter(goal_handle, to_feedback),
-                    lambda: goal_handle.is_cancel_requested,
-                )
-            except PushRefused as exc:
-                result.success, result.message = False, f"refused: {exc}"
-                goal_handle.abort()
-                return result
-            except PushFailed as exc:
-                result.success, result.message = False, str(exc)
-                (goal_handle.canceled if goal_handle.is_cancel_requested else goal_handle.abort)()
-                return result
+        """Refused before anything moved, failed or cancelled after it started, or its outcome;
+        the goal ends accordingly (one at a time: accept and releasing)."""
+        try:
+            outcome = procedure(
+                self.reporter(goal_handle, to_feedback),
+                lambda: goal_handle.is_cancel_requested,
+            )
+        except PushRefused as exc:
+            result.success, result.message = False, f"refused: {exc}"
+            goal_handle.abort()
+            return result
+        except PushFailed as exc:
+            result.success, result.message = False, str(exc)
+            (goal_handle.canceled if goal_handle.is_cancel_requested else goal_handle.abort)()
+            return result
         outcome_to_result(outcome, result)
         if isinstance(result, Assemble.Result) and goal_handle.is_cancel_requested:
             goal_handle.canceled()
