@@ -165,7 +165,18 @@ def rescan_request(a, b, margin: float, pixel: float, line_rate: float, limits) 
     request = ScanRequest(
         float(lo[0]), float(lo[1]), size, size, pixels, pixels, line_rate=line_rate
     )
-    request.validate(limits)
+    try:
+        request.validate(limits)
+    except ValueError as exc:
+        if not (np.all(lo >= 0) and hi[0] <= limits.range_x and hi[1] <= limits.range_y):
+            raise ValueError(
+                f"goal: the before/after images around the particle and the goal "
+                f"({lo[0] * 1e6:.3f} .. {hi[0] * 1e6:.3f} um, {lo[1] * 1e6:.3f} .. "
+                f"{hi[1] * 1e6:.3f} um with their {margin * 1e9:.0f} nm margin) would leave "
+                f"the scanner range [0, {limits.range_x * 1e6:g}] x [0, {limits.range_y * 1e6:g}] "
+                "um: a goal, or a particle, farther from the edge (or a smaller rescan_margin)"
+            ) from exc
+        raise
     return request
 
 
