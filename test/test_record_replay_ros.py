@@ -169,6 +169,28 @@ def test_replay_rate_and_topic_filter(tmp_path, nodes, ros_node):
     assert scans == []
 
 
+def test_replay_into_a_graph_whose_node_publishes_the_same_topic_warns(tmp_path, nodes, ros_node):
+    """Replayed into a running graph, its nodes and recorder got both sessions mixed without a
+    word."""
+    from sample_messages import cdr
+
+    from afm_core.recording import QosDescription, RecordingWriter
+
+    path = tmp_path / "traces.mcap"
+    with RecordingWriter(path) as rec:
+        trace = rec.add_channel("/afm/force_trace", "afm_msgs/msg/ForceTrace", [QosDescription()])
+        for i in range(3):
+            rec.write(trace, 10**9 + i * 10**8, cdr(force_trace(i)))
+    ros_node.create_publisher(ForceTrace, "/afm/force_trace", 10)  # a live driver's
+    ros_node.create_subscription(ForceTrace, "/afm/force_trace", lambda _m: None, 10)
+    code, output = nodes(
+        "replay", input=path, start_delay=1.0, wait_for_subscribers=1, publish_clock=False
+    ).wait(60)
+    assert code == 0, output
+    assert "other nodes publish what this replay publishes: /afm/force_trace (" in output
+    assert ros_node.get_name() in output.split("/afm/force_trace (", 1)[1]
+
+
 def test_replay_delivers_bursts_to_reliable_subscribers(tmp_path, nodes, ros_node):
     """Bursts larger than any publisher history, on topics recorded as our recorder records
     them (history depth unknown to the graph API) and one recorded best-effort: a reliable

@@ -154,6 +154,29 @@ class ReplayNode(Node):
         self.wait_until_delivered(self.publishers_by_topic)
         rclpy.try_shutdown()
 
+    def warn_of_other_publishers(self) -> None:
+        """A warning naming the topics another node also publishes (a running driver, say):
+        replayed into a live graph, its nodes and recorder see both sessions mixed, and two
+        /clock sources."""
+        mine = self.get_name()
+        topics = [*self.publishers_by_topic, *(["/clock"] if self.clock_publisher else [])]
+        shared = {}
+        for topic in topics:
+            others = {
+                info.node_name
+                for info in self.get_publishers_info_by_topic(topic)
+                if info.node_name != mine
+            }
+            if others:
+                shared[topic] = sorted(others)
+        if shared:
+            listed = "; ".join(f"{topic} ({', '.join(nodes)})" for topic, nodes in shared.items())
+            self.get_logger().warning(
+                f"other nodes publish what this replay publishes: {listed}. Their subscribers "
+                "get both sessions mixed (replay into a graph without a driver, or in another "
+                "--domain-id)"
+            )
+
     def wait_for_subscribers(self):
         wanted = self.config["wait_for_subscribers"]
         deadline = time.monotonic() + self.config["wait_timeout"]
@@ -193,6 +216,7 @@ class ReplayNode(Node):
     def play(self):
         """Publish every selected message at its recorded time (scaled by rate)."""
         time.sleep(self.config["start_delay"])
+        self.warn_of_other_publishers()
         topics = list(self.publishers_by_topic)
         unacknowledged = dict.fromkeys(topics, 0)
         while rclpy.ok() and not STOPPING.is_set():
