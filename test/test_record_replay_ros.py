@@ -279,6 +279,21 @@ def test_signalled_recorder_leaves_a_readable_file(tmp_path, nodes, ros_node, si
         assert reader.topics()["/afm/force_trace"].offered_qos[0].reliability == "best_effort"
 
 
+def test_a_recording_named_with_yaml_characters_gets_that_name(tmp_path, nodes, ros_node):
+    """ROS reads a -p value as YAML: "run #3: sphere's.mcap" was a comment, a mapping or a
+    broken quote before the path parameters were passed quoted."""
+    path = tmp_path / "run #3: sphere's [x].mcap"
+    trace_pub = ros_node.create_publisher(ForceTrace, "/afm/force_trace", 10)
+    recorder = nodes("recorder", output=path, topics="['/afm/force_trace']", discovery_period=0.1)
+    wait_for(lambda: trace_pub.get_subscription_count() > 0, 15, what="recorder subscription")
+    trace_pub.publish(force_trace(0))
+    time.sleep(0.5)
+    code, output = recorder.stop(signal.SIGINT)
+    assert code == 0, output
+    with RecordingReader(path) as reader:
+        assert reader.topics()["/afm/force_trace"].message_count == 1
+
+
 def test_hard_killed_recorder_is_recoverable(tmp_path, nodes, ros_node):
     from afm_core.recording import recover_recording
 

@@ -170,8 +170,18 @@ def node_command(
     if params_file:
         command += ["--params-file", str(params_file)]
     for key, value in (overrides or {}).items():
-        command += ["-p", f"{key}:={value}"]
+        command += ["-p", f"{key}:={yaml_quoted(value) if key in PATH_PARAMETERS else value}"]
     return command
+
+
+# parameters whose value is a path: ROS reads a -p value as YAML, so "run #3.mcap" was "run"
+# (a comment) and "a: b.mcap" a mapping; quoted, any path is the string it is
+PATH_PARAMETERS = ("output", "input", "live_recording", "calibration_file")
+
+
+def yaml_quoted(text) -> str:
+    """`text` as a YAML single-quoted string (a quote inside doubled)."""
+    return "'" + str(text).replace("'", "''") + "'"
 
 
 class Graph:
