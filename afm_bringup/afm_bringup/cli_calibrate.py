@@ -19,6 +19,7 @@ def cmd_calibrate(args):
     from afm_core.localization.calibration.model import load_calibration, save_calibration
     from afm_core.localization.calibration.procedure import (
         checked_experiments,
+        experiment_options,
         merge_calibration,
         report_json,
         report_markdown,
@@ -31,6 +32,8 @@ def cmd_calibrate(args):
         check_outputs(args)
         check_pairs(args.pairs)
         chosen = checked_experiments(args.only)
+        options = experiment_options(args.set)
+        options["drift"] = {"pairs": args.pairs, **options.get("drift", {})}
         previous = load_calibration(args.merge) if args.merge else None
         instrument = open_instrument(
             args.backend, args.sim_config, args.seed, args.daq_device, args.daq_calibration
@@ -44,7 +47,7 @@ def cmd_calibrate(args):
         with Progress("calibrate", "experiments", len(chosen), sys.stdout) as bar:
             calibration, report = run_calibration(
                 instrument,
-                drift={"pairs": args.pairs},
+                **options,
                 source=f"afm calibrate --backend {args.backend}",
                 progress=lambda text: _experiment_progress(bar, text),
                 only=args.only,
@@ -72,11 +75,23 @@ def cmd_calibrate(args):
     for name, reason in failed.items():
         print(f"afm calibrate: {name} could not measure: {reason}", file=sys.stderr)
     if failed:
+        # a geometry that does not fit the scanner fails the same way again: those are named
+        # with the options to change, not told to repeat
+        misfit = [n for n, reason in failed.items() if reason.startswith("GeometryError")]
+        again = [n for n in failed if n not in misfit]
+        advice = [
+            f"repeat them: afm calibrate --only {' '.join(again)} --merge {output} -o {output} "
+            "--overwrite"
+        ] * bool(again)
+        advice += [
+            f"{', '.join(misfit)} do not fit this scanner's range: change the options each "
+            "message names (afm calibrate --set EXPERIMENT.OPTION=VALUE), then run them with "
+            f"--only ... --merge {output}"
+        ] * bool(misfit)
         print(
             f"afm calibrate: {output} keeps the book's defaults for "
             f"{', '.join(calibration.defaults)} (listed under `defaults:` in the file); "
-            f"repeat them: afm calibrate --only {' '.join(failed)} --merge {output} -o {output} "
-            "--overwrite",
+            + "; ".join(advice),
             file=sys.stderr,
         )
         return INTERRUPTED_STATUS if report.get("interrupted") else 1
@@ -216,6 +231,17 @@ def _add_calibrate(sub) -> None:
         metavar="EXPERIMENT",
         help="run only these experiments (drift, map_errors, creep, hysteresis_x, "
         "hysteresis_y, scanner_matrix, motion_noise, line_deflection), e.g. one a check flagged",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="EXPERIMENT.OPTION=VALUE",
+        help="an experiment's option (SI units; a list as numbers separated by commas), e.g. "
+        "its geometry where the defaults (the same fractions of any scanner range) do not fit: "
+        "creep.step=4e-6, scanner_matrix.spacing=0.5e-6, motion_noise.distances=0.25e-6,0.5e-6, "
+        "hysteresis.pixel=20e-9; EXPERIMENT is drift, creep, hysteresis, scanner_matrix, "
+        "motion_noise or line_deflection (repeatable)",
     )
     p.add_argument(
         "--merge",

@@ -12,11 +12,13 @@ from scipy import linalg, optimize
 from afm_core import checks
 from afm_core.localization.calibration.experiment import (
     Experiment,
+    GeometryError,
     StepProgress,
     check_box,
     indent_force,
     punch_at,
     range_centre,
+    range_scale,
     rescan,
     wait,
 )
@@ -190,14 +192,14 @@ def _prepared_runs(runs: list[dict], groups: list) -> list[tuple]:
 def measure_creep(
     instrument,
     *,
-    step: float = 50e-6,
+    step: float | None = None,
     duration: float = 300.0,
     pits: int = 40,
     fast_pits: int = 8,
     repeats: int = 5,
     pit_spacing: float = 150e-9,
     settle: float = 300.0,
-    lane_offset: float = 15e-6,
+    lane_offset: float | None = None,
     pixel: float = 10e-9,
     force: float | None = None,
     guess=(1.0, 10.0, 100.0),
@@ -216,8 +218,15 @@ def measure_creep(
     along the step, approached from 50 um before so the pass is on a long monotone stretch of
     the loop (uniform image gain). `fit_creep` then fits all runs at once, the fractions
     shared by the runs of an axis: one run's drift wanders by tens of nm over minutes, as
-    much as the slowest creep term changes, and independent runs average it out."""
+    much as the slowest creep term changes, and independent runs average it out.
+
+    step and lane_offset default to 50 um and 15 um on a 110 um scanner, the same fractions
+    of the range on another (experiment.range_scale); a repeat whose run does not fit in the
+    range is left out (data["runs_dropped"]), the first one must fit (GeometryError)."""
     limits = instrument.limits
+    scale = range_scale(instrument)
+    step = STEP * scale if step is None else step
+    lane_offset = LANE_OFFSET * scale if lane_offset is None else lane_offset
     step = checks.positive("step", step, "m", upper=min(limits.range_x, limits.range_y) * 0.9)
     duration = checks.positive("duration", duration, "s", upper=3600.0)
     pits = checks.count("pits", pits, 8, 400)
@@ -256,6 +265,10 @@ def measure_creep(
     }
     return Experiment(parameters, data)
 
+
+STEP = 50e-6  # m on REFERENCE_RANGE (experiment.range_scale)
+LANE_OFFSET = 15e-6  # m on REFERENCE_RANGE, the lanes of pits from the centre across the step
+APPROACH = 50e-6  # m on REFERENCE_RANGE, the rescans' approach (see measure_creep)
 
 # Creep is a few % of the step (book Fig. 7.7: ~2 %); the first rescan reaches back this
 # share of the step, and further as far as the runs measure (up to MAX_CREEP_FRACTION, past
@@ -314,9 +327,7 @@ def _measured_runs(instrument, step, schedule, repeats, lane_offset, options, pr
         needed = REACH_PER_LAG * record["lag"] + RESCAN_MARGIN
         if needed > reach:
             reach = needed
-            wider = _planned_runs(
-                instrument, step, pits, repeats, pit_spacing, lane_offset, reach, True
-            )
+            wider = _planned_runs(instrument, step, pits, repeats, pit_spacing, lane_offset, reach)
             plans = plans[:number] + wider[number:]
         steps.step(number)
     return runs, data, duration
@@ -330,13 +341,12 @@ def _planned_runs(
     pit_spacing: float,
     lane_offset: float,
     reach: float,
-    fitting_only: bool = False,
 ) -> list[tuple | None]:
     """(axis, start, end) of every run, x runs first, the runs of an axis `reach` +
     RUN_CLEARANCE apart along the step (past the lag a rescan box reaches back); each run's
-    lane checked against the scanner range before anything moves (ValueError), or with
-    `fitting_only` (a plan widened for a larger lag) a later repeat that no longer fits in
-    the range is None: that axis then has fewer runs."""
+    lane checked against the scanner range before anything moves: a later repeat that does not
+    fit in the range (a small scanner, or a plan widened for a larger lag) is None, that axis
+    then has fewer runs; a first one that does not is a GeometryError."""
     centre = range_centre(instrument)
     run_spacing = reach + RUN_CLEARANCE
     plans = []
@@ -356,9 +366,16 @@ def _planned_runs(
                     np.minimum(start, last),
                     np.maximum(end, last),
                 )
-            except ValueError:
-                if not (fitting_only and repeat):
-                    raise
+            except ValueError as exc:
+                if not repeat:
+                    raise GeometryError(
+                        f"{exc}; the first run's {'xy'[axis]} lane, from "
+                        f"{start[0] * 1e6:.3g}, {start[1] * 1e6:.3g} to {last[0] * 1e6:.3g}, "
+                        f"{last[1] * 1e6:.3g} um; pass a smaller step "
+                        f"(now {step:.3g} m), lane_offset ({lane_offset:.3g} m) or pits x "
+                        f"pit_spacing ({pits} x {pit_spacing:.3g} m): afm calibrate --set "
+                        "creep.step=VALUE"
+                    ) from None
                 plans.append(None)
                 continue
             plans.append((axis, start, end))
@@ -433,7 +450,9 @@ def _rescanned_lane(instrument, axis, end, lane, pixel, reach, fast_pits) -> tup
         lo[axis] -= extent
         hi[axis] += RESCAN_MARGIN
         lo[other], hi[other] = lane[0] - 0.4e-6, lane[-1] + 0.4e-6
-        scan = rescan(instrument, lo, hi, pixel, slow_axis=axis, approach=50e-6)
+        scan = rescan(
+            instrument, lo, hi, pixel, slow_axis=axis, approach=APPROACH * range_scale(instrument)
+        )
         detected = find_pits(scan)
         found = np.array([[p.x, p.y][other] for p in detected])
         index = match_monotone(lane, found) if len(found) else np.full(len(lane), -1)

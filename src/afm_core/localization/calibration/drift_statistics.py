@@ -17,13 +17,24 @@ from afm_core.localization.calibration.experiment import (
     Experiment,
     StepProgress,
     check_box,
+    range_centre,
     wait,
 )
+
+# The default particle area: its lower corner from the range centre, its width and height (m)
+AREA = np.array([-0.9e-6, -1.15e-6, 2.0e-6, 3.0e-6])
 
 
 def _particle_area(instrument, area) -> tuple[np.ndarray, np.ndarray]:
     lo, hi = np.asarray(area[:2], float), np.asarray(area[:2], float) + np.asarray(area[2:], float)
-    check_box("drift area", instrument, lo, hi)
+    check_box(
+        "drift area",
+        instrument,
+        lo,
+        hi,
+        "pass the area (x, y, width, height) of at least two particles within the range: afm "
+        "calibrate --set drift.area=X,Y,W,H",
+    )
     if not np.all(hi > lo):
         raise ValueError(f"area={area}: width and height must be > 0")
     return lo, hi
@@ -41,7 +52,7 @@ def check_pairs(pairs) -> int:
 def measure_drift(
     instrument,
     *,
-    area=(54.1e-6, 53.85e-6, 2.0e-6, 3.0e-6),
+    area=None,
     pairs: int = 20,
     pixel: float = 15.625e-9,
     frame_time: float = 256.0,
@@ -73,8 +84,12 @@ def measure_drift(
     T'_u + T'_d long, so the per-pair error (centroid noise / T') stays well below the
     spread being measured, but a pair averages the velocity over its length, which lowers
     the measured spread by about T_pair / (6 x correlation time) (5 % for 512 s pairs and
-    1800 s). The frames are kept for the map error and scan-region error (`map_errors`)."""
+    1800 s). The frames are kept for the map error and scan-region error (`map_errors`).
+    area (x, y, width, height; m) defaults to AREA's offset from the range centre (the
+    default simulator's particles: 54.1, 53.85 um on its 110 um scanner), on any range."""
     limits = instrument.limits
+    if area is None:
+        area = (*(range_centre(instrument) + AREA[:2]), *AREA[2:])
     lo, hi = _particle_area(instrument, area)
     pairs = check_pairs(pairs)
     pixel = checks.positive("pixel", pixel, "m", upper=1e-6)

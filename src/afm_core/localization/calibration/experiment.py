@@ -13,6 +13,7 @@ import numpy as np
 
 from afm_core import checks
 from afm_core.instrument import RasterScanData, ScanRequest, check_in_range
+from afm_core.localization.calibration.pits import find_pits
 
 MAX_LINE_RATE = 10.0  # Hz, rescans: slower than the slew limit allows keeps the tracking honest
 # Within an experiment a progress line at most this often (wall clock): readable in a log,
@@ -31,16 +32,45 @@ def range_centre(instrument) -> np.ndarray:
     return 0.5 * np.array([instrument.limits.range_x, instrument.limits.range_y])
 
 
+# The range the experiments' default geometry was laid out on (the default simulator's and the
+# book's 110 um scanner). Each default site offset, step and lane distance is that length on
+# this range, times range_scale: exactly the same numbers here, the same fractions of the
+# range on another scanner (a 10 um tube: a creep step of 4.5 um, not 50 um).
+REFERENCE_RANGE = 110e-6  # m
+
+
+def range_scale(instrument) -> float:
+    """The instrument's (smaller) scanner range over REFERENCE_RANGE: what the experiments'
+    default geometry is multiplied by (1.0 exactly on a 110 um scanner)."""
+    limits = instrument.limits
+    return min(limits.range_x, limits.range_y) / REFERENCE_RANGE
+
+
+class GeometryError(ValueError):
+    """An experiment's sites, lanes or step do not fit in the scanner range. Repeating the
+    experiment cannot help: the message names the option to change (fit_checks says so)."""
+
+
 def indent_force(instrument, force: float | None) -> float:
     """The force of a pit (N): 1 uN (or the instrument's limit, if lower) unless given."""
     limit = instrument.limits.max_indent_force
     return min(1e-6, limit) if force is None else checks.positive("force", force, "N", upper=limit)
 
 
-def check_box(name: str, instrument, lo, hi) -> None:
-    """Every corner of the box [lo, hi] inside the scanner range (ValueError naming `name`)."""
-    check_in_range(f"{name} (lower corner)", float(lo[0]), float(lo[1]), instrument.limits)
-    check_in_range(f"{name} (upper corner)", float(hi[0]), float(hi[1]), instrument.limits)
+def check_box(name: str, instrument, lo, hi, fix: str = "") -> None:
+    """Every corner of the box [lo, hi] inside the scanner range (GeometryError naming `name`
+    and, when given, `fix`: the options that would make it fit)."""
+    try:
+        check_in_range(f"{name} (lower corner)", float(lo[0]), float(lo[1]), instrument.limits)
+        check_in_range(f"{name} (upper corner)", float(hi[0]), float(hi[1]), instrument.limits)
+    except ValueError as exc:
+        size = np.asarray(hi, float) - np.asarray(lo, float)
+        limits = instrument.limits
+        raise GeometryError(
+            f"{exc}: the {name} ({size[0] * 1e6:.3g} x {size[1] * 1e6:.3g} um) does not fit in "
+            f"this scanner's {limits.range_x * 1e6:.3g} x {limits.range_y * 1e6:.3g} um range"
+            + (f"; {fix}" if fix else "")
+        ) from None
 
 
 def wait(instrument, seconds: float) -> None:
@@ -65,9 +95,10 @@ def punch_at(instrument, x: float, y: float, speed: float, force: float) -> floa
 
 
 def rescan(
-    instrument, lo, hi, pixel: float, slow_axis: int, slow_up: bool = True, approach: float = 0.0
+    instrument, lo, hi, pixel, slow_axis: int, slow_up: bool = True, approach: float = 0.0
 ) -> RasterScanData:
-    """A raster image of the box [lo, hi] (m) with square pixels of about `pixel` and its slow
+    """A raster image of the box [lo, hi] (m) with square pixels of about `pixel` (or a pair:
+    (along x, along y)) and its slow
     axis along `slow_axis` (0 = x: 90 deg scan; 1 = y: 0 deg). The slow axis moves once,
     monotonically, so a row of pits along it is imaged on one branch of the (compensated)
     scanner with no fast-axis loop in between. approach > 0: the tip first goes that far
@@ -77,11 +108,12 @@ def rescan(
     lo = np.maximum(np.asarray(lo, float), 0.0)
     hi = np.minimum(np.asarray(hi, float), [limits.range_x, limits.range_y])
     size = hi - lo
+    pixel = np.broadcast_to(np.asarray(pixel, float), (2,))
     pixels = np.maximum(16, np.ceil(size / pixel)).astype(int)
     if pixels.max() > limits.max_pixels:
         raise ValueError(
-            f"pixel={pixel:.3g} m: the rescan of {size[0]:.3g} x {size[1]:.3g} m would need "
-            f"{pixels.max()} pixels, above max_pixels {limits.max_pixels}"
+            f"pixel={pixel.min():.3g} m: the rescan of {size[0]:.3g} x {size[1]:.3g} m would "
+            f"need {pixels.max()} pixels, above max_pixels {limits.max_pixels}"
         )
     fast = 1 - slow_axis
     rate = min(MAX_LINE_RATE, limits.max_line_rate, 0.95 * limits.max_speed / (2.0 * size[fast]))
@@ -105,6 +137,29 @@ def rescan(
         line_rate=rate,
     )
     return instrument.raster_scan(request)
+
+
+# A probe pit is imaged this far either side of where it was punched, at this pixel: fine
+# enough to count the pixels of the 40-60 nm wide pits of sharp tips (8-20 nm apex), wide
+# enough for the compensation residual between the punch and the image
+PROBE_REACH = 0.6e-6  # m
+PROBE_PIXEL = 10e-9  # m
+
+
+def probe_pit_width(instrument, x: float, y: float, force: float) -> float:
+    """The width (m) of a pit punched at (x, y) as the pit detector sees it: the diameter of
+    the disc as large as its pixels deeper than the detection threshold, in a fine image
+    around it. It scales with the tip apex (radius ~ sqrt(2 R depth)); NaN when none is
+    found. The experiments that image pits at a coarse pixel choose it from this."""
+    punch_at(instrument, x, y, 0.1 * instrument.limits.max_speed, force)
+    centre = np.array([x, y])
+    scan = rescan(instrument, centre - PROBE_REACH, centre + PROBE_REACH, PROBE_PIXEL, 1)
+    pits = find_pits(scan)
+    if not pits:
+        return float("nan")
+    nearest = min(pits, key=lambda p: (p.x - x) ** 2 + (p.y - y) ** 2)
+    area = nearest.pixels * scan.pixel_size_x * scan.pixel_size_y
+    return float(2.0 * np.sqrt(area / np.pi))
 
 
 class StepProgress:

@@ -110,6 +110,23 @@ def _agreement(names, parameter, values, sigmas, scale, unit, advice) -> dict:
     )
 
 
+# the run_calibration keyword (afm calibrate --set prefix) that holds an experiment's options
+OPTIONS_OF = {"hysteresis_x": "hysteresis", "hysteresis_y": "hysteresis", "map_errors": "drift"}
+
+
+def _advice(experiment: str, reason: str) -> str:
+    """What to do about an experiment that could not measure: repeat it, unless its geometry
+    does not fit the scanner (experiment.GeometryError), which a repeat cannot change; its
+    message names the options that would make it fit."""
+    if reason.startswith("GeometryError"):
+        return (
+            "repeating it cannot help: its geometry does not fit this scanner's range (the "
+            "message names the options to change: afm calibrate --set "
+            f"{OPTIONS_OF.get(experiment, experiment)}.OPTION=VALUE)"
+        )
+    return _repeat(experiment)
+
+
 def calibration_checks(summary: dict) -> list[dict]:
     """Every check of the report `summary` of run_calibration (see the module doc)."""
     checks = []
@@ -123,7 +140,7 @@ def calibration_checks(summary: dict) -> list[dict]:
                     None,
                     None,
                     f"could not measure ({entry['failed']}); its fields keep the defaults; "
-                    + _repeat(name),
+                    + _advice(name, entry["failed"]),
                 )
             )
 

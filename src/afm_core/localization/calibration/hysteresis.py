@@ -19,7 +19,9 @@ from afm_core.localization.calibration.experiment import (
     StepProgress,
     check_box,
     indent_force,
+    probe_pit_width,
     range_centre,
+    range_scale,
 )
 from afm_core.localization.calibration.hysteresis_cycle import drive_cycle, drive_record
 from afm_core.localization.calibration.hysteresis_rows import (
@@ -216,7 +218,7 @@ CYCLE_FRACTION = 0.9
 RETRY_CYCLE_FRACTION = 0.8
 # The retry's lane, across from the first: past the first's rescan box (2 um beyond its two
 # lanes, branch_gap apart) and its own, with 1 um between.
-RETRY_LANE_SHIFT = -11e-6  # m
+RETRY_LANE_SHIFT = -11e-6  # m on REFERENCE_RANGE (experiment.range_scale)
 
 
 def measure_hysteresis(instrument, axis: int, **options) -> Experiment:
@@ -234,14 +236,23 @@ def measure_hysteresis(instrument, axis: int, **options) -> Experiment:
         first = exc
     known = [] if options.get("ignore") is None else list(options["ignore"])
     retry = dict(options, cycle_fraction=RETRY_CYCLE_FRACTION, ignore=known + first.detected)
-    retry["lane_offset"] = options.get("lane_offset", LANE_OFFSET) + RETRY_LANE_SHIFT
+    scale = range_scale(instrument)
+    lane = options.get("lane_offset")
+    lane = LANE_OFFSET * scale if lane is None else lane
+    retry["lane_offset"] = lane + RETRY_LANE_SHIFT * scale
     experiment = measure_hysteresis_once(instrument, axis, **retry)
     experiment.data["retried"] = f"at cycle_fraction {cycle}: {first}"
     experiment.data["all_detected"] = list(experiment.data["all_detected"]) + first.detected
     return experiment
 
 
-LANE_OFFSET = -8e-6  # m, the cycle's lane from the range centre across the cycled axis
+# m on REFERENCE_RANGE (times experiment.range_scale on another scanner): the cycle's lane from
+# the range centre across the cycled axis, the gap between its two rows, and how far the box
+# checked against the range and the rescan box reach across beyond them
+LANE_OFFSET = -8e-6
+BRANCH_GAP = 3e-6
+CYCLE_REACH = 3e-6
+RESCAN_REACH = 2e-6
 
 
 def measure_hysteresis_once(
@@ -253,11 +264,11 @@ def measure_hysteresis_once(
     steps_per_sweep: int = 128,
     pit_every: int = 4,
     operators: int = 12,
-    lane_offset: float = LANE_OFFSET,
-    branch_gap: float = 3e-6,
+    lane_offset: float | None = None,
+    branch_gap: float | None = None,
     speed: float = 20e-6,
     settle: float = 300.0,
-    pixel: float = 30e-9,
+    pixel: float | None = None,
     rescans=("down", "up"),
     force: float | None = None,
     ignore=None,
@@ -285,8 +296,12 @@ def measure_hysteresis_once(
     A / (2 operators) (A: cycle amplitude; the first rise of A wipes out the memory of every
     such operator, so the unknown state before the cycle does not matter) and the measured
     creep (time constants, fractions) when given. Derived loop_fraction and asymmetry are
-    defined as in PrandtlIshlinskii.from_fraction."""
+    defined as in PrandtlIshlinskii.from_fraction. Lengths by default: LANE_OFFSET etc. x
+    range_scale; the pixel from a probe pit's width (`_pit_width_and_pixel`, data["pixel"])."""
     limits = instrument.limits
+    scale = range_scale(instrument)
+    lane_offset = LANE_OFFSET * scale if lane_offset is None else lane_offset
+    branch_gap = BRANCH_GAP * scale if branch_gap is None else branch_gap
     steps_per_sweep, pit_every, operators, speed, branch_gap = _checked_options(
         limits, axis, cycle_fraction, steps_per_sweep, pit_every, operators, speed, branch_gap
     )
@@ -297,8 +312,12 @@ def measure_hysteresis_once(
     half = [limits.range_x, limits.range_y][axis] / 2
     amplitude = cycle_fraction * half
     lane = centre[1 - axis] + lane_offset
-    lo, hi = _box(axis, centre, amplitude, (lane, lane + branch_gap), 3e-6)
-    check_box(f"hysteresis cycle ({'xy'[axis]})", instrument, lo, hi)
+    lo, hi = _box(axis, centre, amplitude, (lane, lane + branch_gap), CYCLE_REACH * scale)
+    advice = (
+        f"pass a smaller lane_offset (now {lane_offset:.3g} m) or branch_gap ({branch_gap:.3g} m)"
+    )
+    check_box(f"hysteresis cycle ({'xy'[axis]})", instrument, lo, hi, advice)
+    width, pixel = _pit_width_and_pixel(instrument, axis, lo, pixel, force)
     step = 2 * amplitude / steps_per_sweep
     timeline, pits = drive_cycle(
         instrument,
@@ -323,57 +342,107 @@ def measure_hysteresis_once(
     # the cycle ended at its top with the feed-forward back on: the command is now where the
     # controller puts the top tip, the only place a compensated pass can start for certain
     top = float(instrument.commanded_position()[axis])
-    box = _rescan_box(axis, centre, amplitude, half, (lane, lane + branch_gap), top)
+    box = _rescan_box(axis, centre, amplitude, half, (lane, lane + branch_gap), top, scale)
     branches = np.array([p[0] for p in pits])
     drives = np.array([p[1] for p in pits])
     moments = np.array([p[2] for p in pits])
     cycle = (branches, drives, moments, timeline.sampled(axis, MODEL_DT))
-    imaging = (instrument, axis, pixel, rescans, ignore)
+    pixels = rescan_pixels(instrument, axis, box, pixel)
+    imaging = (instrument, axis, pixels, rescans, ignore, width)
     thresholds = np.arange(operators) * amplitude / (2 * operators)
     model = (centre[axis], half, thresholds, creep)
     fit, measured, disagreeing, all_detected = _imaged_fit(imaging, box, cycle, model)
+    data = _record(fit, measured, disagreeing, all_detected, cycle[:3])
+    data.update(
+        cycle_fraction=cycle_fraction,
+        # the rescan box along the cycled axis
+        rescan_box=[float(box[0][axis]), float(box[1][axis])],
+        pit_width=width if width > 0 else None,  # None: the pixel was given
+        pixel=pixels,
+        pits_punched=len(pits),
+        **drive_record(timeline, axis, centre[axis], half),
+    )
+    return Experiment({key: fit[key] for key in FIT_PARAMETERS}, data)
+
+
+def _record(fit, measured, disagreeing, all_detected, cycle) -> dict:
+    """What the pits say: the found pits' branch, drive, time and imaged position (the mean of
+    the rescans), the fit's prediction and the counts."""
+    branches, drives, moments = cycle
     found = np.all(np.isfinite(measured), axis=0)
-    positions = measured[:, found].mean(axis=0)
-    parameters = {key: fit[key] for key in FIT_PARAMETERS}
-    data = {
+    return {
         "branch": branches[found].tolist(),
         "drive": drives[found].tolist(),
         "time": moments[found].tolist(),
-        "position": positions.tolist(),
+        "position": measured[:, found].mean(axis=0).tolist(),
         "position_per_rescan": measured[:, found].tolist(),
         "predicted": fit["predicted"],
-        "pits_punched": len(pits),
         "pits_found": int(found.sum()),
         "pits_rescans_disagree": int(disagreeing.sum()),
         # the four pits at the loop's tips (each branch's highest and lowest drive), where the
         # asymmetry shows most; outside the rescan box when the loop is strongly asymmetric
         "tip_pits_found": int(sum(found[_tip_pits(branches, drives)])),
         "all_detected": all_detected[0],
-        "cycle_fraction": cycle_fraction,
-        # the rescan box along the cycled axis
-        "rescan_box": [float(box[0][axis]), float(box[1][axis])],
-        **drive_record(timeline, axis, centre[axis], half),
     }
-    return Experiment(parameters, data)
+
+
+# The rescan pixel: PIXEL, or the probe pit's width over PIT_PIXELS where that is finer. The
+# pit detector needs MIN_PIT_PIXELS above its threshold and the centre fit a few more: the
+# default tip's pits (20 nm apex, ~63 nm wide as detected) keep 30 nm; an 8 nm apex (~44 nm)
+# got 24 nm, where at 30-35 nm a third of the pits or none were found (probe 57, F5).
+PIXEL = 30e-9  # m
+PIT_PIXELS = 1.8
+
+
+def _pit_width_and_pixel(instrument, axis: int, lo, pixel, force: float) -> tuple:
+    """(probe pit width or NaN, rescan pixel): `pixel` as given, else from a probe pit punched
+    at the range centre along the cycled axis, on the near edge of the cycle's box across it
+    (outside every rescan box of both cycles and their retries)."""
+    if pixel is not None:
+        return float("nan"), float(pixel)
+    probe = range_centre(instrument)
+    probe[1 - axis] = lo[1 - axis]
+    width = probe_pit_width(instrument, float(probe[0]), float(probe[1]), force)
+    return width, (min(PIXEL, width / PIT_PIXELS) if width > 0 else PIXEL)
+
+
+def rescan_pixels(instrument, axis: int, box, pixel: float) -> list[float]:
+    """The rescans' pixel (x, y) (m): `pixel`, coarser along the cycled (slow) axis only where
+    the box is too long for max_pixels lines at it (a fine pixel on a full-range cycle)."""
+    pixels = [float(pixel), float(pixel)]
+    length = float(box[1][axis] - box[0][axis])
+    pixels[axis] = max(pixel, length / (instrument.limits.max_pixels - 1))
+    return pixels
 
 
 def _imaged_fit(imaging, box, cycle, model) -> tuple:
     """The rows of pits imaged in `box` (imaged_rows), the pits the rescans disagree on left
     out, and fit_hysteresis on the rest: (fit, measured positions per rescan (NaN where not
     used), disagreeing, detections)."""
-    instrument, axis, pixel, rescans, ignore = imaging
+    instrument, axis, pixel, rescans, ignore, width = imaging
     branches, drives, moments, (times, drive) = cycle
     centre, half, thresholds, creep = model
-    measured, all_detected = imaged_rows(
-        instrument, axis, box, pixel, rescans, branches, drives, ignore
+    # pits under ~2 pixels wide are missed: a failure says how the two compared
+    probe = f", a probe pit {width * 1e9:.0f} nm wide" if width > 0 else ""
+    sizes = (
+        f" (rescan pixel {max(pixel) * 1e9:.0f} nm{probe}; pits narrower than 2 pixels are "
+        "missed: afm calibrate --set hysteresis.pixel=VALUE)"
     )
+    try:
+        measured, all_detected = imaged_rows(
+            instrument, axis, box, pixel, rescans, branches, drives, ignore
+        )
+    except RowsNotMatched as exc:
+        raise RowsNotMatched(f"{exc}{sizes}", exc.detected) from exc
+    except RuntimeError as exc:
+        raise RuntimeError(f"{exc}{sizes}") from exc
     disagreeing = rescan_disagreements(measured, branches)
     measured[:, disagreeing] = np.nan
     found = np.all(np.isfinite(measured), axis=0)
     if found.sum() < 2 * thresholds.size:
         raise RuntimeError(
             f"hysteresis ({'xy'[axis]}): only {int(found.sum())} of {len(branches)} pits found "
-            f"in every rescan; need {2 * thresholds.size}"
+            f"in every rescan; need {2 * thresholds.size}{sizes}"
         )
     positions = measured[:, found].mean(axis=0)
     fit = fit_hysteresis(times, drive, centre, half, moments[found], positions, thresholds, creep)
@@ -433,10 +502,12 @@ def _box(
 # stay whole in the image and each pass starts a few pit spacings (~1 um) before the first
 # pit. At 2 um the rows of a loop of 0.25 (a = -0.1, coupling 0.05, noise 4x, the tests'
 # coarse cycle) were not matched at the top tip on both cycles; at 4 um the smaller one was.
-TIP_MARGIN = 4.0e-6  # m
+TIP_MARGIN = 4.0e-6  # m on REFERENCE_RANGE (experiment.range_scale)
 
 
-def _rescan_box(axis: int, centre, amplitude: float, half: float, lanes, top: float) -> tuple:
+def _rescan_box(
+    axis: int, centre, amplitude: float, half: float, lanes, top: float, scale: float = 1.0
+) -> tuple:
     """The box the rows of pits are rescanned in: from TIP_MARGIN below the cycle's bottom
     tip to TIP_MARGIN above its top one (`top`: where the controller puts the top tip; the
     bottom one lies 2 amplitude x the tip-to-tip gain below it, 1 to a few %, which the
@@ -447,15 +518,18 @@ def _rescan_box(axis: int, centre, amplitude: float, half: float, lanes, top: fl
     runs ahead of the scanner over the following tens of um (a fixed box of 0.95 of the half
     range biased the asymmetry by -4 % on a noise-free scanner, and failed to match the
     rows of a loop of 0.25 with a = -0.1). The tips are `amplitude` inside full drive, so
-    the margin is reachable whenever TIP_MARGIN < (half - amplitude) x the branch slope."""
-    lo, hi = _box(axis, centre, amplitude, lanes, 2e-6)
+    the margin is reachable whenever TIP_MARGIN < (half - amplitude) x the branch slope.
+    scale: experiment.range_scale, which the margins are multiplied by (the loop, its tips'
+    spread and the cycle's pit spacing are fractions of the range)."""
+    lo, hi = _box(axis, centre, amplitude, lanes, RESCAN_REACH * scale)
+    margin = TIP_MARGIN * scale
     limit = 2.0 * half  # the range along the cycled axis: [0, 2 half]
     if math.isfinite(top) and abs(top - centre[axis] - amplitude) < 0.25 * half:
-        lo[axis] = max(0.0, top - 2.0 * amplitude - TIP_MARGIN)
-        hi[axis] = min(limit, top + TIP_MARGIN)
+        lo[axis] = max(0.0, top - 2.0 * amplitude - margin)
+        hi[axis] = min(limit, top + margin)
     else:  # an instrument that does not report the compensated command: the drive's span
-        lo[axis] = max(0.0, lo[axis] - TIP_MARGIN)
-        hi[axis] = min(limit, hi[axis] + TIP_MARGIN)
+        lo[axis] = max(0.0, lo[axis] - margin)
+        hi[axis] = min(limit, hi[axis] + margin)
     return lo, hi
 
 

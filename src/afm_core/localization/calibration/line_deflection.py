@@ -16,10 +16,23 @@ from afm_core.localization.calibration.experiment import (
     indent_force,
     punch_at,
     range_centre,
+    range_scale,
     rescan,
 )
 from afm_core.localization.calibration.matching import match_points
 from afm_core.localization.calibration.pits import find_pits
+
+SITE = np.array([20e-6, -25e-6])  # m on REFERENCE_RANGE (experiment.range_scale)
+
+
+def _into_range(instrument, points, margin: float) -> np.ndarray:
+    """The shift (m) that brings `points` `margin` inside the scanner range where they stick out
+    (zero where they do not, or where the block is wider than the range)."""
+    limits = instrument.limits
+    lo, hi = points.min(axis=0) - margin, points.max(axis=0) + margin
+    top = np.array([limits.range_x, limits.range_y])
+    shift = np.where(lo < 0.0, -lo, 0.0) + np.where(hi > top, top - hi, 0.0)
+    return np.where(hi - lo <= top, shift, 0.0)
 
 
 def measure_line_deflection(
@@ -28,7 +41,7 @@ def measure_line_deflection(
     lines: int = 20,
     length: float = 1e-6,
     line_spacing: float = 0.4e-6,
-    site=(20e-6, -25e-6),
+    site=None,
     speed: float = 1e-6,
     pixel: float = 10e-9,
     force: float | None = None,
@@ -37,8 +50,12 @@ def measure_line_deflection(
     the local scan, a pit where it ended; half the lines horizontal, half vertical. The angle
     between the pit-to-pit vector and the commanded direction (counter-clockwise positive)
     over all lines gives mean and sigma. As for the scanner matrix, a deflection common to
-    lines and raster scans cancels: this is the deflection against the image (the map)."""
+    lines and raster scans cancels: this is the deflection against the image (the map).
+    site (the first line's start from the range centre) defaults to SITE on a 110 um scanner,
+    the same fraction of another's range (experiment.range_scale)."""
     limits = instrument.limits
+    given = site is not None
+    site = SITE * range_scale(instrument) if site is None else np.asarray(site, float)
     lines = checks.count("lines", lines, 2, 200)
     length = checks.positive("length", length, "m", upper=20e-6)
     force = indent_force(instrument, force)
@@ -54,12 +71,18 @@ def measure_line_deflection(
         starts.append(s)
         ends.append(e)
     starts, ends = np.array(starts), np.array(ends)
+    if not given:  # on a small range the block (a few um) is moved inside it, if it fits
+        shift = _into_range(instrument, np.vstack([starts, ends]), 0.5e-6)
+        starts, ends = starts + shift, ends + shift
     everything = np.vstack([starts, ends])
     check_box(
         "line-deflection site",
         instrument,
         everything.min(axis=0) - 0.5e-6,
         everything.max(axis=0) + 0.5e-6,
+        f"pass a site nearer the centre (now {site[0]:.3g}, {site[1]:.3g} m), fewer lines or a "
+        f"smaller line_spacing ({lines} x {line_spacing:.3g} m): afm calibrate --set "
+        "line_deflection.site=X,Y",
     )
     samples = max(
         2, int(round(length / 10e-9))

@@ -24,15 +24,18 @@ import numpy as np
 from afm_core import checks
 from afm_core.localization.calibration.experiment import (
     Experiment,
+    GeometryError,
     StepProgress,
     check_box,
     indent_force,
     punch_at,
     range_centre,
+    range_scale,
     rescan,
     wait,
 )
 from afm_core.localization.calibration.fit_checks import ACCURACY_TARGET, Z_95, Z_CONSISTENT
+from afm_core.localization.calibration.hysteresis import LANE_OFFSET
 from afm_core.localization.calibration.pits import DetectedPit, find_pits
 
 
@@ -74,15 +77,23 @@ def variance_line(distances, variances, counts) -> tuple[float, float, float]:
 # of 0.1 (a rescan past it is clamped, see hysteresis._rescan_box; at 1.1 um inside, x -48 um,
 # the 0.25 um x lane of the widest loop kept 3 trials).
 PLAN_MARGIN = 1.2
+# On REFERENCE_RANGE (experiment.range_scale): the distances moved (on a smaller range those up
+# to MAX_DISTANCE x the scale, at least the two shortest), the first and the second round's
+# lanes from the range centre (m)
+DISTANCES = (0.25e-6, 0.5e-6, 1e-6, 2e-6, 4e-6)
+MAX_DISTANCE = 4.4e-6  # m on REFERENCE_RANGE: the longest distance kept is this share of the range
+SITE = np.array([-45e-6, -45e-6])
+EXTRA_SITE = np.array([-45e-6, 0.0])
+MIN_TRIALS = 12  # a lane cut to fit a small range keeps at least these (else GeometryError)
 
 
 def measure_motion_noise(
     instrument,
     *,
-    distances=(0.25e-6, 0.5e-6, 1e-6, 2e-6, 4e-6),
+    distances=None,
     trials: int = 40,
     row_spacing: float = 200e-9,
-    site=(-45e-6, -45e-6),
+    site=None,
     speed: float = 10e-6,
     settle: float = 300.0,
     pixel: float = 15e-9,
@@ -90,7 +101,7 @@ def measure_motion_noise(
     progress=None,
     precision: float | None = ACCURACY_TARGET,
     max_trials: int = 100,
-    extra_site=(-45e-6, 0.0),
+    extra_site=None,
 ) -> Experiment:
     """Motion error variance against distance (book Fig. 7.6e; Fig. 7.20b sigma^2 = a d + b).
 
@@ -107,8 +118,22 @@ def measure_motion_noise(
     precision (relative, or None): when the pooled slope's 95 % interval is wider than this
     share of it, a second round of lanes at `extra_site` adds the trials the pooled fit needs
     (PLAN_MARGIN), at most `max_trials` per lane (the time budget: each lane's rescan grows
-    with its trials); data["rounds"] says what was planned and why."""
+    with its trials); data["rounds"] says what was planned and why.
+
+    distances, site and extra_site default to DISTANCES, SITE and EXTRA_SITE on a 110 um
+    scanner, the same fractions of a smaller range (experiment.range_scale), where a round's
+    lanes have as many trials as fit in the range (at least MIN_TRIALS, else GeometryError;
+    a second round that does not fit is not run, data["rounds"] says so)."""
     limits = instrument.limits
+    scale = range_scale(instrument)
+    # the default sites' lanes stay clear of the hysteresis rows; a site given only has to fit
+    top = np.array([limits.range_x, limits.range_y])
+    clear = _clear_of_hysteresis(instrument) if site is None else top
+    site = SITE * scale if site is None else np.asarray(site, float)
+    extra_site = EXTRA_SITE * scale if extra_site is None else np.asarray(extra_site, float)
+    if distances is None:
+        distances = [d for d in DISTANCES if d <= MAX_DISTANCE * scale] or DISTANCES[:1]
+        distances = distances if len(distances) > 1 else DISTANCES[:2]
     distances = [checks.positive("distances[]", d, "m", upper=20e-6) for d in distances]
     if len(distances) < 2:
         raise ValueError(f"distances={distances}: need at least two distances for a line")
@@ -118,6 +143,7 @@ def measure_motion_noise(
     speed = checks.positive("speed", speed, "m/s", upper=limits.max_speed)
     force = indent_force(instrument, force)
     options = (row_spacing, speed, settle, pixel, force, progress)
+    trials = _fitting_trials(instrument, site, distances, (trials, MIN_TRIALS), row_spacing, clear)
     samples, data = _round(instrument, site, distances, trials, options, 0)
     parameters = _fitted_slopes(samples)
     data["rounds"] = [{"site": list(site), "trials": trials}]
@@ -127,6 +153,14 @@ def measure_motion_noise(
         largest = max(np.sqrt(max(r[3], r[4], 0.0)) for r in samples)
         spacing = float(max(row_spacing, ROW_SIGMAS * largest))
         more = min(max(wanted, 5), max_trials, int(MAX_EXTENT / spacing) + 1)
+        try:
+            more = _fitting_trials(
+                instrument, extra_site, distances, (more, 5), spacing, np.array([clear[0], top[1]])
+            )
+        except GeometryError as exc:
+            data["rounds"].append({"site": list(extra_site), "trials": 0, "why": str(exc)})
+            parameters["move_gains"] = _move_gains(data)
+            return Experiment(parameters, data)
         extra, extra_data = _round(
             instrument, extra_site, distances, more, (spacing, *options[1:]), 1
         )
@@ -244,18 +278,71 @@ def _round(instrument, site, distances, trials: int, options, number) -> tuple[l
 LANE_GAP = 3e-6  # m
 
 
+MIN_LANE_GAP = 1e-6  # m: LANE_GAP x experiment.range_scale on a small range, not below this
+
+
+def _clear_of_hysteresis(instrument) -> np.ndarray:
+    """The upper corner (m) the first round's lanes stay below: their rescans (reaching up to
+    MIN_LANE_GAP past the pits) clear of the hysteresis cycles' rows (at hysteresis.LANE_OFFSET
+    from the centre across each axis, the full range along it), which are punched before;
+    on a 110 um scanner the default lanes are 4.3 um inside."""
+    return range_centre(instrument) + LANE_OFFSET * range_scale(instrument) - MIN_LANE_GAP
+
+
+def _fitting_trials(instrument, site, distances, counts, row_spacing, upper) -> int:
+    """The most trials per lane, up to counts[0] (at least counts[1]), whose lanes at `site`
+    fit in the range below `upper` (GeometryError naming the options when not even
+    counts[1] do; counts[0] below that: those or the error)."""
+    trials, least = counts
+    origin = range_centre(instrument) + np.asarray(site, float)
+    reason = None
+    for count in range(trials, min(least, trials) - 1, -1):
+        try:
+            lanes = _lanes(instrument, origin, distances, (count - 1) * row_spacing)
+        except GeometryError as exc:
+            reason = exc
+            continue
+        top = _lanes_top(lanes, (count - 1) * row_spacing)
+        if np.all(top <= upper):
+            return count
+        reason = (
+            f"motion-noise lanes up to {top[0] * 1e6:.3g}, {top[1] * 1e6:.3g} um: past "
+            f"{upper[0] * 1e6:.3g}, {upper[1] * 1e6:.3g} um (the hysteresis cycles' lanes)"
+        )
+    raise GeometryError(
+        f"{reason} (with {min(least, trials)} trials); pass a site (one given only has to fit "
+        "in the range; keep it clear of the other experiments' pits: afm calibrate --set "
+        f"motion_noise.site=X,Y; now {site[0]:.3g}, {site[1]:.3g} m), fewer or shorter "
+        f"distances (now {', '.join(f'{d:.3g}' for d in distances)} m) or a smaller "
+        f"row_spacing ({row_spacing:.3g} m)"
+    )
+
+
+def _lanes_top(lanes, extent: float) -> np.ndarray:
+    """The upper corner of the lanes' pits (m)."""
+    top = np.full(2, -np.inf)
+    for axis, d, start in lanes:
+        end = np.array(start, float)
+        end[axis] += d
+        end[1 - axis] += extent
+        top = np.maximum(top, end)
+    return top
+
+
 def _lanes(instrument, origin, distances, extent: float) -> list[tuple]:
     """(axis, distance, start) of every lane, checked against the scanner range. Lanes side by
-    side, LANE_GAP apart: the x lanes (rows stacked along y, `extent` tall) in a band along x,
-    the y lanes (columns stacked along x) in a band along y above them."""
+    side, LANE_GAP apart (MIN_LANE_GAP on a small range): the x lanes (rows stacked along y,
+    `extent` tall) in a band along x, the y lanes (columns stacked along x) in a band along y
+    above them."""
+    gap = max(MIN_LANE_GAP, LANE_GAP * range_scale(instrument))
     lanes, cursor = [], 0.0
     for d in distances:
         lanes.append((0, d, origin + np.array([cursor, 0.0])))
-        cursor += 1.3 * d + LANE_GAP
-    cursor = extent + LANE_GAP
+        cursor += 1.3 * d + gap
+    cursor = extent + gap
     for d in distances:
         lanes.append((1, d, origin + np.array([0.0, cursor])))
-        cursor += 1.3 * d + LANE_GAP
+        cursor += 1.3 * d + gap
     for axis, d, start in lanes:
         end = start.copy()
         end[axis] += d

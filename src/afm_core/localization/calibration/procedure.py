@@ -32,6 +32,7 @@ Experiments (`run_calibration` runs the drift pairs first, then the others in th
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 import time as wallclock
 from datetime import datetime, timezone
@@ -42,7 +43,11 @@ import numpy as np
 from afm_core.localization.calibration.creep import measure_creep
 from afm_core.localization.calibration.drift_statistics import measure_drift
 from afm_core.localization.calibration.fit_checks import calibration_checks
-from afm_core.localization.calibration.hysteresis import hysteresis_fit_of, measure_hysteresis
+from afm_core.localization.calibration.hysteresis import (
+    hysteresis_fit_of,
+    measure_hysteresis,
+    measure_hysteresis_once,
+)
 from afm_core.localization.calibration.line_deflection import measure_line_deflection
 from afm_core.localization.calibration.map_errors import map_errors
 from afm_core.localization.calibration.model import Calibration
@@ -86,6 +91,62 @@ FIELDS = {
     ),
     "line_deflection": ("line_deflection_mean_deg", "line_deflection_sigma_deg"),
 }
+
+
+# `afm calibrate --set EXPERIMENT.OPTION=VALUE`: which run_calibration keyword and measuring
+# function take an experiment's options; the arguments run_calibration supplies itself are not
+# options.
+OPTION_FUNCTIONS = {
+    "drift": measure_drift,
+    "creep": measure_creep,
+    "hysteresis": measure_hysteresis_once,
+    "scanner_matrix": measure_scanner_matrix,
+    "motion_noise": measure_motion_noise,
+    "line_deflection": measure_line_deflection,
+}
+NOT_OPTIONS = {"instrument", "axis", "creep", "ignore", "progress"}
+
+
+def experiment_options(settings) -> dict:
+    """{keyword: {option: value}} for run_calibration from "EXPERIMENT.OPTION=VALUE" texts
+    (VALUE a number, or numbers separated by commas for a list); ValueError naming the first
+    bad one and the valid choices, before any experiment runs (e.g. a smaller geometry for a
+    small scanner: "creep.step=4e-6")."""
+    options: dict = {}
+    for text in settings or ():
+        name, _, value = str(text).partition("=")
+        experiment, _, option = name.strip().partition(".")
+        if experiment not in OPTION_FUNCTIONS or not value.strip():
+            raise ValueError(
+                f"--set {text!r}: need EXPERIMENT.OPTION=VALUE, EXPERIMENT one of "
+                f"{', '.join(OPTION_FUNCTIONS)}"
+            )
+        valid = [
+            p
+            for p in inspect.signature(OPTION_FUNCTIONS[experiment]).parameters
+            if p not in NOT_OPTIONS
+        ]
+        if option not in valid:
+            raise ValueError(
+                f"--set {text!r}: {experiment} has no option {option!r}; choose from "
+                f"{', '.join(valid)}"
+            )
+        try:
+            numbers = [_number(part) for part in value.split(",")]
+        except ValueError:
+            raise ValueError(
+                f"--set {text!r}: {value!r} is not a number or a list of numbers"
+            ) from None
+        options.setdefault(experiment, {})[option] = numbers[0] if len(numbers) == 1 else numbers
+    return options
+
+
+def _number(text: str):
+    text = text.strip()
+    try:
+        return int(text)
+    except ValueError:
+        return float(text)
 
 
 def checked_experiments(only) -> tuple[str, ...]:

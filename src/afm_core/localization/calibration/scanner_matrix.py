@@ -13,19 +13,29 @@ from afm_core.localization.calibration.experiment import (
     indent_force,
     punch_at,
     range_centre,
+    range_scale,
     rescan,
     wait,
 )
 from afm_core.localization.calibration.matching import match_points
 from afm_core.localization.calibration.pits import find_pits
 
+# On REFERENCE_RANGE (experiment.range_scale): the grid's first pit from the range centre (m),
+# its spacing, and how far beyond its far corner the tip comes from (BEYOND_CHECKED: that,
+# checked against the range with a margin)
+SITE = np.array([-20e-6, 20e-6])
+SPACING = 1e-6
+MIN_SPACING = 0.25e-6
+BEYOND = 4e-6
+BEYOND_CHECKED = 5e-6
+
 
 def measure_scanner_matrix(
     instrument,
     *,
-    site=(-20e-6, 20e-6),
+    site=None,
     grid: int = 5,
-    spacing: float = 1e-6,
+    spacing: float | None = None,
     pixel: float = 10e-9,
     force: float | None = None,
     settle: float = 300.0,
@@ -41,8 +51,15 @@ def measure_scanner_matrix(
     of short moves). The absolute coupling and rotation need an external reference (a
     calibration grating of known orientation).
 
-    settle (s): the rest at the first pit before the pattern is punched (see below)."""
+    settle (s): the rest at the first pit before the pattern is punched (see below).
+    site (offset of the first pit from the range centre) and spacing default to SITE and
+    SPACING on a 110 um scanner, the same fractions of a smaller one's range (experiment.
+    range_scale; the spacing not below MIN_SPACING, a few pit widths)."""
     limits = instrument.limits
+    scale = range_scale(instrument)
+    site = SITE * scale if site is None else site
+    if spacing is None:
+        spacing = max(MIN_SPACING, SPACING * min(1.0, scale))
     grid = checks.count("grid", grid, 2, 20)
     spacing = checks.positive("spacing", spacing, "m", upper=10e-6)
     force = indent_force(instrument, force)
@@ -58,12 +75,14 @@ def measure_scanner_matrix(
         "scanner-matrix grid",
         instrument,
         commands.min(axis=0) - 0.5e-6,
-        commands.max(axis=0) + 5e-6,
+        commands.max(axis=0) + BEYOND_CHECKED * scale,
+        f"pass a site nearer the centre (now {site[0]:.3g}, {site[1]:.3g} m) or a smaller grid "
+        f"x spacing ({grid} x {spacing:.3g} m): afm calibrate --set scanner_matrix.spacing=VALUE",
     )
     # Come from beyond the far corner, so every move of the pattern is a short move after a
     # reversal, as in manipulation (the compensated gain of a short move after a reversal
     # differs from that of a long monotone run by the model error of the feed-forward).
-    beyond = commands.max(axis=0) + 4e-6
+    beyond = commands.max(axis=0) + BEYOND * scale
     instrument.move_tip(float(beyond[0]), float(beyond[1]), 0.5 * limits.max_speed)
     # Then to the first pit and rest there: the creep of the moves before (the approach, the
     # earlier experiments' full-range cycles) still runs while the rows are punched one after
