@@ -100,7 +100,7 @@ from afm_core.manipulation.rod_loop import (
     rod_pose_verified,
     swept_radius,
 )
-from afm_core.manipulation.verdict import push_verdict, reversed_scan
+from afm_core.manipulation.verdict import drift_prior, push_verdict, reversed_scan
 from afm_core.manipulation.verify import VerificationResult, verify_push
 
 PIT_DWELL = 0.1  # s
@@ -663,6 +663,7 @@ class PushProcedure:
             before=before,
             particle_radius=particle.radius,
             particle_match_radius=reach,
+            drift_prior=drift_prior(self.calibration),
         )
         return verification, before_particle
 

@@ -19,10 +19,20 @@ tens of seconds apart and `verify_push` fits the offset as c + v * elapsed (c: t
 shift between the images), which measures v; the particle's displacement is raw - start - c -
 v * elapsed at its own elapsed time. Without that (both images the same way, or fewer than two
 timed control points) the calibration's mean drift velocity is taken out and its spread times
-pass_time is the largest term of the uncertainty.
+pass_time is the largest term of the uncertainty. When the control points' elapsed times do not
+span MIN_ELAPSED_SPAN (a push along the fast axis: its corner pits on the same rows), the
+substrate's bands join them (`afm_core.manipulation.verify_substrate`), and failing that the
+calibration's velocity is used with its sigma (`drift_prior`, `drift_prior_sigma`) over the
+particle's elapsed time from the control points' (`drift_velocity_sigma` set).
+
+The map's own drift: the rescans measure the push drift-free, but a map that is one image is
+stretched by the drift between its rows (22 nm over 800 nm of its slow axis at 1 nm/s).
+`push_verdict(map_time=...)` adds that (`map_stretch`); without it the map is taken as
+drift-free (a drift-corrected 0/90 pair's).
 
 Uncertainty (per axis, the images' frame): the fit's prediction at the particle's elapsed time
-(CONTROL_SIGMA per control point), or the drift term and the offset's; the particle's centre in
+(CONTROL_SIGMA per control point) and the model's (DRIFT_MODEL_RELATIVE), or the drift term and
+the offset's; the particle's centre in
 each image (CENTRE_SIGMA); the rescans' gain against the maps' (GAIN_SIGMA of the displacement).
 
 Verdict. With e the measured error vector and sigma^2 the covariance's largest eigenvalue, the
@@ -35,6 +45,7 @@ not a failure of the push).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -67,6 +78,18 @@ CONTROL_SIGMA = 1.0e-9  # m
 # than the map's frame, 1 %, which this does not cover: the pair takes the fast axis's gain on
 # both axes (docs/manipulation.md, "The truth's frame")
 GAIN_SIGMA = 0.005
+# the calibration's drift velocity when the control points cannot measure it (verify_push's
+# drift_prior): at least this share of its mean, 1 sigma. Its stated spread is the velocity's
+# wander, not the mean's error, which a run measures to ~13 % (y of a 100 um scanner at
+# (1.0, -0.5) nm/s, inside the run's interval); on the default drift it adds < 0.1 nm
+DRIFT_PRIOR_RELATIVE = 0.15
+# the offset model c + v * elapsed carried from the control points' mean elapsed time to the
+# particle's, per axis 1 sigma of |v| times that time: at (1.0, -0.5) nm/s, 700 nm pushes along
+# the fast axis (the control points ~45 s before the particle) were verified 5-7 nm off the truth
+# in y (8 seeds), 4.5 sigma of the fit's own 1.3 nm; a static particle 1-3 nm. Not located (the
+# drift's wander is 0.1 nm/s; the rescans' gain and the creep after the push are suspects). At
+# the default drift (~0.2 nm/s) it adds ~1 nm
+DRIFT_MODEL_RELATIVE = 0.1
 SIGMA_FLOOR = 0.1e-9  # m, keeps the chi^2 finite for a degenerate covariance
 
 
@@ -135,6 +158,22 @@ def verdict_shares(verdicts, truly) -> dict:
     }
 
 
+def drift_prior_sigma(mean, sigma) -> np.ndarray:
+    """The sigma of the calibration's drift velocity as a prior for one push (m/s, per axis):
+    its stated spread, at least DRIFT_PRIOR_RELATIVE of its mean."""
+    mean, sigma = np.asarray(mean, float), np.asarray(sigma, float)
+    return np.hypot(sigma, DRIFT_PRIOR_RELATIVE * np.abs(mean))
+
+
+def drift_prior(calibration: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """`verify_push`'s drift_prior from a calibration: its mean drift velocity in the images'
+    frame (image_matrix's inverse) and its spread (calibration's frame: the matrix is within a
+    few % of the identity)."""
+    matrix = np.asarray(calibration.image_matrix, float)
+    mean = np.linalg.solve(matrix, np.asarray(calibration.drift_mean_velocity, float))
+    return mean, np.asarray(calibration.drift_sigma_velocity, float)
+
+
 def maps_displacement(
     verification: VerificationResult, calibration: Calibration
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -145,12 +184,27 @@ def maps_displacement(
     image = np.asarray(verification.displacement, float)
     variance = np.full(2, 2 * CENTRE_SIGMA**2)
     used = [c for c in verification.control_points if c.used]
-    if verification.drift_velocity is not None:
+    if verification.drift_velocity_sigma is not None:
+        # v given (the calibration's; too few control points, or too close in time): the shift's
+        # spread over the control points, and v's sigma over the particle's elapsed time from
+        # theirs (the offset's extrapolation and the before image's stretch together)
+        mean_elapsed = float(np.mean([c.elapsed for c in used]))
+        variance += max(verification.offset_spread, CONTROL_SIGMA) ** 2 / len(used)
+        variance += (
+            drift_prior_sigma(verification.drift_velocity, verification.drift_velocity_sigma)
+            * (verification.elapsed - mean_elapsed)
+        ) ** 2
+    elif verification.drift_velocity is not None:
         # the fit c + v * elapsed at the particle's elapsed time (least squares' variance)
         design = np.column_stack([np.ones(len(used)), [c.elapsed for c in used]])
         at = np.array([1.0, verification.elapsed])
         variance += CONTROL_SIGMA**2 * float(at @ np.linalg.inv(design.T @ design) @ at)
-    else:
+    if verification.drift_velocity is not None and used:
+        # the model c + v * elapsed carried from the control points' times to the particle's
+        mean_elapsed = float(np.mean([c.elapsed for c in used]))
+        speed = float(np.hypot(*verification.drift_velocity))
+        variance += (DRIFT_MODEL_RELATIVE * speed * (verification.elapsed - mean_elapsed)) ** 2
+    if verification.drift_velocity is None:
         dt = verification.pass_time if math.isfinite(verification.pass_time) else 0.0
         image = image - np.asarray(calibration.drift_mean_velocity, float) * dt
         variance += (np.asarray(calibration.drift_sigma_velocity, float) * dt) ** 2
@@ -160,12 +214,39 @@ def maps_displacement(
     return matrix @ image, matrix @ np.diag(variance) @ matrix.T
 
 
+def map_stretch(
+    calibration: Calibration, start, end, map_time: Callable[[np.ndarray], float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The map's own drift between its passes over `start` and `end` (maps' frame, m): the
+    calibration's mean drift velocity times map_time(end) - map_time(start) (s), and its
+    covariance (drift_prior_sigma times that time). What a displacement measured drift-free
+    (the rescans') needs to be one in a map that was not drift-corrected (module docstring)."""
+    dt = float(map_time(np.asarray(end, float))) - float(map_time(np.asarray(start, float)))
+    if not math.isfinite(dt):
+        raise ValueError(f"map_time: gave {dt} s between the start and the end; need finite")
+    mean = np.asarray(calibration.drift_mean_velocity, float)
+    sigma = drift_prior_sigma(mean, calibration.drift_sigma_velocity)
+    return mean * dt, np.diag((sigma * dt) ** 2)
+
+
 def push_verdict(
-    verification: VerificationResult, calibration: Calibration, start, goal, tolerance: float
+    verification: VerificationResult,
+    calibration: Calibration,
+    start,
+    goal,
+    tolerance: float,
+    map_time: Callable[[np.ndarray], float] | None = None,
 ) -> PushVerdict:
     """The push's verdict: the particle's map position `start` plus its verified displacement
-    (maps' frame) against `goal`, at `tolerance` (m)."""
+    (maps' frame) against `goal`, at `tolerance` (m). map_time: when the map passed a point of
+    it (s; e.g. `functools.partial(verify.scan_time, map_scan)`) for a map that was not
+    drift-corrected: its drift stretch over the push is added (`map_stretch`); None: the map is
+    taken as drift-free (a drift-corrected pair's)."""
     displacement, covariance = maps_displacement(verification, calibration)
+    if map_time is not None:
+        start_xy = np.asarray(start, float)
+        stretch, added = map_stretch(calibration, start_xy, start_xy + displacement, map_time)
+        displacement, covariance = displacement + stretch, covariance + added
     achieved = np.asarray(start, float) + displacement
     error_vector = achieved - np.asarray(goal, float)
     probability = within_probability(error_vector, covariance, tolerance)

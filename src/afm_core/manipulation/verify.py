@@ -17,7 +17,18 @@ verify_push(instrument, request, goal, ...):
    offset guess (`offset_guess`, default: the median of the nearest-neighbour displacements
    of the pits);
 3. offset = the median of (after - before) over the matched control points, then the mean over
-   those within `inlier_radius` of it (a landmark that was pushed or bumped is left out);
+   those within `inlier_radius` of it (a landmark that was pushed or bumped is left out); with
+   the before image given, a shift c plus the drift's velocity v times each control point's
+   elapsed time (from the before image's pass over it to the after image's), fitted when the
+   elapsed times span MIN_ELAPSED_SPAN;
+3a. when they do not, and the before image is given, the substrate's bands of rows registered
+   between the images are added as control points (`afm_core.manipulation.verify_substrate`)
+   and the fit is tried again;
+3b. when they still do not (one control point, or all on the same rows) and `drift_prior` is given
+   (the calibration's drift velocity), v is that and only c is fitted: the offset at the
+   particle is then c + v * its elapsed time. One control point taken as the whole offset put
+   a 700 nm push on a 1 nm/s drift 55 nm short (the particle's elapsed time 53 s past the
+   pit's), with a 3.5 nm sigma;
 4. the particle: the after-image landmark nearest to (expected + offset) within
    `particle_match_radius` (expected: where the plan predicted it, default the goal); its
    position minus the offset is the achieved position in the reference frame;
@@ -43,6 +54,7 @@ from afm_core import checks
 from afm_core.imaging.landmarks import Landmark, extract_landmarks
 from afm_core.imaging.scan_timing import pixel_times
 from afm_core.instrument import Instrument, RasterScanData, ScanRequest
+from afm_core.manipulation.verify_substrate import substrate_controls
 
 
 @dataclass
@@ -80,12 +92,19 @@ class VerificationResult:
     # were scanned the same way; `displacement` then still holds the before image's stretch)
     drift_velocity: np.ndarray | None = None
     elapsed: float = math.nan  # s from the before image's pass over the start to the after's
+    # m/s, (2,): the drift's velocity was not measured but given (`drift_prior`: too few control
+    # points, or too close in time) with this sigma; None: fitted, or not used
+    drift_velocity_sigma: np.ndarray | None = None
 
 
 # the control points' elapsed times must span this much for the drift's velocity to be fitted
 # (an after image scanned the other way than the before image: about twice the time between
 # the rows of the rescan's corner pits, ~60 s for a 500 nm push)
 MIN_ELAPSED_SPAN = 10.0  # s
+
+
+# control points that cannot have been pushed: the fits start from these
+NEVER_PUSHED = ("pit", "substrate")
 
 
 def _image_args(scan: RasterScanData) -> dict:
@@ -167,7 +186,7 @@ def _fit_drift(controls: list[ControlPoint], inlier_radius: float):
         return None
     disp = np.array([c.displacement for c in timed])
     design = np.column_stack([np.ones_like(e), e])
-    pits = np.array([c.kind == "pit" for c in timed])
+    pits = np.array([c.kind in NEVER_PUSHED for c in timed])
     first = pits if pits.sum() >= 2 and np.ptp(e[pits]) >= MIN_ELAPSED_SPAN else pits | True
     coef = np.linalg.lstsq(design[first], disp[first], rcond=None)[0]
     residual = np.hypot(*(disp - design @ coef).T)
@@ -183,10 +202,45 @@ def _fit_drift(controls: list[ControlPoint], inlier_radius: float):
     return coef[0], coef[1], float(np.sqrt(np.mean(np.sum(rest**2, axis=1))))
 
 
+def _fit_shift(controls: list[ControlPoint], inlier_radius: float, velocity: np.ndarray):
+    """The offset as c + velocity * elapsed with the velocity given (the calibration's drift,
+    when the control points' elapsed times cannot measure it): c as `_fit_offset` fits the
+    offset, over the timed control points' displacements less velocity * elapsed, about the
+    pits' median when there are pits (never pushed); (c, rms spread), marks each used or not."""
+    timed = [c for c in controls if math.isfinite(c.elapsed)]
+    for control in controls:
+        control.used = False
+    disp = np.array([c.displacement - velocity * c.elapsed for c in timed])
+    pits = np.array([c.kind in NEVER_PUSHED for c in timed])
+    centre = np.median(disp[pits] if pits.any() else disp, axis=0)
+    distance = np.hypot(*(disp - centre).T)
+    inliers = distance <= max(inlier_radius, float(distance.min()))
+    for control, used in zip(timed, inliers):
+        control.used = bool(used)
+    shift = disp[inliers].mean(axis=0)
+    spread = float(np.sqrt(np.mean(np.sum((disp[inliers] - shift) ** 2, axis=1))))
+    return shift, spread
+
+
+def _predictor(controls, inlier_radius, prior, before, after):
+    """The offset expected at a point of the before image from the control points alone (their
+    shift, plus the prior's velocity times the point's elapsed time when there is a prior):
+    where `substrate_controls` looks."""
+    if prior is None or not any(math.isfinite(c.elapsed) for c in controls):
+        offset, _ = _fit_offset(controls, inlier_radius)
+        return lambda _xy: offset
+    shift, _ = _fit_shift(controls, inlier_radius, prior[0])
+
+    def predicted(xy):
+        return shift + prior[0] * (scan_time(after, xy + shift) - scan_time(before, xy))
+
+    return predicted
+
+
 def _references(before, reference_points, use_landmarks, start, p_radius, pit_depth, min_height):
     """The reference frame's control points: (pits, static particles), from `reference_points`
     (pits only) or the before image (its particles but the pushed one, within p_radius of
-    `start`)."""
+    `start`: the particle's own size, not how far the push may have taken it)."""
     if reference_points is not None:
         pits = [checks.point(f"reference_points[{i}]", p) for i, p in enumerate(reference_points)]
         return pits, []
@@ -213,6 +267,64 @@ def _first_guess(offset_guess, ref_pits, pa) -> np.ndarray:
     return np.zeros(2)
 
 
+def _matched_controls(references, seen, guess, expected, match_radius, images):
+    """The control points: each reference pit and static particle (`references`) matched to
+    the nearest pit or particle of the after image (`seen`: their positions) within
+    match_radius of where the first guess puts it, each taken once; the after image's particle
+    nearest the expected position is the pushed one, never a control point. images: (before,
+    after, timed): with timed, each point's elapsed time between the two images."""
+    (ref_pits, ref_landmarks), (pa, la) = references, seen
+    before, after, timed = images
+
+    def control(kind: str, reference: np.ndarray, found: np.ndarray) -> ControlPoint:
+        elapsed = scan_time(after, found) - scan_time(before, reference) if timed else math.nan
+        return ControlPoint(kind, reference, found.copy(), elapsed=elapsed)
+
+    controls: list[ControlPoint] = []
+    k_particle, _ = _nearest(la, expected + guess)
+    for kind, refs, points, taken in (
+        ("pit", ref_pits, pa, set()),
+        ("landmark", ref_landmarks, la, {k_particle} if k_particle >= 0 else set()),
+    ):
+        for r in refs:
+            k, d = _nearest(points, r + guess)
+            if d <= match_radius and k not in taken:
+                taken.add(k)
+                controls.append(control(kind, r, points[k]))
+    return controls
+
+
+def _checked_prior(drift_prior):
+    """drift_prior as (mean, sigma) arrays of 2, or None; ValueError when not finite or a sigma
+    is negative."""
+    if drift_prior is None:
+        return None
+    prior = tuple(np.asarray(v, float).reshape(2) for v in drift_prior)
+    if not all(np.all(np.isfinite(v)) for v in prior) or np.any(prior[1] < 0):
+        raise ValueError(f"drift_prior={drift_prior!r}: need finite (mean, sigma >= 0) m/s")
+    return prior
+
+
+def _offset_model(controls, drift, prior, inlier_radius, images, expected):
+    """(offset at the expected position, spread, shift, velocity, velocity's sigma): the fitted
+    drift, else the prior's velocity with a fitted shift, else one shift (velocity None)."""
+    before, after = images
+    if drift is None and prior is not None and any(math.isfinite(c.elapsed) for c in controls):
+        # too few control points, or too close in time, to measure the drift's velocity: the
+        # calibration's, with its sigma (the verdict's), else the offset at the particle is off
+        # by the velocity times the elapsed time between the control points and the particle
+        velocity, velocity_sigma = prior
+        shift, spread = _fit_shift(controls, inlier_radius, velocity)
+    elif drift is None:
+        offset, spread = _fit_offset(controls, inlier_radius)
+        return offset, spread, None, None, None
+    else:
+        (shift, velocity, spread), velocity_sigma = drift, None
+    # the offset where the particle is expected: its elapsed time there
+    elapsed = scan_time(after, expected + shift) - scan_time(before, expected)
+    return shift + velocity * elapsed, spread, shift, velocity, velocity_sigma
+
+
 def verify_push(
     instrument: Instrument,
     request: ScanRequest,
@@ -231,11 +343,14 @@ def verify_push(
     particle_match_radius: float | None = None,
     offset_guess=None,
     after: RasterScanData | None = None,
+    drift_prior=None,
 ) -> VerificationResult:
     """Rescan and verify (module docstring). start: the particle's position before the push in
     the reference frame (leaves the pushed particle out of the landmark control points; default:
     none left out except the one matched as the particle). after: an already taken after-scan
-    (then nothing is scanned)."""
+    (then nothing is scanned). drift_prior: (mean, sigma) of the drift's velocity (m/s, (2,)
+    each, the images' frame: the calibration's), taken when the control points cannot measure
+    it (step 3b of the module docstring); None: the offset is then one shift."""
     g = checks.point("goal", goal)
     exp = g if expected is None else checks.point("expected", expected)
     checks.positive("particle_radius", particle_radius, "m")
@@ -248,6 +363,7 @@ def verify_push(
     p_radius = (
         2 * particle_radius + 100e-9 if particle_match_radius is None else particle_match_radius
     )
+    prior = _checked_prior(drift_prior)
     if after is None:
         after = instrument.raster_scan(request)
     if not after.complete:
@@ -257,40 +373,37 @@ def verify_push(
     pa = np.array([_xy(p) for p in pits_after]).reshape(-1, 2)
     la = np.array([_xy(p) for p in particles_after]).reshape(-1, 2)
 
+    # the pushed particle in the before image: within its own size of the start (p_radius can be
+    # the whole push's reach, which left out static particles that are control points)
+    own = 2 * particle_radius + 100e-9
     ref_pits, ref_landmarks = _references(
-        before, reference_points, use_landmarks, start, p_radius, pit_depth, min_height
+        before, reference_points, use_landmarks, start, own, pit_depth, min_height
     )
     guess = _first_guess(offset_guess, ref_pits, pa)
-    controls: list[ControlPoint] = []
-    taken_p: set[int] = set()
-
-    def control(kind: str, reference: np.ndarray, seen: np.ndarray) -> ControlPoint:
-        timed = before is not None and reference_points is None
-        elapsed = scan_time(after, seen) - scan_time(before, reference) if timed else math.nan
-        return ControlPoint(kind, reference, seen.copy(), elapsed=elapsed)
-
-    for r in ref_pits:
-        k, d = _nearest(pa, r + guess)
-        if d <= match_radius and k not in taken_p:
-            taken_p.add(k)
-            controls.append(control("pit", r, pa[k]))
-    particle_after_guess = exp + guess
-    k_particle, _ = _nearest(la, particle_after_guess)
-    taken_l: set[int] = {k_particle} if k_particle >= 0 else set()
-    for r in ref_landmarks:
-        k, d = _nearest(la, r + guess)
-        if d <= match_radius and k not in taken_l:
-            taken_l.add(k)
-            controls.append(control("landmark", r, la[k]))
-
+    timed = before is not None and reference_points is None
+    controls = _matched_controls(
+        (ref_pits, ref_landmarks), (pa, la), guess, exp, match_radius, (before, after, timed)
+    )
     drift = _fit_drift(controls, inlier_radius)
-    velocity = None
-    if drift is None:
-        offset, spread = _fit_offset(controls, inlier_radius)
-    else:
-        shift, velocity, spread = drift
-        # the offset where the particle is expected: its elapsed time there
-        offset = shift + velocity * (scan_time(after, exp + shift) - scan_time(before, exp))
+    if drift is None and controls and timed:
+        # the pits and static particles cannot measure the drift's velocity: the substrate's
+        # bands can (afm_core.manipulation.verify_substrate)
+        predicted = _predictor(controls, inlier_radius, prior, before, after)
+        bands = substrate_controls(
+            before,
+            after,
+            np.array([_xy(p) for p in find_particles(before, min_height)]),
+            la,
+            predicted,
+            2 * particle_radius + 50e-9,
+        )
+        for centre, seen in bands:
+            elapsed = scan_time(after, seen) - scan_time(before, centre)
+            controls.append(ControlPoint("substrate", centre, seen, elapsed=elapsed))
+        drift = _fit_drift(controls, inlier_radius) if bands else None
+    offset, spread, shift, velocity, velocity_sigma = _offset_model(
+        controls, drift, prior, inlier_radius, (before, after), exp
+    )
 
     k, d = _nearest(la, exp + offset)
     if k < 0 or d > p_radius:
@@ -330,4 +443,5 @@ def verify_push(
         pass_time=pass_time,
         drift_velocity=velocity,
         elapsed=elapsed,
+        drift_velocity_sigma=velocity_sigma,
     )
