@@ -165,13 +165,19 @@ def _fit_offset(controls: list[ControlPoint], inlier_radius: float) -> tuple[np.
     if not controls:
         return np.zeros(2), 0.0
     disp = np.array([c.displacement for c in controls])
-    distance = np.hypot(*(disp - np.median(disp, axis=0)).T)
+    return _inlier_mean(controls, disp, np.median(disp, axis=0), inlier_radius)
+
+
+def _inlier_mean(controls, disp, centre, inlier_radius: float) -> tuple[np.ndarray, float]:
+    """The mean of the displacements `disp` (one per control point) within inlier_radius of
+    `centre` (at least the one nearest to it) and their rms spread about it; marks each
+    control point used or not."""
+    distance = np.hypot(*(disp - centre).T)
     inliers = distance <= max(inlier_radius, float(distance.min()))
     for control, used in zip(controls, inliers):
         control.used = bool(used)
-    offset = disp[inliers].mean(axis=0)
-    spread = float(np.sqrt(np.mean(np.sum((disp[inliers] - offset) ** 2, axis=1))))
-    return offset, spread
+    mean = disp[inliers].mean(axis=0)
+    return mean, float(np.sqrt(np.mean(np.sum((disp[inliers] - mean) ** 2, axis=1))))
 
 
 def _fit_drift(controls: list[ControlPoint], inlier_radius: float):
@@ -213,13 +219,7 @@ def _fit_shift(controls: list[ControlPoint], inlier_radius: float, velocity: np.
     disp = np.array([c.displacement - velocity * c.elapsed for c in timed])
     pits = np.array([c.kind in NEVER_PUSHED for c in timed])
     centre = np.median(disp[pits] if pits.any() else disp, axis=0)
-    distance = np.hypot(*(disp - centre).T)
-    inliers = distance <= max(inlier_radius, float(distance.min()))
-    for control, used in zip(timed, inliers):
-        control.used = bool(used)
-    shift = disp[inliers].mean(axis=0)
-    spread = float(np.sqrt(np.mean(np.sum((disp[inliers] - shift) ** 2, axis=1))))
-    return shift, spread
+    return _inlier_mean(timed, disp, centre, inlier_radius)
 
 
 def _predictor(controls, inlier_radius, prior, before, after):
