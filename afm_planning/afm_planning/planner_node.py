@@ -20,6 +20,7 @@ from rclpy.node import Node
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from afm_core import checks
 from afm_core.instrument import ScannerLimits, check_in_range
 from afm_core.localization.calibration.model import Calibration, load_calibration
 from afm_core.parameters import Parameter, ParameterTable
@@ -37,16 +38,14 @@ from afm_core.planning import (
 from afm_msgs.msg import LandmarkArray, PlannedPath
 from afm_msgs.srv import PlanObservation, PlanPath, PlanSequence
 from afm_ros import params, topics
-from afm_ros.conversions import (
-    FRAME_TASK,
-    pose_to_mean_cov,
-    stamp_of,
-)
+from afm_ros.conversions import FRAME_TASK, stamp_of
 from afm_ros.instrument_clock import InstrumentClock
 from afm_ros.landmark_map import NewestLandmarkMap
 from afm_ros.markers import sigma_ellipse
 from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, LATCHED
+
+from . import request_checks as requests
 
 PARAMETERS = ParameterTable(
     Parameter(
@@ -98,7 +97,12 @@ class PlannerNode(Node):
         self.lock = threading.Lock()
         self.landmarks = NewestLandmarkMap(self.get_logger())
         self.tip_pose: PoseWithCovarianceStamped | None = None
-        inputs, services = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
+        # one group per service, so a long PlanPath does not hold a small PlanSequence (main()
+        # gives the executor a thread per group)
+        inputs = MutuallyExclusiveCallbackGroup()
+        path_group, observation_group, sequence_group = (
+            MutuallyExclusiveCallbackGroup() for _ in range(3)
+        )
         self.create_subscription(
             LandmarkArray, topics.LANDMARKS, self.landmarks.take, LATCHED, callback_group=inputs
         )
@@ -110,19 +114,19 @@ class PlannerNode(Node):
         self.path_pub = self.create_publisher(PlannedPath, topics.PLANNED_PATH, EVENTS)
         self.marker_pub = self.create_publisher(MarkerArray, topics.MARKERS, LATCHED)
         self.create_service(
-            PlanPath, topics.SERVICE_PLAN_PATH, self.on_plan_path, callback_group=services
+            PlanPath, topics.SERVICE_PLAN_PATH, self.on_plan_path, callback_group=path_group
         )
         self.create_service(
             PlanObservation,
             topics.SERVICE_PLAN_OBSERVATION,
             self.on_plan_observation,
-            callback_group=services,
+            callback_group=observation_group,
         )
         self.create_service(
             PlanSequence,
             topics.SERVICE_PLAN_SEQUENCE,
             self.on_plan_sequence,
-            callback_group=services,
+            callback_group=sequence_group,
         )
         self.get_logger().info(f"planning with {self.calibration.source!r} calibration")
 
@@ -140,37 +144,39 @@ class PlannerNode(Node):
 
     def start_estimate(self, start: PoseWithCovarianceStamped):
         """The request's start, or the localizer's latest estimate when the request leaves the
-        covariance at zero (an unset pose)."""
-        mean, cov = pose_to_mean_cov(start)
-        if not np.any(cov):
+        covariance at zero (an unset pose). Refusals name the request field."""
+        requests.start_frame("start", start)
+        c = start.pose.covariance
+        if not any(c[k] for k in (0, 1, 6, 7)):
             with self.lock:
                 latest = self.tip_pose
             if latest is None:
                 raise ValueError(
-                    "start: covariance is zero and no tip estimate has arrived on "
+                    "start.pose.covariance: zero and no tip estimate has arrived on "
                     f"{topics.TIP_POSE}; give the start with its covariance"
                 )
-            mean, cov = pose_to_mean_cov(latest)
-        return mean, cov
+            name = f"{topics.TIP_POSE} (start.pose.covariance is 0)"
+            return requests.pose_mean_cov(name, latest)
+        return requests.pose_mean_cov("start", start)
 
     def known_landmarks(self) -> list:
         """The landmarks, waiting a moment for the first map (it reaches us late under load)."""
         return list(self.landmarks.wait().values())
 
-    def landmark(self, landmark_id: int):
+    def landmark(self, landmark_id: int, field: str = "landmark_id"):
         marks = self.known_landmarks()
         for mark in marks:
             if mark.id == landmark_id:
                 return mark
-        known = sorted(m.id for m in marks)
-        raise ValueError(f"landmark_id={landmark_id}: unknown (known ids: {known or 'none yet'})")
+        raise requests.unknown_id(field, landmark_id, (m.id for m in marks))
 
     # -- services ----------------------------------------------------------------------------
     def on_plan_path(self, request, response):
         try:
             mean, cov = self.start_estimate(request.start)
-            target = np.array([request.target.x, request.target.y])
+            target = requests.point("target", request.target)
             check_in_range("target", target[0], target[1], self.limits)
+            required = requests.required_sigma(request.required_sigma)
             spot = request.localization_spot
             if spot and spot not in SPOTS:
                 raise ValueError(
@@ -179,7 +185,6 @@ class PlannerNode(Node):
             marks = self.known_landmarks()
             if not marks:
                 raise ValueError(f"no landmark known yet (nothing on {topics.LANDMARKS})")
-            required = request.required_sigma if request.required_sigma > 0 else None
             chain = plan_landmark_chain(
                 mean,
                 cov,
@@ -190,6 +195,11 @@ class PlannerNode(Node):
                 required_sigma=required,
             )
             route = chain.route
+            if spot and not chain.landmark_ids:
+                raise ValueError(
+                    f"localization_spot={spot!r}: the cheapest way observes no landmark "
+                    "(required_sigma is met without one); leave localization_spot empty"
+                )
             if spot:
                 route = plan_landmark_route(
                     mean,
@@ -209,17 +219,23 @@ class PlannerNode(Node):
             )
             self.publish(response.plan)
         except ValueError as exc:
-            response.success, response.message = False, str(exc)
+            response.success, response.message = False, requests.request_names(str(exc))
         return response
 
     def on_plan_observation(self, request, response):
         try:
             mean, cov = self.start_estimate(request.start)
-            if request.landmark_id >= 0:
+            if requests.landmark_id(request.landmark_id) >= 0:
                 mark = self.landmark(request.landmark_id)
                 centre, radius = (mark.x, mark.y), mark.radius
             else:
-                centre, radius = (request.position.x, request.position.y), request.radius
+                centre = requests.point("position", request.position)
+                radius = checks.positive("radius", request.radius, "m")
+            direction = request.direction or "h"
+            if direction not in ("h", "v"):
+                raise ValueError(
+                    f"direction={direction!r}: must be 'h' (lines along x), 'v' or empty"
+                )
             plan = plan_observation(
                 mean,
                 cov,
@@ -227,7 +243,7 @@ class PlannerNode(Node):
                 radius,
                 self.config["tip_radius"],
                 self.noise,
-                direction=request.direction or "h",
+                direction=direction,
             )
             header = Header(stamp=self.stamp_now(), frame_id=FRAME_TASK)
             out = PlannedPath()
@@ -248,7 +264,7 @@ class PlannerNode(Node):
             )
             self.publish(out)
         except ValueError as exc:
-            response.success, response.message = False, str(exc)
+            response.success, response.message = False, requests.request_names(str(exc))
         return response
 
     def on_plan_sequence(self, request, response):
@@ -256,6 +272,7 @@ class PlannerNode(Node):
             method = request.method or "best"
             if method not in SEQUENCERS:
                 raise ValueError(f"method={method!r}: must be one of {sorted(SEQUENCERS)}")
+            requests.sequence_size(method, request)
             if request.distance_matrix:
                 n = math.isqrt(len(request.distance_matrix))
                 if n * n != len(request.distance_matrix):
@@ -264,19 +281,20 @@ class PlannerNode(Node):
                     )
                 matrix = np.asarray(request.distance_matrix, float).reshape(n, n)
             elif request.landmark_ids:
-                marks = [self.landmark(i) for i in request.landmark_ids]
+                marks = [
+                    self.landmark(i, f"landmark_ids[{k}]")
+                    for k, i in enumerate(request.landmark_ids)
+                ]
                 matrix = observation_distance_matrix(
                     marks, self.config["tip_radius"], self.noise, symmetric=True
                 )
             else:
-                points = np.array([[p.x, p.y] for p in request.positions], float)
+                points = requests.positions(request)
                 if len(points) == 0:
                     raise ValueError(
                         "landmark_ids, positions and distance_matrix are all empty: "
                         "nothing to order"
                     )
-                if not np.all(np.isfinite(points)):
-                    raise ValueError("positions: must be finite (m)")
                 matrix = np.hypot(*(points[:, None, :] - points[None, :, :]).transpose(2, 0, 1))
             expected = len(request.landmark_ids) or len(request.positions) or len(matrix)
             if len(matrix) != expected:
@@ -362,7 +380,8 @@ def plan_markers(plan: PlannedPath) -> MarkerArray:
 
 
 def main(args=None):
-    return run(PlannerNode, "afm_planner", args, config_errors=(ValueError,), threads=2)
+    # a thread for the inputs and one per service (each service its own callback group)
+    return run(PlannerNode, "afm_planner", args, config_errors=(ValueError,), threads=4)
 
 
 if __name__ == "__main__":

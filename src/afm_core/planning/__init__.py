@@ -6,7 +6,8 @@ Entry points:
 - `plan_landmark_route` (landmark_paths.py, Guidelines 6.1 / 6.2, Table 6.2): one landmark's
   localization (two lines, four spots, scan modes "hh" "hv" "vh" "vv") with the predicted
   covariance at every waypoint; `observation_distance_matrix` (eq. 6.11-6.12),
-  `cheapest_chain` and `plan_landmark_chain` (Dijkstra via scipy, Fig. 6.9).
+  `cheapest_chain` (Dijkstra via scipy) and `plan_landmark_chain` (landmark_chain.py,
+  Fig. 6.9: Dijkstra computing only the edges that can matter).
 - `best_order`, `exact_order`, `heuristic_order`, `ant_colony_order` (sequencing.py, 6.3.2,
   Table 6.5 / 6.6): the order in which to manipulate many particles.
 - `landmark_domain`, `covering_landmarks`, `plan_landmark_configuration` (domain.py, eq.
@@ -25,20 +26,26 @@ from .domain import (
     landmark_domain,
     plan_landmark_configuration,
 )
+from .landmark_chain import LandmarkChain, plan_landmark_chain
 from .landmark_paths import (
     BOOK_OBSERVATION_SIGMA,
     MODES,
     ROLES,
     SPOTS,
-    LandmarkChain,
     LandmarkRoute,
     Waypoint,
     cheapest_chain,
     nearest_spot,
     observation_distance,
     observation_distance_matrix,
-    plan_landmark_chain,
     plan_landmark_route,
+)
+from .limits import (
+    MAX_ACO_POINTS,
+    MAX_CHAIN_EDGES,
+    MAX_CHAIN_SECONDS,
+    MAX_HEURISTIC_POINTS,
+    MAX_SEQUENCE_LANDMARKS,
 )
 from .observation_plan import ObservationPlan, ScanLine, plan_observation
 from .pattern import PatternObject, PatternPlan, pattern_offsets, plan_pattern
@@ -72,6 +79,11 @@ __all__ = [
     "cheapest_chain",
     "plan_landmark_chain",
     "LandmarkChain",
+    "MAX_CHAIN_EDGES",
+    "MAX_CHAIN_SECONDS",
+    "MAX_ACO_POINTS",
+    "MAX_HEURISTIC_POINTS",
+    "MAX_SEQUENCE_LANDMARKS",
     "best_order",
     "exact_order",
     "heuristic_order",

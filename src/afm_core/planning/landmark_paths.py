@@ -25,8 +25,9 @@ expected scan lines, eq. 6.10), the book's "scantimes" factor, which makes an ob
 that needs several lines (after a long, uncertain move) dearer than its travel alone. The
 book's Dist / Dr term is the approach, kept in metres here. Pairs whose observation cannot
 be planned (the tip would be too uncertain for the particle) have no edge. The matrix
-(eq. 6.12) with a start node and a task node is searched with
-scipy.sparse.csgraph.dijkstra for the cheapest chain of observations (Fig. 6.9).
+(eq. 6.12) with a start node and a task node is searched for the cheapest chain of
+observations (Fig. 6.9) by landmark_chain.plan_landmark_chain, which computes only the edges
+that can matter; `cheapest_chain` searches a given matrix with scipy.sparse.csgraph.dijkstra.
 """
 
 from __future__ import annotations
@@ -79,19 +80,6 @@ class LandmarkRoute:
     @property
     def final_sigma(self) -> np.ndarray:
         return np.sqrt(np.diag(self.final_covariance))
-
-
-@dataclass(frozen=True)
-class LandmarkChain:
-    """Cheapest chain of landmark observations from the start to the task (Dijkstra, Fig. 6.9)."""
-
-    landmark_ids: tuple[int, ...]
-    cost: float  # m, sum of the chain's edge weights
-    weights: (
-        np.ndarray
-    )  # (n + 2) x (n + 2): start, the landmarks in input order, task; inf: no edge
-    route: LandmarkRoute
-    meets_required: bool  # the route's final sigma is within required_sigma (True when none given)
 
 
 @dataclass(frozen=True)
@@ -416,20 +404,14 @@ ARRIVAL_SIGMA_FACTOR = (
 
 def _localized_covariance(
     site: _Site, spot: str, tip_radius: float, noise: MotionNoise
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """Covariance at `spot` after localizing at the site (both lines, the growth after each
     update and the moves round the particle included), for a tip arriving from the opposite side
     with ARRIVAL_SIGMA_FACTOR times the observation sigma (conservative: the Kalman posterior
-    grows with the prior, and a tip hopping between near landmarks arrives better than that)."""
-    key = (
-        site.id,
-        spot,
-        tip_radius,
-        noise,
-        tuple(site.center),
-        site.radius,
-        tuple(site.observation_sigma),
-    )
+    grows with the prior, and a tip hopping between near landmarks arrives better than that).
+    Returns (covariance, spot position). The route does not depend on where the particle is, so
+    it is kept by radius, sigma and spot (a map of like particles plans it once)."""
+    key = (spot, tip_radius, noise, site.radius, tuple(site.observation_sigma))
     cached = _LOCALIZED_CACHE.get(key)
     if cached is None:
         axis, sign = SPOTS[spot]
@@ -446,12 +428,11 @@ def _localized_covariance(
             spot=spot,
             observation_sigma=site.observation_sigma,
         )
-        cached = _LOCALIZED_CACHE.setdefault(
-            key, (route.final_covariance, route.waypoints[-1].position)
-        )
+        offset = route.waypoints[-1].position - site.center
+        cached = _LOCALIZED_CACHE.setdefault(key, (route.final_covariance, offset))
         if len(_LOCALIZED_CACHE) > 4096:
             _LOCALIZED_CACHE.clear()
-    return cached
+    return cached[0], site.center + cached[1]
 
 
 _LOCALIZED_CACHE: dict = {}
@@ -542,115 +523,4 @@ def cheapest_chain(weights, source: int, target: int) -> tuple[list[int], float]
     path.reverse()
     return path, float(
         sum(w[a, b] if np.isfinite(w[a, b]) else 0.0 for a, b in zip(path, path[1:]))
-    )
-
-
-def plan_landmark_chain(
-    start_mean,
-    start_covariance,
-    landmarks: Sequence,
-    task_point,
-    tip_radius: float,
-    noise: MotionNoise,
-    required_sigma=None,
-    observation_sigma=None,
-) -> LandmarkChain:
-    """Cheapest chain of landmark observations from the tip's Gaussian to the task point (6.2.2).
-
-    Nodes: the start, every landmark, the task. Edges: start -> landmark (expected cost of
-    observing it from the start's Gaussian), landmark -> landmark (eq. 6.11), landmark -> task
-    (distance from its spot nearest the task; only if the predicted sigma at the task is within
-    `required_sigma`, when given), start -> task only when `required_sigma` is given and met
-    without any observation. Dijkstra (scipy) picks the chain; the route through it is built
-    landmark by landmark (each localized at the spot nearest the next landmark, the last at the
-    spot nearest the task). Raises ValueError for bad input, duplicate or no landmarks, and when
-    no chain reaches the task.
-    """
-    start = point_copy("start_mean", start_mean)
-    cov = covariance_matrix("start_covariance", start_covariance)
-    task = point_copy("task_point", task_point)
-    tip_radius = checks.non_negative("tip_radius", tip_radius)
-    noise = noise_model("noise", noise)
-    required = None if required_sigma is None else sigma_pair("required_sigma", required_sigma)
-    sites = _sites(landmarks, observation_sigma)
-    n = len(sites)
-    if n == 0:
-        raise ValueError("landmarks: need at least one landmark")
-
-    def meets(c: np.ndarray) -> bool:
-        return required is None or bool((np.sqrt(np.diag(c)) <= required).all())
-
-    w = np.full((n + 2, n + 2), np.inf)
-    task_node = n + 1
-    for j, site in enumerate(sites):
-        w[0, j + 1] = _observation_cost(start, cov, site, tip_radius, noise)
-        try:
-            localized, spot = _localized_covariance(
-                site,
-                nearest_spot(site.center, site.radius, tip_radius, task, site.observation_sigma),
-                tip_radius,
-                noise,
-            )
-        except ValueError:
-            localized = None
-        if localized is not None:
-            d = task - spot
-            if meets(noise.predict(localized, d[0], d[1])):
-                w[j + 1, task_node] = float(np.hypot(*d))
-        for i, other in enumerate(sites):
-            if i != j:
-                w[i + 1, j + 1] = _pair_cost(other, site, tip_radius, noise)
-    d = task - start
-    if required is not None and meets(noise.predict(cov, d[0], d[1])):
-        w[0, task_node] = float(np.hypot(*d))
-    try:
-        path, cost = cheapest_chain(w, 0, task_node)
-    except ValueError:
-        raise ValueError(
-            "task_point: no chain of landmark observations reaches it"
-            + ("" if required is None else f" within required_sigma={required.tolist()} m")
-        ) from None
-    chain = [sites[k - 1] for k in path[1:-1]]
-    route = _chain_route(start, cov, chain, task, tip_radius, noise)
-    met = required is None or bool((route.final_sigma <= required * (1 + 1e-12)).all())
-    return LandmarkChain(tuple(s.id for s in chain), cost, w, route, met)
-
-
-def _chain_route(start, cov, chain: list[_Site], task, tip_radius, noise) -> LandmarkRoute:
-    waypoints, plans, modes, spots = [], [], [], []
-    length = expected = 0.0
-    position, covariance = start, cov
-    for k, site in enumerate(chain):
-        aim = chain[k + 1].center if k + 1 < len(chain) else task
-        route = plan_landmark_route(
-            position,
-            covariance,
-            site,
-            tip_radius,
-            noise,
-            task_point=task if k + 1 == len(chain) else None,
-            spot=nearest_spot(site.center, site.radius, tip_radius, aim, site.observation_sigma),
-            observation_sigma=site.observation_sigma,
-        )
-        waypoints += route.waypoints
-        plans += route.observations
-        modes += route.modes
-        spots += route.spots
-        length += route.length
-        expected += route.expected_cost
-        position, covariance = route.waypoints[-1].position, route.waypoints[-1].covariance
-    if not chain:
-        d = task - start
-        waypoints.append(Waypoint(task, noise.predict(cov, d[0], d[1]), "task", -1))
-        length = expected = float(np.hypot(*d))
-    return LandmarkRoute(
-        start,
-        cov,
-        tuple(waypoints),
-        length,
-        expected,
-        tuple(s.id for s in chain),
-        tuple(modes),
-        tuple(spots),
-        tuple(plans),
     )
