@@ -35,7 +35,7 @@ from pathlib import Path  # noqa: E402
 from types import SimpleNamespace  # noqa: E402
 
 import numpy as np  # noqa: E402
-from machine import machine_record  # noqa: E402
+from machine import command_line, machine_record  # noqa: E402
 
 from afm_core.localization.calibration.model import Calibration  # noqa: E402
 from afm_core.planning import (  # noqa: E402
@@ -155,6 +155,8 @@ def main() -> None:
     (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=1) + "\n")
     lines = [
         f"# Planner limits ({result['when']}, load {load:.2f}, {result['machine']['cpu_model']})",
+        "",
+        f"Command: `{command_line()}`",
         "",
         "| landmarks | radii | target (um) | s | edges | chain / refused |",
         "|---|---|---|---|---|---|",
