@@ -33,8 +33,8 @@ def _sigint_ignored() -> bool:
 def test_the_embedded_cluster_workers_leave_ctrl_c_to_the_batch_process(client):
     """Ctrl-C signals the terminal's whole process group: each worker raised its own
     KeyboardInterrupt mid-task and printed two tracebacks while the batch closed them anyway."""
+    # (this process's own handling is left as it was: a pytest worker may itself ignore SIGINT)
     assert set(client.run(_sigint_ignored).values()) == {True}
-    assert not _sigint_ignored()  # this process still hears it
 
 
 # the cheapest trial (one stroke, ~0.2 s on one core): the tests are about the batch
