@@ -159,37 +159,63 @@ def test_a_parameter_set_at_run_time_is_applied_or_refused_with_the_reason(
         assert afm.localize(landmark_id=0).success  # the refusals changed nothing
 
 
-def test_no_pose_is_published_for_a_time_the_driver_has_not_yet_said_what_it_did(nodes, ros_node):
-    """The driver publishes a command once it has run it, and its /clock runs ahead meanwhile.
-    A pose for a clock time past the last command heard would put the tip where the move began,
-    and the same stamp would come again with the tip where it ended once the command arrives."""
-    from rosgraph_msgs.msg import Clock
+class HandFedLocalizer:
+    """A localizer node fed by this test: TipCommands as a driver reports them, /clock, and the
+    poses it publishes."""
 
-    from afm_msgs.msg import TipCommand
-    from afm_ros import topics
-    from afm_ros.conversions import seconds_to_time, stamp_of
-    from afm_ros.qos_profiles import EVENTS
+    def __init__(self, nodes, ros_node):
+        from rosgraph_msgs.msg import Clock
 
-    nodes("localizer")
-    poses = []
-    ros_node.create_subscription(PoseWithCovarianceStamped, topics.TIP_POSE, poses.append, 100)
-    commands = ros_node.create_publisher(TipCommand, topics.TIP_COMMAND, EVENTS)
-    clock = ros_node.create_publisher(Clock, "/clock", 10)
-    wait_for(lambda: clock.get_subscription_count() > 0, 30, what="the localizer listening")
+        from afm_msgs.msg import TipCommand
+        from afm_ros import topics
+        from afm_ros.qos_profiles import EVENTS
 
-    def command(start_time, start, end, duration):
-        msg = TipCommand(kind=TipCommand.MOVE, duration=duration, speed=1e-6)
+        nodes("localizer")
+        self.poses = []
+        ros_node.create_subscription(
+            PoseWithCovarianceStamped, topics.TIP_POSE, self.poses.append, 100
+        )
+        self._commands = ros_node.create_publisher(TipCommand, topics.TIP_COMMAND, EVENTS)
+        self._clock = ros_node.create_publisher(Clock, "/clock", 10)
+        wait_for(
+            lambda: self._clock.get_subscription_count() > 0, 30, what="the localizer listening"
+        )
+
+    def command(self, start_time, start, end, duration, kind=None):
+        from afm_msgs.msg import TipCommand
+        from afm_ros.conversions import seconds_to_time
+
+        kind = TipCommand.MOVE if kind is None else kind
+        msg = TipCommand(kind=kind, duration=duration, speed=1e-6)
         msg.header.stamp, msg.header.frame_id = seconds_to_time(start_time), "afm_scanner"
         msg.start.x, msg.start.y = start
         msg.end.x, msg.end.y = end
         msg.start_voltage = msg.end_voltage = [float("nan")] * 3
-        commands.publish(msg)
+        self._commands.publish(msg)
+
+    def clock(self, seconds: float) -> None:
+        from rosgraph_msgs.msg import Clock
+
+        from afm_ros.conversions import seconds_to_time
+
+        self._clock.publish(Clock(clock=seconds_to_time(seconds)))
+
+
+def test_no_pose_is_published_for_a_time_the_driver_has_not_yet_said_what_it_did(nodes, ros_node):
+    """The driver publishes a command once it has run it, and its /clock runs ahead meanwhile.
+    A pose for a clock time past the last command heard would put the tip where the move began,
+    and the same stamp would come again with the tip where it ended once the command arrives."""
+    from afm_ros.conversions import stamp_of
+
+    feed = HandFedLocalizer(nodes, ros_node)
+    poses, clock = feed.poses, feed.clock
+    command = feed.command
 
     begin, end = (50e-6, 50e-6), (50.45e-6, 50e-6)
     command(1.0, begin, begin, 0.1)
-    clock.publish(Clock(clock=seconds_to_time(1.1)))
+    clock(1.1)
     wait_for(lambda: poses, 30, what="a pose after the first command")
-    clock.publish(Clock(clock=seconds_to_time(3.0)))  # a 450 nm move running, unheard
+    clock(3.0)  # a 450 nm move running, unheard
     time.sleep(1.0)  # ten ticks of the steady-rate pose
     command(1.1, begin, end, 1.9)
     wait_for(
@@ -212,38 +238,25 @@ def test_a_tip_command_no_driver_can_have_run_is_ignored(nodes, ros_node):
     """Another program's TipCommand ending at 1 m (the scanner is 110 um), or one stamped
     1e6 s ahead of the clock, put the localizer's estimate there for good: every later
     Localize was refused as out of range until the node was restarted."""
-    from rosgraph_msgs.msg import Clock
-
     from afm_msgs.msg import TipCommand
-    from afm_ros import topics
-    from afm_ros.conversions import seconds_to_time, stamp_of
-    from afm_ros.qos_profiles import EVENTS
+    from afm_ros.conversions import stamp_of
 
-    nodes("localizer")
-    poses = []
-    ros_node.create_subscription(PoseWithCovarianceStamped, topics.TIP_POSE, poses.append, 100)
-    commands = ros_node.create_publisher(TipCommand, topics.TIP_COMMAND, EVENTS)
-    clock = ros_node.create_publisher(Clock, "/clock", 10)
-    wait_for(lambda: clock.get_subscription_count() > 0, 30, what="the localizer listening")
+    feed = HandFedLocalizer(nodes, ros_node)
+    poses, clock = feed.poses, feed.clock
 
-    def command(start_time, end, kind=TipCommand.MOVE):
-        msg = TipCommand(kind=kind, duration=0.1, speed=1e-6)
-        msg.header.stamp, msg.header.frame_id = seconds_to_time(start_time), "afm_scanner"
-        msg.start.x, msg.start.y = end
-        msg.end.x, msg.end.y = end
-        msg.start_voltage = msg.end_voltage = [float("nan")] * 3
-        commands.publish(msg)
+    def command(start_time, end, kind=TipCommand.MOVE):  # a stay at `end`, 0.1 s long
+        feed.command(start_time, end, end, 0.1, kind)
 
     here = (50e-6, 50e-6)
     command(1.0, here)
-    clock.publish(Clock(clock=seconds_to_time(1.1)))
+    clock(1.1)
     wait_for(lambda: poses, 30, what="a pose after the first command")
     command(2.0, (1.0, 50e-6))  # 1 m: outside the scanner
     command(1e6, (60e-6, 50e-6))  # a million seconds ahead of the clock
     command(2.5, (60e-6, 50e-6), kind=42)  # no such kind
     there = (51e-6, 50e-6)
     command(3.0, there)
-    clock.publish(Clock(clock=seconds_to_time(3.1)))
+    clock(3.1)
     wait_for(
         lambda: any(stamp_of(p.header) >= 3.1 - 1e-6 for p in list(poses)),
         10,

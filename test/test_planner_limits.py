@@ -11,8 +11,8 @@ from conftest import wait_for
 from geometry_msgs.msg import Point
 from scipy import integrate
 from std_msgs.msg import Header
+from test_planner_node import sphere as planner_node_sphere
 
-from afm_core.imaging.landmarks import Landmark
 from afm_core.localization.calibration.model import Calibration
 from afm_core.localization.motion_noise import MotionNoise
 from afm_core.planning import (
@@ -32,17 +32,8 @@ NM, UM = 1e-9, 1e-6
 
 
 def sphere(i, x, y, radius=50e-9, sigma=3.2e-9):
-    return Landmark(
-        id=i,
-        kind="sphere",
-        x=x,
-        y=y,
-        covariance=np.diag([sigma**2, sigma**2]),
-        radius=radius,
-        height=2 * radius,
-        length=0.0,
-        orientation=0.0,
-    )
+    """The planner node tests' sphere, smaller and better known by default."""
+    return planner_node_sphere(i, x, y, radius=radius, sigma=sigma)
 
 
 def grid(n, pitch=300e-9, origin=50e-6, first_id=1000):
