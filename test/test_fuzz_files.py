@@ -148,7 +148,7 @@ def vendor_seeds(folder, height) -> None:
     write_sxm(folder / "seed.sxm", [("Z", "m", height, None)], size, (1.1e-6, 2.1e-6))
     nm = np.round(height / 1e-10)  # 0.1 nm units
     span = f"{float(nm.max() - nm.min()) * 0.1!r} nm"
-    write_wsxm(folder / "seed.stp", nm[:, ::-1], (columns * 10, rows * 10), span)
+    write_wsxm(folder / "seed.stp", nm[:, ::-1] * 0.1, (columns * 10, rows * 10), span)
     write_jpk(folder / "seed.jpk", [("height", False, nm, 1e-10, 0.0)], size, (1e-6, 2e-6))
     write_spm(folder / "seed.spm", [("Height", nm, False)], (size[0] * 1e6, size[1] * 1e6))
     # two frames of the height in bipolar 2.5 V levels (20 nm/V: 0.024 nm a level)

@@ -98,11 +98,14 @@ def test_sxm_damaged_and_unsupported_files_are_refused_by_name(tmp_path):
 
 
 @pytest.mark.parametrize("suffix, data_type", [(".stp", "double"), (".top", "integer")])
-def test_wsxm_reads_heights_scaled_to_z_amplitude(tmp_path, suffix, data_type):
+def test_wsxm_reads_counts_scaled_to_z_amplitude_and_doubles_in_its_unit(
+    tmp_path, suffix, data_type
+):
     raw = np.round(np.random.default_rng(8).normal(0, 300, (ROWS, COLS)))
     raw[0, 0] = 2000  # bottom-left corner of the picture
-    quantum = 0.05  # nm per stored unit
+    quantum = 0.05  # nm per count; doubles are nm
     stored = raw[:, ::-1]  # WSxM stores columns right to left, the bottom row first
+    stored = stored * quantum if data_type == "double" else stored
     path = tmp_path / f"scan{suffix}"
     z_amplitude = f"{float(raw.max() - raw.min()) * quantum!r} nm"
     write_wsxm(path, stored, (COLS * 2, ROWS * 3), z_amplitude, data_type)

@@ -70,13 +70,20 @@ def write_sxm(path, channels, size, centre, direction="up", angle=0.0, truncate=
         f.write(data[: len(data) - truncate])
 
 
-def write_wsxm(path, stored, size_nm, z_amplitude, data_type="double", channel="Topography"):
-    """A WSxM image file as Gwyddion exports one: `stored` already in file order."""
+def write_wsxm(
+    path, stored, size_nm, z_amplitude, data_type="double", channel="Topography",
+    xy_unit="nm", control=(),
+):  # fmt: skip
+    """A WSxM image file as Gwyddion exports one: `stored` already in file order; `size_nm`
+    the X and Y Amplitude in `xy_unit` (latin-1: "\xb5m" as WSxM writes um); `control`:
+    further [Control] lines ("Angle: 0", "X Offset: -2697.9 nm", as the instrument adds)."""
     rows, columns = np.shape(stored)
     text = (
         "WSxM file copyright UAM\r\nSxM Image file\r\nImage header size: 99999\r\n\r\n"
         "[Control]\r\n\r\n"
-        f"    X Amplitude: {size_nm[0]} nm\r\n    Y Amplitude: {size_nm[1]} nm\r\n\r\n"
+        + "".join(f"    {line}\r\n" for line in control)
+        + f"    X Amplitude: {size_nm[0]} {xy_unit}\r\n"
+        f"    Y Amplitude: {size_nm[1]} {xy_unit}\r\n\r\n"
         "[General Info]\r\n\r\n"
         f"    Image Data Type: {data_type}\r\n    Acquisition channel: {channel}\r\n"
         f"    Number of columns: {columns}\r\n    Number of rows: {rows}\r\n"
@@ -84,15 +91,18 @@ def write_wsxm(path, stored, size_nm, z_amplitude, data_type="double", channel="
         "[Header end]\r\n"
     )
     text = text.replace("99999", f"{len(text):5d}")
-    dtype = {"double": "<f8", "float": "<f4", "integer": "<i2"}[data_type]
+    dtype = {"double": "<f8", "float": "<f4", "integer": "<i2", "short": "<i2"}[data_type]
     with open(path, "xb") as f:
         f.write(text.encode("latin-1") + np.asarray(stored).astype(dtype).tobytes())
 
 
-def write_jpk(path, channels, size, corner, theta=0.0, slot_unit="m"):
+def write_jpk(path, channels, size, corner, theta=0.0, slot_unit="m", reflect=None, chain=False):
     """A JPK image TIFF (JPKImageSpec 2.0 tags, as in the instrument's files): a thumbnail page
-    with the grid, then one int32 page per channel [(name, retrace, raw, multiplier,
-    offset)], each with a raw slot and a default 'calibrated' LinearScaling slot."""
+    with the grid (and Grid-Reflect when `reflect` is given, as a NanoWizard writes it there),
+    then one int32 page per channel [(name, retrace, raw, multiplier, offset)], each with a
+    raw slot and a default 'calibrated' LinearScaling slot. `chain`: the slots a NanoWizard
+    writes, raw, volts, nominal, calibrated (the default, last), each LinearScaling from raw
+    counts, so only the default one gives the heights."""
     import tifffile
 
     lines, columns = np.shape(channels[0][2])
@@ -102,18 +112,28 @@ def write_jpk(path, channels, size, corner, theta=0.0, slot_unit="m"):
         (32836, "d", 1, theta, True), (32838, "I", 1, columns, True),
         (32839, "I", 1, lines, True), (32848, "s", 0, "thumbnail", True),
     ]  # fmt: skip
+    if reflect is not None:
+        grid.append((32837, "I", 1, int(reflect), True))
     with tifffile.TiffWriter(path) as tif:
         tif.write(np.zeros((4, 4), np.uint8), extratags=grid)
         for name, retrace, raw, multiplier, offset in channels:
-            slots = [
+            scalings = [("calibrated", slot_unit, multiplier, offset)]
+            if chain:  # volts and nominal metres per count: other numbers than the default's
+                nominal = ("nominal", "m", multiplier * 1.31, offset * 0.77)
+                scalings = [("volts", "V", 2.3283e-08, 50.0), nominal, *scalings]
+            tags = [
                 (32848, "s", 0, name, True), (32849, "I", 1, int(retrace), True),
-                (32896, "I", 1, 2, True), (32897, "s", 0, "calibrated", True),
+                (32896, "I", 1, 1 + len(scalings), True), (32897, "s", 0, "calibrated", True),
                 (32912, "s", 0, "raw", True), (32931, "s", 0, "NullScaling", True),
-                (32960, "s", 0, "calibrated", True), (32978, "s", 0, slot_unit, True),
-                (32979, "s", 0, "LinearScaling", True), (32980, "d", 1, multiplier, True),
-                (32981, "d", 1, offset, True),
             ]  # fmt: skip
-            tif.write(np.asarray(raw, dtype=np.int32), extratags=slots)
+            for k, (slot, unit, times, plus) in enumerate(scalings, start=1):
+                base = 32912 + 48 * k
+                tags += [
+                    (base, "s", 0, slot, True), (base + 18, "s", 0, unit, True),
+                    (base + 19, "s", 0, "LinearScaling", True), (base + 20, "d", 1, times, True),
+                    (base + 21, "d", 1, plus, True),
+                ]  # fmt: skip
+            tif.write(np.asarray(raw, dtype=np.int32), extratags=tags)
 
 
 def write_spm(path, images, size_um, sens=15.068, full_scale=439.9866, bpp=2, rotate=0.0):

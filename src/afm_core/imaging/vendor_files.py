@@ -10,9 +10,12 @@ bottom of the area, as `HeightMap`), for `files.load_height_map`.
   the scaling.
 - `.jpk` (JPK / Bruker JPK): a TIFF read through `tifffile` (BSD-3, numpy only); page 0
   holds the grid (Grid-x0, -y0: the area's corner; Grid-uLength, -vLength: its size in m;
-  Grid-iLength, -jLength: pixels; Grid-Theta: only 0 is read), each further page one
-  channel (name_trace / name_retrace) of raw integers; heights are raw * multiplier +
-  offset of the page's default calibration slot, in that slot's unit (a length). The first
+  Grid-iLength, -jLength: pixels; Grid-Theta: only 0 is read, and Grid-Reflect only 0:
+  JPK's convention for a turned or mirrored grid is undocumented, see
+  vendor_libraries._jpk_check_grid_frame), each further page one channel (name_trace /
+  name_retrace) of raw integers; heights are raw * multiplier + offset of the page's
+  default calibration slot, in that slot's unit (a length; the instrument chains its slots
+  raw, volts, nominal, calibrated, each slot's multiplier already taken from raw). The first
   stored row is the bottom line, as AFMReader and Gwyddion read it.
 - `.spm` (Bruker / Veeco NanoScope, version 5 and later; rename an old numbered file such as
   `scan.002` to `.spm`): a text header (`\\*Section` lines and `\\key: value` lines) up to
@@ -33,11 +36,14 @@ bottom of the area, as `HeightMap`), for `files.load_height_map`.
 - `.stp` / `.top` (WSxM): a text header ("Image header size", `[Section]`s, `Key: value`
   lines) up to `[Header end]`, then little-endian values (General Info / Image Data Type:
   double, float, or integer/short = int16, the default). The file holds the picture turned
-  by 180 degrees from its display with x mirrored back, so the first stored row is the
-  bottom line and columns run right to left (as Gwyddion reads and writes it). Heights are
-  scaled so their range is General Info / Z Amplitude (WSxM stores the range, not a scale;
-  without it the values are nm), lateral size from Control / X and Y Amplitude; WSxM gives
-  no position: origin 0.
+  by 180 degrees: the first stored row is the bottom line and its columns run right to left
+  (Gwyddion's wsxmfile flips both axes on reading and writing; AFMReader takes the stored
+  order as it is). int16 counts are scaled so their range is General Info / Z Amplitude
+  (WSxM stores the range, not a scale); double and float values are heights in Z
+  Amplitude's unit (as Gwyddion 2.66 reads them); without Z Amplitude they are nm. Lateral
+  size from Control / X and Y Amplitude (in nm, or um written with the latin-1 micro
+  sign 0xB5). Origin 0: Control / X and Y Offset are not used, as no documented convention
+  (centre or corner, sign) says where they put the area, and Gwyddion ignores them too.
 - `.asd` (high-speed AFM movies, Ando lab / RIBM, versions 0-2): through AFMReader, one
   frame at a time; vendor_asd describes the layout and what is checked.
 
@@ -46,8 +52,8 @@ and vendor_asd (.asd),
 their shared pieces in vendor_common. Each raises ValueError naming the file and the problem:
 a truncated or damaged file, a missing header field, a channel that does not exist (the
 message lists those that do), a unit that is not a length, a rotated frame (.spm Rotate Ang.,
-.sxm SCAN_ANGLE, .jpk Grid-Theta, WSxM Control / Angle other than 0), NaN lines of an
-interrupted scan.
+.sxm SCAN_ANGLE, .jpk Grid-Theta or Grid-Reflect, WSxM Control / Angle other than 0), NaN
+lines of an interrupted scan.
 """
 
 from __future__ import annotations

@@ -220,7 +220,8 @@ def sxm_image(path: Path, channel) -> VendorImage:
             f"{4 * block * len(blocks)} ({len(blocks)} blocks of {columns} x {lines} float32)"
         )
     raw = np.frombuffer(data, dtype=">f4", count=block, offset=start + 4 * block * index)
-    height = raw.reshape(lines, columns).astype(np.float64) * z_scale
+    with np.errstate(invalid="ignore"):  # a signalling NaN: finite_height names the line
+        height = raw.reshape(lines, columns).astype(np.float64) * z_scale
     if direction == "down":  # the first line scanned is the top one
         height = height[::-1]
     if backward:  # backward lines run right to left
@@ -303,7 +304,8 @@ def wsxm_image(path: Path, channel) -> VendorImage:
             f"{kind} values ({columns * rows * dtype.itemsize} bytes)"
         )
     raw = np.frombuffer(data, dtype=dtype, count=rows * columns, offset=start)
-    values = raw.reshape(rows, columns)[:, ::-1].astype(np.float64)  # columns right to left
+    with np.errstate(invalid="ignore"):  # a signalling NaN: finite_height names the line
+        values = raw.reshape(rows, columns)[:, ::-1].astype(np.float64)  # columns right to left
     x_size, x_unit = _wsxm_quantity(fields, "Control::X Amplitude", path)
     y_size, y_unit = (
         _wsxm_quantity(fields, "Control::Y Amplitude", path)
@@ -315,10 +317,26 @@ def wsxm_image(path: Path, channel) -> VendorImage:
     if not (x_size > 0 and y_size > 0):
         raise ValueError(f"{path}: X / Y Amplitude must be > 0, got {x_size}, {y_size} m")
     values = finite_height(values, where)
-    if "General Info::Z Amplitude" in fields:
-        z_range, z_unit = _wsxm_quantity(fields, "General Info::Z Amplitude", path)
-        spread = float(values.max() - values.min())
-        scale = z_range * length_scale(z_unit, f"{where} (Z Amplitude)") / spread if spread else 0
-    else:
-        scale = 1e-9
-    return VendorImage(values * scale, x_size / columns, y_size / rows, 0.0, 0.0, title)
+    return VendorImage(
+        values * _wsxm_z_scale(fields, values, dtype, path, where),
+        x_size / columns,
+        y_size / rows,
+        0.0,
+        0.0,
+        title,
+    )
+
+
+def _wsxm_z_scale(fields: dict, values: np.ndarray, dtype, path: Path, where: str) -> float:
+    """Metres per stored value. Integers are DAC counts: WSxM states no scale, only the range
+    they span (Z Amplitude). Floating-point values are heights in Z Amplitude's unit, as
+    Gwyddion 2.66 reads them ("value scale of floating point data was corrected"): stretching
+    them to Z Amplitude, as before, zeroed a flat image and carried the header's rounding."""
+    if "General Info::Z Amplitude" not in fields:
+        return 1e-9
+    z_range, z_unit = _wsxm_quantity(fields, "General Info::Z Amplitude", path)
+    unit = length_scale(z_unit, f"{where} (Z Amplitude)")
+    if dtype.kind == "f":
+        return unit
+    spread = float(values.max() - values.min())
+    return z_range * unit / spread if spread else 0.0

@@ -118,7 +118,8 @@ def ibw_image(path: Path, channel) -> VendorImage:
     index = choose_channel(path, names, channel)
     where = f"{path} channel {names[index]!r}"
     header = wave["wave_header"]
-    data = np.asarray(wave["wData"], dtype=np.float64)
+    with np.errstate(invalid="ignore"):  # a signalling NaN: finite_height names the line
+        data = np.asarray(wave["wData"], dtype=np.float64)
     layer = data if data.ndim == 2 else data[:, :, index]
     data_unit, dim_units = _ibw_units(wave, header)
     z_scale = length_scale(data_unit, f"{where} (data units)")
@@ -177,6 +178,7 @@ _JPK_GRID = {
     "i": 32838,
     "j": 32839,
 }
+_JPK_REFLECT = 32837  # Grid-Reflect: a mirrored grid
 _JPK_CHANNEL, _JPK_RETRACE, _JPK_SLOTS, _JPK_DEFAULT_SLOT = 32848, 32849, 32896, 32897
 _JPK_SLOT_BASE, _JPK_SLOT_SIZE = 32912, 48  # slot k's tags start at base + size * k
 _JPK_SLOT_UNIT, _JPK_SLOT_SCALING, _JPK_SLOT_MULTIPLIER, _JPK_SLOT_OFFSET = 18, 19, 20, 21
@@ -235,6 +237,39 @@ def _jpk_scaling(page, path: Path, where: str) -> tuple[float, float, str]:
     raise ValueError(f"{where}: the default calibration slot {default!r} is not among its slots")
 
 
+def _jpk_check_grid_frame(theta: float, pages, path: Path) -> None:
+    """ValueError unless the grid is the scanner's frame: Grid-Theta 0 and no Grid-Reflect.
+
+    A turned grid is refused, even by a multiple of 90 deg, because JPK's convention for it
+    is documented nowhere we could check: Gwyddion's jpkscan.c, AFMReader, SurfaceTopography
+    and tifffile all ignore Grid-Theta, so neither the sense of the turn nor which corner
+    Grid-x0/-y0 names is known. A real NanoWizard file at theta = pi/2 (the tip's
+    start-position in its tag 32791 lies at x0 - uLength + a half pixel, y0) fits both a
+    counter-clockwise turn of a y-up grid about (x0, y0) (the tip then sat at the start of
+    the last line) and a clockwise turn of a y-down grid (at the first line's), which turn the
+    picture 180 deg apart and put the area on either side of y0. Gwyddion reads Grid-Reflect
+    (a mirrored grid) from the channel page, where JPK does not write it (it is on page 0):
+    that convention is unknown too."""
+    if theta != 0.0:  # -0.0, as JPK writes it, is 0
+        raise ValueError(
+            f"{path}: Grid-Theta {math.degrees(theta):.4g} deg: the scan grid is turned from "
+            "the scanner's axes and JPK's convention for that turn is undocumented, so the "
+            "map cannot be put in the scanner frame; scan at a scan angle of 0, or, to use it "
+            "in the scan's own frame (fast axis along x), open it in Gwyddion (which ignores "
+            "Grid-Theta) and save it as .gwy"
+        )
+    for page in pages:
+        tag = page.tags.get(_JPK_REFLECT)
+        value = None if tag is None else tag.value
+        if value is None or (isinstance(value, (int, float, np.number)) and value == 0):
+            continue
+        raise ValueError(
+            f"{path}: Grid-Reflect {value!r}: a mirrored scan grid is not read "
+            "(which axis JPK mirrors is undocumented); scan without mirroring, or open it "
+            "in Gwyddion and save it as .gwy"
+        )
+
+
 def jpk_image(path: Path, channel) -> VendorImage:
     with jpk_open(path) as tif:
         names = jpk_names(tif, path)
@@ -244,12 +279,8 @@ def jpk_image(path: Path, channel) -> VendorImage:
             key: float(_jpk_tag(tif.pages[0], code, path, f"Grid-{key}"))
             for key, code in _JPK_GRID.items()
         }
-        if grid["theta"] != 0.0:
-            raise ValueError(
-                f"{path}: Grid-Theta {math.degrees(grid['theta']):.4g} deg: a rotated scan grid "
-                "is not read (the map's axes are the scanner's); export it unrotated"
-            )
         page = tif.pages[index + 1]
+        _jpk_check_grid_frame(grid["theta"], (tif.pages[0], page), path)
         try:
             raw = np.asarray(page.asarray(), dtype=np.float64)
         except Exception as exc:  # truncated strips
