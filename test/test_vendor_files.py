@@ -85,7 +85,7 @@ def test_sxm_damaged_and_unsupported_files_are_refused_by_name(tmp_path):
     with pytest.raises(ValueError, match=r"cut.sxm: truncated: \d+ data bytes"):
         load_height_map(tmp_path / "cut.sxm")
     write_sxm(tmp_path / "turned.sxm", [("Z", "m", z, None)], (1e-7, 1e-7), (0, 0), angle=30)
-    with pytest.raises(ValueError, match="turned.sxm: SCAN_ANGLE 30.0 deg"):
+    with pytest.raises(ValueError, match="turned.sxm: SCAN_ANGLE 30 deg"):
         load_height_map(tmp_path / "turned.sxm")
     stopped = z.copy()
     stopped[-3:] = np.nan  # Nanonis leaves the lines of an interrupted scan NaN
@@ -242,7 +242,7 @@ def test_spm_heights_from_the_scale_and_sensitivity(tmp_path, bpp):
 def test_spm_damaged_and_rotated_files_are_refused_by_name(tmp_path):
     raw = np.zeros((ROWS, COLS), dtype=np.int16)
     write_spm(tmp_path / "turned.spm", [("Height", raw, False)], (1, 1), rotate=30.0)
-    with pytest.raises(ValueError, match="turned.spm: Rotate Ang. 30.0 deg"):
+    with pytest.raises(ValueError, match="turned.spm: Rotate Ang. 30 deg"):
         load_height_map(tmp_path / "turned.spm")
     write_spm(tmp_path / "whole.spm", [("Height", raw, False)], (1, 1))
     data = (tmp_path / "whole.spm").read_bytes()

@@ -44,20 +44,23 @@ def test_jpk_reads_the_default_slot_of_the_instruments_slot_chain(tmp_path):
 
 
 @pytest.mark.parametrize("theta", [math.pi / 2, 3 * math.pi / 2, -math.pi / 2, math.pi, 0.3])
-def test_jpk_turned_grid_is_refused_saying_how_to_read_it(tmp_path, theta):
+def test_jpk_turned_grid_is_refused_or_read_in_its_own_frame(tmp_path, theta):
     """The real sample's grid is turned by exactly pi/2. JPK's convention for the turn (its
     sense, and the corner Grid-x0/-y0 name) is not documented where it could be checked, and
-    the sample fits two readings 180 deg apart: refused, naming what to do instead."""
+    the sample fits two readings 180 deg apart: it is not put in the scanner frame, but read
+    in its own on request, as Gwyddion and AFMReader show it."""
     path = tmp_path / "turned.jpk"
     raw = _counts(-1000, 1000, 3)
     write_jpk(path, [("height", False, raw, JPK_MULTIPLIER, JPK_OFFSET)],
               (COLS * 1e-9, ROWS * 1e-9), (2.584e-6, 1.623e-6), theta=theta)  # fmt: skip
     assert list_channels(path) == ["height_trace"]
-    degrees = f"{math.degrees(theta):.4g}"
+    degrees = f"{math.degrees(theta):.6g}"
     with pytest.raises(ValueError, match=f"turned.jpk: Grid-Theta {degrees} deg: ") as error:
         load_height_map(path)
-    assert "scan at a scan angle of 0" in str(error.value)
-    assert "open it in Gwyddion (which ignores Grid-Theta) and save it as .gwy" in str(error.value)
+    assert "afm image --scan-frame" in str(error.value)
+    own = load_height_map(path, scan_frame=True)
+    np.testing.assert_allclose(own.height, raw * JPK_MULTIPLIER + JPK_OFFSET, rtol=1e-15)
+    assert (own.origin_x, own.origin_y) == (0.0, 0.0)
 
 
 def test_jpk_mirrored_grid_is_refused(tmp_path):

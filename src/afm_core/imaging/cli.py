@@ -58,7 +58,14 @@ def _load(args, path) -> HeightMap:
             f"{path}: a .npy holds only heights (origin 0); give --pixel-size (e.g. 2nm), or "
             "save the scan as .npz or .gwy (afm scan --save F.npz keeps pixel size and origin)"
         )
-    hmap = load_height_map(path, args.channel, args.pixel_size, args.frame, args.height_unit)
+    hmap = load_height_map(
+        path,
+        args.channel,
+        args.pixel_size,
+        args.frame,
+        args.height_unit,
+        scan_frame=args.scan_frame,
+    )
     note = mask_note(hmap, str(path))
     if note:
         print(f"afm image {args.image_command}: warning: {note}", file=sys.stderr)
@@ -350,7 +357,12 @@ def cmd_landmarks(args) -> int:
 
 def cmd_level(args) -> int:
     image = load_height_map(
-        args.image, args.channel, args.pixel_size, args.frame, args.height_unit
+        args.image,
+        args.channel,
+        args.pixel_size,
+        args.frame,
+        args.height_unit,
+        scan_frame=args.scan_frame,
     )
     mask = None if args.mask == "none" else "auto"
     levelled, used = level(image.height, args.method, mask)
@@ -378,6 +390,16 @@ def cmd_level(args) -> int:
     return 0
 
 
+def _turn_of(path, channel, refusal: ValueError) -> tuple[float | None, ValueError]:
+    """A channel refused in the scanner frame: its turn if its scan's own frame reads it, or
+    the reason it cannot be read even there (a phase channel's unit says more than its turn)."""
+    try:
+        own = load_height_map(path, channel, scan_frame=True)
+    except ValueError as exc:
+        return None, exc
+    return own.meta.get("scan_frame_turned_deg"), refusal
+
+
 def cmd_channels(args) -> int:
     # each channel is read, not only listed: a truncated file's header lists its channels
     # as well as a whole one's, and "channels" is how a user checks a file before using it
@@ -386,7 +408,12 @@ def cmd_channels(args) -> int:
         try:
             load_height_map(args.image, number)
         except ValueError as exc:
-            print(f"{number}: {title} (cannot be used: {exc})")
+            turn, reason = _turn_of(args.image, number, exc)
+            if turn is None:
+                print(f"{number}: {title} (cannot be used: {reason})")
+                continue
+            print(f"{number}: {title} (turned {turn:g} deg from the scanner's axes: --scan-frame)")
+            readable += 1
             continue
         readable += 1
         print(f"{number}: {title}")
@@ -475,6 +502,12 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
         p.add_argument("--frame", type=int, default=0, help=FRAME_HELP)
         p.add_argument("--pixel-size", type=length, help=PIXEL_SIZE_HELP)
         p.add_argument("--height-unit", type=height_unit, help=HEIGHT_UNIT_HELP)
+        p.add_argument(
+            "--scan-frame",
+            action="store_true",
+            help="read a vendor scan turned from the scanner's axes (scan angle, Grid-Theta) "
+            "in its own frame: fast axis along x, origin 0, positions not the scanner's",
+        )
 
     def levelling(p):
         common(p)

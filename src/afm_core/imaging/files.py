@@ -150,6 +150,7 @@ def load_height_map(
     height_unit: float | None = None,
     *,
     unit_option: str = "--height-unit",
+    scan_frame: bool = False,
 ) -> HeightMap:
     """The height map in `path` (.npz, .npy, .gwy or a vendor's file: .ibw, .jpk, .spm, .sxm,
     .stp, .top, .asd), heights in metres, rows along +y; `frame`: which frame of a movie
@@ -161,7 +162,9 @@ def load_height_map(
     needed for .npy; for the other formats, which carry their own, it is only checked
     against the file's (ValueError if it disagrees). `height_unit` (m per stored value, e.g.
     1e-9 for nm; default 1) is for .npy only, whose numbers carry no unit; `unit_option` is the
-    command-line option a refusal of its heights names.
+    command-line option a refusal of its heights names. `scan_frame`: a vendor scan turned
+    from the scanner's axes is read in its own frame (origin 0, its turn in
+    meta["scan_frame_turned_deg"]) instead of refused (vendor_files.read_vendor).
 
     A map whose heights span more than MAX_HEIGHT_SPAN_M or whose pixels are larger than
     MAX_PIXEL_SIZE_M is refused (ValueError): it is not in metres."""
@@ -198,7 +201,7 @@ def load_height_map(
         except (*DAMAGED, AttributeError) as exc:  # a damaged field's components
             raise ValueError(f"{path}: malformed .gwy file ({type(exc).__name__}: {exc})") from exc
     else:
-        v = read_vendor(path, channel, frame)
+        v = read_vendor(path, channel, frame, scan_frame=scan_frame)
         hmap = HeightMap(v.height, v.pixel_size_x, v.pixel_size_y, v.origin_x, v.origin_y, v.title)
         hmap.meta.update(v.meta)
     if pixel_size is not None and suffix != ".npy":

@@ -51,6 +51,30 @@ class VendorImage:
     meta: dict = field(default_factory=dict)
 
 
+# the option that reads a turned scan in its own frame, named in every refusal of one
+SCAN_FRAME_HINT = (
+    "read it in the scan's own frame (fast axis along x, origin 0, positions not the "
+    "scanner's) with scan_frame=True (afm image --scan-frame), or scan it at 0 deg"
+)
+
+
+def scan_turn(angle_deg: float, path: Path, what: str, scan_frame: bool) -> dict:
+    """The meta of a scan whose frame is turned by `angle_deg` from the scanner's axes.
+
+    A turned frame's pixels are not at the scanner positions the map's axes stand for, so it
+    is refused (ValueError naming `what`, the header field) unless `scan_frame`: then the map
+    is the scan's own grid, which the imaging steps (tip, drift, landmarks, levelling) need
+    and which Gwyddion and AFMReader show, with its turn in the meta and its origin at 0."""
+    if angle_deg == 0.0:  # -0.0 too
+        return {}
+    if not scan_frame:
+        raise ValueError(
+            f"{path}: {what} {angle_deg:.6g} deg: the scan is turned from the scanner's axes, "
+            f"so its map cannot be put in the scanner frame; {SCAN_FRAME_HINT}"
+        )
+    return {"scan_frame_turned_deg": float(angle_deg)}
+
+
 def length_scale(unit: str, where: str, what: str = "unit") -> float:
     """Metres per `unit` (m with an SI prefix, or Angstrom); ValueError naming `where` and
     `what` the unit is."""

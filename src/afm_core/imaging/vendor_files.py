@@ -7,11 +7,12 @@ bottom of the area, as `HeightMap`), for `files.load_height_map`.
   size and position come from the wave's scaling (sfA, sfB: the position of point e is
   sfA * e + sfB, taken as the pixel centre), units from its dimension and data units (a
   length: m with an SI prefix); Asylum's note (FastScanSize, SlowScanSize) must agree with
-  the scaling.
+  the scaling; its ScanAngle other than 0 only in the scan's own frame.
 - `.jpk` (JPK / Bruker JPK): a TIFF read through `tifffile` (BSD-3, numpy only); page 0
   holds the grid (Grid-x0, -y0: the area's corner; Grid-uLength, -vLength: its size in m;
-  Grid-iLength, -jLength: pixels; Grid-Theta: only 0 is read, and Grid-Reflect only 0:
-  JPK's convention for a turned or mirrored grid is undocumented, see
+  Grid-iLength, -jLength: pixels; Grid-Theta: other than 0 only in the scan's
+  own frame, and Grid-Reflect only 0: JPK's convention for a turned or mirrored grid is
+  undocumented, see
   vendor_libraries._jpk_check_grid_frame), each further page one channel (name_trace /
   name_retrace) of raw integers; heights are raw * multiplier + offset of the page's
   default calibration slot, in that slot's unit (a length; the instrument chains its slots
@@ -25,14 +26,15 @@ bottom of the area, as `HeightMap`), for `files.load_height_map`.
   name (" retrace" added for Line Direction Retrace). Heights are raw x (the `@2:Z scale`
   full-scale value / 2^(8 bytes per pixel)) x the sensitivity it names in brackets
   (`@Sens. Zscan: V 15.07 nm/V`), which must be a length per volt; the size is `Scan Size`
-  (x y unit, "~m" = um). Rotate Ang. other than 0 is refused; origin 0 (NanoScope gives
-  none).
+  (x y unit, "~m" = um). Rotate Ang. other than 0 only in the scan's own frame; origin 0
+  (NanoScope gives none).
 - `.sxm` (Nanonis): a text header of `:TAG:` blocks up to `:SCANIT_END:`, then 0x1A 0x04 and
   big-endian float32 blocks, one per channel and direction (forward, then backward when
   DATA_INFO says both), lines in the order scanned. SCAN_PIXELS (columns, lines),
   SCAN_RANGE (m), SCAN_OFFSET (the frame's centre, m), SCAN_DIR (up: the first line is the
-  bottom one; down: the top one), SCAN_ANGLE (only 0 is read: a rotated frame does not fit
-  the map's axes). Backward lines were taken right to left and are mirrored back.
+  bottom one; down: the top one), SCAN_ANGLE (other than 0 only in the scan's own frame:
+  a turned frame does not fit the map's axes). Backward lines were taken right to left and
+  are mirrored back.
 - `.stp` / `.top` (WSxM): a text header ("Image header size", `[Section]`s, `Key: value`
   lines) up to `[Header end]`, then little-endian values (General Info / Image Data Type:
   double, float, or integer/short = int16, the default). The file holds the picture turned
@@ -51,8 +53,9 @@ The readers live in vendor_libraries (.ibw, .jpk), vendor_headers (.spm, .sxm, .
 and vendor_asd (.asd),
 their shared pieces in vendor_common. Each raises ValueError naming the file and the problem:
 a truncated or damaged file, a missing header field, a channel that does not exist (the
-message lists those that do), a unit that is not a length, a rotated frame (.spm Rotate Ang.,
-.sxm SCAN_ANGLE, .jpk Grid-Theta or Grid-Reflect, WSxM Control / Angle other than 0), NaN
+message lists those that do), a unit that is not a length, a turned frame (.spm Rotate Ang.,
+.sxm SCAN_ANGLE, .ibw the note's ScanAngle, .jpk Grid-Theta, WSxM Control / Angle other than 0;
+unless `scan_frame`, which reads it in its own frame), a mirrored one (.jpk Grid-Reflect), NaN
 lines of an interrupted scan.
 """
 
@@ -94,25 +97,29 @@ __all__ = [
 VENDOR_SUFFIXES = (".ibw", ".jpk", ".spm", ".sxm", ".stp", ".top", ".asd")
 
 
-def read_vendor(path: Path, channel: int | str = 0, frame: int = 0) -> VendorImage:
+def read_vendor(
+    path: Path, channel: int | str = 0, frame: int = 0, *, scan_frame: bool = False
+) -> VendorImage:
     """The channel `channel` (index in `vendor_channels(path)` or its title) of a vendor file;
-    `frame`: which frame of a movie (.asd; 0 first), 0 for the single-frame formats."""
+    `frame`: which frame of a movie (.asd; 0 first), 0 for the single-frame formats.
+    `scan_frame`: a scan turned from the scanner's axes is read in its own frame (origin 0,
+    the turn in meta["scan_frame_turned_deg"]) instead of refused (vendor_common.scan_turn)."""
     suffix = path.suffix.lower()
-    if suffix == ".asd":
+    if suffix == ".asd":  # records no turn
         return asd_image(path, channel, frame)
     if frame != 0:
         raise ValueError(f"{path}: frame={frame!r}: a {suffix} file holds one frame (0)")
-    if suffix == ".ibw":
-        return ibw_image(path, channel)
-    if suffix == ".sxm":
-        return sxm_image(path, channel)
-    if suffix == ".jpk":
-        return jpk_image(path, channel)
-    if suffix == ".spm":
-        return spm_image(path, channel)
-    if suffix in (".stp", ".top"):
-        return wsxm_image(path, channel)
-    raise ValueError(f"{path}: {path.suffix!r} is not a vendor format read here")
+    readers = {
+        ".ibw": ibw_image,
+        ".sxm": sxm_image,
+        ".jpk": jpk_image,
+        ".spm": spm_image,
+        ".stp": wsxm_image,
+        ".top": wsxm_image,
+    }
+    if suffix not in readers:
+        raise ValueError(f"{path}: {path.suffix!r} is not a vendor format read here")
+    return readers[suffix](path, channel, scan_frame)
 
 
 def vendor_frames(path: Path) -> int:

@@ -14,6 +14,7 @@ from afm_core.imaging.vendor_common import (
     finite_height,
     header_number,
     length_scale,
+    scan_turn,
 )
 
 # -- Bruker NanoScope .spm ---------------------------------------------------------------------
@@ -84,19 +85,18 @@ def _spm_scale(sections, fields: dict, bpp: int, where: str) -> float:
     return full_scale / 2.0 ** (8 * bpp) * per_volt
 
 
-def spm_image(path: Path, channel) -> VendorImage:
+def spm_image(path: Path, channel, scan_frame: bool = False) -> VendorImage:
     sections, data = spm_header(path)
     images = spm_images(sections, path)
     index = choose_channel(path, [name for name, _ in images], channel)
     title, fields = images[index]
     where = f"{path} channel {title!r}"
+    meta = {}
     for _, section in sections:
         angle = section.get("Rotate Ang.", "0").split()
-        if angle and header_number(angle[0], str(path), "Rotate Ang.") != 0.0:
-            raise ValueError(
-                f"{path}: Rotate Ang. {angle[0]} deg: a rotated frame is not read (the map's "
-                "axes are the scanner's)"
-            )
+        if angle:
+            turn = header_number(angle[0], str(path), "Rotate Ang.")
+            meta.update(scan_turn(turn, path, "Rotate Ang.", scan_frame))
     columns = _spm_int(fields, "Samps/line", where)
     lines = _spm_int(fields, "Number of lines", where)
     offset = _spm_int(fields, "Data offset", where)
@@ -125,7 +125,7 @@ def spm_image(path: Path, channel) -> VendorImage:
     raw = np.frombuffer(data, dtype=f"<i{bpp}", count=columns * lines, offset=offset)
     height = raw.reshape(lines, columns) * _spm_scale(sections, fields, bpp, where)
     return VendorImage(
-        finite_height(height, where), size_x / columns, size_y / lines, 0.0, 0.0, title
+        finite_height(height, where), size_x / columns, size_y / lines, 0.0, 0.0, title, meta
     )
 
 
@@ -191,7 +191,7 @@ def sxm_layout(tags: dict, path: Path) -> list[tuple[str, str, bool]]:
     return blocks
 
 
-def sxm_image(path: Path, channel) -> VendorImage:
+def sxm_image(path: Path, channel, scan_frame: bool = False) -> VendorImage:
     tags, data, start = sxm_header(path)
     blocks = sxm_layout(tags, path)
     index = choose_channel(path, [b[0] for b in blocks], channel)
@@ -204,11 +204,7 @@ def sxm_image(path: Path, channel) -> VendorImage:
     direction = " ".join(tags.get("SCAN_DIR", [])).strip()
     if columns < 1 or lines < 1 or not (size_x > 0 and size_y > 0):
         raise ValueError(f"{path}: SCAN_PIXELS {columns} x {lines} / SCAN_RANGE must be > 0")
-    if angle != 0.0:
-        raise ValueError(
-            f"{path}: SCAN_ANGLE {angle} deg: a rotated frame is not read (the map's axes are "
-            "the scanner's); rotate it to 0 deg in the vendor software first"
-        )
+    meta = scan_turn(angle, path, "SCAN_ANGLE", scan_frame)
     if direction not in ("up", "down"):
         raise ValueError(f"{path}: SCAN_DIR {direction!r}: expected up or down")
     z_scale = length_scale(unit, where)
@@ -226,13 +222,10 @@ def sxm_image(path: Path, channel) -> VendorImage:
         height = height[::-1]
     if backward:  # backward lines run right to left
         height = height[:, ::-1]
+    # SCAN_OFFSET is the turned frame's centre in the scanner's: no corner of the own frame
+    corner = (0.0, 0.0) if meta else (centre_x - size_x / 2, centre_y - size_y / 2)
     return VendorImage(
-        finite_height(height, where),
-        size_x / columns,
-        size_y / lines,
-        centre_x - size_x / 2,
-        centre_y - size_y / 2,
-        title,
+        finite_height(height, where), size_x / columns, size_y / lines, *corner, title, meta
     )
 
 
@@ -276,7 +269,7 @@ def _wsxm_quantity(fields: dict, key: str, path: Path) -> tuple[float, str]:
     return header_number(match.group(1), str(path), key.replace("::", " / ")), match.group(2)
 
 
-def wsxm_image(path: Path, channel) -> VendorImage:
+def wsxm_image(path: Path, channel, scan_frame: bool = False) -> VendorImage:
     fields, data, start = wsxm_header(path)
     title = wsxm_title(fields, path)
     choose_channel(path, [title], channel)
@@ -289,11 +282,7 @@ def wsxm_image(path: Path, channel) -> VendorImage:
             f"{path}: General Info / Number of columns and Number of rows must be integers"
         ) from None
     angle = _wsxm_quantity(fields, "Control::Angle", path)[0] if "Control::Angle" in fields else 0
-    if angle != 0.0:
-        raise ValueError(
-            f"{path}: Control / Angle {angle} deg: a rotated frame is not read (the map's axes "
-            "are the scanner's)"
-        )
+    meta = scan_turn(angle, path, "Control / Angle", scan_frame)
     kind = fields.get("General Info::Image Data Type", "integer")
     if kind not in _WSXM_TYPES:
         raise ValueError(f"{path}: Image Data Type {kind!r}: expected one of {list(_WSXM_TYPES)}")
@@ -324,6 +313,7 @@ def wsxm_image(path: Path, channel) -> VendorImage:
         0.0,
         0.0,
         title,
+        meta,
     )
 
 

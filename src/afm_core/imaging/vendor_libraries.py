@@ -10,7 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
-from afm_core.imaging.vendor_common import VendorImage, choose_channel, finite_height, length_scale
+from afm_core.imaging.vendor_common import (
+    VendorImage,
+    choose_channel,
+    finite_height,
+    length_scale,
+    scan_turn,
+)
 
 # Asylum's note gives the scan size to a few digits; the wave's scaling is exact
 _NOTE_REL_TOL = 1e-3
@@ -112,7 +118,7 @@ def _asylum_note(wave: dict) -> dict[str, str]:
     return pairs
 
 
-def ibw_image(path: Path, channel) -> VendorImage:
+def ibw_image(path: Path, channel, scan_frame: bool = False) -> VendorImage:
     wave = ibw_wave(path)
     names = ibw_names(wave, path)
     index = choose_channel(path, names, channel)
@@ -142,6 +148,7 @@ def ibw_image(path: Path, channel) -> VendorImage:
             first[1] + step[1] * (height.shape[0] - 1),
         )
     note = _asylum_note(wave)
+    meta = scan_turn(_note_number(note, "ScanAngle", where), path, "ScanAngle", scan_frame)
     for key, size, pixels in (
         ("FastScanSize", step[0], height.shape[1]),
         ("SlowScanSize", step[1], height.shape[0]),
@@ -156,14 +163,24 @@ def ibw_image(path: Path, channel) -> VendorImage:
                     f"{where}: the note's {key}={stated!r} m disagrees with the wave's scaling "
                     f"({pixels} x {size!r} m = {size * pixels!r} m)"
                 )
-    return VendorImage(
-        finite_height(height, where),
-        step[0],
-        step[1],
-        first[0] - step[0] / 2,  # point positions are pixel centres
-        first[1] - step[1] / 2,
-        names[index],
+    # the wave's scaling is along the turned scan's own axes: no position in the scanner's
+    corner = (0.0, 0.0) if meta else (first[0] - step[0] / 2, first[1] - step[1] / 2)
+    return VendorImage(  # point positions are pixel centres
+        finite_height(height, where), step[0], step[1], *corner, names[index], meta
     )
+
+
+def _note_number(note: dict[str, str], key: str, where: str) -> float:
+    """Asylum's note value `key` as a number, 0 when absent."""
+    if key not in note:
+        return 0.0
+    try:
+        value = float(note[key])
+    except ValueError:
+        raise ValueError(f"{where}: the note's {key}={note[key]!r} is not a number") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{where}: the note's {key}={note[key]!r} must be finite")
+    return value
 
 
 # -- JPK .jpk (tifffile) ----------------------------------------------------------------------
@@ -237,10 +254,13 @@ def _jpk_scaling(page, path: Path, where: str) -> tuple[float, float, str]:
     raise ValueError(f"{where}: the default calibration slot {default!r} is not among its slots")
 
 
-def _jpk_check_grid_frame(theta: float, pages, path: Path) -> None:
-    """ValueError unless the grid is the scanner's frame: Grid-Theta 0 and no Grid-Reflect.
+def _jpk_check_grid_frame(theta: float, pages, path: Path, scan_frame: bool) -> dict:
+    """ValueError unless the grid is the scanner's frame (Grid-Theta 0) or `scan_frame` asks
+    for the grid's own (vendor_common.scan_turn; its meta returned), and not mirrored
+    (Grid-Reflect).
 
-    A turned grid is refused, even by a multiple of 90 deg, because JPK's convention for it
+    A turned grid is not put in the scanner frame, even by a multiple of 90 deg, because JPK's
+    convention for it
     is documented nowhere we could check: Gwyddion's jpkscan.c, AFMReader, SurfaceTopography
     and tifffile all ignore Grid-Theta, so neither the sense of the turn nor which corner
     Grid-x0/-y0 names is known. A real NanoWizard file at theta = pi/2 (the tip's
@@ -250,14 +270,7 @@ def _jpk_check_grid_frame(theta: float, pages, path: Path) -> None:
     picture 180 deg apart and put the area on either side of y0. Gwyddion reads Grid-Reflect
     (a mirrored grid) from the channel page, where JPK does not write it (it is on page 0):
     that convention is unknown too."""
-    if theta != 0.0:  # -0.0, as JPK writes it, is 0
-        raise ValueError(
-            f"{path}: Grid-Theta {math.degrees(theta):.4g} deg: the scan grid is turned from "
-            "the scanner's axes and JPK's convention for that turn is undocumented, so the "
-            "map cannot be put in the scanner frame; scan at a scan angle of 0, or, to use it "
-            "in the scan's own frame (fast axis along x), open it in Gwyddion (which ignores "
-            "Grid-Theta) and save it as .gwy"
-        )
+    meta = scan_turn(math.degrees(theta), path, "Grid-Theta", scan_frame)
     for page in pages:
         tag = page.tags.get(_JPK_REFLECT)
         value = None if tag is None else tag.value
@@ -268,9 +281,10 @@ def _jpk_check_grid_frame(theta: float, pages, path: Path) -> None:
             "(which axis JPK mirrors is undocumented); scan without mirroring, or open it "
             "in Gwyddion and save it as .gwy"
         )
+    return meta
 
 
-def jpk_image(path: Path, channel) -> VendorImage:
+def jpk_image(path: Path, channel, scan_frame: bool = False) -> VendorImage:
     with jpk_open(path) as tif:
         names = jpk_names(tif, path)
         index = choose_channel(path, names, channel)
@@ -280,7 +294,7 @@ def jpk_image(path: Path, channel) -> VendorImage:
             for key, code in _JPK_GRID.items()
         }
         page = tif.pages[index + 1]
-        _jpk_check_grid_frame(grid["theta"], (tif.pages[0], page), path)
+        meta = _jpk_check_grid_frame(grid["theta"], (tif.pages[0], page), path, scan_frame)
         try:
             raw = np.asarray(page.asarray(), dtype=np.float64)
         except Exception as exc:  # truncated strips
@@ -297,11 +311,13 @@ def jpk_image(path: Path, channel) -> VendorImage:
             f"{path}: Grid-uLength, -vLength must be > 0 m, got {grid['u']}, {grid['v']}"
         )
     height = (raw * multiplier + offset) * length_scale(unit, f"{where} (slot unit)")
+    # which corner Grid-x0/-y0 names in a turned grid is unknown: its own frame starts at 0
+    corner = (0.0, 0.0) if meta else (grid["x0"], grid["y0"])
     return VendorImage(
         finite_height(height, where),
         grid["u"] / columns,
         grid["v"] / lines,
-        grid["x0"],
-        grid["y0"],
+        *corner,
         names[index],
+        meta,
     )
