@@ -38,6 +38,8 @@ def parse_twist(payload: bytes) -> dict:
         data = json.loads(payload)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"not JSON: {exc}") from exc
+    except RecursionError as exc:  # 2000 nested brackets fit in MAX_PAYLOAD
+        raise ValueError("not a Twist: the JSON nests too deep") from exc
     if not isinstance(data, dict):
         raise ValueError(
             f"expected a JSON object with linear and angular, got {type(data).__name__}"
@@ -58,9 +60,14 @@ def parse_twist(payload: bytes) -> dict:
             value = vector.get(axis, 0.0)
             if isinstance(value, bool) or not isinstance(value, numbers.Real):
                 raise ValueError(f"{part}.{axis}={value!r}: must be a number")
-            if not math.isfinite(value):
-                raise ValueError(f"{part}.{axis}={value!r}: must be finite")
-            out[part][axis] = float(value)
+            try:  # JSON's integers have no bound: 10**400 is no float
+                number = float(value)
+            except OverflowError:
+                number = math.inf
+            if not math.isfinite(number):
+                shown = repr(value) if len(repr(value)) <= 24 else f"{repr(value)[:20]}..."
+                raise ValueError(f"{part}.{axis}={shown}: must be finite")
+            out[part][axis] = number
     return out
 
 

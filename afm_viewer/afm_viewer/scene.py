@@ -91,6 +91,15 @@ def ellipse(x: float, y: float, covariance, color: Color, z: float = 0.0) -> Cyl
     )
 
 
+def ellipses(x: float, y: float, covariance, color: Color) -> list[CylinderPrimitive]:
+    """[the 3-sigma ellipse], or [] when the covariance is not finite (a diverged estimate, a
+    map from elsewhere): the object is still drawn, and the missing ellipse says its
+    uncertainty is unknown, where one raise would have lost the whole map or killed the node."""
+    if not np.all(np.isfinite(np.asarray(covariance, float))):
+        return []
+    return [ellipse(x, y, covariance, color)]
+
+
 def sphere(x: float, y: float, z: float, diameter: float, color: Color) -> SpherePrimitive:
     return SpherePrimitive(
         pose=Pose(position=Vector3(x=x, y=y, z=z), orientation=Quaternion(w=1.0)),
@@ -118,7 +127,7 @@ def landmark_scene(landmarks) -> SceneUpdate:
                 frame_id=header.frame_id,
                 id=f"landmark/{int(mark.id)}",
                 spheres=[sphere(x, y, float(mark.radius), 2 * float(mark.radius), LANDMARK)],
-                cylinders=[ellipse(x, y, list(mark.covariance), LANDMARK_SIGMA)],
+                cylinders=ellipses(x, y, list(mark.covariance), LANDMARK_SIGMA),
             )
         )
     return replace_all(header, entities)
@@ -139,7 +148,7 @@ def tip_scene(msg) -> SceneUpdate:
         frame_id=msg.header.frame_id,
         id="tip",
         spheres=[sphere(x, y, 0.0, TIP_SIZE, TIP)],
-        cylinders=[ellipse(x, y, pose_covariance_xy(msg.pose), TIP_SIGMA)],
+        cylinders=ellipses(x, y, pose_covariance_xy(msg.pose), TIP_SIGMA),
     )
     return SceneUpdate(entities=[entity])
 
@@ -184,7 +193,7 @@ def path_scene(planned) -> SceneUpdate:
             planned.covariance_xy[0],
             planned.covariance_yy[0],
         ]
-        cylinders.append(ellipse(*xy[0], cov, TIP_SIGMA))
+        cylinders = ellipses(*xy[0], cov, TIP_SIGMA)
     entity = SceneEntity(
         timestamp=timestamp(header),
         frame_id=header.frame_id,
@@ -274,7 +283,8 @@ def force_samples(trace, max_samples: int = MAX_FORCE_SAMPLES) -> list[tuple[int
     """A ForceTrace as per-sample (log time in ns, message) pairs for the Plot panel: the
     lateral force (N, torsion x lateral spring constant / tip height, afm_core's rule) and the
     normal force (N, deflection x normal spring constant) at header stamp + times[i]; at most
-    `max_samples`, evenly spread, the last sample always kept."""
+    `max_samples`, evenly spread, the last sample always kept; a sample at a time that is not
+    finite is left out."""
     from afm_core.manipulation.execute import cantilever_forces
 
     times = np.asarray(trace.times, float)
@@ -287,6 +297,8 @@ def force_samples(trace, max_samples: int = MAX_FORCE_SAMPLES) -> list[tuple[int
             f"vertical_deflection ({len(trace.vertical_deflection)}) must have one length"
         )
     keep = np.unique(np.linspace(0, n - 1, min(n, max_samples)).round().astype(int))
+    # a sample at no time (nan, inf) has no place on the plot's time axis
+    keep = keep[np.isfinite(times[keep])]
     lateral, normal = cantilever_forces(
         trace.lateral_torsion,
         trace.vertical_deflection,

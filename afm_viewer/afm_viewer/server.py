@@ -10,11 +10,18 @@ The server keeps no history, so a client that subscribes late would see no map u
 one: the newest message of each state-like channel (KEPT: the images, landmarks, plan, tip,
 believed objects, frame tree, action states) is kept, and sent again when a client subscribes
 to its channel (`replay_pending`, called by the node's timer: not from the server's callback).
+
+What is sent is what a client can read: on JSON channels a number that is not finite is null
+(`json_ready`), and a log time is held within the protocol's unsigned 64-bit nanoseconds.
 """
 
 from __future__ import annotations
 
+import json
+import math
+import socket
 import threading
+import time
 from collections.abc import Callable
 
 import foxglove
@@ -96,6 +103,9 @@ KEPT = {
     "/afm/teleop/status",
     *(f"/afm/viewer/actions/{a}" for a in ACTIONS),
 }
+# the newest this many keys of a KEPT channel are sent to a late client (the believed objects
+# are kept per set of ids, which grows with what a session pushes)
+KEPT_PER_TOPIC = 256
 TYPED = {
     "image": RawImageChannel,
     "scene": SceneUpdateChannel,
@@ -104,8 +114,60 @@ TYPED = {
 }
 
 
-class PortTaken(RuntimeError):
+# s between two log lines about one client channel's refused messages
+REFUSAL_LOG_PERIOD = 5.0
+# the WebSocket protocol's log time is an unsigned 64-bit count of ns: a stamp outside it (a
+# header before 1970, a sample time of 1e30 s) made the SDK raise, and the node die
+LOG_TIME_MAX = 2**64 - 1
+
+
+class CannotServe(RuntimeError):
+    """The server cannot listen where the parameters say; the message names the parameter."""
+
+
+class PortTaken(CannotServe):
     pass
+
+
+def json_ready(value):
+    """`value` with every float that is not finite as None: json.dumps (the SDK's
+    Channel.log) writes NaN and Infinity, which are not JSON, and a client's parser then
+    drops the whole message (a force sample, the teleop status) rather than the one number."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_ready(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_ready(v) for v in value]
+    return value
+
+
+def log_time_ns(log_time: int | None) -> int | None:
+    return None if log_time is None else min(max(int(log_time), 0), LOG_TIME_MAX)
+
+
+def check_host(host: str, parameter: str = "host") -> None:
+    """CannotServe naming `parameter` when no socket can listen on `host` (not an address,
+    or not one of this machine's): the SDK's error for it read as a taken port."""
+    try:
+        found = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (OSError, UnicodeError) as exc:
+        raise CannotServe(
+            f"parameter {parameter}={host!r}: not an address ({exc}); 127.0.0.1: this machine "
+            "only, 0.0.0.0: every network it is on"
+        ) from exc
+    reasons = []
+    for family, kind, proto, _, address in found:
+        try:
+            with socket.socket(family, kind, proto) as probe:
+                probe.bind(address)
+                return
+        except OSError as exc:
+            reasons.append(str(exc))
+    raise CannotServe(
+        f"parameter {parameter}={host!r}: not an address of this machine "
+        f"({'; '.join(reasons)}); 127.0.0.1: this machine only, 0.0.0.0: every network it is on"
+    )
 
 
 class TeleopListener(ServerListener):
@@ -125,6 +187,8 @@ class TeleopListener(ServerListener):
         self.forwarded = 0
         self.refused = 0
         self.subscribers: dict[int, set[str]] = {}
+        # (client id, channel id) -> (when its last refusal was logged, refusals not logged)
+        self.refusals: dict[tuple[int, int], tuple[float, int]] = {}
 
     def on_subscribe(self, client: Client, channel: ChannelView) -> None:
         with self.lock:
@@ -133,7 +197,10 @@ class TeleopListener(ServerListener):
 
     def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
         with self.lock:
-            self.subscribers.get(client.id, set()).discard(channel.topic)
+            topics = self.subscribers.get(client.id, set())
+            topics.discard(channel.topic)
+            if not topics:  # the SDK unsubscribes a client that leaves: forget it
+                self.subscribers.pop(client.id, None)
 
     def on_client_advertise(self, client: Client, channel: ClientChannel) -> None:
         reason = None
@@ -153,6 +220,7 @@ class TeleopListener(ServerListener):
     def on_client_unadvertise(self, client: Client, client_channel_id: int) -> None:
         with self.lock:
             self.accepted.discard((client.id, client_channel_id))
+            self.refusals.pop((client.id, client_channel_id), None)
 
     def on_message_data(self, client: Client, client_channel_id: int, data: bytes) -> None:
         with self.lock:
@@ -165,14 +233,27 @@ class TeleopListener(ServerListener):
         except ValueError as exc:
             self.refuse(client, client_channel_id, str(exc))
             return
-        self.on_twist(twist)
+        try:
+            self.on_twist(twist)
+        except Exception as exc:  # noqa: BLE001 - the SDK would print it without the client
+            self.log(f"client {client.id} channel {client_channel_id}: not forwarded: {exc!r}")
+            return
         with self.lock:
             self.forwarded += 1
 
     def refuse(self, client: Client, channel_id: int, reason: str) -> None:
+        """Count a refused message; log it, and then at most every REFUSAL_LOG_PERIOD per
+        client channel with how many since: a panel held down sends 20 a second."""
+        now = time.monotonic()
         with self.lock:
             self.refused += 1
-        self.log(f"client {client.id} channel {channel_id}: message refused: {reason}")
+            logged, quiet = self.refusals.get((client.id, channel_id), (-math.inf, 0))
+            if now - logged < REFUSAL_LOG_PERIOD:
+                self.refusals[(client.id, channel_id)] = (logged, quiet + 1)
+                return
+            self.refusals[(client.id, channel_id)] = (now, 0)
+        more = f" ({quiet} more refused since the last line)" if quiet else ""
+        self.log(f"client {client.id} channel {channel_id}: message refused: {reason}{more}")
 
 
 class LiveServer:
@@ -189,6 +270,7 @@ class LiveServer:
         port_parameter: str = "port",
         info: Callable[[str], None] | None = None,
     ):
+        check_host(host)
         self.context = Context()
         self.listener = TeleopListener(on_twist, log, info)
         self.kept: dict[str, dict[str, tuple[object, int | None]]] = {}
@@ -223,14 +305,25 @@ class LiveServer:
 
     @property
     def url(self) -> str:
-        return f"ws://{self.host}:{self.port}"
+        host = f"[{self.host}]" if ":" in self.host else self.host  # an IPv6 address
+        return f"ws://{host}:{self.port}"
 
     def log(self, topic: str, message, log_time: int | None = None, key: str = "") -> None:
-        """Send `message` on `topic`'s channel; on a KEPT channel also keep it, the newest per
+        """Send `message` on `topic`'s channel (a dict or list as JSON, non-finite numbers
+        null; `log_time` held in [0, 2^64) ns); on a KEPT channel also keep it, the newest per
         `key` (e.g. the static and the dynamic frame tree on /tf), for late subscribers."""
+        log_time = log_time_ns(log_time)
+        if isinstance(message, dict | list):
+            message = json.dumps(json_ready(message), allow_nan=False).encode()
         if topic in KEPT:
             with self.kept_lock:
-                self.kept.setdefault(topic, {})[key] = (message, log_time)
+                kept = self.kept.setdefault(topic, {})
+                # re-inserted, so a late client gets them in the order they were sent: updated
+                # in place, an older belief about an object came after the newer one
+                kept.pop(key, None)
+                kept[key] = (message, log_time)
+                if len(kept) > KEPT_PER_TOPIC:  # keys that grow with a session (object sets)
+                    del kept[next(iter(kept))]
         self.channels[topic].log(message, log_time=log_time)
 
     def replay_pending(self) -> int:

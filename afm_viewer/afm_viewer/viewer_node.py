@@ -7,19 +7,24 @@ messages (afm_viewer.scene, ROS-free) and logs them on the server's channels
 message without a header gets the newest instrument time on /clock. What a client publishes on
 /afm/teleop/cmd_vel (Foxglove's Teleop panel: geometry_msgs/Twist in JSON) is checked
 (finite numbers, the Twist's fields only) and published on the ROS topic of that name, where
-the teleop node takes it; anything else is refused with a log line.
+the teleop node takes it; anything else is refused with a log line. A message the node cannot
+show (a covariance that is no covariance is drawn without its ellipse; worse is logged per
+topic) never stops it: a viewer only watches.
 
 The server listens on host:port, 127.0.0.1:8765 by default (Foxglove's default port,
 localhost only); port 0 takes any free port. The port served is logged, published on
 /afm/viewer/status (std_msgs/String, JSON, latched) and, if port_file is set, written there.
-A port already taken stops the node (exit 2) with the parameter's name.
+A port already taken, or a host that is not an address of this machine, stops the node (exit
+2) with the parameter's name.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
+import time
 from pathlib import Path
 
 from action_msgs.msg import GoalStatusArray
@@ -39,7 +44,7 @@ from afm_ros.node_main import run
 from afm_ros.qos_profiles import EVENTS, FEEDBACK, LATCHED, STREAM
 from afm_viewer import scene
 from afm_viewer.inputs import ActionStates, goal_id
-from afm_viewer.server import ACTIONS, TELEOP_TOPIC, LiveServer, PortTaken
+from afm_viewer.server import ACTIONS, TELEOP_TOPIC, CannotServe, LiveServer
 
 VIEWER_STATUS = "/afm/viewer/status"  # std_msgs/String (JSON), latched: where it serves
 ACTION_TYPES = {
@@ -53,6 +58,9 @@ ACTION_TYPES = {
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 # s: a client that subscribes gets the newest map, plan, tip... this long after, at most
 REPLAY_PERIOD = 0.2
+# s between two log lines about the messages of one topic the viewer cannot show (a publisher
+# at 20 Hz would otherwise fill the log)
+UNSHOWN_LOG_PERIOD = 5.0
 
 
 def _host(value: str) -> str:
@@ -98,7 +106,7 @@ class ViewerNode(Node):
         self.twist_pub = self.create_publisher(Twist, TELEOP_TOPIC, 10)
         self.status_pub = self.create_publisher(String, VIEWER_STATUS, LATCHED)
         host, port = self.config["host"], self.config["port"]
-        # a bad port is a configuration error (node_main: exit 2 with this message)
+        # a bad host or port is a configuration error (node_main: exit 2 with this message)
         try:
             self.server = LiveServer(
                 host,
@@ -107,7 +115,7 @@ class ViewerNode(Node):
                 self.get_logger().warning,
                 info=self.get_logger().info,
             )
-        except PortTaken as exc:
+        except CannotServe as exc:
             raise ValueError(str(exc)) from exc
         self.subscribe()
         self.create_timer(REPLAY_PERIOD, self.server.replay_pending)
@@ -137,8 +145,31 @@ class ViewerNode(Node):
             "Foxglove WebSocket; layout afm_viewer/foxglove/afm_live.json)"
         )
 
+    def guarded(self, topic: str, callback):
+        """`callback` that logs a message it cannot show (at most every UNSHOWN_LOG_PERIOD per
+        topic, with how many) instead of raising: a raise in a callback ends the node (one
+        landmark with a NaN covariance did), and a latched message would end it again at
+        each restart. A viewer only watches, so nothing it drops stops the session."""
+        unshown = {"count": 0, "logged": -math.inf}
+
+        def call(msg):
+            try:
+                callback(msg)
+            except Exception as exc:  # noqa: BLE001 - any message a scene cannot be made of
+                unshown["count"] += 1
+                now = time.monotonic()
+                if now - unshown["logged"] >= UNSHOWN_LOG_PERIOD:
+                    self.get_logger().error(
+                        f"{topic}: message not shown ({unshown['count']} so far): {exc!r}"
+                    )
+                    unshown["logged"] = now
+
+        return call
+
     def subscribe(self) -> None:
-        sub = self.create_subscription
+        def sub(msg_type, topic, callback, qos):
+            self.create_subscription(msg_type, topic, self.guarded(topic, callback), qos)
+
         sub(Image, topics.MAP_IMAGE, self.image_to("/afm/map/image"), LATCHED)
         sub(Image, topics.SCAN_IMAGE, self.image_to("/afm/scan/image"), LATCHED)
         sub(LandmarkArray, topics.LANDMARKS, self.on_landmarks, LATCHED)

@@ -130,10 +130,14 @@ class TeleopController:
         checks.finite("linear.x", vx, "m/s")
         checks.finite("linear.y", vy, "m/s")
         wanted = np.array([vx, vy], float)
-        speed = float(np.hypot(*wanted))
+        # scaled before the norm: hypot(1e308, 1e308) is inf, and wanted * (max / inf) was a
+        # stop where the operator asked for full speed
+        largest = float(np.max(np.abs(wanted)))
+        speed = largest * float(np.hypot(*(wanted / largest))) if largest > 0 else 0.0
         clip = ""
         if speed > self.settings.max_speed:
-            wanted *= self.settings.max_speed / speed
+            wanted = wanted / largest
+            wanted *= self.settings.max_speed / float(np.hypot(*wanted))
             clip = (
                 f"speed: {speed * 1e9:.0f} nm/s asked, limited to "
                 f"{self.settings.max_speed * 1e9:.0f} nm/s (max_speed)"
@@ -155,7 +159,12 @@ class TeleopController:
         return self.last_command + self.settings.command_timeout
 
     def step(self, now: float, position) -> Step:
-        """The segment to run from the commanded scanner `position` (m) at time `now`."""
+        """The segment to run from the commanded scanner `position` (m) at time `now`. A
+        position that is not finite stops the tip (the range clip cannot hold a NaN end, and
+        a raise would end the caller's loop with the tip still held)."""
+        if not np.all(np.isfinite(np.asarray(position, float))):
+            self.stop()
+            return Step(None, stop=f"position {tuple(position)} m is not finite: tip stopped")
         deadline = self.deadline()
         if deadline is None:
             return Step(None)
@@ -217,20 +226,26 @@ def segment_wrench(
     tip_height: float,
 ) -> np.ndarray:
     """(Fx, Fy, Fz) in N on the tip during a contact segment moving along task-frame
-    `direction` (module docstring); zeros for an empty trace or a segment that did not move."""
+    `direction` (module docstring); zeros for an empty trace or a segment that did not move.
+    Samples that are not finite (a DAQ glitch) are left out of the means, and a component
+    with no finite sample is 0: a haptic device must never be handed a NaN force to render."""
     checks.positive("tip_height", tip_height, "m")
     torsion = np.asarray(lateral_torsion, float)
     deflection = np.asarray(vertical_deflection, float)
     u = np.asarray(direction, float)
     norm = float(np.hypot(*u))
-    if torsion.size == 0 or norm == 0.0:
+    if torsion.size == 0 or not (math.isfinite(norm) and norm > 0.0):
         return np.zeros(3)
     lateral_n, normal_n = cantilever_forces(
         torsion, deflection, lateral_spring_constant, normal_spring_constant, tip_height
     )
-    lateral = float(np.mean(lateral_n))
-    normal = float(np.mean(normal_n)) if deflection.size else 0.0
+    lateral, normal = _finite_mean(lateral_n), _finite_mean(normal_n)
     return np.array([-lateral * u[0] / norm, -lateral * u[1] / norm, normal])
+
+
+def _finite_mean(values: np.ndarray) -> float:
+    finite = values[np.isfinite(values)]
+    return float(np.mean(finite)) if finite.size else 0.0
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,11 @@ from afm_core.physics.sample import Rod, Sample, Sphere
 # a segment's path is integrated in time steps of this (push_along_path re-samples it in space
 # anyway: its step is a fraction of the smallest radius, so nothing tunnels)
 MODEL_DT = 1e-3  # s
+# m: smaller objects are left out of the prediction. The model's mechanics step is a fraction
+# of the smallest radius near the path, so a 1 fm sphere in a map (nothing checks a radius but
+# > 0) made one 50 nm segment 10^8 steps and the teleop node ran out of memory; 0.1 nm is an
+# atom's size, below any particle a tip pushes (at it a segment takes about 10 ms)
+MIN_RADIUS = 1e-10
 
 
 class BelievedTip:
@@ -73,9 +78,13 @@ class PushPredictor:
 
     def load(self, landmarks) -> None:
         """Start over from a landmark map (afm_core.imaging.landmarks.Landmark objects, task
-        frame); pits and unknown kinds do not move and are left out."""
+        frame); pits and unknown kinds do not move and are left out, and so are objects whose
+        shape is not finite or smaller than MIN_RADIUS."""
         spheres, rods, sigma = [], [], {}
         for mark in landmarks:
+            shape = (mark.x, mark.y, mark.radius, mark.length, mark.orientation)
+            if not (np.all(np.isfinite(shape)) and mark.radius >= MIN_RADIUS):
+                continue
             if mark.kind == "sphere":
                 spheres.append(Sphere(int(mark.id), float(mark.x), float(mark.y), mark.radius))
             elif mark.kind in ("rod", "tube") and mark.length > 0:
@@ -93,7 +102,10 @@ class PushPredictor:
             else:
                 continue
             cov = np.asarray(mark.covariance, float).reshape(2, 2)
-            sigma[int(mark.id)] = math.sqrt(max(float(np.max(np.linalg.eigvalsh(cov))), 0.0))
+            if np.all(np.isfinite(cov)):
+                sigma[int(mark.id)] = math.sqrt(max(float(np.max(np.linalg.eigvalsh(cov))), 0.0))
+            # else none: objects() says nan (unknown), where eigvalsh of a NaN gave -0.0 (known
+            # exactly)
         self.sample = Sample(spheres=spheres, rods=rods)
         self.sigma = sigma
         self.pushed = set()
