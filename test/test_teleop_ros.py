@@ -231,6 +231,15 @@ def test_range_clip_ownership_and_hand_back(graph):
         reply = peer.call(peer.enable, False)
         assert reply.success and "tip stopped" in reply.message, reply.message
         assert peer.statuses[-1]["owner"] == "automatic"
+        # a command now is ignored, and the status says so (the loop publishes nothing then)
+        for _ in range(3):
+            peer.twist_pub.publish(Twist())
+            time.sleep(0.1)
+        wait_for(
+            lambda: peer.statuses[-1]["stop"].startswith("command ignored: teleop does not hold"),
+            5,
+            what="the status saying the command was ignored",
+        )
         # a lease renewal arriving late, after the hand-back, grants nothing
         lease = peer.node.create_publisher(Empty, topics.TELEOP_LEASE, 10)
         for _ in range(3):

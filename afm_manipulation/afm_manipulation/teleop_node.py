@@ -197,23 +197,32 @@ class TeleopNode(Node):
 
     def take_command(self, vx: float, vy: float, arrived: float) -> None:
         """arrived: when the middleware received the command (monotonic s): the dead-man
-        counts from there, not from when an executor thread got round to this callback."""
+        counts from there, not from when an executor thread got round to this callback. A
+        command not taken says why on the status at once: while teleop does not hold the tip
+        the loop publishes nothing, so the operator's panel never learnt it was ignored."""
         called = time.monotonic()
         with self.lock:
-            if not self.holding:
-                self.status["stop"] = (
-                    f"command ignored: teleop does not hold the tip "
-                    f"(call {topics.SERVICE_TELEOP_ENABLE} true)"
-                )
-                return
-            try:
-                clip = self.controller.command(vx, vy, arrived)
-                self.timing.command(arrived, called)
-            except ValueError as exc:
-                self.status["stop"] = f"command refused: {exc}"
-                return
-            if clip:
-                self.status["last_clip"] = clip
+            before = self.status["stop"]
+            self._take(vx, vy, arrived, called)
+            news = self.status["stop"] != before and self.status["stop"].startswith("command ")
+        if news:
+            self.publish_status()
+
+    def _take(self, vx: float, vy: float, arrived: float, called: float) -> None:
+        if not self.holding:
+            self.status["stop"] = (
+                f"command ignored: teleop does not hold the tip "
+                f"(call {topics.SERVICE_TELEOP_ENABLE} true)"
+            )
+            return
+        try:
+            clip = self.controller.command(vx, vy, arrived)
+            self.timing.command(arrived, called)
+        except ValueError as exc:
+            self.status["stop"] = f"command refused: {exc}"
+            return
+        if clip:
+            self.status["last_clip"] = clip
 
     def on_landmarks(self, msg: LandmarkArray) -> None:
         self.landmarks.take(msg)
