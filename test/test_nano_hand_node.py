@@ -80,3 +80,23 @@ def test_one_manipulation_is_claimed_at_acceptance_and_given_back_however_it_end
     assert nano_hand.accept(None) == GoalResponse.ACCEPT
     assert nano_hand.releasing(lambda _goal_handle: "result")(None) == "result"
     assert nano_hand.accept(None) == GoalResponse.ACCEPT
+
+
+def test_a_one_image_map_s_timing_reaches_the_verdict_and_a_pair_s_does_not(nano_hand):
+    """A map that is one image is stretched by its own drift: its pixel times go to the
+    procedure's verdict (map_time); a drift-corrected pair's map is taken as drift-free."""
+    from sample_messages import raster_scan
+
+    assert nano_hand.procedure.map_time() is None  # no map yet
+    single = raster_scan(0)
+    single.pair_id = ""
+    nano_hand.on_map(single)
+    map_time = nano_hand.procedure.map_time()
+    # row 10's centre (0 deg scan, lines along +y from the origin): its line's start time
+    xy = (
+        single.origin.x + 0.5 * single.pixel_size_x,
+        single.origin.y + 10.5 * single.pixel_size_y,
+    )
+    assert map_time(np.array(xy)) == pytest.approx(100.0 + 10 * 0.5, abs=0.5)
+    nano_hand.on_map(raster_scan(2))  # pair_id "pair-1": drift-corrected
+    assert nano_hand.procedure.map_time() is None

@@ -10,7 +10,10 @@ planner's order (/afm/plan_sequence) unless keep_order. The planned strokes go o
 /afm/planned_path; after every push the map with the particle where the rescan found it goes on
 /afm/landmarks, so the localizer and planner know where it went. The particle as the push
 model predicts it after each stroke, and where local lines or the rescan observe it, goes on
-/afm/objects/believed (ObjectArray, origin "nano_hand") for live views.
+/afm/objects/believed (ObjectArray, origin "nano_hand") for live views. When the newest map on
+/afm/map is one image (an empty pair_id: not a drift-corrected 0/90 pair), its line timing goes
+to the verdict, which adds the map's own drift stretch between the particle's start and its end
+(afm_core.manipulation.verdict.map_stretch).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from __future__ import annotations
 import sys
 import threading
 from dataclasses import fields
+from functools import partial
 
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
@@ -38,15 +42,17 @@ from afm_core.manipulation import (
     ZigzagOverrides,
 )
 from afm_core.manipulation.execute import OBSERVED
+from afm_core.manipulation.verify import scan_time
 from afm_core.parameters import Parameter, ParameterTable
 from afm_msgs.action import Assemble, Localize, PushParticle
-from afm_msgs.msg import LandmarkArray, ObjectArray, PlannedPath, TipCommand
+from afm_msgs.msg import LandmarkArray, ObjectArray, PlannedPath, RasterScan, TipCommand
 from afm_msgs.srv import PlanSequence
 from afm_ros import params, topics
 from afm_ros.action_client import SafeActionClient
 from afm_ros.action_instrument import ActionInstrument, call_action, call_service
 from afm_ros.conversions import (
     FRAME_TASK,
+    msg_to_raster_scan,
     outcome_to_result,
     pose_to_tip_estimate,
     progress_to_assemble_feedback,
@@ -101,6 +107,7 @@ class NanoHandNode(Node):
         self.state_lock = threading.Lock()
         self.landmarks = NewestLandmarkMap(self.get_logger())
         self.tip_pose: PoseWithCovarianceStamped | None = None
+        self.single_image_map = None  # the newest /afm/map if it is one image (RasterScanData)
         self.procedure = PushProcedure(
             self.instrument,
             self.localize,
@@ -110,10 +117,12 @@ class NanoHandNode(Node):
             tip_estimate=self.current_tip,
             on_moved=self.on_moved,
             on_lost=self.on_lost,
+            map_time=self.map_time,
         )
         inputs = MutuallyExclusiveCallbackGroup()
         for msg_type, topic, callback, qos in (
             (LandmarkArray, topics.LANDMARKS, self.landmarks.take, LATCHED),
+            (RasterScan, topics.CORRECTED_MAP, self.on_map, LATCHED),
             (PoseWithCovarianceStamped, topics.TIP_POSE, self.on_tip_pose, 10),
             (TipCommand, topics.TIP_COMMAND, self.instrument.observe_command, EVENTS),
         ):
@@ -151,6 +160,22 @@ class NanoHandNode(Node):
                 cancel_callback=lambda _g: CancelResponse.ACCEPT,
                 feedback_pub_qos_profile=FEEDBACK,
             )
+
+    def on_map(self, msg: RasterScan) -> None:
+        """The map's timing, kept when it is one image: its own drift stretches it."""
+        try:
+            scan = None if msg.pair_id else msg_to_raster_scan(msg)
+        except ValueError as exc:
+            self.get_logger().error(f"map {msg.scan_id}: its timing is not used: {exc}")
+            scan = None
+        with self.state_lock:
+            self.single_image_map = scan
+
+    def map_time(self):
+        """The procedure's map_time: the one-image map's pixel times, None for a pair's."""
+        with self.state_lock:
+            scan = self.single_image_map
+        return None if scan is None else partial(scan_time, scan)
 
     def on_moved(self, moved) -> None:
         """A pushed particle where the rescan found it: the map, and the observed object."""

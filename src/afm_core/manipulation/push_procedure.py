@@ -130,6 +130,9 @@ class PushProcedure:
     on_lost(landmark): a particle whose push failed after its strokes: not where the map holds it.
     calibration: the localization calibration (motion model of the closed loop's tip track;
         its scanner matrix unless scanner_matrix is given; default: the book's defaults).
+    map_time() -> when the map passed a point of it (s, maps' frame; e.g.
+        partial(verify.scan_time, map_scan)) for a map that is one image, whose own drift
+        stretches it (verdict.map_stretch), or None for a drift-corrected map (the default).
     """
 
     def __init__(
@@ -144,8 +147,10 @@ class PushProcedure:
         on_moved: Callable[[Landmark], None] = lambda _landmark: None,
         on_lost: Callable[[Landmark], None] = lambda _landmark: None,
         calibration: Calibration | None = None,
+        map_time: Callable[[], Callable[[np.ndarray], float] | None] = lambda: None,
     ):
         self.instrument = instrument
+        self.map_time = map_time
         self.localize = localize
         self.landmarks = landmarks
         self.calibration = calibration or Calibration()
@@ -368,7 +373,9 @@ class PushProcedure:
             pose = rod_pose_verified(
                 rod, particle, before, seen_before, verification, self.calibration.image_matrix
             )
-            verdict = push_verdict(verification, self.calibration, start_xy, target, tolerance)
+            verdict = push_verdict(
+                verification, self.calibration, start_xy, target, tolerance, self.map_time()
+            )
         except (ValueError, InstrumentUnavailable, PushFailed) as exc:
             if not planned:
                 if isinstance(exc, PushFailed):
