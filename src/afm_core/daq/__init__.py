@@ -78,7 +78,10 @@ def _daq_calibration(data, path) -> DaqCalibration:
                 f"daq calibration {str(path)!r}: unknown key {key!r}; known: {sorted(fields)}"
             )
     calibration = DaqCalibration(**values)
-    calibration.validate()
+    try:
+        calibration.validate()
+    except ValueError as exc:  # a value the lab measured or typed, not a malformed file
+        raise ValueError(f"daq calibration {str(path)!r}: {exc}") from exc
     return calibration
 
 

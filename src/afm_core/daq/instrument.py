@@ -23,10 +23,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from afm_core.daq.boundary import DaqBoundary
+from afm_core.daq.boundary import DaqBoundary, DaqUnavailable
+from afm_core.daq.calibration import DaqCalibration
+from afm_core.daq.trace import TraceRecorder
 from afm_core.instrument import (
     ForceTraceData,
     IndentResult,
+    InstrumentUnavailable,
     LineRequest,
     MoveResult,
     RasterScanData,
@@ -89,72 +92,6 @@ def as_feed_forward(model: Any) -> FeedForward:
 
 
 @dataclass
-class DaqCalibration:
-    """How metres and newtons map to the card's volts, and which channels carry what (SI units).
-
-    Defaults are plausible for a Dimension 3100 scanner behind a +-10 V card; every value must
-    be measured on the real set-up (scanner sensitivity on a calibration grating, deflection
-    sensitivity on a force curve on a hard sample, spring constants by thermal tune).
-    """
-
-    # Lateral outputs: volts = offset + volts_per_metre * command position; 0.18 V/um over
-    # 110 um spans -9.9 V .. +9.9 V.
-    x_volts_per_metre: float = 0.18e6
-    y_volts_per_metre: float = 0.18e6
-    x_offset_volts: float = -9.9
-    y_offset_volts: float = -9.9
-    # Clamps: no sample is ever written outside them, and requests that would need it are refused.
-    x_volts_limits: tuple[float, float] = (-10.0, 10.0)
-    y_volts_limits: tuple[float, float] = (-10.0, 10.0)
-    # Optional z output added to the controller's z (indentation): volts = offset + V/m * z.
-    z_volts_per_metre: float = 2.5e6
-    z_offset_volts: float = 0.0
-    z_volts_limits: tuple[float, float] = (-10.0, 10.0)
-    # Inputs: metres = metres_per_volt * (volts - offset).
-    z_monitor_metres_per_volt: float = 0.35e-6  # topography from the z-piezo monitor
-    z_monitor_offset_volts: float = 0.0
-    deflection_metres_per_volt: float = 50e-9  # inverse optical-lever sensitivity
-    deflection_offset_volts: float = 0.0
-    lateral_radians_per_volt: float = 1e-3  # torsion
-    lateral_offset_volts: float = 0.0
-    normal_spring_constant: float = 0.2  # N/m
-    lateral_spring_constant: float = 1e-9  # N*m/rad
-    sample_rate: float = 100e3  # Hz, one clock for AO and AI
-    # Channels (device-relative names).
-    ao_x: str = "ao0"
-    ao_y: str = "ao1"
-    ao_z: str | None = None
-    ai_z: str = "ai0"
-    ai_deflection: str = "ai1"
-    ai_lateral: str | None = None
-    ai_range: tuple[float, float] = (-10.0, 10.0)
-    # Inverse hysteresis per axis (FeedForward, plain callable, or None for identity).
-    x_feed_forward: Any = None
-    y_feed_forward: Any = None
-
-    def validate(self) -> None:
-        for name in (
-            "x_volts_per_metre",
-            "y_volts_per_metre",
-            "z_volts_per_metre",
-            "z_monitor_metres_per_volt",
-            "deflection_metres_per_volt",
-            "lateral_radians_per_volt",
-        ):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value != 0.0):
-                raise ValueError(f"calibration.{name}={value}: must be finite and non-zero")
-        for name in ("normal_spring_constant", "lateral_spring_constant", "sample_rate"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"calibration.{name}={value}: must be finite and > 0")
-        for name in ("x_volts_limits", "y_volts_limits", "z_volts_limits", "ai_range"):
-            lo, hi = getattr(self, name)
-            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-                raise ValueError(f"calibration.{name}={(lo, hi)}: must be finite with min < max")
-
-
-@dataclass
 class _Step:
     """One chunk of a plan: desired positions per sample (m) and how to treat it."""
 
@@ -173,7 +110,9 @@ class DaqInstrument:
     DAQ's power-up level, clipped into the range) so the commanded position is known.
     `travel_speed` (default half the slew limit) is used to reach the start of a scan or an
     indentation; `indent_speed` is the z ramp rate; `chunk_seconds` bounds how long a cancel
-    waits during moves.
+    waits during moves; `max_motion_seconds` refuses a move, press or dwell longer than that.
+    A card failure during a request raises InstrumentUnavailable (afm_core.instrument) with the
+    outputs back at the last levels known and, in an indentation, z retracted.
     """
 
     def __init__(
@@ -186,6 +125,7 @@ class DaqInstrument:
         travel_speed: float | None = None,
         indent_speed: float = 1e-6,
         chunk_seconds: float = 0.1,
+        max_motion_seconds: float = 3600.0,
     ):
         calibration.validate()
         self.boundary = boundary
@@ -199,6 +139,9 @@ class DaqInstrument:
             raise ValueError(f"indent_speed={indent_speed}: must be finite and > 0")
         self.indent_speed = indent_speed
         self.fs = calibration.sample_rate
+        if not (math.isfinite(max_motion_seconds) and max_motion_seconds > 0):
+            raise ValueError(f"max_motion_seconds={max_motion_seconds}: must be finite and > 0")
+        self.max_motion_samples = int(max_motion_seconds * self.fs)
         self._chunk = max(2, int(round(chunk_seconds * self.fs)))
         self._ffx = as_feed_forward(calibration.x_feed_forward)
         self._ffy = as_feed_forward(calibration.y_feed_forward)
@@ -208,14 +151,7 @@ class DaqInstrument:
         self._axes = [("x", c.x_volts_limits), ("y", c.y_volts_limits)] + (
             [("z", c.z_volts_limits)] if c.ao_z else []
         )
-        ai = [c.ai_z, c.ai_deflection] + ([c.ai_lateral] if c.ai_lateral else [])
-        boundary.configure(
-            [c.ao_x, c.ao_y] + ([c.ao_z] if c.ao_z else []),
-            ai,
-            self.fs,
-            (min(lo for _, (lo, _) in self._axes), max(hi for _, (_, hi) in self._axes)),
-            c.ai_range,
-        )
+        self._ai_channels = [c.ai_z, c.ai_deflection] + ([c.ai_lateral] if c.ai_lateral else [])
 
         def zero_volt_position(offset, v_per_m, volt_limits, span):
             return float(np.clip((np.clip(0.0, *volt_limits) - offset) / v_per_m, 0.0, span))
@@ -228,7 +164,20 @@ class DaqInstrument:
         )
         volts = self._volts(np.array([x0]), np.array([y0]), np.zeros(1), self._ffx, self._ffy)
         self._check_volts(volts, "calibration (start-up position)", ValueError)
-        boundary.write_static(volts[:, 0])
+        try:
+            boundary.configure(
+                [c.ao_x, c.ao_y] + ([c.ao_z] if c.ao_z else []),
+                self._ai_channels,
+                self.fs,
+                (min(lo for _, (lo, _) in self._axes), max(hi for _, (_, hi) in self._axes)),
+                c.ai_range,
+            )
+            boundary.write_static(volts[:, 0])
+        except (ValueError, DaqUnavailable):
+            raise
+        except Exception as exc:
+            # A driver error at start-up: the node stops with this message, not a traceback.
+            raise DaqUnavailable(f"DAQ set-up failed: {type(exc).__name__}: {exc}") from exc
         self._last = volts[:, 0].copy()
         self._pos = (x0, y0)
         self._z = 0.0
@@ -289,15 +238,23 @@ class DaqInstrument:
     def _ramp(self, start, end, duration: float, kind: str, field: str) -> Iterator[_Step]:
         """Linear ramp (x, y, z) start -> end over `duration`, sample k at (k+1)/fs, in chunks."""
         n = max(2, math.ceil(duration * self.fs - 1e-9))
-        k = np.arange(1, n + 1) / n
-        path = [a + (b - a) * k for a, b in zip(start, end)]
-        for axis, b in zip(path, end):
-            axis[-1] = b  # land exactly on the target, free of rounding
-        bounds = list(range(0, n, self._chunk)) + [n]
-        if len(bounds) > 2 and bounds[-1] - bounds[-2] < 2:
-            del bounds[-2]  # finite AO needs >= 2 samples: fold a lone tail into the chunk before
-        for i, j in zip(bounds[:-1], bounds[1:]):
-            yield _Step(kind, path[0][i:j], path[1][i:j], path[2][i:j], field)
+        if n > self.max_motion_samples:
+            raise ValueError(
+                f"{field}: the motion would take {n / self.fs:.4g} s ({n} DAQ samples at "
+                f"sample_rate {self.fs:g} Hz), above the {self.max_motion_samples / self.fs:.4g}"
+                " s one motion may take; ask for a higher speed"
+            )
+        # Chunk by chunk: a slow move's whole path (hours at 100 kHz) must never be in memory.
+        starts = list(range(0, n, self._chunk))
+        if len(starts) > 1 and n - starts[-1] < 2:
+            del starts[-1]  # finite AO needs >= 2 samples: fold a lone tail into the chunk before
+        for i, j in zip(starts, starts[1:] + [n]):
+            k = np.arange(i + 1, j + 1) / n
+            path = [a + (b - a) * k for a, b in zip(start, end)]
+            if j == n:
+                for axis, b in zip(path, end):
+                    axis[-1] = b  # land exactly on the target, free of rounding
+            yield _Step(kind, path[0], path[1], path[2], field)
 
     def _travel(
         self, x: float, y: float, speed: float, field: str, kind: str = "travel"
@@ -309,11 +266,14 @@ class DaqInstrument:
                 (x0, y0, self._z), (x, y, self._z), distance / speed, kind, field
             )
 
-    def _check_plan(self, steps: Iterator[_Step]) -> None:
-        """Run the plan on copies of the feed-forward state: slew and clamps, nothing written."""
+    def _check_plan(self, steps: Iterator[_Step]) -> dict[str, int]:
+        """Run the plan on copies of the feed-forward state: slew and clamps, nothing written.
+        Returns the planned samples per kind of step."""
         ffx, ffy = copy.deepcopy(self._ffx), copy.deepcopy(self._ffy)
         px, py = self._pos
+        samples: dict[str, int] = {}
         for step in steps:
+            samples[step.kind] = samples.get(step.kind, 0) + len(step.x)
             dx = np.diff(step.x, prepend=px)
             dy = np.diff(step.y, prepend=py)
             speed = float(np.max(np.hypot(dx, dy))) * self.fs
@@ -326,20 +286,70 @@ class DaqInstrument:
             self._check_volts(
                 self._volts(step.x, step.y, step.z, ffx, ffy), step.field, ValueError
             )
+        return samples
 
     # ---- execution -------------------------------------------------------------------------
     def _write(self, step: _Step) -> np.ndarray:
         volts = self._volts(step.x, step.y, step.z, self._ffx, self._ffy)
         self._check_volts(volts, f"internal guard ({step.field})", RuntimeError)
-        ai = np.asarray(self.boundary.write_read(volts))
+        try:
+            ai = self.boundary.write_read(volts)
+        except Exception as exc:
+            # The outputs stopped somewhere on this ramp: go back to the last levels known,
+            # so the commanded position is true again and the next plan starts from it.
+            self._recover(exc, step)
         self._last = volts[:, -1].copy()
         self._pos = (float(step.x[-1]), float(step.y[-1]))
         self._z = float(step.z[-1])
+        # A returned ramp is done (the outputs hold its end) even if its readings are unusable.
+        expected = (len(self._ai_channels), volts.shape[1])
+        ai = np.asarray(ai, dtype=float) if ai is not None else np.empty(0)
+        if ai.shape != expected:
+            raise InstrumentUnavailable(
+                f"DAQ during {step.field}: the card returned readings of shape {ai.shape}, "
+                f"expected {expected} (AI channels {self._ai_channels} x samples written); "
+                "nothing of this request is reported"
+            )
+        if not np.all(np.isfinite(ai)):
+            raise InstrumentUnavailable(
+                f"DAQ during {step.field}: {int(np.sum(~np.isfinite(ai)))} AI readings are "
+                "not finite (NaN/inf); nothing of this request is reported"
+            )
         return ai
+
+    def _recover(self, exc: Exception, step: _Step):
+        """After a failed ramp: write the last levels known again, and raise."""
+        try:
+            self.boundary.write_static(self._last.copy())
+        except Exception as hold_exc:  # noqa: BLE001 - the first failure is the one to report
+            raise InstrumentUnavailable(
+                f"DAQ failed during {step.field}: {type(exc).__name__}: {exc}; holding the "
+                f"last levels failed too ({type(hold_exc).__name__}: {hold_exc}): the "
+                "outputs are where the card left them"
+            ) from exc
+        raise InstrumentUnavailable(
+            f"DAQ failed during {step.field}: {type(exc).__name__}: {exc}; the outputs are "
+            "back at the last levels written before it"
+        ) from exc
 
     def _hold(self) -> None:
         """Stop here: keep the outputs at the last written levels."""
-        self.boundary.write_static(self._last.copy())
+        try:
+            self.boundary.write_static(self._last.copy())
+        except Exception as exc:
+            raise InstrumentUnavailable(
+                f"DAQ failed holding the outputs after a cancel: {type(exc).__name__}: {exc}"
+            ) from exc
+
+    def _check_ramp_samples(self, n: int, what: str) -> None:
+        """One synchronised ramp is planned, written and read whole: bound its memory."""
+        most = self.calibration.max_ramp_samples
+        if n > most:
+            raise ValueError(
+                f"{what} would be one ramp of {n} DAQ samples ({n / self.fs:.4g} s at "
+                f"sample_rate {self.fs:g} Hz), above max_ramp_samples={most} "
+                f"({most / self.fs:.4g} s); go faster or lower the sample rate"
+            )
 
     @staticmethod
     def _stopped(should_stop: StopCheck | None) -> bool:
@@ -401,6 +411,7 @@ class DaqInstrument:
                 "lower line_rate to at most "
                 f"{self.fs / (2 * pixels):.4g} Hz"
             )
+        self._check_ramp_samples(2 * n_half, f"line_rate={request.line_rate} Hz: a line")
         self._check_plan(self._raster_steps(request))
 
         height = np.full((request.pixels_y, request.pixels_x), np.nan)
@@ -460,6 +471,7 @@ class DaqInstrument:
                 f"only {n} DAQ samples at "
                 f"sample_rate {self.fs:g} Hz; request at most {n} samples or a lower speed"
             )
+        self._check_ramp_samples(n, f"speed={request.speed:.4e} m/s: the line")
 
         def plan():
             yield from self._travel(request.start_x, request.start_y, self.travel_speed, "start")
@@ -513,20 +525,17 @@ class DaqInstrument:
         )
 
     # ---- move ------------------------------------------------------------------------------
-    def _trace(self, steps_and_ai, start: float, task: str) -> ForceTraceData:
-        parts = {"t": [], "x": [], "y": [], "z": [], "d": [], "l": []}
-        for step, t, ai in steps_and_ai:
-            _, deflection, lateral = self._measure(ai)
-            parts["t"].append(t - start + np.arange(1, len(step.x) + 1) / self.fs)
-            for key, values in (
-                ("x", step.x),
-                ("y", step.y),
-                ("z", step.z),
-                ("d", deflection),
-                ("l", lateral),
-            ):
-                parts[key].append(values)
-        cat = {key: np.concatenate(v) if v else np.empty(0) for key, v in parts.items()}
+    def _recorder(self, planned_samples: int) -> TraceRecorder:
+        return TraceRecorder(self.fs, planned_samples, self.calibration.max_trace_samples)
+
+    def _record(self, recorder: TraceRecorder, step: _Step, t: float, ai: np.ndarray) -> None:
+        """One written chunk into the trace; `t` is when it started, relative to the trace."""
+        _, deflection, lateral = self._measure(ai)
+        times = t + np.arange(1, len(step.x) + 1) / self.fs
+        recorder.add(t=times, x=step.x, y=step.y, z=step.z, d=deflection, l=lateral)
+
+    def _trace(self, recorder: TraceRecorder, start: float, task: str) -> ForceTraceData:
+        cat = recorder.arrays()
         c = self.calibration
         return ForceTraceData(
             times=cat["t"],
@@ -537,7 +546,7 @@ class DaqInstrument:
             lateral_torsion=cat["l"],
             normal_spring_constant=c.normal_spring_constant,
             lateral_spring_constant=c.lateral_spring_constant,
-            sample_rate=self.fs,
+            sample_rate=recorder.sample_rate,
             start_time=start,
             task=task,
         )
@@ -552,8 +561,9 @@ class DaqInstrument:
     ) -> MoveResult:
         """Rate-limited ramp to (x, y); in contact (a push) deflection and torsion are recorded."""
         validate_move(x, y, speed, self.limits)
-        self._check_plan(self._travel(x, y, speed, "target / speed"))
-        start, record, completed = self.time, [], True
+        planned = self._check_plan(self._travel(x, y, speed, "target / speed"))
+        start, completed = self.time, True
+        recorder = self._recorder(sum(planned.values()))
         for i, step in enumerate(self._travel(x, y, speed, "target / speed")):
             if self._stopped(should_stop):
                 if i:
@@ -563,11 +573,27 @@ class DaqInstrument:
             t = self.time
             ai = self._write(step)
             if contact:
-                record.append((step, t, ai))
-        trace = self._trace(record, start, "push") if contact else None
+                self._record(recorder, step, t - start, ai)
+        trace = self._trace(recorder, start, "push") if contact else None
         return MoveResult(end_x=self._pos[0], end_y=self._pos[1], completed=completed, trace=trace)
 
     # ---- indent ----------------------------------------------------------------------------
+    def _retract_now(self, z0: float) -> str:
+        """The card failed while the tip may be pressed in: one static step of the z output
+        back to `z0` (away from the sample: never leave the tip pressed in), x/y kept.
+        Returns what went wrong, or "" when z is back at `z0`."""
+        if self._z == z0:
+            return ""
+        c = self.calibration
+        levels = self._last.copy()
+        levels[2] = c.z_offset_volts + c.z_volts_per_metre * z0
+        try:
+            self.boundary.write_static(levels)
+        except Exception as exc:  # noqa: BLE001 - reported with the card's first failure
+            return f"{type(exc).__name__}: {exc}"
+        self._last, self._z = levels, z0
+        return ""
+
     def indent(
         self, x: float, y: float, force: float, dwell: float, should_stop: StopCheck | None = None
     ) -> IndentResult:
@@ -611,9 +637,9 @@ class DaqInstrument:
                 (x, y, z0 + depth), (x, y, z0), depth / self.indent_speed, "retract", field
             )
 
-        self._check_plan(plan())
-
-        wrote, completed, record, start = False, True, [], None
+        planned = self._check_plan(plan())
+        recorder = self._recorder(planned.get("press", 0) + planned.get("retract", 0))
+        wrote, completed, start = False, True, None
         for step in self._travel(x, y, self.travel_speed, "position"):
             if self._stopped(should_stop):
                 if wrote:
@@ -621,28 +647,36 @@ class DaqInstrument:
                 return IndentResult(
                     x=self._pos[0],
                     y=self._pos[1],
-                    trace=self._trace([], self.time, "indent"),
+                    trace=self._trace(recorder, self.time, "indent"),
                     completed=False,
                 )
             self._write(step)
             wrote = True
         start = self.time
-        for step in press():
-            if self._stopped(should_stop):
-                completed = False
-                break
-            t = self.time
-            record.append((step, t, self._write(step)))
-        if self._z != z0:  # always retract, from wherever the press stopped
-            for step in self._ramp(
-                (x, y, self._z),
-                (x, y, z0),
-                abs(self._z - z0) / self.indent_speed,
-                "retract",
-                field,
-            ):
+        try:
+            for step in press():
+                if self._stopped(should_stop):
+                    completed = False
+                    break
                 t = self.time
-                record.append((step, t, self._write(step)))
+                self._record(recorder, step, t - start, self._write(step))
+            if self._z != z0:  # always retract, from wherever the press stopped
+                for step in self._ramp(
+                    (x, y, self._z),
+                    (x, y, z0),
+                    abs(self._z - z0) / self.indent_speed,
+                    "retract",
+                    field,
+                ):
+                    t = self.time
+                    self._record(recorder, step, t - start, self._write(step))
+        except InstrumentUnavailable as exc:
+            problem = self._retract_now(z0)
+            if problem:
+                raise InstrumentUnavailable(
+                    f"{exc}; retracting z failed too ({problem}): the tip may still be pressed in"
+                ) from exc
+            raise
         return IndentResult(
-            x=x, y=y, trace=self._trace(record, start, "indent"), completed=completed
+            x=x, y=y, trace=self._trace(recorder, start, "indent"), completed=completed
         )

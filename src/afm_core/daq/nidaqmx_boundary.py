@@ -14,6 +14,8 @@ missing, so a driver node started without hardware fails at start-up with that m
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from afm_core.daq.boundary import DaqUnavailable
@@ -81,17 +83,31 @@ class NidaqmxBoundary:
         ao_range: tuple[float, float],
         ai_range: tuple[float, float],
     ) -> None:
+        self._close_tasks()
+        try:
+            self._configure(ao_channels, ai_channels, sample_rate, ao_range, ai_range)
+            self._verify_rate(float(sample_rate))
+        except Exception as exc:
+            self._close_tasks()
+            if isinstance(exc, DaqUnavailable):
+                raise
+            # At start-up, so the node stops naming the set-up instead of a driver traceback.
+            raise DaqUnavailable(
+                f"NI-DAQmx refused the set-up on {self.device} (AO {list(ao_channels)} in "
+                f"{tuple(ao_range)} V, AI {list(ai_channels)} in {tuple(ai_range)} V, "
+                f"{float(sample_rate):g} Hz): {type(exc).__name__}: {exc}"
+            ) from exc
+
+    def _configure(self, ao_channels, ai_channels, sample_rate, ao_range, ai_range) -> None:
         from nidaqmx.constants import RegenerationMode, TerminalConfiguration
         from nidaqmx.stream_readers import AnalogMultiChannelReader
         from nidaqmx.stream_writers import AnalogMultiChannelWriter
 
-        self._close_tasks()
         Task = self._nidaqmx.Task
-        self._ao, self._ai, self._static = (
-            Task("afm_ao_ramp"),
-            Task("afm_ai"),
-            Task("afm_ao_static"),
-        )
+        # One at a time: a failure leaves the ones made so far for _close_tasks to free.
+        self._ao = Task("afm_ao_ramp")
+        self._ai = Task("afm_ai")
+        self._static = Task("afm_ao_static")
         terminal = TerminalConfiguration[self.terminal_config]
         for channel in ao_channels:
             for task in (self._ao, self._static):
@@ -112,13 +128,10 @@ class NidaqmxBoundary:
         self._n_ai = len(ai_channels)
         self.sample_rate = float(sample_rate)
 
-    def write_read(self, ao_samples: np.ndarray) -> np.ndarray:
+    def _clock(self, n: int) -> None:
+        """Both tasks finite, n samples, AI on the AO sample clock."""
         from nidaqmx.constants import AcquisitionType
 
-        if self._ao is None:
-            raise RuntimeError("NidaqmxBoundary: write_read before configure")
-        data = np.ascontiguousarray(ao_samples, dtype=np.float64)
-        n = data.shape[1]
         self._ao.timing.cfg_samp_clk_timing(
             self.sample_rate, sample_mode=AcquisitionType.FINITE, samps_per_chan=n
         )
@@ -128,6 +141,30 @@ class NidaqmxBoundary:
             sample_mode=AcquisitionType.FINITE,
             samps_per_chan=n,
         )
+
+    def _verify_rate(self, sample_rate: float) -> None:
+        """Make the driver check the timing now, at start-up, not at the first scan; and refuse
+        a rate the card would silently coerce (its clock divides a timebase), since every
+        speed and time above assumes `sample_rate` exactly."""
+        from nidaqmx.constants import TaskMode
+
+        self._clock(2)
+        for task in (self._ao, self._ai):
+            task.control(TaskMode.TASK_VERIFY)
+        actual = float(self._ao.timing.samp_clk_rate)
+        if not math.isclose(actual, sample_rate, rel_tol=1e-9):
+            raise DaqUnavailable(
+                f"sample_rate={sample_rate:g} Hz: {self.device}'s sample clock cannot run at "
+                f"that rate and would run at {actual:.10g} Hz; set sample_rate to {actual:.10g}"
+                " (or a rate its timebase divides exactly)"
+            )
+
+    def write_read(self, ao_samples: np.ndarray) -> np.ndarray:
+        if self._ao is None:
+            raise RuntimeError("NidaqmxBoundary: write_read before configure")
+        data = np.ascontiguousarray(ao_samples, dtype=np.float64)
+        n = data.shape[1]
+        self._clock(n)
         self._writer.write_many_sample(data)
         readings = np.zeros((self._n_ai, n))
         timeout = n / self.sample_rate + self.timeout_margin
