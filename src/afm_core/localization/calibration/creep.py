@@ -7,7 +7,7 @@ moves between pits.
 from __future__ import annotations
 
 import numpy as np
-from scipy import linalg, optimize
+from scipy import linalg, optimize, stats
 
 from afm_core import checks
 from afm_core.localization.calibration.experiment import (
@@ -22,6 +22,7 @@ from afm_core.localization.calibration.experiment import (
     rescan,
     wait,
 )
+from afm_core.localization.calibration.fit_checks import Z_95
 from afm_core.localization.calibration.matching import match_monotone
 from afm_core.localization.calibration.pits import find_pits
 
@@ -165,7 +166,52 @@ def fit_creep(
         "model": [m.tolist() for m in models],
         "rms_residual": rms,
         "success": bool(fit.success),
+        # the cost least_squares minimised (x2: a chi-square for unit-variance residuals) and
+        # its degrees of freedom, for comparing fits with fewer terms (fit_creep_terms)
+        "cost": 2.0 * float(fit.cost),
+        "dof": max(1, len(fit.fun) - len(fit.x)),
     }
+
+
+# A term dropped from the creep model must leave the fit's cost within this quantile of the
+# chi-square of the parameters it removes (scaled by the larger fit's residual variance).
+DROP_QUANTILE = 0.95
+
+
+def fit_creep_terms(runs: list[dict], guess, longest: float) -> tuple[dict, list[dict]]:
+    """`fit_creep` with as many terms as the data hold: started with one per `guess`, a term
+    whose fraction no axis tells from 0 (each within Z_95 of its standard errors) is dropped
+    and the rest refitted, while one is left and the cost rises by no more than chance. A tube
+    with one or two creep time constants otherwise gets three terms of which one runs to the
+    shortest bound with a fraction of 0, or two sit on the same constant: their fractions'
+    linearised errors are then unbounded and take the step response's with them (a single
+    10 s term: fitted right to 0.3 %, stated +- 7 % of the step, "cannot be trusted").
+    Returns the fit and the dropped terms ({"time_constant", "fractions_upper95"})."""
+    fit = fit_creep(runs, n_constants=len(guess), guess=guess, longest=longest)
+    dropped: list[dict] = []
+    while len(fit["time_constants"]) > 1:
+        fractions = np.asarray(fit["fractions"], float)  # groups x terms
+        sigmas = np.asarray(fit["fractions_sigma"], float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(sigmas > 0, fractions / sigmas, np.where(fractions > 0, np.inf, 0.0))
+        seen = z.max(axis=0)
+        weakest = int(np.argmin(seen))
+        if seen[weakest] >= Z_95:
+            break
+        taus = [t for i, t in enumerate(fit["time_constants"]) if i != weakest]
+        smaller = fit_creep(runs, n_constants=len(taus), guess=taus, longest=longest)
+        variance = fit["cost"] / fit["dof"]
+        removed = 1 + fractions.shape[0]  # the time constant and one fraction per group
+        if smaller["cost"] - fit["cost"] > variance * stats.chi2.ppf(DROP_QUANTILE, removed):
+            break
+        dropped.append(
+            {
+                "time_constant": fit["time_constants"][weakest],
+                "fractions_upper95": (fractions[:, weakest] + Z_95 * sigmas[:, weakest]).tolist(),
+            }
+        )
+        fit = smaller
+    return fit, dropped
 
 
 def _prepared_runs(runs: list[dict], groups: list) -> list[tuple]:
@@ -222,7 +268,10 @@ def measure_creep(
 
     step and lane_offset default to 50 um and 15 um on a 110 um scanner, the same fractions
     of the range on another (experiment.range_scale); a repeat whose run does not fit in the
-    range is left out (data["runs_dropped"]), the first one must fit (GeometryError)."""
+    range is left out (data["runs_dropped"]), the first one must fit (GeometryError). A run
+    whose rescan loses its pits is left out too (parameters["runs_failed"], with why); with no
+    run of an axis left the experiment fails. The model keeps as many terms as the runs hold,
+    up to one per `guess` (fit_creep_terms; parameters["terms_dropped"])."""
     limits = instrument.limits
     scale = range_scale(instrument)
     step = STEP * scale if step is None else step
@@ -243,7 +292,7 @@ def measure_creep(
         dict(settle=settle, pixel=pixel, force=force),
         progress,
     )
-    fit = fit_creep(runs, guess=guess, longest=duration)
+    fit, dropped = fit_creep_terms(runs, guess, duration)
     for record, model in zip(data["x"] + data["y"], fit["model"]):
         record["model"] = model
     parameters = {
@@ -262,6 +311,11 @@ def measure_creep(
         # what the runs could resolve: a time constant at either end is not measured
         "time_constant_range": [float(min(r["t"][0] for r in runs)), duration],
         "record_per_tau": RECORD_PER_TAU,
+        # the runs whose pits were not found (why), fitted without them (fit_checks warns)
+        "runs_failed": list(data.get("runs_failed", [])),
+        "runs_fitted": len(runs),
+        # terms no axis could tell from 0, left out of the model (fit_creep_terms)
+        "terms_dropped": dropped,
     }
     return Experiment(parameters, data)
 
@@ -300,7 +354,7 @@ def _measured_runs(instrument, step, schedule, repeats, lane_offset, options, pr
     duration, pits, fast_pits, pit_spacing = schedule
     reach = INITIAL_CREEP_FRACTION * step + RESCAN_MARGIN
     plans = _planned_runs(instrument, step, pits, repeats, pit_spacing, lane_offset, reach)
-    runs, data = [], {"x": [], "y": []}
+    runs, data, punched = [], {"x": [], "y": []}, set()
     steps = StepProgress(progress, "creep", f"step run of {pits} pits", len(plans), instrument)
     for number in range(1, len(plans) + 1):
         if plans[number - 1] is None:  # no room for this repeat at the lag measured
@@ -309,19 +363,29 @@ def _measured_runs(instrument, step, schedule, repeats, lane_offset, options, pr
             continue
         axis, start, end = plans[number - 1]
         name = "xy"[axis]
-        # a later run of an axis must not reach back to the run before it
-        room = np.inf if not data[name] else reach + RUN_CLEARANCE - RESCAN_MARGIN
-        run, record = _creep_run(
-            instrument,
-            axis,
-            start,
-            end,
-            step=step,
-            schedule=(duration, pits, fast_pits, pit_spacing),
-            label=f"creep ({name}, run {len(data[name])})",
-            reach=(reach, min(room, MAX_CREEP_FRACTION * step)),
-            **options,
-        )
+        # a later run of an axis must not reach back to the run before it (measured or not:
+        # a failed run's pits are on the sample all the same)
+        room = np.inf if name not in punched else reach + RUN_CLEARANCE - RESCAN_MARGIN
+        punched.add(name)
+        try:
+            run, record = _creep_run(
+                instrument,
+                axis,
+                start,
+                end,
+                step=step,
+                schedule=(duration, pits, fast_pits, pit_spacing),
+                label=f"creep ({name}, run {(number - 1) % repeats})",
+                reach=(reach, min(room, MAX_CREEP_FRACTION * step)),
+                **options,
+            )
+        except RuntimeError as exc:
+            # one run's rescan losing its pits (a strong drift carries them out of the box)
+            # must not discard the minutes of runs that were measured: the fit takes the rest,
+            # the report says which run failed and why (fit_checks warns)
+            data.setdefault("runs_failed", []).append(str(exc))
+            steps.step(number)
+            continue
         runs.append(run)
         data[name].append(record)
         needed = REACH_PER_LAG * record["lag"] + RESCAN_MARGIN
@@ -330,6 +394,12 @@ def _measured_runs(instrument, step, schedule, repeats, lane_offset, options, pr
             wider = _planned_runs(instrument, step, pits, repeats, pit_spacing, lane_offset, reach)
             plans = plans[:number] + wider[number:]
         steps.step(number)
+    missing = [axis for axis in "xy" if not data[axis]]
+    if missing:
+        raise RuntimeError(
+            f"creep: no run of axis {', '.join(missing)} measured: "
+            + "; ".join(data.get("runs_failed", []) or ["every run left out (no room)"])
+        )
     return runs, data, duration
 
 
@@ -438,32 +508,55 @@ def _creep_run(
     return run, record
 
 
+# Across the lane the rescan reaches this far past its first and last pit, and at most
+# LANE_MARGIN_MOST when the pits crowd that side (a drift across the lane carried them).
+LANE_MARGIN = 0.4e-6  # m
+LANE_MARGIN_MOST = 1.6e-6  # m
+
+
 def _rescanned_lane(instrument, axis, end, lane, pixel, reach, fast_pits) -> tuple:
     """The lane's pits in a rescan reaching reach[0] back along the step from `end`: (index
     into the detections per pit or -1, detections). The early pits lag most; when fewer than
     half of the first `fast_pits` are found and the earliest found lies in the outer quarter of
-    the box, they fell outside it: the box is doubled (up to reach[1]) and the lane rescanned."""
+    the box, they fell outside it: the box is doubled (up to reach[1]) and the lane rescanned.
+    Likewise where pits are missing and those found crowd another side (within half its
+    margin): a drift carries them past the step's end (2 nm/s: 0.6 um in a run, past the 0.5 um
+    margin, and a run found 6 of 40) or across the lane; that side's margin is doubled, past
+    the end up to RUN_CLEARANCE (the next run's box starts there), across up to
+    LANE_MARGIN_MOST."""
     other = 1 - axis
     extent, most = reach
+    past, side = RESCAN_MARGIN, np.array([LANE_MARGIN, LANE_MARGIN])
     while True:
         lo, hi = np.array(end, float), np.array(end, float)
         lo[axis] -= extent
-        hi[axis] += RESCAN_MARGIN
-        lo[other], hi[other] = lane[0] - 0.4e-6, lane[-1] + 0.4e-6
+        hi[axis] += past
+        lo[other], hi[other] = lane[0] - side[0], lane[-1] + side[1]
         scan = rescan(
             instrument, lo, hi, pixel, slow_axis=axis, approach=APPROACH * range_scale(instrument)
         )
         detected = find_pits(scan)
         found = np.array([[p.x, p.y][other] for p in detected])
         index = match_monotone(lane, found) if len(found) else np.full(len(lane), -1)
-        if not np.any(index >= 0) or 2 * extent > most:
+        if not np.any(index >= 0) or np.all(index >= 0):
             return index, detected
-        along = np.array([[detected[j].x, detected[j].y][axis] for j in index[index >= 0]])
+        matched = np.array([[detected[j].x, detected[j].y] for j in index[index >= 0]])
+        along, across = matched[:, axis], matched[:, other]
+        grown = False
         early_missing = np.sum(index[:fast_pits] >= 0) < 0.5 * fast_pits
-        at_edge = along.min() < lo[axis] + 0.25 * extent
-        if not (early_missing and at_edge):
+        if early_missing and along.min() < lo[axis] + 0.25 * extent and 2 * extent <= most:
+            extent, grown = 2 * extent, True
+        if along.max() > hi[axis] - 0.5 * past and 2 * past <= RUN_CLEARANCE:
+            past, grown = 2 * past, True
+        crowded = [
+            across.min() < lo[other] + 0.5 * side[0],
+            across.max() > hi[other] - 0.5 * side[1],
+        ]
+        for k in (0, 1):
+            if crowded[k] and 2 * side[k] <= LANE_MARGIN_MOST:
+                side[k], grown = 2 * side[k], True
+        if not grown:
             return index, detected
-        extent *= 2
 
 
 STEP_RESPONSE_TIME = 25.0  # s, the book's creep figure: what the motion model predicts

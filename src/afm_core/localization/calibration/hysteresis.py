@@ -16,6 +16,7 @@ from scipy import optimize
 from afm_core import checks
 from afm_core.localization.calibration.experiment import (
     Experiment,
+    GeometryError,
     StepProgress,
     check_box,
     indent_force,
@@ -318,6 +319,7 @@ def measure_hysteresis_once(
     )
     check_box(f"hysteresis cycle ({'xy'[axis]})", instrument, lo, hi, advice)
     width, pixel = _pit_width_and_pixel(instrument, axis, lo, pixel, force)
+    _check_line_spacing(instrument, axis, 2 * amplitude, width, cycle_fraction)
     step = 2 * amplitude / steps_per_sweep
     timeline, pits = drive_cycle(
         instrument,
@@ -406,6 +408,39 @@ def _pit_width_and_pixel(instrument, axis: int, lo, pixel, force: float) -> tupl
     return width, (min(PIXEL, width / PIT_PIXELS) if width > 0 else PIXEL)
 
 
+def _check_line_spacing(instrument, axis: int, span: float, width: float, cycle_fraction):
+    """GeometryError before the cycle runs when its rescan, at least `span` long along the
+    cycle in at most max_pixels lines, has lines farther apart than a pit `width` wide (the
+    probe pit's; NaN: unknown, not checked): on an instrument of 512 pixels a full-range cycle
+    has a line every ~200 nm against pits of ~60 nm, and the experiment found 2 of 66 pits
+    after half an hour of cycling, then advised a finer pixel, which cannot fit."""
+    lines = instrument.limits.max_pixels - 1
+    spacing = span / lines
+    if not np.isfinite(width) or width >= spacing:
+        return
+    # the cycle whose rescan gets the line spacing this module chooses for such pits
+    fitting = cycle_fraction * lines * width / (PIT_PIXELS * span)
+    text = (
+        f"hysteresis ({'xy'[axis]}): the rescan spans at least {span * 1e6:.3g} um along the "
+        f"cycle, with this instrument's max_pixels {lines + 1} a line every "
+        f"{spacing * 1e9:.0f} nm, wider than its pits ({width * 1e9:.0f} nm, a probe pit); "
+    )
+    # a smaller cycle fits the lines, but its loop is extrapolated beyond what was checked
+    # (fit_checks warns): it is not advised
+    if fitting >= RETRY_CYCLE_FRACTION:
+        raise GeometryError(
+            f"{text}a cycle_fraction of about {fitting:.2g} fits (the loop is then extrapolated "
+            "from that cycle): afm calibrate --set hysteresis.cycle_fraction=VALUE"
+        )
+    needed = int(np.ceil(PIT_PIXELS * span / width)) + 1
+    raise GeometryError(
+        f"{text}no cycle_fraction of {RETRY_CYCLE_FRACTION} or more fits: this "
+        f"experiment needs about {needed} pixels per line on this scanner (one rescan along "
+        "the whole cycle), or pits wider than the lines (a blunter tip, or more force if the "
+        "instrument allows)"
+    )
+
+
 def rescan_pixels(instrument, axis: int, box, pixel: float) -> list[float]:
     """The rescans' pixel (x, y) (m): `pixel`, coarser along the cycled (slow) axis only where
     the box is too long for max_pixels lines at it (a fine pixel on a full-range cycle)."""
@@ -470,8 +505,8 @@ def _checked_options(
         raise ValueError(f"axis={axis}: must be 0 (x) or 1 (y)")
     if not (math.isfinite(cycle_fraction) and 0.2 <= cycle_fraction <= 0.9):
         raise ValueError(
-            f"cycle_fraction={cycle_fraction}: must be within [0.2, 0.9] of the half range (the "
-            "rescan needs the outer 10 % clear, see measure_hysteresis)"
+            f"cycle_fraction={cycle_fraction}: must be within [0.2, 0.9] of the half "
+            "range (the rescan needs the outer 10 % clear, see measure_hysteresis)"
         )
     steps_per_sweep = checks.count("steps_per_sweep", steps_per_sweep, 8, 4096)
     return (

@@ -144,18 +144,29 @@ def _hysteresis_rows(calibration: Calibration, report: dict, scanner) -> list[di
 def _creep_rows(calibration: Calibration, scanner) -> list[dict]:
     rows = []
     taus, true_taus = calibration.creep_time_constants, list(scanner.creep_time_constants)
-    for i, (tau, true_tau) in enumerate(zip(taus, sorted(true_taus))):
-        rows.append(_row(f"creep.time_constant[{i}]", tau, true_tau, "s"))
     order = np.argsort(true_taus)
     true_fractions = np.asarray(scanner.creep_fractions)[order]
+    sorted_taus = np.sort(true_taus)
+    # a fit may keep fewer terms than the simulator has (creep.fit_creep_terms): then each
+    # fitted term is compared with the nearest true one in log time, not the i-th
+    nearest = list(range(len(taus)))
+    if len(taus) != len(sorted_taus):
+        nearest = [
+            int(np.argmin(np.abs(np.log(sorted_taus) - np.log(tau)))) if len(sorted_taus) else -1
+            for tau in taus
+        ]
+    for i, (tau, j) in enumerate(zip(taus, nearest)):
+        if j >= 0:
+            rows.append(_row(f"creep.time_constant[{i}]", tau, float(sorted_taus[j]), "s"))
     t = np.linspace(0.0, 25.0, 501)
-    true_curve = creep_step_response(np.sort(true_taus), true_fractions, t)
+    true_curve = creep_step_response(sorted_taus, true_fractions, t)
     for axis, fractions in (
         ("x", calibration.creep_fractions_x),
         ("y", calibration.creep_fractions_y),
     ):
-        for i, (c, true_c) in enumerate(zip(fractions, true_fractions)):
-            rows.append(_row(f"creep.fractions_{axis}[{i}]", c, float(true_c)))
+        for i, (c, j) in enumerate(zip(fractions, nearest)):
+            if j >= 0:
+                rows.append(_row(f"creep.fractions_{axis}[{i}]", c, float(true_fractions[j])))
         curve = creep_step_response(taus, fractions, t)
         rows.append(
             _measure_row(
