@@ -245,25 +245,75 @@ def predict_particle(plan: PushPlan, contact_params=None, start=None) -> list[np
 
 
 def path_blocker(start, goal, radius: float, tip_radius: float, others, tip_reach: float = 0.0):
-    """The first of `others` (objects with x, y, radius: landmarks) a particle of `radius` would
-    run into on its way from `start` to `goal` ((2,) m): the corridor it sweeps (its radius plus
-    the other's), the tip's approach behind it and, for a zigzag, the tip running `tip_reach`
-    (its centre's farthest offset) beside the push line. None when the way is clear."""
+    """The first of `others` (objects with x, y, radius: landmarks; a tube's or rod's also with
+    length and orientation) a particle of `radius` would run into on its way from `start` to
+    `goal` ((2,) m): the corridor it sweeps (its radius plus the other's), the tip's approach
+    behind it and, for a zigzag, the tip running `tip_reach` (its centre's farthest offset)
+    beside the push line. A goal at the start (a rod turned in place) sweeps the disc of
+    `radius` about it. A tube or rod is in the way when any point of its axis is. None when
+    the way is clear."""
     start, goal = np.asarray(start, float), np.asarray(goal, float)
     axis = goal - start
     length = float(np.hypot(*axis))
     if length == 0:
-        return None
+        near = [o for o in others if _axis_distance(o, start) < radius + o.radius]
+        return min(near, key=lambda o: _axis_distance(o, start)) if near else None
     u = axis / length
     half_width = max(radius, tip_reach + tip_radius)
     hits = []
     for other in others:
-        rel = np.array([other.x, other.y]) - start
-        along = float(rel @ u)
-        across = abs(float(rel[0] * u[1] - rel[1] * u[0]))
-        if (
-            -(radius + 2 * tip_radius) < along < length + radius + other.radius
-            and across < half_width + other.radius
-        ):
+        # the box of the sphere's test for each point of the other's axis, so a long tube whose
+        # centre lies beside the corridor but whose body crosses it is found
+        along = _first_in_box(
+            other,
+            start,
+            u,
+            (-(radius + 2 * tip_radius), length + radius + other.radius),
+            half_width + other.radius,
+        )
+        if along is not None:
             hits.append((along, other))
     return min(hits, key=lambda h: h[0])[1] if hits else None
+
+
+def _axis(other) -> tuple[np.ndarray, np.ndarray]:
+    """The ends of the other's axis (both its centre for a sphere)."""
+    half = 0.5 * float(getattr(other, "length", 0.0) or 0.0)
+    angle = float(getattr(other, "orientation", 0.0) or 0.0)
+    t = half * np.array([math.cos(angle), math.sin(angle)])
+    centre = np.array([other.x, other.y], float)
+    return centre - t, centre + t
+
+
+def _axis_distance(other, point) -> float:
+    """The distance from `point` to the other's axis."""
+    p0, p1 = _axis(other)
+    d = p1 - p0
+    span = float(d @ d)
+    s = 0.0 if span == 0 else min(max(float((point - p0) @ d) / span, 0.0), 1.0)
+    return float(np.hypot(*(p0 + s * d - point)))
+
+
+def _first_in_box(other, start, u, along_range, half_width) -> float | None:
+    """How far along `u` from `start` the other's axis (a point for a sphere) first enters the
+    open box along_range x (-half_width, half_width); None when it stays out (the segment
+    clipped to the box, Liang-Barsky)."""
+    ends = [p - start for p in _axis(other)]
+    (a0, c0), (a1, c1) = ((float(p @ u), float(p[0] * u[1] - p[1] * u[0])) for p in ends)
+    lo, hi = 0.0, 1.0
+    for p, q in (
+        (-(a1 - a0), a0 - along_range[0]),
+        (a1 - a0, along_range[1] - a0),
+        (-(c1 - c0), c0 + half_width),
+        (c1 - c0, half_width - c0),
+    ):
+        if p == 0.0:
+            if q <= 0.0:
+                return None
+        elif p < 0.0:
+            lo = max(lo, q / p)
+        else:
+            hi = min(hi, q / p)
+    if lo > hi or (lo == hi and a0 != a1):
+        return None
+    return min(a0 + lo * (a1 - a0), a0 + hi * (a1 - a0))

@@ -10,8 +10,9 @@ turning. The closed loop runs the rod hand in legs and looks between them, as th
    pushed along the axis too when that error is the largest: the observation after the leg
    corrects the turn such a push may cause), ended early by the force trace or the track's
    added uncertainty (`run_leg`); a way along the axis (beyond AXIAL_LIMIT, now or at the
-   goal's angle) is made across it instead: the rod turned across its way in place, pushed
-   across, then turned to the goal's angle at the goal (`leg_target`);
+   goal's angle) is made across it instead: the rod turned across its way in place (on the
+   way, when it is nearly across already), pushed across, then turned to the goal's angle at
+   the goal (`leg_target`);
 2. observe (`observe_rod`, the tube observation model): lines across a static anchor (as the
    sphere's loop), then two lines across the rod's predicted axis at +-CROSS_FRACTION of its
    half length and one along the axis they measured. A line across a tube meets it
@@ -33,7 +34,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from afm_core.imaging.landmarks import Landmark
+from afm_core.imaging.landmarks import Landmark, extract_landmarks
 from afm_core.localization.landmark_observation import MapLandmark, line_noise
 from afm_core.manipulation.closed_loop import (
     CONFIDENCE_SIGMAS,
@@ -73,6 +74,13 @@ RETRY_WIDENING = 3.0
 # model's error is what is left for the observation to judge
 PLAN_TOLERANCE_SHARE = 0.25
 
+
+# a rescan's blob whose second moments differ less than this (sqrt of their ratio) has no
+# axis to measure; above it the moments' axis of a tip-broadened short tube (50-160 nm,
+# elongation 2-4.5) was within 2 deg of the simulator's, frame rotation included
+AXIS_ELONGATION = 1.5
+# the verification's particle search's lowest height (verify.find_particles)
+VERIFY_MIN_HEIGHT = 10e-9
 
 # the strategies a tube or rod may be pushed with: the closed loop (the default) and the open-
 # loop rod hand
@@ -158,15 +166,23 @@ def rod_pose_verified(
     if not found or verification.particle is None:
         raise ValueError("rescan: the rod was not found in the before or the after image")
     first = min(found, key=lambda m: math.hypot(m.x - seen_before[0], m.y - seen_before[1]))
+    axes = (_axis_seen(before, first), _axis_seen(verification.after, verification.particle))
+    if None in axes:
+        # the map keeps its angle (a NaN there would refuse every later push of the rod)
+        text = (
+            f", axis not measured: the rescan shows the {particle.kind} nearly round "
+            f"(elongation below {AXIS_ELONGATION:g}), its angle cannot be told"
+        )
+        return PoseCheck(
+            rod.angle, float(particle.orientation), math.nan, rod.angle_tolerance, text
+        )
     matrix = np.asarray(scanner_matrix, float)
 
     def true_angle(angle: float) -> float:
         d = matrix @ np.array([math.cos(angle), math.sin(angle)])
         return math.atan2(d[1], d[0])
 
-    turn = wrap_angle(
-        true_angle(verification.particle.orientation) - true_angle(first.orientation)
-    )
+    turn = wrap_angle(true_angle(axes[1]) - true_angle(axes[0]))
     achieved = float(particle.orientation) + turn
     error = abs(wrap_angle(achieved - rod.angle))
     text = (
@@ -174,6 +190,29 @@ def rod_pose_verified(
         f"(tolerance {math.degrees(rod.angle_tolerance):.2f} deg)"
     )
     return PoseCheck(rod.angle, achieved, error, rod.angle_tolerance, text)
+
+
+def _axis_seen(scan, mark) -> float | None:
+    """The axis angle of a rescan's landmark `mark` (None: nearly round). A short rod is
+    imaged broadened by the tip and may fall below the maps' tube elongation and be found as
+    a sphere, whose orientation (0) is no axis; its axis is measured again at AXIS_ELONGATION."""
+    if mark.kind != "sphere":
+        return float(mark.orientation)
+    if scan is None:
+        return None
+    marks = extract_landmarks(
+        np.asarray(scan.height, float),
+        scan.pixel_size_x,
+        scan.pixel_size_y,
+        scan.origin_x,
+        scan.origin_y,
+        min_height=VERIFY_MIN_HEIGHT,
+        tube_elongation=AXIS_ELONGATION,
+    )
+    if not marks:
+        return None
+    near = min(marks, key=lambda m: math.hypot(m.x - mark.x, m.y - mark.y))
+    return None if near.kind == "sphere" else float(near.orientation)
 
 
 @dataclass
@@ -318,8 +357,9 @@ def map_angle_sigma(rod: Landmark) -> float:
 def leg_target(rod: Landmark, goal, goal_angle: float):
     """The pose the next leg aims at (module docstring, 1): the goal when the way left is
     across both the rod's axis now and the goal's (within AXIAL_LIMIT along either); else,
-    with the way along the axis now, the rod turned across it in place; else (across now, along
-    the goal's axis) the goal's position at the rod's angle now, the turn left for the end."""
+    with the way along the axis now, the rod turned across it, in place, or on the way to the
+    goal when that turn moves its ends at most AXIAL_LIMIT; else (across now, along the goal's
+    axis) the goal's position at the rod's angle now, the turn left for the end."""
     centre = np.array([rod.x, rod.y])
     way = np.asarray(goal, float) - centre
     now = np.array([math.cos(rod.orientation), math.sin(rod.orientation)])
@@ -329,7 +369,13 @@ def leg_target(rod: Landmark, goal, goal_angle: float):
         return np.asarray(goal, float), goal_angle
     if along_now > AXIAL_LIMIT:
         across = math.atan2(way[1], way[0]) + 0.5 * math.pi
-        return centre, rod.orientation + wrap_angle(across - rod.orientation)
+        turn = wrap_angle(across - rod.orientation)
+        if abs(turn) * 0.5 * rod.length <= AXIAL_LIMIT:
+            # a rod already nearly across (a push leg turns it a few deg) is turned back by
+            # the leg's first strokes on the way: a leg of its own for that would spend
+            # every other leg of a long way in place
+            return np.asarray(goal, float), rod.orientation + turn
+        return centre, rod.orientation + turn
     return np.asarray(goal, float), rod.orientation
 
 
