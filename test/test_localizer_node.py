@@ -296,3 +296,31 @@ def test_localize_goals_beyond_the_limit_are_rejected_and_the_rest_all_answer(
         assert all("at most three at once" in text for text in rejected), rejected
         results = [job.result(120) for job in jobs]
         assert all(r.success for r in results), [r.message for r in results]
+
+
+def test_a_cancelled_localize_ends_with_the_line_in_progress(tmp_path, nodes, ros_node):
+    """A Localize on a landmark that is not there misses, then searches with up to eight
+    lines. A cancel midway used to wait for every one of them (about 10 s at the simulator's
+    real time); now the goal ends with the line or move in progress, says it was cancelled,
+    and the next goal runs on an estimate that carries what the cancelled one moved."""
+    calibration = oracle_calibration(tmp_path / "calibration.yaml")
+    nodes("driver", seed=3, real_time_factor=1.0)
+    nodes("localizer", calibration_file=str(calibration))
+    ros_node.create_publisher(LandmarkArray, "/afm/landmarks", LATCHED).publish(
+        landmarks_to_msg(
+            [landmark(0, *SPHERE), landmark(7, 54.0e-6, 54.0e-6)], Header(frame_id=FRAME_TASK)
+        )
+    )
+    with AfmCommander(server_timeout=30) as afm:
+        move(afm, 54.1e-6, 54.1e-6)
+        job = afm.send("localize", Localize.Goal(landmark_id=7), wait=False)
+        wait_for(lambda: job.feedback is not None, 30, what="the lines under way")
+        time.sleep(2.0)
+        cancelled_at = time.monotonic()
+        assert job.cancel()
+        result = job.result(60)
+        assert time.monotonic() - cancelled_at < 4.0, result.message
+        assert not result.success and result.message.startswith("cancelled"), result.message
+        assert "cancelled" in result.message.removeprefix("cancelled"), result.message
+        after = afm.localize(landmark_id=0)
+        assert after.success, after.message

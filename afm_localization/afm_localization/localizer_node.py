@@ -364,7 +364,11 @@ class LocalizerNode(Node):
             )
             goal_handle.publish_feedback(feedback)
             try:
-                observation = self.localizer.observe_landmark(landmark, **for_lines)
+                # a cancel ends the observation where it is, not after a search of up to
+                # eight more lines
+                observation = self.localizer.observe_landmark(
+                    landmark, **for_lines, should_stop=lambda: goal_handle.is_cancel_requested
+                )
                 failure = observation.instrument_error
             except (ValueError, DriverUnavailable) as exc:
                 observation, failure = None, str(exc)
@@ -388,7 +392,7 @@ class LocalizerNode(Node):
         self.get_logger().info(f"localize on landmark {landmark.id}: {result.message}")
         if goal_handle.is_cancel_requested:
             goal_handle.canceled()
-            result.message = "cancelled after the lines in progress: " + result.message
+            result.message = "cancelled: " + result.message
         elif result.success:
             goal_handle.succeed()
         else:

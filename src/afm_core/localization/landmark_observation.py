@@ -23,7 +23,11 @@ Threshold (default 0.5 of the landmark's map height above the line's own substra
 - a sphere of radius r sitting on the substrate is r + sqrt(r^2 - delta^2) high at a lateral
   offset delta from its centre, i.e. above half height for every delta < r: a line anywhere
   across the particle still finds a pair, and a line that misses it by more finds none (lost)
-  instead of a biased centre.
+  instead of a biased centre;
+- a run that dips between two tops (MERGED_DIP_FRACTION) is two features merged above the
+  threshold, whose midpoint is neither's centre: not taken. The other single pairs on the line
+  are reported (`alternatives`) so that the localizer can tell whether the gate would take
+  one of them too.
 
 Observation noise (eq. 5.15, 7.1): v = v_map + v_region + v_deflection:
 - v_map: the landmark's own map covariance projected on u (u^T Sigma_m u);
@@ -46,6 +50,16 @@ DEFAULT_THRESHOLD_FRACTION = 0.5
 EDGE_FRACTION = 0.1  # of the samples at each end: the line's substrate level
 MIN_EDGE_SAMPLES = 3
 KINDS = ("sphere", "tube", "rod")
+# A run above the threshold that dips by more than this fraction of the landmark's height (and
+# MERGED_DIP_NOISE x the line's noise) between two higher parts holds two features: particles
+# closer than the tip can separate merge above half height, and the run's midpoint then lies
+# between them (two 100 nm spheres 50 nm apart: one 490 nm run, a dip of 86 nm, its midpoint
+# 125 nm off the landmark, accepted at 1.7 sigma of a 70 nm prior and the estimate left 130 nm
+# off at a 9 nm sigma). A single sphere, tube or rod is unimodal along a line (dips of a few
+# noise sigma); two touching equal spheres dip by about 0.2 of their height with a tip apex up
+# to half their radius.
+MERGED_DIP_FRACTION = 0.1
+MERGED_DIP_NOISE = 6.0
 
 
 def check_covariance(name: str, covariance) -> np.ndarray:
@@ -175,6 +189,10 @@ class LineObservation:
     variance: float = math.nan  # m^2, observation noise (eq. 5.15)
     line_variance: float = math.nan  # m^2, its part without the landmark's map error
     width: float = math.nan  # m, commanded distance between the crossings
+    # m, commanded (x, y) of the midpoints of the line's other crossing pairs that could be a
+    # landmark of this kind (single, not too wide): the localizer asks whether one of them
+    # would pass the gate too
+    alternatives: tuple = ()
 
     @property
     def ok(self) -> bool:
@@ -201,10 +219,18 @@ def line_noise(height) -> float:
 def line_threshold(height, apparent_height: float, fraction: float) -> tuple[float, float]:
     """(substrate, threshold) of a line across a landmark: the substrate is the median of the
     line's ends (EDGE_FRACTION of it at each end, at least MIN_EDGE_SAMPLES), the threshold that
-    plus `fraction` of the landmark's apparent height."""
+    plus `fraction` of the landmark's apparent height. Ends that disagree by more than half of
+    that fraction of the height (far beyond a line's tilt or z drift) mean that one of them
+    lies on another feature, a neighbour the line runs onto, and the lower one is the
+    substrate: the median of both put the threshold near the landmark's top and the line
+    'missed' a landmark it crossed."""
     h = np.asarray(height, dtype=float)
     edge = max(MIN_EDGE_SAMPLES, int(EDGE_FRACTION * h.size))
-    substrate = float(np.median(np.concatenate([h[:edge], h[-edge:]])))
+    first, last = float(np.median(h[:edge])), float(np.median(h[-edge:]))
+    if abs(first - last) > 0.5 * fraction * apparent_height:
+        substrate = min(first, last)
+    else:
+        substrate = float(np.median(np.concatenate([h[:edge], h[-edge:]])))
     return substrate, substrate + fraction * apparent_height
 
 
@@ -261,6 +287,19 @@ def find_crossings(
     return pairs, ""
 
 
+def deepest_dip(height, rising: float, falling: float) -> float:
+    """The deepest dip between the crossings `rising` and `falling` (fractional indices): how far
+    the profile falls below the lower of the highest samples on either side of it (0 for a
+    profile that rises to one top and falls)."""
+    h = np.asarray(height, dtype=float)
+    run = h[int(math.ceil(rising)) : int(math.floor(falling)) + 1]
+    if run.size < 3:
+        return 0.0
+    left = np.maximum.accumulate(run)
+    right = np.maximum.accumulate(run[::-1])[::-1]
+    return float((np.minimum(left, right) - run).max())
+
+
 def observe_line(
     line: ScanLineData,
     landmark,
@@ -308,7 +347,21 @@ def observe_line(
     samples = np.arange(n)
     if max_width is None:
         max_width = 4.0 * landmark.apparent_height + 200e-9
-    rising, falling = pairs[0]
+    merged_limit = max(
+        MERGED_DIP_FRACTION * landmark.apparent_height, MERGED_DIP_NOISE * line_noise(h)
+    )
+    single = [p for p in pairs if deepest_dip(h, *p) <= merged_limit]
+    if not single:
+        rising, falling = pairs[0]
+        return LineObservation(
+            "lost",
+            f"what the line crossed dips {deepest_dip(h, rising, falling):.3e} m between two "
+            f"tops (more than {merged_limit:.3e} m): two features merged above the threshold, "
+            "whose midpoint is not the landmark's centre",
+            crossings=(rising, falling),
+            **base,
+        )
+    rising, falling = single[0]
     width = float(
         np.hypot(
             np.interp(falling, samples, xs) - np.interp(rising, samples, xs),
@@ -323,6 +376,18 @@ def observe_line(
             width=width,
             **base,
         )
+    alternatives = tuple(
+        (
+            float(np.interp(0.5 * (a + b), samples, xs)),
+            float(np.interp(0.5 * (a + b), samples, ys)),
+        )
+        for a, b in single[1:]
+        if math.hypot(
+            np.interp(b, samples, xs) - np.interp(a, samples, xs),
+            np.interp(b, samples, ys) - np.interp(a, samples, ys),
+        )
+        <= max_width
+    )
     index = 0.5 * (rising + falling)
     time = float(line.start_time + np.interp(index, samples, np.asarray(line.times, dtype=float)))
     command = (float(np.interp(index, samples, xs)), float(np.interp(index, samples, ys)))
@@ -340,4 +405,5 @@ def observe_line(
         variance=observation_variance(landmark, u, calibration),
         line_variance=line_variance(landmark, calibration),
         width=width,
+        alternatives=alternatives,
     )

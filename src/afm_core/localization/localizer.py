@@ -11,15 +11,17 @@ instrument takes commanded scanner positions. The command for a task-frame targe
 motion model inverted about the current estimate (`MotionModel.command_for`).
 
 Errors: bad inputs (non-finite values, covariances that are not positive semi-definite,
-targets whose command falls outside the scanner range) raise ValueError naming the field and
-the limit, before anything moves. A lost landmark, a gated-out observation or an instrument
-error during a line is reported in the result; the estimate then still carries every motion
-that happened (the localizer re-reads the instrument's command and clock).
+targets whose command falls outside the scanner range, a line that would claim no noise) raise
+ValueError naming the field and the limit, before anything moves. A lost landmark, a gated-out
+or ambiguous observation, a cancel (`should_stop`) or an instrument error during a line is
+reported in the result; the estimate then still carries every motion that happened (the
+localizer re-reads the instrument's command and clock).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,6 +41,7 @@ from afm_core.localization.landmark_observation import (
     LineObservation,
     MapLandmark,
     as_map_landmark,
+    line_variance,
     observe_line,
 )
 from afm_core.localization.motion import MotionModel, MotionStep
@@ -110,6 +113,7 @@ DEFAULT_TIP_ALLOWANCE = (
 # passing beside the landmark with more than this probability and the vertical-first order
 # risks less (after a long move the tip's y is often the worse known: drift is larger in y).
 FIRST_LINE_RISK = 0.01
+StopCheck = Callable[[], bool]
 SEARCH_SIGMAS = 3.0
 SEARCH_LENGTH_FACTOR = 2.0
 MAX_SEARCH_LINES = 8
@@ -120,7 +124,9 @@ class LineResult:
     """One local scan line of a landmark observation."""
 
     axis: str  # "x" (horizontal line) or "y" (vertical line)
-    status: str  # "accepted" | "gated_out" | "lost" | "too_old" | "instrument_error" | "not_run"
+    # "accepted" | "gated_out" | "ambiguous" | "lost" | "too_old" | "instrument_error" |
+    # "not_run" | "cancelled"
+    status: str
     reason: str = ""
     request: LineRequest | None = None
     observation: LineObservation | None = None
@@ -176,6 +182,10 @@ class ObservationResult:
     @property
     def lost(self) -> bool:
         return any(line.lost for line in self.lines)
+
+    @property
+    def cancelled(self) -> bool:
+        return any(line.status == "cancelled" for line in self.lines)
 
     def summary(self) -> str:
         """One phrase per line: its axis, verdict, reason and any search."""
@@ -299,6 +309,8 @@ class Localizer:
                 f"start_time={start_time}, end_time={end_time}: need finite times, "
                 "end >= start (s)"
             )
+        if not (math.isfinite(extra_variance) and extra_variance >= 0):
+            raise ValueError(f"extra_variance={extra_variance}: must be finite and >= 0 (m^2)")
         if end_time <= self.model.time:
             return False
         if start_time > self.model.time:
@@ -306,8 +318,6 @@ class Localizer:
         if tuple(start) != tuple(self.model.command):
             self._apply(self.model.move(start[0], start[1], 0.0, "move"))
         self._apply(self.model.move(end[0], end[1], max(0.0, end_time - self.model.time), kind))
-        if not (math.isfinite(extra_variance) and extra_variance >= 0):
-            raise ValueError(f"extra_variance={extra_variance}: must be finite and >= 0 (m^2)")
         if extra_variance > 0:
             self.filter.predict(self.model.time, np.zeros(2), np.eye(2) * extra_variance)
         return True
@@ -329,14 +339,21 @@ class Localizer:
         check_in_range("target command", command[0], command[1], self.instrument.limits)
         return command
 
-    def move_command(self, x: float, y: float, speed: float | None = None) -> MoveOutcome:
-        """Command the scanner to (x, y) (scanner frame) and predict the move."""
+    def move_command(
+        self, x: float, y: float, speed: float | None = None, should_stop: StopCheck | None = None
+    ) -> MoveOutcome:
+        """Command the scanner to (x, y) (scanner frame) and predict the move (as far as it
+        went when should_stop ends it)."""
         speed = self._speed(speed)
         checks.point("command", (x, y))
         check_in_range("command", x, y, self.instrument.limits)
         self.sync()
         try:
-            result = self.instrument.move_tip(float(x), float(y), speed)
+            result = (
+                self.instrument.move_tip(float(x), float(y), speed)
+                if should_stop is None
+                else self.instrument.move_tip(float(x), float(y), speed, should_stop=should_stop)
+            )
             completed = result.completed
         finally:
             self.sync()
@@ -368,6 +385,20 @@ class Localizer:
         )
         return 3.0 * sigma + extent + self.margin
 
+    def _check_noise(self, landmark: MapLandmark) -> None:
+        """Refuse, before anything moves, a line whose observation would claim no noise at all:
+        the filter refuses it after the line has run (a zero variance), which left the line
+        reported as never run and the estimate mid-line."""
+        if line_variance(landmark, self.calibration) > 0:
+            return
+        if float(np.linalg.eigvalsh(landmark.covariance).min()) > 0:
+            return
+        raise ValueError(
+            f"landmark.covariance={landmark.covariance.tolist()} is singular and the "
+            "calibration's scan_region_sigma and line_deflection_sigma_deg are 0: a line "
+            "across it would be an observation without noise (m^2)"
+        )
+
     def plan_line(
         self,
         landmark,
@@ -386,6 +417,7 @@ class Localizer:
         landmark = as_map_landmark(landmark)
         if axis not in ("x", "y"):
             raise ValueError(f"axis={axis!r}: must be 'x' or 'y'")
+        self._check_noise(landmark)
         d = np.array([1.0, 0.0]) if axis == "x" else np.array([0.0, 1.0])
         d = d * (1.0 if sign >= 0 else -1.0)
         half = self._line_half_length(landmark, d)
@@ -429,18 +461,31 @@ class Localizer:
         before: float | None = None,
         after: float | None = None,
         across: float = 0.0,
+        should_stop: StopCheck | None = None,
     ) -> LineResult:
         """One local scan line across the landmark (see plan_line) and its update at the
-        crossing point, carried to the line's end (eq. 5.9-5.21)."""
+        crossing point, carried to the line's end (eq. 5.9-5.21). should_stop (polled by the
+        instrument) ends the approach or the line where it is: status "cancelled", no update,
+        the motion up to there predicted."""
         landmark = as_map_landmark(landmark)
         self.sync()
         request, direction, _ = self.plan_line(landmark, axis, sign, before, after, across)
+        stopped = should_stop if should_stop is not None else (lambda: False)
         try:
-            self.move_command(request.start_x, request.start_y, self.move_speed)
-            data = self.instrument.local_scan(request)
+            self.move_command(request.start_x, request.start_y, self.move_speed, should_stop)
+            if stopped():
+                return LineResult(axis, "cancelled", "cancelled before the line", request)
+            data = (
+                self.instrument.local_scan(request)
+                if should_stop is None
+                else self.instrument.local_scan(request, should_stop=should_stop)
+            )
         except ValueError as exc:
             self.sync()
             return LineResult(axis, "instrument_error", f"instrument: {exc}", request)
+        if stopped():  # a line cut short: its crossing, if any, is not where it was planned
+            self.sync()
+            return LineResult(axis, "cancelled", "cancelled during the line", request)
         # up to the first sample the command stayed at the line start (the scan's own approach is
         # a zero-length move now); do not sync(): the instrument is already at the line's end
         start_time = float(data.start_time)
@@ -462,7 +507,10 @@ class Localizer:
             self._apply(
                 self.model.move(obs.command[0], obs.command[1], kp_time - self.model.time, "line")
             )
-            key = landmark.id if landmark.id >= 0 else (landmark.x, landmark.y)
+            # the map position is part of the key: a landmark re-mapped or moved since (same
+            # id) has another map error, not the one the state may hold for it
+            key = (landmark.id, landmark.x, landmark.y)
+            saved = self.filter.snapshot()
             update = self.filter.update_axis(
                 kp_time,
                 obs.value,
@@ -482,11 +530,35 @@ class Localizer:
                 "accepted" if update.accepted else ("gated_out" if update.gated_out else "too_old")
             )
             result.reason = update.reason
+            ambiguity = self._ambiguity(obs, update) if update.accepted else ""
+            if ambiguity:
+                self.filter.restore(saved)
+                result.status, result.reason = "ambiguous", ambiguity
             result.mean_at_crossing, result.covariance_at_crossing = self.mean, self.covariance
         # carry the estimate to the line's end (eq. 5.20-5.21), then whatever time is left
         self._apply(self.model.move(end[0], end[1], max(0.0, end_time - self.model.time), "line"))
         self.sync()
         return result
+
+    def _ambiguity(self, obs: LineObservation, update: UpdateResult) -> str:
+        """Why the accepted crossing cannot be told from another on the same line ("" if it
+        can): another crossing pair the gate would also accept. Particles closer together than
+        the tip's uncertainty both pass the gate, and the one nearer the prediction is the
+        landmark only by luck: a neighbour 300 nm away, the tip 160 nm off at a 100 nm sigma,
+        was taken and left the estimate 300 nm off at a 9 nm sigma."""
+        d2 = update.mahalanobis**2
+        for alternative in obs.alternatives:
+            step = self.model.matrix @ np.subtract(alternative, obs.command)
+            along = float(obs.direction @ step)  # the tip is that much further at it
+            d2_other = (update.innovation - along) ** 2 / update.innovation_variance
+            if d2_other <= self.filter.gate:
+                return (
+                    f"ambiguous: another crossing {abs(along) * 1e9:.0f} nm along the line is "
+                    f"within the gate too (squared Mahalanobis distances {d2:.3g} and "
+                    f"{d2_other:.3g}, gate {self.filter.gate:.3g}): particles closer together "
+                    "than the tip's uncertainty"
+                )
+        return ""
 
     def _expected_index(
         self, landmark: MapLandmark, request: LineRequest, direction: np.ndarray
@@ -538,7 +610,14 @@ class Localizer:
             k += 1
         return offsets[:MAX_SEARCH_LINES]
 
-    def _search(self, landmark: MapLandmark, missed: LineResult, sign: float, after) -> LineResult:
+    def _search(
+        self,
+        landmark: MapLandmark,
+        missed: LineResult,
+        sign: float,
+        after,
+        should_stop: StopCheck | None = None,
+    ) -> LineResult:
         """A missed line's bounded search (SEARCH_SIGMAS): longer parallel lines beside its
         track until one finds the landmark and the gate accepts it; that line (or the last
         failure) is the result, its `search` field says what was run. A crossing the gate
@@ -561,9 +640,13 @@ class Localizer:
                     before=half,
                     after=max(half, after or 0.0),
                     across=offset,
+                    should_stop=should_stop,
                 )
             except ValueError as exc:  # the search left the scanner range: stop there
                 line.search = f"search stopped after {run} line(s): {exc}"
+                return line
+            if line.status == "cancelled":
+                line.search = f"first try missed ({missed.reason}); cancelled after {run} line(s)"
                 return line
             run += 1
             if not (line.lost or line.gated_out):
@@ -634,16 +717,31 @@ class Localizer:
             self.plan_line(landmark, axis, sign, after=after)
         return lines
 
-    def observe_landmark(self, landmark, both_axes: bool = True, toward=None) -> ObservationResult:
+    def observe_landmark(
+        self,
+        landmark,
+        both_axes: bool = True,
+        toward=None,
+        should_stop: StopCheck | None = None,
+    ) -> ObservationResult:
         """Run the lines of plan_observation (every one checked before anything moves; each
-        re-planned from the estimate of its moment) and update on each."""
+        re-planned from the estimate of its moment) and update on each. should_stop (a
+        cancelled Localize goal) is polled between lines and by the instrument within them: the
+        observation ends where it is, with a "cancelled" line, no update from a cut line and
+        the motion so far predicted (a search of up to MAX_SEARCH_LINES lines would otherwise
+        run to its end)."""
         landmark = as_map_landmark(landmark)
         self.sync()
         lines = self.plan_observation(landmark, both_axes, toward)
         result = ObservationResult(landmark.id)
         for axis, sign, after in lines:
+            if should_stop is not None and should_stop():
+                result.lines.append(LineResult(axis, "cancelled", "cancelled before the line"))
+                break
             try:
-                line = self.observe_line(landmark, axis, sign, after=after)
+                line = self.observe_line(
+                    landmark, axis, sign, after=after, should_stop=should_stop
+                )
             except ValueError as exc:  # the re-planned line left the scanner range
                 line = LineResult(axis, "not_run", f"line not run: {exc}")
             # a search only looks for a landmark where the model says it may be: once a line
@@ -652,11 +750,11 @@ class Localizer:
             # gate rejects: _search)
             searchable = line.observation is not None and line.request is not None
             if line.lost and searchable and not result.gated_out:
-                line = self._search(landmark, line, sign, after)
+                line = self._search(landmark, line, sign, after, should_stop)
             result.lines.append(line)
             if line.status == "instrument_error":
                 result.instrument_error = line.reason
-            if line.status in ("instrument_error", "not_run"):
+            if line.status in ("instrument_error", "not_run", "cancelled"):
                 break
         result.mean, result.covariance, result.time = self.mean, self.covariance, self.time
         return result
