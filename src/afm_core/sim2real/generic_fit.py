@@ -201,6 +201,19 @@ def _change(sess, terms: list[GenericTerm]) -> np.ndarray:
     return change
 
 
+def _no_form_reason(sig: Signature) -> str:
+    """Why a signature gets no generic term: its signal has none, or (a z or torsion signal,
+    which has) it lives in too few features to show the form in time and across the sample the
+    term is built from (a curvature along x alone lives in the two bow images' raster.bow_xx)."""
+    if sig.kind not in SIGNALS:
+        return f"no generic term acts on a {sig.kind or 'no'} signal"
+    where = ", ".join(sig.groups) or "no group"
+    return (
+        f"a generic term on the {SIGNALS[sig.kind]} signal needs the residual's form in time and "
+        f"across the sample, and its features ({where}) are too few to show one"
+    )
+
+
 def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: None) -> dict:
     """The generic term of the signature's form fitted to the residual r0 (after the named
     terms, if any): columns, fit on all features (amplitudes, sigmas, chi^2 gain), the held-out
@@ -210,7 +223,7 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
     if not displaced and (
         sig.kind not in SIGNALS or not sig.space or not (sig.time or per_object)
     ):
-        return {"fitted": False, "reason": f"no generic term acts on a {sig.kind or 'no'} signal"}
+        return {"fitted": False, "reason": _no_form_reason(sig)}
     signal = f"{displaced}_position" if displaced else SIGNALS[sig.kind]
     centre = tuple(float(v) for v in np.mean(sess.table.xy, axis=0))
     searched = {}

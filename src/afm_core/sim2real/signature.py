@@ -43,6 +43,12 @@ SINE_PERIODS = 24  # log-spaced periods tried between 3 spacings and the span
 # BIC parameters of a sinusoid of searched period: offset, two amplitudes, the period, and
 # about two more for choosing among SINE_PERIODS (2 ln 24 ~ ln n of a few hundred features)
 SINE_PENALTY = 6
+# a form is tried only where it leaves SPARE degrees of freedom, as the smooth change's degree
+# is: with fewer it goes through the points whatever they are (a sinusoid's four parameters --
+# offset, two amplitudes, period -- read four images' line shifts "periodic in y"), and what it
+# takes out is then missing from the conditions tested on the rest
+SPARE = 2
+SINE_PARAMETERS = 4
 SMOOTH_DEGREE = 3  # the highest Legendre degree of a "smooth" change in time
 # groups measuring the same additive offset, described together
 SAME_OFFSET = {"line.level": "level", "raster.level": "level"}
@@ -132,7 +138,7 @@ def _sine_fit(coord, y, s, periods):
 
 def _periods(coord) -> np.ndarray:
     c = np.sort(np.unique(coord))
-    if c.size < MIN_FEATURES:
+    if c.size < max(MIN_FEATURES, SINE_PARAMETERS + SPARE):
         return np.array([])
     span = float(c[-1] - c[0])
     spacing = float(np.median(np.diff(c)))
@@ -154,7 +160,7 @@ def time_form(t, y, s) -> dict:
     fit, c = _wls(y, s, np.stack([one, t - t[0]], 1))
     out["linear trend"] = (_neg2loglik(y, s, fit) + 2 * ln, {"slope": float(c[1])}, fit)
     steps = []
-    for k in range(2, n - 1):
+    for k in range(2, n - 1) if n >= 3 + SPARE else ():  # offset, size, time
         X = np.stack([one, (np.arange(n) >= k).astype(float)], 1)
         fit, c = _wls(y, s, X)
         steps.append((_neg2loglik(y, s, fit), 0.5 * (t[k - 1] + t[k]), float(c[1]), k))
@@ -241,6 +247,8 @@ def space_form(xy, y, s) -> dict:
         ("linear in y", [yy]),
         ("linear in x and y", [x, yy]),
     ):
+        if n < 1 + len(cols) + SPARE:
+            continue
         fit, c = _wls(y, s, np.stack([one, *cols], 1))
         gradient = {"gradient": c[1:].tolist()}
         out[name] = (_neg2loglik(y, s, fit) + (1 + len(cols)) * ln, gradient, fit)
@@ -499,12 +507,19 @@ def describe(table, r, sigma, recorded=None, factors=None, objects=None) -> Sign
     sel = np.isin(table.groups, sig.groups) & np.isfinite(r) & (sigma > 0)
     t, y, s, xy = table.time[sel], r[sel], sigma[sel], table.xy[sel]
     rest = y
-    if sel.sum() >= MIN_FEATURES:
+    if sel.sum() >= MIN_FEATURES and sig.kind == "noise":
+        # a noise statistic sums up a whole image (or a block of its lines): its place is the
+        # image's centre, not where on the sample something happens, and a form across the four
+        # images' centres took up their raster-angle split before the conditions saw it
+        sig.time = dict(time_form(t, y, s), primary=True)
+        rest = y - sig.time["deterministic_fit"]
+    elif sel.sum() >= MIN_FEATURES:
         sig.time, sig.space = _forms(t, xy, y, s)
         primary = sig.time if sig.primary == "time" else sig.space
         rest = y - primary["deterministic_fit"]
         # a region that departs from what the form says, not the form's own peaks
         sig.space["localized"] = _localized(xy, rest, s)
+    if sel.sum() >= MIN_FEATURES:
         sig.conditions = _conditions(table, sel, rest, s)
         sig.along_scan = _along_scan(table, sel, rest, s)
         sig.relations = _relations(table, sel, rest, s, recorded)
