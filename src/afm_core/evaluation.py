@@ -300,7 +300,7 @@ def images_frame_matrix(config, scan, at, step: float = 530e-9) -> np.ndarray:
     (m) and `step` away along -x and along -y, each imaged on a fresh simulator. The images'
     own gain: `image_frame_matrix` is a creep-free short move, and the images' gain with creep
     differs from it (on the default simulator, maps 2.4 um at 4 Hz: 2 % in x, 0.7 % in y)."""
-    from afm_core.imaging.landmarks import extract_landmarks
+    from afm_core.imaging.landmarks import scan_landmarks
     from afm_core.sim.config import merge
     from afm_core.sim.instrument import SimulatedAfm
 
@@ -309,9 +309,7 @@ def images_frame_matrix(config, scan, at, step: float = 530e-9) -> np.ndarray:
     def centre(x: float, y: float) -> np.ndarray:
         sample = {"spheres": [{"x": x, "y": y, "radius": 100e-9}], "rods": [], "electrodes": []}
         image = SimulatedAfm(merge(quiet, {"sample": sample})).raster_scan(scan)
-        found = extract_landmarks(
-            image.height, image.pixel_size_x, image.pixel_size_y, image.origin_x, image.origin_y
-        )
+        found = scan_landmarks(image)
         if len(found) != 1:
             raise ValueError(f"at={tuple(at)}: the scan shows {len(found)} spheres, not 1")
         return np.array([found[0].x, found[0].y])

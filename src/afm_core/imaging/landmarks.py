@@ -150,6 +150,20 @@ def extract_landmarks(
     return landmarks
 
 
+def scan_landmarks(scan, **options) -> list[Landmark]:
+    """extract_landmarks of a scan-like record (height, pixel_size_x/_y, origin_x/_y: a
+    RasterScanData or HeightMap), its pixel grid and position taken from it; `options` are
+    extract_landmarks' keywords (min_height, tube_elongation, ...)."""
+    return extract_landmarks(
+        np.asarray(scan.height, float),
+        scan.pixel_size_x,
+        scan.pixel_size_y,
+        scan.origin_x,
+        scan.origin_y,
+        **options,
+    )
+
+
 def substrate_plane(h: np.ndarray, min_height: float, iterations: int = 20) -> np.ndarray:
     """The substrate as a plane a + b col + c row fitted to the non-feature pixels.
 

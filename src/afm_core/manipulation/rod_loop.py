@@ -34,7 +34,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from afm_core.imaging.landmarks import Landmark, extract_landmarks
+from afm_core.imaging.landmarks import Landmark, scan_landmarks
 from afm_core.localization.landmark_observation import MapLandmark, line_noise
 from afm_core.manipulation.closed_loop import (
     CONFIDENCE_SIGMAS,
@@ -200,15 +200,7 @@ def _axis_seen(scan, mark) -> float | None:
         return float(mark.orientation)
     if scan is None:
         return None
-    marks = extract_landmarks(
-        np.asarray(scan.height, float),
-        scan.pixel_size_x,
-        scan.pixel_size_y,
-        scan.origin_x,
-        scan.origin_y,
-        min_height=VERIFY_MIN_HEIGHT,
-        tube_elongation=AXIS_ELONGATION,
-    )
+    marks = scan_landmarks(scan, min_height=VERIFY_MIN_HEIGHT, tube_elongation=AXIS_ELONGATION)
     if not marks:
         return None
     near = min(marks, key=lambda m: math.hypot(m.x - mark.x, m.y - mark.y))

@@ -283,7 +283,7 @@ def _scan(instrument, tracker: Tracker, particle: int, axis: int, requests) -> i
 
 def _locate(instrument, tracker: Tracker, particle: int) -> bool:
     """A small raster around the particle's predicted place; the tracker learns where it is."""
-    from afm_core.imaging.landmarks import extract_landmarks
+    from afm_core.imaging.landmarks import scan_landmarks
 
     cx, cy = tracker.predict(particle, instrument.time)
     half = 0.5 * LOCATE_SIZE
@@ -301,14 +301,7 @@ def _locate(instrument, tracker: Tracker, particle: int) -> bool:
     if data is None or not np.isfinite(np.asarray(data.height, float)).all():
         return False
     try:
-        marks = extract_landmarks(
-            np.asarray(data.height, float),
-            data.pixel_size_x,
-            data.pixel_size_y,
-            data.origin_x,
-            data.origin_y,
-            min_height=20e-9,
-        )
+        marks = scan_landmarks(data, min_height=20e-9)
     except ValueError:
         return False
     if not marks:

@@ -114,15 +114,9 @@ def _scan_pair(recording, spheres):
 
 
 def _map(scan) -> dict:
-    from afm_core.imaging.landmarks import extract_landmarks
+    from afm_core.imaging.landmarks import scan_landmarks
 
-    marks = extract_landmarks(
-        np.asarray(scan.height, float),
-        scan.pixel_size_x,
-        scan.pixel_size_y,
-        scan.origin_x,
-        scan.origin_y,
-    )
+    marks = scan_landmarks(scan)
     return {m.id: m for m in marks}
 
 

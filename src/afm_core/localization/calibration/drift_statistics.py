@@ -10,7 +10,7 @@ from scipy import stats
 
 from afm_core import checks
 from afm_core.imaging.frame_up_down import up_down_observations, up_down_velocity
-from afm_core.imaging.landmarks import extract_landmarks
+from afm_core.imaging.landmarks import scan_landmarks
 from afm_core.instrument import ScanRequest
 from afm_core.localization.calibration.experiment import (
     MAX_LINE_RATE,
@@ -278,14 +278,7 @@ def _find_particle_cluster(instrument, centre, search: float, frame) -> np.ndarr
                 line_rate=rate,
             )
         )
-        marks = extract_landmarks(
-            np.asarray(scan.height, float),
-            scan.pixel_size_x,
-            scan.pixel_size_y,
-            scan.origin_x,
-            scan.origin_y,
-            min_height=30e-9,
-        )
+        marks = scan_landmarks(scan, min_height=30e-9)
         if marks:
             break
     if not marks:

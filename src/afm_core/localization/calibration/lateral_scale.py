@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from afm_core import checks
-from afm_core.imaging.landmarks import extract_landmarks
+from afm_core.imaging.landmarks import scan_landmarks
 from afm_core.imaging.raster_approach import RASTER_APPROACH_OVERSHOOT, approach_point
 from afm_core.instrument import ScanRequest
 from afm_core.localization.calibration.experiment import range_centre, wait
@@ -229,13 +229,6 @@ def measure_lateral_scale(
         instrument.move_tip(*request.first_point(), speed)
         wait(instrument, settle)
         scan = instrument.raster_scan(request)
-        marks = extract_landmarks(
-            scan.height,
-            scan.pixel_size_x,
-            scan.pixel_size_y,
-            scan.origin_x,
-            scan.origin_y,
-            min_height=min_height,
-        )
+        marks = scan_landmarks(scan, min_height=min_height)
         fits.append(fit_lattice([(m.x, m.y) for m in marks if m.kind == "sphere"], pitch))
     return lateral_scale_from_fits(fits, pitch)
