@@ -22,14 +22,13 @@ from functools import partial
 import numpy as np
 import pytest
 from sim_calibration import oracle_calibration
+from sim_push import sim_procedure
 
 from afm_core.evaluation import affine_fit
 from afm_core.imaging.landmarks import extract_landmarks
 from afm_core.imaging.raster_approach import approach_point
 from afm_core.instrument import ScanRequest
-from afm_core.localization import Localizer
 from afm_core.localization.calibration.model import load_calibration
-from afm_core.manipulation import PushProcedure, localize_with
 from afm_core.manipulation.verdict import OUTSIDE, WITHIN, map_stretch, push_verdict
 from afm_core.manipulation.verify import ControlPoint, VerificationResult, scan_time
 from afm_core.sim.config import load_config, merge
@@ -119,15 +118,10 @@ def drift_push(calibration, seed: int, layout, move, *, map_timing: bool = False
     mark = sorted(marks, key=lambda m: m.x + m.y)[1]
     start = np.array([mark.x, mark.y])
     goal = start + np.asarray(move, float)
-    localizer = Localizer(
-        sim, calibration, np.array(sim.commanded_position()), np.diag([(50 * NM) ** 2] * 2)
-    )
-    procedure = PushProcedure(
+    procedure = sim_procedure(
         sim,
-        localize_with(localizer),
-        lambda: landmarks,
-        calibration=calibration,
-        on_moved=lambda m: landmarks.__setitem__(m.id, m),
+        calibration,
+        landmarks,
         map_time=lambda: partial(scan_time, scan) if map_timing else None,
     )
     before = np.array([[o.x, o.y] for o in sim.truth()["objects"] if o.kind == "sphere"])

@@ -15,6 +15,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from sim_calibration import oracle_calibration
+from sim_push import sim_procedure
 
 from afm_core.imaging.landmarks import extract_landmarks
 from afm_core.instrument import ScanRequest
@@ -23,7 +24,6 @@ from afm_core.localization.calibration.model import load_calibration
 from afm_core.manipulation import (
     DEFAULT_STRATEGY,
     PushFailed,
-    PushProcedure,
     PushRefused,
     ZigzagOverrides,
     localize_with,
@@ -88,19 +88,9 @@ class Session:
         assert len(marks) == 3
         self.map = {mark.id: mark for mark in marks}
         self.row = sorted(marks, key=lambda m: m.x)  # left, middle, right
-        localizer = Localizer(
-            self.sim,
-            calibration,
-            np.array(self.sim.commanded_position()),
-            np.diag([(50 * NM) ** 2] * 2),
-        )
         self.reports = []
-        self.procedure = PushProcedure(
-            LateClock(self.sim, behind) if behind else self.sim,
-            localize_with(localizer),
-            lambda: self.map,
-            calibration=calibration,
-            on_moved=lambda mark: self.map.__setitem__(mark.id, mark),
+        self.procedure = sim_procedure(
+            self.sim, calibration, self.map, LateClock(self.sim, behind) if behind else None
         )
 
     def true_sphere(self, near) -> np.ndarray:
@@ -396,7 +386,8 @@ def shifted_session(calibration, shift) -> Session:
     """A session whose task frame (the map and the localizer alike) is `shift` off the
     scanner's: an assembly's drift since the map."""
     s = Session(calibration)
-    s.map = {i: replace(m, x=m.x + shift[0], y=m.y + shift[1]) for i, m in s.map.items()}
+    # in place: the procedure holds this dict
+    s.map.update({i: replace(m, x=m.x + shift[0], y=m.y + shift[1]) for i, m in s.map.items()})
     localizer = Localizer(
         s.sim,
         calibration,

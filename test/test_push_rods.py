@@ -18,6 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from sim_calibration import oracle_calibration
+from sim_push import sim_procedure
 from test_closed_loop_frame import (
     SIM_CALIBRATION,
     assert_contact_in_maps_frame,
@@ -27,9 +28,8 @@ from test_closed_loop_frame import (
 from afm_core.evaluation import image_frame_matrix
 from afm_core.imaging.landmarks import extract_landmarks
 from afm_core.instrument import ScanRequest
-from afm_core.localization import Localizer
 from afm_core.localization.calibration.model import load_calibration
-from afm_core.manipulation import PushProcedure, PushRefused, ZigzagOverrides, localize_with
+from afm_core.manipulation import PushRefused, ZigzagOverrides
 from afm_core.manipulation.execute import OBSERVED
 from afm_core.manipulation.rod_loop import wrap_angle
 from afm_core.sim.config import load_config, merge
@@ -76,19 +76,7 @@ class RodSession:
         assert len(tubes) == 1 and len(marks) == 3
         self.tube = tubes[0]
         self.sphere = next(m for m in marks if m.kind == "sphere")
-        localizer = Localizer(
-            self.sim,
-            calibration,
-            np.array(self.sim.commanded_position()),
-            np.diag([(50 * NM) ** 2] * 2),
-        )
-        self.procedure = PushProcedure(
-            self.sim,
-            localize_with(localizer),
-            lambda: self.map,
-            calibration=calibration,
-            on_moved=lambda mark: self.map.__setitem__(mark.id, mark),
-        )
+        self.procedure = sim_procedure(self.sim, calibration, self.map)
 
     def true_tube(self) -> SimpleNamespace:
         """The simulator's tube in the maps' frame (module docstring)."""

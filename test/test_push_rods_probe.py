@@ -13,14 +13,14 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from sim_push import sim_procedure
 from test_closed_loop_frame import SIM_CALIBRATION
 
 from afm_core.evaluation import maps_frame_matrix, rod_pose_against_truth
 from afm_core.imaging.landmarks import extract_landmarks
 from afm_core.instrument import ScanRequest
-from afm_core.localization import Localizer
 from afm_core.localization.calibration.model import load_calibration
-from afm_core.manipulation import PushProcedure, PushRefused, localize_with
+from afm_core.manipulation import PushRefused
 from afm_core.manipulation.plans import path_blocker
 from afm_core.manipulation.rod_loop import _axis_seen, wrap_angle
 from afm_core.sim.config import load_config, merge
@@ -59,19 +59,7 @@ class Session:
         )
         self.map = {mark.id: mark for mark in marks}
         calibration = load_calibration(SIM_CALIBRATION)
-        localizer = Localizer(
-            self.sim,
-            calibration,
-            np.array(self.sim.commanded_position()),
-            np.diag([(50 * NM) ** 2] * 2),
-        )
-        self.procedure = PushProcedure(
-            self.sim,
-            localize_with(localizer),
-            lambda: self.map,
-            calibration=calibration,
-            on_moved=lambda mark: self.map.__setitem__(mark.id, mark),
-        )
+        self.procedure = sim_procedure(self.sim, calibration, self.map)
 
     def nearest(self, kind, x, y):
         marks = [m for m in self.map.values() if m.kind == kind]
