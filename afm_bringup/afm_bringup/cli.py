@@ -14,6 +14,7 @@ from pathlib import Path
 from afm_bringup.cli_batch import _add_batch
 from afm_bringup.cli_calibrate import _add_calibrate
 from afm_bringup.cli_errors import INPUT_STATUS, one_line, refuse
+from afm_bringup.cli_map import _add_map
 from afm_bringup.cli_scan import _add_scan
 from afm_bringup.launcher import (
     GRAPH,
@@ -24,7 +25,14 @@ from afm_bringup.launcher import (
     sim_calibration_file,
     with_sim_calibration,
 )
-from afm_bringup.units import QuantityArgumentParser, angle_type, length_type, nm, positive_type
+from afm_bringup.units import (
+    QuantityArgumentParser,
+    angle_type,
+    count_type,
+    length_type,
+    nm,
+    positive_type,
+)
 from afm_core.recording.errors import recover_command
 
 
@@ -49,14 +57,21 @@ def cmd_launch(args):
     nodes = args.nodes.split(",") if args.nodes else GRAPH
     unknown = [n for n in nodes if n not in NODES]
     if unknown:
-        sys.exit(f"afm launch: --nodes {unknown}: expected names from {sorted(NODES)}")
-    graph = Graph(args.log_dir, dict(os.environ))  # main() set the DDS environment
+        expected = f"expected names from {sorted(NODES)}"
+        return refuse("launch", ValueError(f"--nodes {unknown}: {expected}"))
     overrides: dict[str, dict[str, str]] = {}
     for key, value in args.param or []:
         node, _, name = key.partition(".")
         if node not in nodes or not name:
-            sys.exit(f"afm launch: -p {key}: expected NODE.PARAMETER with NODE in {nodes}")
+            return refuse(
+                "launch", ValueError(f"-p {key}: expected NODE.PARAMETER with NODE in {nodes}")
+            )
         overrides.setdefault(node, {})[name] = value
+    try:  # the folder before any node starts, which would log into it
+        graph = Graph(args.log_dir, dict(os.environ))  # main() set the DDS environment
+    except OSError as exc:
+        reason = exc.strerror or exc
+        return refuse("launch", ValueError(f"--log-dir {args.log_dir}: cannot use it: {reason}"))
     given = with_sim_calibration(nodes, overrides, sim_calibration_file())
     if given:
         print(
@@ -457,7 +472,10 @@ def _add_push(sub) -> None:
     )
     target = p.add_mutually_exclusive_group(required=True)
     target.add_argument(
-        "--particle", type=int, default=-1, help="landmark id of the particle (see /afm/landmarks)"
+        "--particle",
+        type=count_type("particle", 0, 2**31 - 1),  # -1, the default, stands for --at
+        default=-1,
+        help="landmark id of the particle (see /afm/landmarks)",
     )
     target.add_argument(
         "--at",
@@ -571,96 +589,6 @@ def _add_sim2real(sub) -> None:
         "bar shows the step now running; in a log every step gets a line anyway)",
     )
     p.set_defaults(func=cmd_sim2real)
-
-
-def cmd_map_publish(args):
-    from afm_bringup.commander import AfmCommander, AfmError
-    from afm_core.imaging.cli import raster_scan_of
-    from afm_core.imaging.files import load_height_map, mask_note
-    from afm_core.imaging.levelling import level
-
-    channel = int(args.channel) if str(args.channel).isdigit() else args.channel
-    try:
-        if not args.line_rate > 0:
-            raise ValueError(f"--line-rate={args.line_rate}: must be > 0 Hz")
-        hmap = load_height_map(args.file, channel, args.pixel_size, args.frame, args.height_unit)
-        if args.level != "none":
-            hmap.height, _ = level(hmap.height, args.level, "auto")
-    except (ValueError, ImportError) as exc:  # the input's fault: the status afm image gives
-        print(f"afm map publish: {exc}", file=sys.stderr)
-        return INPUT_STATUS
-    note = mask_note(hmap, str(args.file))
-    if note:
-        print(f"afm map publish: warning: {note}", file=sys.stderr)
-    scan = raster_scan_of(hmap, line_rate=args.line_rate, mode=args.mode)
-    with AfmCommander("afm_map_publisher") as afm:
-        try:
-            _, marks = afm.publish_scan(scan, scan_id=args.scan_id, timeout=args.timeout)
-        except AfmError as exc:
-            sys.exit(f"afm map publish: {exc}")
-    print(
-        f"published {args.file} ({hmap.title or 'channel ' + str(channel)}, "
-        f"{hmap.height.shape[1]} x {hmap.height.shape[0]} px, {nm(hmap.size_x)} x "
-        f"{nm(hmap.size_y)} from ({nm(hmap.origin_x)}, {nm(hmap.origin_y)})) as the map: "
-        f"{len(marks.landmarks)} landmarks"
-    )
-    for mark in marks.landmarks:
-        print(
-            f"  {mark.id:3d} at ({nm(mark.position.x)}, {nm(mark.position.y)}), "
-            f"height {nm(mark.height)}"
-        )
-    return 0
-
-
-def _add_map(sub) -> None:
-    from afm_core.imaging.cli import HEIGHT_UNIT_HELP, height_unit, level_method
-
-    p = sub.add_parser(
-        "map",
-        help="bring a lab's scan file into the running graph as its map",
-        description="Maps from files for the running graph (`afm launch`).",
-    )
-    maps = p.add_subparsers(dest="map_command", required=True, metavar="STEP")
-    p = maps.add_parser(
-        "publish",
-        help="publish a scan file as the map (the imaging node finds its landmarks)",
-        description=(
-            "Publish a scan file (.npz, .gwy, .npy, .ibw, .jpk, .spm, .sxm, .stp, .top, .asd; "
-            "--frame for a movie) on the driver's scan topic, as a 0 deg scan in scanner "
-            "coordinates: the imaging node "
-            "publishes it as /afm/map with its landmarks, which the localizer, planner and "
-            "nano-hand use. Waits until the imaging node has done so."
-        ),
-    )
-    p.add_argument("file")
-    p.add_argument("--channel", default="0", help="channel index or title (default 0)")
-    p.add_argument(
-        "--frame", type=int, default=0, help="frame of a high-speed .asd movie (default 0)"
-    )
-    p.add_argument(
-        "--pixel-size",
-        type=length_type("pixel-size"),
-        help="for .npy files: pixel size (m, or with a unit: 2nm)",
-    )
-    p.add_argument("--height-unit", type=height_unit, help=HEIGHT_UNIT_HELP)
-    p.add_argument(
-        "--level",
-        type=level_method,
-        default="plane",
-        help="level the scan first, features masked: plane (default), median, poly2, a chain "
-        "such as median+plane+median, or none (as stored)",
-    )
-    p.add_argument(
-        "--line-rate", type=float, default=1.0, help="lines per second of the scan (Hz, default 1)"
-    )
-    p.add_argument(
-        "--mode", choices=("tapping", "contact"), default="tapping", help="(default tapping)"
-    )
-    p.add_argument("--scan-id", type=int, default=0, help="scan_id of the message (default 0)")
-    p.add_argument(
-        "--timeout", type=float, default=30.0, help="s to wait for the imaging node (default 30)"
-    )
-    p.set_defaults(func=cmd_map_publish)
 
 
 def _add_demo(sub) -> None:

@@ -5,7 +5,9 @@ seeds, at once on Dask, an embedded cluster by default or a lab's scheduler with
 
 from __future__ import annotations
 
+import shutil
 import sys
+from pathlib import Path
 
 from afm_bringup.cli_errors import refuse
 from afm_bringup.units import length_type
@@ -32,7 +34,10 @@ def cmd_batch(args):
                 + ("give --seeds (e.g. 0-99), no PATH" if seeds else "give PATHs, no --seeds")
             ),
         )
+    output = Path(args.output)
+    existed = output.exists()
     try:
+        check_arguments(args)
         result = run_batch(
             args.kind,
             args.seeds if seeds else args.paths,
@@ -46,7 +51,9 @@ def cmd_batch(args):
             **_settings(args),
         )
     except (ValueError, OSError) as exc:  # an input that names nothing, a bad model or effect
-        return refuse("batch", exc)
+        if not existed:
+            _remove_if_empty(output)
+        return refuse("batch", _named(exc, args))
     except KeyboardInterrupt:
         # the rows written so far are in the table (each flushed as it came); the cluster was
         # closed by the context managers on the way out
@@ -62,6 +69,80 @@ def cmd_batch(args):
         f"{result.table}, {result.summary}"
     )
     return 1 if result.failed else 0
+
+
+# the options that belong to some kinds only, and those kinds; given to another kind they were
+# dropped without a word (`batch montecarlo --strategy centre` ran the default plan)
+KIND_OPTIONS = {
+    "tolerance": ("evaluate", "push", "montecarlo"),
+    "strategy": ("push",),
+    "estimate_sigma": ("push", "montecarlo"),
+    "plan": ("montecarlo",),
+    "samples": ("montecarlo",),
+    "goal_distance": ("push",),
+    "mode": ("localize",),
+    "calibration": ("localize",),
+    "model": ("sim2real",),
+    "effects": ("sim2real",),
+}
+
+
+def check_arguments(args) -> None:
+    """ValueError naming the option: one the kind does not use, a scheduler that is no
+    address, or a file every item reads (read once here, not failed once per item)."""
+    for dest, kinds in KIND_OPTIONS.items():
+        if args.kind not in kinds and getattr(args, dest, None) not in (None, ""):
+            option = "--" + dest.replace("_", "-")
+            raise ValueError(f"{option}: {args.kind} does not use it (only {', '.join(kinds)})")
+    output = Path(args.output)
+    if output.exists() and not output.is_dir():
+        raise ValueError(f"--output {output}: a file; name a folder (made if missing)")
+    if args.scheduler:
+        _check_scheduler(args.scheduler)
+    if args.kind == "localize" and args.calibration:
+        from afm_core.localization.calibration.model import load_calibration
+
+        load_calibration(args.calibration)
+    if args.kind == "sim2real" and args.model:
+        from afm_core.sim.config import load_config
+
+        load_config(args.model)
+
+
+def _check_scheduler(address: str) -> None:
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme in ("tcp", "tls"):
+            parse_host_port(location)  # the port is required: there is no default one
+    except (ValueError, TypeError) as exc:
+        raise ValueError(
+            f"--scheduler {address!r}: expected an address such as tcp://HOST:PORT ({exc})"
+        ) from None
+
+
+def _named(exc: BaseException, args) -> BaseException:
+    """An OS error under --output, with the option (the OS names only the path)."""
+    if isinstance(exc, OSError) and exc.filename is not None:
+        output = Path(args.output).absolute()
+        where = Path(exc.filename).absolute()
+        if where == output or output in where.parents or where in output.parents:
+            return ValueError(f"--output {args.output}: cannot write there: {exc.strerror or exc}")
+    return exc
+
+
+def _remove_if_empty(output: Path) -> None:
+    """The folder a refused run made, when it holds no result yet (a header at most): a
+    refusal leaves nothing behind. A row computed is kept: the same command goes on from it."""
+    if not output.is_dir():
+        return
+    files = [p for p in output.rglob("*") if p.is_file()]
+    table = output / "results.csv"
+    if all(p == table for p in files) and (
+        not table.exists() or len(table.read_text().splitlines()) <= 1
+    ):
+        shutil.rmtree(output, ignore_errors=True)
 
 
 def _settings(args) -> dict:
@@ -180,7 +261,7 @@ def _add_sweep_options(p) -> None:
     )
     p.add_argument(
         "--goal-distance",
-        type=length_type("goal-distance"),
+        type=length_type("goal-distance", positive=True),
         default=None,
         help="push: the goal's distance from the estimate along +y (m, or with a unit; "
         "default 500nm)",

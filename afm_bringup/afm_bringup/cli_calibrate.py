@@ -3,6 +3,8 @@ fit checks, reruns of single experiments and a report (afm_core.localization.cal
 
 from __future__ import annotations
 
+import argparse
+import math
 import re
 import sys
 from pathlib import Path
@@ -33,6 +35,7 @@ def cmd_calibrate(args):
         check_pairs(args.pairs)
         chosen = checked_experiments(args.only)
         options = experiment_options(args.set)
+        check_finite_options(options)
         options["drift"] = {"pairs": args.pairs, **options.get("drift", {})}
         previous = load_calibration(args.merge) if args.merge else None
         instrument = open_instrument(
@@ -116,6 +119,31 @@ def check_outputs(args) -> None:
         targets += [("--report", report), ("--report", report.with_suffix(".md"))]
     for option, path in targets:
         checks.new_file(option, path, overwrite=args.overwrite, option="--overwrite")
+
+
+def check_finite_options(options: dict) -> None:
+    """ValueError naming the --set option whose value is NaN or infinite: no geometry, time or
+    count is, and the experiment refused it only when its turn came, hours into the run on an
+    instrument, after the experiments before it (the other limits depend on the instrument's
+    range, which only the experiment knows)."""
+    for experiment, values in options.items():
+        for option, value in values.items():
+            numbers = value if isinstance(value, list) else [value]
+            if not all(math.isfinite(number) for number in numbers):
+                raise ValueError(f"--set {experiment}.{option}={value}: must be finite")
+
+
+def seed_type(text: str) -> int:
+    """argparse type of --seed: -1 (the configuration's seed) or a seed >= 0."""
+    try:
+        seed = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"seed={text!r}: expected a whole number") from None
+    if seed < -1:
+        raise argparse.ArgumentTypeError(
+            f"seed={seed}: must be >= 0, or -1 for the configuration's seed"
+        )
+    return seed
 
 
 # run_calibration's progress texts: "experiment K of N: NAME ..." at the start and
@@ -205,7 +233,10 @@ def _add_calibrate(sub) -> None:
         help="simulator configuration YAML (sim backend; default: defaults)",
     )
     p.add_argument(
-        "--seed", type=int, default=-1, help="simulator seed (sim backend; default: the config's)"
+        "--seed",
+        type=seed_type,
+        default=-1,
+        help="simulator seed (sim backend; default -1: the config's)",
     )
     p.add_argument(
         "--daq-device", default="Dev1", help="NI-DAQmx device name (daq backend; default Dev1)"

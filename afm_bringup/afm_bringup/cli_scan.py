@@ -6,7 +6,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from afm_bringup.cli_errors import refuse
 from afm_bringup.units import length_type, nm, positive_type
+from afm_core import checks
 
 SAVE_SUFFIXES = (".npz", ".gwy", ".npy")
 
@@ -15,13 +17,16 @@ def cmd_scan(args):
     from afm_bringup.commander import AfmCommander, AfmError
     from afm_ros.conversions import image_msg_to_array
 
-    if args.save and Path(args.save).suffix.lower() not in SAVE_SUFFIXES:
-        sys.exit(
-            f"afm scan: --save {args.save}: expected a name ending in .npz (pixel size, "
-            "origin, angle, frame and time kept), .gwy (Gwyddion, the same) or .npy (heights only)"
-        )
-    if args.save and Path(args.save).suffix.lower() != ".npy" and Path(args.save).exists():
-        sys.exit(f"afm scan: --save {args.save} exists; not overwriting it")
+    if args.save:
+        try:  # before the scan: a file that cannot be written was found only after it
+            checks.new_file("--save", args.save)
+            if Path(args.save).suffix.lower() not in SAVE_SUFFIXES:
+                raise ValueError(
+                    f"--save {args.save}: expected a name ending in .npz (pixel size, origin, "
+                    "angle, frame and time kept), .gwy (Gwyddion, the same) or .npy (heights only)"
+                )
+        except ValueError as exc:
+            return refuse("scan", exc)
     with AfmCommander() as afm:
         try:
             scan = afm.scan(
@@ -46,7 +51,12 @@ def cmd_scan(args):
         f"{nm(float(height.max()))}"
     )
     if args.save:
-        save_scan(scan, height, args.save)
+        try:
+            save_scan(scan, height, args.save)
+        except (OSError, ValueError) as exc:  # a read-only folder, a full disk
+            if not isinstance(exc, FileExistsError):  # new_file saw none there: ours, partial
+                Path(args.save).unlink(missing_ok=True)
+            return refuse("scan", ValueError(f"--save {args.save}: not saved: {exc}"))
     return 0
 
 
@@ -58,7 +68,8 @@ def save_scan(scan, height, path) -> None:
     from afm_core.imaging.files import HeightMap, save_height_map
 
     if Path(path).suffix.lower() == ".npy":
-        np.save(path, height)
+        with open(path, "xb") as handle:  # the name as given (np.save adds .npy to X.NPY)
+            np.save(handle, height)
         print(
             f"saved heights (metres) to {path}; a .npy keeps no pixel size or origin "
             "(--save F.npz keeps them)"

@@ -85,26 +85,76 @@ def positive_type(name: str, kind=float):
     return _argparse_type(_above_zero(parse), name)
 
 
+def count_type(name: str, minimum: int, maximum: int):
+    """An argparse `type` for a whole number in [minimum, maximum] (an id, an index)."""
+
+    def parse(text, name):
+        try:
+            value = int(text)
+        except ValueError:
+            raise ValueError(f"{name}={text!r}: expected a whole number") from None
+        if not minimum <= value <= maximum:
+            raise ValueError(f"{name}={text!r}: must be within [{minimum}, {maximum}]")
+        return value
+
+    return _argparse_type(parse, name)
+
+
 def _above_zero(parse):
     def checked(text, name):
         value = parse(text, name)
         if not value > 0:
             raise ValueError(f"{name}={text!r}: must be above 0")
+        if not math.isfinite(value):  # a timeout of inf waited for ever, a rate of inf failed late
+            raise ValueError(f"{name}={text!r}: must be finite")
         return value
 
     return checked
 
 
 # argparse takes only bare negative numbers (-2, -0.5) for values; '-15deg' or '-2nm' it reads
-# as an unknown option, and `--goal-angle -15deg` failed with "expected one argument"
-NEGATIVE_QUANTITY = re.compile(r"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*[a-zµ]*$")
+# as an unknown option, and `--goal-angle -15deg` failed with "expected one argument"; so did
+# '-inf' and '-1GiB', whose own checks say what is wrong with them
+NEGATIVE_QUANTITY = re.compile(
+    r"^-(?:(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*[a-zA-Zµ]*|inf|nan|infinity)$", re.IGNORECASE
+)
+
+
+def _shown(value) -> str:
+    """A parsed value as a message shows it: 6e-9, not 6.000000000000001e-09."""
+    if isinstance(value, (list, tuple)):
+        return " ".join(_shown(v) for v in value)
+    return f"{value:.6g}" if isinstance(value, float) else repr(value)
+
+
+class _StoreOnce(argparse._StoreAction):
+    """An option's value, refused when the option comes again with another value: argparse
+    keeps the last, so `-o a.npz -o b.npz` wrote b.npz without a word about a.npz."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        given = getattr(parser, "_given_options", None)
+        if option_string is not None and given is not None:
+            if self.dest in given and given[self.dest] != values:
+                first, then = _shown(given[self.dest]), _shown(values)
+                raise argparse.ArgumentError(
+                    self, f"given twice ({first}, then {then}); give it once"
+                )
+            given[self.dest] = values
+        super().__call__(parser, namespace, values, option_string)
 
 
 class QuantityArgumentParser(argparse.ArgumentParser):
-    """An ArgumentParser that reads a negative number with a unit as a value. Its subcommands'
-    parsers are of its class (argparse's add_subparsers default), so one at the top is enough.
-    None of our options looks like a negative number, so none is shadowed."""
+    """An ArgumentParser that reads a negative number with a unit as a value, and refuses an
+    option given twice with different values. Its subcommands' parsers are of its class
+    (argparse's add_subparsers default), so one at the top is enough. None of our options
+    looks like a negative number, so none is shadowed."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._negative_number_matcher = NEGATIVE_QUANTITY
+        self.register("action", None, _StoreOnce)
+        self.register("action", "store", _StoreOnce)
+
+    def parse_known_args(self, args=None, namespace=None):
+        self._given_options = {}  # one parse's options (a parser may parse twice)
+        return super().parse_known_args(args, namespace)

@@ -75,6 +75,54 @@ def _load(args, path) -> HeightMap:
     return hmap
 
 
+# Lines per second of a lab's scan: a line every few hours to a high-speed AFM's 100 kHz. Beyond,
+# the drift fit's times overflow (1e-300 Hz) or its least squares do not converge (1e300 Hz).
+LINE_RATE_RANGE = (1e-4, 1e5)
+# the 90 deg scan's start at most this many 0 deg scan times after the 0 deg scan's start
+MAX_GAP_SCANS = 10
+# m: a picometre, far below an atom; a smaller pixel is a unit given twice (2e-9nm)
+SMALLEST_PIXEL = 1e-12
+
+
+def check_line_rate(option: str, rate: float) -> float:
+    """`rate` (Hz) when within LINE_RATE_RANGE; else ValueError naming `option` and the range."""
+    low, high = LINE_RATE_RANGE
+    if not (math.isfinite(rate) and low <= rate <= high):
+        raise ValueError(f"{option}={rate}: must be finite and within [{low:g}, {high:g}] Hz")
+    return rate
+
+
+def line_rate_type(option: str):
+    """argparse type of a line rate in Hz, refused outside LINE_RATE_RANGE."""
+
+    def convert(text: str) -> float:
+        try:
+            return check_line_rate(option, float(text))
+        except ValueError as exc:
+            if option not in str(exc):  # float()'s own words name no option
+                exc = ValueError(f"{option}={text!r}: expected a number (Hz)")
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    return convert
+
+
+def pixel_size_type(length):
+    """argparse type of --pixel-size: a length as `length` reads it, at least SMALLEST_PIXEL."""
+
+    def convert(text: str) -> float:
+        try:
+            value = length.parse(text, "--pixel-size")
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+        if not value >= SMALLEST_PIXEL:
+            raise argparse.ArgumentTypeError(
+                f"--pixel-size={text!r}: must be at least {SMALLEST_PIXEL:g} m (1pm)"
+            )
+        return value
+
+    return convert
+
+
 def raster_scan_of(
     hmap: HeightMap,
     angle: float = 0.0,
@@ -135,8 +183,7 @@ def _report_timing(timing, gap_given: bool) -> None:
 def cmd_drift(args) -> int:
     from afm_core.imaging.drift_compensation import compensate_pair
 
-    if not (math.isfinite(args.line_rate) and args.line_rate > 0):
-        raise ValueError(f"--line-rate={args.line_rate}: must be finite and > 0 Hz")
+    check_line_rate("--line-rate", args.line_rate)
     if isinstance(args.gap, float) and not math.isfinite(args.gap):
         raise ValueError(f"--gap={args.gap}: must be finite (s), or auto")
     first = _load(args, args.scan0)
@@ -151,6 +198,15 @@ def cmd_drift(args) -> int:
             f"({lines0} lines at --line-rate={args.line_rate} Hz: >= "
             f"{lines0 / args.line_rate:.4g} s from the start of the 0 deg scan); --gap auto "
             "takes the gap the images imply"
+        )
+    if given and gap > MAX_GAP_SCANS * lines0 / args.line_rate:
+        # the drift spline has a knot every few lines over the whole span, its normal matrix
+        # the square of that: a day's gap at 1 Hz asked for 100 GiB (or never finished)
+        raise ValueError(
+            f"--gap={args.gap} s: at most {MAX_GAP_SCANS} times the 0 deg scan's "
+            f"{lines0 / args.line_rate:.4g} s ({lines0} lines at --line-rate={args.line_rate} Hz),"
+            f" i.e. <= {MAX_GAP_SCANS * lines0 / args.line_rate:.4g} s: a pair this far apart "
+            "cannot be fitted as one drift; take the 90 deg scan sooner after the 0 deg one"
         )
 
     def compensate(gap: float):
@@ -470,7 +526,10 @@ def _add_drift(sub, levelling) -> None:
     p.add_argument("scan0", help="0 deg scan (rows = fast lines)")
     p.add_argument("scan90", help="90 deg scan of the same area (columns = fast lines)")
     p.add_argument(
-        "--line-rate", type=float, required=True, help="lines per second of both scans (Hz)"
+        "--line-rate",
+        type=line_rate_type("--line-rate"),
+        required=True,
+        help="lines per second of both scans (Hz)",
     )
     p.add_argument("--down0", action="store_true", help="the 0 deg scan was frame-down")
     p.add_argument("--down90", action="store_true", help="the 90 deg scan was frame-down")
@@ -500,7 +559,7 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
             "--channel", default=0, help="channel: index or title (default 0; afm image channels)"
         )
         p.add_argument("--frame", type=int, default=0, help=FRAME_HELP)
-        p.add_argument("--pixel-size", type=length, help=PIXEL_SIZE_HELP)
+        p.add_argument("--pixel-size", type=pixel_size_type(length), help=PIXEL_SIZE_HELP)
         p.add_argument("--height-unit", type=height_unit, help=HEIGHT_UNIT_HELP)
         p.add_argument(
             "--scan-frame",
@@ -600,12 +659,42 @@ def add_subcommands(image_parser: argparse.ArgumentParser, length) -> None:
 def run(args) -> int:
     if isinstance(args.channel, str) and args.channel.isdigit():
         args.channel = int(args.channel)
+    outputs = {}  # option -> the new file it names
+    finished, error = False, None
     try:
         if getattr(args, "output", None):
-            checks.new_file("-o", args.output, (".npz", ".gwy"))
+            outputs["-o"] = checks.new_file("-o", args.output, (".npz", ".gwy"))
         if getattr(args, "json", None):
-            checks.new_file("--json", args.json)
-        return args.image_func(args)
+            outputs["--json"] = checks.new_file("--json", args.json)
+        code = args.image_func(args)
+        finished = True
+        return code
     except (ValueError, OSError, ImportError) as exc:
-        print(f"afm image {args.image_command}: {exc}", file=sys.stderr)
+        error = exc
+        print(f"afm image {args.image_command}: {_named(exc, outputs)}", file=sys.stderr)
         return 2
+    finally:
+        # refused, failed or interrupted: what it began is incomplete; a file that appeared
+        # meanwhile (FileExistsError: another program's) is not ours to remove
+        if not finished and not isinstance(error, FileExistsError):
+            _remove_new(outputs)
+
+
+def _named(exc: BaseException, outputs: dict) -> str:
+    """An error writing an output, with the option that names the file (the OS names the file
+    only, and /readonly/x.npz said nothing of -o)."""
+    if isinstance(exc, OSError) and exc.filename is not None:
+        for option, path in outputs.items():
+            if Path(exc.filename) == path:
+                return f"{option} {path}: cannot write it: {exc.strerror or exc}"
+    return str(exc)
+
+
+def _remove_new(outputs: dict) -> None:
+    """The outputs a failed command began: checks.new_file made sure none existed before, so a
+    file there now is this run's and incomplete."""
+    for path in outputs.values():
+        try:
+            path.unlink(missing_ok=True)
+        except OSError:
+            pass
