@@ -211,7 +211,10 @@ def start_graph(argv, cwd) -> Background:
 
 
 def check_push_output(text: str) -> None:
-    match = re.search(r"(succeeded|failed): .*error ([-\d.]+) nm", text)
+    # a one-image map's own drift (the README's `afm scan`) can leave the verdict unsure
+    match = re.search(
+        r"(succeeded|failed|cannot tell at this tolerance): .*error ([-\d.]+) nm", text
+    )
     assert match, f"afm push printed no result: {text}"
     assert float(match.group(2)) * 1e-9 < PUSH_BOUND, text
 
