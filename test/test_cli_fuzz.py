@@ -208,3 +208,14 @@ def test_calibrate_refuses_a_non_finite_setting_before_the_instrument(tmp_path, 
     code, err = run("calibrate", "-o", output, "--set", value)
     assert refused(code, err, "--set", "must be finite"), err
     assert not output.exists()
+
+
+def test_channels_of_another_format_renamed_npz_says_so_without_numpys_pickle_hint(tmp_path):
+    """numpy's message for it invites loading the file as a pickle, which is never safe."""
+    from afm_core.imaging.files import list_channels
+
+    renamed = tmp_path / "scan.npz"
+    renamed.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+    with pytest.raises(ValueError, match="not a .npz archive.*another format renamed") as error:
+        list_channels(renamed)
+    assert "pickle" not in str(error.value)

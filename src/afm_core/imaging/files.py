@@ -334,6 +334,9 @@ DAMAGED = (
 )
 
 
+_NOT_NPZ = "{path}: not a .npz archive (not a zip of arrays; is it another format renamed?)"
+
+
 def _load_npz(path: Path, channel, pixel_size) -> HeightMap:
     try:
         return _read_npz(path, channel, pixel_size)
@@ -341,9 +344,7 @@ def _load_npz(path: Path, channel, pixel_size) -> HeightMap:
         if str(path) in str(exc) or str(exc).startswith("channel"):
             raise
         if "allow_pickle" in str(exc):  # numpy's hint would invite loading a pickle: never
-            raise ValueError(
-                f"{path}: not a .npz archive (not a zip of arrays; is it another format renamed?)"
-            ) from exc
+            raise ValueError(_NOT_NPZ.format(path=path)) from exc
         raise ValueError(f"{path}: not a readable .npz archive ({exc})") from exc
     except DAMAGED as exc:
         raise ValueError(
@@ -398,6 +399,8 @@ def _npz_title(path: Path) -> str:
         with np.load(path, allow_pickle=False) as archive:
             return _npz_string(archive, "title", path)
     except (ValueError, *DAMAGED) as exc:
+        if "allow_pickle" in str(exc):  # numpy's hint would invite loading a pickle: never
+            raise ValueError(_NOT_NPZ.format(path=path)) from exc
         raise ValueError(f"{path}: not a readable .npz archive ({exc})") from exc
 
 
