@@ -168,3 +168,16 @@ def test_image_frame_matrix_near_the_corner_of_a_smaller_scanner():
         sim.move_tip(*target, 1e-5)
         moved = (np.array(sim.truth()["tip_position"]) - before) / step
         assert np.allclose(matrix[:, axis], moved, atol=1e-9), (matrix, moved)
+
+
+def test_an_empty_or_non_mapping_config_file_is_refused_naming_the_file(tmp_path):
+    """An empty file given on purpose is a wrong or unsaved file: it used to load silently as
+    the defaults, so a lab's model was never the one it meant."""
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("# nothing yet\n")
+    with pytest.raises(ValueError, match="empty.yaml' is empty: give the keys to change"):
+        load_config(empty)
+    listed = tmp_path / "list.yaml"
+    listed.write_text("- seed: 3\n")
+    with pytest.raises(ValueError, match="list.yaml': expected a mapping of keys, got a list"):
+        load_config(listed)

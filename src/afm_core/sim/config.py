@@ -269,11 +269,23 @@ def load_config(path: str | Path | None = None) -> SimConfig:
     if not path.is_file():
         raise ValueError(f"simulator config {str(path)!r} does not exist")
     try:
-        user = load_yaml(path.read_text()) or {}
+        user = load_yaml(path.read_text())
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ValueError(f"simulator config {str(path)!r} is not valid YAML: {exc}") from exc
     except OSError as exc:
         raise ValueError(f"simulator config {str(path)!r}: cannot be read ({exc})") from exc
+    # a file named on purpose that holds nothing is a mistake (a wrong or unsaved file), not
+    # a wish for the defaults, which leaving the option out gives
+    if user is None:
+        raise ValueError(
+            f"simulator config {str(path)!r} is empty: give the keys to change (a subset of "
+            "default_config.yaml's), or no file for the defaults"
+        )
+    if not isinstance(user, dict):
+        raise ValueError(
+            f"simulator config {str(path)!r}: expected a mapping of keys, got a "
+            f"{type(user).__name__}"
+        )
     try:
         return merge(config, user)
     except (ValueError, TypeError) as exc:
