@@ -83,3 +83,17 @@ def z_jump(size, at):
 def torsion_drift(rate):
     """The torsion signal's zero drifts linearly in time (rad/s)."""
     return lambda t, x, y: rate * np.asarray(t, float)
+
+
+def map_heights(ops, transform):
+    """Every measured height h (rasters, scan lines) replaced by transform(h) (m): a z sensor
+    whose reading is not linear in the height."""
+    out = []
+    for op in ops:
+        data = op.data
+        if op.kind in ("raster", "scan_line") and data is not None:
+            height = np.asarray(data.height)
+            moved = transform(np.asarray(height, float)).astype(height.dtype)
+            op = dataclasses.replace(op, data=dataclasses.replace(data, height=moved))
+        out.append(op)
+    return out

@@ -27,6 +27,9 @@ Forms, with t the instrument clock (s) and x, y the scanner's true position (m):
 - x_linear, y_linear: amplitude * (x - x0) or (y - y0) (amplitude per m; x0, y0 default 0)
 - x_sine, y_sine: amplitude * sin(2 pi (x - x0) / period)
 - height_proportional: amplitude * (true height about the substrate)  (height signal only)
+- height_squared: amplitude * (true height about the substrate)^2  (height signal only;
+  amplitude per m): a z sensor whose sensitivity changes along its range (a nonlinear piezo),
+  which the library's one z gain cannot take
 - deflection_proportional: amplitude * (the vertical deflection measured at the same moment)
   (torsion signal only; amplitude in rad per m): one signal leaking into another, as a
   residual that tracks a signal recorded alongside it
@@ -66,6 +69,7 @@ FORMS = {
     "x_sine": {"period": None, "x0": 0.0},
     "y_sine": {"period": None, "y0": 0.0},
     "height_proportional": {},
+    "height_squared": {},
     "deflection_proportional": {},
     "disc_proportional": {"x0": None, "y0": None, "radius": None},
     "line_jitter": {},
@@ -73,6 +77,7 @@ FORMS = {
 # the proportional forms: form -> the one signal they act on
 PROPORTIONAL = {
     "height_proportional": "height",
+    "height_squared": "height",
     "deflection_proportional": "torsion",
     "disc_proportional": "height",
 }
@@ -128,6 +133,8 @@ class GenericTerm:
             scaled = a * np.broadcast_to(np.asarray(measured, float), shape)
             x0, y0 = self.param("x0"), self.param("y0")
             return np.where(np.hypot(x - x0, y - y0) <= self.param("radius"), scaled, 0.0)
+        if form == "height_squared":
+            return a * np.asarray(measured, float) ** 2
         return a * np.asarray(measured, float)
 
     def as_dict(self) -> dict:

@@ -49,7 +49,11 @@ from afm_core.sim2real.design_columns import design_columns
 from afm_core.sim2real.deviations import nominal_deviations
 from afm_core.sim2real.drift_trajectory import nominal_drift
 from afm_core.sim2real.evidence import ALPHA, weigh_candidates
-from afm_core.sim2real.generic_fit import describe_unexplained
+from afm_core.sim2real.generic_fit import (
+    describe_unexplained,
+    model_sentence,
+    quadratic_height_fit,
+)
 from afm_core.sim2real.heldout import fold_blocks
 from afm_core.sim2real.noise_model import nuisance_columns, session_noise_model
 from afm_core.sim2real.noise_term import sensor_noise_first
@@ -64,7 +68,13 @@ from afm_core.sim2real.results import (
     PARTLY_EXPLAINED,
     Diagnosis,
 )
-from afm_core.sim2real.rival import compare_rival, rival_words, ruling
+from afm_core.sim2real.rival import (
+    HEIGHT_SHAPE_TERMS,
+    closest_rival,
+    compare_rival,
+    rival_words,
+    ruling,
+)
 from afm_core.sim2real.second_term import add_second_term
 from afm_core.sim2real.session import SessionError
 from afm_core.sim2real.session_reader import read_operations
@@ -232,6 +242,15 @@ def _generic_rival(sess, evidence, deviations, terms, decision, resimulate: bool
     if signature is None:
         return {}, None, {}
     rival = compare_rival(evidence, decision.heldout, generic, sess.r_before)
+    if set(library) & set(HEIGHT_SHAPE_TERMS):  # a z nonlinearity imitates them (rival.py)
+        try:
+            quadratic = quadratic_height_fit(sess, evidence, sess.r.copy(), signature, say)
+        except ValueError as exc:  # a model the simulator refuses is no rival
+            quadratic = {"fitted": False, "reason": str(exc)}
+        other = compare_rival(evidence, decision.heldout, quadratic, sess.r_before)
+        if other and closest_rival([rival, other]) is other:
+            rival, generic = other, quadratic
+            signature.sentences.append(model_sentence(quadratic))
     if rival:
         say(
             f"held-out chi2 {rival['chi2_library']:.1f} (library) against "

@@ -249,7 +249,6 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
         form, basis = PROPORTIONAL_FORM, [GenericTerm("torsion", "deflection_proportional", 1.0)]
     if not basis:
         return {"fitted": False, "reason": f"no generic basis for the form {form!r}"}
-    say(f"generic term: {form} on the {signal} signal ({len(basis)} re-simulations)")
     size = max(sig.size["amplitude"] if displaced else sig.size["rms"], 1e-12)
     # a proportional term's column at the slope the samples show: the torsion's rms features
     # are not linear in a slope near zero
@@ -258,6 +257,44 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
         if tracked is not None
         else [OBJECT_STEP if per_object else _step(term, sess, size) for term in basis]
     )
+    fit = fit_basis(sess, evidence, r0, form, signal, basis, steps, say)
+    if fit["fitted"]:
+        fit["searched"] = searched
+    return fit
+
+
+QUADRATIC_FORM = "quadratic in the measured height"
+
+
+def quadratic_height_fit(sess, evidence, r0: np.ndarray, sig, say=lambda m: None) -> dict:
+    """The generic term proportional to the square of the measured height (a z sensor whose
+    sensitivity changes along its range), fitted and checked like generic_fit's: the rival a
+    z gain or a tip radius meets besides the signature's own form (rival.py). One amplitude,
+    its column at the step that moves the tallest object's top by the residual's size (the
+    heights are float32 samples: a step far below that would be lost to their rounding)."""
+    # the residual's size sets only the column's step (the term is linear in its amplitude)
+    size = max((sig.size if sig is not None else {}).get("rms", 0.0), 1e-9)
+    step = size / _tallest(sess.base) ** 2
+    basis = [GenericTerm("height", "height_squared", 1.0)]
+    return fit_basis(sess, evidence, r0, QUADRATIC_FORM, "height", basis, [step], say)
+
+
+def _tallest(config) -> float:
+    """The tallest object's height (m) in the model's sample (at least 20 nm), the range over
+    which the measured height's square grows."""
+    sample = config.sample
+    heights = [2 * s["radius"] for s in sample.spheres] + [2 * r["radius"] for r in sample.rods]
+    heights += [e["thickness"] for e in sample.electrodes]
+    heights += [2 * sample.radius_mean] if sample.random_spheres else []
+    return max(heights + [20e-9])
+
+
+def fit_basis(sess, evidence, r0, form, signal, basis, steps, say=lambda m: None) -> dict:
+    """The generic `basis` (unit-amplitude terms of `form` on `signal`) fitted to r0 by
+    re-simulated columns at `steps` (each term's amplitude for its column): the fit on all
+    features and its held-out check on the groups it reaches (module docstring). {"fitted":
+    False, "reason"} when the held-out blocks refute it."""
+    say(f"generic term: {form} on the {signal} signal ({len(basis)} re-simulations)")
     cols = np.stack(
         [np.nan_to_num(_change(sess, [_scaled(term, a)])) / a for term, a in zip(basis, steps)],
         1,
@@ -315,7 +352,6 @@ def generic_fit(sess, evidence, r0: np.ndarray, sig: Signature, say=lambda m: No
         "reached": sorted(reached),
         "reach": reach,
         "replays": len(basis) + 1,
-        "searched": searched,
     }
 
 

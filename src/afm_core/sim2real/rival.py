@@ -25,6 +25,18 @@ generic form of one signal does as well, because a generic form lacks the constr
 offset of one signal that the term's pattern happens to cover (a torsion growing in time, read
 through pushes whose torsion has the same sign in both sliding directions), the generic form
 takes it as well or better, and the name is no more than one description among two.
+
+A named z gain or tip radius meets a second generic rival besides the signature's form: the
+measured height's square (generic_fit.quadratic_height_fit), one amplitude. A z sensor whose
+sensitivity changes along its range stretches a particle's top more than its flanks; with
+particles of one height a gain and a sharper tip together imitate that (an outside probe's
+h + h^2 / 10 um was named a gain of 1.019 and a tip radius of 19.48 +- 0.05 nm for the model's
+20), and no form in time or across the sample takes it (the residual is relative to each
+line's edges: an offset in time moves no particle height). A true gain scales the flanks as the
+top, a true tip radius changes the widths but not the heights: the square does neither, and
+loses to them by far more than its one amplitude's estimation noise. The linear form is no
+rival: it is the z gain itself, and a tie would leave every true gain unnamed. Of the rivals,
+the one the library terms beat by least is the one reported.
 """
 
 from __future__ import annotations
@@ -35,6 +47,9 @@ from scipy import stats
 from afm_core.sim2real.evidence import ALPHA
 from afm_core.sim2real.heldout import heldout_chi2
 from afm_core.sim2real.results import NAMED, PARTLY_EXPLAINED
+
+# library terms that reshape the measured heights of particles, which a z nonlinearity imitates
+HEIGHT_SHAPE_TERMS = ("height_gain", "tip_radius")
 
 
 def compare_rival(evidence, library_heldout: dict, generic: dict, r_before) -> dict:
@@ -66,6 +81,16 @@ def compare_rival(evidence, library_heldout: dict, generic: dict, r_before) -> d
         "library_better": bool(chi2_generic - chi2_library > bound),
         "generic_excess_reduction": float(generic["heldout"].get("excess_reduction", np.nan)),
     }
+
+
+def closest_rival(rivals: list) -> dict:
+    """Of several rivals' comparisons (compare_rival's dicts, {} for none), the one the library
+    terms beat by least (its held-out chi^2 above theirs less its bound): any one the library
+    does not beat is enough for "cannot tell". {} when there is none."""
+    rivals = [r for r in rivals if r]
+    if not rivals:
+        return {}
+    return min(rivals, key=lambda r: r["chi2_generic"] - r["chi2_library"] - r["bound"])
 
 
 def ruling(verdict: str, rival: dict) -> str:
