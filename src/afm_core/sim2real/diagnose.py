@@ -242,7 +242,7 @@ def _generic_rival(sess, evidence, deviations, terms, decision, resimulate: bool
     if signature is None:
         return {}, None, {}
     rival = compare_rival(evidence, decision.heldout, generic, sess.r_before)
-    if set(library) & set(HEIGHT_SHAPE_TERMS):  # a z nonlinearity imitates them (rival.py)
+    if set(HEIGHT_SHAPE_TERMS) <= set(library):  # a z nonlinearity imitates the pair (rival.py)
         try:
             quadratic = quadratic_height_fit(sess, evidence, sess.r.copy(), signature, say)
         except ValueError as exc:  # a model the simulator refuses is no rival

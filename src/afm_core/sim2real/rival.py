@@ -26,17 +26,18 @@ offset of one signal that the term's pattern happens to cover (a torsion growing
 through pushes whose torsion has the same sign in both sliding directions), the generic form
 takes it as well or better, and the name is no more than one description among two.
 
-A named z gain or tip radius meets a second generic rival besides the signature's form: the
-measured height's square (generic_fit.quadratic_height_fit), one amplitude. A z sensor whose
-sensitivity changes along its range stretches a particle's top more than its flanks; with
-particles of one height a gain and a sharper tip together imitate that (an outside probe's
-h + h^2 / 10 um was named a gain of 1.019 and a tip radius of 19.48 +- 0.05 nm for the model's
-20), and no form in time or across the sample takes it (the residual is relative to each
-line's edges: an offset in time moves no particle height). A true gain scales the flanks as the
-top, a true tip radius changes the widths but not the heights: the square does neither, and
-loses to them by far more than its one amplitude's estimation noise. The linear form is no
-rival: it is the z gain itself, and a tie would leave every true gain unnamed. Of the rivals,
-the one the library terms beat by least is the one reported.
+A z gain named together with a tip radius meets a second generic rival besides the
+signature's form: the measured height's square (generic_fit.quadratic_height_fit), one
+amplitude. A z sensor whose sensitivity changes along its range stretches a particle's top
+more than its flanks; with particles of one height a gain and a sharper tip together imitate
+that (an outside probe's h + h^2 / 10 um was named a gain of 1.019 and a tip radius of 19.48
++- 0.05 nm for the model's 20), and no form in time or across the sample takes it (the
+residual is relative to each line's edges: an offset in time moves no particle height). Only
+the pair meets it: a gain named alone is the nonlinearity's nearest library term (its mean
+slope), and against a gain alone the square is one amplitude against one, which a work
+session's few particles of one height cannot tell apart (a true 3 % gain then read "cannot
+tell"). The linear form is no rival: it is the z gain itself. Of the rivals, the one the
+library terms beat by least is the one reported.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from afm_core.sim2real.evidence import ALPHA
 from afm_core.sim2real.heldout import heldout_chi2
 from afm_core.sim2real.results import NAMED, PARTLY_EXPLAINED
 
-# library terms that reshape the measured heights of particles, which a z nonlinearity imitates
+# library terms that, named together, reshape particles as a z nonlinearity does
 HEIGHT_SHAPE_TERMS = ("height_gain", "tip_radius")
 
 
