@@ -5,14 +5,13 @@ In-process (afm_bringup.cli.main); nothing here starts a DDS participant or a Da
 
 from __future__ import annotations
 
-import contextlib
-import io
 import os
 
 import numpy as np
 import pytest
+from cli_runs import run_cli
 
-from afm_bringup.cli import build_parser, main
+from afm_bringup.cli import build_parser
 from afm_core.imaging.files import HeightMap, save_height_map
 
 
@@ -36,14 +35,8 @@ def image(tmp_path):
 
 
 def run(*argv) -> tuple[int, str]:
-    """Exit status and stderr of `afm ARGV`; an exception escapes (a traceback is a failure)."""
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            code = main([str(a) for a in argv])
-        except SystemExit as exc:  # argparse
-            code = exc.code if isinstance(exc.code, int) else 1
-    return code, err.getvalue()
+    """Exit status and stderr of `afm ARGV` (cli_runs.run_cli)."""
+    return run_cli(argv)
 
 
 def refused(code: int, err: str, *words: str) -> bool:

@@ -15,15 +15,14 @@ detects changed message contents (its CRCs) is the recorder's test (issue 30, it
 from __future__ import annotations
 
 import contextlib
-import io
 import signal
 import time
 
 import numpy as np
 import pytest
 import yaml
+from cli_runs import run_cli
 
-from afm_bringup.cli import main
 from afm_core.daq import load_calibration as load_daq_calibration
 from afm_core.imaging.files import HeightMap, save_height_map
 from afm_core.localization.calibration.model import (
@@ -78,16 +77,6 @@ def time_limit(seconds: float):
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
-
-
-def run_cli(argv) -> tuple[int, str]:
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            code = main([str(a) for a in argv])
-        except SystemExit as exc:  # argparse
-            code = exc.code if isinstance(exc.code, int) else 1
-    return code, err.getvalue()
 
 
 def run_loader(load, path) -> tuple[int, str]:
