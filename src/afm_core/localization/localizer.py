@@ -510,7 +510,8 @@ class Localizer:
             # the map position is part of the key: a landmark re-mapped or moved since (same
             # id) has another map error, not the one the state may hold for it
             key = (landmark.id, landmark.x, landmark.y)
-            saved = self.filter.snapshot()
+            # only a line that crossed other features can be ambiguous and need undoing
+            saved = self.filter.snapshot() if obs.alternatives else None
             update = self.filter.update_axis(
                 kp_time,
                 obs.value,
@@ -530,7 +531,7 @@ class Localizer:
                 "accepted" if update.accepted else ("gated_out" if update.gated_out else "too_old")
             )
             result.reason = update.reason
-            ambiguity = self._ambiguity(obs, update) if update.accepted else ""
+            ambiguity = self._ambiguity(obs, update) if update.accepted and saved else ""
             if ambiguity:
                 self.filter.restore(saved)
                 result.status, result.reason = "ambiguous", ambiguity
