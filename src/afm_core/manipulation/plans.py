@@ -35,6 +35,7 @@ import numpy as np
 
 from afm_core.checks import non_negative, point, positive
 from afm_core.instrument import ScannerLimits
+from afm_core.physics.sample import distance_to_segment
 
 NM = 1e-9
 DEFAULT_TIP_RADIUS = 50e-9  # m, effective contact radius R_T (book 7.3: 50 nm)
@@ -287,11 +288,7 @@ def _axis(other) -> tuple[np.ndarray, np.ndarray]:
 
 def _axis_distance(other, point) -> float:
     """The distance from `point` to the other's axis."""
-    p0, p1 = _axis(other)
-    d = p1 - p0
-    span = float(d @ d)
-    s = 0.0 if span == 0 else min(max(float((point - p0) @ d) / span, 0.0), 1.0)
-    return float(np.hypot(*(p0 + s * d - point)))
+    return float(distance_to_segment(*_axis(other), point[0], point[1]))
 
 
 def _first_in_box(other, start, u, along_range, half_width) -> float | None:

@@ -55,6 +55,13 @@ class Sphere:
         return 2 * self.radius
 
 
+def distance_to_segment(a, b, xs, ys) -> np.ndarray:
+    """Distance (m) from the points (xs, ys) to the segment a-b ((2,) m each; a point if a = b)."""
+    ab = np.asarray(b, float) - np.asarray(a, float)
+    t = np.clip(((xs - a[0]) * ab[0] + (ys - a[1]) * ab[1]) / max(float(ab @ ab), 1e-30), 0.0, 1.0)
+    return np.hypot(xs - (a[0] + t * ab[0]), ys - (a[1] + t * ab[1]))
+
+
 @dataclass
 class Rod:
     """A rod or nanotube lying on the substrate: a capsule (cylinder with round ends) of
@@ -74,12 +81,7 @@ class Rod:
         return centre - half, centre + half
 
     def distance_to_axis(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-        a, b = self.endpoints()
-        ab = b - a
-        t = np.clip(
-            ((xs - a[0]) * ab[0] + (ys - a[1]) * ab[1]) / max(float(ab @ ab), 1e-30), 0.0, 1.0
-        )
-        return np.hypot(xs - (a[0] + t * ab[0]), ys - (a[1] + t * ab[1]))
+        return distance_to_segment(*self.endpoints(), xs, ys)
 
     def height(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
         d = self.distance_to_axis(xs, ys)
