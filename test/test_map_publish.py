@@ -4,6 +4,7 @@ particles where the file's coordinates put them (the landmarks the planner and n
 
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -69,3 +70,42 @@ def test_publishing_without_the_imaging_node_says_so(tmp_path):
     done = subprocess.run(command, capture_output=True, text=True, timeout=60)
     assert done.returncode != 0
     assert "afm_imaging" in done.stderr and "afm launch" in done.stderr
+
+
+def test_the_file_replaces_a_map_stamped_on_an_instrument_clock_ahead_of_wall_time(
+    nodes, ros_node, tmp_path
+):
+    """The simulator's clock runs far ahead of wall time: after a scan the nodes hold a map
+    stamped minutes ahead of the wall clock, and keep the newest map by its stamp. The file's
+    map must be stamped no earlier than the instrument's clock and that map, or the localizer,
+    planner and nano-hand ignore it (they did: `afm push --particle` found no landmark)."""
+    from builtin_interfaces.msg import Time
+    from rosgraph_msgs.msg import Clock
+    from std_msgs.msg import Header
+
+    from afm_ros.conversions import landmarks_to_msg, stamp_of
+    from afm_ros.landmark_map import NewestLandmarkMap
+
+    nodes("imaging")
+    ahead_ns = time.time_ns() + 900 * 10**9  # the instrument's clock, 15 min ahead of wall time
+    held_ns = ahead_ns - 60 * 10**9  # the map the nodes hold: a scan a minute before that
+    ahead = Time(sec=ahead_ns // 10**9, nanosec=ahead_ns % 10**9)
+    held_stamp = Time(sec=held_ns // 10**9, nanosec=held_ns % 10**9)
+    clock = ros_node.create_publisher(Clock, "/clock", 10)
+    ros_node.create_timer(0.05, lambda: clock.publish(Clock(clock=ahead)))
+    earlier = landmarks_to_msg([], Header(stamp=held_stamp, frame_id="afm_task"))
+    ros_node.create_publisher(LandmarkArray, "/afm/landmarks", LATCHED).publish(earlier)
+    marks = []
+    ros_node.create_subscription(LandmarkArray, "/afm/landmarks", marks.append, LATCHED)
+    lab_scan(tmp_path / "lab.sxm")
+    command = [sys.executable, "-m", "afm_bringup.cli", "map", "publish",
+               str(tmp_path / "lab.sxm")]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    wait_for(lambda: any(len(m.landmarks) == 2 for m in marks), 20, what="the file's landmarks")
+    published = next(m for m in marks if len(m.landmarks) == 2)
+    assert stamp_of(published.header) >= stamp_of(Header(stamp=ahead))
+    held = NewestLandmarkMap(ros_node.get_logger())
+    held.take(earlier)
+    held.take(published)
+    assert len(held.current()) == 2  # what the localizer, planner and nano-hand now hold

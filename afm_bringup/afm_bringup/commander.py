@@ -18,10 +18,12 @@ import time
 
 import rclpy
 from action_msgs.msg import GoalStatus
+from builtin_interfaces.msg import Time
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
+from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header, String
 
 from afm_bringup.progress import FEEDBACK_TEXTS, Feedback, Progress
@@ -48,6 +50,8 @@ REJECTED = {
     "push_particle": " (a push or an assembly is running: one manipulation at a time)",
     "assemble": " (a push or an assembly is running: one manipulation at a time)",
 }
+# s a published scan file waits for the graph's clock and latched maps before it is stamped
+GRAPH_TIME_WAIT_S = 2.0
 # every node's latest link report: latched, and room for the whole graph's at once
 LINK_REPORTS = QoSProfile(depth=64, reliability=LATCHED.reliability, durability=LATCHED.durability)
 
@@ -407,23 +411,44 @@ class AfmCommander:
         from afm_ros.qos_profiles import LATCHED, SCANS
 
         got: dict = {}
-        header = Header(stamp=self.node.get_clock().now().to_msg(), frame_id=FRAME_SCANNER)
+        header = Header(frame_id=FRAME_SCANNER)  # stamped once the graph's present is known
+        # The nodes keep the newest landmark map by its stamp, and the simulator's clock runs
+        # far ahead of wall time: stamped by this process's wall clock, the file's map would be
+        # older than the one they hold after any scan, and they would keep that one. So the
+        # stamp is the graph's present: no earlier than the instrument's clock and any map.
+        heard = {"newest_ns": 0, "clock": 0, "maps": 0}
 
-        def ours(msg) -> bool:  # the imaging node keeps the scan's stamp on both
-            return msg.header.stamp == header.stamp
+        def note(stamp, kind: str) -> None:
+            heard["newest_ns"] = max(heard["newest_ns"], stamp.sec * 10**9 + stamp.nanosec)
+            heard[kind] += 1
+
+        def take(msg, key) -> None:
+            note(msg.header.stamp, "maps")
+            if msg.header.stamp == header.stamp:  # the imaging node keeps the scan's stamp
+                got.setdefault(key, msg)
 
         subscriptions = [
-            self.node.create_subscription(
-                kind, topic, lambda m, k=key: got.setdefault(k, m) if ours(m) else None, LATCHED
-            )
+            self.node.create_subscription(kind, topic, lambda m, k=key: take(m, k), LATCHED)
             for key, kind, topic in (
                 ("map", RasterScan, topics.CORRECTED_MAP),
                 ("landmarks", LandmarkArray, topics.LANDMARKS),
             )
         ]
+        subscriptions.append(
+            self.node.create_subscription(Clock, "/clock", lambda m: note(m.clock, "clock"), 10)
+        )
         publisher = self.node.create_publisher(RasterScan, topics.SCAN, SCANS)
         try:
             self.wait_until_subscribed([topics.SCAN], "afm_imaging", timeout=timeout)
+            settle = time.monotonic() + GRAPH_TIME_WAIT_S
+            while time.monotonic() < settle and not (
+                (heard["clock"] or not self.node.count_publishers("/clock"))
+                and (heard["maps"] or not self.node.count_publishers(topics.LANDMARKS))
+            ):
+                time.sleep(0.05)
+            now_ns = self.node.get_clock().now().nanoseconds
+            stamp_ns = max(now_ns, heard["newest_ns"] + 1000)  # 1 us after the newest heard
+            header.stamp = Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
             publisher.publish(raster_scan_to_msg(scan, header, scan_id=scan_id))
             deadline = time.monotonic() + timeout
             while len(got) < 2 and time.monotonic() < deadline:
