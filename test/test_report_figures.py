@@ -118,3 +118,35 @@ def test_every_figure_is_the_page_width(tmp_path):
     ]
     for path in paths:
         assert width_px(path) == page, path.name
+
+
+def test_an_assembly_s_many_strokes_get_a_colour_bar_not_a_legend_that_buries_the_plot(tmp_path):
+    """61 strokes (the demo's assembly) named in a legend filled the figure and matplotlib
+    warned; past a few the strokes are coloured by their order with a colour bar."""
+    import warnings
+
+    import matplotlib.pyplot as plt
+
+    distance = np.linspace(0, 2e-7, 50)
+    many = [
+        (f"stroke {i}", distance, np.full(50, i * 1e-10), np.full(50, 1e-8)) for i in range(61)
+    ]
+    captured = []
+    original = plt.Figure.savefig
+
+    def keep(fig, *args, **kwargs):
+        captured.append(fig)
+        return original(fig, *args, **kwargs)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the legend's "not enough room" UserWarning fails here
+        plt.Figure.savefig = keep
+        try:
+            save_force_figure(tmp_path / "forces.png", many)
+            save_force_figure(tmp_path / "few.png", many[:3])
+        finally:
+            plt.Figure.savefig = original
+    crowded, few = captured
+    assert all(ax.get_legend() is None for ax in crowded.axes)
+    assert any("stroke, in order (1-61)" in ax.get_ylabel() for ax in crowded.axes)
+    assert any(ax.get_legend() is not None for ax in few.axes)

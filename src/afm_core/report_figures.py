@@ -187,21 +187,34 @@ def save_map_figure(
     return path
 
 
+MAX_LEGEND_STROKES = 8  # strokes named in a legend; more are coloured by their order
+
+
 def save_force_figure(path: Path, strokes) -> Path:
     """strokes: (label, distance along the stroke m, lateral force N, normal force N) each."""
     fig, (lateral, normal) = plt.subplots(
         1, 2, figsize=(FIGURE_WIDTH_IN, 3.2), layout="constrained", sharex=True
     )
-    for label, distance, f_lat, f_norm in strokes:
-        lateral.plot(_nm(distance), _nm(f_lat), lw=0.9, label=label)
-        normal.plot(_nm(distance), _nm(f_norm), lw=0.9, label=label)
+    # an assembly has dozens of strokes: a legend of them buries the plot, so past a few the
+    # colour says the stroke's place in the session and a colour bar replaces the legend
+    by_order = len(strokes) > MAX_LEGEND_STROKES
+    colours = plt.get_cmap("viridis")(np.linspace(0.0, 1.0, max(len(strokes), 1)))
+    for i, (label, distance, f_lat, f_norm) in enumerate(strokes):
+        style = {"lw": 0.9, "label": label} | ({"color": colours[i]} if by_order else {})
+        lateral.plot(_nm(distance), _nm(f_lat), **style)
+        normal.plot(_nm(distance), _nm(f_norm), **style)
     for ax, what in ((lateral, "lateral force (nN)"), (normal, "normal force (nN)")):
         ax.set_xlabel("distance along the stroke (nm)")
         ax.set_ylabel(what)
         ax.grid(alpha=0.3)
     lateral.set_title("lateral force per stroke (torsion x spring constant)", fontsize=9)
     normal.set_title("normal force per stroke (deflection x spring constant)", fontsize=9)
-    if strokes:
+    if by_order:
+        shown = plt.cm.ScalarMappable(
+            cmap="viridis", norm=matplotlib.colors.Normalize(1, len(strokes))
+        )
+        fig.colorbar(shown, ax=normal, label=f"stroke, in order (1-{len(strokes)})")
+    elif strokes:
         normal.legend(fontsize=7, ncol=2)
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
