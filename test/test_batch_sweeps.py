@@ -372,3 +372,80 @@ def test_a_batch_killed_midway_resumes_without_redoing_or_duplicating_rows(tmp_p
     assert [r for r in rows if r["item"] in {w["item"] for w in written}] == written
     later = [r["finished_utc"] for r in rows if r["item"] not in {w["item"] for w in written}]
     assert min(later) > max(w["finished_utc"] for w in written)
+
+
+def test_push_goals_are_judged_in_the_landmark_map_s_frame_as_the_tip_is(tmp_path):
+    """The map was made after the scanner drifted 20 nm: its landmarks sit 20 nm from where the
+    session's start puts the true particles. A goal is in the map's frame, so a particle pushed
+    to exactly the map-frame goal is 0 nm off (judged from the start's anchor, as before, it was
+    20 nm off, and the nano-hand's verified 4 nm push of the README's session read 24 nm)."""
+    from afm_core.batch import evaluate_recording
+    from afm_core.evaluation import image_frame_matrix
+    from afm_core.recording import RecordingWriter
+    from afm_core.recording.cdr import encoder
+    from afm_core.recording.definitions import full_message_definition
+
+    tip = np.array([50.0e-6, 50.0e-6])
+    inverse = np.linalg.inv(image_frame_matrix())
+    drift = np.array([20 * NM, 0.0])
+
+    def mapped(p):  # where the drifted map shows a true position
+        return tip + inverse @ (np.asarray(p) - tip) + drift
+
+    particles = {1: (50.2e-6, 50.0e-6), 2: (51.0e-6, 52.0e-6), 3: (52.5e-6, 50.5e-6)}
+    final = np.array([50.2e-6, 50.4e-6])
+    types = {
+        "/afm/ground_truth": "afm_msgs/msg/GroundTruth",
+        "/afm/landmarks": "afm_msgs/msg/LandmarkArray",
+        "/afm/push_goal": "geometry_msgs/msg/PointStamped",
+    }
+
+    def point(xy):
+        return {"x": float(xy[0]), "y": float(xy[1]), "z": 0.0}
+
+    def header(seconds, frame="afm_task"):
+        return {"stamp": {"sec": int(seconds), "nanosec": 0}, "frame_id": frame}
+
+    def truth(seconds, where):
+        objects = [
+            {"id": i, "kind": 0, "position": point(p), "orientation": 0.0, "radius": 50e-9,
+             "length": 0.0}
+            for i, p in where.items()
+        ]  # fmt: skip
+        return {
+            "header": header(seconds),
+            "tip_position": point(tip),
+            "commanded_position": point(tip),
+            "drift_offset": point((0.0, 0.0)),
+            "drift_velocity": point((0.0, 0.0)),
+            "tip_apex_radius": 10e-9,
+            "objects": objects,
+        }
+
+    marks = {
+        "header": header(5.0),
+        "landmarks": [
+            {"id": i, "kind": 0, "position": point(mapped(p)), "covariance": [1e-18, 0, 0, 1e-18],
+             "radius": 50e-9, "height": 100e-9, "length": 0.0, "orientation": 0.0}
+            for i, p in particles.items()
+        ],
+    }  # fmt: skip
+    path = tmp_path / "drifted.mcap"
+    with RecordingWriter(path) as writer:
+        channels, encode = {}, {}
+        for topic, type_name in types.items():
+            definition = full_message_definition(type_name)
+            channels[topic] = writer.add_channel(topic, type_name, [], definition=definition)
+            encode[topic] = encoder(type_name, definition)
+        events = [
+            (1.0, "/afm/ground_truth", truth(1.0, particles)),
+            (5.0, "/afm/landmarks", marks),
+            (10.0, "/afm/push_goal", {"header": header(10.0), "point": point(mapped(final))}),
+            (14.0, "/afm/ground_truth", truth(14.0, {**particles, 1: tuple(final)})),
+        ]
+        for seconds, topic, message in events:
+            writer.write(channels[topic], int(seconds * 1e9), encode[topic](message))
+
+    row = evaluate_recording(path)
+    assert (row["push_goals_judged"], row["push_succeeded"]) == (1, 1)
+    assert row["push_error_max_m"] == pytest.approx(0.0, abs=1e-12)

@@ -109,9 +109,11 @@ def evaluate_recording(path, push_tolerance: float = push_outcomes.TOLERANCE) ->
         truth = reader.arrays(TRUTH) if TRUTH in topics else None
         if SCAN in topics:
             row.update(_scans(reader, truth))
-        if POSE in topics and truth is not None and len(truth["log_time"]):
+        frame = None
+        if truth is not None and len(truth["log_time"]):
             marks = reader.arrays(LANDMARKS) if LANDMARKS in topics else {}
             frame, _basis = truth_frame(truth, marks, _image_frame())
+        if POSE in topics and frame is not None:
             tip = tip_against_truth(reader.arrays(POSE), truth, frame)
             row.update(
                 localization_compared=tip["compared"],
@@ -122,7 +124,7 @@ def evaluate_recording(path, push_tolerance: float = push_outcomes.TOLERANCE) ->
             row.update(_pushes(reader, truth))
         if push_outcomes.GOAL in topics:
             goals = reader.arrays(push_outcomes.GOAL)
-            row.update(push_outcomes.push_columns(goals, truth, _image_frame(), push_tolerance))
+            row.update(push_outcomes.push_columns(goals, truth, frame, push_tolerance))
     return row
 
 

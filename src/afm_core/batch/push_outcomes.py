@@ -10,9 +10,11 @@ moved nothing and the particle nearest the goal is judged (the push failed unles
 already sat at the goal).
 
 Frames: a goal is in the maps' frame (commanded scanner coordinates, where the images and the
-localizer's estimates are); the truth is metric. As for the tip (afm_core.evaluation.
-tip_against_truth), a true position p is brought into the maps' frame about where the session
-started at rest (commanded c0 = tip t0): c = c0 + M^-1 (p - t0), M the image-frame matrix.
+localizer's estimates are); the truth is metric. A true position p is brought into the maps'
+frame as the tip's is (afm_core.evaluation.truth_frame: the first landmark map's own frame,
+fitted to the true particle centres at its time; without a map, anchored where the session
+started at rest). Anchoring at the start alone left out the drift up to the map, which the map's
+frame holds: a push the nano-hand's rescan put 4 nm from its goal was judged 24 nm off.
 """
 
 from __future__ import annotations
@@ -30,11 +32,10 @@ TOLERANCE = 20e-9  # m: the project's push success radius (SPEC section 5, book 
 MOVED = 1e-9
 
 
-def to_maps_frame(points: np.ndarray, truth: dict, image_frame: np.ndarray) -> np.ndarray:
-    """(n, 2) true positions (m) -> the maps' frame (module docstring)."""
-    t0 = np.array([truth["tip_position.x"][0], truth["tip_position.y"][0]])
-    c0 = np.array([truth["commanded_position.x"][0], truth["commanded_position.y"][0]])
-    return c0 + (np.asarray(points, float).reshape(-1, 2) - t0) @ np.linalg.inv(image_frame).T
+def to_maps_frame(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """(n, 2) true positions (m) -> the maps' frame; frame (2, 3) [A | b] (module docstring)."""
+    frame = np.asarray(frame, float)
+    return np.asarray(points, float).reshape(-1, 2) @ frame[:, :2].T + frame[:, 2]
 
 
 def _particles(truth: dict, index: int) -> dict[int, np.ndarray]:
@@ -45,7 +46,7 @@ def _particles(truth: dict, index: int) -> dict[int, np.ndarray]:
     }
 
 
-def goal_outcomes(goals: dict, truth: dict, image_frame: np.ndarray, tolerance: float) -> list:
+def goal_outcomes(goals: dict, truth: dict, frame: np.ndarray, tolerance: float) -> list:
     """Per goal (recording order): (goal xy, pushed object id or None, its final xy in the
     maps' frame, error m, success, moved); final, error NaN when no truth follows the goal."""
     times = np.asarray(goals["log_time"], float)
@@ -68,7 +69,7 @@ def goal_outcomes(goals: dict, truth: dict, image_frame: np.ndarray, tolerance: 
         shift = {i: float(np.hypot(*(after[i] - before[i]))) for i in before.keys() & after}
         moved = max(shift, key=shift.get, default=None)
         ids = list(after)
-        finals = to_maps_frame(np.array([after[i] for i in ids]), truth, image_frame)
+        finals = to_maps_frame(np.array([after[i] for i in ids]), frame)
         if moved is not None and shift[moved] > MOVED:
             pushed = moved
         else:
@@ -79,12 +80,13 @@ def goal_outcomes(goals: dict, truth: dict, image_frame: np.ndarray, tolerance: 
     return out
 
 
-def push_columns(goals: dict, truth: dict | None, image_frame, tolerance: float) -> dict:
-    """The row's push-goal columns (evaluate.COLUMNS); without truth only the goals' count."""
+def push_columns(goals: dict, truth: dict | None, frame, tolerance: float) -> dict:
+    """The row's push-goal columns (evaluate.COLUMNS); without truth only the goals' count.
+    frame: (2, 3) the truth into the maps' frame (evaluation.truth_frame)."""
     row = {"push_goals": len(goals["log_time"]), "push_tolerance_m": tolerance}
     if truth is None or not len(truth["log_time"]) or not row["push_goals"]:
         return row
-    outcomes = goal_outcomes(goals, truth, image_frame, tolerance)
+    outcomes = goal_outcomes(goals, truth, frame, tolerance)
     judged = [o for o in outcomes if o[1] is not None]
     errors = [o[3] for o in judged]
     row.update(
