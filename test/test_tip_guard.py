@@ -227,3 +227,48 @@ def test_tip_files_carry_the_uncertainty_and_reconstruct_warns(tmp_path):
         assert out.exists()  # still written
         assert "warning: the tip is uncertain where it removes up to" in run.stderr
         assert ("carries no uncertainty" in run.stderr) == (tip_file.suffix == ".gwy")
+
+
+def test_a_tip_too_blunt_for_the_image_is_flagged_even_where_it_claims_to_be_known():
+    """A flat plate (a tip no image refined, given without uncertainty, as from a .gwy file)
+    cuts 13 nm off a 20 nm tube: the fallback calls its pixels known (a plate is
+    no flat start away from a drop), but the image is sharper than the plate allows (eroding
+    and re-dilating it loses the tube), which the opening test flags. The true tip, whole or
+    cropped to 5 x 5, is not flagged."""
+    surface, image, true = tube_scene(NOISE)
+    inner = (slice(12, -12), slice(12, -12))
+    plate = np.zeros((21, 21))
+    with pytest.warns(tg.TipGuardWarning, match="the tip cannot have taken this image"):
+        check = tg.check_reconstruction(image, plate, None, pixel_size=PIXEL)
+    cut = float((surface - check.reconstruction)[inner].max())
+    residual = float(check.opening_residual[inner].max())
+    print(f"\nplate: cut {cut / NM:.1f} nm, opening residual {residual / NM:.1f} nm")
+    assert cut > 10 * NM and check.too_blunt.any() and check.flagged[check.too_blunt].all()
+    assert 0.5 * cut <= residual <= cut + 5 * NOISE  # a lower bound of the cut, roughly
+    assert check.by_unconstrained.sum() == 0  # the uncertainty rules alone miss it
+    for good in (true, crop(true, 5)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", tg.TipGuardWarning)
+            ok = tg.check_reconstruction(
+                image, good, tg.tip_constraint(good, 0, NOISE).uncertainty
+            )
+        assert not ok.too_blunt.any() and ok.opening_residual.max() < ok.opening_limit
+
+
+def test_a_window_smaller_than_the_tips_reach_is_not_taken_for_a_blunt_tip():
+    """Grains imaged by a chipped tip reaching beyond the 21 x 21 window: where the image was
+    made by the tip's part outside the window, eroding and re-dilating with the cropped true
+    tip loses more than the noise (on flanks, never on a crest), though erosion with a crop
+    cuts nothing. Only residual regions holding a crest count."""
+    from afm_core.sim import tip_corpus as tc
+
+    chipped = tc.TipModel("chipped", 15e-9, 25.0, drop=4e-9)
+    image, surface, true = tc.make_case(tc.Case(chipped, "grains", 2e-9, 0.1e-9, 160, 21, 324))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tg.TipGuardWarning)
+        check = tg.check_reconstruction(
+            image, true, tg.tip_constraint(true, 0, 0.1e-9).uncertainty
+        )
+    assert np.all(check.reconstruction[12:-12, 12:-12] >= surface[12:-12, 12:-12] - 5e-10)
+    assert check.opening_residual.max() > check.opening_limit  # the flank residual is there
+    assert not check.too_blunt.any()

@@ -47,20 +47,31 @@ flagged when
     the pixel belongs to (the 8-connected region of r_upper more than 3 sigma above its
     median, counted only if its peak stands 6 sigma above): the uncertainty the tip does
     state is then too large for the feature. This catches an estimate at a threshold near
-    the image's height range, a plate whose constrained uncertainty allows anything.
-Both are warnings with the numbers; the reconstruction is still returned (and written).
+    the image's height range, a plate whose constrained uncertainty allows anything; or
+  * the image minus its opening by the tip, i - dilate(erode(i, t), t), exceeds what noise
+    explains (`opening_limit`) plus the tip's largest stated (finite) uncertainty: every image
+    the tip took is open under it (i = s (+) t gives dilate(erode(i, t), t) = i), and a tip up
+    to U blunter than that one leaves up to U; beyond, the tip is blunter than the one that
+    took the image by more than it says it may be (a tip from another image, a worn tip, an
+    estimate bounded only by features blunter than this image's, or a flat plate), and the
+    reconstruction cut into the object by about the residual or more. It catches tips whose
+    pixels the uncertainty calls known. Only residual regions holding a local maximum of the
+    image count (`_crest_regions`): a window smaller than the tip's reach leaves residuals on
+    flanks without cutting anything.
+All are warnings with the numbers; the reconstruction is still returned (and written).
 """
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, stats
 
 from afm_core.imaging.tip_refinement import estimate_noise
-from afm_core.physics.tip_morphology import erode
+from afm_core.physics.tip_morphology import dilate, erode
 
 NOISE_K = 3.0  # sigmas: a one-sided 0.13 % excursion of one Gaussian height
 # floor pixels: within the noise of both image heights of the bound (3 sigma each) of the
@@ -75,6 +86,9 @@ MIN_SUPPORTED_RADIUS = 1  # px
 # ~29 nm reconstructed), so its heights and widths are no longer measured, only bounded
 UNCERTAIN_SHARE = 0.25
 FEATURE_NOISE_K = 2 * NOISE_K  # sigmas a feature's peak must stand above the background
+# the opening test: the chance that the noise alone flags some pixel of an image the tip did
+# take (Gaussian noise; the residual is a difference of two noisy heights)
+OPENING_FALSE_ALARM = 0.01
 
 
 class TipGuardWarning(UserWarning):
@@ -290,6 +304,10 @@ class ReconstructionCheck:
     height_there: float  # m: the feature height at that location
     flagged_share: float  # flagged feature pixels / feature pixels
     warnings: list = field(default_factory=list)
+    # image - dilate(reconstruction, tip) >= 0, m: where the tip cannot have made the image
+    opening_residual: np.ndarray | None = None
+    too_blunt: np.ndarray | None = None  # bool: opening_residual > opening_limit
+    opening_limit: float = 0.0  # m
 
 
 def _features(upper: np.ndarray, background: float, sigma: float) -> np.ndarray:
@@ -329,6 +347,29 @@ def _apex_at_zero(tip: np.ndarray) -> tuple[np.ndarray, float]:
             "apex must be the centre pixel and the highest (t <= 0 around it): centre the tip"
         )
     return tip - apex, apex
+
+
+def opening_limit(pixels: int, sigma: float, height_span: float) -> float:
+    """m: the largest opening residual noise explains on an image of `pixels` pixels with noise
+    sigma: sqrt(2) sigma times the one-sided Gaussian quantile at OPENING_FALSE_ALARM / pixels
+    (6.9 sigma at 128 x 128, 7.6 sigma at 512 x 512), plus rounding (1e-9 of the height span)."""
+    k = math.sqrt(2.0) * float(stats.norm.isf(OPENING_FALSE_ALARM / max(int(pixels), 1)))
+    return k * float(sigma) + 1e-9 * float(height_span)
+
+
+def _crest_regions(image: np.ndarray, above: np.ndarray) -> np.ndarray:
+    """The 8-connected regions of `above` that hold a local maximum of the image (no
+    8-neighbour higher). A window smaller than the tip's reach leaves an opening residual
+    where the image was made by a part of the tip outside the window, with no cut (erosion
+    with a cropped tip stays above the surface); such a pixel has a neighbour at least as
+    high towards that contact (the tip does not rise away from its apex), so it is no local
+    maximum, while a tip too blunt for a crest leaves its residual on the crest itself."""
+    if not above.any():
+        return above
+    labels, _ = ndimage.label(above, structure=np.ones((3, 3)))
+    crest = above & (image >= ndimage.maximum_filter(image, size=3))
+    kept = np.unique(labels[crest])
+    return np.isin(labels, kept[kept > 0])
 
 
 def check_reconstruction(
@@ -383,7 +424,12 @@ def check_reconstruction(
     height = _features(upper, background, sigma)
     by_unknown = from_unknown > tol
     too_uncertain = (height > 0) & (removal > np.maximum(tol, UNCERTAIN_SHARE * height))
-    flagged = by_unknown | too_uncertain
+    residual = np.maximum(image - dilate(r, tip), 0.0)
+    # a tip up to its stated uncertainty blunter than the true one leaves up to that much
+    stated = float(unc[np.isfinite(unc)].max())
+    limit = opening_limit(image.size, sigma, float(np.ptp(image))) + stated
+    too_blunt = _crest_regions(image, residual > limit)
+    flagged = by_unknown | too_uncertain | too_blunt
     out = ReconstructionCheck(
         r,
         upper,
@@ -400,26 +446,52 @@ def check_reconstruction(
         0.0,
         float(flagged.sum() / max(int(((height > 0) | flagged).sum()), 1)),
         notes,
+        residual,
+        too_blunt,
+        limit,
     )
-    if flagged.any():
+    if (by_unknown | too_uncertain).any():
         _describe(out, pixel_size, origin)
+    if too_blunt.any():
+        _describe_blunt(out, pixel_size, origin)
     for text in out.warnings:
         warnings.warn(text, TipGuardWarning, stacklevel=2)
     return out
 
 
-def _describe(out: ReconstructionCheck, pixel_size, origin) -> None:
-    """The largest flagged removal, where, and a warning naming the numbers."""
-    removal = out.uncertain_removal
-    idx = np.unravel_index(int(np.argmax(np.where(out.flagged, removal, -np.inf))), removal.shape)
-    out.max_removal = float(removal[idx])
-    out.location = (int(idx[0]), int(idx[1]))
-    out.height_there = float(out.feature_height[idx])
+def _where(idx, pixel_size, origin) -> str:
     where = f"pixel (row {idx[0]}, col {idx[1]})"
     if pixel_size:
         x = origin[0] + (idx[1] + 0.5) * pixel_size
         y = origin[1] + (idx[0] + 0.5) * pixel_size
         where = f"({x * 1e9:.1f}, {y * 1e9:.1f}) nm, {where}"
+    return where
+
+
+def _describe_blunt(out: ReconstructionCheck, pixel_size, origin) -> None:
+    """A warning naming the largest opening residual and where (the opening test)."""
+    residual = out.opening_residual
+    idx = np.unravel_index(int(np.argmax(np.where(out.too_blunt, residual, -1.0))), residual.shape)
+    out.warnings.append(
+        f"the tip cannot have taken this image: at {int(out.too_blunt.sum())} pixels the image "
+        f"is sharper than the tip allows (eroding and re-dilating it with the tip loses up to "
+        f"{float(residual[idx]) * 1e9:.1f} nm, at {_where(idx, pixel_size, origin)}; noise and "
+        f"the tip's stated uncertainty explain {out.opening_limit * 1e9:.2f} nm): the tip is "
+        "blunter there than the one that took the image, and the reconstruction cut into the "
+        "objects by about that much or more; estimate the tip from this image (or a sharper "
+        "characteriser), or check that the tip did not change between the scans"
+    )
+
+
+def _describe(out: ReconstructionCheck, pixel_size, origin) -> None:
+    """The largest flagged removal, where, and a warning naming the numbers."""
+    removal = out.uncertain_removal
+    uncertain = out.by_unconstrained | out.too_uncertain
+    idx = np.unravel_index(int(np.argmax(np.where(uncertain, removal, -np.inf))), removal.shape)
+    out.max_removal = float(removal[idx])
+    out.location = (int(idx[0]), int(idx[1]))
+    out.height_there = float(out.feature_height[idx])
+    where = _where(idx, pixel_size, origin)
     causes = []
     if out.by_unconstrained.any():
         causes.append(
