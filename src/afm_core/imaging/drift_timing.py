@@ -21,6 +21,13 @@ velocity can change, and J's curvature includes that freedom. Before the profile
 covariances are scaled by chi2 / dof where the fit is worse than they allow (so an
 underestimated offset error widens the gap's error instead of faking precision).
 
+A stretch common to every region (du/dx and dv/dy, p2 and p5, the same in each) is fitted as
+a nuisance (`_SCALE`), not read as drift: the fast axes of the two scans differ, and whatever
+stretches a feature along its scan's fast axis (x/y calibration, feedback, pixel timing) looks
+like a velocity along the other scan's slow axis. The velocity then comes from the regions'
+translations at their different times and the shears; with two or three regions and a slow
+drift that is often too little, and the check says it cannot tell rather than warn.
+
 "Drift too small": a shift of the 90 deg times changes the offsets by the drift velocity during
 that scan; that velocity comes from a low-order model (per axis v (t - t_m) + a (t - t_m)^2 / 2
 with a free between-scan constant, linear least squares), and when it is not significantly
@@ -64,6 +71,15 @@ _GRID = 25  # profile points over the searched gap range before the local refine
 _MOVES = 2  # times the range is moved on when the minimum is at its edge
 _NM = 1e9
 _UNIT = np.array([_NM, _NM, 1, 1, 1, 1])  # offsets in nm and dimensionless gradients
+# A scale difference between the two scans common to every feature region (du/dx, dv/dy: p2,
+# p5) is fitted as a nuisance, not read as drift: the scanner's x and y calibrations, and
+# imaging along the fast axis (feedback, pixel timing), stretch each feature differently at 0
+# and 90 deg; on simulated pairs such a common stretch of ~2e-3 (3-10 of the features' own
+# standard errors) made 2-3 regions imply a gap 25-50 % short and warn at the right gap.
+# SCALE_SIGMA: its weak prior (keeps the normal equations regular; far above any such stretch).
+SCALE_SIGMA = 0.05
+_SCALE = np.zeros((6, 2))
+_SCALE[2, 0] = _SCALE[5, 1] = 1.0
 
 
 @dataclass
@@ -97,7 +113,8 @@ def _start(scan: RasterScanData) -> float:
 def _low_order_velocity(obs, t_m: float, period: float):
     """The drift velocity during the 90 deg scan (nm per line period, with covariance) and the
     between-scan constant, from D = v s + a s^2 / 2 (s: time - t_m in line periods) plus a free
-    constant in D(t90) - D(t0): linear least squares with chi2 / dof scaling."""
+    constant in D(t90) - D(t0) and the common scale (_SCALE): linear least squares with
+    chi2 / dof scaling."""
     rows, rhs, s90 = [], [], []
     for o in obs:
         white = whitening(o.cov * np.outer(_UNIT, _UNIT))
@@ -106,35 +123,42 @@ def _low_order_velocity(obs, t_m: float, period: float):
         a0, a90 = (o.t0 - t_m) / period, (o.t90 - t_m) / period
         terms = np.stack([a90 - a0, 0.5 * (a90**2 - a0**2), np.ones_like(a0)], axis=1)
         mx, my = white @ proj[:, :half] @ terms, white @ proj[:, half:] @ terms
-        rows.append(np.stack([mx[:, 0], my[:, 0], mx[:, 1], my[:, 1], mx[:, 2], my[:, 2]], 1))
+        columns = [mx[:, 0], my[:, 0], mx[:, 1], my[:, 1], mx[:, 2], my[:, 2]]
+        rows.append(np.column_stack(columns + [white @ _SCALE]))  # + the common scale
         rhs.append(white @ (o.z * _UNIT))
         s90.append(a90)
     design, z = np.vstack(rows), np.concatenate(rhs)
     sol, *_ = np.linalg.lstsq(design, z, rcond=None)
     chi2 = float(np.sum((design @ sol - z) ** 2))
-    cov = np.linalg.pinv(design.T @ design) * max(1.0, chi2 / max(len(z) - 6, 1))
+    cov = np.linalg.pinv(design.T @ design) * max(1.0, chi2 / max(len(z) - design.shape[1], 1))
     mid90 = float(np.mean(np.concatenate(s90)))
     lin = np.array([[1, 0, mid90, 0], [0, 1, 0, mid90]], float)
     return lin @ sol[:4], lin @ cov[:4, :4] @ lin.T, sol[4:6]
 
 
 class _Profile:
-    """J(shift): the correction's drift model (spline, prior) refitted with the 90 deg times
-    shifted by `shift` seconds, on one knot grid for every shift (so J is smooth in it)."""
+    """J(shift): the correction's drift model (spline, prior) plus the common stretch
+    (_SCALE) refitted with the 90 deg times shifted by `shift` seconds, on one knot grid for
+    every shift (so J is smooth in it)."""
 
     def __init__(self, obs, spline: TimeSpline, weight: float = 1.0):
         self.obs, self.spline, self.weight = obs, spline, weight
         prior = velocity_prior(spline)
         # only differences of D are observed: fix D = 0 at the grid's start (any gauge will do)
         anchor = np.kron(np.eye(2), spline.rows(spline.t0 + 2 * spline.h).toarray())
-        self.fixed = prior.T @ prior + anchor.T @ anchor  # the normal matrix's constant part
+        fixed = prior.T @ prior + anchor.T @ anchor  # the normal matrix's constant part
+        # the common scale (_SCALE): two more unknowns, the same columns for every shift
+        self.fixed = np.zeros((fixed.shape[0] + 2,) * 2)
+        self.fixed[:-2, :-2] = fixed
+        self.fixed[-2:, -2:] = np.eye(2) / SCALE_SIGMA**2
+        self.scale = np.vstack([whitening(o.cov * np.outer(_UNIT, _UNIT)) @ _SCALE for o in obs])
 
     def fit(self, shift: float, count: bool = False):
         """(J, data chi-square, effective number of drift parameters the data fix, or 0 unless
         `count`). Normal equations: the prior and the gauge keep them well posed, and they
         are several times faster than an orthogonal solve, which matters for the profile."""
         blocks = whitened_blocks(self.obs, self.spline, shift)
-        data = np.vstack([d for d, _ in blocks]) / self.weight
+        data = np.hstack([np.vstack([d for d, _ in blocks]), self.scale]) / self.weight
         z = np.concatenate([r for _, r in blocks]) / self.weight
         normal = data.T @ data + self.fixed
         coeffs = np.linalg.solve(normal, data.T @ z)
