@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from afm_core.imaging.tip_guard import guard_estimate
+from afm_core.imaging.tip_guard import MIN_SUPPORTED_RADIUS, guard_estimate, tip_constraint
 from afm_core.imaging.tip_refinement import (
     TipRefiner,
     estimate_noise,
@@ -173,7 +173,13 @@ def _swept_threshold(
         chosen, critical, table = book_threshold(sweep, thresholds, sigma, pixel_size, band)
     else:
         if threshold == "auto":
-            chosen, scores = runaway_threshold(sweep, sigma, depth, thresholds)
+            span = float(image.max() - image.min())
+            need = min(MIN_SUPPORTED_RADIUS, tip_size // 2)
+
+            def resolves(tip, th):  # what guard_estimate refuses an automatic choice for
+                return tip_constraint(tip, th, sigma, span).radius >= need
+
+            chosen, scores = runaway_threshold(sweep, sigma, depth, thresholds, resolves)
         else:
             chosen, scores = consensus_threshold(sweep, image, tip_size, sigma, depth, thresholds)
         table = sweep_table(sweep.tips, pixel_size, band)

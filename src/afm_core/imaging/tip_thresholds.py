@@ -214,15 +214,21 @@ def _ladder(sigma: float, ratio: float, top: float) -> np.ndarray:
     return np.append(top / ratio ** np.arange(rungs + 1), 0.0)
 
 
-def runaway_threshold(sweep: ThresholdSweep, sigma: float, depth: float, thresholds):
+def runaway_threshold(
+    sweep: ThresholdSweep, sigma: float, depth: float, thresholds, resolves=None
+):
     """The lowest threshold above the noise runaway: walk down the ladder (or the given
     thresholds), each estimate warm-started from the one above, and stop at the first rung
     whose change rate exceeds RUNAWAY once the estimate follows the threshold; the choice is
     the lowest rung above it that moved no faster than RUNAWAY_EDGE. The ladder is coarse
     (COARSE_RATIO) until a rung moves faster than CALM, then fine (FINE_RATIO) from the rung
     above that. Following down to the bottom without a runaway: the lowest rung at or above
-    SINGLE_EXCURSION sigma; never following: the rung above the fastest change. Returns
-    (chosen, rates: threshold -> change rate from the rung above)."""
+    SINGLE_EXCURSION sigma; never following: the rung above the fastest change.
+    resolves(tip, threshold) -> bool (None: always): whether an estimate constrains at least
+    the apex's ring. A jump below a rung that does not is the estimate's first refinement of
+    its apex (a plate cannot be cut into a needle by noise it has not yet taken in): the
+    descent goes on past it, and no later back-off climbs above it. Returns (chosen, rates:
+    threshold -> change rate from the rung above)."""
     fine = thresholds is not None
     ladder = (
         np.sort(np.asarray(thresholds, float))[::-1]
@@ -231,6 +237,7 @@ def runaway_threshold(sweep: ThresholdSweep, sigma: float, depth: float, thresho
     )
     rates: dict = {}
     following = False
+    ceiling = np.inf  # no choice above the rung where the apex was first resolved
     previous = sweep.run(ladder[0], cap=DESCENT_PASSES)
     j = 1
     while j < len(ladder):
@@ -247,10 +254,17 @@ def runaway_threshold(sweep: ThresholdSweep, sigma: float, depth: float, thresho
             above = j - 1
             # (the fine ladder's top is the calm coarse rung, with its rate from the coarse
             # step; a given ladder's top has none)
-            while above > 0 and rates.get(float(ladder[above]), 0.0) > RUNAWAY_EDGE:
+            while (
+                above > 0
+                and rates.get(float(ladder[above]), 0.0) > RUNAWAY_EDGE
+                and ladder[above - 1] <= ceiling
+            ):
                 above -= 1
-            sweep.run(ladder[above])  # converged
-            return float(ladder[above]), rates
+            chosen = sweep.run(ladder[above])  # converged
+            if resolves is None or resolves(chosen, float(ladder[above])):
+                return float(ladder[above]), rates
+            # the jump refined the apex itself: go on down from the rung below it
+            ceiling, following = float(ladder[j]), False
         # the first moves off the flat start can be jumps; following needs a calm rung
         following = following or FOLLOWING < rate <= CALM
         previous = tip
