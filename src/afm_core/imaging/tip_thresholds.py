@@ -5,19 +5,20 @@ threshold (exact: the limit does not depend on the start as long as it is an upp
 it).
 
 "auto" (`runaway_threshold`): walk N_TH down a geometric ladder (coarse, then fine near the
-runaway) and watch how fast the estimate moves per unit of threshold. Above the noise runaway
-a refined tip pixel sits at its bound + N_TH, so the estimate follows the threshold at most
-one for one; where noise starts to feed on itself (a cut admits contacts that cut further),
-the estimate drops many times faster than the threshold. The choice is the fine rung just
-above that runaway and its gentle start: the sharpest estimate that is still the threshold's
-and not the noise's. The error is steep on both sides of it (just below, the runaway cuts
-the tip into a needle; one coarse rung above, it is 1.3-2x blunter), so the runaway is
-resolved on fine rungs. Without any runaway, the lowest rung at or above 3 sigma (single
-noise excursions). It needs only the image (the noise sigma sizes the ladder; the choice
-does not scale with it: the best threshold is 0-35 sigmas on the corpus, set by where the
-runaway begins, and the image's sigma is 2-10x high at coarse pixels). On a dedicated spike
-characterizer the best can lie higher, where the cuts made by feature tops that noise
-displaced by a pixel are balanced by the blunting (docs/imaging.md).
+runaway) and watch how fast the estimate moves per unit of threshold. Above the noise runaway a
+refined tip pixel sits at its bound + N_TH, so the estimate follows the threshold at most one
+for one; where noise starts to feed on itself (a cut admits contacts that cut further), the
+estimate drops many times faster than the threshold. The choice is the fine rung just above
+that runaway and its gentle start: the sharpest estimate that is still the threshold's and not
+the noise's (a jump below a rung whose apex ring is still unresolved is the apex's first
+refinement, and the descent goes on past it). The error is steep on both sides of it (just
+below, the runaway cuts the tip into a needle; one coarse rung above, it is 1.3-2x blunter), so
+the runaway is resolved on fine rungs. Without any runaway, the lowest rung at or above 3 sigma
+(single noise excursions). It needs only the image (the noise sigma sizes the ladder; the
+choice does not scale with it: the best threshold is 0-35 sigmas on the corpus, set by where
+the runaway begins, and the image's sigma is 2-10x high at coarse pixels). On a dedicated spike
+characterizer the best can lie higher, where the cuts made by feature tops that noise displaced
+by a pixel are balanced by the blunting (docs/imaging.md).
 
 "consensus" (`consensus_threshold`): the threshold whose estimate is closest, over its top
 `depth`, to the feature-consensus tip (the median over the feature points of their
