@@ -4,7 +4,7 @@ and Gwyddion 2.62's best, and the speed of auto and fixed estimates against Gwyd
 Run: `scripts/with_env.sh python bench/bench_tip_corpus.py [--n 256] [--gwyddion 10]
 [--speed] [--seeds 0 1]`. Writes bench/results/tip-corpus.json and tip-corpus.md; with
 `--outside` (the outside tester's 512x512 spheres setting, OUTSIDE_TIPS x OUTSIDE_SEEDS)
-tip-corpus-outside.json and .md.
+tip-corpus-outside.json and .md; with `--name NAME` bench/results/NAME.json and .md.
 
 Corpus: afm_core.sim.tip_corpus (five tip kinds x five sample kinds per seed, pixel 1-10 nm,
 noise 0.1-1 nm, its own tip formulas and imaging) plus the project's characterizer (two seeds,
@@ -337,7 +337,15 @@ def main() -> None:
         help="the outside tester's 512x512 spheres setting instead of the corpus "
         "(writes tip-corpus-outside.*)",
     )
+    parser.add_argument(
+        "--name",
+        default="",
+        help="results file name under bench/results (default tip-corpus, or tip-corpus-outside "
+        "with --outside), e.g. tip-corpus-512 for a run at another image size",
+    )
     args = parser.parse_args()
+    if args.name and not args.name.replace("-", "").replace("_", "").isalnum():
+        parser.error(f"--name {args.name!r}: letters, digits, '-' and '_' only")
     if args.outside and (args.speed or args.speed_only):
         parser.error("--outside measures the threshold only; run --speed without it")
     result = {
@@ -358,7 +366,7 @@ def main() -> None:
         result["corpus_date"] = last.get("corpus_date", last["date"])
     result["peak_memory_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     RESULTS.mkdir(exist_ok=True)
-    name = "tip-corpus-outside" if args.outside else "tip-corpus"
+    name = args.name or ("tip-corpus-outside" if args.outside else "tip-corpus")
     (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=2))
     text = render(result)
     (RESULTS / f"{name}.md").write_text(text)
