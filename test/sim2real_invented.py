@@ -97,3 +97,20 @@ def map_heights(ops, transform):
             op = dataclasses.replace(op, data=dataclasses.replace(data, height=moved))
         out.append(op)
     return out
+
+
+def z_offset_by_scan_direction(ops, size):
+    """Every local scan line scanned along +x (+y for a line closer to y) reads size / 2 (m)
+    higher, every one scanned back size / 2 lower: trace and retrace differ by `size`
+    (feedback lag on a tilt, a tilted tip). Images keep their heights (they record the trace
+    only, where the offset is one constant)."""
+    out = []
+    for op in ops:
+        data = op.data
+        if op.kind == "scan_line" and data is not None:
+            dx, dy = op.end[0] - op.start[0], op.end[1] - op.start[1]
+            forward = (dx if abs(dx) >= abs(dy) else dy) > 0
+            height = np.asarray(data.height, float) + (0.5 if forward else -0.5) * size
+            op = dataclasses.replace(op, data=dataclasses.replace(data, height=height))
+        out.append(op)
+    return out

@@ -26,6 +26,11 @@ Forms, with t the instrument clock (s) and x, y the scanner's true position (m):
   a slow bend) as a sum of degrees, each bounded by |amplitude| on the span
 - x_linear, y_linear: amplitude * (x - x0) or (y - y0) (amplitude per m; x0, y0 default 0)
 - x_sine, y_sine: amplitude * sin(2 pi (x - x0) / period)
+- scan_direction: +amplitude / 2 on a local scan line scanned along +x (+y for a line closer
+  to y), -amplitude / 2 on one scanned back (height signal only): a z offset by scan
+  direction, forward less backward = amplitude (feedback lag, a tilted tip). It acts on one
+  line of samples (1-D t, x, y, its direction from its ends); an image's rows (2-D) record
+  their trace only, where an offset by direction is one constant: 0 there
 - height_proportional: amplitude * (true height about the substrate)  (height signal only)
 - height_squared: amplitude * (true height about the substrate)^2  (height signal only;
   amplitude per m): a z sensor whose sensitivity changes along its range (a nonlinear piezo),
@@ -68,6 +73,7 @@ FORMS = {
     "y_linear": {"y0": 0.0},
     "x_sine": {"period": None, "x0": 0.0},
     "y_sine": {"period": None, "y0": 0.0},
+    "scan_direction": {},
     "height_proportional": {},
     "height_squared": {},
     "deflection_proportional": {},
@@ -81,6 +87,7 @@ PROPORTIONAL = {
     "deflection_proportional": "torsion",
     "disc_proportional": "height",
 }
+SIGNAL_ONLY = {"scan_direction": "height"}  # forms on one signal that scale no signal
 MAX_OFFSET = 1e-5  # m or rad: a generic term larger than the z range describes no instrument
 MAX_STRAIN = 0.1  # x_position/y_position linear in x or y: a 10 % gain error is no ripple
 MAX_DEGREE = 5  # time_legendre: a smooth change, not a fit of every wiggle
@@ -107,6 +114,8 @@ class GenericTerm:
             return np.full(shape, a)
         if form == "line_jitter":  # where a line is read, not what is added to it
             return np.zeros(shape)
+        if form == "scan_direction":
+            return np.full(shape, 0.5 * a * _line_sign(x, y))
         if form == "time_linear":
             return np.broadcast_to(a * (t - self.param("t0")), shape).copy()
         if form == "time_step":
@@ -143,6 +152,15 @@ class GenericTerm:
         )
 
 
+def _line_sign(x: np.ndarray, y: np.ndarray) -> float:
+    """+1 for one line of samples (1-D) scanned along +x (+y if it runs closer to y), -1 back;
+    0 for an image's rows (2-D) or a line that does not move."""
+    if x.ndim != 1 or y.ndim != 1 or x.size < 2 or y.size < 2:
+        return 0.0
+    dx, dy = float(x[-1] - x[0]), float(y[-1] - y[0])
+    return float(np.sign(dx if abs(dx) >= abs(dy) else dy))
+
+
 def parse_generic_terms(entries) -> list[GenericTerm]:
     """GenericTerms from the configuration's `generic_terms` list; errors name the entry, the
     field and the limit."""
@@ -174,8 +192,9 @@ def _parse_one(k: int, entry) -> GenericTerm:
         raise ValueError(
             f"{where}.form={form}: line_jitter, and only it, acts on the lateral signal"
         )
-    if form in PROPORTIONAL and signal != PROPORTIONAL[form]:
-        raise ValueError(f"{where}.form={form}: only on the {PROPORTIONAL[form]} signal")
+    only = PROPORTIONAL.get(form, SIGNAL_ONLY.get(form))
+    if only is not None and signal != only:
+        raise ValueError(f"{where}.form={form}: only on the {only} signal")
     if signal in LATERAL_SIGNALS and form not in LATERAL_FORMS:
         raise ValueError(
             f"{where}.form={form}: the {signal} signal takes only {list(LATERAL_FORMS)}"
@@ -201,6 +220,7 @@ def _parse_one(k: int, entry) -> GenericTerm:
         raise ValueError(f"{where}.t1={dict(params)['t1']}: must be > t0={dict(params)['t0']}")
     term = GenericTerm(signal, form, amplitude, tuple(params))
     bounded = ("constant", "time_step", "time_sine", "time_legendre", "x_sine", "y_sine")
+    bounded += ("scan_direction",)
     if form == "line_jitter" and not 0.0 <= amplitude <= MAX_OFFSET:
         raise ValueError(f"{where}.amplitude={amplitude}: an sd in m, from 0 to {MAX_OFFSET}")
     if form in bounded and abs(amplitude) > MAX_OFFSET:

@@ -21,7 +21,7 @@ import numpy as np
 from scipy import stats
 
 from afm_core.sim2real.candidates import Candidate
-from afm_core.sim2real.features_absolute import LEVEL_GROUPS
+from afm_core.sim2real.features_absolute import LEVEL_GROUPS, UPDOWN_GROUP
 from afm_core.sim2real.line_shift import LINE_SHIFT_GROUP
 from afm_core.sim2real.noise_model import NoiseModel, Weighting, gls, group_overdispersion
 from afm_core.sim2real.reference import ReferenceSession
@@ -29,7 +29,7 @@ from afm_core.sim2real.results import CandidateResult
 
 ALPHA = 0.05  # family-wise false "missing physics" rate on null recordings
 # groups whose noise is modelled whole, never scaled by an overdispersion factor
-UNSCALED_GROUPS = (*LEVEL_GROUPS, LINE_SHIFT_GROUP)
+UNSCALED_GROUPS = (*LEVEL_GROUPS, UPDOWN_GROUP, LINE_SHIFT_GROUP)
 
 
 def can_act(cand: Candidate, theta0: np.ndarray, estimate: np.ndarray) -> bool:
@@ -110,9 +110,10 @@ def weigh_candidates(
     group_factors = group_overdispersion(
         r, P, [c[2] for c in terms.values()], noise.cov, table.groups
     )
-    # not the absolute levels nor the lines' own shifts: their noise is modelled whole
-    # (replicas, roughness), and what moves the whole z signal or each line sideways shows
-    # nowhere else, so a factor would hide exactly that
+    # not the absolute levels (nor their difference by scan direction) nor the lines' own
+    # shifts: their noise is modelled whole (replicas, roughness), and what moves the whole z
+    # signal, one scan direction's or each line sideways shows nowhere else, so a factor would
+    # hide exactly that
     group_factors = {g: f for g, f in group_factors.items() if g not in UNSCALED_GROUPS}
     # before overdispersion: a second term's test takes its own
     unscaled = dataclasses.replace(noise)

@@ -216,7 +216,7 @@ def ordinary_exclusions(ops, features: dict, config) -> Exclusions:
         level_keys.update(
             k
             for k in keys
-            if features[k].group == "line.level"
+            if features[k].group in ("line.level", "line.updown")
             and _line_near_paths(op, features[k].time, paths, reach)
         )
         if op.kind == "raster" and op.request is not None:

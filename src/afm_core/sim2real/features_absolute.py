@@ -16,11 +16,18 @@ alone. These features keep it:
 - `raster.level`: per block of lines of an image as the line-offset noise takes them (else per
   image), the median height of its pixels (particles are few).
 
-Both relative to the session's first level (the first run's or image's, whichever came first),
-so the z sensor's arbitrary zero cancels; that first level is not a feature itself. Their noise:
-the sensor noise through the replicas like every feature, plus the substrate's roughness
-averaged over the measured stretch (`level_variance`): the recording's sample and the model's
-are two realizations, and the tip's random positioning puts the lines on other stretches.
+- `line.updown`: per run with lines in both directions (on the substrate, as above), the mean
+  level of its lines scanned along +axis (+x, or +y for a run along y) less that of the lines
+  scanned back: a z offset by scan direction (feedback lag, a tilted tip), which the run's
+  mean level and every height relative to a line's edges cancel. Both directions cover one
+  stretch, so the substrate's roughness cancels too; not relative to the first level.
+
+The levels are relative to the session's first level (the first run's or image's, whichever
+came first), so the z sensor's arbitrary zero cancels; that first level is not a feature
+itself. Their noise: the sensor noise through the replicas like every feature, plus the
+substrate's roughness averaged over the measured stretch (`level_variance`): the recording's
+sample and the model's are two realizations, and the tip's random positioning puts the lines
+on other stretches (not `line.updown`'s: its two directions share theirs).
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ import math
 import numpy as np
 
 LEVEL_GROUPS = ("line.level", "raster.level")
+UPDOWN_GROUP = "line.updown"  # forward less backward level of a run (not relative)
 # Two edges on the same substrate differ by their medians' scatter, which is at most one
 # sample's spread (the roughness correlates an edge's samples, so the median may average
 # nothing away); each edge's spread is its own robust (MAD) standard deviation, which carries
@@ -71,7 +79,10 @@ class AbsoluteLevels:
 
     def run(self, run, common: dict) -> list:
         """`line.level` of a run of scan lines over one segment (ops with data)."""
-        levels, times, xs, ys, length = [], [], [], [], 0.0
+        levels, times, xs, ys, length, signs = [], [], [], [], 0.0, []
+        first = run[0]
+        d = np.array([first.end[0] - first.start[0], first.end[1] - first.start[1]], float)
+        k_axis = 0 if abs(d[0]) >= abs(d[1]) else 1
         for op in run:
             data = op.data
             if data is None:
@@ -83,6 +94,7 @@ class AbsoluteLevels:
             if not edges_on_substrate(h, edge):
                 continue
             levels.append(float(np.median(np.concatenate([h[:edge], h[-edge:]]))))
+            signs.append(float(np.sign(op.end[k_axis] - op.start[k_axis])))
             t = np.asarray(data.times, float)
             times.append(float(data.start_time + 0.5 * (t[0] + t[-1])))
             x, y = np.asarray(data.x, float), np.asarray(data.y, float)
@@ -91,27 +103,27 @@ class AbsoluteLevels:
             length += 2 * edge / h.size * float(np.hypot(x[-1] - x[0], y[-1] - y[0]))
         if not levels:
             return []
+        axis = "xy"[k_axis]
+        where = (float(np.mean(times)), float(np.mean(xs)), float(np.mean(ys)), (0.0, 0.0))
+        out = self._updown(first.index, np.array(levels), np.array(signs), where, common, axis)
         support = ("length", length)
         value = self._relative(float(np.mean(levels)), support)
         if value is None:
-            return []
-        first = run[0]
-        d = np.array([first.end[0] - first.start[0], first.end[1] - first.start[1]], float)
-        axis = "x" if abs(d[0]) >= abs(d[1]) else "y"
+            return out
         cond = dict(common, axis=axis, lines=len(levels), substrate=support)
         cond["reference_substrate"] = self.reference[1]
-        return [
-            self.feature_type(
-                (first.index, "line.level"),
-                "line.level",
-                value,
-                float(np.mean(times)),
-                float(np.mean(xs)),
-                float(np.mean(ys)),
-                (0.0, 0.0),
-                cond,
-            )
-        ]
+        level = self.feature_type((first.index, "line.level"), "line.level", value, *where, cond)
+        return [level, *out]
+
+    def _updown(self, index, levels, signs, where, common: dict, axis: str) -> list:
+        """`line.updown` of a run (its lines' levels and scan signs along its axis): none
+        unless both directions have a line on the substrate."""
+        forward, backward = levels[signs > 0], levels[signs < 0]
+        if not forward.size or not backward.size:
+            return []
+        value = float(np.mean(forward) - np.mean(backward))
+        cond = dict(common, axis=axis, lines=int(forward.size + backward.size))
+        return [self.feature_type((index, UPDOWN_GROUP), UPDOWN_GROUP, value, *where, cond)]
 
     def raster(self, op, common: dict) -> list:
         """`raster.level` per block of lines of a raster (op with data)."""

@@ -37,7 +37,7 @@ from scipy import stats
 from afm_core.sim.config import merge
 from afm_core.sim.generic_terms import GenericTerm, parse_generic_terms
 from afm_core.sim2real.deflection_term import deflection_fit, sample_sentence
-from afm_core.sim2real.generic_forms import search_form
+from afm_core.sim2real.generic_forms import SCAN_FORM, search_form
 from afm_core.sim2real.generic_reach import heldout_where, reached_groups
 from afm_core.sim2real.heldout import heldout_chi2
 from afm_core.sim2real.jitter_fit import jitter_sentence, line_jitter_fit, lives_in_line_shifts
@@ -496,8 +496,8 @@ def adopt_sampled_form(sig: Signature, generic: dict) -> None:
     form = generic["form"]
     family = "space" if form in SPACE_FORMS else "time"
     own = getattr(sig, family)
-    if not generic.get("searched") or not own or own.get("form") == form:
-        return
+    if not generic.get("searched") or not own or own.get("form") == form or form == SCAN_FORM:
+        return  # (an offset by scan direction is no form in time or across the sample)
     terms = parse_generic_terms(
         [{k: v for k, v in term.items() if k != "sigma"} for term in generic["terms"]]
     )
@@ -536,6 +536,11 @@ def model_sentence(generic: dict) -> str:
         shape = f", period {period:.3g} {unit}, amplitude {amplitude * 1e9:.3g} nm"
     elif terms[0]["form"] == "time_step":
         shape = f" of {terms[0]['amplitude'] * 1e9:.3g} nm at t = {terms[0]['t0']:.0f} s"
+    elif terms[0]["form"] == "scan_direction":
+        shape = (
+            f", forward less backward scan lines {terms[0]['amplitude'] * 1e9:.3g} "
+            f"+- {terms[0]['sigma'] * 1e9:.2g} nm"
+        )
     if generic["signal"] not in ("height", "x_position", "y_position"):
         shape = ""  # the shapes above are in m
     if terms[0]["form"] == "deflection_proportional":

@@ -17,7 +17,9 @@ searched. The chosen form's final columns are re-simulated (generic_fit.py) all 
 The forms, all on the height signal (generic_terms.py's family): a linear trend, a step at the
 signature's time, a smooth change (Legendre degrees 1 to signature.SMOOTH_DEGREE over the span),
 periodic in time at the signature's period; when the signature's form is across the sample:
-linear in x, y or both, and periodic in x or y with the period searched. The one of least BIC
+linear in x, y or both, and periodic in x or y with the period searched; when the scan lines'
+forward less backward level (`line.updown`) lives, a z offset by scan direction (SCAN_FORM:
++-half of it on the lines scanned along and against their axis). The one of least BIC
 (chi^2 of the GLS fit with the nuisance columns, plus its number of amplitudes times ln N) on
 one noise model for all of them (the signature's groups without their overdispersion factors,
 which the unexplained effect inflated) is the form.
@@ -34,6 +36,7 @@ from scipy import optimize
 from afm_core.sim.generic_terms import GenericTerm
 from afm_core.sim2real.feature_table import by_key, values_at
 from afm_core.sim2real.features import extract_features
+from afm_core.sim2real.features_absolute import UPDOWN_GROUP
 from afm_core.sim2real.noise_model import Whitener, gls
 from afm_core.sim2real.protocol import replay
 from afm_core.sim2real.sample_times import raster_samples
@@ -41,6 +44,7 @@ from afm_core.sim2real.signature import SMOOTH_DEGREE, Signature
 
 SEARCH_PERIODS = 10  # log-spaced periods tried between 3 feature spacings and the span
 REFINE_EVALUATIONS = 6  # bounded search between the best grid period's neighbours
+SCAN_FORM = "a z offset by scan direction"
 
 
 def with_height_offset(op, terms: list[GenericTerm]):
@@ -172,6 +176,8 @@ def search_form(sess, noise, P, r0: np.ndarray, sig: Signature, say=lambda m: No
     scorer = _Scorer(sampler, white, white(r0), white(P), size)
     t = sess.table.time
     bases = _time_bases(sig, float(np.min(t)), float(np.max(t)))
+    if UPDOWN_GROUP in {row["group"] for row in sig.signals}:
+        bases[SCAN_FORM] = [GenericTerm("height", "scan_direction", 1.0)]
     if sig.primary == "space":
         centre = tuple(float(v) for v in np.mean(sess.table.xy, axis=0))
         bases.update(_linear_bases(centre))

@@ -37,7 +37,7 @@ from afm_core.sim2real.features import (
     extract_features,
     raster_noise_statistics,
 )
-from afm_core.sim2real.features_absolute import LEVEL_GROUPS
+from afm_core.sim2real.features_absolute import LEVEL_GROUPS, UPDOWN_GROUP
 from afm_core.sim2real.force_samples import collecting
 from afm_core.sim2real.mismatch import (
     Agreement,
@@ -59,7 +59,11 @@ SHIFT = 10e-9  # m, drift shift of the sensitivity replays
 LATERAL_SIZE_GROUPS = ("raster.half_width",)
 # compared at the recorded geometry: what a term that only moves the tip leaves as it is (the
 # heights and profiles of what it meets, the substrate's level)
-AT_GEOMETRY_GROUPS = tuple(g for g in SHAPE_GROUPS if g not in LATERAL_SIZE_GROUPS) + LEVEL_GROUPS
+AT_GEOMETRY_GROUPS = (
+    *(g for g in SHAPE_GROUPS if g not in LATERAL_SIZE_GROUPS),
+    *LEVEL_GROUPS,
+    UPDOWN_GROUP,
+)
 REALIZATION_NOISE_SEED = 3000  # their first noise seed (the replicas' are 1000, 1001, ...)
 # image shapes whose response to the pixel phase is a staircase: their noise is drawn with the
 # walk on (`_walk_staircase_variance`), WALK_REPLICAS replays from WALK_NOISE_SEED

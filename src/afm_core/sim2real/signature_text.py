@@ -13,6 +13,10 @@ WORDS = {
     "line.peak": ("particle heights in scan lines", "z"),
     "line.asym": ("flank asymmetry in scan lines", "z"),
     "line.level": ("absolute substrate level of scan lines", "z"),
+    "line.updown": (
+        "z offset by scan direction (substrate level of forward less backward scan lines)",
+        "z",
+    ),
     "raster.x": ("raster centroids (x)", "lateral"),
     "raster.y": ("raster centroids (y)", "lateral"),
     "raster.height": ("particle heights in images", "z"),
