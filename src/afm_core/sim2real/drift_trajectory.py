@@ -45,6 +45,13 @@ class ScannerMap:
 
     def __init__(self, ops, f_rec: dict, config: SimConfig, anchors: np.ndarray):
         by_index = {op.index: op for op in ops}
+        # each operation's time span (s): a long image's one observation sits at its particles'
+        # mean time, and the drift goes on over the whole image (drift_trajectory)
+        self.spans = {
+            op.index: (op.start_time, op.start_time + op.duration)
+            for op in ops
+            if np.isfinite(op.duration)
+        }
         drives: dict = {}
         self.moves = replay(ops, deterministic(config), imaging=False, drives=drives).moves
         self.anchors = anchors
@@ -241,13 +248,39 @@ class ScannerMap:
         return np.stack(out, axis=1)
 
 
+def _covered_degree(t: np.ndarray) -> int:
+    """The highest polynomial degree (at most 3) the sorted observation times `t` support: k
+    when each of k + 1 equal parts of their span holds an observation. A cubic through two
+    stretches (a long image's one observation, then a push's lines within 30 s, 200 s later)
+    is set by each stretch's local slope and swung 150 nm within the image between them."""
+    span = float(np.ptp(t)) if t.size else 0.0
+    for degree in (3, 2, 1):
+        if span > 0:
+            parts = np.minimum(np.floor((t - t[0]) / span * (degree + 1)), degree)
+            if np.unique(parts).size == degree + 1:
+                return degree
+    return 0
+
+
+def _observed_span(keys, spans, t: float) -> tuple[float, float]:
+    """(start, end) s of the operations an observation's feature keys come from; (t, t)
+    without spans."""
+    found = [spans[k[0]] for k in keys if spans and k[0] in spans]
+    if not found:
+        return t, t
+    return min(a for a, _ in found), max(b for _, b in found)
+
+
 def drift_trajectory(
-    obs, config: SimConfig, t_end: float, moves=(), step: float = 0.5
+    obs, config: SimConfig, t_end: float, moves=(), step: float = 0.5, spans=None
 ) -> TrajectoryDrift:
-    """D(t) per axis, on a grid of `step` s: a cubic in time fitted to the observations (the
-    smooth drift) plus the residual of the observation expected to be closest to D(t): the one
-    with the least positioning-walk variance (moves) between, plus the drift's wander over the
-    time between (0.1 nm/s); the model's drift where an axis has no observation."""
+    """D(t) per axis, on a grid of `step` s: a polynomial in time fitted to the observations (the
+    smooth drift; cubic where they cover their span, `_covered_degree`; back to the start of
+    the first observed operation at their mean velocity, `spans`: operation index -> (start,
+    end) s; held beyond) plus the residual of the observation expected to be
+    closest to D(t): the one with the least positioning-walk variance (moves) between, plus the
+    drift's wander over the time between (0.1 nm/s); the model's drift where an axis has no
+    observation."""
     grid = np.arange(0.0, max(t_end, step) + step, step)
     out = nominal_drift(config, grid)
     s = config.scanner
@@ -272,10 +305,22 @@ def drift_trajectory(
         d = np.array([o[1] for o in obs[axis]])
         order = np.argsort(t)
         t, d = t[order], d[order]
-        degree = int(min(3, max(0, np.unique(np.round(t)).size - 1)))
+        degree = min(int(max(0, np.unique(np.round(t)).size - 1)), _covered_degree(t))
         scale = max(float(np.ptp(t)), 1.0)
         coef = np.polyfit((t - t[0]) / scale, d, degree) if degree > 0 else np.array([d.mean()])
-        smooth = lambda x: np.polyval(coef, (np.clip(x, t[0], t[-1]) - t[0]) / scale)  # noqa: E731
+        # back over the first observed operation at the observations' mean velocity (not held:
+        # a 256 s image's one observation sits at its particles' mean time, and its first
+        # particles were imaged a minute before it); held before it and after the last one
+        velocity = np.polyfit(t - t[0], d, 1)[0] if degree > 0 else 0.0
+        first = min(obs[axis], key=lambda o: o[0])[2]
+        lo = min(_observed_span(first, spans, t[0])[0], t[0])
+
+        def smooth(x, t=t, coef=coef, scale=scale, velocity=velocity, lo=lo):
+            end = np.clip(x, t[0], t[-1])
+            return np.polyval(coef, (end - t[0]) / scale) + velocity * (
+                np.clip(x, lo, t[0]) - t[0]
+            )
+
         resid = d - smooth(t)
         cost = (
             np.abs(walk(grid)[:, None] - walk(t)[None, :])

@@ -101,7 +101,9 @@ def agreement_with(ops, f_rec: dict, particles_seen: dict, config: SimConfig, an
     """`agreement` of the re-simulation with `config` at the drift trajectory fitted with its
     scanner (stage A)."""
     scanner_map = ScannerMap(ops, f_rec, config, anchors)
-    drift = drift_trajectory(scanner_map.obs, config, t_end, scanner_map.moves)
+    drift = drift_trajectory(
+        scanner_map.obs, config, t_end, scanner_map.moves, spans=scanner_map.spans
+    )
     seen: dict = {}
     run = replay(ops, deterministic(config), drift=drift)
     f_sim = by_key(extract_features(run.operations, anchors, seen))

@@ -398,12 +398,20 @@ def build_reference(
 
     say("drift trajectory of the recording")
     scanner_map = ScannerMap(ops, f_rec, config, anchors)
-    drift = drift_trajectory(scanner_map.obs, config, t_end, scanner_map.moves)
+    drift = drift_trajectory(
+        scanner_map.obs, config, t_end, scanner_map.moves, spans=scanner_map.spans
+    )
     say("reference re-simulation at the recorded geometry")
     nominal = replay(ops, base, drift=drift)
     f_nom = by_key(extract_features(nominal.operations, anchors))
     # stage B: the imaged reference's own offsets corrected, once
-    drift = drift_trajectory(scanner_map.refined(f_rec, f_nom), config, t_end, scanner_map.moves)
+    drift = drift_trajectory(
+        scanner_map.refined(f_rec, f_nom),
+        config,
+        t_end,
+        scanner_map.moves,
+        spans=scanner_map.spans,
+    )
     nominal = replay(ops, base, drift=drift)
     nominal_seen: dict = {}
     f_nom = by_key(extract_features(nominal.operations, anchors, nominal_seen))
