@@ -431,3 +431,22 @@ def test_a_null_names_no_z_gain_against_the_z_gain_alone():
     d = diagnose(ops, model, candidates=select(["height_gain"]))
     assert d.chosen == [] and d.verdict == NO_MISSING_PHYSICS, d.summary()
     assert d.updated_config is None
+
+
+def test_a_held_out_share_that_cannot_be_had_is_said_in_words_not_nan():
+    """A generic term whose held-out blocks leave no degree of freedom where it acts has no
+    share of the excess; the README session's summary printed "removes nan % of the held-out
+    excess"."""
+    import math
+
+    from afm_core.sim2real.results import heldout_share_words
+
+    assert heldout_share_words({"excess_reduction": 0.5, "dof": 4}) == (
+        "removes 50 % of the held-out excess"
+    )
+    none = heldout_share_words({"excess_reduction": math.nan, "dof": 0})
+    assert "no held-out degree of freedom" in none and "nan" not in none
+    clean = heldout_share_words(
+        {"excess_reduction": math.nan, "dof": 3, "chi2_before": 2.5, "chi2_after": 2.0}
+    )
+    assert "no held-out excess to remove (held-out chi2 2.5 for 3 dof)" in clean

@@ -52,7 +52,7 @@ from afm_core.sim2real.per_object import (
     object_offsets,
 )
 from afm_core.sim2real.periodic_height import periodic_height
-from afm_core.sim2real.results import UNEXPLAINED_P
+from afm_core.sim2real.results import UNEXPLAINED_P, heldout_share_words
 from afm_core.sim2real.signal_relations import DEFLECTION, deflection_relation, unseen_signature
 from afm_core.sim2real.signature import ALPHA, Signature, describe
 from afm_core.sim2real.signature_text import sentences
@@ -550,8 +550,7 @@ def model_sentence(generic: dict) -> str:
     read = f" (at the features' labelled places it reads as {read})" if read else ""
     return (
         f"Its simplest generic model, fitted on the {generic['signal']} samples the features "
-        f"take, is {form}{shape}{read}; re-simulated, it removes {h['excess_reduction']:.0%} of "
-        "the held-out excess."
+        f"take, is {form}{shape}{read}; re-simulated, it {heldout_share_words(h)}."
     )
 
 
@@ -595,11 +594,16 @@ def generic_section(diagnosis, out: Path) -> list[str]:
         )
     where = ", ".join(generic.get("reached", [])) or "all groups"
     whole = h.get("all_groups", h)
+    removed = (
+        f"{h['excess_reduction']:.0%} of the excess removed"
+        if np.isfinite(h["excess_reduction"])
+        else f"no share of the excess to give: it {heldout_share_words(h)}"
+    )
     lines += [
         "",
         f"Held-out (fitted on the other fold, re-simulated), in the groups the term reaches "
         f"({where}): chi2 {h['chi2_before']:.1f} -> {h['chi2_after']:.1f} for {h['dof']} dof; "
-        f"{h['excess_reduction']:.0%} of the excess removed; "
+        f"{removed}; "
         f"{'within' if h['within_noise'] else 'still beyond'} the noise "
         f"({HELDOUT_QUANTILE:.0%} quantile). Over the whole session: chi2 "
         f"{whole['chi2_before']:.1f} -> {whole['chi2_after']:.1f} for {whole['dof']} dof.",

@@ -175,10 +175,9 @@ class Diagnosis:
         text = ". What remains: " + " ".join(self.signature.sentences[:2])
         generic = self.generic or {}
         if generic.get("fitted"):
-            share = generic["heldout"]["excess_reduction"]
             text += (
-                f" A generic {generic['form']} on the {generic['signal']} signal removes "
-                f"{100 * share:.0f} % of the held-out excess (generic_terms.yaml)"
+                f" A generic {generic['form']} on the {generic['signal']} signal "
+                f"{heldout_share_words(generic['heldout'])} (generic_terms.yaml)"
             )
         return text
 
@@ -191,6 +190,21 @@ class Diagnosis:
             f" (held-out chi2 {h['chi2_before']:.1f} -> {h['chi2_after']:.1f} for {h['dof']} "
             f"dof, {100 * share:.0f} % of the excess over the noise removed)"
         )
+
+
+def heldout_share_words(h: dict) -> str:
+    """A held-out check's share in words: "removes N % of the held-out excess", or why there is
+    none (excess_reduction NaN): no held-out degree of freedom where the term acts, or no
+    held-out excess over the noise to remove."""
+    share = h.get("excess_reduction", float("nan"))
+    if np.isfinite(share):
+        return f"removes {100 * share:.0f} % of the held-out excess"
+    if h.get("dof", 0) <= 0:
+        return "cannot be checked on held-out blocks (no held-out degree of freedom where it acts)"
+    return (
+        f"has no held-out excess to remove (held-out chi2 {h['chi2_before']:.1f} for "
+        f"{h['dof']} dof)"
+    )
 
 
 # a fitted change from the model's value within this many sigma is "cannot tell": a null
