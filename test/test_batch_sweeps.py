@@ -177,12 +177,23 @@ def test_the_command_asks_for_seeds_or_paths_by_kind(tmp_path, capsys):
 
 
 # -- push goals in `evaluate` -----------------------------------------------------------------
+def _channels(writer, types: dict) -> tuple[dict, dict]:
+    """(channel id, CDR encoder) per topic of `types` (topic -> message type) on `writer`."""
+    from afm_core.recording.cdr import encoder
+    from afm_core.recording.definitions import full_message_definition
+
+    channels, encode = {}, {}
+    for topic, type_name in types.items():
+        definition = full_message_definition(type_name)
+        channels[topic] = writer.add_channel(topic, type_name, [], definition=definition)
+        encode[topic] = encoder(type_name, definition)
+    return channels, encode
+
+
 def _write_push_session(path, tip, moves, goals, pit=(1e-5, 1e-5)):
     """Ground truth of two particles and a pit, and push goals: moves = [(time s, id, xy)]
     (a truth message after each move), goals = [(time s, xy)]."""
     from afm_core.recording import RecordingWriter
-    from afm_core.recording.cdr import encoder
-    from afm_core.recording.definitions import full_message_definition
 
     types = {
         "/afm/ground_truth": "afm_msgs/msg/GroundTruth",
@@ -197,11 +208,7 @@ def _write_push_session(path, tip, moves, goals, pit=(1e-5, 1e-5)):
         return {"stamp": {"sec": int(seconds), "nanosec": 0}, "frame_id": "afm_task"}
 
     with RecordingWriter(path) as writer:
-        channels, encode = {}, {}
-        for topic, type_name in types.items():
-            definition = full_message_definition(type_name)
-            channels[topic] = writer.add_channel(topic, type_name, [], definition=definition)
-            encode[topic] = encoder(type_name, definition)
+        channels, encode = _channels(writer, types)
         events = [(t, "truth", i, xy) for t, i, xy in [(1.0, None, None), *moves]]
         events += [(t, "goal", None, xy) for t, xy in goals]
         for seconds, what, ident, xy in sorted(events, key=lambda e: e[0]):
@@ -382,8 +389,6 @@ def test_push_goals_are_judged_in_the_landmark_map_s_frame_as_the_tip_is(tmp_pat
     from afm_core.batch import evaluate_recording
     from afm_core.evaluation import image_frame_matrix
     from afm_core.recording import RecordingWriter
-    from afm_core.recording.cdr import encoder
-    from afm_core.recording.definitions import full_message_definition
 
     tip = np.array([50.0e-6, 50.0e-6])
     inverse = np.linalg.inv(image_frame_matrix())
@@ -432,11 +437,7 @@ def test_push_goals_are_judged_in_the_landmark_map_s_frame_as_the_tip_is(tmp_pat
     }  # fmt: skip
     path = tmp_path / "drifted.mcap"
     with RecordingWriter(path) as writer:
-        channels, encode = {}, {}
-        for topic, type_name in types.items():
-            definition = full_message_definition(type_name)
-            channels[topic] = writer.add_channel(topic, type_name, [], definition=definition)
-            encode[topic] = encoder(type_name, definition)
+        channels, encode = _channels(writer, types)
         events = [
             (1.0, "/afm/ground_truth", truth(1.0, particles)),
             (5.0, "/afm/landmarks", marks),
