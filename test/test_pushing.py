@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+from scipy.integrate import trapezoid  # numpy < 2 (the Docker image's) has no np.trapezoid
 from scipy.optimize import brentq, minimize, minimize_scalar
 
 from afm_core.physics.contact import ContactParams
@@ -199,7 +200,7 @@ def min_work_irc(s_c, L):
     s = np.linspace(-L / 2, L / 2, 20001)
 
     def work(x0):
-        return np.trapezoid(np.abs(s - x0), s) / abs(s_c - x0)
+        return trapezoid(np.abs(s - x0), s) / abs(s_c - x0)
 
     return minimize_scalar(
         work, bounds=(-L / 2, s_c - 1e-3 * L), method="bounded", options={"xatol": 1e-6 * L}
@@ -247,7 +248,7 @@ def test_end_cap_twists_minimise_the_friction_work(psi_deg):
     def work(z):  # z = (vx, omega): vy from the constraint
         vx, w = z
         vy = (1 - vx * n[0]) / n[1] - 0.5 * w
-        return np.trapezoid(np.hypot(vx, vy + w * s), s)
+        return trapezoid(np.hypot(vx, vy + w * s), s)
 
     best = min(
         (

@@ -32,6 +32,20 @@ from afm_core.report import DPI, FIGURE_WIDTH_IN, covariance_ellipse  # noqa: E4
 PUSH_MARGIN = 250e-9
 
 
+def _legend_below(fig, handles, labels, ncol: int) -> None:
+    """One figure legend under the panels, which the constrained layout makes room for.
+
+    matplotlib >= 3.7 does it with loc="outside lower center". Older ones (3.6, Ubuntu 24.04's,
+    which the Docker image uses) have no "outside" placement: the legend goes at the figure's
+    bottom edge and the layout is kept to the rectangle above it."""
+    if matplotlib.__version_info__ >= (3, 7):
+        fig.legend(handles, labels, loc="outside lower center", ncol=ncol, fontsize=7)
+        return
+    legend = fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=7)
+    height = legend.get_window_extent(fig.canvas.get_renderer()).height / fig.bbox.height
+    fig.get_layout_engine().set(rect=(0, height, 1, 1 - height))
+
+
 def _nm(values) -> np.ndarray:
     return np.asarray(values, float) * 1e9
 
@@ -130,7 +144,7 @@ def save_push_figure(
     for panel in axes[0]:
         for handle, label in zip(*panel.get_legend_handles_labels()):
             labels.setdefault(label, handle)
-    fig.legend(labels.values(), labels.keys(), loc="outside lower center", ncol=8, fontsize=7)
+    _legend_below(fig, labels.values(), labels.keys(), ncol=8)
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return path
@@ -356,7 +370,7 @@ def save_pattern_figure(
             if np.isfinite(off[row]).all():
                 err.annotate(str(rank + 1), off[row], xytext=(4, 4), textcoords="offset points")
     # under the panels: inside, the legend would hide the objects at the map's corners
-    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", ncol=6, fontsize=7)
+    _legend_below(fig, *ax.get_legend_handles_labels(), ncol=6)
     for radius in (10, 20):
         circle = radius * np.exp(1j * np.linspace(0, 2 * np.pi, 90))
         err.plot(circle.real, circle.imag, ":", color="grey", lw=0.8)
