@@ -38,8 +38,11 @@ def record_session(tmp_path, nodes, ros_node):
     ros_node.create_subscription(Image, topics.MAP_IMAGE, maps.append, LATCHED)
     with AfmCommander(server_timeout=60) as afm:
         afm.clients["scan_image"].wait_for_server(timeout_sec=60)
-        afm.wait_until_subscribed([topics.SCAN_IMAGE, topics.TF_STATIC, topics.TIP_COMMAND])
         afm.wait_until_subscribed([topics.TIP_COMMAND], "afm_localizer", timeout=30)
+        # /tf is volatile: the recorder must hear the localizer's publisher before the session
+        afm.wait_until_subscribed(
+            [topics.SCAN_IMAGE, topics.TF_STATIC, topics.TF, topics.TIP_COMMAND], timeout=30
+        )
         afm.wait_until_subscribed([topics.SCAN], "afm_imaging", timeout=30)
         scan = afm.send("scan_image", scan_goal(pixels=(32, 32), line_rate=LINE_RATE))
         assert scan.success, scan.message

@@ -51,7 +51,10 @@ REJECTED = {
     "assemble": " (a push or an assembly is running: one manipulation at a time)",
 }
 # s a published scan file waits for the graph's clock and latched maps before it is stamped
-GRAPH_TIME_WAIT_S = 2.0
+# (discovery of the driver's and the nodes' participants takes seconds on a loaded machine)
+GRAPH_TIME_WAIT_S = 5.0
+# s before a topic with no publisher is taken to have none (not merely one not yet discovered)
+DISCOVERY_S = 1.0
 # every node's latest link report: latched, and room for the whole graph's at once
 LINK_REPORTS = QoSProfile(depth=64, reliability=LATCHED.reliability, durability=LATCHED.durability)
 
@@ -440,10 +443,17 @@ class AfmCommander:
         publisher = self.node.create_publisher(RasterScan, topics.SCAN, SCANS)
         try:
             self.wait_until_subscribed([topics.SCAN], "afm_imaging", timeout=timeout)
-            settle = time.monotonic() + GRAPH_TIME_WAIT_S
-            while time.monotonic() < settle and not (
-                (heard["clock"] or not self.node.count_publishers("/clock"))
-                and (heard["maps"] or not self.node.count_publishers(topics.LANDMARKS))
+            begun = time.monotonic()
+
+            def present(kind: str, topic: str) -> bool:  # heard, or surely no publisher
+                if heard[kind]:
+                    return True
+                return time.monotonic() - begun > DISCOVERY_S and not self.node.count_publishers(
+                    topic
+                )
+
+            while time.monotonic() - begun < GRAPH_TIME_WAIT_S and not (
+                present("clock", "/clock") and present("maps", topics.LANDMARKS)
             ):
                 time.sleep(0.05)
             now_ns = self.node.get_clock().now().nanoseconds
