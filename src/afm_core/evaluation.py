@@ -134,6 +134,12 @@ def affine_fit(true_xy, mapped_xy) -> np.ndarray:
     return solution.T
 
 
+def in_frame(points, frame: np.ndarray) -> np.ndarray:
+    """(n, 2) positions (m) through a (2, 3) affine frame [A | b]: p A^T + b."""
+    frame = np.asarray(frame, float)
+    return np.asarray(points, float).reshape(-1, 2) @ frame[:, :2].T + frame[:, 2]
+
+
 def anchor_frame(truth: dict, image_frame: np.ndarray) -> np.ndarray:
     """(2, 3) [A | b]: metric truth into the commanded frame about where the session started (at
     rest there, commanded = true), scaled by `image_frame` (image_frame_matrix). The fallback
@@ -161,7 +167,7 @@ def map_frame(truth: dict, landmarks: dict, image_frame: np.ndarray) -> np.ndarr
     # the truth as the map was published (nothing moves a particle while it is imaged)
     true_xy = truth_xy(truth, truth_index_at(truth, landmarks["log_time"][0]), particles=True)
     guess = anchor_frame(truth, image_frame)
-    seen = true_xy @ guess[:, :2].T + guess[:, 2]
+    seen = in_frame(true_xy, guess)
     pairs = []
     for k, position in enumerate(mapped):
         distance = np.hypot(*(seen - position).T) if len(seen) else np.array([np.inf])
@@ -194,7 +200,7 @@ def tip_against_truth(poses: dict, truth: dict, frame: np.ndarray) -> dict:
     cov = np.asarray(poses["pose.covariance"])[:, [0, 1, 6, 7]].reshape(-1, 2, 2)
     metric = np.stack([truth["tip_position.x"], truth["tip_position.y"]], axis=1)
     frame = np.asarray(frame, float)
-    true_tip = metric @ frame[:, :2].T + frame[:, 2]
+    true_tip = in_frame(metric, frame)
     # the localizer publishes its estimate as each command ends, the driver its truth: compare
     # the pairs with the same stamp (error and NEES). Recordings made before 2026-11-27 hold
     # poses for times past the last command heard (the tip still where the move began), then

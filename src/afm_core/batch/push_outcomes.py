@@ -23,19 +23,13 @@ import math
 
 import numpy as np
 
-from afm_core.evaluation import PIT
+from afm_core.evaluation import PIT, in_frame
 
 GOAL = "/afm/push_goal"
 TOLERANCE = 20e-9  # m: the project's push success radius (SPEC section 5, book 7.3)
 # m: a displacement below this is no push's (1 nm is below what an AFM image resolves and far
 # above the round-off of positions of ~1e-4 m)
 MOVED = 1e-9
-
-
-def to_maps_frame(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """(n, 2) true positions (m) -> the maps' frame; frame (2, 3) [A | b] (module docstring)."""
-    frame = np.asarray(frame, float)
-    return np.asarray(points, float).reshape(-1, 2) @ frame[:, :2].T + frame[:, 2]
 
 
 def _particles(truth: dict, index: int) -> dict[int, np.ndarray]:
@@ -69,7 +63,7 @@ def goal_outcomes(goals: dict, truth: dict, frame: np.ndarray, tolerance: float)
         shift = {i: float(np.hypot(*(after[i] - before[i]))) for i in before.keys() & after}
         moved = max(shift, key=shift.get, default=None)
         ids = list(after)
-        finals = to_maps_frame(np.array([after[i] for i in ids]), frame)
+        finals = in_frame([after[i] for i in ids], frame)
         if moved is not None and shift[moved] > MOVED:
             pushed = moved
         else:
